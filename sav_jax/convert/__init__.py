@@ -1,0 +1,1 @@
+"""Checkpoints: reading PyTorch files safely, key mapping, orbax, export."""

@@ -1,0 +1,1 @@
+"""Datasets, the synthetic stereo-video generator, augmentation and grain pipelines."""

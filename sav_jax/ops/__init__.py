@@ -1,0 +1,1 @@
+"""Torch-compatible array primitives used by the model (pure functions)."""
