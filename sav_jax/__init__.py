@@ -1,3 +1,15 @@
-"""sav-jax: Stereo Any Video (ICCV 2025) in JAX/Flax."""
+"""sav-jax: Stereo Any Video (ICCV 2025) in JAX/Flax.
+
+    import sav_jax
+    cfg = sav_jax.SAVConfig()
+    model = sav_jax.StereoAnyVideo(cfg)
+    variables = sav_jax.convert.params_from_state_dict(sav_jax.convert.load_state_dict(path), cfg)
+    out = model.apply(variables, left, right, iters=20)   # out.disparities [P, B, T, H, W]
+"""
+
+from sav_jax import convert
+from sav_jax.config import SAVConfig
+from sav_jax.model.stereo_any_video import SAVOutput, StereoAnyVideo
 
 __version__ = "0.1.0"
+__all__ = ["SAVConfig", "SAVOutput", "StereoAnyVideo", "convert"]

@@ -1,0 +1,76 @@
+"""`SAVConfig`: the model's hyper-parameters (defaults = the paper's model, VDA-S)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import jax.numpy as jnp
+
+# Video Depth Anything encoder variants (DPT head width and per-level channels).
+VDA_VARIANTS = {
+    "vits": dict(features=64, out_channels=(48, 96, 192, 384)),
+    "vitl": dict(features=256, out_channels=(256, 512, 1024, 1024)),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class SAVConfig:
+  """Stereo Any Video hyper-parameters.
+
+  Attributes:
+    vda_encoder: Video Depth Anything variant of the frozen depth prior.
+    hidden_dim: GRU hidden channels.
+    context_dim: context channels (depth 32 + cnet 96).
+    fnet_dim: channels of the fnet/cnet encoders' output.
+    depth_dim: channels of the VDA feature map fed to the model.
+    corr_groups: channel groups of the all-pairs correlation.
+    upsample_rate: convex upsampling factor (1/4 -> 1).
+    dtype: compute dtype of convolutions, attention and the GRU ("float32" or
+      "bfloat16"); parameters, correlation, softmaxes, convex upsampling and the
+      disparity accumulator stay float32.
+    remat: rematerialise each refinement step in the backward pass.
+    remat_policy: name of a `jax.checkpoint_policies` policy, or None for "save
+      nothing".
+  """
+
+  vda_encoder: str = "vits"
+  hidden_dim: int = 128
+  context_dim: int = 128
+  fnet_dim: int = 96
+  depth_dim: int = 32
+  corr_groups: int = 4
+  upsample_rate: int = 4
+  dtype: str = "float32"
+  remat: bool = False
+  remat_policy: Optional[str] = None
+
+  def __post_init__(self):
+    if self.vda_encoder not in VDA_VARIANTS:
+      raise ValueError(
+          f"SAVConfig.vda_encoder={self.vda_encoder!r}; expected one of {sorted(VDA_VARIANTS)}")
+    if self.dtype not in ("float32", "bfloat16"):
+      raise ValueError(f"SAVConfig.dtype={self.dtype!r}; expected 'float32' or 'bfloat16'")
+    if self.depth_dim + self.fnet_dim != self.context_dim:
+      raise ValueError(
+          f"depth_dim + fnet_dim must equal context_dim ({self.depth_dim} + {self.fnet_dim} "
+          f"!= {self.context_dim})")
+
+  @property
+  def compute_dtype(self):
+    return jnp.bfloat16 if self.dtype == "bfloat16" else jnp.float32
+
+  @property
+  def vda(self) -> dict:
+    return dict(encoder=self.vda_encoder, **VDA_VARIANTS[self.vda_encoder])
+
+  def to_dict(self) -> dict:
+    return dataclasses.asdict(self)
+
+  @classmethod
+  def from_dict(cls, d: dict) -> "SAVConfig":
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - names)
+    if unknown:
+      raise ValueError(f"unknown SAVConfig fields {unknown}; known: {sorted(names)}")
+    return cls(**d)

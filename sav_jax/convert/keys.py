@@ -1,0 +1,55 @@
+"""Generic torch <-> Flax naming and layout rules shared by all converters.
+
+A torch key `a.b.3.c.weight` is the Flax path `('a', 'b_3', 'c', 'kernel')`: a list
+index is joined to the name before it with an underscore. Leaves: `weight` of
+ndim >= 2 -> `kernel` (Linear transposed, ConvNd `O, I, *k -> *k, I, O`), 1-D
+`weight` -> `scale` (norms), everything else keeps its name.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+
+def torch_to_path(key: str, ndim: int) -> tuple[str, ...]:
+  """`a.b.3.c.weight` -> `('a', 'b_3', 'c', 'kernel')` (`scale` for 1-D weights)."""
+  parts = key.split(".")
+  path: list[str] = []
+  for p in parts[:-1]:
+    if p.isdigit() and path:
+      path[-1] = f"{path[-1]}_{p}"
+    else:
+      path.append(p)
+  leaf = parts[-1]
+  if leaf == "weight":
+    leaf = "kernel" if ndim >= 2 else "scale"
+  return (*path, leaf)
+
+
+def path_to_torch(path: tuple[str, ...]) -> str:
+  """Inverse of `torch_to_path`."""
+  parts = [re.sub(r"_(\d+)$", r".\1", p) for p in path[:-1]]
+  leaf = {"kernel": "weight", "scale": "weight"}.get(path[-1], path[-1])
+  return ".".join([*parts, leaf])
+
+
+def torch_to_flax_array(x: np.ndarray) -> np.ndarray:
+  """Layout of a torch weight in Flax: Linear `.T`, ConvNd `O I *k -> *k I O`."""
+  x = np.asarray(x)
+  if x.ndim == 2:
+    return x.T
+  if x.ndim >= 3:
+    return np.transpose(x, (*range(2, x.ndim), 1, 0))
+  return x
+
+
+def flax_to_torch_array(x: np.ndarray) -> np.ndarray:
+  x = np.asarray(x)
+  if x.ndim == 2:
+    return x.T
+  if x.ndim >= 3:
+    n = x.ndim
+    return np.transpose(x, (n - 1, n - 2, *range(n - 2)))
+  return x

@@ -1,0 +1,118 @@
+"""Official Stereo Any Video state dicts <-> Flax variables (strict, both ways).
+
+Key mapping: a torch key `a.b.3.c.weight` becomes the Flax path `a/b_3/c/kernel`
+(a list index is joined to the name before it). Leaves: conv/linear `weight` ->
+`kernel` (OIHW -> HWIO, OIDHW -> DHWIO, (out, in) -> (in, out)), norm `weight` ->
+`scale`, `bias` -> `bias`. The Video Depth Anything part (`depthnet.depthanything.*`)
+is mapped by `sav_jax.convert.vda`.
+
+Parameters that the official forward never uses (listed by the fixture
+manifest) are not model parameters here; they are kept verbatim in the
+`"torch_unused"` collection so that exporting gives back the exact file.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import traverse_util
+
+from sav_jax.config import SAVConfig
+from sav_jax.convert.keys import (flax_to_torch_array, path_to_torch, torch_to_flax_array,
+                                  torch_to_path)
+from sav_jax.convert.vda import vda_params_from_state_dict, vda_state_dict_from_params
+
+VDA_PREFIX = "depthnet.depthanything."
+UNUSED_COLLECTION = "torch_unused"
+# Non-VDA parameters without effect on the forward pass.
+SAV_UNUSED_KEYS = ("update_block.time_attn.temporal_attn.qkv.weight",)
+
+
+def strip_module_prefix(sd: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+  """Removes a leading `module.` (DataParallel) from every key that has it."""
+  return {k[len("module."):] if k.startswith("module.") else k: v for k, v in sd.items()}
+
+
+def abstract_variables(cfg: SAVConfig):
+  """Shapes of the model's variables (nothing allocated)."""
+  from sav_jax.model.stereo_any_video import StereoAnyVideo  # pylint: disable=import-outside-toplevel
+  model = StereoAnyVideo(cfg)
+  dummy = jax.ShapeDtypeStruct((1, 2, 64, 64, 3), jnp.float32)
+  return jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=2), dummy, dummy)
+
+
+def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig | None = None) -> dict:
+  """Official Stereo Any Video state dict -> Flax variables.
+
+  Args:
+    state_dict: `{torch_name: array}` with the official key names (a leading
+      `module.` is accepted); use `sav_jax.convert.load_state_dict` to read files.
+    cfg: model config (default: the paper's model).
+
+  Returns:
+    `{"params": ..., "torch_unused": {torch_name: array}}`.
+
+  Raises:
+    ValueError: listing every missing, unexpected and mis-shaped key at once.
+  """
+  cfg = cfg or SAVConfig()
+  sd = strip_module_prefix(state_dict)
+  target = traverse_util.flatten_dict(abstract_variables(cfg)["params"])
+  problems: list[str] = []
+  flat: dict[tuple[str, ...], np.ndarray] = {}
+  unused = {k: np.asarray(sd[k]) for k in SAV_UNUSED_KEYS if k in sd}
+  problems += [f"missing key {k!r}" for k in SAV_UNUSED_KEYS if k not in sd]
+  vda_sd = {k[len(VDA_PREFIX):]: v for k, v in sd.items() if k.startswith(VDA_PREFIX)}
+  try:
+    vda_params, vda_unused = vda_params_from_state_dict(vda_sd)
+    flat.update({("depthnet", "depthanything", *p): v
+                 for p, v in traverse_util.flatten_dict(vda_params).items()})
+    unused.update({VDA_PREFIX + k: v for k, v in vda_unused.items()})
+  except ValueError as e:
+    problems.append(f"in the depth prior ({VDA_PREFIX}*): {e}")
+  for key, value in sd.items():
+    if key.startswith(VDA_PREFIX) or key in SAV_UNUSED_KEYS:
+      continue
+    value = np.asarray(value)
+    path = torch_to_path(key, value.ndim)
+    if path not in target:
+      problems.append(f"unexpected key {key!r}")
+      continue
+    arr = torch_to_flax_array(value)
+    if arr.shape != tuple(target[path].shape):
+      problems.append(f"key {key!r}: shape {value.shape} does not match the model "
+                      f"(expects {tuple(flax_to_torch_array(np.empty(target[path].shape)).shape)})")
+      continue
+    flat[path] = arr.astype(np.float32)
+  for path in target:
+    if path not in flat and path[:2] != ("depthnet", "depthanything"):
+      problems.append(f"missing key {path_to_torch(path)!r}")
+  if problems:
+    raise ValueError(f"state dict does not match Stereo Any Video ({cfg.vda_encoder}): "
+                     f"{len(problems)} problem(s):\n  " + "\n  ".join(problems))
+  return {"params": traverse_util.unflatten_dict(flat), UNUSED_COLLECTION: unused}
+
+
+def state_dict_from_params(variables: Mapping) -> dict[str, np.ndarray]:
+  """Flax variables -> official state dict (inverse of `params_from_state_dict`).
+
+  Unused-in-forward keys come from the `"torch_unused"` collection when present
+  (exact round trip), else are filled with zeros of the official shape.
+  """
+  params = traverse_util.flatten_dict(jax.device_get(variables["params"]))
+  unused = dict(variables.get(UNUSED_COLLECTION, {}))
+  sd: dict[str, np.ndarray] = {}
+  vda = {p[2:]: v for p, v in params.items() if p[:2] == ("depthnet", "depthanything")}
+  vda_unused = {k[len(VDA_PREFIX):]: v for k, v in unused.items() if k.startswith(VDA_PREFIX)}
+  for k, v in vda_state_dict_from_params(traverse_util.unflatten_dict(vda), vda_unused).items():
+    sd[VDA_PREFIX + k] = v
+  for path, value in params.items():
+    if path[:2] == ("depthnet", "depthanything"):
+      continue
+    sd[path_to_torch(path)] = flax_to_torch_array(np.asarray(value))
+  for k in SAV_UNUSED_KEYS:
+    sd[k] = np.asarray(unused[k]) if k in unused else np.zeros((768, 256), np.float32)
+  return sd

@@ -1,0 +1,311 @@
+"""Loading and saving state dicts: PyTorch `.pth`/`.pt`/`.bin`, `.npz` and `.safetensors`.
+
+`load_state_dict(path)` returns `{name: np.ndarray}` for any supported file, without torch
+and without ever executing pickled code (see `pickle_reader`). `load_checkpoint_object` gives
+the whole unpickled object (training checkpoints with optimizer state etc.),
+`unwrap_state_dict` finds the model weights in it and `checkpoint_kind` tells a Stereo Any
+Video state dict from a standalone Video Depth Anything one. `save_state_dict` writes
+`.safetensors` / `.npz` (and `.pth` when torch happens to be installed) atomically.
+"""
+
+import logging
+import os
+import pathlib
+import tempfile
+import zipfile
+
+import numpy as np
+
+from sav_jax.convert.pickle_reader import CheckpointError
+from sav_jax.convert.pickle_reader import load_legacy
+from sav_jax.convert.pickle_reader import load_zip
+from sav_jax.convert.pickle_reader import resolve_tensors
+
+__all__ = [
+    "CheckpointError", "TORCH_SUFFIXES", "load_checkpoint_object", "load_state_dict",
+    "unwrap_state_dict", "checkpoint_kind", "save_state_dict",
+]
+
+log = logging.getLogger(__name__)
+
+TORCH_SUFFIXES = (".pth", ".pt", ".bin", ".ckpt", ".tar")
+_WRAPPER_KEYS = ("model", "state_dict")
+_MODULE_PREFIX = "module."
+# Top-level submodule names of the two layouts (sav_manifest.json, vda_vits_manifest.json).
+SAV_TOP_LEVEL = frozenset({"fnet", "cnet", "update_block", "depthnet", "corr_mlp"})
+VDA_TOP_LEVEL = frozenset({"pretrained", "head"})
+
+
+def _check_file(path):
+  path = pathlib.Path(path)
+  if not path.exists():
+    raise CheckpointError(f"{path}: checkpoint file not found")
+  if not path.is_file():
+    raise CheckpointError(f"{path}: not a regular file")
+  return path
+
+
+def load_checkpoint_object(path, *, opaque_unknown: bool = False):
+  """Loads a whole checkpoint as nested Python containers with numpy arrays for tensors.
+
+  Torch files (`.pth`, `.pt`, `.bin`, `.ckpt`, `.tar`) are recognised by content: the zip
+  format of torch >= 1.6 or the legacy pickle format. Nothing in them is executed: only
+  tensor rebuild helpers and plain containers are allowed (see `pickle_reader`). `.npz` and
+  `.safetensors` files give a flat `{name: array}` dict.
+
+  Args:
+    path: checkpoint file.
+    opaque_unknown: instead of refusing a pickled global outside the allow-list, put an inert
+      `pickle_reader.OpaqueObject` in its place (it is never imported or called). This lets
+      the weights be read from training checkpoints whose scheduler or optimizer state holds
+      pickled Python objects. The default refuses them.
+
+  Returns:
+    The checkpoint object: dicts (OrderedDicts become dicts), lists, tuples, scalars and
+    numpy arrays. bfloat16/float8 tensors come back as float32, other dtypes unchanged.
+
+  Raises:
+    CheckpointError: missing, unreadable, truncated or malicious file, or unknown suffix.
+  """
+  path = _check_file(path)
+  suffix = path.suffix.lower()
+  if suffix == ".npz":
+    return _load_npz(path)
+  if suffix == ".safetensors":
+    return _load_safetensors(path)
+  if suffix not in TORCH_SUFFIXES:
+    raise CheckpointError(f"{path}: unknown checkpoint suffix {suffix!r}; expected one of "
+                          f"{', '.join(TORCH_SUFFIXES + ('.npz', '.safetensors'))}")
+  return _load_torch(path, opaque_unknown)
+
+
+def _load_torch(path, opaque_unknown):
+  source = str(path)
+  with open(path, "rb") as fh:
+    head = fh.read(512)
+    fh.seek(0)
+    if head.startswith(b"PK\x03\x04") or head.startswith(b"PK\x05\x06"):
+      obj = load_zip(path, source, opaque_unknown)
+    elif len(head) >= 262 and head[257:262] == b"ustar":
+      raise CheckpointError(f"{source}: the pre-0.4 tar checkpoint format is not supported; "
+                            "re-save it with a recent torch")
+    elif head[:1] == b"\x80":
+      obj = load_legacy(fh, source, opaque_unknown)
+    elif not head:
+      raise CheckpointError(f"{source}: empty file")
+    else:
+      raise CheckpointError(f"{source}: not a torch checkpoint (neither a zip archive nor a "
+                            f"legacy pickle; starts with {head[:8]!r})")
+  return resolve_tensors(obj, source)
+
+
+def _load_npz(path):
+  try:
+    data = np.load(path, allow_pickle=False)
+    if not isinstance(data, np.lib.npyio.NpzFile):
+      raise CheckpointError(f"{path}: not an .npz archive (a single .npy array)")
+    with data:
+      return {k: np.array(data[k]) for k in data.files}
+  except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+    if isinstance(e, CheckpointError):
+      raise
+    raise CheckpointError(f"{path}: cannot read .npz file ({type(e).__name__}: {e})") from e
+
+
+def _load_safetensors(path):
+  import safetensors.numpy  # pylint: disable=import-outside-toplevel
+  try:
+    data = safetensors.numpy.load_file(str(path))
+  except Exception as e:  # the rust extension raises its own error type
+    raise CheckpointError(f"{path}: cannot read .safetensors file ({type(e).__name__}: {e})"
+                         ) from e
+  out = {}
+  for k, v in data.items():
+    v = np.array(v)
+    if v.dtype.kind == "V" or v.dtype.name.startswith(("bfloat16", "float8")):
+      v = v.astype(np.float32)
+    out[k] = v
+  return out
+
+
+def load_state_dict(path, *, opaque_unknown: bool = False) -> dict:
+  """Loads the model weights of a checkpoint as `{name: np.ndarray}`.
+
+  `load_checkpoint_object` followed by `unwrap_state_dict`: wrappers (`{"model": ...}`,
+  `{"state_dict": ...}`) are removed and a leading `module.` is stripped.
+
+  Args:
+    path: `.pth` / `.pt` / `.bin` / `.ckpt` / `.tar` (torch, zip or legacy format), `.npz`
+      or `.safetensors` file.
+    opaque_unknown: see `load_checkpoint_object`.
+
+  Returns:
+    A flat dict of numpy arrays, in file order.
+
+  Raises:
+    CheckpointError: the file cannot be read or holds no recognisable state dict.
+  """
+  obj = load_checkpoint_object(path, opaque_unknown=opaque_unknown)
+  return unwrap_state_dict(obj, source=str(path))
+
+
+def _is_array_dict(obj):
+  return bool(obj) and all(isinstance(v, np.ndarray) for v in obj.values())
+
+
+def _describe(obj):
+  if isinstance(obj, dict):
+    keys = list(obj)
+    return f"a dict with {len(keys)} keys, starting {keys[:5]!r}"
+  return f"a {type(obj).__name__}"
+
+
+def unwrap_state_dict(obj, source: str = "<checkpoint>") -> dict:
+  """Finds the flat state dict in a loaded checkpoint object.
+
+  Accepted forms: a raw `{name: array}` dict; `{"model": sd, ...}` (training checkpoints
+  also hold `optimizer`, `scheduler`, `total_steps`: ignored); `{"state_dict": sd, ...}`;
+  these wrappers may nest. A leading `module.` (from `DataParallel`) is then stripped from
+  each key that has one. Unlike the official `demo.py`, which applies
+  `k.replace("module.", "")` and so removes *every* occurrence, only the leading prefix is
+  removed, so a submodule whose name contains `module.` keeps it.
+
+  Args:
+    obj: what `load_checkpoint_object` returned.
+    source: file name for error messages.
+
+  Returns:
+    `{name: np.ndarray}`.
+
+  Raises:
+    CheckpointError: no state dict found, non-string keys, non-array values, or two keys
+      that become equal after stripping `module.`.
+  """
+  sd = obj
+  for _ in range(4):
+    if not isinstance(sd, dict) or _is_array_dict(sd):
+      break
+    wrapper = next((k for k in _WRAPPER_KEYS if isinstance(sd.get(k), dict)), None)
+    if wrapper is None:
+      break
+    sd = sd[wrapper]
+  if not isinstance(sd, dict) or not sd:
+    raise CheckpointError(f"{source}: no state dict found; the checkpoint is {_describe(obj)}")
+  bad = [(k, v) for k, v in sd.items() if not isinstance(k, str) or not isinstance(v, np.ndarray)]
+  if bad:
+    k, v = bad[0]
+    raise CheckpointError(
+        f"{source}: not a state dict of tensors: {len(bad)} of {len(sd)} entries are not "
+        f"(str, tensor) pairs, e.g. {k!r}: {type(v).__name__}; the checkpoint is "
+        f"{_describe(obj)} (expected a raw state dict or one wrapped under 'model' or "
+        "'state_dict')")
+  return _strip_module_prefix(sd, source)
+
+
+def _strip_module_prefix(sd, source):
+  out = {}
+  for k, v in sd.items():
+    name = k[len(_MODULE_PREFIX):] if k.startswith(_MODULE_PREFIX) else k
+    if name in out:
+      raise CheckpointError(f"{source}: key {k!r} collides with {name!r} once the leading "
+                            "'module.' is stripped")
+    out[name] = v
+  return out
+
+
+def checkpoint_kind(sd: dict, source: str = "<state dict>") -> str:
+  """Tells which model a flat (unwrapped) state dict belongs to.
+
+  Args:
+    sd: `{name: array}` with any `module.` prefix already removed.
+    source: file name for error messages.
+
+  Returns:
+    "sav" for a full Stereo Any Video state dict (`fnet.*`, `cnet.*`, `update_block.*`,
+    `corr_mlp.*`, `depthnet.*` including `depthnet.depthanything.*`), or "vda" for a
+    standalone Video Depth Anything file (flat `pretrained.*` and `head.*` keys).
+
+  Raises:
+    CheckpointError: the keys match neither layout (the message lists what was found).
+  """
+  if not isinstance(sd, dict) or not sd:
+    raise CheckpointError(f"{source}: expected a non-empty state dict, got {_describe(sd)}")
+  tops = {}
+  for k in sd:
+    top = str(k).split(".", 1)[0]
+    tops[top] = tops.get(top, 0) + 1
+  if set(tops) <= SAV_TOP_LEVEL and tops.keys() & {"fnet", "cnet", "update_block"}:
+    return "sav"
+  if set(tops) == VDA_TOP_LEVEL:
+    return "vda"
+  keys = list(sd)
+  raise CheckpointError(
+      f"{source}: unrecognised checkpoint layout: {len(keys)} keys, first {keys[:5]!r}, "
+      f"top-level names {dict(sorted(tops.items()))}; expected Stereo Any Video keys "
+      f"({', '.join(sorted(SAV_TOP_LEVEL))}) or Video Depth Anything keys (pretrained, head)")
+
+
+def save_state_dict(sd: dict, path, *, overwrite: bool = False) -> pathlib.Path:
+  """Writes a flat state dict atomically (temporary file in the same folder + `os.replace`).
+
+  Args:
+    sd: `{name: array-like}`; jax arrays are fetched to numpy.
+    path: `.safetensors`, `.npz`, or `.pth`/`.pt` (the latter only when torch is installed).
+    overwrite: replace an existing file; by default an existing file is an error.
+
+  Returns:
+    The path written.
+
+  Raises:
+    FileExistsError: `path` exists and `overwrite` is False.
+    CheckpointError: unknown suffix, `.pth` without torch, or non-string keys.
+  """
+  path = pathlib.Path(path)
+  suffix = path.suffix.lower()
+  writers = {".safetensors": _write_safetensors, ".npz": _write_npz, ".pth": _write_torch,
+             ".pt": _write_torch}
+  if suffix not in writers:
+    raise CheckpointError(f"{path}: cannot write {suffix!r}; use .safetensors, .npz or .pth")
+  if suffix in (".pth", ".pt"):
+    _require_torch(path)
+  if not all(isinstance(k, str) for k in sd):
+    raise CheckpointError(f"{path}: state dict keys must be strings")
+  if path.exists() and not overwrite:
+    raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+  arrays = {k: np.asarray(v, order="C") for k, v in sd.items()}  # keeps 0-d arrays 0-d
+  path.parent.mkdir(parents=True, exist_ok=True)
+  fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+  try:
+    with os.fdopen(fd, "wb") as fh:
+      writers[suffix](arrays, fh)
+      fh.flush()
+      os.fsync(fh.fileno())
+    os.replace(tmp, path)
+  except BaseException:
+    if os.path.exists(tmp):
+      os.unlink(tmp)
+    raise
+  log.info("wrote %d arrays to %s", len(arrays), path)
+  return path
+
+
+def _require_torch(path):
+  try:
+    import torch  # pylint: disable=import-outside-toplevel,unused-import
+  except ImportError:
+    raise CheckpointError(f"{path}: writing .pth needs torch, which is not installed; write "
+                          ".safetensors or .npz instead, or install torch") from None
+
+
+def _write_safetensors(arrays, fh):
+  import safetensors.numpy  # pylint: disable=import-outside-toplevel
+  fh.write(safetensors.numpy.save(arrays))
+
+
+def _write_npz(arrays, fh):
+  np.savez(fh, **arrays)
+
+
+def _write_torch(arrays, fh):
+  import torch  # pylint: disable=import-outside-toplevel
+  torch.save({k: torch.from_numpy(v.copy()) for k, v in arrays.items()}, fh)

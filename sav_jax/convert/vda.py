@@ -1,0 +1,224 @@
+"""Video Depth Anything checkpoints: PyTorch key layout <-> Flax params of `VideoDepthAnything`.
+
+The Flax module mirrors the torch attribute names, so the mapping is
+mechanical: dots become `/`, a list index is joined to its list with `_`
+(`blocks.3` -> `blocks_3`, `to_out.0` -> `to_out_0`), and leaves are renamed
+and re-laid out:
+
+  Conv2d weight          (O, I, kh, kw) -> kernel (kh, kw, I, O)
+  ConvTranspose2d weight (I, O, kh, kw) -> kernel (kh, kw, O, I)  (transpose_kernel=True)
+  Linear weight          (out, in)      -> kernel (in, out)       (fused qkv stays fused)
+  LayerNorm/GroupNorm weight            -> scale
+  bias, cls_token, pos_embed, gamma     -> unchanged
+
+Both 4-D cases are the same permutation `(2, 3, 1, 0)`. The sinusoidal
+`pos_encoder.pe` buffers are not parameters: they are recomputed and checked.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sav_jax.model.dpt_temporal import MOTION_ATTENTION_BLOCKS, TEMPORAL_MAX_LEN, sinusoidal_table
+from sav_jax.model.vda import VideoDepthAnything
+
+# Keys of the public checkpoint that SAV never uses (no Flax param exists for them).
+VDA_UNUSED_KEYS = (
+    "pretrained.mask_token",  # only used with token masks
+    "head.scratch.refinenet4.resConfUnit1.conv1.weight",  # refinenet4 never gets a skip input
+    "head.scratch.refinenet4.resConfUnit1.conv1.bias",
+    "head.scratch.refinenet4.resConfUnit1.conv2.weight",
+    "head.scratch.refinenet4.resConfUnit1.conv2.bias",
+    "head.scratch.output_conv2.0.weight",  # the depth regressor, commented out in SAV's copy
+    "head.scratch.output_conv2.0.bias",
+    "head.scratch.output_conv2.2.weight",
+    "head.scratch.output_conv2.2.bias",
+)
+# Suffix of the motion modules' sinusoidal buffers.
+PE_SUFFIX = ".pos_encoder.pe"
+# Torch builds the table with float32 exp/sin that are not correctly rounded, so
+# the stored buffers differ from `sinusoidal_table` by up to ~1e-6 (9.5e-7 on the
+# fixtures); any other table (other width, length or formula) differs by O(0.1).
+PE_ATOL = 1e-5
+_INDEX = re.compile(r"^(.+)_(\d+)$")
+_RENAMED_LEAVES = {"kernel": "weight", "scale": "weight"}
+
+
+def _abstract_params(model: VideoDepthAnything) -> dict:
+  """Param shapes of `model` (tracing takes seconds, so cached per configuration)."""
+  return _abstract_params_cached(model.encoder, model.features, tuple(model.out_channels))
+
+
+@functools.lru_cache(maxsize=8)
+def _abstract_params_cached(encoder: str, features: int, out_channels: tuple) -> dict:
+  model = VideoDepthAnything(encoder, features, out_channels)
+  x = jnp.zeros((1, 1, 14, 14, 3), jnp.float32)
+  return jax.eval_shape(model.init, jax.random.PRNGKey(0), x)["params"]
+
+
+def _torch_key(path: tuple[str, ...]) -> str:
+  """Flax path -> torch key (`blocks_3` -> `blocks.3`, `kernel` -> `weight`)."""
+  parts = []
+  for name in path[:-1]:
+    m = _INDEX.match(name)
+    parts.extend([m.group(1), m.group(2)] if m else [name])
+  parts.append(_RENAMED_LEAVES.get(path[-1], path[-1]))
+  return ".".join(parts)
+
+
+def _to_flax(a: np.ndarray, leaf: str) -> np.ndarray:
+  if leaf == "kernel" and a.ndim == 4:
+    return np.transpose(a, (2, 3, 1, 0))
+  if leaf == "kernel" and a.ndim == 2:
+    return np.transpose(a)
+  return a
+
+
+def _to_torch(a: np.ndarray, leaf: str) -> np.ndarray:
+  if leaf == "kernel" and a.ndim == 4:
+    a = np.transpose(a, (3, 2, 0, 1))
+  elif leaf == "kernel" and a.ndim == 2:
+    a = np.transpose(a)
+  return np.ascontiguousarray(a)
+
+
+def _flat(tree: Mapping, prefix: tuple[str, ...] = ()) -> dict[tuple[str, ...], Any]:
+  out = {}
+  for k, v in tree.items():
+    if isinstance(v, Mapping):
+      out.update(_flat(v, prefix + (k,)))
+    else:
+      out[prefix + (k,)] = v
+  return out
+
+
+def _unflat(flat: dict[tuple[str, ...], Any]) -> dict:
+  tree: dict = {}
+  for path, v in flat.items():
+    node = tree
+    for k in path[:-1]:
+      node = node.setdefault(k, {})
+    node[path[-1]] = v
+  return tree
+
+
+def vda_unused_shapes(model: VideoDepthAnything | None = None) -> dict[str, tuple[int, ...]]:
+  """Shapes of the `VDA_UNUSED_KEYS` entries for a model configuration."""
+  model = model or VideoDepthAnything()
+  f = model.features
+  embed = _abstract_params(model)["pretrained"]["cls_token"].shape[-1]
+  shapes = {"pretrained.mask_token": (1, embed)}
+  for conv in ("conv1", "conv2"):
+    shapes[f"head.scratch.refinenet4.resConfUnit1.{conv}.weight"] = (f, f, 3, 3)
+    shapes[f"head.scratch.refinenet4.resConfUnit1.{conv}.bias"] = (f,)
+  shapes["head.scratch.output_conv2.0.weight"] = (32, f // 2, 3, 3)
+  shapes["head.scratch.output_conv2.0.bias"] = (32,)
+  shapes["head.scratch.output_conv2.2.weight"] = (1, 32, 1, 1)
+  shapes["head.scratch.output_conv2.2.bias"] = (1,)
+  return shapes
+
+
+def vda_pe_buffers(model: VideoDepthAnything | None = None) -> dict[str, np.ndarray]:
+  """The `pos_encoder.pe` buffers `{torch_key: [1, max_len, C]}` the official module holds."""
+  model = model or VideoDepthAnything()
+  widths = (model.out_channels[2], model.out_channels[3], model.features, model.features)
+  out = {}
+  for i, c in enumerate(widths):
+    for j in range(MOTION_ATTENTION_BLOCKS):
+      key = (f"head.motion_modules.{i}.temporal_transformer.transformer_blocks.0."
+             f"attention_blocks.{j}{PE_SUFFIX}")
+      out[key] = sinusoidal_table(TEMPORAL_MAX_LEN, c)[None].copy()
+  return out
+
+
+def _check_pe(sd: dict[str, np.ndarray], expected: dict[str, np.ndarray],
+              problems: list[str]) -> None:
+  for key, table in expected.items():
+    if key not in sd:
+      problems.append(f"missing key {key} (sinusoidal buffer)")
+      continue
+    a = np.asarray(sd[key])
+    if a.shape != table.shape:
+      problems.append(f"shape mismatch for {key}: got {a.shape}, expected {table.shape}")
+    elif not np.allclose(a, table, rtol=0.0, atol=PE_ATOL):
+      err = float(np.max(np.abs(a.astype(np.float64) - table)))
+      problems.append(f"{key} is not the sinusoidal table (max abs diff {err:.3g} > {PE_ATOL})")
+
+
+def vda_params_from_state_dict(sd: dict[str, np.ndarray],
+                               model: VideoDepthAnything | None = None
+                               ) -> tuple[dict, dict[str, np.ndarray]]:
+  """Converts a flat VDA state dict (public `video_depth_anything_vits.pth` layout).
+
+  Strict: every missing, unexpected or mis-shaped key, and any `pos_encoder.pe`
+  buffer that is not the sinusoidal table, is collected and reported in one
+  `ValueError`.
+
+  Args:
+    sd: `{torch_key: array}` without prefix (strip `depthnet.depthanything.` first).
+    model: the target configuration (default: ViT-S, features 64).
+
+  Returns:
+    `(params, unused)`: the `params` collection of `VideoDepthAnything` (float32
+    numpy leaves) and `{key: array}` for exactly the `VDA_UNUSED_KEYS`.
+  """
+  model = model or VideoDepthAnything()
+  target = _flat(_abstract_params(model))
+  by_torch = {_torch_key(path): path for path in target}
+  unused_shapes = vda_unused_shapes(model)
+  pe = vda_pe_buffers(model)
+  problems: list[str] = []
+  flat, unused = {}, {}
+  for key, value in sd.items():
+    a = np.asarray(value)
+    if key in pe:
+      continue
+    if key in unused_shapes:
+      if a.shape != unused_shapes[key]:
+        problems.append(f"shape mismatch for {key}: got {a.shape}, expected {unused_shapes[key]}")
+      unused[key] = a
+      continue
+    path = by_torch.get(key)
+    if path is None:
+      problems.append(f"unexpected key {key}")
+      continue
+    converted = _to_flax(a, path[-1])
+    if converted.shape != target[path].shape:
+      want = _to_torch(np.empty(target[path].shape, np.int8), path[-1]).shape
+      problems.append(f"shape mismatch for {key}: got {a.shape}, expected {want}")
+      continue
+    flat[path] = converted.astype(np.float32)
+  problems += [f"missing key {k}" for k, p in by_torch.items() if p not in flat and k not in sd]
+  problems += [f"missing key {k}" for k in unused_shapes if k not in sd]
+  _check_pe(sd, pe, problems)
+  if problems:
+    raise ValueError(f"{len(problems)} problem(s) converting the VDA state dict:\n  "
+                     + "\n  ".join(problems))
+  return _unflat(flat), unused
+
+
+def vda_state_dict_from_params(params: dict, unused: dict[str, np.ndarray] | None = None,
+                               model: VideoDepthAnything | None = None) -> dict[str, np.ndarray]:
+  """Inverse of `vda_params_from_state_dict`: Flax params -> flat torch-layout state dict.
+
+  Args:
+    params: the `params` collection of `VideoDepthAnything`.
+    unused: the `VDA_UNUSED_KEYS` arrays to carry over (omitted when None).
+    model: the configuration, for the sinusoidal buffers (default ViT-S).
+
+  Returns:
+    `{torch_key: np.ndarray}` including the recomputed `pos_encoder.pe` buffers.
+  """
+  sd = {}
+  for path, value in _flat(params).items():
+    sd[_torch_key(path)] = _to_torch(np.asarray(value), path[-1])
+  sd.update({k: np.asarray(v) for k, v in (unused or {}).items()})
+  sd.update(vda_pe_buffers(model))
+  return sd

@@ -1,0 +1,530 @@
+"""Stereo-video metrics with the exact definitions of the official SAV evaluator.
+
+Reimplements `evaluation/utils/eval_utils.py` (EPE/TEPE, TCC, TCM, OPW, RTC),
+the evaluator's pre-processing and `aggregate_eval_results` of the official Stereo
+Any Video code, in NumPy on host arrays. Sequences are `[T, H, W]` (a singleton
+channel axis, `[T, 1, H, W]`, is accepted too). Per-pixel maps are computed in
+float32 with the same elementwise operations as the float32 PyTorch reference (so
+threshold decisions match bit for bit); reductions run in float64.
+
+Notation: x = prediction, y = ground truth (GT), m = validity mask (float, may be
+fractional), b = [m > mask_thr] (default 0.5), all `[T, H, W]`.
+
+Evaluator pre-processing (`eval_sequence`): y <- |y|, x <- x * round(m).
+
+EPE / TEPE (`eval_endpoint_error_sequence`), after an optional border crop:
+  x <- x*b, y <- y*b, then NaN in y -> 0 (after masking, so a NaN GT under b=1
+  becomes 0 and costs |x| there).
+  EPE map   e_t = sqrt(m_t * (x_t - y_t)^2)             (m also weights the error)
+  TEPE map  e_t = sqrt(m_t m_{t+1} (|x_t - x_{t+1}| - |y_t - y_{t+1}|)^2),
+            t = 0..T-2 (absolute temporal differences, not signed ones).
+  mean      = sum(e) / max(count_nonzero(e), 1e-5)
+  bad_tau   = 100 * #(e > tau) / max(count_nonzero(e), 1e-5),  tau in 0.5,1,2,3
+  The denominator counts non-zero errors: masked-out pixels and valid pixels
+  with exactly zero error are both excluded. Comparisons are strict.
+  delta^t_1px of the paper is `temp_epe_bad_1px`.
+
+Depth metrics (`eval_batch`): Z = s / max(d, 1e-10) for x and y (s = depth to
+disparity scale), then x <- Z_x*b, y <- Z_y*b, NaN(y) -> 0; dm_t = m_t m_{t+1}.
+  TCC = mean_t relu(SSIM(|x_t - x_{t+1}| dm_t, |y_t - y_{t+1}| dm_t)), NaN(x) -> 0.
+  TCM = (1/(T-1)) sum_{t: sum(M_t)>0} mean_{c=u,v} relu(SSIM_c(F^x_t M_t, F^y_t M_t)),
+        F^x_t / F^y_t = optical flow between the min-max normalised depths of
+        frames t, t+1 of x / y (RAFT in the official code: passed in here),
+        M_t = dm_t * [no channel of F^y_t > 250].
+  SSIM: Gaussian window 11, sigma 1.5, "valid" filtering (an axis shorter than the
+  window is not filtered), data_range 1, K = (0.01, 0.03), mean over the map.
+  OPW / RTC use the optical flow F_t of the left video from frame t to t+1
+  (RAFT in the official code: passed in here) and W_t = backward warp of x_{t+1}
+  (`grid_sample`, bilinear, zero padding, align_corners=True) and
+  V_t = [dm_t exp(-50 ||warp(I_{t+1}) - I_t||_2 / 255) [no F_t channel > 250]
+         [W_t > 0] > 0.01].
+  OPW   = (1/(T-1)) sum_{t: sum V_t > 0} sum(|W_t - x_t| V_t) / sum(V_t)
+  OPW_K = same with V_t * [y_t <= K][y_{t+1} <= K], K = 30, 50, 100.
+  RTC   = (1/(T-1)) sum_{t: sum V_t > 0} sum([max(x_t/W_t, W_t/x_t) < 1.01] V_t)
+          / sum(V_t), where an infinite ratio counts as -1e10 and NaN as a miss;
+  RTC_30 = same with the K = 30 depth mask.
+
+Aggregation (`aggregate`): value = sum_s v_s T_s / sum_s T_s with T_s the number
+of frames of sequence s (T_s, not T_s - 1, also for the temporal metrics).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+
+_F32 = np.float32
+BAD_THRESHOLDS = (0.5, 1.0, 2.0, 3.0)
+_BAD_NAMES = ("0.5", "1", "2", "3")
+FlowFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def _as_seq(name: str, a) -> np.ndarray:
+  """`[T, H, W]` float32 view of `a` (`[T, 1, H, W]` is squeezed)."""
+  a = np.asarray(a, dtype=_F32)
+  if a.ndim == 4 and a.shape[1] == 1:
+    a = a[:, 0]
+  if a.ndim != 3:
+    raise ValueError(f"{name} must be [T, H, W] or [T, 1, H, W], got shape {a.shape}")
+  return a
+
+
+def _check_same(names: Sequence[str], arrays: Sequence[np.ndarray]) -> None:
+  """Raises ValueError if the arrays' shapes differ, naming both."""
+  for name, a in zip(names[1:], arrays[1:]):
+    if a.shape != arrays[0].shape:
+      raise ValueError(
+          f"shape mismatch: {names[0]} has shape {arrays[0].shape}, {name} has shape {a.shape}")
+
+
+def _mask_pair(x: np.ndarray, y: np.ndarray, mask: np.ndarray, mask_thr: float):
+  """`x*b`, `y*b` with `b = mask > mask_thr`; NaN in y set to 0 afterwards."""
+  keep = (mask > _F32(mask_thr)).astype(_F32)
+  x = x * keep
+  y = y * keep
+  y[np.isnan(y)] = 0
+  return x, y
+
+
+def _rates(err: np.ndarray, prefix: str, clamp_thr: float) -> dict[str, float]:
+  """Mean and strict bad-px rates (%) with the count_nonzero denominator."""
+  denom = max(float(np.count_nonzero(err)), clamp_thr)
+  out = {f"{prefix}_mean": float(np.sum(err, dtype=np.float64) / denom)}
+  for name, tau in zip(_BAD_NAMES, BAD_THRESHOLDS):
+    out[f"{prefix}_bad_{name}px"] = 100.0 * float(np.count_nonzero(err > _F32(tau))) / denom
+  return out
+
+
+def endpoint_error_maps(pred, gt, mask, crop: int = 0, mask_thr: float = 0.5):
+  """Per-pixel EPE and TEPE maps of the official evaluator.
+
+  Args:
+    pred: `[T, H, W]` (or `[T, 1, H, W]`) predicted disparity.
+    gt: same shape, GT disparity; NaNs allowed.
+    mask: same shape, validity mask (binary or fractional).
+    crop: border width removed from both spatial sides before anything else.
+    mask_thr: pixels with `mask > mask_thr` are kept.
+
+  Returns:
+    `(epe [T, H', W'], tepe [T-1, H', W'])` float32, 0 where masked out.
+  """
+  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_seq("mask", mask)
+  _check_same(("pred", "gt", "mask"), (x, y, m))
+  if crop > 0:
+    if crop > min(x.shape[1:]) - crop:
+      raise ValueError(f"Incorrect crop size {crop} for spatial shape {x.shape[1:]}")
+    x, y, m = (a[:, crop:-crop, crop:-crop] for a in (x, y, m))
+  x, y = _mask_pair(x, y, m, mask_thr)
+  epe = np.sqrt(m * (x - y) ** 2)
+  dmask = m[:-1] * m[1:]
+  tdiff = np.abs(x[:-1] - x[1:]) - np.abs(y[:-1] - y[1:])
+  tepe = np.sqrt(dmask * tdiff ** 2)
+  return epe, tepe
+
+
+def eval_endpoint_error_sequence(pred, gt, mask, crop: int = 0, mask_thr: float = 0.5,
+                                 clamp_thr: float = 1e-5) -> dict[str, float]:
+  """EPE and temporal EPE with bad-px rates (official `eval_endpoint_error_sequence`).
+
+  Args:
+    pred: `[T, H, W]` (or `[T, 1, H, W]`) predicted disparity.
+    gt: same shape, GT disparity; NaNs allowed (set to 0 after masking).
+    mask: same shape, validity mask; thresholded for x/y and used as a weight.
+    crop: border width removed on each spatial side.
+    mask_thr: mask threshold.
+    clamp_thr: lower clamp of the non-zero-count denominator.
+
+  Returns:
+    `{epe_mean, epe_bad_{0.5,1,2,3}px, temp_epe_mean, temp_epe_bad_{0.5,1,2,3}px}`,
+    bad rates in percent.
+  """
+  epe, tepe = endpoint_error_maps(pred, gt, mask, crop=crop, mask_thr=mask_thr)
+  out = _rates(epe, "epe", clamp_thr)
+  out.update(_rates(tepe, "temp_epe", clamp_thr))
+  return out
+
+
+def gaussian_window(size: int = 11, sigma: float = 1.5) -> np.ndarray:
+  """Normalised 1-D Gaussian window `[size]`, built in float32 like the reference."""
+  coords = np.arange(size, dtype=_F32) - _F32(size // 2)
+  g = np.exp(-(coords ** 2) / _F32(2 * sigma ** 2))
+  return (g / g.sum(dtype=_F32)).astype(_F32)
+
+
+def _gaussian_filter(a: np.ndarray, win: np.ndarray) -> np.ndarray:
+  """Separable "valid" Gaussian filter over the last two axes (H then W)."""
+  n = win.shape[0]
+  for axis in (-2, -1):
+    if a.shape[axis] >= n:
+      view = np.lib.stride_tricks.sliding_window_view(a, n, axis=axis)
+      a = view @ win
+  return a
+
+
+def ssim(x, y, data_range: float = 1.0, win_size: int = 11, win_sigma: float = 1.5,
+         k: tuple[float, float] = (0.01, 0.03), nonnegative: bool = True) -> np.ndarray:
+  """SSIM of each image (the reference `ssim.py`, per channel, no reduction).
+
+  Args:
+    x: `[..., H, W]` images.
+    y: same shape.
+    data_range: value range used for the constants C1, C2.
+    win_size: Gaussian window size (odd).
+    win_sigma: Gaussian sigma.
+    k: `(K1, K2)`.
+    nonnegative: apply ReLU to each image's SSIM.
+
+  Returns:
+    `[...]` float64 mean SSIM map value of each image.
+  """
+  x = np.asarray(x, dtype=np.float64)
+  y = np.asarray(y, dtype=np.float64)
+  _check_same(("x", "y"), (x, y))
+  if win_size % 2 != 1:
+    raise ValueError(f"Window size should be odd, got {win_size}")
+  win = gaussian_window(win_size, win_sigma).astype(np.float64)
+  c1, c2 = (k[0] * data_range) ** 2, (k[1] * data_range) ** 2
+  mu1, mu2 = _gaussian_filter(x, win), _gaussian_filter(y, win)
+  s11 = _gaussian_filter(x * x, win) - mu1 ** 2
+  s22 = _gaussian_filter(y * y, win) - mu2 ** 2
+  s12 = _gaussian_filter(x * y, win) - mu1 * mu2
+  cs_map = (2 * s12 + c2) / (s11 + s22 + c2)
+  ssim_map = (2 * mu1 * mu2 + c1) / (mu1 ** 2 + mu2 ** 2 + c1) * cs_map
+  val = ssim_map.reshape(*ssim_map.shape[:-2], -1).mean(-1)
+  return np.maximum(val, 0.0) if nonnegative else val
+
+
+def disparity_to_depth(disp, scale: float) -> np.ndarray:
+  """`scale / max(disp, 1e-10)` in float32 (NaN stays NaN)."""
+  d = np.asarray(disp, dtype=_F32)
+  return _F32(scale) / np.maximum(d, _F32(1e-10))
+
+
+def eval_tcc_sequence(pred_depth, gt_depth, mask, mask_thr: float = 0.5) -> float:
+  """TCC: mean SSIM of masked absolute temporal depth differences.
+
+  Args:
+    pred_depth: `[T, H, W]` (or `[T, 1, H, W]`) predicted depth, T >= 2.
+    gt_depth: same shape, GT depth.
+    mask: same shape, validity mask.
+    mask_thr: mask threshold.
+
+  Returns:
+    `(1/(T-1)) sum_t relu(SSIM(|x_t-x_{t+1}| dm_t, |y_t-y_{t+1}| dm_t))`.
+  """
+  x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_seq("mask", mask)
+  _check_same(("pred_depth", "gt_depth", "mask"), (x, y, m))
+  _need_two_frames(x)
+  x, y = _mask_pair(x, y, m, mask_thr)
+  x[np.isnan(x)] = 0
+  dmask = m[:-1] * m[1:]
+  a = np.abs(x[:-1] - x[1:]) * dmask
+  b = np.abs(y[:-1] - y[1:]) * dmask
+  return float(ssim(a, b, data_range=1.0, nonnegative=True).sum() / (x.shape[0] - 1))
+
+
+def _need_two_frames(x: np.ndarray) -> None:
+  if x.shape[0] < 2:
+    raise ValueError(f"temporal consistency metrics need T >= 2 frames, got shape {x.shape}")
+
+
+def _as_flows(name: str, f, t: int, hw: tuple[int, int]) -> np.ndarray:
+  """`[t, 2, H, W]` float32 flows (a `[t, 1, 2, H, W]` batch axis is squeezed)."""
+  f = np.asarray(f, dtype=_F32)
+  if f.ndim == 5 and f.shape[1] == 1:
+    f = f[:, 0]
+  if f.shape != (t, 2, *hw):
+    raise ValueError(f"{name} must have shape {(t, 2, *hw)}, got shape {f.shape}")
+  return f
+
+
+def tcm_flow_inputs(pred_depth, gt_depth, mask, t: int, mask_thr: float = 0.5):
+  """The four images the official TCM feeds to RAFT for the pair `(t, t+1)`.
+
+  Depths are min-max normalised with the GT frame t range, scaled to 0..255 and
+  repeated to 3 channels.
+
+  Returns:
+    `(pred_t, pred_t1, gt_t, gt_t1)`, each `[3, H, W]` float32; flows are taken
+    from `pred_t -> pred_t1` and `gt_t -> gt_t1`.
+  """
+  x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_seq("mask", mask)
+  _check_same(("pred_depth", "gt_depth", "mask"), (x, y, m))
+  x, y = _mask_pair(x, y, m, mask_thr)
+  dmax, dmin = y[t].max(), y[t].min()
+  with np.errstate(divide="ignore", invalid="ignore"):
+    imgs = [(a - dmin) / (dmax - dmin) * _F32(255.0) for a in (x[t], x[t + 1], y[t], y[t + 1])]
+  return tuple(np.repeat(a[None], 3, axis=0) for a in imgs)
+
+
+def eval_tcm_sequence(pred_flows, gt_flows, mask) -> float:
+  """TCM: SSIM between the optical flows of predicted and GT depth videos.
+
+  Args:
+    pred_flows: `[T-1, 2, H, W]` flow between normalised predicted depths t, t+1
+      (see `tcm_flow_inputs`; RAFT in the official code).
+    gt_flows: `[T-1, 2, H, W]` same for the GT depth.
+    mask: `[T, H, W]` (or `[T, 1, H, W]`) validity mask (used raw, not thresholded).
+
+  Returns:
+    `(1/(T-1)) sum_{t: sum M_t > 0} mean_c relu(SSIM(F^x_t,c M_t, F^y_t,c M_t))`
+    with `M_t = m_t m_{t+1} [no GT flow channel > 250]`.
+  """
+  m = _as_seq("mask", mask)
+  _need_two_frames(m)
+  n = m.shape[0] - 1
+  fx = _as_flows("pred_flows", pred_flows, n, m.shape[1:])
+  fy = _as_flows("gt_flows", gt_flows, n, m.shape[1:])
+  dmask = m[:-1] * m[1:]
+  total = 0.0
+  for i in range(n):
+    sel = dmask[i] * ~np.any(fy[i] > _F32(250), axis=0)
+    if sel.sum(dtype=np.float64) > 0:
+      total += float(ssim(fx[i] * sel, fy[i] * sel, data_range=1.0, nonnegative=True).mean())
+  return total / n
+
+
+def flow_warp(x, flow) -> np.ndarray:
+  """Backward warp `x_t(p + flow_t(p))` like the official `flow_warp`.
+
+  torch `grid_sample` (bilinear, zero padding, align_corners=True), emulated in
+  float32 with the same normalise / unnormalise round trip.
+
+  Args:
+    x: `[N, H, W]` or `[N, C, H, W]`.
+    flow: `[N, 2, H, W]` (x, y) displacement in pixels.
+
+  Returns:
+    Warped `x`, same shape, float32.
+  """
+  x = np.asarray(x, dtype=_F32)
+  flow = np.asarray(flow, dtype=_F32)
+  squeeze = x.ndim == 3
+  xc = x[:, None] if squeeze else x
+  n, _, h, w = xc.shape
+  if flow.shape != (n, 2, h, w):
+    raise ValueError(f"flow shape {flow.shape} does not match input shape {x.shape}")
+  gy, gx = np.meshgrid(np.arange(h, dtype=_F32), np.arange(w, dtype=_F32), indexing="ij")
+  coords = []
+  for g, f, size in ((gx, flow[:, 0], w), (gy, flow[:, 1], h)):
+    norm = _F32(2.0) * (g + f) / _F32(max(size - 1, 1)) - _F32(1.0)
+    coords.append((norm + _F32(1.0)) * (_F32(size - 1) / _F32(2.0)))
+  out = _bilinear_zero_pad(xc, coords[0], coords[1])
+  return out[:, 0] if squeeze else out
+
+
+def _bilinear_zero_pad(img: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+  """Bilinear sample `[N, C, H, W]` at pixel coords `[N, H, W]`; zeros outside."""
+  n, c, h, w = img.shape
+  x0, y0 = np.floor(px), np.floor(py)
+  wx, wy = px - x0, py - y0
+  ex, sy = _F32(1.0) - wx, _F32(1.0) - wy
+  corners = ((y0, x0, sy * ex), (y0, x0 + 1, sy * wx), (y0 + 1, x0, wy * ex),
+             (y0 + 1, x0 + 1, wy * wx))
+  out = np.zeros_like(img)
+  bidx = np.arange(n)[:, None, None]
+  for yy, xx, wgt in corners:
+    inside = (xx >= 0) & (xx <= w - 1) & (yy >= 0) & (yy <= h - 1)
+    xi = np.where(inside, xx, 0).astype(np.int64)
+    yi = np.where(inside, yy, 0).astype(np.int64)
+    vals = img[bidx, :, yi, xi]  # [N, H, W, C]
+    vals = np.where(inside[..., None], vals, _F32(0.0))
+    out = out + np.moveaxis(vals, -1, 1) * wgt[:, None]
+  return out
+
+
+def _warp_terms(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float):
+  """Masked depths, warped prediction, the OPW/RTC validity V_t and depth masks."""
+  x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_seq("mask", mask)
+  _check_same(("pred_depth", "gt_depth", "mask"), (x, y, m))
+  _need_two_frames(x)
+  video = _as_left_video(left_video)
+  if video.shape[0] != x.shape[0] or video.shape[2:] != x.shape[1:]:
+    raise ValueError(f"left_video shape {video.shape} does not match depth shape {x.shape}")
+  f = _as_flows("flows", flows, x.shape[0] - 1, x.shape[1:])
+  x, y = _mask_pair(x, y, m, mask_thr)
+  warped = flow_warp(x[1:], f)
+  warped_img = flow_warp(video[1:], f)
+  diff = warped_img / _F32(255.0) - video[:-1] / _F32(255.0)
+  sq = diff ** 2
+  photo = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2])
+  flow_ok = (~np.any(f > _F32(250), axis=1)).astype(_F32)
+  weight = m[:-1] * m[1:] * np.exp(_F32(-50.0) * photo) * flow_ok * (warped > 0).astype(_F32)
+  valid = weight > _F32(1e-2)
+  depth_ok = {k: ~(y > _F32(k)) for k in (30, 50, 100)}
+  depth_ok = {k: v[:-1] & v[1:] for k, v in depth_ok.items()}
+  return x, warped, valid, depth_ok
+
+
+def _as_left_video(video) -> np.ndarray:
+  """`[T, 3, H, W]` left video from `[T, 3, H, W]` or a stereo `[T, 2, 3, H, W]`."""
+  v = np.asarray(video, dtype=_F32)
+  if v.ndim == 5:
+    v = v[:, 0]
+  if v.ndim != 4 or v.shape[1] != 3:
+    raise ValueError(f"video must be [T, 3, H, W] or [T, 2, 3, H, W], got shape {v.shape}")
+  return v
+
+
+def _frame_ratio_mean(num: np.ndarray, sel: np.ndarray) -> float:
+  """`(1/n) sum_{t: sum sel_t > 0} sum(num_t * sel_t) / sum(sel_t)` over n frames."""
+  total = 0.0
+  for nt, st in zip(num, sel):
+    cnt = np.count_nonzero(st)
+    if cnt > 0:
+      total += float(np.sum(nt * st, dtype=np.float64)) / cnt
+  return total / num.shape[0]
+
+
+def eval_opw_sequence(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float = 0.5):
+  """OPW: flow-warping error of the predicted depth.
+
+  Args:
+    left_video: `[T, 3, H, W]` (or stereo `[T, 2, 3, H, W]`) RGB 0..255.
+    pred_depth: `[T, H, W]` (or `[T, 1, H, W]`) predicted depth.
+    gt_depth: same shape, GT depth (only for the <= 30/50/100 depth masks).
+    mask: same shape, validity mask.
+    flows: `[T-1, 2, H, W]` optical flow of the left video, frame t -> t+1.
+    mask_thr: mask threshold.
+
+  Returns:
+    `(opw, opw_30, opw_50, opw_100)`.
+  """
+  x, warped, valid, depth_ok = _warp_terms(left_video, pred_depth, gt_depth, mask, flows, mask_thr)
+  err = np.abs(warped - x[:-1])
+  opw = _frame_ratio_mean(err, valid)
+  rest = [_frame_ratio_mean(err, valid & depth_ok[k]) for k in (30, 50, 100)]
+  return (opw, *rest)
+
+
+def eval_rtc_sequence(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float = 0.5,
+                      tau: float = 1.01):
+  """RTC: share of flow-consistent pixels whose depth ratio to the warp is < tau.
+
+  Args:
+    left_video: `[T, 3, H, W]` (or stereo `[T, 2, 3, H, W]`) RGB 0..255.
+    pred_depth: `[T, H, W]` (or `[T, 1, H, W]`) predicted depth.
+    gt_depth: same shape, GT depth (only for the <= 30 depth mask).
+    mask: same shape, validity mask.
+    flows: `[T-1, 2, H, W]` optical flow of the left video, frame t -> t+1.
+    mask_thr: mask threshold.
+    tau: ratio threshold (strict `<`).
+
+  Returns:
+    `(rtc, rtc_30)`.
+  """
+  x, warped, valid, depth_ok = _warp_terms(left_video, pred_depth, gt_depth, mask, flows, mask_thr)
+  with np.errstate(divide="ignore", invalid="ignore"):
+    r1 = x[:-1] / warped
+    r2 = warped / x[:-1]
+  r1[np.isinf(r1)] = _F32(-1e10)
+  r2[np.isinf(r2)] = _F32(-1e10)
+  good = (np.maximum(r1, r2) < _F32(tau)).astype(np.float64)
+  return _frame_ratio_mean(good, valid), _frame_ratio_mean(good, valid & depth_ok[30])
+
+
+def video_flows_from_fn(left_video, flow_fn: FlowFn) -> np.ndarray:
+  """`[T-1, 2, H, W]` flows `flow_fn(I_t, I_{t+1})` of the left video (`compute_flow`)."""
+  v = _as_left_video(left_video)
+  return np.stack([np.asarray(flow_fn(v[i], v[i + 1]), _F32) for i in range(v.shape[0] - 1)])
+
+
+def depth_flows_from_fn(pred_depth, gt_depth, mask, flow_fn: FlowFn, mask_thr: float = 0.5):
+  """`(pred_flows, gt_flows)`, each `[T-1, 2, H, W]`, as the official TCM computes them."""
+  t = _as_seq("pred_depth", pred_depth).shape[0]
+  fx, fy = [], []
+  for i in range(t - 1):
+    x0, x1, y0, y1 = tcm_flow_inputs(pred_depth, gt_depth, mask, i, mask_thr)
+    fx.append(np.asarray(flow_fn(x0, x1), _F32))
+    fy.append(np.asarray(flow_fn(y0, y1), _F32))
+  return np.stack(fx), np.stack(fy)
+
+
+def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
+               video_flows=None, depth_flows=None,
+               flow_fn: FlowFn | None = None) -> tuple[dict[str, float], int]:
+  """The official `eval_batch`: all metrics of one sequence, no pre-processing.
+
+  Args:
+    pred: `[T, H, W]` (or `[T, 1, H, W]`) predicted disparity.
+    gt: same shape, GT disparity.
+    mask: same shape, validity mask (`disparity_mask`).
+    scale: depth-to-disparity scale; None skips every depth metric.
+    left_video: `[T, 3, H, W]` or `[T, 2, 3, H, W]`, needed for OPW/RTC.
+    video_flows: `[T-1, 2, H, W]` left-video flows (else from `flow_fn`).
+    depth_flows: `(pred_flows, gt_flows)` for TCM (else from `flow_fn`).
+    flow_fn: optical flow `(img1 [3,H,W], img2 [3,H,W]) -> [2,H,W]` (RAFT).
+
+  Returns:
+    `({"disp_epe_mean", ..., "disp_TCC", "disp_TCM", "disp_OPW", "disp_OPW_{100,50,30}",
+    "disp_RTC", "disp_RTC_30"}, T)`. TCM is left out without flows for it, OPW/RTC
+    without a video or flows.
+  """
+  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_seq("mask", mask)
+  _check_same(("pred", "gt", "mask"), (x, y, m))
+  res = {f"disp_{k}": v for k, v in eval_endpoint_error_sequence(x, y, m).items()}
+  if scale is None:
+    return res, x.shape[0]
+  zx, zy = disparity_to_depth(x, scale), disparity_to_depth(y, scale)
+  res["disp_TCC"] = eval_tcc_sequence(zx, zy, m)
+  if depth_flows is None and flow_fn is not None:
+    depth_flows = depth_flows_from_fn(zx, zy, m, flow_fn)
+  if depth_flows is not None:
+    res["disp_TCM"] = eval_tcm_sequence(depth_flows[0], depth_flows[1], m)
+  if left_video is not None and video_flows is None and flow_fn is not None:
+    video_flows = video_flows_from_fn(left_video, flow_fn)
+  if left_video is not None and video_flows is not None:
+    opw = eval_opw_sequence(left_video, zx, zy, m, video_flows)
+    res.update(zip(("disp_OPW", "disp_OPW_30", "disp_OPW_50", "disp_OPW_100"), opw))
+    rtc = eval_rtc_sequence(left_video, zx, zy, m, video_flows)
+    res.update(zip(("disp_RTC", "disp_RTC_30"), rtc))
+  return res, x.shape[0]
+
+
+def eval_sequence(pred, gt, valid, flows=None, *, scale: float | None = None, video=None,
+                  depth_flows=None, flow_fn: FlowFn | None = None) -> dict[str, float]:
+  """The evaluator's per-sequence step: pre-processing, then `eval_batch`.
+
+  GT becomes `|gt|` and the prediction is multiplied by `round(valid)`.
+
+  Args:
+    pred: `[T, H, W]` (or `[T, 1, H, W]`) predicted disparity.
+    gt: same shape, GT disparity (any sign; NaNs allowed).
+    valid: same shape, validity mask.
+    flows: `[T-1, 2, H, W]` left-video flows for OPW/RTC.
+    scale: depth-to-disparity scale; None skips the depth metrics.
+    video: `[T, 3, H, W]` left or `[T, 2, 3, H, W]` stereo video, RGB 0..255.
+    depth_flows: `(pred_flows, gt_flows)` for TCM.
+    flow_fn: optical flow function used for whatever flows are not given.
+
+  Returns:
+    The metric dict of `eval_batch` (its frame count is `len(pred)`).
+  """
+  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_seq("valid", valid)
+  _check_same(("pred", "gt", "valid"), (x, y, m))
+  res, _ = eval_batch(x * np.round(m), np.abs(y), m, scale=scale, left_video=video,
+                      video_flows=flows, depth_flows=depth_flows, flow_fn=flow_fn)
+  return res
+
+
+def aggregate(results: Sequence[tuple[dict[str, float], int]]) -> dict[str, float]:
+  """Frame-weighted mean over sequences (official `aggregate_eval_results`).
+
+  Args:
+    results: `(metrics, T)` per sequence, as returned by `eval_batch`.
+
+  Returns:
+    `{k: sum_s metrics_s[k] * T_s / sum_s T_s}`. A metric missing from some
+    sequences is summed where present but still divided by the total frame count
+    (as in the official code).
+  """
+  total = 0
+  sums: dict[str, float] = {}
+  for metrics, length in results:
+    total += int(length)
+    for k, v in metrics.items():
+      sums[k] = sums.get(k, 0.0) + float(np.asarray(v, np.float64).reshape(())) * length
+  if total == 0:
+    return {}
+  return {k: v / total for k, v in sums.items()}

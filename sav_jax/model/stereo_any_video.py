@@ -1,0 +1,177 @@
+"""The Stereo Any Video model: features, three-scale cascade, temporal updates."""
+
+from __future__ import annotations
+
+import functools
+
+import flax
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from sav_jax.config import SAVConfig
+from sav_jax.model.depth import DepthExtractor
+from sav_jax.model.encoder import BasicEncoder
+from sav_jax.model.layers import CorrMLP, normalize
+from sav_jax.model.update import SequenceUpdateBlock3D
+from sav_jax.ops.correlation import SMALL_WINDOW, WIDE_WINDOW, aapc
+from sav_jax.ops.pool import avg_pool
+from sav_jax.ops.resize import resize
+from sav_jax.ops.upsample import convex_upsample_3d
+
+@flax.struct.dataclass
+class SAVOutput:
+  """Model output.
+
+  Attributes:
+    disparities: `[P, B, T, H, W]` float32, the x-flow of every refinement step
+      upsampled to full resolution (P = iters//2 + iters//2 + iters: the 1/16,
+      1/8 and 1/4 stages in order). Positive values are disparities (the left
+      pixel x matches right pixel x - d). With `final_only=True`, P = 1.
+  """
+
+  disparities: jax.Array
+
+
+def check_inputs(left, right, iters: int) -> None:
+  """Raises a ValueError naming the problem with the inputs of the model."""
+  if left.shape != right.shape:
+    raise ValueError(f"left and right videos differ in shape: {left.shape} vs {right.shape}")
+  if left.ndim != 5 or left.shape[-1] != 3:
+    raise ValueError(
+        f"expected RGB videos [B, T, H, W, 3] with values 0..255, got shape {left.shape}")
+  h, w = left.shape[2:4]
+  if h % 16 or w % 16:
+    raise ValueError(
+        f"height and width must be multiples of 16, got {h}x{w}; pad the frames "
+        "(sav_jax.inference.predict_video pads to multiples of 32 for you)")
+  if not isinstance(iters, int) or iters < 2 or iters % 2:
+    raise ValueError(
+        f"iters must be an even integer >= 2 (the 1/16 and 1/8 stages run iters//2 "
+        f"steps each, and steps alternate 1x9 / 3x3 windows), got {iters!r}")
+
+
+class StereoAnyVideo(nn.Module):
+  """Stereo Any Video (ICCV 2025). Attribute names follow the official modules."""
+
+  cfg: SAVConfig = SAVConfig()
+
+  def setup(self):
+    dt = self.cfg.compute_dtype
+    self.cnet = BasicEncoder(self.cfg.fnet_dim, dt)
+    self.fnet = BasicEncoder(self.cfg.fnet_dim, dt)
+    self.depthnet = DepthExtractor(self.cfg)
+    self.corr_mlp = CorrMLP()
+    self.update_block = SequenceUpdateBlock3D(self.cfg.hidden_dim, self.cfg.upsample_rate, dt)
+
+  def features(self, left: jax.Array, right: jax.Array):
+    """Matching features of both views and the left context at 1/4.
+
+    Args:
+      left: `[B, T, H, W, 3]` RGB 0..255.
+      right: `[B, T, H, W, 3]`.
+
+    Returns:
+      `(fmap1, fmap2, context)`, each `[B, T, H/4, W/4, 128]` float32:
+      `[depth 32 | fnet 96]` per view and `[depth 32 | cnet 96]` of the left view.
+    """
+    b, t, h, w, _ = left.shape
+    both = normalize(jnp.concatenate([left, right], axis=0))  # [2B, T, H, W, 3]
+    depth = self.depthnet(both).astype(jnp.float32)
+    fnet = self.fnet(both.reshape(2 * b * t, h, w, 3)).astype(jnp.float32)
+    fnet = fnet.reshape(2 * b, t, *fnet.shape[1:])
+    cnet = self.cnet(both[:b].reshape(b * t, h, w, 3)).astype(jnp.float32)
+    cnet = cnet.reshape(b, t, *cnet.shape[1:])
+    fmaps = jnp.concatenate([depth, fnet], axis=-1)
+    context = jnp.concatenate([depth[:b], cnet], axis=-1)
+    return fmaps[:b], fmaps[b:], context
+
+  def step(self, net, flow, inp, fmap1, fmap2, window):
+    """One refinement iteration at one scale.
+
+    Args:
+      net: `[B, T, h, w, 128]` GRU state.
+      flow: `[B, T, h, w, 1]` x-flow (the y-flow never influences x in the
+        official model: it is zeroed before every use).
+      inp: `[B, T, h, w, 128]` context input.
+      fmap1: `[B, T, h, w, 128]` left features.
+      fmap2: `[B, T, h, w, 128]` right features.
+      window: `WIDE_WINDOW` or `SMALL_WINDOW`.
+
+    Returns:
+      `(net, flow, flow_up)` with `flow_up` `[B, T, 4h, 4w, 1]` (convex upsampled).
+    """
+    b, t, h, w, c = fmap1.shape
+    flow = jax.lax.stop_gradient(flow)
+    corr = aapc(fmap1.reshape(b * t, h, w, c), fmap2.reshape(b * t, h, w, c),
+                flow.reshape(b * t, h, w), window, self.cfg.corr_groups)
+    corr = self.corr_mlp(corr).reshape(b, t, h, w, -1)
+    flow2 = jnp.concatenate([flow, jnp.zeros_like(flow)], axis=-1)
+    net, mask, delta = self.update_block(net, inp, corr, flow2)
+    flow = flow + delta[..., :1]
+    return net, flow, convex_upsample_3d(flow, mask, self.cfg.upsample_rate)
+
+  def refine(self, net, flow, inp, fmap1, fmap2, num_iters: int):
+    """`num_iters` iterations at one scale, as a `lax.scan` over (1x9, 3x3) pairs.
+
+    Returns:
+      `(flow_ups, last_flow)`: `[num_iters, B, T, 4h, 4w, 1]` and `[B, T, h, w, 1]`.
+    """
+
+    def pair(mdl, carry, inp, fmap1, fmap2):
+      net, flow = carry
+      net, flow, up_a = mdl.step(net, flow, inp, fmap1, fmap2, WIDE_WINDOW)
+      net, flow, up_b = mdl.step(net, flow, inp, fmap1, fmap2, SMALL_WINDOW)
+      return (net, flow), jnp.stack([up_a, up_b])
+
+    if self.cfg.remat:
+      policy = self.cfg.remat_policy
+      pair = nn.remat(pair, prevent_cse=False,
+                      policy=getattr(jax.checkpoint_policies, policy) if policy else None)
+    ups = []
+    if num_iters >= 2:
+      scan = nn.scan(pair, variable_broadcast="params", split_rngs={"params": False},
+                     in_axes=(nn.broadcast, nn.broadcast, nn.broadcast), length=num_iters // 2)
+      (net, flow), pairs = scan(self, (net, flow), inp, fmap1, fmap2)
+      ups.append(pairs.reshape(-1, *pairs.shape[2:]))
+    if num_iters % 2:  # odd counts happen at 1/16 and 1/8 (iters//2); the window restarts wide
+      net, flow, up = self.step(net, flow, inp, fmap1, fmap2, WIDE_WINDOW)
+      ups.append(up[None])
+    return jnp.concatenate(ups, axis=0), flow
+
+  def __call__(self, left: jax.Array, right: jax.Array, iters: int = 20,
+               final_only: bool = False) -> SAVOutput:
+    """Disparity of the left video for every refinement step.
+
+    Args:
+      left: `[B, T, H, W, 3]` RGB in 0..255 (H, W multiples of 16).
+      right: `[B, T, H, W, 3]`.
+      iters: refinement steps at 1/4 (even); 1/16 and 1/8 get `iters // 2` each.
+      final_only: return only the last prediction (`P = 1`), as test mode does.
+
+    Returns:
+      `SAVOutput` with `disparities` `[P, B, T, H, W]`.
+    """
+    check_inputs(left, right, iters)
+    b, t, h, w, _ = left.shape
+    fmap1, fmap2, context = self.features(left, right)
+    net, inp = jnp.tanh(context), nn.relu(context)
+    scales = {k: tuple(avg_pool(a, k) for a in (net, inp, fmap1, fmap2)) for k in (4, 2)}
+    scales[1] = (net, inp, fmap1, fmap2)
+    preds = []
+    flow = jnp.zeros((*scales[4][2].shape[:-1], 1), jnp.float32)
+    for pool, up_factor in ((4, 4), (2, 2), (1, 1)):
+      n = iters if pool == 1 else iters // 2
+      s_net, s_inp, f1, f2 = scales[pool]
+      if pool != 4:  # hand-over: rescale by the height ratio, align_corners=True
+        hf = f1.shape[2]
+        flow = (hf / prev_up.shape[2]) * resize(prev_up, (hf, f1.shape[3]), "bilinear", True)
+      ups, flow = self.refine(s_net, flow, s_inp, f1, f2, n)
+      prev_up = ups[-1]
+      if final_only and pool != 1:
+        continue
+      if up_factor != 1:
+        ups = up_factor * resize(ups, (h, w), "bilinear", True)
+      preds.append(ups[..., 0])
+    disp = jnp.concatenate(preds, axis=0)
+    return SAVOutput(disparities=disp[-1:] if final_only else disp)

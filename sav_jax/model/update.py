@@ -1,0 +1,209 @@
+"""The temporal update block (`SequenceUpdateBlock3D` of the official code).
+
+Shapes inside are `[B, T, h, w, C]`: 2-D convs run per frame (flax convs treat
+the leading `B, T` as batch), 3-D convs over `(T, h, w)`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from sav_jax.model.layers import conv, dense, gelu, layer_norm
+
+
+class BasicMotionEncoder(nn.Module):
+  """Per-frame 2-D motion encoder: correlation and flow features + the flow."""
+
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, flow: jax.Array, corr: jax.Array) -> jax.Array:
+    """Args: flow `[..., h, w, 2]`, corr `[..., h, w, 128]`. Returns `[..., h, w, 128]`."""
+    c = lambda f, k, p, n: conv(f, (k, k), 1, p, dtype=self.dtype, name=n)
+    cor = nn.relu(c(256, 1, 0, "convc1")(corr))
+    cor = nn.relu(c(192, 3, 1, "convc2")(cor))
+    flo = nn.relu(c(128, 7, 3, "convf1")(flow.astype(self.dtype)))
+    flo = nn.relu(c(64, 3, 1, "convf2")(flo))
+    out = nn.relu(c(126, 3, 1, "conv")(jnp.concatenate([cor, flo], axis=-1)))
+    return jnp.concatenate([out, flow.astype(out.dtype)], axis=-1)
+
+
+class TemporalAttention(nn.Module):
+  """Self-attention over time at each pixel, q = k = v = the input (no qkv projection).
+
+  The official module owns a `qkv` Linear that its forward never calls; the
+  converter keeps that weight outside `params`.
+  """
+
+  dim: int = 256
+  num_heads: int = 8
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Args: x `[B, T, h, w, dim]`. Returns `[B, T, h, w, dim]`."""
+    b, t, h, w, c = x.shape
+    heads = x.reshape(b, t, h, w, self.num_heads, c // self.num_heads)
+    scale = (c // self.num_heads) ** -0.5
+    logits = jnp.einsum("bthwnd,bshwnd->bhwnts", heads, heads,
+                        preferred_element_type=jnp.float32) * scale
+    attn = jax.nn.softmax(logits, axis=-1).astype(self.dtype)
+    out = jnp.einsum("bhwnts,bshwnd->bthwnd", attn, heads.astype(self.dtype))
+    return dense(self.dim, dtype=self.dtype, name="proj")(out.reshape(b, t, h, w, c))
+
+
+class TimeAttnBlock(nn.Module):
+  """LayerNorm -> temporal attention -> `temporal_fc`, residual."""
+
+  dim: int = 256
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Args: x `[B, T, h, w, dim]`. Returns the same shape."""
+    y = layer_norm(dtype=self.dtype, name="temporal_norm1")(x)
+    y = TemporalAttention(self.dim, dtype=self.dtype, name="temporal_attn")(y)
+    y = dense(self.dim, dtype=self.dtype, name="temporal_fc")(y)
+    return x + y
+
+
+def linear_attention(q: jax.Array, k: jax.Array, v: jax.Array, eps: float = 1e-6) -> jax.Array:
+  """Linear attention ("Transformers are RNNs") as LoFTR implements it.
+
+  Args:
+    q: `[N, L, heads, D]`.
+    k: `[N, S, heads, D]`.
+    v: `[N, S, heads, D]`.
+    eps: denominator epsilon.
+
+  Returns:
+    `[N, L, heads, D]`.
+  """
+  q = jax.nn.elu(q) + 1
+  k = jax.nn.elu(k) + 1
+  length = v.shape[1]
+  v = v / length  # the official code divides and multiplies back (fp16 overflow guard)
+  kv = jnp.einsum("nshd,nshv->nhdv", k, v)
+  z = 1.0 / (jnp.einsum("nlhd,nhd->nlh", q, k.sum(axis=1)) + eps)
+  return jnp.einsum("nlhd,nhdv,nlh->nlhv", q, kv, z) * length
+
+
+class LoFTREncoderLayer(nn.Module):
+  """LoFTR encoder layer with linear attention (self-attention within a frame)."""
+
+  d_model: int = 256
+  nhead: int = 8
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Args: x `[N, L, d_model]`. Returns the same shape."""
+    n, length, c = x.shape
+    split = lambda y: y.reshape(n, length, self.nhead, c // self.nhead)
+    q = split(dense(c, False, self.dtype, "q_proj")(x))
+    k = split(dense(c, False, self.dtype, "k_proj")(x))
+    v = split(dense(c, False, self.dtype, "v_proj")(x))
+    msg = linear_attention(q, k, v).reshape(n, length, c)
+    msg = dense(c, False, self.dtype, "merge")(msg)
+    msg = layer_norm(dtype=self.dtype, name="norm1")(msg)
+    msg = dense(2 * c, False, self.dtype, "mlp_0")(jnp.concatenate([x, msg], axis=-1))
+    msg = dense(c, False, self.dtype, "mlp_2")(nn.relu(msg))
+    msg = layer_norm(dtype=self.dtype, name="norm2")(msg)
+    return x + msg
+
+
+class SpaceAttnBlock(nn.Module):
+  """Per-frame spatial linear attention over all `h*w` positions."""
+
+  dim: int = 256
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Args: x `[B, T, h, w, dim]`. Returns the same shape."""
+    b, t, h, w, c = x.shape
+    y = LoFTREncoderLayer(self.dim, dtype=self.dtype, name="encoder_layer")(
+        x.reshape(b * t, h * w, c))
+    return y.reshape(b, t, h, w, c)
+
+
+class SKSepConvGRU3D(nn.Module):
+  """Separable 3-D ConvGRU: a W pass (large-kernel z/r), then H, then T."""
+
+  hidden_dim: int = 128
+  dtype: Any = jnp.float32
+
+  def _gru(self, h, x, convz, convr, convq):
+    hx = jnp.concatenate([h, x], axis=-1)
+    z = jax.nn.sigmoid(convz(hx))
+    r = jax.nn.sigmoid(convr(hx))
+    q = jnp.tanh(convq(jnp.concatenate([r * h, x], axis=-1)))
+    return (1 - z) * h + z * q
+
+  @nn.compact
+  def __call__(self, h: jax.Array, x: jax.Array) -> jax.Array:
+    """Args: h `[B, T, h, w, hidden]`, x `[B, T, h, w, 256]`. Returns the new h."""
+    hd = self.hidden_dim
+    c3 = lambda k, p, n: conv(hd, k, 1, p, dtype=self.dtype, name=n)
+
+    def super_kernel(name):
+      first = c3((1, 1, 15), (0, 0, 7), f"{name}_0")
+      second = c3((1, 1, 5), (0, 0, 2), f"{name}_2")
+      return lambda y: second(gelu(first(y)))
+
+    h = self._gru(h, x, super_kernel("convz1"), super_kernel("convr1"),
+                  c3((1, 1, 5), (0, 0, 2), "convq1"))
+    k, p = (1, 5, 1), (0, 2, 0)
+    h = self._gru(h, x, c3(k, p, "convz2"), c3(k, p, "convr2"), c3(k, p, "convq2"))
+    k, p = (5, 1, 1), (2, 0, 0)
+    return self._gru(h, x, c3(k, p, "convz3"), c3(k, p, "convr3"), c3(k, p, "convq3"))
+
+
+class FlowHead3D(nn.Module):
+  """3x3x3 conv (256) -> ReLU -> 3x3x3 conv (2): the disparity update."""
+
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Args: x `[B, T, h, w, C]`. Returns `[B, T, h, w, 2]`."""
+    x = nn.relu(conv(256, (3, 3, 3), 1, 1, dtype=self.dtype, name="conv1")(x))
+    return conv(2, (3, 3, 3), 1, 1, dtype=self.dtype, name="conv2")(x)
+
+
+class SequenceUpdateBlock3D(nn.Module):
+  """Motion encoder, time and space attention, 3-D GRU, flow and mask heads."""
+
+  hidden_dim: int = 128
+  mask_size: int = 4
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, net, inp, corr, flow):
+    """One refinement update.
+
+    Args:
+      net: `[B, T, h, w, hidden]` GRU state.
+      inp: `[B, T, h, w, 128]` context input.
+      corr: `[B, T, h, w, 128]` correlation features (after `corr_mlp`).
+      flow: `[B, T, h, w, 2]` current flow (y channel zero, as in the official code).
+
+    Returns:
+      `(net, mask, delta_flow)`: new state, upsampling-mask logits
+      `[B, T, h, w, 27*mask_size**2]` (already x0.25), and `[B, T, h, w, 2]`.
+    """
+    dt = self.dtype
+    motion = BasicMotionEncoder(dt, name="encoder")(flow, corr.astype(dt))
+    x = jnp.concatenate([inp.astype(dt), motion], axis=-1)
+    x = TimeAttnBlock(256, dt, name="time_attn")(x)
+    x = SpaceAttnBlock(256, dt, name="space_attn")(x)
+    net = SKSepConvGRU3D(self.hidden_dim, dt, name="gru")(net.astype(dt), x)
+    c3 = lambda f, k, p, n: conv(f, (k, k, k), 1, p, dtype=dt, name=n)
+    delta = FlowHead3D(dt, name="flow_head")(net)
+    mask = c3(256, 3, 1, "mask3d_0")(net)
+    mask = c3(27 * self.mask_size ** 2, 1, 0, "mask3d_2")(nn.relu(mask))
+    return net, 0.25 * mask.astype(jnp.float32), delta.astype(jnp.float32)

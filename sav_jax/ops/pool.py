@@ -1,0 +1,29 @@
+"""Pooling and padding helpers with torch semantics (channels last)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def avg_pool(x: jax.Array, k: int) -> jax.Array:
+  """`F.avg_pool2d(x, k, stride=k)`: non-overlapping mean, remainder dropped.
+
+  Args:
+    x: `[..., H, W, C]`.
+    k: window and stride.
+
+  Returns:
+    `[..., H // k, W // k, C]`.
+  """
+  h, w, c = x.shape[-3:]
+  ho, wo = h // k, w // k
+  x = x[..., : ho * k, : wo * k, :]
+  x = x.reshape(*x.shape[:-3], ho, k, wo, k, c)
+  return x.mean(axis=(-4, -2))
+
+
+def pad_replicate(x: jax.Array, pad_h: tuple[int, int], pad_w: tuple[int, int]) -> jax.Array:
+  """Edge padding of the two spatial axes of `[..., H, W, C]`."""
+  widths = [(0, 0)] * (x.ndim - 3) + [pad_h, pad_w, (0, 0)]
+  return jnp.pad(x, widths, mode="edge")

@@ -1,0 +1,39 @@
+"""Horizontal warping: torch `grid_sample` (bilinear, zeros, align_corners=True) along x.
+
+The official correlation samples the right features at `(x - flow_x, y)` with the
+vertical flow forced to zero, so the row coordinate is always an integer and the
+bilinear sample degenerates to a two-tap linear interpolation along x. Taps outside
+`[0, W-1]` contribute zero (grid_sample's zero padding).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def warp_x(features: jax.Array, disp: jax.Array) -> jax.Array:
+  """Samples `features` at `x - disp` along the width axis.
+
+  Args:
+    features: `[N, H, W, C]`, the right-view features.
+    disp: `[N, H, W]`, horizontal flow in pixels (positive moves the sample left).
+
+  Returns:
+    `[N, H, W, C]`: `features[n, y, x - disp[n, y, x]]`, linearly interpolated,
+    zero outside the image.
+  """
+  width = features.shape[2]
+  xs = jnp.arange(width, dtype=jnp.float32)[None, None, :] - disp.astype(jnp.float32)
+  x0 = jnp.floor(xs)
+  w1 = (xs - x0)[..., None]
+  x0 = x0.astype(jnp.int32)
+  x1 = x0 + 1
+
+  def tap(idx):
+    inside = ((idx >= 0) & (idx <= width - 1))[..., None]
+    vals = jnp.take_along_axis(features, jnp.clip(idx, 0, width - 1)[..., None], axis=2)
+    return jnp.where(inside, vals.astype(jnp.float32), 0.0)
+
+  out = (1.0 - w1) * tap(x0) + w1 * tap(x1)
+  return out.astype(features.dtype)

@@ -1,0 +1,52 @@
+"""Temporal convex upsampling (`convex_upsample_3D` of the official code)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def neighbours_3d(x: jax.Array) -> jax.Array:
+  """The 27 zero-padded 3x3x3 neighbours of every position (`unfoldNd`, padding 1).
+
+  Args:
+    x: `[B, T, H, W, C]`.
+
+  Returns:
+    `[B, T, H, W, 27, C]`; neighbour `k = dt*9 + dy*3 + dx` holds
+    `x[t + dt - 1, y + dy - 1, x + dx - 1]`, zero outside the clip (time included).
+  """
+  _, t, h, w, _ = x.shape
+  xp = jnp.pad(x, [(0, 0), (1, 1), (1, 1), (1, 1), (0, 0)])
+  views = [
+      xp[:, dt:dt + t, dy:dy + h, dx:dx + w, :]
+      for dt in range(3) for dy in range(3) for dx in range(3)
+  ]
+  return jnp.stack(views, axis=4)
+
+
+def convex_upsample_3d(flow: jax.Array, mask: jax.Array, rate: int = 4) -> jax.Array:
+  """Upsamples a flow field by a convex combination of its 3x3x3 neighbours.
+
+  Each output pixel is a softmax-weighted sum over the 27 (t, y, x) neighbours of
+  its low-resolution cell in the previous, current and next frame; the flow is
+  multiplied by `rate` first. Computed in float32 whatever the input dtype.
+
+  Args:
+    flow: `[B, T, h, w, C]`.
+    mask: `[B, T, h, w, 27 * rate * rate]` logits; channel `k*rate*rate + ry*rate + rx`.
+    rate: upsampling factor.
+
+  Returns:
+    `[B, T, rate*h, rate*w, C]`, float32.
+  """
+  b, t, h, w, c = flow.shape
+  weights = mask.astype(jnp.float32).reshape(b, t, h, w, 27, rate, rate)
+  # Softmax over the last axis: jaxlib 0.10 on CPU crashes (SIGSEGV) on the
+  # gradient of a softmax over an inner axis of this shape.
+  weights = jax.nn.softmax(jnp.moveaxis(weights, 4, -1), axis=-1)  # [B,T,h,w,ry,rx,27]
+  nb = neighbours_3d(rate * flow.astype(jnp.float32))  # [B,T,h,w,27,C]
+  # Tiny contraction: keep full float32 even where matmuls default to TF32/bf16.
+  up = jnp.einsum(
+      "bthwyxk,bthwkc->bthywxc", weights, nb, precision=jax.lax.Precision.HIGHEST)
+  return up.reshape(b, t, h * rate, w * rate, c)

@@ -1,0 +1,111 @@
+"""Tests for sav_jax.convert.orbax_io: orbax save/restore of Flax variables and a config."""
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sav_jax.convert import orbax_io
+from sav_jax.convert.torch_io import CheckpointError
+
+
+def _variables():
+  return {
+      "params": {
+          "fnet": {"conv1": {"kernel": jnp.arange(24.0).reshape(2, 3, 2, 2),
+                             "bias": jnp.array([0.5, -1.0])}},
+          "corr_mlp": {"fc1": {"kernel": np.linspace(0, 1, 12, dtype=np.float32).reshape(3, 4)}},
+          "half": jnp.ones((3,), jnp.bfloat16) * 1.5,
+          "steps": jnp.array(7, jnp.int32),
+      },
+      "buffers": {"pe": jnp.full((1, 4, 2), 0.25)},
+  }
+
+
+_CONFIG = {"model": {"hidden": 128, "encoder": "vits"}, "iters": 20, "scales": [4, 8, 16],
+           "note": None, "flag": True}
+
+
+def _assert_same(restored, original):
+  assert jax.tree.structure(restored) == jax.tree.structure(original)
+  for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(restored),
+                          jax.tree.leaves(original)):
+    assert np.asarray(a).dtype == np.asarray(b).dtype, path
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=str(path))
+
+
+def test_round_trip_without_target(tmp_path):
+  variables = _variables()
+  out = orbax_io.save_variables(tmp_path / "ckpt", variables, _CONFIG)
+  assert out == (tmp_path / "ckpt").absolute()
+  assert orbax_io.is_variables_checkpoint(out)
+  assert not [p for p in os.listdir(tmp_path) if p != "ckpt"]  # no temporary leftovers
+  restored, config = orbax_io.restore_variables(tmp_path / "ckpt")
+  _assert_same(restored, variables)
+  assert config == _CONFIG
+  assert all(isinstance(x, jax.Array) for x in jax.tree.leaves(restored))
+
+
+def test_round_trip_with_abstract_target(tmp_path):
+  variables = _variables()
+  orbax_io.save_variables(tmp_path / "ckpt", variables, _CONFIG)
+  target = jax.eval_shape(_variables)
+  restored, config = orbax_io.restore_variables(tmp_path / "ckpt", target=target)
+  _assert_same(restored, variables)
+  assert config["scales"] == [4, 8, 16]
+
+
+def test_tuples_in_config_come_back_as_lists(tmp_path):
+  orbax_io.save_variables(tmp_path / "c", {"params": {"w": jnp.ones(2)}}, {"shape": (2, 3)})
+  assert orbax_io.restore_variables(tmp_path / "c")[1] == {"shape": [2, 3]}
+
+
+def test_overwrite(tmp_path):
+  path = tmp_path / "ckpt"
+  orbax_io.save_variables(path, {"params": {"w": jnp.zeros(2)}}, {"v": 1})
+  with pytest.raises(FileExistsError, match="overwrite=True"):
+    orbax_io.save_variables(path, {"params": {"w": jnp.ones(2)}}, {"v": 2})
+  orbax_io.save_variables(path, {"params": {"w": jnp.ones(3)}}, {"v": 2}, overwrite=True)
+  restored, config = orbax_io.restore_variables(path)
+  np.testing.assert_array_equal(restored["params"]["w"], np.ones(3))
+  assert config == {"v": 2}
+
+
+def test_refuses_to_overwrite_foreign_directory(tmp_path):
+  (tmp_path / "data").mkdir()
+  (tmp_path / "data" / "precious.txt").write_text("keep me")
+  with pytest.raises(CheckpointError, match="refusing to overwrite"):
+    orbax_io.save_variables(tmp_path / "data", {"params": {"w": jnp.ones(2)}}, {},
+                            overwrite=True)
+  assert (tmp_path / "data" / "precious.txt").read_text() == "keep me"
+
+
+def test_not_a_checkpoint(tmp_path):
+  with pytest.raises(CheckpointError, match="not found"):
+    orbax_io.restore_variables(tmp_path / "missing")
+  (tmp_path / "file").write_text("x")
+  with pytest.raises(CheckpointError, match="not a directory"):
+    orbax_io.restore_variables(tmp_path / "file")
+  (tmp_path / "dir").mkdir()
+  (tmp_path / "dir" / "other.bin").write_bytes(b"")
+  with pytest.raises(CheckpointError, match=r"not a sav-jax variables checkpoint.*other\.bin"):
+    orbax_io.restore_variables(tmp_path / "dir")
+
+
+def test_bad_inputs(tmp_path):
+  with pytest.raises(CheckpointError, match="JSON"):
+    orbax_io.save_variables(tmp_path / "a", {"params": {"w": jnp.ones(2)}}, {"f": object()})
+  with pytest.raises(CheckpointError, match="must be a dict"):
+    orbax_io.save_variables(tmp_path / "b", {"params": {"w": jnp.ones(2)}}, [1])
+  with pytest.raises(CheckpointError, match="zero-size"):
+    orbax_io.save_variables(tmp_path / "c", {"params": {"w": jnp.ones((0, 2))}}, {})
+  assert not os.listdir(tmp_path)
+
+
+def test_mismatched_target(tmp_path):
+  orbax_io.save_variables(tmp_path / "ckpt", {"params": {"w": jnp.ones(2)}}, {})
+  target = {"params": {"other": jax.ShapeDtypeStruct((2,), jnp.float32)}}
+  with pytest.raises(CheckpointError, match="cannot restore"):
+    orbax_io.restore_variables(tmp_path / "ckpt", target=target)

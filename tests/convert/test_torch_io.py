@@ -1,0 +1,743 @@
+"""Tests for sav_jax.convert.torch_io / pickle_reader: safe torch checkpoint reading and writing."""
+
+import collections
+import io
+import json
+import os
+import pickle
+import struct
+import sys
+import types
+import zipfile
+
+import numpy as np
+import pytest
+
+from sav_jax.convert import pickle_reader
+from sav_jax.convert import torch_io
+from sav_jax.convert.torch_io import CheckpointError
+
+TORCH_FILES = ("plain_state_dict.pth", "sav_subset_zip.pth", "sav_subset_legacy.pth")
+
+
+# --------------------------------------------------------------------------------------------
+# The real torch-written fixtures.
+
+
+@pytest.fixture(scope="module")
+def torch_dir(fixtures_dir):
+  return fixtures_dir / "torch_files"
+
+
+@pytest.fixture(scope="module")
+def expected(torch_dir):
+  with np.load(torch_dir / "expected.npz") as data:
+    out = collections.defaultdict(dict)
+    for name in data.files:
+      fname, key = name.split(":", 1)
+      out[fname][key] = data[name]
+  return out
+
+
+@pytest.mark.parametrize("fname", TORCH_FILES)
+def test_real_torch_files_match_expected(torch_dir, expected, fname):
+  sd = torch_io.load_state_dict(torch_dir / fname)
+  want = {k[len("module."):] if k.startswith("module.") else k: v
+          for k, v in expected[fname].items()}
+  assert list(sd) == list(want)
+  for k, v in want.items():
+    assert sd[k].dtype == v.dtype, k
+    assert sd[k].shape == v.shape, k
+    np.testing.assert_array_equal(sd[k], v, err_msg=k)
+    assert sd[k].flags.c_contiguous and sd[k].flags.writeable, k
+
+
+@pytest.mark.parametrize("fname", ["sav_subset_zip.pth", "sav_subset_legacy.pth"])
+def test_real_training_checkpoint_object(torch_dir, fname):
+  obj = torch_io.load_checkpoint_object(torch_dir / fname)
+  assert set(obj) == {"model", "optimizer", "epoch"}
+  assert obj["optimizer"] == {"step": 3} and obj["epoch"] == 7
+  model = obj["model"]
+  assert all(k.startswith("module.") for k in model)
+  # dtypes of the fixture: float32, float16, bfloat16 (-> float32), float64.
+  assert model["module.corr_mlp.fc1.bias"].dtype == np.float16
+  assert model["module.update_block.mask3d.2.weight"].dtype == np.float32
+  assert model["module.fnet.conv1.weight"].dtype == np.float64
+  # view_a and view_b share one storage; the arrays must be independent copies.
+  model["module.view_a"][...] = 0
+  assert np.abs(model["module.view_b"]).sum() > 0
+
+
+def test_real_zip_and_legacy_agree(torch_dir):
+  a = torch_io.load_state_dict(torch_dir / "sav_subset_zip.pth")
+  b = torch_io.load_state_dict(torch_dir / "sav_subset_legacy.pth")
+  assert a.keys() == b.keys()
+  for k in a:
+    np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_real_plain_state_dict_scalars(torch_dir):
+  sd = torch_io.load_state_dict(torch_dir / "plain_state_dict.pth")
+  assert sd["norm.num_batches_tracked"].shape == () and sd["norm.num_batches_tracked"] == 12
+  assert sd["norm.num_batches_tracked"].dtype == np.int64
+  assert sd["scalar"].shape == () and sd["scalar"] == 1.5
+
+
+# --------------------------------------------------------------------------------------------
+# A minimal torch-format writer (fake torch modules so the stdlib pickler emits the same
+# GLOBALs as torch.save), to cover every dtype, views, v3 tensors, big-endian files, ...
+
+_STORAGE_NAMES = {
+    "float64": "DoubleStorage", "float32": "FloatStorage", "float16": "HalfStorage",
+    "bfloat16": "BFloat16Storage", "int64": "LongStorage", "int32": "IntStorage",
+    "int16": "ShortStorage", "int8": "CharStorage", "uint8": "ByteStorage",
+    "bool": "BoolStorage",
+}
+
+
+class _FakeDType:
+  """Pickles as `GLOBAL torch <name>`, like a torch.dtype."""
+
+  __module__ = "torch"
+
+  def __init__(self, name):
+    self.name = name
+
+  def __reduce__(self):
+    return self.name
+
+
+def _fake_function(module, name):
+  def fn(*args):
+    del args
+  fn.__module__, fn.__qualname__, fn.__name__ = module, name, name
+  return fn
+
+
+@pytest.fixture
+def fake_torch(monkeypatch):
+  """Installs fake `torch` modules (only for pickling in the test) and returns `torch`."""
+  torch = types.ModuleType("torch")
+  utils = types.ModuleType("torch._utils")
+  tensor_mod = types.ModuleType("torch._tensor")
+  nn = types.ModuleType("torch.nn")
+  param_mod = types.ModuleType("torch.nn.parameter")
+  for fname in ("_rebuild_tensor", "_rebuild_tensor_v2", "_rebuild_tensor_v3",
+                "_rebuild_parameter"):
+    setattr(utils, fname, _fake_function("torch._utils", fname))
+  tensor_mod._rebuild_from_type_v2 = _fake_function("torch._tensor", "_rebuild_from_type_v2")
+  tensor_mod.Tensor = type("Tensor", (), {"__module__": "torch._tensor"})
+  param_mod.Parameter = type("Parameter", (), {"__module__": "torch.nn.parameter"})
+  for cls in list(_STORAGE_NAMES.values()) + ["UntypedStorage"]:
+    setattr(torch, cls, type(cls, (), {"__module__": "torch"}))
+  for dtype in ("uint16", "float32", "bfloat16"):
+    setattr(torch, dtype, _FakeDType(dtype))
+  torch._utils, torch._tensor = utils, tensor_mod
+  for name, mod in (("torch", torch), ("torch._utils", utils), ("torch._tensor", tensor_mod),
+                    ("torch.nn", nn), ("torch.nn.parameter", param_mod)):
+    monkeypatch.setitem(sys.modules, name, mod)
+  return torch
+
+
+class _Storage:
+
+  def __init__(self, key, cls, numel, raw):
+    self.key, self.cls, self.numel, self.raw = key, cls, numel, raw
+
+
+class _Tensor:
+
+  def __init__(self, fn, args):
+    self.fn, self.args = fn, args
+
+  def __reduce__(self):
+    return self.fn, self.args
+
+
+def _raw(arr, dtype):
+  """Little-endian storage bytes of `arr` as torch `dtype`."""
+  if dtype == "bfloat16":
+    return (np.asarray(arr, "<f4").view("<u4") >> 16).astype("<u2").tobytes()
+  return np.asarray(arr).astype(np.dtype(dtype).newbyteorder("<")).tobytes()
+
+
+class _Builder:
+  """Collects storages and tensors, then writes a zip or legacy torch file."""
+
+  def __init__(self, torch):
+    self.torch, self.storages = torch, {}
+
+  def storage(self, flat, dtype):
+    key = str(len(self.storages))
+    cls = getattr(self.torch, _STORAGE_NAMES[dtype])
+    self.storages[key] = _Storage(key, cls, np.size(flat), _raw(flat, dtype))
+    return self.storages[key]
+
+  def untyped(self, raw):
+    key = str(len(self.storages))
+    self.storages[key] = _Storage(key, self.torch.UntypedStorage, len(raw), raw)
+    return self.storages[key]
+
+  def tensor(self, storage, offset, size, stride, how="v2"):
+    utils = self.torch._utils
+    if how == "v1":
+      return _Tensor(utils._rebuild_tensor, (storage, offset, size, stride))
+    args = (storage, offset, tuple(size), tuple(stride), False, collections.OrderedDict())
+    tensor = _Tensor(utils._rebuild_tensor_v2, args)
+    if how == "param":
+      return _Tensor(utils._rebuild_parameter, (tensor, True, collections.OrderedDict()))
+    if how == "from_type":
+      return _Tensor(self.torch._tensor._rebuild_from_type_v2,
+                     (utils._rebuild_tensor_v2, self.torch._tensor.Tensor, args, {}))
+    return tensor
+
+  def array(self, arr, dtype, how="v2"):
+    arr = np.asarray(arr)
+    stride = [s // arr.itemsize for s in np.ascontiguousarray(arr).strides]
+    return self.tensor(self.storage(arr.ravel(), dtype), 0, arr.shape, stride, how)
+
+  def pickle(self, obj, legacy, protocol=2):
+    buf = io.BytesIO()
+    pickler = pickle.Pickler(buf, protocol=protocol)
+
+    def persistent_id(o):
+      if not isinstance(o, _Storage):
+        return None
+      pid = ("storage", o.cls, o.key, "cpu", o.numel)
+      return pid + (None,) if legacy else pid
+
+    pickler.persistent_id = persistent_id
+    pickler.dump(obj)
+    return buf.getvalue()
+
+  def write_zip(self, path, obj, byteorder="little", prefix="archive"):
+    with zipfile.ZipFile(path, "w") as zf:
+      zf.writestr(f"{prefix}/data.pkl", self.pickle(obj, legacy=False))
+      zf.writestr(f"{prefix}/byteorder", byteorder)
+      for key, st in self.storages.items():
+        raw = st.raw
+        if byteorder == "big":
+          item = len(raw) // max(st.numel, 1)
+          raw = np.frombuffer(raw, f"<u{item}" if item > 1 else "u1").byteswap().tobytes()
+        zf.writestr(f"{prefix}/data/{key}", raw)
+      zf.writestr(f"{prefix}/version", "3\n")
+    return path
+
+  def write_legacy(self, path, obj, header=None):
+    with open(path, "wb") as f:
+      f.write(header if header is not None else _legacy_header())
+      f.write(self.pickle(obj, legacy=True))
+      pickle.dump(list(self.storages), f, protocol=2)
+      for st in self.storages.values():
+        f.write(struct.pack("<q", st.numel))
+        f.write(st.raw)
+    return path
+
+
+def _legacy_header(magic=pickle_reader.LEGACY_MAGIC):
+  sys_info = {"protocol_version": 1001, "little_endian": True,
+              "type_sizes": {"short": 2, "int": 4, "long": 8}}
+  return b"".join(pickle.dumps(x, protocol=2) for x in (magic, 1001, sys_info))
+
+
+_DTYPE_VALUES = {
+    "float64": np.array([[1.5, -2.25e300], [np.pi, 0]]),
+    "float32": np.array([[1.5, -2.5, 3.0], [1e-30, 7, 8]], np.float32),
+    "float16": np.array([0.5, -65504, 1e-4], np.float16),
+    "bfloat16": np.array([[1.0, -2.0], [3.5, 0.0078125]], np.float32),
+    "int64": np.array([2**40, -3, 0], np.int64),
+    "int32": np.array([[2**30, -7]], np.int32),
+    "int16": np.array([-32768, 32767], np.int16),
+    "int8": np.array([-128, 5, 127], np.int8),
+    "uint8": np.array([0, 255, 17], np.uint8),
+    "bool": np.array([[True, False, True]]),
+}
+
+
+@pytest.mark.parametrize("fmt", ["zip", "legacy", "big"])
+def test_every_dtype_round_trips(tmp_path, fake_torch, fmt):
+  b = _Builder(fake_torch)
+  sd = collections.OrderedDict((f"w.{k}", b.array(v, k)) for k, v in _DTYPE_VALUES.items())
+  path = tmp_path / "dtypes.pth"
+  if fmt == "legacy":
+    b.write_legacy(path, sd)
+  else:
+    b.write_zip(path, sd, byteorder="big" if fmt == "big" else "little")
+  out = torch_io.load_state_dict(path)
+  assert list(out) == list(sd)
+  for k, v in _DTYPE_VALUES.items():
+    want_dtype = np.float32 if k == "bfloat16" else v.dtype
+    assert out[f"w.{k}"].dtype == want_dtype, k
+    assert out[f"w.{k}"].dtype.isnative
+    np.testing.assert_array_equal(out[f"w.{k}"], v, err_msg=k)
+
+
+@pytest.mark.parametrize("fmt", ["zip", "legacy"])
+def test_views_offsets_and_rebuild_variants(tmp_path, fake_torch, fmt):
+  b = _Builder(fake_torch)
+  base = np.arange(24, dtype=np.float32)
+  st = b.storage(base, "float32")
+  obj = {"state_dict": {
+      "module.full": b.tensor(st, 0, (4, 6), (6, 1)),
+      "module.transposed": b.tensor(st, 0, (6, 4), (1, 6)),
+      "module.offset": b.tensor(st, 5, (2, 3), (3, 1)),
+      "module.strided": b.tensor(st, 1, (3, 2), (8, 3)),
+      "module.expanded": b.tensor(st, 2, (3, 2), (0, 1)),
+      "module.scalar": b.tensor(st, 23, (), ()),
+      "module.empty": b.tensor(st, 0, (0, 5), (5, 1)),
+      "module.v1": b.tensor(st, 4, (2,), (1,), how="v1"),
+      "module.param": b.tensor(st, 0, (2, 2), (2, 1), how="param"),
+      "module.from_type": b.tensor(st, 6, (3,), (2,), how="from_type"),
+  }, "epoch": 3}
+  path = tmp_path / "views.pt"
+  b.write_legacy(path, obj) if fmt == "legacy" else b.write_zip(path, obj)
+  sd = torch_io.load_state_dict(path)
+  grid = base.reshape(4, 6)
+  np.testing.assert_array_equal(sd["full"], grid)
+  np.testing.assert_array_equal(sd["transposed"], grid.T)
+  np.testing.assert_array_equal(sd["offset"], base[5:11].reshape(2, 3))
+  np.testing.assert_array_equal(sd["strided"], [[1, 4], [9, 12], [17, 20]])
+  np.testing.assert_array_equal(sd["expanded"], [[2, 3]] * 3)
+  assert sd["scalar"].shape == () and sd["scalar"] == 23
+  assert sd["empty"].shape == (0, 5)
+  np.testing.assert_array_equal(sd["v1"], [4, 5])
+  np.testing.assert_array_equal(sd["param"], [[0, 1], [2, 3]])
+  np.testing.assert_array_equal(sd["from_type"], [6, 8, 10])
+  assert all(v.flags.c_contiguous and v.flags.writeable for v in sd.values())
+
+
+def test_v3_tensor_on_untyped_storage(tmp_path, fake_torch):
+  b = _Builder(fake_torch)
+  u16 = np.array([1, 65535, 300, 7], "<u2")
+  f32 = np.array([1.25, -3.0], "<f4")
+  st16, st32 = b.untyped(u16.tobytes()), b.untyped(f32.tobytes())
+  utils = fake_torch._utils
+  args16 = (st16, 1, (3,), (1,), False, collections.OrderedDict(), fake_torch.uint16)
+  args32 = (st32, 0, (2,), (1,), False, collections.OrderedDict(), fake_torch.float32)
+  obj = {"a": _Tensor(utils._rebuild_tensor_v3, args16),
+         "b": _Tensor(utils._rebuild_tensor_v3, args32)}
+  sd = torch_io.load_state_dict(b.write_zip(tmp_path / "v3.pth", obj))
+  assert sd["a"].dtype == np.uint16
+  np.testing.assert_array_equal(sd["a"], u16[1:])
+  np.testing.assert_array_equal(sd["b"], f32)
+
+
+def test_legacy_storage_view_metadata(tmp_path, fake_torch):
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(10, dtype=np.float32), "float32")
+  body = {"x": b.tensor(st, 1, (2,), (1,))}
+  pid_view = ("storage", st.cls, st.key, "cpu", st.numel, ("view0", 4, 5))
+
+  class ViewPickler(pickle.Pickler):
+    def persistent_id(self, o):
+      return pid_view if isinstance(o, _Storage) else None
+
+  buf = io.BytesIO()
+  ViewPickler(buf, protocol=2).dump(body)
+  path = tmp_path / "view.pth"
+  with open(path, "wb") as f:
+    f.write(_legacy_header() + buf.getvalue() + pickle.dumps([st.key], protocol=2))
+    f.write(struct.pack("<q", st.numel) + st.raw)
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], [5, 6])
+
+
+def test_tensor_overrunning_storage_is_refused(tmp_path, fake_torch):
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(6, dtype=np.float32), "float32")
+  for size, stride, offset in [((7,), (1,), 0), ((2, 3), (3, 1), 1), ((3,), (3,), 0)]:
+    b.write_zip(tmp_path / "bad.pth", {"x": b.tensor(st, offset, size, stride)})
+    with pytest.raises(CheckpointError, match="overruns its storage"):
+      torch_io.load_state_dict(tmp_path / "bad.pth")
+  b.write_zip(tmp_path / "huge.pth", {"x": b.tensor(st, 0, (1 << 20, 1 << 20), (0, 0))})
+  with pytest.raises(CheckpointError, match="refused a tensor"):
+    torch_io.load_state_dict(tmp_path / "huge.pth")
+
+
+def test_zip_with_missing_storage_record(tmp_path, fake_torch):
+  b = _Builder(fake_torch)
+  obj = {"x": b.array(np.ones(3, np.float32), "float32")}
+  path = tmp_path / "m.pth"
+  with zipfile.ZipFile(path, "w") as zf:
+    zf.writestr("archive/data.pkl", b.pickle(obj, legacy=False))
+  with pytest.raises(CheckpointError, match="missing"):
+    torch_io.load_state_dict(path)
+
+
+# --------------------------------------------------------------------------------------------
+# Malicious pickles: nothing may run.
+
+
+class _Evil:
+  """Pickles as a call of `fn(*args)`."""
+
+  def __init__(self, fn, *args):
+    self.fn, self.args = fn, args
+
+  def __reduce__(self):
+    return self.fn, self.args
+
+
+def _evil_payloads(marker):
+  cmd = f"touch {marker}"
+  code = f"open({str(marker)!r}, 'w').close()"
+  payloads = {}
+  for proto in (0, 2, 4):  # GLOBAL (0, 2) and STACK_GLOBAL (4)
+    payloads[f"os.system/p{proto}"] = pickle.dumps({"w": _Evil(os.system, cmd)}, protocol=proto)
+    payloads[f"eval/p{proto}"] = pickle.dumps({"w": _Evil(eval, code)}, protocol=proto)
+  # INST opcode (protocol 0) and a hand-written GLOBAL + REDUCE.
+  payloads["inst"] = f"(S'{cmd}'\nios\nsystem\n.".encode()
+  payloads["raw_reduce"] = f"cbuiltins\neval\n(S\"{code}\"\ntR.".encode()
+  return payloads
+
+
+def _assert_refused(path, marker):
+  with pytest.raises(CheckpointError) as err:
+    torch_io.load_checkpoint_object(path)
+  assert str(path) in str(err.value)
+  assert "refusing to load the pickled global" in str(err.value)
+  assert any(n in str(err.value) for n in ("system", "eval"))
+  assert not marker.exists(), "pickled code was executed"
+
+
+@pytest.mark.parametrize("where", ["zip", "legacy_body", "legacy_magic", "legacy_keys"])
+def test_malicious_pickles_are_refused(tmp_path, where):
+  marker = tmp_path / "pwned"
+  for name, payload in _evil_payloads(marker).items():
+    path = tmp_path / f"evil_{name.replace('/', '_')}.pth"
+    if where == "zip":
+      with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("evil/data.pkl", payload)
+    elif where == "legacy_body":
+      path.write_bytes(_legacy_header() + payload + pickle.dumps([], protocol=2))
+    elif where == "legacy_magic":
+      if not payload.startswith(b"\x80"):
+        continue  # not recognised as a pickle at all
+      path.write_bytes(payload)
+    else:
+      body = pickle.dumps({"a": 1}, protocol=2)
+      path.write_bytes(_legacy_header() + body + payload)
+    _assert_refused(path, marker)
+
+
+def test_malicious_pickle_with_opaque_unknown_runs_nothing(tmp_path):
+  marker = tmp_path / "pwned"
+  path = tmp_path / "evil.pth"
+  with zipfile.ZipFile(path, "w") as zf:
+    payload = {"model": {"w": _Evil(os.system, f"touch {marker}")}, "sched": _Evil(eval, "1")}
+    zf.writestr("archive/data.pkl", pickle.dumps(payload, protocol=2))
+  obj = torch_io.load_checkpoint_object(path, opaque_unknown=True)
+  assert isinstance(obj["model"]["w"], pickle_reader.OpaqueObject)
+  assert "system" in obj["model"]["w"].name
+  assert not marker.exists()
+  with pytest.raises(CheckpointError, match="not a state dict of tensors"):
+    torch_io.load_state_dict(path, opaque_unknown=True)
+  assert not marker.exists()
+
+
+class _Scheduler:
+  """Stands for an LR scheduler pickled by value (old OneCycleLR state held a bound method)."""
+
+  def __init__(self):
+    self.last_epoch, self.anneal_func = 3, self.anneal
+
+  def anneal(self):
+    return self.last_epoch
+
+
+def test_opaque_unknown_extracts_weights_next_to_junk(tmp_path, fake_torch):
+  b = _Builder(fake_torch)
+  junk = {"counter": _Evil(collections.Counter, [1, 2]), "sched": _Scheduler(),
+          "method": _Scheduler().anneal}
+  ckpt = {"model": {"fnet.w": b.array(np.ones(2, np.float32), "float32")}, "scheduler": junk}
+  path = b.write_zip(tmp_path / "train.pth", ckpt)
+  with pytest.raises(CheckpointError, match="collections.Counter"):
+    torch_io.load_state_dict(path)
+  sd = torch_io.load_state_dict(path, opaque_unknown=True)
+  np.testing.assert_array_equal(sd["fnet.w"], [1, 1])
+  sched = torch_io.load_checkpoint_object(path, opaque_unknown=True)["scheduler"]
+  assert all(isinstance(v, pickle_reader.OpaqueObject) for v in sched.values())
+  assert sched["sched"].name.endswith("_Scheduler")
+
+
+def test_build_cannot_mutate_allow_listed_objects(tmp_path, torch_dir):
+  # GLOBAL torch.FloatStorage, then BUILD with slot state {'raw': 1}.
+  payload = b"\x80\x02ctorch\nFloatStorage\nN}X\x03\x00\x00\x00rawK\x01s\x86b."
+  # BUILD with a plain state dict on a rebuild function.
+  payload2 = b"\x80\x02ctorch._utils\n_rebuild_tensor_v2\n}X\x02\x00\x00\x00fnK\x01sb."
+  for i, data in enumerate((payload, payload2)):
+    path = tmp_path / f"build{i}.pth"
+    with zipfile.ZipFile(path, "w") as zf:
+      zf.writestr("archive/data.pkl", data)
+    with pytest.raises(CheckpointError):
+      torch_io.load_checkpoint_object(path)
+  assert pickle_reader.SAFE_GLOBALS[("torch", "FloatStorage")].raw == np.dtype("<f4")
+  torch_io.load_state_dict(torch_dir / "plain_state_dict.pth")
+
+
+def test_unexpected_persistent_id_is_refused(tmp_path):
+  class ModulePickler(pickle.Pickler):
+    def persistent_id(self, o):
+      return ("module", "Net", "source.py", "def f(): pass") if o == "m" else None
+
+  buf = io.BytesIO()
+  ModulePickler(buf, protocol=2).dump({"net": "m"})
+  path = tmp_path / "module.pth"
+  with zipfile.ZipFile(path, "w") as zf:
+    zf.writestr("archive/data.pkl", buf.getvalue())
+  with pytest.raises(CheckpointError, match="persistent id 'module'"):
+    torch_io.load_checkpoint_object(path)
+
+
+def _zip_with_pickle(path, data, extra=()):
+  with zipfile.ZipFile(path, "w") as zf:
+    zf.writestr("archive/data.pkl", data)
+    for name in extra:
+      zf.writestr(name, b"")
+  return path
+
+
+def test_errors_from_rebuild_helpers_name_the_file(tmp_path):
+  # _codecs.encode with an encoding outside the allow-list.
+  data = b"\x80\x02c_codecs\nencode\nX\x01\x00\x00\x00aX\x05\x00\x00\x00rot13\x86R."
+  path = _zip_with_pickle(tmp_path / "codec.pth", data)
+  with pytest.raises(CheckpointError, match=r"codec\.pth: refused _codecs\.encode"):
+    torch_io.load_checkpoint_object(path)
+  # protocol-2 bytes objects (latin1), sets and complex numbers are fine.
+  obj = {"b": b"\xff\x00", "s": {1, 2}, "f": frozenset([3]), "c": 1 + 2j, "t": (1, [2])}
+  path = _zip_with_pickle(tmp_path / "plain.pth", pickle.dumps(obj, protocol=2))
+  assert torch_io.load_checkpoint_object(path) == obj
+
+
+def test_deeply_nested_structure(tmp_path):
+  depth = 5000
+  data = b"\x80\x02" + b"]" * depth + b"a" * (depth - 1) + b"."
+  with pytest.raises(CheckpointError, match="deep.pth"):
+    torch_io.load_checkpoint_object(_zip_with_pickle(tmp_path / "deep.pth", data))
+
+
+def test_torchscript_archive(tmp_path):
+  path = _zip_with_pickle(tmp_path / "ts.pt", pickle.dumps({}), extra=["archive/code/m.py"])
+  with pytest.raises(CheckpointError, match="TorchScript"):
+    torch_io.load_checkpoint_object(path)
+
+
+# --------------------------------------------------------------------------------------------
+# Broken files.
+
+
+def test_missing_file_directory_and_unknown_suffix(tmp_path):
+  with pytest.raises(CheckpointError, match="not found"):
+    torch_io.load_state_dict(tmp_path / "nope.pth")
+  with pytest.raises(CheckpointError, match="not a regular file"):
+    torch_io.load_state_dict(tmp_path)
+  (tmp_path / "w.txt").write_bytes(b"hello")
+  with pytest.raises(CheckpointError, match="unknown checkpoint suffix '.txt'"):
+    torch_io.load_state_dict(tmp_path / "w.txt")
+
+
+@pytest.mark.parametrize("fname", ["sav_subset_zip.pth", "sav_subset_legacy.pth",
+                                   "plain_state_dict.pth"])
+def test_truncated_real_files(tmp_path, torch_dir, fname):
+  data = (torch_dir / fname).read_bytes()
+  for cut in (0, 1, 7, 20, 150, len(data) // 3, len(data) // 2, len(data) - 100, len(data) - 1):
+    path = tmp_path / f"cut{cut}.pth"
+    path.write_bytes(data[:cut])
+    with pytest.raises(CheckpointError) as err:
+      torch_io.load_checkpoint_object(path)
+    assert str(path) in str(err.value)
+
+
+def test_corrupted_zip_record(tmp_path, torch_dir):
+  data = bytearray((torch_dir / "plain_state_dict.pth").read_bytes())
+  pos = data.index(b"ccollections")  # inside the stored (uncompressed) data.pkl
+  data[pos:pos + 5] = b"XXXXX"
+  path = tmp_path / "crc.pth"
+  path.write_bytes(bytes(data))
+  with pytest.raises(CheckpointError, match=r"crc\.pth"):
+    torch_io.load_state_dict(path)
+
+
+@pytest.mark.parametrize("prefix", [b"", b"\x80", b"\x80\x02", b"PK\x03\x04"])
+@pytest.mark.parametrize("suffix", [".pth", ".bin", ".npz", ".safetensors"])
+def test_random_bytes(tmp_path, prefix, suffix):
+  rng = np.random.default_rng(len(prefix) + len(suffix))
+  for i in range(5):
+    path = tmp_path / f"rand{i}{suffix}"
+    path.write_bytes(prefix + rng.integers(0, 256, 300 * (i + 1), np.uint8).tobytes())
+    with pytest.raises(CheckpointError, match=f"rand{i}"):
+      torch_io.load_state_dict(path)
+
+
+def test_empty_and_tar_files(tmp_path):
+  (tmp_path / "e.pth").write_bytes(b"")
+  with pytest.raises(CheckpointError, match="empty file"):
+    torch_io.load_state_dict(tmp_path / "e.pth")
+  tar = bytearray(600)
+  tar[257:262] = b"ustar"
+  (tmp_path / "old.tar").write_bytes(bytes(tar))
+  with pytest.raises(CheckpointError, match="tar checkpoint format"):
+    torch_io.load_state_dict(tmp_path / "old.tar")
+
+
+def test_legacy_bad_magic_and_protocol(tmp_path, fake_torch):
+  b = _Builder(fake_torch)
+  obj = {"x": b.array(np.ones(2, np.float32), "float32")}
+  b.write_legacy(tmp_path / "magic.pth", obj, header=_legacy_header(magic=12345))
+  with pytest.raises(CheckpointError, match="magic"):
+    torch_io.load_state_dict(tmp_path / "magic.pth")
+  header = b"".join(pickle.dumps(x, protocol=2) for x in (pickle_reader.LEGACY_MAGIC, 1002, {}))
+  b.write_legacy(tmp_path / "proto.pth", obj, header=header)
+  with pytest.raises(CheckpointError, match="protocol version 1002"):
+    torch_io.load_state_dict(tmp_path / "proto.pth")
+
+
+def test_legacy_huge_storage_count_is_truncation(tmp_path, fake_torch):
+  b = _Builder(fake_torch)
+  st = b.storage(np.ones(2, np.float32), "float32")
+  path = tmp_path / "huge.pth"
+  with open(path, "wb") as f:
+    f.write(_legacy_header() + b.pickle({"x": b.tensor(st, 0, (2,), (1,))}, legacy=True))
+    f.write(pickle.dumps([st.key], protocol=2) + struct.pack("<q", 1 << 60) + st.raw)
+  with pytest.raises(CheckpointError, match="truncated"):
+    torch_io.load_state_dict(path)
+
+
+# --------------------------------------------------------------------------------------------
+# Unwrapping and kind detection.
+
+
+def _tiny(keys):
+  return {k: np.zeros((1,), np.float32) for k in keys}
+
+
+def _manifest_keys(fixtures_dir, name):
+  return [e["name"] for e in json.loads((fixtures_dir / name).read_text())["keys"]]
+
+
+def test_unwrap_forms():
+  sd = _tiny(["a.w", "b.module.w"])
+  assert torch_io.unwrap_state_dict(sd) == sd
+  wrapped = {"model": {"module." + k: v for k, v in sd.items()}, "optimizer": {"state": {}},
+             "scheduler": {"last_epoch": 3}, "total_steps": 10}
+  assert list(torch_io.unwrap_state_dict(wrapped)) == ["a.w", "b.module.w"]
+  assert list(torch_io.unwrap_state_dict({"state_dict": sd, "epoch": 1})) == list(sd)
+  assert list(torch_io.unwrap_state_dict({"state_dict": {"model": sd}})) == list(sd)
+  # Only the leading module. goes (the official demo.py would remove both).
+  assert list(torch_io.unwrap_state_dict(_tiny(["module.x.module.y"]))) == ["x.module.y"]
+  assert list(torch_io.unwrap_state_dict(_tiny(["module.module.y"]))) == ["module.y"]
+
+
+def test_unwrap_errors():
+  with pytest.raises(CheckpointError, match="collides"):
+    torch_io.unwrap_state_dict(_tiny(["module.a", "a"]), source="f.pth")
+  with pytest.raises(CheckpointError, match=r"f\.pth.*'epoch'"):
+    torch_io.unwrap_state_dict({"net": _tiny(["a"]), "epoch": 3}, source="f.pth")
+  with pytest.raises(CheckpointError, match="no state dict found.*list"):
+    torch_io.unwrap_state_dict([1, 2])
+  with pytest.raises(CheckpointError, match="no state dict found"):
+    torch_io.unwrap_state_dict({"model": {}})
+  with pytest.raises(CheckpointError, match="'b': int"):
+    torch_io.unwrap_state_dict({"a": np.zeros(2), "b": 3})
+
+
+def test_checkpoint_kind_from_manifests(fixtures_dir):
+  sav = _manifest_keys(fixtures_dir, "sav_manifest.json")
+  vda = _manifest_keys(fixtures_dir, "vda_vits_manifest.json")
+  assert len(sav) == 494 and len(vda) == 351
+  assert torch_io.checkpoint_kind(_tiny(sav)) == "sav"
+  assert torch_io.checkpoint_kind(_tiny(vda)) == "vda"
+  wrapped = {"model": _tiny("module." + k for k in sav), "optimizer": {}, "total_steps": 5}
+  assert torch_io.checkpoint_kind(torch_io.unwrap_state_dict(wrapped)) == "sav"
+  assert torch_io.checkpoint_kind(_tiny(k for k in sav if not k.startswith("depthnet."))) == "sav"
+
+
+def test_checkpoint_kind_errors(fixtures_dir):
+  vda = _manifest_keys(fixtures_dir, "vda_vits_manifest.json")
+  sav = _manifest_keys(fixtures_dir, "sav_manifest.json")
+  cases = {
+      "resnet": _tiny(["conv1.weight", "bn1.weight", "fc.bias"]),
+      "mixed": _tiny(sav[:3] + vda[:3]),
+      "vda_half": _tiny(k for k in vda if k.startswith("pretrained.")),
+      "sav_plus_junk": _tiny(sav + ["extra.weight"]),
+      "still_prefixed": _tiny("module." + k for k in sav),
+  }
+  for name, sd in cases.items():
+    with pytest.raises(CheckpointError, match=r"unrecognised checkpoint layout: \d+ keys") as e:
+      torch_io.checkpoint_kind(sd, source=name)
+    assert name in str(e.value)
+  with pytest.raises(CheckpointError, match="non-empty"):
+    torch_io.checkpoint_kind({})
+
+
+# --------------------------------------------------------------------------------------------
+# Writing.
+
+_SAVE_SD = {
+    "a.weight": np.arange(6, dtype=np.float32).reshape(2, 3),
+    "a.half": np.array([0.5, 1.5], np.float16),
+    "a.index": np.array([[3, -4]], np.int64),
+    "b.flag": np.array([True, False]),
+    "b.u8": np.array([1, 2, 255], np.uint8),
+    "b.scalar": np.array(2.5, np.float64),
+    "c.t": np.arange(6, dtype=np.float32).reshape(2, 3).T,
+}
+
+
+@pytest.mark.parametrize("suffix", [".safetensors", ".npz"])
+def test_save_load_round_trip(tmp_path, suffix):
+  path = tmp_path / "sub" / f"w{suffix}"
+  assert torch_io.save_state_dict(_SAVE_SD, path) == path
+  out = torch_io.load_state_dict(path)
+  assert set(out) == set(_SAVE_SD)
+  for k, v in _SAVE_SD.items():
+    assert out[k].dtype == v.dtype and out[k].shape == v.shape, k
+    np.testing.assert_array_equal(out[k], v)
+  assert sorted(os.listdir(path.parent)) == [path.name]  # no temporary files left
+  with pytest.raises(FileExistsError, match="overwrite=True"):
+    torch_io.save_state_dict({"x": np.zeros(1)}, path)
+  torch_io.save_state_dict({"x": np.ones(2)}, path, overwrite=True)
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], [1, 1])
+
+
+def test_save_accepts_jax_arrays(tmp_path):
+  jnp = pytest.importorskip("jax.numpy")
+  path = torch_io.save_state_dict({"x": jnp.arange(3.0)}, tmp_path / "j.safetensors")
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], [0, 1, 2])
+
+
+def test_safetensors_bfloat16_loads_as_float32(tmp_path):
+  ml_dtypes = pytest.importorskip("ml_dtypes")
+  import safetensors.numpy  # pylint: disable=import-outside-toplevel
+  path = tmp_path / "bf.safetensors"
+  safetensors.numpy.save_file({"x": np.array([1.5, -2], ml_dtypes.bfloat16)}, str(path))
+  out = torch_io.load_state_dict(path)
+  assert out["x"].dtype == np.float32
+  np.testing.assert_array_equal(out["x"], [1.5, -2])
+
+
+def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
+  def boom(*args, **kwargs):
+    raise RuntimeError("disk full")
+
+  monkeypatch.setattr(np, "savez", boom)
+  with pytest.raises(RuntimeError, match="disk full"):
+    torch_io.save_state_dict(_SAVE_SD, tmp_path / "w.npz")
+  assert os.listdir(tmp_path) == []
+
+
+def test_save_errors(tmp_path):
+  with pytest.raises(CheckpointError, match="use .safetensors, .npz"):
+    torch_io.save_state_dict({"x": np.zeros(1)}, tmp_path / "w.h5")
+  with pytest.raises(CheckpointError, match="keys must be strings"):
+    torch_io.save_state_dict({1: np.zeros(1)}, tmp_path / "w.npz")
+
+
+def test_save_pth_without_torch(tmp_path):
+  try:
+    import torch  # pylint: disable=import-outside-toplevel,unused-import
+    pytest.skip("torch is installed")
+  except ImportError:
+    pass
+  with pytest.raises(CheckpointError, match=r"\.safetensors or \.npz.*install torch"):
+    torch_io.save_state_dict({"x": np.zeros(1)}, tmp_path / "w.pth")
+  assert os.listdir(tmp_path) == []
