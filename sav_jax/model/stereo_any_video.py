@@ -120,23 +120,30 @@ class StereoAnyVideo(nn.Module):
 
     def pair(mdl, carry, inp, fmap1, fmap2):
       net, flow = carry
+      flow_a = flow
       net, flow, up_a = mdl.step(net, flow, inp, fmap1, fmap2, WIDE_WINDOW)
+      flow_b = flow
       net, flow, up_b = mdl.step(net, flow, inp, fmap1, fmap2, SMALL_WINDOW)
-      return (net, flow), jnp.stack([up_a, up_b])
+      return (net, flow), (jnp.stack([up_a, up_b]), jnp.stack([flow_a, flow_b]))
 
     if self.cfg.remat:
       policy = self.cfg.remat_policy
       pair = nn.remat(pair, prevent_cse=False,
                       policy=getattr(jax.checkpoint_policies, policy) if policy else None)
-    ups = []
+    ups, flows_in = [], []
     if num_iters >= 2:
       scan = nn.scan(pair, variable_broadcast="params", split_rngs={"params": False},
                      in_axes=(nn.broadcast, nn.broadcast, nn.broadcast), length=num_iters // 2)
-      (net, flow), pairs = scan(self, (net, flow), inp, fmap1, fmap2)
-      ups.append(pairs.reshape(-1, *pairs.shape[2:]))
+      (net, flow), (up_pairs, flow_pairs) = scan(self, (net, flow), inp, fmap1, fmap2)
+      ups.append(up_pairs.reshape(-1, *up_pairs.shape[2:]))
+      flows_in.append(flow_pairs.reshape(-1, *flow_pairs.shape[2:]))
     if num_iters % 2:  # odd counts happen at 1/16 and 1/8 (iters//2); the window restarts wide
+      flows_in.append(flow[None])
       net, flow, up = self.step(net, flow, inp, fmap1, fmap2, WIDE_WINDOW)
       ups.append(up[None])
+    # The flow entering every iteration, for inspection (no-op unless mutable).
+    self.sow("intermediates", f"flow_in_{fmap1.shape[2]}x{fmap1.shape[3]}",
+             jnp.concatenate(flows_in, axis=0))
     return jnp.concatenate(ups, axis=0), flow
 
   def __call__(self, left: jax.Array, right: jax.Array, iters: int = 20,
