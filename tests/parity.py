@@ -17,7 +17,8 @@ def subtree(sd, prefix):
   flat = {}
   for k, v in sd.items():
     if k.startswith(prefix):
-      flat[torch_to_path(k[len(prefix):], np.ndim(v))] = torch_to_flax_array(v)
+      path = torch_to_path(k[len(prefix):], np.ndim(v))
+      flat[path] = torch_to_flax_array(v, path[-1])
   return traverse_util.unflatten_dict(flat)
 
 

@@ -35,21 +35,27 @@ def path_to_torch(path: tuple[str, ...]) -> str:
   return ".".join([*parts, leaf])
 
 
-def torch_to_flax_array(x: np.ndarray) -> np.ndarray:
-  """Layout of a torch weight in Flax: Linear `.T`, ConvNd `O I *k -> *k I O`."""
+def torch_to_flax_array(x: np.ndarray, leaf: str = "kernel") -> np.ndarray:
+  """Layout of a torch tensor in Flax: only `kernel` leaves change.
+
+  Linear `(out, in) -> (in, out)`; ConvNd `(O, I, *k) -> (*k, I, O)`. The same
+  permutation serves torch's ConvTranspose2d `(I, O, kh, kw)` for a Flax
+  `nn.ConvTranspose(transpose_kernel=True)`.
+  """
   x = np.asarray(x)
+  if leaf != "kernel" or x.ndim < 2:
+    return x
   if x.ndim == 2:
     return x.T
-  if x.ndim >= 3:
-    return np.transpose(x, (*range(2, x.ndim), 1, 0))
-  return x
+  return np.transpose(x, (*range(2, x.ndim), 1, 0))
 
 
-def flax_to_torch_array(x: np.ndarray) -> np.ndarray:
+def flax_to_torch_array(x: np.ndarray, leaf: str = "kernel") -> np.ndarray:
+  """Inverse of `torch_to_flax_array` (C-contiguous result)."""
   x = np.asarray(x)
-  if x.ndim == 2:
-    return x.T
-  if x.ndim >= 3:
+  if leaf == "kernel" and x.ndim == 2:
+    x = x.T
+  elif leaf == "kernel" and x.ndim > 2:
     n = x.ndim
-    return np.transpose(x, (n - 1, n - 2, *range(n - 2)))
-  return x
+    x = np.transpose(x, (n - 1, n - 2, *range(n - 2)))
+  return np.asarray(x, order="C")

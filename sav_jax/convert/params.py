@@ -81,10 +81,10 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
     if path not in target:
       problems.append(f"unexpected key {key!r}")
       continue
-    arr = torch_to_flax_array(value)
+    arr = torch_to_flax_array(value, path[-1])
     if arr.shape != tuple(target[path].shape):
       problems.append(f"key {key!r}: shape {value.shape} does not match the model "
-                      f"(expects {tuple(flax_to_torch_array(np.empty(target[path].shape)).shape)})")
+                      f"(expects {flax_to_torch_array(np.empty(target[path].shape), path[-1]).shape})")
       continue
     flat[path] = arr.astype(np.float32)
   for path in target:
@@ -112,7 +112,7 @@ def state_dict_from_params(variables: Mapping) -> dict[str, np.ndarray]:
   for path, value in params.items():
     if path[:2] == ("depthnet", "depthanything"):
       continue
-    sd[path_to_torch(path)] = flax_to_torch_array(np.asarray(value))
+    sd[path_to_torch(path)] = flax_to_torch_array(np.asarray(value), path[-1])
   for k in SAV_UNUSED_KEYS:
     sd[k] = np.asarray(unused[k]) if k in unused else np.zeros((768, 256), np.float32)
   return sd

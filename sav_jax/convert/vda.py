@@ -18,14 +18,14 @@ Both 4-D cases are the same permutation `(2, 3, 1, 0)`. The sinusoidal
 from __future__ import annotations
 
 import functools
-import re
-from collections.abc import Mapping
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flax.traverse_util import flatten_dict, unflatten_dict
+
+from sav_jax.convert.keys import flax_to_torch_array, path_to_torch, torch_to_flax_array
 from sav_jax.model.dpt_temporal import MOTION_ATTENTION_BLOCKS, TEMPORAL_MAX_LEN, sinusoidal_table
 from sav_jax.model.vda import VideoDepthAnything
 
@@ -47,8 +47,6 @@ PE_SUFFIX = ".pos_encoder.pe"
 # the stored buffers differ from `sinusoidal_table` by up to ~1e-6 (9.5e-7 on the
 # fixtures); any other table (other width, length or formula) differs by O(0.1).
 PE_ATOL = 1e-5
-_INDEX = re.compile(r"^(.+)_(\d+)$")
-_RENAMED_LEAVES = {"kernel": "weight", "scale": "weight"}
 
 
 def _abstract_params(model: VideoDepthAnything) -> dict:
@@ -61,52 +59,6 @@ def _abstract_params_cached(encoder: str, features: int, out_channels: tuple) ->
   model = VideoDepthAnything(encoder, features, out_channels)
   x = jnp.zeros((1, 1, 14, 14, 3), jnp.float32)
   return jax.eval_shape(model.init, jax.random.PRNGKey(0), x)["params"]
-
-
-def _torch_key(path: tuple[str, ...]) -> str:
-  """Flax path -> torch key (`blocks_3` -> `blocks.3`, `kernel` -> `weight`)."""
-  parts = []
-  for name in path[:-1]:
-    m = _INDEX.match(name)
-    parts.extend([m.group(1), m.group(2)] if m else [name])
-  parts.append(_RENAMED_LEAVES.get(path[-1], path[-1]))
-  return ".".join(parts)
-
-
-def _to_flax(a: np.ndarray, leaf: str) -> np.ndarray:
-  if leaf == "kernel" and a.ndim == 4:
-    return np.transpose(a, (2, 3, 1, 0))
-  if leaf == "kernel" and a.ndim == 2:
-    return np.transpose(a)
-  return a
-
-
-def _to_torch(a: np.ndarray, leaf: str) -> np.ndarray:
-  if leaf == "kernel" and a.ndim == 4:
-    a = np.transpose(a, (3, 2, 0, 1))
-  elif leaf == "kernel" and a.ndim == 2:
-    a = np.transpose(a)
-  return np.ascontiguousarray(a)
-
-
-def _flat(tree: Mapping, prefix: tuple[str, ...] = ()) -> dict[tuple[str, ...], Any]:
-  out = {}
-  for k, v in tree.items():
-    if isinstance(v, Mapping):
-      out.update(_flat(v, prefix + (k,)))
-    else:
-      out[prefix + (k,)] = v
-  return out
-
-
-def _unflat(flat: dict[tuple[str, ...], Any]) -> dict:
-  tree: dict = {}
-  for path, v in flat.items():
-    node = tree
-    for k in path[:-1]:
-      node = node.setdefault(k, {})
-    node[path[-1]] = v
-  return tree
 
 
 def vda_unused_shapes(model: VideoDepthAnything | None = None) -> dict[str, tuple[int, ...]]:
@@ -170,8 +122,8 @@ def vda_params_from_state_dict(sd: dict[str, np.ndarray],
     numpy leaves) and `{key: array}` for exactly the `VDA_UNUSED_KEYS`.
   """
   model = model or VideoDepthAnything()
-  target = _flat(_abstract_params(model))
-  by_torch = {_torch_key(path): path for path in target}
+  target = flatten_dict(_abstract_params(model))
+  by_torch = {path_to_torch(path): path for path in target}
   unused_shapes = vda_unused_shapes(model)
   pe = vda_pe_buffers(model)
   problems: list[str] = []
@@ -189,9 +141,9 @@ def vda_params_from_state_dict(sd: dict[str, np.ndarray],
     if path is None:
       problems.append(f"unexpected key {key}")
       continue
-    converted = _to_flax(a, path[-1])
+    converted = torch_to_flax_array(a, path[-1])
     if converted.shape != target[path].shape:
-      want = _to_torch(np.empty(target[path].shape, np.int8), path[-1]).shape
+      want = flax_to_torch_array(np.empty(target[path].shape, np.int8), path[-1]).shape
       problems.append(f"shape mismatch for {key}: got {a.shape}, expected {want}")
       continue
     flat[path] = converted.astype(np.float32)
@@ -201,7 +153,7 @@ def vda_params_from_state_dict(sd: dict[str, np.ndarray],
   if problems:
     raise ValueError(f"{len(problems)} problem(s) converting the VDA state dict:\n  "
                      + "\n  ".join(problems))
-  return _unflat(flat), unused
+  return unflatten_dict(flat), unused
 
 
 def vda_state_dict_from_params(params: dict, unused: dict[str, np.ndarray] | None = None,
@@ -217,8 +169,8 @@ def vda_state_dict_from_params(params: dict, unused: dict[str, np.ndarray] | Non
     `{torch_key: np.ndarray}` including the recomputed `pos_encoder.pe` buffers.
   """
   sd = {}
-  for path, value in _flat(params).items():
-    sd[_torch_key(path)] = _to_torch(np.asarray(value), path[-1])
+  for path, value in flatten_dict(params).items():
+    sd[path_to_torch(path)] = flax_to_torch_array(np.asarray(value), path[-1])
   sd.update({k: np.asarray(v) for k, v in (unused or {}).items()})
   sd.update(vda_pe_buffers(model))
   return sd

@@ -1,0 +1,51 @@
+"""The `sav-jax` command: demo, infer, convert, bench."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from sav_jax.tools import UsageError
+
+COMMANDS = {
+    "demo": "sav_jax.tools.demo",
+    "infer": "sav_jax.tools.infer",
+    "convert": "sav_jax.tools.convert",
+    "bench": "sav_jax.tools.bench",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+  parser = argparse.ArgumentParser(
+      prog="sav-jax", description="Stereo Any Video in JAX: temporally consistent video stereo.")
+  parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+  sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+  for name, module_name in COMMANDS.items():
+    try:
+      module = importlib.import_module(module_name)
+    except ModuleNotFoundError as e:  # a sub-command not shipped in this build
+      if e.name != module_name:
+        raise
+      continue
+    p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+    module.add_arguments(p)
+    p.set_defaults(_run=module.run)
+  return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+  parser = build_parser()
+  args = parser.parse_args(argv)
+  logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                      format="%(levelname)s %(name)s: %(message)s")
+  try:
+    return int(args._run(args) or 0)
+  except (UsageError, ValueError, FileNotFoundError, FileExistsError) as e:
+    print(f"sav-jax {args.command}: error: {e}", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+  sys.exit(main())
