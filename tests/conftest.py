@@ -39,3 +39,11 @@ def sav_state_dict(fixtures_dir):
 def vda_state_dict(fixtures_dir):
   """The standalone VDA-S state dict of make_weights.py, seed 0 (351 arrays)."""
   return _load_make_weights().make_state_dict(str(fixtures_dir / "vda_vits_manifest.json"), 0)
+
+
+def pytest_configure(config):
+  """Share XLA compilations between test processes of one run (and later runs)."""
+  import jax  # pylint: disable=import-outside-toplevel
+  cache = ROOT / ".jax_cache"
+  jax.config.update("jax_compilation_cache_dir", str(cache))
+  jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)

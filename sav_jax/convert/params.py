@@ -23,6 +23,7 @@ from flax import traverse_util
 from sav_jax.config import SAVConfig
 from sav_jax.convert.keys import (flax_to_torch_array, path_to_torch, torch_to_flax_array,
                                   torch_to_path)
+from sav_jax.model.init import abstract_variables
 from sav_jax.convert.vda import vda_params_from_state_dict, vda_state_dict_from_params
 
 VDA_PREFIX = "depthnet.depthanything."
@@ -34,14 +35,6 @@ SAV_UNUSED_KEYS = ("update_block.time_attn.temporal_attn.qkv.weight",)
 def strip_module_prefix(sd: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
   """Removes a leading `module.` (DataParallel) from every key that has it."""
   return {k[len("module."):] if k.startswith("module.") else k: v for k, v in sd.items()}
-
-
-def abstract_variables(cfg: SAVConfig):
-  """Shapes of the model's variables (nothing allocated)."""
-  from sav_jax.model.stereo_any_video import StereoAnyVideo  # pylint: disable=import-outside-toplevel
-  model = StereoAnyVideo(cfg)
-  dummy = jax.ShapeDtypeStruct((1, 2, 64, 64, 3), jnp.float32)
-  return jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=2), dummy, dummy)
 
 
 def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig | None = None) -> dict:
@@ -116,3 +109,18 @@ def state_dict_from_params(variables: Mapping) -> dict[str, np.ndarray]:
   for k in SAV_UNUSED_KEYS:
     sd[k] = np.asarray(unused[k]) if k in unused else np.zeros((768, 256), np.float32)
   return sd
+
+
+def export_state_dict(variables: Mapping, path, overwrite: bool = False):
+  """Writes Flax variables as an official-format state dict file.
+
+  Args:
+    variables: `{"params": ...}` (plus `"torch_unused"` for an exact export).
+    path: `.safetensors` or `.npz` (`.pth` when torch is installed).
+    overwrite: replace an existing file.
+
+  Returns:
+    The written path. The official code loads it with `load_state_dict(strict=True)`.
+  """
+  from sav_jax.convert.torch_io import save_state_dict  # pylint: disable=import-outside-toplevel
+  return save_state_dict(state_dict_from_params(variables), path, overwrite=overwrite)

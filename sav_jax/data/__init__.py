@@ -1,1 +1,24 @@
 """Datasets, the synthetic stereo-video generator, augmentation and grain pipelines."""
+
+from sav_jax.data import frame_io
+from sav_jax.data.augment import AugmentConfig, augment_clip
+from sav_jax.data.base import DepthSequence, StereoSequence
+from sav_jax.data.registry import (DATASETS, EVAL_FRAMES, TrainingClip, get_sequences,
+                                   get_training_clips)
+from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo, generate_clip
+
+__all__ = [
+    "DATASETS",
+    "EVAL_FRAMES",
+    "AugmentConfig",
+    "DepthSequence",
+    "StereoSequence",
+    "SyntheticConfig",
+    "SyntheticStereoVideo",
+    "TrainingClip",
+    "augment_clip",
+    "frame_io",
+    "generate_clip",
+    "get_sequences",
+    "get_training_clips",
+]

@@ -1,0 +1,287 @@
+"""Training augmentation of stereo clips, following the official SAV augmentors.
+
+Order and draws (`docs/datasets.md`, section 3; official `datasets/augmentor.py`):
+
+1. Photometric (ColorJitter with a random order of brightness, contrast, saturation
+   and hue, then gamma). With probability `asymmetric_prob` every image (each frame,
+   each view) gets its own parameters; otherwise one parameter set is applied to all
+   2T images as one stacked image (so the contrast mean is over the whole clip).
+   Sparse datasets are always symmetric.
+2. Eraser: per frame and view with probability `eraser_prob`, 1-2 rectangles (corner
+   uniform in the image, sides in [50, 100)) filled with the mean colour of frame 0's
+   left image; before resizing.
+3. Scale `s = 2**U(scale_range)`, with probability `stretch_prob` independently
+   stretched per axis by `2**U(+-max_stretch)`, both clamped to at least
+   `max((ch+8)/H, (cw+8)/W)`. Images and dense disparity: cv2 bilinear resize,
+   disparity times sx. Sparse GT: valid points scattered to rounded scaled
+   coordinates (points landing on row or column 0 are dropped).
+4. Crop, shared by all frames. Dense with y-jitter: `y0 ~ [2, H-ch-2)`,
+   `x0 ~ [2, W-cw-2)`, the right view (and right GT) of each frame at
+   `y0 + randint[-2, 2]`. Sparse (or y-jitter off): a plain crop.
+5. Valid: dense datasets recompute `|d| < 512 and d != 0`; sparse ones carry theirs.
+
+The photometric operations are written with numpy/OpenCV and mimic PIL's ImageEnhance
+(uint8 rounding after each operation, truncation) and torchvision's hue shift in 1/255
+turns; values can differ from torchvision's by a grey level.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+
+# (disparity key, valid key, image key it belongs to).
+_GT = (("disparity", "valid", "left"), ("right_disparity", "right_valid", "right"))
+
+
+@dataclasses.dataclass(frozen=True)
+class AugmentConfig:
+  """Ranges of the official training augmentation (defaults: the SAV training script).
+
+  Attributes:
+    crop_size: (height, width) of the output crop.
+    scale_range: range of log2 of the isotropic scale.
+    stretch_prob: probability of the per-axis stretch.
+    max_stretch: per-axis stretch range, log2 (+-).
+    spatial_prob: probability of resizing at all (official 1.0).
+    photometric: switch for the colour jitter (step 1).
+    brightness, contrast, saturation: ranges of the enhance factors.
+    hue: range of the hue shift, in turns (+-0.5/3.14 officially).
+    gamma, gain: ranges of the gamma adjustment (official: off, (1, 1)).
+    asymmetric_prob: probability of independent jitter per image (dense only).
+    eraser_prob: per frame and view probability of erasing rectangles (0: off).
+    eraser_count: (min, max) rectangles, inclusive.
+    eraser_size: [min, max) side of a rectangle, px.
+    yjitter: vertical jitter of the right view's crop (dense only).
+    yjitter_range: its amplitude, px (+-).
+    max_disparity: dense valid rule |d| < max_disparity.
+  """
+
+  crop_size: tuple[int, int] = (256, 512)
+  scale_range: tuple[float, float] = (-0.2, 0.4)
+  stretch_prob: float = 0.8
+  max_stretch: float = 0.2
+  spatial_prob: float = 1.0
+  photometric: bool = True
+  brightness: tuple[float, float] = (0.6, 1.4)
+  contrast: tuple[float, float] = (0.6, 1.4)
+  saturation: tuple[float, float] = (0.0, 1.4)
+  hue: tuple[float, float] = (-0.5 / 3.14, 0.5 / 3.14)
+  gamma: tuple[float, float] = (1.0, 1.0)
+  gain: tuple[float, float] = (1.0, 1.0)
+  asymmetric_prob: float = 0.2
+  eraser_prob: float = 0.5
+  eraser_count: tuple[int, int] = (1, 2)
+  eraser_size: tuple[int, int] = (50, 100)
+  yjitter: bool = True
+  yjitter_range: int = 2
+  max_disparity: float = 512.0
+
+  def __post_init__(self):
+    ch, cw = self.crop_size
+    if ch < 1 or cw < 1:
+      raise ValueError(f"AugmentConfig.crop_size must be positive, got {self.crop_size}")
+    for name in ("scale_range", "brightness", "contrast", "saturation", "hue", "gamma", "gain",
+                 "eraser_count", "eraser_size"):
+      lo, hi = getattr(self, name)
+      if lo > hi:
+        raise ValueError(f"AugmentConfig.{name} must be (min, max), got {(lo, hi)}")
+    if self.eraser_size[0] >= self.eraser_size[1] or self.eraser_count[0] < 0:
+      raise ValueError("AugmentConfig.eraser_size must be [min, max) with min < max and "
+                       "eraser_count non-negative")
+
+
+class _Jitter:
+  """One draw of the photometric parameters (torchvision ColorJitter + AdjustGamma)."""
+
+  def __init__(self, cfg: AugmentConfig, rng: np.random.Generator):
+    self.order = rng.permutation(4)
+    self.brightness = rng.uniform(*cfg.brightness)
+    self.contrast = rng.uniform(*cfg.contrast)
+    self.saturation = rng.uniform(*cfg.saturation)
+    self.hue = rng.uniform(*cfg.hue)
+    self.gamma = rng.uniform(*cfg.gamma)
+    self.gain = rng.uniform(*cfg.gain)
+
+  def __call__(self, images: np.ndarray) -> np.ndarray:
+    """Applies the draw to [N, H, W, 3] uint8 RGB as one image (stats over all N)."""
+    n, h, w, _ = images.shape
+    x = np.ascontiguousarray(images).reshape(n * h, w, 3)  # one 2-D image for OpenCV
+    for op in self.order:
+      if op == 0:  # brightness: blend with black
+        x = _lut(x, np.arange(256) * self.brightness)
+      elif op == 1:  # contrast: blend with the rounded mean grey level of the image
+        mean = int(cv2.mean(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY))[0] + 0.5)
+        x = _lut(x, mean + self.contrast * (np.arange(256) - mean))
+      elif op == 2:  # saturation: blend with the grey image (rounds where PIL truncates)
+        grey = cv2.cvtColor(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB)
+        x = cv2.addWeighted(x, self.saturation, grey, 1.0 - self.saturation, 0.0)
+      else:
+        x = _shift_hue(x, int(self.hue * 255))  # int(): truncation, as np.int8(h*255)
+    if self.gamma != 1.0 or self.gain != 1.0:
+      x = _lut(x, 255.999 * self.gain * (np.arange(256) / 255.0) ** self.gamma)
+    return x.reshape(n, h, w, 3)
+
+
+def _lut(x: np.ndarray, table: np.ndarray) -> np.ndarray:
+  """Per-value mapping of uint8 `x` through a 256-entry float table (PIL-style
+  blend output: clipped to [0, 255], truncated)."""
+  return cv2.LUT(x, np.clip(table, 0, 255).astype(np.uint8))
+
+
+def _shift_hue(x: np.ndarray, shift: int) -> np.ndarray:
+  """Rotates the hue of a [H, W, 3] uint8 RGB image by `shift`/256 turns (8-bit HSV)."""
+  if shift % 256 == 0:
+    return x
+  hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV_FULL)
+  hsv[..., 0] += np.uint8(shift % 256)  # uint8 arithmetic wraps, as the hue circle does
+  return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB_FULL)
+
+
+def _photometric(left, right, cfg: AugmentConfig, rng, sparse: bool):
+  """Step 1 on [T, H, W, 3] uint8 views; returns new arrays."""
+  if not sparse and rng.random() < cfg.asymmetric_prob:
+    left, right = left.copy(), right.copy()
+    for t in range(left.shape[0]):
+      for view in (left, right):
+        view[t] = _Jitter(cfg, rng)(view[t:t + 1])[0]
+    return left, right
+  out = _Jitter(cfg, rng)(np.concatenate([left, right]))
+  return out[:len(left)], out[len(left):]
+
+
+def _erase(left: np.ndarray, right: np.ndarray, cfg: AugmentConfig, rng) -> None:
+  """Step 2, in place."""
+  t, h, w = left.shape[:3]
+  for i in range(t):
+    for view in (left, right):
+      if rng.random() < cfg.eraser_prob:
+        # Recomputed per event (frame 0's left may itself have been erased already).
+        fill = np.array(cv2.mean(left[0])[:3]).astype(np.uint8)
+        for _ in range(int(rng.integers(cfg.eraser_count[0], cfg.eraser_count[1] + 1))):
+          x0, y0 = int(rng.integers(0, w)), int(rng.integers(0, h))
+          dx, dy = (int(rng.integers(*cfg.eraser_size)) for _ in range(2))
+          view[i, y0:y0 + dy, x0:x0 + dx] = fill
+
+
+def _scales(h: int, w: int, cfg: AugmentConfig, rng) -> tuple[float, float]:
+  """Step 3's (sx, sy)."""
+  min_scale = max((cfg.crop_size[0] + 8) / h, (cfg.crop_size[1] + 8) / w)
+  sx = sy = 2.0 ** rng.uniform(*cfg.scale_range)
+  if rng.random() < cfg.stretch_prob:
+    sx *= 2.0 ** rng.uniform(-cfg.max_stretch, cfg.max_stretch)
+    sy *= 2.0 ** rng.uniform(-cfg.max_stretch, cfg.max_stretch)
+  return max(sx, min_scale), max(sy, min_scale)
+
+
+def _resize(x: np.ndarray, sx: float, sy: float) -> np.ndarray:
+  """cv2 bilinear resize of every frame of [T, H, W, ...]."""
+  return np.stack([cv2.resize(f, None, fx=sx, fy=sy, interpolation=cv2.INTER_LINEAR)
+                   for f in x])
+
+
+def _resize_sparse(disp: np.ndarray, valid: np.ndarray, sx: float, sy: float, size):
+  """Scatters valid points of one [H, W] map to rounded scaled coordinates."""
+  h1, w1 = size
+  ys, xs = np.nonzero(valid)
+  xx = np.round(xs * sx).astype(np.int64)
+  yy = np.round(ys * sy).astype(np.int64)
+  keep = (xx > 0) & (xx < w1) & (yy > 0) & (yy < h1)
+  target = (yy * w1 + xx)[keep]
+  out_d = np.zeros(h1 * w1, np.float32)
+  out_v = np.zeros(h1 * w1, bool)
+  # Row-major point order: where points collide, the last one wins, as officially.
+  out_d[target] = disp[ys[keep], xs[keep]] * np.float32(sx)
+  out_v[target] = True
+  return out_d.reshape(h1, w1), out_v.reshape(h1, w1)
+
+
+def _spatial(out: dict, cfg: AugmentConfig, rng, sparse: bool) -> None:
+  """Step 3 on `out` (in place of its entries)."""
+  h, w = out["left"].shape[1:3]
+  sx, sy = _scales(h, w, cfg, rng)
+  if not rng.random() < cfg.spatial_prob:
+    return
+  out["left"], out["right"] = _resize(out["left"], sx, sy), _resize(out["right"], sx, sy)
+  size = out["left"].shape[1:3]
+  for dkey, vkey, _ in _GT:
+    if out.get(dkey) is None:
+      continue
+    if sparse:
+      maps = [_resize_sparse(d, v, sx, sy, size) for d, v in zip(out[dkey], out[vkey])]
+      out[dkey] = np.stack([m[0] for m in maps])
+      out[vkey] = np.stack([m[1] for m in maps])
+    else:
+      out[dkey] = _resize(out[dkey].astype(np.float32), sx, sy) * np.float32(sx)
+
+
+def _crop(out: dict, cfg: AugmentConfig, rng, jitter: bool) -> None:
+  """Step 4 on `out` (in place of its entries)."""
+  ch, cw = cfg.crop_size
+  t, h, w = out["left"].shape[:3]
+  if h < ch or w < cw:
+    raise ValueError(f"cannot crop {cfg.crop_size} from {(h, w)} frames (resize disabled?)")
+  m = 2 if jitter else 0  # the official y-jitter crop keeps a 2 px margin
+  y0 = int(rng.integers(m, max(h - ch - m, m + 1)))
+  x0 = int(rng.integers(m, max(w - cw - m, m + 1)))
+  r = cfg.yjitter_range if jitter else 0
+  y1 = [min(max(y0 + int(rng.integers(-r, r + 1)), 0), h - ch) if jitter else y0
+        for _ in range(t)]
+  for dkey, vkey, view in _GT:
+    keys = [k for k in (view, dkey, vkey) if out.get(k) is not None]
+    for k in keys:
+      rows = [y0] * t if view == "left" else y1
+      out[k] = np.stack([out[k][i, y:y + ch, x0:x0 + cw] for i, y in enumerate(rows)])
+
+
+def augment_clip(clip: dict, cfg: AugmentConfig, rng: np.random.Generator,
+                 sparse: bool | None = None) -> dict:
+  """Augments one stereo clip as the official training loader does.
+
+  Args:
+    clip: `left`, `right` [T, H, W, 3] uint8; `disparity` [T, H, W] float32 positive
+      px (or None); `valid` [T, H, W] bool; optionally `right_disparity` /
+      `right_valid`, and `sparse`. Other keys are passed through unchanged.
+    cfg: augmentation ranges.
+    rng: the only source of randomness (same seed, same output).
+    sparse: sparse GT (KITTI, Sintel): symmetric colour, scatter resize, plain crop,
+      valid carried. None reads `clip["sparse"]` (default False).
+
+  Returns:
+    The same keys with images [T, ch, cw, 3] uint8, disparity [T, ch, cw] float32
+    (scaled by sx) and valid [T, ch, cw] bool.
+  """
+  sparse = bool(clip.get("sparse", False)) if sparse is None else bool(sparse)
+  left, right = np.asarray(clip["left"]), np.asarray(clip["right"])
+  if left.ndim != 4 or left.shape != right.shape or left.dtype != np.uint8:
+    raise ValueError(f"left/right must be equal [T, H, W, 3] uint8, got {left.shape} "
+                     f"{left.dtype} and {right.shape} {right.dtype}")
+  out = dict(clip)
+  if cfg.photometric:
+    left, right = _photometric(left, right, cfg, rng, sparse)
+  left, right = left.copy(), right.copy()  # the eraser writes in place
+  _erase(left, right, cfg, rng)
+  out["left"], out["right"] = left, right
+  for dkey, vkey, _ in _GT:
+    if out.get(dkey) is not None:
+      out[dkey] = np.asarray(out[dkey], np.float32)
+      if out[dkey].shape != left.shape[:3]:
+        raise ValueError(f"{dkey} is {out[dkey].shape}, images are {left.shape[:3]}")
+      if sparse and out.get(vkey) is None:
+        raise ValueError(f"sparse clips need `{vkey}` with `{dkey}`")
+      if sparse:
+        out[vkey] = np.asarray(out[vkey], bool)
+      else:
+        out[vkey] = None  # recomputed from the final disparity below
+  _spatial(out, cfg, rng, sparse)
+  _crop(out, cfg, rng, jitter=cfg.yjitter and not sparse)
+  for dkey, vkey, _ in _GT:
+    if out.get(dkey) is not None and not sparse:
+      d = out[dkey]
+      out[vkey] = (np.abs(d) < cfg.max_disparity) & (d != 0)
+  for k in ("left", "right") + tuple(k for g in _GT for k in g[:2]):
+    if out.get(k) is not None:
+      out[k] = np.ascontiguousarray(out[k])
+  return out

@@ -1,0 +1,260 @@
+"""Random-access stereo sequences: the interface every dataset reader returns.
+
+A `StereoSequence` holds the per-frame file lists of one rectified stereo video and
+decodes frames on demand, so building a dataset index costs only directory listings
+(plus one camera file per sequence) and sequences pickle cheaply into grain workers.
+
+  seq = registry.get_sequences("sintel_final", root, "test")[0]
+  frame = seq[0]          # left/right [H, W, 3] uint8, disparity [H, W] f32, valid [H, W] bool
+  clip = seq.clip(0, 5)   # the same keys stacked: [5, H, W, ...]
+"""
+
+from __future__ import annotations
+
+import copy
+import re
+from pathlib import Path
+from typing import Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from sav_jax.data import frame_io
+
+GT_KEYS = ("disparity", "valid", "right_disparity", "right_valid")
+
+
+class StereoSequence:
+  """One stereo video, frame by frame; the base class is the images-only reader.
+
+  Attributes:
+    name: sequence name (unique within its dataset and split).
+    dataset: registry name of the dataset.
+    depth2disp_scale: fx[px] * baseline[m] from the first frame's camera, or None.
+    sparse: whether the GT is sparse (its valid mask is carried through augmentation
+      rather than recomputed from the disparity).
+    files: per-frame files by kind (`left`, `right`, `left_gt`, ...), equal lengths.
+    with_right_disparity: also decode the right view's GT (`right_disparity`,
+      `right_valid`) when the dataset has it; off by default because only the left
+      GT enters the loss and the metrics.
+  """
+
+  def __init__(self, name: str, files: Mapping[str, Sequence], *, dataset: str = "images",
+               depth2disp_scale: float | None = None, sparse: bool = False):
+    self.name = name
+    self.dataset = dataset
+    self.depth2disp_scale = None if depth2disp_scale is None else float(depth2disp_scale)
+    self.sparse = bool(sparse)
+    self.with_right_disparity = False
+    self.files = {k: tuple(Path(p) for p in v) for k, v in files.items()}
+    for key in ("left", "right"):
+      if key not in self.files:
+        raise ValueError(f"{dataset}/{name}: no '{key}' image list")
+    lengths = {k: len(v) for k, v in self.files.items()}
+    if len(set(lengths.values())) != 1 or lengths["left"] == 0:
+      raise ValueError(f"{dataset}/{name}: per-frame file counts differ or are zero: {lengths}")
+
+  def __len__(self) -> int:
+    return len(self.files["left"])
+
+  def __repr__(self) -> str:
+    return (f"{type(self).__name__}(dataset={self.dataset!r}, name={self.name!r}, "
+            f"frames={len(self)}, depth2disp_scale={self.depth2disp_scale}, "
+            f"sparse={self.sparse})")
+
+  @property
+  def has_gt(self) -> bool:
+    """Whether frames carry ground truth (False for images-only datasets)."""
+    return "left_gt" in self.files
+
+  @property
+  def has_right_disparity(self) -> bool:
+    """Whether the dataset ships GT for the right view too."""
+    return "right_gt" in self.files
+
+  def _index(self, index: int) -> int:
+    n = len(self)
+    i = int(index)
+    if i < 0:
+      i += n
+    if not 0 <= i < n:
+      raise IndexError(f"frame {index} out of range for {self.dataset}/{self.name} ({n} frames)")
+    return i
+
+  def __getitem__(self, index: int) -> dict:
+    """Decodes frame `index`.
+
+    Returns:
+      left, right: [H, W, 3] uint8 RGB; disparity: [H, W] float32 positive px of the
+      left view (0 where unknown) or None; valid: [H, W] bool or None; plus
+      right_disparity / right_valid when `with_right_disparity` and available.
+    """
+    i = self._index(index)
+    left = frame_io.read_image(self.files["left"][i])
+    right = frame_io.read_image(self.files["right"][i])
+    if left.shape != right.shape:
+      raise ValueError(f"left {self.files['left'][i]} is {left.shape[:2]} but right "
+                       f"{self.files['right'][i]} is {right.shape[:2]}")
+    frame = {"left": left, "right": right, "disparity": None, "valid": None}
+    if self.has_gt:
+      frame["disparity"], frame["valid"] = self._checked_gt(i, "left", left.shape[:2])
+      if self.with_right_disparity and self.has_right_disparity:
+        frame["right_disparity"], frame["right_valid"] = self._checked_gt(i, "right",
+                                                                          left.shape[:2])
+    return frame
+
+  def _checked_gt(self, i: int, side: str, size: tuple[int, int]):
+    disp, valid = self._read_gt(i, side)
+    if disp.shape != size:
+      raise ValueError(f"ground truth {self.files[side + '_gt'][i]} is {disp.shape} but the "
+                       f"image {self.files[side][i]} is {size}")
+    return np.ascontiguousarray(disp, np.float32), np.ascontiguousarray(valid, bool)
+
+  def _read_gt(self, i: int, side: str) -> tuple[np.ndarray, np.ndarray]:
+    """(disparity, valid) of frame i for `side` ("left"/"right"); subclasses decode."""
+    raise NotImplementedError(f"{type(self).__name__} has no ground truth")
+
+  def gather(self, indices: Iterable[int]) -> dict:
+    """Frames `indices` (any order, e.g. time-reversed) stacked along a new axis 0.
+
+    Returns:
+      The keys of `seq[i]` with arrays [T, ...] (None stays None).
+    """
+    frames = [self[i] for i in indices]
+    if not frames:
+      raise ValueError("gather needs at least one frame index")
+    return {k: None if frames[0][k] is None else np.stack([f[k] for f in frames])
+            for k in frames[0]}
+
+  def clip(self, start: int, length: int, stride: int = 1) -> dict:
+    """Frames `start, start + stride, ...` (`length` of them; stride may be negative).
+
+    Returns:
+      See `gather`.
+    """
+    if length < 1 or stride == 0:
+      raise ValueError(f"clip needs length >= 1 and stride != 0, got {length}, {stride}")
+    indices = [start + k * stride for k in range(length)]
+    if min(indices) < 0 or max(indices) >= len(self):
+      raise IndexError(f"clip {indices[0]}..{indices[-1]} out of range for "
+                       f"{self.dataset}/{self.name} ({len(self)} frames)")
+    return self.gather(indices)
+
+  def head(self, n: int) -> "StereoSequence":
+    """A copy restricted to the first `n` frames (the evaluation chunk)."""
+    if not 1 <= n <= len(self):
+      raise ValueError(f"head({n}) needs 1 <= n <= {len(self)}")
+    out = copy.copy(self)
+    out.files = {k: v[:n] for k, v in self.files.items()}
+    return out
+
+
+class DepthSequence(StereoSequence):
+  """Ground truth stored as depth; disparity = depth2disp_scale / Z (`frame_io`).
+
+  Args:
+    name, files, dataset, depth2disp_scale, sparse: as `StereoSequence`; `files`
+      holds `left_gt` (and optionally `right_gt`) depth files.
+    depth_reader: path -> [H, W] float32 metres (a module-level function, so the
+      sequence pickles).
+  """
+
+  def __init__(self, name: str, files: Mapping[str, Sequence], *, dataset: str,
+               depth2disp_scale: float, depth_reader: Callable[[Path], np.ndarray],
+               sparse: bool = False):
+    super().__init__(name, files, dataset=dataset, depth2disp_scale=depth2disp_scale,
+                     sparse=sparse)
+    if not (self.depth2disp_scale is not None and 0 < self.depth2disp_scale < np.inf):
+      raise ValueError(f"{dataset}/{name}: depth2disp scale must be positive and finite, "
+                       f"got {depth2disp_scale}")
+    self.depth_reader = depth_reader
+
+  def _read_gt(self, i: int, side: str):
+    depth = self.depth_reader(self.files[side + "_gt"][i])
+    return frame_io.depth_to_disparity(depth, self.depth2disp_scale)
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def find_root(root, *names: str) -> Path:
+  """The dataset directory: `root/<name>` for the first existing name, else `root`.
+
+  Lets callers pass either the common parent (`data/datasets`) or the dataset's own
+  folder. Raises FileNotFoundError when `root` does not exist.
+  """
+  root = Path(root).expanduser()
+  if not root.is_dir():
+    raise FileNotFoundError(f"dataset root not found: {root}")
+  for name in names:
+    if (root / name).is_dir():
+      return root / name
+  return root
+
+
+def require_dir(path: Path, what: str = "directory") -> Path:
+  """Returns `path`; raises FileNotFoundError naming it when it is not a directory."""
+  if not Path(path).is_dir():
+    raise FileNotFoundError(f"{what} not found: {path}")
+  return Path(path)
+
+
+def list_files(directory: Path, *suffixes: str) -> list[Path]:
+  """Files of `directory` with one of `suffixes` (e.g. ".png"), sorted by name."""
+  require_dir(directory)
+  return sorted(p for p in Path(directory).iterdir()
+                if p.suffix.lower() in suffixes and p.is_file())
+
+
+def list_dirs(directory: Path) -> list[Path]:
+  """Sub-directories of `directory`, sorted by name."""
+  require_dir(directory)
+  return sorted(p for p in Path(directory).iterdir() if p.is_dir())
+
+
+def digits_key(path: Path) -> int | str:
+  """The last integer in a file stem, the frame number: `rgb_00012`, `depth_00012`
+  and `disp1_left_0012` all give 12 (the stem itself when it has no digits)."""
+  groups = re.findall(r"\d+", Path(path).stem)
+  return int(groups[-1]) if groups else Path(path).stem
+
+
+def check_matching(where: str, lists: Mapping[str, Sequence[Path]],
+                   key: Callable[[Path], object] = lambda p: p.stem) -> None:
+  """Raises ValueError unless all lists have the same length and frame keys.
+
+  Args:
+    where: sequence description for the message.
+    lists: file lists by kind, matched by index (as the official loaders do).
+    key: the frame key that must agree across kinds (default: the file stem).
+  """
+  counts = {k: len(v) for k, v in lists.items()}
+  if len(set(counts.values())) != 1:
+    raise ValueError(f"{where}: frame counts differ: {counts}")
+  names = list(lists)
+  if counts[names[0]] == 0:
+    raise FileNotFoundError(f"{where}: no frames found")
+  for other in names[1:]:
+    for a, b in zip(lists[names[0]], lists[other]):
+      if key(a) != key(b):
+        raise ValueError(f"{where}: stem mismatch between {a} and {b}")
+
+
+def sceneflow_clips(n: int, frames: int) -> list[list[int]]:
+  """SceneFlow training clips: for ref in 0..n-frames-1 (n - frames excluded) a forward
+  clip `[ref, ref + frames)` and the time-reversed `n-1-ref, ..., n-ref-frames`."""
+  clips = []
+  for ref in range(n - frames):
+    clips.append(list(range(ref, ref + frames)))
+    clips.append([n - 1 - idx for idx in range(ref, ref + frames)])
+  return clips
+
+
+def strided_clips(n: int, frames: int, rng: np.random.Generator) -> list[list[int]]:
+  """DR / Infinigen / KITTI / VKITTI2 training clips: starts 0, 3, 6, ...; each start
+  draws a stride k in 1..5 (k = 1 when frames == 1), kept when start + k*frames < n."""
+  clips = []
+  for ref in range(0, n, 3):
+    k = 1 if frames == 1 else int(rng.integers(1, 6))
+    if ref + k * frames < n:
+      clips.append(list(range(ref, ref + k * frames, k)))
+  return clips

@@ -1,0 +1,113 @@
+"""Dynamic Replica: float16-in-PNG depth and PyTorch3D cameras from a gzip JSON index.
+
+Layout (root = the `dynamic_replica_data` folder or its parent):
+
+  <split>/frame_annotations_<split>.jgz   gzip JSON list of frame records
+  <split>/<paths named by the records>    images, depth PNGs, masks
+
+Each record has `sequence_name`, `camera_name` ("left"/"right"), `image.path`,
+`image.size` [H, W], `depth.path` and `viewpoint` {R, T, focal_length,
+principal_point, intrinsics_format}; paths are relative to `<root>/<split>/`. Frames
+are grouped by sequence and camera in file order (not re-sorted).
+
+Depth: the PNG's uint16 bits reinterpreted as float16. The depth2disp scale is
+`fx_px(left) * (T_x(right) - T_x(left))` from frame 0, with `fx_px = f_ndc * r` and
+`r = W/2` (`ndc_norm_image_bounds`) or `min(H, W)/2` (`ndc_isotropic`): the official
+PyTorch3D -> OpenCV conversion (`t_cv = (-T_x, -T_y, T_z)`) written out. Foreground
+masks do not enter the metrics and are not read. Splits: train, valid, test.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+from pathlib import Path
+
+from sav_jax.data import frame_io
+from sav_jax.data.base import DepthSequence, find_root
+
+SPLITS = ("train", "valid", "test")
+
+
+def _records(split_dir: Path, split: str) -> list[dict]:
+  path = frame_io.require_file(split_dir / f"frame_annotations_{split}.jgz",
+                               "Dynamic Replica annotation file")
+  try:
+    with gzip.open(path, "rt", encoding="utf8") as f:
+      records = json.load(f)
+  except (OSError, EOFError, ValueError) as e:
+    raise ValueError(f"cannot read Dynamic Replica annotations {path}: {e}") from e
+  if not isinstance(records, list):
+    raise ValueError(f"{path}: expected a JSON list of frame records")
+  return records
+
+
+def focal_px(viewpoint: dict, size_hw) -> float:
+  """Horizontal focal length in pixels of a PyTorch3D NDC viewpoint.
+
+  Args:
+    viewpoint: the record's `viewpoint` dict.
+    size_hw: image size [H, W].
+  """
+  h, w = (float(s) for s in size_hw)
+  fmt = str(viewpoint.get("intrinsics_format", "ndc_norm_image_bounds")).lower()
+  if fmt == "ndc_norm_image_bounds":
+    r = w / 2.0
+  elif fmt == "ndc_isotropic":
+    r = min(h, w) / 2.0
+  else:
+    raise ValueError(f"unknown Dynamic Replica intrinsics format {fmt!r}")
+  return float(viewpoint["focal_length"][0]) * r
+
+
+def depth2disp_scale(left: dict, right: dict) -> float:
+  """fx_px(left) * (T_x(right) - T_x(left)) from two frame records."""
+  fx = focal_px(left["viewpoint"], left["image"]["size"])
+  return fx * (float(right["viewpoint"]["T"][0]) - float(left["viewpoint"]["T"][0]))
+
+
+def _frame_paths(split_dir: Path, rec: dict, where: str) -> tuple[Path, Path]:
+  depth = rec.get("depth") or {}
+  if not depth.get("path"):
+    raise ValueError(f"{where}: frame {rec.get('frame_number')} has no depth annotation")
+  image = frame_io.require_file(split_dir / rec["image"]["path"], "Dynamic Replica image")
+  return image, frame_io.require_file(split_dir / depth["path"], "Dynamic Replica depth")
+
+
+def load_sequences(root, split: str, dataset: str = "dynamic_replica"):
+  """Dynamic Replica sequences of `split`, in annotation-file order.
+
+  Args:
+    root: the `dynamic_replica_data` folder or its parent.
+    split: "train", "valid" or "test".
+    dataset: registry name recorded on the sequences.
+
+  Returns:
+    list of `DepthSequence` (dense; left and right GT).
+  """
+  if split not in SPLITS:
+    raise ValueError(f"Dynamic Replica split must be one of {SPLITS}, got {split!r}")
+  split_dir = find_root(root, "dynamic_replica_data") / split
+  groups: dict[str, dict[str, list[dict]]] = {}
+  for rec in _records(split_dir, split):
+    cams = groups.setdefault(rec["sequence_name"], {"left": [], "right": []})
+    if rec.get("camera_name") not in cams:
+      raise ValueError(f"{split_dir}: record with camera_name {rec.get('camera_name')!r}")
+    cams[rec["camera_name"]].append(rec)
+  seqs = []
+  for name, cams in groups.items():
+    where = f"Dynamic Replica {split}/{name}"
+    if len(cams["left"]) != len(cams["right"]) or not cams["left"]:
+      raise ValueError(f"{where}: {len(cams['left'])} left and {len(cams['right'])} "
+                       "right frames")
+    files = {}
+    for side in ("left", "right"):
+      paths = [_frame_paths(split_dir, rec, where) for rec in cams[side]]
+      files[side] = [p[0] for p in paths]
+      files[side + "_gt"] = [p[1] for p in paths]
+    scale = depth2disp_scale(cams["left"][0], cams["right"][0])
+    seqs.append(DepthSequence(name, files, dataset=dataset, depth2disp_scale=scale,
+                              depth_reader=frame_io.read_float16_png))
+  if not seqs:
+    raise FileNotFoundError(f"no Dynamic Replica sequences in {split_dir}")
+  return seqs

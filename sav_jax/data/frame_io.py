@@ -1,0 +1,329 @@
+"""Decoders for the image, disparity, depth and camera files of the stereo datasets.
+
+Every reader takes a path, returns numpy arrays and raises a clear error naming the
+file: FileNotFoundError when it does not exist, ValueError when it cannot be decoded
+or its content contradicts the format. Nothing here writes into a dataset directory
+(`write_pfm` is for tests and exports).
+
+Conventions (`docs/datasets.md`, section 0):
+  * images are uint8 RGB `[H, W, 3]`; alpha is dropped and grey is repeated to 3
+    channels, as the official PIL-based loader does;
+  * disparities are positive pixels of the left view (the official "flow" `(-d, 0)`
+    sign is not reproduced: users get +d);
+  * depth is metres; readers mark "no depth" with -1 where the format has a code for
+    it, and `depth_to_disparity` turns every depth below 1e-5 into d = 0 (invalid).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+PathLike = str | os.PathLike
+# Sintel .cam and Middlebury .flo magic number.
+SINTEL_TAG = np.float32(202021.25)
+DEPTH_EPS = 1e-5
+# Dense valid rule cap (official: |d| < 512).
+MAX_DISPARITY = 512.0
+
+
+def require_file(path: PathLike, what: str = "file") -> Path:
+  """Returns `path` as a Path; raises FileNotFoundError naming it when missing."""
+  path = Path(path)
+  if not path.is_file():
+    raise FileNotFoundError(f"{what} not found: {path}")
+  return path
+
+
+def _imread(path: PathLike) -> np.ndarray:
+  path = require_file(path, "image")
+  # cv2.imread returns None (no exception) for unreadable or truncated files.
+  img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+  if img is None:
+    raise ValueError(f"cannot decode image file {path}")
+  return img
+
+
+def read_image(path: PathLike) -> np.ndarray:
+  """Reads an 8-bit PNG/JPEG image as RGB.
+
+  16-bit images are reduced to their high byte (no dataset here ships them; the
+  official `astype(uint8)` would wrap instead).
+
+  Args:
+    path: image file.
+
+  Returns:
+    [H, W, 3] uint8 RGB.
+  """
+  img = _imread(path)
+  if img.dtype == np.uint16:
+    img = (img >> 8).astype(np.uint8)
+  elif img.dtype != np.uint8:
+    raise ValueError(f"unsupported image dtype {img.dtype} in {path}")
+  if img.ndim == 2:
+    img = img[..., None]
+  if img.shape[2] == 1:
+    return np.repeat(img, 3, axis=2)
+  if img.shape[2] == 4:
+    return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+  return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_png_uint16(path: PathLike) -> np.ndarray:
+  """Reads a single-channel 16-bit PNG as its raw values.
+
+  Returns:
+    [H, W] uint16.
+  """
+  img = _imread(path)
+  if img.dtype != np.uint16 or img.ndim != 2:
+    raise ValueError(f"expected a 1-channel 16-bit PNG, got {img.dtype} with shape "
+                     f"{img.shape} in {path}")
+  return img
+
+
+def read_pfm(path: PathLike) -> np.ndarray:
+  """Reads a PFM file (Portable Float Map).
+
+  Header: `PF` (3 channels) or `Pf` (1 channel), then `W H`, then the scale whose
+  sign gives the byte order (negative: little-endian). Rows are stored bottom to
+  top, so they are flipped here.
+
+  Returns:
+    float32 [H, W] (`Pf`) or [H, W, 3] (`PF`), top row first.
+  """
+  path = require_file(path, "PFM file")
+  with open(path, "rb") as f:
+    kind = f.readline().rstrip()
+    if kind not in (b"PF", b"Pf"):
+      raise ValueError(f"not a PFM file (header {kind[:16]!r}): {path}")
+    dims = re.fullmatch(rb"\s*(\d+)\s+(\d+)\s*", f.readline())
+    try:
+      scale = float(f.readline())
+    except ValueError:
+      scale = 0.0
+    if dims is None or scale == 0.0:
+      raise ValueError(f"malformed PFM header: {path}")
+    data = f.read()
+  width, height = int(dims.group(1)), int(dims.group(2))
+  channels = 3 if kind == b"PF" else 1
+  count = width * height * channels
+  if len(data) < 4 * count:
+    raise ValueError(f"truncated PFM file ({len(data)} bytes of data, {4 * count} "
+                     f"expected): {path}")
+  dtype = np.dtype("<f4" if scale < 0 else ">f4")
+  arr = np.frombuffer(data, dtype, count).reshape((height, width, channels))
+  arr = np.flipud(arr).astype(np.float32)  # native byte order, top row first
+  return arr[..., 0] if channels == 1 else arr
+
+
+def write_pfm(path: PathLike, array: np.ndarray, little_endian: bool = True) -> None:
+  """Writes a float array as PFM (rows bottom to top, scale magnitude 1).
+
+  Args:
+    path: output file.
+    array: [H, W] or [H, W, 3] float.
+    little_endian: byte order of the payload (scale -1 if True, +1 otherwise).
+  """
+  arr = np.asarray(array, np.float32)
+  if arr.ndim == 3 and arr.shape[2] == 1:
+    arr = arr[..., 0]
+  if not (arr.ndim == 2 or (arr.ndim == 3 and arr.shape[2] == 3)):
+    raise ValueError(f"PFM holds [H, W] or [H, W, 3] arrays, got shape {arr.shape}")
+  kind = b"PF" if arr.ndim == 3 else b"Pf"
+  header = b"%s\n%d %d\n%s\n" % (kind, arr.shape[1], arr.shape[0],
+                                 b"-1.0" if little_endian else b"1.0")
+  payload = np.flipud(arr).astype("<f4" if little_endian else ">f4").tobytes()
+  with open(path, "wb") as f:
+    f.write(header + payload)
+
+
+def read_pfm_disparity(path: PathLike) -> np.ndarray:
+  """SceneFlow disparity: a PFM of positive pixels; channel 0 of a 3-channel file.
+
+  Returns:
+    [H, W] float32.
+  """
+  arr = read_pfm(path)
+  return np.ascontiguousarray(arr[..., 0] if arr.ndim == 3 else arr)
+
+
+def read_sintel_disparity(disp_path: PathLike, occ_path: PathLike):
+  """Sintel stereo disparity PNG and its occlusion mask.
+
+  `d = 4 R + G / 2**6 + B / 2**14` (computed in float64); valid where the occlusion
+  PNG is 0 and d > 0 (no 512 cap; `outofframe` is not used).
+
+  Args:
+    disp_path: 8-bit RGB disparity PNG.
+    occ_path: 8-bit occlusion PNG (non-zero = occluded).
+
+  Returns:
+    (disparity [H, W] float32, valid [H, W] bool).
+  """
+  rgb = _imread(disp_path)
+  if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] < 3:
+    raise ValueError(f"expected an 8-bit RGB Sintel disparity PNG, got {rgb.dtype} "
+                     f"{rgb.shape}: {disp_path}")
+  b, g, r = (rgb[..., c].astype(np.float64) for c in range(3))  # OpenCV order is BGR
+  disp = r * 4 + g / 2**6 + b / 2**14
+  occ = _imread(occ_path)
+  if occ.ndim == 3:
+    occ = occ[..., 0]
+  if occ.shape != disp.shape:
+    raise ValueError(f"occlusion mask {occ_path} is {occ.shape}, disparity {disp_path} "
+                     f"is {disp.shape}")
+  return disp.astype(np.float32), (occ == 0) & (disp > 0)
+
+
+def read_sintel_cam(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+  """Sintel `.cam`: float32 tag 202021.25, 9 float64 (K), 12 float64 ([R|t]).
+
+  Returns:
+    (K [3, 3] float64, RT [3, 4] float64).
+  """
+  path = require_file(path, "Sintel camera file")
+  raw = path.read_bytes()
+  if len(raw) < 4 + 21 * 8:
+    raise ValueError(f"truncated Sintel .cam file ({len(raw)} bytes): {path}")
+  tag = np.frombuffer(raw, "<f4", 1)[0]
+  if tag != SINTEL_TAG:
+    raise ValueError(f"wrong tag {tag} in Sintel .cam file (expected {SINTEL_TAG}): {path}")
+  vals = np.frombuffer(raw, "<f8", 21, offset=4)
+  return vals[:9].reshape(3, 3).copy(), vals[9:].reshape(3, 4).copy()
+
+
+def read_kitti_depth(path: PathLike) -> np.ndarray:
+  """KITTI depth PNG: uint16, Z = v / 256 m, v = 0 (no LiDAR point) -> -1.
+
+  Returns:
+    [H, W] float32 metres.
+  """
+  v = read_png_uint16(path)
+  return np.where(v == 0, np.float32(-1), v.astype(np.float32) / 256.0)
+
+
+def read_vkitti2_depth(path: PathLike) -> np.ndarray:
+  """Virtual KITTI 2 depth PNG: uint16 centimetres, Z = v / 100 m, v = 0 -> -1.
+
+  Returns:
+    [H, W] float32 metres (the sky saturates at 655.35).
+  """
+  v = read_png_uint16(path)
+  return np.where(v == 0, np.float32(-1), v.astype(np.float32) / 100.0)
+
+
+def read_float16_png(path: PathLike) -> np.ndarray:
+  """Dynamic Replica depth: a 16-bit PNG whose raw bits are IEEE float16.
+
+  Returns:
+    [H, W] float32 metres.
+  """
+  return read_png_uint16(path).view(np.float16).astype(np.float32)
+
+
+def read_npy(path: PathLike) -> np.ndarray:
+  """`np.load` without pickles (Infinigen depth, TartanAir depth)."""
+  path = require_file(path, "npy file")
+  try:
+    return np.load(path, allow_pickle=False)
+  except (ValueError, OSError, EOFError) as e:
+    raise ValueError(f"cannot read npy file {path}: {e}") from e
+
+
+def read_npz(path: PathLike) -> dict[str, np.ndarray]:
+  """All arrays of an `.npz` archive (Infinigen camview: `K`, `T`)."""
+  path = require_file(path, "npz file")
+  try:
+    with np.load(path, allow_pickle=False) as z:
+      return {k: z[k] for k in z.files}
+  except (ValueError, OSError, EOFError) as e:
+    raise ValueError(f"cannot read npz file {path}: {e}") from e
+
+
+def read_exr(path: PathLike, channel: str | None = None) -> np.ndarray:
+  """Reads an OpenEXR image (no SAV loader uses EXR; offered for custom data).
+
+  Args:
+    path: `.exr` file.
+    channel: channel name to return; None returns the only channel, or R, G, B
+      stacked when the file has them.
+
+  Returns:
+    float32 [H, W], or [H, W, 3] for RGB.
+  """
+  import OpenEXR  # pylint: disable=import-outside-toplevel
+
+  path = require_file(path, "EXR file")
+  try:
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+      chans = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
+  except RuntimeError as e:
+    raise ValueError(f"cannot read EXR file {path}: {e}") from e
+  if channel is not None:
+    if channel not in chans:
+      raise ValueError(f"EXR file {path} has no channel {channel!r} (has {sorted(chans)})")
+    return chans[channel].astype(np.float32)
+  if len(chans) == 1:
+    return next(iter(chans.values())).astype(np.float32)
+  if {"R", "G", "B"} <= set(chans):
+    return np.stack([chans[c] for c in "RGB"], axis=-1).astype(np.float32)
+  raise ValueError(f"EXR file {path} has channels {sorted(chans)}: pass `channel`")
+
+
+def read_hdf5(path: PathLike, key: str) -> np.ndarray:
+  """Reads dataset `key` of an HDF5 file (h5py is imported only here).
+
+  Raises:
+    ImportError: h5py is not installed (it is in the `test` extra).
+  """
+  try:
+    import h5py  # pylint: disable=import-outside-toplevel
+  except ImportError as e:
+    raise ImportError("reading HDF5 / Spring .dsp5 files needs h5py: "
+                      "pip install h5py (or the sav-jax[test] extra)") from e
+  path = require_file(path, "HDF5 file")
+  try:
+    with h5py.File(path, "r") as f:
+      if key not in f:
+        raise ValueError(f"HDF5 file {path} has no dataset {key!r} (has {sorted(f.keys())})")
+      return np.asarray(f[key])
+  except OSError as e:
+    raise ValueError(f"cannot read HDF5 file {path}: {e}") from e
+
+
+def read_dsp5(path: PathLike) -> np.ndarray:
+  """Spring `.dsp5`: HDF5 dataset `disparity` at 2x resolution, NaN where unknown.
+
+  Returns:
+    [2H, 2W] float32 as stored (subsampling is the Spring reader's job).
+  """
+  return read_hdf5(path, "disparity").astype(np.float32)
+
+
+def depth_to_disparity(depth: np.ndarray, scale: float,
+                       eps: float = DEPTH_EPS) -> tuple[np.ndarray, np.ndarray]:
+  """d = scale / Z, with d = 0 where Z < eps (incl. the -1 "no depth" code) or NaN.
+
+  Valid is `0 < d < 512`: the official reader's `(d < 512) & (Z >= eps)` combined
+  with the dense `d != 0` rule, so infinite depth (d = 0) is invalid too.
+
+  Args:
+    depth: [H, W] metres.
+    scale: fx[px] * baseline[m] (the "depth2disp scale").
+    eps: smallest valid depth.
+
+  Returns:
+    (disparity [H, W] float32, valid [H, W] bool).
+  """
+  depth = np.asarray(depth, np.float32)
+  bad = ~(depth >= eps)  # also catches NaN
+  with np.errstate(divide="ignore"):
+    disp = np.float32(scale) / np.where(bad, np.float32(1), depth)
+  disp[bad] = 0
+  return disp, (disp > 0) & (disp < MAX_DISPARITY)

@@ -1,0 +1,85 @@
+"""Infinigen SV (InfinigenStereo): npy depth and Blender camera npz per frame.
+
+Layout (root = the `InfinigenStereo` folder or its parent):
+
+  <split>/<scene>/frames/Image/camera_{0,1}/Image_<rig>_<cam>_<frame>_<k>.png
+  <split>/<scene>/frames/Depth/camera_{0,1}/Depth_<...>.npy      metres
+  <split>/<scene>/frames/camview/camera_{0,1}/camview_<...>.npz  K (3x3 px), T (4x4 pose)
+
+camera_0 is the left view. The three sorted lists are matched by index (stems must
+agree after the type prefix). Depth is used as stored (units not confirmed; depth
+below 1e-5, NaN or inf is invalid). Scale: `K_left[0, 0] * ||t_left - t_right||`
+from frame 0's camview files. Splits (download script): test = scene001-030,
+train = scene031-216, val = scene217-226, as folders.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sav_jax.data import frame_io
+from sav_jax.data.base import DepthSequence, check_matching, find_root, list_dirs, list_files
+
+SPLITS = ("train", "test", "val")
+_CAMERAS = {"left": "camera_0", "right": "camera_1"}
+
+
+def frame_key(path: Path) -> str:
+  """`Image_0_0_0048_0` -> `0_0_0048_0`: the stem without its type prefix."""
+  return path.stem.split("_", 1)[-1]
+
+
+def view_key(path: Path) -> str:
+  """The frame key without the camera token (`<rig>_<cam>_<frame>_<k>`), so left and
+  right files of one frame agree; other naming schemes are compared whole."""
+  parts = frame_key(path).split("_")
+  return "_".join(parts[:1] + parts[2:]) if len(parts) == 4 else "_".join(parts)
+
+
+def depth2disp_scale(left_cam: dict, right_cam: dict, where: str) -> float:
+  """K_left[0, 0] * ||T_left[:3, 3] - T_right[:3, 3]|| from two camview archives."""
+  for cam in (left_cam, right_cam):
+    if "K" not in cam or "T" not in cam:
+      raise ValueError(f"{where}: camview npz lacks K or T (has {sorted(cam)})")
+  baseline = np.linalg.norm(np.asarray(left_cam["T"], np.float64)[:3, 3]
+                            - np.asarray(right_cam["T"], np.float64)[:3, 3])
+  return float(np.asarray(left_cam["K"], np.float64)[0, 0] * baseline)
+
+
+def _scene(scene: Path, dataset: str) -> DepthSequence:
+  where = f"Infinigen {scene.parent.name}/{scene.name}"
+  files, cams = {}, {}
+  for side, cam in _CAMERAS.items():
+    lists = {side: list_files(scene / "frames" / "Image" / cam, ".png"),
+             side + "_gt": list_files(scene / "frames" / "Depth" / cam, ".npy"),
+             side + "_cam": list_files(scene / "frames" / "camview" / cam, ".npz")}
+    check_matching(f"{where} {cam}", lists, frame_key)
+    files.update(lists)
+    cams[side] = lists[side + "_cam"]
+  check_matching(where, {"left": files["left"], "right": files["right"]}, view_key)
+  scale = depth2disp_scale(frame_io.read_npz(cams["left"][0]),
+                           frame_io.read_npz(cams["right"][0]), where)
+  return DepthSequence(scene.name, files, dataset=dataset, depth2disp_scale=scale,
+                       depth_reader=frame_io.read_npy)
+
+
+def load_sequences(root, split: str, dataset: str = "infinigen_sv"):
+  """Infinigen SV scenes of `split`, sorted by name.
+
+  Args:
+    root: the `InfinigenStereo` folder or its parent.
+    split: "train", "test" or "val".
+    dataset: registry name recorded on the sequences.
+
+  Returns:
+    list of `DepthSequence` (dense; left and right GT).
+  """
+  if split not in SPLITS:
+    raise ValueError(f"Infinigen SV split must be one of {SPLITS}, got {split!r}")
+  split_dir = find_root(root, "InfinigenStereo") / split
+  seqs = [_scene(scene, dataset) for scene in list_dirs(split_dir)]
+  if not seqs:
+    raise FileNotFoundError(f"no Infinigen SV scenes in {split_dir}")
+  return seqs

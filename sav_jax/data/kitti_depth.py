@@ -1,0 +1,108 @@
+"""KITTI Depth: sparse LiDAR depth PNGs on the raw KITTI drives (CODD splits).
+
+Layout (root = the `kitti_depth` folder or its parent):
+
+  gt_depth/<drive>_sync/proj_depth/groundtruth/image_0{2,3}/<id>.png   Z = v / 256 m
+  input/<date>/<drive>_sync/image_0{2,3}/data/<id>.png                 found by GT name
+  input/<date>/calib_cam_to_cam.txt
+
+image_02 is left. The GT is sparse (v = 0: no point; frames start at raw index 5);
+valid = (d < 512) & (Z >= 1e-5). Scale: `P_rect_02[0, 0] * ||T_02 - T_03||`.
+Splits (following CODD, as the official code): "test" = the 13 drives of `TEST`,
+"val" = `VAL`, "train" = every other drive present in `gt_depth/`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sav_jax.data import frame_io
+from sav_jax.data.base import (DepthSequence, check_matching, find_root, list_dirs,
+                               list_files, require_dir)
+
+SPLITS = ("train", "val", "test")
+TEST = tuple(f"{d}_sync" for d in (
+    "2011_09_26_drive_0002", "2011_09_26_drive_0005", "2011_09_26_drive_0013",
+    "2011_09_26_drive_0020", "2011_09_26_drive_0023", "2011_09_26_drive_0036",
+    "2011_09_26_drive_0079", "2011_09_26_drive_0095", "2011_09_26_drive_0113",
+    "2011_09_28_drive_0037", "2011_09_29_drive_0026", "2011_09_30_drive_0016",
+    "2011_10_03_drive_0047"))
+VAL = ("2011_10_03_drive_0042_sync",)
+
+
+def read_calib(path: Path) -> dict[str, np.ndarray]:
+  """The numeric entries of a KITTI `calib_cam_to_cam.txt` (`key: v1 v2 ...`)."""
+  path = frame_io.require_file(path, "KITTI calibration")
+  calib = {}
+  for line in path.read_text().splitlines():
+    key, sep, value = line.partition(":")
+    if not sep:
+      continue
+    try:
+      calib[key.strip()] = np.array([float(x) for x in value.split()])
+    except ValueError:
+      continue  # e.g. `calib_time: 09-Jan-2012 13:57:47`
+  return calib
+
+
+def depth2disp_scale(calib_path: Path) -> float:
+  """P_rect_02[0, 0] * ||T_02 - T_03|| (about 721 * 0.54)."""
+  calib = read_calib(calib_path)
+  missing = [k for k in ("P_rect_02", "T_02", "T_03") if k not in calib]
+  if missing or calib["P_rect_02"].size != 12:
+    raise ValueError(f"KITTI calibration {calib_path} lacks {missing or ['a 3x4 P_rect_02']}")
+  return float(calib["P_rect_02"][0] * np.linalg.norm(calib["T_02"] - calib["T_03"]))
+
+
+def _drive(root: Path, drive: str, dataset: str) -> DepthSequence:
+  gt_dir = root / "gt_depth" / drive / "proj_depth" / "groundtruth"
+  image_dir = root / "input" / drive[:10] / drive
+  files = {}
+  for side, cam in (("left", "image_02"), ("right", "image_03")):
+    gt = list_files(gt_dir / cam, ".png")
+    files[side + "_gt"] = gt
+    files[side] = [frame_io.require_file(image_dir / cam / "data" / p.name, "KITTI image")
+                   for p in gt]
+  check_matching(f"KITTI {drive}", {"left": files["left_gt"], "right": files["right_gt"]})
+  scale = depth2disp_scale(root / "input" / drive[:10] / "calib_cam_to_cam.txt")
+  return DepthSequence(drive, files, dataset=dataset, depth2disp_scale=scale,
+                       depth_reader=frame_io.read_kitti_depth, sparse=True)
+
+
+def split_drives(drives: list[str], split: str) -> list[str]:
+  """The drives of `split` among `drives` (all present drives, sorted)."""
+  if split == "test":
+    return [d for d in drives if d in TEST]
+  if split == "val":
+    return [d for d in drives if d in VAL]
+  return [d for d in drives if d not in TEST and d not in VAL]
+
+
+def load_sequences(root, split: str, dataset: str = "kitti_depth"):
+  """KITTI Depth drives of `split`, sorted by name.
+
+  For "test" and "val" every listed drive must be present (FileNotFoundError
+  otherwise), so evaluation numbers are never silently computed on a subset.
+
+  Args:
+    root: the `kitti_depth` folder or its parent.
+    split: "train", "val" or "test".
+    dataset: registry name recorded on the sequences.
+
+  Returns:
+    list of `DepthSequence` (sparse; left and right GT).
+  """
+  if split not in SPLITS:
+    raise ValueError(f"KITTI Depth split must be one of {SPLITS}, got {split!r}")
+  root = find_root(root, "kitti_depth")
+  gt_root = require_dir(root / "gt_depth", "KITTI gt_depth folder")
+  drives = split_drives([d.name for d in list_dirs(gt_root)], split)
+  expected = {"test": TEST, "val": VAL}.get(split, ())
+  missing = sorted(set(expected) - set(drives))
+  if missing:
+    raise FileNotFoundError(f"KITTI Depth {split} drives missing from {gt_root}: {missing}")
+  if not drives:
+    raise FileNotFoundError(f"no KITTI Depth {split} drives in {gt_root}")
+  return [_drive(root, d, dataset) for d in drives]

@@ -1,0 +1,163 @@
+"""Dataset registry: sequences per dataset and split, and the official training clips.
+
+  seqs = get_sequences("dynamic_replica", "data/datasets", "test")   # first 150 frames each
+  clips = get_training_clips("sceneflow", "data/datasets", frames=5)
+  seq, indices = clips[0]
+  sample = seq.gather(indices)                                       # [5, H, W, ...]
+
+`root` may be the common parent (`data/datasets`) or the dataset's own folder.
+Evaluation splits are cut as the official evaluation does (`EVAL_FRAMES`): only the
+first L frames of each sequence (L = N when N <= L), and Dynamic Replica sequences
+shorter than L are skipped. Other splits return whole sequences.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from sav_jax.data import (dynamic_replica, infinigen, kitti_depth, sceneflow, sintel,
+                          south_kensington, spring, vkitti2)
+from sav_jax.data.base import StereoSequence, sceneflow_clips, strided_clips
+
+DEFAULT_ROOT = "data/datasets"
+
+_LOADERS = {
+    "sceneflow": sceneflow.load_sequences,
+    "flyingthings3d": functools.partial(sceneflow.load_sequences, subsets=("FlyingThings3D",),
+                                        dataset="flyingthings3d"),
+    "monkaa": functools.partial(sceneflow.load_sequences, subsets=("Monkaa",), dataset="monkaa"),
+    "driving": functools.partial(sceneflow.load_sequences, subsets=("Driving",),
+                                 dataset="driving"),
+    "sintel_clean": functools.partial(sintel.load_sequences, dstype="clean"),
+    "sintel_final": functools.partial(sintel.load_sequences, dstype="final"),
+    "dynamic_replica": dynamic_replica.load_sequences,
+    "infinigen_sv": infinigen.load_sequences,
+    "vkitti2": vkitti2.load_sequences,
+    "kitti_depth": kitti_depth.load_sequences,
+    "spring": spring.load_sequences,
+    "south_kensington": south_kensington.load_sequences,
+}
+DATASETS = tuple(_LOADERS)
+
+SPLITS = {
+    "sceneflow": sceneflow.SPLITS, "flyingthings3d": sceneflow.SPLITS,
+    "monkaa": ("train",), "driving": ("train",),
+    "sintel_clean": sintel.SPLITS, "sintel_final": sintel.SPLITS,
+    "dynamic_replica": dynamic_replica.SPLITS, "infinigen_sv": infinigen.SPLITS,
+    "vkitti2": vkitti2.SPLITS, "kitti_depth": kitti_depth.SPLITS,
+    "spring": spring.SPLITS, "south_kensington": south_kensington.SPLITS,
+}
+# Official evaluation: frames 0..L-1 of each sequence of the "test" split
+# (`sample_len` with `only_first_n_samples=1`). Sintel evaluates every frame; Spring's
+# SAV protocol is unknown, so it is left whole.
+EVAL_FRAMES = {"dynamic_replica": 150, "infinigen_sv": 150, "vkitti2": 300,
+               "kitti_depth": 300, "south_kensington": 300}
+# SceneFlow samples forward + time-reversed clips; these sample strided clips.
+_STRIDED = ("dynamic_replica", "infinigen_sv", "kitti_depth", "vkitti2")
+_SCENEFLOW = ("sceneflow", "flyingthings3d", "monkaa", "driving")
+OFFICIAL = "official"
+
+
+class TrainingClip(NamedTuple):
+  """One training sample: a sequence and the indices of its frames (in clip order)."""
+
+  sequence: StereoSequence
+  indices: list[int]
+
+
+def _check_name(dataset: str) -> None:
+  if dataset not in _LOADERS:
+    raise ValueError(f"unknown dataset {dataset!r}; known datasets: {', '.join(DATASETS)}")
+
+
+def eval_chunk(sequences: list[StereoSequence], length: int | None,
+               drop_short: bool = False) -> list[StereoSequence]:
+  """Cuts each sequence to its first evaluation chunk of `length` frames.
+
+  Args:
+    sequences: whole sequences.
+    length: L; None or <= 0 keeps every frame; L >= N keeps the sequence whole.
+    drop_short: skip sequences shorter than L (the official Dynamic Replica loader
+      fails on them and skips them silently).
+  """
+  if length is None or length <= 0:
+    return list(sequences)
+  out = []
+  for seq in sequences:
+    if len(seq) < length and drop_short:
+      continue
+    out.append(seq.head(min(length, len(seq))))
+  return out
+
+
+def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFICIAL,
+                  **options) -> list[StereoSequence]:
+  """The sequences of one dataset split.
+
+  Args:
+    dataset: one of `DATASETS`.
+    root: the common dataset parent (`data/datasets`) or the dataset's folder.
+    split: one of `SPLITS[dataset]` ("train", "test", and "val"/"valid" where the
+      dataset has one).
+    max_frames: "official" cuts the "test" split as the official evaluation does
+      (`EVAL_FRAMES`) and leaves other splits whole; an int L cuts every sequence to
+      its first L frames (None or <= 0: whole sequences).
+    **options: passed to the dataset's `load_sequences` (e.g. `pass_name` for
+      SceneFlow).
+
+  Returns:
+    list of `StereoSequence`, in the official order.
+  """
+  _check_name(dataset)
+  if split not in SPLITS[dataset]:
+    raise ValueError(f"{dataset} has no split {split!r}; its splits: {SPLITS[dataset]}")
+  seqs = _LOADERS[dataset](root, split, **options)
+  if max_frames == OFFICIAL:
+    length = EVAL_FRAMES.get(dataset) if split == "test" else None
+  else:
+    length = max_frames
+  return eval_chunk(seqs, length, drop_short=dataset == "dynamic_replica")
+
+
+def get_training_clips(dataset: str, root: str | Path, frames: int, split: str = "train", *,
+                       seed: int = 0, **options) -> list[TrainingClip]:
+  """The official training samples of a dataset: frame-index lists of whole sequences.
+
+  SceneFlow (and its subsets): for ref in 0..N-T-1, the clip [ref, ref+T) and the
+  time-reversed clip N-1-ref, ..., N-ref-T. Dynamic Replica, Infinigen SV, KITTI Depth
+  and VKITTI2: starts 0, 3, 6, ...; each start draws a stride k in 1..5 (k = 1 for
+  T = 1) once, from `np.random.default_rng(seed)` in sequence order, and the clip
+  start, start+k, ..., start+(T-1)k is kept when start + k*T < N.
+
+  Args:
+    dataset: a dataset with official training clips (SceneFlow family, DR,
+      Infinigen SV, KITTI Depth, VKITTI2).
+    root: as in `get_sequences`.
+    frames: clip length T >= 1.
+    split: the split to sample (default "train").
+    seed: seed of the stride draws (the result is a pure function of the files and it).
+    **options: passed to `get_sequences`.
+
+  Returns:
+    list of `TrainingClip(sequence, indices)`.
+  """
+  _check_name(dataset)
+  if dataset not in _SCENEFLOW + _STRIDED:
+    raise ValueError(f"{dataset} has no official training clips; datasets with them: "
+                     f"{', '.join(_SCENEFLOW + _STRIDED)}")
+  if not isinstance(frames, (int, np.integer)) or frames < 1:
+    raise ValueError(f"frames must be an int >= 1, got {frames!r}")
+  seqs = get_sequences(dataset, root, split, max_frames=None, **options)
+  rng = np.random.default_rng(seed)
+  clips = []
+  for seq in seqs:
+    if dataset in _SCENEFLOW:
+      indices = sceneflow_clips(len(seq), frames)
+    else:
+      indices = strided_clips(len(seq), frames, rng)
+    clips += [TrainingClip(seq, idx) for idx in indices]
+  return clips

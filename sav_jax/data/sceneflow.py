@@ -1,0 +1,91 @@
+"""SceneFlow (FlyingThings3D, Monkaa, Driving): PFM disparity, the SAV training set.
+
+Layout under the root (the folder holding the three subsets, or one subset's own
+folder when a single subset is asked for):
+
+  FlyingThings3D/<pass>/{TRAIN,TEST}/<A|B|C>/<seq>/{left,right}/*.png
+  Monkaa/<pass>/<seq>/{left,right}/*.png
+  Driving/<pass>/<focal>/<direction>/<speed>/{left,right}/*.png
+
+with `<pass>` = `frames_finalpass` (SAV trains on the final pass only) and the GT in
+the same tree with `<pass>` replaced by `disparity` (`*.pfm`, positive pixels). The
+valid mask is the dense rule `0 < |d| < 512`. Splits: `train` (Things TRAIN + Monkaa +
+Driving) and `test` (Things TEST, which SAV does not evaluate).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sav_jax.data import frame_io
+from sav_jax.data.base import StereoSequence, check_matching, find_root, list_files, require_dir
+
+SUBSETS = ("FlyingThings3D", "Monkaa", "Driving")
+SPLITS = ("train", "test")
+DEFAULT_PASS = "frames_finalpass"
+# Directory depth of the sequence folders below <pass> (Things adds the split level).
+_SEQ_GLOB = {"FlyingThings3D": "*/*", "Monkaa": "*", "Driving": "*/*/*"}
+
+
+class SceneFlowSequence(StereoSequence):
+  """A SceneFlow sequence; GT files are PFM disparities."""
+
+  def _read_gt(self, i: int, side: str):
+    disp = frame_io.read_pfm_disparity(self.files[side + "_gt"][i])
+    return disp, (disp != 0) & (np.abs(disp) < frame_io.MAX_DISPARITY)
+
+
+def _sequence(subset: str, seq_dir: Path, pass_dir: Path, dataset: str) -> SceneFlowSequence:
+  """Reads one `<seq>/{left,right}` folder and its disparity twin."""
+  gt_dir = pass_dir.parent / "disparity" / seq_dir.relative_to(pass_dir)
+  name = f"{subset}/{seq_dir.relative_to(pass_dir).as_posix()}"
+  files = {"left": list_files(seq_dir / "left", ".png"),
+           "right": list_files(seq_dir / "right", ".png"),
+           "left_gt": list_files(require_dir(gt_dir / "left", "disparity folder"), ".pfm")}
+  if (gt_dir / "right").is_dir():
+    files["right_gt"] = list_files(gt_dir / "right", ".pfm")
+  check_matching(f"SceneFlow {name}", files)
+  return SceneFlowSequence(name, files, dataset=dataset)
+
+
+def _subset_sequences(root: Path, subset: str, split: str, pass_name: str,
+                      dataset: str) -> list[SceneFlowSequence]:
+  sub_root = root if root.name == subset else root / subset
+  pass_dir = require_dir(sub_root / pass_name, f"{subset} {pass_name} folder")
+  base = pass_dir / ("TEST" if split == "test" else "TRAIN") if subset == "FlyingThings3D" \
+      else pass_dir
+  # A sequence folder is any folder at the subset's depth that holds `left/`.
+  seq_dirs = sorted(p.parent for p in require_dir(base).glob(_SEQ_GLOB[subset] + "/left")
+                    if p.is_dir())
+  if not seq_dirs:
+    raise FileNotFoundError(f"no {subset} sequences (<seq>/left/) under {base}")
+  return [_sequence(subset, d, pass_dir, dataset) for d in seq_dirs]
+
+
+def load_sequences(root, split: str, subsets: tuple[str, ...] = SUBSETS,
+                   pass_name: str = DEFAULT_PASS, dataset: str = "sceneflow"):
+  """SceneFlow sequences of `split` from the chosen subsets, in subset order.
+
+  Args:
+    root: folder holding the subsets (or the one subset's own folder).
+    split: "train" or "test" (only FlyingThings3D has a test split).
+    subsets: any of `SUBSETS`.
+    pass_name: "frames_finalpass" (SAV) or "frames_cleanpass".
+    dataset: registry name recorded on the sequences.
+
+  Returns:
+    list of `SceneFlowSequence`.
+  """
+  if split not in SPLITS:
+    raise ValueError(f"SceneFlow split must be one of {SPLITS}, got {split!r}")
+  if split == "test" and "FlyingThings3D" not in subsets:
+    raise ValueError(f"{'/'.join(subsets)} has no test split (only FlyingThings3D does)")
+  if split == "test":
+    subsets = ("FlyingThings3D",)
+  seqs = []
+  for subset in subsets:
+    sub_root = find_root(root, subset)
+    seqs += _subset_sequences(sub_root, subset, split, pass_name, dataset)
+  return seqs

@@ -1,0 +1,71 @@
+"""South Kensington SV: real stereo videos without ground truth (qualitative only).
+
+Layout (root = `SouthKensington/`, its `data/` folder, or their parent):
+
+  data/<seq>/images/{left,right}/*.png
+  data/<seq>/<anything>.txt     camera file: `Intrinsic: [[..] [..] [..]]`, then
+                                `Frame <n>: Pose: <id>` blocks with 4x4 poses
+
+Sequences without a `.txt` are skipped, as in the official loader (only the Indoor
+videos ship `tracking_data.txt`); the first `.txt` by name is used. Frames have
+`disparity = valid = None`. The depth2disp scale `K[0, 0] * 0.12 m` (hard-coded
+baseline) only serves visualisation. Split: "test".
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+
+from sav_jax.data import frame_io
+from sav_jax.data.base import (StereoSequence, check_matching, digits_key, find_root,
+                               list_dirs, list_files)
+
+SPLITS = ("test",)
+BASELINE_M = 0.12
+_FLOAT = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+
+
+def read_intrinsics(path: Path) -> np.ndarray:
+  """K [3, 3] from the `Intrinsic: [[...] [...] [...]]` entry of a camera txt."""
+  text = frame_io.require_file(path, "South Kensington camera file").read_text()
+  match = re.search(r"Intrinsic:\s*\[(.*?)\]\s*\]", text, re.S)
+  values = re.findall(_FLOAT, match.group(1)) if match else []
+  if len(values) != 9:
+    raise ValueError(f"no 3x3 `Intrinsic: [[..] [..] [..]]` entry in {path}")
+  return np.array([float(v) for v in values]).reshape(3, 3)
+
+
+def load_sequences(root, split: str = "test", dataset: str = "south_kensington"):
+  """South Kensington sequences that have a camera txt, sorted by name.
+
+  Args:
+    root: `SouthKensington/`, its `data/` folder, or their parent.
+    split: "test".
+    dataset: registry name recorded on the sequences.
+
+  Returns:
+    list of images-only `StereoSequence`.
+  """
+  if split not in SPLITS:
+    raise ValueError(f"South Kensington split must be one of {SPLITS}, got {split!r}")
+  root = find_root(root, "SouthKensington")
+  if (root / "data").is_dir():
+    root = root / "data"
+  seqs = []
+  for seq_dir in list_dirs(root):
+    txts = sorted(p for p in seq_dir.glob("*.txt") if p.is_file())
+    if not txts:
+      logging.info("South Kensington: skipping %s (no camera txt)", seq_dir)
+      continue
+    files = {"left": list_files(seq_dir / "images" / "left", ".png"),
+             "right": list_files(seq_dir / "images" / "right", ".png")}
+    check_matching(f"South Kensington {seq_dir.name}", files, digits_key)
+    scale = read_intrinsics(txts[0])[0, 0] * BASELINE_M
+    seqs.append(StereoSequence(seq_dir.name, files, dataset=dataset, depth2disp_scale=scale))
+  if not seqs:
+    raise FileNotFoundError(f"no South Kensington sequences with a camera txt under {root}")
+  return seqs

@@ -1,0 +1,83 @@
+"""Virtual KITTI 2: 16-bit centimetre depth PNGs, JPEG images, fixed 0.532725 m baseline.
+
+Layout (root = the `vkitti2` folder or its parent):
+
+  <SceneXX>/<variation>/frames/rgb/Camera_{0,1}/rgb_NNNNN.jpg
+  <SceneXX>/<variation>/frames/depth/Camera_{0,1}/depth_NNNNN.png   Z = v / 100 m
+  <SceneXX>/<variation>/intrinsic.txt   header, then `frame cameraID fx fy cx cy` rows
+
+Camera_0 is left. Depth v = 0 is invalid; the sky saturates at 65535 (655.35 m, a
+small valid disparity). Scale: fx of the first data row of `intrinsic.txt` times the
+hard-coded 0.532725 m baseline. Splits as in the official code: "test" = the five
+sequences of `TEST`, "train" = all 50 scene x variation pairs of `SCENES` and
+`VARIATIONS` (including the test sequences, as the official list does).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from sav_jax.data import frame_io
+from sav_jax.data.base import DepthSequence, check_matching, digits_key, find_root, list_files
+
+SPLITS = ("train", "test")
+BASELINE_M = 0.532725
+SCENES = ("Scene01", "Scene02", "Scene06", "Scene18", "Scene20")
+VARIATIONS = ("15-deg-left", "15-deg-right", "30-deg-left", "30-deg-right", "clone", "fog",
+              "morning", "overcast", "rain", "sunset")
+TEST = ("Scene01_15-deg-left", "Scene02_30-deg-right", "Scene06_fog", "Scene18_morning",
+        "Scene20_rain")
+
+
+def read_fx(path: Path) -> float:
+  """fx (K[0,0]) of the first data row of a VKITTI2 `intrinsic.txt`."""
+  path = frame_io.require_file(path, "VKITTI2 intrinsics")
+  lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+  try:
+    return float(lines[1][2])  # line 0 is the header `frame cameraID K[0,0] ...`
+  except (IndexError, ValueError) as e:
+    raise ValueError(f"malformed VKITTI2 intrinsics (no fx in the first data row): {path}") from e
+
+
+def _sequence(root: Path, name: str, dataset: str) -> DepthSequence:
+  scene, variation = name.split("_", 1)
+  seq_dir = root / scene / variation
+  files = {}
+  for side, cam in (("left", "Camera_0"), ("right", "Camera_1")):
+    files[side] = list_files(seq_dir / "frames" / "rgb" / cam, ".jpg")
+    files[side + "_gt"] = list_files(seq_dir / "frames" / "depth" / cam, ".png")
+  check_matching(f"VKITTI2 {name}", files, digits_key)
+  scale = read_fx(seq_dir / "intrinsic.txt") * BASELINE_M
+  return DepthSequence(name, files, dataset=dataset, depth2disp_scale=scale,
+                       depth_reader=frame_io.read_vkitti2_depth)
+
+
+def load_sequences(root, split: str, dataset: str = "vkitti2"):
+  """VKITTI2 sequences of `split`, in the official order.
+
+  Missing sequences are an error for "test" (the evaluation needs all five) and are
+  skipped with a warning for "train" (as the official loader does).
+
+  Args:
+    root: the `vkitti2` folder or its parent.
+    split: "train" or "test".
+    dataset: registry name recorded on the sequences.
+
+  Returns:
+    list of `DepthSequence` (dense; left and right GT).
+  """
+  if split not in SPLITS:
+    raise ValueError(f"VKITTI2 split must be one of {SPLITS}, got {split!r}")
+  root = find_root(root, "vkitti2")
+  names = TEST if split == "test" else [f"{s}_{v}" for s in SCENES for v in VARIATIONS]
+  seqs = []
+  for name in names:
+    scene, variation = name.split("_", 1)
+    if split == "train" and not (root / scene / variation).is_dir():
+      logging.warning("VKITTI2: skipping missing training sequence %s", root / scene / variation)
+      continue
+    seqs.append(_sequence(root, name, dataset))
+  if not seqs:
+    raise FileNotFoundError(f"no VKITTI2 {split} sequences under {root}")
+  return seqs

@@ -1,0 +1,401 @@
+"""Long-video inference: padding, the official sliding window and stitching.
+
+    disp = predict_video(variables, left, right, cfg=cfg, iters=20)   # [T, H, W], every frame
+
+Protocol (official `forward_batch_test`, `InputPadder(divis_by=32)` in "sintel" mode):
+  * frames are replicate-padded to multiples of 32, the padding split between both
+    sides (top/left get `floor(p/2)`), and unpadded after the model;
+  * windows of `window=20` frames start every `stride=10` frames; each frame is
+    taken from one window: the first window keeps its frames `[0, 15)`, a later
+    full window `[5, 15)`, the window that reaches the end `[5, len)`;
+  * the output is `abs()` of the final (test-mode) prediction.
+
+What `predict_video` does differently from the official code (`forward_batch_test_official`
+reproduces the official behaviour exactly, for parity):
+  * Clips shorter than one window (N < 20): the official code keeps only the first
+    N - 5 frames of its single window (nothing when N <= 5). We run the same single
+    window and keep all N frames, so frames `[0, N-5)` are identical to the official
+    output and the last 5 come from the same model run.
+  * For N >= 20 the output is identical to the official one. The official code also
+    runs trailing windows shorter than 10 frames and then discards them; we do not
+    run them (their frames are already covered by the window that reaches the end).
+  * Padding is computed once per video instead of once per window (same result: all
+    windows have the same size).
+  * General `window`/`stride` (stride <= window): the official code hard-codes 20/10;
+    we keep the central `stride` frames of each full window, starting
+    `(window - stride) // 2` frames in, which is the official rule for 20/10.
+
+Compilation: one XLA executable per (config, iters, padded window shape, matmul
+precision), cached for the process. A video of N >= 20 frames needs at most two
+(a full window and the last, shorter one).
+
+Memory: before compiling, `estimate_memory_bytes` (fitted to XLA's memory analysis)
+is compared with the free device memory (host memory on CPU); after compiling, the
+executable's own memory analysis is checked too. Sizes that cannot fit raise
+`InsufficientMemoryError` (a MemoryError and a ValueError) with the estimate in GB
+instead of crashing out of memory.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sav_jax.config import SAVConfig
+
+log = logging.getLogger(__name__)
+
+PAD_MULTIPLE = 32
+WINDOW = 20
+STRIDE = 10
+_CACHE_SIZE = 16
+_COMPILED: "collections.OrderedDict[tuple, object]" = collections.OrderedDict()
+_SKIP_COLLECTIONS = ("torch_unused",)
+# Fitted to XLA's memory analysis of the compiled forward pass (CPU, float32, T=1..20,
+# 32x32..672x448): about 2 kB per input pixel, 35 B per pixel and iteration (the
+# per-iteration full-resolution outputs), plus the DINOv2 attention logits (two views,
+# 6 heads, float32) per frame and token pair. Within +10..+25% above 128x256.
+_BYTES_PER_PIXEL = 2000.0
+_BYTES_PER_PIXEL_ITER = 35.0
+_BYTES_PER_ATTN = 2 * 6 * 4.0
+# The cheap pre-compile check refuses only sizes this far above the free memory (the
+# estimate errs high); the compiled program's own analysis is then checked exactly.
+_PRECHECK_MARGIN = 1.25
+_BF16_FACTOR = 0.7
+
+
+class InsufficientMemoryError(MemoryError, ValueError):
+  """A window of this size would not fit in the available memory (message has the GB)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Window:
+  """One model run of the sliding window.
+
+  Attributes:
+    start: first frame of the window in the video.
+    length: number of frames run.
+    keep_start, keep_stop: the window's frames `[keep_start, keep_stop)` (local
+      indices) go to the output; empty for windows the official code discards.
+  """
+
+  start: int
+  length: int
+  keep_start: int
+  keep_stop: int
+
+
+def _check_window(window: int, stride: int) -> None:
+  if not (isinstance(window, int) and isinstance(stride, int) and 1 <= stride <= window):
+    raise ValueError(f"need integers 1 <= stride <= window, got window={window!r}, "
+                     f"stride={stride!r}")
+
+
+def window_plan(num_frames: int, window: int = WINDOW, stride: int = STRIDE) -> list[Window]:
+  """The windows `predict_video` runs; their kept frames tile `[0, num_frames)` in order.
+
+  Args:
+    num_frames: video length N >= 1.
+    window: frames per window.
+    stride: distance between window starts (<= window).
+
+  Returns:
+    The windows in order. N < window gives one window keeping everything.
+  """
+  _check_window(window, stride)
+  if num_frames < 1:
+    raise ValueError(f"need at least one frame, got {num_frames}")
+  head = (window - stride) // 2
+  plan, covered, start = [], 0, 0
+  while covered < num_frames:
+    length = min(window, num_frames - start)
+    lo = head if plan else 0
+    hi = head + stride if length == window else length
+    plan.append(Window(start, length, lo, hi))
+    covered, start = start + hi, start + stride
+  return plan
+
+
+def official_window_plan(num_frames: int, window: int = WINDOW,
+                         stride: int = STRIDE) -> list[Window]:
+  """Every window the official `forward_batch_test` runs, with what it keeps.
+
+  First window: `[: -stride // 2]`; later windows with at least `stride` frames:
+  `[stride // 2 : -stride // 2]` when full, `[stride // 2 :]` when shorter; shorter
+  windows are run but dropped (empty keep range). Python slicing semantics.
+  """
+  _check_window(window, stride)
+  plan = []
+  for start in range(0, num_frames, stride):
+    length = min(window, num_frames - start)
+    lo, hi = slice(None, -stride // 2).indices(length)[:2]
+    if start > 0:
+      if length < stride:
+        lo = hi = 0
+      else:
+        stop = -stride // 2 if length >= window else None
+        lo, hi = slice(stride // 2, stop).indices(length)[:2]
+    plan.append(Window(start, length, lo, max(lo, hi)))
+  return plan
+
+
+def pad_amounts(height: int, width: int, multiple: int = PAD_MULTIPLE
+                ) -> tuple[int, int, int, int]:
+  """InputPadder 'sintel' padding `(top, bottom, left, right)` to multiples of `multiple`."""
+  ph, pw = -height % multiple, -width % multiple
+  return ph // 2, ph - ph // 2, pw // 2, pw - pw // 2
+
+
+def pad_frames(frames: np.ndarray, pads: tuple[int, int, int, int]) -> np.ndarray:
+  """Replicate-pads `[T, H, W, C]` frames spatially by `(top, bottom, left, right)`."""
+  top, bottom, left, right = pads
+  return np.pad(frames, ((0, 0), (top, bottom), (left, right), (0, 0)), mode="edge")
+
+
+def unpad(x: np.ndarray, pads: tuple[int, int, int, int]) -> np.ndarray:
+  """Removes `pad_frames` padding from `[..., Hp, Wp]`."""
+  top, bottom, left, right = pads
+  return x[..., top:x.shape[-2] - bottom, left:x.shape[-1] - right]
+
+
+def resolve_config(cfg: SAVConfig | None = None, dtype: str | None = None) -> SAVConfig:
+  """`cfg` (default `SAVConfig()`) with its compute dtype replaced by `dtype` if given."""
+  cfg = SAVConfig() if cfg is None else cfg
+  if dtype is not None and dtype != cfg.dtype:
+    cfg = dataclasses.replace(cfg, dtype=str(dtype))
+  return cfg
+
+
+def estimate_memory_bytes(frames: int, height: int, width: int, iters: int = 20,
+                          cfg: SAVConfig | None = None) -> int:
+  """Peak extra memory of one forward pass on a padded window (a fitted estimate).
+
+  Args:
+    frames: window length T.
+    height, width: padded frame size (multiples of 32).
+    iters: refinement iterations.
+    cfg: model config (bfloat16 compute lowers the estimate).
+
+  Returns:
+    Bytes: per-pixel activations, per-iteration full-resolution outputs and the
+    DINOv2 attention matrices (quadratic in the number of 14x14 patches).
+  """
+  cfg = SAVConfig() if cfg is None else cfg
+  pixels = frames * height * width
+  tokens = (height // 14) * (width // 14)
+  est = (_BYTES_PER_PIXEL * pixels + _BYTES_PER_PIXEL_ITER * iters * pixels
+         + _BYTES_PER_ATTN * frames * tokens * tokens)
+  if cfg.dtype == "bfloat16":
+    est *= _BF16_FACTOR
+  return int(est)
+
+
+def available_memory_bytes(device=None) -> int | None:
+  """Free memory of `device` (default: the first device); host RAM for CPU; None if unknown."""
+  device = jax.devices()[0] if device is None else device
+  stats = None
+  try:
+    stats = device.memory_stats()
+  except Exception:  # pylint: disable=broad-except  # not all backends implement it
+    stats = None
+  if stats and "bytes_limit" in stats:
+    return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+  try:
+    with open("/proc/meminfo", encoding="ascii") as fh:
+      for line in fh:
+        if line.startswith("MemAvailable:"):
+          return int(line.split()[1]) * 1024
+  except OSError:
+    pass
+  try:
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+  except (ValueError, OSError, AttributeError):
+    return None
+
+
+def _raise_if_too_big(needed: float, shape: tuple[int, int, int], what: str,
+                      margin: float = 1.0) -> None:
+  free = available_memory_bytes()
+  if free is not None and needed > margin * free:
+    t, h, w = shape
+    device = jax.devices()[0]
+    raise InsufficientMemoryError(
+        f"a {t}-frame window of {h}x{w} (padded) needs about {needed / 2**30:.1f} GB "
+        f"({what}), but only {free / 2**30:.1f} GB is free on {device.platform}:{device.id}; "
+        "use fewer frames per window (window/stride), smaller frames, bfloat16 "
+        "(dtype='bfloat16') or a device with more memory")
+
+
+def _forward_fn(cfg: SAVConfig, iters: int):
+  from sav_jax.model.stereo_any_video import StereoAnyVideo  # pylint: disable=import-outside-toplevel
+  model = StereoAnyVideo(cfg)
+
+  def forward(variables, left, right):
+    out = model.apply(variables, left[None], right[None], iters=iters, final_only=True)
+    return out.disparities[0, 0]
+
+  return forward
+
+
+def model_variables(variables) -> dict:
+  """The collections the forward pass needs (drops the `torch_unused` export-only one)."""
+  return {k: v for k, v in variables.items() if k not in _SKIP_COLLECTIONS}
+
+
+def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SAVConfig,
+                     iters: int, check_memory: bool = True):
+  """The cached executable `(variables, left, right) -> raw disparity [T, Hp, Wp]`.
+
+  Args:
+    variables: model variables (as passed to the executable, see `model_variables`).
+    frames, height, width: padded window shape (height, width multiples of 16).
+    cfg: model config.
+    iters: refinement iterations (even).
+    check_memory: refuse (InsufficientMemoryError) shapes that cannot fit.
+
+  Returns:
+    A compiled function taking float32 `[T, Hp, Wp, 3]` left/right frames.
+  """
+  sig = tuple((tuple(x.shape), str(x.dtype)) for x in jax.tree_util.tree_leaves(variables))
+  key = (cfg, iters, frames, height, width, str(jax.config.jax_default_matmul_precision),
+         jax.tree_util.tree_structure(variables), sig)
+  if key in _COMPILED:
+    _COMPILED.move_to_end(key)
+    return _COMPILED[key]
+  shape = (frames, height, width)
+  if check_memory:  # cheap check first, so hopeless sizes fail before a long compile
+    _raise_if_too_big(estimate_memory_bytes(*shape, iters, cfg), shape, "estimated",
+                      margin=_PRECHECK_MARGIN)
+  spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
+  log.info("compiling the model for %d frames of %dx%d (iters=%d, %s)", frames, height, width,
+           iters, cfg.dtype)
+  fn = jax.jit(_forward_fn(cfg, iters)).lower(variables, spec, spec).compile()
+  if check_memory:
+    try:
+      ma = fn.memory_analysis()
+      needed = ma.temp_size_in_bytes + ma.output_size_in_bytes + 2 * spec.size * 4
+    except Exception:  # pylint: disable=broad-except  # analysis not offered by every backend
+      ma = None
+    if ma is not None:
+      _raise_if_too_big(needed, shape, "from the compiled program")
+  _COMPILED[key] = fn
+  while len(_COMPILED) > _CACHE_SIZE:
+    _COMPILED.popitem(last=False)
+  return fn
+
+
+def clear_cache() -> None:
+  """Forgets every compiled executable."""
+  _COMPILED.clear()
+
+
+def cache_size() -> int:
+  """Number of compiled executables held."""
+  return len(_COMPILED)
+
+
+def _as_video_pair(left, right) -> tuple[np.ndarray, np.ndarray]:
+  left, right = np.asarray(left), np.asarray(right)
+  if left.shape != right.shape:
+    raise ValueError(f"left and right videos differ in shape: {left.shape} vs {right.shape}")
+  if left.ndim != 4 or left.shape[-1] != 3 or min(left.shape[:3]) < 1:
+    raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {left.shape}")
+  return left, right  # cast to float32 per window, so long uint8 videos stay small
+
+
+def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig, iters: int,
+               pads: tuple[int, int, int, int] | None = None, check_memory: bool = True
+               ) -> np.ndarray:
+  """Runs the model once on a window (pads, runs the cached executable).
+
+  Args:
+    variables: model variables.
+    left, right: `[T, H, W, 3]` frames, uint8 or float (0..255).
+    cfg: model config.
+    iters: refinement iterations.
+    pads: padding `(top, bottom, left, right)`; default `pad_amounts(H, W)`.
+    check_memory: see `compiled_forward`.
+
+  Returns:
+    `[T, Hp, Wp]` float32 raw test-mode output on the padded frames (signed, not unpadded).
+  """
+  pads = pad_amounts(*left.shape[1:3]) if pads is None else pads
+  lp = pad_frames(np.asarray(left, np.float32), pads)
+  rp = pad_frames(np.asarray(right, np.float32), pads)
+  variables = model_variables(variables)
+  fn = compiled_forward(variables, *lp.shape[:3], cfg=cfg, iters=iters, check_memory=check_memory)
+  return np.asarray(jax.device_get(fn(variables, lp, rp)))
+
+
+def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, progress=False,
+              raw_windows=None):
+  """Runs the windows of `plan` and stitches `abs()` of their kept frames, `[N', H, W]`."""
+  from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+  pads = pad_amounts(*left.shape[1:3])
+  variables = jax.device_put(model_variables(variables))
+  kept = []
+  total = sum(w.keep_stop - w.keep_start for w in plan)
+  with tqdm(total=total, unit="frame", desc="disparity", disable=not progress) as bar:
+    for win in plan:
+      sl = slice(win.start, win.start + win.length)
+      raw = run_window(variables, left[sl], right[sl], cfg=cfg, iters=iters, pads=pads,
+                       check_memory=check_memory)
+      if raw_windows is not None:
+        raw_windows.append(raw)
+      kept.append(np.abs(unpad(raw, pads)[win.keep_start:win.keep_stop]))
+      bar.update(win.keep_stop - win.keep_start)
+  return np.concatenate(kept, axis=0)
+
+
+def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters: int = 20,
+                  window: int = WINDOW, stride: int = STRIDE, dtype: str | None = None,
+                  progress: bool = False, check_memory: bool = True) -> np.ndarray:
+  """Disparity of every frame of a stereo video of any length and size.
+
+  Args:
+    variables: model variables (`params_from_state_dict` or `restore_variables`).
+    left, right: `[T, H, W, 3]` RGB frames, uint8 or float in 0..255.
+    cfg: model config (default `SAVConfig()`).
+    iters: refinement iterations at 1/4 resolution (even; the official evaluation uses 20).
+    window, stride: sliding window (official: 20, 10).
+    dtype: compute dtype override ("float32" or "bfloat16").
+    progress: show a tqdm progress bar (frames, frames per second).
+    check_memory: refuse sizes that cannot fit (InsufficientMemoryError).
+
+  Returns:
+    `[T, H, W]` float32 positive disparity (px) of the left view, every frame.
+  """
+  cfg = resolve_config(cfg, dtype)
+  left, right = _as_video_pair(left, right)
+  plan = window_plan(left.shape[0], window, stride)
+  return _run_plan(variables, left, right, plan, cfg=cfg, iters=iters,
+                   check_memory=check_memory, progress=progress)
+
+
+def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None = None,
+                                iters: int = 20, window: int = WINDOW, stride: int = STRIDE,
+                                return_windows: bool = False):
+  """The official `forward_batch_test`, frame drops included (for parity checks).
+
+  Args:
+    variables, left, right, cfg, iters, window, stride: as `predict_video`.
+    return_windows: also return every window's raw output.
+
+  Returns:
+    `[N', H, W]` float32 stitched `abs()` disparity, N' as the official code gives it
+    (N - 5 for 5 < N < 20, empty for N <= 5); with `return_windows`, a tuple with the
+    list of raw padded outputs `[L_i, Hp, Wp]` of every window run (dropped ones too).
+  """
+  cfg = resolve_config(cfg)
+  left, right = _as_video_pair(left, right)
+  raws = [] if return_windows else None
+  plan = official_window_plan(left.shape[0], window, stride)
+  disp = _run_plan(variables, left, right, plan, cfg=cfg, iters=iters, check_memory=True,
+                   raw_windows=raws)
+  return (disp, raws) if return_windows else disp

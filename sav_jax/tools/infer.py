@@ -1,0 +1,347 @@
+"""`sav-jax infer`: disparity (and depth, point clouds) for a stereo video.
+
+    sav-jax infer --left demo/left --right demo/right --checkpoint ckpt --out outputs/run1
+    sav-jax infer --left l.mp4 --right r.mp4 --checkpoint sav.pth --out out \\
+        --format png16 --format npy --fx 725 --baseline 0.54
+
+Outputs in --out: `disparity/<frame>.<png|npy|pfm|exr>` (16-bit PNGs use the KITTI
+x256 convention), `side_by_side.mp4` (left | colourized disparity, one colour range for
+the whole video), `summary.json`; with calibration also `depth/<frame>.<npy|exr>`
+(metres if the baseline is, 0 where the disparity is not positive) and
+`pointclouds/<frame>.ply`. Inputs, checkpoint and existing outputs are all checked
+before anything is computed; on an error nothing is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import pathlib
+import time
+
+from typing import NamedTuple
+
+import numpy as np
+
+from sav_jax.tools import UsageError, video_io
+
+HELP = "estimate disparity for a stereo video (frame folders or video files)"
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+  p.add_argument("--left", required=True, help="left frames: a folder of images or a video file")
+  p.add_argument("--right", required=True, help="right frames: a folder of images or a video file")
+  p.add_argument("--checkpoint", required=True,
+                 help="orbax directory from `sav-jax convert`, or a .pth/.pt/.safetensors/.npz "
+                      "state dict (converted on the fly)")
+  p.add_argument("--out", required=True, help="output folder")
+  p.add_argument("--iters", type=int, default=20, help="refinement iterations (even; default 20)")
+  p.add_argument("--format", action="append", dest="formats", metavar="FMT",
+                 help="disparity file format, repeatable or comma-separated: "
+                      f"{', '.join(video_io.DISPARITY_FORMATS)} (default png16)")
+  add_calibration_arguments(p)
+  p.add_argument("--depth-format", choices=("npy", "exr"), default="npy",
+                 help="file format of metric depth (with calibration)")
+  p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+  p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
+                 help="compute dtype (default: the checkpoint's, float32)")
+  p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames")
+  p.add_argument("--window", type=int, default=20, help="frames per sliding window (20)")
+  p.add_argument("--stride", type=int, default=10, help="sliding window stride (10)")
+  p.add_argument("--fps", type=float, default=10.0, help="frame rate of the output video")
+
+
+def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
+  """--fx --fy --cx --cy --baseline | --calib FILE."""
+  g = p.add_argument_group("calibration (for metric depth and point clouds)")
+  g.add_argument("--fx", type=float, help="focal length of the left camera (px)")
+  g.add_argument("--fy", type=float, help="vertical focal length (px; default fx)")
+  g.add_argument("--cx", type=float, help="principal point x (px; default image centre)")
+  g.add_argument("--cy", type=float, help="principal point y (px; default image centre)")
+  g.add_argument("--baseline", type=float, help="stereo baseline (metres)")
+  g.add_argument("--calib", help="calibration file: JSON or 'key value' text with fx, fy, cx, "
+                                  "cy, baseline, or a KITTI calib file (P_rect_02/P_rect_03 or P2/P3)")
+
+
+def parse_formats(values: list[str] | None) -> list[str]:
+  """`--format` values (repeated and/or comma-separated) -> ordered unique formats."""
+  out = []
+  for value in values or ["png16"]:
+    for fmt in (v.strip().lower() for v in value.split(",")):
+      if fmt not in video_io.DISPARITY_FORMATS:
+        raise UsageError(f"unknown --format {fmt!r}; choose from "
+                         f"{', '.join(video_io.DISPARITY_FORMATS)}")
+      if fmt not in out:
+        out.append(fmt)
+  return out
+
+
+def output_paths(out: pathlib.Path, names: list[str], formats: list[str],
+                 calib: Calibration | None, depth_format: str) -> list[pathlib.Path]:
+  """Every file an `infer` run writes."""
+  paths = [video_io.disparity_path(out / "disparity", n, f) for n in names for f in formats]
+  paths += [out / "side_by_side.mp4", out / "summary.json"]
+  if calib is not None:
+    paths += [video_io.disparity_path(out / "depth", n, depth_format) for n in names]
+    paths += [out / "pointclouds" / f"{n}.ply" for n in names]
+  return paths
+
+
+def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
+  """Raises FileExistsError if any output exists and `overwrite` is off."""
+  existing = [p for p in paths if p.exists()]
+  if existing and not overwrite:
+    shown = ", ".join(str(p) for p in existing[:3])
+    more = f" and {len(existing) - 3} more" if len(existing) > 3 else ""
+    raise FileExistsError(f"output files exist ({shown}{more}); pass --overwrite to replace them")
+
+
+def check_model_args(iters: int, window: int, stride: int) -> None:
+  if iters < 2 or iters % 2:
+    raise UsageError(f"--iters must be an even number >= 2, got {iters}")
+  if not 1 <= stride <= window:
+    raise UsageError(f"need 1 <= --stride <= --window, got stride {stride}, window {window}")
+
+
+def run(args: argparse.Namespace) -> int:
+  formats = parse_formats(args.formats)
+  check_model_args(args.iters, args.window, args.stride)
+  calib_spec = calibration_from_args(args)
+  ckpt = pathlib.Path(args.checkpoint)
+  if not ckpt.exists():
+    raise FileNotFoundError(f"checkpoint not found: {ckpt}")
+  left, right, names = video_io.load_stereo(args.left, args.right, args.max_frames)
+  t, h, w = left.shape[:3]
+  calib = None if calib_spec is None else calib_spec.resolve(w, h)
+  out = pathlib.Path(args.out)
+  check_overwrite(output_paths(out, names, formats, calib, args.depth_format), args.overwrite)
+
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
+  variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
+  print(f"weights: {described}")
+  print(f"input: {t} frames of {w}x{h}; iters {args.iters}, {cfg.dtype}")
+  start = time.perf_counter()
+  disp = inference.predict_video(variables, left, right, cfg=cfg, iters=args.iters,
+                                 window=args.window, stride=args.stride, progress=True)
+  seconds = time.perf_counter() - start
+  write_outputs(out, names, left, disp, formats, calib, args)
+  summary = {"frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
+             "window": args.window, "stride": args.stride, "weights": described,
+             "left": str(args.left), "right": str(args.right), "formats": formats,
+             "seconds": round(seconds, 3), "frames_per_second": round(t / seconds, 3),
+             "calibration": None if calib is None else calib._asdict()}
+  (out / "summary.json").write_text(json.dumps(summary, indent=1))
+  print(f"{t} frames in {seconds:.1f} s ({t / seconds:.2f} frames/s, compilation included); "
+        f"outputs in {out}")
+  return 0
+
+
+def write_outputs(out: pathlib.Path, names, left, disp, formats, calib, args) -> None:
+  """Disparity files, the side-by-side video and, with calibration, depth and PLY files."""
+  from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+
+  from sav_jax import viz  # pylint: disable=import-outside-toplevel
+  (out / "disparity").mkdir(parents=True, exist_ok=True)
+  if calib is not None:
+    (out / "depth").mkdir(exist_ok=True)
+    (out / "pointclouds").mkdir(exist_ok=True)
+  vmin, vmax = viz.disparity_range(disp, percentiles=(1.0, 99.0))
+  frames = []
+  for i, name in enumerate(tqdm(names, desc="writing", unit="frame")):
+    for fmt in formats:
+      video_io.write_map(video_io.disparity_path(out / "disparity", name, fmt), disp[i], fmt)
+    frames.append(viz.side_by_side(left[i], viz.colorize(disp[i], vmin, vmax)))
+    if calib is not None:
+      depth = viz.depth_from_disparity(disp[i], calib.fx, calib.baseline)
+      video_io.write_map(video_io.disparity_path(out / "depth", name, args.depth_format), depth,
+                         args.depth_format)
+      xyz, rgb = viz.disparity_to_points(disp[i], left[i], **calib._asdict())
+      viz.write_ply(out / "pointclouds" / f"{name}.ply", xyz, rgb)
+  viz.write_video(out / "side_by_side.mp4", frames, fps=args.fps)
+
+
+class Calibration(NamedTuple):
+  """Left-camera intrinsics (px) and the stereo baseline."""
+
+  fx: float
+  fy: float
+  cx: float
+  cy: float
+  baseline: float
+
+
+class CalibrationSpec(NamedTuple):
+  """Calibration as given: missing fy / cx / cy are filled by `resolve`."""
+
+  fx: float
+  baseline: float
+  fy: float | None = None
+  cx: float | None = None
+  cy: float | None = None
+
+  def resolve(self, width: int, height: int) -> Calibration:
+    """Fills fy = fx and the principal point at the image centre where not given."""
+    return Calibration(self.fx, self.fx if self.fy is None else self.fy,
+                       (width - 1) / 2 if self.cx is None else self.cx,
+                       (height - 1) / 2 if self.cy is None else self.cy, self.baseline)
+
+
+def calibration_from_args(args) -> CalibrationSpec | None:
+  """--fx/--fy/--cx/--cy/--baseline or --calib -> a spec, or None without calibration."""
+  given = {k: getattr(args, k, None) for k in ("fx", "fy", "cx", "cy", "baseline")}
+  given = {k: v for k, v in given.items() if v is not None}
+  if getattr(args, "calib", None):
+    if given:
+      raise UsageError("give either --calib or --fx/--fy/--cx/--cy/--baseline, not both")
+    given = read_calibration(args.calib)
+  if not given:
+    return None
+  missing = [k for k in ("fx", "baseline") if k not in given]
+  if missing:
+    raise UsageError(f"calibration needs {' and '.join('--' + m for m in missing)} "
+                     "(fy, cx, cy are optional)")
+  for k in ("fx", "baseline"):
+    if not given[k] > 0:
+      raise UsageError(f"calibration {k} must be positive, got {given[k]}")
+  return CalibrationSpec(**{k: float(v) for k, v in given.items()})
+
+
+def read_calibration(path) -> dict[str, float]:
+  """Reads fx, fy, cx, cy, baseline from JSON, `key value` text or a KITTI calib file.
+
+  KITTI: `P_rect_02`/`P_rect_03` (raw data) or `P2`/`P3` (odometry, stereo benchmarks);
+  baseline = (P2[0,3] - P3[0,3]) / fx.
+  """
+  path = pathlib.Path(path)
+  if not path.is_file():
+    raise FileNotFoundError(f"calibration file not found: {path}")
+  text = path.read_text(errors="replace")
+  if text.lstrip().startswith("{"):
+    try:
+      data = json.loads(text)
+    except json.JSONDecodeError as e:
+      raise UsageError(f"{path}: invalid JSON ({e})") from e
+    return {k: float(data[k]) for k in ("fx", "fy", "cx", "cy", "baseline") if k in data}
+  entries = {}
+  for line in text.splitlines():
+    key, sep, rest = line.replace("=", ":", 1).partition(":")
+    if not sep:
+      key, _, rest = line.strip().partition(" ")
+    try:
+      entries[key.strip()] = [float(v) for v in rest.replace(",", " ").split()]
+    except ValueError:
+      continue
+  for p2, p3 in (("P_rect_02", "P_rect_03"), ("P2", "P3")):
+    if len(entries.get(p2, ())) == 12 and len(entries.get(p3, ())) == 12:
+      m2, m3 = np.reshape(entries[p2], (3, 4)), np.reshape(entries[p3], (3, 4))
+      return {"fx": m2[0, 0], "fy": m2[1, 1], "cx": m2[0, 2], "cy": m2[1, 2],
+              "baseline": abs(m2[0, 3] - m3[0, 3]) / m2[0, 0]}
+  out = {k: v[0] for k, v in entries.items() if k in ("fx", "fy", "cx", "cy", "baseline") and v}
+  if not out:
+    raise UsageError(f"{path}: no calibration found (expected JSON, 'fx 720' lines or KITTI "
+                     "P_rect_02/P_rect_03 matrices)")
+  return out
+
+
+def load_checkpoint(path, dtype: str | None = None):
+  """Loads model weights from an orbax directory or an official state-dict file.
+
+  Args:
+    path: `sav-jax convert` / training orbax directory, or a .pth/.pt/.safetensors/.npz
+      Stereo Any Video state dict (converted on the fly; no torch needed).
+    dtype: compute dtype override ("float32" / "bfloat16").
+
+  Returns:
+    `(variables, cfg, description)`.
+
+  Raises:
+    FileNotFoundError: no such path.
+    CheckpointError (a ValueError): not a checkpoint, or not one of this model.
+  """
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from sav_jax import convert, inference  # pylint: disable=import-outside-toplevel
+  path = pathlib.Path(path)
+  if not path.exists():
+    raise FileNotFoundError(f"checkpoint not found: {path}")
+  if path.is_dir():
+    variables, cfg_dict = convert.restore_variables(path)
+    cfg = _config_from_dict(cfg_dict, path)
+    check_variables(variables, cfg, path)
+    described = f"orbax checkpoint {path}"
+  else:
+    sd = convert.load_state_dict(path)
+    if convert.checkpoint_kind(sd, source=str(path)) != "sav":
+      raise convert.CheckpointError(
+          f"{path} is a Video Depth Anything checkpoint (the depth prior only), not a Stereo "
+          "Any Video one; `sav-jax convert --vda` turns it into an initialisation for training")
+    cfg = sav_jax.SAVConfig()
+    variables = convert.params_from_state_dict(sd, cfg)
+    described = f"state dict {path} (converted on the fly)"
+  return variables, inference.resolve_config(cfg, dtype), described
+
+
+def _config_from_dict(cfg_dict, path):
+  import dataclasses  # pylint: disable=import-outside-toplevel
+
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  d = cfg_dict.get("model", cfg_dict) if isinstance(cfg_dict, dict) else {}
+  names = {f.name for f in dataclasses.fields(sav_jax.SAVConfig)}
+  known = {k: v for k, v in d.items() if k in names} if isinstance(d, dict) else {}
+  if not known:
+    log.warning("%s: no model config stored; using the default SAVConfig", path)
+  try:
+    return sav_jax.SAVConfig.from_dict(known)
+  except (TypeError, ValueError) as e:
+    raise sav_jax.convert.CheckpointError(f"{path}: invalid model config ({e})") from e
+
+
+def check_variables(variables, cfg, source) -> None:
+  """Raises CheckpointError unless `variables["params"]` has the model's tree and shapes."""
+  import jax  # pylint: disable=import-outside-toplevel
+
+  from sav_jax import convert  # pylint: disable=import-outside-toplevel
+  expected = convert.params.abstract_variables(cfg)["params"]
+  got = variables.get("params") if isinstance(variables, dict) else None
+  if got is None:
+    raise convert.CheckpointError(f"{source}: no 'params' collection in the checkpoint")
+  want = {jax.tree_util.keystr(k): tuple(v.shape)
+          for k, v in jax.tree_util.tree_leaves_with_path(expected)}
+  have = {jax.tree_util.keystr(k): tuple(np.shape(v))
+          for k, v in jax.tree_util.tree_leaves_with_path(got)}
+  missing, extra = sorted(want.keys() - have.keys()), sorted(have.keys() - want.keys())
+  wrong = sorted(k for k in want.keys() & have.keys() if want[k] != have[k])
+  if missing or extra or wrong:
+    raise convert.CheckpointError(
+        f"{source}: parameters do not match the Stereo Any Video model ({len(missing)} missing, "
+        f"e.g. {missing[:2]}; {len(extra)} unexpected, e.g. {extra[:2]}; {len(wrong)} with other "
+        f"shapes, e.g. {[(k, have[k], want[k]) for k in wrong[:2]]})")
+
+
+def random_variables(cfg=None, seed: int = 0) -> dict:
+  """Untrained weights drawn with numpy from `seed` (no compilation).
+
+  Kernels `N(0, 1) * 0.8 / sqrt(fan_in)`, norm scales and LayerScale `1 + 0.1 N`,
+  everything else `0.02 N`, one generator per parameter path.
+  """
+  import zlib  # pylint: disable=import-outside-toplevel
+
+  import jax  # pylint: disable=import-outside-toplevel
+
+  from sav_jax import convert  # pylint: disable=import-outside-toplevel
+  from sav_jax.config import SAVConfig  # pylint: disable=import-outside-toplevel
+  abstract = convert.params.abstract_variables(SAVConfig() if cfg is None else cfg)["params"]
+
+  def draw(path, leaf):
+    name = jax.tree_util.keystr(path)
+    rng = np.random.default_rng([seed, zlib.crc32(name.encode())])
+    x = rng.standard_normal(leaf.shape).astype(np.float32)
+    last = str(getattr(path[-1], "key", path[-1]))
+    if last == "kernel":
+      return x * np.float32(0.8 / np.sqrt(max(1, int(np.prod(leaf.shape[:-1])))))
+    if last in ("scale", "gamma"):
+      return 1 + np.float32(0.1) * x
+    return np.float32(0.02) * x
+
+  return {"params": jax.tree_util.tree_map_with_path(draw, abstract)}

@@ -1,0 +1,179 @@
+"""Reading stereo inputs (frame folders, video files) and writing disparity files.
+
+Inputs are checked completely before anything is computed or written: equal frame
+counts and sizes for both views, no empty folders, every frame decodable. Grayscale
+frames are repeated to RGB and 16-bit frames are scaled to 8 bits (`round(v / 257)`),
+each with a logged note; an alpha channel is dropped. Float images are refused.
+"""
+
+from __future__ import annotations
+
+import logging
+import pathlib
+
+import cv2
+import numpy as np
+
+from sav_jax import viz
+
+log = logging.getLogger(__name__)
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
+DISPARITY_FORMATS = ("png16", "npy", "pfm", "exr")
+_FORMAT_SUFFIX = {"png16": ".png", "npy": ".npy", "pfm": ".pfm", "exr": ".exr"}
+
+
+def list_frames(folder) -> list[pathlib.Path]:
+  """Image files of a frame folder, sorted by name (the official demo's order)."""
+  folder = pathlib.Path(folder)
+  if not folder.is_dir():
+    raise FileNotFoundError(f"{folder}: not a folder")
+  files = sorted(p for p in folder.iterdir()
+                 if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+  if not files:
+    raise ValueError(f"{folder}: empty folder (no {'/'.join(IMAGE_EXTENSIONS)} images)")
+  return files
+
+
+def to_rgb8(img: np.ndarray, source: str, notes: set[str]) -> np.ndarray:
+  """Converts a decoded OpenCV image (BGR, grey or BGRA; 8 or 16 bit) to RGB uint8.
+
+  Args:
+    img: `[H, W]`, `[H, W, 1]`, `[H, W, 3]` or `[H, W, 4]` array as `cv2.imread` returns it.
+    source: name for messages.
+    notes: receives one sentence per conversion made (logged once by the caller).
+
+  Returns:
+    `[H, W, 3]` uint8 RGB.
+  """
+  if img.dtype == np.uint16:
+    notes.add("16-bit frames converted to 8 bits (round(v / 257))")
+    img = np.round(img.astype(np.float32) / 257.0).astype(np.uint8)
+  elif img.dtype != np.uint8:
+    raise ValueError(f"{source}: unsupported pixel type {img.dtype} (expected 8- or 16-bit "
+                     "integer images)")
+  if img.ndim == 3 and img.shape[2] == 1:
+    img = img[..., 0]
+  if img.ndim == 2:
+    notes.add("grayscale frames converted to RGB (grey repeated in 3 channels)")
+    return np.repeat(img[..., None], 3, axis=2)
+  if img.ndim != 3 or img.shape[2] not in (3, 4):
+    raise ValueError(f"{source}: unsupported image shape {img.shape}")
+  if img.shape[2] == 4:
+    notes.add("alpha channel dropped")
+  return np.ascontiguousarray(img[..., 2::-1])
+
+
+def read_frame(path, notes: set[str]) -> np.ndarray:
+  """Decodes one image file to `[H, W, 3]` uint8 RGB (see `to_rgb8`)."""
+  img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+  if img is None:
+    raise ValueError(f"{path}: unreadable frame (not a decodable image)")
+  return to_rgb8(img, str(path), notes)
+
+
+def read_video_file(path, max_frames: int | None = None) -> np.ndarray:
+  """Decodes a video file to `[T, H, W, 3]` uint8 RGB."""
+  cap = cv2.VideoCapture(str(path))
+  if not cap.isOpened():
+    raise ValueError(f"{path}: unreadable video (OpenCV cannot open it)")
+  frames, notes = [], set()
+  try:
+    while max_frames is None or len(frames) < max_frames:
+      ok, img = cap.read()
+      if not ok:
+        break
+      frames.append(to_rgb8(img, str(path), notes))
+  finally:
+    cap.release()
+  if not frames:
+    raise ValueError(f"{path}: the video has no decodable frames")
+  return np.stack(frames)
+
+
+def _read_source(path, max_frames: int | None, notes: set[str]):
+  """`(frames [T, H, W, 3] uint8, names)` of a frame folder or a video file."""
+  path = pathlib.Path(path)
+  if path.is_dir():
+    files = list_frames(path)[:max_frames]
+    frames = [read_frame(f, notes) for f in files]
+    shapes = {f.shape for f in frames}
+    if len(shapes) > 1:
+      sizes = sorted(f"{s[1]}x{s[0]}" for s in shapes)
+      raise ValueError(f"{path}: frames differ in size ({', '.join(sizes)})")
+    names = [f.stem for f in files]
+    if len(set(names)) != len(names):
+      names = [f"frame_{i:06d}" for i in range(len(files))]
+    return np.stack(frames), names
+  if not path.exists():
+    raise FileNotFoundError(f"{path}: no such file or folder")
+  if path.suffix.lower() not in VIDEO_EXTENSIONS:
+    raise ValueError(f"{path}: expected a frame folder or a video file "
+                     f"({'/'.join(VIDEO_EXTENSIONS)})")
+  frames = read_video_file(path, max_frames)
+  return frames, [f"frame_{i:06d}" for i in range(len(frames))]
+
+
+def load_stereo(left, right, max_frames: int | None = None):
+  """Reads and checks a stereo pair of frame folders or video files.
+
+  Args:
+    left, right: frame folders (sorted image files) or video files.
+    max_frames: read at most this many frames of each.
+
+  Returns:
+    `(left [T, H, W, 3] uint8, right [T, H, W, 3] uint8, names)`: names are the left
+    file stems (or `frame_000000`...) used for the output files.
+
+  Raises:
+    FileNotFoundError / ValueError with a one-line explanation.
+  """
+  if max_frames is not None and max_frames < 1:
+    raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
+  notes: set[str] = set()
+  lv, names = _read_source(left, max_frames, notes)
+  rv, _ = _read_source(right, max_frames, notes)
+  if len(lv) != len(rv):
+    raise ValueError(f"different frame counts: left has {len(lv)}, right has {len(rv)}")
+  if lv.shape != rv.shape:
+    raise ValueError(f"different frame sizes: left is {lv.shape[2]}x{lv.shape[1]}, right is "
+                     f"{rv.shape[2]}x{rv.shape[1]}")
+  for note in sorted(notes):
+    log.warning("note: %s", note)
+  return lv, rv, names
+
+
+def disparity_path(folder, name: str, fmt: str) -> pathlib.Path:
+  """File of frame `name` in `folder` for a disparity format."""
+  if fmt not in _FORMAT_SUFFIX:
+    raise ValueError(f"unknown format {fmt!r}; choose from {', '.join(DISPARITY_FORMATS)}")
+  return pathlib.Path(folder) / f"{name}{_FORMAT_SUFFIX[fmt]}"
+
+
+def write_map(path, data: np.ndarray, fmt: str) -> None:
+  """Writes one `[H, W]` float map (disparity or depth) in `fmt`."""
+  if fmt == "png16":
+    viz.write_png16(path, data)
+  elif fmt == "npy":
+    np.save(path, np.asarray(data, np.float32))
+  elif fmt == "pfm":
+    viz.write_pfm(path, data)
+  elif fmt == "exr":
+    viz.write_exr(path, data)
+  else:
+    raise ValueError(f"unknown format {fmt!r}")
+
+
+def read_map(path) -> np.ndarray:
+  """Reads a map written by `write_map` (format from the suffix), `[H, W]` float32."""
+  suffix = pathlib.Path(path).suffix.lower()
+  if suffix == ".png":
+    return viz.read_png16(path)[0]
+  if suffix == ".npy":
+    return np.load(path).astype(np.float32)
+  if suffix == ".pfm":
+    return viz.read_pfm(path)
+  if suffix == ".exr":
+    return viz.read_exr(path)
+  raise ValueError(f"{path}: unknown disparity file type")

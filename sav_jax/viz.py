@@ -1,0 +1,326 @@
+"""Visualisation and disparity file formats: colour maps, videos, point clouds.
+
+Images are RGB uint8 `[..., H, W, 3]` throughout; conversion to OpenCV's BGR
+happens only inside the writers and readers that call OpenCV.
+
+Colour: `colorize` maps disparity with a perceptual colour map (inferno, as the
+official demo) over a range that is fixed for a whole video (`disparity_range`
+over all frames), so a colour means the same disparity in every frame.
+
+File formats (all round trips are tested value by value):
+  * 16-bit PNG, KITTI convention: `uint16 = round(256 d)`, 0 = invalid (d <= 0 or
+    not finite); values above 65535/256 px saturate. Resolution 1/256 px.
+  * PFM: `Pf` (one channel) or `PF` (three), little-endian (scale -1), rows stored
+    bottom to top, as SceneFlow files.
+  * OpenEXR: float32 channels (`Y` for one channel), ZIP compression.
+  * PLY point clouds: `binary_little_endian 1.0`, vertices `x y z` float32 and
+    `red green blue` uint8. Camera frame of the left camera (OpenCV axes: x right,
+    y down, z forward), metres when the baseline is in metres.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import cv2
+import numpy as np
+
+COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO, "turbo": cv2.COLORMAP_TURBO,
+             "magma": cv2.COLORMAP_MAGMA, "viridis": cv2.COLORMAP_VIRIDIS}
+INVALID_COLOR = (255, 255, 255)
+_PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                       ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+
+
+def disparity_range(disp, valid=None, percentiles=(0.0, 100.0)) -> tuple[float, float]:
+  """Colour range of a disparity map or a whole video.
+
+  Args:
+    disp: `[H, W]` or `[T, H, W]` disparity (px).
+    valid: optional bool mask of the same shape; otherwise pixels with a finite
+      disparity > 0 are used.
+    percentiles: (low, high) percentiles of the used values; (0, 100) = min/max.
+
+  Returns:
+    `(vmin, vmax)` with `vmax > vmin` ((0, 1) when no pixel is usable).
+  """
+  d = np.asarray(disp, np.float32)
+  use = np.isfinite(d) & (d > 0)
+  if valid is not None:
+    use &= np.asarray(valid, bool)
+  vals = d[use]
+  if vals.size == 0:
+    return 0.0, 1.0
+  lo, hi = (float(v) for v in np.percentile(vals, percentiles))
+  if hi <= lo:
+    hi = lo + 1.0
+  return lo, hi
+
+
+def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
+             cmap: str = "inferno", valid=None,
+             invalid_color: tuple[int, int, int] = INVALID_COLOR) -> np.ndarray:
+  """Colour-maps disparity (large disparity = near = bright).
+
+  Args:
+    disp: `[..., H, W]` disparity (px).
+    vmin, vmax: colour range; a missing end comes from `disparity_range` over the
+      whole array (so pass a video `[T, H, W]`, or a fixed range, for colours that
+      are stable over time).
+    cmap: one of `COLORMAPS`.
+    valid: optional bool mask `[..., H, W]`; pixels outside it, and non-finite or
+      non-positive disparities, get `invalid_color`.
+    invalid_color: RGB colour of invalid pixels.
+
+  Returns:
+    `[..., H, W, 3]` uint8 RGB.
+  """
+  if cmap not in COLORMAPS:
+    raise ValueError(f"unknown colour map {cmap!r}; choose one of {sorted(COLORMAPS)}")
+  d = np.asarray(disp, np.float32)
+  if vmin is None or vmax is None:
+    lo, hi = disparity_range(d, valid)
+    vmin = lo if vmin is None else vmin
+    vmax = hi if vmax is None else vmax
+  scale = 255.0 / max(float(vmax) - float(vmin), 1e-12)
+  safe = np.where(np.isfinite(d), d, vmin)
+  idx = np.clip((safe - float(vmin)) * scale, 0, 255).round().astype(np.uint8)
+  flat = idx.reshape(-1, idx.shape[-1]) if idx.ndim >= 2 else idx.reshape(1, -1)
+  rgb = cv2.applyColorMap(flat, COLORMAPS[cmap])[..., ::-1].reshape(*d.shape, 3)
+  bad = ~np.isfinite(d) | (d <= 0)
+  if valid is not None:
+    bad |= ~np.asarray(valid, bool)
+  rgb = np.ascontiguousarray(rgb)
+  rgb[bad] = invalid_color
+  return rgb
+
+
+def side_by_side(*images) -> np.ndarray:
+  """Concatenates images (or videos) of equal height along the width.
+
+  Args:
+    *images: `[..., H, W_i, 3]` uint8 (a `[..., H, W]` map is repeated to grey RGB).
+
+  Returns:
+    `[..., H, sum W_i, 3]` uint8.
+  """
+  parts = []
+  for im in images:
+    im = np.asarray(im)
+    if im.ndim >= 2 and im.shape[-1] != 3:
+      im = np.repeat(im[..., None], 3, axis=-1)
+    parts.append(im.astype(np.uint8))
+  return np.concatenate(parts, axis=-2)
+
+
+def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
+  """Writes RGB frames as an MPEG-4 (mp4v) video with OpenCV.
+
+  Odd heights or widths are padded by one replicated row/column (the codec needs
+  even sizes and would otherwise crop).
+
+  Args:
+    path: output file (`.mp4`).
+    frames: `[T, H, W, 3]` uint8 RGB (or an iterable of `[H, W, 3]` frames).
+    fps: frame rate.
+
+  Returns:
+    The path written.
+  """
+  path = pathlib.Path(path)
+  frames = [np.asarray(f, np.uint8) for f in frames]
+  if not frames:
+    raise ValueError(f"{path}: no frames to write")
+  h, w = frames[0].shape[:2]
+  he, we = h + h % 2, w + w % 2
+  writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (we, he))
+  if not writer.isOpened():
+    raise OSError(f"{path}: OpenCV cannot open an mp4v video writer")
+  try:
+    for f in frames:
+      if f.shape != (h, w, 3):
+        raise ValueError(f"{path}: frame shape {f.shape} differs from the first {(h, w, 3)}")
+      f = np.pad(f, ((0, he - h), (0, we - w), (0, 0)), mode="edge")
+      writer.write(np.ascontiguousarray(f[..., ::-1]))
+  finally:
+    writer.release()
+  return path
+
+
+def depth_from_disparity(disp, fx: float, baseline: float) -> np.ndarray:
+  """Metric depth `Z = fx * baseline / d`; 0 where `d <= 0` or not finite.
+
+  Args:
+    disp: `[..., H, W]` disparity (px).
+    fx: focal length (px).
+    baseline: stereo baseline (metres, or any unit: Z is in that unit).
+
+  Returns:
+    `[..., H, W]` float32 depth.
+  """
+  d = np.asarray(disp, np.float32)
+  ok = np.isfinite(d) & (d > 0)
+  z = np.zeros(d.shape, np.float32)
+  z[ok] = np.float32(fx * baseline) / d[ok]
+  return z
+
+
+def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float,
+                        baseline: float, valid=None) -> tuple[np.ndarray, np.ndarray]:
+  """Back-projects the left view's pixels with positive disparity.
+
+  Pixel (u, v) with depth Z maps to `((u - cx) Z / fx, (v - cy) Z / fy, Z)`.
+
+  Args:
+    disp: `[H, W]` disparity (px).
+    rgb: `[H, W, 3]` uint8 colours of the left view.
+    fx, fy, cx, cy: intrinsics of the left camera (px).
+    baseline: stereo baseline.
+    valid: optional extra `[H, W]` bool mask.
+
+  Returns:
+    `(xyz [N, 3] float32, colours [N, 3] uint8)`, rows in raster order.
+  """
+  d = np.asarray(disp, np.float32)
+  z = depth_from_disparity(d, fx, baseline)
+  keep = z > 0
+  if valid is not None:
+    keep &= np.asarray(valid, bool)
+  v, u = np.nonzero(keep)
+  zk = z[v, u]
+  xyz = np.stack([(u - cx) * zk / fx, (v - cy) * zk / fy, zk], axis=-1).astype(np.float32)
+  return xyz, np.asarray(rgb, np.uint8)[v, u]
+
+
+def write_ply(path, xyz, colors) -> int:
+  """Writes a binary little-endian PLY point cloud.
+
+  Args:
+    path: output file.
+    xyz: `[N, 3]` float coordinates.
+    colors: `[N, 3]` uint8 RGB.
+
+  Returns:
+    The number of points N.
+  """
+  xyz = np.asarray(xyz, np.float32).reshape(-1, 3)
+  colors = np.asarray(colors, np.uint8).reshape(-1, 3)
+  if len(xyz) != len(colors):
+    raise ValueError(f"{len(xyz)} points but {len(colors)} colours")
+  verts = np.empty(len(xyz), _PLY_DTYPE)
+  for i, name in enumerate("xyz"):
+    verts[name] = xyz[:, i]
+  for i, name in enumerate(("red", "green", "blue")):
+    verts[name] = colors[:, i]
+  header = ("ply\nformat binary_little_endian 1.0\n"
+            f"element vertex {len(verts)}\n"
+            "property float x\nproperty float y\nproperty float z\n"
+            "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+  with open(path, "wb") as fh:
+    fh.write(header.encode("ascii"))
+    fh.write(verts.tobytes())
+  return len(verts)
+
+
+def read_ply(path) -> tuple[np.ndarray, np.ndarray]:
+  """Reads a PLY written by `write_ply`: `(xyz [N, 3] float32, rgb [N, 3] uint8)`."""
+  with open(path, "rb") as fh:
+    lines = []
+    while not lines or lines[-1] != "end_header":
+      line = fh.readline()
+      if not line:
+        raise ValueError(f"{path}: truncated PLY header")
+      lines.append(line.decode("ascii").strip())
+    if lines[1] != "format binary_little_endian 1.0":
+      raise ValueError(f"{path}: unsupported PLY format {lines[1]!r}")
+    count = int(next(l for l in lines if l.startswith("element vertex")).split()[-1])
+    verts = np.frombuffer(fh.read(count * _PLY_DTYPE.itemsize), _PLY_DTYPE)
+  if len(verts) != count:
+    raise ValueError(f"{path}: header says {count} vertices, file has {len(verts)}")
+  xyz = np.stack([verts[n] for n in "xyz"], axis=-1).astype(np.float32)
+  rgb = np.stack([verts[n] for n in ("red", "green", "blue")], axis=-1)
+  return xyz, rgb
+
+
+def write_png16(path, disp) -> None:
+  """16-bit PNG disparity, KITTI convention (`round(256 d)`, 0 = invalid)."""
+  d = np.asarray(disp, np.float32)
+  if d.ndim != 2:
+    raise ValueError(f"expected a [H, W] disparity map, got shape {d.shape}")
+  ok = np.isfinite(d) & (d > 0)
+  v = np.zeros(d.shape, np.uint16)
+  v[ok] = np.clip(np.round(d[ok].astype(np.float64) * 256.0), 1, 65535).astype(np.uint16)
+  if not cv2.imwrite(str(path), v):
+    raise OSError(f"{path}: cannot write PNG")
+
+
+def read_png16(path) -> tuple[np.ndarray, np.ndarray]:
+  """Reads a KITTI-style 16-bit PNG: `(disparity [H, W] float32, valid [H, W] bool)`."""
+  v = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+  if v is None or v.dtype != np.uint16 or v.ndim != 2:
+    raise ValueError(f"{path}: not a single-channel 16-bit PNG")
+  return v.astype(np.float32) / 256.0, v > 0
+
+
+def write_pfm(path, data) -> None:
+  """PFM file (`Pf` for `[H, W]`, `PF` for `[H, W, 3]`), little-endian, bottom row first."""
+  a = np.asarray(data, np.float32)
+  if a.ndim == 2:
+    kind = "Pf"
+  elif a.ndim == 3 and a.shape[2] == 3:
+    kind = "PF"
+  else:
+    raise ValueError(f"PFM stores [H, W] or [H, W, 3] arrays, got shape {a.shape}")
+  with open(path, "wb") as fh:
+    fh.write(f"{kind}\n{a.shape[1]} {a.shape[0]}\n-1.0\n".encode("ascii"))
+    fh.write(np.ascontiguousarray(a[::-1]).astype("<f4").tobytes())
+
+
+def read_pfm(path) -> np.ndarray:
+  """Reads a PFM file (either endianness) into `[H, W]` or `[H, W, 3]` float32, top row first."""
+  with open(path, "rb") as fh:
+    kind = fh.readline().strip()
+    if kind not in (b"PF", b"Pf"):
+      raise ValueError(f"{path}: not a PFM file (header {kind!r})")
+    dims = fh.readline().split()
+    while not dims:  # tolerate blank lines
+      dims = fh.readline().split()
+    w, h = int(dims[0]), int(dims[1])
+    scale = float(fh.readline().strip())
+    channels = 3 if kind == b"PF" else 1
+    data = np.frombuffer(fh.read(), "<f4" if scale < 0 else ">f4")
+  if data.size < w * h * channels:
+    raise ValueError(f"{path}: truncated PFM ({data.size} of {w * h * channels} values)")
+  data = data[:w * h * channels].reshape((h, w, 3) if channels == 3 else (h, w))
+  return np.ascontiguousarray(data[::-1]).astype(np.float32)
+
+
+def write_exr(path, data, channel: str = "Y") -> None:
+  """OpenEXR file of float32 values (`[H, W]` -> one channel, `[H, W, 3]` -> R, G, B)."""
+  import OpenEXR  # pylint: disable=import-outside-toplevel
+  a = np.asarray(data, np.float32)
+  if a.ndim == 2:
+    channels = {channel: np.ascontiguousarray(a)}
+  elif a.ndim == 3 and a.shape[2] == 3:
+    channels = {c: np.ascontiguousarray(a[..., i]) for i, c in enumerate("RGB")}
+  else:
+    raise ValueError(f"EXR stores [H, W] or [H, W, 3] arrays, got shape {a.shape}")
+  header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+  with OpenEXR.File(header, channels) as f:
+    f.write(str(path))
+
+
+def read_exr(path, channel: str | None = None) -> np.ndarray:
+  """Reads an EXR channel (default: the only one, or R, G, B stacked) as float32."""
+  import OpenEXR  # pylint: disable=import-outside-toplevel
+  with OpenEXR.File(str(path)) as f:
+    chans = {k: np.asarray(v.pixels, np.float32) for k, v in f.channels().items()}
+  if channel is not None:
+    if channel not in chans:
+      raise ValueError(f"{path}: no channel {channel!r}; channels are {sorted(chans)}")
+    return chans[channel]
+  if len(chans) == 1:
+    return next(iter(chans.values()))
+  if set("RGB") <= set(chans):
+    return np.stack([chans[c] for c in "RGB"], axis=-1)
+  raise ValueError(f"{path}: several channels {sorted(chans)}; name one")

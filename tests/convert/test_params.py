@@ -1,0 +1,107 @@
+"""Official state dict <-> Flax variables, `sav-jax convert`, and export."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sav_jax
+from sav_jax import cli, convert
+from sav_jax.convert.params import UNUSED_COLLECTION
+
+SD_KEYS_WITH_PE = ".pos_encoder.pe"
+
+
+@pytest.fixture(scope="module")
+def variables(sav_state_dict):
+  return convert.params_from_state_dict(sav_state_dict)
+
+
+@pytest.fixture(scope="module")
+def forward():
+  model = sav_jax.StereoAnyVideo()
+  rng = np.random.default_rng(0)
+  left = jnp.asarray(rng.uniform(0, 255, (1, 2, 32, 32, 3)), jnp.float32)
+  right = jnp.roll(left, -2, axis=3)
+  fn = jax.jit(lambda v: model.apply(v, left, right, iters=2).disparities)
+  return lambda v: np.asarray(fn({"params": v["params"]}))
+
+
+def _assert_same_state_dicts(a, b):
+  assert sorted(a) == sorted(b)
+  for k in a:
+    if k.endswith(SD_KEYS_WITH_PE):  # recomputed sinusoidal tables (torch's float32 rounding)
+      np.testing.assert_allclose(a[k], b[k], atol=1e-6, rtol=0, err_msg=k)
+    else:
+      np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_round_trip_is_exact(sav_state_dict, variables):
+  _assert_same_state_dicts(convert.state_dict_from_params(variables), sav_state_dict)
+
+
+def test_module_prefix_accepted(sav_state_dict, variables):
+  wrapped = {"module." + k: v for k, v in sav_state_dict.items()}
+  got = convert.params_from_state_dict(wrapped)
+  jax.tree_util.tree_map(np.testing.assert_array_equal, got["params"], variables["params"])
+
+
+def test_strict_errors_list_every_problem(sav_state_dict):
+  sd = dict(sav_state_dict)
+  del sd["fnet.conv1.weight"]
+  del sd["depthnet.depthanything.pretrained.blocks.0.attn.qkv.bias"]
+  sd["update_block.bogus.weight"] = np.zeros(3, np.float32)
+  sd["corr_mlp.fc1.weight"] = np.zeros((256, 300), np.float32)
+  with pytest.raises(ValueError) as e:
+    convert.params_from_state_dict(sd)
+  msg = str(e.value)
+  for needle in ("fnet.conv1.weight", "pretrained.blocks.0.attn.qkv.bias",
+                 "update_block.bogus.weight", "corr_mlp.fc1.weight", "(256, 300)"):
+    assert needle in msg, (needle, msg)
+
+
+def test_unused_parameters_are_kept_outside_params(variables):
+  unused = variables[UNUSED_COLLECTION]
+  assert "update_block.time_attn.temporal_attn.qkv.weight" in unused
+  assert "depthnet.depthanything.head.scratch.output_conv2.0.weight" in unused
+  assert "qkv" not in variables["params"]["update_block"]["time_attn"]["temporal_attn"]
+
+
+def test_cli_convert_then_model_matches(tmp_path, sav_state_dict, variables, forward, capsys):
+  src = tmp_path / "sav.safetensors"
+  convert.save_state_dict(sav_state_dict, src)
+  dst = tmp_path / "ckpt"
+  assert cli.main(["convert", str(src), str(dst)]) == 0
+  out = capsys.readouterr().out
+  assert "trainable" in out and "frozen" in out
+  restored, config = convert.restore_variables(dst)
+  assert config["model"] == sav_jax.SAVConfig().to_dict()
+  np.testing.assert_array_equal(forward(restored), forward(variables))
+  # Exporting the orbax checkpoint gives back the official file.
+  exported = tmp_path / "back.npz"
+  assert cli.main(["convert", str(dst), str(exported)]) == 0
+  _assert_same_state_dicts(convert.load_state_dict(exported), sav_state_dict)
+  # Never overwrite silently.
+  assert cli.main(["convert", str(src), str(dst)]) == 2
+  assert "exists" in capsys.readouterr().err
+
+
+def test_cli_convert_vda_only(tmp_path, vda_state_dict, capsys):
+  src = tmp_path / "video_depth_anything_vits.npz"
+  convert.save_state_dict(vda_state_dict, src)
+  assert cli.main(["convert", str(src), str(tmp_path / "a")]) == 2  # needs --vda
+  assert "--vda" in capsys.readouterr().err
+  assert cli.main(["convert", "--vda", str(src), str(tmp_path / "b")]) == 0
+  restored, _ = convert.restore_variables(tmp_path / "b")
+  vda, _ = convert.vda_params_from_state_dict(vda_state_dict)
+  jax.tree_util.tree_map(np.testing.assert_array_equal,
+                         restored["params"]["depthnet"]["depthanything"], vda)
+  assert "fnet" in restored["params"]
+
+
+def test_cli_convert_rejects_garbage(tmp_path, capsys):
+  bad = tmp_path / "random.pth"
+  bad.write_bytes(np.random.default_rng(0).bytes(1000))
+  assert cli.main(["convert", str(bad), str(tmp_path / "out")]) == 2
+  assert "random.pth" in capsys.readouterr().err
+  assert not (tmp_path / "out").exists()

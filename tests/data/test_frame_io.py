@@ -1,0 +1,216 @@
+"""File decoders of sav_jax.data.frame_io, checked value by value against the formats.
+
+Every fixture file is written with the library its users' files come from (OpenCV for
+PNG/JPEG, OpenEXR, h5py, numpy) or byte by byte from the format's specification
+(PFM, Sintel .cam), never with the reader under test.
+"""
+
+import struct
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from sav_jax.data import frame_io
+
+RNG = np.random.default_rng(0)
+
+
+def _pfm_bytes(arr, little_endian, kind):
+  """PFM by the spec: header lines, then float32 rows from the bottom row up."""
+  h, w = arr.shape[:2]
+  scale = b"-1.000000" if little_endian else b"2.5"  # only the sign matters
+  rows = b"".join(struct.pack(("<" if little_endian else ">") + "f" * arr[y].size,
+                              *arr[y].ravel()) for y in reversed(range(h)))
+  return kind + b"\n" + b"%d %d\n" % (w, h) + scale + b"\n" + rows
+
+
+@pytest.mark.parametrize("little_endian", [True, False])
+def test_pfm_one_channel_both_endiannesses_and_row_order(tmp_path, little_endian):
+  arr = RNG.normal(size=(5, 7)).astype(np.float32) * 100
+  arr[0, 0] = 0.0  # marks the top-left corner
+  path = tmp_path / "d.pfm"
+  path.write_bytes(_pfm_bytes(arr, little_endian, b"Pf"))
+  out = frame_io.read_pfm(path)
+  assert out.dtype == np.float32 and out.shape == (5, 7)
+  np.testing.assert_array_equal(out, arr)  # top row first, native byte order
+  np.testing.assert_array_equal(frame_io.read_pfm_disparity(path), arr)
+
+
+@pytest.mark.parametrize("little_endian", [True, False])
+def test_pfm_three_channels(tmp_path, little_endian):
+  arr = RNG.normal(size=(4, 6, 3)).astype(np.float32)
+  path = tmp_path / "f.pfm"
+  path.write_bytes(_pfm_bytes(arr, little_endian, b"PF"))
+  np.testing.assert_array_equal(frame_io.read_pfm(path), arr)
+  np.testing.assert_array_equal(frame_io.read_pfm_disparity(path), arr[..., 0])
+
+
+@pytest.mark.parametrize("little_endian", [True, False])
+def test_write_pfm_matches_the_spec(tmp_path, little_endian):
+  arr = RNG.normal(size=(3, 4)).astype(np.float32)
+  frame_io.write_pfm(tmp_path / "a.pfm", arr, little_endian=little_endian)
+  data = (tmp_path / "a.pfm").read_bytes()
+  header, payload = data.split(b"\n", 3)[:3], data.split(b"\n", 3)[3]
+  assert header[:2] == [b"Pf", b"4 3"]
+  assert (float(header[2]) < 0) == little_endian
+  assert payload == _pfm_bytes(arr, little_endian, b"Pf").split(b"\n", 3)[3]
+
+
+def test_pfm_errors(tmp_path):
+  with pytest.raises(FileNotFoundError, match="missing.pfm"):
+    frame_io.read_pfm(tmp_path / "missing.pfm")
+  (tmp_path / "bad.pfm").write_bytes(b"P6\n4 3\n255\n" + bytes(36))
+  with pytest.raises(ValueError, match="not a PFM"):
+    frame_io.read_pfm(tmp_path / "bad.pfm")
+  (tmp_path / "hdr.pfm").write_bytes(b"Pf\nfour 3\n-1\n" + bytes(48))
+  with pytest.raises(ValueError, match="malformed PFM header"):
+    frame_io.read_pfm(tmp_path / "hdr.pfm")
+  (tmp_path / "short.pfm").write_bytes(b"Pf\n4 3\n-1\n" + bytes(40))
+  with pytest.raises(ValueError, match="truncated.*short.pfm"):
+    frame_io.read_pfm(tmp_path / "short.pfm")
+
+
+def test_read_image_colour_grey_alpha_and_16_bit(tmp_path):
+  rgb = RNG.integers(0, 256, (6, 9, 3), dtype=np.uint8)
+  cv2.imwrite(str(tmp_path / "c.png"), rgb[..., ::-1])  # OpenCV writes BGR
+  np.testing.assert_array_equal(frame_io.read_image(tmp_path / "c.png"), rgb)
+  grey = rgb[..., 0]
+  cv2.imwrite(str(tmp_path / "g.png"), grey)
+  np.testing.assert_array_equal(frame_io.read_image(tmp_path / "g.png"),
+                                np.repeat(grey[..., None], 3, axis=2))
+  bgra = np.concatenate([rgb[..., ::-1], np.full((6, 9, 1), 7, np.uint8)], axis=2)
+  cv2.imwrite(str(tmp_path / "a.png"), bgra)
+  np.testing.assert_array_equal(frame_io.read_image(tmp_path / "a.png"), rgb)
+  cv2.imwrite(str(tmp_path / "w.png"), rgb[..., ::-1].astype(np.uint16) * 257)
+  np.testing.assert_array_equal(frame_io.read_image(tmp_path / "w.png"), rgb)
+
+
+def test_read_image_jpeg_and_errors(tmp_path):
+  rgb = np.zeros((16, 16, 3), np.uint8)
+  rgb[..., 0], rgb[..., 2] = 200, 40
+  cv2.imwrite(str(tmp_path / "j.jpg"), rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
+  out = frame_io.read_image(tmp_path / "j.jpg")
+  assert out.shape == (16, 16, 3) and np.abs(out.astype(int) - rgb).max() <= 3
+  with pytest.raises(FileNotFoundError, match="nope.png"):
+    frame_io.read_image(tmp_path / "nope.png")
+  (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+  with pytest.raises(ValueError, match="corrupt.png"):
+    frame_io.read_image(tmp_path / "corrupt.png")
+
+
+def test_sintel_disparity_png_and_occlusion_mask(tmp_path):
+  r, g, b = (RNG.integers(0, 256, (4, 5), dtype=np.uint8) for _ in range(3))
+  r[0, 0] = g[0, 0] = b[0, 0] = 0  # d = 0: invalid even where not occluded
+  cv2.imwrite(str(tmp_path / "d.png"), np.stack([b, g, r], axis=-1))
+  occ = np.where(RNG.random((4, 5)) < 0.3, 255, 0).astype(np.uint8)
+  occ[0, 0] = 0
+  cv2.imwrite(str(tmp_path / "o.png"), occ)
+  disp, valid = frame_io.read_sintel_disparity(tmp_path / "d.png", tmp_path / "o.png")
+  for y in range(4):
+    for x in range(5):
+      expect = 4.0 * r[y, x] + g[y, x] / 64.0 + b[y, x] / 16384.0
+      assert disp[y, x] == np.float32(expect)
+      assert valid[y, x] == (occ[y, x] == 0 and expect > 0)
+  assert disp.dtype == np.float32 and not valid[0, 0]
+  cv2.imwrite(str(tmp_path / "small.png"), occ[:3])
+  with pytest.raises(ValueError, match="small.png"):
+    frame_io.read_sintel_disparity(tmp_path / "d.png", tmp_path / "small.png")
+
+
+def test_sintel_cam(tmp_path):
+  k = np.array([[1120.0, 0, 511.5], [0, 1120.0, 217.5], [0, 0, 1]])
+  rt = RNG.normal(size=(3, 4))
+  raw = struct.pack("<f", 202021.25) + struct.pack("<9d", *k.ravel()) + struct.pack("<12d",
+                                                                                     *rt.ravel())
+  (tmp_path / "f.cam").write_bytes(raw)
+  k2, rt2 = frame_io.read_sintel_cam(tmp_path / "f.cam")
+  np.testing.assert_array_equal(k2, k)
+  np.testing.assert_array_equal(rt2, rt)
+  (tmp_path / "tag.cam").write_bytes(struct.pack("<f", 1.0) + raw[4:])
+  with pytest.raises(ValueError, match="wrong tag.*tag.cam"):
+    frame_io.read_sintel_cam(tmp_path / "tag.cam")
+  (tmp_path / "short.cam").write_bytes(raw[:50])
+  with pytest.raises(ValueError, match="truncated"):
+    frame_io.read_sintel_cam(tmp_path / "short.cam")
+
+
+def test_16_bit_png_depth_scales(tmp_path):
+  v = np.array([[0, 1, 256, 2560], [100, 65535, 12345, 7]], np.uint16)
+  cv2.imwrite(str(tmp_path / "d.png"), v)
+  kitti = frame_io.read_kitti_depth(tmp_path / "d.png")
+  vk = frame_io.read_vkitti2_depth(tmp_path / "d.png")
+  for (y, x), raw in np.ndenumerate(v):
+    assert kitti[y, x] == (-1.0 if raw == 0 else np.float32(raw) / np.float32(256))
+    assert vk[y, x] == (-1.0 if raw == 0 else np.float32(raw) / np.float32(100))
+  assert vk[1, 1] == np.float32(655.35)
+  cv2.imwrite(str(tmp_path / "eight.png"), v.astype(np.uint8))
+  with pytest.raises(ValueError, match="16-bit.*eight.png"):
+    frame_io.read_kitti_depth(tmp_path / "eight.png")
+
+
+def test_float16_png_depth(tmp_path):
+  depth = np.array([[0.0, 1e-6, 0.5, 1.25], [3.75, 100.0, 65504.0, np.inf]], np.float16)
+  cv2.imwrite(str(tmp_path / "d.png"), depth.view(np.uint16))
+  out = frame_io.read_float16_png(tmp_path / "d.png")
+  assert out.dtype == np.float32
+  np.testing.assert_array_equal(out, depth.astype(np.float32))
+
+
+def test_exr(tmp_path):
+  openexr = pytest.importorskip("OpenEXR")
+  z = RNG.random((5, 6)).astype(np.float32)
+  rgb = RNG.random((5, 6, 3)).astype(np.float32)
+  header = {"compression": openexr.ZIP_COMPRESSION, "type": openexr.scanlineimage}
+  openexr.File(header, {"Z": z}).write(str(tmp_path / "z.exr"))
+  # OpenEXR's binding ignores strides: hand it contiguous channel planes.
+  planes = {c: np.ascontiguousarray(rgb[..., i]) for i, c in enumerate("RGB")}
+  openexr.File(header, {**planes, "Z": z}).write(str(tmp_path / "rgbz.exr"))
+  np.testing.assert_array_equal(frame_io.read_exr(tmp_path / "z.exr"), z)
+  np.testing.assert_array_equal(frame_io.read_exr(tmp_path / "rgbz.exr"), rgb)
+  np.testing.assert_array_equal(frame_io.read_exr(tmp_path / "rgbz.exr", "Z"), z)
+  with pytest.raises(ValueError, match="no channel 'Q'"):
+    frame_io.read_exr(tmp_path / "rgbz.exr", "Q")
+  (tmp_path / "bad.exr").write_bytes(b"not an exr")
+  with pytest.raises(ValueError, match="bad.exr"):
+    frame_io.read_exr(tmp_path / "bad.exr")
+
+
+def test_npy_and_npz(tmp_path):
+  arr = RNG.random((3, 4)).astype(np.float32)
+  np.save(tmp_path / "d.npy", arr)
+  np.testing.assert_array_equal(frame_io.read_npy(tmp_path / "d.npy"), arr)
+  np.savez(tmp_path / "c.npz", K=np.eye(3), T=np.eye(4))
+  assert sorted(frame_io.read_npz(tmp_path / "c.npz")) == ["K", "T"]
+  (tmp_path / "bad.npy").write_bytes(b"\x93NUMPY garbage")
+  with pytest.raises(ValueError, match="bad.npy"):
+    frame_io.read_npy(tmp_path / "bad.npy")
+
+
+def test_hdf5_dsp5(tmp_path, monkeypatch):
+  h5py = pytest.importorskip("h5py")
+  disp = RNG.random((4, 6)).astype(np.float32)
+  disp[1, 2] = np.nan
+  with h5py.File(tmp_path / "d.dsp5", "w") as f:
+    f.create_dataset("disparity", data=disp)
+  np.testing.assert_array_equal(frame_io.read_dsp5(tmp_path / "d.dsp5"), disp)
+  with pytest.raises(ValueError, match="no dataset 'depth'"):
+    frame_io.read_hdf5(tmp_path / "d.dsp5", "depth")
+  (tmp_path / "bad.dsp5").write_bytes(b"garbage")
+  with pytest.raises(ValueError, match="bad.dsp5"):
+    frame_io.read_dsp5(tmp_path / "bad.dsp5")
+  monkeypatch.setitem(sys.modules, "h5py", None)  # import now fails as if absent
+  with pytest.raises(ImportError, match="needs h5py"):
+    frame_io.read_dsp5(tmp_path / "d.dsp5")
+
+
+def test_depth_to_disparity_rules():
+  s = 100.0
+  depth = np.array([-1.0, 0.0, 9e-6, 1e-5, 0.5, 0.2, 2.0, np.inf, np.nan], np.float32)
+  disp, valid = frame_io.depth_to_disparity(depth, s)
+  expect = [0, 0, 0, s / np.float32(1e-5), 200, 500, 50, 0, 0]
+  np.testing.assert_allclose(disp, expect, rtol=1e-6)
+  # Z < 1e-5 -> d = 0 invalid; d >= 512 invalid; infinite or NaN depth -> d = 0 invalid.
+  np.testing.assert_array_equal(valid, [0, 0, 0, 0, 1, 1, 1, 0, 0])
+  assert disp.dtype == np.float32 and valid.dtype == bool

@@ -1,0 +1,483 @@
+"""Dataset readers and the registry on tiny fakes of every on-disk layout.
+
+Each fake is written with the libraries the real files come from (OpenCV PNG/JPEG,
+numpy, h5py, gzip JSON, the Sintel .cam byte layout); decoded disparities, masks and
+depth2disp scales are compared value by value with what was written.
+"""
+
+import gzip
+import json
+import pickle
+import struct
+
+import cv2
+import numpy as np
+import pytest
+
+from sav_jax.data import base, frame_io, kitti_depth, registry
+
+H, W = 8, 12
+
+
+def _rgb(rng):
+  return rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+
+
+def _png(path, img):
+  path.parent.mkdir(parents=True, exist_ok=True)
+  assert cv2.imwrite(str(path), img[..., ::-1] if img.ndim == 3 else img)
+
+
+def _mkfile(path, writer, *args):
+  path.parent.mkdir(parents=True, exist_ok=True)
+  writer(path, *args)
+
+
+def _stereo(rng, d_dir_l, d_dir_r, names, written, ext=".png"):
+  for n in names:
+    for folder, side in ((d_dir_l, "left"), (d_dir_r, "right")):
+      img = _rgb(rng)
+      _png(folder / f"{n}{ext}", img)
+      written.setdefault(side, []).append(img)
+
+
+def _check_images(seq, written):
+  for i in range(len(seq)):
+    frame = seq[i]
+    np.testing.assert_array_equal(frame["left"], written["left"][i])
+    np.testing.assert_array_equal(frame["right"], written["right"][i])
+
+
+# ----------------------------------------------------------------------------- SceneFlow
+
+
+def _sceneflow(root, rng, frames=4):
+  truth = {}
+  for rel in ("FlyingThings3D/{p}/TRAIN/A/0000", "FlyingThings3D/{p}/TEST/B/0001",
+              "Monkaa/{p}/a_rain_of_stones_x2", "Driving/{p}/15mm_focallength/scene_forwards/fast"):
+    seq_dir = root / rel.format(p="frames_finalpass")
+    gt_dir = root / rel.format(p="disparity")
+    written = {}
+    names = [f"{6 + i:04d}" for i in range(frames)]
+    _stereo(rng, seq_dir / "left", seq_dir / "right", names, written)
+    for side in ("left", "right"):
+      for n in names:
+        d = rng.uniform(0.5, 100, (H, W)).astype(np.float32)
+        d[0, 0], d[1, 1] = 0.0, 600.0  # invalid by the dense rule
+        _mkfile(gt_dir / side / f"{n}.pfm", frame_io.write_pfm, d, side == "left")
+        written.setdefault(side + "_d", []).append(d)
+    truth[rel.split("/")[0] + "/" + rel.split("{p}/")[1]] = written
+  return truth
+
+
+def test_sceneflow_train_test_values_and_clips(tmp_path):
+  truth = _sceneflow(tmp_path, np.random.default_rng(0))
+  seqs = registry.get_sequences("sceneflow", tmp_path, "train")
+  assert [s.name for s in seqs] == ["FlyingThings3D/TRAIN/A/0000", "Monkaa/a_rain_of_stones_x2",
+                                    "Driving/15mm_focallength/scene_forwards/fast"]
+  for seq in seqs:
+    written = truth[seq.name]
+    assert seq.dataset == "sceneflow" and seq.depth2disp_scale is None and not seq.sparse
+    _check_images(seq, written)
+    seq.with_right_disparity = True
+    for i in range(len(seq)):
+      f = seq[i]
+      np.testing.assert_array_equal(f["disparity"], written["left_d"][i])
+      np.testing.assert_array_equal(f["right_disparity"], written["right_d"][i])
+      expect = (written["left_d"][i] != 0) & (written["left_d"][i] < 512)
+      np.testing.assert_array_equal(f["valid"], expect)
+  test = registry.get_sequences("sceneflow", tmp_path, "test")
+  assert [s.name for s in test] == ["FlyingThings3D/TEST/B/0001"]
+  # One subset, from its own folder too.
+  assert len(registry.get_sequences("monkaa", tmp_path / "Monkaa", "train")) == 1
+  with pytest.raises(ValueError, match="no split 'test'"):
+    registry.get_sequences("driving", tmp_path, "test")
+  clips = registry.get_training_clips("flyingthings3d", tmp_path, frames=2)
+  # N = 4, T = 2: refs 0, 1 (N - T = 2 left out), each forward then time-reversed.
+  assert [c.indices for c in clips] == [[0, 1], [3, 2], [1, 2], [2, 1]]
+  assert len(registry.get_training_clips("sceneflow", tmp_path, frames=2)) == 12
+
+
+def test_sceneflow_errors(tmp_path):
+  _sceneflow(tmp_path, np.random.default_rng(1), frames=2)
+  gt = tmp_path / "Monkaa/disparity/a_rain_of_stones_x2/left"
+  (gt / "0007.pfm").rename(gt / "0009.pfm")
+  with pytest.raises(ValueError, match="stem mismatch.*0009.pfm"):
+    registry.get_sequences("monkaa", tmp_path, "train")
+  with pytest.raises(FileNotFoundError, match="frames_cleanpass"):
+    registry.get_sequences("driving", tmp_path, "train", pass_name="frames_cleanpass")
+  with pytest.raises(FileNotFoundError, match="dataset root not found"):
+    registry.get_sequences("sceneflow", tmp_path / "nowhere", "train")
+
+
+# ----------------------------------------------------------------------------- Sintel
+
+
+def _sintel(root, rng, seqs=(("alley_1", 3), ("cave_2", 2))):
+  train, truth = root / "sintel_stereo" / "training", {}
+  for name, n in seqs:
+    written = {"fx": 1000.0 + len(name)}
+    names = [f"frame_{i + 1:04d}" for i in range(n)]
+    for dstype in ("clean", "final"):
+      _stereo(rng, train / f"{dstype}_left" / name, train / f"{dstype}_right" / name, names,
+              written.setdefault(dstype, {}))
+    for stem in names:
+      rgb = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+      occ = np.where(rng.random((H, W)) < 0.3, 255, 0).astype(np.uint8)
+      _png(train / "disparities" / name / f"{stem}.png", rgb)
+      _png(train / "occlusions" / name / f"{stem}.png", occ)
+      d = rgb[..., 0] * 4.0 + rgb[..., 1] / 64.0 + rgb[..., 2] / 16384.0
+      written.setdefault("gt", []).append((d.astype(np.float32), (occ == 0) & (d > 0)))
+      k = np.diag([written["fx"], written["fx"], 1.0])
+      raw = struct.pack("<f9d12d", 202021.25, *k.ravel(), *np.zeros(12))
+      _mkfile(train / "camdata_left" / name / f"{stem}.cam", lambda p, b: p.write_bytes(b), raw)
+    truth[name] = written
+  return truth
+
+
+def test_sintel_values_mask_and_scale(tmp_path):
+  truth = _sintel(tmp_path, np.random.default_rng(2))
+  for dstype in ("clean", "final"):
+    seqs = registry.get_sequences(f"sintel_{dstype}", tmp_path, "test")
+    assert [s.name for s in seqs] == ["alley_1", "cave_2"]
+    for seq in seqs:
+      written = truth[seq.name]
+      assert seq.sparse and seq.dataset == f"sintel_{dstype}"
+      assert seq.depth2disp_scale == pytest.approx(written["fx"] * 0.1)
+      _check_images(seq, written[dstype])
+      for i in range(len(seq)):
+        np.testing.assert_array_equal(seq[i]["disparity"], written["gt"][i][0])
+        np.testing.assert_array_equal(seq[i]["valid"], written["gt"][i][1])
+  clip = seqs[0].clip(0, 3)
+  assert clip["left"].shape == (3, H, W, 3) and clip["valid"].dtype == bool
+  rev = seqs[0].clip(2, 3, stride=-1)
+  np.testing.assert_array_equal(rev["disparity"], clip["disparity"][::-1])
+  with pytest.raises(IndexError):
+    seqs[1].clip(1, 2)
+  with pytest.raises(ValueError, match="no official training clips"):
+    registry.get_training_clips("sintel_final", tmp_path, frames=2)
+
+
+def test_sintel_stem_and_size_errors(tmp_path):
+  _sintel(tmp_path, np.random.default_rng(3), seqs=(("alley_1", 2),))
+  train = tmp_path / "sintel_stereo" / "training"
+  _png(train / "final_right" / "alley_1" / "frame_0002.png",
+       np.zeros((H + 1, W, 3), np.uint8))
+  seq = registry.get_sequences("sintel_final", tmp_path / "sintel_stereo", "test")[0]
+  with pytest.raises(ValueError, match="left .*frame_0002.png.*right"):
+    seq[1]
+  cam = train / "camdata_left" / "alley_1"
+  (cam / "frame_0002.cam").rename(cam / "frame_0003.cam")
+  with pytest.raises(ValueError, match="stem mismatch"):
+    registry.get_sequences("sintel_clean", tmp_path, "test")
+
+
+# ----------------------------------------------------------------------------- Dynamic Replica
+
+
+def _dynamic_replica(root, rng, split, seqs):
+  split_dir, records, truth = root / "dynamic_replica_data" / split, [], {}
+  for name, n, fmt in seqs:
+    truth[name] = {"fmt": fmt}
+    for i in range(n):
+      for cam, tx in (("left", 0.3), ("right", 0.3 + 0.05)):
+        img, depth = _rgb(rng), rng.uniform(0.5, 5.0, (H, W)).astype(np.float16)
+        depth[0, i] = 0.0  # no depth
+        _png(split_dir / name / "images" / f"{cam}_{i:06d}.png", img)
+        _png(split_dir / name / "depths" / f"{cam}_{i:06d}.geometric.png", depth.view(np.uint16))
+        truth[name].setdefault(cam, []).append(img)
+        truth[name].setdefault(cam + "_z", []).append(depth.astype(np.float32))
+        records.append({
+            "sequence_name": name, "camera_name": cam, "frame_number": i,
+            "image": {"path": f"{name}/images/{cam}_{i:06d}.png", "size": [H, W]},
+            "depth": {"path": f"{name}/depths/{cam}_{i:06d}.geometric.png"},
+            "mask": {"path": f"{name}/masks/{cam}_{i:06d}.png"},
+            "viewpoint": {"R": np.eye(3).tolist(), "T": [tx, 0.1, 2.0],
+                          "focal_length": [1.5, 1.5], "principal_point": [0.0, 0.0],
+                          "intrinsics_format": fmt}})
+  with gzip.open(split_dir / f"frame_annotations_{split}.jgz", "wt", encoding="utf8") as f:
+    json.dump(records, f)
+  return truth
+
+
+def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch):
+  seqs_spec = [("seq_b", 3, "ndc_isotropic"), ("seq_a", 2, "ndc_norm_image_bounds")]
+  truth = _dynamic_replica(tmp_path, np.random.default_rng(4), "test", seqs_spec)
+  # The official cut (150 frames) drops both short sequences; keep them whole here.
+  assert registry.get_sequences("dynamic_replica", tmp_path, "test") == []
+  seqs = registry.get_sequences("dynamic_replica", tmp_path, "test", max_frames=None)
+  assert [s.name for s in seqs] == ["seq_b", "seq_a"]  # annotation order, not sorted
+  for seq in seqs:
+    written = truth[seq.name]
+    r = min(H, W) / 2 if written["fmt"] == "ndc_isotropic" else W / 2
+    assert seq.depth2disp_scale == pytest.approx(1.5 * r * 0.05)
+    seq.with_right_disparity = True
+    for i in range(len(seq)):
+      f = seq[i]
+      np.testing.assert_array_equal(f["left"], written["left"][i])
+      for key, zkey in (("disparity", "left_z"), ("right_disparity", "right_z")):
+        z = written[zkey][i]
+        expect = np.where(z > 0, np.float32(seq.depth2disp_scale) / np.where(z > 0, z, 1), 0)
+        np.testing.assert_allclose(f[key], expect, rtol=1e-6)
+      assert not f["valid"][0, i] and f["valid"].sum() == H * W - 1
+  # Evaluation keeps frames 0..L-1 and, for DR only, drops sequences shorter than L.
+  monkeypatch.setitem(registry.EVAL_FRAMES, "dynamic_replica", 3)
+  assert [(s.name, len(s)) for s in registry.get_sequences("dynamic_replica", tmp_path,
+                                                           "test")] == [("seq_b", 3)]
+  monkeypatch.setitem(registry.EVAL_FRAMES, "dynamic_replica", 2)
+  cut = registry.get_sequences("dynamic_replica", tmp_path, "test")
+  assert [len(s) for s in cut] == [2, 2] and cut[0].files["left"][-1].name == "left_000001.png"
+  assert [len(s) for s in registry.get_sequences("dynamic_replica", tmp_path, "test",
+                                                 max_frames=None)] == [3, 2]
+
+
+def test_dynamic_replica_errors(tmp_path):
+  _dynamic_replica(tmp_path, np.random.default_rng(5), "train", [("s", 2, "ndc_isotropic")])
+  (tmp_path / "dynamic_replica_data/train/s/depths/right_000001.geometric.png").unlink()
+  with pytest.raises(FileNotFoundError, match="right_000001.geometric.png"):
+    registry.get_sequences("dynamic_replica", tmp_path, "train")
+  with pytest.raises(FileNotFoundError, match="frame_annotations_valid.jgz"):
+    registry.get_sequences("dynamic_replica", tmp_path, "valid")
+
+
+# ----------------------------------------------------------------------------- Infinigen SV
+
+
+def _infinigen(root, rng, split, scenes):
+  truth = {}
+  for scene, n in scenes:
+    frames = root / "InfinigenStereo" / split / scene / "frames"
+    truth[scene] = {}
+    for cam in (0, 1):
+      for i in range(n):
+        stem = f"0_{cam}_{i + 1:04d}_0"
+        img, depth = _rgb(rng), rng.uniform(1.0, 50.0, (H, W)).astype(np.float32)
+        depth[0, 0], depth[1, 0] = 0.0, np.inf
+        _png(frames / "Image" / f"camera_{cam}" / f"Image_{stem}.png", img)
+        _mkfile(frames / "Depth" / f"camera_{cam}" / f"Depth_{stem}.npy", np.save, depth)
+        pose = np.eye(4)
+        pose[:3, 3] = [1.0 + 0.12 * cam, 2.0 + 0.16 * cam, 3.0]  # baseline 0.2 m
+        _mkfile(frames / "camview" / f"camera_{cam}" / f"camview_{stem}.npz",
+                lambda p, t: np.savez(p, K=np.diag([400.0 + cam, 400.0, 1.0]), T=t), pose)
+        truth[scene].setdefault(cam, []).append((img, depth))
+  return truth
+
+
+def test_infinigen_scale_values_and_strided_clips(tmp_path):
+  truth = _infinigen(tmp_path, np.random.default_rng(6), "train",
+                     [("scene031", 12), ("scene032", 4)])
+  seqs = registry.get_sequences("infinigen_sv", tmp_path / "InfinigenStereo", "train")
+  assert [s.name for s in seqs] == ["scene031", "scene032"]
+  seq = seqs[1]
+  assert seq.depth2disp_scale == pytest.approx(400.0 * 0.2)  # K of the left camera
+  f = seq[2]
+  img, depth = truth["scene032"][0][2]
+  np.testing.assert_array_equal(f["left"], img)
+  np.testing.assert_allclose(f["disparity"][2:], np.float32(80.0) / depth[2:], rtol=1e-6)
+  assert f["disparity"][0, 0] == 0 and f["disparity"][1, 0] == 0  # Z = 0 and Z = inf
+  assert not f["valid"][:2, 0].any() and f["valid"][2:].all()
+  clips = registry.get_training_clips("infinigen_sv", tmp_path, frames=2, seed=7)
+  rng, expect = np.random.default_rng(7), []
+  for seq in seqs:  # one stride per start 0, 3, 6, ..., drawn even when the clip is dropped
+    for ref in range(0, len(seq), 3):
+      k = int(rng.integers(1, 6))
+      if ref + 2 * k < len(seq):
+        expect.append((seq.name, [ref, ref + k]))
+  assert [(c.sequence.name, c.indices) for c in clips] == expect and len(expect) >= 2
+  again = registry.get_training_clips("infinigen_sv", tmp_path, frames=2, seed=7)
+  assert [c.indices for c in again] == [c.indices for c in clips]
+  other = registry.get_training_clips("infinigen_sv", tmp_path, frames=2, seed=8)
+  assert [c.indices for c in other] != [c.indices for c in clips]
+  one = registry.get_training_clips("infinigen_sv", tmp_path, frames=1)
+  assert [c.indices for c in one][:4] == [[0], [3], [6], [9]]
+  sample = clips[0].sequence.gather(clips[0].indices)
+  assert sample["disparity"].shape == (2, H, W)
+
+
+def test_infinigen_eval_cut_keeps_short_scenes_and_checks_stems(tmp_path, monkeypatch):
+  _infinigen(tmp_path, np.random.default_rng(8), "test", [("scene001", 3), ("scene002", 2)])
+  monkeypatch.setitem(registry.EVAL_FRAMES, "infinigen_sv", 3)
+  assert [len(s) for s in registry.get_sequences("infinigen_sv", tmp_path, "test")] == [3, 2]
+  depth_dir = tmp_path / "InfinigenStereo/test/scene002/frames/Depth/camera_1"
+  (depth_dir / "Depth_0_1_0002_0.npy").rename(depth_dir / "Depth_0_1_0005_0.npy")
+  with pytest.raises(ValueError, match="stem mismatch"):
+    registry.get_sequences("infinigen_sv", tmp_path, "test")
+
+
+# ----------------------------------------------------------------------------- VKITTI2
+
+
+def _vkitti2(root, rng, names, n=2):
+  for name in names:
+    scene, variation = name.split("_", 1)
+    seq = root / "vkitti2" / scene / variation
+    for cam in (0, 1):
+      for i in range(n):
+        img = np.full((H, W, 3), (30 * i + 20, 90, 160), np.uint8)
+        _png(seq / "frames/rgb" / f"Camera_{cam}" / f"rgb_{i:05d}.jpg", img)
+        v = np.array([0, 65535, 100, 50, 200, 1000] * (H * W // 6), np.uint16).reshape(H, W)
+        _png(seq / "frames/depth" / f"Camera_{cam}" / f"depth_{i:05d}.png", v)
+    rows = ["frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]"]
+    rows += [f"{i} {c} {725.0087 + i} 725.0087 620.5 187.0" for i in range(n) for c in (0, 1)]
+    (seq / "intrinsic.txt").write_text("\n".join(rows) + "\n")
+
+
+def test_vkitti2_splits_depth_and_sky(tmp_path):
+  _vkitti2(tmp_path, np.random.default_rng(9), registry.vkitti2.TEST)
+  test = registry.get_sequences("vkitti2", tmp_path, "test")
+  assert [s.name for s in test] == list(registry.vkitti2.TEST)
+  s = 725.0087 * 0.532725
+  assert test[0].depth2disp_scale == pytest.approx(s)  # first data row only
+  f = test[0][1]
+  assert np.abs(f["left"].astype(int) - (50, 90, 160)).max() <= 3  # JPEG
+  row = f["disparity"][0, :6]
+  np.testing.assert_allclose(row, [0, s / 655.35, s / 1.0, s / 0.5, s / 2.0, s / 10.0],
+                             rtol=1e-6)
+  np.testing.assert_array_equal(f["valid"][0, :6], [0, 1, 1, 0, 1, 1])  # v=0; d >= 512
+  # "train" lists all 50 pairs; missing ones are skipped (the 5 test ones exist here).
+  assert len(registry.get_sequences("vkitti2", tmp_path / "vkitti2", "train")) == 5
+  clips = registry.get_training_clips("vkitti2", tmp_path, frames=1)
+  assert [c.indices for c in clips] == [[0]] * 5
+  import shutil
+  shutil.rmtree(tmp_path / "vkitti2/Scene06/fog")
+  with pytest.raises(FileNotFoundError, match="Scene06/fog"):
+    registry.get_sequences("vkitti2", tmp_path, "test")
+
+
+# ----------------------------------------------------------------------------- KITTI Depth
+
+
+def _kitti(root, rng, drives, n=2):
+  for drive in drives:
+    date = drive[:10]
+    calib = root / "kitti_depth/input" / date / "calib_cam_to_cam.txt"
+    if not calib.exists():
+      calib.parent.mkdir(parents=True, exist_ok=True)
+      calib.write_text("calib_time: 09-Jan-2012 13:57:47\ncorner_dist: 9.95e-02\n"
+                       "T_02: 5.956621e-02 2.900141e-04 2.577209e-03\n"
+                       "T_03: -4.731050e-01 5.551470e-03 -5.250882e-03\n"
+                       "P_rect_02: 7.215377e+02 0 6.095593e+02 4.485728e+01 0 7.215377e+02 "
+                       "1.728540e+02 2.163791e-01 0 0 1 2.745884e-03\n")
+    for cam in ("image_02", "image_03"):
+      for i in range(n):
+        name = f"{5 + i:010d}.png"
+        _png(root / "kitti_depth/input" / date / drive / cam / "data" / name, _rgb(rng))
+        v = np.zeros((H, W), np.uint16)
+        v[2, 3], v[4, 5], v[5, 6] = 256 * 20, 300, 70  # 20 m, 1.17 m, 0.27 m (d >= 512)
+        _png(root / "kitti_depth/gt_depth" / drive / "proj_depth/groundtruth" / cam / name, v)
+
+
+def test_kitti_splits_sparse_depth_and_scale(tmp_path):
+  train = ["2011_09_26_drive_0001_sync", "2011_09_26_drive_0009_sync"]
+  _kitti(tmp_path, np.random.default_rng(10), kitti_depth.TEST + kitti_depth.VAL + tuple(train),
+         n=1)
+  test = registry.get_sequences("kitti_depth", tmp_path, "test")
+  assert [s.name for s in test] == sorted(kitti_depth.TEST) and len(test) == 13
+  assert [s.name for s in registry.get_sequences("kitti_depth", tmp_path, "val")] == [
+      "2011_10_03_drive_0042_sync"]
+  assert [s.name for s in registry.get_sequences("kitti_depth", tmp_path, "train")] == train
+  seq = test[0]
+  s = 721.5377 * np.linalg.norm(np.array([5.956621e-02, 2.900141e-04, 2.577209e-03])
+                                - [-4.731050e-01, 5.551470e-03, -5.250882e-03])
+  assert seq.sparse and seq.depth2disp_scale == pytest.approx(s)
+  f = seq[0]
+  expect = np.zeros((H, W), np.float32)
+  expect[2, 3], expect[4, 5], expect[5, 6] = s / 20.0, s / (300 / 256), s / (70 / 256)
+  np.testing.assert_allclose(f["disparity"], expect, rtol=1e-6)
+  assert f["valid"].sum() == 2 and f["valid"][2, 3] and f["valid"][4, 5]
+  (tmp_path / "kitti_depth/input/2011_09_26/2011_09_26_drive_0001_sync/image_03/data/"
+   "0000000005.png").unlink()
+  with pytest.raises(FileNotFoundError, match="image_03/data/0000000005.png"):
+    registry.get_sequences("kitti_depth", tmp_path, "train")
+  import shutil
+  shutil.rmtree(tmp_path / "kitti_depth/gt_depth/2011_09_28_drive_0037_sync")
+  with pytest.raises(FileNotFoundError, match="2011_09_28_drive_0037_sync"):
+    registry.get_sequences("kitti_depth", tmp_path, "test")
+
+
+# ----------------------------------------------------------------------------- Spring, SK
+
+
+@pytest.mark.parametrize("layout", ["sav", "spring"])
+def test_spring_dsp5(tmp_path, layout):
+  h5py = pytest.importorskip("h5py")
+  rng = np.random.default_rng(11)
+  root = tmp_path / "Spring"
+  if layout == "sav":
+    dirs = (root / "train_frame_left/0001/frame_left", root / "train_frame_right/0001/frame_right",
+            root / "train_disp1_left/0001/disp1_left", root / "train_cam_data/0001/cam_data")
+  else:
+    dirs = tuple(root / "train/0001" / d for d in ("frame_left", "frame_right", "disp1_left",
+                                                   "cam_data"))
+  written = {}
+  _stereo(rng, dirs[0], dirs[1], [], written)
+  full = rng.uniform(1, 50, (2 * H, 2 * W)).astype(np.float32)
+  full[0, 0] = full[2, 4] = np.nan
+  for i in (1, 2):
+    _png(dirs[0] / f"frame_left_{i:04d}.png", _rgb(rng))
+    _png(dirs[1] / f"frame_right_{i:04d}.png", _rgb(rng))
+    dirs[2].mkdir(parents=True, exist_ok=True)
+    with h5py.File(dirs[2] / f"disp1_left_{i:04d}.dsp5", "w") as f:
+      f.create_dataset("disparity", data=full if i == 1 else full[::2, ::2])
+  dirs[3].mkdir(parents=True)
+  (dirs[3] / "intrinsics.txt").write_text("1500.5 1500.5 960 540\n1501 1501 960 540\n")
+  seq = registry.get_sequences("spring", tmp_path, "test")[0]
+  assert seq.depth2disp_scale == pytest.approx(1500.5 * 0.065) and not seq.sparse
+  f = seq[0]
+  sub = full[::2, ::2]
+  np.testing.assert_array_equal(f["valid"], np.isfinite(sub))
+  np.testing.assert_array_equal(f["disparity"], np.nan_to_num(sub, nan=0.0))
+  assert not f["valid"][0, 0] and not f["valid"][1, 2]
+  with pytest.raises(ValueError, match="disp1_left_0002.dsp5"):  # stored at image size
+    seq[1]
+
+
+def test_south_kensington_images_only(tmp_path, monkeypatch):
+  rng = np.random.default_rng(12)
+  data = tmp_path / "SouthKensington" / "data"
+  written = {}
+  names = [f"{i:06d}" for i in range(3)]
+  for side in ("left", "right"):
+    for n in names:
+      img = _rgb(rng)
+      _png(data / "indoor_1/images" / side / f"{side}{n}.png", img)
+      written.setdefault(side, []).append(img)
+  _png(data / "outdoor_1/images/left/left000000.png", _rgb(rng))  # no txt: skipped
+  (data / "indoor_1/tracking_data.txt").write_text(
+      "Intrinsic: [[910.5 0. 640.]\n [0. 910.5 360.]\n [0. 0. 1.]]\n"
+      "Frame 0: Pose: 17\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+  monkeypatch.setitem(registry.EVAL_FRAMES, "south_kensington", 2)
+  seqs = registry.get_sequences("south_kensington", tmp_path, "test")
+  assert [(s.name, len(s)) for s in seqs] == [("indoor_1", 2)]
+  assert seqs[0].depth2disp_scale == pytest.approx(910.5 * 0.12) and not seqs[0].has_gt
+  f = seqs[0][1]
+  assert f["disparity"] is None and f["valid"] is None
+  np.testing.assert_array_equal(f["right"], written["right"][1])
+  clip = seqs[0].clip(0, 2)
+  assert clip["left"].shape == (2, H, W, 3) and clip["disparity"] is None
+
+
+# ----------------------------------------------------------------------------- registry
+
+
+def test_registry_names_errors_and_pickling(tmp_path):
+  assert set(registry.DATASETS) == {
+      "sceneflow", "flyingthings3d", "monkaa", "driving", "sintel_clean", "sintel_final",
+      "dynamic_replica", "infinigen_sv", "vkitti2", "kitti_depth", "spring", "south_kensington"}
+  with pytest.raises(ValueError, match="unknown dataset 'kitti'.*kitti_depth"):
+    registry.get_sequences("kitti", tmp_path, "test")
+  with pytest.raises(ValueError, match="frames must be"):
+    registry.get_training_clips("vkitti2", tmp_path, frames=0)
+  with pytest.raises(FileNotFoundError, match="nowhere"):
+    registry.get_sequences("vkitti2", tmp_path / "nowhere", "test")
+  _sintel(tmp_path, np.random.default_rng(13), seqs=(("market_2", 2),))
+  seq = registry.get_sequences("sintel_final", tmp_path, "test")[0]
+  before = {k: v.copy() for k, v in seq[1].items()}
+  listing = sorted(p for p in tmp_path.rglob("*"))
+  clone = pickle.loads(pickle.dumps(seq))
+  for k, v in clone[1].items():
+    np.testing.assert_array_equal(v, before[k])
+  assert sorted(p for p in tmp_path.rglob("*")) == listing  # nothing written
+  assert base.digits_key(tmp_path / "rgb_00012.jpg") == base.digits_key(tmp_path / "d_12.png")
+  with pytest.raises(ValueError, match="head"):
+    seq.head(3)

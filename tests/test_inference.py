@@ -1,0 +1,194 @@
+"""Long-video inference: parity with the official forward_batch_test, stitching, memory.
+
+Real-model tests use the golden_batch_test fixture (21 frames of 28x30, iters=2, weights
+seed 0): its windows have 20, 11 and 1 frames (padded to 32x32), so every real-model
+check here reuses those three compiled shapes. Stitching for other lengths (N=7, N=23
+and a sweep) runs with a stand-in for the model that labels each output frame with the
+window and position it came from.
+"""
+
+import jax
+import numpy as np
+import pytest
+
+import sav_jax
+from sav_jax import inference
+
+ATOL = 1e-4  # px, the fixture README's criterion for final disparities
+ITERS = 2
+
+
+@pytest.fixture(scope="module")
+def variables(sav_state_dict):
+  return sav_jax.convert.params_from_state_dict(sav_state_dict, sav_jax.SAVConfig())
+
+
+@pytest.fixture(scope="module")
+def golden(fixtures_dir):
+  g = dict(np.load(fixtures_dir / "golden_batch_test.npz"))
+  video = np.transpose(g["stereo_video"], (0, 1, 3, 4, 2))  # [T, 2, H, W, 3]
+  g["left"], g["right"] = video[:, 0], video[:, 1]
+  return g
+
+
+@pytest.fixture(scope="module")
+def official(variables, golden):
+  with jax.default_matmul_precision("highest"):
+    return inference.forward_batch_test_official(variables, golden["left"], golden["right"],
+                                                 iters=ITERS, return_windows=True)
+
+
+def _predict(variables, left, right, **kw):
+  with jax.default_matmul_precision("highest"):
+    return inference.predict_video(variables, left, right, iters=ITERS, **kw)
+
+
+@pytest.mark.parametrize("i", [0, 1, 2])
+def test_window_raw_outputs_match_official(official, golden, i):
+  ref = golden[f"window{i}_forward_out"][:, 0, 0]  # [n, 32, 32] padded, before abs
+  raw = official[1][i]
+  assert raw.shape == ref.shape
+  err = np.abs(raw - ref).max()
+  assert err <= ATOL, f"window {i}: max abs error {err:.2e} px"
+
+
+def test_official_stitching_matches_golden(official, golden):
+  ref = golden["disparity"][:, 0]
+  assert official[0].shape == ref.shape == (21, 28, 30)
+  np.testing.assert_allclose(official[0], ref, atol=ATOL, rtol=0)
+
+
+def test_predict_video_equals_official_for_long_clips(variables, golden, official):
+  before = inference.cache_size()
+  disp = _predict(variables, golden["left"], golden["right"])
+  again = _predict(variables, golden["left"].astype(np.uint8), golden["right"].astype(np.uint8))
+  assert inference.cache_size() == before  # same padded shapes: nothing recompiled
+  assert disp.shape == (21, 28, 30) and disp.dtype == np.float32
+  np.testing.assert_array_equal(disp, official[0])
+  np.testing.assert_array_equal(again, disp)  # integer-valued input: uint8 gives the same
+  np.testing.assert_allclose(disp, golden["disparity"][:, 0], atol=ATOL, rtol=0)
+
+
+def test_stitching_equals_windows_run_by_hand(variables, golden):
+  """Frames 0..14 from window [0, 20), frames 15..20 from window [10, 21) ([5:] of it)."""
+  pads = inference.pad_amounts(28, 30)
+  assert pads == (2, 2, 1, 1)
+  with jax.default_matmul_precision("highest"):
+    w0 = inference.run_window(variables, golden["left"][:20], golden["right"][:20],
+                              cfg=sav_jax.SAVConfig(), iters=ITERS)
+    w1 = inference.run_window(variables, golden["left"][10:], golden["right"][10:],
+                              cfg=sav_jax.SAVConfig(), iters=ITERS)
+  by_hand = np.concatenate([np.abs(w0[:15, 2:-2, 1:-1]), np.abs(w1[5:, 2:-2, 1:-1])])
+  np.testing.assert_array_equal(_predict(variables, golden["left"], golden["right"]), by_hand)
+  # The official model's own window outputs, stitched by hand, agree too.
+  ref = np.concatenate([golden["window0_forward_out"][:15, 0, 0],
+                        golden["window1_forward_out"][5:, 0, 0]])
+  np.testing.assert_allclose(by_hand, np.abs(ref[:, 2:-2, 1:-1]), atol=ATOL, rtol=0)
+
+
+@pytest.mark.parametrize("start", [10, 20])
+def test_short_clips_keep_every_frame(variables, golden, official, start):
+  """N=11 and N=1 (< one window): all frames; the official keeps N-5 (none for N=1)."""
+  left, right = golden["left"][start:], golden["right"][start:]
+  disp = _predict(variables, left, right)
+  n = 21 - start
+  assert disp.shape == (n, 28, 30)
+  raw = official[1][start // 10]  # the golden run of exactly these frames
+  np.testing.assert_array_equal(disp, np.abs(raw[:, 2:-2, 1:-1]))
+  with jax.default_matmul_precision("highest"):
+    off = inference.forward_batch_test_official(variables, left, right, iters=ITERS)
+  assert len(off) == max(n - 5, 0)
+  np.testing.assert_array_equal(disp[:len(off)], off)
+
+
+class _LabelModel:
+  """Stand-in for the compiled model: raw output value = 1000 * (start + 1) + local index."""
+
+  def __init__(self):
+    self.calls = []
+
+  def __call__(self, variables, left, right, *, cfg, iters, pads=None, check_memory=True):
+    start = int(left[0, 0, 0, 0])  # frames carry their global index
+    self.calls.append((start, len(left)))
+    h, w = left.shape[1:3]
+    top, bottom, lft, rgt = pads
+    value = 1000.0 * (start + 1) + np.arange(len(left), dtype=np.float32)
+    return -np.broadcast_to(value[:, None, None], (len(left), h + top + bottom,
+                                                   w + lft + rgt)).copy()
+
+
+def _labelled_video(n):
+  return np.broadcast_to(np.arange(n, dtype=np.float32)[:, None, None, None], (n, 5, 7, 3))
+
+
+@pytest.mark.parametrize("n", [7, 23])
+def test_every_frame_returned(monkeypatch, n):
+  fake = _LabelModel()
+  monkeypatch.setattr(inference, "run_window", fake)
+  video = _labelled_video(n)
+  disp = inference.predict_video({}, video, video)
+  assert disp.shape == (n, 5, 7)
+  start, local = disp[:, 0, 0] // 1000 - 1, disp[:, 0, 0] % 1000
+  np.testing.assert_array_equal(start + local, np.arange(n))  # frame t came from frame t
+  if n == 7:
+    assert fake.calls == [(0, 7)]
+  else:  # official windows: [0, 20) keeps 0..14, [10, 23) keeps 15..22; [20, 23) not run
+    assert fake.calls == [(0, 20), (10, 13)]
+    np.testing.assert_array_equal(start, [0] * 15 + [10] * 8)
+  off = inference.forward_batch_test_official({}, video, video)
+  assert len(off) == (2 if n == 7 else 23)  # the official drops frames for N < 20
+  np.testing.assert_array_equal(off, disp[:len(off)])
+
+
+@pytest.mark.parametrize("window,stride", [(20, 10), (8, 4), (6, 3), (5, 5)])
+def test_stitching_sweep(monkeypatch, window, stride):
+  monkeypatch.setattr(inference, "run_window", _LabelModel())
+  for n in range(1, 3 * window + 4):
+    video = _labelled_video(n)
+    disp = inference.predict_video({}, video, video, window=window, stride=stride)
+    label = disp[:, 0, 0]
+    np.testing.assert_array_equal(label // 1000 - 1 + label % 1000, np.arange(n))
+    if n >= window and window == 2 * stride:  # identical to the official code
+      off = inference.forward_batch_test_official({}, video, video, window=window,
+                                                  stride=stride)
+      np.testing.assert_array_equal(off, disp)
+
+
+def test_padding_matches_input_padder():
+  assert inference.pad_amounts(436, 1024) == (6, 6, 0, 0)
+  assert inference.pad_amounts(375, 1242) == (4, 5, 3, 3)
+  x = np.arange(2 * 3 * 5 * 1, dtype=np.float32).reshape(2, 3, 5, 1)
+  pads = (1, 2, 3, 0)
+  p = inference.pad_frames(x, pads)
+  assert p.shape == (2, 6, 8, 1)
+  np.testing.assert_array_equal(p[:, 0, 3:], x[:, 0])  # replicate
+  np.testing.assert_array_equal(inference.unpad(p[..., 0], pads), x[..., 0])
+
+
+def test_bad_inputs():
+  with pytest.raises(ValueError, match="differ in shape"):
+    inference.predict_video({}, np.zeros((2, 8, 8, 3)), np.zeros((3, 8, 8, 3)))
+  with pytest.raises(ValueError, match=r"\[T, H, W, 3\]"):
+    inference.predict_video({}, np.zeros((2, 8, 8)), np.zeros((2, 8, 8)))
+  with pytest.raises(ValueError, match="stride"):
+    inference.window_plan(10, window=4, stride=5)
+
+
+def test_memory_error_before_compiling(variables, monkeypatch):
+  monkeypatch.setattr(inference, "available_memory_bytes", lambda device=None: 2**30)
+  before = inference.cache_size()
+  video = np.zeros((20, 720, 1280, 3), np.uint8)
+  with pytest.raises(inference.InsufficientMemoryError, match=r"needs about \d+\.\d GB") as e:
+    inference.predict_video(variables, video, video)
+  assert isinstance(e.value, MemoryError) and isinstance(e.value, ValueError)
+  assert "736x1280" in str(e.value)
+  assert inference.cache_size() == before
+
+
+def test_memory_estimate_grows_with_size():
+  small = inference.estimate_memory_bytes(20, 32, 32, 20)
+  big = inference.estimate_memory_bytes(20, 736, 1280, 20)
+  assert 0 < small < big
+  assert 20 * 736 * 1280 * 1000 < big < 20 * 736 * 1280 * 10000
+  bf16 = inference.estimate_memory_bytes(20, 736, 1280, 20, sav_jax.SAVConfig(dtype="bfloat16"))
+  assert bf16 < big
