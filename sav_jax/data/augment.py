@@ -259,9 +259,10 @@ def augment_clip(clip: dict, cfg: AugmentConfig, rng: np.random.Generator,
     raise ValueError(f"left/right must be equal [T, H, W, 3] uint8, got {left.shape} "
                      f"{left.dtype} and {right.shape} {right.dtype}")
   out = dict(clip)
-  if cfg.photometric:
+  if cfg.photometric:  # returns new arrays
     left, right = _photometric(left, right, cfg, rng, sparse)
-  left, right = left.copy(), right.copy()  # the eraser writes in place
+  else:  # the eraser writes in place: never into the caller's arrays
+    left, right = left.copy(), right.copy()
   _erase(left, right, cfg, rng)
   out["left"], out["right"] = left, right
   for dkey, vkey, _ in _GT:
@@ -273,6 +274,8 @@ def augment_clip(clip: dict, cfg: AugmentConfig, rng: np.random.Generator,
         raise ValueError(f"sparse clips need `{vkey}` with `{dkey}`")
       if sparse:
         out[vkey] = np.asarray(out[vkey], bool)
+        if out[vkey].shape != left.shape[:3]:
+          raise ValueError(f"{vkey} is {out[vkey].shape}, images are {left.shape[:3]}")
       else:
         out[vkey] = None  # recomputed from the final disparity below
   _spatial(out, cfg, rng, sparse)

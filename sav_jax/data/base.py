@@ -20,9 +20,6 @@ import numpy as np
 
 from sav_jax.data import frame_io
 
-GT_KEYS = ("disparity", "valid", "right_disparity", "right_valid")
-
-
 class StereoSequence:
   """One stereo video, frame by frame; the base class is the images-only reader.
 

@@ -1,0 +1,234 @@
+"""Training augmentation (sav_jax.data.augment): geometry, photometry, masks, determinism."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from sav_jax.data.augment import AugmentConfig, _resize_sparse, augment_clip
+
+T, H, W = 3, 48, 96
+# Spatial identity: s = 1 exactly (crop + 8 = image size), so only the crop moves pixels.
+IDENTITY = AugmentConfig(crop_size=(H - 8, W - 8), scale_range=(0.0, 0.0), stretch_prob=0.0,
+                         photometric=False, eraser_prob=0.0, yjitter=False)
+
+
+def _uniform_clip(colours_left, colours_right):
+  """Clip whose every image is one flat colour ([T, 3] uint8 lists)."""
+  left = np.broadcast_to(np.asarray(colours_left, np.uint8)[:, None, None], (T, H, W, 3))
+  right = np.broadcast_to(np.asarray(colours_right, np.uint8)[:, None, None], (T, H, W, 3))
+  return {"left": left.copy(), "right": right.copy()}
+
+
+def _texture(x, y, phase):
+  """Smooth RGB function (periods >= 40 px keep bilinear resampling error small)."""
+  return np.stack([128 + 60 * np.sin(2 * np.pi * x / 41 + phase + c) * np.cos(2 * np.pi * y / 53
+                                                                              + c)
+                   for c in range(3)], axis=-1)
+
+
+def _planar_clip(rng):
+  """Left/right views of slanted planes d = a + b x + c y (left pixel coordinates):
+  left(x, y) = f(x, y), right(x_r, y) = f(x, y) with x_r = x - d(x, y)."""
+  ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+  clip = {"left": [], "right": [], "disparity": [], "valid": []}
+  for t in range(T):
+    a, b, c = 8.0 + 2 * t, 0.05, 0.1
+    d = a + b * xs + c * ys
+    x_of_right = (xs + a + c * ys) / (1 - b)  # the left x seen at right column xs
+    clip["left"].append(np.round(_texture(xs, ys, t)).astype(np.uint8))
+    clip["right"].append(np.round(_texture(x_of_right, ys, t)).astype(np.uint8))
+    clip["disparity"].append(d.astype(np.float32))
+    clip["valid"].append(np.zeros((H, W), bool))  # dense: must be recomputed, not carried
+  return {k: np.stack(v) for k, v in clip.items()}
+
+
+def test_shapes_dtypes_and_determinism():
+  rng = np.random.default_rng(0)
+  clip = _planar_clip(rng)
+  clip["depth2disp_scale"] = 7.5
+  cfg = AugmentConfig(crop_size=(24, 40), eraser_prob=1.0)
+  before = {k: np.copy(v) for k, v in clip.items()}
+  a = augment_clip(clip, cfg, np.random.default_rng(5))
+  for k, v in before.items():
+    np.testing.assert_array_equal(clip[k], v)  # the input is never written
+  b = augment_clip(clip, cfg, np.random.default_rng(5))
+  c = augment_clip(clip, cfg, np.random.default_rng(6))
+  assert a["left"].shape == a["right"].shape == (T, 24, 40, 3) and a["left"].dtype == np.uint8
+  assert a["disparity"].shape == a["valid"].shape == (T, 24, 40)
+  assert a["disparity"].dtype == np.float32 and a["valid"].dtype == bool
+  assert a["depth2disp_scale"] == 7.5  # passed through
+  for k in ("left", "right", "disparity", "valid"):
+    np.testing.assert_array_equal(a[k], b[k])
+    assert a[k].flags.c_contiguous
+  assert not np.array_equal(a["left"], c["left"])
+
+
+def _warp_errors(out, scale=1.0):
+  """|left - right sampled at x - scale * d| on interior pixels of every frame."""
+  errs = []
+  _, h, w = out["disparity"].shape
+  for t in range(T):
+    d = out["disparity"][t] * scale
+    xr = np.arange(w)[None, :] - d
+    x0 = np.floor(xr).astype(int)
+    inside = (x0 >= 0) & (x0 + 1 <= w - 1)
+    inside[:2], inside[-2:] = False, False  # cv2 resize clamps the source at borders
+    assert inside.sum() > 300
+    rows = np.broadcast_to(np.arange(h)[:, None], d.shape)
+    x0c = np.clip(x0, 0, w - 2)
+    a = (xr - x0c)[..., None]
+    right = out["right"][t].astype(np.float64)
+    warped = right[rows, x0c] * (1 - a) + right[rows, x0c + 1] * a
+    errs.append(np.abs(warped - out["left"][t])[inside])
+  return np.concatenate(errs)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_left_right_consistency_after_crop_and_scale(seed):
+  clip = _planar_clip(np.random.default_rng(seed))
+  cfg = AugmentConfig(crop_size=(24, 48), scale_range=(0.2, 0.4), photometric=False,
+                      eraser_prob=0.0, yjitter=False)  # stretch on: sx != sy
+  out = augment_clip(clip, cfg, np.random.default_rng(seed))
+  err = _warp_errors(out)
+  assert err.mean() < 0.8 and err.max() < 4.0, (err.mean(), err.max())
+  # The check is sensitive: a disparity 10 % off (e.g. scaled by sy, or not at all)
+  # misaligns the views by about a pixel.
+  assert _warp_errors(out, 0.9).mean() > 3 * err.mean() + 1.0
+  np.testing.assert_array_equal(out["valid"], (out["disparity"] != 0)
+                                & (np.abs(out["disparity"]) < 512))
+  assert out["valid"].all()
+
+
+def test_dense_valid_is_recomputed_from_the_final_disparity():
+  clip = _planar_clip(np.random.default_rng(1))
+  clip["disparity"][:, :10] = 0.0
+  clip["disparity"][:, 20:30, 40:60] = 600.0
+  clip["valid"][:] = True
+  out = augment_clip(clip, IDENTITY, np.random.default_rng(2))
+  d = out["disparity"]
+  np.testing.assert_array_equal(out["valid"], (d != 0) & (np.abs(d) < 512))
+  assert (~out["valid"]).sum() > 0 and out["valid"].sum() > 0
+
+
+def test_sparse_resize_scatters_rounded_points():
+  disp = np.zeros((4, 6), np.float32)
+  valid = np.zeros((4, 6), bool)
+  for (y, x, v) in ((1, 2, 3.0), (2, 4, 5.0), (3, 0, 7.0), (0, 3, 9.0), (1, 3, 11.0)):
+    disp[y, x], valid[y, x] = v, True
+  d, m = _resize_sparse(disp, valid, 1.5, 2.0, (8, 9))
+  # (1,2) -> (2, 3); (2,4) -> (4, 6); (3,0) -> x = 0 dropped; (0,3) -> y = 0 dropped;
+  # (1,3) -> (2, round(4.5) = 4).
+  assert sorted(zip(*np.nonzero(m))) == [(2, 3), (2, 4), (4, 6)]
+  assert d[2, 3] == 4.5 and d[4, 6] == 7.5 and d[2, 4] == 16.5
+  assert d[~m].max() == 0
+
+
+def test_sparse_clip_carries_its_mask():
+  rng = np.random.default_rng(3)
+  clip = _planar_clip(rng)
+  mask = rng.random((T, H, W)) < 0.1
+  clip["disparity"] = np.where(mask, clip["disparity"], 0).astype(np.float32)
+  clip["valid"] = mask
+  clip["sparse"] = True
+  cfg = AugmentConfig(crop_size=(24, 48))
+  out = augment_clip(clip, cfg, np.random.default_rng(4))
+  assert out["valid"].dtype == bool and out["valid"].shape == (T, 24, 48)
+  assert out["valid"].any() and (out["disparity"][out["valid"]] > 0).all()
+  assert (out["disparity"][~out["valid"]] == 0).all()
+  assert out["valid"].sum() <= mask.sum()
+  with pytest.raises(ValueError, match="sparse clips need `valid`"):
+    augment_clip({**clip, "valid": None}, cfg, np.random.default_rng(4))
+
+
+def test_yjitter_moves_only_the_right_view_by_at_most_two_rows():
+  rows = np.broadcast_to(np.arange(H, dtype=np.uint8)[:, None, None], (T, H, W, 3))
+  clip = {"left": rows.copy(), "right": rows.copy(), "disparity": np.ones((T, H, W), np.float32),
+          "right_disparity": np.ones((T, H, W), np.float32) * rows[..., 0]}
+  for yjitter in (False, True):
+    cfg = dataclasses.replace(IDENTITY, yjitter=yjitter)
+    shifts = set()
+    for seed in range(6):
+      out = augment_clip(clip, cfg, np.random.default_rng(seed))
+      delta = out["right"][..., 0].astype(int) - out["left"][..., 0]
+      for t in range(T):
+        assert len(np.unique(delta[t])) == 1  # a pure row offset, same x0
+        shifts.add(int(delta[t, 0, 0]))
+        np.testing.assert_array_equal(out["right_disparity"][t], out["right"][t, ..., 0])
+    if yjitter:
+      assert shifts <= set(range(-2, 3)) and len(shifts) > 1
+    else:
+      assert shifts == {0}
+
+
+def test_photometric_symmetric_vs_asymmetric_brightness():
+  only_brightness = dict(photometric=True, contrast=(1, 1), saturation=(1, 1), hue=(0, 0))
+  colours_l = [[200, 100, 50], [90, 180, 30], [10, 60, 250]]
+  colours_r = [[150, 150, 150], [240, 20, 120], [70, 70, 200]]
+  clip = _uniform_clip(colours_l, colours_r)
+  src = np.array(colours_l + colours_r, np.float64)
+  for asym, expect_shared in ((0.0, True), (1.0, False)):
+    cfg = dataclasses.replace(IDENTITY, asymmetric_prob=asym, **only_brightness)
+    out = augment_clip(clip, cfg, np.random.default_rng(11))
+    got = np.concatenate([out["left"][:, 0, 0], out["right"][:, 0, 0]]).astype(np.float64)
+    assert (out["left"] == out["left"][:, :1, :1]).all()  # still flat
+    # One shared factor f reproduces every image as trunc(f * colour); got[0, 0]
+    # pins f down to +-0.005.
+    f = got[0, 0] / src[0, 0]
+    shared = any(np.array_equal(np.floor(np.clip(f2 * src, 0, 255)), got)
+                 for f2 in np.linspace(f - 0.01, f + 0.01, 401))
+    assert shared == expect_shared
+
+
+def test_photometric_saturation_zero_gives_grey_and_gamma_lut():
+  clip = _uniform_clip([[200, 100, 50]] * T, [[10, 60, 250]] * T)
+  cfg = dataclasses.replace(IDENTITY, photometric=True, brightness=(1, 1), contrast=(1, 1),
+                            saturation=(0, 0), hue=(0, 0), asymmetric_prob=0.0)
+  out = augment_clip(clip, cfg, np.random.default_rng(0))
+  for view in (out["left"], out["right"]):
+    assert (view == view[..., :1]).all()  # R = G = B
+  assert abs(int(out["left"][0, 0, 0, 0]) - round(0.299 * 200 + 0.587 * 100 + 0.114 * 50)) <= 1
+  cfg = dataclasses.replace(IDENTITY, photometric=True, brightness=(1, 1), contrast=(1, 1),
+                            saturation=(1, 1), hue=(0, 0), gamma=(2.0, 2.0))
+  out = augment_clip(clip, cfg, np.random.default_rng(0))
+  expect = [int(255.999 * (v / 255) ** 2) for v in (200, 100, 50)]
+  np.testing.assert_array_equal(out["left"][0, 0, 0], expect)
+
+
+def test_hue_shift_keeps_grey_and_rotates_colour():
+  clip = _uniform_clip([[128, 128, 128]] * T, [[220, 30, 30]] * T)
+  cfg = dataclasses.replace(IDENTITY, photometric=True, brightness=(1, 1), contrast=(1, 1),
+                            saturation=(1, 1), hue=(1 / 3, 1 / 3), asymmetric_prob=0.0)
+  out = augment_clip(clip, cfg, np.random.default_rng(0))
+  assert (out["left"] == 128).all()
+  r, g, b = (int(v) for v in out["right"][0, 0, 0])
+  assert g > 150 and r < 60 and b < 60  # red turned a third of a turn: green
+
+
+def test_eraser_fills_with_frame0_left_mean():
+  clip = _uniform_clip([[200, 10, 10], [0, 200, 0], [0, 0, 200]],
+                       [[5, 5, 5], [6, 6, 6], [7, 7, 7]])
+  cfg = dataclasses.replace(IDENTITY, eraser_prob=1.0, eraser_count=(1, 1))
+  out = augment_clip(clip, cfg, np.random.default_rng(3))
+  erased = 0
+  for view, colours in ((out["left"], clip["left"]), (out["right"], clip["right"])):
+    for t in range(T):
+      px = view[t].reshape(-1, 3)
+      is_fill = (px == (200, 10, 10)).all(axis=1)
+      assert (is_fill | (px == colours[t, 0, 0]).all(axis=1)).all()
+      erased += int(is_fill.sum() > 0 and not np.array_equal(colours[t, 0, 0], (200, 10, 10)))
+  assert erased >= 3
+
+
+def test_bad_inputs():
+  clip = _planar_clip(np.random.default_rng(0))
+  with pytest.raises(ValueError, match="uint8"):
+    augment_clip({**clip, "right": clip["right"][:, :-1]}, IDENTITY, np.random.default_rng(0))
+  with pytest.raises(ValueError, match="disparity is"):
+    augment_clip({**clip, "disparity": clip["disparity"][:, 1:]}, IDENTITY,
+                 np.random.default_rng(0))
+  with pytest.raises(ValueError, match="cannot crop"):
+    augment_clip(clip, dataclasses.replace(IDENTITY, crop_size=(H + 1, W), spatial_prob=0.0),
+                 np.random.default_rng(0))
+  with pytest.raises(ValueError, match="scale_range"):
+    AugmentConfig(scale_range=(0.4, -0.2))

@@ -1,0 +1,100 @@
+"""Model structure, input validation, gradients and shape generality."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sav_jax
+from sav_jax.model.init import abstract_variables, init_variables
+
+SHAPE = (1, 2, 32, 48, 3)  # B, T, H, W, C: smallest shape with a 2x3 grid at 1/16
+
+
+@pytest.fixture(scope="module")
+def model():
+  return sav_jax.StereoAnyVideo()
+
+
+@pytest.fixture(scope="module")
+def variables():
+  return jax.tree_util.tree_map(jnp.asarray, init_variables(seed=1))
+
+
+@pytest.fixture(scope="module")
+def clip():
+  rng = np.random.default_rng(3)
+  left = rng.uniform(0, 255, SHAPE).astype(np.float32)
+  right = np.roll(left, -3, axis=3)
+  return jnp.asarray(left), jnp.asarray(right)
+
+
+def test_parameter_tree_matches_the_official_manifest(fixtures_dir):
+  import json
+  manifest = json.loads((fixtures_dir / "sav_manifest.json").read_text())
+  used = sum(int(np.prod(e["shape"])) for e in manifest["keys"]
+             if e["kind"] == "parameter" and e["used_in_forward"])
+  shapes = abstract_variables(sav_jax.SAVConfig())["params"]
+  assert sum(int(np.prod(x.shape)) for x in jax.tree_util.tree_leaves(shapes)) == used
+  assert set(shapes) == {"cnet", "fnet", "depthnet", "corr_mlp", "update_block"}
+
+
+@pytest.mark.parametrize("left_shape,right_shape,iters,match", [
+    ((1, 2, 32, 48, 3), (1, 2, 32, 48, 3), 3, "even integer"),
+    ((1, 2, 32, 48, 3), (1, 2, 32, 48, 3), 0, "even integer"),
+    ((1, 2, 32, 48, 1), (1, 2, 32, 48, 1), 2, "RGB"),
+    ((2, 32, 48, 3), (2, 32, 48, 3), 2, "RGB"),
+    ((1, 2, 32, 48, 3), (1, 3, 32, 48, 3), 2, "differ in shape"),
+    ((1, 2, 40, 48, 3), (1, 2, 40, 48, 3), 2, "multiples of 16"),
+])
+def test_bad_inputs_raise_clear_errors(model, left_shape, right_shape, iters, match):
+  left, right = jnp.zeros(left_shape), jnp.zeros(right_shape)
+  with pytest.raises(ValueError, match=match):
+    jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=iters), left, right)
+
+
+def test_bad_config_raises():
+  with pytest.raises(ValueError, match="vda_encoder"):
+    sav_jax.SAVConfig(vda_encoder="vitx")
+  with pytest.raises(ValueError, match="dtype"):
+    sav_jax.SAVConfig(dtype="float16")
+
+
+def test_gradients_are_finite_and_the_depth_prior_is_frozen(model, variables, clip):
+  """jax.grad w.r.t. variables and images, under jit, with remat on."""
+  remat_model = sav_jax.StereoAnyVideo(sav_jax.SAVConfig(remat=True))
+
+  @jax.jit
+  def grads(v, left, right):
+    loss = lambda v, l, r: jnp.abs(remat_model.apply(v, l, r, iters=2).disparities[-1] - 3).mean()
+    return jax.grad(loss, argnums=(0, 1, 2))(v, left, right)
+
+  g_vars, g_left, g_right = grads(variables, *clip)
+  leaves = jax.tree_util.tree_leaves(g_vars)
+  assert all(bool(jnp.isfinite(x).all()) for x in leaves)
+  assert bool(jnp.isfinite(g_left).all()) and bool(jnp.isfinite(g_right).all())
+  assert float(jnp.abs(g_left).sum()) > 0
+  vda = jax.tree_util.tree_leaves(g_vars["params"]["depthnet"]["depthanything"])
+  assert all(float(jnp.abs(x).max()) == 0 for x in vda)
+  for name in ("fnet", "cnet", "update_block", "corr_mlp"):
+    assert any(float(jnp.abs(x).max()) > 0 for x in jax.tree_util.tree_leaves(g_vars["params"][name]))
+  assert float(jnp.abs(g_vars["params"]["depthnet"]["conv"]["kernel"]).max()) > 0
+
+
+def test_batch_elements_are_independent(model, variables, clip):
+  """A batch of two clips gives each clip's own result (other weight seed, other shape)."""
+  left, right = clip
+  other_l, other_r = left[:, ::-1], right[:, ::-1]
+  fn = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=2, final_only=True).disparities)
+  both = fn(variables, jnp.concatenate([left, other_l]), jnp.concatenate([right, other_r]))
+  np.testing.assert_allclose(both[:, :1], fn(variables, left, right), atol=1e-4)
+  np.testing.assert_allclose(both[:, 1:], fn(variables, other_l, other_r), atol=1e-4)
+
+
+def test_final_only_is_the_last_prediction(model, variables, clip):
+  fn = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=4).disparities)
+  full = fn(variables, *clip)
+  assert full.shape == (8, *SHAPE[:4])
+  last = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=4, final_only=True).disparities)(
+      variables, *clip)
+  np.testing.assert_allclose(last[0], full[-1], atol=1e-5)
