@@ -18,6 +18,16 @@ ATOL = 1e-4  # px, the fixture README's criterion for final disparities
 ITERS = 2
 
 
+@pytest.fixture(scope="module", autouse=True)
+def fast_compile():
+  """Most XLA optimisations off while this module compiles: about 2x faster on CPU, same
+  float32 graph (parity errors stay ~1e-5 px)."""
+  old = jax.config.jax_disable_most_optimizations
+  jax.config.update("jax_disable_most_optimizations", True)
+  yield
+  jax.config.update("jax_disable_most_optimizations", old)
+
+
 @pytest.fixture(scope="module")
 def variables(sav_state_dict):
   return sav_jax.convert.params_from_state_dict(sav_state_dict, sav_jax.SAVConfig())

@@ -82,19 +82,13 @@ def test_gradients_are_finite_and_the_depth_prior_is_frozen(model, variables, cl
 
 
 def test_batch_elements_are_independent(model, variables, clip):
-  """A batch of two clips gives each clip's own result (other weight seed, other shape)."""
+  """Changing one clip of a batch leaves the other's result unchanged (one compile)."""
   left, right = clip
   other_l, other_r = left[:, ::-1], right[:, ::-1]
   fn = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=2, final_only=True).disparities)
-  both = fn(variables, jnp.concatenate([left, other_l]), jnp.concatenate([right, other_r]))
-  np.testing.assert_allclose(both[:, :1], fn(variables, left, right), atol=1e-4)
-  np.testing.assert_allclose(both[:, 1:], fn(variables, other_l, other_r), atol=1e-4)
-
-
-def test_final_only_is_the_last_prediction(model, variables, clip):
-  fn = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=4).disparities)
-  full = fn(variables, *clip)
-  assert full.shape == (8, *SHAPE[:4])
-  last = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=4, final_only=True).disparities)(
-      variables, *clip)
-  np.testing.assert_allclose(last[0], full[-1], atol=1e-5)
+  mixed = fn(variables, jnp.concatenate([left, other_l]), jnp.concatenate([right, other_r]))
+  same = fn(variables, jnp.concatenate([left, left]), jnp.concatenate([right, right]))
+  assert mixed.shape == (1, 2, *SHAPE[1:4])
+  np.testing.assert_allclose(mixed[:, 0], same[:, 0], atol=1e-5)
+  np.testing.assert_allclose(same[:, 0], same[:, 1], atol=1e-5)
+  assert float(jnp.abs(mixed[:, 1] - same[:, 1]).max()) > 1e-3

@@ -1,0 +1,295 @@
+"""grain input pipelines: sources, mixtures, per-process shards, global device batches.
+
+A training example is a dict of numpy arrays with static shapes:
+
+  left, right: [T, H, W, 3] uint8 RGB
+  disparity:   [T, H, W] float32, positive left-view disparity (px)
+  valid:       [T, H, W] bool
+
+The pipeline (per source, then mixed):
+
+  source[process_index::process_count]      each process reads only its shard
+    .shuffle(seed).repeat()                 a new permutation every epoch
+    .map(load).random_map(augment)          augmentation seeded by (seed, index)
+  MapDataset.mix(sources, weights)          deterministic interleaving by weight
+    .to_iter_dataset(ReadOptions(threads))  prefetching threads
+    .batch(per_process_batch, drop_remainder=True)  -> [B_local, T, H, W, ...]
+    [.mp_prefetch(workers)]
+
+`GlobalBatchIterator` turns each local batch into global `jax.Array`s sharded on the
+mesh's data axis (`jax.make_array_from_process_local_data`). Its `get_state()` /
+`set_state()` (and `grain_iterator` for `grain.checkpoint.CheckpointSave`) make the
+stream resumable exactly: a restored iterator yields the batches the uninterrupted
+one would have.
+
+Usage:
+
+  src = synthetic_source(SyntheticConfig(frames=3, height=64, width=128), 10_000)
+  ds = make_train_dataset([src], [1.0], batch_size=4, seed=0)
+  it = GlobalBatchIterator(iter(ds), data_sharding)
+  batch = next(it)          # {"left": jax.Array [B, T, H, W, 3], ...}
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Any, Callable, Mapping, Sequence
+
+import grain
+import jax
+import numpy as np
+
+from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo
+
+log = logging.getLogger(__name__)
+
+EXAMPLE_KEYS = ("left", "right", "disparity", "valid")
+# Field names an `AugmentConfig` may use for the output crop (filled from the config).
+_CROP_FIELDS = ("crop_size", "crop", "image_size")
+
+
+def as_example(clip: Mapping[str, Any]) -> dict[str, np.ndarray]:
+  """Keeps the training keys with the pipeline's dtypes and checks their shapes.
+
+  Args:
+    clip: dict with `left`, `right` `[T, H, W, 3]`, `disparity` `[T, H, W]` (or
+      `[T, H, W, 1]`) and `valid` `[T, H, W]` (bool or float; >= 0.5 is valid).
+
+  Returns:
+    A new dict with exactly `EXAMPLE_KEYS`.
+  """
+  left, right = np.asarray(clip["left"]), np.asarray(clip["right"])
+  disp = np.asarray(clip["disparity"], np.float32)
+  valid = np.asarray(clip["valid"])
+  if disp.ndim == 4 and disp.shape[-1] == 1:
+    disp = disp[..., 0]
+  if valid.ndim == 4 and valid.shape[-1] == 1:
+    valid = valid[..., 0]
+  if valid.dtype != bool:
+    valid = valid >= 0.5
+  if left.shape != right.shape or left.ndim != 4 or left.shape[-1] != 3:
+    raise ValueError(f"left/right must be [T, H, W, 3] of equal shape, got {left.shape} "
+                     f"and {right.shape}")
+  if disp.shape != left.shape[:3] or valid.shape != left.shape[:3]:
+    raise ValueError(f"disparity {disp.shape} / valid {valid.shape} do not match the "
+                     f"images {left.shape[:3]}")
+  as_u8 = lambda a: a if a.dtype == np.uint8 else np.clip(np.rint(a), 0, 255).astype(np.uint8)
+  return {"left": as_u8(left), "right": as_u8(right), "disparity": disp, "valid": valid}
+
+
+def synthetic_source(cfg: SyntheticConfig, num_clips: int) -> grain.MapDataset:
+  """`num_clips` procedural clips of `cfg` (deterministic per index)."""
+  return grain.MapDataset.source(SyntheticStereoVideo(cfg, num_clips)).map(as_example)
+
+
+class _LoadClip:
+  """Registry item -> clip dict (picklable, for grain worker processes).
+
+  An item is what `registry.get_training_clips` returns: a clip dict, or a
+  `(sequence, frame_indices)` pair where `sequence[i]` is a frame given as a dict
+  with the example keys or a `(left, right, disparity, valid)` tuple. When the
+  registry offers `load_clip(item)`, that is used instead.
+  """
+
+  def __call__(self, item) -> dict[str, np.ndarray]:
+    from sav_jax.data import registry  # pylint: disable=g-import-not-at-top
+    if hasattr(registry, "load_clip"):
+      return registry.load_clip(item)
+    if isinstance(item, Mapping):
+      return dict(item)
+    sequence, frames = item
+    loaded = [sequence[int(i)] for i in frames]
+    if isinstance(loaded[0], Mapping):
+      return {k: np.stack([f[k] for f in loaded]) for k in EXAMPLE_KEYS}
+    return {k: np.stack([f[j] for f in loaded]) for j, k in enumerate(EXAMPLE_KEYS)}
+
+
+def registry_source(dataset: str, root: str, frames: int, split: str = "train",
+                    seed: int = 0) -> grain.MapDataset:
+  """Clips of a real dataset (`sav_jax.data.registry`), loaded lazily, not augmented."""
+  from sav_jax.data import registry  # pylint: disable=g-import-not-at-top
+  items = registry.get_training_clips(dataset, root, frames, split=split, seed=seed)
+  if len(items) == 0:
+    raise ValueError(f"dataset {dataset!r} under {root!r} (split {split!r}) has no clips of "
+                     f"{frames} frames")
+  return grain.MapDataset.source(items).map(_LoadClip())
+
+
+@dataclasses.dataclass(frozen=True)
+class Augment:
+  """`sav_jax.data.augment.augment_clip` as a grain random map (picklable).
+
+  Attributes:
+    crop: `(H, W)` output size; checked after augmentation.
+    overrides: extra `AugmentConfig` fields, as `(name, value)` pairs.
+  """
+
+  crop: tuple[int, int]
+  overrides: tuple[tuple[str, Any], ...] = ()
+
+  def _config(self):
+    from sav_jax.data import augment  # pylint: disable=g-import-not-at-top
+    kwargs = dict(self.overrides)
+    names = {f.name for f in dataclasses.fields(augment.AugmentConfig)}
+    for name in _CROP_FIELDS:
+      if name in names and name not in kwargs:
+        kwargs[name] = tuple(self.crop)
+        break
+    return augment.AugmentConfig(**kwargs)
+
+  def __call__(self, clip, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    from sav_jax.data import augment  # pylint: disable=g-import-not-at-top
+    out = as_example(augment.augment_clip(clip, self._config(), rng))
+    if out["left"].shape[1:3] != tuple(self.crop):
+      raise ValueError(f"augmentation produced {out['left'].shape[1:3]}, expected the crop "
+                       f"{tuple(self.crop)}")
+    return out
+
+
+def center_crop(clip: Mapping[str, np.ndarray], crop: tuple[int, int]) -> dict[str, np.ndarray]:
+  """Central `crop = (H, W)` window of every frame (validation of real data)."""
+  ex = as_example(clip)
+  h, w = ex["left"].shape[1:3]
+  ch, cw = crop
+  if ch > h or cw > w:
+    raise ValueError(f"crop {crop} larger than the frames {(h, w)}")
+  y0, x0 = (h - ch) // 2, (w - cw) // 2
+  return {k: v[:, y0:y0 + ch, x0:x0 + cw] for k, v in ex.items()}
+
+
+def shard(ds: grain.MapDataset, process_index: int | None = None,
+          process_count: int | None = None) -> grain.MapDataset:
+  """This process's elements `ds[process_index::process_count]` (default: JAX's)."""
+  pi = jax.process_index() if process_index is None else process_index
+  pc = jax.process_count() if process_count is None else process_count
+  if not 0 <= pi < pc:
+    raise ValueError(f"process_index {pi} not in [0, {pc})")
+  if len(ds) < pc:
+    raise ValueError(f"{len(ds)} elements cannot be sharded over {pc} processes")
+  return ds[pi::pc]
+
+
+def mixture_weights(lengths: Sequence[int], weights: Sequence[float], mode: str) -> list[float]:
+  """Sampling proportions of the mixed sources.
+
+  Args:
+    lengths: number of clips of each source (before sharding).
+    weights: per-source weights.
+    mode: `"ratio"`: the weights are the sampling proportions; `"concat"`: the weights
+      are repeat counts of each dataset in a concatenation (the official
+      `dataset + dataset`), so proportions are `weight * length`.
+
+  Returns:
+    Normalised proportions.
+  """
+  if len(lengths) != len(weights) or not lengths:
+    raise ValueError(f"need one weight per source, got {len(weights)} for {len(lengths)}")
+  if mode == "concat":
+    raw = [float(w) * n for w, n in zip(weights, lengths)]
+  elif mode == "ratio":
+    raw = [float(w) for w in weights]
+  else:
+    raise ValueError(f"unknown mixing mode {mode!r}; expected 'ratio' or 'concat'")
+  if min(raw) < 0 or sum(raw) <= 0:
+    raise ValueError(f"mixture weights must be >= 0 with a positive sum, got {weights}")
+  return [r / sum(raw) for r in raw]
+
+
+def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[float], *,
+                       batch_size: int, seed: int, mode: str = "ratio",
+                       transforms: Sequence[Callable | None] | None = None,
+                       process_index: int | None = None, process_count: int | None = None,
+                       num_threads: int = 2, prefetch: int = 4,
+                       worker_count: int = 0) -> grain.IterDataset:
+  """Infinite, shuffled, mixed, per-process batched training stream.
+
+  Args:
+    sources: random-access datasets of clips (e.g. `synthetic_source`,
+      `registry_source`), each over all clips (sharding happens here).
+    weights: mixture weights (see `mixture_weights`).
+    batch_size: clips per batch *of this process* (global batch / process count).
+    seed: shuffling and augmentation seed (the same on every process).
+    mode: `"ratio"` or `"concat"` weighting.
+    transforms: per source, `None` or a random map `(clip, np.random.Generator) -> example`
+      (e.g. `Augment`); without one, `as_example` is applied.
+    process_index, process_count: this process's shard (default: JAX's).
+    num_threads: reader threads; prefetch: elements buffered per thread pool.
+    worker_count: > 0 adds `mp_prefetch` with that many worker processes.
+
+  Returns:
+    A `grain.IterDataset` of dicts `left/right [B, T, H, W, 3] uint8`, `disparity
+    [B, T, H, W] float32`, `valid [B, T, H, W] bool`.
+  """
+  transforms = list(transforms) if transforms is not None else [None] * len(sources)
+  props = mixture_weights([len(s) for s in sources], weights, mode)
+  streams = []
+  for i, (src, tf) in enumerate(zip(sources, transforms)):
+    ds = shard(src, process_index, process_count).shuffle(seed=seed + 7919 * i).repeat()
+    ds = ds.random_map(tf, seed=seed + 104729 * (i + 1)) if tf is not None else ds.map(as_example)
+    streams.append(ds)
+  ds = streams[0] if len(streams) == 1 else grain.MapDataset.mix(streams, props)
+  read = grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch)
+  it = ds.to_iter_dataset(read).batch(batch_size, drop_remainder=True)
+  if worker_count > 0:
+    it = it.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count))
+  return it
+
+
+def to_global(batch: Mapping[str, np.ndarray], sharding: jax.sharding.Sharding
+              ) -> dict[str, jax.Array]:
+  """Process-local `[B_local, ...]` numpy arrays -> global arrays `[B_local * P, ...]`."""
+  return {k: jax.make_array_from_process_local_data(sharding, np.asarray(v))
+          for k, v in batch.items()}
+
+
+class GlobalBatchIterator:
+  """Iterator of global device batches over a grain iterator, with its state.
+
+  Args:
+    iterator: a `grain.DatasetIterator` of local numpy batches.
+    sharding: sharding of the batch (leading axis on the mesh's data axis).
+  """
+
+  def __init__(self, iterator, sharding: jax.sharding.Sharding):
+    self.grain_iterator = iterator
+    self.sharding = sharding
+
+  def __iter__(self):
+    return self
+
+  def __next__(self) -> dict[str, jax.Array]:
+    return to_global(next(self.grain_iterator), self.sharding)
+
+  def get_state(self):
+    return self.grain_iterator.get_state()
+
+  def set_state(self, state) -> None:
+    self.grain_iterator.set_state(state)
+
+
+def fixed_clips(ds: grain.MapDataset, num_clips: int,
+                transform: Callable[[Mapping[str, Any]], dict] = as_example
+                ) -> list[dict[str, np.ndarray]]:
+  """The first `num_clips` clips of `ds` on the host (a held-out validation set)."""
+  if len(ds) < num_clips:
+    raise ValueError(f"validation set has {len(ds)} clips, {num_clips} requested")
+  return [transform(ds[i]) for i in range(num_clips)]
+
+
+def eval_batches(clips: Sequence[Mapping[str, np.ndarray]], batch_size: int
+                 ) -> list[tuple[dict[str, np.ndarray], int]]:
+  """Stacks clips into batches of exactly `batch_size` (static shapes).
+
+  The last batch is padded by repeating its last clip.
+
+  Returns:
+    `[(batch, num_real_clips)]` with `batch` arrays `[batch_size, ...]`.
+  """
+  out = []
+  for start in range(0, len(clips), batch_size):
+    part = list(clips[start:start + batch_size])
+    n = len(part)
+    part += [part[-1]] * (batch_size - n)
+    out.append(({k: np.stack([c[k] for c in part]) for k in EXAMPLE_KEYS}, n))
+  return out

@@ -1,0 +1,112 @@
+"""`sav-jax bench`: compile time, forward time, frames/s and peak memory of the model."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import statistics
+import sys
+import time
+
+HELP = "benchmark the compiled forward pass (compile time, median time, fps, peak memory)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+  p.add_argument("--frames", type=int, default=5, help="frames per clip (T)")
+  p.add_argument("--height", type=int, default=128)
+  p.add_argument("--width", type=int, default=256)
+  p.add_argument("--iters", type=int, default=8, help="refinement iterations at 1/4 (even)")
+  p.add_argument("--batch", type=int, default=1)
+  p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
+  p.add_argument("--repeats", type=int, default=5, help="timed calls after the warm-up call")
+  p.add_argument("--all-predictions", action="store_true",
+                 help="return every refinement step (training view) instead of the final one")
+  p.add_argument("--json", help="write the results to this JSON file")
+  p.add_argument("--compare", help="a JSON written by --json: print the ratios against it")
+
+
+def _peak_rss_gb() -> float:
+  rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+  return rss / (1024 ** 3 if sys.platform == "darwin" else 1024 ** 2)
+
+
+def _device_peak_gb(device):
+  try:
+    stats = device.memory_stats() or {}
+  except Exception:  # pylint: disable=broad-except  # CPU backends may not implement it
+    return None
+  peak = stats.get("peak_bytes_in_use")
+  return None if peak is None else peak / 1024 ** 3
+
+
+def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
+            final_only=True) -> dict:
+  """Compiles and times the forward pass on random weights and a random clip.
+
+  Returns:
+    dict with `compile_s`, `median_s`, `min_s`, `fps`, `peak_rss_gb`,
+    `device_peak_gb` (None on CPU) and the settings.
+  """
+  import jax  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  import numpy as np  # pylint: disable=import-outside-toplevel
+
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
+
+  cfg = sav_jax.SAVConfig(dtype=dtype)
+  model = sav_jax.StereoAnyVideo(cfg)
+  variables = jax.device_put(init_variables(cfg, seed=0))
+  rng = np.random.default_rng(0)
+  left = jnp.asarray(rng.uniform(0, 255, (batch, frames, height, width, 3)), jnp.float32)
+  right = jnp.roll(left, -4, axis=3)
+  fwd = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=iters, final_only=final_only).disparities)
+  t0 = time.perf_counter()
+  compiled = fwd.lower(variables, left, right).compile()
+  compile_s = time.perf_counter() - t0
+  compiled(variables, left, right).block_until_ready()  # warm-up
+  times = []
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    compiled(variables, left, right).block_until_ready()
+    times.append(time.perf_counter() - t0)
+  median = statistics.median(times)
+  device = jax.devices()[0]
+  return dict(
+      frames=frames, height=height, width=width, iters=iters, batch=batch, dtype=dtype,
+      final_only=final_only, compile_s=compile_s, median_s=median, min_s=min(times),
+      fps=batch * frames / median, peak_rss_gb=_peak_rss_gb(),
+      device_peak_gb=_device_peak_gb(device), device=f"{device.platform}:{device.device_kind}",
+      host=platform.node(), jax=jax.__version__, date=time.strftime("%Y-%m-%d"))
+
+
+def run(args: argparse.Namespace) -> int:
+  from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
+  if args.height % 16 or args.width % 16:
+    raise UsageError(f"--height/--width must be multiples of 16 (got {args.height}x{args.width})")
+  if args.iters < 2 or args.iters % 2:
+    raise UsageError(f"--iters must be even and >= 2 (got {args.iters})")
+  res = measure(args.frames, args.height, args.width, args.iters, args.batch, args.dtype,
+                args.repeats, final_only=not args.all_predictions)
+  print(f"device        {res['device']}  (jax {res['jax']})")
+  print(f"input         B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
+        f"iters={res['iters']} {res['dtype']}")
+  print(f"compile       {res['compile_s']:.2f} s")
+  print(f"forward       median {res['median_s']:.3f} s  (min {res['min_s']:.3f} s, "
+        f"{args.repeats} runs)")
+  print(f"throughput    {res['fps']:.2f} frames/s")
+  print(f"peak host RSS {res['peak_rss_gb']:.2f} GB")
+  if res["device_peak_gb"] is not None:
+    print(f"device peak   {res['device_peak_gb']:.2f} GB")
+  if args.compare:
+    with open(args.compare) as f:
+      base = json.load(f)
+    print(f"vs {args.compare}: forward x{base['median_s'] / res['median_s']:.2f} faster, "
+          f"compile x{base['compile_s'] / res['compile_s']:.2f}, "
+          f"peak RSS x{res['peak_rss_gb'] / base['peak_rss_gb']:.2f}")
+  if args.json:
+    with open(args.json, "w") as f:
+      json.dump(res, f, indent=1)
+  return 0

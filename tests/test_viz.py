@@ -1,0 +1,119 @@
+"""Colour maps, videos, point clouds and disparity file formats (round trips)."""
+
+import cv2
+import numpy as np
+import pytest
+
+from sav_jax import viz
+
+
+@pytest.fixture()
+def disp():
+  rng = np.random.default_rng(0)
+  d = rng.uniform(0.5, 200.0, (13, 17)).astype(np.float32)
+  d[0, 0], d[3, 4], d[5, 6] = 0.0, -2.0, np.nan
+  return d
+
+
+def test_png16_round_trip(tmp_path, disp):
+  viz.write_png16(tmp_path / "d.png", disp)
+  raw = cv2.imread(str(tmp_path / "d.png"), cv2.IMREAD_UNCHANGED)
+  assert raw.dtype == np.uint16
+  back, valid = viz.read_png16(tmp_path / "d.png")
+  ok = np.isfinite(disp) & (disp > 0)
+  np.testing.assert_array_equal(valid, ok)
+  np.testing.assert_array_equal(back[ok], np.round(disp[ok].astype(np.float64) * 256) / 256)
+  assert np.all(back[~ok] == 0)
+  assert np.abs(back[ok] - disp[ok]).max() <= 1 / 512 + 1e-6
+  viz.write_png16(tmp_path / "big.png", np.full((2, 2), 300.0))  # saturates at 65535/256
+  assert viz.read_png16(tmp_path / "big.png")[0].max() == 65535 / 256
+
+
+@pytest.mark.parametrize("shape", [(13, 17), (6, 5, 3)])
+def test_pfm_round_trip(tmp_path, shape):
+  a = np.random.default_rng(1).normal(size=shape).astype(np.float32)
+  viz.write_pfm(tmp_path / "a.pfm", a)
+  np.testing.assert_array_equal(viz.read_pfm(tmp_path / "a.pfm"), a)
+  with open(tmp_path / "a.pfm", "rb") as fh:
+    assert fh.readline().strip() == (b"Pf" if len(shape) == 2 else b"PF")
+    assert fh.readline().split() == [str(shape[1]).encode(), str(shape[0]).encode()]
+    assert float(fh.readline()) < 0  # little-endian
+    first_row_stored = np.frombuffer(fh.read(4 * shape[1] * (shape[2] if len(shape) == 3 else 1)),
+                                     "<f4")
+  np.testing.assert_array_equal(first_row_stored, a[-1].ravel())  # bottom row first
+
+
+def test_pfm_big_endian(tmp_path):
+  a = np.arange(6, dtype=np.float32).reshape(2, 3)
+  with open(tmp_path / "b.pfm", "wb") as fh:
+    fh.write(b"Pf\n3 2\n1.0\n" + a[::-1].astype(">f4").tobytes())
+  np.testing.assert_array_equal(viz.read_pfm(tmp_path / "b.pfm"), a)
+
+
+@pytest.mark.parametrize("shape", [(13, 17), (6, 5, 3)])
+def test_exr_round_trip(tmp_path, shape):
+  a = np.random.default_rng(2).normal(size=shape).astype(np.float32)
+  viz.write_exr(tmp_path / "a.exr", a)
+  np.testing.assert_array_equal(viz.read_exr(tmp_path / "a.exr"), a)
+
+
+def test_depth_and_points(tmp_path):
+  d = np.array([[10.0, 0.0, 5.0], [-1.0, 20.0, np.inf]], np.float32)
+  z = viz.depth_from_disparity(d, fx=100.0, baseline=0.5)
+  np.testing.assert_allclose(z, [[5.0, 0.0, 10.0], [0.0, 2.5, 0.0]])
+  rgb = np.arange(18, dtype=np.uint8).reshape(2, 3, 3)
+  xyz, col = viz.disparity_to_points(d, rgb, fx=100.0, fy=50.0, cx=1.0, cy=0.5, baseline=0.5)
+  assert len(xyz) == 3  # d <= 0 and inf dropped
+  np.testing.assert_allclose(xyz[0], [(0 - 1.0) * 5 / 100, (0 - 0.5) * 5 / 50, 5.0], rtol=1e-6)
+  np.testing.assert_allclose(xyz[2], [0.0, (1 - 0.5) * 2.5 / 50, 2.5], rtol=1e-6)
+  np.testing.assert_array_equal(col, rgb[[0, 0, 1], [0, 2, 1]])
+
+
+def test_ply_header_count_and_values(tmp_path):
+  rng = np.random.default_rng(3)
+  xyz = rng.normal(size=(57, 3)).astype(np.float32)
+  rgb = rng.integers(0, 256, (57, 3), dtype=np.uint8)
+  assert viz.write_ply(tmp_path / "p.ply", xyz, rgb) == 57
+  data = (tmp_path / "p.ply").read_bytes()
+  header, body = data.split(b"end_header\n", 1)
+  lines = header.decode().splitlines()
+  assert lines[:3] == ["ply", "format binary_little_endian 1.0", "element vertex 57"]
+  assert lines[3:] == ["property float x", "property float y", "property float z",
+                       "property uchar red", "property uchar green", "property uchar blue"]
+  assert len(body) == 57 * 15
+  back_xyz, back_rgb = viz.read_ply(tmp_path / "p.ply")
+  np.testing.assert_array_equal(back_xyz, xyz)
+  np.testing.assert_array_equal(back_rgb, rgb)
+
+
+def test_colorize_fixed_range_is_temporally_stable():
+  video = np.stack([np.full((4, 6), 10.0), np.full((4, 6), 20.0)]).astype(np.float32)
+  video[1, 0, 0] = 10.0
+  rgb = viz.colorize(video)  # one range for the whole video
+  assert rgb.shape == (2, 4, 6, 3) and rgb.dtype == np.uint8
+  np.testing.assert_array_equal(rgb[0, 0, 0], rgb[1, 0, 0])  # same value -> same colour
+  assert not np.array_equal(rgb[0, 1, 1], rgb[1, 1, 1])
+  fixed = viz.colorize(video[1], vmin=10.0, vmax=20.0)
+  np.testing.assert_array_equal(fixed, rgb[1])
+  assert viz.disparity_range(video) == (10.0, 20.0)
+  bad = viz.colorize(np.array([[0.0, np.nan, 5.0]]), 0.0, 10.0)
+  np.testing.assert_array_equal(bad[0, :2], [viz.INVALID_COLOR] * 2)
+  with pytest.raises(ValueError, match="colour map"):
+    viz.colorize(video, cmap="nope")
+
+
+def test_side_by_side_and_video(tmp_path):
+  left = np.zeros((3, 9, 7, 3), np.uint8)
+  colour = viz.colorize(np.ones((3, 9, 7), np.float32) * np.arange(3)[:, None, None] + 1)
+  frames = viz.side_by_side(left, colour)
+  assert frames.shape == (3, 9, 14, 3)
+  viz.write_video(tmp_path / "v.mp4", frames, fps=5)
+  cap = cv2.VideoCapture(str(tmp_path / "v.mp4"))
+  count = 0
+  while True:
+    ok, frame = cap.read()
+    if not ok:
+      break
+    assert frame.shape == (10, 14, 3)  # odd height padded to even
+    count += 1
+  assert count == 3

@@ -1,0 +1,138 @@
+"""Checkpoints of a run (orbax `CheckpointManager`) and initial weights.
+
+A checkpoint `workdir/checkpoints/<step>/` holds two items:
+  state: `{"params", "opt_state", "step", "rng", "num_skipped"}` (`StandardSave`),
+  data:  the grain iterator state of every process (`grain.checkpoint.CheckpointSave`,
+         one JSON file per process).
+Orbax writes into a temporary directory and renames it when complete, so a run killed
+mid-save leaves no checkpoint under a final name; such leftovers are cleaned up at start.
+
+Resume order (`initial_state` in `train.loop`): the latest checkpoint in the workdir,
+else converted init weights (`init_from`: `.pth/.pt/.npz/.safetensors` in the official
+layout or an orbax directory from `sav_jax.convert.save_variables`; `vda_weights`: a
+Video Depth Anything file for the frozen prior), else random initialisation.
+"""
+
+from __future__ import annotations
+
+import logging
+import pathlib
+
+import flax
+import grain
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+
+import sav_jax
+from train.state import TrainState
+
+log = logging.getLogger(__name__)
+
+VDA_PATH = ("depthnet", "depthanything")
+
+
+def make_manager(workdir, config) -> ocp.CheckpointManager:
+  """A manager keeping the last `checkpoint.keep` checkpoints (0 = all)."""
+  ck = config.checkpoint
+  options = ocp.CheckpointManagerOptions(
+      max_to_keep=ck.keep if ck.keep > 0 else None, create=True,
+      enable_async_checkpointing=ck.async_save, cleanup_tmp_directories=True)
+  return ocp.CheckpointManager(pathlib.Path(workdir).absolute() / "checkpoints",
+                               item_names=("state", "data"), options=options)
+
+
+def _state_dict(state: TrainState) -> dict:
+  return {"step": state.step, "params": state.params, "opt_state": state.opt_state,
+          "rng": state.rng, "num_skipped": state.num_skipped}
+
+
+def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step: int,
+         params_finite: bool = True, force: bool = False) -> bool:
+  """Saves state and data-iterator state at `step`.
+
+  Args:
+    manager: checkpoint manager of the run.
+    state: the train state after `step` steps.
+    data_iterator: the grain iterator positioned after those `step` batches.
+    step: checkpoint number.
+    params_finite: the caller's knowledge that the params are finite (the train step
+      only applies finite updates and reports `l2_params`); False refuses to save.
+    force: save even if `step` is not on the manager's save interval.
+
+  Returns:
+    Whether a save was started.
+  """
+  if not params_finite:
+    log.error("step %d: non-finite parameters; NOT saving a checkpoint", step)
+    return False
+  args = ocp.args.Composite(state=ocp.args.StandardSave(_state_dict(state)),
+                            data=grain.checkpoint.CheckpointSave(data_iterator))
+  return manager.save(step, args=args, force=force)
+
+
+def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, shardings: TrainState,
+            data_iterator, step: int | None = None) -> TrainState:
+  """Restores the state (with its shardings) and the data iterator in place.
+
+  Args:
+    manager: checkpoint manager of the run.
+    abstract_state: `jax.eval_shape` of the state (structure, shapes, dtypes).
+    shardings: the state's shardings.
+    data_iterator: grain iterator whose state is overwritten.
+    step: checkpoint step (default: latest).
+  """
+  step = manager.latest_step() if step is None else step
+  target = jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
+                        _state_dict(abstract_state), _state_dict(shardings))
+  args = ocp.args.Composite(state=ocp.args.StandardRestore(target),
+                            data=grain.checkpoint.CheckpointRestore(data_iterator))
+  restored = manager.restore(step, args=args)["state"]
+  return TrainState(**restored)
+
+
+def _is_orbax_dir(path: pathlib.Path) -> bool:
+  return path.is_dir()
+
+
+def load_init_params(init_from: str, vda_weights: str, cfg: sav_jax.SAVConfig,
+                     scratch_params=None):
+  """Host params from converted weights, or None when neither path is given.
+
+  Args:
+    init_from: full-model weights (official `.pth/.pt/.npz/.safetensors` or an orbax
+      directory of `sav_jax.convert.save_variables`), or "".
+    vda_weights: a Video Depth Anything checkpoint for the frozen prior, or "". It
+      replaces the prior of `init_from` if both are given.
+    cfg: the model config.
+    scratch_params: host params to start from when only `vda_weights` is given.
+
+  Returns:
+    Nested dict of numpy arrays (the `params` collection only), or None.
+  """
+  if not init_from and not vda_weights:
+    return None
+  if init_from:
+    path = pathlib.Path(init_from)
+    if _is_orbax_dir(path):
+      variables, _ = sav_jax.convert.restore_variables(path)
+      variables = jax.device_get(variables)
+    else:
+      variables = sav_jax.convert.params_from_state_dict(
+          sav_jax.convert.load_state_dict(path), cfg)
+    params = dict(variables["params"])  # drops "torch_unused" and any other collection
+    log.info("initial weights from %s", path)
+  elif scratch_params is not None:
+    params = jax.device_get(scratch_params)
+  else:
+    raise ValueError("vda_weights without init_from needs scratch params")
+  if vda_weights:
+    vda_params, unused = sav_jax.convert.vda_params_from_state_dict(
+        sav_jax.convert.load_state_dict(vda_weights))
+    flat = flax.traverse_util.flatten_dict(params)
+    flat = {k: v for k, v in flat.items() if k[:2] != VDA_PATH}
+    flat.update({VDA_PATH + k: np.asarray(v)
+                 for k, v in flax.traverse_util.flatten_dict(vda_params).items()})
+    params = flax.traverse_util.unflatten_dict(flat)
+    log.info("frozen depth prior from %s (%d unused keys)", vda_weights, len(unused))
+  return params

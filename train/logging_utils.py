@@ -1,0 +1,85 @@
+"""Scalars to JSONL and TensorBoard, and the progress bar (process 0 writes, others no-op)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import pathlib
+import time
+
+import jax
+
+log = logging.getLogger(__name__)
+
+
+class MetricWriter:
+  """Appends `{"step": s, "split": ..., **scalars}` lines to `workdir/metrics.jsonl` and
+  writes the same scalars as `<split>/<name>` to TensorBoard event files in `workdir/tb`.
+
+  TensorBoard needs `tensorboardX`; without it only the JSONL file is written.
+
+  Args:
+    workdir: run directory.
+    enabled: False on processes other than 0.
+  """
+
+  def __init__(self, workdir, enabled: bool = True):
+    self.enabled = enabled
+    self._tb = None
+    self._jsonl = None
+    if not enabled:
+      return
+    workdir = pathlib.Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    self._jsonl = open(workdir / "metrics.jsonl", "a", encoding="utf-8")
+    try:
+      from tensorboardX import SummaryWriter  # pylint: disable=g-import-not-at-top
+      self._tb = SummaryWriter(str(workdir / "tb"))
+    except ImportError:
+      log.warning("tensorboardX is not installed: TensorBoard events are not written")
+
+  def write(self, step: int, scalars: dict, split: str = "train") -> None:
+    if not self.enabled:
+      return
+    clean = {k: float(v) for k, v in scalars.items()}
+    record = {"step": int(step), "split": split, "time": time.time()}
+    record.update({k: (v if math.isfinite(v) else str(v)) for k, v in clean.items()})
+    self._jsonl.write(json.dumps(record) + "\n")
+    self._jsonl.flush()
+    if self._tb is not None:
+      for k, v in clean.items():
+        self._tb.add_scalar(f"{split}/{k}", v, int(step))
+      self._tb.flush()
+
+  def close(self) -> None:
+    if self._jsonl is not None:
+      self._jsonl.close()
+      self._jsonl = None
+    if self._tb is not None:
+      self._tb.close()
+      self._tb = None
+
+
+class Progress:
+  """tqdm bar over steps with step rate, loss and EPE (no-op off process 0 or without tqdm)."""
+
+  def __init__(self, start: int, total: int, enabled: bool = True):
+    self._bar = None
+    if enabled and jax.process_index() == 0:
+      try:
+        from tqdm import tqdm  # pylint: disable=g-import-not-at-top
+        self._bar = tqdm(total=total, initial=start, unit="step", dynamic_ncols=True)
+      except ImportError:
+        pass
+
+  def update(self, n: int = 1, **postfix) -> None:
+    if self._bar is None:
+      return
+    self._bar.update(n)
+    if postfix:
+      self._bar.set_postfix({k: f"{v:.4g}" for k, v in postfix.items()}, refresh=False)
+
+  def close(self) -> None:
+    if self._bar is not None:
+      self._bar.close()

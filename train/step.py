@@ -1,0 +1,95 @@
+"""The jitted train step (one for 1 or N devices) and the evaluation forward pass."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from train import loss as loss_lib
+from train import optim
+from train.state import TrainState, data_sharding, replicated
+
+
+def _tree_where(pred, new, old):
+  return jax.tree.map(lambda a, b: jnp.where(pred, a, b), new, old)
+
+
+def _trainable_norm(tree, labels) -> jax.Array:
+  leaves = [x for x, lab in zip(jax.tree.leaves(tree), jax.tree.leaves(labels))
+            if lab == optim.TRAINABLE]
+  return optax.global_norm(leaves)
+
+
+def make_train_step(model, tx: optax.GradientTransformation, config, labels):
+  """`train_step(state, batch) -> (state, metrics)` (not jitted; see `jit_train_step`).
+
+  The batch is `left/right [B, T, H, W, 3]` (uint8 or float, 0..255), `disparity
+  [B, T, H, W]` (positive) and `valid [B, T, H, W]`. A non-finite loss, gradient norm or
+  update norm leaves params and optimizer state untouched and increments
+  `num_skipped`; `step` always advances (it counts consumed batches), while the
+  learning-rate schedule follows the number of applied updates.
+
+  Args:
+    model: `sav_jax.StereoAnyVideo`.
+    tx: optimizer from `train.optim.make_optimizer`.
+    config: full training config (`train.iters`, `loss.*`, `optimizer.*`).
+    labels: optimizer labels of the params (`train.optim.param_labels`).
+  """
+  schedule = optim.make_schedule(config.optimizer, config.train.num_steps)
+  iters = config.train.iters
+
+  def train_step(state: TrainState, batch):
+    step_rng = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)
+    left = batch["left"].astype(jnp.float32)
+    right = batch["right"].astype(jnp.float32)
+
+    def loss_fn(params):
+      out = model.apply({"params": params}, left, right, iters=iters,
+                        rngs={"dropout": step_rng})
+      return loss_lib.sequence_loss(out.disparities, batch["disparity"], batch["valid"],
+                                    gamma=config.loss.gamma,
+                                    max_disparity=config.loss.max_disparity,
+                                    per_sample=config.loss.per_sample)
+
+    (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+    updates, new_opt_state = tx.update(grads, state.opt_state, state.params)
+    new_params = optax.apply_updates(state.params, updates)
+    l2_grads = _trainable_norm(grads, labels)
+    l2_updates = _trainable_norm(updates, labels)
+    finite = jnp.isfinite(loss) & jnp.isfinite(l2_grads) & jnp.isfinite(l2_updates)
+    num_updates = state.step - state.num_skipped
+    new_state = state.replace(
+        step=state.step + 1,
+        params=_tree_where(finite, new_params, state.params),
+        opt_state=_tree_where(finite, new_opt_state, state.opt_state),
+        num_skipped=state.num_skipped + jnp.where(finite, 0, 1).astype(jnp.int32))
+    metrics = dict(metrics, loss=loss, l2_grads=l2_grads, l2_updates=l2_updates,
+                   l2_params=_trainable_norm(new_state.params, labels),
+                   lr=schedule(num_updates), finite=finite.astype(jnp.float32),
+                   num_skipped=new_state.num_skipped)
+    return new_state, metrics
+
+  return train_step
+
+
+def jit_train_step(train_step, state_shardings, mesh):
+  """jit with the state replicated, the batch on `data`, and the old state donated."""
+  batch_sharding = data_sharding(mesh)
+  return jax.jit(train_step, in_shardings=(state_shardings, batch_sharding),
+                 out_shardings=(state_shardings, replicated(mesh)), donate_argnums=(0,))
+
+
+def make_eval_fn(model, iters: int, params_sharding, mesh):
+  """Jitted `predict(params, left, right) -> [B, T, H, W]` final disparity (batch on `data`)."""
+  dsh = data_sharding(mesh)
+
+  @functools.partial(jax.jit, in_shardings=(params_sharding, dsh, dsh), out_shardings=dsh)
+  def predict(params, left, right):
+    out = model.apply({"params": params}, left.astype(jnp.float32),
+                      right.astype(jnp.float32), iters=iters, final_only=True)
+    return out.disparities[0]
+
+  return predict
