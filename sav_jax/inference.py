@@ -264,7 +264,7 @@ def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SA
   """
   sig = tuple((tuple(x.shape), str(x.dtype)) for x in jax.tree_util.tree_leaves(variables))
   key = (cfg, iters, frames, height, width, str(jax.config.jax_default_matmul_precision),
-         bool(jax.config.jax_disable_most_optimizations),
+         bool(jax.config.values.get("jax_disable_most_optimizations")),
          jax.tree_util.tree_structure(variables), sig)
   if key in _COMPILED:
     _COMPILED.move_to_end(key)

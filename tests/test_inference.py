@@ -22,7 +22,7 @@ ITERS = 2
 def fast_compile():
   """Most XLA optimisations off while this module compiles: about 2x faster on CPU, same
   float32 graph (parity errors stay ~1e-5 px)."""
-  old = jax.config.jax_disable_most_optimizations
+  old = jax.config.read("jax_disable_most_optimizations")
   jax.config.update("jax_disable_most_optimizations", True)
   yield
   jax.config.update("jax_disable_most_optimizations", old)

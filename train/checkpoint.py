@@ -18,7 +18,6 @@ from __future__ import annotations
 import logging
 import pathlib
 
-import flax
 import grain
 import jax
 import numpy as np
@@ -91,48 +90,31 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
   return TrainState(**restored)
 
 
-def _is_orbax_dir(path: pathlib.Path) -> bool:
-  return path.is_dir()
-
-
-def load_init_params(init_from: str, vda_weights: str, cfg: sav_jax.SAVConfig,
-                     scratch_params=None):
-  """Host params from converted weights, or None when neither path is given.
+def load_model_params(path, cfg: sav_jax.SAVConfig) -> dict:
+  """Host params (the `params` collection only) from full-model weights.
 
   Args:
-    init_from: full-model weights (official `.pth/.pt/.npz/.safetensors` or an orbax
-      directory of `sav_jax.convert.save_variables`), or "".
-    vda_weights: a Video Depth Anything checkpoint for the frozen prior, or "". It
-      replaces the prior of `init_from` if both are given.
+    path: official `.pth/.pt/.npz/.safetensors` weights, or an orbax directory written by
+      `sav_jax.convert.save_variables`.
     cfg: the model config.
-    scratch_params: host params to start from when only `vda_weights` is given.
 
   Returns:
-    Nested dict of numpy arrays (the `params` collection only), or None.
+    Nested dict of numpy arrays; `torch_unused` and other collections are dropped.
   """
-  if not init_from and not vda_weights:
-    return None
-  if init_from:
-    path = pathlib.Path(init_from)
-    if _is_orbax_dir(path):
-      variables, _ = sav_jax.convert.restore_variables(path)
-      variables = jax.device_get(variables)
-    else:
-      variables = sav_jax.convert.params_from_state_dict(
-          sav_jax.convert.load_state_dict(path), cfg)
-    params = dict(variables["params"])  # drops "torch_unused" and any other collection
-    log.info("initial weights from %s", path)
-  elif scratch_params is not None:
-    params = jax.device_get(scratch_params)
+  path = pathlib.Path(path)
+  if path.is_dir():
+    variables, _ = sav_jax.convert.restore_variables(path)
+    variables = jax.device_get(variables)
   else:
-    raise ValueError("vda_weights without init_from needs scratch params")
-  if vda_weights:
-    vda_params, unused = sav_jax.convert.vda_params_from_state_dict(
-        sav_jax.convert.load_state_dict(vda_weights))
-    flat = flax.traverse_util.flatten_dict(params)
-    flat = {k: v for k, v in flat.items() if k[:2] != VDA_PATH}
-    flat.update({VDA_PATH + k: np.asarray(v)
-                 for k, v in flax.traverse_util.flatten_dict(vda_params).items()})
-    params = flax.traverse_util.unflatten_dict(flat)
-    log.info("frozen depth prior from %s (%d unused keys)", vda_weights, len(unused))
-  return params
+    variables = sav_jax.convert.params_from_state_dict(sav_jax.convert.load_state_dict(path),
+                                                        cfg)
+  log.info("initial weights from %s", path)
+  return dict(variables["params"])
+
+
+def load_vda_params(path) -> dict:
+  """Host params of the frozen prior (to go under `params/depthnet/depthanything`)."""
+  params, unused = sav_jax.convert.vda_params_from_state_dict(
+      sav_jax.convert.load_state_dict(path))
+  log.info("frozen depth prior from %s (%d unused keys)", path, len(unused))
+  return jax.tree.map(np.asarray, params)

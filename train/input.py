@@ -1,0 +1,78 @@
+"""Config -> grain training stream and held-out validation clips.
+
+`config.data.sources` names the training sources, each with a `dataset` ("synthetic" or
+a `sav_jax.data.registry` name such as "things", "dynamic_replica") and a `weight`;
+`config.data.mixing` says how weights combine ("concat": official concatenation, so a
+dataset's share is weight x number of clips; "ratio": weights are the shares).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import jax
+
+from sav_jax.data import pipeline
+from sav_jax.data.synthetic import SyntheticConfig
+
+log = logging.getLogger(__name__)
+
+
+def synthetic_config(data_cfg, gen_cfg, seed: int) -> SyntheticConfig:
+  """`SyntheticConfig` at the data block's clip shape, with generator overrides."""
+  names = {f.name for f in dataclasses.fields(SyntheticConfig)}
+  kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in gen_cfg.items()
+            if k in names}
+  return SyntheticConfig(frames=data_cfg.frames, height=data_cfg.crop[0],
+                         width=data_cfg.crop[1], **dict(kwargs, seed=seed))
+
+
+def _source(config, spec, split: str, seed: int):
+  """`(MapDataset, random map or None)` of one source."""
+  data = config.data
+  if spec.dataset == "synthetic":
+    cfg = synthetic_config(data, data.synthetic, seed)
+    return pipeline.synthetic_source(cfg, data.synthetic.num_clips), None
+  src = pipeline.registry_source(spec.dataset, data.root, data.frames, split=split,
+                                 seed=config.seed)
+  augment = pipeline.Augment(tuple(data.crop), tuple(sorted(dict(data.augment).items())))
+  return src, augment
+
+
+def train_dataset(config, process_index=None, process_count=None):
+  """The per-process batched training `grain.IterDataset` of a config."""
+  count = jax.process_count() if process_count is None else process_count
+  batch = config.train.batch_size
+  if batch % count:
+    raise ValueError(f"train.batch_size={batch} is not divisible by {count} processes")
+  sources, transforms, weights = [], [], []
+  for name, spec in sorted(config.data.sources.items()):
+    src, tf = _source(config, spec, "train", seed=config.data.synthetic.seed)
+    log.info("training source %s: %s, %d clips, weight %g", name, spec.dataset, len(src),
+             spec.weight)
+    sources.append(src)
+    transforms.append(tf)
+    weights.append(spec.weight)
+  return pipeline.make_train_dataset(
+      sources, weights, batch_size=batch // count, seed=config.seed, mode=config.data.mixing,
+      transforms=transforms, process_index=process_index, process_count=process_count,
+      num_threads=config.data.num_threads, prefetch=config.data.prefetch,
+      worker_count=config.data.worker_count)
+
+
+def eval_clips(config) -> list[dict]:
+  """The fixed held-out clips (identical on every process), at the training crop."""
+  ev = config.eval
+  if ev.dataset == "synthetic":
+    # A seed the training stream never uses: clips are disjoint from training.
+    cfg = synthetic_config(config.data, config.data.synthetic, seed=ev.synthetic_seed)
+    ds = pipeline.synthetic_source(cfg, ev.num_clips)
+    return pipeline.fixed_clips(ds, ev.num_clips)
+  src = pipeline.registry_source(ev.dataset, config.data.root, config.data.frames,
+                                 split=ev.split, seed=config.seed)
+  stride = max(1, len(src) // ev.num_clips)  # spread over the split, deterministically
+  picked = src[::stride][:ev.num_clips]
+  crop = tuple(config.data.crop)
+  return pipeline.fixed_clips(picked, min(ev.num_clips, len(picked)),
+                              transform=lambda c: pipeline.center_crop(c, crop))
