@@ -1,0 +1,140 @@
+"""Paper pretraining on SceneFlow (FlyingThings3D + Monkaa + Driving, final pass).
+
+Values follow the official `train_stereoanyvideo.py` / `train_stereoanyvideo.sh` unless
+a comment says otherwise (see ../shared/docs/datasets.md, section 3).
+
+Usage:
+  python -m train --config configs/sceneflow.py --workdir runs/sf
+  python -m train --config configs/sceneflow.py --workdir runs/sf \
+      --config.train.batch_size=16 --config.vda_weights=checkpoints/video_depth_anything_vits.pth
+"""
+
+import ml_collections
+from ml_collections import config_dict
+
+
+def base_config() -> ml_collections.ConfigDict:
+  """Fields shared by every training config (the paper's recipe)."""
+  c = ml_collections.ConfigDict()
+  # Seed of the model init, the shuffling and the augmentation (the official seed is 0).
+  c.seed = 0
+  # Full-model weights to start from: official .pth/.safetensors/.npz or an orbax dir ("" = none).
+  c.init_from = ""
+  # Video Depth Anything weights for the frozen depth prior ("" = keep init_from's or random).
+  c.vda_weights = ""
+
+  c.model = ml_collections.ConfigDict()
+  # Frozen depth prior variant: "vits" (the paper) or "vitl".
+  c.model.vda_encoder = "vits"
+  # Compute dtype: "float32" (official: mixed precision off) or "bfloat16".
+  c.model.dtype = "float32"
+  # Rematerialise each refinement step in the backward pass (saves memory).
+  c.model.remat = True
+  # jax.checkpoint_policies name for remat (None = save nothing).
+  c.model.remat_policy = config_dict.placeholder(str)
+
+  c.data = ml_collections.ConfigDict()
+  # Frames per training clip, T (official sample_len).
+  c.data.frames = 5
+  # Training crop (H, W) (official image_size).
+  c.data.crop = (256, 512)
+  # Dataset root; registry dataset directories live under it (official data/datasets).
+  c.data.root = "data/datasets"
+  # How source weights combine: "concat" (official ConcatDataset: share = weight x size) or "ratio".
+  c.data.mixing = "concat"
+  # Training sources: name -> (registry dataset name or "synthetic", weight).
+  c.data.sources = ml_collections.ConfigDict()
+  # AugmentConfig field overrides (its defaults are the official script's flags).
+  c.data.augment = ml_collections.ConfigDict()
+  # Procedural generator settings (used by "synthetic" sources and synthetic validation).
+  c.data.synthetic = ml_collections.ConfigDict(dict(num_clips=100_000, seed=0))
+  # grain reader threads per process.
+  c.data.num_threads = 8
+  # Elements prefetched by the reader threads.
+  c.data.prefetch = 16
+  # grain worker processes (mp_prefetch); 0 = threads only.
+  c.data.worker_count = 0
+
+  c.train = ml_collections.ConfigDict()
+  # Global batch (clips per step over all devices and hosts); the paper's 8 (official: 1 per GPU).
+  c.train.batch_size = 8
+  # Training steps (optimizer updates).
+  c.train.num_steps = 120_000
+  # Refinement iterations at 1/4 (1/16 and 1/8 get iters//2): N = 2*iters predictions in the loss.
+  c.train.iters = 10
+  # Log train scalars (means over the window) every this many steps.
+  c.train.log_every = 50
+  # Abort when more updates than this were skipped for non-finite loss/gradients.
+  c.train.max_skipped_steps = 100
+  # Show a tqdm progress bar on process 0.
+  c.train.progress_bar = True
+
+  c.optimizer = ml_collections.ConfigDict()
+  # Peak learning rate: the official script's 1e-4 (the paper states 2e-4, not confirmed).
+  c.optimizer.lr = 1e-4
+  # AdamW weight decay (official wdecay).
+  c.optimizer.weight_decay = 1e-5
+  # AdamW epsilon (official).
+  c.optimizer.eps = 1e-8
+  # Adam beta1 (PyTorch default).
+  c.optimizer.b1 = 0.9
+  # Adam beta2 (PyTorch default).
+  c.optimizer.b2 = 0.999
+  # Gradient clipping by global norm (official clip_grad_norm_ 1.0); 0 disables.
+  c.optimizer.clip_norm = 1.0
+  # "one_cycle" (official OneCycleLR, linear anneal) or "constant".
+  c.optimizer.schedule = "one_cycle"
+  # Fraction of the cycle spent warming up (official).
+  c.optimizer.pct_start = 0.01
+  # Initial lr = lr / div_factor (PyTorch default).
+  c.optimizer.div_factor = 25.0
+  # Final lr = initial lr / final_div_factor (PyTorch default).
+  c.optimizer.final_div_factor = 1e4
+  # Cycle length; -1 = train.num_steps + 100 as the official script.
+  c.optimizer.schedule_steps = -1
+  # Regex of frozen parameter paths: no updates, no optimizer state (official: 'depthanything').
+  c.optimizer.frozen = r"^depthnet/depthanything/"
+
+  c.loss = ml_collections.ConfigDict()
+  # Base decay of the prediction weights, adjusted to N predictions (official 0.9).
+  c.loss.gamma = 0.9
+  # Ignore ground truth with |d| >= this (official max_flow 700).
+  c.loss.max_disparity = 700.0
+  # Normalise each clip separately (official: one clip per GPU under DDP) or pool the batch.
+  c.loss.per_sample = True
+
+  c.checkpoint = ml_collections.ConfigDict()
+  # Save every this many steps (official save_steps 3000), plus at the end.
+  c.checkpoint.every_steps = 3000
+  # Checkpoints kept (the latest ones); 0 keeps all.
+  c.checkpoint.keep = 3
+  # Write checkpoints in a background thread.
+  c.checkpoint.async_save = True
+
+  c.eval = ml_collections.ConfigDict()
+  # Validate every this many steps (and at the end); 0 disables validation.
+  c.eval.every_steps = 5000
+  # Also validate before the first step of a fresh run.
+  c.eval.at_start = False
+  # Held-out set: "synthetic" (fixed generated clips) or a registry dataset name.
+  c.eval.dataset = "synthetic"
+  # Split of a registry dataset used for validation.
+  c.eval.split = "test"
+  # Number of held-out clips.
+  c.eval.num_clips = 16
+  # Clips per validation batch (a multiple of the device count).
+  c.eval.batch_size = 8
+  # Refinement iterations at validation (official evaluation: 20).
+  c.eval.iters = 20
+  # Generator seed of the synthetic held-out clips (never used for training).
+  c.eval.synthetic_seed = 1_000_003
+  return c
+
+
+def get_config() -> ml_collections.ConfigDict:
+  c = base_config()
+  # FlyingThings3D, Monkaa and Driving concatenated 1:1:1 by clip count (official).
+  c.data.sources.things = ml_collections.ConfigDict(dict(dataset="things", weight=1.0))
+  c.data.sources.monkaa = ml_collections.ConfigDict(dict(dataset="monkaa", weight=1.0))
+  c.data.sources.driving = ml_collections.ConfigDict(dict(dataset="driving", weight=1.0))
+  return c

@@ -1,0 +1,203 @@
+"""`sav-jax infer` end to end (in-process), and every bad input it must refuse.
+
+One compiled shape is shared by all runs: 3 frames of 32x48 (padded to 32x64), iters=2.
+"""
+
+import json
+import logging
+
+import cv2
+import jax
+import numpy as np
+import pytest
+
+import sav_jax
+from sav_jax import cli, inference, viz
+from sav_jax.data import synthetic
+from sav_jax.tools import video_io
+
+T, H, W, ITERS = 3, 32, 48, 2
+
+
+@pytest.fixture(scope="module", autouse=True)
+def fast_compile():
+  """Most XLA optimisations off while this module compiles (about 2x faster on CPU)."""
+  old = jax.config.read("jax_disable_most_optimizations")
+  jax.config.update("jax_disable_most_optimizations", True)
+  yield
+  jax.config.update("jax_disable_most_optimizations", old)
+
+
+@pytest.fixture(scope="module")
+def variables(sav_state_dict):
+  return sav_jax.convert.params_from_state_dict(sav_state_dict, sav_jax.SAVConfig())
+
+
+@pytest.fixture(scope="module")
+def clip():
+  return synthetic.generate_clip(synthetic.SyntheticConfig(frames=T, height=H, width=W,
+                                                           max_disparity=6.0, num_objects=2), 0)
+
+
+@pytest.fixture(scope="module")
+def npz_ckpt(tmp_path_factory, sav_state_dict):
+  path = tmp_path_factory.mktemp("ckpt") / "sav.npz"
+  np.savez(path, **sav_state_dict)
+  return path
+
+
+@pytest.fixture(scope="module")
+def orbax_ckpt(tmp_path_factory, variables):
+  path = tmp_path_factory.mktemp("orbax") / "sav"
+  sav_jax.convert.save_variables(path, variables, {"model": sav_jax.SAVConfig().to_dict()})
+  return path
+
+
+def _write_frames(folder, frames, ext=".png"):
+  folder.mkdir(parents=True, exist_ok=True)
+  for i, f in enumerate(frames):
+    img = f[..., ::-1] if f.ndim == 3 else f
+    assert cv2.imwrite(str(folder / f"{i:04d}{ext}"), img)
+  return folder
+
+
+@pytest.fixture(scope="module")
+def folders(tmp_path_factory, clip):
+  root = tmp_path_factory.mktemp("frames")
+  return (_write_frames(root / "left", clip["left"]), _write_frames(root / "right", clip["right"]))
+
+
+def _infer(left, right, ckpt, out, *extra):
+  return cli.main(["infer", "--left", str(left), "--right", str(right), "--checkpoint", str(ckpt),
+                   "--out", str(out), "--iters", str(ITERS), *extra])
+
+
+def test_folder_all_formats_and_calibration(tmp_path, folders, npz_ckpt, variables, clip):
+  out = tmp_path / "out"
+  rc = _infer(*folders, npz_ckpt, out, "--format", "png16,npy", "--format", "pfm",
+              "--format", "exr", "--fx", "40", "--baseline", "0.1")
+  assert rc == 0
+  expected = inference.predict_video(variables, clip["left"], clip["right"], iters=ITERS)
+  names = [f"{i:04d}" for i in range(T)]
+  for i, name in enumerate(names):
+    d = expected[i]
+    np.testing.assert_array_equal(np.load(out / "disparity" / f"{name}.npy"), d)
+    np.testing.assert_array_equal(viz.read_pfm(out / "disparity" / f"{name}.pfm"), d)
+    np.testing.assert_array_equal(viz.read_exr(out / "disparity" / f"{name}.exr"), d)
+    png = viz.read_png16(out / "disparity" / f"{name}.png")[0]
+    np.testing.assert_array_equal(png, np.where(d > 0, np.round(d.astype(np.float64) * 256) / 256, 0))
+    np.testing.assert_allclose(np.load(out / "depth" / f"{name}.npy"),
+                               viz.depth_from_disparity(d, 40.0, 0.1), rtol=1e-6)
+    xyz, rgb = viz.read_ply(out / "pointclouds" / f"{name}.ply")
+    assert len(xyz) == np.count_nonzero(d > 0)
+    np.testing.assert_allclose(xyz[:, 2], 4.0 / d[d > 0], rtol=1e-6)
+    np.testing.assert_array_equal(rgb, clip["left"][i][d > 0])
+  assert len(video_io.read_video_file(out / "side_by_side.mp4")) == T
+  summary = json.loads((out / "summary.json").read_text())
+  assert summary["frames"] == T and summary["calibration"]["cx"] == (W - 1) / 2
+
+
+def test_overwrite_protection(tmp_path, folders, npz_ckpt, capsys):
+  out = tmp_path / "out"
+  assert _infer(*folders, npz_ckpt, out, "--format", "npy") == 0
+  target = out / "disparity" / "0000.npy"
+  np.save(target, np.zeros(1))
+  capsys.readouterr()
+  assert _infer(*folders, npz_ckpt, out, "--format", "npy") == 2
+  assert "--overwrite" in capsys.readouterr().err
+  assert np.load(target).shape == (1,)  # untouched
+  assert _infer(*folders, npz_ckpt, out, "--format", "npy", "--overwrite") == 0
+  assert np.load(target).shape == (H, W)
+
+
+def test_video_files_and_orbax_checkpoint(tmp_path, clip, orbax_ckpt, variables):
+  viz.write_video(tmp_path / "left.mp4", clip["left"])
+  viz.write_video(tmp_path / "right.mp4", clip["right"])
+  out = tmp_path / "out"
+  assert _infer(tmp_path / "left.mp4", tmp_path / "right.mp4", orbax_ckpt, out,
+                "--format", "npy") == 0
+  left = video_io.read_video_file(tmp_path / "left.mp4")
+  right = video_io.read_video_file(tmp_path / "right.mp4")
+  expected = inference.predict_video(variables, left, right, iters=ITERS)
+  for i in range(T):
+    np.testing.assert_array_equal(np.load(out / "disparity" / f"frame_{i:06d}.npy"), expected[i])
+
+
+def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
+  grey = [(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257) for f in clip["left"]]
+  left = _write_frames(tmp_path / "l", grey)
+  right = _write_frames(tmp_path / "r", [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in clip["right"]])
+  with caplog.at_level(logging.WARNING):
+    assert _infer(left, right, npz_ckpt, tmp_path / "out", "--format", "npy",
+                  "--max-frames", "2") == 0
+  assert "grayscale frames converted to RGB" in caplog.text
+  assert "16-bit frames converted to 8 bits" in caplog.text
+  assert len(list((tmp_path / "out" / "disparity").iterdir())) == 2
+
+
+def _bad_case(name, root, clip, npz_ckpt):
+  """(left, right, checkpoint, extra args, expected message) for one bad input."""
+  left, right = _write_frames(root / "l", clip["left"]), _write_frames(root / "r", clip["right"])
+  if name == "counts":
+    (right / "0002.png").unlink()
+    return left, right, npz_ckpt, [], "different frame counts"
+  if name == "sizes":
+    _write_frames(right, [np.zeros((H, W - 8, 3), np.uint8)] * T)
+    return left, right, npz_ckpt, [], "different frame sizes"
+  if name == "empty":
+    (root / "e").mkdir()
+    return root / "e", right, npz_ckpt, [], "empty folder"
+  if name == "unreadable":
+    (left / "0001.png").write_bytes(b"not a png")
+    return left, right, npz_ckpt, [], "unreadable frame"
+  if name == "mixed_sizes":
+    _write_frames(left, [np.zeros((H + 2, W, 3), np.uint8)])
+    return left, right, npz_ckpt, [], "frames differ in size"
+  if name == "no_checkpoint":
+    return left, right, root / "missing.pth", [], "checkpoint not found"
+  if name == "incompatible_checkpoint":
+    np.savez(root / "bad.npz", **{"fnet.conv1.weight": np.zeros((3, 3), np.float32)})
+    return left, right, root / "bad.npz", [], "bad.npz"
+  if name == "not_a_checkpoint_dir":
+    (root / "dir").mkdir()
+    return left, right, root / "dir", [], "not a sav-jax variables checkpoint"
+  if name == "not_a_video":
+    (root / "l.txt").write_text("hello")
+    return root / "l.txt", right, npz_ckpt, [], "expected a frame folder or a video file"
+  if name == "odd_iters":
+    return left, right, npz_ckpt, ["--iters", "3"], "even"
+  if name == "calibration":
+    return left, right, npz_ckpt, ["--fx", "100"], "--baseline"
+  raise AssertionError(name)
+
+
+@pytest.mark.parametrize("name", [
+    "counts", "sizes", "empty", "unreadable", "mixed_sizes", "no_checkpoint",
+    "incompatible_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
+    "calibration"])
+def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):
+  left, right, ckpt, extra, message = _bad_case(name, tmp_path, clip, npz_ckpt)
+  out = tmp_path / "out"
+  rc = cli.main(["infer", "--left", str(left), "--right", str(right), "--checkpoint", str(ckpt),
+                 "--out", str(out), *(extra or ["--iters", str(ITERS)])])
+  err = capsys.readouterr().err
+  assert rc == 2, err
+  assert message in err
+  assert err.count("\n") == 1  # one clean line, no traceback
+  assert not out.exists()
+
+
+def test_calibration_file(tmp_path):
+  from sav_jax.tools.infer import read_calibration
+  kitti = tmp_path / "calib_cam_to_cam.txt"
+  kitti.write_text("calib_time: 09-Jan-2012 13:57:47\n"
+                   "P_rect_02: 7.2e+02 0 6.0e+02 4.5e+01 0 7.2e+02 1.8e+02 0 0 0 1 0\n"
+                   "P_rect_03: 7.2e+02 0 6.0e+02 -3.4e+02 0 7.2e+02 1.8e+02 0 0 0 1 0\n")
+  c = read_calibration(kitti)
+  assert c["fx"] == 720 and c["cy"] == 180 and c["baseline"] == pytest.approx(385 / 720)
+  js = tmp_path / "c.json"
+  js.write_text(json.dumps({"fx": 500, "baseline": 0.12}))
+  assert read_calibration(js) == {"fx": 500.0, "baseline": 0.12}
+  txt = tmp_path / "c.txt"
+  txt.write_text("fx = 400\nbaseline: 0.2\ncx 10\n")
+  assert read_calibration(txt) == {"fx": 400.0, "baseline": 0.2, "cx": 10.0}

@@ -1,0 +1,73 @@
+"""Periodic validation on a fixed held-out set with the official metrics (EPE, TEPE)."""
+
+from __future__ import annotations
+
+import logging
+
+import jax
+import numpy as np
+from jax.experimental import multihost_utils
+
+from sav_jax import metrics as sav_metrics
+from sav_jax.data import pipeline
+from train import input as input_lib
+from train import step as step_lib
+
+log = logging.getLogger(__name__)
+
+# Official evaluator keys -> short names in the logs.
+_NAMES = {"disp_epe_mean": "epe", "disp_temp_epe_mean": "tepe",
+          "disp_epe_bad_1px": "bad_1px", "disp_epe_bad_3px": "bad_3px",
+          "disp_temp_epe_bad_1px": "temp_bad_1px"}
+
+
+class Evaluator:
+  """Runs the model on the held-out clips and reports official metrics.
+
+  Every process holds all clips (a small set) and feeds its slice of each batch; the
+  predictions are gathered so that every process computes the same numbers.
+
+  Args:
+    config: training config (`eval.*`, `data.*`).
+    model: `sav_jax.StereoAnyVideo`.
+    params_sharding: sharding tree of the params.
+    mesh: device mesh.
+  """
+
+  def __init__(self, config, model, params_sharding, mesh):
+    ev = config.eval
+    batch_size = ev.batch_size
+    if batch_size % mesh.size:
+      raise ValueError(f"eval.batch_size={batch_size} is not divisible by {mesh.size} devices")
+    self.clips = input_lib.eval_clips(config)
+    self.batches = pipeline.eval_batches(self.clips, batch_size)
+    self.predict = step_lib.make_eval_fn(model, ev.iters, params_sharding, mesh)
+    self.sharding = step_lib.data_sharding(mesh)
+    log.info("validation: %d clips of %s, %d iterations", len(self.clips), ev.dataset, ev.iters)
+
+  def _local(self, array: np.ndarray) -> np.ndarray:
+    per = array.shape[0] // jax.process_count()
+    start = jax.process_index() * per
+    return array[start:start + per]
+
+  def predictions(self, params) -> list[np.ndarray]:
+    """Final disparities `[T, H, W]` of every held-out clip."""
+    out = []
+    for batch, n in self.batches:
+      left, right = (pipeline.to_global({"x": self._local(batch[k])}, self.sharding)["x"]
+                     for k in ("left", "right"))
+      pred = self.predict(params, left, right)
+      if jax.process_count() > 1:
+        pred = multihost_utils.process_allgather(pred, tiled=True)
+      pred = np.asarray(jax.device_get(pred))
+      out.extend(pred[:n])
+    return out
+
+  def __call__(self, params) -> dict[str, float]:
+    """Frame-weighted means over the clips (official aggregation)."""
+    results = []
+    for pred, clip in zip(self.predictions(params), self.clips):
+      res = sav_metrics.eval_sequence(pred, clip["disparity"], clip["valid"].astype(np.float32))
+      results.append((res, pred.shape[0]))
+    agg = sav_metrics.aggregate(results)
+    return {short: agg[key] for key, short in _NAMES.items() if key in agg}
