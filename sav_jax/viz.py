@@ -9,7 +9,8 @@ over all frames), so a colour means the same disparity in every frame.
 
 File formats (all round trips are tested value by value):
   * 16-bit PNG, KITTI convention: `uint16 = round(256 d)`, 0 = invalid (d <= 0 or
-    not finite); values above 65535/256 px saturate. Resolution 1/256 px.
+    not finite); values above 65535/256 px saturate and positive values below 1/512
+    px are stored as 1 (1/256 px) so that they stay valid. Resolution 1/256 px.
   * PFM: `Pf` (one channel) or `PF` (three), little-endian (scale -1), rows stored
     bottom to top, as SceneFlow files.
   * OpenEXR: float32 channels (`Y` for one channel), ZIP compression.
@@ -243,7 +244,7 @@ def read_ply(path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_png16(path, disp) -> None:
-  """16-bit PNG disparity, KITTI convention (`round(256 d)`, 0 = invalid)."""
+  """16-bit PNG disparity, KITTI convention (`round(256 d)` clipped to 1..65535, 0 = invalid)."""
   d = np.asarray(disp, np.float32)
   if d.ndim != 2:
     raise ValueError(f"expected a [H, W] disparity map, got shape {d.shape}")

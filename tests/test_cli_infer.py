@@ -85,7 +85,8 @@ def test_folder_all_formats_and_calibration(tmp_path, folders, npz_ckpt, variabl
     np.testing.assert_array_equal(viz.read_pfm(out / "disparity" / f"{name}.pfm"), d)
     np.testing.assert_array_equal(viz.read_exr(out / "disparity" / f"{name}.exr"), d)
     png = viz.read_png16(out / "disparity" / f"{name}.png")[0]
-    np.testing.assert_array_equal(png, np.where(d > 0, np.round(d.astype(np.float64) * 256) / 256, 0))
+    stored = np.clip(np.round(d.astype(np.float64) * 256), 1, 65535)  # tiny d > 0 stays valid
+    np.testing.assert_array_equal(png, np.where(d > 0, stored / 256, 0))
     np.testing.assert_allclose(np.load(out / "depth" / f"{name}.npy"),
                                viz.depth_from_disparity(d, 40.0, 0.1), rtol=1e-6)
     xyz, rgb = viz.read_ply(out / "pointclouds" / f"{name}.ply")
@@ -128,11 +129,13 @@ def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
   left = _write_frames(tmp_path / "l", grey)
   right = _write_frames(tmp_path / "r", [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in clip["right"]])
   with caplog.at_level(logging.WARNING):
-    assert _infer(left, right, npz_ckpt, tmp_path / "out", "--format", "npy",
-                  "--max-frames", "2") == 0
+    assert _infer(left, right, npz_ckpt, tmp_path / "out", "--format", "npy") == 0
   assert "grayscale frames converted to RGB" in caplog.text
   assert "16-bit frames converted to 8 bits" in caplog.text
-  assert len(list((tmp_path / "out" / "disparity").iterdir())) == 2
+  assert len(list((tmp_path / "out" / "disparity").iterdir())) == T
+  lv, rv, names = video_io.load_stereo(left, right, max_frames=2)
+  assert lv.shape == rv.shape == (2, H, W, 3) and names == ["0000", "0001"]
+  np.testing.assert_array_equal(lv[0, ..., 0], np.round(grey[0] / 257))
 
 
 def _bad_case(name, root, clip, npz_ckpt):
@@ -157,7 +160,7 @@ def _bad_case(name, root, clip, npz_ckpt):
     return left, right, root / "missing.pth", [], "checkpoint not found"
   if name == "incompatible_checkpoint":
     np.savez(root / "bad.npz", **{"fnet.conv1.weight": np.zeros((3, 3), np.float32)})
-    return left, right, root / "bad.npz", [], "bad.npz"
+    return left, right, root / "bad.npz", [], "bad.npz: incompatible checkpoint"
   if name == "not_a_checkpoint_dir":
     (root / "dir").mkdir()
     return left, right, root / "dir", [], "not a sav-jax variables checkpoint"

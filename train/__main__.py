@@ -35,6 +35,7 @@ def main(argv):
   # Implicit host<->device copies are bugs in a training loop: make them errors.
   jax.config.update("jax_transfer_guard", "disallow")
   logging.getLogger().setLevel(logging.INFO)
+  logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every save at INFO
   from train import loop  # pylint: disable=g-import-not-at-top
   loop.run(_CONFIG.value, _WORKDIR.value)
 

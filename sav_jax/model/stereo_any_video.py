@@ -86,7 +86,7 @@ class StereoAnyVideo(nn.Module):
     context = jnp.concatenate([depth[:b], cnet], axis=-1)
     return fmaps[:b], fmaps[b:], context
 
-  def step(self, net, flow, inp, fmap1, fmap2, window):
+  def step(self, net, flow, inp, fmap1, fmap2, window, with_up: bool = True):
     """One refinement iteration at one scale.
 
     Args:
@@ -97,9 +97,11 @@ class StereoAnyVideo(nn.Module):
       fmap1: `[B, T, h, w, 128]` left features.
       fmap2: `[B, T, h, w, 128]` right features.
       window: `WIDE_WINDOW` or `SMALL_WINDOW`.
+      with_up: compute the mask head and the convex upsampling (skipped for
+        iterations whose prediction nobody reads).
 
     Returns:
-      `(net, flow, flow_up)` with `flow_up` `[B, T, 4h, 4w, 1]` (convex upsampled).
+      `(net, flow, flow_up)` with `flow_up` `[B, T, 4h, 4w, 1]` (None without `with_up`).
     """
     b, t, h, w, c = fmap1.shape
     flow = jax.lax.stop_gradient(flow)
@@ -107,40 +109,52 @@ class StereoAnyVideo(nn.Module):
                 flow.reshape(b * t, h, w), window, self.cfg.corr_groups)
     corr = self.corr_mlp(corr).reshape(b, t, h, w, -1)
     flow2 = jnp.concatenate([flow, jnp.zeros_like(flow)], axis=-1)
-    net, mask, delta = self.update_block(net, inp, corr, flow2)
+    net, mask, delta = self.update_block(net, inp, corr, flow2, with_mask=with_up)
     flow = flow + delta[..., :1]
-    return net, flow, convex_upsample_3d(flow, mask, self.cfg.upsample_rate)
+    up = convex_upsample_3d(flow, mask, self.cfg.upsample_rate) if with_up else None
+    return net, flow, up
 
-  def refine(self, net, flow, inp, fmap1, fmap2, num_iters: int):
-    """`num_iters` iterations at one scale, as a `lax.scan` over (1x9, 3x3) pairs.
+  def refine(self, net, flow, inp, fmap1, fmap2, num_iters: int, all_ups: bool = True):
+    """`num_iters` iterations at one scale: a `lax.scan` over (1x9, 3x3) pairs.
+
+    With `all_ups=False` only the last iteration's upsampled flow is computed
+    (the iterations before it skip the mask head and the convex upsampling).
 
     Returns:
-      `(flow_ups, last_flow)`: `[num_iters, B, T, 4h, 4w, 1]` and `[B, T, h, w, 1]`.
+      `(flow_ups, last_flow)`: `[num_iters or 1, B, T, 4h, 4w, 1]` and `[B, T, h, w, 1]`.
     """
 
     def pair(mdl, carry, inp, fmap1, fmap2):
       net, flow = carry
       flow_a = flow
-      net, flow, up_a = mdl.step(net, flow, inp, fmap1, fmap2, WIDE_WINDOW)
+      net, flow, up_a = mdl.step(net, flow, inp, fmap1, fmap2, WIDE_WINDOW, all_ups)
       flow_b = flow
-      net, flow, up_b = mdl.step(net, flow, inp, fmap1, fmap2, SMALL_WINDOW)
-      return (net, flow), (jnp.stack([up_a, up_b]), jnp.stack([flow_a, flow_b]))
+      net, flow, up_b = mdl.step(net, flow, inp, fmap1, fmap2, SMALL_WINDOW, all_ups)
+      ups = jnp.stack([up_a, up_b]) if all_ups else None
+      return (net, flow), (ups, jnp.stack([flow_a, flow_b]))
 
     if self.cfg.remat:
       policy = self.cfg.remat_policy
       pair = nn.remat(pair, prevent_cse=False,
                       policy=getattr(jax.checkpoint_policies, policy) if policy else None)
     ups, flows_in = [], []
-    if num_iters >= 2:
+    num_pairs = num_iters // 2 if all_ups else (num_iters - 1) // 2
+    if num_pairs:
       scan = nn.scan(pair, variable_broadcast="params", split_rngs={"params": False},
-                     in_axes=(nn.broadcast, nn.broadcast, nn.broadcast), length=num_iters // 2)
+                     in_axes=(nn.broadcast, nn.broadcast, nn.broadcast), length=num_pairs)
       (net, flow), (up_pairs, flow_pairs) = scan(self, (net, flow), inp, fmap1, fmap2)
-      ups.append(up_pairs.reshape(-1, *up_pairs.shape[2:]))
+      if all_ups:
+        ups.append(up_pairs.reshape(-1, *up_pairs.shape[2:]))
       flows_in.append(flow_pairs.reshape(-1, *flow_pairs.shape[2:]))
-    if num_iters % 2:  # odd counts happen at 1/16 and 1/8 (iters//2); the window restarts wide
+    # Iterations after the scan: an odd count's last (1x9) step (1/16 and 1/8 run
+    # iters//2 steps), or the final pair when only its last prediction is wanted.
+    for i in range(2 * num_pairs, num_iters):
+      window = WIDE_WINDOW if i % 2 == 0 else SMALL_WINDOW
       flows_in.append(flow[None])
-      net, flow, up = self.step(net, flow, inp, fmap1, fmap2, WIDE_WINDOW)
-      ups.append(up[None])
+      net, flow, up = self.step(net, flow, inp, fmap1, fmap2, window,
+                                all_ups or i == num_iters - 1)
+      if up is not None:
+        ups.append(up[None])
     # The flow entering every iteration, for inspection (no-op unless mutable).
     self.sow("intermediates", f"flow_in_{fmap1.shape[2]}x{fmap1.shape[3]}",
              jnp.concatenate(flows_in, axis=0))
@@ -173,7 +187,7 @@ class StereoAnyVideo(nn.Module):
       if pool != 4:  # hand-over: rescale by the height ratio, align_corners=True
         hf = f1.shape[2]
         flow = (hf / prev_up.shape[2]) * resize(prev_up, (hf, f1.shape[3]), "bilinear", True)
-      ups, flow = self.refine(s_net, flow, s_inp, f1, f2, n)
+      ups, flow = self.refine(s_net, flow, s_inp, f1, f2, n, all_ups=not final_only)
       prev_up = ups[-1]
       if final_only and pool != 1:
         continue

@@ -183,7 +183,7 @@ class SequenceUpdateBlock3D(nn.Module):
   dtype: Any = jnp.float32
 
   @nn.compact
-  def __call__(self, net, inp, corr, flow):
+  def __call__(self, net, inp, corr, flow, with_mask: bool = True):
     """One refinement update.
 
     Args:
@@ -191,6 +191,7 @@ class SequenceUpdateBlock3D(nn.Module):
       inp: `[B, T, h, w, 128]` context input.
       corr: `[B, T, h, w, 128]` correlation features (after `corr_mlp`).
       flow: `[B, T, h, w, 2]` current flow (y channel zero, as in the official code).
+      with_mask: compute the upsampling mask (else `mask` is None).
 
     Returns:
       `(net, mask, delta_flow)`: new state, upsampling-mask logits
@@ -204,6 +205,8 @@ class SequenceUpdateBlock3D(nn.Module):
     net = SKSepConvGRU3D(self.hidden_dim, dt, name="gru")(net.astype(dt), x)
     c3 = lambda f, k, p, n: conv(f, (k, k, k), 1, p, dtype=dt, name=n)
     delta = FlowHead3D(dt, name="flow_head")(net)
+    if not with_mask:
+      return net, None, delta.astype(jnp.float32)
     mask = c3(256, 3, 1, "mask3d_0")(net)
     mask = c3(27 * self.mask_size ** 2, 1, 0, "mask3d_2")(nn.relu(mask))
     return net, 0.25 * mask.astype(jnp.float32), delta.astype(jnp.float32)

@@ -277,7 +277,13 @@ def load_checkpoint(path, dtype: str | None = None):
           f"{path} is a Video Depth Anything checkpoint (the depth prior only), not a Stereo "
           "Any Video one; `sav-jax convert --vda` turns it into an initialisation for training")
     cfg = sav_jax.SAVConfig()
-    variables = convert.params_from_state_dict(sd, cfg)
+    try:
+      variables = convert.params_from_state_dict(sd, cfg)
+    except ValueError as e:  # one line for the command line; the full list in the debug log
+      log.debug("%s", e)
+      lines = [l.strip() for l in str(e).splitlines() if l.strip()]
+      first = f" (first: {lines[1]})" if len(lines) > 1 else ""
+      raise convert.CheckpointError(f"{path}: incompatible checkpoint: {lines[0]}{first}") from e
     described = f"state dict {path} (converted on the fly)"
   return variables, inference.resolve_config(cfg, dtype), described
 

@@ -92,3 +92,17 @@ def test_batch_elements_are_independent(model, variables, clip):
   np.testing.assert_allclose(mixed[:, 0], same[:, 0], atol=1e-5)
   np.testing.assert_allclose(same[:, 0], same[:, 1], atol=1e-5)
   assert float(jnp.abs(mixed[:, 1] - same[:, 1]).max()) > 1e-3
+
+
+def test_final_only_equals_the_last_of_all_predictions(model, variables, clip):
+  """iters=6: 3 + 3 + 6 steps, so the final-only path covers odd stages and a scanned prefix."""
+
+  @jax.jit
+  def both(v, l, r):
+    full = model.apply(v, l, r, iters=6).disparities
+    last = model.apply(v, l, r, iters=6, final_only=True).disparities
+    return full, last
+
+  full, last = both(variables, *clip)
+  assert full.shape == (12, *SHAPE[:4]) and last.shape == (1, *SHAPE[:4])
+  np.testing.assert_allclose(last[0], full[-1], atol=1e-5)
