@@ -24,7 +24,7 @@ def get_config() -> ml_collections.ConfigDict:
   c.data.sources.dynamic_replica = ml_collections.ConfigDict(
       dict(dataset="dynamic_replica", weight=1.0))
   c.data.sources.infinigen_sv = ml_collections.ConfigDict(
-      dict(dataset="infinigen_stereovideo", weight=3.0))
+      dict(dataset="infinigen_sv", weight=3.0))
   c.data.sources.vkitti2 = ml_collections.ConfigDict(dict(dataset="vkitti2", weight=1.0))
   # Validate on the Dynamic Replica validation split (centre crops of the training size).
   c.eval.dataset = "dynamic_replica"

@@ -133,8 +133,7 @@ def base_config() -> ml_collections.ConfigDict:
 
 def get_config() -> ml_collections.ConfigDict:
   c = base_config()
-  # FlyingThings3D, Monkaa and Driving concatenated 1:1:1 by clip count (official).
-  c.data.sources.things = ml_collections.ConfigDict(dict(dataset="things", weight=1.0))
-  c.data.sources.monkaa = ml_collections.ConfigDict(dict(dataset="monkaa", weight=1.0))
-  c.data.sources.driving = ml_collections.ConfigDict(dict(dataset="driving", weight=1.0))
+  # FlyingThings3D + Monkaa + Driving (final pass) in one dataset, as the official
+  # SequenceSceneFlowDataset: every clip equally likely.
+  c.data.sources.sceneflow = ml_collections.ConfigDict(dict(dataset="sceneflow", weight=1.0))
   return c

@@ -7,9 +7,9 @@
     out = model.apply(variables, left, right, iters=20)   # out.disparities [P, B, T, H, W]
 """
 
-from sav_jax import convert
+from sav_jax import convert, inference
 from sav_jax.config import SAVConfig
 from sav_jax.model.stereo_any_video import SAVOutput, StereoAnyVideo
 
 __version__ = "0.1.0"
-__all__ = ["SAVConfig", "SAVOutput", "StereoAnyVideo", "convert"]
+__all__ = ["SAVConfig", "SAVOutput", "StereoAnyVideo", "convert", "inference"]

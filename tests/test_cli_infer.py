@@ -127,7 +127,8 @@ def test_video_files_and_orbax_checkpoint(tmp_path, clip, orbax_ckpt, variables)
 def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
   grey = [(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257) for f in clip["left"]]
   left = _write_frames(tmp_path / "l", grey)
-  right = _write_frames(tmp_path / "r", [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in clip["right"]])
+  right = _write_frames(tmp_path / "r",
+                        [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in clip["right"]])
   with caplog.at_level(logging.WARNING):
     assert _infer(left, right, npz_ckpt, tmp_path / "out", "--format", "npy") == 0
   assert "grayscale frames converted to RGB" in caplog.text
@@ -136,6 +137,16 @@ def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
   lv, rv, names = video_io.load_stereo(left, right, max_frames=2)
   assert lv.shape == rv.shape == (2, H, W, 3) and names == ["0000", "0001"]
   np.testing.assert_array_equal(lv[0, ..., 0], np.round(grey[0] / 257))
+
+
+def test_bfloat16(tmp_path, folders, orbax_ckpt, variables, clip):
+  assert _infer(*folders, orbax_ckpt, tmp_path / "out", "--format", "npy", "--dtype",
+                "bfloat16") == 0
+  got = np.stack([np.load(tmp_path / "out" / "disparity" / f"{i:04d}.npy") for i in range(T)])
+  ref = inference.predict_video(variables, clip["left"], clip["right"], iters=ITERS)
+  cos = np.sum(got * ref) / (np.linalg.norm(got) * np.linalg.norm(ref))
+  assert cos > 0.999, cos  # bfloat16 compute, float32 softmax/upsampling/accumulator
+  assert json.loads((tmp_path / "out" / "summary.json").read_text())["dtype"] == "bfloat16"
 
 
 def _bad_case(name, root, clip, npz_ckpt):
@@ -204,3 +215,20 @@ def test_calibration_file(tmp_path):
   txt = tmp_path / "c.txt"
   txt.write_text("fx = 400\nbaseline: 0.2\ncx 10\n")
   assert read_calibration(txt) == {"fx": 400.0, "baseline": 0.2, "cx": 10.0}
+
+
+def test_demo_random_weights(tmp_path, monkeypatch, capsys):
+  from sav_jax.tools import demo
+  monkeypatch.setattr(demo, "BUNDLED", tmp_path / "no_bundled_checkpoint")
+  out = tmp_path / "demo"
+  rc = cli.main(["demo", "--out", str(out), "--frames", str(T), "--height", str(H),
+                 "--width", str(W), "--iters", str(ITERS)])
+  printed = capsys.readouterr().out
+  assert rc == 0
+  assert "RANDOM (untrained) weights" in printed and "StereoSGBM" in printed
+  for name in ("comparison.mp4", "side_by_side.mp4", "metrics.json"):
+    assert (out / name).is_file()
+  assert len(list((out / "disparity").glob("*.png"))) == T
+  results = json.loads((out / "metrics.json").read_text())["metrics"]
+  assert set(results) == {"Stereo Any Video", "StereoSGBM"}
+  assert results["StereoSGBM"]["disp_epe_mean"] < 2.0  # SGBM works on the synthetic scene

@@ -48,6 +48,14 @@ def official(variables, golden):
                                                  iters=ITERS, return_windows=True)
 
 
+@pytest.fixture(scope="module")
+def predicted(variables, golden):
+  """predict_video on the 21 golden frames, with the cache size before and after."""
+  before = inference.cache_size()
+  disp = _predict(variables, golden["left"], golden["right"])
+  return disp, before, inference.cache_size()
+
+
 def _predict(variables, left, right, **kw):
   with jax.default_matmul_precision("highest"):
     return inference.predict_video(variables, left, right, iters=ITERS, **kw)
@@ -68,18 +76,15 @@ def test_official_stitching_matches_golden(official, golden):
   np.testing.assert_allclose(official[0], ref, atol=ATOL, rtol=0)
 
 
-def test_predict_video_equals_official_for_long_clips(variables, golden, official):
-  before = inference.cache_size()
-  disp = _predict(variables, golden["left"], golden["right"])
-  again = _predict(variables, golden["left"].astype(np.uint8), golden["right"].astype(np.uint8))
-  assert inference.cache_size() == before  # same padded shapes: nothing recompiled
+def test_predict_video_equals_official_for_long_clips(predicted, golden, official):
+  disp, before, after = predicted
+  assert after == before  # the official run compiled these padded shapes: nothing new
   assert disp.shape == (21, 28, 30) and disp.dtype == np.float32
   np.testing.assert_array_equal(disp, official[0])
-  np.testing.assert_array_equal(again, disp)  # integer-valued input: uint8 gives the same
   np.testing.assert_allclose(disp, golden["disparity"][:, 0], atol=ATOL, rtol=0)
 
 
-def test_stitching_equals_windows_run_by_hand(variables, golden):
+def test_stitching_equals_windows_run_by_hand(variables, golden, predicted):
   """Frames 0..14 from window [0, 20), frames 15..20 from window [10, 21) ([5:] of it)."""
   pads = inference.pad_amounts(28, 30)
   assert pads == (2, 2, 1, 1)
@@ -89,7 +94,7 @@ def test_stitching_equals_windows_run_by_hand(variables, golden):
     w1 = inference.run_window(variables, golden["left"][10:], golden["right"][10:],
                               cfg=sav_jax.SAVConfig(), iters=ITERS)
   by_hand = np.concatenate([np.abs(w0[:15, 2:-2, 1:-1]), np.abs(w1[5:, 2:-2, 1:-1])])
-  np.testing.assert_array_equal(_predict(variables, golden["left"], golden["right"]), by_hand)
+  np.testing.assert_array_equal(predicted[0], by_hand)
   # The official model's own window outputs, stitched by hand, agree too.
   ref = np.concatenate([golden["window0_forward_out"][:15, 0, 0],
                         golden["window1_forward_out"][5:, 0, 0]])
@@ -100,7 +105,7 @@ def test_stitching_equals_windows_run_by_hand(variables, golden):
 def test_short_clips_keep_every_frame(variables, golden, official, start):
   """N=11 and N=1 (< one window): all frames; the official keeps N-5 (none for N=1)."""
   left, right = golden["left"][start:], golden["right"][start:]
-  disp = _predict(variables, left, right)
+  disp = _predict(variables, left.astype(np.uint8), right.astype(np.uint8))  # integer-valued
   n = 21 - start
   assert disp.shape == (n, 28, 30)
   raw = official[1][start // 10]  # the golden run of exactly these frames
@@ -193,6 +198,16 @@ def test_memory_error_before_compiling(variables, monkeypatch):
   assert isinstance(e.value, MemoryError) and isinstance(e.value, ValueError)
   assert "736x1280" in str(e.value)
   assert inference.cache_size() == before
+
+
+def test_memory_error_from_compiled_program(variables, golden, monkeypatch):
+  """When the estimate passes, XLA's memory analysis of the executable is checked."""
+  monkeypatch.setattr(inference, "estimate_memory_bytes", lambda *a, **k: 0)
+  monkeypatch.setattr(inference, "available_memory_bytes", lambda device=None: 1024)
+  before = inference.cache_size()
+  with pytest.raises(inference.InsufficientMemoryError, match="from the compiled program"):
+    inference.predict_video(variables, golden["left"][:2], golden["right"][:2], iters=ITERS)
+  assert inference.cache_size() == before  # nothing cached for a program that cannot run
 
 
 def test_memory_estimate_grows_with_size():

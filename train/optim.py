@@ -51,7 +51,9 @@ def one_cycle_linear(max_lr: float, total_steps: int, pct_start: float = 0.01,
     if stop_at is not None:
       s = jnp.minimum(s, float(stop_at))
     up = initial + (max_lr - initial) * (s / warm_end)
-    down = max_lr + (final - max_lr) * ((s - warm_end) / (last - warm_end))
+    # = max_lr + (final - max_lr) * (s - warm_end) / (last - warm_end), without the
+    # float32 cancellation near the end.
+    down = final + (max_lr - final) * ((last - s) / (last - warm_end))
     return jnp.where(s <= warm_end, up, down).astype(jnp.float32)
 
   return schedule
@@ -84,8 +86,10 @@ def make_schedule(opt_cfg, num_steps: int) -> Callable[[Any], jax.Array]:
   if opt_cfg.schedule != "one_cycle":
     raise ValueError(f"unknown schedule {opt_cfg.schedule!r}; expected 'one_cycle' or 'constant'")
   total = opt_cfg.schedule_steps if opt_cfg.schedule_steps > 0 else num_steps + 100
+  # The official loop stops the scheduler at num_steps; our updates never get there, so
+  # no `stop_at` (and the compiled step does not depend on num_steps).
   return one_cycle_linear(opt_cfg.lr, total, opt_cfg.pct_start, opt_cfg.div_factor,
-                          opt_cfg.final_div_factor, stop_at=num_steps)
+                          opt_cfg.final_div_factor)
 
 
 def make_optimizer(opt_cfg, num_steps: int, params) -> optax.GradientTransformation:

@@ -20,7 +20,7 @@ def _tree_where(pred, new, old):
 def _trainable_norm(tree, labels) -> jax.Array:
   leaves = [x for x, lab in zip(jax.tree.leaves(tree), jax.tree.leaves(labels))
             if lab == optim.TRAINABLE]
-  return optax.global_norm(leaves)
+  return optax.tree.norm(leaves)
 
 
 def make_train_step(model, tx: optax.GradientTransformation, config, labels):

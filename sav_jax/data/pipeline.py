@@ -45,8 +45,6 @@ from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo
 log = logging.getLogger(__name__)
 
 EXAMPLE_KEYS = ("left", "right", "disparity", "valid")
-# Field names an `AugmentConfig` may use for the output crop (filled from the config).
-_CROP_FIELDS = ("crop_size", "crop", "image_size")
 
 
 def as_example(clip: Mapping[str, Any]) -> dict[str, np.ndarray]:
@@ -86,28 +84,34 @@ def synthetic_source(cfg: SyntheticConfig, num_clips: int) -> grain.MapDataset:
 class _LoadClip:
   """Registry item -> clip dict (picklable, for grain worker processes).
 
-  An item is what `registry.get_training_clips` returns: a clip dict, or a
-  `(sequence, frame_indices)` pair where `sequence[i]` is a frame given as a dict
-  with the example keys or a `(left, right, disparity, valid)` tuple. When the
-  registry offers `load_clip(item)`, that is used instead.
+  An item is a `registry.TrainingClip(sequence, indices)` (or any `(sequence, indices)`
+  pair whose sequence has `gather`), or an already loaded clip dict. The sequence's
+  `sparse` flag is passed on so that augmentation treats sparse GT as the official
+  sparse augmentor does.
   """
 
   def __call__(self, item) -> dict[str, np.ndarray]:
-    from sav_jax.data import registry  # pylint: disable=g-import-not-at-top
-    if hasattr(registry, "load_clip"):
-      return registry.load_clip(item)
     if isinstance(item, Mapping):
       return dict(item)
-    sequence, frames = item
-    loaded = [sequence[int(i)] for i in frames]
-    if isinstance(loaded[0], Mapping):
-      return {k: np.stack([f[k] for f in loaded]) for k in EXAMPLE_KEYS}
-    return {k: np.stack([f[j] for f in loaded]) for j, k in enumerate(EXAMPLE_KEYS)}
+    sequence, indices = item
+    clip = sequence.gather(list(indices))
+    if clip.get("disparity") is None:
+      raise ValueError(f"{sequence!r} has no ground truth: it cannot be used for training")
+    clip["sparse"] = bool(getattr(sequence, "sparse", False))
+    return clip
 
 
 def registry_source(dataset: str, root: str, frames: int, split: str = "train",
                     seed: int = 0) -> grain.MapDataset:
-  """Clips of a real dataset (`sav_jax.data.registry`), loaded lazily, not augmented."""
+  """Clips of a real dataset (`registry.get_training_clips`), loaded lazily, not augmented.
+
+  Args:
+    dataset: a registry name with training clips ("sceneflow", "dynamic_replica", ...).
+    root: dataset root (`data/datasets` or the dataset's own folder).
+    frames: clip length T.
+    split: dataset split.
+    seed: seed of the official per-start stride draws.
+  """
   from sav_jax.data import registry  # pylint: disable=g-import-not-at-top
   items = registry.get_training_clips(dataset, root, frames, split=split, seed=seed)
   if len(items) == 0:
@@ -122,7 +126,8 @@ class Augment:
 
   Attributes:
     crop: `(H, W)` output size; checked after augmentation.
-    overrides: extra `AugmentConfig` fields, as `(name, value)` pairs.
+    overrides: other `AugmentConfig` fields, as `(name, value)` pairs (its defaults are
+      the official training script's).
   """
 
   crop: tuple[int, int]
@@ -130,12 +135,8 @@ class Augment:
 
   def _config(self):
     from sav_jax.data import augment  # pylint: disable=g-import-not-at-top
-    kwargs = dict(self.overrides)
-    names = {f.name for f in dataclasses.fields(augment.AugmentConfig)}
-    for name in _CROP_FIELDS:
-      if name in names and name not in kwargs:
-        kwargs[name] = tuple(self.crop)
-        break
+    kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in self.overrides}
+    kwargs.setdefault("crop_size", tuple(self.crop))
     return augment.AugmentConfig(**kwargs)
 
   def __call__(self, clip, rng: np.random.Generator) -> dict[str, np.ndarray]:

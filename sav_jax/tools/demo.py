@@ -86,7 +86,8 @@ def _weights(args, cfg_dtype):
   """`(variables, cfg, description)` from --checkpoint, the bundled one, or random."""
   from sav_jax.convert import is_variables_checkpoint  # pylint: disable=import-outside-toplevel
   from sav_jax.inference import resolve_config  # pylint: disable=import-outside-toplevel
-  from sav_jax.tools.infer import load_checkpoint, random_variables  # pylint: disable=import-outside-toplevel
+  # pylint: disable-next=import-outside-toplevel
+  from sav_jax.tools.infer import load_checkpoint, random_variables
   if args.checkpoint:
     return load_checkpoint(args.checkpoint, dtype=cfg_dtype)
   if is_variables_checkpoint(BUNDLED):

@@ -61,8 +61,9 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
   g.add_argument("--cx", type=float, help="principal point x (px; default image centre)")
   g.add_argument("--cy", type=float, help="principal point y (px; default image centre)")
   g.add_argument("--baseline", type=float, help="stereo baseline (metres)")
-  g.add_argument("--calib", help="calibration file: JSON or 'key value' text with fx, fy, cx, "
-                                  "cy, baseline, or a KITTI calib file (P_rect_02/P_rect_03 or P2/P3)")
+  g.add_argument("--calib", help="calibration file: JSON or 'key value' text with fx, fy, "
+                                  "cx, cy, baseline, or a KITTI calib file (P_rect_02/P_rect_03 "
+                                  "or P2/P3)")
 
 
 def parse_formats(values: list[str] | None) -> list[str]:

@@ -1,0 +1,1 @@
+"""Evaluation configs, one per benchmark (`python -m eval --config configs/eval/<name>.py`)."""

@@ -1,0 +1,55 @@
+"""The fields every evaluation config shares (the official SAV evaluation protocol).
+
+Each `configs/eval/<dataset>.py` calls `eval_config(...)` with its dataset name, split
+and number of evaluated frames per sequence (`datasets.md`, section 2).
+"""
+
+import ml_collections
+
+
+def eval_config(dataset: str, split: str = "test", sample_len: int = -1
+                ) -> ml_collections.ConfigDict:
+  """Evaluation config of one dataset.
+
+  Args:
+    dataset: registry name (`sav_jax.data.registry.DATASETS`) or "synthetic".
+    split: dataset split.
+    sample_len: frames evaluated per sequence, from the first one (<= 0: all frames).
+
+  Returns:
+    The ConfigDict (override any field with `--config.<field>=<value>`).
+  """
+  c = ml_collections.ConfigDict()
+  # Dataset name, as the registry knows it.
+  c.dataset = dataset
+  # Split to evaluate.
+  c.split = split
+  # Only the first `sample_len` frames of each sequence are evaluated (<= 0: all).
+  c.sample_len = sample_len
+  # Refinement iterations at 1/4 resolution (the official evaluation uses 20).
+  c.iters = 20
+  # Sliding window length and stride of the official forward_batch_test.
+  c.window = 20
+  c.stride = 10
+  # Compute dtype of the model: "float32" (official, mixed precision off) or "bfloat16".
+  c.dtype = "float32"
+  # Evaluate only the first N sequences (<= 0: all); for quick checks.
+  c.max_sequences = -1
+  # Write each sequence's predicted disparity as predictions/<sequence>.npy.
+  c.save_predictions = False
+  c.metrics = ml_collections.ConfigDict()
+  # Also compute TCC (needs the depth-to-disparity scale); the flow-based TCM/OPW/RTC
+  # need RAFT and are not computed here.
+  c.metrics.tcc = False
+  c.baseline = ml_collections.ConfigDict()
+  # StereoSGBM search range (px, rounded up to a multiple of 16) and block size.
+  c.baseline.max_disparity = 256
+  c.baseline.block_size = 5
+  c.plots = ml_collections.ConfigDict()
+  # Write per-sequence plots (per-frame EPE/TEPE curves, colourized disparity strips).
+  c.plots.enabled = True
+  # Frames shown in each disparity strip.
+  c.plots.strip_frames = 6
+  # Longest side of a strip tile (px).
+  c.plots.tile_size = 320
+  return c

@@ -1,0 +1,107 @@
+"""Config files and command-line overrides (`--config.iters=4`, `--config.plots.enabled false`).
+
+A config is a Python file with `get_config()` (or `get_config(arg)`, selected with
+`path.py:arg` as in big_vision) returning an `ml_collections.ConfigDict`. Overrides
+name an existing field; the value is parsed to that field's type (bool accepts
+true/false/1/0/yes/no; tuples and lists are Python literals).
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib.util
+import pathlib
+
+import ml_collections
+
+
+def load_config(spec: str) -> ml_collections.ConfigDict:
+  """Loads `path/to/config.py` or `path/to/config.py:arg`."""
+  spec = str(spec)
+  path, arg = (spec.split(".py:", 1)[0] + ".py", spec.split(".py:", 1)[1]) if ".py:" in spec \
+      else (spec, "")
+  file = pathlib.Path(path)
+  if not file.is_file():
+    raise FileNotFoundError(f"config file not found: {file}")
+  module_spec = importlib.util.spec_from_file_location(f"_eval_config_{file.stem}", file)
+  module = importlib.util.module_from_spec(module_spec)
+  module_spec.loader.exec_module(module)
+  if not hasattr(module, "get_config"):
+    raise ValueError(f"{file}: defines no get_config()")
+  config = module.get_config(arg) if arg else module.get_config()
+  if not isinstance(config, ml_collections.ConfigDict):
+    raise ValueError(f"{file}: get_config() returned {type(config).__name__}, not a ConfigDict")
+  return config
+
+
+def split_overrides(argv: list[str]) -> tuple[list[str], list[tuple[str, str]]]:
+  """Separates `--config.a.b=v` / `--config.a.b v` from the other arguments.
+
+  Returns:
+    `(other arguments, [(dotted field, value string), ...])`.
+  """
+  rest, overrides, i = [], [], 0
+  while i < len(argv):
+    arg = argv[i]
+    if arg.startswith("--config."):
+      name, eq, value = arg[len("--config."):].partition("=")
+      if not eq:
+        if i + 1 >= len(argv):
+          raise ValueError(f"{arg} needs a value")
+        value, i = argv[i + 1], i + 1
+      overrides.append((name, value))
+    else:
+      rest.append(arg)
+    i += 1
+  return rest, overrides
+
+
+def _parse(value: str, current, name: str):
+  if isinstance(current, bool):
+    low = value.strip().lower()
+    if low in ("1", "true", "yes", "on"):
+      return True
+    if low in ("0", "false", "no", "off"):
+      return False
+    raise ValueError(f"--config.{name}: expected true/false, got {value!r}")
+  if isinstance(current, (int, float)):
+    try:
+      return type(current)(value) if not isinstance(current, int) else int(value, 0)
+    except ValueError:
+      raise ValueError(f"--config.{name}: expected {type(current).__name__}, "
+                       f"got {value!r}") from None
+  if isinstance(current, str):
+    return value
+  try:
+    return ast.literal_eval(value)
+  except (ValueError, SyntaxError):
+    return value
+
+
+def apply_overrides(config: ml_collections.ConfigDict,
+                    overrides: list[tuple[str, str]]) -> ml_collections.ConfigDict:
+  """Sets each dotted field (which must exist) to its parsed value, in place."""
+  for name, value in overrides:
+    *parents, leaf = name.split(".")
+    node = config
+    for part in parents:
+      if part not in node or not isinstance(node[part], ml_collections.ConfigDict):
+        raise ValueError(f"--config.{name}: no such config field (fields: "
+                         f"{', '.join(sorted(_flat_names(config)))})")
+      node = node[part]
+    if leaf not in node or isinstance(node[leaf], ml_collections.ConfigDict):
+      raise ValueError(f"--config.{name}: no such config field (fields: "
+                       f"{', '.join(sorted(_flat_names(config)))})")
+    try:
+      setattr(node, leaf, _parse(value, node[leaf], name))
+    except TypeError as e:
+      raise ValueError(f"--config.{name}: {e}") from e
+  return config
+
+
+def _flat_names(config, prefix=""):
+  for k, v in config.items():
+    if isinstance(v, ml_collections.ConfigDict):
+      yield from _flat_names(v, f"{prefix}{k}.")
+    else:
+      yield prefix + k

@@ -1,0 +1,105 @@
+"""Command line of the evaluation program (`python -m eval`).
+
+    python -m eval --config configs/eval/<dataset>.py --checkpoint CKPT \\
+        --data-root data/datasets [--out DIR] [--baseline sgbm] [--overwrite] \\
+        [--config.iters=20 --config.max_sequences=2 ...]
+
+Writes to --out (default `outputs/eval/<dataset>`): `results.md` (the paper's columns),
+`results.json` (config, weights, per-sequence and aggregate metrics), `results.csv`,
+`plots/<sequence>_curves.png` (per-frame EPE and TEPE) and `plots/<sequence>_strip.png`
+(colourized disparity), and with `--config.save_predictions=true`
+`predictions/<sequence>.npy`. Bad input exits with status 2 and one line on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import pathlib
+import sys
+import time
+
+from eval import config as eval_config
+from eval import data as eval_data
+from eval import report, runner
+
+
+def build_parser() -> argparse.ArgumentParser:
+  p = argparse.ArgumentParser(
+      prog="python -m eval", description="Evaluate Stereo Any Video with the official protocol; "
+      "override config fields with --config.<field>=<value>.")
+  p.add_argument("--config", required=True,
+                 help="config file, e.g. configs/eval/sintel_final.py (optionally path.py:arg)")
+  p.add_argument("--checkpoint", required=True,
+                 help="orbax directory or .pth/.pt/.safetensors/.npz state dict")
+  p.add_argument("--data-root", default="data/datasets",
+                 help="datasets folder or the dataset's own folder (default data/datasets)")
+  p.add_argument("--out", help="output folder (default outputs/eval/<dataset>)")
+  p.add_argument("--baseline", action="append", choices=runner.BASELINES, default=[],
+                 help="add a baseline row computed on the same frames (repeatable)")
+  p.add_argument("--overwrite", action="store_true", help="replace existing results")
+  p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+  return p
+
+
+def main(argv: list[str] | None = None) -> int:
+  argv = sys.argv[1:] if argv is None else list(argv)
+  try:
+    rest, overrides = eval_config.split_overrides(argv)
+  except ValueError as e:
+    print(f"eval: error: {e}", file=sys.stderr)
+    return 2
+  args = build_parser().parse_args(rest)
+  logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                      format="%(levelname)s %(name)s: %(message)s")
+  try:
+    return run(args, overrides)
+  except (ValueError, FileNotFoundError, FileExistsError) as e:
+    print(f"eval: error: {e}", file=sys.stderr)
+    return 2
+
+
+def run(args, overrides) -> int:
+  """Loads config, data and weights, evaluates every sequence, writes the reports."""
+  config = eval_config.apply_overrides(eval_config.load_config(args.config), overrides)
+  out = pathlib.Path(args.out or f"outputs/eval/{config.dataset}")
+  if (out / "results.json").exists() and not args.overwrite:
+    raise FileExistsError(f"{out / 'results.json'} exists; pass --overwrite to replace it")
+  if config.iters < 2 or config.iters % 2:
+    raise ValueError(f"config.iters must be an even number >= 2, got {config.iters}")
+  seqs = eval_data.load_sequences(config, args.data_root)
+  from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
+  variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)
+  methods = ["sav"] + [b for b in dict.fromkeys(args.baseline)]
+  print(f"{config.dataset}/{config.split}: {len(seqs)} sequences; weights: {described}")
+  results = []
+  for i, seq in enumerate(seqs):
+    res = runner.evaluate_sequence(seq, methods, variables=variables, model_cfg=model_cfg,
+                                   config=config, out=out)
+    results.append(res)
+    line = "  ".join(f"{runner.METHOD_NAMES[m]}: EPE {r['disp_epe_mean']:.3f} TEPE "
+                     f"{r['disp_temp_epe_mean']:.3f}" for m, r in res.metrics.items())
+    print(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  {line}")
+  summary = build_summary(config, described, results, methods)
+  paths = report.write_all(out, summary)
+  print(report.markdown(summary).split("## Per sequence")[0].rstrip())
+  print("wrote " + ", ".join(str(p) for p in paths))
+  return 0
+
+
+def build_summary(config, described: str, results: list, methods: list[str]) -> dict:
+  """Everything `report` writes: config, weights, per-sequence and aggregate metrics."""
+  frames = sum(r.frames for r in results)
+  summary = {"dataset": config.dataset, "split": config.split, "config": config.to_dict(),
+             "weights": described, "frames": frames,
+             "created": time.strftime("%Y-%m-%d %H:%M:%S"), "methods": {}, "sequences": []}
+  for m in methods:
+    seconds = sum(r.seconds.get(m, 0.0) for r in results)
+    summary["methods"][m] = {"name": runner.METHOD_NAMES[m],
+                             "aggregate": runner.aggregate(results, m),
+                             "seconds": seconds,
+                             "frames_per_second": frames / seconds if seconds > 0 else 0.0}
+  for r in results:
+    summary["sequences"].append({"name": r.name, "frames": r.frames, "metrics": r.metrics,
+                                 "seconds": r.seconds})
+  return summary

@@ -1,0 +1,86 @@
+"""Result tables: Markdown (the paper's columns), JSON (everything) and CSV.
+
+Metric keys are those of the official `result_eval.json` (`disp_epe_mean`,
+`disp_temp_epe_bad_1px`, ...). delta^t_1px of the paper is `disp_temp_epe_bad_1px`.
+Aggregates are frame-weighted means over sequences, as the official code computes them.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import pathlib
+
+# (column heading, metric key); bad rates and delta^t in percent.
+COLUMNS = (
+    ("EPE", "disp_epe_mean"), ("bad-0.5 %", "disp_epe_bad_0.5px"),
+    ("bad-1 %", "disp_epe_bad_1px"), ("bad-2 %", "disp_epe_bad_2px"),
+    ("bad-3 %", "disp_epe_bad_3px"), ("TEPE", "disp_temp_epe_mean"),
+    ("δt-0.5px %", "disp_temp_epe_bad_0.5px"), ("δt-1px %", "disp_temp_epe_bad_1px"),
+    ("δt-2px %", "disp_temp_epe_bad_2px"), ("δt-3px %", "disp_temp_epe_bad_3px"),
+    ("TCC", "disp_TCC"),
+)
+ALL = "ALL (frame-weighted)"
+
+
+def _columns(rows: list[dict]) -> list[tuple[str, str]]:
+  """The COLUMNS present in at least one row."""
+  return [(h, k) for h, k in COLUMNS if any(k in r for r in rows)]
+
+
+def _fmt(v) -> str:
+  return "–" if v is None else f"{v:.3f}"
+
+
+def markdown(summary: dict) -> str:
+  """The Markdown report of `build_summary`'s dictionary."""
+  methods = summary["methods"]
+  cols = _columns([m["aggregate"] for m in methods.values()])
+  lines = [f"# {summary['dataset']} ({summary['split']})", "",
+           f"Weights: {summary['weights']}  ",
+           f"iters {summary['config']['iters']}, window {summary['config']['window']} / stride "
+           f"{summary['config']['stride']}, {summary['config']['dtype']}; "
+           f"{len(summary['sequences'])} sequences, {summary['frames']} frames.", "",
+           "## Aggregate (frame-weighted mean over sequences; lower is better)", ""]
+  head = ["Method"] + [h for h, _ in cols] + ["frames/s"]
+  lines += ["| " + " | ".join(head) + " |", "|---" + "|---:" * (len(head) - 1) + "|"]
+  for m in methods.values():
+    vals = [_fmt(m["aggregate"].get(k)) for _, k in cols]
+    lines.append(f"| {m['name']} | " + " | ".join(vals) + f" | {m['frames_per_second']:.2f} |")
+  lines += ["", "## Per sequence", ""]
+  head = ["Sequence", "Frames", "Method"] + [h for h, _ in cols]
+  lines += ["| " + " | ".join(head) + " |", "|---|---:|---" + "|---:" * len(cols) + "|"]
+  for seq in summary["sequences"]:
+    for key, res in seq["metrics"].items():
+      vals = [_fmt(res.get(k)) for _, k in cols]
+      lines.append(f"| {seq['name']} | {seq['frames']} | {methods[key]['name']} | "
+                   + " | ".join(vals) + " |")
+  lines += ["", "EPE/TEPE in px with the official denominators (non-zero errors); bad-N and "
+            "δt-N px: % of those pixels above N px. δt-1px is the paper's δ^t_1px.", ""]
+  return "\n".join(lines)
+
+
+def write_csv(path, summary: dict) -> None:
+  """One row per (method, sequence) plus one aggregate row per method."""
+  rows = []
+  for seq in summary["sequences"]:
+    for key, res in seq["metrics"].items():
+      rows.append({"method": key, "sequence": seq["name"], "frames": seq["frames"], **res})
+  for key, m in summary["methods"].items():
+    rows.append({"method": key, "sequence": ALL, "frames": summary["frames"], **m["aggregate"]})
+  keys = [k for _, k in COLUMNS if any(k in r for r in rows)]
+  keys += sorted({k for r in rows for k in r} - set(keys) - {"method", "sequence", "frames"})
+  with open(path, "w", newline="", encoding="utf-8") as fh:
+    writer = csv.DictWriter(fh, ["method", "sequence", "frames"] + keys)
+    writer.writeheader()
+    writer.writerows(rows)
+
+
+def write_all(out: pathlib.Path, summary: dict) -> list[pathlib.Path]:
+  """Writes results.json, results.csv and results.md; returns their paths."""
+  out.mkdir(parents=True, exist_ok=True)
+  paths = [out / "results.json", out / "results.csv", out / "results.md"]
+  paths[0].write_text(json.dumps(summary, indent=1), encoding="utf-8")
+  write_csv(paths[1], summary)
+  paths[2].write_text(markdown(summary), encoding="utf-8")
+  return paths

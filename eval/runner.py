@@ -1,0 +1,127 @@
+"""Per-sequence inference and metrics (the official evaluator's steps).
+
+For each sequence (already cut to its evaluated frames): predict every frame with
+`sav_jax.inference.predict_video` (20-frame windows, stride 10, padding to /32,
+`abs()`), optionally run StereoSGBM per frame, then `sav_jax.metrics.eval_sequence`
+(prediction x round(valid), |GT|, EPE/TEPE with the non-zero-count denominators).
+Aggregation over sequences is frame-weighted (`sav_jax.metrics.aggregate`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import pathlib
+import re
+import time
+
+import numpy as np
+
+from eval import data as eval_data
+from eval import plots
+from sav_jax import inference, metrics
+
+log = logging.getLogger(__name__)
+
+METHOD_NAMES = {"sav": "Stereo Any Video", "sgbm": "StereoSGBM"}
+BASELINES = ("sgbm",)
+
+
+@dataclasses.dataclass
+class SequenceResult:
+  """Results of one sequence.
+
+  Attributes:
+    name: sequence name.
+    frames: evaluated frames T (the aggregation weight).
+    metrics: method -> metric dict of `metrics.eval_sequence` (empty without GT).
+    curves: method -> (per-frame EPE `[T]`, per-frame-pair TEPE `[T-1]`).
+    seconds: method -> wall time of its predictions.
+  """
+
+  name: str
+  frames: int
+  metrics: dict = dataclasses.field(default_factory=dict)
+  curves: dict = dataclasses.field(default_factory=dict)
+  seconds: dict = dataclasses.field(default_factory=dict)
+
+
+def safe_name(name: str) -> str:
+  """A file-name-safe version of a sequence name."""
+  return re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("_") or "sequence"
+
+
+def per_frame_errors(pred, gt, valid) -> tuple[np.ndarray, np.ndarray]:
+  """Per-frame EPE `[T]` and TEPE `[T-1]`, each frame reduced with the official rule.
+
+  The evaluator's pre-processing (x * round(m), |y|) is applied first; each frame's
+  value is `sum(e_t) / max(count_nonzero(e_t), 1e-5)`.
+  """
+  m = np.asarray(valid, np.float32)
+  epe, tepe = metrics.endpoint_error_maps(np.asarray(pred, np.float32) * np.round(m),
+                                          np.abs(np.asarray(gt, np.float32)), m)
+
+  def reduce(e):
+    e = e.reshape(len(e), -1)
+    return e.sum(axis=1, dtype=np.float64) / np.maximum(np.count_nonzero(e, axis=1), 1e-5)
+
+  return reduce(epe), reduce(tepe)
+
+
+def predict(method: str, clip: dict, *, variables, model_cfg, config) -> np.ndarray:
+  """`[T, H, W]` disparity of one method on a sequence's frames."""
+  if method == "sav":
+    return inference.predict_video(variables, clip["left"], clip["right"], cfg=model_cfg,
+                                   iters=config.iters, window=config.window,
+                                   stride=config.stride, progress=True)
+  if method == "sgbm":
+    from sav_jax.tools.demo import stereo_sgbm  # pylint: disable=import-outside-toplevel
+    return stereo_sgbm(clip["left"], clip["right"], max_disparity=config.baseline.max_disparity,
+                       block_size=config.baseline.block_size)
+  raise ValueError(f"unknown method {method!r}; baselines: {', '.join(BASELINES)}")
+
+
+def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
+                      out: pathlib.Path | None = None) -> SequenceResult:
+  """Predicts and scores one sequence; writes its predictions and plots under `out`."""
+  clip = eval_data.read_sequence(seq)
+  res = SequenceResult(name=str(seq.name), frames=len(clip["left"]))
+  has_gt = clip["disparity"] is not None
+  scale = seq.depth2disp_scale if config.metrics.tcc else None
+  preds = {}
+  for method in methods:
+    start = time.perf_counter()
+    pred = predict(method, clip, variables=variables, model_cfg=model_cfg, config=config)
+    res.seconds[method] = time.perf_counter() - start
+    preds[method] = pred
+    if has_gt:
+      res.metrics[method] = metrics.eval_sequence(pred, clip["disparity"],
+                                                  clip["valid"].astype(np.float32), scale=scale)
+      res.curves[method] = per_frame_errors(pred, clip["disparity"], clip["valid"])
+  if out is not None:
+    _write_sequence_outputs(out, res, clip, preds, config)
+  return res
+
+
+def _write_sequence_outputs(out: pathlib.Path, res: SequenceResult, clip: dict, preds: dict,
+                            config) -> None:
+  name = safe_name(res.name)
+  if config.save_predictions:
+    (out / "predictions").mkdir(parents=True, exist_ok=True)
+    for method, pred in preds.items():
+      suffix = "" if method == "sav" else f"_{method}"
+      np.save(out / "predictions" / f"{name}{suffix}.npy", pred.astype(np.float32))
+  if config.plots.enabled:
+    (out / "plots").mkdir(parents=True, exist_ok=True)
+    labelled = {METHOD_NAMES[m]: p for m, p in preds.items()}
+    plots.write_strip(out / "plots" / f"{name}_strip.png", clip, labelled,
+                      frames=config.plots.strip_frames, tile=config.plots.tile_size)
+    if res.curves:
+      curves = {METHOD_NAMES[m]: c for m, c in res.curves.items()}
+      plots.write_curves(out / "plots" / f"{name}_curves.png", curves, title=res.name)
+
+
+def aggregate(results: list[SequenceResult], method: str) -> dict[str, float]:
+  """Frame-weighted mean of a method's metrics over the sequences that have them."""
+  return metrics.aggregate([(r.metrics[method], r.frames) for r in results
+                            if method in r.metrics])

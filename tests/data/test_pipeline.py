@@ -1,0 +1,173 @@
+"""grain pipelines: shapes, determinism, mixtures, per-process shards, resumable state."""
+
+import sys
+import types
+
+import grain
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+import pytest
+
+from sav_jax.data import pipeline
+from sav_jax.data.synthetic import SyntheticConfig
+
+CFG = SyntheticConfig(frames=2, height=16, width=16, num_objects=1, max_disparity=6.0)
+
+
+def _tagged(tag: int, n: int, t=2, h=16, w=16) -> grain.MapDataset:
+  """Clips whose `disparity[0, 0, 0]` is `tag * 1000 + index` (identifiable)."""
+
+  def make(i):
+    disp = np.full((t, h, w), tag * 1000 + i, np.float32)
+    img = np.full((t, h, w, 3), i % 255, np.uint8)
+    return {"left": img, "right": img, "disparity": disp, "valid": np.ones((t, h, w), bool)}
+
+  return grain.MapDataset.range(n).map(make)
+
+
+def _ids(batch):
+  return [int(v) for v in batch["disparity"][:, 0, 0, 0]]
+
+
+def _take(it, k):
+  return [next(it) for _ in range(k)]
+
+
+def test_batches_have_static_shapes_and_dtypes():
+  ds = pipeline.make_train_dataset([pipeline.synthetic_source(CFG, 7)], [1.0], batch_size=3,
+                                   seed=0, num_threads=1)
+  for batch in _take(iter(ds), 4):  # 12 > 7 clips: the stream repeats
+    assert batch["left"].shape == batch["right"].shape == (3, 2, 16, 16, 3)
+    assert batch["left"].dtype == np.uint8 and batch["valid"].dtype == bool
+    assert batch["disparity"].shape == (3, 2, 16, 16) and batch["disparity"].dtype == np.float32
+
+
+def test_epochs_are_reshuffled_permutations():
+  ds = pipeline.make_train_dataset([_tagged(0, 10)], [1.0], batch_size=5, seed=4, num_threads=1)
+  ids = sum((_ids(b) for b in _take(iter(ds), 4)), [])
+  assert sorted(ids[:10]) == list(range(10)) and sorted(ids[10:]) == list(range(10))
+  assert ids[:10] != ids[10:] and ids[:10] != list(range(10))
+
+
+def test_same_seed_same_stream_other_seed_other_stream():
+  make = lambda seed: pipeline.make_train_dataset([_tagged(0, 50)], [1.0], batch_size=4,
+                                                  seed=seed, num_threads=2)
+  a, b, c = (sum((_ids(x) for x in _take(iter(make(s)), 3)), []) for s in (1, 1, 2))
+  assert a == b and a != c
+
+
+def test_process_shards_are_disjoint_and_cover_the_data():
+  seen = []
+  for p in range(3):
+    ds = pipeline.make_train_dataset([_tagged(0, 12)], [1.0], batch_size=4, seed=0,
+                                     process_index=p, process_count=3, num_threads=1)
+    ids = _ids(next(iter(ds)))
+    assert all(i % 3 == p for i in ids)  # only this process's slice is ever read
+    seen += ids
+  assert sorted(seen) == list(range(12))
+
+
+@pytest.mark.parametrize("mode,expected", [("ratio", (0.75, 0.25)), ("concat", (0.5, 0.5))])
+def test_mixture_proportions(mode, expected):
+  # 30 clips with weight 3 vs 90 clips with weight 1.
+  ds = pipeline.make_train_dataset([_tagged(1, 30), _tagged(2, 90)], [3.0, 1.0], batch_size=8,
+                                   seed=0, mode=mode, num_threads=1)
+  tags = np.array(sum((_ids(b) for b in _take(iter(ds), 50)), [])) // 1000
+  np.testing.assert_allclose([np.mean(tags == 1), np.mean(tags == 2)], expected, atol=0.02)
+
+
+def test_mixture_weights_validation():
+  assert pipeline.mixture_weights([10, 30], [1, 1], "concat") == [0.25, 0.75]
+  with pytest.raises(ValueError, match="mixing mode"):
+    pipeline.mixture_weights([1], [1], "sum")
+  with pytest.raises(ValueError, match="one weight per source"):
+    pipeline.mixture_weights([1, 2], [1], "ratio")
+
+
+def test_interrupt_and_restore_iterator_state():
+  make = lambda: iter(pipeline.make_train_dataset(
+      [_tagged(1, 13), pipeline.synthetic_source(CFG, 9)], [2.0, 1.0], batch_size=3, seed=5,
+      num_threads=2, prefetch=3))
+  reference = _take(make(), 9)
+  it = make()
+  _take(it, 4)
+  state = it.get_state()
+  del it  # "interrupted"
+  resumed = make()
+  resumed.set_state(state)
+  for got, want in zip(_take(resumed, 5), reference[4:]):
+    jax.tree.map(np.testing.assert_array_equal, got, want)
+
+
+def test_iterator_state_through_orbax(tmp_path):
+  make = lambda: iter(pipeline.make_train_dataset([_tagged(0, 20)], [1.0], batch_size=2,
+                                                  seed=9, num_threads=1))
+  it = make()
+  _take(it, 3)
+  with ocp.CheckpointManager(tmp_path, item_names=("data",)) as mngr:
+    mngr.save(3, args=ocp.args.Composite(data=grain.checkpoint.CheckpointSave(it)))
+    mngr.wait_until_finished()
+  want = _ids(next(it))
+  fresh = make()
+  with ocp.CheckpointManager(tmp_path, item_names=("data",)) as mngr:
+    mngr.restore(3, args=ocp.args.Composite(data=grain.checkpoint.CheckpointRestore(fresh)))
+  assert _ids(next(fresh)) == want
+
+
+def test_global_batches_on_the_data_sharding():
+  mesh = jax.sharding.Mesh(np.asarray(jax.devices()), ("data",))
+  sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
+  n = len(jax.devices())
+  ds = pipeline.make_train_dataset([_tagged(0, 16)], [1.0], batch_size=2 * n, seed=0,
+                                   num_threads=1)
+  it = pipeline.GlobalBatchIterator(iter(ds), sharding)
+  batch = next(it)
+  assert batch["left"].shape == (2 * n, 2, 16, 16, 3) and batch["left"].sharding == sharding
+  state = it.get_state()
+  nxt = jax.device_get(next(it))
+  it.set_state(state)
+  np.testing.assert_array_equal(jax.device_get(next(it))["disparity"], nxt["disparity"])
+
+
+def test_eval_batches_pad_to_static_size():
+  clips = pipeline.fixed_clips(pipeline.synthetic_source(CFG, 5), 5)
+  batches = pipeline.eval_batches(clips, 2)
+  assert [n for _, n in batches] == [2, 2, 1]
+  assert all(b["left"].shape[0] == 2 for b, _ in batches)
+  np.testing.assert_array_equal(batches[-1][0]["left"][1], clips[-1]["left"])
+
+
+class _FakeSequence:
+  """Stands in for `base.StereoSequence`: frame i has disparity i + 1, 20x24 pixels."""
+
+  sparse = False
+
+  def gather(self, indices):
+    n = len(indices)
+    disp = np.stack([np.full((20, 24), i + 1.0, np.float32) for i in indices])
+    img = np.random.default_rng(0).integers(0, 255, (n, 20, 24, 3)).astype(np.uint8)
+    return {"left": img, "right": img.copy(), "disparity": disp, "valid": disp > 0}
+
+
+def test_registry_source_and_official_augmentation(monkeypatch):
+  """The real-data path with a stand-in registry and the project's augmentation."""
+  import sav_jax.data as data_pkg  # pylint: disable=g-import-not-at-top
+  registry = types.ModuleType("sav_jax.data.registry")
+  registry.get_training_clips = lambda dataset, root, n, split="train", seed=0: [
+      (_FakeSequence(), [s + k for k in range(n)]) for s in range(0, 6 - n + 1)]
+  monkeypatch.setitem(sys.modules, "sav_jax.data.registry", registry)
+  monkeypatch.setattr(data_pkg, "registry", registry, raising=False)
+  src = pipeline.registry_source("toy", "/nowhere", 3)
+  assert len(src) == 4 and src[1]["disparity"][:, 0, 0].tolist() == [2.0, 3.0, 4.0]
+  assert src[1]["sparse"] is False
+  augment = pipeline.Augment((16, 16), (("eraser_size", [2, 4]),))
+  ds = pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1,
+                                   transforms=[augment])
+  batch = next(iter(ds))
+  assert batch["left"].shape == (2, 3, 16, 16, 3) and batch["left"].dtype == np.uint8
+  assert batch["valid"].dtype == bool and batch["disparity"].shape == (2, 3, 16, 16)
+  again = next(iter(ds))  # augmentation is seeded by (seed, index): reproducible
+  jax.tree.map(np.testing.assert_array_equal, batch, again)
+  crop = pipeline.center_crop(src[0], (16, 16))
+  assert crop["left"].shape == (3, 16, 16, 3)

@@ -1,0 +1,176 @@
+"""The evaluation program end to end: the synthetic set and a tiny on-disk VKITTI2.
+
+Both runs use 4-frame clips of 32x64 and iters=2, so the model compiles once. The
+reported numbers are checked against `sav_jax.metrics` applied to the saved predictions.
+"""
+
+import csv
+import json
+import pathlib
+
+import cv2
+import jax
+import numpy as np
+import pytest
+
+import sav_jax
+from eval import config as eval_config
+from eval import data as eval_data
+from eval.main import main
+from sav_jax import inference, metrics
+from sav_jax.data import synthetic
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs" / "eval"
+T, H, W = 4, 32, 64
+SMALL = ["--config.iters=2", f"--config.synthetic.frames={T}", f"--config.synthetic.height={H}",
+         f"--config.synthetic.width={W}", "--config.synthetic.num_sequences=2",
+         "--config.synthetic.max_disparity=6", "--config.synthetic.num_objects=2",
+         "--config.baseline.max_disparity=16", "--config.save_predictions=true"]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def fast_compile():
+  """Most XLA optimisations off while this module compiles (about 2x faster on CPU)."""
+  old = jax.config.read("jax_disable_most_optimizations")
+  jax.config.update("jax_disable_most_optimizations", True)
+  yield
+  jax.config.update("jax_disable_most_optimizations", old)
+
+
+@pytest.fixture(scope="module")
+def variables(sav_state_dict):
+  return sav_jax.convert.params_from_state_dict(sav_state_dict, sav_jax.SAVConfig())
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory, variables):
+  path = tmp_path_factory.mktemp("ckpt") / "sav"
+  sav_jax.convert.save_variables(path, variables, {"model": sav_jax.SAVConfig().to_dict()})
+  return path
+
+
+@pytest.fixture(scope="module")
+def synthetic_run(tmp_path_factory, ckpt):
+  out = tmp_path_factory.mktemp("eval") / "synthetic"
+  rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), "--out", str(out),
+             "--baseline", "sgbm", "--config.metrics.tcc=true", *SMALL])
+  assert rc == 0
+  return out
+
+
+def _check_against_metrics(out, seqs, methods, with_scale):
+  summary = json.loads((out / "results.json").read_text())
+  assert [s["name"] for s in summary["sequences"]] == [s.name for s in seqs]
+  per_method = {m: [] for m in methods}
+  for seq, rec in zip(seqs, summary["sequences"]):
+    clip = eval_data.read_sequence(seq)
+    assert rec["frames"] == len(clip["left"])
+    for m in methods:
+      suffix = "" if m == "sav" else f"_{m}"
+      pred = np.load(out / "predictions" / f"{eval_data_safe(seq.name)}{suffix}.npy")
+      ref = metrics.eval_sequence(pred, clip["disparity"], clip["valid"].astype(np.float32),
+                                  scale=seq.depth2disp_scale if with_scale else None)
+      assert rec["metrics"][m] == pytest.approx(ref, rel=1e-12, abs=1e-12)
+      per_method[m].append((ref, rec["frames"]))
+  for m in methods:
+    agg = metrics.aggregate(per_method[m])
+    assert summary["methods"][m]["aggregate"] == pytest.approx(agg, rel=1e-12, abs=1e-12)
+  return summary
+
+
+def eval_data_safe(name):
+  from eval.runner import safe_name
+  return safe_name(name)
+
+
+def test_synthetic_outputs_and_metrics(synthetic_run, variables):
+  out = synthetic_run
+  for name in ("results.json", "results.csv", "results.md"):
+    assert (out / name).is_file()
+  config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")),
+                                       eval_config.split_overrides(SMALL)[1])
+  seqs = eval_data.load_sequences(config, None)
+  summary = _check_against_metrics(out, seqs, ["sav", "sgbm"], with_scale=True)
+  assert "disp_TCC" in summary["methods"]["sav"]["aggregate"]
+  for seq in seqs:  # predictions are predict_video's, frame for frame
+    clip = eval_data.read_sequence(seq)
+    expected = inference.predict_video(variables, clip["left"], clip["right"], iters=2)
+    np.testing.assert_array_equal(np.load(out / "predictions" / f"{seq.name}.npy"), expected)
+    for kind in ("curves", "strip"):
+      img = cv2.imread(str(out / "plots" / f"{seq.name}_{kind}.png"))
+      assert img is not None and img.shape[0] > 100
+  rows = list(csv.DictReader(open(out / "results.csv", encoding="utf-8")))
+  assert len(rows) == 2 * 2 + 2
+  assert float(rows[0]["disp_epe_mean"]) == summary["sequences"][0]["metrics"]["sav"][
+      "disp_epe_mean"]
+  md = (out / "results.md").read_text()
+  assert "| Stereo Any Video |" in md and "| StereoSGBM |" in md and "δt-1px %" in md
+
+
+def test_refuses_to_overwrite(synthetic_run, ckpt, capsys):
+  before = (synthetic_run / "results.json").read_text()
+  rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt),
+             "--out", str(synthetic_run), *SMALL])
+  assert rc == 2 and "--overwrite" in capsys.readouterr().err
+  assert (synthetic_run / "results.json").read_text() == before
+
+
+@pytest.mark.parametrize("override,message", [
+    ("--config.nope=1", "no such config field"), ("--config.iters=abc", "expected int"),
+    ("--config.iters=3", "even"), ("--config.plots.enabled=maybe", "true/false")])
+def test_bad_overrides(tmp_path, ckpt, capsys, override, message):
+  rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt),
+             "--out", str(tmp_path / "o"), override])
+  assert rc == 2 and message in capsys.readouterr().err
+  assert not (tmp_path / "o").exists()
+
+
+def test_config_overrides_and_head():
+  config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+  rest, ov = eval_config.split_overrides(["--x", "--config.iters", "4",
+                                          "--config.plots.enabled=false"])
+  assert rest == ["--x"]
+  eval_config.apply_overrides(config, ov)
+  assert config.iters == 4 and config.plots.enabled is False
+  config.synthetic.frames, config.synthetic.height, config.synthetic.width = 6, 16, 32
+  config.synthetic.num_sequences, config.sample_len = 1, 4
+  config.synthetic.max_disparity = 6.0
+  (seq,) = eval_data.load_sequences(config, None)
+  assert len(seq) == 4 and eval_data.read_sequence(seq)["left"].shape == (4, 16, 32, 3)
+  for name in ("sintel_clean", "sintel_final", "dynamic_replica", "infinigen_sv", "vkitti2",
+               "kitti_depth", "spring"):
+    c = eval_config.load_config(str(CONFIGS / f"{name}.py"))
+    assert c.dataset == name and c.split == "test" and c.iters == 20 and c.window == 20
+
+
+def _write_vkitti2(root, clip, name, fx=725.0087):
+  scene, variation = name.split("_", 1)
+  seq = root / "vkitti2" / scene / variation
+  for cam, view in (("Camera_0", "left"), ("Camera_1", "right")):
+    (seq / "frames" / "rgb" / cam).mkdir(parents=True)
+    (seq / "frames" / "depth" / cam).mkdir(parents=True)
+    for t in range(len(clip[view])):
+      cv2.imwrite(str(seq / "frames" / "rgb" / cam / f"rgb_{t:05d}.jpg"), clip[view][t][..., ::-1],
+                  [cv2.IMWRITE_JPEG_QUALITY, 98])
+      cm = np.clip(np.round(clip["depth"][t] * 100), 1, 65535).astype(np.uint16)
+      cv2.imwrite(str(seq / "frames" / "depth" / cam / f"depth_{t:05d}.png"), cm)
+  rows = ["frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]"]
+  rows += [f"{t} {c} {fx} {fx} {(W - 1) / 2} {(H - 1) / 2}" for t in range(T) for c in (0, 1)]
+  (seq / "intrinsic.txt").write_text("\n".join(rows) + "\n")
+
+
+def test_vkitti2_on_disk(tmp_path, ckpt):
+  from sav_jax.data import registry, vkitti2
+  scfg = synthetic.SyntheticConfig(frames=T, height=H, width=W, focal=725.0087,
+                                   baseline=vkitti2.BASELINE_M, max_disparity=6.0, num_objects=2)
+  for i, name in enumerate(vkitti2.TEST):
+    _write_vkitti2(tmp_path / "data", synthetic.generate_clip(scfg, i), name)
+  out = tmp_path / "out"
+  rc = main(["--config", str(CONFIGS / "vkitti2.py"), "--checkpoint", str(ckpt), "--data-root",
+             str(tmp_path / "data"), "--out", str(out), "--config.iters=2",
+             "--config.save_predictions=true", "--config.plots.enabled=false"])
+  assert rc == 0
+  seqs = registry.get_sequences("vkitti2", tmp_path / "data", "test", max_frames=300)
+  summary = _check_against_metrics(out, seqs, ["sav"], with_scale=False)
+  assert summary["frames"] == 5 * T and not (out / "plots").exists()

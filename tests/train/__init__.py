@@ -1,0 +1,1 @@
+"""Tests of the training program (heavy ones run the model in subprocesses)."""

@@ -1,0 +1,192 @@
+"""Subprocess jobs that compile the real model, shared by the training tests.
+
+Compiling the full model (frozen VDA included) costs about a minute of one CPU core, and
+XLA compiles on one thread, so the expensive runs are subprocesses scheduled two at a
+time (`_WORKERS`) with a persistent compilation cache shared by all of them: the
+kill/resume runs reuse the executables of the learning run. A job starts when the first
+test that needs it asks (`jobs.get(name)`), and every job that the *selected* tests
+mark with `@pytest.mark.train_job(name)` is queued at that moment, so that the two
+slots stay busy.
+
+  learn        python -m train on a tiny synthetic config; validation EPE before/after
+  kill_resume  a copy of `learn` SIGKILLed after step K, resumed to step N (needs learn)
+  sharding     one step on 8 fake CPU devices vs 1 device (tests/train/test_sharding.py)
+  multihost    two processes with jax.distributed on localhost (needs learn's weights)
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+import pathlib
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+_WORKERS = 2
+_ORDER = ("learn", "sharding", "kill_resume", "multihost")
+_DEPENDS = {"kill_resume": ("learn",), "multihost": ("learn",)}
+
+# The tiny training setup of the subprocess runs: T=2, 32x64, iters=2, batch 2, with the
+# schedule length fixed so that every run compiles the very same train step.
+TINY = [
+    "--config.data.frames=2", "--config.data.crop=(32, 64)", "--config.train.iters=2",
+    "--config.train.batch_size=2", "--config.optimizer.lr=1e-3",
+    "--config.optimizer.schedule_steps=400", "--config.optimizer.pct_start=0.02",
+    "--config.data.synthetic.max_disparity=12.0", "--config.data.synthetic.num_objects=2",
+    "--config.eval.iters=2", "--config.eval.num_clips=8", "--config.eval.batch_size=8",
+    "--config.train.progress_bar=False", "--config.data.num_threads=1",
+]
+LEARN_STEPS = 40
+CHECK_STEP = 20    # kill_resume compares parameters at this step (a checkpoint of learn)
+KILL_AFTER = 2     # ... with those of a run killed after this step's checkpoint
+
+
+def child_env(cache_dir, device_count: int | None = None) -> dict:
+  """Environment of a subprocess: CPU, shared compilation cache, fast LLVM codegen."""
+  env = dict(os.environ)
+  flags = ["--xla_llvm_disable_expensive_passes=true"]
+  if device_count:
+    flags.append(f"--xla_force_host_platform_device_count={device_count}")
+  env.update(JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(cache_dir),
+             JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", XLA_FLAGS=" ".join(flags),
+             PYTHONPATH=os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]),
+             TF_CPP_MIN_LOG_LEVEL="1")
+  return env
+
+
+def tail(path, n=4000) -> str:
+  text = pathlib.Path(path).read_text(errors="replace") if pathlib.Path(path).exists() else ""
+  return text[-n:]
+
+
+def start(cmd, env, log_path) -> subprocess.Popen:
+  log = open(log_path, "w")  # pylint: disable=consider-using-with
+  return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+
+
+def run(cmd, env, log_path, timeout=900) -> None:
+  """Runs `cmd` to completion; fails with the end of its log."""
+  proc = start(cmd, env, log_path)
+  try:
+    rc = proc.wait(timeout=timeout)
+  except subprocess.TimeoutExpired:
+    proc.kill()
+    proc.wait()
+    raise AssertionError(f"{cmd} timed out after {timeout}s:\n{tail(log_path)}")
+  if rc != 0:
+    raise AssertionError(f"{cmd} exited with {rc}:\n{tail(log_path)}")
+
+
+def train_cmd(workdir, *overrides) -> list[str]:
+  return [sys.executable, "-m", "train", "--config", str(ROOT / "configs" / "synthetic.py"),
+          "--workdir", str(workdir), *TINY, *overrides]
+
+
+class Jobs:
+  """Runs named jobs on `_WORKERS` threads; `get` waits for (and if needed starts) one."""
+
+  def __init__(self, root: pathlib.Path, wanted):
+    self.root = root
+    self.cache = root / "jax_cache"
+    self.cache.mkdir(parents=True, exist_ok=True)
+    self._pool = concurrent.futures.ThreadPoolExecutor(_WORKERS)
+    self._futures = {}
+    self._lock = threading.Lock()
+    self.timings = {}
+    for name in _ORDER:
+      if name in wanted:
+        self._submit(name)
+
+  def _submit(self, name):
+    with self._lock:
+      if name not in self._futures:
+        for dep in _DEPENDS.get(name, ()):  # dependencies are queued first
+          if dep not in self._futures:
+            self._futures[dep] = self._pool.submit(self._timed, dep)
+        self._futures[name] = self._pool.submit(self._timed, name)
+      return self._futures[name]
+
+  def _timed(self, name):
+    for dep in _DEPENDS.get(name, ()):
+      self.get(dep)
+    workdir = self.root / name
+    workdir.mkdir(exist_ok=True)
+    t0 = time.time()
+    try:
+      return _JOBS[name](self, workdir)
+    finally:
+      self.timings[name] = time.time() - t0
+
+  def get(self, name):
+    return self._submit(name).result()
+
+  def close(self):
+    self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _learn(jobs: Jobs, workdir):
+  """python -m train: validation at step 0 and LEARN_STEPS, checkpoints at CHECK_STEP."""
+  run(train_cmd(workdir, f"--config.train.num_steps={LEARN_STEPS}",
+                f"--config.eval.every_steps={LEARN_STEPS}",
+                f"--config.checkpoint.every_steps={CHECK_STEP}", "--config.checkpoint.keep=0"),
+      child_env(jobs.cache), workdir / "log.txt")
+  return workdir
+
+
+def _kill_resume(jobs: Jobs, workdir):
+  """The learn run again, SIGKILLed once its checkpoint KILL_AFTER exists, then resumed."""
+  cmd = train_cmd(workdir, f"--config.train.num_steps={LEARN_STEPS}", "--config.eval.every_steps=0",
+                  f"--config.checkpoint.every_steps={KILL_AFTER}", "--config.checkpoint.keep=0")
+  proc = start(cmd, child_env(jobs.cache), workdir / "killed_log.txt")
+  target = workdir / "checkpoints" / str(KILL_AFTER)
+  deadline = time.time() + 900
+  while not target.is_dir() and proc.poll() is None and time.time() < deadline:
+    time.sleep(0.05)
+  proc.kill()  # SIGKILL: no clean-up, no final save
+  proc.wait()
+  assert target.is_dir(), f"no checkpoint {KILL_AFTER} before the kill:\n" + \
+      tail(workdir / "killed_log.txt")
+  steps = sorted(int(p.name) for p in (workdir / "checkpoints").iterdir() if p.name.isdigit())
+  run(train_cmd(workdir, f"--config.train.num_steps={CHECK_STEP}", "--config.eval.every_steps=0",
+                f"--config.checkpoint.every_steps={CHECK_STEP}", "--config.checkpoint.keep=0"),
+      child_env(jobs.cache), workdir / "resumed_log.txt")
+  return {"workdir": workdir, "steps_at_kill": steps, "rc": proc.returncode,
+          "reference": jobs.get("learn")}
+
+
+def _sharding(jobs: Jobs, workdir):
+  out = workdir / "result.json"
+  run([sys.executable, "-m", "tests.train.test_sharding", str(out)],
+      child_env(jobs.cache, device_count=8), workdir / "log.txt")
+  return out
+
+
+def _multihost(jobs: Jobs, workdir):
+  from tests.train import test_multihost  # pylint: disable=g-import-not-at-top
+  return test_multihost.launch(jobs, workdir)
+
+
+_JOBS = {"learn": _learn, "kill_resume": _kill_resume, "sharding": _sharding,
+         "multihost": _multihost}
+
+
+def pytest_configure(config):
+  config.addinivalue_line("markers", "train_job(name): the test uses a subprocess job")
+
+
+@pytest.fixture(scope="session")
+def jobs(request, tmp_path_factory):
+  wanted = set()
+  for item in request.session.items:
+    for mark in item.iter_markers("train_job"):
+      wanted.update(mark.args)
+  runner = Jobs(tmp_path_factory.mktemp("train_jobs"), wanted)
+  yield runner
+  runner.close()
+  for name, seconds in runner.timings.items():
+    sys.stderr.write(f"\n[train job] {name}: {seconds:.0f}s")

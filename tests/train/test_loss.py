@@ -1,0 +1,99 @@
+"""The training loss and metrics against a loop-by-loop NumPy transcription of the official code."""
+
+import numpy as np
+import pytest
+
+from train import loss as loss_lib
+
+
+def _official_sequence_loss(preds, gt, valid, gamma=0.9, max_flow=700.0):
+  """`train_utils/losses.py: sequence_loss` for one frame, with explicit loops.
+
+  preds [N, B, H, W], gt [B, H, W], valid [B, H, W] -> (loss, metrics).
+  """
+  n = preds.shape[0]
+  mask = []
+  for b in range(gt.shape[0]):
+    for y in range(gt.shape[1]):
+      for x in range(gt.shape[2]):
+        mag = np.sqrt(gt[b, y, x] ** 2)
+        mask.append((b, y, x) if (valid[b, y, x] >= 0.5 and mag < max_flow) else None)
+  mask = [m for m in mask if m is not None]
+  loss = 0.0
+  for i in range(n):
+    w = 1.0 if n == 1 else (gamma ** (15 / (n - 1))) ** (n - i - 1)
+    errs = [abs(preds[i][m] - gt[m]) for m in mask]
+    loss += w * (sum(errs) / len(errs) if errs else 0.0)  # empty: 0 (PyTorch: NaN)
+  epe = [abs(preds[-1][m] - gt[m]) for m in mask]
+  metrics = {"epe": np.mean(epe) if epe else 0.0}
+  for tau in (1, 3, 5):
+    metrics[f"{tau}px"] = np.mean([e < tau for e in epe]) if epe else 0.0
+  return loss, metrics
+
+
+def _official_forward_batch(preds, gt, valid, per_sample):
+  """`forward_batch`: per frame, loss / T summed; per_sample = one clip per GPU, DDP mean."""
+  n, b, t = preds.shape[:3]
+  groups = [[i] for i in range(b)] if per_sample else [list(range(b))]
+  total, mets = 0.0, {"epe": 0.0, "1px": 0.0, "3px": 0.0, "5px": 0.0}
+  for g in groups:
+    for f in range(t):
+      loss, m = _official_sequence_loss(preds[:, g, f], gt[g, f], valid[g, f])
+      total += loss / t / len(groups)
+      for k in mets:
+        mets[k] += m[k] / t / len(groups)
+  return total, mets
+
+
+def _case(rng, n=6, b=2, t=3, h=5, w=7):
+  gt = rng.uniform(0.5, 40.0, (b, t, h, w)).astype(np.float32)
+  gt[0, 1, 2, 3] = 800.0          # above the 700 cut
+  gt[1, 0, 0, :3] = np.nan        # NaN ground truth is never valid
+  preds = (gt[None] + rng.normal(0, 3.0, (n, b, t, h, w))).astype(np.float32)
+  preds = np.nan_to_num(preds, nan=1.0)
+  valid = rng.uniform(0, 1, (b, t, h, w)).astype(np.float32)  # fractional: >= 0.5 counts
+  return preds, gt, valid
+
+
+@pytest.mark.parametrize("per_sample", [True, False])
+@pytest.mark.parametrize("n", [1, 2, 20])
+def test_loss_matches_loop_reference(per_sample, n):
+  preds, gt, valid = _case(np.random.default_rng(n), n=n)
+  loss, metrics = loss_lib.sequence_loss(preds, gt, valid, per_sample=per_sample)
+  ref_loss, ref_metrics = _official_forward_batch(preds, gt, valid, per_sample)
+  np.testing.assert_allclose(float(loss), ref_loss, rtol=1e-5)
+  for k, v in ref_metrics.items():
+    np.testing.assert_allclose(float(metrics[k]), v, rtol=1e-5, atol=1e-7, err_msg=k)
+
+
+def test_prediction_weights_official_decay():
+  w = np.asarray(loss_lib.prediction_weights(20))
+  g = 0.9 ** (15 / 19)
+  np.testing.assert_allclose(w, [g ** (19 - i) for i in range(20)], rtol=1e-6)
+  assert w[-1] == 1.0 and np.all(np.diff(w) > 0)
+  np.testing.assert_allclose(w[0], 0.9 ** 15, rtol=1e-6)  # the decay is fixed per cycle
+  assert np.asarray(loss_lib.prediction_weights(1)).tolist() == [1.0]
+
+
+def test_frame_without_valid_pixels_contributes_zero():
+  preds, gt, valid = _case(np.random.default_rng(0))
+  valid[:, 0] = 0.0
+  loss, metrics = loss_lib.sequence_loss(preds, gt, valid)
+  ref, ref_metrics = _official_forward_batch(preds, gt, valid, True)
+  assert np.isfinite(float(loss))
+  np.testing.assert_allclose(float(loss), ref, rtol=1e-5)
+  np.testing.assert_allclose(float(metrics["epe"]), ref_metrics["epe"], rtol=1e-5)
+
+
+def test_large_and_invalid_disparities_are_ignored():
+  gt = np.full((1, 1, 2, 2), 10.0, np.float32)
+  gt[0, 0, 0, 0] = 700.0  # exactly at the cut: excluded (strict <)
+  valid = np.ones_like(gt)
+  valid[0, 0, 1, 1] = 0.4
+  preds = np.full((1, 1, 1, 2, 2), 12.0, np.float32)
+  preds[0, 0, 0, 0, 0] = 1e6
+  preds[0, 0, 0, 1, 1] = 1e6
+  loss, metrics = loss_lib.sequence_loss(preds, gt, valid)
+  np.testing.assert_allclose(float(loss), 2.0, rtol=1e-6)
+  np.testing.assert_allclose(float(metrics["3px"]), 1.0)
+  np.testing.assert_allclose(float(metrics["1px"]), 0.0)

@@ -1,0 +1,115 @@
+"""One train step of the real model on 8 fake CPU devices equals the step on 1 device.
+
+The check runs in a subprocess (`python -m tests.train.test_sharding OUT`, started by
+conftest.py with `XLA_FLAGS=--xla_force_host_platform_device_count=8`), because the
+other tests have already initialised JAX with one device in this process. The child also
+feeds a NaN batch to the 8-device step: the update must be skipped and counted.
+
+Tolerances: loss and metrics rtol 1e-5 (the gradient all-reduce over 8 devices sums in a
+different order than one device does, ~1e-7 relative); parameters after the AdamW update
+atol 2e-6 (the first update is lr * m / (sqrt(v) + eps) ~ lr * sign(g) with lr = 2e-5 at
+step 0, so a gradient entry at rounding level may flip sign and move by up to 2 lr; we
+bound the maximum and require that fewer than 1e-4 of the entries differ by > 1e-7).
+"""
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+STEP_LR = 2e-5
+
+
+@pytest.mark.train_job("sharding")
+def test_eight_devices_match_one_device(jobs):
+  result = json.loads(jobs.get("sharding").read_text())
+  assert result["devices"] == 8 and result["mesh8"] == {"data": 8}
+  np.testing.assert_allclose(result["loss8"], result["loss1"], rtol=1e-5)
+  for k in ("epe", "1px", "3px", "l2_grads"):
+    np.testing.assert_allclose(result["metrics8"][k], result["metrics1"][k], rtol=1e-5, err_msg=k)
+  assert result["param_max_abs_diff"] <= 2 * STEP_LR + 1e-6
+  assert result["param_frac_diff_gt_1e-7"] < 1e-4
+  assert result["changed_fraction"] > 0.5  # the step did update the parameters
+  assert result["frozen_unchanged"]
+
+
+@pytest.mark.train_job("sharding")
+def test_nan_batch_is_skipped_and_counted_on_eight_devices(jobs):
+  result = json.loads(jobs.get("sharding").read_text())
+  assert result["nan_loss_finite"] is False
+  assert result["nan_num_skipped"] == 1 and result["nan_step"] == 2
+  assert result["nan_params_unchanged"] and result["nan_opt_state_unchanged"]
+
+
+def _config():
+  from configs import synthetic  # pylint: disable=g-import-not-at-top
+  c = synthetic.get_config()
+  c.data.frames, c.data.crop, c.train.iters, c.train.batch_size = 2, (32, 32), 2, 8
+  c.data.synthetic.max_disparity, c.data.num_threads = 8.0, 1
+  c.optimizer.lr, c.optimizer.schedule_steps, c.optimizer.div_factor = STEP_LR, 400, 1.0
+  return c
+
+
+def _compare(p8, p1, before, frozen):
+  import jax  # pylint: disable=g-import-not-at-top
+  diffs = [np.abs(np.asarray(a) - np.asarray(b)).ravel()
+           for a, b in zip(jax.tree.leaves(p8), jax.tree.leaves(p1))]
+  d = np.concatenate(diffs)
+  moved = np.concatenate([(np.asarray(a) != np.asarray(b)).ravel()
+                          for a, b in zip(jax.tree.leaves(p8), jax.tree.leaves(before))])
+  frozen_same = all(np.array_equal(a, b) for a, b in zip(
+      jax.tree.leaves(p8["depthnet"]["depthanything"]), jax.tree.leaves(frozen)))
+  n_frozen = sum(np.size(x) for x in jax.tree.leaves(frozen))
+  return {"param_max_abs_diff": float(d.max()), "param_frac_diff_gt_1e-7": float(np.mean(d > 1e-7)),
+          "changed_fraction": float(moved.sum() / (moved.size - n_frozen)),
+          "frozen_unchanged": bool(frozen_same)}
+
+
+def _child(out_path):
+  """Runs in a fresh process with 8 CPU devices."""
+  import jax  # pylint: disable=g-import-not-at-top
+  import sav_jax  # pylint: disable=g-import-not-at-top
+  from sav_jax.data import pipeline  # pylint: disable=g-import-not-at-top
+  from train import input as input_lib, optim, state as S, step as st  # pylint: disable=g-import-not-at-top
+  jax.config.update("jax_transfer_guard", "disallow")
+  c = _config()
+  model = sav_jax.StereoAnyVideo(S.model_config(c))
+  params = S.abstract_params(model, c)
+  labels = optim.param_labels(params, c.optimizer.frozen)
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
+  train_step = st.make_train_step(model, tx, c, labels)
+  batch = next(iter(input_lib.train_dataset(c, process_index=0, process_count=1)))
+  batch = dict(batch, left=batch["left"].astype(np.float32), right=batch["right"].astype(np.float32))
+  mesh8, mesh1 = S.make_mesh(), S.make_mesh(jax.devices()[:1])
+  state8, sh8 = S.create_train_state(model, tx, c, mesh8)
+  host0 = jax.device_get(state8)
+  step8 = st.jit_train_step(train_step, sh8, mesh8)
+  new8, m8 = step8(state8, pipeline.to_global(
+      batch, S.data_sharding(mesh8)))
+  host8, m8 = jax.device_get((new8, m8))
+  sh1 = S.state_shardings(host0, mesh1)
+  state1 = jax.device_put(host0, sh1)
+  new1, m1 = st.jit_train_step(train_step, sh1, mesh1)(state1, pipeline.to_global(
+      batch, S.data_sharding(mesh1)))
+  host1, m1 = jax.device_get((new1, m1))
+  out = {"devices": jax.device_count(), "mesh8": dict(mesh8.shape), "loss8": float(m8["loss"]),
+         "loss1": float(m1["loss"]), "metrics8": {k: float(v) for k, v in m8.items()},
+         "metrics1": {k: float(v) for k, v in m1.items()}}
+  out.update(_compare(host8.params, host1.params, host0.params,
+                      host0.params["depthnet"]["depthanything"]))
+  nan_batch = dict(batch, left=batch["left"].copy())
+  nan_batch["left"][3, 1, 7, 9, 0] = np.nan
+  after, mn = jax.device_get(step8(jax.device_put(host8, sh8), pipeline.to_global(
+      nan_batch, S.data_sharding(mesh8))))
+  same = lambda a, b: all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a),
+                                                               jax.tree.leaves(b)))
+  out.update(nan_loss_finite=bool(np.isfinite(mn["loss"])), nan_num_skipped=int(after.num_skipped),
+             nan_step=int(after.step), nan_params_unchanged=same(after.params, host8.params),
+             nan_opt_state_unchanged=same(after.opt_state, host8.opt_state))
+  with open(out_path, "w", encoding="utf-8") as f:
+    json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+  _child(sys.argv[1])

@@ -1,0 +1,162 @@
+"""In-process tests of the optimizer, state, step and checkpoints (toy model; fast).
+
+The real model is only traced here (`jax.eval_shape`), never compiled: the tests that
+compile it run in subprocesses (test_sharding, test_multihost, test_resume_and_learning).
+"""
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import sav_jax
+from configs import synthetic
+from sav_jax.data import pipeline
+from sav_jax.data.synthetic import SyntheticConfig
+from sav_jax.model.stereo_any_video import SAVOutput
+from train import checkpoint as ckpt_lib
+from train import optim, state as state_lib, step as step_lib
+
+
+def _config():
+  c = synthetic.get_config()
+  c.data.frames, c.data.crop, c.train.iters, c.train.batch_size = 2, (16, 16), 2, 2
+  c.train.num_steps = 10
+  return c
+
+
+class ToyStereo(nn.Module):
+  """Same interface and parameter layout idea as `StereoAnyVideo`, a few parameters."""
+
+  @nn.compact
+  def __call__(self, left, right, iters=2, final_only=False):
+    x = jnp.concatenate([left, right], axis=-1) / 255.0
+    prior = jax.lax.stop_gradient(_Frozen(name="depthnet")(x))
+    d = nn.Dense(1, name="head")(jnp.concatenate([x, prior], -1))[..., 0] * 10.0
+    preds = jnp.stack([d * (i + 1) / (2 * iters) for i in range(2 * iters)])
+    return SAVOutput(disparities=preds[-1:] if final_only else preds)
+
+
+class _Frozen(nn.Module):
+  @nn.compact
+  def __call__(self, x):
+    return _VDA(name="depthanything")(x)
+
+
+class _VDA(nn.Module):
+  @nn.compact
+  def __call__(self, x):
+    return nn.Dense(3)(x)
+
+
+def _batch(rng, c, nan=False):
+  t, (h, w), b = c.data.frames, c.data.crop, c.train.batch_size
+  left = rng.uniform(0, 255, (b, t, h, w, 3)).astype(np.float32)
+  if nan:
+    left[0, 0, 0, 0, 0] = np.nan
+  return {"left": left, "right": rng.uniform(0, 255, (b, t, h, w, 3)).astype(np.float32),
+          "disparity": rng.uniform(1, 8, (b, t, h, w)).astype(np.float32),
+          "valid": np.ones((b, t, h, w), bool)}
+
+
+def _setup(c):
+  model = ToyStereo()
+  mesh = state_lib.make_mesh()
+  params = state_lib.abstract_params(model, c)
+  labels = optim.param_labels(params, c.optimizer.frozen)
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
+  state, shardings = state_lib.create_train_state(model, tx, c, mesh)
+  step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, c, labels), shardings, mesh)
+  return model, mesh, tx, state, shardings, step
+
+
+def _put(batch, mesh):
+  return {k: jax.device_put(v, state_lib.data_sharding(mesh)) for k, v in batch.items()}
+
+
+def test_one_cycle_matches_pytorch_formula():
+  max_lr, total, pct = 1e-4, 80_100, 0.01
+  sched = optim.one_cycle_linear(max_lr, total, pct)
+  init, final = max_lr / 25, max_lr / 25 / 1e4
+  end1, end2 = pct * total - 1, total - 1  # PyTorch OneCycleLR phase ends
+  for s in [0, 1, 400, 800, 801, 5000, 40_000, 79_999, 80_000]:
+    if s <= end1:
+      ref = (max_lr - init) * (s / end1) + init
+    else:
+      ref = (final - max_lr) * ((s - end1) / (end2 - end1)) + max_lr
+    np.testing.assert_allclose(float(sched(s)), ref, rtol=2e-5, err_msg=str(s))
+
+
+def test_real_model_optimizer_state_has_no_frozen_entries():
+  c = synthetic.get_config()
+  model = sav_jax.StereoAnyVideo(state_lib.model_config(c))
+  params = state_lib.abstract_params(model, c)
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
+  opt_shapes = jax.eval_shape(tx.init, params)
+  paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_leaves_with_path(opt_shapes)]
+  assert paths and not [p for p in paths if "depthanything" in p]
+  n_frozen = sum(x.size for x in jax.tree.leaves(params["depthnet"]["depthanything"]))
+  n_trainable = sum(x.size for x in jax.tree.leaves(params)) - n_frozen
+  n_opt = sum(x.size for x in jax.tree.leaves(opt_shapes) if x.ndim > 0)
+  assert n_frozen > 2e7 and n_opt == 2 * n_trainable  # Adam mu and nu, trainable only
+
+
+def test_step_updates_trainable_only_and_skips_nan_batches():
+  c = _config()
+  _, mesh, _, state, _, step = _setup(c)
+  rng = np.random.default_rng(0)
+  before = jax.device_get(state.params)
+  state, m = step(state, _put(_batch(rng, c), mesh))
+  after = jax.device_get(state.params)
+  assert int(state.step) == 1 and int(state.num_skipped) == 0 and float(m["finite"]) == 1.0
+  np.testing.assert_array_equal(after["depthnet"]["depthanything"]["Dense_0"]["kernel"],
+                                before["depthnet"]["depthanything"]["Dense_0"]["kernel"])
+  assert not np.allclose(after["head"]["kernel"], before["head"]["kernel"])
+  opt_before = jax.device_get(state.opt_state)
+  state, m = step(state, _put(_batch(rng, c, nan=True), mesh))
+  assert not np.isfinite(float(m["loss"])) and float(m["finite"]) == 0.0
+  assert int(state.step) == 2 and int(state.num_skipped) == 1 and int(m["num_skipped"]) == 1
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(state.params), after)
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(state.opt_state), opt_before)
+  state, m = step(state, _put(_batch(rng, c), mesh))
+  assert np.isfinite(float(m["loss"])) and int(state.num_skipped) == 1
+  # The lr follows applied updates: 2 applied after 3 steps.
+  sched = optim.make_schedule(c.optimizer, c.train.num_steps)
+  np.testing.assert_allclose(float(m["lr"]), float(sched(1)), rtol=1e-6)
+
+
+def test_checkpoint_roundtrip_with_data_iterator(tmp_path):
+  c = _config()
+  c.checkpoint.async_save = False
+  model, mesh, tx, state, shardings, step = _setup(c)
+  src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16, max_disparity=8.0), 50)
+  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
+  state, _ = step(state, _put(_batch(np.random.default_rng(1), c), mesh))
+  next(it)
+  manager = ckpt_lib.make_manager(tmp_path, c)
+  assert not ckpt_lib.save(manager, state, it, 1, params_finite=False)  # never saves NaNs
+  assert ckpt_lib.save(manager, state, it, 1, force=True)
+  manager.wait_until_finished()
+  expected_next = next(it)
+  fresh = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
+  abstract = jax.eval_shape(state_lib.make_init_fn(model, tx, c))
+  restored = ckpt_lib.restore(ckpt_lib.make_manager(tmp_path, c), abstract, shardings, fresh)
+  assert int(restored.step) == 1 and restored.params["head"]["kernel"].sharding == \
+      shardings.params["head"]["kernel"]
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(restored.params),
+               jax.device_get(state.params))
+  jax.tree.map(np.testing.assert_array_equal, next(fresh), expected_next)
+
+
+def test_place_params_rejects_mismatches():
+  c = _config()
+  model = ToyStereo()
+  abstract = state_lib.abstract_params(model, c)
+  host = jax.tree.map(lambda a: np.zeros(a.shape, a.dtype), abstract)
+  placed = state_lib.place_params(host, abstract, state_lib.make_mesh())
+  assert placed["head"]["kernel"].shape == abstract["head"]["kernel"].shape
+  host["head"]["kernel"] = np.zeros((1, 1), np.float32)
+  with pytest.raises(ValueError, match="shape of head/kernel"):
+    state_lib.place_params(host, abstract, state_lib.make_mesh())
