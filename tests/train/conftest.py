@@ -31,18 +31,18 @@ _WORKERS = 2
 _ORDER = ("learn", "sharding", "kill_resume", "multihost")
 _DEPENDS = {"kill_resume": ("learn",), "multihost": ("learn",)}
 
-# The tiny training setup of the subprocess runs: T=2, 32x64, iters=2, batch 2, with the
+# The tiny training setup of the subprocess runs: T=2, 32x32, iters=2, batch 2, with the
 # schedule length fixed so that every run compiles the very same train step.
 TINY = [
-    "--config.data.frames=2", "--config.data.crop=(32, 64)", "--config.train.iters=2",
+    "--config.data.frames=2", "--config.data.crop=(32, 32)", "--config.train.iters=2",
     "--config.train.batch_size=2", "--config.optimizer.lr=1e-3",
     "--config.optimizer.schedule_steps=400", "--config.optimizer.pct_start=0.02",
-    "--config.data.synthetic.max_disparity=12.0", "--config.data.synthetic.num_objects=2",
+    "--config.data.synthetic.max_disparity=10.0", "--config.data.synthetic.num_objects=2",
     "--config.eval.iters=2", "--config.eval.num_clips=8", "--config.eval.batch_size=8",
     "--config.train.progress_bar=False", "--config.data.num_threads=1",
 ]
-LEARN_STEPS = 40
-CHECK_STEP = 20    # kill_resume compares parameters at this step (a checkpoint of learn)
+LEARN_STEPS = 20
+CHECK_STEP = 10    # kill_resume compares parameters at this step (a checkpoint of learn)
 KILL_AFTER = 2     # ... with those of a run killed after this step's checkpoint
 
 
