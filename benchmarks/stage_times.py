@@ -1,0 +1,72 @@
+"""Where the forward time goes: times each stage of the model separately (compiled).
+
+    python benchmarks/stage_times.py --frames 5 --height 128 --width 256
+
+Prints the median time of: the depth prior (VDA), the fnet/cnet encoders, one
+refinement step at each scale (correlation + MLP + update block + convex
+upsampling), and the update block alone at 1/4, so that the total can be
+attributed (total ~= features + iters//2 * (s16 + s8) + iters * s4).
+"""
+
+import argparse
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import sav_jax
+import sav_jax.ops.pool
+from sav_jax.model.init import init_variables
+from sav_jax.model.stereo_any_video import StereoAnyVideo
+from sav_jax.ops.correlation import WIDE_WINDOW
+
+
+def timed(fn, *args, repeats=3):
+  out = fn(*args)
+  jax.block_until_ready(out)
+  times = []
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    times.append(time.perf_counter() - t0)
+  return statistics.median(times)
+
+
+def main():
+  p = argparse.ArgumentParser()
+  p.add_argument("--frames", type=int, default=5)
+  p.add_argument("--height", type=int, default=128)
+  p.add_argument("--width", type=int, default=256)
+  p.add_argument("--dtype", default="float32")
+  a = p.parse_args()
+  cfg = sav_jax.SAVConfig(dtype=a.dtype)
+  model = StereoAnyVideo(cfg)
+  v = jax.device_put(init_variables(cfg))
+  rng = np.random.default_rng(0)
+  left = jnp.asarray(rng.uniform(0, 255, (1, a.frames, a.height, a.width, 3)), jnp.float32)
+  right = jnp.roll(left, -4, axis=3)
+
+  depth = jax.jit(lambda v, x: model.apply(v, x, method=lambda m, x: m.depthnet(x)))
+  enc = jax.jit(lambda v, x: model.apply(
+      v, x.reshape(-1, *x.shape[2:]), method=lambda m, x: (m.fnet(x), m.cnet(x))))
+  feats = jax.jit(lambda v, l, r: model.apply(v, l, r, method=StereoAnyVideo.features))
+  both = jnp.concatenate([left, right])
+  print(f"depth prior (both views)  {timed(depth, v, both):.3f} s")
+  print(f"fnet + cnet (both views)  {timed(enc, v, both):.3f} s")
+  f1, f2, ctx = feats(v, left, right)
+  for pool, name in ((4, "1/16"), (2, "1/8"), (1, "1/4")):
+    s = lambda x: x if pool == 1 else sav_jax.ops.pool.avg_pool(x, pool)  # noqa: E731
+    args = (jnp.tanh(s(ctx)), jnp.zeros(s(f1).shape[:-1] + (1,)), jax.nn.relu(s(ctx)), s(f1), s(f2))
+    step = jax.jit(lambda v, *xs: model.apply(
+        v, *xs, method=lambda m, *xs: m.step(*xs, WIDE_WINDOW)))
+    print(f"one refinement step {name:5s} {timed(step, v, *args):.3f} s")
+  net = args[0]
+  ub = jax.jit(lambda v, n, i, c, fl: model.apply(
+      v, n, i, c, fl, method=lambda m, *xs: m.update_block(*xs)))
+  print(f"update block alone 1/4    {timed(ub, v, net, args[2], args[2], jnp.zeros(net.shape[:-1] + (2,))):.3f} s")
+
+
+if __name__ == "__main__":
+  main()
