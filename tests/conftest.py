@@ -41,6 +41,17 @@ def vda_state_dict(fixtures_dir):
   return _load_make_weights().make_state_dict(str(fixtures_dir / "vda_vits_manifest.json"), 0)
 
 
+@pytest.fixture(scope="module")
+def fast_compile():
+  """Most XLA optimisations off while a module compiles: about 2x faster on CPU, same
+  float32 graph (parity stays ~1e-5 px). Use with `pytestmark = pytest.mark.usefixtures(...)`."""
+  import jax  # pylint: disable=import-outside-toplevel
+  old = jax.config.read("jax_disable_most_optimizations")
+  jax.config.update("jax_disable_most_optimizations", True)
+  yield
+  jax.config.update("jax_disable_most_optimizations", old)
+
+
 def pytest_configure(config):
   """Share XLA compilations between test processes of one run (and later runs)."""
   import jax  # pylint: disable=import-outside-toplevel

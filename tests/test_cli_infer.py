@@ -19,13 +19,7 @@ from sav_jax.tools import video_io
 T, H, W, ITERS = 3, 32, 48, 2
 
 
-@pytest.fixture(scope="module", autouse=True)
-def fast_compile():
-  """Most XLA optimisations off while this module compiles (about 2x faster on CPU)."""
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.fixture(scope="module")

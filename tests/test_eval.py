@@ -29,13 +29,7 @@ SMALL = ["--config.iters=2", f"--config.synthetic.frames={T}", f"--config.synthe
          "--config.baseline.max_disparity=16", "--config.save_predictions=true"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def fast_compile():
-  """Most XLA optimisations off while this module compiles (about 2x faster on CPU)."""
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.fixture(scope="module")

@@ -18,14 +18,7 @@ ATOL = 1e-4  # px, the fixture README's criterion for final disparities
 ITERS = 2
 
 
-@pytest.fixture(scope="module", autouse=True)
-def fast_compile():
-  """Most XLA optimisations off while this module compiles: about 2x faster on CPU, same
-  float32 graph (parity errors stay ~1e-5 px)."""
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.fixture(scope="module")

@@ -11,6 +11,8 @@ from sav_jax.convert.params import UNUSED_COLLECTION
 
 SD_KEYS_WITH_PE = ".pos_encoder.pe"
 
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 
 @pytest.fixture(scope="module")
 def variables(sav_state_dict):

@@ -10,6 +10,8 @@ from sav_jax.model.init import abstract_variables, init_variables
 
 SHAPE = (1, 2, 32, 48, 3)  # B, T, H, W, C: smallest shape with a 2x3 grid at 1/16
 
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 
 @pytest.fixture(scope="module")
 def model():
