@@ -90,20 +90,29 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
   return TrainState(**restored)
 
 
-def load_model_params(path, cfg: sav_jax.SAVConfig) -> dict:
+def load_model_params(path, cfg: sav_jax.SAVConfig, abstract_params) -> dict:
   """Host params (the `params` collection only) from full-model weights.
 
   Args:
     path: official `.pth/.pt/.npz/.safetensors` weights, or an orbax directory written by
       `sav_jax.convert.save_variables`.
     cfg: the model config.
+    abstract_params: `jax.eval_shape` of the params; on several hosts an orbax directory
+      (then holding exactly `{"params": ...}`) is restored into it on each process's
+      first local device.
 
   Returns:
     Nested dict of numpy arrays; `torch_unused` and other collections are dropped.
   """
   path = pathlib.Path(path)
-  if path.is_dir():
+  if path.is_dir() and jax.process_count() == 1:  # any collections (e.g. torch_unused)
     variables, _ = sav_jax.convert.restore_variables(path)
+    variables = jax.device_get(variables)
+  elif path.is_dir():  # the default target would name another host's device
+    local = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    target = {"params": jax.tree.map(
+        lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=local), abstract_params)}
+    variables, _ = sav_jax.convert.restore_variables(path, target)
     variables = jax.device_get(variables)
   else:
     variables = sav_jax.convert.params_from_state_dict(sav_jax.convert.load_state_dict(path),

@@ -11,6 +11,7 @@ from jax.experimental import multihost_utils
 from sav_jax import metrics as sav_metrics
 from sav_jax.data import pipeline
 from train import input as input_lib
+from train import state as state_lib
 from train import step as step_lib
 
 log = logging.getLogger(__name__)
@@ -42,7 +43,7 @@ class Evaluator:
     self.clips = input_lib.eval_clips(config)
     self.batches = pipeline.eval_batches(self.clips, batch_size)
     self.predict = step_lib.make_eval_fn(model, ev.iters, params_sharding, mesh)
-    self.sharding = step_lib.data_sharding(mesh)
+    self.sharding = state_lib.data_sharding(mesh)
     log.info("validation: %d clips of %s, %d iterations", len(self.clips), ev.dataset, ev.iters)
 
   def _local(self, array: np.ndarray) -> np.ndarray:

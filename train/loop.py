@@ -35,27 +35,37 @@ def _merge_vda(params, vda):
   return flax.traverse_util.unflatten_dict(flat)
 
 
-def initial_state(config, model, tx, mesh, manager, data_iterator):
+def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_params=None):
   """Resume order: latest checkpoint > `init_from`/`vda_weights` > random init.
+
+  Args:
+    config, model, tx, mesh: the run's config, model, optimizer and mesh.
+    manager: its checkpoint manager.
+    data_iterator: grain iterator, restored in place from a checkpoint.
+    abstract_params: `state.abstract_params(model, config)` if already computed.
 
   Returns:
     `(state, shardings, source)` with source "checkpoint", "weights" or "scratch".
   """
-  init = state_lib.make_init_fn(model, tx, config)
-  abstract = jax.eval_shape(init)
+  if abstract_params is None:
+    abstract_params = state_lib.abstract_params(model, config)
+  abstract = state_lib.abstract_state(model, tx, config, abstract_params)
   shardings = state_lib.state_shardings(abstract, mesh)
   if manager.latest_step() is not None:
     log.info("resuming from checkpoint %d", manager.latest_step())
     return ckpt_lib.restore(manager, abstract, shardings, data_iterator), shardings, "checkpoint"
   cfg = state_lib.model_config(config)
-  vda = ckpt_lib.load_vda_params(config.vda_weights) if config.vda_weights else None
-  if config.init_from:
-    host = ckpt_lib.load_model_params(config.init_from, cfg)
+  # Conversion is host work that may touch the default device (e.g. eager shape probes).
+  with jax.transfer_guard("allow"):
+    vda = ckpt_lib.load_vda_params(config.vda_weights) if config.vda_weights else None
+    host = (ckpt_lib.load_model_params(config.init_from, cfg, abstract.params)
+            if config.init_from else None)
+  if host is not None:
     host = _merge_vda(host, vda) if vda is not None else host
     params = state_lib.place_params(host, abstract.params, mesh)
-    state, _ = state_lib.create_train_state(model, tx, config, mesh, params=params)
+    state, _ = state_lib.create_train_state(model, tx, config, mesh, params, shardings)
     return state, shardings, "weights"
-  state, _ = state_lib.create_train_state(model, tx, config, mesh)
+  state, _ = state_lib.create_train_state(model, tx, config, mesh, shardings=shardings)
   if vda is not None:
     vda_abstract = abstract.params
     for k in ckpt_lib.VDA_PATH:
@@ -66,28 +76,35 @@ def initial_state(config, model, tx, mesh, manager, data_iterator):
   return state, shardings, "scratch"
 
 
-class _Window:
-  """Host-side running mean of the train metrics between two log steps."""
+class _HostMetrics:
+  """Fetches step metrics (one step late), updates the bar, warns on skips, logs means."""
 
-  def __init__(self):
-    self.sums, self.n = {}, 0
+  def __init__(self, config, writer: MetricWriter, progress: Progress, skipped: int):
+    self.config, self.writer, self.progress = config, writer, progress
+    self.skipped = skipped
+    self.sums, self.n, self.last = {}, 0, None
 
-  def add(self, metrics):
-    for k, v in metrics.items():
+  def __call__(self, step: int, metrics) -> None:
+    last = self.last = jax.device_get(metrics)
+    for k, v in last.items():
       self.sums[k] = self.sums.get(k, 0.0) + float(v)
     self.n += 1
+    self.progress.update(1, loss=last["loss"], epe=last["epe"])
+    if int(last["num_skipped"]) > self.skipped:
+      self.skipped = int(last["num_skipped"])
+      log.warning("step %d: non-finite loss or gradient, update skipped (%d so far)", step,
+                  self.skipped)
+      if self.skipped > self.config.train.max_skipped_steps:
+        raise FloatingPointError(f"{self.skipped} skipped updates > train.max_skipped_steps")
+    if step % self.config.train.log_every == 0 or step == self.config.train.num_steps:
+      means = {k: v / self.n for k, v in self.sums.items()}
+      means["num_skipped"] = float(last["num_skipped"])  # a counter, not a mean
+      self.writer.write(step, means)
+      self.sums, self.n = {}, 0
 
-  def pop(self, last):
-    out = {k: v / max(self.n, 1) for k, v in self.sums.items()}
-    out["num_skipped"] = float(last["num_skipped"])  # a counter, not a mean
-    self.sums, self.n = {}, 0
-    return out
 
-
-def run(config, workdir) -> state_lib.TrainState:
-  """Trains `config` in `workdir` (created if needed) and returns the final state."""
-  workdir = pathlib.Path(workdir)
-  is_main = jax.process_index() == 0
+def _setup(config, workdir):
+  """Steps 2-8 of the module docstring. Returns a dict of the run's parts."""
   mesh = state_lib.make_mesh()
   if config.train.batch_size % mesh.size:
     raise ValueError(f"train.batch_size={config.train.batch_size} is not divisible by the "
@@ -95,63 +112,55 @@ def run(config, workdir) -> state_lib.TrainState:
   log.info("mesh %s over %d devices, %d processes", dict(mesh.shape), mesh.size,
            jax.process_count())
   grain_it = iter(input_lib.train_dataset(config))
-  batches = pipeline.GlobalBatchIterator(grain_it, state_lib.data_sharding(mesh))
-
   model = sav_jax.StereoAnyVideo(state_lib.model_config(config))
   abstract_params = state_lib.abstract_params(model, config)
   labels = optim.param_labels(abstract_params, config.optimizer.frozen)
   log.info("parameters: %s", state_lib.param_count(abstract_params, labels))
   tx = optim.make_optimizer(config.optimizer, config.train.num_steps, abstract_params)
   manager = ckpt_lib.make_manager(workdir, config)
-  state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it)
+  state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it,
+                                           abstract_params)
   train_step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels),
                                        shardings, mesh)
-  evaluator = evaluation.Evaluator(config, model, shardings.params, mesh) \
-      if config.eval.every_steps > 0 else None
+  evaluator = (evaluation.Evaluator(config, model, shardings.params, mesh)
+               if config.eval.every_steps > 0 else None)
+  log.info("start at step %d of %d (state from %s)", int(jax.device_get(state.step)),
+           config.train.num_steps, source)
+  return dict(grain_it=grain_it, manager=manager, state=state, train_step=train_step,
+              evaluator=evaluator,
+              batches=pipeline.GlobalBatchIterator(grain_it, state_lib.data_sharding(mesh)))
 
-  start = int(jax.device_get(state.step))
-  total = config.train.num_steps
-  log.info("start at step %d of %d (state from %s)", start, total, source)
-  writer = MetricWriter(workdir, enabled=is_main)
+
+def run(config, workdir) -> state_lib.TrainState:
+  """Trains `config` in `workdir` (created if needed) and returns the final state."""
+  workdir = pathlib.Path(workdir)
+  parts = _setup(config, workdir)
+  state, manager, evaluator = parts["state"], parts["manager"], parts["evaluator"]
+  start, total = int(jax.device_get(state.step)), config.train.num_steps
+  writer = MetricWriter(workdir, enabled=jax.process_index() == 0)
   progress = Progress(start, total, enabled=config.train.progress_bar)
-  window, pending, last = _Window(), None, None
-  skipped_seen = int(jax.device_get(state.num_skipped))
+  host = _HostMetrics(config, writer, progress, int(jax.device_get(state.num_skipped)))
   if evaluator is not None and start == 0 and config.eval.at_start:
     writer.write(0, evaluator(state.params), split="val")
-
-  def flush(entry):
-    nonlocal skipped_seen, last
-    step, metrics = entry
-    last = jax.device_get(metrics)
-    window.add(last)
-    progress.update(1, loss=last["loss"], epe=last["epe"])
-    if int(last["num_skipped"]) > skipped_seen:
-      skipped_seen = int(last["num_skipped"])
-      log.warning("step %d: non-finite loss or gradient, update skipped (%d so far)", step,
-                  skipped_seen)
-      if skipped_seen > config.train.max_skipped_steps:
-        raise FloatingPointError(f"{skipped_seen} skipped updates > train.max_skipped_steps")
-    if step % config.train.log_every == 0 or step == total:
-      writer.write(step, window.pop(last))
-
+  pending = None
   for step in range(start + 1, total + 1):
     with jax.profiler.StepTraceAnnotation("train", step_num=step):
-      state, metrics = train_step(state, next(batches))
+      state, metrics = parts["train_step"](state, next(parts["batches"]))
     if pending is not None:
-      flush(pending)  # one step late, so host work overlaps the device
+      host(*pending)  # one step late, so that host work overlaps the device
     pending = (step, metrics)
     save_now = step % config.checkpoint.every_steps == 0 or step == total
     eval_now = evaluator is not None and (step % config.eval.every_steps == 0 or step == total)
     if save_now or eval_now:
-      flush(pending)
+      host(*pending)
       pending = None
     if save_now:
-      finite = bool(np.isfinite(last["l2_params"]))
-      ckpt_lib.save(manager, state, grain_it, step, params_finite=finite, force=True)
+      ckpt_lib.save(manager, state, parts["grain_it"], step, force=True,
+                    params_finite=bool(np.isfinite(host.last["l2_params"])))
     if eval_now:
       writer.write(step, evaluator(state.params), split="val")
   if pending is not None:
-    flush(pending)
+    host(*pending)
   manager.wait_until_finished()
   manager.close()
   progress.close()

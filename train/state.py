@@ -96,12 +96,18 @@ def abstract_params(model, config):
       lambda: model.lazy_init(jax.random.key(0), video, video, iters=2))["params"]
 
 
-def state_shardings(abstract_state, mesh: Mesh):
+def state_shardings(abstract, mesh: Mesh):
   """Every leaf of the state replicated over the mesh (pure data parallelism)."""
-  return jax.tree.map(lambda _: replicated(mesh), abstract_state)
+  return jax.tree.map(lambda _: replicated(mesh), abstract)
 
 
-def create_train_state(model, tx, config, mesh: Mesh, params=None):
+def abstract_state(model, tx, config, params=None):
+  """`jax.eval_shape` of the state; given abstract `params`, the model is not retraced."""
+  init = make_init_fn(model, tx, config)
+  return jax.eval_shape(init) if params is None else jax.eval_shape(init, params)
+
+
+def create_train_state(model, tx, config, mesh: Mesh, params=None, shardings=None):
   """Creates the state directly with its shardings.
 
   Args:
@@ -110,20 +116,17 @@ def create_train_state(model, tx, config, mesh: Mesh, params=None):
     config: full training config.
     mesh: device mesh.
     params: optional initial params (arrays already placed with `place_params`).
+    shardings: the state's shardings if known (saves tracing the model once more).
 
   Returns:
     `(state, shardings)`; `shardings` is a `TrainState` of `NamedSharding`s.
   """
   init = make_init_fn(model, tx, config)
+  if shardings is None:
+    shardings = state_shardings(abstract_state(model, tx, config, params), mesh)
   if params is None:
-    abstract = jax.eval_shape(init)
-    shardings = state_shardings(abstract, mesh)
-    state = jax.jit(init, out_shardings=shardings)()
-  else:
-    abstract = jax.eval_shape(init, params)
-    shardings = state_shardings(abstract, mesh)
-    state = jax.jit(init, out_shardings=shardings, donate_argnums=(0,))(params)
-  return state, shardings
+    return jax.jit(init, out_shardings=shardings)(), shardings
+  return jax.jit(init, out_shardings=shardings, donate_argnums=(0,))(params), shardings
 
 
 def place_params(host_params, abstract, mesh: Mesh):
@@ -146,9 +149,11 @@ def place_params(host_params, abstract, mesh: Mesh):
     raise ValueError("initial params do not match the model: " + "; ".join(problems[:20]))
   sharding = replicated(mesh)
   out = {}
-  for key, target in flat_target.items():
-    arr = np.asarray(flat_src[key], dtype=target.dtype)
-    out[key] = jax.make_array_from_callback(arr.shape, sharding, lambda idx, a=arr: a[idx])
+  # An intended host-to-device copy (make_array_from_callback counts as implicit).
+  with jax.transfer_guard_host_to_device("allow"):
+    for key, target in flat_target.items():
+      arr = np.asarray(flat_src[key], dtype=target.dtype)
+      out[key] = jax.make_array_from_callback(arr.shape, sharding, lambda idx, a=arr: a[idx])
   return flax.traverse_util.unflatten_dict(out, sep="/")
 
 

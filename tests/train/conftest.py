@@ -11,11 +11,12 @@ slots stay busy.
   learn        python -m train on a tiny synthetic config; validation EPE before/after
   kill_resume  a copy of `learn` SIGKILLed after step K, resumed to step N (needs learn)
   sharding     one step on 8 fake CPU devices vs 1 device (tests/train/test_sharding.py)
-  multihost    two processes with jax.distributed on localhost (needs learn's weights)
+  multihost    two processes with jax.distributed on localhost, from official-layout weights
 """
 
 from __future__ import annotations
 
+import ast
 import concurrent.futures
 import os
 import pathlib
@@ -29,10 +30,11 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 _WORKERS = 2
 _ORDER = ("learn", "sharding", "kill_resume", "multihost")
-_DEPENDS = {"kill_resume": ("learn",), "multihost": ("learn",)}
+_DEPENDS = {"kill_resume": ("learn",)}
 
-# The tiny training setup of the subprocess runs: T=2, 32x32, iters=2, batch 2, with the
-# schedule length fixed so that every run compiles the very same train step.
+# The tiny training setup of the subprocess runs: T=2, 32x32, iters=2, batch 2 (1 for
+# the single-process runs), with the schedule length fixed so that every run compiles
+# the very same train step.
 TINY = [
     "--config.data.frames=2", "--config.data.crop=(32, 32)", "--config.train.iters=2",
     "--config.train.batch_size=2", "--config.optimizer.lr=1e-3",
@@ -44,6 +46,24 @@ TINY = [
 LEARN_STEPS = 20
 CHECK_STEP = 10    # kill_resume compares parameters at this step (a checkpoint of learn)
 KILL_AFTER = 2     # ... with those of a run killed after this step's checkpoint
+
+
+def tiny_config(*overrides):
+  """configs/synthetic.py with TINY and `overrides` ("--config.a.b=value") applied."""
+  from configs import synthetic  # pylint: disable=g-import-not-at-top
+  config = synthetic.get_config()
+  for item in (*TINY, *overrides):
+    key, value = item[len("--config."):].split("=", 1)
+    try:
+      value = ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+      pass  # a plain string
+    *parents, leaf = key.split(".")
+    node = config
+    for name in parents:
+      node = node[name]
+    setattr(node, leaf, value)
+  return config
 
 
 def child_env(cache_dir, device_count: int | None = None) -> dict:
@@ -83,8 +103,9 @@ def run(cmd, env, log_path, timeout=900) -> None:
 
 
 def train_cmd(workdir, *overrides) -> list[str]:
+  """python -m train on the TINY config, one clip per step (the cheapest learning run)."""
   return [sys.executable, "-m", "train", "--config", str(ROOT / "configs" / "synthetic.py"),
-          "--workdir", str(workdir), *TINY, *overrides]
+          "--workdir", str(workdir), *TINY, "--config.train.batch_size=1", *overrides]
 
 
 class Jobs:

@@ -1,11 +1,12 @@
 """Two processes on localhost with `jax.distributed` (CPU, one device each) train in lock-step.
 
-`launch` (called by conftest.py's `multihost` job) exports the learn run's parameters as
-an orbax variables directory, then starts two `python -m tests.train.test_multihost
---child` processes that call `jax.distributed.initialize` and `train.loop.run` on the
-same workdir with `init_from` that directory. Each process reads its own shard of the
-data, the global batch spans both, validation gathers predictions across processes, and
-each process writes a digest of its copy of the final parameters.
+`launch` (called by conftest.py's `multihost` job) writes official-layout weights (the
+parity fixtures' deterministic recipe) as a .safetensors file, then starts two
+`python -m tests.train.test_multihost --child` processes that call
+`jax.distributed.initialize` and `train.loop.run` on the same workdir with `init_from`
+that file (so each process converts the PyTorch layout itself). Each process reads its
+own shard of the data, the global batch spans both, validation gathers predictions across
+processes, and each process writes a digest of its copy of the final parameters.
 """
 
 import argparse
@@ -38,21 +39,19 @@ def _free_port() -> int:
 
 
 def launch(jobs, workdir):
-  """Exports init weights, runs the two processes, returns their reports."""
-  import jax  # pylint: disable=g-import-not-at-top
-  import orbax.checkpoint as ocp  # pylint: disable=g-import-not-at-top
-  from sav_jax.convert import save_variables  # pylint: disable=g-import-not-at-top
-  learn = jobs.get("learn")
-  with ocp.StandardCheckpointer() as ckptr:
-    state = ckptr.restore(learn / "checkpoints" / str(conftest.CHECK_STEP) / "state")
-  params = jax.device_get(state["params"])
-  save_variables(workdir / "init", {"params": params}, {"source": "learn"})
+  """Writes official-layout init weights, runs the two processes, returns their reports."""
+  import sav_jax  # pylint: disable=g-import-not-at-top
+  from sav_jax.convert import save_state_dict  # pylint: disable=g-import-not-at-top
+  from tests.conftest import FIXTURES, _load_make_weights  # pylint: disable=g-import-not-at-top
+  sd = _load_make_weights().make_state_dict(str(FIXTURES / "sav_manifest.json"), 0)
+  save_state_dict(sd, workdir / "init.safetensors")
+  params = sav_jax.convert.params_from_state_dict(sd, sav_jax.SAVConfig())["params"]
   port = _free_port()
   procs = []
   for pid in range(2):
     cmd = [sys.executable, "-m", "tests.train.test_multihost", "--child",
            f"--coordinator=127.0.0.1:{port}", f"--process_id={pid}",
-           f"--workdir={workdir / 'run'}", f"--init_from={workdir / 'init'}",
+           f"--workdir={workdir / 'run'}", f"--init_from={workdir / 'init.safetensors'}",
            f"--out={workdir / f'report_{pid}.json'}"]
     procs.append((conftest.start(cmd, conftest.child_env(jobs.cache), workdir / f"log_{pid}.txt"),
                   workdir / f"log_{pid}.txt"))
@@ -82,8 +81,8 @@ def test_two_processes_train_in_lock_step(jobs):
     assert (ckpt / "data" / f"process_{i}-of-2.json").is_file()
   records = [json.loads(line) for line in (out["workdir"] / "metrics.jsonl").open()]
   assert [r["step"] for r in records if r["split"] == "train"] == list(range(1, STEPS + 1))
-  val = [r for r in records if r["split"] == "val"]
-  assert len(val) == 1 and np.isfinite(val[0]["epe"])
+  val = {r["step"]: r["epe"] for r in records if r["split"] == "val"}  # gathered predictions
+  assert sorted(val) == [STEPS] and np.isfinite(val[STEPS])
 
 
 def _child(argv):
@@ -96,16 +95,13 @@ def _child(argv):
   import jax  # pylint: disable=g-import-not-at-top
   jax.distributed.initialize(args.coordinator, 2, args.process_id)
   jax.config.update("jax_transfer_guard", "disallow")
-  from absl import flags  # pylint: disable=g-import-not-at-top
-  from ml_collections import config_flags  # pylint: disable=g-import-not-at-top
   from train import loop  # pylint: disable=g-import-not-at-top
-  config_flags.DEFINE_config_file("config")
-  flags.FLAGS([sys.argv[0], f"--config={conftest.ROOT / 'configs' / 'synthetic.py'}",
-               *conftest.TINY, f"--config.train.num_steps={STEPS}",
-               "--config.train.log_every=1", f"--config.eval.every_steps={STEPS}",
-               "--config.eval.num_clips=2", "--config.eval.batch_size=2",
-               f"--config.init_from={args.init_from}"])
-  state = loop.run(flags.FLAGS.config, args.workdir)
+  config = conftest.tiny_config(
+      f"--config.train.num_steps={STEPS}", "--config.train.log_every=1",
+      f"--config.eval.every_steps={STEPS}", "--config.eval.at_start=False",
+      "--config.eval.num_clips=2",
+      "--config.eval.batch_size=2", f"--config.init_from={args.init_from}")
+  state = loop.run(config, args.workdir)
   local = jax.tree.map(lambda x: x.addressable_data(0), state.params)
   report = {"process_index": jax.process_index(), "process_count": jax.process_count(),
             "device_count": jax.device_count(), "step": int(jax.device_get(state.step)),

@@ -6,10 +6,17 @@ other tests have already initialised JAX with one device in this process. The ch
 feeds a NaN batch to the 8-device step: the update must be skipped and counted.
 
 Tolerances: loss and metrics rtol 1e-5 (the gradient all-reduce over 8 devices sums in a
-different order than one device does, ~1e-7 relative); parameters after the AdamW update
-atol 2e-6 (the first update is lr * m / (sqrt(v) + eps) ~ lr * sign(g) with lr = 2e-5 at
-step 0, so a gradient entry at rounding level may flip sign and move by up to 2 lr; we
-bound the maximum and require that fewer than 1e-4 of the entries differ by > 1e-7).
+different order than one device does: we see 7e-8 relative on the loss), the global
+gradient norm rtol 1e-4 (a float32 sum of 9e6 squares; we see up to 1.5e-5). Parameters
+after the update: allclose with rtol 1e-6 and atol 5e-7, i.e. 5e-3 of the step size
+lr = 1e-4 (we see at most 1.5e-7). This needs AdamW's eps raised to 1e-3 in this test:
+Adam's first update is lr * g / (|g| + eps), so with the default eps = 1e-8 a gradient
+entry at rounding level (|g| ~ 1e-9) whose sign differs between the two reductions moves
+by up to 2 lr (with eps = 1e-8 we saw 7e-5 of the entries do so).
+
+The initial parameters are the parity fixtures' deterministic official-layout weights
+(converted, then placed on the 8-device mesh), which also spares a compilation of the
+random initialiser.
 """
 
 import json
@@ -18,7 +25,7 @@ import sys
 import numpy as np
 import pytest
 
-STEP_LR = 2e-5
+STEP_LR = 1e-4
 
 
 @pytest.mark.train_job("sharding")
@@ -26,10 +33,13 @@ def test_eight_devices_match_one_device(jobs):
   result = json.loads(jobs.get("sharding").read_text())
   assert result["devices"] == 8 and result["mesh8"] == {"data": 8}
   np.testing.assert_allclose(result["loss8"], result["loss1"], rtol=1e-5)
-  for k in ("epe", "1px", "3px", "l2_grads"):
+  for k in ("epe", "1px", "3px"):
     np.testing.assert_allclose(result["metrics8"][k], result["metrics1"][k], rtol=1e-5, err_msg=k)
-  assert result["param_max_abs_diff"] <= 2 * STEP_LR + 1e-6
-  assert result["param_frac_diff_gt_1e-7"] < 1e-4
+  # A float32 sum of 9e6 squares: its rounding depends on the summation order.
+  np.testing.assert_allclose(result["metrics8"]["l2_grads"], result["metrics1"]["l2_grads"],
+                             rtol=1e-4)
+  assert result["param_max_scaled_diff"] <= 1.0  # allclose(rtol=1e-6, atol=5e-7)
+  assert result["param_max_abs_diff"] <= 5e-3 * STEP_LR
   assert result["changed_fraction"] > 0.5  # the step did update the parameters
   assert result["frozen_unchanged"]
 
@@ -48,6 +58,7 @@ def _config():
   c.data.frames, c.data.crop, c.train.iters, c.train.batch_size = 2, (32, 32), 2, 8
   c.data.synthetic.max_disparity, c.data.num_threads = 8.0, 1
   c.optimizer.lr, c.optimizer.schedule_steps, c.optimizer.div_factor = STEP_LR, 400, 1.0
+  c.optimizer.eps = 1e-3
   return c
 
 
@@ -56,14 +67,25 @@ def _compare(p8, p1, before, frozen):
   diffs = [np.abs(np.asarray(a) - np.asarray(b)).ravel()
            for a, b in zip(jax.tree.leaves(p8), jax.tree.leaves(p1))]
   d = np.concatenate(diffs)
+  scale = np.concatenate([5e-7 + 1e-6 * np.abs(np.asarray(b)).ravel()
+                          for b in jax.tree.leaves(p1)])
   moved = np.concatenate([(np.asarray(a) != np.asarray(b)).ravel()
                           for a, b in zip(jax.tree.leaves(p8), jax.tree.leaves(before))])
   frozen_same = all(np.array_equal(a, b) for a, b in zip(
       jax.tree.leaves(p8["depthnet"]["depthanything"]), jax.tree.leaves(frozen)))
   n_frozen = sum(np.size(x) for x in jax.tree.leaves(frozen))
-  return {"param_max_abs_diff": float(d.max()), "param_frac_diff_gt_1e-7": float(np.mean(d > 1e-7)),
+  return {"param_max_abs_diff": float(d.max()),
+          "param_max_scaled_diff": float(np.max(d / scale)),
           "changed_fraction": float(moved.sum() / (moved.size - n_frozen)),
           "frozen_unchanged": bool(frozen_same)}
+
+
+def _initial_params(cfg):
+  """Host params from the parity fixtures' official-layout weights (seed 0)."""
+  import sav_jax  # pylint: disable=g-import-not-at-top
+  from tests.conftest import FIXTURES, _load_make_weights  # pylint: disable=g-import-not-at-top
+  sd = _load_make_weights().make_state_dict(str(FIXTURES / "sav_manifest.json"), 0)
+  return sav_jax.convert.params_from_state_dict(sd, cfg)["params"]
 
 
 def _child(out_path):
@@ -71,8 +93,8 @@ def _child(out_path):
   import jax  # pylint: disable=g-import-not-at-top
   import sav_jax  # pylint: disable=g-import-not-at-top
   from sav_jax.data import pipeline  # pylint: disable=g-import-not-at-top
-  from train import input as input_lib, optim, state as S, step as st  # pylint: disable=g-import-not-at-top
-  jax.config.update("jax_transfer_guard", "disallow")
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  from train import optim, state as S, step as st  # pylint: disable=g-import-not-at-top
   c = _config()
   model = sav_jax.StereoAnyVideo(S.model_config(c))
   params = S.abstract_params(model, c)
@@ -80,13 +102,15 @@ def _child(out_path):
   tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
   train_step = st.make_train_step(model, tx, c, labels)
   batch = next(iter(input_lib.train_dataset(c, process_index=0, process_count=1)))
-  batch = dict(batch, left=batch["left"].astype(np.float32), right=batch["right"].astype(np.float32))
+  batch = dict(batch, left=batch["left"].astype(np.float32),
+               right=batch["right"].astype(np.float32))
   mesh8, mesh1 = S.make_mesh(), S.make_mesh(jax.devices()[:1])
-  state8, sh8 = S.create_train_state(model, tx, c, mesh8)
+  placed = S.place_params(_initial_params(S.model_config(c)), params, mesh8)
+  jax.config.update("jax_transfer_guard", "disallow")
+  state8, sh8 = S.create_train_state(model, tx, c, mesh8, params=placed)
   host0 = jax.device_get(state8)
   step8 = st.jit_train_step(train_step, sh8, mesh8)
-  new8, m8 = step8(state8, pipeline.to_global(
-      batch, S.data_sharding(mesh8)))
+  new8, m8 = step8(state8, pipeline.to_global(batch, S.data_sharding(mesh8)))
   host8, m8 = jax.device_get((new8, m8))
   sh1 = S.state_shardings(host0, mesh1)
   state1 = jax.device_put(host0, sh1)

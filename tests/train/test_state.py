@@ -4,11 +4,12 @@ The real model is only traced here (`jax.eval_shape`), never compiled: the tests
 compile it run in subprocesses (test_sharding, test_multihost, test_resume_and_learning).
 """
 
+import functools
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import pytest
 
 import sav_jax
@@ -89,10 +90,15 @@ def test_one_cycle_matches_pytorch_formula():
     np.testing.assert_allclose(float(sched(s)), ref, rtol=2e-5, err_msg=str(s))
 
 
+@functools.lru_cache(maxsize=1)
+def _real_abstract_params():
+  c = synthetic.get_config()
+  return state_lib.abstract_params(sav_jax.StereoAnyVideo(state_lib.model_config(c)), c)
+
+
 def test_real_model_optimizer_state_has_no_frozen_entries():
   c = synthetic.get_config()
-  model = sav_jax.StereoAnyVideo(state_lib.model_config(c))
-  params = state_lib.abstract_params(model, c)
+  params = _real_abstract_params()
   tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
   opt_shapes = jax.eval_shape(tx.init, params)
   paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_leaves_with_path(opt_shapes)]
@@ -131,7 +137,8 @@ def test_checkpoint_roundtrip_with_data_iterator(tmp_path):
   c = _config()
   c.checkpoint.async_save = False
   model, mesh, tx, state, shardings, step = _setup(c)
-  src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16, max_disparity=8.0), 50)
+  src = pipeline.synthetic_source(
+      SyntheticConfig(frames=2, height=16, width=16, max_disparity=8.0), 50)
   it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
   state, _ = step(state, _put(_batch(np.random.default_rng(1), c), mesh))
   next(it)
@@ -160,3 +167,38 @@ def test_place_params_rejects_mismatches():
   host["head"]["kernel"] = np.zeros((1, 1), np.float32)
   with pytest.raises(ValueError, match="shape of head/kernel"):
     state_lib.place_params(host, abstract, state_lib.make_mesh())
+
+
+def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path):
+  from sav_jax.convert import save_variables  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.checkpoint.async_save = False
+  model, mesh, tx = ToyStereo(), state_lib.make_mesh(), None
+  params = state_lib.abstract_params(model, c)
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
+  src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
+                                                  max_disparity=8.0), 10)
+  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1))
+  manager = ckpt_lib.make_manager(tmp_path / "run", c)
+  scratch, _, source = loop.initial_state(c, model, tx, mesh, manager, it)
+  assert source == "scratch"
+  weights = jax.tree.map(lambda a: np.full(a.shape, 0.5, a.dtype), params)
+  save_variables(tmp_path / "w", {"params": weights}, {})
+  c.init_from = str(tmp_path / "w")
+  loaded, _, source = loop.initial_state(c, model, tx, mesh, manager, it)
+  assert source == "weights" and int(loaded.step) == 0
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(loaded.params), weights)
+  ckpt_lib.save(manager, scratch.replace(step=jnp.asarray(7, jnp.int32)), it, 7, force=True)
+  manager.wait_until_finished()
+  resumed, _, source = loop.initial_state(c, model, tx, mesh, manager, it)
+  assert source == "checkpoint" and int(resumed.step) == 7  # the checkpoint wins
+
+
+def test_vda_weights_load_into_the_real_model(tmp_path, vda_state_dict):
+  from sav_jax.convert import save_state_dict  # pylint: disable=g-import-not-at-top
+  save_state_dict(vda_state_dict, tmp_path / "vda.npz")
+  vda = ckpt_lib.load_vda_params(tmp_path / "vda.npz")
+  abstract = _real_abstract_params()["depthnet"]["depthanything"]
+  assert jax.tree.structure(vda) == jax.tree.structure(abstract)
+  jax.tree.map(lambda a, b: np.testing.assert_equal(np.shape(a), b.shape), vda, abstract)
