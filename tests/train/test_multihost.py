@@ -40,12 +40,10 @@ def _free_port() -> int:
 
 def launch(jobs, workdir):
   """Writes official-layout init weights, runs the two processes, returns their reports."""
-  import sav_jax  # pylint: disable=g-import-not-at-top
   from sav_jax.convert import save_state_dict  # pylint: disable=g-import-not-at-top
   from tests.conftest import FIXTURES, _load_make_weights  # pylint: disable=g-import-not-at-top
   sd = _load_make_weights().make_state_dict(str(FIXTURES / "sav_manifest.json"), 0)
   save_state_dict(sd, workdir / "init.safetensors")
-  params = sav_jax.convert.params_from_state_dict(sd, sav_jax.SAVConfig())["params"]
   port = _free_port()
   procs = []
   for pid in range(2):
@@ -64,7 +62,7 @@ def launch(jobs, workdir):
       raise
     assert rc == 0, f"process exited with {rc}:\n{conftest.tail(log)}"
   reports = [json.loads((workdir / f"report_{i}.json").read_text()) for i in range(2)]
-  return {"reports": reports, "init_digest": _digest(params), "workdir": workdir / "run"}
+  return {"reports": reports, "workdir": workdir / "run"}
 
 
 @pytest.mark.train_job("multihost")
@@ -74,13 +72,14 @@ def test_two_processes_train_in_lock_step(jobs):
   assert (r0["process_index"], r1["process_index"]) == (0, 1)
   assert r0["process_count"] == r1["process_count"] == 2 and r0["device_count"] == 2
   assert r0["step"] == r1["step"] == STEPS
-  assert r0["digest"] == r1["digest"]                # identical parameters everywhere
-  assert r0["digest"] != out["init_digest"]          # ... and they were trained
+  assert r0["digest"] == r1["digest"]  # identical parameters everywhere
   ckpt = out["workdir"] / "checkpoints" / str(STEPS)
   for i in range(2):  # each process saved its own data-iterator state
     assert (ckpt / "data" / f"process_{i}-of-2.json").is_file()
   records = [json.loads(line) for line in (out["workdir"] / "metrics.jsonl").open()]
-  assert [r["step"] for r in records if r["split"] == "train"] == list(range(1, STEPS + 1))
+  train = [r for r in records if r["split"] == "train"]
+  assert [r["step"] for r in train] == list(range(1, STEPS + 1))
+  assert all(r["finite"] == 1.0 and r["l2_updates"] > 0 for r in train)  # real updates
   val = {r["step"]: r["epe"] for r in records if r["split"] == "val"}  # gathered predictions
   assert sorted(val) == [STEPS] and np.isfinite(val[STEPS])
 
