@@ -3,10 +3,10 @@
 Compiling the full model (frozen VDA included) costs about a minute of one CPU core, and
 XLA compiles on one thread, so the expensive runs are subprocesses scheduled two at a
 time (`_WORKERS`) with a persistent compilation cache shared by all of them: the
-kill/resume runs reuse the executables of the learning run. A job starts when the first
-test that needs it asks (`jobs.get(name)`), and every job that the *selected* tests
-mark with `@pytest.mark.train_job(name)` is queued at that moment, so that the two
-slots stay busy.
+kill/resume runs reuse the executables of the learning run. Jobs start when the first
+test that needs one asks for the `jobs` fixture: every job that the selected tests (under
+xdist: those of the same file) mark with `@pytest.mark.train_job(name)` is queued then,
+so that the two slots stay busy; `jobs.get(name)` waits for one.
 
   learn        python -m train on a tiny synthetic config; validation EPE before/after
   kill_resume  a copy of `learn` SIGKILLed after step K, resumed to step N (needs learn)
@@ -111,7 +111,7 @@ def train_cmd(workdir, *overrides) -> list[str]:
 class Jobs:
   """Runs named jobs on `_WORKERS` threads; `get` waits for (and if needed starts) one."""
 
-  def __init__(self, root: pathlib.Path, wanted):
+  def __init__(self, root: pathlib.Path):
     self.root = root
     self.cache = root / "jax_cache"
     self.cache.mkdir(parents=True, exist_ok=True)
@@ -119,8 +119,11 @@ class Jobs:
     self._futures = {}
     self._lock = threading.Lock()
     self.timings = {}
+
+  def want(self, names) -> None:
+    """Queues `names` (in `_ORDER`, so that the two slots stay busy)."""
     for name in _ORDER:
-      if name in wanted:
+      if name in names:
         self._submit(name)
 
   def _submit(self, name):
@@ -201,13 +204,24 @@ def pytest_configure(config):
 
 
 @pytest.fixture(scope="session")
-def jobs(request, tmp_path_factory):
-  wanted = set()
-  for item in request.session.items:
-    for mark in item.iter_markers("train_job"):
-      wanted.update(mark.args)
-  runner = Jobs(tmp_path_factory.mktemp("train_jobs"), wanted)
+def _job_runner(tmp_path_factory):
+  runner = Jobs(tmp_path_factory.mktemp("train_jobs"))
   yield runner
   runner.close()
   for name, seconds in runner.timings.items():
     sys.stderr.write(f"\n[train job] {name}: {seconds:.0f}s")
+
+
+@pytest.fixture
+def jobs(request, _job_runner):
+  """The job runner, with the jobs of the selected tests queued.
+
+  Without xdist every selected test's job is queued at the first request. Under xdist
+  each worker collects every test but runs only some files (`--dist loadfile`), so only
+  the jobs of the requesting test's file are queued there.
+  """
+  items = request.session.items
+  if os.environ.get("PYTEST_XDIST_WORKER"):
+    items = [i for i in items if getattr(i, "module", None) is request.module]
+  _job_runner.want({n for i in items for m in i.iter_markers("train_job") for n in m.args})
+  return _job_runner
