@@ -12,8 +12,12 @@ import jax.numpy as jnp
 
 def conv(features: int, kernel: Sequence[int], stride: int | Sequence[int] = 1,
          padding: int | Sequence[int] = 0, use_bias: bool = True, dtype: Any = jnp.float32,
-         name: str | None = None) -> nn.Conv:
-  """A `nn.Conv` with torch's explicit symmetric zero padding.
+         name: str | None = None) -> nn.Module:
+  """A convolution with torch's explicit symmetric zero padding.
+
+  Stride-1 convolutions are `Conv2D`/`Conv3D` (2-D convolutions with a hand-written
+  backward pass, see `conv2d`); strided ones are `nn.Conv`. All have the parameters
+  of `nn.Conv` (`kernel` `[*kernel, C, O]`, `bias`).
 
   Args:
     features: output channels.
@@ -27,14 +31,91 @@ def conv(features: int, kernel: Sequence[int], stride: int | Sequence[int] = 1,
   nd = len(kernel)
   strides = (stride,) * nd if isinstance(stride, int) else tuple(stride)
   pads = (padding,) * nd if isinstance(padding, int) else tuple(padding)
-  if nd == 3 and strides == (1, 1, 1):
-    return Conv3D(features, tuple(kernel), pads, use_bias, dtype, name=name)
+  if strides == (1,) * nd and nd in (2, 3):
+    cls = Conv3D if nd == 3 else Conv2D
+    return cls(features, tuple(kernel), pads, use_bias, dtype, name=name)
   return nn.Conv(features, tuple(kernel), strides=strides, padding=[(p, p) for p in pads],
                  use_bias=use_bias, dtype=dtype, param_dtype=jnp.float32, name=name)
 
 
+_NHWC = ("NHWC", "HWIO", "NHWC")
+
+
+def _conv2d(x: jax.Array, kernel: jax.Array, padding) -> jax.Array:
+  return jax.lax.conv_general_dilated(x, kernel, (1, 1), padding, dimension_numbers=_NHWC)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _conv2d_canonical_vjp(x, kernel, padding):
+  return _conv2d(x, kernel, padding)
+
+
+def _conv2d_fwd(x, kernel, padding):
+  return _conv2d(x, kernel, padding), (x, kernel)
+
+
+def _conv2d_bwd(padding, res, g):
+  x, kernel = res
+  kh, kw = kernel.shape[:2]
+  (pt, pb), (pl, pr) = padding
+  # d/dx: the output gradient correlated with the flipped kernel, in/out swapped.
+  flipped = jnp.flip(kernel, (0, 1)).transpose(0, 1, 3, 2)
+  dx = _conv2d(g, flipped, ((kh - 1 - pt, kh - 1 - pb), (kw - 1 - pl, kw - 1 - pr)))
+  # d/dkernel: channels of x as the batch, the batch as input channels, the output
+  # gradient as a kernel the size of the output: [C, kh, kw, O].
+  dk = _conv2d(x.transpose(3, 1, 2, 0), g.transpose(1, 2, 0, 3), padding)
+  return dx.astype(x.dtype), dk.transpose(1, 2, 0, 3).astype(kernel.dtype)
+
+
+_conv2d_canonical_vjp.defvjp(_conv2d_fwd, _conv2d_bwd)
+
+
+def conv2d(x: jax.Array, kernel: jax.Array, padding) -> jax.Array:
+  """Stride-1 2-D convolution `[N, H, W, C] * [kh, kw, C, O]` with explicit padding.
+
+  On CPU its gradient is written as two convolutions of the forward's canonical form
+  (NHWC x HWIO -> NHWC, with explicit transposes). XLA's own transposed convolutions
+  are fast in straight-line code, but inside a `lax.scan` body (the refinement loop)
+  XLA:CPU runs the kernel gradient on a slow generic path, ~20x slower (jaxlib 0.10).
+  Other backends use the built-in gradient.
+
+  Args:
+    x: `[N, H, W, C]`.
+    kernel: `[kh, kw, C, O]`.
+    padding: `((top, bottom), (left, right))` zero padding.
+  """
+  padding = tuple(tuple(int(p) for p in pair) for pair in padding)
+  if jax.default_backend() == "cpu":
+    return _conv2d_canonical_vjp(x, kernel, padding)
+  return _conv2d(x, kernel, padding)
+
+
+class Conv2D(nn.Module):
+  """Stride-1 2-D convolution over `[..., H, W, C]` (leading axes are batch); see `conv2d`."""
+
+  features: int
+  kernel_size: tuple[int, int]
+  padding: tuple[int, int]
+  use_bias: bool = True
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Args: x `[..., H, W, C]`. Returns `[..., H', W', features]` (zero padding)."""
+    *lead, h, w, c = x.shape
+    kernel = self.param("kernel", nn.initializers.lecun_normal(),
+                        (*self.kernel_size, c, self.features), jnp.float32).astype(self.dtype)
+    (ph, pw) = self.padding
+    y = conv2d(x.astype(self.dtype).reshape(-1, h, w, c), kernel, ((ph, ph), (pw, pw)))
+    y = y.reshape(*lead, *y.shape[1:])
+    if self.use_bias:
+      y = y + self.param("bias", nn.initializers.zeros, (self.features,),
+                         jnp.float32).astype(self.dtype)
+    return y
+
+
 class Conv3D(nn.Module):
-  """Stride-1 3-D convolution over `[B, T, H, W, C]`, computed with 2-D convolutions.
+  """Stride-1 3-D convolution over `[B, T, H, W, C]`, computed with 2-D convolutions (`conv2d`).
 
   Same parameters as `nn.Conv` (`kernel` `[kt, kh, kw, C, O]`, `bias`), but XLA's
   2-D convolutions are 1.3-1.9x faster than its 3-D ones on CPU: a `(1, kh, kw)`
@@ -57,8 +138,6 @@ class Conv3D(nn.Module):
     kernel = self.param("kernel", nn.initializers.lecun_normal(), (kt, kh, kw, c, self.features),
                         jnp.float32).astype(self.dtype)
     x = x.astype(self.dtype)
-    conv2d = functools.partial(jax.lax.conv_general_dilated, window_strides=(1, 1),
-                               dimension_numbers=("NHWC", "HWIO", "NHWC"))
     if (kh, kw, ph, pw) == (1, 1, 0, 0):  # temporal kernel: a 2-D conv over (T, H*W)
       y = conv2d(x.reshape(b, t, h * w, c), kernel[:, 0], padding=[(pt, pt), (0, 0)])
     else:

@@ -27,12 +27,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--compare", help="a JSON written by --json: print the ratios against it")
 
 
-def _peak_rss_gb() -> float:
+def peak_rss_gb() -> float:
+  """Peak resident set size of this process so far, in GB."""
   rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
   return rss / (1024 ** 3 if sys.platform == "darwin" else 1024 ** 2)
 
 
-def _device_peak_gb(device):
+def device_peak_gb(device):
+  """Peak device memory in GB, or None where the backend does not report it (CPU)."""
   try:
     stats = device.memory_stats() or {}
   except Exception:  # pylint: disable=broad-except  # CPU backends may not implement it
@@ -77,8 +79,8 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   return dict(
       frames=frames, height=height, width=width, iters=iters, batch=batch, dtype=dtype,
       final_only=final_only, compile_s=compile_s, median_s=median, min_s=min(times),
-      fps=batch * frames / median, peak_rss_gb=_peak_rss_gb(),
-      device_peak_gb=_device_peak_gb(device), device=f"{device.platform}:{device.device_kind}",
+      fps=batch * frames / median, peak_rss_gb=peak_rss_gb(),
+      device_peak_gb=device_peak_gb(device), device=f"{device.platform}:{device.device_kind}",
       host=platform.node(), jax=jax.__version__, date=time.strftime("%Y-%m-%d"))
 
 

@@ -1,0 +1,123 @@
+"""Training-step time and peak memory: the jitted step of `python -m train`, on random data.
+
+    python benchmarks/train_step.py                                   # the paper's shape
+    python benchmarks/train_step.py --frames 3 --height 32 --width 64 --iters 2 --batch 2 \
+        --no-remat                                                    # configs/synthetic.py
+    python benchmarks/train_step.py --json results/train_cpu.json
+
+Builds the same state, optimizer and step as `train/` (`configs/sceneflow.py` with the
+shape overridden; official initialisation), feeds a random batch (the step's cost does
+not depend on the values) and reports the compile time, the median step time, samples/s,
+and the peak memory (host RSS on CPU, device peak on GPU), also divided by the batch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import statistics
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import jax  # noqa: E402  pylint: disable=wrong-import-position
+import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
+import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
+
+from configs import sceneflow  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools.bench import device_peak_gb, peak_rss_gb  # noqa: E402  pylint: disable=wrong-import-position
+from train import optim, state as state_lib, step as step_lib  # noqa: E402  pylint: disable=wrong-import-position
+import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
+
+
+def build_config(a):
+  config = sceneflow.get_config()
+  config.data.frames = a.frames
+  config.data.crop = (a.height, a.width)
+  config.train.iters = a.iters
+  config.train.batch_size = a.batch
+  config.model.remat = a.remat
+  config.model.dtype = a.dtype
+  return config
+
+
+def random_batch(config, seed=0):
+  b, t, (h, w) = config.train.batch_size, config.data.frames, config.data.crop
+  rng = np.random.default_rng(seed)
+  left = rng.integers(0, 256, (b, t, h, w, 3), dtype=np.uint8)
+  return dict(left=left, right=np.roll(left, -4, axis=3),
+              disparity=rng.uniform(0, 40, (b, t, h, w)).astype(np.float32),
+              valid=np.ones((b, t, h, w), np.float32))
+
+
+def measure(config, repeats: int) -> dict:
+  """Compiles and times the train step of `config` on all local devices."""
+  mesh = state_lib.make_mesh()
+  model = sav_jax.StereoAnyVideo(state_lib.model_config(config))
+  abstract = state_lib.abstract_params(model, config)
+  labels = optim.param_labels(abstract, config.optimizer.frozen)
+  tx = optim.make_optimizer(config.optimizer, config.train.num_steps, abstract)
+  params = state_lib.place_params(init_variables(model.cfg, seed=0)["params"], abstract, mesh)
+  state, shardings = state_lib.create_train_state(model, tx, config, mesh, params)
+  step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels),
+                                 shardings, mesh)
+  batch = jax.device_put(random_batch(config), state_lib.data_sharding(mesh))
+  t0 = time.perf_counter()
+  compiled = step.lower(state, batch).compile()
+  compile_s = time.perf_counter() - t0
+  state, metrics = compiled(state, batch)  # warm-up
+  jax.block_until_ready(metrics)
+  times = []
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    state, metrics = compiled(state, batch)
+    jax.block_until_ready(metrics)
+    times.append(time.perf_counter() - t0)
+  median = statistics.median(times)
+  device = jax.devices()[0]
+  b = config.train.batch_size
+  rss, dev = peak_rss_gb(), device_peak_gb(device)
+  return dict(
+      frames=config.data.frames, height=config.data.crop[0], width=config.data.crop[1],
+      iters=config.train.iters, batch=b, remat=config.model.remat, dtype=config.model.dtype,
+      devices=mesh.size, compile_s=compile_s, median_s=median, min_s=min(times),
+      samples_per_s=b / median, peak_rss_gb=rss, peak_rss_gb_per_sample=rss / b,
+      device_peak_gb=dev, device_peak_gb_per_sample=None if dev is None else dev / b,
+      loss=float(metrics["loss"]), device=f"{device.platform}:{device.device_kind}",
+      jax=jax.__version__, date=time.strftime("%Y-%m-%d"))
+
+
+def main():
+  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p.add_argument("--frames", type=int, default=5)
+  p.add_argument("--height", type=int, default=256)
+  p.add_argument("--width", type=int, default=512)
+  p.add_argument("--iters", type=int, default=10)
+  p.add_argument("--batch", type=int, default=1, help="global batch (divisible by devices)")
+  p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
+  p.add_argument("--no-remat", dest="remat", action="store_false")
+  p.add_argument("--repeats", type=int, default=3)
+  p.add_argument("--json", help="write the results to this JSON file")
+  a = p.parse_args()
+  res = measure(build_config(a), a.repeats)
+  print(f"device        {res['device']} x{res['devices']}  (jax {res['jax']})")
+  print(f"step          B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
+        f"iters={res['iters']} {res['dtype']} remat={res['remat']}")
+  print(f"compile       {res['compile_s']:.1f} s")
+  print(f"step time     median {res['median_s']:.2f} s (min {res['min_s']:.2f} s), "
+        f"{res['samples_per_s']:.3f} samples/s")
+  print(f"peak host RSS {res['peak_rss_gb']:.2f} GB ({res['peak_rss_gb_per_sample']:.2f} GB/sample)")
+  if res["device_peak_gb"] is not None:
+    print(f"device peak   {res['device_peak_gb']:.2f} GB "
+          f"({res['device_peak_gb_per_sample']:.2f} GB/sample)")
+  if a.json:
+    with open(a.json, "w", encoding="utf-8") as f:
+      json.dump(res, f, indent=1)
+
+
+if __name__ == "__main__":
+  main()

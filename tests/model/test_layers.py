@@ -1,0 +1,72 @@
+"""`conv2d`/`Conv2D`/`Conv3D`: the hand-written gradient equals XLA's, in and out of a scan."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sav_jax.model.layers import Conv2D, Conv3D, conv2d
+
+
+def _reference(x, kernel, padding):
+  return jax.lax.conv_general_dilated(x, kernel, (1, 1), padding,
+                                      dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+
+@pytest.mark.parametrize("kernel_hw,padding", [
+    ((3, 3), ((1, 1), (1, 1))), ((1, 15), ((0, 0), (7, 7))), ((5, 1), ((2, 2), (0, 0))),
+    ((4, 4), ((0, 0), (0, 0))), ((3, 3), ((0, 1), (2, 0)))])
+def test_conv2d_value_and_gradient_match_xla(kernel_hw, padding):
+  rng = np.random.default_rng(0)
+  x = jnp.asarray(rng.standard_normal((3, 8, 20, 5)), jnp.float32)
+  kernel = jnp.asarray(rng.standard_normal((*kernel_hw, 5, 7)), jnp.float32)
+  want, vjp_want = jax.vjp(lambda a, b: _reference(a, b, padding), x, kernel)
+  got, vjp_got = jax.vjp(lambda a, b: conv2d(a, b, padding), x, kernel)
+  np.testing.assert_array_equal(got, want)
+  g = jnp.asarray(rng.standard_normal(want.shape), jnp.float32)
+  for a, b in zip(vjp_got(g), vjp_want(g)):
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(b))))
+
+
+def test_gradient_inside_a_scan_matches_the_unrolled_loop():
+  rng = np.random.default_rng(1)
+  x = jnp.asarray(rng.standard_normal((2, 6, 10, 8)), jnp.float32)
+  kernel = jnp.asarray(0.2 * rng.standard_normal((3, 3, 8, 8)), jnp.float32)
+  pad = ((1, 1), (1, 1))
+
+  def scanned(k, x):
+    y, _ = jax.lax.scan(lambda c, _: (jnp.tanh(conv2d(c, k, pad)), None), x, length=3)
+    return jnp.sum(y ** 2)
+
+  def unrolled(k, x):
+    for _ in range(3):
+      x = jnp.tanh(_reference(x, k, pad))
+    return jnp.sum(x ** 2)
+
+  got = jax.jit(jax.grad(scanned, argnums=(0, 1)))(kernel, x)
+  want = jax.jit(jax.grad(unrolled, argnums=(0, 1)))(kernel, x)
+  for a, b in zip(got, want):
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(b))))
+
+
+@pytest.mark.parametrize("kernel,padding", [((3, 3, 3), (1, 1, 1)), ((5, 1, 1), (2, 0, 0)),
+                                            ((1, 1, 15), (0, 0, 7))])
+def test_conv3d_equals_xla_3d_convolution(kernel, padding):
+  rng = np.random.default_rng(2)
+  x = jnp.asarray(rng.standard_normal((2, 4, 6, 9, 5)), jnp.float32)
+  layer = Conv3D(7, kernel, padding)
+  variables = layer.init(jax.random.key(0), x)
+  variables = jax.tree.map(lambda v: v + 0.1, variables)  # a non-zero bias too
+  want = jax.lax.conv_general_dilated(
+      x, variables["params"]["kernel"], (1, 1, 1), [(p, p) for p in padding],
+      dimension_numbers=("NDHWC", "DHWIO", "NDHWC")) + variables["params"]["bias"]
+  np.testing.assert_allclose(layer.apply(variables, x), want, rtol=1e-5, atol=1e-5)
+
+
+def test_conv2d_module_keeps_leading_axes_and_nn_conv_parameters():
+  x = jnp.ones((2, 3, 8, 8, 4))
+  layer = Conv2D(6, (3, 3), (1, 1))
+  variables = layer.init(jax.random.key(0), x)
+  assert variables["params"]["kernel"].shape == (3, 3, 4, 6)
+  assert variables["params"]["bias"].shape == (6,)
+  assert layer.apply(variables, x).shape == (2, 3, 8, 8, 6)
