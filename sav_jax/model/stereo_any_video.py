@@ -176,7 +176,8 @@ class StereoAnyVideo(nn.Module):
     check_inputs(left, right, iters)
     b, t, h, w, _ = left.shape
     fmap1, fmap2, context = self.features(left, right)
-    net, inp = jnp.tanh(context), nn.relu(context)
+    # The GRU state is carried in the compute dtype (the scan carry keeps one dtype).
+    net, inp = jnp.tanh(context).astype(self.cfg.compute_dtype), nn.relu(context)
     scales = {k: tuple(avg_pool(a, k) for a in (net, inp, fmap1, fmap2)) for k in (4, 2)}
     scales[1] = (net, inp, fmap1, fmap2)
     preds = []

@@ -68,3 +68,26 @@ def test_every_iteration_flow(run, golden_small, scale, hw):
   (flows,) = run[1][f"flow_in_{hw}"]  # [n, B, T, h, w, 1]
   ref = golden_small[f"iter_flow_{scale}"][:, :, 0]  # [n, (B*T), h, w], x channel
   np.testing.assert_allclose(flows[..., 0].reshape(ref.shape), ref, atol=DISP_ATOL, rtol=0)
+
+
+BF16_EPE = 0.05  # px: issue 7's bound for the bfloat16 mode against float32
+
+
+def test_bfloat16_mode_stays_close_to_float32(variables, golden_small):
+  """bfloat16 compute (float32 params, softmaxes, correlation, upsampling, accumulator).
+
+  Compared with the official float32 test-mode output on the fixture input: the mean
+  absolute difference (EPE between the two) must stay within BF16_EPE.
+  """
+  model = sav_jax.StereoAnyVideo(sav_jax.SAVConfig(dtype="bfloat16"))
+  left = jnp.asarray(nchw_to_nhwc(golden_small["input_left"]))
+  right = jnp.asarray(nchw_to_nhwc(golden_small["input_right"]))
+  fwd = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=4, final_only=True).disparities)
+  got = np.asarray(fwd(variables, left, right))
+  ref = np.transpose(golden_small["test_mode_output"][:, :, 0], (1, 0, 2, 3))[None]
+  assert got.dtype == np.float32 and got.shape == ref.shape
+  epe = float(np.mean(np.abs(got - ref)))
+  print(f"bfloat16 vs float32 EPE {epe:.4f} px, max {np.max(np.abs(got - ref)):.3f} px, "
+        f"disparity range {ref.min():.2f}..{ref.max():.2f} px")
+  assert epe <= BF16_EPE, epe
+  assert epe > 0  # it did compute in bfloat16
