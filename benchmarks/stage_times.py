@@ -4,7 +4,7 @@
 
 Prints the median time of: the depth prior (VDA), the fnet/cnet encoders, one
 refinement step at each scale (correlation + MLP + update block + convex
-upsampling), and the update block alone at 1/4, so that the total can be
+upsampling), the update block alone at 1/4 and its parts, so that the total can be
 attributed (total ~= features + iters//2 * (s16 + s8) + iters * s4).
 """
 
@@ -20,7 +20,9 @@ import sav_jax
 import sav_jax.ops.pool
 from sav_jax.model.init import init_variables
 from sav_jax.model.stereo_any_video import StereoAnyVideo
-from sav_jax.ops.correlation import WIDE_WINDOW
+from sav_jax.model import update as U
+from sav_jax.model.layers import CorrMLP
+from sav_jax.ops.correlation import WIDE_WINDOW, aapc
 
 
 def timed(fn, *args, repeats=3):
@@ -66,6 +68,34 @@ def main():
   ub = jax.jit(lambda v, n, i, c, fl: model.apply(
       v, n, i, c, fl, method=lambda m, *xs: m.update_block(*xs)))
   print(f"update block alone 1/4    {timed(ub, v, net, args[2], args[2], jnp.zeros(net.shape[:-1] + (2,))):.3f} s")
+  update_block_parts(v["params"], net.shape[:-1])
+
+
+def update_block_parts(params, lead):
+  """Times the parts of one 1/4 update (inference: no mask head), each compiled alone."""
+  rng = np.random.default_rng(0)
+  r = lambda c: jnp.asarray(rng.standard_normal((*lead, c)), jnp.float32)  # noqa: E731
+  ub = params["update_block"]
+  b, t, h, w = lead
+  f1, f2 = (r(128).reshape(b * t, h, w, 128) for _ in range(2))
+  disp = jnp.asarray(rng.uniform(0, 5, (b * t, h, w)), jnp.float32)
+  parts = [
+      ("AAPC 1x9 (warp + window correlation)",
+       lambda p, a, c, d: aapc(a, c, d, WIDE_WINDOW, 4), (f1, f2, disp)),
+      ("corr MLP", lambda p, c: CorrMLP().apply({"params": p}, c), (r(324),)),
+      ("motion encoder", lambda p, f, c: U.BasicMotionEncoder().apply({"params": p}, f, c),
+       (r(2), r(128))),
+      ("time attention", lambda p, x: U.TimeAttnBlock().apply({"params": p}, x), (r(256),)),
+      ("space attention (linear)", lambda p, x: U.SpaceAttnBlock().apply({"params": p}, x),
+       (r(256),)),
+      ("separable 3-D GRU", lambda p, n, x: U.SKSepConvGRU3D().apply({"params": p}, n, x),
+       (r(128), r(256))),
+      ("3x3x3 flow head", lambda p, n: U.FlowHead3D().apply({"params": p}, n), (r(128),)),
+  ]
+  names = (None, "corr_mlp", "encoder", "time_attn", "space_attn", "gru", "flow_head")
+  for (label, fn, xs), name in zip(parts, names):
+    p = params["corr_mlp"] if name == "corr_mlp" else (ub[name] if name else None)
+    print(f"  {label:38s} {timed(jax.jit(fn), p, *xs):.3f} s")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,79 @@
+"""How close the convolutions of the update block run to the machine's peak, and their gradients.
+
+    python benchmarks/conv_throughput.py
+
+1. Forward GFLOP/s of the update block's main convolutions at 1/4 of a T=5, 128x256 clip
+   (the layers that make up ~90% of the model's work): the ceiling for any exact float32
+   implementation on this machine.
+2. Gradient of a 4-step `lax.scan` of 3x3 convolutions (the refinement loop's shape):
+   XLA's own convolution gradient vs `sav_jax.model.layers.conv2d`'s canonical-form one,
+   and the same loop unrolled.
+"""
+
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sav_jax.model.layers import conv2d
+
+SHAPES = [  # (name, kernel h, kernel w, in, out) at [5, 32, 64] (1/4 of T=5 128x256)
+    ("GRU z/r first stage 1x15", 1, 15, 384, 128),
+    ("GRU q / second stage 1x5", 1, 5, 384, 128),
+    ("flow head, one frame tap 3x3", 3, 3, 128, 256),
+    ("motion encoder convc2 3x3", 3, 3, 256, 192),
+]
+
+
+def timed(fn, *args, repeats=5):
+  jax.block_until_ready(fn(*args))
+  times = []
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    times.append(time.perf_counter() - t0)
+  return statistics.median(times)
+
+
+def xla_conv(x, k, padding):
+  return jax.lax.conv_general_dilated(x, k, (1, 1), padding,
+                                      dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+
+def main():
+  rng = np.random.default_rng(0)
+  print("forward convolutions, [5, 32, 64] pixels:")
+  for name, kh, kw, cin, cout in SHAPES:
+    x = jnp.asarray(rng.standard_normal((5, 32, 64, cin)), jnp.float32)
+    k = jnp.asarray(0.01 * rng.standard_normal((kh, kw, cin, cout)), jnp.float32)
+    pad = ((kh // 2, kh // 2), (kw // 2, kw // 2))
+    sec = timed(jax.jit(lambda x, k, pad=pad: xla_conv(x, k, pad)), x, k)
+    flops = 2 * 5 * 32 * 64 * kh * kw * cin * cout
+    print(f"  {name:32s} {sec * 1e3:7.1f} ms  {flops / sec / 1e9:6.1f} GFLOP/s")
+
+  x = jnp.asarray(rng.standard_normal((6, 8, 16, 128)), jnp.float32)
+  k = jnp.asarray(0.03 * rng.standard_normal((3, 3, 128, 128)), jnp.float32)
+  pad = ((1, 1), (1, 1))
+
+  def scanned(f):
+    def loss(k, x):
+      y, _ = jax.lax.scan(lambda c, _: (jnp.tanh(f(c, k, pad)), None), x, length=4)
+      return jnp.sum(y ** 2)
+    return jax.jit(jax.grad(loss, argnums=(0, 1)))
+
+  def unrolled(k, x):
+    for _ in range(4):
+      x = jnp.tanh(xla_conv(x, k, pad))
+    return jnp.sum(x ** 2)
+
+  print("gradient of 4 scanned 3x3 convs (128 -> 128, [6, 8, 16]):")
+  print(f"  lax.scan, XLA's gradient        {timed(scanned(xla_conv), k, x) * 1e3:7.1f} ms")
+  print(f"  lax.scan, conv2d's gradient     {timed(scanned(conv2d), k, x) * 1e3:7.1f} ms")
+  print(f"  unrolled, XLA's gradient        "
+        f"{timed(jax.jit(jax.grad(unrolled, argnums=(0, 1))), k, x) * 1e3:7.1f} ms")
+
+
+if __name__ == "__main__":
+  main()
