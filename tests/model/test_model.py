@@ -62,9 +62,10 @@ def test_bad_config_raises():
     sav_jax.SAVConfig(dtype="float16")
 
 
-def test_gradients_are_finite_and_the_depth_prior_is_frozen(model, variables, clip):
-  """jax.grad w.r.t. variables and images, under jit, with remat on."""
-  remat_model = sav_jax.StereoAnyVideo(sav_jax.SAVConfig(remat=True))
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+def test_gradients_are_finite_and_the_depth_prior_is_frozen(variables, clip, dtype):
+  """jax.grad w.r.t. variables and images, under jit, with remat on (training's setting)."""
+  remat_model = sav_jax.StereoAnyVideo(sav_jax.SAVConfig(remat=True, dtype=dtype))
 
   @jax.jit
   def grads(v, left, right):
