@@ -10,14 +10,13 @@
    and the same loop unrolled.
 """
 
-import statistics
-import time
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from sav_jax.model.layers import conv2d
+
+from timing import timed  # benchmarks/timing.py
 
 SHAPES = [  # (name, kernel h, kernel w, in, out) at [5, 32, 64] (1/4 of T=5 128x256)
     ("GRU z/r first stage 1x15", 1, 15, 384, 128),
@@ -25,16 +24,6 @@ SHAPES = [  # (name, kernel h, kernel w, in, out) at [5, 32, 64] (1/4 of T=5 128
     ("flow head, one frame tap 3x3", 3, 3, 128, 256),
     ("motion encoder convc2 3x3", 3, 3, 256, 192),
 ]
-
-
-def timed(fn, *args, repeats=5):
-  jax.block_until_ready(fn(*args))
-  times = []
-  for _ in range(repeats):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    times.append(time.perf_counter() - t0)
-  return statistics.median(times)
 
 
 def xla_conv(x, k, padding):

@@ -9,8 +9,6 @@ attributed (total ~= features + iters//2 * (s16 + s8) + iters * s4).
 """
 
 import argparse
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
@@ -24,16 +22,7 @@ from sav_jax.model import update as U
 from sav_jax.model.layers import CorrMLP
 from sav_jax.ops.correlation import WIDE_WINDOW, aapc
 
-
-def timed(fn, *args, repeats=3):
-  out = fn(*args)
-  jax.block_until_ready(out)
-  times = []
-  for _ in range(repeats):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    times.append(time.perf_counter() - t0)
-  return statistics.median(times)
+from timing import timed  # benchmarks/timing.py
 
 
 def main():
