@@ -70,6 +70,19 @@ def _conv2d_bwd(padding, res, g):
 _conv2d_canonical_vjp.defvjp(_conv2d_fwd, _conv2d_bwd)
 
 
+_CANONICAL_GRADIENT = {"enabled": True}
+
+
+def set_canonical_conv_gradient(enabled: bool) -> None:
+  """Switches `conv2d`'s hand-written CPU gradient on (default) or off.
+
+  The hand-written gradient is a `jax.custom_vjp`, which supports reverse mode only:
+  switch it off (before tracing) to use forward-mode autodiff (`jax.jvp`, `jax.jacfwd`)
+  through the model on CPU, at the price of slow scanned gradients.
+  """
+  _CANONICAL_GRADIENT["enabled"] = bool(enabled)
+
+
 def conv2d(x: jax.Array, kernel: jax.Array, padding) -> jax.Array:
   """Stride-1 2-D convolution `[N, H, W, C] * [kh, kw, C, O]` with explicit padding.
 
@@ -77,7 +90,8 @@ def conv2d(x: jax.Array, kernel: jax.Array, padding) -> jax.Array:
   (NHWC x HWIO -> NHWC, with explicit transposes). XLA's own transposed convolutions
   are fast in straight-line code, but inside a `lax.scan` body (the refinement loop)
   XLA:CPU runs the kernel gradient on a slow generic path, ~20x slower (jaxlib 0.10).
-  Other backends use the built-in gradient.
+  Other backends use the built-in gradient; `set_canonical_conv_gradient(False)` does
+  too on CPU (needed for forward-mode autodiff).
 
   Args:
     x: `[N, H, W, C]`.
@@ -85,7 +99,7 @@ def conv2d(x: jax.Array, kernel: jax.Array, padding) -> jax.Array:
     padding: `((top, bottom), (left, right))` zero padding.
   """
   padding = tuple(tuple(int(p) for p in pair) for pair in padding)
-  if jax.default_backend() == "cpu":
+  if _CANONICAL_GRADIENT["enabled"] and jax.default_backend() == "cpu":
     return _conv2d_canonical_vjp(x, kernel, padding)
   return _conv2d(x, kernel, padding)
 

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sav_jax.model.layers import Conv2D, Conv3D, conv2d
+from sav_jax.model.layers import Conv2D, Conv3D, conv2d, set_canonical_conv_gradient
 
 
 def _reference(x, kernel, padding):
@@ -70,3 +70,20 @@ def test_conv2d_module_keeps_leading_axes_and_nn_conv_parameters():
   assert variables["params"]["kernel"].shape == (3, 3, 4, 6)
   assert variables["params"]["bias"].shape == (6,)
   assert layer.apply(variables, x).shape == (2, 3, 8, 8, 6)
+
+
+def test_forward_mode_autodiff_with_the_canonical_gradient_switched_off():
+  rng = np.random.default_rng(3)
+  x = jnp.asarray(rng.standard_normal((1, 5, 6, 3)), jnp.float32)
+  kernel = jnp.asarray(rng.standard_normal((3, 3, 3, 4)), jnp.float32)
+  pad = ((1, 1), (1, 1))
+  fn = lambda a: conv2d(a, kernel, pad)  # noqa: E731
+  if jax.default_backend() == "cpu":
+    with pytest.raises(TypeError, match="custom_vjp"):
+      jax.jvp(fn, (x,), (x,))
+  set_canonical_conv_gradient(False)
+  try:
+    _, tangent = jax.jvp(fn, (x,), (x,))
+  finally:
+    set_canonical_conv_gradient(True)
+  np.testing.assert_allclose(tangent, _reference(x, kernel, pad), rtol=1e-6, atol=1e-6)
