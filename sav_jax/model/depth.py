@@ -21,19 +21,33 @@ class DepthExtractor(nn.Module):
   align_corners=False), run through VDA, resized back, and a trainable 4x4
   stride-4 conv brings them to 1/4. VDA is frozen: its output passes through
   `stop_gradient`, so no backward pass ever runs through the ViT.
+
+  `tokens` (per frame) and `from_tokens` (per clip: VDA's head is temporal) split
+  the computation so that long-video inference can reuse the per-frame part.
   """
 
   cfg: SAVConfig = SAVConfig()
 
-  @nn.compact
-  def __call__(self, x: jax.Array) -> jax.Array:
-    """Args: x `[B, T, H, W, 3]` normalised. Returns `[B, T, H/4, W/4, 32]`."""
-    _, _, h, w, _ = x.shape
+  def setup(self):
+    self.depthanything = VideoDepthAnything(**self.cfg.vda, dtype=self.cfg.compute_dtype)
+    self.conv = conv(self.cfg.depth_dim, (4, 4), 4, 0, dtype=self.cfg.compute_dtype)
+
+  def tokens(self, x: jax.Array) -> list[jax.Array]:
+    """Args: x `[N, H, W, 3]` normalised frames. Returns VDA's four `[N, h*w, D]` token maps."""
+    _, h, w, _ = x.shape
     if h < PATCH or w < PATCH:
       raise ValueError(f"frames of {h}x{w} are too small for the depth prior (min 14x14)")
     xr = resize(x, ((h // PATCH) * PATCH, (w // PATCH) * PATCH), "bilinear", False)
-    feats = VideoDepthAnything(**self.cfg.vda, dtype=self.cfg.compute_dtype,
-                               name="depthanything")(xr)
+    return self.depthanything.tokens(xr)
+
+  def from_tokens(self, tokens: list[jax.Array], b: int, t: int, h: int, w: int) -> jax.Array:
+    """Args: `tokens` of `b*t` frames (clip-major) of size `h x w`. Returns `[b, t, h/4, w/4, 32]`."""
+    feats = self.depthanything.head_from_tokens(tokens, (h // PATCH, w // PATCH), b, t)
     feats = jax.lax.stop_gradient(feats.astype(jnp.float32))
     feats = resize(feats, (h, w), "bilinear", False)
-    return conv(self.cfg.depth_dim, (4, 4), 4, 0, dtype=self.cfg.compute_dtype, name="conv")(feats)
+    return self.conv(feats)
+
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Args: x `[B, T, H, W, 3]` normalised. Returns `[B, T, H/4, W/4, 32]`."""
+    b, t, h, w, c = x.shape
+    return self.from_tokens(self.tokens(x.reshape(b * t, h, w, c)), b, t, h, w)

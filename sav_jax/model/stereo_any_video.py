@@ -45,6 +45,11 @@ def check_inputs(left, right, iters: int) -> None:
     raise ValueError(
         f"height and width must be multiples of 16, got {h}x{w}; pad the frames "
         "(sav_jax.inference.predict_video pads to multiples of 32 for you)")
+  check_iters(iters)
+
+
+def check_iters(iters) -> None:
+  """Raises a ValueError unless `iters` is an even integer >= 2."""
   if not isinstance(iters, int) or iters < 2 or iters % 2:
     raise ValueError(
         f"iters must be an even integer >= 2 (the 1/16 and 1/8 stages run iters//2 "
@@ -64,6 +69,48 @@ class StereoAnyVideo(nn.Module):
     self.corr_mlp = CorrMLP()
     self.update_block = SequenceUpdateBlock3D(self.cfg.hidden_dim, self.cfg.upsample_rate, dt)
 
+  def frame_features(self, left: jax.Array, right: jax.Array) -> dict:
+    """The per-frame part of the features: nothing here mixes frames.
+
+    Long-video inference computes it once per frame and reuses it in every window
+    that contains the frame (`sav_jax.inference.predict_video`).
+
+    Args:
+      left: `[B, T, H, W, 3]` RGB 0..255.
+      right: `[B, T, H, W, 3]`.
+
+    Returns:
+      dict with "tokens": VDA's four DINOv2 token maps `[2B, T, h*w, D]` (left clips
+      then right clips), "fnet": `[2B, T, H/4, W/4, 96]`, "cnet": `[B, T, H/4, W/4, 96]`
+      (left view), float32 apart from the tokens (compute dtype).
+    """
+    b, t, h, w, _ = left.shape
+    both = normalize(jnp.concatenate([left, right], axis=0)).reshape(2 * b * t, h, w, 3)
+    tokens = [x.reshape(2 * b, t, *x.shape[1:]) for x in self.depthnet.tokens(both)]
+    fnet = self.fnet(both).astype(jnp.float32)
+    cnet = self.cnet(both[:b * t]).astype(jnp.float32)
+    return {"tokens": tokens, "fnet": fnet.reshape(2 * b, t, *fnet.shape[1:]),
+            "cnet": cnet.reshape(b, t, *cnet.shape[1:])}
+
+  def window_features(self, frame_feats: dict, height: int, width: int):
+    """The temporal part of the features (VDA's head) on top of `frame_features`.
+
+    Args:
+      frame_feats: `frame_features` of the clip (or its frames gathered from several
+        calls along the T axis).
+      height, width: frame size H, W.
+
+    Returns:
+      `(fmap1, fmap2, context)` as `features`.
+    """
+    b2, t = frame_feats["fnet"].shape[:2]
+    b = b2 // 2
+    tokens = [x.reshape(b2 * t, *x.shape[2:]) for x in frame_feats["tokens"]]
+    depth = self.depthnet.from_tokens(tokens, b2, t, height, width).astype(jnp.float32)
+    fmaps = jnp.concatenate([depth, frame_feats["fnet"]], axis=-1)
+    context = jnp.concatenate([depth[:b], frame_feats["cnet"]], axis=-1)
+    return fmaps[:b], fmaps[b:], context
+
   def features(self, left: jax.Array, right: jax.Array):
     """Matching features of both views and the left context at 1/4.
 
@@ -75,16 +122,7 @@ class StereoAnyVideo(nn.Module):
       `(fmap1, fmap2, context)`, each `[B, T, H/4, W/4, 128]` float32:
       `[depth 32 | fnet 96]` per view and `[depth 32 | cnet 96]` of the left view.
     """
-    b, t, h, w, _ = left.shape
-    both = normalize(jnp.concatenate([left, right], axis=0))  # [2B, T, H, W, 3]
-    depth = self.depthnet(both).astype(jnp.float32)
-    fnet = self.fnet(both.reshape(2 * b * t, h, w, 3)).astype(jnp.float32)
-    fnet = fnet.reshape(2 * b, t, *fnet.shape[1:])
-    cnet = self.cnet(both[:b].reshape(b * t, h, w, 3)).astype(jnp.float32)
-    cnet = cnet.reshape(b, t, *cnet.shape[1:])
-    fmaps = jnp.concatenate([depth, fnet], axis=-1)
-    context = jnp.concatenate([depth[:b], cnet], axis=-1)
-    return fmaps[:b], fmaps[b:], context
+    return self.window_features(self.frame_features(left, right), *left.shape[2:4])
 
   def step(self, net, flow, inp, fmap1, fmap2, window, with_up: bool = True):
     """One refinement iteration at one scale.
@@ -174,8 +212,18 @@ class StereoAnyVideo(nn.Module):
       `SAVOutput` with `disparities` `[P, B, T, H, W]`.
     """
     check_inputs(left, right, iters)
-    b, t, h, w, _ = left.shape
-    fmap1, fmap2, context = self.features(left, right)
+    return self.cascade(*self.features(left, right), left.shape[2:4], iters, final_only)
+
+  def from_frame_features(self, frame_feats: dict, size: tuple[int, int], iters: int = 20,
+                          final_only: bool = True) -> SAVOutput:
+    """`__call__` from precomputed `frame_features` (frames of size `size` = (H, W))."""
+    check_iters(iters)
+    return self.cascade(*self.window_features(frame_feats, *size), size, iters, final_only)
+
+  def cascade(self, fmap1, fmap2, context, size: tuple[int, int], iters: int,
+              final_only: bool) -> SAVOutput:
+    """The 1/16 -> 1/8 -> 1/4 refinement from `features`' output (frames of size `size`)."""
+    h, w = size
     # The GRU state is carried in the compute dtype (the scan carry keeps one dtype).
     net, inp = jnp.tanh(context).astype(self.cfg.compute_dtype), nn.relu(context)
     scales = {k: tuple(avg_pool(a, k) for a in (net, inp, fmap1, fmap2)) for k in (4, 2)}

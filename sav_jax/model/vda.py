@@ -76,3 +76,36 @@ class VideoDepthAnything(nn.Module):
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x `[B, T, H14, W14, 3]` normalised. Returns `[B, T, H14, W14, features // 2]`."""
     return self.intermediates(x)["head"]
+
+  def tokens(self, x: jax.Array) -> list[jax.Array]:
+    """The per-frame part: DINOv2's four normalised patch-token maps.
+
+    Args:
+      x: `[N, H14, W14, 3]` normalised frames (any frames: nothing mixes them here).
+
+    Returns:
+      Four `[N, h*w, D]` arrays, the input of `head_from_tokens`.
+    """
+    if x.ndim != 4 or x.shape[-1] != 3:
+      raise ValueError(f"expected RGB frames [N, H, W, 3], got {x.shape}")
+    if x.shape[1] % PATCH_SIZE or x.shape[2] % PATCH_SIZE:
+      raise ValueError(f"VDA input sides must be multiples of {PATCH_SIZE}, got {x.shape[1:3]}")
+    layers, _ = self.pretrained(x.astype(self.dtype))
+    return [p for p, _ in layers]
+
+  def head_from_tokens(self, tokens: list[jax.Array], grid: tuple[int, int], b: int,
+                       t: int) -> jax.Array:
+    """The temporal part: the DPT head over the `t` frames of each of `b` clips.
+
+    Args:
+      tokens: four `[b*t, h*w, D]` arrays (clip-major) from `tokens`.
+      grid: `(h, w)` patch grid.
+      b, t: clips and frames per clip.
+
+    Returns:
+      `[b, t, 14h, 14w, features // 2]`, as `__call__`.
+    """
+    if t > TEMPORAL_MAX_LEN:
+      raise ValueError(f"VDA processes at most {TEMPORAL_MAX_LEN} frames at once, got {t}")
+    out = self.head(list(tokens), grid, t)
+    return out.reshape(b, t, *out.shape[1:])
