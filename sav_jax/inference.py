@@ -25,9 +25,16 @@ reproduces the official behaviour exactly, for parity):
     we keep the central `stride` frames of each full window, starting
     `(window - stride) // 2` frames in, which is the official rule for 20/10.
 
-Compilation: one XLA executable per (config, iters, padded window shape, matmul
-precision), cached for the process. A video of N >= 20 frames needs at most two
-(a full window and the last, shorter one).
+Reuse across windows: the per-frame part of the model (DINOv2 tokens of both views,
+fnet, cnet) is computed once per frame, in chunks of `stride` frames, and kept while
+the windows that contain the frame run (`FrameFeatureCache`); only the temporal rest
+(VDA's DPT head, the depth conv and the refinement) runs per window. With the official
+20/10 windows this halves the per-frame work. The result is bit-identical to running
+each window on its own (`run_window` uses the same chunks).
+
+Compilation: XLA executables per (config, iters, padded shape, matmul precision),
+cached for the process: the per-frame part per chunk length (at most two for a video)
+and the windowed part per window length (at most two for N >= 20 frames).
 
 Memory: before compiling, `estimate_memory_bytes` (fitted to XLA's memory analysis)
 is compared with the free device memory (host memory on CPU); after compiling, the
@@ -249,9 +256,46 @@ def model_variables(variables) -> dict:
   return {k: v for k, v in variables.items() if k not in _SKIP_COLLECTIONS}
 
 
+def _cache_key(kind, variables, cfg, iters, shape):
+  sig = tuple((tuple(x.shape), str(x.dtype)) for x in jax.tree_util.tree_leaves(variables))
+  return (kind, cfg, iters, shape, str(jax.config.jax_default_matmul_precision),
+          bool(jax.config.values.get("jax_disable_most_optimizations")),
+          jax.tree_util.tree_structure(variables), sig)
+
+
+def _compile(key, fn, args, shape, check_memory: bool, input_bytes: int):
+  """Lowers and compiles `fn(*args)` (abstract args), checks its memory, caches it."""
+  if key in _COMPILED:
+    _COMPILED.move_to_end(key)
+    return _COMPILED[key]
+  compiled = jax.jit(fn).lower(*args).compile()
+  if check_memory:
+    try:
+      ma = compiled.memory_analysis()
+      needed = ma.temp_size_in_bytes + ma.output_size_in_bytes + input_bytes
+    except Exception:  # pylint: disable=broad-except  # analysis not offered by every backend
+      ma = None
+    if ma is not None:
+      _raise_if_too_big(needed, shape, "from the compiled program")
+  _COMPILED[key] = compiled
+  while len(_COMPILED) > _CACHE_SIZE:
+    _COMPILED.popitem(last=False)
+  return compiled
+
+
+def _precheck(frames, height, width, cfg, iters, check_memory) -> None:
+  # Cheap check first, so that hopeless sizes fail before a long compile.
+  if check_memory:
+    _raise_if_too_big(estimate_memory_bytes(frames, height, width, iters, cfg),
+                      (frames, height, width), "estimated", margin=_PRECHECK_MARGIN)
+
+
 def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SAVConfig,
                      iters: int, check_memory: bool = True):
   """The cached executable `(variables, left, right) -> raw disparity [T, Hp, Wp]`.
+
+  The whole forward pass in one program (`predict_video` runs it in two parts, see
+  `compiled_frame_features` and `compiled_window`).
 
   Args:
     variables: model variables (as passed to the executable, see `model_variables`).
@@ -263,33 +307,84 @@ def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SA
   Returns:
     A compiled function taking float32 `[T, Hp, Wp, 3]` left/right frames.
   """
-  sig = tuple((tuple(x.shape), str(x.dtype)) for x in jax.tree_util.tree_leaves(variables))
-  key = (cfg, iters, frames, height, width, str(jax.config.jax_default_matmul_precision),
-         bool(jax.config.values.get("jax_disable_most_optimizations")),
-         jax.tree_util.tree_structure(variables), sig)
-  if key in _COMPILED:
-    _COMPILED.move_to_end(key)
-    return _COMPILED[key]
   shape = (frames, height, width)
-  if check_memory:  # cheap check first, so hopeless sizes fail before a long compile
-    _raise_if_too_big(estimate_memory_bytes(*shape, iters, cfg), shape, "estimated",
-                      margin=_PRECHECK_MARGIN)
+  key = _cache_key("forward", variables, cfg, iters, shape)
+  if key not in _COMPILED:
+    _precheck(*shape, cfg, iters, check_memory)
   spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
-  log.info("compiling the model for %d frames of %dx%d (iters=%d, %s)", frames, height, width,
-           iters, cfg.dtype)
-  fn = jax.jit(_forward_fn(cfg, iters)).lower(variables, spec, spec).compile()
-  if check_memory:
-    try:
-      ma = fn.memory_analysis()
-      needed = ma.temp_size_in_bytes + ma.output_size_in_bytes + 2 * spec.size * 4
-    except Exception:  # pylint: disable=broad-except  # analysis not offered by every backend
-      ma = None
-    if ma is not None:
-      _raise_if_too_big(needed, shape, "from the compiled program")
-  _COMPILED[key] = fn
-  while len(_COMPILED) > _CACHE_SIZE:
-    _COMPILED.popitem(last=False)
-  return fn
+  return _compile(key, _forward_fn(cfg, iters), (variables, spec, spec), shape, check_memory,
+                  2 * spec.size * 4)
+
+
+def _model(cfg):
+  # pylint: disable-next=import-outside-toplevel
+  from sav_jax.model.stereo_any_video import StereoAnyVideo
+  return StereoAnyVideo(cfg)
+
+
+def _frames_fn(cfg: SAVConfig):
+  model = _model(cfg)
+
+  def frame_features(variables, left, right):
+    return model.apply(variables, left[None], right[None], method=type(model).frame_features)
+
+  return frame_features
+
+
+def compiled_frame_features(variables, frames: int, height: int, width: int, *,
+                            cfg: SAVConfig, check_memory: bool = True):
+  """Cached executable `(variables, left, right) -> frame_features` of `[n, Hp, Wp, 3]` frames."""
+  shape = (frames, height, width)
+  key = _cache_key("frames", variables, cfg, 0, shape)
+  spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
+  return _compile(key, _frames_fn(cfg), (variables, spec, spec), shape, check_memory,
+                  2 * spec.size * 4)
+
+
+def compiled_window(variables, frames: int, height: int, width: int, *, cfg: SAVConfig,
+                    iters: int, check_memory: bool = True):
+  """Cached executable `(variables, frame_features) -> raw disparity [T, Hp, Wp]`."""
+  shape = (frames, height, width)
+  key = _cache_key("window", variables, cfg, iters, shape)
+  model = _model(cfg)
+  spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
+  feats = jax.eval_shape(_frames_fn(cfg), variables, spec, spec)
+
+  def window(variables, feats):
+    out = model.apply(variables, feats, (height, width), iters, True,
+                      method=type(model).from_frame_features)
+    return out.disparities[0, 0]
+
+  if key not in _COMPILED:
+    log.info("compiling the model for %d frames of %dx%d (iters=%d, %s)", frames, height,
+             width, iters, cfg.dtype)
+  in_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(feats))
+  return _compile(key, window, (variables, feats), shape, check_memory, in_bytes)
+
+
+class FrameFeatureCache:
+  """`frame_features` of single frames by frame index, for windows that overlap.
+
+  The per-frame part of the model (DINOv2 tokens, fnet, cnet) is computed in chunks of
+  `chunk` frames aligned to multiples of `chunk` from the start of the video, so a frame
+  gets the same values whichever window asks for it first.
+  """
+
+  def __init__(self, chunk: int = STRIDE):
+    if not (isinstance(chunk, int) and chunk >= 1):
+      raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+    self.chunk = chunk
+    self.frames: dict[int, dict] = {}
+
+  def evict_before(self, index: int) -> None:
+    """Forgets the frames before `index` (windows only move forward)."""
+    for i in [i for i in self.frames if i < index]:
+      del self.frames[i]
+
+  def gather(self, start: int, stop: int):
+    """The cached features of frames `[start, stop)` stacked on the T axis."""
+    items = [self.frames[i] for i in range(start, stop)]
+    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *items)
 
 
 def clear_cache() -> None:
@@ -312,9 +407,12 @@ def _as_video_pair(left, right) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig, iters: int,
-               pads: tuple[int, int, int, int] | None = None, check_memory: bool = True
-               ) -> np.ndarray:
-  """Runs the model once on a window (pads, runs the cached executable).
+               pads: tuple[int, int, int, int] | None = None, check_memory: bool = True,
+               cache: FrameFeatureCache | None = None, start: int = 0) -> np.ndarray:
+  """Runs the model once on a window (pads, runs the cached executables).
+
+  The per-frame features come from `cache` (computed there when missing); the
+  temporal rest of the model runs on the whole window.
 
   Args:
     variables: model variables.
@@ -323,19 +421,38 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
     iters: refinement iterations.
     pads: padding `(top, bottom, left, right)`; default `pad_amounts(H, W)`.
     check_memory: see `compiled_forward`.
+    cache: per-frame features shared by consecutive windows (default: a fresh one).
+    start: index of the window's first frame in the video (the cache's key).
 
   Returns:
     `[T, Hp, Wp]` float32 raw test-mode output on the padded frames (signed, not unpadded).
   """
   pads = pad_amounts(*left.shape[1:3]) if pads is None else pads
-  lp = pad_frames(np.asarray(left, np.float32), pads)
-  rp = pad_frames(np.asarray(right, np.float32), pads)
+  cache = FrameFeatureCache() if cache is None else cache
   variables = model_variables(variables)
-  fn = compiled_forward(variables, *lp.shape[:3], cfg=cfg, iters=iters, check_memory=check_memory)
-  return np.asarray(jax.device_get(fn(variables, lp, rp)))
+  n = left.shape[0]
+  hp, wp = left.shape[1] + pads[0] + pads[1], left.shape[2] + pads[2] + pads[3]
+  _precheck(n, hp, wp, cfg, iters, check_memory and
+            _cache_key("window", variables, cfg, iters, (n, hp, wp)) not in _COMPILED)
+  cache.evict_before(start)
+  c = cache.chunk
+  for lo in range(start // c * c, start + n, c):  # chunks aligned to multiples of c
+    hi = lo + c
+    if all(i in cache.frames for i in range(max(lo, start), min(hi, start + n))):
+      continue
+    a, b = max(lo, start) - start, min(hi, start + n) - start
+    lp = pad_frames(np.asarray(left[a:b], np.float32), pads)
+    rp = pad_frames(np.asarray(right[a:b], np.float32), pads)
+    fn = compiled_frame_features(variables, b - a, hp, wp, cfg=cfg, check_memory=check_memory)
+    feats = fn(variables, lp, rp)
+    for k in range(b - a):
+      cache.frames[start + a + k] = jax.tree_util.tree_map(lambda x, k=k: x[:, k:k + 1], feats)
+  window = compiled_window(variables, n, hp, wp, cfg=cfg, iters=iters,
+                           check_memory=check_memory)
+  return np.asarray(jax.device_get(window(variables, cache.gather(start, start + n))))
 
 
-def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, progress=False,
+def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk, progress=False,
               raw_windows=None):
   """Runs the windows of `plan` and stitches `abs()` of their kept frames, `[N', H, W]`."""
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
@@ -344,10 +461,11 @@ def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, progres
   kept = []
   total = sum(w.keep_stop - w.keep_start for w in plan)
   with tqdm(total=total, unit="frame", desc="disparity", disable=not progress) as bar:
+    cache = FrameFeatureCache(chunk)
     for win in plan:
       sl = slice(win.start, win.start + win.length)
       raw = run_window(variables, left[sl], right[sl], cfg=cfg, iters=iters, pads=pads,
-                       check_memory=check_memory)
+                       check_memory=check_memory, cache=cache, start=win.start)
       if raw_windows is not None:
         raw_windows.append(raw)
       kept.append(np.abs(unpad(raw, pads)[win.keep_start:win.keep_stop]))
@@ -377,7 +495,7 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
   left, right = _as_video_pair(left, right)
   plan = window_plan(left.shape[0], window, stride)
   return _run_plan(variables, left, right, plan, cfg=cfg, iters=iters,
-                   check_memory=check_memory, progress=progress)
+                   check_memory=check_memory, chunk=stride, progress=progress)
 
 
 def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None = None,
@@ -399,5 +517,5 @@ def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None
   raws = [] if return_windows else None
   plan = official_window_plan(left.shape[0], window, stride)
   disp = _run_plan(variables, left, right, plan, cfg=cfg, iters=iters, check_memory=True,
-                   raw_windows=raws)
+                   chunk=stride, raw_windows=raws)
   return (disp, raws) if return_windows else disp

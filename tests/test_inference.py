@@ -115,7 +115,8 @@ class _LabelModel:
   def __init__(self):
     self.calls = []
 
-  def __call__(self, variables, left, right, *, cfg, iters, pads=None, check_memory=True):
+  def __call__(self, variables, left, right, *, cfg, iters, pads=None, check_memory=True,
+               cache=None, start=0):
     start = int(left[0, 0, 0, 0])  # frames carry their global index
     self.calls.append((start, len(left)))
     h, w = left.shape[1:3]
@@ -210,3 +211,20 @@ def test_memory_estimate_grows_with_size():
   assert 20 * 736 * 1280 * 1000 < big < 20 * 736 * 1280 * 10000
   bf16 = inference.estimate_memory_bytes(20, 736, 1280, 20, sav_jax.SAVConfig(dtype="bfloat16"))
   assert bf16 < big
+
+
+def test_per_frame_features_are_computed_once_per_frame(variables, golden, monkeypatch):
+  """21 frames in windows [0, 20) and [10, 21): 21 frames of per-frame work, not 31."""
+  counted = []
+  real = inference.compiled_frame_features
+
+  def counting(variables, frames, *args, **kwargs):
+    counted.append(frames)
+    return real(variables, frames, *args, **kwargs)
+
+  monkeypatch.setattr(inference, "compiled_frame_features", counting)
+  disp = _predict(variables, golden["left"], golden["right"])
+  assert counted == [10, 10, 1]  # chunks [0, 10), [10, 20), [20, 21)
+  assert disp.shape == (21, 28, 30)
+  with pytest.raises(ValueError, match="chunk"):
+    inference.FrameFeatureCache(chunk=0)
