@@ -239,10 +239,14 @@ def _raise_if_too_big(needed: float, shape: tuple[int, int, int], what: str,
         "(dtype='bfloat16') or a device with more memory")
 
 
-def _forward_fn(cfg: SAVConfig, iters: int):
+def _model(cfg):
   # pylint: disable-next=import-outside-toplevel
   from sav_jax.model.stereo_any_video import StereoAnyVideo
-  model = StereoAnyVideo(cfg)
+  return StereoAnyVideo(cfg)
+
+
+def _forward_fn(cfg: SAVConfig, iters: int):
+  model = _model(cfg)
 
   def forward(variables, left, right):
     out = model.apply(variables, left[None], right[None], iters=iters, final_only=True)
@@ -263,13 +267,22 @@ def _cache_key(kind, variables, cfg, iters, shape):
           jax.tree_util.tree_structure(variables), sig)
 
 
-def _compile(key, fn, args, shape, check_memory: bool, input_bytes: int):
-  """Lowers and compiles `fn(*args)` (abstract args), checks its memory, caches it."""
+def _compile(key, build, check_memory: bool):
+  """The cached executable for `key`; on a miss, compiles `fn(*args)` from `build()`.
+
+  `key` is `_cache_key(...)`; `build() -> (fn, args)` with abstract args (variables
+  first) runs only on a miss. The compiled program's memory is checked before caching.
+  """
   if key in _COMPILED:
     _COMPILED.move_to_end(key)
     return _COMPILED[key]
+  kind, cfg, iters, shape = key[:4]
+  log.info("compiling the model (%s) for %d frames of %dx%d (iters=%d, %s)", kind, *shape,
+           iters, cfg.dtype)
+  fn, args = build()
   compiled = jax.jit(fn).lower(*args).compile()
   if check_memory:
+    input_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(args[1:]))
     try:
       ma = compiled.memory_analysis()
       needed = ma.temp_size_in_bytes + ma.output_size_in_bytes + input_bytes
@@ -312,14 +325,7 @@ def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SA
   if key not in _COMPILED:
     _precheck(*shape, cfg, iters, check_memory)
   spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
-  return _compile(key, _forward_fn(cfg, iters), (variables, spec, spec), shape, check_memory,
-                  2 * spec.size * 4)
-
-
-def _model(cfg):
-  # pylint: disable-next=import-outside-toplevel
-  from sav_jax.model.stereo_any_video import StereoAnyVideo
-  return StereoAnyVideo(cfg)
+  return _compile(key, lambda: (_forward_fn(cfg, iters), (variables, spec, spec)), check_memory)
 
 
 def _frames_fn(cfg: SAVConfig):
@@ -337,8 +343,7 @@ def compiled_frame_features(variables, frames: int, height: int, width: int, *,
   shape = (frames, height, width)
   key = _cache_key("frames", variables, cfg, 0, shape)
   spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
-  return _compile(key, _frames_fn(cfg), (variables, spec, spec), shape, check_memory,
-                  2 * spec.size * 4)
+  return _compile(key, lambda: (_frames_fn(cfg), (variables, spec, spec)), check_memory)
 
 
 def compiled_window(variables, frames: int, height: int, width: int, *, cfg: SAVConfig,
@@ -346,20 +351,20 @@ def compiled_window(variables, frames: int, height: int, width: int, *, cfg: SAV
   """Cached executable `(variables, frame_features) -> raw disparity [T, Hp, Wp]`."""
   shape = (frames, height, width)
   key = _cache_key("window", variables, cfg, iters, shape)
-  model = _model(cfg)
-  spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
-  feats = jax.eval_shape(_frames_fn(cfg), variables, spec, spec)
 
-  def window(variables, feats):
-    out = model.apply(variables, feats, (height, width), iters, True,
-                      method=type(model).from_frame_features)
-    return out.disparities[0, 0]
+  def build():  # only on a cache miss: tracing the per-frame part for its shapes costs
+    model = _model(cfg)
+    spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
+    feats = jax.eval_shape(_frames_fn(cfg), variables, spec, spec)
 
-  if key not in _COMPILED:
-    log.info("compiling the model for %d frames of %dx%d (iters=%d, %s)", frames, height,
-             width, iters, cfg.dtype)
-  in_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(feats))
-  return _compile(key, window, (variables, feats), shape, check_memory, in_bytes)
+    def window(variables, feats):
+      out = model.apply(variables, feats, (height, width), iters, True,
+                        method=type(model).from_frame_features)
+      return out.disparities[0, 0]
+
+    return window, (variables, feats)
+
+  return _compile(key, build, check_memory)
 
 
 class FrameFeatureCache:
