@@ -3,9 +3,18 @@
 For every pixel and channel group, the official code correlates each of the `n`
 positions of a local window in the left map with each of the `n` positions of
 the same window in the (warped) right map: `n * n` dot products per group.
-Windows are 1x9 (wide) or 3x3 (small); both maps are replicate-padded. Here the
-`n` window views are static shifted slices, stacked once per view, and all
-pairs come from one einsum.
+Windows are 1x9 (wide) or 3x3 (small); both maps are replicate-padded.
+
+Those `n * n` products only depend on the offset between the two positions. With
+`L` and `R` the padded maps, the pair `(a, b)` at pixel `p` is
+`L[p + a] . R[p + b] = E_{b - a}(p + a)`, where `E_d(q) = L[q] . R[q + d]`. So
+only the `(2 wy - 1) * (2 wx - 1)` offset maps `E_d` are computed (17 for 1x9,
+25 for 3x3, instead of 81 pairs), and the pairs are slices of them. Each `E_d`
+row is a band of a small matrix product: the padded row is cut into blocks of
+`block` positions, each block of `L` is multiplied with its block of `R` plus the
+`2 wx - 2` positions after it, and the band diagonals are read out with a
+pad-and-reshape skew. No map is ever stacked `n` times; the products run as
+batched matrix multiplications.
 """
 
 from __future__ import annotations
@@ -20,46 +29,81 @@ WIDE_WINDOW = (1, 9)
 SMALL_WINDOW = (3, 3)
 
 
-def window_views(x: jax.Array, window: tuple[int, int]) -> jax.Array:
-  """Stacks the shifted views of a replicate-padded map.
+def _band_products(left: jax.Array, right: jax.Array, bands: int, block: int) -> jax.Array:
+  """`out[..., q, k] = left[..., q, :] . right[..., q + k, :]` for `k < bands`.
 
   Args:
-    x: `[N, H, W, C]`.
-    window: `(wy, wx)`, odd sizes.
+    left: `[..., Q, C]` with `Q` a multiple of `block`.
+    right: `[..., Q + block, C]` (positions past `Q + bands - 1` are never read).
+    bands: number of diagonals, at most `block + 1`.
+    block: positions per matrix product.
 
   Returns:
-    `[N, H, W, wy*wx, C]`; view `a = dy*wx + dx` holds `x[y + dy - wy//2, x + dx - wx//2]`
-    with coordinates clamped to the border.
+    `[..., Q, bands]` float32.
   """
-  wy, wx = window
-  _, h, w, _ = x.shape
-  xp = pad_replicate(x, (wy // 2, wy // 2), (wx // 2, wx // 2))
-  views = [xp[:, dy:dy + h, dx:dx + w, :] for dy in range(wy) for dx in range(wx)]
-  return jnp.stack(views, axis=3)
+  *lead, q, c = left.shape
+  nb = q // block
+  lb = left.reshape(*lead, nb, block, c)
+  main = right[..., :q, :].reshape(*lead, nb, block, c)
+  nxt = right[..., block:q + block, :].reshape(*lead, nb, block, c)[..., :bands - 1, :]
+  rb = jnp.concatenate([main, nxt], axis=-2)  # [..., nb, block + bands - 1, C]
+  m = jnp.einsum("...qc,...rc->...qr", lb, rb, preferred_element_type=jnp.float32)
+  # Skew: row q of m, columns q .. q + bands - 1. Flattened with one extra
+  # column per row, element (q, q + k) sits at row q, column k.
+  width = block + bands - 1
+  m = m.reshape(*lead, nb, block * width)
+  m = jnp.pad(m, [(0, 0)] * (m.ndim - 1) + [(0, block)])
+  m = m.reshape(*lead, nb, block, width + 1)[..., :bands]
+  return m.reshape(*lead, q, bands)
 
 
 def window_correlation(
-    left: jax.Array, right: jax.Array, window: tuple[int, int], groups: int = 4
+    left: jax.Array, right: jax.Array, window: tuple[int, int], groups: int = 4,
+    block: int = 16,
 ) -> jax.Array:
   """All pairs of window positions, per channel group.
 
   Args:
     left: `[N, H, W, C]`.
     right: `[N, H, W, C]` (already warped).
-    window: `(wy, wx)`.
+    window: `(wy, wx)`, odd sizes.
     groups: channel groups; C must be divisible by it.
+    block: width of the blocked matrix products (a speed/memory knob; the
+      result does not depend on it). Raised to `2 wx - 2` when smaller.
 
   Returns:
-    `[N, H, W, groups * n * n]` with `n = wy*wx`; channel `g*n*n + a*n + b` is
-    `sum_c left_view_a[c] * right_view_b[c]` over the channels of group g.
+    `[N, H, W, groups * n * n]` float32 with `n = wy*wx`; channel
+    `g*n*n + a*n + b` is `sum_c left_view_a[c] * right_view_b[c]` over the
+    channels of group g, where view `a = dy*wx + dx` holds the map at
+    `(y + dy - wy//2, x + dx - wx//2)` with coordinates clamped to the border.
   """
   n_, h, w, c = left.shape
   if c % groups:
     raise ValueError(f"feature channels {c} are not divisible by {groups} groups")
-  lv = window_views(left, window).reshape(n_, h, w, -1, groups, c // groups)
-  rv = window_views(right, window).reshape(n_, h, w, -1, groups, c // groups)
-  corr = jnp.einsum("nhwagc,nhwbgc->nhwgab", lv, rv, preferred_element_type=jnp.float32)
-  return corr.reshape(n_, h, w, -1)
+  wy, wx = window
+  ry, rx = wy // 2, wx // 2
+  hp, wp = h + 2 * ry, w + 2 * rx
+  dys, dxs = 2 * wy - 1, 2 * wx - 1
+  block = max(block, dxs - 1)
+  qw = -(-wp // block) * block  # padded width, a multiple of block
+
+  def grouped(x, pad_y, pad_x):  # replicate pad, zero pad, -> [N, y, groups, x, C/groups]
+    x = pad_replicate(x, (ry, ry), (rx, rx))
+    x = jnp.pad(x, ((0, 0), pad_y, pad_x, (0, 0)))
+    x = x.reshape(*x.shape[:3], groups, c // groups)
+    return x.transpose(0, 1, 3, 2, 4)
+
+  lg = grouped(left, (0, 0), (0, qw - wp))
+  # R[q + d] for d = k - (wx - 1): shift by wx - 1 zeros on the left, and rows
+  # by wy - 1 for the vertical offsets; zeros are only read for unused q.
+  rg = grouped(right, (wy - 1, wy - 1), (wx - 1, qw + block - wp - (wx - 1)))
+  offsets = [_band_products(lg, rg[:, k:k + hp], dxs, block) for k in range(dys)]
+  e = jnp.stack(offsets, axis=-2)[:, :, :, :wp]  # [N, hp, groups, wp, dys, dxs]
+  e = e.transpose(0, 1, 3, 2, 4, 5)  # [N, hp, wp, groups, dys, dxs]
+  # Pair (a, b) at p: E_{b - a}(p + a), offset index b - a + (w - 1).
+  pairs = [e[:, ay:ay + h, ax:ax + w, :, wy - 1 - ay:dys - ay, wx - 1 - ax:dxs - ax]
+           .reshape(n_, h, w, groups, wy * wx) for ay in range(wy) for ax in range(wx)]
+  return jnp.stack(pairs, axis=-2).reshape(n_, h, w, -1)
 
 
 def aapc(

@@ -1,5 +1,6 @@
 """Closed-form and loop-reference checks of the torch-compatible primitives."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -102,12 +103,36 @@ def _corr_loops(left, right, window, groups=4):
   return out
 
 
-@pytest.mark.parametrize("window", [WIDE_WINDOW, SMALL_WINDOW])
-def test_window_correlation_matches_loops(window):
-  left = RNG.normal(size=(2, 5, 11, 16)).astype(np.float32)
-  right = RNG.normal(size=(2, 5, 11, 16)).astype(np.float32)
-  out = window_correlation(jnp.asarray(left), jnp.asarray(right), window)
+@pytest.mark.parametrize("window", [WIDE_WINDOW, SMALL_WINDOW, (5, 3), (3, 1)])
+@pytest.mark.parametrize("block,width", [(16, 11), (4, 11), (16, 37), (40, 23)])
+def test_window_correlation_matches_loops(window, block, width):
+  # Widths below, between and above multiples of the block; blocks narrower than
+  # the band (raised internally) and wider than the padded row.
+  left = RNG.normal(size=(2, 5, width, 16)).astype(np.float32)
+  right = RNG.normal(size=(2, 5, width, 16)).astype(np.float32)
+  out = window_correlation(jnp.asarray(left), jnp.asarray(right), window, block=block)
   np.testing.assert_allclose(out, _corr_loops(left, right, window), atol=1e-4)
+
+
+@pytest.mark.parametrize("window", [WIDE_WINDOW, SMALL_WINDOW])
+def test_window_correlation_gradients_match_stacked_views(window):
+  # Reference: every window view stacked, all pairs from one einsum (the direct form).
+  def stacked(left, right):
+    wy, wx = window
+    h, w = left.shape[1:3]
+    pad = lambda a: jnp.pad(a, [(0, 0), (wy // 2,) * 2, (wx // 2,) * 2, (0, 0)], mode="edge")
+    views = lambda a: jnp.stack([pad(a)[:, y:y + h, x:x + w] for y in range(wy)
+                                 for x in range(wx)], axis=3).reshape(*a.shape[:3], wy * wx, 4, -1)
+    return jnp.einsum("nhwagc,nhwbgc->nhwgab", views(left), views(right)).reshape(*left.shape[:3], -1)
+
+  left = jnp.asarray(RNG.normal(size=(1, 4, 13, 8)), jnp.float32)
+  right = jnp.asarray(RNG.normal(size=(1, 4, 13, 8)), jnp.float32)
+  weights = jnp.asarray(RNG.normal(size=(1, 4, 13, 4 * (window[0] * window[1]) ** 2)), jnp.float32)
+  loss = lambda f: lambda a, b: jnp.sum(weights * f(a, b))
+  got = jax.grad(loss(lambda a, b: window_correlation(a, b, window)), argnums=(0, 1))(left, right)
+  want = jax.grad(loss(stacked), argnums=(0, 1))(left, right)
+  for g, w_ in zip(got, want):
+    np.testing.assert_allclose(g, w_, atol=1e-4)
 
 
 def test_aapc_with_zero_flow_is_plain_window_correlation():
