@@ -54,6 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sav_jax import runtime
 from sav_jax.config import SAVConfig
 
 log = logging.getLogger(__name__)
@@ -281,6 +282,7 @@ def _compile(key, build, check_memory: bool):
            iters, cfg.dtype)
   fn, args = build()
   compiled = jax.jit(fn).lower(*args).compile()
+  runtime.release_host_memory()  # the compiler's working memory, kept by the allocator
   if check_memory:
     input_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(args[1:]))
     try:

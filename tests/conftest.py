@@ -52,6 +52,19 @@ def fast_compile():
   jax.config.update("jax_disable_most_optimizations", old)
 
 
+@pytest.fixture
+def restore_cache_config():
+  """Puts the test session's compilation cache settings back afterwards."""
+  import jax  # pylint: disable=import-outside-toplevel
+  keys = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+  old = {k: getattr(jax.config, k) for k in keys}
+  yield
+  from jax.experimental.compilation_cache import compilation_cache  # pylint: disable=import-outside-toplevel
+  for k, v in old.items():
+    jax.config.update(k, v)
+  compilation_cache.reset_cache()
+
+
 def pytest_configure(config):
   """Share XLA compilations between test processes of one run (and later runs)."""
   import jax  # pylint: disable=import-outside-toplevel

@@ -226,3 +226,10 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   results = json.loads((out / "metrics.json").read_text())["metrics"]
   assert set(results) == {"Stereo Any Video", "StereoSGBM"}
   assert results["StereoSGBM"]["disp_epe_mean"] < 2.0  # SGBM works on the synthetic scene
+
+
+def test_compile_cache_folder_option(tmp_path, folders, npz_ckpt, restore_cache_config):
+  cache = tmp_path / "xla"
+  assert _infer(*folders, npz_ckpt, tmp_path / "out", "--compile-cache", str(cache)) == 0
+  assert cache.is_dir() and jax.config.jax_compilation_cache_dir == str(cache)
+  assert len(list((tmp_path / "out" / "disparity").glob("*.png"))) == T

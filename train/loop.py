@@ -21,6 +21,7 @@ import jax
 import numpy as np
 
 import sav_jax
+from sav_jax import runtime
 from sav_jax.data import pipeline
 from train import checkpoint as ckpt_lib
 from train import evaluation, input as input_lib, optim, state as state_lib, step as step_lib
@@ -146,6 +147,8 @@ def run(config, workdir) -> state_lib.TrainState:
   for step in range(start + 1, total + 1):
     with jax.profiler.StepTraceAnnotation("train", step_num=step):
       state, metrics = parts["train_step"](state, next(parts["batches"]))
+    if step == start + 1:  # the step was compiled by this call: free the compiler's memory
+      runtime.release_host_memory()
     if pending is not None:
       host(*pending)  # one step late, so that host work overlaps the device
     pending = (step, metrics)

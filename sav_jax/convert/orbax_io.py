@@ -14,7 +14,6 @@ import pathlib
 
 import jax
 import numpy as np
-import orbax.checkpoint as ocp
 
 from sav_jax.convert.pickle_reader import CheckpointError
 
@@ -26,7 +25,15 @@ _ITEMS = ("variables", "config")
 _METADATA_FILE = "_CHECKPOINT_METADATA"
 
 
+def _ocp():
+  # Imported on first use: orbax (and tensorstore) add ~30 MB and a second to
+  # `import sav_jax`, which inference without checkpoints does not need.
+  import orbax.checkpoint  # pylint: disable=import-outside-toplevel
+  return orbax.checkpoint
+
+
 def _checkpointer():
+  ocp = _ocp()
   handler = ocp.CompositeCheckpointHandler(variables=ocp.StandardCheckpointHandler(),
                                           config=ocp.JsonCheckpointHandler())
   return ocp.Checkpointer(handler)
@@ -71,6 +78,7 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
            if np.size(x) == 0]
   if empty:
     raise CheckpointError(f"{directory}: orbax cannot save zero-size arrays: {empty[:5]}")
+  ocp = _ocp()
   args = ocp.args.Composite(variables=ocp.args.StandardSave(variables),
                             config=ocp.args.JsonSave(config_dict))
   with _checkpointer() as ckptr:
@@ -112,6 +120,7 @@ def restore_variables(directory, target=None):
   with _checkpointer() as ckptr:
     if target is None:
       target = _target_from_metadata(ckptr, directory)
+    ocp = _ocp()
     args = ocp.args.Composite(variables=ocp.args.StandardRestore(target),
                               config=ocp.args.JsonRestore())
     try:

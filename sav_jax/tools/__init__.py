@@ -9,3 +9,26 @@ A `UsageError` (or ValueError / FileNotFoundError / FileExistsError) raised by
 
 class UsageError(Exception):
   """Bad input from the user: reported without a traceback, exit status 2."""
+
+
+def add_compile_cache_arguments(p, default_on: bool = True) -> None:
+  """--compile-cache DIR / --no-compile-cache (JAX's persistent compilation cache)."""
+  from sav_jax.runtime import default_cache_dir  # pylint: disable=import-outside-toplevel
+  g = p.add_mutually_exclusive_group()
+  where = (f"default: JAX_COMPILATION_CACHE_DIR if set, else {default_cache_dir()}"
+           if default_on else "default: off")
+  g.add_argument("--compile-cache", metavar="DIR",
+                 help=f"keep compiled programs in DIR for later runs ({where})")
+  if default_on:
+    g.add_argument("--no-compile-cache", action="store_true",
+                   help="do not read or write the persistent compilation cache")
+
+
+def setup_compile_cache(args, default_on: bool = True):
+  """Turns the cache on as the arguments say; returns the folder or None."""
+  from sav_jax import runtime  # pylint: disable=import-outside-toplevel
+  if args.compile_cache:
+    return runtime.enable_compilation_cache(args.compile_cache)
+  if default_on and not getattr(args, "no_compile_cache", False):
+    return runtime.enable_compilation_cache()
+  return None

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import resource
 import statistics
 import sys
 import time
+
+from sav_jax.tools import add_compile_cache_arguments, setup_compile_cache
 
 HELP = "benchmark the compiled forward pass (compile time, median time, fps, peak memory)"
 
@@ -25,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  help="return every refinement step (training view) instead of the final one")
   p.add_argument("--json", help="write the results to this JSON file")
   p.add_argument("--compare", help="a JSON written by --json: print the ratios against it")
+  add_compile_cache_arguments(p, default_on=False)
 
 
 def peak_rss_gb() -> float:
@@ -44,11 +48,18 @@ def device_peak_gb(device):
 
 
 def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
-            final_only=True) -> dict:
+            final_only=True, compile_cache=None) -> dict:
   """Compiles and times the forward pass on random weights and a random clip.
 
+  Like the inference helpers, it returns freed host memory to the OS after
+  creating the weights and after compiling (`sav_jax.runtime.release_host_memory`).
+
+  Args:
+    compile_cache: the persistent compilation cache folder in use, if any (then
+      `compile_s` is a cache load when `cache_hit`).
+
   Returns:
-    dict with `compile_s`, `median_s`, `min_s`, `fps`, `peak_rss_gb`,
+    dict with `compile_s`, `cache_hit`, `median_s`, `min_s`, `fps`, `peak_rss_gb`,
     `device_peak_gb` (None on CPU) and the settings.
   """
   import jax  # pylint: disable=import-outside-toplevel
@@ -56,18 +67,24 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   import numpy as np  # pylint: disable=import-outside-toplevel
 
   import sav_jax  # pylint: disable=import-outside-toplevel
+  from sav_jax import runtime  # pylint: disable=import-outside-toplevel
   from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
 
   cfg = sav_jax.SAVConfig(dtype=dtype)
   model = sav_jax.StereoAnyVideo(cfg)
   variables = jax.device_put(init_variables(cfg, seed=0))
+  runtime.release_host_memory()
   rng = np.random.default_rng(0)
   left = jnp.asarray(rng.uniform(0, 255, (batch, frames, height, width, 3)), jnp.float32)
   right = jnp.roll(left, -4, axis=3)
   fwd = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=iters, final_only=final_only).disparities)
+  entries = lambda: set(os.listdir(compile_cache)) if compile_cache else set()  # noqa: E731
+  before = entries()
   t0 = time.perf_counter()
   compiled = fwd.lower(variables, left, right).compile()
   compile_s = time.perf_counter() - t0
+  cache_hit = bool(compile_cache) and entries() == before
+  runtime.release_host_memory()
   compiled(variables, left, right).block_until_ready()  # warm-up
   times = []
   for _ in range(repeats):
@@ -78,7 +95,7 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   device = jax.devices()[0]
   return dict(
       frames=frames, height=height, width=width, iters=iters, batch=batch, dtype=dtype,
-      final_only=final_only, compile_s=compile_s, median_s=median, min_s=min(times),
+      final_only=final_only, compile_s=compile_s, cache_hit=cache_hit, median_s=median, min_s=min(times),
       fps=batch * frames / median, peak_rss_gb=peak_rss_gb(),
       device_peak_gb=device_peak_gb(device), device=f"{device.platform}:{device.device_kind}",
       host=platform.node(), jax=jax.__version__, date=time.strftime("%Y-%m-%d"))
@@ -90,12 +107,15 @@ def run(args: argparse.Namespace) -> int:
     raise UsageError(f"--height/--width must be multiples of 16 (got {args.height}x{args.width})")
   if args.iters < 2 or args.iters % 2:
     raise UsageError(f"--iters must be even and >= 2 (got {args.iters})")
+  cache = setup_compile_cache(args, default_on=False)
   res = measure(args.frames, args.height, args.width, args.iters, args.batch, args.dtype,
-                args.repeats, final_only=not args.all_predictions)
+                args.repeats, final_only=not args.all_predictions, compile_cache=cache)
   print(f"device        {res['device']}  (jax {res['jax']})")
   print(f"input         B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
         f"iters={res['iters']} {res['dtype']}")
-  print(f"compile       {res['compile_s']:.2f} s")
+  how = "" if cache is None else (" (loaded from the compilation cache)" if res["cache_hit"]
+                                   else f" (stored in {cache})")
+  print(f"compile       {res['compile_s']:.2f} s{how}")
   print(f"forward       median {res['median_s']:.3f} s  (min {res['min_s']:.3f} s, "
         f"{args.repeats} runs)")
   print(f"throughput    {res['fps']:.2f} frames/s")

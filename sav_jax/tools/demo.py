@@ -22,6 +22,8 @@ import time
 import cv2
 import numpy as np
 
+from sav_jax.tools import add_compile_cache_arguments, setup_compile_cache
+
 HELP = "run the model on a built-in synthetic stereo video and compare with StereoSGBM"
 BUNDLED = pathlib.Path(__file__).resolve().parents[1] / "assets" / "sav_synthetic"
 TABLE = (("EPE", "disp_epe_mean"), ("bad-1px %", "disp_epe_bad_1px"),
@@ -38,6 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--iters", type=int, default=4, help="refinement iterations (even; 4)")
   p.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene (0)")
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None, help="compute dtype")
+  add_compile_cache_arguments(p)
 
 
 def stereo_sgbm(left: np.ndarray, right: np.ndarray, max_disparity: float = 128.0,
@@ -114,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
   scfg = synthetic.SyntheticConfig(frames=args.frames, height=args.height, width=args.width,
                                    max_disparity=min(64.0, args.width / 8), seed=args.seed)
   clip = synthetic.generate_clip(scfg, 0)
+  setup_compile_cache(args)
   variables, cfg, described = _weights(args, args.dtype)
   print(f"weights: {described}")
   print(f"synthetic video: {args.frames} frames of {args.width}x{args.height} (seed {args.seed}), "

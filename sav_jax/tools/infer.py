@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sav_jax.tools import UsageError, video_io
+from sav_jax.tools import UsageError, add_compile_cache_arguments, setup_compile_cache, video_io
 
 HELP = "estimate disparity for a stereo video (frame folders or video files)"
 log = logging.getLogger(__name__)
@@ -51,6 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--window", type=int, default=20, help="frames per sliding window (20)")
   p.add_argument("--stride", type=int, default=10, help="sliding window stride (10)")
   p.add_argument("--fps", type=float, default=10.0, help="frame rate of the output video")
+  add_compile_cache_arguments(p)
 
 
 def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
@@ -119,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
   out = pathlib.Path(args.out)
   check_overwrite(output_paths(out, names, formats, calib, args.depth_format), args.overwrite)
 
+  setup_compile_cache(args)
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
   variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
   print(f"weights: {described}")
@@ -262,7 +264,7 @@ def load_checkpoint(path, dtype: str | None = None):
     CheckpointError (a ValueError): not a checkpoint, or not one of this model.
   """
   import sav_jax  # pylint: disable=import-outside-toplevel
-  from sav_jax import convert, inference  # pylint: disable=import-outside-toplevel
+  from sav_jax import convert, inference, runtime  # pylint: disable=import-outside-toplevel
   path = pathlib.Path(path)
   if not path.exists():
     raise FileNotFoundError(f"checkpoint not found: {path}")
@@ -285,7 +287,9 @@ def load_checkpoint(path, dtype: str | None = None):
       lines = [l.strip() for l in str(e).splitlines() if l.strip()]
       first = f" (first: {lines[1]})" if len(lines) > 1 else ""
       raise convert.CheckpointError(f"{path}: incompatible checkpoint: {lines[0]}{first}") from e
+    del sd
     described = f"state dict {path} (converted on the fly)"
+  runtime.release_host_memory()  # the reader's and converter's temporaries
   return variables, inference.resolve_config(cfg, dtype), described
 
 
