@@ -40,6 +40,8 @@ def main(argv: list[str] | None = None) -> int:
   args = parser.parse_args(argv)
   logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                       format="%(levelname)s %(name)s: %(message)s")
+  if not args.verbose:  # JAX's own INFO lines (backends tried, cache resets) are not for users
+    logging.getLogger("jax").setLevel(logging.WARNING)
   try:
     return int(args._run(args) or 0)
   except (UsageError, ValueError, FileNotFoundError, FileExistsError) as e:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
+import gc
 import logging
 import os
 import pathlib
@@ -98,5 +99,6 @@ def release_host_memory() -> bool:
   trim = _malloc_trim()
   if trim is None:
     return False
+  gc.collect()  # tracing and lowering leave reference cycles behind
   trim(0)
   return True
