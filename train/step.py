@@ -47,6 +47,10 @@ def make_train_step(model, tx: optax.GradientTransformation, config, labels):
     right = batch["right"].astype(jnp.float32)
 
     def loss_fn(params):
+      # Frozen leaves (the depth prior) get no gradient: autodiff builds no backward
+      # pass for them at all (their gradients come out as zeros the optimizer ignores).
+      params = jax.tree.map(lambda p, lab: jax.lax.stop_gradient(p) if lab == optim.FROZEN else p,
+                            params, labels)
       out = model.apply({"params": params}, left, right, iters=iters,
                         rngs={"dropout": step_rng})
       return loss_lib.sequence_loss(out.disparities, batch["disparity"], batch["valid"],
