@@ -263,7 +263,8 @@ def model_variables(variables) -> dict:
 
 def _cache_key(kind, variables, cfg, iters, shape):
   sig = tuple((tuple(x.shape), str(x.dtype)) for x in jax.tree_util.tree_leaves(variables))
-  return (kind, cfg, iters, shape, str(jax.config.jax_default_matmul_precision),
+  options = tuple(sorted(runtime.inference_compiler_options().items()))
+  return (kind, cfg, iters, shape, options, str(jax.config.jax_default_matmul_precision),
           bool(jax.config.values.get("jax_disable_most_optimizations")),
           jax.tree_util.tree_structure(variables), sig)
 
@@ -281,7 +282,7 @@ def _compile(key, build, check_memory: bool):
   log.info("compiling the model (%s) for %d frames of %dx%d (iters=%d, %s)", kind, *shape,
            iters, cfg.dtype)
   fn, args = build()
-  compiled = jax.jit(fn).lower(*args).compile()
+  compiled = jax.jit(fn).lower(*args).compile(compiler_options=dict(key[4]))
   runtime.release_host_memory()  # the compiler's working memory, kept by the allocator
   if check_memory:
     input_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(args[1:]))

@@ -65,6 +65,14 @@ def restore_cache_config():
   compilation_cache.reset_cache()
 
 
+@pytest.fixture
+def low_memory_compile_off():
+  """Turns `sav_jax.runtime.set_low_memory_compile` back off afterwards."""
+  yield
+  from sav_jax import runtime  # pylint: disable=import-outside-toplevel
+  runtime.set_low_memory_compile(False)
+
+
 def pytest_configure(config):
   """Share XLA compilations between test processes of one run (and later runs)."""
   import jax  # pylint: disable=import-outside-toplevel

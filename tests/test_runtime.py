@@ -53,3 +53,57 @@ def test_cli_cache_flags_are_exclusive(capsys):
               "--compile-cache", "x", "--no-compile-cache"])
   assert e.value.code == 2
   assert "not allowed with" in capsys.readouterr().err
+
+
+def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch,
+                                                                    low_memory_compile_off):
+  runtime.set_low_memory_compile(True)
+  assert runtime.inference_compiler_options("gpu") == {}
+  assert runtime.inference_compiler_options("tpu") == {}
+  assert set(runtime.inference_compiler_options("cpu")) == {
+      "xla_cpu_experimental_ynn_fusion_type", "xla_cpu_use_fusion_emitters"}
+  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT")
+  assert runtime.inference_compiler_options("cpu") == {"xla_cpu_use_fusion_emitters": False}
+  runtime.set_low_memory_compile(False)
+  assert runtime.inference_compiler_options("cpu") == {}
+
+
+def test_low_memory_compile_gives_the_same_values(low_memory_compile_off):
+  runtime.set_low_memory_compile(True)
+  options = runtime.inference_compiler_options("cpu")
+  assert options["xla_cpu_use_fusion_emitters"] is False
+  x = jnp.linspace(-3.0, 3.0, 4096).reshape(64, 64)
+  fn = lambda x: jax.nn.gelu(x @ x.T).sum(axis=-1) / (1.0 + jnp.abs(x).max())  # noqa: E731
+  lowered = jax.jit(fn).lower(x)
+  want = lowered.compile()(x)
+  got = lowered.compile(compiler_options=options)(x)
+  assert jnp.allclose(got, want, rtol=1e-5, atol=1e-4), float(jnp.abs(got - want).max())
+
+
+def test_unknown_xla_options_are_detected_not_raised():
+  assert runtime._accepts_options("cpu", (("xla_sav_jax_no_such_option", "1"),)) is False  # pylint: disable=protected-access
+
+
+def test_inference_options_halve_the_forwards_temporary_memory_with_the_same_values():
+  """The whole model (the effect needs the refinement loop's context; a lone attention
+  block shows none): T=2, 128x256, iters=2. At T=5 iters=8 the forward's `temp` goes
+  348 -> 181 MB at the same speed (benchmarks/README.md, "Memory")."""
+  import numpy as np  # pylint: disable=import-outside-toplevel
+
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
+
+  options = runtime.inference_compiler_options("cpu")
+  assert options, "this jaxlib should accept --xla_cpu_experimental_ynn_fusion_type"
+  cfg = sav_jax.SAVConfig()
+  model = sav_jax.StereoAnyVideo(cfg)
+  variables = init_variables(cfg, seed=0)
+  left = jnp.asarray(np.random.default_rng(0).uniform(0, 255, (1, 2, 128, 256, 3)), jnp.float32)
+  right = jnp.roll(left, -4, axis=3)
+  lowered = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=2, final_only=True).disparities
+                    ).lower(variables, left, right)
+  default, lean = lowered.compile(), lowered.compile(compiler_options=options)
+  temp = lambda c: c.memory_analysis().temp_size_in_bytes  # noqa: E731
+  assert temp(lean) < 0.75 * temp(default), (temp(lean), temp(default))
+  np.testing.assert_allclose(np.asarray(lean(variables, left, right)),
+                             np.asarray(default(variables, left, right)), atol=1e-4)

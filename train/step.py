@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from sav_jax import runtime
 from train import loss as loss_lib
 from train import optim
 from train.state import TrainState, data_sharding, replicated
@@ -90,7 +91,8 @@ def make_eval_fn(model, iters: int, params_sharding, mesh):
   """Jitted `predict(params, left, right) -> [B, T, H, W]` final disparity (batch on `data`)."""
   dsh = data_sharding(mesh)
 
-  @functools.partial(jax.jit, in_shardings=(params_sharding, dsh, dsh), out_shardings=dsh)
+  @functools.partial(jax.jit, in_shardings=(params_sharding, dsh, dsh), out_shardings=dsh,
+                     compiler_options=runtime.inference_compiler_options())
   def predict(params, left, right):
     out = model.apply({"params": params}, left.astype(jnp.float32),
                       right.astype(jnp.float32), iters=iters, final_only=True)

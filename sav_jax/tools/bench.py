@@ -81,7 +81,8 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   entries = lambda: set(os.listdir(compile_cache)) if compile_cache else set()  # noqa: E731
   before = entries()
   t0 = time.perf_counter()
-  compiled = fwd.lower(variables, left, right).compile()
+  options = runtime.inference_compiler_options()  # those of sav_jax.inference's executables
+  compiled = fwd.lower(variables, left, right).compile(compiler_options=options)
   compile_s = time.perf_counter() - t0
   cache_hit = bool(compile_cache) and entries() == before
   runtime.release_host_memory()
@@ -95,7 +96,7 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   device = jax.devices()[0]
   return dict(
       frames=frames, height=height, width=width, iters=iters, batch=batch, dtype=dtype,
-      final_only=final_only, compile_s=compile_s, cache_hit=cache_hit, median_s=median, min_s=min(times),
+      final_only=final_only, compiler_options=options, compile_s=compile_s, cache_hit=cache_hit, median_s=median, min_s=min(times),
       fps=batch * frames / median, peak_rss_gb=peak_rss_gb(),
       device_peak_gb=device_peak_gb(device), device=f"{device.platform}:{device.device_kind}",
       host=platform.node(), jax=jax.__version__, date=time.strftime("%Y-%m-%d"))
@@ -113,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
   print(f"device        {res['device']}  (jax {res['jax']})")
   print(f"input         B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
         f"iters={res['iters']} {res['dtype']}")
+  if res["compiler_options"]:
+    print("XLA options   " + ", ".join(f"{k}={v}" for k, v in res["compiler_options"].items()))
   how = "" if cache is None else (" (loaded from the compilation cache)" if res["cache_hit"]
                                    else f" (stored in {cache})")
   print(f"compile       {res['compile_s']:.2f} s{how}")
