@@ -1,0 +1,89 @@
+"""XLA:CPU compile options for the forward: temporary memory, compile time, speed.
+
+    python benchmarks/compile_options.py                          # T=5 128x256 iters=8
+    python benchmarks/compile_options.py --height 256 --width 512 --iters 10 --repeats 3
+
+Compiles the same lowered forward (random weights, inference mode) once per option set
+and calls the executables alternately, so that the load of other processes on a shared
+machine falls on all of them alike; prints XLA's `temp` size, the compile time and the
+median / min forward time per set, and the largest difference to the first set's output.
+The compiler's peak memory is a process-wide high-water mark and cannot be separated
+here: measure it with `sav-jax bench` (with and without `--low-memory-compile`) in fresh
+processes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import statistics
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import jax  # noqa: E402  pylint: disable=wrong-import-position
+import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
+import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
+
+import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
+
+_YNN = "xla_cpu_experimental_ynn_fusion_type"
+_DOTS_CONVS = ",".join("LIBRARY_FUSION_TYPE_" + t for t in
+                       ("DOT", "INDIVIDUAL_DOT", "INDIVIDUAL_CONVOLUTION"))
+OPTION_SETS = {
+    "xla default": {},
+    "older emitters": {"xla_cpu_use_fusion_emitters": False},
+    "ynn dots/convs (inference)": {_YNN: _DOTS_CONVS},
+    "ynn dots/convs + older emitters (--low-memory-compile)": {
+        _YNN: _DOTS_CONVS, "xla_cpu_use_fusion_emitters": False},
+}
+
+
+def main():
+  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p.add_argument("--frames", type=int, default=5)
+  p.add_argument("--height", type=int, default=128)
+  p.add_argument("--width", type=int, default=256)
+  p.add_argument("--iters", type=int, default=8)
+  p.add_argument("--repeats", type=int, default=4)
+  a = p.parse_args()
+
+  cfg = sav_jax.SAVConfig()
+  model = sav_jax.StereoAnyVideo(cfg)
+  variables = jax.device_put(init_variables(cfg, seed=0))
+  rng = np.random.default_rng(0)
+  left = jnp.asarray(rng.uniform(0, 255, (1, a.frames, a.height, a.width, 3)), jnp.float32)
+  right = jnp.roll(left, -4, axis=3)
+  lowered = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=a.iters, final_only=True)
+                    .disparities).lower(variables, left, right)
+
+  compiled, compile_s = {}, {}
+  for name, options in OPTION_SETS.items():
+    t0 = time.perf_counter()
+    compiled[name] = lowered.compile(compiler_options=options)
+    compile_s[name] = time.perf_counter() - t0
+  outputs = {k: np.asarray(c(variables, left, right)) for k, c in compiled.items()}  # warm-up
+  first = next(iter(outputs.values()))
+  times = {k: [] for k in compiled}
+  for _ in range(a.repeats):
+    for name, c in compiled.items():
+      t0 = time.perf_counter()
+      c(variables, left, right).block_until_ready()
+      times[name].append(time.perf_counter() - t0)
+
+  print(f"T={a.frames} {a.height}x{a.width} iters={a.iters}, {a.repeats} alternated calls each "
+        f"({jax.devices()[0].device_kind}, jax {jax.__version__})")
+  print(f"{'options':56s} {'temp MB':>8s} {'compile s':>10s} {'median s':>9s} {'min s':>7s} "
+        f"{'max |diff|':>10s}")
+  for name, c in compiled.items():
+    temp = c.memory_analysis().temp_size_in_bytes / 1e6
+    diff = float(np.abs(outputs[name] - first).max())
+    print(f"{name:56s} {temp:8.0f} {compile_s[name]:10.1f} {statistics.median(times[name]):9.2f} "
+          f"{min(times[name]):7.2f} {diff:10.2e}")
+
+
+if __name__ == "__main__":
+  main()
