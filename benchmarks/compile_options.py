@@ -1,7 +1,8 @@
 """XLA:CPU compile options for the forward: temporary memory, compile time, speed.
 
     python benchmarks/compile_options.py                          # T=5 128x256 iters=8
-    python benchmarks/compile_options.py --height 256 --width 512 --iters 10 --repeats 3
+    python benchmarks/compile_options.py --height 256 --width 512 --iters 10 --repeats 3 \
+        --sets 0,2                                                # two of the option sets
 
 Compiles the same lowered forward (random weights, inference mode) once per option set
 and calls the executables alternately, so that the load of other processes on a shared
@@ -49,7 +50,14 @@ def main():
   p.add_argument("--width", type=int, default=256)
   p.add_argument("--iters", type=int, default=8)
   p.add_argument("--repeats", type=int, default=4)
+  p.add_argument("--sets", default=",".join(map(str, range(len(OPTION_SETS)))),
+                 help="indices into OPTION_SETS to compare (default: all)")
   a = p.parse_args()
+  names = list(OPTION_SETS)
+  try:
+    chosen = {names[int(i)]: OPTION_SETS[names[int(i)]] for i in a.sets.split(",")}
+  except (ValueError, IndexError):
+    p.error(f"--sets: comma-separated indices below {len(names)}, got {a.sets!r}")
 
   cfg = sav_jax.SAVConfig()
   model = sav_jax.StereoAnyVideo(cfg)
@@ -61,7 +69,7 @@ def main():
                     .disparities).lower(variables, left, right)
 
   compiled, compile_s = {}, {}
-  for name, options in OPTION_SETS.items():
+  for name, options in chosen.items():
     t0 = time.perf_counter()
     compiled[name] = lowered.compile(compiler_options=options)
     compile_s[name] = time.perf_counter() - t0

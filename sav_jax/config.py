@@ -32,6 +32,10 @@ class SAVConfig:
     remat: rematerialise each refinement step in the backward pass.
     remat_policy: name of a `jax.checkpoint_policies` policy, or None for "save
       nothing".
+    frame_block_mb: memory budget (MiB) of the per-frame stages' largest intermediate:
+      the encoders, the depth prior's ViT attention logits and its full-resolution map
+      run over blocks of frames (very large frames: of query rows) that fit it. Same
+      values; bounds the memory of long, high-resolution windows. Not a weight setting.
   """
 
   vda_encoder: str = "vits"
@@ -44,6 +48,7 @@ class SAVConfig:
   dtype: str = "float32"
   remat: bool = False
   remat_policy: Optional[str] = None
+  frame_block_mb: float = 1024.0
 
   def __post_init__(self):
     if self.vda_encoder not in VDA_VARIANTS:
@@ -51,6 +56,8 @@ class SAVConfig:
           f"SAVConfig.vda_encoder={self.vda_encoder!r}; expected one of {sorted(VDA_VARIANTS)}")
     if self.dtype not in ("float32", "bfloat16"):
       raise ValueError(f"SAVConfig.dtype={self.dtype!r}; expected 'float32' or 'bfloat16'")
+    if not self.frame_block_mb > 0:
+      raise ValueError(f"SAVConfig.frame_block_mb must be > 0, got {self.frame_block_mb!r}")
     if self.depth_dim + self.fnet_dim != self.context_dim:
       raise ValueError(
           f"depth_dim + fnet_dim must equal context_dim ({self.depth_dim} + {self.fnet_dim} "

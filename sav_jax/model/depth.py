@@ -7,7 +7,8 @@ import jax
 import jax.numpy as jnp
 
 from sav_jax.config import SAVConfig
-from sav_jax.model.layers import conv
+from sav_jax.model.layers import conv, in_frame_blocks
+from sav_jax.model.dpt_temporal import resize_head_output
 from sav_jax.model.vda import VideoDepthAnything
 from sav_jax.ops.resize import resize
 
@@ -29,7 +30,8 @@ class DepthExtractor(nn.Module):
   cfg: SAVConfig = SAVConfig()
 
   def setup(self):
-    self.depthanything = VideoDepthAnything(**self.cfg.vda, dtype=self.cfg.compute_dtype)
+    self.depthanything = VideoDepthAnything(**self.cfg.vda, dtype=self.cfg.compute_dtype,
+                                            attention_block_mb=self.cfg.frame_block_mb)
     self.conv = conv(self.cfg.depth_dim, (4, 4), 4, 0, dtype=self.cfg.compute_dtype)
 
   def tokens(self, x: jax.Array) -> list[jax.Array]:
@@ -41,11 +43,23 @@ class DepthExtractor(nn.Module):
     return self.depthanything.tokens(xr)
 
   def from_tokens(self, tokens: list[jax.Array], b: int, t: int, h: int, w: int) -> jax.Array:
-    """Args: `tokens` of `b*t` frames (clip-major) of size `h x w`. Returns `[b, t, h/4, w/4, 32]`."""
-    feats = self.depthanything.head_from_tokens(tokens, (h // PATCH, w // PATCH), b, t)
-    feats = jax.lax.stop_gradient(feats.astype(jnp.float32))
-    feats = resize(feats, (h, w), "bilinear", False)
-    return self.conv(feats)
+    """Args: `tokens` of `b*t` frames (clip-major) of size `h x w`. Returns `[b, t, h/4, w/4, 32]`.
+
+    The per-frame end (the head's resize to 14 x the patch grid, the resize to `h x w`
+    and the 4x4 conv) runs in blocks of frames whose full-resolution float32 map fits
+    `cfg.frame_block_mb` (`in_frame_blocks`; at 720x1280, 118 MB per frame).
+    """
+    grid = (h // PATCH, w // PATCH)
+    feats = self.depthanything.head_from_tokens(tokens, grid, b, t, resize_output=False)
+    feats = jax.lax.stop_gradient(feats.reshape(b * t, *feats.shape[2:]))
+
+    def tail(mdl, x):
+      x = resize_head_output(x, grid).astype(jnp.float32)
+      return mdl.conv(resize(x, (h, w), "bilinear", False))
+
+    out = in_frame_blocks(self, tail, feats, h * w * feats.shape[-1] * 4,
+                          self.cfg.frame_block_mb)
+    return out.reshape(b, t, *out.shape[-3:])
 
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x `[B, T, H, W, 3]` normalised. Returns `[B, T, H/4, W/4, 32]`."""

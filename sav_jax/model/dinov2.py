@@ -65,11 +65,84 @@ def interpolate_pos_embed(pos_embed: jax.Array, grid_hw: tuple[int, int]) -> jax
   return jnp.concatenate([pos_embed[:, :1], grid.reshape(1, h * w, dim)], axis=1)
 
 
+# Memory budget of one block of attention logits (float32), in MiB: longer videos and
+# larger frames run the attention in blocks of frames (and of query rows) that fit.
+ATTENTION_BLOCK_MB = 1024
+
+
+def attention_blocks(n: int, heads: int, length: int, budget_mb: float) -> tuple[int, int]:
+  """Frames and query rows per block so that one block's float32 logits fit `budget_mb`.
+
+  Returns `(n, length)` (a single block: the plain computation) when everything fits;
+  else the largest divisor of `n` frames whose logits fit, with all query rows; else one
+  frame and as many query rows as fit (at least one).
+  """
+  budget = budget_mb * 2**20
+  per_frame = heads * length * length * 4
+  if n * per_frame <= budget:
+    return n, length
+  if per_frame <= budget:
+    return max(f for f in range(1, n + 1) if n % f == 0 and f * per_frame <= budget), length
+  return 1, max(1, int(budget // (heads * length * 4)))
+
+
+def softmax_attention(q: jax.Array, k: jax.Array, v: jax.Array,
+                      budget_mb: float = ATTENTION_BLOCK_MB) -> jax.Array:
+  """`softmax(q k^T) v` per frame and head, in blocks that keep the logits under `budget_mb`.
+
+  Every query row's softmax is independent of the others, so blocks of frames and of
+  query rows (`jax.lax.map`) give the values of the single product while bounding its
+  memory: at 720x1280 (4642 tokens) one frame's logits take 0.5 GB in float32, forty
+  frames 21 GB.
+
+  Args:
+    q: `[N, L, heads, d]`, already scaled.
+    k, v: `[N, L, heads, d]`.
+    budget_mb: memory of one block's float32 logits, MiB.
+
+  Returns:
+    `[N, L, heads, d]` in `v`'s dtype; the softmax runs in float32.
+  """
+  n, length, heads, d = q.shape
+
+  def plain(q, k, v):
+    logits = jnp.einsum("nqhd,nkhd->nhqk", q, k)
+    # Softmax in float32 whatever the compute dtype: DINO logits get large.
+    probs = jax.nn.softmax(logits.astype(jnp.float32), axis=-1).astype(v.dtype)
+    return jnp.einsum("nhqk,nkhd->nqhd", probs, v)
+
+  frames, rows = attention_blocks(n, heads, length, budget_mb)
+  if (frames, rows) == (n, length):
+    return plain(q, k, v)
+  if rows == length:
+    split = lambda x: x.reshape(n // frames, frames, *x.shape[1:])  # noqa: E731
+    out = jax.lax.map(lambda qkv: plain(*qkv), (split(q), split(k), split(v)))
+    return out.reshape(n, length, heads, d)
+  # One frame at a time, its query rows in blocks (padded queries are dropped again).
+  nb = -(-length // rows)
+  qp = jnp.pad(q, ((0, 0), (0, nb * rows - length), (0, 0), (0, 0)))
+  qb = qp.reshape(n, nb, rows, heads, d).transpose(1, 0, 2, 3, 4)
+
+  def frame(args):
+    qf, kf, vf = args  # [nb, rows, h, d], [L, h, d], [L, h, d]
+    return jax.lax.map(lambda qr: plain(qr[None], kf[None], vf[None])[0], qf)
+
+  out = jax.lax.map(frame, (qb.transpose(1, 0, 2, 3, 4), k, v))  # [n, nb, rows, h, d]
+  return out.reshape(n, nb * rows, heads, d)[:, :length]
+
+
 class Attention(nn.Module):
-  """Multi-head self-attention with a fused qkv projection (plain softmax path)."""
+  """Multi-head self-attention with a fused qkv projection (plain softmax path).
+
+  Attributes:
+    num_heads: heads.
+    dtype: compute dtype (the softmax runs in float32).
+    block_mb: memory budget of one block of logits (`softmax_attention`).
+  """
 
   num_heads: int
   dtype: Any = jnp.float32
+  block_mb: float = ATTENTION_BLOCK_MB
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
@@ -80,10 +153,7 @@ class Attention(nn.Module):
     # torch reshapes the fused output as (3, heads, head_dim).
     qkv = qkv.reshape(n, length, 3, self.num_heads, head_dim)
     q, k, v = qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]
-    logits = jnp.einsum("nqhd,nkhd->nhqk", q * head_dim**-0.5, k)
-    # Softmax in float32 whatever the compute dtype: DINO logits get large.
-    probs = jax.nn.softmax(logits.astype(jnp.float32), axis=-1).astype(v.dtype)
-    out = jnp.einsum("nhqk,nkhd->nqhd", probs, v).reshape(n, length, dim)
+    out = softmax_attention(q * head_dim**-0.5, k, v, self.block_mb).reshape(n, length, dim)
     return dense(dim, dtype=self.dtype, name="proj")(out)
 
 
@@ -115,13 +185,14 @@ class Block(nn.Module):
   num_heads: int
   mlp_ratio: float = 4.0
   dtype: Any = jnp.float32
+  attention_block_mb: float = ATTENTION_BLOCK_MB
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x `[N, L, D]`. Returns `[N, L, D]`."""
     dim = x.shape[-1]
     y = layer_norm(DINO_LN_EPS, dtype=self.dtype, name="norm1")(x)
-    y = Attention(self.num_heads, dtype=self.dtype, name="attn")(y)
+    y = Attention(self.num_heads, self.dtype, self.attention_block_mb, name="attn")(y)
     x = x + LayerScale(name="ls1")(y)
     y = layer_norm(DINO_LN_EPS, dtype=self.dtype, name="norm2")(x)
     y = Mlp(int(dim * self.mlp_ratio), dtype=self.dtype, name="mlp")(y)
@@ -155,6 +226,8 @@ class DinoVisionTransformer(nn.Module):
     patch_size: patch side in pixels.
     img_size: pretraining image side; fixes the learned pos-embed grid (518 -> 37x37).
     dtype: compute dtype (parameters stay float32).
+    attention_block_mb: memory budget of one block of attention logits
+      (`softmax_attention`); large inputs run the attention in blocks.
   """
 
   embed_dim: int = 384
@@ -164,6 +237,7 @@ class DinoVisionTransformer(nn.Module):
   patch_size: int = 14
   img_size: int = 518
   dtype: Any = jnp.float32
+  attention_block_mb: float = ATTENTION_BLOCK_MB
 
   @nn.compact
   def __call__(self, x: jax.Array) -> tuple[list[tuple[jax.Array, jax.Array]], jax.Array]:
@@ -193,7 +267,8 @@ class DinoVisionTransformer(nn.Module):
     norm = layer_norm(DINO_LN_EPS, dtype=self.dtype, name="norm")
     outputs = []
     for i in range(self.depth):
-      tokens = Block(self.num_heads, dtype=self.dtype, name=f"blocks_{i}")(tokens)
+      tokens = Block(self.num_heads, dtype=self.dtype, attention_block_mb=self.attention_block_mb,
+                     name=f"blocks_{i}")(tokens)
       if i in self.layers:
         normed = norm(tokens)
         outputs.append((normed[:, 1:], normed[:, 0]))

@@ -261,16 +261,19 @@ class DPTHeadTemporal(nn.Module):
     return y.reshape(n, h, w, c)
 
   def __call__(self, tokens: Sequence[jax.Array], grid_hw: tuple[int, int],
-               frames: int) -> jax.Array:
+               frames: int, resize_output: bool = True) -> jax.Array:
     """Decodes four ViT layers into the 32-channel feature map.
 
     Args:
       tokens: four patch-token arrays `[B*T, h*w, D]` (b-major, row-major patches).
       grid_hw: patch grid `(h, w)`.
       frames: T, to regroup the flat batch for the motion modules.
+      resize_output: end with the resize to the input's size (`resize_head_output`);
+        False returns `output_conv1`'s map at 8x the patch grid, for callers that
+        resize it themselves in blocks of frames.
 
     Returns:
-      `[B*T, 14h, 14w, features // 2]`.
+      `[B*T, 14h, 14w, features // 2]` (`[B*T, 8h, 8w, features // 2]` without the resize).
     """
     h, w = grid_hw
     resizers = (self.resize_layers_0, self.resize_layers_1, lambda y: y, self.resize_layers_3)
@@ -290,4 +293,10 @@ class DPTHeadTemporal(nn.Module):
     path = sc.refinenet2(path, rn[1], size=rn[0].shape[1:3])
     path = sc.refinenet1(path, rn[0])
     out = sc.output_conv1(path)
-    return resize(out, (14 * h, 14 * w), mode="bilinear", align_corners=True)
+    return resize_head_output(out, grid_hw) if resize_output else out
+
+
+def resize_head_output(out: jax.Array, grid_hw: tuple[int, int]) -> jax.Array:
+  """The head's last step: `output_conv1`'s map to the input's size (14 x the patch grid)."""
+  h, w = grid_hw
+  return resize(out, (14 * h, 14 * w), mode="bilinear", align_corners=True)

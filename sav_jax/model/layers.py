@@ -155,15 +155,88 @@ class Conv3D(nn.Module):
     if (kh, kw, ph, pw) == (1, 1, 0, 0):  # temporal kernel: a 2-D conv over (T, H*W)
       y = conv2d(x.reshape(b, t, h * w, c), kernel[:, 0], padding=[(pt, pt), (0, 0)])
     else:
-      xp = jnp.pad(x, [(0, 0), (pt, pt), (0, 0), (0, 0), (0, 0)]) if pt else x
-      y = 0
-      for dt in range(kt):
-        frames = xp[:, dt:dt + t].reshape(b * t, h, w, c)
-        y = y + conv2d(frames, kernel[dt], padding=[(ph, ph), (pw, pw)])
+      if kt != 2 * pt + 1:
+        raise ValueError(f"Conv3D {self.name or ''}: a {kt}x{kh}x{kw} kernel needs temporal padding "
+                         f"{(kt - 1) // 2} on each side (same length), got {pt}")
+      y = _temporal_taps(x, kernel, pt, ((ph, ph), (pw, pw)))
     y = y.reshape(b, t, h, w, self.features)
     if self.use_bias:
       y = y + self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32).astype(self.dtype)
     return y
+
+
+def _temporal_taps(x: jax.Array, kernel: jax.Array, pt: int, padding) -> jax.Array:
+  """`sum_dt conv2d(x[t + dt - pt], kernel[dt])` with zero frames outside `[0, T)`.
+
+  Never materialises the temporally padded input: every tap is a per-frame 2-D conv,
+  and the frames a tap does not reach are left out rather than convolved as zeros.
+  When the conv narrows the channels (`O < C`) each tap convolves all frames and its
+  output is shifted into place (no input copies); otherwise the tap convolves only the
+  input frames it reaches (a slice of the input, fewer multiply-adds).
+
+  Args:
+    x: `[B, T, H, W, C]`.
+    kernel: `[kt, kh, kw, C, O]`.
+    pt: temporal zero padding on each side.
+    padding: spatial padding `((top, bottom), (left, right))`.
+
+  Returns:
+    `[B, T, H', W', O]`.
+  """
+  b, t, h, w, c = x.shape
+  kt, o = kernel.shape[0], kernel.shape[-1]
+  frames = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
+  unframe = lambda a, n: a.reshape(b, n, *a.shape[1:])  # noqa: E731
+  y = None
+  for dt in range(kt):
+    off = dt - pt  # output frame i reads input frame i + off
+    lo, hi = max(0, -off), min(t, t - off)  # output frames this tap reaches
+    if hi <= lo:
+      continue
+    if o < c:
+      part = unframe(conv2d(frames(x), kernel[dt], padding), t)[:, lo + off:hi + off]
+    else:
+      part = unframe(conv2d(frames(x[:, lo + off:hi + off]), kernel[dt], padding), hi - lo)
+    if (lo, hi) != (0, t):
+      part = jnp.pad(part, [(0, 0), (lo, t - hi)] + [(0, 0)] * 3)
+    y = part if y is None else y + part
+  if y is None:  # no tap reaches any frame: all zeros
+    out_hw = conv2d(frames(x[:, :1]), kernel[0], padding).shape[1:]
+    y = jnp.zeros((b, t, *out_hw), x.dtype)
+  return frames(y)
+
+
+def frames_per_block(n: int, frame_bytes: float, budget_mb: float) -> int:
+  """The largest divisor of `n` frames whose `frame_bytes` each fit `budget_mb` (at least 1)."""
+  budget = budget_mb * 2**20
+  return max(f for f in range(1, n + 1) if n % f == 0 and (f == 1 or f * frame_bytes <= budget))
+
+
+def in_frame_blocks(module: nn.Module, fn, x: jax.Array, frame_bytes: float,
+                    budget_mb: float) -> jax.Array:
+  """`fn(module, x)` for a per-frame computation, run over blocks of frames.
+
+  The frames (leading axis of `x`) are split into equal blocks whose `frame_bytes`
+  (the largest intermediate of one frame) fit `budget_mb`; the blocks run one after
+  the other (`nn.scan`, parameters shared), which bounds the memory of long or
+  high-resolution inputs with the same values. When all frames fit, `fn` runs once
+  on `x`, so small inputs compile to the plain program.
+
+  Args:
+    module: the module whose submodules `fn` calls (`fn(module, block)`).
+    fn: maps `[f, ...]` frames to `[f, ...]` outputs; nothing may mix frames.
+    x: `[N, ...]` frames.
+    frame_bytes: memory of the largest intermediate per frame.
+    budget_mb: memory budget of one block, MiB.
+  """
+  n = x.shape[0]
+  frames = frames_per_block(n, frame_bytes, budget_mb)
+  if frames == n:
+    return fn(module, x)
+  scan = nn.scan(lambda mdl, _, xb: (None, fn(mdl, xb)), variable_broadcast="params",
+                 split_rngs={"params": False}, length=n // frames)
+  _, out = scan(module, None, x.reshape(n // frames, frames, *x.shape[1:]))
+  return out.reshape(n, *out.shape[2:])
 
 
 def instance_norm(x: jax.Array, eps: float = 1e-5) -> jax.Array:

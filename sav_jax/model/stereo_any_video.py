@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from sav_jax.config import SAVConfig
 from sav_jax.model.depth import DepthExtractor
 from sav_jax.model.encoder import BasicEncoder
-from sav_jax.model.layers import CorrMLP, normalize
+from sav_jax.model.layers import CorrMLP, in_frame_blocks, normalize
 from sav_jax.model.update import SequenceUpdateBlock3D
 from sav_jax.ops.correlation import SMALL_WINDOW, WIDE_WINDOW, aapc
 from sav_jax.ops.pool import avg_pool
@@ -67,7 +67,8 @@ class StereoAnyVideo(nn.Module):
     self.fnet = BasicEncoder(self.cfg.fnet_dim, dt)
     self.depthnet = DepthExtractor(self.cfg)
     self.corr_mlp = CorrMLP()
-    self.update_block = SequenceUpdateBlock3D(self.cfg.hidden_dim, self.cfg.upsample_rate, dt)
+    self.update_block = SequenceUpdateBlock3D(self.cfg.hidden_dim, self.cfg.upsample_rate, dt,
+                                              self.cfg.frame_block_mb)
 
   def frame_features(self, left: jax.Array, right: jax.Array) -> dict:
     """The per-frame part of the features: nothing here mixes frames.
@@ -87,8 +88,12 @@ class StereoAnyVideo(nn.Module):
     b, t, h, w, _ = left.shape
     both = normalize(jnp.concatenate([left, right], axis=0)).reshape(2 * b * t, h, w, 3)
     tokens = [x.reshape(2 * b, t, *x.shape[1:]) for x in self.depthnet.tokens(both)]
-    fnet = self.fnet(both).astype(jnp.float32)
-    cnet = self.cnet(both[:b * t]).astype(jnp.float32)
+    # The encoders' largest intermediate: the 64-channel map at 1/2 (float32 norms).
+    frame_bytes = h * w * 64
+    fnet = in_frame_blocks(self, lambda m, x: m.fnet(x).astype(jnp.float32), both, frame_bytes,
+                           self.cfg.frame_block_mb)
+    cnet = in_frame_blocks(self, lambda m, x: m.cnet(x).astype(jnp.float32), both[:b * t],
+                           frame_bytes, self.cfg.frame_block_mb)
     return {"tokens": tokens, "fnet": fnet.reshape(2 * b, t, *fnet.shape[1:]),
             "cnet": cnet.reshape(b, t, *cnet.shape[1:])}
 

@@ -12,7 +12,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from sav_jax.model.layers import conv, dense, gelu, layer_norm
+from sav_jax.model.layers import conv, dense, gelu, in_frame_blocks, layer_norm
 
 
 class BasicMotionEncoder(nn.Module):
@@ -117,17 +117,28 @@ class LoFTREncoderLayer(nn.Module):
 
 
 class SpaceAttnBlock(nn.Module):
-  """Per-frame spatial linear attention over all `h*w` positions."""
+  """Per-frame spatial linear attention over all `h*w` positions.
+
+  Attributes:
+    dim: channels.
+    dtype: compute dtype.
+    block_mb: frames run in blocks whose largest intermediate (the MLP's `2*dim`
+      channels) fits this many MiB (`layers.in_frame_blocks`; same values).
+  """
 
   dim: int = 256
   dtype: Any = jnp.float32
+  block_mb: float = 1024.0
 
-  @nn.compact
+  def setup(self):
+    self.encoder_layer = LoFTREncoderLayer(self.dim, dtype=self.dtype)
+
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x `[B, T, h, w, dim]`. Returns the same shape."""
     b, t, h, w, c = x.shape
-    y = LoFTREncoderLayer(self.dim, dtype=self.dtype, name="encoder_layer")(
-        x.reshape(b * t, h * w, c))
+    frame_bytes = h * w * 2 * c * jnp.dtype(self.dtype).itemsize
+    y = in_frame_blocks(self, lambda m, xb: m.encoder_layer(xb), x.reshape(b * t, h * w, c),
+                        frame_bytes, self.block_mb)
     return y.reshape(b, t, h, w, c)
 
 
@@ -181,6 +192,7 @@ class SequenceUpdateBlock3D(nn.Module):
   hidden_dim: int = 128
   mask_size: int = 4
   dtype: Any = jnp.float32
+  block_mb: float = 1024.0
 
   @nn.compact
   def __call__(self, net, inp, corr, flow, with_mask: bool = True):
@@ -201,7 +213,7 @@ class SequenceUpdateBlock3D(nn.Module):
     motion = BasicMotionEncoder(dt, name="encoder")(flow, corr.astype(dt))
     x = jnp.concatenate([inp.astype(dt), motion], axis=-1)
     x = TimeAttnBlock(256, dt, name="time_attn")(x)
-    x = SpaceAttnBlock(256, dt, name="space_attn")(x)
+    x = SpaceAttnBlock(256, dt, self.block_mb, name="space_attn")(x)
     net = SKSepConvGRU3D(self.hidden_dim, dt, name="gru")(net.astype(dt), x)
     c3 = lambda f, k, p, n: conv(f, (k, k, k), 1, p, dtype=dt, name=n)
     delta = FlowHead3D(dt, name="flow_head")(net)

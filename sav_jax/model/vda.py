@@ -13,7 +13,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from sav_jax.model.dinov2 import DINO_VARIANTS, DinoVisionTransformer
+from sav_jax.model.dinov2 import ATTENTION_BLOCK_MB, DINO_VARIANTS, DinoVisionTransformer
 from sav_jax.model.dpt_temporal import TEMPORAL_MAX_LEN, DPTHeadTemporal
 
 PATCH_SIZE = 14
@@ -27,19 +27,23 @@ class VideoDepthAnything(nn.Module):
     features: width of the DPT fusion path (64 for vits).
     out_channels: widths of the four projected ViT layers.
     dtype: compute dtype; parameters are float32.
+    attention_block_mb: memory budget of one block of the ViT's attention logits
+      (`dinov2.softmax_attention`).
   """
 
   encoder: str = "vits"
   features: int = 64
   out_channels: tuple = (48, 96, 192, 384)
   dtype: Any = jnp.float32
+  attention_block_mb: float = ATTENTION_BLOCK_MB
 
   def setup(self):
     if self.encoder not in DINO_VARIANTS:
       raise ValueError(f"unknown VDA encoder {self.encoder!r}; expected one of "
                        f"{sorted(DINO_VARIANTS)}")
     self.pretrained = DinoVisionTransformer(**DINO_VARIANTS[self.encoder],
-                                            patch_size=PATCH_SIZE, dtype=self.dtype)
+                                            patch_size=PATCH_SIZE, dtype=self.dtype,
+                                            attention_block_mb=self.attention_block_mb)
     self.head = DPTHeadTemporal(self.features, tuple(self.out_channels),
                                 max_len=TEMPORAL_MAX_LEN, dtype=self.dtype)
 
@@ -94,18 +98,19 @@ class VideoDepthAnything(nn.Module):
     return [p for p, _ in layers]
 
   def head_from_tokens(self, tokens: list[jax.Array], grid: tuple[int, int], b: int,
-                       t: int) -> jax.Array:
+                       t: int, resize_output: bool = True) -> jax.Array:
     """The temporal part: the DPT head over the `t` frames of each of `b` clips.
 
     Args:
       tokens: four `[b*t, h*w, D]` arrays (clip-major) from `tokens`.
       grid: `(h, w)` patch grid.
       b, t: clips and frames per clip.
+      resize_output: see `DPTHeadTemporal.__call__`.
 
     Returns:
-      `[b, t, 14h, 14w, features // 2]`, as `__call__`.
+      `[b, t, 14h, 14w, features // 2]`, as `__call__` (`8h, 8w` without the resize).
     """
     if t > TEMPORAL_MAX_LEN:
       raise ValueError(f"VDA processes at most {TEMPORAL_MAX_LEN} frames at once, got {t}")
-    out = self.head(list(tokens), grid, t)
+    out = self.head(list(tokens), grid, t, resize_output)
     return out.reshape(b, t, *out.shape[1:])

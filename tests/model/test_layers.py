@@ -49,18 +49,35 @@ def test_gradient_inside_a_scan_matches_the_unrolled_loop():
     np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(b))))
 
 
-@pytest.mark.parametrize("kernel,padding", [((3, 3, 3), (1, 1, 1)), ((5, 1, 1), (2, 0, 0)),
-                                            ((1, 1, 15), (0, 0, 7))])
-def test_conv3d_equals_xla_3d_convolution(kernel, padding):
+# (kernel, padding, output channels, frames): widening (7 > 5 channels: the taps read
+# input slices) and narrowing (3 < 5: the taps' outputs are shifted), one frame too.
+@pytest.mark.parametrize("kernel,padding,out,frames", [
+    ((3, 3, 3), (1, 1, 1), 7, 4), ((3, 3, 3), (1, 1, 1), 3, 4), ((5, 3, 1), (2, 1, 0), 3, 3),
+    ((3, 3, 3), (1, 1, 1), 7, 1), ((5, 1, 1), (2, 0, 0), 7, 4), ((1, 1, 15), (0, 0, 7), 7, 4)])
+def test_conv3d_equals_xla_3d_convolution(kernel, padding, out, frames):
   rng = np.random.default_rng(2)
-  x = jnp.asarray(rng.standard_normal((2, 4, 6, 9, 5)), jnp.float32)
-  layer = Conv3D(7, kernel, padding)
+  x = jnp.asarray(rng.standard_normal((2, frames, 6, 9, 5)), jnp.float32)
+  layer = Conv3D(out, kernel, padding)
   variables = layer.init(jax.random.key(0), x)
   variables = jax.tree.map(lambda v: v + 0.1, variables)  # a non-zero bias too
-  want = jax.lax.conv_general_dilated(
-      x, variables["params"]["kernel"], (1, 1, 1), [(p, p) for p in padding],
-      dimension_numbers=("NDHWC", "DHWIO", "NDHWC")) + variables["params"]["bias"]
-  np.testing.assert_allclose(layer.apply(variables, x), want, rtol=1e-5, atol=1e-5)
+
+  def want_fn(v, x):
+    return jax.lax.conv_general_dilated(
+        x, v["params"]["kernel"], (1, 1, 1), [(p, p) for p in padding],
+        dimension_numbers=("NDHWC", "DHWIO", "NDHWC")) + v["params"]["bias"]
+
+  np.testing.assert_allclose(layer.apply(variables, x), want_fn(variables, x), rtol=1e-5,
+                             atol=1e-5)
+  loss = lambda f: lambda v, x: jnp.sum(jnp.tanh(f(v, x)))  # noqa: E731
+  got = jax.grad(loss(layer.apply), argnums=(0, 1))(variables, x)
+  want = jax.grad(loss(want_fn), argnums=(0, 1))(variables, x)
+  for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+
+
+def test_conv3d_rejects_a_temporal_padding_that_changes_the_length():
+  with pytest.raises(ValueError, match="temporal padding 1"):
+    Conv3D(4, (3, 3, 3), (0, 1, 1)).init(jax.random.key(0), jnp.ones((1, 4, 5, 5, 2)))
 
 
 def test_conv2d_module_keeps_leading_axes_and_nn_conv_parameters():

@@ -91,3 +91,23 @@ def test_bfloat16_mode_stays_close_to_float32(variables, golden_small):
         f"disparity range {ref.min():.2f}..{ref.max():.2f} px")
   assert epe <= BF16_EPE, epe
   assert epe > 0  # it did compute in bfloat16
+
+
+def test_frame_blocks_reproduce_the_official_output(variables, golden_small):
+  """A tiny `frame_block_mb` runs every per-frame stage one frame at a time (encoders,
+  the depth head's full-resolution end, the space attention) and the ViT attention in
+  blocks of query rows: the values stay those of the official forward."""
+  cfg = sav_jax.SAVConfig(frame_block_mb=1e-3)
+  model = sav_jax.StereoAnyVideo(cfg)
+  left = jnp.asarray(nchw_to_nhwc(golden_small["input_left"]))
+  right = jnp.asarray(nchw_to_nhwc(golden_small["input_right"]))
+  fwd = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=4, final_only=True).disparities)
+  # Blocked: the frames run in loops (one more scan per blocked stage).
+  whiles = lambda m: str(jax.make_jaxpr(  # noqa: E731
+      lambda v, l, r: m.apply(v, l, r, iters=4, final_only=True).disparities)(
+          variables, left, right)).count("scan[")
+  assert whiles(model) > whiles(sav_jax.StereoAnyVideo(sav_jax.SAVConfig()))
+  with jax.default_matmul_precision("highest"):
+    got = np.asarray(fwd(variables, left, right))
+  ref = np.transpose(golden_small["test_mode_output"][:, :, 0], (1, 0, 2, 3))[None]
+  np.testing.assert_allclose(got, ref, atol=DISP_ATOL, rtol=0)

@@ -1,0 +1,69 @@
+"""Memory of the compiled forward at any shape, without running it (XLA's buffer assignment).
+
+    python benchmarks/memory_projection.py                                   # paper's window
+    python benchmarks/memory_projection.py --frames 20 --height 720 --width 1280 --iters 20 \
+        --dtype bfloat16
+
+Lowers the inference forward (`final_only=True`) for abstract inputs of the given shape and
+compiles it for this machine's backend, which allocates nothing; prints XLA's accounting of the
+executable: parameters (`argument`), output and `temp` (XLA's allocation for the
+intermediate buffers under its schedule). On a CPU-only machine this projects what a GPU
+needs for the same program: the GPU compiler fuses and schedules differently, so its figure
+differs, but the large buffers (features, the GRU's inputs, attention maps) are the same
+tensors. XLA:CPU computes bfloat16 convolutions and products in float32, so its bfloat16
+figure includes float32 copies a GPU does not make. To see what is alive at the peak, add
+`XLA_FLAGS="--xla_dump_to=DIR --xla_dump_hlo_as_text"` and read the "peak" section of
+`DIR/*live-range.txt`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import jax  # noqa: E402  pylint: disable=wrong-import-position
+import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
+
+import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.runtime import inference_compiler_options  # noqa: E402  pylint: disable=wrong-import-position
+
+
+def main():
+  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p.add_argument("--frames", type=int, default=20)
+  p.add_argument("--height", type=int, default=720)
+  p.add_argument("--width", type=int, default=1280)
+  p.add_argument("--iters", type=int, default=20)
+  p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
+  p.add_argument("--frame-block-mb", type=float, default=None,
+                 help="SAVConfig.frame_block_mb (default: the config's)")
+  a = p.parse_args()
+
+  extra = {} if a.frame_block_mb is None else {"frame_block_mb": a.frame_block_mb}
+  cfg = sav_jax.SAVConfig(dtype=a.dtype, **extra)
+  model = sav_jax.StereoAnyVideo(cfg)
+  variables = jax.eval_shape(lambda: init_variables(cfg, seed=0))
+  video = jax.ShapeDtypeStruct((1, a.frames, a.height, a.width, 3), jnp.float32)
+  t0 = time.perf_counter()
+  compiled = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=a.iters, final_only=True)
+                     .disparities).lower(variables, video, video).compile(
+                         compiler_options=inference_compiler_options())
+  compile_s = time.perf_counter() - t0
+  m = compiled.memory_analysis()
+  gb = lambda n: n / 2**30  # noqa: E731
+  total = m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
+  print(f"T={a.frames} {a.height}x{a.width} iters={a.iters} {a.dtype} "
+        f"frame_block_mb={cfg.frame_block_mb:g} "
+        f"({jax.devices()[0].platform}, jax {jax.__version__}, compiled in {compile_s:.0f} s)")
+  print(f"  parameters {gb(m.argument_size_in_bytes):6.2f} GiB   output {gb(m.output_size_in_bytes):6.3f} GiB"
+        f"   temp {gb(m.temp_size_in_bytes):6.2f} GiB   total {gb(total):6.2f} GiB")
+
+
+if __name__ == "__main__":
+  main()

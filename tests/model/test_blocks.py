@@ -1,0 +1,46 @@
+"""Memory blocking of per-frame stages: same values as the single computation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sav_jax
+from sav_jax.model.dinov2 import attention_blocks, softmax_attention
+from sav_jax.model.layers import frames_per_block
+
+
+def test_attention_blocks_choose_frames_then_query_rows():
+  per_frame_mb = 6 * 100 * 100 * 4 / 2**20
+  assert attention_blocks(8, 6, 100, 8 * per_frame_mb) == (8, 100)  # all fits: one block
+  assert attention_blocks(8, 6, 100, 5 * per_frame_mb) == (4, 100)  # largest divisor <= 5
+  assert attention_blocks(7, 6, 100, 5 * per_frame_mb) == (1, 100)  # 7 is prime
+  assert attention_blocks(8, 6, 100, per_frame_mb / 4) == (1, 25)  # query rows
+  assert attention_blocks(8, 6, 100, 1e-9) == (1, 1)
+
+
+@pytest.mark.parametrize("budget_rows", [None, 2, 7])  # frames blocked / rows 2 / rows 7 (padded)
+def test_blocked_softmax_attention_equals_the_single_product(budget_rows):
+  rng = np.random.default_rng(0)
+  n, length, heads, d = 6, 50, 3, 8
+  q, k, v = (jnp.asarray(rng.standard_normal((n, length, heads, d)), jnp.float32)
+             for _ in range(3))
+  want = softmax_attention(q, k, v, budget_mb=1e6)
+  per_row_mb = heads * length * 4 / 2**20
+  budget = 2 * length * per_row_mb if budget_rows is None else budget_rows * per_row_mb
+  frames, rows = attention_blocks(n, heads, length, budget)
+  assert (frames, rows) == ((2, length) if budget_rows is None else (1, budget_rows))
+  got = jax.jit(lambda q, k, v: softmax_attention(q, k, v, budget))(q, k, v)
+  np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_frames_per_block_is_a_divisor_within_the_budget():
+  assert frames_per_block(40, 2**20, 10) == 10
+  assert frames_per_block(40, 2**20, 7) == 5
+  assert frames_per_block(40, 2**30, 1) == 1  # one frame even over the budget
+  assert frames_per_block(3, 1, 1) == 3
+
+
+def test_frame_block_budget_must_be_positive():
+  with pytest.raises(ValueError, match="frame_block_mb"):
+    sav_jax.SAVConfig(frame_block_mb=0)
