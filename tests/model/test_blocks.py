@@ -44,3 +44,25 @@ def test_frames_per_block_is_a_divisor_within_the_budget():
 def test_frame_block_budget_must_be_positive():
   with pytest.raises(ValueError, match="frame_block_mb"):
     sav_jax.SAVConfig(frame_block_mb=0)
+
+
+def test_blocked_space_attention_has_the_same_values_and_gradients():
+  """Blocks of frames (`nn.scan` over frames, shared parameters) train like the single pass."""
+  from sav_jax.model.update import SpaceAttnBlock  # pylint: disable=import-outside-toplevel
+  rng = np.random.default_rng(1)
+  x = jnp.asarray(rng.standard_normal((1, 4, 3, 5, 16)), jnp.float32)
+  whole = SpaceAttnBlock(16)
+  blocked = SpaceAttnBlock(16, block_mb=2 * 15 * 2 * 16 * 4 / 2**20)  # two frames per block
+  variables = whole.init(jax.random.key(0), x)
+  assert jax.tree.structure(blocked.init(jax.random.key(0), x)) == jax.tree.structure(variables)
+
+  def loss(mdl):
+    return lambda v, x: jnp.sum(jnp.sin(mdl.apply(v, x)))
+
+  np.testing.assert_allclose(blocked.apply(variables, x), whole.apply(variables, x),
+                             rtol=1e-5, atol=1e-5)
+  got = jax.grad(loss(blocked), argnums=(0, 1))(variables, x)
+  want = jax.grad(loss(whole), argnums=(0, 1))(variables, x)
+  for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
+  assert "scan[" in str(jax.make_jaxpr(lambda v, x: blocked.apply(v, x))(variables, x))
