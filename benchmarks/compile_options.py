@@ -25,11 +25,10 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jax  # noqa: E402  pylint: disable=wrong-import-position
-import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
 import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
+from timing import add_clip_arguments, random_forward  # noqa: E402  pylint: disable=wrong-import-position
 
 _YNN = "xla_cpu_experimental_ynn_fusion_type"
 _DOTS_CONVS = ",".join("LIBRARY_FUSION_TYPE_" + t for t in
@@ -45,10 +44,7 @@ OPTION_SETS = {
 
 def main():
   p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-  p.add_argument("--frames", type=int, default=5)
-  p.add_argument("--height", type=int, default=128)
-  p.add_argument("--width", type=int, default=256)
-  p.add_argument("--iters", type=int, default=8)
+  add_clip_arguments(p)
   p.add_argument("--repeats", type=int, default=4)
   p.add_argument("--sets", default=",".join(map(str, range(len(OPTION_SETS)))),
                  help="indices into OPTION_SETS to compare (default: all)")
@@ -59,14 +55,9 @@ def main():
   except (ValueError, IndexError):
     p.error(f"--sets: comma-separated indices below {len(names)}, got {a.sets!r}")
 
-  cfg = sav_jax.SAVConfig()
-  model = sav_jax.StereoAnyVideo(cfg)
-  variables = jax.device_put(init_variables(cfg, seed=0))
-  rng = np.random.default_rng(0)
-  left = jnp.asarray(rng.uniform(0, 255, (1, a.frames, a.height, a.width, 3)), jnp.float32)
-  right = jnp.roll(left, -4, axis=3)
-  lowered = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=a.iters, final_only=True)
-                    .disparities).lower(variables, left, right)
+  forward, variables, left, right = random_forward(sav_jax.SAVConfig(), a.frames, a.height,
+                                                   a.width, a.iters)
+  lowered = jax.jit(forward).lower(variables, left, right)
 
   compiled, compile_s = {}, {}
   for name, options in chosen.items():

@@ -32,14 +32,12 @@ import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.runtime import inference_compiler_options  # noqa: E402  pylint: disable=wrong-import-position
+from timing import add_clip_arguments  # noqa: E402  pylint: disable=wrong-import-position
 
 
 def main():
   p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-  p.add_argument("--frames", type=int, default=20)
-  p.add_argument("--height", type=int, default=720)
-  p.add_argument("--width", type=int, default=1280)
-  p.add_argument("--iters", type=int, default=20)
+  add_clip_arguments(p, frames=20, height=720, width=1280, iters=20)
   p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
   p.add_argument("--frame-block-mb", type=float, default=None,
                  help="SAVConfig.frame_block_mb (default: the config's)")

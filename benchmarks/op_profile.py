@@ -38,12 +38,10 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jax  # noqa: E402  pylint: disable=wrong-import-position
-import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
-import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.runtime import inference_compiler_options  # noqa: E402  pylint: disable=wrong-import-position
+from timing import add_clip_arguments, random_forward  # noqa: E402  pylint: disable=wrong-import-position
 
 _COMPUTATION = re.compile(r"^(?:ENTRY )?%?([\w.\-]+) .*\{\s*$")
 _INSTRUCTION = re.compile(r"^\s*(?:ROOT )?%?([\w.\-]+) = (.+?) ([\w\-]+)\((.*)$")
@@ -170,10 +168,7 @@ def thunk_times(trace_dir: str) -> dict[str, tuple[float, int]]:
 
 def main():
   p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-  p.add_argument("--frames", type=int, default=5)
-  p.add_argument("--height", type=int, default=128)
-  p.add_argument("--width", type=int, default=256)
-  p.add_argument("--iters", type=int, default=8)
+  add_clip_arguments(p)
   p.add_argument("--dtype", default="float32")
   p.add_argument("--repeats", type=int, default=2, help="traced calls (after one warm-up)")
   p.add_argument("--by", choices=("kind", "module", "op"), default="kind")
@@ -181,15 +176,10 @@ def main():
   p.add_argument("--top", type=int, default=20)
   a = p.parse_args()
 
-  cfg = sav_jax.SAVConfig(dtype=a.dtype)
-  model = sav_jax.StereoAnyVideo(cfg)
-  variables = jax.device_put(init_variables(cfg, seed=0))
-  rng = np.random.default_rng(0)
-  left = jnp.asarray(rng.uniform(0, 255, (1, a.frames, a.height, a.width, 3)), jnp.float32)
-  right = jnp.roll(left, -4, axis=3)
-  compiled = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=a.iters, final_only=True)
-                     .disparities).lower(variables, left, right).compile(
-                         compiler_options=inference_compiler_options())
+  forward, variables, left, right = random_forward(sav_jax.SAVConfig(dtype=a.dtype), a.frames,
+                                                   a.height, a.width, a.iters)
+  compiled = jax.jit(forward).lower(variables, left, right).compile(
+      compiler_options=inference_compiler_options())
   ops = parse_hlo(compiled.as_text())
   compiled(variables, left, right).block_until_ready()  # warm-up
   with tempfile.TemporaryDirectory() as tmp:

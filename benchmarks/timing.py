@@ -15,3 +15,31 @@ def timed(fn, *args, repeats=3):
     jax.block_until_ready(fn(*args))
     times.append(time.perf_counter() - t0)
   return statistics.median(times)
+
+
+def add_clip_arguments(parser, frames=5, height=128, width=256, iters=8):
+  """The clip shape options shared by the scripts: --frames --height --width --iters."""
+  for name, default in (("frames", frames), ("height", height), ("width", width),
+                        ("iters", iters)):
+    parser.add_argument(f"--{name}", type=int, default=default)
+
+
+def random_forward(cfg, frames, height, width, iters):
+  """`(forward, variables, left, right)`: the inference forward (`final_only`, not yet
+  jitted) of a model with random weights, and a random stereo clip (right = left shifted)."""
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  import numpy as np  # pylint: disable=import-outside-toplevel
+
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
+
+  model = sav_jax.StereoAnyVideo(cfg)
+  variables = jax.device_put(init_variables(cfg, seed=0))
+  rng = np.random.default_rng(0)
+  left = jnp.asarray(rng.uniform(0, 255, (1, frames, height, width, 3)), jnp.float32)
+  right = jnp.roll(left, -4, axis=3)
+
+  def forward(v, l, r):
+    return model.apply(v, l, r, iters=iters, final_only=True).disparities
+
+  return forward, variables, left, right

@@ -112,9 +112,12 @@ class StereoAnyVideo(nn.Module):
     b = b2 // 2
     tokens = [x.reshape(b2 * t, *x.shape[2:]) for x in frame_feats["tokens"]]
     depth = self.depthnet.from_tokens(tokens, b2, t, height, width).astype(jnp.float32)
-    fmaps = jnp.concatenate([depth, frame_feats["fnet"]], axis=-1)
+    fnet = frame_feats["fnet"]
+    # One concatenation per view (not both views then slices: no extra copy of the left).
+    fmap1 = jnp.concatenate([depth[:b], fnet[:b]], axis=-1)
+    fmap2 = jnp.concatenate([depth[b:], fnet[b:]], axis=-1)
     context = jnp.concatenate([depth[:b], frame_feats["cnet"]], axis=-1)
-    return fmaps[:b], fmaps[b:], context
+    return fmap1, fmap2, context
 
   def features(self, left: jax.Array, right: jax.Array):
     """Matching features of both views and the left context at 1/4.

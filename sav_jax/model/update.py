@@ -47,13 +47,16 @@ class TemporalAttention(nn.Module):
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x `[B, T, h, w, dim]`. Returns `[B, T, h, w, dim]`."""
     b, t, h, w, c = x.shape
-    heads = x.reshape(b, t, h, w, self.num_heads, c // self.num_heads)
+    # One transpose to [B, h*w, heads, T, d] serves as q, k and v (the products' batch
+    # axes lead), and one brings the output back.
+    heads = x.reshape(b, t, h * w, self.num_heads, c // self.num_heads).transpose(0, 2, 3, 1, 4)
     scale = (c // self.num_heads) ** -0.5
-    logits = jnp.einsum("bthwnd,bshwnd->bhwnts", heads, heads,
+    logits = jnp.einsum("bpntd,bpnsd->bpnts", heads, heads,
                         preferred_element_type=jnp.float32) * scale
     attn = jax.nn.softmax(logits, axis=-1).astype(self.dtype)
-    out = jnp.einsum("bhwnts,bshwnd->bthwnd", attn, heads.astype(self.dtype))
-    return dense(self.dim, dtype=self.dtype, name="proj")(out.reshape(b, t, h, w, c))
+    out = jnp.einsum("bpnts,bpnsd->bpntd", attn, heads.astype(self.dtype))
+    out = out.transpose(0, 3, 1, 2, 4).reshape(b, t, h, w, c)
+    return dense(self.dim, dtype=self.dtype, name="proj")(out)
 
 
 class TimeAttnBlock(nn.Module):
