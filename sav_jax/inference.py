@@ -56,6 +56,7 @@ import numpy as np
 
 from sav_jax import runtime
 from sav_jax.config import SAVConfig
+from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 
 log = logging.getLogger(__name__)
 
@@ -65,13 +66,17 @@ STRIDE = 10
 _CACHE_SIZE = 16
 _COMPILED: "collections.OrderedDict[tuple, object]" = collections.OrderedDict()
 _SKIP_COLLECTIONS = ("torch_unused",)
-# Fitted to XLA's memory analysis of the compiled forward pass (CPU, float32, T=1..20,
-# 32x32..672x448): about 2 kB per input pixel, 70 B per pixel and iteration, plus the
-# DINOv2 attention logits (two views, 6 heads, float32) per frame and token pair.
-# It errs high, by 10..35% on the shapes measured.
-_BYTES_PER_PIXEL = 2000.0
-_BYTES_PER_PIXEL_ITER = 70.0
-_BYTES_PER_ATTN = 2 * 6 * 4.0
+# Fitted to XLA's memory analysis of the compiled forward pass (temporaries, output and
+# the two input windows; CPU, float32, default `frame_block_mb`, T=1..20, 32x32..736x1280,
+# iters 4..20; benchmarks/README.md, "Memory at the paper's window"): a fixed 64 MiB,
+# about 1 kB per input pixel plus 12 B per pixel and iteration, and 1.5x one block of the
+# DINOv2 attention logits (float32; the blocks bound them, see `SAVConfig.frame_block_mb`).
+# It errs high, by 19..60% on the shapes measured (`python benchmarks/memory_fit.py`;
+# more on windows under 0.2 GB, where the fixed part dominates).
+_BYTES_FIXED = 64 * 2**20
+_BYTES_PER_PIXEL = 1000.0
+_BYTES_PER_PIXEL_ITER = 12.0
+_ATTN_BLOCK_FACTOR = 1.5
 # The cheap pre-compile check refuses only sizes this far above the free memory (the
 # estimate errs high); the compiled program's own analysis is then checked exactly.
 _PRECHECK_MARGIN = 1.5
@@ -191,17 +196,20 @@ def estimate_memory_bytes(frames: int, height: int, width: int, iters: int = 20,
     cfg: model config (bfloat16 compute lowers the estimate).
 
   Returns:
-    Bytes: per-pixel activations, a per-pixel-and-iteration term and the DINOv2
-    attention matrices (quadratic in the number of 14x14 patches).
+    Bytes: a fixed part, per-pixel activations, a per-pixel-and-iteration term and one
+    block of the DINOv2 attention logits (`dinov2.attention_blocks` under
+    `cfg.frame_block_mb`).
   """
   cfg = SAVConfig() if cfg is None else cfg
   pixels = frames * height * width
-  tokens = (height // 14) * (width // 14)
-  est = (_BYTES_PER_PIXEL * pixels + _BYTES_PER_PIXEL_ITER * iters * pixels
-         + _BYTES_PER_ATTN * frames * tokens * tokens)
+  heads = DINO_VARIANTS[cfg.vda_encoder]["num_heads"]
+  tokens = (height // 14) * (width // 14) + 1  # patches and the class token
+  block_frames, block_rows = attention_blocks(2 * frames, heads, tokens, cfg.frame_block_mb)
+  attention = block_frames * heads * block_rows * tokens * 4
+  est = _BYTES_PER_PIXEL * pixels + _BYTES_PER_PIXEL_ITER * iters * pixels
   if cfg.dtype == "bfloat16":
     est *= _BF16_FACTOR
-  return int(est)
+  return int(_BYTES_FIXED + est + _ATTN_BLOCK_FACTOR * attention)
 
 
 def available_memory_bytes(device=None) -> int | None:

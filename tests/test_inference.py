@@ -213,6 +213,15 @@ def test_memory_estimate_grows_with_size():
   assert bf16 < big
 
 
+def test_memory_estimate_follows_the_attention_blocks():
+  """Unblocked, DINOv2's logits of the paper's window (40 frames x 6 x 4642^2) are ~20 GB;
+  the default blocks bound them to about 1 GB."""
+  blocked = inference.estimate_memory_bytes(20, 736, 1280, 20)
+  unblocked = inference.estimate_memory_bytes(20, 736, 1280, 20,
+                                              sav_jax.SAVConfig(frame_block_mb=1e6))
+  assert 15 * 2**30 < unblocked - blocked < 40 * 2**30
+
+
 def test_per_frame_features_are_computed_once_per_frame(variables, golden, monkeypatch):
   """21 frames in windows [0, 20) and [10, 21): 21 frames of per-frame work, not 31."""
   counted = []
