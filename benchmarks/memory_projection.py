@@ -21,18 +21,14 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
-import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jax  # noqa: E402  pylint: disable=wrong-import-position
-import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.runtime import inference_compiler_options  # noqa: E402  pylint: disable=wrong-import-position
-from timing import add_clip_arguments  # noqa: E402  pylint: disable=wrong-import-position
+from timing import add_clip_arguments, compile_for_shape  # noqa: E402  pylint: disable=wrong-import-position
 
 
 def main():
@@ -45,14 +41,7 @@ def main():
 
   extra = {} if a.frame_block_mb is None else {"frame_block_mb": a.frame_block_mb}
   cfg = sav_jax.SAVConfig(dtype=a.dtype, **extra)
-  model = sav_jax.StereoAnyVideo(cfg)
-  variables = jax.eval_shape(lambda: init_variables(cfg, seed=0))
-  video = jax.ShapeDtypeStruct((1, a.frames, a.height, a.width, 3), jnp.float32)
-  t0 = time.perf_counter()
-  compiled = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=a.iters, final_only=True)
-                     .disparities).lower(variables, video, video).compile(
-                         compiler_options=inference_compiler_options())
-  compile_s = time.perf_counter() - t0
+  compiled, compile_s = compile_for_shape(cfg, a.frames, a.height, a.width, a.iters)
   m = compiled.memory_analysis()
   gb = lambda n: n / 2**30  # noqa: E731
   total = m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes

@@ -43,3 +43,26 @@ def random_forward(cfg, frames, height, width, iters):
     return model.apply(v, l, r, iters=iters, final_only=True).disparities
 
   return forward, variables, left, right
+
+
+def compile_for_shape(cfg, frames, height, width, iters):
+  """`(compiled, seconds)`: the inference forward (`final_only`) compiled with the inference
+  compile options for abstract weights and clips `[1, T, H, W, 3]`; nothing is allocated, so
+  any shape compiles and `compiled.memory_analysis()` tells what it would need."""
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
+  from sav_jax.runtime import inference_compiler_options  # pylint: disable=import-outside-toplevel
+
+  model = sav_jax.StereoAnyVideo(cfg)
+  variables = jax.eval_shape(lambda: init_variables(cfg, seed=0))
+  video = jax.ShapeDtypeStruct((1, frames, height, width, 3), jnp.float32)
+
+  def forward(v, l, r):
+    return model.apply(v, l, r, iters=iters, final_only=True).disparities
+
+  t0 = time.perf_counter()
+  compiled = jax.jit(forward).lower(variables, video, video).compile(
+      compiler_options=inference_compiler_options())
+  return compiled, time.perf_counter() - t0

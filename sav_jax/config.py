@@ -7,6 +7,10 @@ from typing import Optional
 
 import jax.numpy as jnp
 
+# Default memory budget (MiB) of one block of frames of the per-frame stages
+# (`SAVConfig.frame_block_mb`).
+FRAME_BLOCK_MB = 1024.0
+
 # Video Depth Anything encoder variants (DPT head width and per-level channels).
 VDA_VARIANTS = {
     "vits": dict(features=64, out_channels=(48, 96, 192, 384)),
@@ -48,7 +52,7 @@ class SAVConfig:
   dtype: str = "float32"
   remat: bool = False
   remat_policy: Optional[str] = None
-  frame_block_mb: float = 1024.0
+  frame_block_mb: float = FRAME_BLOCK_MB
 
   def __post_init__(self):
     if self.vda_encoder not in VDA_VARIANTS:

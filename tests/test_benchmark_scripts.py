@@ -26,6 +26,7 @@ def test_multiply_adds_of_a_convolution_and_a_product_from_the_optimized_hlo():
   assert conv_macs in macs and dot_macs in macs
   assert max(macs) <= conv_macs + dot_macs
 
+
 def test_module_path_from_the_operation_metadata():
   op = {"op_name": "jit(<lambda>)/StereoAnyVideo/StereoAnyVideo.cascade/StereoAnyVideo.refine/"
                    "while/body/closed_call/StereoAnyVideo.pair/StereoAnyVideo.step/update_block/"

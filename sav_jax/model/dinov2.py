@@ -14,7 +14,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from sav_jax.model.layers import dense, gelu, layer_norm
+from sav_jax.config import FRAME_BLOCK_MB
+from sav_jax.model.layers import dense, frames_per_block, gelu, layer_norm
 from sav_jax.ops.resize import resize
 
 # DINOv2 offsets the target grid by 0.1 before computing the pos-embed scale
@@ -65,11 +66,6 @@ def interpolate_pos_embed(pos_embed: jax.Array, grid_hw: tuple[int, int]) -> jax
   return jnp.concatenate([pos_embed[:, :1], grid.reshape(1, h * w, dim)], axis=1)
 
 
-# Memory budget of one block of attention logits (float32), in MiB: longer videos and
-# larger frames run the attention in blocks of frames (and of query rows) that fit.
-ATTENTION_BLOCK_MB = 1024
-
-
 def attention_blocks(n: int, heads: int, length: int, budget_mb: float) -> tuple[int, int]:
   """Frames and query rows per block so that one block's float32 logits fit `budget_mb`.
 
@@ -79,15 +75,13 @@ def attention_blocks(n: int, heads: int, length: int, budget_mb: float) -> tuple
   """
   budget = budget_mb * 2**20
   per_frame = heads * length * length * 4
-  if n * per_frame <= budget:
-    return n, length
   if per_frame <= budget:
-    return max(f for f in range(1, n + 1) if n % f == 0 and f * per_frame <= budget), length
+    return frames_per_block(n, per_frame, budget_mb), length
   return 1, max(1, int(budget // (heads * length * 4)))
 
 
 def softmax_attention(q: jax.Array, k: jax.Array, v: jax.Array,
-                      budget_mb: float = ATTENTION_BLOCK_MB) -> jax.Array:
+                      budget_mb: float = FRAME_BLOCK_MB) -> jax.Array:
   """`softmax(q k^T) v` per frame and head, in blocks that keep the logits under `budget_mb`.
 
   Every query row's softmax is independent of the others, so blocks of frames and of
@@ -121,13 +115,12 @@ def softmax_attention(q: jax.Array, k: jax.Array, v: jax.Array,
   # One frame at a time, its query rows in blocks (padded queries are dropped again).
   nb = -(-length // rows)
   qp = jnp.pad(q, ((0, 0), (0, nb * rows - length), (0, 0), (0, 0)))
-  qb = qp.reshape(n, nb, rows, heads, d).transpose(1, 0, 2, 3, 4)
 
   def frame(args):
     qf, kf, vf = args  # [nb, rows, h, d], [L, h, d], [L, h, d]
     return jax.lax.map(lambda qr: plain(qr[None], kf[None], vf[None])[0], qf)
 
-  out = jax.lax.map(frame, (qb.transpose(1, 0, 2, 3, 4), k, v))  # [n, nb, rows, h, d]
+  out = jax.lax.map(frame, (qp.reshape(n, nb, rows, heads, d), k, v))  # [n, nb, rows, h, d]
   return out.reshape(n, nb * rows, heads, d)[:, :length]
 
 
@@ -142,7 +135,7 @@ class Attention(nn.Module):
 
   num_heads: int
   dtype: Any = jnp.float32
-  block_mb: float = ATTENTION_BLOCK_MB
+  block_mb: float = FRAME_BLOCK_MB
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
@@ -185,7 +178,7 @@ class Block(nn.Module):
   num_heads: int
   mlp_ratio: float = 4.0
   dtype: Any = jnp.float32
-  attention_block_mb: float = ATTENTION_BLOCK_MB
+  attention_block_mb: float = FRAME_BLOCK_MB
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
@@ -237,7 +230,7 @@ class DinoVisionTransformer(nn.Module):
   patch_size: int = 14
   img_size: int = 518
   dtype: Any = jnp.float32
-  attention_block_mb: float = ATTENTION_BLOCK_MB
+  attention_block_mb: float = FRAME_BLOCK_MB
 
   @nn.compact
   def __call__(self, x: jax.Array) -> tuple[list[tuple[jax.Array, jax.Array]], jax.Array]:

@@ -12,6 +12,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from sav_jax.config import FRAME_BLOCK_MB
 from sav_jax.model.layers import conv, dense, gelu, in_frame_blocks, layer_norm
 
 
@@ -131,7 +132,7 @@ class SpaceAttnBlock(nn.Module):
 
   dim: int = 256
   dtype: Any = jnp.float32
-  block_mb: float = 1024.0
+  block_mb: float = FRAME_BLOCK_MB
 
   def setup(self):
     self.encoder_layer = LoFTREncoderLayer(self.dim, dtype=self.dtype)
@@ -195,7 +196,7 @@ class SequenceUpdateBlock3D(nn.Module):
   hidden_dim: int = 128
   mask_size: int = 4
   dtype: Any = jnp.float32
-  block_mb: float = 1024.0
+  block_mb: float = FRAME_BLOCK_MB
 
   @nn.compact
   def __call__(self, net, inp, corr, flow, with_mask: bool = True):

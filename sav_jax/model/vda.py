@@ -13,7 +13,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from sav_jax.model.dinov2 import ATTENTION_BLOCK_MB, DINO_VARIANTS, DinoVisionTransformer
+from sav_jax.config import FRAME_BLOCK_MB
+from sav_jax.model.dinov2 import DINO_VARIANTS, DinoVisionTransformer
 from sav_jax.model.dpt_temporal import TEMPORAL_MAX_LEN, DPTHeadTemporal
 
 PATCH_SIZE = 14
@@ -35,7 +36,7 @@ class VideoDepthAnything(nn.Module):
   features: int = 64
   out_channels: tuple = (48, 96, 192, 384)
   dtype: Any = jnp.float32
-  attention_block_mb: float = ATTENTION_BLOCK_MB
+  attention_block_mb: float = FRAME_BLOCK_MB
 
   def setup(self):
     if self.encoder not in DINO_VARIANTS:

@@ -103,10 +103,10 @@ def test_frame_blocks_reproduce_the_official_output(variables, golden_small):
   right = jnp.asarray(nchw_to_nhwc(golden_small["input_right"]))
   fwd = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=4, final_only=True).disparities)
   # Blocked: the frames run in loops (one more scan per blocked stage).
-  whiles = lambda m: str(jax.make_jaxpr(  # noqa: E731
+  scans = lambda m: str(jax.make_jaxpr(  # noqa: E731
       lambda v, l, r: m.apply(v, l, r, iters=4, final_only=True).disparities)(
           variables, left, right)).count("scan[")
-  assert whiles(model) > whiles(sav_jax.StereoAnyVideo(sav_jax.SAVConfig()))
+  assert scans(model) > scans(sav_jax.StereoAnyVideo(sav_jax.SAVConfig()))
   with jax.default_matmul_precision("highest"):
     got = np.asarray(fwd(variables, left, right))
   ref = np.transpose(golden_small["test_mode_output"][:, :, 0], (1, 0, 2, 3))[None]
