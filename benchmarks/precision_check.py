@@ -1,0 +1,89 @@
+"""Distance of the model's output from the official one, per compute mode, on this backend.
+
+    python benchmarks/precision_check.py                       # fixtures at ../shared/fixtures
+    SAV_FIXTURES=/path/to/fixtures python benchmarks/precision_check.py --json out.json
+
+Runs the fixture clip (`golden_small`: 1x3x64x128, iters=4, make_weights.py seed 0) through
+the inference forward in float32 at the matmul precisions "highest" and "default" (on GPUs
+the default lets XLA use TF32 for float32 products and convolutions) and in bfloat16, and
+prints the mean and max absolute difference from the official float32 test-mode output.
+The parity tests require <= 1e-4 px max in float32 at "highest" and <= 0.05 px mean in
+bfloat16; this script measures, it asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import pathlib
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import jax  # noqa: E402  pylint: disable=wrong-import-position
+import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
+import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
+
+import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
+
+MODES = (("float32", "highest"), ("float32", "default"), ("bfloat16", "default"))
+
+
+def load_fixture(fixtures: pathlib.Path):
+  """`(state_dict, golden)`: make_weights.py's seed-0 weights and golden_small.npz."""
+  for name in ("make_weights.py", "sav_manifest.json", "golden_small.npz"):
+    if not (fixtures / name).is_file():
+      raise SystemExit(f"precision_check: {fixtures / name} not found (set SAV_FIXTURES "
+                       "or --fixtures to the oracle fixtures folder)")
+  spec = importlib.util.spec_from_file_location("make_weights", fixtures / "make_weights.py")
+  mod = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(mod)
+  state_dict = mod.make_state_dict(str(fixtures / "sav_manifest.json"), 0)
+  return state_dict, dict(np.load(fixtures / "golden_small.npz"))
+
+
+def measure(fixtures: pathlib.Path, iters: int = 4) -> list[dict]:
+  state_dict, golden = load_fixture(fixtures)
+  nhwc = lambda x: jnp.asarray(np.moveaxis(np.asarray(x), -3, -1))  # noqa: E731
+  left, right = nhwc(golden["input_left"]), nhwc(golden["input_right"])
+  ref = np.transpose(golden["test_mode_output"][:, :, 0], (1, 0, 2, 3))[None]
+  rows = []
+  for dtype, precision in MODES:
+    cfg = sav_jax.SAVConfig(dtype=dtype)
+    variables = sav_jax.convert.params_from_state_dict(state_dict, cfg)
+    model = sav_jax.StereoAnyVideo(cfg)
+    fwd = jax.jit(lambda v, l, r, m=model: m.apply(v, l, r, iters=iters,
+                                                     final_only=True).disparities)
+    with jax.default_matmul_precision(precision):
+      got = np.asarray(fwd(variables, left, right), np.float32)
+    diff = np.abs(got - ref)
+    rows.append(dict(dtype=dtype, precision=precision, mean_px=float(diff.mean()),
+                     max_px=float(diff.max())))
+  return rows
+
+
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  default = os.environ.get("SAV_FIXTURES", str(ROOT.parent / "shared" / "fixtures"))
+  p.add_argument("--fixtures", default=default, help="the oracle fixtures folder")
+  p.add_argument("--json", help="write the rows to this JSON file")
+  a = p.parse_args(argv)
+  rows = measure(pathlib.Path(a.fixtures))
+  device = jax.devices()[0]
+  print(f"device {device.platform}:{device.device_kind} (jax {jax.__version__}); "
+        "difference from the official float32 output, fixture clip 1x3x64x128 iters=4")
+  print(f"{'dtype':<10}{'precision':<10}{'mean (px)':>12}{'max (px)':>12}")
+  for r in rows:
+    print(f"{r['dtype']:<10}{r['precision']:<10}{r['mean_px']:>12.2e}{r['max_px']:>12.2e}")
+  if a.json:
+    with open(a.json, "w") as f:
+      json.dump(dict(device=f"{device.platform}:{device.device_kind}", jax=jax.__version__,
+                     rows=rows), f, indent=1)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
