@@ -1,31 +1,55 @@
 #!/usr/bin/env bash
-# Issue 7's GPU figures in one run, for one lent H100/H200 (run from the repository root):
+# Issue 7's GPU figures, for one lent H100/H200 (run from the repository root):
 #
-#   bash benchmarks/gpu_suite.sh OUTDIR
+#   bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]      # default: every step, in this order
 #
-# 1. forward at the paper's Table-6 window (B=1 T=20 720x1280 iters=20), bfloat16;
-# 2. the same in float32 (XLA's default matmul precision: TF32 on the GPU);
-# 3. the training step at the paper's shape (T=5 256x512 iters=10, remat);
-# 4. distance from the official output per compute mode (benchmarks/precision_check.py);
-# 5. the end-to-end parity tests on this backend (needs the oracle fixtures, SAV_FIXTURES).
-# Each step has its own time limit; everything is logged to OUTDIR/suite.log and the
-# figures go to OUTDIR/*.json. An early failure of step 1 (an import or API error) stops
-# the run, so that a short device lease is not spent on the rest.
+# Steps (and what each took on an H200 on 2026-11-30, compile included):
+#   bench_bf16  forward at the paper's Table-6 window (B=1 T=20 720x1280 iters=20), bfloat16 (87 s)
+#   bench_fp32  the same in float32 (XLA's default matmul precision: TF32 on the GPU)  (98 s)
+#   train       the training step at the paper's shape (T=5 256x512 iters=10, remat)  (190 s)
+#   precision   distance from the official output per compute mode (precision_check.py) (> 90 s)
+#   parity      the end-to-end parity tests on this backend (needs SAV_FIXTURES)        (> 150 s)
+#   stages      per-stage wall times at the paper's window, bfloat16 (stage_times.py)  (not yet run)
+# A lease of 15 device minutes holds about 10 minutes of steps (one machine start): pick
+# the steps. Each step has its own time limit; everything is logged to OUTDIR/suite.log and
+# the figures go to OUTDIR/*.json. A failure of the first step within 90 s (an import or API
+# error) stops the run, so that the rest of a short lease is not spent.
 set -u
-out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR}
+out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]}
+shift
+steps=("$@")
+[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 train precision parity stages)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
 log="$out/suite.log"
+window=(--frames 20 --height 720 --width 1280 --iters 20)
 
 step() {  # step NAME LIMIT_S COMMAND...
   local name=$1 limit=$2 t0=$SECONDS rc
   shift 2
   echo "=== $name ($(date +%T), limit ${limit} s): $*" | tee -a "$log"
-  timeout "$limit" "$@" 2>&1 | tee -a "$log"
+  timeout "$limit" "$@" 2>&1 | grep --line-buffered -v "cuda_timer.cc" | tee -a "$log"
   rc=${PIPESTATUS[0]}
   echo "=== $name: rc=$rc after $((SECONDS - t0)) s" | tee -a "$log"
   return "$rc"
+}
+
+run_step() {
+  case $1 in
+    bench_bf16) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype bfloat16 \
+                  --repeats 3 --json "$out/gpu_t20_720x1280_it20_bf16.json" ;;
+    bench_fp32) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype float32 \
+                  --repeats 2 --json "$out/gpu_t20_720x1280_it20_fp32.json" ;;
+    train) step "$1" 260 "$py" benchmarks/train_step.py --repeats 2 \
+             --json "$out/gpu_train_t5_256x512_it10_remat_fp32.json" ;;
+    precision) step "$1" 200 "$py" benchmarks/precision_check.py --json "$out/gpu_precision.json" ;;
+    parity) step "$1" 300 "$py" -m pytest -x -q -p no:cacheprovider \
+              tests/model/test_model_parity.py ;;
+    stages) step "$1" 300 "$py" benchmarks/stage_times.py "${window[@]}" --dtype bfloat16 ;;
+    *) echo "unknown step '$1' (bench_bf16 bench_fp32 train precision parity stages)" >&2
+       return 2 ;;
+  esac
 }
 
 {
@@ -34,14 +58,12 @@ step() {  # step NAME LIMIT_S COMMAND...
 'optax', optax.__version__, jax.devices())"
 } 2>&1 | tee -a "$log"
 
-window=(--frames 20 --height 720 --width 1280 --iters 20)
-step bench_bf16 170 "$py" -m sav_jax.cli bench "${window[@]}" --dtype bfloat16 --repeats 3 \
-    --json "$out/gpu_t20_720x1280_it20_bf16.json" \
-  || { if [ "$SECONDS" -lt 90 ]; then echo "early failure: stopping" | tee -a "$log"; exit 1; fi; }
-step bench_fp32 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype float32 --repeats 2 \
-    --json "$out/gpu_t20_720x1280_it20_fp32.json"
-step train_step 150 "$py" benchmarks/train_step.py --repeats 3 \
-    --json "$out/gpu_train_t5_256x512_it10_remat_fp32.json"
-step precision 90 "$py" benchmarks/precision_check.py --json "$out/gpu_precision.json"
-step parity 150 "$py" -m pytest -x -q -p no:cacheprovider tests/model/test_model_parity.py
+first=1
+for s in "${steps[@]}"; do
+  if ! run_step "$s" && [ "$first" = 1 ] && [ "$SECONDS" -lt 90 ]; then
+    echo "early failure: stopping" | tee -a "$log"
+    exit 1
+  fi
+  first=0
+done
 echo "=== done after $SECONDS s" | tee -a "$log"

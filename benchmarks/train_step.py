@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 from configs import sceneflow  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax import runtime  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.tools.bench import device_peak_gb, peak_rss_gb  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools.bench import device_peak_gb, peak_rss_gb, xla_buffers_gb  # noqa: E402  pylint: disable=wrong-import-position
 from train import optim, state as state_lib, step as step_lib  # noqa: E402  pylint: disable=wrong-import-position
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 
@@ -70,6 +70,7 @@ def measure(config, repeats: int) -> dict:
   t0 = time.perf_counter()
   compiled = step.lower(state, batch).compile()
   compile_s = time.perf_counter() - t0
+  compile_peak = device_peak_gb(jax.devices()[0])  # the GPU compiler's autotuning scratch
   runtime.release_host_memory()  # as the training loop does after its first step
   state, metrics = compiled(state, batch)  # warm-up
   jax.block_until_ready(metrics)
@@ -89,6 +90,7 @@ def measure(config, repeats: int) -> dict:
       devices=mesh.size, compile_s=compile_s, median_s=median, min_s=min(times),
       samples_per_s=b / median, peak_rss_gb=rss, peak_rss_gb_per_sample=rss / b,
       device_peak_gb=dev, device_peak_gb_per_sample=None if dev is None else dev / b,
+      device_peak_compile_gb=compile_peak, **xla_buffers_gb(compiled),
       loss=float(metrics["loss"]), device=f"{device.platform}:{device.device_kind}",
       jax=jax.__version__, date=time.strftime("%Y-%m-%d"))
 
@@ -115,7 +117,11 @@ def main():
   print(f"peak host RSS {res['peak_rss_gb']:.2f} GB ({res['peak_rss_gb_per_sample']:.2f} GB/sample)")
   if res["device_peak_gb"] is not None:
     print(f"device peak   {res['device_peak_gb']:.2f} GB "
-          f"({res['device_peak_gb_per_sample']:.2f} GB/sample)")
+          f"({res['device_peak_gb_per_sample']:.2f} GB/sample; after compiling, before the "
+          f"first step: {res['device_peak_compile_gb']:.2f} GB)")
+  if res["xla_temp_gb"] is not None:
+    print(f"XLA buffers   {res['xla_temp_gb']:.2f} GB intermediates + {res['xla_args_gb']:.2f} GB "
+          f"arguments + {res['xla_out_gb']:.2f} GB outputs")
   if a.json:
     with open(a.json, "w", encoding="utf-8") as f:
       json.dump(res, f, indent=1)

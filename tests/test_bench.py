@@ -24,6 +24,7 @@ def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
   assert rec["frames"] == 2 and rec["height"] == 32 and rec["iters"] == 2
   assert rec["median_s"] > 0 and rec["compile_s"] > 0 and rec["peak_rss_gb"] > 0.1
   assert rec["cache_hit"] is False and any(cache.iterdir())
+  assert "XLA buffers" in out and 0 < rec["xla_temp_gb"] < 1 and rec["xla_args_gb"] > 0.05
 
   assert cli.main([*ARGS, "--json", str(second), "--compile-cache", str(cache),
                    "--compare", str(first)]) == 0
@@ -45,3 +46,16 @@ def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
 def test_bench_rejects_bad_sizes(capsys):
   assert cli.main(["bench", "--height", "30"]) == 2
   assert "multiples of 16" in capsys.readouterr().err
+
+
+def test_memory_report_names_the_device_peak_after_compiling():
+  """On GPU the device peak includes the compiler's autotuning scratch: the report gives
+  the peak before the first call beside it, and XLA's buffer sizes when known."""
+  from sav_jax.tools.bench import memory_lines  # pylint: disable=import-outside-toplevel
+  res = dict(peak_rss_gb=6.2, device_peak_gb=29.9, device_peak_compile_gb=21.0,
+             xla_temp_gb=13.5, xla_args_gb=0.5, xla_out_gb=0.07)
+  text = "\n".join(memory_lines(res))
+  assert "device peak   29.90 GB (after compiling, before the first call: 21.00 GB)" in text
+  assert "13.50 GB intermediates + 0.50 GB arguments + 0.07 GB outputs" in text
+  cpu = memory_lines(dict(peak_rss_gb=0.8, device_peak_gb=None, xla_temp_gb=None))
+  assert cpu == ["peak host RSS 0.80 GB"]

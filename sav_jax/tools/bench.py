@@ -47,6 +47,33 @@ def device_peak_gb(device):
   return None if peak is None else peak / 1024 ** 3
 
 
+def xla_buffers_gb(compiled) -> dict:
+  """XLA's own account of a compiled program's buffers, in GB: `xla_temp_gb` (the
+  intermediates), `xla_args_gb`, `xla_out_gb`; None where the backend offers no analysis.
+
+  Unlike the device peak, this excludes what the compiler itself allocated on the device
+  (the GPU compiler's autotuning runs candidate kernels on scratch buffers)."""
+  try:
+    ma = compiled.memory_analysis()
+    sizes = (ma.temp_size_in_bytes, ma.argument_size_in_bytes, ma.output_size_in_bytes)
+  except Exception:  # pylint: disable=broad-except  # not offered by every backend
+    sizes = (None,) * 3
+  return {k: None if v is None else v / 1024 ** 3
+          for k, v in zip(("xla_temp_gb", "xla_args_gb", "xla_out_gb"), sizes)}
+
+
+def memory_lines(res: dict) -> list[str]:
+  """The memory report of a `measure` result (bench and benchmarks/train_step.py)."""
+  lines = [f"peak host RSS {res['peak_rss_gb']:.2f} GB"]
+  if res.get("device_peak_gb") is not None:
+    lines.append(f"device peak   {res['device_peak_gb']:.2f} GB (after compiling, before the "
+                 f"first call: {res['device_peak_compile_gb']:.2f} GB)")
+  if res.get("xla_temp_gb") is not None:
+    lines.append(f"XLA buffers   {res['xla_temp_gb']:.2f} GB intermediates + "
+                 f"{res['xla_args_gb']:.2f} GB arguments + {res['xla_out_gb']:.2f} GB outputs")
+  return lines
+
+
 def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
             final_only=True, compile_cache=None) -> dict:
   """Compiles and times the forward pass on random weights and a random clip.
@@ -60,7 +87,8 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
 
   Returns:
     dict with `compile_s`, `cache_hit`, `median_s`, `min_s`, `fps`, `peak_rss_gb`,
-    `device_peak_gb` (None on CPU) and the settings.
+    `device_peak_gb` and `device_peak_compile_gb` (the peak after compiling, before the
+    first call; None on CPU), XLA's buffer sizes (`xla_buffers_gb`) and the settings.
   """
   import jax  # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
@@ -85,6 +113,8 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   compiled = fwd.lower(variables, left, right).compile(compiler_options=options)
   compile_s = time.perf_counter() - t0
   cache_hit = bool(compile_cache) and entries() == before
+  device = jax.devices()[0]
+  compile_peak = device_peak_gb(device)
   runtime.release_host_memory()
   compiled(variables, left, right).block_until_ready()  # warm-up
   times = []
@@ -93,12 +123,12 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
     compiled(variables, left, right).block_until_ready()
     times.append(time.perf_counter() - t0)
   median = statistics.median(times)
-  device = jax.devices()[0]
   return dict(
       frames=frames, height=height, width=width, iters=iters, batch=batch, dtype=dtype,
       final_only=final_only, compiler_options=options, compile_s=compile_s, cache_hit=cache_hit, median_s=median, min_s=min(times),
       fps=batch * frames / median, peak_rss_gb=peak_rss_gb(),
-      device_peak_gb=device_peak_gb(device), device=f"{device.platform}:{device.device_kind}",
+      device_peak_gb=device_peak_gb(device), device_peak_compile_gb=compile_peak,
+      **xla_buffers_gb(compiled), device=f"{device.platform}:{device.device_kind}",
       host=platform.node(), jax=jax.__version__, date=time.strftime("%Y-%m-%d"))
 
 
@@ -122,9 +152,7 @@ def run(args: argparse.Namespace) -> int:
   print(f"forward       median {res['median_s']:.3f} s  (min {res['min_s']:.3f} s, "
         f"{args.repeats} runs)")
   print(f"throughput    {res['fps']:.2f} frames/s")
-  print(f"peak host RSS {res['peak_rss_gb']:.2f} GB")
-  if res["device_peak_gb"] is not None:
-    print(f"device peak   {res['device_peak_gb']:.2f} GB")
+  print("\n".join(memory_lines(res)))
   if args.compare:
     with open(args.compare) as f:
       base = json.load(f)
