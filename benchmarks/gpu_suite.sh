@@ -6,6 +6,7 @@
 # Steps (and what each took on an H200 on 2026-11-30, compile included):
 #   bench_bf16  forward at the paper's Table-6 window (B=1 T=20 720x1280 iters=20), bfloat16 (87 s)
 #   bench_fp32  the same in float32 (XLA's default matmul precision: TF32 on the GPU)  (98 s)
+#   bench_cudnn bench_bf16 with the ViT attention as cuDNN's fused kernel (--vit-attention cudnn)
 #   train       the training step at the paper's shape (T=5 256x512 iters=10, remat)  (190 s)
 #   precision   distance from the official output per compute mode (precision_check.py) (> 90 s)
 #   parity      the end-to-end parity tests on this backend (needs SAV_FIXTURES)        (> 150 s)
@@ -18,7 +19,7 @@ set -u
 out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]}
 shift
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 train precision parity stages)
+[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 bench_cudnn train precision parity stages)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
@@ -41,13 +42,17 @@ run_step() {
                   --repeats 3 --json "$out/gpu_t20_720x1280_it20_bf16.json" ;;
     bench_fp32) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype float32 \
                   --repeats 2 --json "$out/gpu_t20_720x1280_it20_fp32.json" ;;
+    bench_cudnn) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype bfloat16 \
+                  --vit-attention cudnn --repeats 3 \
+                  --json "$out/gpu_t20_720x1280_it20_bf16_cudnn.json" ;;
     train) step "$1" 260 "$py" benchmarks/train_step.py --repeats 2 \
              --json "$out/gpu_train_t5_256x512_it10_remat_fp32.json" ;;
     precision) step "$1" 200 "$py" benchmarks/precision_check.py --json "$out/gpu_precision.json" ;;
     parity) step "$1" 300 "$py" -m pytest -x -q -p no:cacheprovider \
               tests/model/test_model_parity.py ;;
     stages) step "$1" 300 "$py" benchmarks/stage_times.py "${window[@]}" --dtype bfloat16 ;;
-    *) echo "unknown step '$1' (bench_bf16 bench_fp32 train precision parity stages)" >&2
+    *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_cudnn train precision parity" \
+            "stages)" >&2
        return 2 ;;
   esac
 }

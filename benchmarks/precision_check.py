@@ -5,7 +5,8 @@
 
 Runs the fixture clip (`golden_small`: 1x3x64x128, iters=4, make_weights.py seed 0) through
 the inference forward in float32 at the matmul precisions "highest" and "default" (on GPUs
-the default lets XLA use TF32 for float32 products and convolutions) and in bfloat16, and
+the default lets XLA use TF32 for float32 products and convolutions) and in bfloat16 (on a
+GPU also with `SAVConfig.vit_attention="cudnn"`), and
 prints the mean and max absolute difference from the official float32 test-mode output.
 The parity tests require <= 1e-4 px max in float32 at "highest" and <= 0.05 px mean in
 bfloat16; this script measures, it asserts nothing.
@@ -29,7 +30,9 @@ import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 
-MODES = (("float32", "highest"), ("float32", "default"), ("bfloat16", "default"))
+MODES = (("float32", "highest", "blocked"), ("float32", "default", "blocked"),
+         ("bfloat16", "default", "blocked"))
+GPU_MODES = (("bfloat16", "default", "cudnn"),)  # the fused ViT attention, CUDA only
 
 
 def load_fixture(fixtures: pathlib.Path):
@@ -51,8 +54,9 @@ def measure(fixtures: pathlib.Path, iters: int = 4) -> list[dict]:
   left, right = nhwc(golden["input_left"]), nhwc(golden["input_right"])
   ref = np.transpose(golden["test_mode_output"][:, :, 0], (1, 0, 2, 3))[None]
   rows = []
-  for dtype, precision in MODES:
-    cfg = sav_jax.SAVConfig(dtype=dtype)
+  modes = MODES + (GPU_MODES if jax.default_backend() == "gpu" else ())
+  for dtype, precision, attention in modes:
+    cfg = sav_jax.SAVConfig(dtype=dtype, vit_attention=attention)
     variables = sav_jax.convert.params_from_state_dict(state_dict, cfg)
     model = sav_jax.StereoAnyVideo(cfg)
     fwd = jax.jit(lambda v, l, r, m=model: m.apply(v, l, r, iters=iters,
@@ -60,7 +64,8 @@ def measure(fixtures: pathlib.Path, iters: int = 4) -> list[dict]:
     with jax.default_matmul_precision(precision):
       got = np.asarray(fwd(variables, left, right), np.float32)
     diff = np.abs(got - ref)
-    rows.append(dict(dtype=dtype, precision=precision, mean_px=float(diff.mean()),
+    rows.append(dict(dtype=dtype, precision=precision, vit_attention=attention,
+                     mean_px=float(diff.mean()),
                      max_px=float(diff.max())))
   return rows
 
@@ -75,9 +80,10 @@ def main(argv=None) -> int:
   device = jax.devices()[0]
   print(f"device {device.platform}:{device.device_kind} (jax {jax.__version__}); "
         "difference from the official float32 output, fixture clip 1x3x64x128 iters=4")
-  print(f"{'dtype':<10}{'precision':<10}{'mean (px)':>12}{'max (px)':>12}")
+  print(f"{'dtype':<10}{'precision':<10}{'ViT attn':<10}{'mean (px)':>12}{'max (px)':>12}")
   for r in rows:
-    print(f"{r['dtype']:<10}{r['precision']:<10}{r['mean_px']:>12.2e}{r['max_px']:>12.2e}")
+    print(f"{r['dtype']:<10}{r['precision']:<10}{r['vit_attention']:<10}{r['mean_px']:>12.2e}"
+          f"{r['max_px']:>12.2e}")
   if a.json:
     with open(a.json, "w") as f:
       json.dump(dict(device=f"{device.platform}:{device.device_kind}", jax=jax.__version__,

@@ -11,6 +11,9 @@ import jax.numpy as jnp
 # (`SAVConfig.frame_block_mb`).
 FRAME_BLOCK_MB = 1024.0
 
+# Implementations of the depth prior's ViT attention (`SAVConfig.vit_attention`).
+VIT_ATTENTION = ("blocked", "cudnn")
+
 # Video Depth Anything encoder variants (DPT head width and per-level channels).
 VDA_VARIANTS = {
     "vits": dict(features=64, out_channels=(48, 96, 192, 384)),
@@ -40,6 +43,11 @@ class SAVConfig:
       the encoders, the depth prior's ViT attention logits and its full-resolution map
       run over blocks of frames (very large frames: of query rows) that fit it. Same
       values; bounds the memory of long, high-resolution windows. Not a weight setting.
+    vit_attention: the depth prior's ViT attention. "blocked" (default, every backend):
+      `softmax(q k^T) v` in blocks under `frame_block_mb`. "cudnn": cuDNN's fused
+      (flash) attention through `jax.nn.dot_product_attention`, which never stores the
+      logits (at 720x1280 the ViT's 40 frames x 6 heads x 4642^2 logits per layer); CUDA
+      GPUs and `dtype="bfloat16"` only. Not a weight setting.
   """
 
   vda_encoder: str = "vits"
@@ -53,6 +61,7 @@ class SAVConfig:
   remat: bool = False
   remat_policy: Optional[str] = None
   frame_block_mb: float = FRAME_BLOCK_MB
+  vit_attention: str = "blocked"
 
   def __post_init__(self):
     if self.vda_encoder not in VDA_VARIANTS:
@@ -62,6 +71,12 @@ class SAVConfig:
       raise ValueError(f"SAVConfig.dtype={self.dtype!r}; expected 'float32' or 'bfloat16'")
     if not self.frame_block_mb > 0:
       raise ValueError(f"SAVConfig.frame_block_mb must be > 0, got {self.frame_block_mb!r}")
+    if self.vit_attention not in VIT_ATTENTION:
+      raise ValueError(f"SAVConfig.vit_attention={self.vit_attention!r}; expected one of "
+                       f"{VIT_ATTENTION}")
+    if self.vit_attention == "cudnn" and self.dtype != "bfloat16":
+      raise ValueError("SAVConfig.vit_attention='cudnn' needs dtype='bfloat16' (cuDNN's fused "
+                       f"attention has no float32 kernels), got dtype={self.dtype!r}")
     if self.depth_dim + self.fnet_dim != self.context_dim:
       raise ValueError(
           f"depth_dim + fnet_dim must equal context_dim ({self.depth_dim} + {self.fnet_dim} "

@@ -46,6 +46,8 @@ def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
 def test_bench_rejects_bad_sizes(capsys):
   assert cli.main(["bench", "--height", "30"]) == 2
   assert "multiples of 16" in capsys.readouterr().err
+  assert cli.main(["bench", "--vit-attention", "cudnn"]) == 2
+  assert "--vit-attention cudnn needs --dtype bfloat16" in capsys.readouterr().err
 
 
 def test_memory_report_names_the_device_peak_after_compiling():

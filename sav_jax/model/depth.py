@@ -31,7 +31,8 @@ class DepthExtractor(nn.Module):
 
   def setup(self):
     self.depthanything = VideoDepthAnything(**self.cfg.vda, dtype=self.cfg.compute_dtype,
-                                            attention_block_mb=self.cfg.frame_block_mb)
+                                            attention_block_mb=self.cfg.frame_block_mb,
+                                            attention=self.cfg.vit_attention)
     self.conv = conv(self.cfg.depth_dim, (4, 4), 4, 0, dtype=self.cfg.compute_dtype)
 
   def tokens(self, x: jax.Array) -> list[jax.Array]:

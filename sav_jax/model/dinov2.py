@@ -124,6 +124,33 @@ def softmax_attention(q: jax.Array, k: jax.Array, v: jax.Array,
   return out.reshape(n, nb * rows, heads, d)[:, :length]
 
 
+def fused_attention(q: jax.Array, k: jax.Array, v: jax.Array,
+                    implementation: str = "cudnn") -> jax.Array:
+  """`softmax(q k^T) v` as one fused kernel (`jax.nn.dot_product_attention`).
+
+  With "cudnn", cuDNN's flash attention: the logits are never stored, the softmax runs
+  in float32 inside the kernel and the probabilities meet `v` in its dtype, as in
+  `softmax_attention`. "xla" is JAX's reference path (it stores the logits), which
+  checks the layout and scaling on any backend.
+
+  Args:
+    q: `[N, L, heads, d]`, already scaled.
+    k, v: `[N, L, heads, d]`.
+    implementation: "cudnn" (CUDA GPUs, bfloat16/float16) or "xla".
+
+  Returns:
+    `[N, L, heads, d]` in `v`'s dtype.
+  """
+  if implementation == "cudnn":
+    backend = jax.default_backend()
+    if backend not in ("gpu", "cuda"):
+      raise ValueError(f"SAVConfig.vit_attention='cudnn' needs a CUDA GPU; JAX's backend is "
+                       f"{backend!r} (use the default, 'blocked')")
+    if q.dtype not in (jnp.bfloat16, jnp.float16):
+      raise ValueError(f"SAVConfig.vit_attention='cudnn' needs bfloat16 compute, got {q.dtype}")
+  return jax.nn.dot_product_attention(q, k, v, scale=1.0, implementation=implementation)
+
+
 class Attention(nn.Module):
   """Multi-head self-attention with a fused qkv projection (plain softmax path).
 
@@ -131,11 +158,14 @@ class Attention(nn.Module):
     num_heads: heads.
     dtype: compute dtype (the softmax runs in float32).
     block_mb: memory budget of one block of logits (`softmax_attention`).
+    implementation: "blocked" (`softmax_attention`, every backend) or "cudnn"
+      (`fused_attention`: CUDA GPUs, bfloat16).
   """
 
   num_heads: int
   dtype: Any = jnp.float32
   block_mb: float = FRAME_BLOCK_MB
+  implementation: str = "blocked"
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
@@ -146,7 +176,12 @@ class Attention(nn.Module):
     # torch reshapes the fused output as (3, heads, head_dim).
     qkv = qkv.reshape(n, length, 3, self.num_heads, head_dim)
     q, k, v = qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]
-    out = softmax_attention(q * head_dim**-0.5, k, v, self.block_mb).reshape(n, length, dim)
+    q = q * head_dim**-0.5
+    if self.implementation == "cudnn":
+      out = fused_attention(q, k, v, "cudnn")
+    else:
+      out = softmax_attention(q, k, v, self.block_mb)
+    out = out.reshape(n, length, dim)
     return dense(dim, dtype=self.dtype, name="proj")(out)
 
 
@@ -179,13 +214,15 @@ class Block(nn.Module):
   mlp_ratio: float = 4.0
   dtype: Any = jnp.float32
   attention_block_mb: float = FRAME_BLOCK_MB
+  attention: str = "blocked"
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x `[N, L, D]`. Returns `[N, L, D]`."""
     dim = x.shape[-1]
     y = layer_norm(DINO_LN_EPS, dtype=self.dtype, name="norm1")(x)
-    y = Attention(self.num_heads, self.dtype, self.attention_block_mb, name="attn")(y)
+    y = Attention(self.num_heads, self.dtype, self.attention_block_mb, self.attention,
+                  name="attn")(y)
     x = x + LayerScale(name="ls1")(y)
     y = layer_norm(DINO_LN_EPS, dtype=self.dtype, name="norm2")(x)
     y = Mlp(int(dim * self.mlp_ratio), dtype=self.dtype, name="mlp")(y)
@@ -221,6 +258,7 @@ class DinoVisionTransformer(nn.Module):
     dtype: compute dtype (parameters stay float32).
     attention_block_mb: memory budget of one block of attention logits
       (`softmax_attention`); large inputs run the attention in blocks.
+    attention: "blocked" (`softmax_attention`) or "cudnn" (`fused_attention`).
   """
 
   embed_dim: int = 384
@@ -231,6 +269,7 @@ class DinoVisionTransformer(nn.Module):
   img_size: int = 518
   dtype: Any = jnp.float32
   attention_block_mb: float = FRAME_BLOCK_MB
+  attention: str = "blocked"
 
   @nn.compact
   def __call__(self, x: jax.Array) -> tuple[list[tuple[jax.Array, jax.Array]], jax.Array]:
@@ -261,7 +300,7 @@ class DinoVisionTransformer(nn.Module):
     outputs = []
     for i in range(self.depth):
       tokens = Block(self.num_heads, dtype=self.dtype, attention_block_mb=self.attention_block_mb,
-                     name=f"blocks_{i}")(tokens)
+                     attention=self.attention, name=f"blocks_{i}")(tokens)
       if i in self.layers:
         normed = norm(tokens)
         outputs.append((normed[:, 1:], normed[:, 0]))

@@ -30,6 +30,7 @@ class VideoDepthAnything(nn.Module):
     dtype: compute dtype; parameters are float32.
     attention_block_mb: memory budget of one block of the ViT's attention logits
       (`dinov2.softmax_attention`).
+    attention: the ViT attention's implementation ("blocked" or "cudnn", `SAVConfig.vit_attention`).
   """
 
   encoder: str = "vits"
@@ -37,6 +38,7 @@ class VideoDepthAnything(nn.Module):
   out_channels: tuple = (48, 96, 192, 384)
   dtype: Any = jnp.float32
   attention_block_mb: float = FRAME_BLOCK_MB
+  attention: str = "blocked"
 
   def setup(self):
     if self.encoder not in DINO_VARIANTS:
@@ -44,7 +46,8 @@ class VideoDepthAnything(nn.Module):
                        f"{sorted(DINO_VARIANTS)}")
     self.pretrained = DinoVisionTransformer(**DINO_VARIANTS[self.encoder],
                                             patch_size=PATCH_SIZE, dtype=self.dtype,
-                                            attention_block_mb=self.attention_block_mb)
+                                            attention_block_mb=self.attention_block_mb,
+                                            attention=self.attention)
     self.head = DPTHeadTemporal(self.features, tuple(self.out_channels),
                                 max_len=TEMPORAL_MAX_LEN, dtype=self.dtype)
 

@@ -11,6 +11,7 @@ import statistics
 import sys
 import time
 
+from sav_jax.config import VIT_ATTENTION
 from sav_jax.tools import add_compile_cache_arguments, setup_compile_cache
 
 HELP = "benchmark the compiled forward pass (compile time, median time, fps, peak memory)"
@@ -23,6 +24,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--iters", type=int, default=8, help="refinement iterations at 1/4 (even)")
   p.add_argument("--batch", type=int, default=1)
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
+  p.add_argument("--vit-attention", choices=VIT_ATTENTION, default="blocked",
+                 help="the depth prior's ViT attention (SAVConfig.vit_attention; 'cudnn': "
+                      "fused flash attention, CUDA GPUs with --dtype bfloat16)")
   p.add_argument("--repeats", type=int, default=5, help="timed calls after the warm-up call")
   p.add_argument("--all-predictions", action="store_true",
                  help="return every refinement step (training view) instead of the final one")
@@ -75,7 +79,7 @@ def memory_lines(res: dict) -> list[str]:
 
 
 def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
-            final_only=True, compile_cache=None) -> dict:
+            final_only=True, compile_cache=None, vit_attention="blocked") -> dict:
   """Compiles and times the forward pass on random weights and a random clip.
 
   Like the inference helpers, it returns freed host memory to the OS after
@@ -98,7 +102,7 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel
   from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
 
-  cfg = sav_jax.SAVConfig(dtype=dtype)
+  cfg = sav_jax.SAVConfig(dtype=dtype, vit_attention=vit_attention)
   model = sav_jax.StereoAnyVideo(cfg)
   variables = jax.device_put(init_variables(cfg, seed=0))
   runtime.release_host_memory()
@@ -125,6 +129,7 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   median = statistics.median(times)
   return dict(
       frames=frames, height=height, width=width, iters=iters, batch=batch, dtype=dtype,
+      vit_attention=vit_attention,
       final_only=final_only, compiler_options=options, compile_s=compile_s, cache_hit=cache_hit, median_s=median, min_s=min(times),
       fps=batch * frames / median, peak_rss_gb=peak_rss_gb(),
       device_peak_gb=device_peak_gb(device), device_peak_compile_gb=compile_peak,
@@ -138,12 +143,17 @@ def run(args: argparse.Namespace) -> int:
     raise UsageError(f"--height/--width must be multiples of 16 (got {args.height}x{args.width})")
   if args.iters < 2 or args.iters % 2:
     raise UsageError(f"--iters must be even and >= 2 (got {args.iters})")
+  if args.vit_attention == "cudnn" and args.dtype != "bfloat16":
+    raise UsageError("--vit-attention cudnn needs --dtype bfloat16 (cuDNN's fused attention "
+                     "has no float32 kernels)")
   cache = setup_compile_cache(args, default_on=False)
   res = measure(args.frames, args.height, args.width, args.iters, args.batch, args.dtype,
-                args.repeats, final_only=not args.all_predictions, compile_cache=cache)
+                args.repeats, final_only=not args.all_predictions, compile_cache=cache,
+                vit_attention=args.vit_attention)
   print(f"device        {res['device']}  (jax {res['jax']})")
   print(f"input         B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
-        f"iters={res['iters']} {res['dtype']}")
+        f"iters={res['iters']} {res['dtype']}"
+        + ("" if res["vit_attention"] == "blocked" else f", ViT attention {res['vit_attention']}"))
   if res["compiler_options"]:
     print("XLA options   " + ", ".join(f"{k}={v}" for k, v in res["compiler_options"].items()))
   how = "" if cache is None else (" (loaded from the compilation cache)" if res["cache_hit"]

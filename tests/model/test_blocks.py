@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import sav_jax
-from sav_jax.model.dinov2 import attention_blocks, softmax_attention
+from sav_jax.model.dinov2 import (DinoVisionTransformer, attention_blocks, fused_attention,
+                                  softmax_attention)
 from sav_jax.model.layers import frames_per_block
 
 
@@ -32,6 +33,34 @@ def test_blocked_softmax_attention_equals_the_single_product(budget_rows):
   assert (frames, rows) == ((2, length) if budget_rows is None else (1, budget_rows))
   got = jax.jit(lambda q, k, v: softmax_attention(q, k, v, budget))(q, k, v)
   np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("dtype,tol", [(jnp.float32, 1e-5), (jnp.bfloat16, 2e-2)])
+def test_fused_attention_takes_the_blocked_layout_and_scaling(dtype, tol):
+  """`fused_attention` (the cuDNN option's call, here through JAX's reference "xla" path)
+  computes what `softmax_attention` does from the same `[N, L, heads, d]` pre-scaled inputs."""
+  rng = np.random.default_rng(1)
+  q, k, v = (jnp.asarray(rng.standard_normal((2, 37, 3, 8)), dtype) for _ in range(3))
+  q = q * 8**-0.5
+  got = fused_attention(q, k, v, "xla")
+  want = softmax_attention(q, k, v, budget_mb=1e-4)  # query-row blocks
+  assert got.dtype == dtype and got.shape == want.shape
+  np.testing.assert_allclose(np.asarray(got, np.float32), np.asarray(want, np.float32),
+                             rtol=tol, atol=tol)
+
+
+def test_cudnn_vit_attention_is_checked_with_clear_errors():
+  with pytest.raises(ValueError, match="vit_attention='cudnn' needs dtype='bfloat16'"):
+    sav_jax.SAVConfig(vit_attention="cudnn")
+  with pytest.raises(ValueError, match="vit_attention='flash'; expected one of"):
+    sav_jax.SAVConfig(vit_attention="flash")
+  cfg = sav_jax.SAVConfig(dtype="bfloat16", vit_attention="cudnn")
+  model = sav_jax.StereoAnyVideo(cfg)
+  assert model.cfg.vit_attention == "cudnn"
+  if jax.default_backend() != "gpu":  # the CI case: no CUDA device, a message, not a traceback
+    vit = DinoVisionTransformer(depth=1, layers=(0,), dtype=jnp.bfloat16, attention="cudnn")
+    with pytest.raises(ValueError, match="needs a CUDA GPU"):
+      jax.eval_shape(vit.init, jax.random.key(0), jnp.zeros((1, 28, 28, 3)))
 
 
 def test_frames_per_block_is_a_divisor_within_the_budget():
