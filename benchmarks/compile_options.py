@@ -39,6 +39,9 @@ OPTION_SETS = {
     "ynn dots/convs (inference)": {_YNN: _DOTS_CONVS},
     "ynn dots/convs + older emitters (--low-memory-compile)": {
         _YNN: _DOTS_CONVS, "xla_cpu_use_fusion_emitters": False},
+    "ynn dots/convs + older emitters + LLVM -O1": {
+        _YNN: _DOTS_CONVS, "xla_cpu_use_fusion_emitters": False,
+        "xla_backend_optimization_level": 1},
 }
 
 

@@ -16,9 +16,9 @@ execution's, not both stacked.
 `inference_compiler_options` are the XLA options the inference executables are
 compiled with (on CPU: YNNPACK only for matrix products and convolutions, which
 halves the forward's temporary memory at the same speed; see
-`benchmarks/README.md`, "Memory"); `set_low_memory_compile()` adds XLA's older
-loop emitters, which need a third of the compiler's memory at twice the compile
-time (`--low-memory-compile` in the CLI).
+`benchmarks/README.md`, "Memory"), and XLA's older loop emitters, which need
+about half of the compiler's memory for ~20% more compile time at the same speed
+(`set_low_memory_compile(False)`, `--no-low-memory-compile` in the CLI, turns them off).
 """
 
 from __future__ import annotations
@@ -120,20 +120,21 @@ def release_host_memory() -> bool:
 _YNN_FUSION_FLAG = "xla_cpu_experimental_ynn_fusion_type"
 _LEAN_YNN_FUSIONS = ",".join("LIBRARY_FUSION_TYPE_" + t for t in
                              ("DOT", "INDIVIDUAL_DOT", "INDIVIDUAL_CONVOLUTION"))
-# XLA:CPU's MLIR fusion emitters need ~1 GB of compiler memory for the model; the
-# older emitters ~0.3 GB, at about twice the compile time and the same run time.
+# XLA:CPU's MLIR fusion emitters need ~0.85 GB of compiler memory for the model; the
+# older emitters ~0.25 GB, for ~20% more compile time and the same run time.
 _FUSION_EMITTERS_FLAG = "xla_cpu_use_fusion_emitters"
-_low_memory_compile = False
+LOW_MEMORY_COMPILE_DEFAULT = True
+_low_memory_compile = LOW_MEMORY_COMPILE_DEFAULT
 
 
 def set_low_memory_compile(enabled: bool = True) -> None:
-  """Compiles later inference executables on CPU with XLA's older loop emitters.
+  """Whether later inference executables compile on CPU with XLA's older loop emitters.
 
-  The compiler's peak memory for the model drops from ~1.0 GB to ~0.3 GB (whole
-  process at T=5 128x256: 1.46 -> 0.87 GB), the compile takes about twice as long
-  (15 -> 29 s at 256x512), the forward runs at the same speed. For small machines
-  and containers with a memory limit; with the persistent compilation cache the
-  compile is paid once per shape. Process-wide, like `enable_compilation_cache`.
+  On by default: the compiler's peak memory for the model drops by ~0.55 GB (whole
+  process at T=5 128x256: 1.33-1.40 -> 0.84 GB) for ~20% more compile time (14.2 ->
+  17.1 s there, 13.2 -> 16.3 s at 256x512), and the forward runs at the same speed
+  (`benchmarks/compile_options.py`). `set_low_memory_compile(False)` gives the faster
+  compile. Process-wide, like `enable_compilation_cache`.
   """
   global _low_memory_compile  # pylint: disable=global-statement
   _low_memory_compile = bool(enabled)
@@ -157,7 +158,7 @@ def inference_compiler_options(platform: str | None = None) -> dict[str, str | b
   On CPU, YNNPACK fusions are limited to matrix products and convolutions
   (`--xla_cpu_experimental_ynn_fusion_type`): the same values (within float32
   summation order), the same speed, about half the forward's temporary memory.
-  After `set_low_memory_compile()`, also `xla_cpu_use_fusion_emitters=False`.
+  Unless `set_low_memory_compile(False)`, also `xla_cpu_use_fusion_emitters=False`.
   Nothing on other backends; an option the user sets in `XLA_FLAGS` is left to
   them, and one this jaxlib does not know is dropped.
 

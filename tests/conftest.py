@@ -66,11 +66,11 @@ def restore_cache_config():
 
 
 @pytest.fixture
-def low_memory_compile_off():
-  """Turns `sav_jax.runtime.set_low_memory_compile` back off afterwards."""
+def restore_low_memory_compile():
+  """Puts `sav_jax.runtime.set_low_memory_compile` back to its default afterwards."""
   yield
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel
-  runtime.set_low_memory_compile(False)
+  runtime.set_low_memory_compile(runtime.LOW_MEMORY_COMPILE_DEFAULT)
 
 
 def pytest_configure(config):

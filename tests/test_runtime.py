@@ -56,7 +56,8 @@ def test_cli_cache_flags_are_exclusive(capsys):
 
 
 def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch,
-                                                                    low_memory_compile_off):
+                                                                    restore_low_memory_compile):
+  assert runtime.LOW_MEMORY_COMPILE_DEFAULT is True  # the older emitters by default
   runtime.set_low_memory_compile(True)
   assert runtime.inference_compiler_options("gpu") == {}
   assert runtime.inference_compiler_options("tpu") == {}
@@ -68,7 +69,7 @@ def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch
   assert runtime.inference_compiler_options("cpu") == {}
 
 
-def test_low_memory_compile_gives_the_same_values(low_memory_compile_off):
+def test_low_memory_compile_gives_the_same_values(restore_low_memory_compile):
   runtime.set_low_memory_compile(True)
   options = runtime.inference_compiler_options("cpu")
   assert options["xla_cpu_use_fusion_emitters"] is False
