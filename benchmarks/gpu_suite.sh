@@ -11,6 +11,7 @@
 #   precision   distance from the official output per compute mode (precision_check.py) (> 90 s)
 #   parity      the end-to-end parity tests on this backend (needs SAV_FIXTURES)        (> 150 s)
 #   stages      per-stage wall times at the paper's window, bfloat16 (stage_times.py)  (not yet run)
+#   profile     per-module GPU time, multiply-adds and rate, bfloat16 (op_profile.py)  (not yet run)
 # A lease of 15 device minutes holds about 10 minutes of steps (one machine start): pick
 # the steps. Each step has its own time limit; everything is logged to OUTDIR/suite.log and
 # the figures go to OUTDIR/*.json. A failure of the first step within 90 s (an import or API
@@ -19,7 +20,7 @@ set -u
 out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]}
 shift
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 bench_cudnn train precision parity stages)
+[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 bench_cudnn train precision parity stages profile)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
@@ -51,8 +52,10 @@ run_step() {
     parity) step "$1" 300 "$py" -m pytest -x -q -p no:cacheprovider \
               tests/model/test_model_parity.py ;;
     stages) step "$1" 300 "$py" benchmarks/stage_times.py "${window[@]}" --dtype bfloat16 ;;
+    profile) step "$1" 240 "$py" benchmarks/op_profile.py "${window[@]}" --dtype bfloat16 \
+               --repeats 1 --by module --depth 2 --top 25 ;;
     *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_cudnn train precision parity" \
-            "stages)" >&2
+            "stages profile)" >&2
        return 2 ;;
   esac
 }

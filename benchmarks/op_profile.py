@@ -1,4 +1,4 @@
-"""Where the forward's time goes, per compiled operation (jax.profiler trace of XLA:CPU).
+"""Where the forward's time goes, per compiled operation (jax.profiler trace).
 
     python benchmarks/op_profile.py                       # T=5 128x256 iters=8, float32
     python benchmarks/op_profile.py --top 25 --by module  # the 25 costliest model parts
@@ -15,7 +15,10 @@ executed XLA operation (thunk) to
 
 For every group it prints the time per call, its share, the multiply-adds of the
 convolutions and products it ran (from the shapes in the optimized HLO) and the resulting
-GFLOP/s, so that parts that run far below the machine's peak stand out. Operations inside the
+GFLOP/s, so that parts that run far below the machine's peak stand out (on a GPU the
+multiply-adds of the cuDNN convolutions and cuBLAS products XLA calls are counted too, and the
+times are those of the device's "XLA Ops" trace lines; written for and run on XLA:CPU, not yet
+run on a GPU). Operations inside the
 refinement loops are counted once per executed iteration. XLA:CPU runs independent operations
 concurrently, so the summed operation time exceeds the wall time and the per-group rates are
 lower bounds; the first line gives the rate over the whole call.
@@ -51,18 +54,43 @@ _OP_NAME = re.compile(r'op_name="([^"]*)"')
 _DIM_LABELS = re.compile(r"dim_labels=(\w+)_(\w+)->(\w+)")
 _CONTRACT = re.compile(r"lhs_contracting_dims=\{([\d,]*)\}")
 _OPERAND = re.compile(r"%([\w.\-]+)")
+_TARGET = re.compile(r'custom_call_target="([^"]*)"')
+_GEMM_CONTRACT = re.compile(r'"lhs_contracting_dimensions":\[([^\]]*)\]')
+# XLA:GPU's library calls: cuDNN forward convolutions and cuBLAS products.
+_CONV_TARGETS = ("__cudnn$convForward", "__cudnn$convBiasActivationForward")
+_GEMM_TARGETS = ("__cublas$gemm", "__cublas$lt$matmul")
+_LIBRARY_KIND = {"convolution": "cuDNN convolution", "dot": "cuBLAS product"}
 
 
 def _dims(text: str) -> list[list[int]]:
   return [[int(d) for d in m.group(1).split(",") if d] for m in _SHAPE.finditer(text)]
 
 
+def _library_call(rest: str) -> str:
+  """"convolution" / "dot" for XLA:GPU's cuDNN / cuBLAS custom calls, else ""."""
+  target = _TARGET.search(rest)
+  if not target:
+    return ""
+  if target.group(1) in _CONV_TARGETS:
+    return "convolution"
+  return "dot" if target.group(1) in _GEMM_TARGETS else ""
+
+
 def _macs(opcode: str, rest: str, out: list[int], shapes: dict[str, list[int]]) -> int:
-  """Multiply-adds of a convolution or dot from its result and operand shapes."""
+  """Multiply-adds of a convolution or dot from its result and operand shapes (XLA's
+  `convolution`/`dot`, or the cuDNN/cuBLAS custom calls XLA:GPU turns them into)."""
   names = _OPERAND.findall(rest.split(")")[0])
   if len(names) < 2 or names[1] not in shapes:
     return 0
   n_out = math.prod(out)
+  if opcode == "custom-call":
+    opcode = _library_call(rest)
+    if opcode == "dot":  # the contraction is in the backend config (JSON)
+      contract = _GEMM_CONTRACT.search(rest)
+      if not contract or names[0] not in shapes:
+        return n_out
+      dims = [int(i.strip('" ')) for i in contract.group(1).split(",") if i.strip('" ')]
+      return n_out * math.prod(shapes[names[0]][i] for i in dims)
   if opcode == "convolution":
     labels = _DIM_LABELS.search(rest)
     if not labels:
@@ -92,7 +120,13 @@ def parse_hlo(text: str) -> dict[str, dict]:
       name, result, opcode, rest = m.groups()
       dims = _dims(result)
       shapes[name] = dims[0] if len(dims) == 1 else []
-      macs = _macs(opcode, rest, shapes[name], shapes) if opcode in ("convolution", "dot") else 0
+      if opcode in ("convolution", "dot"):
+        macs = _macs(opcode, rest, shapes[name], shapes)
+      elif opcode == "custom-call" and dims and _library_call(rest):
+        macs = _macs(opcode, rest, dims[0], shapes)  # result: (output, workspace)
+        opcode = _LIBRARY_KIND[_library_call(rest)]
+      else:
+        macs = 0
       op_name = _OP_NAME.search(rest)
       current.append((name, opcode, macs, _CALLS.findall(rest),
                       op_name.group(1) if op_name else ""))
@@ -122,10 +156,12 @@ def kind_of(name: str, op: dict | None) -> str:
   opcode = op["opcode"] if op else ""
   if name.startswith("ynn_fusion") or "ynn" in opcode:
     return "YNNPACK fusion (conv/dot + neighbours)"
-  if opcode == "convolution":
-    return "convolution"
+  if opcode in ("convolution", "cuDNN convolution"):
+    return opcode
   if opcode == "dot":
     return "matrix product"
+  if opcode == "cuBLAS product":
+    return opcode
   if opcode == "fusion":
     return "XLA loop fusion" if not op["macs"] else "XLA fusion with conv/dot"
   if opcode in ("copy", "transpose"):
@@ -155,14 +191,43 @@ def thunk_times(trace_dir: str) -> dict[str, tuple[float, int]]:
     raise FileNotFoundError(f"no perfetto trace written under {trace_dir}")
   with gzip.open(files[-1]) as f:
     data = json.load(f)
-  events = data["traceEvents"] if isinstance(data, dict) else data
+  return op_times(data["traceEvents"] if isinstance(data, dict) else data)
+
+
+def op_times(events: list[dict]) -> dict[str, tuple[float, int]]:
+  """Per HLO operation of trace events: (summed us, executions).
+
+  XLA:CPU traces carry one event per executed thunk (`args.hlo_op`) on host threads.
+  A GPU trace also has the host's launch events and the streams' kernels; its device
+  lines named "XLA Ops" hold one event per executed operation, so where such lines
+  exist only they count, else only events of "/device:" processes, else all.
+  """
+  procs, threads = {}, {}
+  for e in events:
+    if e.get("ph") == "M" and e.get("name") in ("process_name", "thread_name"):
+      label = (e.get("args") or {}).get("name", "")
+      if e["name"] == "process_name":
+        procs[e.get("pid")] = label
+      else:
+        threads[(e.get("pid"), e.get("tid"))] = label
+  op_lines = {k for k, v in threads.items() if v == "XLA Ops"}
+  device = {pid for pid, v in procs.items() if v.startswith("/device:")}
   times: dict[str, float] = collections.defaultdict(float)
   counts: dict[str, int] = collections.Counter()
   for e in events:
+    if e.get("ph") != "X":
+      continue
     args = e.get("args") or {}
-    if e.get("ph") == "X" and "hlo_op" in args:
-      times[args["hlo_op"]] += float(e.get("dur", 0.0))
-      counts[args["hlo_op"]] += 1
+    if op_lines:
+      if (e.get("pid"), e.get("tid")) not in op_lines:
+        continue
+      name = args.get("hlo_op") or e.get("name", "")
+    elif "hlo_op" in args and (not device or e.get("pid") in device):
+      name = args["hlo_op"]
+    else:
+      continue
+    times[name] += float(e.get("dur", 0.0))
+    counts[name] += 1
   return {k: (v, counts[k]) for k, v in times.items()}
 
 

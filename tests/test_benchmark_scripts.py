@@ -34,3 +34,54 @@ def test_module_path_from_the_operation_metadata():
   assert op_profile.module_of(op, 2) == "update_block/gru"
   assert op_profile.module_of(op, 8) == "update_block/gru/convz1_0"
   assert op_profile.module_of({"op_name": ""}, 2) == "(no metadata)"
+
+
+GPU_HLO = """HloModule jit_fn
+
+ENTRY %main.10 (p0: f32[2,6,10,4], p1: f32[3,3,4,8], p2: f32[120,8], p3: f32[8,5]) -> f32[120,5] {
+  %p0 = f32[2,6,10,4]{3,2,1,0} parameter(0)
+  %p1 = f32[3,3,4,8]{3,2,1,0} parameter(1)
+  %cudnn-conv.1 = (f32[2,6,10,8]{3,2,1,0}, u8[0]{0}) custom-call(f32[2,6,10,4]{3,2,1,0} %p0, f32[3,3,4,8]{3,2,1,0} %p1), window={size=3x3 pad=1_1x1_1}, dim_labels=b01f_01io->b01f, custom_call_target="__cudnn$convForward", metadata={op_name="jit(fn)/conv_general_dilated"}
+  %p2 = f32[120,8]{1,0} parameter(2)
+  %p3 = f32[8,5]{1,0} parameter(3)
+  %cublas-gemm.1 = (f32[120,5]{1,0}, s8[4194304]{0}) custom-call(f32[120,8]{1,0} %p2, f32[8,5]{1,0} %p3), custom_call_target="__cublas$gemm", backend_config={"gemm_backend_config":{"dot_dimension_numbers":{"lhs_contracting_dimensions":["1"],"rhs_contracting_dimensions":["0"],"lhs_batch_dimensions":[],"rhs_batch_dimensions":[]}}}
+  %other.1 = (f32[4]{0}, u8[0]{0}) custom-call(f32[120,8]{1,0} %p2, f32[8,5]{1,0} %p3), custom_call_target="SomethingElse"
+  ROOT %get-tuple-element.1 = f32[120,5]{1,0} get-tuple-element((f32[120,5]{1,0}, s8[4194304]{0}) %cublas-gemm.1), index=0
+}
+"""
+
+
+def test_multiply_adds_of_the_gpu_library_calls():
+  """XLA:GPU turns convolutions and products into cuDNN / cuBLAS custom calls whose result
+  is (output, workspace); their multiply-adds come from the first shape and the operands."""
+  ops = op_profile.parse_hlo(GPU_HLO)
+  assert ops["cudnn-conv.1"]["macs"] == 2 * 6 * 10 * 8 * (3 * 3 * 4)
+  assert ops["cublas-gemm.1"]["macs"] == 120 * 5 * 8
+  assert ops["other.1"]["macs"] == 0
+  assert op_profile.kind_of("cudnn-conv.1", ops["cudnn-conv.1"]) == "cuDNN convolution"
+  assert op_profile.kind_of("cublas-gemm.1", ops["cublas-gemm.1"]) == "cuBLAS product"
+
+
+def _meta(kind, pid, name, tid=None):
+  return {"ph": "M", "name": kind, "pid": pid, "tid": tid, "args": {"name": name}}
+
+
+def test_operation_times_from_cpu_and_gpu_traces():
+  cpu = [_meta("process_name", 1, "/host:CPU"),
+         {"ph": "X", "pid": 1, "tid": 5, "dur": 3.0, "name": "f", "args": {"hlo_op": "fusion.1"}},
+         {"ph": "X", "pid": 1, "tid": 6, "dur": 2.0, "name": "f", "args": {"hlo_op": "fusion.1"}},
+         {"ph": "X", "pid": 1, "tid": 5, "dur": 9.0, "name": "python"}]
+  assert op_profile.op_times(cpu) == {"fusion.1": (5.0, 2)}
+  # GPU: host launch events and stream kernels carry hlo_op too; only "XLA Ops" counts.
+  gpu = [_meta("process_name", 1, "/host:CPU"), _meta("process_name", 2, "/device:GPU:0"),
+         _meta("thread_name", 2, "Stream #14", 1), _meta("thread_name", 2, "XLA Ops", 2),
+         {"ph": "X", "pid": 1, "tid": 9, "dur": 1.0, "name": "cuLaunchKernel",
+          "args": {"hlo_op": "fusion.1"}},
+         {"ph": "X", "pid": 2, "tid": 1, "dur": 4.0, "name": "loop_fusion_kernel",
+          "args": {"hlo_op": "fusion.1"}},
+         {"ph": "X", "pid": 2, "tid": 2, "dur": 4.5, "name": "fusion.1", "args": {}},
+         {"ph": "X", "pid": 2, "tid": 2, "dur": 7.0, "name": "cudnn-conv.1",
+          "args": {"hlo_op": "cudnn-conv.1"}}]
+  assert op_profile.op_times(gpu) == {"fusion.1": (4.5, 1), "cudnn-conv.1": (7.0, 1)}
+  # without "XLA Ops" lines: the device's events only
+  assert op_profile.op_times(gpu[:3] + gpu[4:6]) == {"fusion.1": (4.0, 1)}
