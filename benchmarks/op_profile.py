@@ -77,30 +77,24 @@ def _library_call(rest: str) -> str:
 
 
 def _macs(opcode: str, rest: str, out: list[int], shapes: dict[str, list[int]]) -> int:
-  """Multiply-adds of a convolution or dot from its result and operand shapes (XLA's
-  `convolution`/`dot`, or the cuDNN/cuBLAS custom calls XLA:GPU turns them into)."""
+  """Multiply-adds of a "convolution" or "dot" from its result and operand shapes (XLA's
+  own, or the cuDNN/cuBLAS custom call XLA:GPU turns it into: `_library_call`)."""
   names = _OPERAND.findall(rest.split(")")[0])
   if len(names) < 2 or names[1] not in shapes:
     return 0
   n_out = math.prod(out)
-  if opcode == "custom-call":
-    opcode = _library_call(rest)
-    if opcode == "dot":  # the contraction is in the backend config (JSON)
-      contract = _GEMM_CONTRACT.search(rest)
-      if not contract or names[0] not in shapes:
-        return n_out
-      dims = [int(i.strip('" ')) for i in contract.group(1).split(",") if i.strip('" ')]
-      return n_out * math.prod(shapes[names[0]][i] for i in dims)
   if opcode == "convolution":
     labels = _DIM_LABELS.search(rest)
     if not labels:
       return 0
     # Every output element sums over the kernel's spatial taps and its input features.
     return n_out * math.prod(d for lab, d in zip(labels.group(2), shapes[names[1]]) if lab != "o")
-  contract = _CONTRACT.search(rest)
+  # XLA's dot: lhs_contracting_dims={1}; cuBLAS's backend config: "lhs_contracting_dimensions":["1"]
+  contract = _CONTRACT.search(rest) or _GEMM_CONTRACT.search(rest)
   if not contract or names[0] not in shapes:
     return n_out
-  return n_out * math.prod(shapes[names[0]][int(i)] for i in contract.group(1).split(",") if i)
+  dims = [int(i.strip('" ')) for i in contract.group(1).split(",") if i.strip('" ')]
+  return n_out * math.prod(shapes[names[0]][i] for i in dims)
 
 
 def parse_hlo(text: str) -> dict[str, dict]:
@@ -120,11 +114,12 @@ def parse_hlo(text: str) -> dict[str, dict]:
       name, result, opcode, rest = m.groups()
       dims = _dims(result)
       shapes[name] = dims[0] if len(dims) == 1 else []
+      library = _library_call(rest) if opcode == "custom-call" and dims else ""
       if opcode in ("convolution", "dot"):
         macs = _macs(opcode, rest, shapes[name], shapes)
-      elif opcode == "custom-call" and dims and _library_call(rest):
-        macs = _macs(opcode, rest, dims[0], shapes)  # result: (output, workspace)
-        opcode = _LIBRARY_KIND[_library_call(rest)]
+      elif library:
+        macs = _macs(library, rest, dims[0], shapes)  # result: (output, workspace)
+        opcode = _LIBRARY_KIND[library]
       else:
         macs = 0
       op_name = _OP_NAME.search(rest)
@@ -156,12 +151,10 @@ def kind_of(name: str, op: dict | None) -> str:
   opcode = op["opcode"] if op else ""
   if name.startswith("ynn_fusion") or "ynn" in opcode:
     return "YNNPACK fusion (conv/dot + neighbours)"
-  if opcode in ("convolution", "cuDNN convolution"):
+  if opcode == "convolution" or opcode in _LIBRARY_KIND.values():
     return opcode
   if opcode == "dot":
     return "matrix product"
-  if opcode == "cuBLAS product":
-    return opcode
   if opcode == "fusion":
     return "XLA loop fusion" if not op["macs"] else "XLA fusion with conv/dot"
   if opcode in ("copy", "transpose"):

@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 from configs import sceneflow  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax import runtime  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.tools.bench import device_peak_gb, peak_rss_gb, xla_buffers_gb  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools.bench import device_peak_gb, memory_lines, peak_rss_gb, xla_buffers_gb  # noqa: E402  pylint: disable=wrong-import-position
 from train import optim, state as state_lib, step as step_lib  # noqa: E402  pylint: disable=wrong-import-position
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 
@@ -114,14 +114,7 @@ def main():
   print(f"compile       {res['compile_s']:.1f} s")
   print(f"step time     median {res['median_s']:.2f} s (min {res['min_s']:.2f} s), "
         f"{res['samples_per_s']:.3f} samples/s")
-  print(f"peak host RSS {res['peak_rss_gb']:.2f} GB ({res['peak_rss_gb_per_sample']:.2f} GB/sample)")
-  if res["device_peak_gb"] is not None:
-    print(f"device peak   {res['device_peak_gb']:.2f} GB "
-          f"({res['device_peak_gb_per_sample']:.2f} GB/sample; after compiling, before the "
-          f"first step: {res['device_peak_compile_gb']:.2f} GB)")
-  if res["xla_temp_gb"] is not None:
-    print(f"XLA buffers   {res['xla_temp_gb']:.2f} GB intermediates + {res['xla_args_gb']:.2f} GB "
-          f"arguments + {res['xla_out_gb']:.2f} GB outputs")
+  print("\n".join(memory_lines(res, batch=res["batch"])))
   if a.json:
     with open(a.json, "w", encoding="utf-8") as f:
       json.dump(res, f, indent=1)

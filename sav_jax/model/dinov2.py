@@ -143,7 +143,7 @@ def fused_attention(q: jax.Array, k: jax.Array, v: jax.Array,
   """
   if implementation == "cudnn":
     backend = jax.default_backend()
-    if backend not in ("gpu", "cuda"):
+    if backend != "gpu":
       raise ValueError(f"SAVConfig.vit_attention='cudnn' needs a CUDA GPU; JAX's backend is "
                        f"{backend!r} (use the default, 'blocked')")
     if q.dtype not in (jnp.bfloat16, jnp.float16):

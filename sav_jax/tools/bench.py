@@ -66,12 +66,15 @@ def xla_buffers_gb(compiled) -> dict:
           for k, v in zip(("xla_temp_gb", "xla_args_gb", "xla_out_gb"), sizes)}
 
 
-def memory_lines(res: dict) -> list[str]:
-  """The memory report of a `measure` result (bench and benchmarks/train_step.py)."""
-  lines = [f"peak host RSS {res['peak_rss_gb']:.2f} GB"]
+def memory_lines(res: dict, batch: int | None = None) -> list[str]:
+  """The memory report of a `measure` result (bench and benchmarks/train_step.py; with
+  `batch`, the peaks per sample too)."""
+  per = lambda gb: "" if batch is None else f", {gb / batch:.2f} GB/sample"  # noqa: E731
+  lines = [f"peak host RSS {res['peak_rss_gb']:.2f} GB{per(res['peak_rss_gb'])}"]
   if res.get("device_peak_gb") is not None:
-    lines.append(f"device peak   {res['device_peak_gb']:.2f} GB (after compiling, before the "
-                 f"first call: {res['device_peak_compile_gb']:.2f} GB)")
+    lines.append(f"device peak   {res['device_peak_gb']:.2f} GB{per(res['device_peak_gb'])} "
+                 f"(after compiling, before the first call: "
+                 f"{res['device_peak_compile_gb']:.2f} GB)")
   if res.get("xla_temp_gb") is not None:
     lines.append(f"XLA buffers   {res['xla_temp_gb']:.2f} GB intermediates + "
                  f"{res['xla_args_gb']:.2f} GB arguments + {res['xla_out_gb']:.2f} GB outputs")
