@@ -88,6 +88,17 @@ def load_sequences(root, split: str, dataset: str = "dynamic_replica"):
   if split not in SPLITS:
     raise ValueError(f"Dynamic Replica split must be one of {SPLITS}, got {split!r}")
   split_dir = find_root(root, "dynamic_replica_data") / split
+  try:
+    seqs = _sequences(split_dir, split, dataset)
+  except (KeyError, IndexError, TypeError) as e:  # a record lacking a field, or of the wrong type
+    raise ValueError(f"{split_dir / f'frame_annotations_{split}.jgz'}: malformed frame record "
+                     f"({type(e).__name__}: {e})") from e
+  if not seqs:
+    raise FileNotFoundError(f"no Dynamic Replica sequences in {split_dir}")
+  return seqs
+
+
+def _sequences(split_dir: Path, split: str, dataset: str) -> list[DepthSequence]:
   groups: dict[str, dict[str, list[dict]]] = {}
   for rec in _records(split_dir, split):
     cams = groups.setdefault(rec["sequence_name"], {"left": [], "right": []})
@@ -108,6 +119,4 @@ def load_sequences(root, split: str, dataset: str = "dynamic_replica"):
     scale = depth2disp_scale(cams["left"][0], cams["right"][0])
     seqs.append(DepthSequence(name, files, dataset=dataset, depth2disp_scale=scale,
                               depth_reader=frame_io.read_float16_png))
-  if not seqs:
-    raise FileNotFoundError(f"no Dynamic Replica sequences in {split_dir}")
   return seqs

@@ -2,12 +2,13 @@
 
 Layout (root = the `InfinigenStereo` folder or its parent):
 
-  <split>/<scene>/frames/Image/camera_{0,1}/Image_<rig>_<cam>_<frame>_<k>.png
+  <split>/<scene>/frames/Image/camera_{0,1}/Image_<rig>_<resample>_<frame>_<subcam>.png
   <split>/<scene>/frames/Depth/camera_{0,1}/Depth_<...>.npy      metres
   <split>/<scene>/frames/camview/camera_{0,1}/camview_<...>.npz  K (3x3 px), T (4x4 pose)
 
 camera_0 is the left view. The three sorted lists are matched by index (stems must
-agree after the type prefix). Depth is used as stored (units not confirmed; depth
+agree after the type prefix; left and right files must have the same frame number,
+Infinigen's suffix order being cam_rig, resample, frame, subcam). Depth is used as stored (units not confirmed; depth
 below 1e-5, NaN or inf is invalid). Scale: `K_left[0, 0] * ||t_left - t_right||`
 from frame 0's camview files. Splits (download script): test = scene001-030,
 train = scene031-216, val = scene217-226, as folders.
@@ -32,10 +33,11 @@ def frame_key(path: Path) -> str:
 
 
 def view_key(path: Path) -> str:
-  """The frame key without the camera token (`<rig>_<cam>_<frame>_<k>`), so left and
-  right files of one frame agree; other naming schemes are compared whole."""
+  """The frame number of an Infinigen stem `<type>_<cam_rig>_<resample>_<frame>_<subcam>`
+  (`Image_0_0_0048_1` -> `0048`), which left and right files of one frame share (the
+  camera is `subcam`, or `cam_rig` in multi-rig renders); other names are compared whole."""
   parts = frame_key(path).split("_")
-  return "_".join(parts[:1] + parts[2:]) if len(parts) == 4 else "_".join(parts)
+  return parts[2] if len(parts) == 4 else "_".join(parts)
 
 
 def depth2disp_scale(left_cam: dict, right_cam: dict, where: str) -> float:

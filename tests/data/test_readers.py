@@ -220,6 +220,15 @@ def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch):
     registry.get_sequences("dynamic_replica", tmp_path, "train")
   with pytest.raises(FileNotFoundError, match="frame_annotations_valid.jgz"):
     registry.get_sequences("dynamic_replica", tmp_path, "valid")
+  _dynamic_replica(tmp_path, np.random.default_rng(5), "train", [("s", 2, "ndc_isotropic")])
+  index = tmp_path / "dynamic_replica_data/train/frame_annotations_train.jgz"
+  with gzip.open(index, "rt", encoding="utf8") as f:
+    records = json.load(f)
+  del records[1]["viewpoint"]  # a malformed record names the annotation file and the field
+  with gzip.open(index, "wt", encoding="utf8") as f:
+    json.dump(records, f)
+  with pytest.raises(ValueError, match=r"frame_annotations_train.jgz: malformed .*'viewpoint'"):
+    registry.get_sequences("dynamic_replica", tmp_path, "train")
 
 
 def _infinigen(root, rng, split, scenes):
@@ -229,7 +238,7 @@ def _infinigen(root, rng, split, scenes):
     truth[scene] = {}
     for cam in (0, 1):
       for i in range(n):
-        stem = f"0_{cam}_{i + 1:04d}_0"
+        stem = f"0_0_{i + 1:04d}_{cam}"  # Infinigen: cam_rig, resample, frame, subcam
         img, depth = _rgb(rng), rng.uniform(1.0, 50.0, (H, W)).astype(np.float32)
         depth[0, 0], depth[1, 0] = 0.0, np.inf
         _png(frames / "Image" / f"camera_{cam}" / f"Image_{stem}.png", img)
@@ -274,10 +283,13 @@ def test_infinigen_scale_values_clips_and_eval_cut(tmp_path, monkeypatch):
   _infinigen(tmp_path, np.random.default_rng(8), "test", [("scene001", 3), ("scene002", 2)])
   monkeypatch.setitem(registry.EVAL_FRAMES, "infinigen_sv", 3)
   assert [len(s) for s in registry.get_sequences("infinigen_sv", tmp_path, "test")] == [3, 2]
-  depth_dir = tmp_path / "InfinigenStereo/test/scene002/frames/Depth/camera_1"
-  (depth_dir / "Depth_0_1_0002_0.npy").rename(depth_dir / "Depth_0_1_0005_0.npy")
-  with pytest.raises(ValueError, match="stem mismatch"):
-    registry.get_sequences("infinigen_sv", tmp_path, "test")
+  frames = tmp_path / "InfinigenStereo/test/scene002/frames"
+  for kind, ext in (("Depth", "npy"), ("Image", "png"), ("camview", "npz")):
+    d = frames / kind / "camera_1"  # first within camera_1, then across the two views
+    (d / f"{kind}_0_0_0002_1.{ext}").rename(d / f"{kind}_0_0_0005_1.{ext}")
+    with pytest.raises(ValueError, match="stem mismatch") as err:
+      registry.get_sequences("infinigen_sv", tmp_path, "test")
+    assert ("camera_0" in str(err.value)) == (kind == "camview"), err.value
 
 
 def _vkitti2(root, rng, names, n=2):
