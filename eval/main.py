@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import pathlib
 import sys
 import time
 
 from eval import config as eval_config
 from eval import data as eval_data
 from eval import report, runner
+from sav_jax.tools import UsageError, check_output_dir
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
                       format="%(levelname)s %(name)s: %(message)s")
   try:
     return run(args, overrides)
-  except (ValueError, FileNotFoundError, FileExistsError) as e:
+  except (ValueError, FileNotFoundError, FileExistsError, UsageError) as e:
     print(f"eval: error: {e}", file=sys.stderr)
     return 2
 
@@ -62,9 +62,12 @@ def main(argv: list[str] | None = None) -> int:
 def run(args, overrides) -> int:
   """Loads config, data and weights, evaluates every sequence, writes the reports."""
   config = eval_config.apply_overrides(eval_config.load_config(args.config), overrides)
-  out = pathlib.Path(args.out or f"outputs/eval/{config.dataset}")
-  if (out / "results.json").exists() and not args.overwrite:
-    raise FileExistsError(f"{out / 'results.json'} exists; pass --overwrite to replace it")
+  out = check_output_dir(args.out or f"outputs/eval/{config.dataset}")
+  earlier = [p for p in (out / "results.json", out / "predictions", out / "plots")
+             if p.is_file() or (p.is_dir() and any(p.iterdir()))]
+  if earlier and not args.overwrite:  # also the predictions of an interrupted run
+    raise FileExistsError(f"{', '.join(map(str, earlier))} exist; pass --overwrite to replace "
+                          "them")
   if config.iters < 2 or config.iters % 2:
     raise ValueError(f"config.iters must be an even number >= 2, got {config.iters}")
   seqs = eval_data.load_sequences(config, args.data_root)

@@ -41,7 +41,8 @@ def markdown(summary: dict) -> str:
            f"iters {summary['config']['iters']}, window {summary['config']['window']} / stride "
            f"{summary['config']['stride']}, {summary['config']['dtype']}; "
            f"{len(summary['sequences'])} sequences, {summary['frames']} frames.", "",
-           "## Aggregate (frame-weighted mean over sequences; lower is better)", ""]
+           "## Aggregate (frame-weighted mean over sequences; lower is better"
+           + (", except TCC)" if any(k == "disp_TCC" for _, k in cols) else ")"), ""]
   head = ["Method"] + [h for h, _ in cols] + ["frames/s"]
   lines += ["| " + " | ".join(head) + " |", "|---" + "|---:" * (len(head) - 1) + "|"]
   for m in methods.values():

@@ -176,13 +176,28 @@ def _bad_case(name, root, clip, npz_ckpt):
     return left, right, npz_ckpt, ["--iters", "3"], "even"
   if name == "calibration":
     return left, right, npz_ckpt, ["--fx", "100"], "--baseline"
+  if name == "fy_zero":
+    return left, right, npz_ckpt, ["--fx", "100", "--fy", "0", "--baseline", "0.1"], "fy must"
+  if name == "fps":
+    return left, right, npz_ckpt, ["--iters", str(ITERS), "--fps", "0"], "--fps must be"
+  if name == "out_is_file":
+    (root / "out").write_text("keep")
+    return left, right, npz_ckpt, [], "is a file, not a folder"
+  calib = {"calib_no_keys": ('{"left": {"fx": 720}, "baseline_m": 0.1}', "no calibration found"),
+           "calib_null": ('{"fx": null, "baseline": 0.1}', "fx must be a number, got None"),
+           "calib_units": ("fx: 720\nbaseline: 0.54 m\n", "line 2: baseline must be one number")}
+  if name in calib:
+    text, message = calib[name]
+    (root / "calib.txt").write_text(text)
+    return left, right, npz_ckpt, ["--calib", str(root / "calib.txt")], message
   raise AssertionError(name)
 
 
 @pytest.mark.parametrize("name", [
     "counts", "sizes", "empty", "unreadable", "mixed_sizes", "no_checkpoint",
     "incompatible_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
-    "calibration"])
+    "calibration", "fy_zero", "fps", "out_is_file", "calib_no_keys", "calib_null",
+    "calib_units"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):
   left, right, ckpt, extra, message = _bad_case(name, tmp_path, clip, npz_ckpt)
   out = tmp_path / "out"
@@ -192,7 +207,10 @@ def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, n
   assert rc == 2, err
   assert message in err
   assert err.count("\n") == 1  # one clean line, no traceback
-  assert not out.exists()
+  if name == "out_is_file":
+    assert out.read_text() == "keep"
+  else:
+    assert not out.exists()
 
 
 def test_calibration_file(tmp_path):
@@ -209,6 +227,8 @@ def test_calibration_file(tmp_path):
   txt = tmp_path / "c.txt"
   txt.write_text("fx = 400\nbaseline: 0.2\ncx 10\n")
   assert read_calibration(txt) == {"fx": 400.0, "baseline": 0.2, "cx": 10.0}
+  txt.write_text("# rig 3\nfx\t400  # px\nfy   410\nbaseline:0.2\nname: left camera\n")
+  assert read_calibration(txt) == {"fx": 400.0, "fy": 410.0, "baseline": 0.2}
 
 
 def test_demo_random_weights(tmp_path, monkeypatch, capsys):

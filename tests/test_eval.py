@@ -100,6 +100,7 @@ def test_synthetic_outputs_and_metrics(synthetic_run, variables):
       "disp_epe_mean"]
   md = (out / "results.md").read_text()
   assert "| Stereo Any Video |" in md and "| StereoSGBM |" in md and "δt-1px %" in md
+  assert "lower is better, except TCC" in md  # TCC: higher is better
 
 
 def test_refuses_to_overwrite(synthetic_run, ckpt, capsys):
@@ -108,6 +109,18 @@ def test_refuses_to_overwrite(synthetic_run, ckpt, capsys):
              "--out", str(synthetic_run), *SMALL])
   assert rc == 2 and "--overwrite" in capsys.readouterr().err
   assert (synthetic_run / "results.json").read_text() == before
+  interrupted = synthetic_run.parent / "interrupted"  # predictions, no results yet
+  (interrupted / "predictions").mkdir(parents=True)
+  (interrupted / "predictions" / "seq.npy").write_bytes(b"keep")
+  (synthetic_run.parent / "a_file").write_text("keep")
+  for out, message in ((interrupted, "predictions exist; pass --overwrite"),
+                       (synthetic_run.parent / "a_file", "is a file, not a folder")):
+    rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt),
+               "--out", str(out), *SMALL])
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and err.count("\n") == 1, err
+  assert (interrupted / "predictions" / "seq.npy").read_bytes() == b"keep"
+  assert (synthetic_run.parent / "a_file").read_text() == "keep"
 
 
 @pytest.mark.parametrize("override,message", [

@@ -7,6 +7,8 @@ A `UsageError` (or ValueError / FileNotFoundError / FileExistsError) raised by
 """
 
 import argparse
+import os
+import pathlib
 
 
 class UsageError(Exception):
@@ -46,3 +48,22 @@ def setup_compile_cache(args, default_on: bool = True):
   if default_on and not getattr(args, "no_compile_cache", False):
     return runtime.enable_compilation_cache()
   return None
+
+
+def check_output_dir(out, flag: str = "--out") -> pathlib.Path:
+  """Raises UsageError unless `out` is, or can be created as, a writable folder.
+
+  Run before any computation, so that a bad output path fails at once rather than after
+  the model has run.
+  """
+  out = pathlib.Path(out)
+  if out.exists() and not out.is_dir():
+    raise UsageError(f"{flag} {out} is a file, not a folder")
+  existing = out
+  while not existing.exists():  # the nearest folder that exists: where mkdir will write
+    existing = existing.parent
+  if not existing.is_dir():
+    raise UsageError(f"{flag} {out}: {existing} is a file, not a folder")
+  if not os.access(existing, os.W_OK | os.X_OK):
+    raise UsageError(f"{flag} {out}: no permission to write in {existing}")
+  return out

@@ -17,14 +17,17 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import pathlib
+import re
 import time
 
 from typing import NamedTuple
 
 import numpy as np
 
-from sav_jax.tools import UsageError, add_compile_cache_arguments, setup_compile_cache, video_io
+from sav_jax.tools import (UsageError, add_compile_cache_arguments, check_output_dir,
+                           setup_compile_cache, video_io)
 
 HELP = "estimate disparity for a stereo video (frame folders or video files)"
 log = logging.getLogger(__name__)
@@ -107,9 +110,15 @@ def check_model_args(iters: int, window: int, stride: int) -> None:
     raise UsageError(f"need 1 <= --stride <= --window, got stride {stride}, window {window}")
 
 
+def check_fps(fps: float) -> None:
+  if not (math.isfinite(fps) and fps > 0):
+    raise UsageError(f"--fps must be a positive frame rate, got {fps}")
+
+
 def run(args: argparse.Namespace) -> int:
   formats = parse_formats(args.formats)
   check_model_args(args.iters, args.window, args.stride)
+  check_fps(args.fps)
   calib_spec = calibration_from_args(args)
   ckpt = pathlib.Path(args.checkpoint)
   if not ckpt.exists():
@@ -117,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
   left, right, names = video_io.load_stereo(args.left, args.right, args.max_frames)
   t, h, w = left.shape[:3]
   calib = None if calib_spec is None else calib_spec.resolve(w, h)
-  out = pathlib.Path(args.out)
+  out = check_output_dir(args.out)
   check_overwrite(output_paths(out, names, formats, calib, args.depth_format), args.overwrite)
 
   setup_compile_cache(args)
@@ -205,10 +214,15 @@ def calibration_from_args(args) -> CalibrationSpec | None:
   if missing:
     raise UsageError(f"calibration needs {' and '.join('--' + m for m in missing)} "
                      "(fy, cx, cy are optional)")
-  for k in ("fx", "baseline"):
-    if not given[k] > 0:
-      raise UsageError(f"calibration {k} must be positive, got {given[k]}")
+  for k, v in given.items():
+    positive = k in ("fx", "fy", "baseline")
+    if not math.isfinite(v) or (positive and not v > 0):
+      raise UsageError(f"calibration {k} must be a {'positive' if positive else 'finite'} "
+                       f"number, got {v}")
   return CalibrationSpec(**{k: float(v) for k, v in given.items()})
+
+
+_CALIB_KEYS = ("fx", "fy", "cx", "cy", "baseline")
 
 
 def read_calibration(path) -> dict[str, float]:
@@ -226,22 +240,38 @@ def read_calibration(path) -> dict[str, float]:
       data = json.loads(text)
     except json.JSONDecodeError as e:
       raise UsageError(f"{path}: invalid JSON ({e})") from e
-    return {k: float(data[k]) for k in ("fx", "fy", "cx", "cy", "baseline") if k in data}
+    if not isinstance(data, dict) or not any(k in data for k in _CALIB_KEYS):
+      found = sorted(data)[:8] if isinstance(data, dict) else type(data).__name__
+      raise UsageError(f"{path}: no calibration found: expected a JSON object with fx and "
+                       f"baseline (fy, cx, cy optional) at the top level; found {found}")
+    out = {}
+    for k in (k for k in _CALIB_KEYS if k in data):
+      if isinstance(data[k], bool) or not isinstance(data[k], (int, float, str)):
+        raise UsageError(f"{path}: {k} must be a number, got {data[k]!r}")
+      try:
+        out[k] = float(data[k])
+      except ValueError as e:
+        raise UsageError(f"{path}: {k} must be a number, got {data[k]!r}") from e
+    return out
   entries = {}
-  for line in text.splitlines():
-    key, sep, rest = line.replace("=", ":", 1).partition(":")
-    if not sep:
-      key, _, rest = line.strip().partition(" ")
-    try:
-      entries[key.strip()] = [float(v) for v in rest.replace(",", " ").split()]
-    except ValueError:
+  for number, line in enumerate(text.splitlines(), 1):
+    line = line.split("#", 1)[0].strip()  # comments
+    if not line:
       continue
+    key, rest = re.match(r"([^\s:=]+)\s*[:=]?\s*(.*)$", line).groups()  # 'k: v', 'k = v', 'k v'
+    try:
+      entries[key] = [float(v) for v in rest.replace(",", " ").split()]
+    except ValueError:
+      entries[key] = None  # text values (KITTI's calib_time, ...)
+    if key in _CALIB_KEYS and (entries[key] is None or len(entries[key]) != 1):
+      raise UsageError(f"{path}, line {number}: {key} must be one number (pixels, or metres "
+                       f"for the baseline), got {rest!r}")
   for p2, p3 in (("P_rect_02", "P_rect_03"), ("P2", "P3")):
-    if len(entries.get(p2, ())) == 12 and len(entries.get(p3, ())) == 12:
+    if len(entries.get(p2) or ()) == 12 and len(entries.get(p3) or ()) == 12:
       m2, m3 = np.reshape(entries[p2], (3, 4)), np.reshape(entries[p3], (3, 4))
       return {"fx": m2[0, 0], "fy": m2[1, 1], "cx": m2[0, 2], "cy": m2[1, 2],
               "baseline": abs(m2[0, 3] - m3[0, 3]) / m2[0, 0]}
-  out = {k: v[0] for k, v in entries.items() if k in ("fx", "fy", "cx", "cy", "baseline") and v}
+  out = {k: entries[k][0] for k in _CALIB_KEYS if k in entries}
   if not out:
     raise UsageError(f"{path}: no calibration found (expected JSON, 'fx 720' lines or KITTI "
                      "P_rect_02/P_rect_03 matrices)")
