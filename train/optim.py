@@ -86,10 +86,11 @@ def make_schedule(opt_cfg, num_steps: int) -> Callable[[Any], jax.Array]:
   if opt_cfg.schedule != "one_cycle":
     raise ValueError(f"unknown schedule {opt_cfg.schedule!r}; expected 'one_cycle' or 'constant'")
   total = opt_cfg.schedule_steps if opt_cfg.schedule_steps > 0 else num_steps + 100
-  # The official loop stops the scheduler at num_steps; our updates never get there, so
-  # no `stop_at` (and the compiled step does not depend on num_steps).
+  # The official loop stops the scheduler at num_steps, before the cycle ends (total is
+  # num_steps + 100). A cycle set shorter than the run (`schedule_steps`) holds its final
+  # lr afterwards instead of extrapolating the linear decay below zero.
   return one_cycle_linear(opt_cfg.lr, total, opt_cfg.pct_start, opt_cfg.div_factor,
-                          opt_cfg.final_div_factor)
+                          opt_cfg.final_div_factor, stop_at=total - 1)
 
 
 def make_optimizer(opt_cfg, num_steps: int, params) -> optax.GradientTransformation:

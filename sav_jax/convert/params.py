@@ -21,8 +21,7 @@ import numpy as np
 from flax import traverse_util
 
 from sav_jax.config import SAVConfig
-from sav_jax.convert.keys import (flax_to_torch_array, path_to_torch, torch_to_flax_array,
-                                  torch_to_path)
+from sav_jax.convert.keys import flax_to_torch_array, path_to_torch, torch_to_flax_array
 from sav_jax.model.init import abstract_variables
 from sav_jax.convert.vda import vda_params_from_state_dict, vda_state_dict_from_params
 
@@ -66,12 +65,15 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
     unused.update({VDA_PREFIX + k: v for k, v in vda_unused.items()})
   except ValueError as e:
     problems.append(f"in the depth prior ({VDA_PREFIX}*): {e}")
+  # Exact official names only: `x.kernel` or `a.b_0.c` are not aliases of `x.weight`, `a.b.0.c`.
+  by_torch = {path_to_torch(path): path for path in target
+              if path[:2] != ("depthnet", "depthanything")}
   for key, value in sd.items():
     if key.startswith(VDA_PREFIX) or key in SAV_UNUSED_KEYS:
       continue
     value = np.asarray(value)
-    path = torch_to_path(key, value.ndim)
-    if path not in target:
+    path = by_torch.get(key)
+    if path is None:
       problems.append(f"unexpected key {key!r}")
       continue
     arr = torch_to_flax_array(value, path[-1])
@@ -80,9 +82,7 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
                       f"(expects {flax_to_torch_array(np.empty(target[path].shape), path[-1]).shape})")
       continue
     flat[path] = arr.astype(np.float32)
-  for path in target:
-    if path not in flat and path[:2] != ("depthnet", "depthanything"):
-      problems.append(f"missing key {path_to_torch(path)!r}")
+  problems += [f"missing key {key!r}" for key in by_torch if key not in sd]
   if problems:
     raise ValueError(f"state dict does not match Stereo Any Video ({cfg.vda_encoder}): "
                      f"{len(problems)} problem(s):\n  " + "\n  ".join(problems))
@@ -93,7 +93,8 @@ def state_dict_from_params(variables: Mapping) -> dict[str, np.ndarray]:
   """Flax variables -> official state dict (inverse of `params_from_state_dict`).
 
   Unused-in-forward keys come from the `"torch_unused"` collection when present
-  (exact round trip), else are filled with zeros of the official shape.
+  (exact round trip), else are filled with zeros of the official shape (trained params
+  have none), so the file always has every official key.
   """
   params = traverse_util.flatten_dict(jax.device_get(variables["params"]))
   unused = dict(variables.get(UNUSED_COLLECTION, {}))

@@ -64,8 +64,11 @@ def _abstract_params_cached(encoder: str, features: int, out_channels: tuple) ->
 def vda_unused_shapes(model: VideoDepthAnything | None = None) -> dict[str, tuple[int, ...]]:
   """Shapes of the `VDA_UNUSED_KEYS` entries for a model configuration."""
   model = model or VideoDepthAnything()
-  f = model.features
-  embed = _abstract_params(model)["pretrained"]["cls_token"].shape[-1]
+  return _unused_shapes(_abstract_params(model)["pretrained"]["cls_token"].shape[-1],
+                        model.features)
+
+
+def _unused_shapes(embed: int, f: int) -> dict[str, tuple[int, ...]]:
   shapes = {"pretrained.mask_token": (1, embed)}
   for conv in ("conv1", "conv2"):
     shapes[f"head.scratch.refinenet4.resConfUnit1.{conv}.weight"] = (f, f, 3, 3)
@@ -162,7 +165,8 @@ def vda_state_dict_from_params(params: dict, unused: dict[str, np.ndarray] | Non
 
   Args:
     params: the `params` collection of `VideoDepthAnything`.
-    unused: the `VDA_UNUSED_KEYS` arrays to carry over (omitted when None).
+    unused: the `VDA_UNUSED_KEYS` arrays to carry over; keys not given (all, when None)
+      are written as zeros of the official shape, so the file stays complete.
     model: the configuration, for the sinusoidal buffers (default ViT-S).
 
   Returns:
@@ -171,6 +175,10 @@ def vda_state_dict_from_params(params: dict, unused: dict[str, np.ndarray] | Non
   sd = {}
   for path, value in flatten_dict(params).items():
     sd[path_to_torch(path)] = flax_to_torch_array(np.asarray(value), path[-1])
-  sd.update({k: np.asarray(v) for k, v in (unused or {}).items()})
+  unused = unused or {}
+  shapes = _unused_shapes(np.shape(params["pretrained"]["cls_token"])[-1],
+                          np.shape(params["head"]["scratch"]["refinenet4"]["out_conv"]["bias"])[0])
+  sd.update({k: np.asarray(unused[k]) if k in unused else np.zeros(shape, np.float32)
+             for k, shape in shapes.items()})
   sd.update(vda_pe_buffers(model))
   return sd

@@ -62,6 +62,30 @@ def test_strict_errors_list_every_problem(sav_state_dict):
     assert needle in msg, (needle, msg)
 
 
+def test_only_official_names_are_accepted(sav_state_dict):
+  sd = dict(sav_state_dict)
+  sd["fnet.conv1.kernel"] = sd.pop("fnet.conv1.weight")  # a Flax leaf name is not an alias
+  sd["cnet.layer1_0.conv1.weight"] = sd["cnet.layer1.0.conv1.weight"]  # nor a Flax path
+  norm = "update_block.time_attn.temporal_norm1.weight"
+  sd[norm] = sd[norm][None]  # one extra dimension: a shape error, not missing + unexpected
+  with pytest.raises(ValueError) as e:
+    convert.params_from_state_dict(sd)
+  msg = str(e.value)
+  for needle in ("unexpected key 'fnet.conv1.kernel'", "missing key 'fnet.conv1.weight'",
+                 "unexpected key 'cnet.layer1_0.conv1.weight'", f"key '{norm}': shape (1, "):
+    assert needle in msg, (needle, msg)
+  assert f"missing key '{norm}'" not in msg and f"unexpected key '{norm}'" not in msg
+  assert msg.count("problem") == 1 and "4 problem(s)" in msg, msg
+
+
+def test_export_of_trained_params_is_complete(sav_state_dict, variables):
+  exported = convert.state_dict_from_params({"params": variables["params"]})  # no torch_unused
+  assert sorted(exported) == sorted(sav_state_dict)
+  back = convert.params_from_state_dict(exported)
+  jax.tree_util.tree_map(np.testing.assert_array_equal, back["params"], variables["params"])
+  assert not np.any(exported["depthnet.depthanything.head.scratch.output_conv2.0.weight"])
+
+
 def test_unused_parameters_are_kept_outside_params(variables):
   unused = variables[UNUSED_COLLECTION]
   assert "update_block.time_attn.temporal_attn.qkv.weight" in unused

@@ -90,6 +90,16 @@ def test_one_cycle_matches_pytorch_formula():
     np.testing.assert_allclose(float(sched(s)), ref, rtol=2e-5, err_msg=str(s))
 
 
+def test_schedule_shorter_than_the_run_holds_its_final_lr():
+  c = synthetic.get_config()
+  c.optimizer.schedule, c.optimizer.schedule_steps = "one_cycle", 100
+  sched = optim.make_schedule(c.optimizer, 200)
+  final = c.optimizer.lr / c.optimizer.div_factor / c.optimizer.final_div_factor
+  lrs = np.array([float(sched(s)) for s in (98, 99, 100, 150, 199)])
+  assert lrs[0] > lrs[1] and np.all(lrs > 0), lrs
+  np.testing.assert_allclose(lrs[1:], final, rtol=1e-5)
+
+
 @functools.lru_cache(maxsize=1)
 def _real_abstract_params():
   c = synthetic.get_config()
