@@ -8,7 +8,7 @@ SceneFlow recipe with 80k steps, starting from the SceneFlow weights.
 
 Usage:
   python -m train --config configs/mixed.py --workdir runs/mix \
-      --config.init_from=runs/sf_final_weights
+      --config.init_from=runs/sceneflow   # a run's WORKDIR: its latest checkpoint's params
 """
 
 import ml_collections

@@ -168,7 +168,7 @@ def _bad_case(name, root, clip, npz_ckpt):
     return left, right, root / "bad.npz", [], "bad.npz: incompatible checkpoint"
   if name == "not_a_checkpoint_dir":
     (root / "dir").mkdir()
-    return left, right, root / "dir", [], "not a sav-jax variables checkpoint"
+    return left, right, root / "dir", [], "not a sav-jax checkpoint"
   if name == "not_a_video":
     (root / "l.txt").write_text("hello")
     return root / "l.txt", right, npz_ckpt, [], "expected a frame folder or a video file"

@@ -1,15 +1,19 @@
 """Checkpoints of a run (orbax `CheckpointManager`) and initial weights.
 
-A checkpoint `workdir/checkpoints/<step>/` holds two items:
-  state: `{"params", "opt_state", "step", "rng", "num_skipped"}` (`StandardSave`),
-  data:  the grain iterator state of every process (`grain.checkpoint.CheckpointSave`,
-         one JSON file per process).
+A checkpoint `workdir/checkpoints/<step>/` holds three items:
+  state:  `{"params", "opt_state", "step", "rng", "num_skipped"}` (`StandardSave`),
+  data:   the grain iterator state of every process (`grain.checkpoint.CheckpointSave`,
+          one JSON file per process),
+  config: `{"model": SAVConfig dict, "step": step}` (`JsonSave`), so that
+          `sav-jax infer`/`convert`, `python -m eval` and `init_from` can use the step
+          folder (or the workdir: its latest step) as model weights.
 Orbax writes into a temporary directory and renames it when complete, so a run killed
 mid-save leaves no checkpoint under a final name; such leftovers are cleaned up at start.
 
 Resume order (`initial_state` in `train.loop`): the latest checkpoint in the workdir,
 else converted init weights (`init_from`: `.pth/.pt/.npz/.safetensors` in the official
-layout or an orbax directory from `sav_jax.convert.save_variables`; `vda_weights`: a
+layout, an orbax directory from `sav_jax.convert.save_variables`, or another run's
+workdir / checkpoint step folder; `vda_weights`: a
 Video Depth Anything file for the frozen prior), else random initialisation.
 """
 
@@ -38,7 +42,7 @@ def make_manager(workdir, config) -> ocp.CheckpointManager:
       max_to_keep=ck.keep if ck.keep > 0 else None, create=True,
       enable_async_checkpointing=ck.async_save, cleanup_tmp_directories=True)
   return ocp.CheckpointManager(pathlib.Path(workdir).absolute() / "checkpoints",
-                               item_names=("state", "data"), options=options)
+                               item_names=("state", "data", "config"), options=options)
 
 
 def _state_dict(state: TrainState) -> dict:
@@ -47,8 +51,9 @@ def _state_dict(state: TrainState) -> dict:
 
 
 def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step: int,
-         params_finite: bool = True, force: bool = False) -> bool:
-  """Saves state and data-iterator state at `step`.
+         params_finite: bool = True, force: bool = False,
+         model_config: sav_jax.SAVConfig | None = None) -> bool:
+  """Saves state, data-iterator state and the model config at `step`.
 
   Args:
     manager: checkpoint manager of the run.
@@ -58,6 +63,7 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
     params_finite: the caller's knowledge that the params are finite (the train step
       only applies finite updates and reports `l2_params`); False refuses to save.
     force: save even if `step` is not on the manager's save interval.
+    model_config: the model's config (default: `SAVConfig()`), for readers of the weights.
 
   Returns:
     Whether a save was started.
@@ -65,8 +71,10 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
   if not params_finite:
     log.error("step %d: non-finite parameters; NOT saving a checkpoint", step)
     return False
+  config = {"model": (model_config or sav_jax.SAVConfig()).to_dict(), "step": int(step)}
   args = ocp.args.Composite(state=ocp.args.StandardSave(_state_dict(state)),
-                            data=grain.checkpoint.CheckpointSave(data_iterator))
+                            data=grain.checkpoint.CheckpointSave(data_iterator),
+                            config=ocp.args.JsonSave(config))
   return manager.save(step, args=args, force=force)
 
 
@@ -94,8 +102,9 @@ def load_model_params(path, cfg: sav_jax.SAVConfig, abstract_params) -> dict:
   """Host params (the `params` collection only) from full-model weights.
 
   Args:
-    path: official `.pth/.pt/.npz/.safetensors` weights, or an orbax directory written by
-      `sav_jax.convert.save_variables`.
+    path: official `.pth/.pt/.npz/.safetensors` weights, an orbax directory written by
+      `sav_jax.convert.save_variables`, or another run's checkpoint (its step folder, or its
+      workdir for the latest step; only the params are read).
     cfg: the model config.
     abstract_params: `jax.eval_shape` of the params; on several hosts an orbax directory
       (then holding exactly `{"params": ...}`) is restored into it on each process's

@@ -127,7 +127,7 @@ def _setup(config, workdir):
                if config.eval.every_steps > 0 else None)
   log.info("start at step %d of %d (state from %s)", int(jax.device_get(state.step)),
            config.train.num_steps, source)
-  return dict(grain_it=grain_it, manager=manager, state=state, train_step=train_step,
+  return dict(grain_it=grain_it, manager=manager, state=state, train_step=train_step, model=model,
               evaluator=evaluator,
               batches=pipeline.GlobalBatchIterator(grain_it, state_lib.data_sharding(mesh)))
 
@@ -159,7 +159,8 @@ def run(config, workdir) -> state_lib.TrainState:
       pending = None
     if save_now:
       ckpt_lib.save(manager, state, parts["grain_it"], step, force=True,
-                    params_finite=bool(np.isfinite(host.last["l2_params"])))
+                    params_finite=bool(np.isfinite(host.last["l2_params"])),
+                    model_config=parts["model"].cfg)
     if eval_now:
       writer.write(step, evaluator(state.params), split="val")
   if pending is not None:

@@ -5,6 +5,10 @@ A checkpoint is a directory written by `orbax.checkpoint.Checkpointer` with a
 `StandardSave`) and `config` (a JSON-able dict, via `JsonSave`). Orbax writes into a
 temporary directory and renames it when complete, so a killed save leaves no half-written
 checkpoint under the final name.
+
+`restore_variables` also reads the model out of a training run's checkpoint
+(`WORKDIR/checkpoints/<step>/` with the items `state` and, since 2026-11-30, `config`,
+written by `python -m train`): only `state["params"]` is read, not the optimizer state.
 """
 
 import json
@@ -17,7 +21,8 @@ import numpy as np
 
 from sav_jax.convert.pickle_reader import CheckpointError
 
-__all__ = ["save_variables", "restore_variables", "is_variables_checkpoint"]
+__all__ = ["save_variables", "restore_variables", "is_variables_checkpoint",
+           "find_training_checkpoint", "is_orbax_checkpoint"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +49,34 @@ def is_variables_checkpoint(directory) -> bool:
   directory = pathlib.Path(directory)
   return (directory.is_dir() and (directory / _METADATA_FILE).is_file()
           and all((directory / item).is_dir() for item in _ITEMS))
+
+
+def _is_training_step(directory: pathlib.Path) -> bool:
+  return (directory / _METADATA_FILE).is_file() and (directory / "state").is_dir()
+
+
+def find_training_checkpoint(path) -> pathlib.Path | None:
+  """The step folder of a `python -m train` checkpoint at `path`, or None.
+
+  Args:
+    path: a step folder (`WORKDIR/checkpoints/<step>`), the `checkpoints` folder or the
+      run's `WORKDIR` (then the latest finished step).
+  """
+  path = pathlib.Path(path).absolute()
+  if _is_training_step(path):
+    return path
+  for root in (path, path / "checkpoints"):
+    if root.is_dir():  # unfinished saves have temporary, non-numeric names
+      steps = [(int(d.name), d) for d in root.iterdir()
+               if d.name.isdigit() and _is_training_step(d)]
+      if steps:
+        return max(steps)[1]
+  return None
+
+
+def is_orbax_checkpoint(path) -> bool:
+  """A `save_variables` directory or a training checkpoint (`find_training_checkpoint`)."""
+  return is_variables_checkpoint(path) or find_training_checkpoint(path) is not None
 
 
 def save_variables(directory, variables, config_dict: dict, overwrite: bool = False
@@ -100,7 +133,9 @@ def restore_variables(directory, target=None):
   """Restores what `save_variables` wrote.
 
   Args:
-    directory: checkpoint directory.
+    directory: checkpoint directory, or a training run's checkpoint (see
+      `find_training_checkpoint`), whose `params` are returned as `{"params": ...}` with
+      the config saved beside them (`{}` for checkpoints from before configs were saved).
     target: optional abstract pytree (e.g. `jax.eval_shape(model.init, ...)`, leaves
       `jax.ShapeDtypeStruct`, with or without shardings) or concrete arrays to restore into.
       Without it, the structure, shapes and dtypes come from the saved metadata and arrays
@@ -116,10 +151,13 @@ def restore_variables(directory, target=None):
   """
   directory = pathlib.Path(directory).absolute()
   if not is_variables_checkpoint(directory):
-    raise CheckpointError(_not_a_checkpoint_message(directory))
+    step = find_training_checkpoint(directory)
+    if step is None:
+      raise CheckpointError(_not_a_checkpoint_message(directory))
+    return _restore_training_params(step, target)
   with _checkpointer() as ckptr:
     if target is None:
-      target = _target_from_metadata(ckptr, directory)
+      target = _target_from_metadata(ckptr, directory, "variables")
     ocp = _ocp()
     args = ocp.args.Composite(variables=ocp.args.StandardRestore(target),
                               config=ocp.args.JsonRestore())
@@ -137,14 +175,41 @@ def _not_a_checkpoint_message(directory):
   if not directory.is_dir():
     return f"{directory}: not a directory (expected an orbax checkpoint directory)"
   found = sorted(os.listdir(directory))[:8]
-  return (f"{directory}: not a sav-jax variables checkpoint (expected {_METADATA_FILE} and "
-          f"the items {list(_ITEMS)}; found {found})")
+  return (f"{directory}: not a sav-jax checkpoint (expected {_METADATA_FILE} and the items "
+          f"{list(_ITEMS)}, or a training run's WORKDIR/checkpoints/<step>; found {found})")
 
 
-def _target_from_metadata(ckptr, directory):
-  """Abstract arrays on the default device, from the saved tree metadata."""
+def _restore_training_params(step: pathlib.Path, target=None):
+  """`({"params": ...}, config)` from a training checkpoint's step folder."""
+  ocp = _ocp()
+  has_config = (step / "config").is_dir()
+  handlers = {"state": ocp.PyTreeCheckpointHandler()}
+  if has_config:
+    handlers["config"] = ocp.JsonCheckpointHandler()
+  with ocp.Checkpointer(ocp.CompositeCheckpointHandler(**handlers)) as ckptr:
+    params = (_target_from_metadata(ckptr, step, "state", "params") if target is None
+              else target["params"])
+    args = {"state": ocp.args.PyTreeRestore(
+        {"params": params}, restore_args={"params": ocp.checkpoint_utils.construct_restore_args(
+            params)}, partial_restore=True)}  # the optimizer state is not read
+    if has_config:
+      args["config"] = ocp.args.JsonRestore()
+    try:
+      restored = ckptr.restore(step, args=ocp.args.Composite(**args))
+    except (ValueError, KeyError, TypeError) as e:
+      raise CheckpointError(f"{step}: cannot restore the parameters of this training checkpoint "
+                            f"({type(e).__name__}: {e})") from e
+  if not has_config:
+    log.warning("%s: no model config saved with this checkpoint; assuming the default model", step)
+  return {"params": restored["state"]["params"]}, restored["config"] if has_config else {}
+
+
+def _target_from_metadata(ckptr, directory, item, key=None):
+  """Abstract arrays on the default device, from the saved tree metadata of `item` (its
+  `key` subtree when given)."""
   try:
-    tree = ckptr.metadata(directory).item_metadata["variables"].tree
+    tree = ckptr.metadata(directory).item_metadata[item].tree
+    tree = tree if key is None else tree[key]
   except (KeyError, AttributeError, TypeError, ValueError) as e:
     raise CheckpointError(f"{directory}: unreadable checkpoint metadata ({e})") from e
   sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])

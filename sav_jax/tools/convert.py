@@ -8,15 +8,18 @@ import logging
 from sav_jax.tools import UsageError
 
 HELP = ("convert an official .pth/.pt/.safetensors/.npz checkpoint into an orbax directory, "
-        "or export an orbax directory back to an official .safetensors/.npz/.pth file")
+        "or export an orbax directory or a training run's checkpoint to an official "
+        ".safetensors/.npz/.pth file")
 log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("src", help="Stereo Any Video checkpoint (or, with --vda, a VDA-only file); "
-                 "an orbax directory to export")
+                 "an orbax directory, or a training run's WORKDIR (latest checkpoint) or "
+                 "WORKDIR/checkpoints/STEP, to export")
   p.add_argument("dst", help="orbax checkpoint directory to create; when SRC is an orbax "
-                 "directory, the .safetensors/.npz/.pth file to export to")
+                 "directory, the .safetensors/.npz/.pth file to export to (for a training "
+                 "checkpoint, a path without suffix makes a variables directory: params only)")
   p.add_argument("--vda", action="store_true",
                  help="SRC is a Video Depth Anything file (video_depth_anything_vits.pth): "
                       "write SAV variables with these depth-prior weights and a freshly "
@@ -38,10 +41,16 @@ def run(args: argparse.Namespace) -> int:
 
   if os.path.exists(args.dst) and not args.overwrite:
     raise UsageError(f"{args.dst} exists; pass --overwrite to replace it")
-  if convert.is_variables_checkpoint(args.src):
-    variables, _ = convert.restore_variables(args.src)
-    path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite)
-    print(f"exported {args.src} -> {path} (official Stereo Any Video key names)")
+  if convert.is_orbax_checkpoint(args.src):
+    variables, config = convert.restore_variables(args.src)
+    if convert.is_variables_checkpoint(args.src) or os.path.splitext(args.dst)[1]:
+      path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite)
+      print(f"exported {args.src} -> {path} (official Stereo Any Video key names)")
+    else:  # a training checkpoint -> a compact variables directory (no optimizer state)
+      step = convert.find_training_checkpoint(args.src)
+      convert.save_variables(args.dst, variables, {**config, "source": str(step)},
+                             overwrite=args.overwrite)
+      print(f"saved the params of {step} -> {args.dst}")
     return 0
   cfg = sav_jax.SAVConfig()
   sd = convert.load_state_dict(args.src)

@@ -37,7 +37,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--left", required=True, help="left frames: a folder of images or a video file")
   p.add_argument("--right", required=True, help="right frames: a folder of images or a video file")
   p.add_argument("--checkpoint", required=True,
-                 help="orbax directory from `sav-jax convert`, or a .pth/.pt/.safetensors/.npz "
+                 help="orbax directory from `sav-jax convert`, a training run's WORKDIR (latest "
+                      "checkpoint) or WORKDIR/checkpoints/STEP, or a .pth/.pt/.safetensors/.npz "
                       "state dict (converted on the fly)")
   p.add_argument("--out", required=True, help="output folder")
   p.add_argument("--iters", type=int, default=20, help="refinement iterations (even; default 20)")
@@ -282,8 +283,9 @@ def load_checkpoint(path, dtype: str | None = None):
   """Loads model weights from an orbax directory or an official state-dict file.
 
   Args:
-    path: `sav-jax convert` / training orbax directory, or a .pth/.pt/.safetensors/.npz
-      Stereo Any Video state dict (converted on the fly; no torch needed).
+    path: `sav-jax convert` orbax directory, a training run's workdir or checkpoint step
+      folder (its params), or a .pth/.pt/.safetensors/.npz Stereo Any Video state dict
+      (converted on the fly; no torch needed).
     dtype: compute dtype override ("float32" / "bfloat16").
 
   Returns:
@@ -302,7 +304,9 @@ def load_checkpoint(path, dtype: str | None = None):
     variables, cfg_dict = convert.restore_variables(path)
     cfg = _config_from_dict(cfg_dict, path)
     check_variables(variables, cfg, path)
-    described = f"orbax checkpoint {path}"
+    step = None if convert.is_variables_checkpoint(path) else convert.find_training_checkpoint(path)
+    described = (f"orbax checkpoint {path}" if step is None
+                 else f"training checkpoint {step} (params)")
   else:
     sd = convert.load_state_dict(path)
     if convert.checkpoint_kind(sd, source=str(path)) != "sav":

@@ -90,7 +90,7 @@ def test_not_a_checkpoint(tmp_path):
     orbax_io.restore_variables(tmp_path / "file")
   (tmp_path / "dir").mkdir()
   (tmp_path / "dir" / "other.bin").write_bytes(b"")
-  with pytest.raises(CheckpointError, match=r"not a sav-jax variables checkpoint.*other\.bin"):
+  with pytest.raises(CheckpointError, match=r"not a sav-jax checkpoint.*other\.bin"):
     orbax_io.restore_variables(tmp_path / "dir")
 
 

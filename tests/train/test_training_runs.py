@@ -44,6 +44,38 @@ def test_synthetic_training_lowers_validation_epe(jobs):
   assert list((workdir / "tb").glob("events.out.tfevents.*"))
 
 
+@pytest.mark.train_job("learn")
+def test_trained_weights_serve_infer_convert_and_init(jobs, tmp_path, capsys):
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from sav_jax import cli, convert  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
+  from tests.train.conftest import tiny_config  # pylint: disable=import-outside-toplevel
+  workdir = jobs.get("learn")
+  want = _state(workdir, LEARN_STEPS)["params"]
+  step_dir = workdir / "checkpoints" / str(LEARN_STEPS)
+  assert convert.find_training_checkpoint(workdir) == step_dir  # the latest step
+  variables, config = convert.restore_variables(workdir)
+  assert set(variables) == {"params"} and config["step"] == LEARN_STEPS
+  model_cfg = sav_jax.SAVConfig.from_dict(dict(tiny_config().model))
+  assert config["model"] == model_cfg.to_dict()
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(variables["params"]), want)
+  _, cfg, described = load_checkpoint(step_dir / ".." / str(LEARN_STEPS))  # sav-jax infer, eval
+  assert cfg.remat == model_cfg.remat and "training checkpoint" in described
+  # Export to the official layout, and to a compact variables directory.
+  assert cli.main(["convert", str(workdir), str(tmp_path / "trained.npz")]) == 0
+  back = convert.params_from_state_dict(convert.load_state_dict(tmp_path / "trained.npz"))
+  jax.tree.map(np.testing.assert_array_equal, back["params"], want)
+  assert cli.main(["convert", str(step_dir), str(tmp_path / "trained")]) == 0
+  assert "saved the params" in capsys.readouterr().out
+  compact, compact_config = convert.restore_variables(tmp_path / "trained")
+  assert convert.is_variables_checkpoint(tmp_path / "trained")
+  assert compact_config["model"] == config["model"]
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(compact["params"]), want)
+  from train import checkpoint as ckpt_lib  # pylint: disable=import-outside-toplevel
+  init = ckpt_lib.load_model_params(workdir, model_cfg, None)  # --config.init_from=WORKDIR
+  jax.tree.map(np.testing.assert_array_equal, init, want)
+
+
 @pytest.mark.train_job("kill_resume")
 def test_killed_run_resumes_exactly(jobs):
   result = jobs.get("kill_resume")
