@@ -9,8 +9,26 @@ Usage:
       --config.train.batch_size=16 --config.vda_weights=checkpoints/video_depth_anything_vits.pth
 """
 
+import dataclasses
+
 import ml_collections
 from ml_collections import config_dict
+
+from sav_jax.data.augment import AugmentConfig
+from sav_jax.data.synthetic import SyntheticConfig
+
+
+def dataclass_fields(cls, skip=(), **values) -> ml_collections.ConfigDict:
+  """Every field of dataclass `cls` but `skip`, at its default or `values`, so that each one
+  can be overridden on the command line (a locked config refuses new fields); a None
+  default becomes a float placeholder."""
+  fields = {}
+  for f in dataclasses.fields(cls):
+    if f.name not in skip:
+      fields[f.name] = values.pop(f.name, f.default)
+      if fields[f.name] is None:
+        fields[f.name] = config_dict.placeholder(float)
+  return ml_collections.ConfigDict({**fields, **values})
 
 
 def base_config() -> ml_collections.ConfigDict:
@@ -44,10 +62,13 @@ def base_config() -> ml_collections.ConfigDict:
   c.data.mixing = "concat"
   # Training sources: name -> (registry dataset name or "synthetic", weight).
   c.data.sources = ml_collections.ConfigDict()
-  # AugmentConfig field overrides (its defaults are the official script's flags).
-  c.data.augment = ml_collections.ConfigDict()
-  # Procedural generator settings (used by "synthetic" sources and synthetic validation).
-  c.data.synthetic = ml_collections.ConfigDict(dict(num_clips=100_000, seed=0))
+  # The augmentation: every AugmentConfig field (its defaults are the official script's
+  # flags) but the crop, which is data.crop.
+  c.data.augment = dataclass_fields(AugmentConfig, skip=("crop_size",))
+  # Procedural generator settings (used by "synthetic" sources and synthetic validation):
+  # clips per epoch and every SyntheticConfig field but the clip shape (data.frames, data.crop).
+  c.data.synthetic = dataclass_fields(SyntheticConfig, skip=("frames", "height", "width"),
+                                      num_clips=100_000, seed=0)
   # grain reader threads per process.
   c.data.num_threads = 8
   # Elements prefetched by the reader threads.
@@ -62,7 +83,7 @@ def base_config() -> ml_collections.ConfigDict:
   c.train.num_steps = 120_000
   # Refinement iterations at 1/4 (1/16 and 1/8 get iters//2): N = 2*iters predictions in the loss.
   c.train.iters = 10
-  # Log train scalars (means over the window) every this many steps.
+  # Log train scalars (means over the window) every this many steps (0: the last step only).
   c.train.log_every = 50
   # Abort when more updates than this were skipped for non-finite loss/gradients.
   c.train.max_skipped_steps = 100
@@ -104,7 +125,7 @@ def base_config() -> ml_collections.ConfigDict:
   c.loss.per_sample = True
 
   c.checkpoint = ml_collections.ConfigDict()
-  # Save every this many steps (official save_steps 3000), plus at the end.
+  # Save every this many steps (official save_steps 3000), plus at the end (0: the end only).
   c.checkpoint.every_steps = 3000
   # Checkpoints kept (the latest ones); 0 keeps all.
   c.checkpoint.keep = 3

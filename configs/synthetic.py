@@ -14,6 +14,7 @@ Usage:
 import ml_collections
 
 from configs import sceneflow
+from sav_jax.data.synthetic import SyntheticConfig
 
 
 def get_config() -> ml_collections.ConfigDict:
@@ -27,8 +28,9 @@ def get_config() -> ml_collections.ConfigDict:
   # One source: the procedural generator.
   c.data.sources.synthetic = ml_collections.ConfigDict(dict(dataset="synthetic", weight=1.0))
   # Generator: few objects, disparities that fit the small crop.
-  c.data.synthetic = ml_collections.ConfigDict(dict(
-      num_clips=100_000, seed=0, num_objects=3, min_disparity=1.0, max_disparity=12.0))
+  c.data.synthetic = sceneflow.dataclass_fields(
+      SyntheticConfig, skip=("frames", "height", "width"), num_clips=100_000, seed=0,
+      num_objects=3, min_disparity=1.0, max_disparity=12.0)
   # Reader threads (the generator renders in numpy).
   c.data.num_threads = 2
   # Elements prefetched by the reader threads.

@@ -124,15 +124,33 @@ def load_model_params(path, cfg: sav_jax.SAVConfig, abstract_params) -> dict:
     variables, _ = sav_jax.convert.restore_variables(path, target)
     variables = jax.device_get(variables)
   else:
-    variables = sav_jax.convert.params_from_state_dict(sav_jax.convert.load_state_dict(path),
-                                                        cfg)
+    variables = _convert(path, "sav", "init_from",
+                         lambda sd: sav_jax.convert.params_from_state_dict(sd, cfg))
   log.info("initial weights from %s", path)
   return dict(variables["params"])
 
 
 def load_vda_params(path) -> dict:
   """Host params of the frozen prior (to go under `params/depthnet/depthanything`)."""
-  params, unused = sav_jax.convert.vda_params_from_state_dict(
-      sav_jax.convert.load_state_dict(path))
+  params, unused = _convert(path, "vda", "vda_weights", sav_jax.convert.vda_params_from_state_dict)
   log.info("frozen depth prior from %s (%d unused keys)", path, len(unused))
   return jax.tree.map(np.asarray, params)
+
+
+_KINDS = {"sav": ("a Stereo Any Video", "init_from"),
+          "vda": ("a Video Depth Anything (depth prior only)", "vda_weights")}
+
+
+def _convert(path, want: str, field: str, fn):
+  """`fn(state dict)` of the file at `path`, which must be of kind `want` ("sav"/"vda");
+  errors name the file, the config field and, for the other kind, the field it is for."""
+  sd = sav_jax.convert.params.strip_module_prefix(sav_jax.convert.load_state_dict(path))
+  kind = sav_jax.convert.checkpoint_kind(sd, source=str(path))
+  if kind != want:
+    raise sav_jax.convert.CheckpointError(
+        f"config.{field}={path} is {_KINDS[kind][0]} checkpoint, not {_KINDS[want][0]} one; "
+        f"give it as config.{_KINDS[kind][1]}")
+  try:
+    return fn(sd)
+  except ValueError as e:
+    raise sav_jax.convert.CheckpointError(f"config.{field}={path}: {e}") from e

@@ -97,11 +97,16 @@ class _HostMetrics:
                   self.skipped)
       if self.skipped > self.config.train.max_skipped_steps:
         raise FloatingPointError(f"{self.skipped} skipped updates > train.max_skipped_steps")
-    if step % self.config.train.log_every == 0 or step == self.config.train.num_steps:
+    if _every(step, self.config.train.log_every) or step == self.config.train.num_steps:
       means = {k: v / self.n for k, v in self.sums.items()}
       means["num_skipped"] = float(last["num_skipped"])  # a counter, not a mean
       self.writer.write(step, means)
       self.sums, self.n = {}, 0
+
+
+def _every(step: int, period: int) -> bool:
+  """Whether `step` is on a period of `period` steps (never for period <= 0)."""
+  return period > 0 and step % period == 0
 
 
 def _setup(config, workdir):
@@ -152,8 +157,8 @@ def run(config, workdir) -> state_lib.TrainState:
     if pending is not None:
       host(*pending)  # one step late, so that host work overlaps the device
     pending = (step, metrics)
-    save_now = step % config.checkpoint.every_steps == 0 or step == total
-    eval_now = evaluator is not None and (step % config.eval.every_steps == 0 or step == total)
+    save_now = _every(step, config.checkpoint.every_steps) or step == total
+    eval_now = evaluator is not None and (_every(step, config.eval.every_steps) or step == total)
     if save_now or eval_now:
       host(*pending)
       pending = None

@@ -90,6 +90,55 @@ def test_one_cycle_matches_pytorch_formula():
     np.testing.assert_allclose(float(sched(s)), ref, rtol=2e-5, err_msg=str(s))
 
 
+@pytest.mark.parametrize("name", ["sceneflow", "mixed", "synthetic"])
+def test_augmentation_and_generator_fields_are_overridable(name):
+  import dataclasses  # pylint: disable=import-outside-toplevel
+  import importlib  # pylint: disable=import-outside-toplevel
+
+  from sav_jax.data import pipeline  # pylint: disable=import-outside-toplevel
+  from sav_jax.data.augment import AugmentConfig  # pylint: disable=import-outside-toplevel
+  from train import input as input_lib  # pylint: disable=import-outside-toplevel
+  c = importlib.import_module(f"configs.{name}").get_config()
+  c.lock()  # as `python -m train` loads it: unknown fields are refused
+  crop = tuple(c.data.crop)
+  default = pipeline.Augment(crop, tuple(sorted(dict(c.data.augment).items())))._config()
+  assert default == AugmentConfig(crop_size=crop)  # the official defaults, unchanged
+  assert set(c.data.augment) == {f.name for f in dataclasses.fields(AugmentConfig)} - {"crop_size"}
+  c.data.augment.spatial_prob = 0.0
+  c.data.augment.scale_range = (-0.1, 0.1)
+  c.data.synthetic.focal = 300.0
+  c.data.synthetic.max_speed = 1.5
+  aug = pipeline.Augment(crop, tuple(sorted(dict(c.data.augment).items())))._config()
+  assert (aug.spatial_prob, aug.scale_range) == (0.0, (-0.1, 0.1))
+  gen = input_lib.synthetic_config(c.data, c.data.synthetic, seed=3)
+  assert (gen.focal, gen.max_speed, gen.seed, gen.frames) == (300.0, 1.5, 3, c.data.frames)
+
+
+def test_log_and_save_periods_of_zero_mean_the_last_step_only():
+  from train import loop  # pylint: disable=import-outside-toplevel
+
+  class Writer:
+    def __init__(self):
+      self.steps = []
+
+    def write(self, step, scalars, split="train"):
+      self.steps.append(step)
+
+  class Bar:
+    def update(self, *args, **kwargs):
+      pass
+
+  c = synthetic.get_config()
+  c.train.log_every, c.train.num_steps = 0, 3
+  writer = Writer()
+  host = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
+  for step in (1, 2, 3):
+    host(step, {"loss": 1.0, "epe": 1.0, "num_skipped": 0})
+  assert writer.steps == [3]
+  assert [loop._every(s, 0) for s in (1, 2)] == [False, False]  # pylint: disable=protected-access
+  assert [loop._every(s, 2) for s in (1, 2)] == [False, True]  # pylint: disable=protected-access
+
+
 def test_schedule_shorter_than_the_run_holds_its_final_lr():
   c = synthetic.get_config()
   c.optimizer.schedule, c.optimizer.schedule_steps = "one_cycle", 100
@@ -212,3 +261,21 @@ def test_vda_weights_load_into_the_real_model(tmp_path, vda_state_dict):
   abstract = _real_abstract_params()["depthnet"]["depthanything"]
   assert jax.tree.structure(vda) == jax.tree.structure(abstract)
   jax.tree.map(lambda a, b: np.testing.assert_equal(np.shape(a), b.shape), vda, abstract)
+
+
+def test_init_files_of_the_wrong_kind_name_the_file_and_the_field(tmp_path, vda_state_dict,
+                                                                   sav_state_dict):
+  from sav_jax.convert import CheckpointError, save_state_dict  # pylint: disable=g-import-not-at-top
+  save_state_dict(vda_state_dict, tmp_path / "vda.npz")
+  save_state_dict(sav_state_dict, tmp_path / "sav.npz")
+  with pytest.raises(CheckpointError) as e:
+    ckpt_lib.load_vda_params(tmp_path / "sav.npz")
+  assert "config.vda_weights=" in str(e.value) and "sav.npz is a Stereo Any Video" in str(e.value)
+  assert "give it as config.init_from" in str(e.value) and len(str(e.value)) < 400
+  with pytest.raises(CheckpointError, match=r"vda\.npz is a Video Depth Anything .*vda_weights"):
+    ckpt_lib.load_model_params(tmp_path / "vda.npz", sav_jax.SAVConfig(), None)
+  broken = dict(sav_state_dict)
+  del broken["fnet.conv1.weight"]
+  save_state_dict(broken, tmp_path / "broken.npz")
+  with pytest.raises(CheckpointError, match=r"(?s)config.init_from=.*broken.npz: .*fnet.conv1.weight"):
+    ckpt_lib.load_model_params(tmp_path / "broken.npz", sav_jax.SAVConfig(), None)
