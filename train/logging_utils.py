@@ -19,12 +19,17 @@ class MetricWriter:
 
   TensorBoard needs `tensorboardX`; without it only the JSONL file is written.
 
+  A run resumed at `start_step` re-runs the steps that a killed run logged after its last
+  checkpoint: those JSONL records move to `metrics.superseded.jsonl` and TensorBoard
+  purges its events after `start_step`, so each step is logged once.
+
   Args:
     workdir: run directory.
     enabled: False on processes other than 0.
+    start_step: the step the run starts from (the restored checkpoint's).
   """
 
-  def __init__(self, workdir, enabled: bool = True):
+  def __init__(self, workdir, enabled: bool = True, start_step: int = 0):
     self.enabled = enabled
     self._tb = None
     self._jsonl = None
@@ -32,10 +37,11 @@ class MetricWriter:
       return
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
+    _supersede(workdir / "metrics.jsonl", workdir / "metrics.superseded.jsonl", start_step)
     self._jsonl = open(workdir / "metrics.jsonl", "a", encoding="utf-8")
     try:
       from tensorboardX import SummaryWriter  # pylint: disable=g-import-not-at-top
-      self._tb = SummaryWriter(str(workdir / "tb"))
+      self._tb = SummaryWriter(str(workdir / "tb"), purge_step=start_step + 1)
     except ImportError:
       log.warning("tensorboardX is not installed: TensorBoard events are not written")
 
@@ -59,6 +65,29 @@ class MetricWriter:
     if self._tb is not None:
       self._tb.close()
       self._tb = None
+
+
+def _supersede(path: pathlib.Path, aside: pathlib.Path, start_step: int) -> None:
+  """Moves the records of `path` with a step after `start_step`, and broken lines, to the
+  end of `aside`."""
+  if not path.is_file():
+    return
+  keep, later = [], []
+  for line in path.read_text(encoding="utf-8").splitlines(keepends=True):
+    try:
+      step = int(json.loads(line)["step"])
+    except (ValueError, KeyError, TypeError):
+      step = None  # a line cut by the kill: moved aside too
+    (keep if step is not None and step <= start_step and line.endswith("\n")
+     else later).append(line)
+  if not later:
+    return
+  with open(aside, "a", encoding="utf-8") as f:
+    f.writelines(later)
+  tmp = path.with_name(path.name + ".tmp")
+  tmp.write_text("".join(keep), encoding="utf-8")
+  tmp.replace(path)  # atomic: the log is never half-written
+  log.info("moved %d log records after step %d to %s", len(later), start_step, aside)
 
 
 class Progress:

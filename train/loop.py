@@ -143,7 +143,7 @@ def run(config, workdir) -> state_lib.TrainState:
   parts = _setup(config, workdir)
   state, manager, evaluator = parts["state"], parts["manager"], parts["evaluator"]
   start, total = int(jax.device_get(state.step)), config.train.num_steps
-  writer = MetricWriter(workdir, enabled=jax.process_index() == 0)
+  writer = MetricWriter(workdir, enabled=jax.process_index() == 0, start_step=start)
   progress = Progress(start, total, enabled=config.train.progress_bar)
   host = _HostMetrics(config, writer, progress, int(jax.device_get(state.num_skipped)))
   if evaluator is not None and start == 0 and config.eval.at_start:

@@ -5,6 +5,7 @@ compile it run in subprocesses (test_sharding, test_multihost, test_resume_and_l
 """
 
 import functools
+import json
 
 import flax.linen as nn
 import jax
@@ -279,3 +280,22 @@ def test_init_files_of_the_wrong_kind_name_the_file_and_the_field(tmp_path, vda_
   save_state_dict(broken, tmp_path / "broken.npz")
   with pytest.raises(CheckpointError, match=r"(?s)config.init_from=.*broken.npz: .*fnet.conv1.weight"):
     ckpt_lib.load_model_params(tmp_path / "broken.npz", sav_jax.SAVConfig(), None)
+
+
+def test_resumed_run_logs_each_step_once(tmp_path):
+  from train.logging_utils import MetricWriter  # pylint: disable=g-import-not-at-top
+  first = MetricWriter(tmp_path)
+  for step in (10, 20, 30):  # a run checkpointed at step 20, killed after logging step 30
+    first.write(step, {"loss": 1.0})
+  first.close()
+  with open(tmp_path / "metrics.jsonl", "a", encoding="utf-8") as f:
+    f.write('{"step": 40, "spl')  # cut by the kill
+  resumed = MetricWriter(tmp_path, start_step=20)
+  resumed.write(30, {"loss": 0.5})
+  resumed.close()
+  steps = [json.loads(l)["step"] for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+  assert steps == [10, 20, 30]
+  records = [json.loads(l) for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+  assert records[-1]["loss"] == 0.5
+  aside = (tmp_path / "metrics.superseded.jsonl").read_text().splitlines()
+  assert json.loads(aside[0])["loss"] == 1.0 and aside[1] == '{"step": 40, "spl'
