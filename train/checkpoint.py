@@ -94,7 +94,15 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
                         _state_dict(abstract_state), _state_dict(shardings))
   args = ocp.args.Composite(state=ocp.args.StandardRestore(target),
                             data=grain.checkpoint.CheckpointRestore(data_iterator))
-  restored = manager.restore(step, args=args)["state"]
+  try:
+    restored = manager.restore(step, args=args)["state"]
+  except (ValueError, KeyError, TypeError) as e:  # orbax: tree structures or shapes differ
+    first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    raise sav_jax.convert.CheckpointError(
+        f"{manager.directory / str(step)}: cannot resume from this checkpoint: it does not match "
+        f"this run's model or optimizer config ({type(e).__name__}: {first[:300]}). Resume "
+        "with the config it was written with, or start a new WORKDIR with "
+        "--config.init_from=<that workdir> to keep only its weights") from e
   return TrainState(**restored)
 
 

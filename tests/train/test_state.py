@@ -215,6 +215,15 @@ def test_checkpoint_roundtrip_with_data_iterator(tmp_path):
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(restored.params),
                jax.device_get(state.params))
   jax.tree.map(np.testing.assert_array_equal, next(fresh), expected_next)
+  # A checkpoint of another optimizer config (no clipping: another state tree) is refused
+  # with a message that says so, not orbax's tree diff.
+  c.optimizer.clip_norm = 0.0
+  tx2 = optim.make_optimizer(c.optimizer, c.train.num_steps, state_lib.abstract_params(model, c))
+  _, shardings2 = state_lib.create_train_state(model, tx2, c, mesh)
+  abstract2 = jax.eval_shape(state_lib.make_init_fn(model, tx2, c))
+  with pytest.raises(sav_jax.convert.CheckpointError, match="does not match this run's model or "
+                     "optimizer config.*init_from"):
+    ckpt_lib.restore(ckpt_lib.make_manager(tmp_path, c), abstract2, shardings2, fresh)
 
 
 def test_place_params_rejects_mismatches():
