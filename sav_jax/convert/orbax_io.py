@@ -15,6 +15,7 @@ import json
 import logging
 import os
 import pathlib
+import shutil
 
 import jax
 import numpy as np
@@ -114,8 +115,17 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
   ocp = _ocp()
   args = ocp.args.Composite(variables=ocp.args.StandardSave(variables),
                             config=ocp.args.JsonSave(config_dict))
-  with _checkpointer() as ckptr:
-    ckptr.save(directory, args=args, force=overwrite and directory.exists())
+  if not directory.exists():
+    with _checkpointer() as ckptr:
+      ckptr.save(directory, args=args)
+  else:  # write the new one beside the old one, then swap: a kill never leaves neither
+    new = directory.with_name(f"{directory.name}.new-{os.getpid()}")
+    old = directory.with_name(f"{directory.name}.old-{os.getpid()}")
+    with _checkpointer() as ckptr:
+      ckptr.save(new, args=args, force=True)
+    directory.rename(old)
+    new.rename(directory)
+    shutil.rmtree(old)
   log.info("saved variables and config to %s", directory)
   return directory
 

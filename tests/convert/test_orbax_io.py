@@ -71,6 +71,11 @@ def test_overwrite(tmp_path):
   restored, config = orbax_io.restore_variables(path)
   np.testing.assert_array_equal(restored["params"]["w"], np.ones(3))
   assert config == {"v": 2}
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt"]  # no leftovers of the swap
+  # The old checkpoint stays whole until the new one is complete.
+  with pytest.raises(CheckpointError, match="zero-size"):
+    orbax_io.save_variables(path, {"params": {"w": jnp.ones(0)}}, {"v": 3}, overwrite=True)
+  np.testing.assert_array_equal(orbax_io.restore_variables(path)[0]["params"]["w"], np.ones(3))
 
 
 def test_refuses_to_overwrite_foreign_directory(tmp_path):
