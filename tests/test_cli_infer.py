@@ -235,6 +235,9 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   from sav_jax.tools import demo
   monkeypatch.setattr(demo, "BUNDLED", tmp_path / "no_bundled_checkpoint")
   out = tmp_path / "demo"
+  (out / "disparity").mkdir(parents=True)
+  for name in (f"frame_{T:06d}.png", "mine.png"):  # an earlier, longer demo's frame; a user's
+    (out / "disparity" / name).write_bytes(b"old")
   rc = cli.main(["demo", "--out", str(out), "--frames", str(T), "--height", str(H),
                  "--width", str(W), "--iters", str(ITERS)])
   printed = capsys.readouterr().out
@@ -242,7 +245,8 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   assert "RANDOM (untrained) weights" in printed and "StereoSGBM" in printed
   for name in ("comparison.mp4", "side_by_side.mp4", "metrics.json"):
     assert (out / name).is_file()
-  assert len(list((out / "disparity").glob("*.png"))) == T
+  assert sorted(p.name for p in (out / "disparity").glob("*.png")) == [
+      f"frame_{t:06d}.png" for t in range(T)] + ["mine.png"]
   results = json.loads((out / "metrics.json").read_text())["metrics"]
   assert set(results) == {"Stereo Any Video", "StereoSGBM"}
   assert results["StereoSGBM"]["disp_epe_mean"] < 2.0  # SGBM works on the synthetic scene

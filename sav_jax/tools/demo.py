@@ -22,7 +22,7 @@ import time
 import cv2
 import numpy as np
 
-from sav_jax.tools import add_compile_cache_arguments, setup_compile_cache
+from sav_jax.tools import add_compile_cache_arguments, check_output_dir, setup_compile_cache
 
 HELP = "run the model on a built-in synthetic stereo video and compare with StereoSGBM"
 BUNDLED = pathlib.Path(__file__).resolve().parents[1] / "assets" / "sav_synthetic"
@@ -114,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
   infer.check_model_args(args.iters, 20, 10)
   if args.frames < 1 or args.height < 16 or args.width < 32:
     raise UsageError("need --frames >= 1, --height >= 16 and --width >= 32")
+  out = check_output_dir(args.out)
   scfg = synthetic.SyntheticConfig(frames=args.frames, height=args.height, width=args.width,
                                    max_disparity=min(64.0, args.width / 8), seed=args.seed)
   clip = synthetic.generate_clip(scfg, 0)
@@ -132,8 +133,10 @@ def run(args: argparse.Namespace) -> int:
   results = {"Stereo Any Video": _metrics(pred, clip), "StereoSGBM": _metrics(sgbm, clip)}
   times = {"Stereo Any Video": t_model, "StereoSGBM": t_sgbm}
   print(_table(results, times))
-  out = pathlib.Path(args.out)
   (out / "disparity").mkdir(parents=True, exist_ok=True)
+  for stale in (out / "disparity").glob("frame_[0-9][0-9][0-9][0-9][0-9][0-9].png"):
+    if int(stale.stem[len("frame_"):]) >= args.frames:  # a longer earlier demo's frames
+      stale.unlink()
   vmin, vmax = viz.disparity_range(clip["disparity"], clip["valid"])
   col = lambda d, valid=None: viz.colorize(d, vmin, vmax, valid=valid)  # noqa: E731
   viz.write_video(out / "comparison.mp4", viz.side_by_side(
