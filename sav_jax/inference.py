@@ -48,7 +48,10 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import numbers
 import os
+import warnings
+from typing import Mapping
 
 import jax
 import jax.numpy as jnp
@@ -57,6 +60,7 @@ import numpy as np
 from sav_jax import runtime
 from sav_jax.config import SAVConfig
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
+from sav_jax.model.init import abstract_variables
 
 log = logging.getLogger(__name__)
 
@@ -104,8 +108,12 @@ class Window:
   keep_stop: int
 
 
+def _is_int(x) -> bool:
+  return isinstance(x, numbers.Integral) and not isinstance(x, bool)
+
+
 def _check_window(window: int, stride: int) -> None:
-  if not (isinstance(window, int) and isinstance(stride, int) and 1 <= stride <= window):
+  if not (_is_int(window) and _is_int(stride) and 1 <= stride <= window):
     raise ValueError(f"need integers 1 <= stride <= window, got window={window!r}, "
                      f"stride={stride!r}")
 
@@ -180,6 +188,9 @@ def unpad(x: np.ndarray, pads: tuple[int, int, int, int]) -> np.ndarray:
 def resolve_config(cfg: SAVConfig | None = None, dtype: str | None = None) -> SAVConfig:
   """`cfg` (default `SAVConfig()`) with its compute dtype replaced by `dtype` if given."""
   cfg = SAVConfig() if cfg is None else cfg
+  if not isinstance(cfg, SAVConfig):
+    raise TypeError(f"cfg must be a sav_jax.SAVConfig (SAVConfig.from_dict(d) for a dict), "
+                    f"got {type(cfg).__name__}")
   if dtype is not None and dtype != cfg.dtype:
     cfg = dataclasses.replace(cfg, dtype=str(dtype))
   return cfg
@@ -403,6 +414,42 @@ class FrameFeatureCache:
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *items)
 
 
+def _checked_iters(iters) -> int:
+  """`iters` as a Python int (numpy integers too), checked before anything compiles."""
+  # pylint: disable-next=import-outside-toplevel
+  from sav_jax.model.stereo_any_video import check_iters
+  check_iters(int(iters) if _is_int(iters) else iters)
+  return int(iters)
+
+
+def check_variables(variables, cfg: SAVConfig | None = None, source: str = "variables") -> None:
+  """Raises ValueError unless `variables["params"]` has the model's tree and shapes.
+
+  Args:
+    variables: `{"params": ...}` (other collections are ignored).
+    cfg: the model config they are for (default `SAVConfig()`).
+    source: what to call them in the message (a checkpoint path, ...).
+  """
+  from sav_jax.convert import CheckpointError  # pylint: disable=import-outside-toplevel
+  cfg = resolve_config(cfg)
+  got = variables.get("params") if isinstance(variables, Mapping) else None
+  if got is None:
+    found = sorted(variables)[:5] if isinstance(variables, Mapping) else type(variables).__name__
+    raise CheckpointError(f"{source}: expected Flax variables {{'params': ...}}, found {found}")
+  want = {jax.tree_util.keystr(k): tuple(v.shape) for k, v in
+          jax.tree_util.tree_leaves_with_path(abstract_variables(cfg)["params"])}
+  have = {jax.tree_util.keystr(k): tuple(np.shape(v))
+          for k, v in jax.tree_util.tree_leaves_with_path(got)}
+  missing, extra = sorted(want.keys() - have.keys()), sorted(have.keys() - want.keys())
+  wrong = sorted(k for k in want.keys() & have.keys() if want[k] != have[k])
+  if missing or extra or wrong:
+    raise CheckpointError(
+        f"{source}: parameters do not match the Stereo Any Video model of this config "
+        f"(vda_encoder={cfg.vda_encoder!r}): {len(missing)} missing, e.g. {missing[:2]}; "
+        f"{len(extra)} unexpected, e.g. {extra[:2]}; {len(wrong)} with other shapes, e.g. "
+        f"{[(k, have[k], want[k]) for k in wrong[:2]]}")
+
+
 def clear_cache() -> None:
   """Forgets every compiled executable."""
   _COMPILED.clear()
@@ -419,7 +466,35 @@ def _as_video_pair(left, right) -> tuple[np.ndarray, np.ndarray]:
     raise ValueError(f"left and right videos differ in shape: {left.shape} vs {right.shape}")
   if left.ndim != 4 or left.shape[-1] != 3 or min(left.shape[:3]) < 1:
     raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {left.shape}")
+  for name, video in (("left", left), ("right", right)):
+    check_video_values(video, name)
   return left, right  # cast to float32 per window, so long uint8 videos stay small
+
+
+def check_video_values(video: np.ndarray, name: str = "video") -> None:
+  """Raises ValueError unless `video` holds finite RGB values in 0..255.
+
+  uint8 passes as is; other integers must not exceed 255 (convert 16-bit frames first);
+  floats must be finite, and a float video no brighter than 1.0 gets a warning (the
+  model expects 0..255, not 0..1).
+  """
+  kind = video.dtype.kind
+  if kind == "u" and video.dtype.itemsize == 1:
+    return
+  if kind not in "uif":
+    raise ValueError(f"{name}: frames of dtype {video.dtype}; expected uint8 or float (0..255)")
+  if kind == "f":
+    bad = ~np.isfinite(video).reshape(len(video), -1).all(axis=1)
+    if bad.any():
+      raise ValueError(f"{name}: non-finite values (NaN/inf) in frame(s) "
+                       f"{np.flatnonzero(bad)[:10].tolist()}; the model would return NaN")
+  lo, hi = float(video.min()), float(video.max())
+  if kind in "ui" and (lo < 0 or hi > 255):
+    raise ValueError(f"{name}: {video.dtype} values {lo:g}..{hi:g} are outside 0..255 (convert "
+                     "16-bit frames to 8-bit first, e.g. frames >> 8)")
+  if kind == "f" and 0 < hi <= 1.0:
+    warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}: the model expects 0..255 "
+                  "(multiply 0..1 images by 255)", stacklevel=3)
 
 
 def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig, iters: int,
@@ -508,7 +583,9 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
     `[T, H, W]` float32 positive disparity (px) of the left view, every frame.
   """
   cfg = resolve_config(cfg, dtype)
+  iters = _checked_iters(iters)
   left, right = _as_video_pair(left, right)
+  check_variables(variables, cfg)
   plan = window_plan(left.shape[0], window, stride)
   return _run_plan(variables, left, right, plan, cfg=cfg, iters=iters,
                    check_memory=check_memory, chunk=stride, progress=progress)
@@ -529,7 +606,9 @@ def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None
     list of raw padded outputs `[L_i, Hp, Wp]` of every window run (dropped ones too).
   """
   cfg = resolve_config(cfg)
+  iters = _checked_iters(iters)
   left, right = _as_video_pair(left, right)
+  check_variables(variables, cfg)
   raws = [] if return_windows else None
   plan = official_window_plan(left.shape[0], window, stride)
   disp = _run_plan(variables, left, right, plan, cfg=cfg, iters=iters, check_memory=True,

@@ -130,9 +130,11 @@ def _labelled_video(n):
   return np.broadcast_to(np.arange(n, dtype=np.float32)[:, None, None, None], (n, 5, 7, 3))
 
 
+@pytest.mark.filterwarnings("ignore:.*float frames with values")  # labels 0..1 for short clips
 @pytest.mark.parametrize("n", [7, 23])
 def test_every_frame_returned(monkeypatch, n):
   fake = _LabelModel()
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
   monkeypatch.setattr(inference, "run_window", fake)
   video = _labelled_video(n)
   disp = inference.predict_video({}, video, video)
@@ -149,9 +151,11 @@ def test_every_frame_returned(monkeypatch, n):
   np.testing.assert_array_equal(off, disp[:len(off)])
 
 
+@pytest.mark.filterwarnings("ignore:.*float frames with values")
 @pytest.mark.parametrize("window,stride", [(20, 10), (8, 4), (6, 3), (5, 5)])
 def test_stitching_sweep(monkeypatch, window, stride):
   monkeypatch.setattr(inference, "run_window", _LabelModel())
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
   for n in range(1, 3 * window + 4):
     video = _labelled_video(n)
     disp = inference.predict_video({}, video, video, window=window, stride=stride)
@@ -181,6 +185,36 @@ def test_bad_inputs():
     inference.predict_video({}, np.zeros((2, 8, 8)), np.zeros((2, 8, 8)))
   with pytest.raises(ValueError, match="stride"):
     inference.window_plan(10, window=4, stride=5)
+  assert inference.window_plan(30, window=np.int64(20), stride=np.int64(10)) == \
+      inference.window_plan(30, window=20, stride=10)
+
+
+def test_bad_values_iters_and_variables_fail_before_compiling(variables):
+  before = inference.cache_size()
+  video = np.full((3, 32, 32, 3), 100, np.uint8)
+  nan = video.astype(np.float32)
+  nan[2, 5, 5, 0] = np.nan
+  with pytest.raises(ValueError, match=r"right: non-finite values \(NaN/inf\) in frame\(s\) \[2\]"):
+    inference.predict_video(variables, video, nan, iters=ITERS)
+  deep = video.astype(np.uint16) * 257  # 16-bit frames
+  with pytest.raises(ValueError, match=r"left: uint16 values 25700\.\.25700 are outside 0\.\.255"):
+    inference.predict_video(variables, deep, deep, iters=ITERS)
+  with pytest.raises(ValueError, match="dtype bool"):
+    inference.check_video_values(video > 0, "left")
+  with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
+    inference.check_video_values(video / 255.0, "left")
+  with pytest.raises(ValueError, match="iters must be an even integer"):
+    inference.predict_video(variables, video, video, iters=3)
+  iters = inference._checked_iters(np.int64(4))  # pylint: disable=protected-access
+  assert iters == 4 and type(iters) is int
+  with pytest.raises(ValueError, match=r"expected Flax variables \{'params': \.\.\.\}"):
+    inference.predict_video(variables["params"], video, video, iters=ITERS)
+  with pytest.raises(ValueError, match="vda_encoder='vitl'.*with other shapes"):
+    inference.predict_video(variables, video, video, iters=ITERS,
+                            cfg=sav_jax.SAVConfig(vda_encoder="vitl"))
+  with pytest.raises(TypeError, match="SAVConfig.from_dict"):
+    inference.predict_video(variables, video, video, iters=ITERS, cfg={"dtype": "float32"})
+  assert inference.cache_size() == before  # nothing compiled
 
 
 def test_memory_error_before_compiling(variables, monkeypatch):

@@ -37,9 +37,10 @@ def check_inputs(left, right, iters: int) -> None:
   """Raises a ValueError naming the problem with the inputs of the model."""
   if left.shape != right.shape:
     raise ValueError(f"left and right videos differ in shape: {left.shape} vs {right.shape}")
-  if left.ndim != 5 or left.shape[-1] != 3:
+  if left.ndim != 5 or left.shape[-1] != 3 or min(left.shape[:4]) < 1:
     raise ValueError(
-        f"expected RGB videos [B, T, H, W, 3] with values 0..255, got shape {left.shape}")
+        f"expected RGB videos [B, T, H, W, 3] with values 0..255 (B, T, H, W >= 1), got shape "
+        f"{left.shape}")
   h, w = left.shape[2:4]
   if h % 16 or w % 16:
     raise ValueError(

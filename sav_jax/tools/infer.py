@@ -303,7 +303,7 @@ def load_checkpoint(path, dtype: str | None = None):
   if path.is_dir():
     variables, cfg_dict = convert.restore_variables(path)
     cfg = _config_from_dict(cfg_dict, path)
-    check_variables(variables, cfg, path)
+    inference.check_variables(variables, cfg, path)
     step = None if convert.is_variables_checkpoint(path) else convert.find_training_checkpoint(path)
     described = (f"orbax checkpoint {path}" if step is None
                  else f"training checkpoint {step} (params)")
@@ -340,28 +340,6 @@ def _config_from_dict(cfg_dict, path):
     return sav_jax.SAVConfig.from_dict(known)
   except (TypeError, ValueError) as e:
     raise sav_jax.convert.CheckpointError(f"{path}: invalid model config ({e})") from e
-
-
-def check_variables(variables, cfg, source) -> None:
-  """Raises CheckpointError unless `variables["params"]` has the model's tree and shapes."""
-  import jax  # pylint: disable=import-outside-toplevel
-
-  from sav_jax import convert  # pylint: disable=import-outside-toplevel
-  expected = convert.params.abstract_variables(cfg)["params"]
-  got = variables.get("params") if isinstance(variables, dict) else None
-  if got is None:
-    raise convert.CheckpointError(f"{source}: no 'params' collection in the checkpoint")
-  want = {jax.tree_util.keystr(k): tuple(v.shape)
-          for k, v in jax.tree_util.tree_leaves_with_path(expected)}
-  have = {jax.tree_util.keystr(k): tuple(np.shape(v))
-          for k, v in jax.tree_util.tree_leaves_with_path(got)}
-  missing, extra = sorted(want.keys() - have.keys()), sorted(have.keys() - want.keys())
-  wrong = sorted(k for k in want.keys() & have.keys() if want[k] != have[k])
-  if missing or extra or wrong:
-    raise convert.CheckpointError(
-        f"{source}: parameters do not match the Stereo Any Video model ({len(missing)} missing, "
-        f"e.g. {missing[:2]}; {len(extra)} unexpected, e.g. {extra[:2]}; {len(wrong)} with other "
-        f"shapes, e.g. {[(k, have[k], want[k]) for k in wrong[:2]]})")
 
 
 def random_variables(cfg=None, seed: int = 0) -> dict:

@@ -48,6 +48,8 @@ def test_parameter_tree_matches_the_official_manifest(fixtures_dir):
     ((2, 32, 48, 3), (2, 32, 48, 3), 2, "RGB"),
     ((1, 2, 32, 48, 3), (1, 3, 32, 48, 3), 2, "differ in shape"),
     ((1, 2, 40, 48, 3), (1, 2, 40, 48, 3), 2, "multiples of 16"),
+    ((1, 0, 32, 48, 3), (1, 0, 32, 48, 3), 2, r"B, T, H, W >= 1"),
+    ((0, 2, 32, 48, 3), (0, 2, 32, 48, 3), 2, r"B, T, H, W >= 1"),
 ])
 def test_bad_inputs_raise_clear_errors(model, left_shape, right_shape, iters, match):
   left, right = jnp.zeros(left_shape), jnp.zeros(right_shape)
