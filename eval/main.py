@@ -31,7 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--config", required=True,
                  help="config file, e.g. configs/eval/sintel_final.py (optionally path.py:arg)")
   p.add_argument("--checkpoint", required=True,
-                 help="orbax directory or .pth/.pt/.safetensors/.npz state dict")
+                 help="orbax directory, a training run's WORKDIR (latest checkpoint) or "
+                      "WORKDIR/checkpoints/STEP, or a .pth/.pt/.safetensors/.npz state dict")
   p.add_argument("--data-root", default="data/datasets",
                  help="datasets folder or the dataset's own folder (default data/datasets)")
   p.add_argument("--out", help="output folder (default outputs/eval/<dataset>)")

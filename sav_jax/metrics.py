@@ -70,6 +70,19 @@ def _as_seq(name: str, a) -> np.ndarray:
   return a
 
 
+def _as_mask(name: str, a) -> np.ndarray:
+  """`_as_seq` of a validity mask, which must hold finite values in [0, 1] (bool, 0/1 or
+  the official fractional weights)."""
+  m = _as_seq(name, a)
+  if m.size and not (np.isfinite(m).all() and m.min() >= 0 and m.max() <= 1):
+    finite = m[np.isfinite(m)]
+    lo, hi = (finite.min(), finite.max()) if finite.size else (np.nan, np.nan)
+    raise ValueError(f"{name} must hold values in [0, 1] (a validity mask), got {lo:g}..{hi:g}"
+                     f"{' with NaN/inf' if finite.size < m.size else ''}"
+                     f"{'; a 0/255 image? divide it by 255' if hi == 255 else ''}")
+  return m
+
+
 def _check_same(names: Sequence[str], arrays: Sequence[np.ndarray]) -> None:
   """Raises ValueError if the arrays' shapes differ, naming both."""
   for name, a in zip(names[1:], arrays[1:]):
@@ -109,7 +122,7 @@ def endpoint_error_maps(pred, gt, mask, crop: int = 0, mask_thr: float = 0.5):
   Returns:
     `(epe [T, H', W'], tepe [T-1, H', W'])` float32, 0 where masked out.
   """
-  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_seq("mask", mask)
+  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("mask", mask)
   _check_same(("pred", "gt", "mask"), (x, y, m))
   if crop > 0:
     if crop > min(x.shape[1:]) - crop:
@@ -213,7 +226,7 @@ def eval_tcc_sequence(pred_depth, gt_depth, mask, mask_thr: float = 0.5) -> floa
   Returns:
     `(1/(T-1)) sum_t relu(SSIM(|x_t-x_{t+1}| dm_t, |y_t-y_{t+1}| dm_t))`.
   """
-  x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_seq("mask", mask)
+  x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_mask("mask", mask)
   _check_same(("pred_depth", "gt_depth", "mask"), (x, y, m))
   _need_two_frames(x)
   x, y = _mask_pair(x, y, m, mask_thr)
@@ -249,7 +262,7 @@ def tcm_flow_inputs(pred_depth, gt_depth, mask, t: int, mask_thr: float = 0.5):
     `(pred_t, pred_t1, gt_t, gt_t1)`, each `[3, H, W]` float32; flows are taken
     from `pred_t -> pred_t1` and `gt_t -> gt_t1`.
   """
-  x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_seq("mask", mask)
+  x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_mask("mask", mask)
   _check_same(("pred_depth", "gt_depth", "mask"), (x, y, m))
   x, y = _mask_pair(x, y, m, mask_thr)
   dmax, dmin = y[t].max(), y[t].min()
@@ -271,7 +284,7 @@ def eval_tcm_sequence(pred_flows, gt_flows, mask) -> float:
     `(1/(T-1)) sum_{t: sum M_t > 0} mean_c relu(SSIM(F^x_t,c M_t, F^y_t,c M_t))`
     with `M_t = m_t m_{t+1} [no GT flow channel > 250]`.
   """
-  m = _as_seq("mask", mask)
+  m = _as_mask("mask", mask)
   _need_two_frames(m)
   n = m.shape[0] - 1
   fx = _as_flows("pred_flows", pred_flows, n, m.shape[1:])
@@ -336,7 +349,7 @@ def _bilinear_zero_pad(img: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.nd
 
 def _warp_terms(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float):
   """Masked depths, warped prediction, the OPW/RTC validity V_t and depth masks."""
-  x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_seq("mask", mask)
+  x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_mask("mask", mask)
   _check_same(("pred_depth", "gt_depth", "mask"), (x, y, m))
   _need_two_frames(x)
   video = _as_left_video(left_video)
@@ -461,7 +474,7 @@ def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
     "disp_RTC", "disp_RTC_30"}, T)`. TCM is left out without flows for it, OPW/RTC
     without a video or flows.
   """
-  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_seq("mask", mask)
+  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("mask", mask)
   _check_same(("pred", "gt", "mask"), (x, y, m))
   res = {f"disp_{k}": v for k, v in eval_endpoint_error_sequence(x, y, m).items()}
   if scale is None:
@@ -501,7 +514,7 @@ def eval_sequence(pred, gt, valid, flows=None, *, scale: float | None = None, vi
   Returns:
     The metric dict of `eval_batch` (its frame count is `len(pred)`).
   """
-  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_seq("valid", valid)
+  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("valid", valid)
   _check_same(("pred", "gt", "valid"), (x, y, m))
   res, _ = eval_batch(x * np.round(m), np.abs(y), m, scale=scale, left_video=video,
                       video_flows=flows, depth_flows=depth_flows, flow_fn=flow_fn)

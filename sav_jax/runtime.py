@@ -23,6 +23,7 @@ about half of the compiler's memory for ~20% more compile time at the same speed
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import functools
@@ -138,6 +139,29 @@ def set_low_memory_compile(enabled: bool = True) -> None:
   """
   global _low_memory_compile  # pylint: disable=global-statement
   _low_memory_compile = bool(enabled)
+
+
+@contextlib.contextmanager
+def preserved_settings():
+  """Puts this module's process-wide settings back on exit: the persistent compilation
+  cache (`enable_compilation_cache`) and `set_low_memory_compile`.
+
+  `sav_jax.cli.main` runs commands inside it, so calling the command line from Python
+  (a notebook, a test) leaves the caller's JAX configuration as it was.
+  """
+  keys = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+  before = {k: getattr(jax.config, k) for k in keys}
+  low_memory = _low_memory_compile
+  try:
+    yield
+  finally:
+    set_low_memory_compile(low_memory)
+    changed = {k: v for k, v in before.items() if getattr(jax.config, k) != v}
+    for k, v in changed.items():
+      jax.config.update(k, v)
+    if "jax_compilation_cache_dir" in changed:
+      from jax.experimental.compilation_cache import compilation_cache  # pylint: disable=import-outside-toplevel
+      compilation_cache.reset_cache()
 
 
 @functools.cache

@@ -21,7 +21,9 @@ File formats (all round trips are tested value by value):
 
 from __future__ import annotations
 
+import math
 import pathlib
+import warnings
 
 import cv2
 import numpy as np
@@ -58,6 +60,35 @@ def disparity_range(disp, valid=None, percentiles=(0.0, 100.0)) -> tuple[float, 
   return lo, hi
 
 
+def as_uint8_image(image, what: str = "image") -> np.ndarray:
+  """`image` as uint8: uint8 passes; other numbers must be finite and within 0..255 (they
+  are rounded). Raises ValueError naming `what` otherwise; a float image no brighter than
+  1.0 gets a warning (0..1 images come out black: multiply them by 255)."""
+  a = np.asarray(image)
+  if a.dtype == np.uint8:
+    return a
+  if a.dtype.kind not in "uif":
+    raise ValueError(f"{what}: dtype {a.dtype}; expected uint8 or numbers in 0..255")
+  if a.size == 0:
+    return a.astype(np.uint8)
+  if a.dtype.kind == "f" and not np.isfinite(a).all():
+    raise ValueError(f"{what}: NaN or inf values; expected 0..255")
+  lo, hi = float(a.min()), float(a.max())
+  if lo < 0 or hi > 255:
+    raise ValueError(f"{what}: values {lo:g}..{hi:g} outside 0..255 (16-bit images: >> 8)")
+  if a.dtype.kind == "f" and 0 < hi <= 1.0:
+    warnings.warn(f"{what}: float values {lo:g}..{hi:g}: expected 0..255 (multiply 0..1 "
+                  "images by 255)", stacklevel=3)
+  return np.rint(a).astype(np.uint8)
+
+
+def _check_range(vmin, vmax) -> tuple[float, float]:
+  vmin, vmax = float(vmin), float(vmax)
+  if not (math.isfinite(vmin) and math.isfinite(vmax) and vmax > vmin):
+    raise ValueError(f"colour range needs finite vmin < vmax, got vmin={vmin}, vmax={vmax}")
+  return vmin, vmax
+
+
 def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
              cmap: str = "inferno", valid=None,
              invalid_color: tuple[int, int, int] = INVALID_COLOR) -> np.ndarray:
@@ -79,11 +110,16 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
   if cmap not in COLORMAPS:
     raise ValueError(f"unknown colour map {cmap!r}; choose one of {sorted(COLORMAPS)}")
   d = np.asarray(disp, np.float32)
+  if valid is not None and np.shape(valid) != d.shape:
+    raise ValueError(f"valid mask shape {np.shape(valid)} differs from disparity {d.shape}")
   if vmin is None or vmax is None:
     lo, hi = disparity_range(d, valid)
     vmin = lo if vmin is None else vmin
     vmax = hi if vmax is None else vmax
-  scale = 255.0 / max(float(vmax) - float(vmin), 1e-12)
+  vmin, vmax = _check_range(vmin, vmax)
+  if d.size == 0:
+    return np.zeros((*d.shape, 3), np.uint8)
+  scale = 255.0 / (vmax - vmin)
   safe = np.where(np.isfinite(d), d, vmin)
   idx = np.clip((safe - float(vmin)) * scale, 0, 255).round().astype(np.uint8)
   flat = idx.reshape(-1, idx.shape[-1]) if idx.ndim >= 2 else idx.reshape(1, -1)
@@ -106,11 +142,14 @@ def side_by_side(*images) -> np.ndarray:
     `[..., H, sum W_i, 3]` uint8.
   """
   parts = []
-  for im in images:
-    im = np.asarray(im)
+  for i, im in enumerate(images):
+    im = as_uint8_image(im, f"side_by_side image {i}")
     if im.ndim >= 2 and im.shape[-1] != 3:
       im = np.repeat(im[..., None], 3, axis=-1)
-    parts.append(im.astype(np.uint8))
+    if parts and (im.ndim != parts[0].ndim or im.shape[:-2] != parts[0].shape[:-2]):
+      raise ValueError(f"side_by_side: image {i} of shape {im.shape} does not match the first "
+                       f"{parts[0].shape} (same frames and height needed)")
+    parts.append(im)
   return np.concatenate(parts, axis=-2)
 
 
@@ -129,18 +168,22 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
     The path written.
   """
   path = pathlib.Path(path)
-  frames = [np.asarray(f, np.uint8) for f in frames]
+  frames = [as_uint8_image(f, f"{path} frame {i}") for i, f in enumerate(frames)]
   if not frames:
     raise ValueError(f"{path}: no frames to write")
+  if not (math.isfinite(fps) and fps > 0):
+    raise ValueError(f"{path}: fps must be a positive number, got {fps}")
   h, w = frames[0].shape[:2]
+  for i, f in enumerate(frames):  # all checked before the file is created
+    if f.shape != (h, w, 3) or h < 1 or w < 1:
+      raise ValueError(f"{path}: frame {i} has shape {f.shape}; expected RGB [H, W, 3] "
+                       f"frames of one size{f' ({h}, {w}, 3)' if i else ''}")
   he, we = h + h % 2, w + w % 2
   writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (we, he))
   if not writer.isOpened():
     raise OSError(f"{path}: OpenCV cannot open an mp4v video writer")
   try:
     for f in frames:
-      if f.shape != (h, w, 3):
-        raise ValueError(f"{path}: frame shape {f.shape} differs from the first {(h, w, 3)}")
       f = np.pad(f, ((0, he - h), (0, we - w), (0, 0)), mode="edge")
       writer.write(np.ascontiguousarray(f[..., ::-1]))
   finally:
@@ -183,6 +226,18 @@ def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float
     `(xyz [N, 3] float32, colours [N, 3] uint8)`, rows in raster order.
   """
   d = np.asarray(disp, np.float32)
+  rgb = as_uint8_image(rgb, "disparity_to_points rgb")
+  if d.ndim != 2 or rgb.shape != (*d.shape, 3):
+    raise ValueError(f"disparity_to_points: expected disp [H, W] and rgb [H, W, 3] of one "
+                     f"frame, got {d.shape} and {rgb.shape}")
+  if valid is not None and np.shape(valid) != d.shape:
+    raise ValueError(f"disparity_to_points: valid mask shape {np.shape(valid)} differs from "
+                     f"disp {d.shape}")
+  for name, value in (("fx", fx), ("fy", fy), ("baseline", baseline), ("cx", cx), ("cy", cy)):
+    if not math.isfinite(value) or (name in ("fx", "fy", "baseline") and value <= 0):
+      raise ValueError(f"disparity_to_points: {name} must be a finite"
+                       f"{' positive' if name in ('fx', 'fy', 'baseline') else ''} number, "
+                       f"got {value}")
   z = depth_from_disparity(d, fx, baseline)
   keep = z > 0
   if valid is not None:
@@ -190,7 +245,7 @@ def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float
   v, u = np.nonzero(keep)
   zk = z[v, u]
   xyz = np.stack([(u - cx) * zk / fx, (v - cy) * zk / fy, zk], axis=-1).astype(np.float32)
-  return xyz, np.asarray(rgb, np.uint8)[v, u]
+  return xyz, rgb[v, u]
 
 
 def write_ply(path, xyz, colors) -> int:

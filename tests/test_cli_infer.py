@@ -253,7 +253,16 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
 
 
 def test_compile_cache_folder_option(tmp_path, folders, npz_ckpt, restore_cache_config):
+  import logging  # pylint: disable=import-outside-toplevel
+
+  from sav_jax import runtime  # pylint: disable=import-outside-toplevel
   cache = tmp_path / "xla"
-  assert _infer(*folders, npz_ckpt, tmp_path / "out", "--compile-cache", str(cache)) == 0
-  assert cache.is_dir() and jax.config.jax_compilation_cache_dir == str(cache)
+  before = (jax.config.jax_compilation_cache_dir, runtime._low_memory_compile,  # pylint: disable=protected-access
+            len(logging.getLogger().handlers), logging.getLogger("absl").level)
+  assert _infer(*folders, npz_ckpt, tmp_path / "out", "--compile-cache", str(cache),
+                "--no-low-memory-compile") == 0
+  assert cache.is_dir() and any(cache.iterdir())  # the program went to the folder given
   assert len(list((tmp_path / "out" / "disparity").glob("*.png"))) == T
+  # Called from Python, the command leaves the caller's settings as they were.
+  assert (jax.config.jax_compilation_cache_dir, runtime._low_memory_compile,  # pylint: disable=protected-access
+          len(logging.getLogger().handlers), logging.getLogger("absl").level) == before

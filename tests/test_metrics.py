@@ -267,3 +267,15 @@ def test_eval_sequence_preprocessing():
   assert "disp_TCC" not in res  # no scale: depth metrics skipped
   res = M.eval_sequence(pred, gt, valid, scale=100.0)
   assert "disp_TCC" in res and "disp_OPW" not in res
+
+
+def test_masks_outside_zero_one_are_refused():
+  pred = gt = np.ones((2, 4, 4), np.float32)
+  for mask, match in ((np.full((2, 4, 4), 255, np.uint8), r"255\.\.255; a 0/255 image\? divide"),
+                      (np.full((2, 4, 4), np.nan), "with NaN/inf"),
+                      (np.full((2, 4, 4), -1.0), r"\[0, 1\]")):
+    with pytest.raises(ValueError, match=match):
+      M.eval_endpoint_error_sequence(pred, gt, mask)
+    with pytest.raises(ValueError, match="valid must hold values"):
+      M.eval_sequence(pred, gt, mask)
+  assert M.eval_endpoint_error_sequence(pred, gt, np.full((2, 4, 4), 0.7))  # fractional: fine

@@ -117,3 +117,44 @@ def test_side_by_side_and_video(tmp_path):
     assert frame.shape == (10, 14, 3)  # odd height padded to even
     count += 1
   assert count == 3
+
+
+def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
+  # Floats in 0..255 are rounded; anything outside, NaN, or a wrong layout is an error.
+  np.testing.assert_array_equal(viz.side_by_side(np.full((2, 2, 3), 9.6, np.float32)), 10)
+  for bad, match in ((np.full((2, 2, 3), 300.0), r"values 300\.\.300 outside 0\.\.255"),
+                     (np.full((2, 2, 3), np.nan), "NaN or inf"),
+                     (np.full((2, 2, 3), 1000, np.uint16), "16-bit")):
+    with pytest.raises(ValueError, match=match):
+      viz.side_by_side(bad)
+  with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
+    viz.side_by_side(np.full((2, 2, 3), 0.8, np.float32))
+  with pytest.raises(ValueError, match="does not match the first"):
+    viz.side_by_side(np.zeros((4, 5, 3), np.uint8), np.zeros((3, 5, 3), np.uint8))
+  video = tmp_path / "v.mp4"
+  with pytest.raises(ValueError, match=r"frame 0 has shape \(8, 8\); expected RGB"):
+    viz.write_video(video, np.zeros((2, 8, 8), np.uint8))
+  with pytest.raises(ValueError, match="fps must be a positive number"):
+    viz.write_video(video, np.zeros((2, 8, 8, 3), np.uint8), fps=0)
+  assert not video.exists()
+  for lo, hi in ((3.0, 1.0), (float("nan"), 1.0)):
+    with pytest.raises(ValueError, match="finite vmin < vmax"):
+      viz.colorize(np.ones((2, 2)), lo, hi)
+  assert viz.colorize(np.zeros((0, 4, 4)), 0.0, 1.0).shape == (0, 4, 4, 3)
+  disp, rgb = np.full((4, 5), 2.0, np.float32), np.zeros((4, 5, 3), np.uint8)
+  calib = dict(fx=10.0, fy=10.0, cx=2.0, cy=2.0, baseline=0.1)
+  assert len(viz.disparity_to_points(disp, rgb, **calib)[0]) == 20
+  with pytest.raises(ValueError, match=r"disp \[H, W\] and rgb \[H, W, 3\]"):
+    viz.disparity_to_points(disp[None], rgb, **calib)
+  with pytest.raises(ValueError, match=r"disp \[H, W\] and rgb \[H, W, 3\]"):
+    viz.disparity_to_points(disp, rgb.transpose(2, 0, 1), **calib)
+  with pytest.raises(ValueError, match="fy must be a finite positive number"):
+    viz.disparity_to_points(disp, rgb, **{**calib, "fy": 0.0})
+
+
+def test_submodules_reachable_from_the_package():
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from sav_jax import metrics  # pylint: disable=import-outside-toplevel
+  assert sav_jax.viz is viz and sav_jax.metrics is metrics and callable(sav_jax.runtime.enable_compilation_cache)
+  with pytest.raises(AttributeError, match="no attribute 'nope'"):
+    sav_jax.nope  # pylint: disable=pointless-statement

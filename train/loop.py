@@ -23,6 +23,7 @@ import numpy as np
 import sav_jax
 from sav_jax import runtime
 from sav_jax.data import pipeline
+from sav_jax.model.init import init_variables
 from train import checkpoint as ckpt_lib
 from train import evaluation, input as input_lib, optim, state as state_lib, step as step_lib
 from train.logging_utils import MetricWriter, Progress
@@ -37,7 +38,11 @@ def _merge_vda(params, vda):
 
 
 def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_params=None):
-  """Resume order: latest checkpoint > `init_from`/`vda_weights` > random init.
+  """Resume order: latest checkpoint > `init_from`/`vda_weights` > the official init.
+
+  From scratch, a `StereoAnyVideo` starts from `init_variables(cfg, config.seed)` (PyTorch's
+  default initialisation, as the official run; identical on every host); other models (tests'
+  stand-ins) from their Flax initialisers.
 
   Args:
     config, model, tx, mesh: the run's config, model, optimizer and mesh.
@@ -61,11 +66,15 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     vda = ckpt_lib.load_vda_params(config.vda_weights) if config.vda_weights else None
     host = (ckpt_lib.load_model_params(config.init_from, cfg, abstract.params)
             if config.init_from else None)
+  source = "weights"
+  if host is None and isinstance(model, sav_jax.StereoAnyVideo):
+    # The official initialisation (PyTorch's defaults), the same on every host.
+    host, source = init_variables(cfg, config.seed)["params"], "scratch"
   if host is not None:
     host = _merge_vda(host, vda) if vda is not None else host
     params = state_lib.place_params(host, abstract.params, mesh)
     state, _ = state_lib.create_train_state(model, tx, config, mesh, params, shardings)
-    return state, shardings, "weights"
+    return state, shardings, source if vda is None else "weights"
   state, _ = state_lib.create_train_state(model, tx, config, mesh, shardings=shardings)
   if vda is not None:
     vda_abstract = abstract.params

@@ -31,8 +31,9 @@ TABLE = (("EPE", "disp_epe_mean"), ("bad-1px %", "disp_epe_bad_1px"),
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--checkpoint", help="orbax directory or .pth/.safetensors/.npz state dict "
-                                      f"(default: {BUNDLED} if present, else random weights)")
+  p.add_argument("--checkpoint", help="orbax directory, a training run's WORKDIR, or a "
+                                      ".pth/.safetensors/.npz state dict (default: "
+                                      f"{BUNDLED} if present, else random weights)")
   p.add_argument("--out", default="outputs/demo", help="output folder (default outputs/demo)")
   p.add_argument("--frames", type=int, default=8, help="frames of the synthetic video (8)")
   p.add_argument("--height", type=int, default=128, help="frame height (128)")

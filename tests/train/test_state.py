@@ -308,3 +308,18 @@ def test_resumed_run_logs_each_step_once(tmp_path):
   assert records[-1]["loss"] == 0.5
   aside = (tmp_path / "metrics.superseded.jsonl").read_text().splitlines()
   assert json.loads(aside[0])["loss"] == 1.0 and aside[1] == '{"step": 40, "spl'
+
+
+def test_scratch_runs_start_from_the_official_initialisation(tmp_path):
+  from sav_jax.model.init import init_variables  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = synthetic.get_config()
+  c.seed = 3
+  model, mesh = sav_jax.StereoAnyVideo(state_lib.model_config(c)), state_lib.make_mesh()
+  params = _real_abstract_params()
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
+  manager = ckpt_lib.make_manager(tmp_path / "run", c)
+  state, _, source = loop.initial_state(c, model, tx, mesh, manager, None, params)
+  assert source == "scratch"
+  want = init_variables(state_lib.model_config(c), seed=3)["params"]
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(state.params), want)
