@@ -10,6 +10,8 @@
    and the same loop unrolled.
 """
 
+import argparse
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -65,4 +67,6 @@ def main():
 
 
 if __name__ == "__main__":
+  argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                          formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
   main()

@@ -11,6 +11,7 @@ checks after compiling) next to the estimate and their ratio. The estimate must 
 
 from __future__ import annotations
 
+import argparse
 import pathlib
 import sys
 
@@ -40,4 +41,5 @@ def main():
 
 
 if __name__ == "__main__":
+  argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
   main()

@@ -298,8 +298,10 @@ def _compile(key, build, check_memory: bool):
     _COMPILED.move_to_end(key)
     return _COMPILED[key]
   kind, cfg, iters, shape = key[:4]
-  log.info("compiling the model (%s) for %d frames of %dx%d (iters=%d, %s)", kind, *shape,
-           iters, cfg.dtype)
+  cached = (" (or loading it from the compilation cache)"
+            if jax.config.jax_compilation_cache_dir else "")
+  log.info("compiling the model (%s) for %d frames of %dx%d (iters=%d, %s)%s", kind, *shape,
+           iters, cfg.dtype, cached)
   fn, args = build()
   compiled = jax.jit(fn).lower(*args).compile(compiler_options=dict(key[4]))
   runtime.release_host_memory()  # the compiler's working memory, kept by the allocator

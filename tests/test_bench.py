@@ -62,3 +62,16 @@ def test_memory_report_names_the_device_peak_after_compiling():
   assert "13.50 GB intermediates + 0.50 GB arguments + 0.07 GB outputs" in text
   cpu = memory_lines(dict(peak_rss_gb=0.8, device_peak_gb=None, xla_temp_gb=None))
   assert cpu == ["peak host RSS 0.80 GB"]
+
+
+def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  line = bench.compare_line({"median_s": 1.0, "compile_s": 4.0, "peak_rss_gb": 0.5},
+                            {"median_s": 2.0, "compile_s": 2.0, "peak_rss_gb": 1.0})
+  assert line == ("forward x2.00 faster (1 s vs 2 s), compile x2.00 slower (4 s vs 2 s), "
+                  "peak RSS x2.00 lower (0.5 GB vs 1 GB)")
+  (tmp_path / "bad.json").write_text('{"median_s": 1}')
+  for path, message in ((tmp_path / "none.json", "cannot read"), (tmp_path / "bad.json", "lacks")):
+    assert cli.main([*ARGS, "--compare", str(path)]) == 2  # refused before measuring
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1

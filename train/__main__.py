@@ -8,6 +8,7 @@ Config fields are overridable: `--config.train.batch_size=16`.
 """
 
 import logging
+import sys
 
 from absl import app, flags
 from ml_collections import config_flags
@@ -36,8 +37,13 @@ def main(argv):
   jax.config.update("jax_transfer_guard", "disallow")
   logging.getLogger().setLevel(logging.INFO)
   logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every save at INFO
+  from sav_jax.convert import CheckpointError  # pylint: disable=g-import-not-at-top
   from train import loop  # pylint: disable=g-import-not-at-top
-  loop.run(_CONFIG.value, _WORKDIR.value)
+  try:
+    loop.run(_CONFIG.value, _WORKDIR.value)
+  except (CheckpointError, FileNotFoundError) as e:  # weights or data the config names
+    print(f"train: error: {e}", file=sys.stderr)
+    sys.exit(2)
 
 
 if __name__ == "__main__":

@@ -18,16 +18,18 @@ HELP = "benchmark the compiled forward pass (compile time, median time, fps, pea
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--frames", type=int, default=5, help="frames per clip (T)")
-  p.add_argument("--height", type=int, default=128)
-  p.add_argument("--width", type=int, default=256)
-  p.add_argument("--iters", type=int, default=8, help="refinement iterations at 1/4 (even)")
-  p.add_argument("--batch", type=int, default=1)
+  p.add_argument("--frames", type=int, default=5, help="frames per clip (T; default 5)")
+  p.add_argument("--height", type=int, default=128, help="frame height (default 128)")
+  p.add_argument("--width", type=int, default=256, help="frame width (default 256)")
+  p.add_argument("--iters", type=int, default=8,
+                 help="refinement iterations at 1/4 (even; default 8)")
+  p.add_argument("--batch", type=int, default=1, help="clips per call (default 1)")
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
   p.add_argument("--vit-attention", choices=VIT_ATTENTION, default="blocked",
                  help="the depth prior's ViT attention (SAVConfig.vit_attention; 'cudnn': "
                       "fused flash attention, CUDA GPUs with --dtype bfloat16)")
-  p.add_argument("--repeats", type=int, default=5, help="timed calls after the warm-up call")
+  p.add_argument("--repeats", type=int, default=5,
+                 help="timed calls after the warm-up call (default 5)")
   p.add_argument("--all-predictions", action="store_true",
                  help="return every refinement step (training view) instead of the final one")
   p.add_argument("--json", help="write the results to this JSON file")
@@ -140,6 +142,34 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
       host=platform.node(), jax=jax.__version__, date=time.strftime("%Y-%m-%d"))
 
 
+_COMPARED = ("median_s", "compile_s", "peak_rss_gb")
+
+
+def _read_baseline(path) -> dict:
+  from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
+  try:
+    with open(path, encoding="utf-8") as f:
+      base = json.load(f)
+  except (OSError, ValueError) as e:
+    raise UsageError(f"--compare {path}: cannot read a bench JSON ({e})") from e
+  missing = [k for k in _COMPARED if not isinstance(base, dict) or k not in base]
+  if missing:
+    raise UsageError(f"--compare {path}: not a `sav-jax bench --json` file (lacks {missing})")
+  return base
+
+
+def compare_line(res: dict, base: dict) -> str:
+  """This run against a baseline: `forward x1.32 faster (0.75 s vs 0.99 s), ...`."""
+  def ratio(name, now, before, unit, lower_is=("faster", "slower")):
+    word = lower_is[0] if now <= before else lower_is[1]
+    r = max(now, before) / max(min(now, before), 1e-12)
+    return f"{name} x{r:.2f} {word} ({now:.3g} {unit} vs {before:.3g} {unit})"
+  return ", ".join([
+      ratio("forward", res["median_s"], base["median_s"], "s"),
+      ratio("compile", res["compile_s"], base["compile_s"], "s"),
+      ratio("peak RSS", res["peak_rss_gb"], base["peak_rss_gb"], "GB", ("lower", "higher"))])
+
+
 def run(args: argparse.Namespace) -> int:
   from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
   if args.height % 16 or args.width % 16:
@@ -149,6 +179,7 @@ def run(args: argparse.Namespace) -> int:
   if args.vit_attention == "cudnn" and args.dtype != "bfloat16":
     raise UsageError("--vit-attention cudnn needs --dtype bfloat16 (cuDNN's fused attention "
                      "has no float32 kernels)")
+  base = _read_baseline(args.compare) if args.compare else None  # before the long run
   cache = setup_compile_cache(args, default_on=False)
   res = measure(args.frames, args.height, args.width, args.iters, args.batch, args.dtype,
                 args.repeats, final_only=not args.all_predictions, compile_cache=cache,
@@ -166,12 +197,8 @@ def run(args: argparse.Namespace) -> int:
         f"{args.repeats} runs)")
   print(f"throughput    {res['fps']:.2f} frames/s")
   print("\n".join(memory_lines(res)))
-  if args.compare:
-    with open(args.compare) as f:
-      base = json.load(f)
-    print(f"vs {args.compare}: forward x{base['median_s'] / res['median_s']:.2f} faster, "
-          f"compile x{base['compile_s'] / res['compile_s']:.2f}, "
-          f"peak RSS x{res['peak_rss_gb'] / base['peak_rss_gb']:.2f}")
+  if base is not None:
+    print(f"vs {args.compare}: " + compare_line(res, base))
   if args.json:
     with open(args.json, "w") as f:
       json.dump(res, f, indent=1)

@@ -323,3 +323,18 @@ def test_scratch_runs_start_from_the_official_initialisation(tmp_path):
   assert source == "scratch"
   want = init_variables(state_lib.model_config(c), seed=3)["params"]
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(state.params), want)
+
+
+def test_train_command_reports_a_missing_init_file_in_one_line(tmp_path):
+  import subprocess  # pylint: disable=g-import-not-at-top
+  import sys  # pylint: disable=g-import-not-at-top
+  from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
+  proc = subprocess.run(
+      [sys.executable, "-m", "train", "--config", str(ROOT / "configs/synthetic.py"),
+       "--workdir", str(tmp_path / "w"), f"--config.init_from={tmp_path / 'missing.pth'}",
+       "--config.train.progress_bar=False"],
+      cwd=ROOT, env=child_env(tmp_path / "cache"), capture_output=True, text=True, timeout=300,
+      check=False)
+  assert proc.returncode == 2, proc.stderr[-2000:]
+  assert f"train: error: {tmp_path / 'missing.pth'}" in proc.stderr
+  assert "Traceback" not in proc.stderr
