@@ -125,8 +125,9 @@ def endpoint_error_maps(pred, gt, mask, crop: int = 0, mask_thr: float = 0.5):
   x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("mask", mask)
   _check_same(("pred", "gt", "mask"), (x, y, m))
   if crop > 0:
-    if crop > min(x.shape[1:]) - crop:
-      raise ValueError(f"Incorrect crop size {crop} for spatial shape {x.shape[1:]}")
+    if crop >= min(x.shape[1:]) - crop:  # the official check is `>`: it let an empty crop by
+      raise ValueError(f"Incorrect crop size {crop} for spatial shape {x.shape[1:]} (nothing "
+                       "would be left)")
     x, y, m = (a[:, crop:-crop, crop:-crop] for a in (x, y, m))
   x, y = _mask_pair(x, y, m, mask_thr)
   epe = np.sqrt(m * (x - y) ** 2)
