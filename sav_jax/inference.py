@@ -284,6 +284,7 @@ def _cache_key(kind, variables, cfg, iters, shape):
   sig = tuple((tuple(x.shape), str(x.dtype)) for x in jax.tree_util.tree_leaves(variables))
   options = tuple(sorted(runtime.inference_compiler_options().items()))
   return (kind, cfg, iters, shape, options, str(jax.config.jax_default_matmul_precision),
+          str(jax.config.jax_default_device),
           bool(jax.config.values.get("jax_disable_most_optimizations")),
           jax.tree_util.tree_structure(variables), sig)
 

@@ -100,8 +100,9 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
       whole array (so pass a video `[T, H, W]`, or a fixed range, for colours that
       are stable over time).
     cmap: one of `COLORMAPS`.
-    valid: optional bool mask `[..., H, W]`; pixels outside it, and non-finite or
-      non-positive disparities, get `invalid_color`.
+    valid: optional mask `[..., H, W]` (bool, or weights: > 0.5 is valid, as in the
+      metrics); pixels outside it, and non-finite or non-positive disparities, get
+      `invalid_color`.
     invalid_color: RGB colour of invalid pixels.
 
   Returns:
@@ -126,7 +127,7 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
   rgb = cv2.applyColorMap(flat, COLORMAPS[cmap])[..., ::-1].reshape(*d.shape, 3)
   bad = ~np.isfinite(d) | (d <= 0)
   if valid is not None:
-    bad |= ~np.asarray(valid, bool)
+    bad |= ~(np.asarray(valid) > 0.5)  # as the metrics: a fractional weight counts above 0.5
   rgb = np.ascontiguousarray(rgb)
   rgb[bad] = invalid_color
   return rgb

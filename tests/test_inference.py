@@ -271,3 +271,11 @@ def test_per_frame_features_are_computed_once_per_frame(variables, golden, monke
   assert disp.shape == (21, 28, 30)
   with pytest.raises(ValueError, match="chunk"):
     inference.FrameFeatureCache(chunk=0)
+
+
+def test_cache_key_follows_the_default_device():
+  cfg = sav_jax.SAVConfig()
+  plain = inference._cache_key("window", {}, cfg, 2, (1, 32, 32))  # pylint: disable=protected-access
+  with jax.default_device(jax.devices()[0]):
+    pinned = inference._cache_key("window", {}, cfg, 2, (1, 32, 32))  # pylint: disable=protected-access
+  assert plain != pinned and plain[:5] == pinned[:5]
