@@ -120,6 +120,9 @@ def _every(step: int, period: int) -> bool:
 
 def _setup(config, workdir):
   """Steps 2-8 of the module docstring. Returns a dict of the run's parts."""
+  for field in ("init_from", "vda_weights"):  # before anything is created in the workdir
+    if config[field] and not pathlib.Path(config[field]).exists():
+      raise FileNotFoundError(f"config.{field}={config[field]}: no such file or directory")
   mesh = state_lib.make_mesh()
   if config.train.batch_size % mesh.size:
     raise ValueError(f"train.batch_size={config.train.batch_size} is not divisible by the "
