@@ -82,6 +82,22 @@ def as_uint8_image(image, what: str = "image") -> np.ndarray:
   return np.rint(a).astype(np.uint8)
 
 
+def check_fps(fps, what: str = "fps") -> None:
+  """Raises ValueError unless `fps` is a finite positive frame rate."""
+  if not (math.isfinite(fps) and fps > 0):
+    raise ValueError(f"{what} must be a positive number, got {fps}")
+
+
+def check_intrinsics(what: str = "", **values) -> None:
+  """Raises ValueError unless the given `fx`, `fy`, `baseline` are finite and positive and
+  `cx`, `cy` finite; the message starts with `what`."""
+  for name, value in values.items():
+    positive = name in ("fx", "fy", "baseline")
+    if not math.isfinite(value) or (positive and value <= 0):
+      raise ValueError(f"{what}{name} must be a finite{' positive' if positive else ''} number, "
+                       f"got {value}")
+
+
 def _check_range(vmin, vmax) -> tuple[float, float]:
   vmin, vmax = float(vmin), float(vmax)
   if not (math.isfinite(vmin) and math.isfinite(vmax) and vmax > vmin):
@@ -172,8 +188,7 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
   frames = [as_uint8_image(f, f"{path} frame {i}") for i, f in enumerate(frames)]
   if not frames:
     raise ValueError(f"{path}: no frames to write")
-  if not (math.isfinite(fps) and fps > 0):
-    raise ValueError(f"{path}: fps must be a positive number, got {fps}")
+  check_fps(fps, f"{path}: fps")
   h, w = frames[0].shape[:2]
   for i, f in enumerate(frames):  # all checked before the file is created
     if f.shape != (h, w, 3) or h < 1 or w < 1:
@@ -234,11 +249,7 @@ def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float
   if valid is not None and np.shape(valid) != d.shape:
     raise ValueError(f"disparity_to_points: valid mask shape {np.shape(valid)} differs from "
                      f"disp {d.shape}")
-  for name, value in (("fx", fx), ("fy", fy), ("baseline", baseline), ("cx", cx), ("cy", cy)):
-    if not math.isfinite(value) or (name in ("fx", "fy", "baseline") and value <= 0):
-      raise ValueError(f"disparity_to_points: {name} must be a finite"
-                       f"{' positive' if name in ('fx', 'fy', 'baseline') else ''} number, "
-                       f"got {value}")
+  check_intrinsics("disparity_to_points: ", fx=fx, fy=fy, baseline=baseline, cx=cx, cy=cy)
   z = depth_from_disparity(d, fx, baseline)
   keep = z > 0
   if valid is not None:

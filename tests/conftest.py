@@ -55,22 +55,17 @@ def fast_compile():
 @pytest.fixture
 def restore_cache_config():
   """Puts the test session's compilation cache settings back afterwards."""
-  import jax  # pylint: disable=import-outside-toplevel
-  keys = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
-  old = {k: getattr(jax.config, k) for k in keys}
-  yield
-  from jax.experimental.compilation_cache import compilation_cache  # pylint: disable=import-outside-toplevel
-  for k, v in old.items():
-    jax.config.update(k, v)
-  compilation_cache.reset_cache()
+  from sav_jax import runtime  # pylint: disable=import-outside-toplevel
+  with runtime.preserved_settings():
+    yield
 
 
 @pytest.fixture
 def restore_low_memory_compile():
-  """Puts `sav_jax.runtime.set_low_memory_compile` back to its default afterwards."""
-  yield
+  """Puts `sav_jax.runtime.set_low_memory_compile` back afterwards."""
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel
-  runtime.set_low_memory_compile(runtime.LOW_MEMORY_COMPILE_DEFAULT)
+  with runtime.preserved_settings():
+    yield
 
 
 def pytest_configure(config):

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import pathlib
 import re
 import time
@@ -111,15 +110,11 @@ def check_model_args(iters: int, window: int, stride: int) -> None:
     raise UsageError(f"need 1 <= --stride <= --window, got stride {stride}, window {window}")
 
 
-def check_fps(fps: float) -> None:
-  if not (math.isfinite(fps) and fps > 0):
-    raise UsageError(f"--fps must be a positive frame rate, got {fps}")
-
-
 def run(args: argparse.Namespace) -> int:
   formats = parse_formats(args.formats)
   check_model_args(args.iters, args.window, args.stride)
-  check_fps(args.fps)
+  from sav_jax import viz  # pylint: disable=import-outside-toplevel
+  viz.check_fps(args.fps, "--fps")
   calib_spec = calibration_from_args(args)
   ckpt = pathlib.Path(args.checkpoint)
   if not ckpt.exists():
@@ -215,11 +210,8 @@ def calibration_from_args(args) -> CalibrationSpec | None:
   if missing:
     raise UsageError(f"calibration needs {' and '.join('--' + m for m in missing)} "
                      "(fy, cx, cy are optional)")
-  for k, v in given.items():
-    positive = k in ("fx", "fy", "baseline")
-    if not math.isfinite(v) or (positive and not v > 0):
-      raise UsageError(f"calibration {k} must be a {'positive' if positive else 'finite'} "
-                       f"number, got {v}")
+  from sav_jax import viz  # pylint: disable=import-outside-toplevel
+  viz.check_intrinsics("calibration ", **given)
   return CalibrationSpec(**{k: float(v) for k, v in given.items()})
 
 
