@@ -61,6 +61,7 @@ from sav_jax import runtime
 from sav_jax.config import SAVConfig
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 from sav_jax.model.init import abstract_variables
+from sav_jax.model.stereo_any_video import check_iters
 
 log = logging.getLogger(__name__)
 
@@ -417,14 +418,6 @@ class FrameFeatureCache:
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *items)
 
 
-def _checked_iters(iters) -> int:
-  """`iters` as a Python int (numpy integers too), checked before anything compiles."""
-  # pylint: disable-next=import-outside-toplevel
-  from sav_jax.model.stereo_any_video import check_iters
-  check_iters(int(iters) if _is_int(iters) else iters)
-  return int(iters)
-
-
 def check_variables(variables, cfg: SAVConfig | None = None, source: str = "variables") -> None:
   """Raises ValueError unless `variables["params"]` has the model's tree and shapes.
 
@@ -586,7 +579,7 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
     `[T, H, W]` float32 positive disparity (px) of the left view, every frame.
   """
   cfg = resolve_config(cfg, dtype)
-  iters = _checked_iters(iters)
+  iters = check_iters(iters)
   left, right = _as_video_pair(left, right)
   check_variables(variables, cfg)
   plan = window_plan(left.shape[0], window, stride)
@@ -609,7 +602,7 @@ def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None
     list of raw padded outputs `[L_i, Hp, Wp]` of every window run (dropped ones too).
   """
   cfg = resolve_config(cfg)
-  iters = _checked_iters(iters)
+  iters = check_iters(iters)
   left, right = _as_video_pair(left, right)
   check_variables(variables, cfg)
   raws = [] if return_windows else None

@@ -205,7 +205,7 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
     inference.check_video_values(video / 255.0, "left")
   with pytest.raises(ValueError, match="iters must be an even integer"):
     inference.predict_video(variables, video, video, iters=3)
-  iters = inference._checked_iters(np.int64(4))  # pylint: disable=protected-access
+  iters = inference.check_iters(np.int64(4))
   assert iters == 4 and type(iters) is int
   with pytest.raises(ValueError, match=r"expected Flax variables \{'params': \.\.\.\}"):
     inference.predict_video(variables["params"], video, video, iters=ITERS)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import numbers
 
 import flax
 import flax.linen as nn
@@ -33,8 +34,8 @@ class SAVOutput:
   disparities: jax.Array
 
 
-def check_inputs(left, right, iters: int) -> None:
-  """Raises a ValueError naming the problem with the inputs of the model."""
+def check_inputs(left, right, iters: int) -> int:
+  """Raises a ValueError naming the problem with the inputs; returns `iters` as an int."""
   if left.shape != right.shape:
     raise ValueError(f"left and right videos differ in shape: {left.shape} vs {right.shape}")
   if left.ndim != 5 or left.shape[-1] != 3 or min(left.shape[:4]) < 1:
@@ -46,15 +47,21 @@ def check_inputs(left, right, iters: int) -> None:
     raise ValueError(
         f"height and width must be multiples of 16, got {h}x{w}; pad the frames "
         "(sav_jax.inference.predict_video pads to multiples of 32 for you)")
-  check_iters(iters)
+  return check_iters(iters)
 
 
-def check_iters(iters) -> None:
-  """Raises a ValueError unless `iters` is an even integer >= 2."""
-  if not isinstance(iters, int) or iters < 2 or iters % 2:
+def check_iters(iters) -> int:
+  """`iters` as a Python int; a ValueError unless it is an even integer >= 2.
+
+  Any integer type is accepted (numpy's too, not bool), so `iters=np.int64(4)` and
+  `iters=4` run, and cache, the same computation.
+  """
+  if (not isinstance(iters, numbers.Integral) or isinstance(iters, bool) or iters < 2
+      or iters % 2):
     raise ValueError(
         f"iters must be an even integer >= 2 (the 1/16 and 1/8 stages run iters//2 "
         f"steps each, and steps alternate 1x9 / 3x3 windows), got {iters!r}")
+  return int(iters)
 
 
 class StereoAnyVideo(nn.Module):
@@ -220,13 +227,13 @@ class StereoAnyVideo(nn.Module):
     Returns:
       `SAVOutput` with `disparities` `[P, B, T, H, W]`.
     """
-    check_inputs(left, right, iters)
+    iters = check_inputs(left, right, iters)
     return self.cascade(*self.features(left, right), left.shape[2:4], iters, final_only)
 
   def from_frame_features(self, frame_feats: dict, size: tuple[int, int], iters: int = 20,
                           final_only: bool = True) -> SAVOutput:
     """`__call__` from precomputed `frame_features` (frames of size `size` = (H, W))."""
-    check_iters(iters)
+    iters = check_iters(iters)
     return self.cascade(*self.window_features(frame_feats, *size), size, iters, final_only)
 
   def cascade(self, fmap1, fmap2, context, size: tuple[int, int], iters: int,

@@ -44,6 +44,8 @@ def test_parameter_tree_matches_the_official_manifest(fixtures_dir):
 @pytest.mark.parametrize("left_shape,right_shape,iters,match", [
     ((1, 2, 32, 48, 3), (1, 2, 32, 48, 3), 3, "even integer"),
     ((1, 2, 32, 48, 3), (1, 2, 32, 48, 3), 0, "even integer"),
+    ((1, 2, 32, 48, 3), (1, 2, 32, 48, 3), True, "even integer"),
+    ((1, 2, 32, 48, 3), (1, 2, 32, 48, 3), 2.0, "even integer"),
     ((1, 2, 32, 48, 1), (1, 2, 32, 48, 1), 2, "RGB"),
     ((2, 32, 48, 3), (2, 32, 48, 3), 2, "RGB"),
     ((1, 2, 32, 48, 3), (1, 3, 32, 48, 3), 2, "differ in shape"),
@@ -55,6 +57,15 @@ def test_bad_inputs_raise_clear_errors(model, left_shape, right_shape, iters, ma
   left, right = jnp.zeros(left_shape), jnp.zeros(right_shape)
   with pytest.raises(ValueError, match=match):
     jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=iters), left, right)
+
+
+def test_numpy_integer_iters_accepted(model):
+  """`iters=np.int64(2)` (e.g. from a config array) runs like `iters=2`."""
+  left = jnp.zeros((1, 2, 32, 48, 3))
+  shapes = jax.eval_shape(
+      lambda l, r: model.init_with_output(jax.random.PRNGKey(0), l, r, iters=np.int64(2))[0],
+      left, left)
+  assert shapes.disparities.shape == (4, 1, 2, 32, 48)  # 1 at 1/16, 1 at 1/8, 2 at 1/4
 
 
 def test_bad_config_raises():
