@@ -166,6 +166,10 @@ def _bad_case(name, root, clip, npz_ckpt):
   if name == "incompatible_checkpoint":
     np.savez(root / "bad.npz", **{"fnet.conv1.weight": np.zeros((3, 3), np.float32)})
     return left, right, root / "bad.npz", [], "bad.npz: incompatible checkpoint"
+  if name == "vda_checkpoint":
+    np.savez(root / "vda.npz", **{"pretrained.cls_token": np.zeros((1, 1, 8), np.float32),
+                                  "head.projects.0.weight": np.zeros((4, 8, 1, 1), np.float32)})
+    return left, right, root / "vda.npz", [], "not a Stereo Any Video one; `sav-jax convert --vda`"
   if name == "not_a_checkpoint_dir":
     (root / "dir").mkdir()
     return left, right, root / "dir", [], "not a sav-jax checkpoint"
@@ -195,7 +199,7 @@ def _bad_case(name, root, clip, npz_ckpt):
 
 @pytest.mark.parametrize("name", [
     "counts", "sizes", "empty", "unreadable", "mixed_sizes", "no_checkpoint",
-    "incompatible_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
+    "incompatible_checkpoint", "vda_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
     "calibration", "fy_zero", "fps", "out_is_file", "calib_no_keys", "calib_null",
     "calib_units"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):

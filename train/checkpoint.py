@@ -145,19 +145,15 @@ def load_vda_params(path) -> dict:
   return jax.tree.map(np.asarray, params)
 
 
-_KINDS = {"sav": ("a Stereo Any Video", "init_from"),
-          "vda": ("a Video Depth Anything (depth prior only)", "vda_weights")}
+_FIELDS = {"sav": "init_from", "vda": "vda_weights"}
 
 
 def _convert(path, want: str, field: str, fn):
   """`fn(state dict)` of the file at `path`, which must be of kind `want` ("sav"/"vda");
   errors name the file, the config field and, for the other kind, the field it is for."""
-  sd = sav_jax.convert.params.strip_module_prefix(sav_jax.convert.load_state_dict(path))
-  kind = sav_jax.convert.checkpoint_kind(sd, source=str(path))
-  if kind != want:
-    raise sav_jax.convert.CheckpointError(
-        f"config.{field}={path} is {_KINDS[kind][0]} checkpoint, not {_KINDS[want][0]} one; "
-        f"give it as config.{_KINDS[kind][1]}")
+  sd = sav_jax.convert.load_state_dict_of_kind(
+      path, want, {k: f"give it as config.{f}" for k, f in _FIELDS.items()},
+      label=f"config.{field}={path}")
   try:
     return fn(sd)
   except ValueError as e:

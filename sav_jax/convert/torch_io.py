@@ -13,6 +13,7 @@ import os
 import pathlib
 import tempfile
 import zipfile
+from typing import Mapping
 
 import numpy as np
 
@@ -243,6 +244,32 @@ def checkpoint_kind(sd: dict, source: str = "<state dict>") -> str:
       f"{source}: unrecognised checkpoint layout: {len(keys)} keys, first {keys[:5]!r}, "
       f"top-level names {dict(sorted(tops.items()))}; expected Stereo Any Video keys "
       f"({', '.join(sorted(SAV_TOP_LEVEL))}) or Video Depth Anything keys (pretrained, head)")
+
+
+KIND_NAMES = {"sav": "a Stereo Any Video", "vda": "a Video Depth Anything (depth prior only)"}
+
+
+def load_state_dict_of_kind(path, want: str, hints: Mapping[str, str] | None = None,
+                            label: str | None = None) -> dict:
+  """`load_state_dict(path)`, refused unless `checkpoint_kind` of it is `want`.
+
+  Args:
+    path: the checkpoint file.
+    want: "sav" or "vda".
+    hints: what to do instead, by the kind found (appended to the error).
+    label: how the error names the file (default: the path).
+
+  Raises:
+    CheckpointError: unreadable, unrecognised, or of the other kind ("<label> is a Video
+      Depth Anything (depth prior only) checkpoint, not a Stereo Any Video one; <hint>").
+  """
+  sd = load_state_dict(path)
+  kind = checkpoint_kind(sd, source=str(path))
+  if kind != want:
+    hint = (hints or {}).get(kind)
+    raise CheckpointError(f"{label or path} is {KIND_NAMES[kind]} checkpoint, not "
+                          f"{KIND_NAMES[want]} one" + (f"; {hint}" if hint else ""))
+  return sd
 
 
 def save_state_dict(sd: dict, path, *, overwrite: bool = False) -> pathlib.Path:

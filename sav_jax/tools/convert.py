@@ -53,11 +53,8 @@ def run(args: argparse.Namespace) -> int:
       print(f"saved the params of {step} -> {args.dst}")
     return 0
   cfg = sav_jax.SAVConfig()
-  sd = convert.load_state_dict(args.src)
-  kind = convert.checkpoint_kind(sd, source=args.src)
-  if args.vda != (kind == "vda"):
-    raise UsageError(f"{args.src} is a {'Video Depth Anything' if kind == 'vda' else 'Stereo Any Video'}"
-                     f" checkpoint; {'add' if kind == 'vda' else 'drop'} --vda")
+  kind = "vda" if args.vda else "sav"
+  sd = convert.load_state_dict_of_kind(args.src, kind, {"vda": "add --vda", "sav": "drop --vda"})
   if kind == "vda":
     variables = init_with_vda(sd, cfg, args.seed)
   else:

@@ -300,11 +300,9 @@ def load_checkpoint(path, dtype: str | None = None):
     described = (f"orbax checkpoint {path}" if step is None
                  else f"training checkpoint {step} (params)")
   else:
-    sd = convert.load_state_dict(path)
-    if convert.checkpoint_kind(sd, source=str(path)) != "sav":
-      raise convert.CheckpointError(
-          f"{path} is a Video Depth Anything checkpoint (the depth prior only), not a Stereo "
-          "Any Video one; `sav-jax convert --vda` turns it into an initialisation for training")
+    sd = convert.load_state_dict_of_kind(
+        path, "sav", {"vda": "`sav-jax convert --vda` turns it into an initialisation for "
+                             "training"})
     cfg = sav_jax.SAVConfig()
     try:
       variables = convert.params_from_state_dict(sd, cfg)

@@ -116,7 +116,13 @@ def test_cli_convert_vda_only(tmp_path, vda_state_dict, capsys):
   src = tmp_path / "video_depth_anything_vits.npz"
   convert.save_state_dict(vda_state_dict, src)
   assert cli.main(["convert", str(src), str(tmp_path / "a")]) == 2  # needs --vda
-  assert "--vda" in capsys.readouterr().err
+  assert ("is a Video Depth Anything (depth prior only) checkpoint, not a Stereo Any Video one; "
+          "add --vda") in capsys.readouterr().err
+  sav = tmp_path / "sav.npz"
+  np.savez(sav, **{"fnet.conv1.weight": np.zeros((3, 3), np.float32)})
+  assert cli.main(["convert", "--vda", str(sav), str(tmp_path / "c")]) == 2
+  assert "sav.npz is a Stereo Any Video checkpoint, not a Video Depth" in capsys.readouterr().err
+  assert not (tmp_path / "a").exists() and not (tmp_path / "c").exists()
   assert cli.main(["convert", "--vda", str(src), str(tmp_path / "b")]) == 0
   restored, _ = convert.restore_variables(tmp_path / "b")
   vda, _ = convert.vda_params_from_state_dict(vda_state_dict)
