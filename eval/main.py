@@ -8,7 +8,9 @@ Writes to --out (default `outputs/eval/<dataset>`): `results.md` (the paper's co
 `results.json` (config, weights, per-sequence and aggregate metrics), `results.csv`,
 `plots/<sequence>_curves.png` (per-frame EPE and TEPE) and `plots/<sequence>_strip.png`
 (colourized disparity), and with `--config.save_predictions=true`
-`predictions/<sequence>.npy`. Bad input exits with status 2 and one line on stderr.
+`predictions/<sequence>.npy`; `written_files.txt` lists the prediction and plot files written,
+which `--overwrite` deletes before the next run (nothing else in the folder is touched). Bad
+input exits with status 2 and one line on stderr.
 """
 
 from __future__ import annotations
@@ -74,6 +76,11 @@ def run(args, overrides) -> int:
   seqs = eval_data.load_sequences(config, args.data_root)
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)
+  if args.overwrite:  # only now that the inputs are known good
+    removed = runner.remove_written(out)
+    if removed:
+      print(f"--overwrite: removed the earlier run's {len(removed)} prediction and plot files "
+            f"(listed in {out / runner.WRITTEN_LIST})")
   methods = ["sav"] + [b for b in dict.fromkeys(args.baseline)]
   print(f"{config.dataset}/{config.split}: {len(seqs)} sequences; weights: {described}")
   results = []

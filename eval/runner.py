@@ -106,19 +106,61 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
 def _write_sequence_outputs(out: pathlib.Path, res: SequenceResult, clip: dict, preds: dict,
                             config) -> None:
   name = safe_name(res.name)
+  written = []
   if config.save_predictions:
     (out / "predictions").mkdir(parents=True, exist_ok=True)
     for method, pred in preds.items():
       suffix = "" if method == "sav" else f"_{method}"
-      np.save(out / "predictions" / f"{name}{suffix}.npy", pred.astype(np.float32))
+      written.append(out / "predictions" / f"{name}{suffix}.npy")
+      np.save(written[-1], pred.astype(np.float32))
   if config.plots.enabled:
     (out / "plots").mkdir(parents=True, exist_ok=True)
     labelled = {METHOD_NAMES[m]: p for m, p in preds.items()}
-    plots.write_strip(out / "plots" / f"{name}_strip.png", clip, labelled,
-                      frames=config.plots.strip_frames, tile=config.plots.tile_size)
+    written.append(out / "plots" / f"{name}_strip.png")
+    plots.write_strip(written[-1], clip, labelled, frames=config.plots.strip_frames,
+                      tile=config.plots.tile_size)
     if res.curves:
       curves = {METHOD_NAMES[m]: c for m, c in res.curves.items()}
-      plots.write_curves(out / "plots" / f"{name}_curves.png", curves, title=res.name)
+      written.append(out / "plots" / f"{name}_curves.png")
+      plots.write_curves(written[-1], curves, title=res.name)
+  record_written(out, written)
+
+
+# The prediction and plot files an evaluation wrote into its --out folder, one relative path
+# per line, appended as they are written (so an interrupted run's list is complete too).
+# `--overwrite` deletes exactly these before a new run: a run over fewer sequences leaves
+# no stale files of the earlier one, and files the user put there are never touched.
+WRITTEN_LIST = "written_files.txt"
+_OUTPUT_FOLDERS = ("predictions", "plots")
+
+
+def record_written(out: pathlib.Path, paths) -> None:
+  """Appends `paths` (files under `out`) to `out/written_files.txt`."""
+  if paths:
+    with open(out / WRITTEN_LIST, "a", encoding="utf-8") as f:
+      f.writelines(f"{p.relative_to(out).as_posix()}\n" for p in paths)
+
+
+def remove_written(out: pathlib.Path) -> list[pathlib.Path]:
+  """Deletes the files an earlier run listed in `out/written_files.txt`, and the list.
+
+  Only plain files directly in `out/predictions` or `out/plots` are deleted (a list that
+  names anything else, e.g. `../x`, is ignored for that line). Returns the deleted paths.
+  """
+  listing = out / WRITTEN_LIST
+  if not listing.is_file():
+    return []
+  removed = []
+  for line in listing.read_text(encoding="utf-8").splitlines():
+    parts = pathlib.PurePosixPath(line.strip()).parts
+    if len(parts) != 2 or parts[0] not in _OUTPUT_FOLDERS or parts[1] in ("", ".", ".."):
+      continue
+    path = out / parts[0] / parts[1]
+    if path.is_file() and not path.is_symlink():
+      path.unlink()
+      removed.append(path)
+  listing.unlink()
+  return removed
 
 
 def aggregate(results: list[SequenceResult], method: str) -> dict[str, float]:

@@ -123,6 +123,29 @@ def test_refuses_to_overwrite(synthetic_run, ckpt, capsys):
   assert (synthetic_run.parent / "a_file").read_text() == "keep"
 
 
+def test_overwrite_removes_only_the_earlier_runs_files(tmp_path, ckpt, capsys):
+  out = tmp_path / "run"
+  args = ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), "--out", str(out),
+          *SMALL]
+  assert main(args) == 0
+  first = sorted(p.name for p in (out / "predictions").iterdir())
+  assert len(first) == 2  # two sequences
+  (out / "plots" / "notes.txt").write_text("mine")  # the user's own files stay
+  (out / "keep.txt").write_text("mine")
+  (out / "written_files.txt").open("a").write("../keep.txt\nplots/../../keep.txt\n")
+  capsys.readouterr()
+  assert main([*args, "--config.synthetic.num_sequences=1", "--overwrite"]) == 0
+  assert "removed the earlier run's" in capsys.readouterr().out
+  assert sorted(p.name for p in (out / "predictions").iterdir()) == first[:1]
+  assert sorted(p.name for p in (out / "plots").iterdir()) == [
+      "notes.txt", f"{first[0][:-4]}_curves.png", f"{first[0][:-4]}_strip.png"]
+  assert (out / "plots" / "notes.txt").read_text() == "mine"
+  assert (out / "keep.txt").read_text() == "mine"
+  assert (out / "written_files.txt").read_text().splitlines() == [
+      f"predictions/{first[0]}", f"plots/{first[0][:-4]}_strip.png",
+      f"plots/{first[0][:-4]}_curves.png"]
+
+
 @pytest.mark.parametrize("override,message", [
     ("--config.nope=1", "no such config field"), ("--config.iters=abc", "expected int"),
     ("--config.iters=3", "even"), ("--config.plots.enabled=maybe", "true/false")])
