@@ -85,3 +85,14 @@ def test_operation_times_from_cpu_and_gpu_traces():
   assert op_profile.op_times(gpu) == {"fusion.1": (4.5, 1), "cudnn-conv.1": (7.0, 1)}
   # without "XLA Ops" lines: the device's events only
   assert op_profile.op_times(gpu[:3] + gpu[4:6]) == {"fusion.1": (4.0, 1)}
+
+
+def test_fft_correlation_equals_the_direct_convolution():
+  """benchmarks/fft_conv.py's FFT form computes the same 'same'-padded correlation."""
+  import fft_conv  # pylint: disable=import-outside-toplevel,import-error
+  x = jax.random.normal(jax.random.PRNGKey(0), (2, 3, 11, 4))
+  k = jax.random.normal(jax.random.PRNGKey(1), (1, 5, 4, 6))
+  assert fft_conv.fft_size(11, 5) == 16  # >= 11 + 5 - 1, even
+  got, want = fft_conv.fft_correlate(x, k), fft_conv.direct(x, k)
+  assert got.shape == want.shape == (2, 3, 11, 6)
+  assert float(jnp.abs(got - want).max()) < 1e-4 * float(jnp.abs(want).max())

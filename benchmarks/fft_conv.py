@@ -1,0 +1,112 @@
+"""Would FFT convolutions speed up the GRU's 1x15 convolutions on CPU? (No, not enough.)
+
+    python benchmarks/fft_conv.py [--frames 5 --height 32 --width 64 --repeats 7]
+
+The first stage of the GRU's z and r gates is a 1x15 convolution along the width (384 -> 128
+channels each, ~22% of the update block's multiply-adds). Along one axis, a correlation with a
+k-tap kernel is a product in the frequency domain: per frequency bin one complex
+[channels_in x channels_out] product instead of k real ones per pixel. This script times, at
+1/4 resolution of a T=5 128x256 clip:
+
+1. XLA's direct convolutions, z and r separately (what the model runs);
+2. the same with z and r fused into one 256-channel convolution;
+3. the FFT form: one real FFT of the shared input along the width (zero-padded to `n`), one
+   batched real product per bin (real and imaginary parts stacked: 2C x 2O), the inverse FFT,
+   and the crop, with its parts timed alone;
+
+and prints the largest difference from the direct result.
+"""
+
+import argparse
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from timing import timed  # benchmarks/timing.py
+
+
+def direct(x, kernel):
+  """torch-style 'same' correlation along the width: x `[N, H, W, C]`, kernel `[1, k, C, O]`."""
+  pad = kernel.shape[1] // 2
+  return jax.lax.conv_general_dilated(x, kernel, (1, 1), ((0, 0), (pad, pad)),
+                                      dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+
+def fft_size(width: int, taps: int) -> int:
+  """The smallest even length >= width + taps - 1 (no circular wrap-around)."""
+  n = width + taps - 1
+  return n + n % 2
+
+
+def spectrum_of_kernel(kernel, n):
+  """`[n//2+1, 2C, 2O]` real block matrix of the flipped kernel's spectrum, so that
+  `[Re X, Im X] @ it = [Re Y, Im Y]` for every frequency bin."""
+  spec = jnp.fft.rfft(jnp.flip(kernel[0], 0), n=n, axis=0)  # [F, C, O]
+  re, im = spec.real, spec.imag
+  return jnp.concatenate([jnp.concatenate([re, im], -1), jnp.concatenate([-im, re], -1)], 1)
+
+
+def fft_correlate(x, kernel):
+  """`direct(x, kernel)` computed through real FFTs along the width."""
+  n_, h, w, c = x.shape
+  taps, o = kernel.shape[1], kernel.shape[3]
+  n = fft_size(w, taps)
+  spec = jnp.fft.rfft(jnp.moveaxis(x, 2, -1), n=n, axis=-1)  # [N, H, C, F]
+  stacked = jnp.concatenate([spec.real, spec.imag], axis=2)   # [N, H, 2C, F]
+  y = jnp.einsum("nhcf,fco->fnho", stacked, spectrum_of_kernel(kernel, n))
+  y = jax.lax.complex(y[..., :o], y[..., o:])                  # [F, N, H, O]
+  y = jnp.fft.irfft(jnp.moveaxis(y, 0, -1), n=n, axis=-1)      # [N, H, O, n]
+  pad = taps // 2
+  return jnp.moveaxis(y[..., pad:pad + w], -1, 2)
+
+
+def main():
+  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p.add_argument("--frames", type=int, default=5)
+  p.add_argument("--height", type=int, default=32, help="rows at 1/4 resolution")
+  p.add_argument("--width", type=int, default=64, help="columns at 1/4 resolution")
+  p.add_argument("--repeats", type=int, default=7)
+  args = p.parse_args()
+  rng = np.random.default_rng(0)
+  shape = (args.frames, args.height, args.width)
+  x = jnp.asarray(rng.standard_normal((*shape, 384)), jnp.float32)
+  kz, kr = (jnp.asarray(rng.standard_normal((1, 15, 384, 128)) / np.sqrt(15 * 384), jnp.float32)
+            for _ in range(2))
+  both = jnp.concatenate([kz, kr], -1)
+  n = fft_size(args.width, 15)
+  macs = 2 * np.prod(shape) * 15 * 384 * 128
+  print(f"z and r first stage at [T, h, w] = {list(shape)}: {macs / 1e9:.2f} GMAC direct; "
+        f"FFT length {n} ({n // 2 + 1} bins)")
+  runs = {
+      "direct, z and r apart": (jax.jit(lambda x, a, b: (direct(x, a), direct(x, b))), kz, kr),
+      "direct, z and r fused": (jax.jit(direct), both, None),
+      "FFT, z and r fused": (jax.jit(fft_correlate), both, None),
+  }
+  ref = jnp.concatenate(runs["direct, z and r apart"][0](x, kz, kr), -1)
+  for name, (fn, a, b) in runs.items():
+    call_args = (x, a) if b is None else (x, a, b)
+    sec = timed(fn, *call_args, repeats=args.repeats)
+    out = fn(*call_args)
+    out = jnp.concatenate(out, -1) if isinstance(out, tuple) else out
+    err = float(jnp.abs(out - ref).max())
+    print(f"  {name:24s} {sec * 1e3:7.1f} ms   max |diff| {err:.1e} (outputs up to "
+          f"{float(jnp.abs(ref).max()):.1f})")
+  spec_x = jnp.fft.rfft(jnp.moveaxis(x, 2, -1), n=n, axis=-1)
+  stacked = jnp.concatenate([spec_x.real, spec_x.imag], axis=2)
+  kspec = spectrum_of_kernel(both, n)
+  y = jnp.einsum("nhcf,fco->fnho", stacked, kspec)
+  yc = jnp.moveaxis(jax.lax.complex(y[..., :256], y[..., 256:]), 0, -1)
+  parts = {
+      "forward FFT of the input": (lambda x: jnp.fft.rfft(jnp.moveaxis(x, 2, -1), n=n, axis=-1),
+                                   (x,)),
+      "per-bin products": (lambda s, k: jnp.einsum("nhcf,fco->fnho", s, k), (stacked, kspec)),
+      "inverse FFT": (lambda y: jnp.fft.irfft(y, n=n, axis=-1), (yc,)),
+  }
+  for name, (fn, call_args) in parts.items():
+    print(f"    of which {name:24s} {timed(jax.jit(fn), *call_args, repeats=args.repeats) * 1e3:7.1f}"
+          " ms")
+
+
+if __name__ == "__main__":
+  main()
