@@ -187,6 +187,13 @@ def _bad_case(name, root, clip, npz_ckpt):
   if name == "out_is_file":
     (root / "out").write_text("keep")
     return left, right, npz_ckpt, [], "is a file, not a folder"
+  if name == "output_is_folder":  # even --overwrite does not replace a folder
+    (root / "out" / "side_by_side.mp4").mkdir(parents=True)
+    return left, right, npz_ckpt, ["--iters", str(ITERS), "--overwrite"], "is not a file"
+  if name == "output_folder_is_file":
+    (root / "out").mkdir()
+    (root / "out" / "disparity").write_text("keep")
+    return left, right, npz_ckpt, [], "disparity is a file, not a folder"
   calib = {"calib_no_keys": ('{"left": {"fx": 720}, "baseline_m": 0.1}', "no calibration found"),
            "calib_null": ('{"fx": null, "baseline": 0.1}', "fx must be a number, got None"),
            "calib_units": ("fx: 720\nbaseline: 0.54 m\n", "line 2: baseline must be one number")}
@@ -200,7 +207,8 @@ def _bad_case(name, root, clip, npz_ckpt):
 @pytest.mark.parametrize("name", [
     "counts", "sizes", "empty", "unreadable", "mixed_sizes", "no_checkpoint",
     "incompatible_checkpoint", "vda_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
-    "calibration", "fy_zero", "fps", "out_is_file", "calib_no_keys", "calib_null",
+    "calibration", "fy_zero", "fps", "out_is_file", "output_is_folder", "output_folder_is_file",
+    "calib_no_keys", "calib_null",
     "calib_units"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):
   left, right, ckpt, extra, message = _bad_case(name, tmp_path, clip, npz_ckpt)
@@ -213,6 +221,10 @@ def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, n
   assert err.count("\n") == 1  # one clean line, no traceback
   if name == "out_is_file":
     assert out.read_text() == "keep"
+  elif name.startswith("output_"):
+    assert sorted(p.name for p in out.iterdir()) == [
+        "side_by_side.mp4" if name == "output_is_folder" else "disparity"]
+    assert (out / "side_by_side.mp4").is_dir() or (out / "disparity").read_text() == "keep"
   else:
     assert not out.exists()
 
@@ -240,10 +252,16 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   monkeypatch.setattr(demo, "BUNDLED", tmp_path / "no_bundled_checkpoint")
   out = tmp_path / "demo"
   (out / "disparity").mkdir(parents=True)
-  for name in (f"frame_{T:06d}.png", "mine.png"):  # an earlier, longer demo's frame; a user's
+  for name in (f"frame_{T:06d}.png", "frame_000000.png", "mine.png"):  # the user's files
     (out / "disparity" / name).write_bytes(b"old")
-  rc = cli.main(["demo", "--out", str(out), "--frames", str(T), "--height", str(H),
-                 "--width", str(W), "--iters", str(ITERS)])
+  args = ["demo", "--out", str(out), "--frames", str(T), "--height", str(H), "--width", str(W),
+          "--iters", str(ITERS)]
+  assert cli.main(args) == 2  # not an earlier demo's folder: nothing replaced or deleted
+  err = capsys.readouterr().err
+  assert "frame_000000.png" in err and "--overwrite" in err and err.count("\n") == 1, err
+  assert all(p.read_bytes() == b"old" for p in (out / "disparity").iterdir())
+  assert not (out / "metrics.json").exists()
+  rc = cli.main([*args, "--overwrite"])
   printed = capsys.readouterr().out
   assert rc == 0
   assert "RANDOM (untrained) weights" in printed and "StereoSGBM" in printed
@@ -254,6 +272,11 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   results = json.loads((out / "metrics.json").read_text())["metrics"]
   assert set(results) == {"Stereo Any Video", "StereoSGBM"}
   assert results["StereoSGBM"]["disp_epe_mean"] < 2.0  # SGBM works on the synthetic scene
+  # An earlier demo's folder is replaced without --overwrite, its extra frames removed.
+  (out / "disparity" / f"frame_{T + 1:06d}.png").write_bytes(b"old")
+  assert cli.main(args) == 0
+  assert sorted(p.name for p in (out / "disparity").glob("*.png")) == [
+      f"frame_{t:06d}.png" for t in range(T)] + ["mine.png"]
 
 
 def test_compile_cache_folder_option(tmp_path, folders, npz_ckpt, restore_cache_config):

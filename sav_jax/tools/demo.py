@@ -7,9 +7,10 @@ Generates a procedural stereo video with exact ground truth (`sav_jax.data.synth
 runs the model (`--checkpoint`, else the bundled `sav_jax/assets/sav_synthetic` when it
 exists, else seeded random weights, which it says plainly), runs OpenCV's StereoSGBM per
 frame as a baseline, prints EPE / TEPE of both against the ground truth and writes, under
---out (default `outputs/demo`, replaced on every run): `comparison.mp4` (left | ground
-truth | Stereo Any Video | SGBM, one colour range), `side_by_side.mp4` (left | disparity),
-`disparity/frame_XXXXXX.png` (16-bit, x256) and `metrics.json`.
+--out (default `outputs/demo`): `comparison.mp4` (left | ground truth | Stereo Any Video |
+SGBM, one colour range), `side_by_side.mp4` (left | disparity), `disparity/frame_XXXXXX.png`
+(16-bit, x256) and `metrics.json`. An earlier demo's outputs there (recognised by its
+`metrics.json`) are replaced; other files of those names only with `--overwrite`.
 """
 
 from __future__ import annotations
@@ -41,6 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--iters", type=int, default=4, help="refinement iterations (even; 4)")
   p.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene (0)")
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None, help="compute dtype")
+  p.add_argument("--overwrite", action="store_true",
+                 help="replace files of the output names in --out that an earlier demo did not "
+                      "write (an earlier demo's outputs are always replaced)")
   add_compile_cache_arguments(p)
 
 
@@ -103,6 +107,33 @@ def _weights(args, cfg_dtype):
           "they only show that the pipeline runs")
 
 
+OUTPUT_NAMES = ("comparison.mp4", "side_by_side.mp4", "metrics.json")
+_FRAME_GLOB = "frame_[0-9][0-9][0-9][0-9][0-9][0-9].png"
+
+
+def _is_demo_output(out: pathlib.Path) -> bool:
+  """Whether `out` holds an earlier demo's outputs (its metrics.json says so)."""
+  try:
+    summary = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+  except (OSError, ValueError):
+    return False
+  return isinstance(summary, dict) and {"weights", "synthetic", "metrics"} <= summary.keys()
+
+
+def check_demo_output(out: pathlib.Path, frames: int, overwrite: bool) -> list[pathlib.Path]:
+  """The earlier frame PNGs to delete; raises FileExistsError before anything is written
+  if files of the demo's names exist that an earlier demo did not write (unless `overwrite`).
+  """
+  from sav_jax.tools.infer import check_overwrite  # pylint: disable=import-outside-toplevel
+  frame_dir = out / "disparity"
+  stale = sorted(frame_dir.glob(_FRAME_GLOB)) if frame_dir.is_dir() else []
+  stale = [p for p in stale if int(p.stem[len("frame_"):]) >= frames]
+  paths = [out / n for n in OUTPUT_NAMES] + [frame_dir / f"frame_{t:06d}.png"
+                                            for t in range(frames)]
+  check_overwrite(paths + stale, overwrite or _is_demo_output(out))
+  return stale
+
+
 def _metrics(pred, clip):
   from sav_jax import metrics  # pylint: disable=import-outside-toplevel
   return metrics.eval_sequence(pred, clip["disparity"], clip["valid"].astype(np.float32))
@@ -116,13 +147,14 @@ def run(args: argparse.Namespace) -> int:
   if args.frames < 1 or args.height < 16 or args.width < 32:
     raise UsageError("need --frames >= 1, --height >= 16 and --width >= 32")
   out = check_output_dir(args.out)
+  stale = check_demo_output(out, args.frames, args.overwrite)
   scfg = synthetic.SyntheticConfig(frames=args.frames, height=args.height, width=args.width,
                                    max_disparity=min(64.0, args.width / 8), seed=args.seed)
   clip = synthetic.generate_clip(scfg, 0)
   setup_compile_cache(args)
   variables, cfg, described = _weights(args, args.dtype)
   print(f"weights: {described}")
-  print(f"synthetic video: {args.frames} frames of {args.width}x{args.height} (seed {args.seed}), "
+  print(f"synthetic video: {args.frames} frames of {args.height}x{args.width} (seed {args.seed}), "
         f"iters {args.iters}, {cfg.dtype}")
   t0 = time.perf_counter()
   pred = inference.predict_video(variables, clip["left"], clip["right"], cfg=cfg,
@@ -135,9 +167,8 @@ def run(args: argparse.Namespace) -> int:
   times = {"Stereo Any Video": t_model, "StereoSGBM": t_sgbm}
   print(_table(results, times))
   (out / "disparity").mkdir(parents=True, exist_ok=True)
-  for stale in (out / "disparity").glob("frame_[0-9][0-9][0-9][0-9][0-9][0-9].png"):
-    if int(stale.stem[len("frame_"):]) >= args.frames:  # a longer earlier demo's frames
-      stale.unlink()
+  for path in stale:  # a longer earlier demo's frames
+    path.unlink()
   vmin, vmax = viz.disparity_range(clip["disparity"], clip["valid"])
   col = lambda d, valid=None: viz.colorize(d, vmin, vmax, valid=valid)  # noqa: E731
   viz.write_video(out / "comparison.mp4", viz.side_by_side(

@@ -95,7 +95,15 @@ def output_paths(out: pathlib.Path, names: list[str], formats: list[str],
 
 
 def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
-  """Raises FileExistsError if any output exists and `overwrite` is off."""
+  """Raises FileExistsError if any output exists and `overwrite` is off, or if an output
+  (or a folder it goes in) is something other than a file (folder) even with `overwrite`."""
+  for p in paths:
+    if p.exists() and not p.is_file():
+      raise FileExistsError(f"{p} exists and is not a file; move it away (it is not replaced, "
+                            "even with --overwrite)")
+    for parent in p.parents:
+      if parent.exists() and not parent.is_dir():
+        raise FileExistsError(f"{parent} is a file, not a folder; move it away to write {p}")
   existing = [p for p in paths if p.exists()]
   if existing and not overwrite:
     shown = ", ".join(str(p) for p in existing[:3])
@@ -129,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
   variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
   print(f"weights: {described}")
-  print(f"input: {t} frames of {w}x{h}; iters {args.iters}, {cfg.dtype}")
+  print(f"input: {t} frames of {h}x{w} (height x width); iters {args.iters}, {cfg.dtype}")
   start = time.perf_counter()
   disp = inference.predict_video(variables, left, right, cfg=cfg, iters=args.iters,
                                  window=args.window, stride=args.stride, progress=True)
