@@ -37,7 +37,7 @@ def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
 
   # another compile setting is another program: compiled (not loaded) and recorded
   assert cli.main([*ARGS, "--json", str(second), "--compile-cache", str(cache),
-                   "--no-low-memory-compile"]) == 0
+                   "--no-low-memory-compile", "--overwrite"]) == 0
   out = capsys.readouterr().out
   assert "(stored in" in out and "xla_cpu_use_fusion_emitters" not in out
   rec = json.loads(second.read_text())
@@ -71,7 +71,19 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
   assert line == ("forward x2.00 faster (1 s vs 2 s), compile x2.00 slower (4 s vs 2 s), "
                   "peak RSS x2.00 lower (0.5 GB vs 1 GB)")
   (tmp_path / "bad.json").write_text('{"median_s": 1}')
-  for path, message in ((tmp_path / "none.json", "cannot read"), (tmp_path / "bad.json", "lacks")):
+  (tmp_path / "text.json").write_text('{"median_s": "x", "compile_s": 1, "peak_rss_gb": 1}')
+  for path, message in ((tmp_path / "none.json", "cannot read"), (tmp_path / "bad.json", "lacks"),
+                        (tmp_path / "text.json", "expected non-negative numbers")):
     assert cli.main([*ARGS, "--compare", str(path)]) == 2  # refused before measuring
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+  mine = tmp_path / "mine.json"
+  mine.write_text("precious")
+  for extra, message in ((["--json", str(mine)], "exists; pass --overwrite"),
+                         (["--json", str(tmp_path)], "is a folder"),
+                         (["--json", str(tmp_path / "no" / "r.json")], "does not exist"),
+                         (["--repeats", "0"], "--repeats must be >= 1")):
+    assert cli.main([*ARGS, *extra]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+  assert mine.read_text() == "precious"

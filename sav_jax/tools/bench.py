@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import resource
@@ -32,7 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  help="timed calls after the warm-up call (default 5)")
   p.add_argument("--all-predictions", action="store_true",
                  help="return every refinement step (training view) instead of the final one")
-  p.add_argument("--json", help="write the results to this JSON file")
+  p.add_argument("--json", help="write the results to this JSON file (a new file, or an "
+                                 "existing one with --overwrite)")
+  p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
   p.add_argument("--compare", help="a JSON written by --json: print the ratios against it")
   add_compile_cache_arguments(p, default_on=False)
 
@@ -155,6 +158,11 @@ def _read_baseline(path) -> dict:
   missing = [k for k in _COMPARED if not isinstance(base, dict) or k not in base]
   if missing:
     raise UsageError(f"--compare {path}: not a `sav-jax bench --json` file (lacks {missing})")
+  bad = {k: base[k] for k in _COMPARED
+         if isinstance(base[k], bool) or not isinstance(base[k], (int, float))
+         or not math.isfinite(base[k]) or base[k] < 0}
+  if bad:
+    raise UsageError(f"--compare {path}: expected non-negative numbers, got {bad}")
   return base
 
 
@@ -179,6 +187,17 @@ def run(args: argparse.Namespace) -> int:
   if args.vit_attention == "cudnn" and args.dtype != "bfloat16":
     raise UsageError("--vit-attention cudnn needs --dtype bfloat16 (cuDNN's fused attention "
                      "has no float32 kernels)")
+  for name in ("frames", "batch", "repeats"):
+    if getattr(args, name) < 1:
+      raise UsageError(f"--{name} must be >= 1, got {getattr(args, name)}")
+  if args.json:  # checked before the long run
+    if os.path.isdir(args.json):
+      raise UsageError(f"--json {args.json} is a folder; give a file name")
+    if os.path.exists(args.json) and not args.overwrite:
+      raise UsageError(f"--json {args.json} exists; pass --overwrite to replace it")
+    parent = os.path.dirname(os.path.abspath(args.json))
+    if not os.path.isdir(parent):
+      raise UsageError(f"--json {args.json}: folder {parent} does not exist")
   base = _read_baseline(args.compare) if args.compare else None  # before the long run
   cache = setup_compile_cache(args, default_on=False)
   res = measure(args.frames, args.height, args.width, args.iters, args.batch, args.dtype,
@@ -200,6 +219,6 @@ def run(args: argparse.Namespace) -> int:
   if base is not None:
     print(f"vs {args.compare}: " + compare_line(res, base))
   if args.json:
-    with open(args.json, "w") as f:
+    with open(args.json, "w", encoding="utf-8") as f:
       json.dump(res, f, indent=1)
   return 0
