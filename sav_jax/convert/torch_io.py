@@ -235,10 +235,18 @@ def checkpoint_kind(sd: dict, source: str = "<state dict>") -> str:
   for k in sd:
     top = str(k).split(".", 1)[0]
     tops[top] = tops.get(top, 0) + 1
-  if set(tops) <= SAV_TOP_LEVEL and tops.keys() & {"fnet", "cnet", "update_block"}:
+  sav_like = tops.keys() & {"fnet", "cnet", "update_block"}
+  if set(tops) <= SAV_TOP_LEVEL and sav_like:
     return "sav"
   if set(tops) == VDA_TOP_LEVEL:
     return "vda"
+  if sav_like:  # a Stereo Any Video state dict with other things in it
+    extra = sorted(set(tops) - SAV_TOP_LEVEL)
+    first = next(k for k in sd if str(k).split(".", 1)[0] in extra)
+    raise CheckpointError(
+        f"{source}: a Stereo Any Video state dict with keys under other top-level names: "
+        f"{', '.join(f'{t} ({tops[t]} keys)' for t in extra)}, e.g. {first!r}; the model's "
+        f"are {', '.join(sorted(SAV_TOP_LEVEL))} (remove the others)")
   keys = list(sd)
   raise CheckpointError(
       f"{source}: unrecognised checkpoint layout: {len(keys)} keys, first {keys[:5]!r}, "

@@ -1,4 +1,8 @@
-"""`sav-jax convert SRC DST`: an official checkpoint -> an orbax checkpoint directory."""
+"""`sav-jax convert SRC DST`: an official checkpoint -> an orbax checkpoint directory.
+
+Also the other way (an orbax directory or a training run's checkpoint -> an official
+state-dict file) and file to file (e.g. `.pth` -> `.safetensors`, checked on the way).
+"""
 
 from __future__ import annotations
 
@@ -7,9 +11,9 @@ import logging
 
 from sav_jax.tools import UsageError
 
-HELP = ("convert an official .pth/.pt/.safetensors/.npz checkpoint into an orbax directory, "
-        "or export an orbax directory or a training run's checkpoint to an official "
-        ".safetensors/.npz/.pth file")
+HELP = ("convert an official .pth/.pt/.safetensors/.npz checkpoint into an orbax directory "
+        "(or another state-dict file), or export an orbax directory or a training run's "
+        "checkpoint to an official .safetensors/.npz/.pth file")
 log = logging.getLogger(__name__)
 
 
@@ -17,9 +21,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("src", help="Stereo Any Video checkpoint (or, with --vda, a VDA-only file); "
                  "an orbax directory, or a training run's WORKDIR (latest checkpoint) or "
                  "WORKDIR/checkpoints/STEP, to export")
-  p.add_argument("dst", help="orbax checkpoint directory to create; when SRC is an orbax "
-                 "directory, the .safetensors/.npz/.pth file to export to (for a training "
-                 "checkpoint, a path without suffix makes a variables directory: params only)")
+  p.add_argument("dst", help="orbax checkpoint directory to create, or a .safetensors/.npz/.pth "
+                 "file to write the (checked) weights to under the official key names; for a "
+                 "training checkpoint SRC, a path without suffix makes a variables directory "
+                 "(params only)")
   p.add_argument("--vda", action="store_true",
                  help="SRC is a Video Depth Anything file (video_depth_anything_vits.pth): "
                       "write SAV variables with these depth-prior weights and a freshly "
@@ -33,17 +38,39 @@ def count_params(tree) -> int:
   return int(sum(x.size for x in jax.tree_util.tree_leaves(tree)))
 
 
+STATE_DICT_SUFFIXES = (".safetensors", ".npz", ".pth", ".pt")
+
+
+def check_destination(src: str, dst: str, to_file: bool, overwrite: bool) -> None:
+  """Raises UsageError before anything is read if DST cannot or must not be written."""
+  import os  # pylint: disable=import-outside-toplevel
+
+  from sav_jax import convert  # pylint: disable=import-outside-toplevel
+  if os.path.abspath(src) == os.path.abspath(dst):
+    raise UsageError(f"SRC and DST are the same path ({dst}); write to another one")
+  if not os.path.lexists(dst):
+    return
+  if not overwrite:
+    raise UsageError(f"{dst} exists; pass --overwrite to replace it")
+  if to_file and not os.path.isfile(dst):
+    raise UsageError(f"{dst} exists and is not a file; it is not replaced, even with "
+                     "--overwrite")
+  if not to_file and not convert.is_variables_checkpoint(dst):
+    raise UsageError(f"{dst} exists and is not a `sav-jax convert` variables folder; it is not "
+                     "replaced, even with --overwrite")
+
+
 def run(args: argparse.Namespace) -> int:
   import os  # pylint: disable=import-outside-toplevel
 
   import sav_jax  # pylint: disable=import-outside-toplevel
   from sav_jax import convert  # pylint: disable=import-outside-toplevel
 
-  if os.path.exists(args.dst) and not args.overwrite:
-    raise UsageError(f"{args.dst} exists; pass --overwrite to replace it")
-  if convert.is_orbax_checkpoint(args.src):
+  to_file = os.path.splitext(args.dst)[1].lower() in STATE_DICT_SUFFIXES
+  check_destination(args.src, args.dst, to_file, args.overwrite)
+  if os.path.isdir(args.src):  # restore_variables says what a folder must hold
     variables, config = convert.restore_variables(args.src)
-    if convert.is_variables_checkpoint(args.src) or os.path.splitext(args.dst)[1]:
+    if convert.is_variables_checkpoint(args.src) or to_file:
       path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite)
       print(f"exported {args.src} -> {path} (official Stereo Any Video key names)")
     else:  # a training checkpoint -> a compact variables directory (no optimizer state)
@@ -59,6 +86,11 @@ def run(args: argparse.Namespace) -> int:
     variables = init_with_vda(sd, cfg, args.seed)
   else:
     variables = convert.params_from_state_dict(sd, cfg)
+  if to_file:  # checked by the conversion, written back with the official names
+    path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite)
+    print(f"converted {args.src} ({kind}, {len(sd)} tensors) -> {path} (official Stereo Any "
+          "Video key names)")
+    return 0
   params = variables["params"]
   frozen = count_params(params["depthnet"]["depthanything"])
   total = count_params(params)

@@ -131,6 +131,31 @@ def test_cli_convert_vda_only(tmp_path, vda_state_dict, capsys):
   assert "fnet" in restored["params"]
 
 
+def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dict, capsys):
+  src = tmp_path / "sav.npz"
+  np.savez(src, **sav_state_dict)
+  dst = tmp_path / "sav.safetensors"
+  assert cli.main(["convert", str(src), str(dst)]) == 0  # checked, then the official names
+  assert dst.is_file()
+  _assert_same_state_dicts(convert.load_state_dict(dst), sav_state_dict)
+  (tmp_path / "notes.txt").write_text("mine")
+  (tmp_path / "folder.npz").mkdir()
+  (tmp_path / "folder").mkdir()
+  (tmp_path / "folder" / "a.txt").write_text("mine")
+  for dst, message in ((src, "SRC and DST are the same path"),
+                       (tmp_path / "folder.npz", "is not a file; it is not replaced"),
+                       (tmp_path / "notes.txt", "is not a `sav-jax convert` variables folder"),
+                       (tmp_path / "folder", "is not a `sav-jax convert` variables folder")):
+    assert cli.main(["convert", str(src), str(dst), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+  assert (tmp_path / "notes.txt").read_text() == "mine"
+  assert (tmp_path / "folder" / "a.txt").read_text() == "mine"
+  assert cli.main(["convert", str(tmp_path / "folder"), str(tmp_path / "x.npz")]) == 2
+  err = capsys.readouterr().err
+  assert "folder" in err and "not a regular file" not in err and err.count("\n") == 1, err
+
+
 def test_cli_convert_rejects_garbage(tmp_path, capsys):
   bad = tmp_path / "random.pth"
   bad.write_bytes(np.random.default_rng(0).bytes(1000))

@@ -656,15 +656,19 @@ def test_checkpoint_kind_errors(fixtures_dir):
   sav = _manifest_keys(fixtures_dir, "sav_manifest.json")
   cases = {
       "resnet": _tiny(["conv1.weight", "bn1.weight", "fc.bias"]),
-      "mixed": _tiny(sav[:3] + vda[:3]),
       "vda_half": _tiny(k for k in vda if k.startswith("pretrained.")),
-      "sav_plus_junk": _tiny(sav + ["extra.weight"]),
       "still_prefixed": _tiny("module." + k for k in sav),
   }
   for name, sd in cases.items():
     with pytest.raises(CheckpointError, match=r"unrecognised checkpoint layout: \d+ keys") as e:
       torch_io.checkpoint_kind(sd, source=name)
     assert name in str(e.value)
+  for name, sd, extra in (("sav_plus_junk", _tiny(sav + ["extra.weight"]), "extra (1 keys)"),
+                          ("mixed", _tiny(sav[:3] + vda[:3]), "pretrained (3 keys)")):
+    with pytest.raises(CheckpointError, match="a Stereo Any Video state dict with keys under "
+                                              "other top-level names") as e:
+      torch_io.checkpoint_kind(sd, source=name)
+    assert str(e.value).startswith(f"{name}: ") and extra in str(e.value)
   with pytest.raises(CheckpointError, match="non-empty"):
     torch_io.checkpoint_kind({})
 
