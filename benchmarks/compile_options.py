@@ -46,7 +46,7 @@ OPTION_SETS = {
 
 
 def main():
-  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   add_clip_arguments(p)
   p.add_argument("--repeats", type=int, default=4)
   p.add_argument("--sets", default=",".join(map(str, range(len(OPTION_SETS)))),

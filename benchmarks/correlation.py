@@ -39,7 +39,7 @@ def stacked_views(left, right, window, groups=4):
 
 
 def main():
-  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   p.add_argument("--block", type=int, default=16)
   p.add_argument("--repeats", type=int, default=5)
   args = p.parse_args()

@@ -62,7 +62,7 @@ def fft_correlate(x, kernel):
 
 
 def main():
-  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   p.add_argument("--frames", type=int, default=5)
   p.add_argument("--height", type=int, default=32, help="rows at 1/4 resolution")
   p.add_argument("--width", type=int, default=64, help="columns at 1/4 resolution")

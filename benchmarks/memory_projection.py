@@ -32,7 +32,7 @@ from timing import add_clip_arguments, compile_for_shape  # noqa: E402  pylint: 
 
 
 def main():
-  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   add_clip_arguments(p, frames=20, height=720, width=1280, iters=20)
   p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
   p.add_argument("--frame-block-mb", type=float, default=None,

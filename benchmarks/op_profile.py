@@ -225,7 +225,7 @@ def op_times(events: list[dict]) -> dict[str, tuple[float, int]]:
 
 
 def main():
-  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   add_clip_arguments(p)
   p.add_argument("--dtype", default="float32")
   p.add_argument("--repeats", type=int, default=2, help="traced calls (after one warm-up)")

@@ -72,7 +72,7 @@ def measure(fixtures: pathlib.Path, iters: int = 4) -> list[dict]:
 
 
 def main(argv=None) -> int:
-  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   default = os.environ.get("SAV_FIXTURES", str(ROOT.parent / "shared" / "fixtures"))
   p.add_argument("--fixtures", default=default, help="the oracle fixtures folder")
   p.add_argument("--json", help="write the rows to this JSON file")

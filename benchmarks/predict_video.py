@@ -32,7 +32,7 @@ def without_reuse(variables, left, right, cfg, iters):
 
 
 def main():
-  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   p.add_argument("--frames", type=int, default=40)
   p.add_argument("--height", type=int, default=128)
   p.add_argument("--width", type=int, default=256)

@@ -96,7 +96,7 @@ def measure(config, repeats: int) -> dict:
 
 
 def main():
-  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   p.add_argument("--frames", type=int, default=5)
   p.add_argument("--height", type=int, default=256)
   p.add_argument("--width", type=int, default=512)
