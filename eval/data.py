@@ -91,6 +91,14 @@ def load_sequences(config: ml_collections.ConfigDict, data_root) -> list:
                                   max_frames=int(config.sample_len))
   if config.max_sequences > 0:
     seqs = seqs[:config.max_sequences]
+  if not seqs and config.dataset != SYNTHETIC and config.sample_len > 0:
+    whole = registry.get_sequences(config.dataset, data_root, config.split, max_frames=None)
+    if whole:
+      raise ValueError(
+          f"all {len(whole)} {config.dataset}/{config.split} sequences under {data_root} are "
+          f"shorter than config.sample_len={config.sample_len} frames and were skipped, as the "
+          "official evaluation does; set --config.sample_len to at most "
+          f"{max(len(s) for s in whole)} (or 0 for whole sequences)")
   if not seqs:
     raise ValueError(f"no sequences found for {config.dataset}/{config.split} under {data_root}")
   return seqs

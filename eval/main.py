@@ -16,14 +16,13 @@ input exits with status 2 and one line on stderr.
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 import time
 
 from eval import config as eval_config
 from eval import data as eval_data
 from eval import report, runner
-from sav_jax.tools import UsageError, check_output_dir
+from sav_jax.tools import UsageError, check_output_dir, command_logging
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,10 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"eval: error: {e}", file=sys.stderr)
     return 2
   args = build_parser().parse_args(rest)
-  logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                      format="%(levelname)s %(name)s: %(message)s")
   try:
-    return run(args, overrides)
+    with command_logging(args.verbose):
+      return run(args, overrides)
   except (ValueError, FileNotFoundError, FileExistsError, UsageError) as e:
     print(f"eval: error: {e}", file=sys.stderr)
     return 2
@@ -66,7 +64,8 @@ def run(args, overrides) -> int:
   """Loads config, data and weights, evaluates every sequence, writes the reports."""
   config = eval_config.apply_overrides(eval_config.load_config(args.config), overrides)
   out = check_output_dir(args.out or f"outputs/eval/{config.dataset}")
-  earlier = [p for p in (out / "results.json", out / "predictions", out / "plots")
+  earlier = [p for p in (*(out / f"results.{x}" for x in ("json", "csv", "md")),
+                         out / runner.WRITTEN_LIST, out / "predictions", out / "plots")
              if p.is_file() or (p.is_dir() and any(p.iterdir()))]
   if earlier and not args.overwrite:  # also the predictions of an interrupted run
     raise FileExistsError(f"{', '.join(map(str, earlier))} exist; pass --overwrite to replace "

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import logging
 import sys
 
-from sav_jax.tools import UsageError
+from sav_jax.tools import UsageError, command_logging
 
 COMMANDS = {
     "demo": "sav_jax.tools.demo",
@@ -41,25 +40,12 @@ def main(argv: list[str] | None = None) -> int:
   parser = build_parser()
   args = parser.parse_args(argv)
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel  # jax: after --help
-  root, quiet = logging.getLogger(), [logging.getLogger(n) for n in ("jax", "absl")]
-  saved = (list(root.handlers), root.level, [q.level for q in quiet])
-  logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                      format="%(levelname)s %(name)s: %(message)s")
-  if not args.verbose:  # JAX's (backends, cache resets) and orbax's INFO lines are not for users
-    for q in quiet:
-      q.setLevel(logging.WARNING)
   try:
-    with runtime.preserved_settings():
+    with command_logging(args.verbose), runtime.preserved_settings():
       return int(args._run(args) or 0)
   except (UsageError, ValueError, FileNotFoundError, FileExistsError) as e:
     print(f"sav-jax {args.command}: error: {e}", file=sys.stderr)
     return 2
-  finally:
-    for handler in root.handlers[len(saved[0]):]:
-      root.removeHandler(handler)
-    root.setLevel(saved[1])
-    for q, level in zip(quiet, saved[2]):
-      q.setLevel(level)
 
 
 if __name__ == "__main__":

@@ -305,6 +305,9 @@ def _compile(key, build, check_memory: bool):
   log.info("compiling the model (%s) for %d frames of %dx%d (iters=%d, %s)%s", kind, *shape,
            iters, cfg.dtype, cached)
   fn, args = build()
+  # Shapes and dtypes only: committed arrays (orbax restores) would otherwise lower to another
+  # program than numpy or uncommitted ones, and miss the persistent compilation cache.
+  args = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), args)
   compiled = jax.jit(fn).lower(*args).compile(compiler_options=dict(key[4]))
   runtime.release_host_memory()  # the compiler's working memory, kept by the allocator
   if check_memory:
@@ -419,7 +422,8 @@ class FrameFeatureCache:
 
 
 def check_variables(variables, cfg: SAVConfig | None = None, source: str = "variables") -> None:
-  """Raises ValueError unless `variables["params"]` has the model's tree and shapes.
+  """Raises ValueError unless `variables["params"]` has the model's tree and shapes, and
+  every parameter is a floating-point array.
 
   Args:
     variables: `{"params": ...}` (other collections are ignored).
@@ -444,6 +448,12 @@ def check_variables(variables, cfg: SAVConfig | None = None, source: str = "vari
         f"(vda_encoder={cfg.vda_encoder!r}): {len(missing)} missing, e.g. {missing[:2]}; "
         f"{len(extra)} unexpected, e.g. {extra[:2]}; {len(wrong)} with other shapes, e.g. "
         f"{[(k, have[k], want[k]) for k in wrong[:2]]}")
+  for path, leaf in jax.tree_util.tree_leaves_with_path(got):
+    dtype = getattr(leaf, "dtype", None)
+    dtype = np.asarray(leaf).dtype if dtype is None else dtype
+    if not jnp.issubdtype(dtype, jnp.floating):
+      raise CheckpointError(f"{source}: parameter {jax.tree_util.keystr(path)} has dtype "
+                            f"{dtype}; expected floating-point arrays (float32, bfloat16, ...)")
 
 
 def clear_cache() -> None:
@@ -456,8 +466,21 @@ def cache_size() -> int:
   return len(_COMPILED)
 
 
+def _as_video(video, name: str) -> np.ndarray:
+  """`video` as one array; a list of frames must hold frames of one shape (ValueError
+  naming `name` and the first frame whose shape differs otherwise)."""
+  if isinstance(video, (list, tuple)):
+    frames = [np.asarray(f) for f in video]
+    for i, frame in enumerate(frames):
+      if frame.shape != frames[0].shape:
+        raise ValueError(f"{name}: frame {i} has shape {frame.shape} but frame 0 has "
+                         f"{frames[0].shape}; all frames need one size [H, W, 3]")
+    return np.stack(frames) if frames else np.asarray(video)
+  return np.asarray(video)
+
+
 def _as_video_pair(left, right) -> tuple[np.ndarray, np.ndarray]:
-  left, right = np.asarray(left), np.asarray(right)
+  left, right = _as_video(left, "left"), _as_video(right, "right")
   if left.shape != right.shape:
     raise ValueError(f"left and right videos differ in shape: {left.shape} vs {right.shape}")
   if left.ndim != 4 or left.shape[-1] != 3 or min(left.shape[:3]) < 1:

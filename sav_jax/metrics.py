@@ -67,7 +67,32 @@ def _as_seq(name: str, a) -> np.ndarray:
     a = a[:, 0]
   if a.ndim != 3:
     raise ValueError(f"{name} must be [T, H, W] or [T, 1, H, W], got shape {a.shape}")
+  if a.size == 0:
+    raise ValueError(f"{name} is empty (shape {a.shape}): metrics need T >= 1 frames of at "
+                     "least 1x1 pixels")
   return a
+
+
+def _check_scale(scale) -> float:
+  """`scale` (the depth-to-disparity scale) as a float; ValueError unless it is one finite
+  positive real number (a string, bool, array, 0, NaN or inf is refused)."""
+  a = np.asarray(scale) if not isinstance(scale, (str, bytes)) else None
+  if a is None or a.ndim != 0 or a.dtype.kind not in "uif" or not (np.isfinite(a) and a > 0):
+    raise ValueError(f"scale (depth-to-disparity scale, fx * baseline) must be a finite positive "
+                     f"number, got {scale!r}")
+  return float(a)
+
+
+def _check_depth_flows(depth_flows) -> None:
+  """ValueError unless `depth_flows` is a pair `(pred_flows, gt_flows)`."""
+  try:
+    count = len(depth_flows)
+  except TypeError:
+    count = None
+  if count != 2:
+    got = f"{count} items" if count is not None else type(depth_flows).__name__
+    raise ValueError(f"depth_flows must be a pair (pred_flows, gt_flows) of [T-1, 2, H, W] "
+                     f"flows, got {got}")
 
 
 def _as_mask(name: str, a) -> np.ndarray:
@@ -210,7 +235,8 @@ def ssim(x, y, data_range: float = 1.0, win_size: int = 11, win_sigma: float = 1
 
 
 def disparity_to_depth(disp, scale: float) -> np.ndarray:
-  """`scale / max(disp, 1e-10)` in float32 (NaN stays NaN)."""
+  """`scale / max(disp, 1e-10)` in float32 (NaN stays NaN); `scale` finite and positive."""
+  scale = _check_scale(scale)
   d = np.asarray(disp, dtype=_F32)
   return _F32(scale) / np.maximum(d, _F32(1e-10))
 
@@ -464,7 +490,8 @@ def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
     pred: `[T, H, W]` (or `[T, 1, H, W]`) predicted disparity.
     gt: same shape, GT disparity.
     mask: same shape, validity mask (`disparity_mask`).
-    scale: depth-to-disparity scale; None skips every depth metric.
+    scale: depth-to-disparity scale (a finite positive number); None skips every depth
+      metric.
     left_video: `[T, 3, H, W]` or `[T, 2, 3, H, W]`, needed for OPW/RTC.
     video_flows: `[T-1, 2, H, W]` left-video flows (else from `flow_fn`).
     depth_flows: `(pred_flows, gt_flows)` for TCM (else from `flow_fn`).
@@ -477,6 +504,10 @@ def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
   """
   x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("mask", mask)
   _check_same(("pred", "gt", "mask"), (x, y, m))
+  if scale is not None:
+    scale = _check_scale(scale)
+  if depth_flows is not None:
+    _check_depth_flows(depth_flows)
   res = {f"disp_{k}": v for k, v in eval_endpoint_error_sequence(x, y, m).items()}
   if scale is None:
     return res, x.shape[0]
@@ -507,7 +538,8 @@ def eval_sequence(pred, gt, valid, flows=None, *, scale: float | None = None, vi
     gt: same shape, GT disparity (any sign; NaNs allowed).
     valid: same shape, validity mask.
     flows: `[T-1, 2, H, W]` left-video flows for OPW/RTC.
-    scale: depth-to-disparity scale; None skips the depth metrics.
+    scale: depth-to-disparity scale (a finite positive number); None skips the depth
+      metrics.
     video: `[T, 3, H, W]` left or `[T, 2, 3, H, W]` stereo video, RGB 0..255.
     depth_flows: `(pred_flows, gt_flows)` for TCM.
     flow_fn: optical flow function used for whatever flows are not given.

@@ -265,16 +265,24 @@ def write_ply(path, xyz, colors) -> int:
 
   Args:
     path: output file.
-    xyz: `[N, 3]` float coordinates.
-    colors: `[N, 3]` uint8 RGB.
+    xyz: `[N, 3]` (or `[..., 3]`) float coordinates.
+    colors: RGB of the same shape as `xyz`, uint8 or numbers in 0..255.
 
   Returns:
     The number of points N.
+
+  Raises:
+    ValueError: `xyz` is not `[..., 3]` numbers, `colors` has another shape or values
+      outside 0..255 (checked before the file is created).
   """
-  xyz = np.asarray(xyz, np.float32).reshape(-1, 3)
-  colors = np.asarray(colors, np.uint8).reshape(-1, 3)
-  if len(xyz) != len(colors):
-    raise ValueError(f"{len(xyz)} points but {len(colors)} colours")
+  xyz, colors = np.asarray(xyz), np.asarray(colors)
+  if xyz.ndim < 1 or xyz.shape[-1] != 3 or xyz.dtype.kind not in "uif":
+    raise ValueError(f"write_ply: xyz must be [N, 3] (or [..., 3]) numbers, got shape "
+                     f"{xyz.shape} of dtype {xyz.dtype}")
+  if colors.shape != xyz.shape:
+    raise ValueError(f"write_ply: colors of shape {colors.shape} do not match xyz {xyz.shape}")
+  colors = as_uint8_image(colors, "write_ply colors").reshape(-1, 3)
+  xyz = xyz.astype(np.float32).reshape(-1, 3)
   verts = np.empty(len(xyz), _PLY_DTYPE)
   for i, name in enumerate("xyz"):
     verts[name] = xyz[:, i]
@@ -291,20 +299,43 @@ def write_ply(path, xyz, colors) -> int:
 
 
 def read_ply(path) -> tuple[np.ndarray, np.ndarray]:
-  """Reads a PLY written by `write_ply`: `(xyz [N, 3] float32, rgb [N, 3] uint8)`."""
+  """Reads a PLY written by `write_ply`: `(xyz [N, 3] float32, rgb [N, 3] uint8)`.
+
+  Raises FileNotFoundError when `path` is missing and ValueError naming it when it is not
+  such a PLY file (other magic, format or vertex properties, or truncated).
+  """
   with open(path, "rb") as fh:
-    lines = []
-    while not lines or lines[-1] != "end_header":
+    magic = fh.readline(64)  # not a whole binary file without newlines
+    if magic.rstrip(b"\r\n") != b"ply":
+      raise ValueError(f"{path}: not a PLY file (starts with {magic[:16]!r})")
+    lines = ["ply"]
+    while lines[-1] != "end_header":
       line = fh.readline()
       if not line:
-        raise ValueError(f"{path}: truncated PLY header")
-      lines.append(line.decode("ascii").strip())
+        raise ValueError(f"{path}: truncated PLY header (no end_header)")
+      try:
+        lines.append(line.decode("ascii").strip())
+      except UnicodeDecodeError:
+        raise ValueError(f"{path}: PLY header line {len(lines) + 1} is not ASCII text "
+                         f"({line[:16]!r})") from None
     if lines[1] != "format binary_little_endian 1.0":
       raise ValueError(f"{path}: unsupported PLY format {lines[1]!r}")
-    count = int(next(l for l in lines if l.startswith("element vertex")).split()[-1])
-    verts = np.frombuffer(fh.read(count * _PLY_DTYPE.itemsize), _PLY_DTYPE)
-  if len(verts) != count:
-    raise ValueError(f"{path}: header says {count} vertices, file has {len(verts)}")
+    elements = [i for i, l in enumerate(lines) if l.startswith("element")] + [len(lines)]
+    first = lines[elements[0]].split() if len(elements) > 1 else []
+    if len(first) != 3 or first[1] != "vertex" or not first[2].isdigit():
+      raise ValueError(f"{path}: PLY header has no 'element vertex N' line first")
+    count = int(first[2])
+    props = [" ".join(l.split()) for l in lines[elements[0] + 1:elements[1]]
+             if l.startswith("property")]
+    want = ([f"property float {n}" for n in "xyz"]
+            + [f"property uchar {n}" for n in ("red", "green", "blue")])
+    if props != want:
+      raise ValueError(f"{path}: PLY vertex properties {props} differ from write_ply's {want}")
+    data = fh.read(count * _PLY_DTYPE.itemsize)
+  if len(data) != count * _PLY_DTYPE.itemsize:
+    raise ValueError(f"{path}: header says {count} vertices, file has "
+                     f"{len(data) / _PLY_DTYPE.itemsize:g} ({len(data)} bytes of data)")
+  verts = np.frombuffer(data, _PLY_DTYPE)
   xyz = np.stack([verts[n] for n in "xyz"], axis=-1).astype(np.float32)
   rgb = np.stack([verts[n] for n in ("red", "green", "blue")], axis=-1)
   return xyz, rgb
@@ -323,10 +354,12 @@ def write_png16(path, disp) -> None:
 
 
 def read_png16(path) -> tuple[np.ndarray, np.ndarray]:
-  """Reads a KITTI-style 16-bit PNG: `(disparity [H, W] float32, valid [H, W] bool)`."""
-  v = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-  if v is None or v.dtype != np.uint16 or v.ndim != 2:
-    raise ValueError(f"{path}: not a single-channel 16-bit PNG")
+  """Reads a KITTI-style 16-bit PNG: `(disparity [H, W] float32, valid [H, W] bool)`.
+
+  Raises FileNotFoundError / ValueError naming the file (`frame_io.read_png_uint16`).
+  """
+  from sav_jax.data import frame_io  # pylint: disable=import-outside-toplevel
+  v = frame_io.read_png_uint16(path)
   return v.astype(np.float32) / 256.0, v > 0
 
 
@@ -345,22 +378,13 @@ def write_pfm(path, data) -> None:
 
 
 def read_pfm(path) -> np.ndarray:
-  """Reads a PFM file (either endianness) into `[H, W]` or `[H, W, 3]` float32, top row first."""
-  with open(path, "rb") as fh:
-    kind = fh.readline().strip()
-    if kind not in (b"PF", b"Pf"):
-      raise ValueError(f"{path}: not a PFM file (header {kind!r})")
-    dims = fh.readline().split()
-    while not dims:  # tolerate blank lines
-      dims = fh.readline().split()
-    w, h = int(dims[0]), int(dims[1])
-    scale = float(fh.readline().strip())
-    channels = 3 if kind == b"PF" else 1
-    data = np.frombuffer(fh.read(), "<f4" if scale < 0 else ">f4")
-  if data.size < w * h * channels:
-    raise ValueError(f"{path}: truncated PFM ({data.size} of {w * h * channels} values)")
-  data = data[:w * h * channels].reshape((h, w, 3) if channels == 3 else (h, w))
-  return np.ascontiguousarray(data[::-1]).astype(np.float32)
+  """Reads a PFM file (either endianness) into `[H, W]` or `[H, W, 3]` float32, top row first.
+
+  The reader of `frame_io.read_pfm`: FileNotFoundError / ValueError naming the file when it
+  is missing, not a PFM, has a malformed header or less data than the header declares.
+  """
+  from sav_jax.data import frame_io  # pylint: disable=import-outside-toplevel
+  return frame_io.read_pfm(path)
 
 
 def write_exr(path, data, channel: str = "Y") -> None:
@@ -379,16 +403,10 @@ def write_exr(path, data, channel: str = "Y") -> None:
 
 
 def read_exr(path, channel: str | None = None) -> np.ndarray:
-  """Reads an EXR channel (default: the only one, or R, G, B stacked) as float32."""
-  import OpenEXR  # pylint: disable=import-outside-toplevel
-  with OpenEXR.File(str(path)) as f:
-    chans = {k: np.asarray(v.pixels, np.float32) for k, v in f.channels().items()}
-  if channel is not None:
-    if channel not in chans:
-      raise ValueError(f"{path}: no channel {channel!r}; channels are {sorted(chans)}")
-    return chans[channel]
-  if len(chans) == 1:
-    return next(iter(chans.values()))
-  if set("RGB") <= set(chans):
-    return np.stack([chans[c] for c in "RGB"], axis=-1)
-  raise ValueError(f"{path}: several channels {sorted(chans)}; name one")
+  """Reads an EXR channel (default: the only one, or R, G, B stacked) as float32.
+
+  The reader of `frame_io.read_exr`: FileNotFoundError / ValueError naming the file when it
+  is missing, not an EXR file, or has no such channel.
+  """
+  from sav_jax.data import frame_io  # pylint: disable=import-outside-toplevel
+  return frame_io.read_exr(path, channel)

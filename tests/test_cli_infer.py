@@ -151,7 +151,8 @@ def _bad_case(name, root, clip, npz_ckpt):
     return left, right, npz_ckpt, [], "different frame counts"
   if name == "sizes":
     _write_frames(right, [np.zeros((H, W - 8, 3), np.uint8)] * T)
-    return left, right, npz_ckpt, [], "different frame sizes"
+    return left, right, npz_ckpt, [], f"different frame sizes: left is {H}x{W}, right is " \
+        f"{H}x{W - 8} (height x width)"
   if name == "empty":
     (root / "e").mkdir()
     return root / "e", right, npz_ckpt, [], "empty folder"
@@ -160,7 +161,8 @@ def _bad_case(name, root, clip, npz_ckpt):
     return left, right, npz_ckpt, [], "unreadable frame"
   if name == "mixed_sizes":
     _write_frames(left, [np.zeros((H + 2, W, 3), np.uint8)])
-    return left, right, npz_ckpt, [], "frames differ in size"
+    return left, right, npz_ckpt, [], f"frames differ in size: 0001.png is {H}x{W} but the " \
+        f"first frame 0000.png is {H + 2}x{W} (height x width)"
   if name == "no_checkpoint":
     return left, right, root / "missing.pth", [], "checkpoint not found"
   if name == "incompatible_checkpoint":
@@ -229,6 +231,19 @@ def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, n
     assert not out.exists()
 
 
+def test_frame_folder_names_the_frame_of_another_size(tmp_path):
+  frames, wide = [np.zeros((H, W, 3), np.uint8)] * 4, np.zeros((H, W + 2, 3), np.uint8)
+  left = _write_frames(tmp_path / "l", frames[:2] + [wide] + frames[:1])
+  right = _write_frames(tmp_path / "r", frames)
+  with pytest.raises(ValueError, match=rf"l: frames differ in size: 0002.png is {H}x{W + 2} but "
+                                       rf"the first frame 0000.png is {H}x{W} \(height x width\)"):
+    video_io.load_stereo(left, right)
+  lv, _, names = video_io.load_stereo(left, right, max_frames=2)  # the odd frame not read
+  assert lv.shape == (2, H, W, 3) and names == ["0000", "0001"]
+  with pytest.raises(ValueError, match=rf"left is {H}x{W}, right is {H}x{W + 2} \(height x"):
+    video_io.load_stereo(right, _write_frames(tmp_path / "r2", [wide] * 4))
+
+
 def test_calibration_file(tmp_path):
   from sav_jax.tools.infer import read_calibration
   kitti = tmp_path / "calib_cam_to_cam.txt"
@@ -293,3 +308,32 @@ def test_compile_cache_folder_option(tmp_path, folders, npz_ckpt, restore_cache_
   # Called from Python, the command leaves the caller's settings as they were.
   assert (jax.config.jax_compilation_cache_dir, runtime._low_memory_compile,  # pylint: disable=protected-access
           len(logging.getLogger().handlers), logging.getLogger("absl").level) == before
+
+
+def test_stereo_sgbm_range_cut_to_the_frame_width(caplog):
+  """OpenCV fails on numDisparities >= width; the baseline searches what the frames allow."""
+  from sav_jax.tools.demo import stereo_sgbm  # pylint: disable=import-outside-toplevel
+  rng = np.random.default_rng(0)
+  left = rng.integers(0, 256, (1, 32, 64, 3), dtype=np.uint8)
+  right = np.roll(left, -3, axis=2)
+  disp = stereo_sgbm(left, right, max_disparity=256)
+  assert disp.shape == (1, 32, 64) and np.isfinite(disp).all()
+  assert "max disparity 256 cut to 48 for 64-px-wide frames" in caplog.text
+  with pytest.raises(ValueError, match="wider than 16 px"):
+    stereo_sgbm(left[:, :, :16], right[:, :, :16])
+
+
+def test_command_logging_quiets_jax_and_absl_and_restores():
+  import logging  # pylint: disable=import-outside-toplevel
+
+  from sav_jax.tools import command_logging  # pylint: disable=import-outside-toplevel
+  absl, root = logging.getLogger("absl"), logging.getLogger()
+  before = (absl.level, root.level, list(root.handlers))
+  absl.setLevel(logging.NOTSET)
+  with command_logging(verbose=False):
+    assert absl.level == logging.WARNING and logging.getLogger("jax").level == logging.WARNING
+    assert root.getEffectiveLevel() <= logging.INFO
+  assert absl.level == logging.NOTSET and list(root.handlers) == before[2]
+  with command_logging(verbose=True):
+    assert absl.level == logging.NOTSET  # --verbose shows everything
+  absl.setLevel(before[0])

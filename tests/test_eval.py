@@ -113,14 +113,19 @@ def test_refuses_to_overwrite(synthetic_run, ckpt, capsys):
   (interrupted / "predictions").mkdir(parents=True)
   (interrupted / "predictions" / "seq.npy").write_bytes(b"keep")
   (synthetic_run.parent / "a_file").write_text("keep")
+  notes = synthetic_run.parent / "notes"  # the user's own results.md
+  notes.mkdir()
+  (notes / "results.md").write_text("keep")
   for out, message in ((interrupted, "predictions exist; pass --overwrite"),
-                       (synthetic_run.parent / "a_file", "is a file, not a folder")):
+                       (synthetic_run.parent / "a_file", "is a file, not a folder"),
+                       (notes, "results.md exist; pass --overwrite")):
     rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt),
                "--out", str(out), *SMALL])
     err = capsys.readouterr().err
     assert rc == 2 and message in err and err.count("\n") == 1, err
   assert (interrupted / "predictions" / "seq.npy").read_bytes() == b"keep"
   assert (synthetic_run.parent / "a_file").read_text() == "keep"
+  assert (notes / "results.md").read_text() == "keep"
 
 
 def test_overwrite_removes_only_the_earlier_runs_files(tmp_path, ckpt, capsys):

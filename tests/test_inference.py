@@ -7,6 +7,8 @@ and a sweep) runs with a stand-in for the model that labels each output frame wi
 window and position it came from.
 """
 
+import re
+
 import jax
 import numpy as np
 import pytest
@@ -187,6 +189,12 @@ def test_bad_inputs():
     inference.window_plan(10, window=4, stride=5)
   assert inference.window_plan(30, window=np.int64(20), stride=np.int64(10)) == \
       inference.window_plan(30, window=20, stride=10)
+  frames = [np.zeros((8, 8, 3), np.uint8)] * 3
+  odd = frames[:1] + [np.zeros((8, 10, 3), np.uint8)] + frames[:1]
+  for left, right, side in ((odd, frames, "left"), (frames, tuple(odd), "right")):
+    with pytest.raises(ValueError, match=rf"{side}: frame 1 has shape \(8, 10, 3\) but frame 0 "
+                                         r"has \(8, 8, 3\); all frames need one size"):
+      inference.predict_video({}, left, right)
 
 
 def test_bad_values_iters_and_variables_fail_before_compiling(variables):
@@ -214,6 +222,27 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
                             cfg=sav_jax.SAVConfig(vda_encoder="vitl"))
   with pytest.raises(TypeError, match="SAVConfig.from_dict"):
     inference.predict_video(variables, video, video, iters=ITERS, cfg={"dtype": "float32"})
+  assert inference.cache_size() == before  # nothing compiled
+
+
+def test_non_float_parameters_are_refused_before_compiling(variables):
+  before = inference.cache_size()
+  leaves, treedef = jax.tree_util.tree_flatten_with_path(variables)
+  in_params = [i for i, (p, _) in enumerate(leaves) if p[0].key == "params"]
+  k = min(in_params, key=lambda i: np.size(leaves[i][1]))  # a small parameter
+  path = jax.tree_util.keystr(leaves[k][0][1:])  # the path inside "params"
+  for bad in (np.full(np.shape(leaves[k][1]), "0.5"), np.zeros(np.shape(leaves[k][1]), object),
+              np.zeros(np.shape(leaves[k][1]), np.int32)):
+    broken = jax.tree_util.tree_unflatten(
+        treedef, [bad if i == k else leaf for i, (_, leaf) in enumerate(leaves)])
+    with pytest.raises(ValueError, match=rf"source\.npz: parameter {re.escape(path)} has dtype "
+                                         rf"{bad.dtype}; expected floating-point arrays"):
+      inference.check_variables(broken, source="source.npz")
+    video = np.zeros((2, 32, 32, 3), np.uint8)
+    with pytest.raises(ValueError, match=re.escape(path)):
+      inference.predict_video(broken, video, video, iters=ITERS)
+  inference.check_variables(jax.tree_util.tree_map(lambda x: x.astype(jax.numpy.bfloat16),
+                                                   variables))
   assert inference.cache_size() == before  # nothing compiled
 
 
@@ -271,6 +300,21 @@ def test_per_frame_features_are_computed_once_per_frame(variables, golden, monke
   assert disp.shape == (21, 28, 30)
   with pytest.raises(ValueError, match="chunk"):
     inference.FrameFeatureCache(chunk=0)
+
+
+def test_same_program_for_committed_and_numpy_variables():
+  """Weights restored by orbax are committed device arrays, a .pth's are numpy: both must
+  lower to the same program (one persistent-cache entry)."""
+  fn = lambda v, x: v["w"] * x  # noqa: E731
+  spec = jax.ShapeDtypeStruct((3,), np.float32)
+  texts = []
+  for i, w in enumerate((np.ones(3, np.float32),
+                         jax.device_put(np.ones(3, np.float32), jax.devices()[0]))):
+    key = inference._cache_key(f"test-{i}", {"w": w}, sav_jax.SAVConfig(), 2, (1, 1, 3))  # pylint: disable=protected-access
+    compiled = inference._compile(key, lambda w=w: (fn, ({"w": w}, spec)), False)  # pylint: disable=protected-access
+    inference._COMPILED.pop(key)  # pylint: disable=protected-access
+    texts.append(compiled.as_text())
+  assert texts[0] == texts[1]
 
 
 def test_cache_key_follows_the_default_device():

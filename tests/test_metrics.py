@@ -280,3 +280,33 @@ def test_masks_outside_zero_one_are_refused():
     with pytest.raises(ValueError, match="valid must hold values"):
       M.eval_sequence(pred, gt, mask)
   assert M.eval_endpoint_error_sequence(pred, gt, np.full((2, 4, 4), 0.7))  # fractional: fine
+
+
+@pytest.mark.parametrize("scale", [0.0, -100.0, float("nan"), float("inf"), "100", True,
+                                   np.array([100.0])])
+def test_bad_scales_are_refused(scale):
+  gt = np.ones((3, 12, 12), np.float32)
+  with pytest.raises(ValueError, match=r"scale \(depth-to-disparity scale, fx \* baseline\) must "
+                                       r"be a finite positive number, got "):
+    M.eval_sequence(gt + 0.5, gt, np.ones_like(gt), scale=scale)  # 0 / NaN used to give TCC 1.0
+  with pytest.raises(ValueError, match="scale"):
+    M.disparity_to_depth(gt, scale)
+  assert "disp_TCC" in M.eval_sequence(gt + 0.5, gt, np.ones_like(gt), scale=np.float32(100))
+
+
+def test_empty_sequences_and_bad_depth_flow_pairs_are_refused():
+  empty = np.zeros((0, 8, 8), np.float32)  # used to score a perfect 0 EPE
+  with pytest.raises(ValueError, match=r"pred is empty \(shape \(0, 8, 8\)\): metrics need T >= 1"):
+    M.eval_sequence(empty, empty, empty)
+  with pytest.raises(ValueError, match=r"gt is empty \(shape \(2, 0, 8\)\)"):
+    M.eval_endpoint_error_sequence(np.ones((2, 4, 8)), np.ones((2, 0, 8)), np.ones((2, 4, 8)))
+  gt = np.ones((3, 12, 12), np.float32)
+  flows = np.zeros((2, 2, 12, 12), np.float32)
+  for bad, got in (((flows,), "got 1 items"), ((flows,) * 3, "got 3 items"), (5, "got int")):
+    with pytest.raises(ValueError, match=rf"depth_flows must be a pair \(pred_flows, gt_flows\).*"
+                                         rf"{got}"):
+      M.eval_sequence(gt, gt, np.ones_like(gt), scale=100.0, depth_flows=bad)
+  with pytest.raises(ValueError, match=r"gt_flows must have shape \(2, 2, 12, 12\)"):
+    M.eval_sequence(gt, gt, np.ones_like(gt), scale=100.0, depth_flows=(flows, flows[:1]))
+  res = M.eval_sequence(gt, gt, np.ones_like(gt), scale=100.0, depth_flows=(flows, flows))
+  assert "disp_TCM" in res

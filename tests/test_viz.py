@@ -1,5 +1,8 @@
 """Colour maps, videos, point clouds and disparity file formats (round trips)."""
 
+import re
+import threading
+
 import cv2
 import numpy as np
 import pytest
@@ -84,6 +87,90 @@ def test_ply_header_count_and_values(tmp_path):
   back_xyz, back_rgb = viz.read_ply(tmp_path / "p.ply")
   np.testing.assert_array_equal(back_xyz, xyz)
   np.testing.assert_array_equal(back_rgb, rgb)
+
+
+def _raises_within(seconds, exc, match, fn, *args):
+  """`fn(*args)` raises `exc` matching `match`, in a thread (an endless loop fails, not hangs)."""
+  caught = []
+
+  def target():
+    try:
+      fn(*args)
+    except Exception as e:  # pylint: disable=broad-except
+      caught.append(e)
+
+  thread = threading.Thread(target=target, daemon=True)
+  thread.start()
+  thread.join(seconds)
+  assert not thread.is_alive(), f"{fn.__name__}{args} still running after {seconds} s"
+  assert caught, f"{fn.__name__}{args} raised nothing"
+  assert isinstance(caught[0], exc), repr(caught[0])
+  assert re.search(match, str(caught[0])), str(caught[0])
+
+
+@pytest.mark.parametrize("content, match", [
+    (b"Pf\n", "malformed PFM header"),  # used to loop forever
+    (b"Pf\nabc def\n-1\n" + bytes(8), "malformed PFM header"),
+    (b"Pf\n2\n-1\n" + bytes(8), "malformed PFM header"),
+    (b"Pf\n2 1\n", "malformed PFM header"),
+    (b"Pf\n-2 2\n-1\n" + bytes(16), "malformed PFM header"),
+    (b"Pf\n2 2\n-1\n" + bytes(8), r"truncated PFM file \(8 bytes of data, 16 expected\)"),
+    (b"P6\n2 2\n255\n" + bytes(12), "not a PFM file")],
+    ids=["truncated_header", "letters", "one_dim", "no_scale", "negative", "short", "not_pfm"])
+def test_bad_pfm_names_the_file(tmp_path, content, match):
+  path = tmp_path / "bad.pfm"
+  path.write_bytes(content)
+  _raises_within(10, ValueError, f"{match}.*bad.pfm", viz.read_pfm, path)
+
+
+def test_missing_and_corrupt_disparity_files_name_the_file(tmp_path):
+  junk = tmp_path / "junk.bin"
+  junk.write_bytes(bytes(range(256)) * 4)
+  for reader in (viz.read_pfm, viz.read_exr, viz.read_png16):
+    with pytest.raises(FileNotFoundError, match="missing.bin"):
+      reader(tmp_path / "missing.bin")
+    with pytest.raises(ValueError, match="junk.bin"):
+      reader(junk)
+  with pytest.raises(FileNotFoundError, match="missing.ply"):
+    viz.read_ply(tmp_path / "missing.ply")
+  with pytest.raises(ValueError, match="junk.bin: not a PLY file"):
+    viz.read_ply(junk)
+  cv2.imwrite(str(tmp_path / "rgb.png"), np.zeros((2, 3, 3), np.uint8))
+  with pytest.raises(ValueError, match=r"1-channel 16-bit PNG, got uint8 .*rgb.png"):
+    viz.read_png16(tmp_path / "rgb.png")
+  viz.write_exr(tmp_path / "y.exr", np.ones((2, 3), np.float32))
+  with pytest.raises(ValueError, match="y.exr has no channel 'Z'"):
+    viz.read_exr(tmp_path / "y.exr", "Z")
+  good = b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n"
+  props = (b"property float x\nproperty float y\nproperty float z\n"
+           b"property uchar red\nproperty uchar green\nproperty uchar blue\n")
+  for name, content, match in (
+      ("latin.ply", good + b"comment caf\xe9\n" + props + b"end_header\n" + bytes(15), "ASCII"),
+      ("nohdr.ply", good + props, "no end_header"),
+      ("novert.ply", b"ply\nformat binary_little_endian 1.0\nend_header\n", "element vertex"),
+      ("normals.ply", good + props + b"property float nx\nend_header\n" + bytes(19),
+       "vertex properties"),
+      ("short.ply", good + props + b"end_header\n" + bytes(14), "header says 1 vertices")):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(ValueError, match=f"{name}.*{match}"):
+      viz.read_ply(tmp_path / name)
+
+
+def test_write_ply_refuses_bad_shapes_and_colours(tmp_path):
+  path = tmp_path / "p.ply"
+  xyz, rgb = np.zeros((4, 5, 3), np.float32), np.full((4, 5, 3), 7.0)
+  assert viz.write_ply(path, xyz, rgb) == 20  # [..., 3] is flattened; floats 0..255 rounded
+  np.testing.assert_array_equal(viz.read_ply(path)[1], 7)
+  path.unlink()
+  for bad_xyz, bad_rgb, match in (
+      (np.zeros((3, 2)), np.zeros((3, 2)), r"xyz must be \[N, 3\].*shape \(3, 2\)"),
+      (np.array([["a", "b", "c"]]), np.zeros((1, 3)), "dtype <U1"),
+      (np.zeros((2, 3)), np.zeros((3, 3)), r"colors of shape \(3, 3\) do not match xyz \(2, 3\)"),
+      (np.zeros((1, 3)), np.full((1, 3), 300.0), r"values 300\.\.300 outside 0\.\.255"),
+      (np.zeros((1, 3)), np.full((1, 3), -1), r"values -1\.\.-1 outside 0\.\.255")):
+    with pytest.raises(ValueError, match=match):
+      viz.write_ply(path, bad_xyz, bad_rgb)
+  assert not path.exists()  # refused before the file is created
 
 
 def test_colorize_fixed_range_is_temporally_stable():

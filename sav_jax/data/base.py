@@ -115,10 +115,23 @@ class StereoSequence:
 
     Returns:
       The keys of `seq[i]` with arrays [T, ...] (None stays None).
+
+    Raises:
+      ValueError: no index, or frames of different sizes (naming the sequence, the
+        first odd frame's file and both sizes).
     """
+    indices = [self._index(i) for i in indices]
     frames = [self[i] for i in indices]
     if not frames:
       raise ValueError("gather needs at least one frame index")
+    size = frames[0]["left"].shape[:2]
+    for i, frame in zip(indices, frames):
+      if frame["left"].shape[:2] != size:
+        h, w = frame["left"].shape[:2]
+        raise ValueError(
+            f"{self.dataset}/{self.name}: frame {i} {self.files['left'][i]} is {h}x{w} but "
+            f"frame {indices[0]} {self.files['left'][indices[0]]} is {size[0]}x{size[1]} "
+            "(height x width); the frames of one sequence must share a size")
     return {k: None if frames[0][k] is None else np.stack([f[k] for f in frames])
             for k in frames[0]}
 

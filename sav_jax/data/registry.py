@@ -14,6 +14,7 @@ shorter than L are skipped. Other splits return whole sequences.
 from __future__ import annotations
 
 import functools
+import logging
 from pathlib import Path
 from typing import NamedTuple
 
@@ -22,6 +23,8 @@ import numpy as np
 from sav_jax.data import (dynamic_replica, infinigen, kitti_depth, sceneflow, sintel,
                           south_kensington, spring, vkitti2)
 from sav_jax.data.base import StereoSequence, sceneflow_clips, strided_clips
+
+log = logging.getLogger(__name__)
 
 DEFAULT_ROOT = "data/datasets"
 
@@ -86,11 +89,16 @@ def eval_chunk(sequences: list[StereoSequence], length: int | None,
   """
   if length is None or length <= 0:
     return list(sequences)
-  out = []
+  out, short = [], []
   for seq in sequences:
     if len(seq) < length and drop_short:
+      short.append(seq.name)
       continue
     out.append(seq.head(min(length, len(seq))))
+  if short:
+    log.warning("skipped %d sequence(s) shorter than %d frames, as the official evaluation "
+                "does: %s", len(short), length, ", ".join(map(str, short[:5]))
+                + (" ..." if len(short) > 5 else ""))
   return out
 
 

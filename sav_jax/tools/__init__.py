@@ -7,6 +7,8 @@ A `UsageError` (or ValueError / FileNotFoundError / FileExistsError) raised by
 """
 
 import argparse
+import contextlib
+import logging
 import os
 import pathlib
 
@@ -67,3 +69,26 @@ def check_output_dir(out, flag: str = "--out") -> pathlib.Path:
   if not os.access(existing, os.W_OK | os.X_OK):
     raise UsageError(f"{flag} {out}: no permission to write in {existing}")
   return out
+
+
+@contextlib.contextmanager
+def command_logging(verbose: bool):
+  """Logging for a command run: INFO (DEBUG with `verbose`) to stderr, JAX's and absl's
+  (orbax's) INFO lines quiet unless `verbose`; afterwards the root logger and those two are
+  as they were (the command may be called from Python)."""
+  root, quiet = logging.getLogger(), [logging.getLogger(n) for n in ("jax", "absl")]
+  saved = (list(root.handlers), root.level, [q.level for q in quiet])
+  level = logging.DEBUG if verbose else logging.INFO
+  logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+  root.setLevel(level)  # also where the root logger already had handlers (a notebook's)
+  if not verbose:  # JAX's (backends, cache resets) and orbax's INFO lines are not for users
+    for q in quiet:
+      q.setLevel(logging.WARNING)
+  try:
+    yield
+  finally:
+    for handler in root.handlers[len(saved[0]):]:
+      root.removeHandler(handler)
+    root.setLevel(saved[1])
+    for q, level in zip(quiet, saved[2]):
+      q.setLevel(level)

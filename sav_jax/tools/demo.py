@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import pathlib
 import time
 
@@ -24,6 +25,8 @@ import cv2
 import numpy as np
 
 from sav_jax.tools import add_compile_cache_arguments, check_output_dir, setup_compile_cache
+
+log = logging.getLogger(__name__)
 
 HELP = "run the model on a built-in synthetic stereo video and compare with StereoSGBM"
 BUNDLED = pathlib.Path(__file__).resolve().parents[1] / "assets" / "sav_synthetic"
@@ -54,7 +57,8 @@ def stereo_sgbm(left: np.ndarray, right: np.ndarray, max_disparity: float = 128.
 
   Args:
     left, right: `[T, H, W, 3]` uint8 RGB.
-    max_disparity: largest disparity searched (rounded up to a multiple of 16).
+    max_disparity: largest disparity searched (rounded up to a multiple of 16, and cut to
+      the largest multiple of 16 below the width, which OpenCV needs).
     block_size: matching block size (odd).
 
   Returns:
@@ -62,6 +66,13 @@ def stereo_sgbm(left: np.ndarray, right: np.ndarray, max_disparity: float = 128.
     nearest valid values on their row (KITTI's background interpolation).
   """
   num = int(np.ceil(max(16.0, float(max_disparity)) / 16.0)) * 16
+  width = left.shape[2]
+  if num >= width:
+    if width <= 16:
+      raise ValueError(f"StereoSGBM needs frames wider than 16 px, got width {width}")
+    num = (width - 1) // 16 * 16
+    log.warning("StereoSGBM: max disparity %s cut to %d for %d-px-wide frames", max_disparity,
+                num, width)
   sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num, blockSize=block_size,
                                P1=8 * 3 * block_size ** 2, P2=32 * 3 * block_size ** 2,
                                disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=100,

@@ -92,16 +92,23 @@ def read_video_file(path, max_frames: int | None = None) -> np.ndarray:
   return np.stack(frames)
 
 
+def _size(shape) -> str:
+  """`HxW` (height x width) of an `[H, W, ...]` shape, for messages."""
+  return f"{shape[0]}x{shape[1]}"
+
+
 def _read_source(path, max_frames: int | None, notes: set[str]):
   """`(frames [T, H, W, 3] uint8, names)` of a frame folder or a video file."""
   path = pathlib.Path(path)
   if path.is_dir():
     files = list_frames(path)[:max_frames]
-    frames = [read_frame(f, notes) for f in files]
-    shapes = {f.shape for f in frames}
-    if len(shapes) > 1:
-      sizes = sorted(f"{s[1]}x{s[0]}" for s in shapes)
-      raise ValueError(f"{path}: frames differ in size ({', '.join(sizes)})")
+    frames = []
+    for file in files:
+      frames.append(read_frame(file, notes))
+      if frames[-1].shape != frames[0].shape:
+        raise ValueError(f"{path}: frames differ in size: {file.name} is "
+                         f"{_size(frames[-1].shape)} but the first frame {files[0].name} is "
+                         f"{_size(frames[0].shape)} (height x width)")
     names = [f.stem for f in files]
     if len(set(names)) != len(names):
       names = [f"frame_{i:06d}" for i in range(len(files))]
@@ -137,8 +144,8 @@ def load_stereo(left, right, max_frames: int | None = None):
   if len(lv) != len(rv):
     raise ValueError(f"different frame counts: left has {len(lv)}, right has {len(rv)}")
   if lv.shape != rv.shape:
-    raise ValueError(f"different frame sizes: left is {lv.shape[2]}x{lv.shape[1]}, right is "
-                     f"{rv.shape[2]}x{rv.shape[1]}")
+    raise ValueError(f"different frame sizes: left is {_size(lv.shape[1:])}, right is "
+                     f"{_size(rv.shape[1:])} (height x width)")
   for note in sorted(notes):
     log.warning("note: %s", note)
   return lv, rv, names

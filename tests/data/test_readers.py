@@ -7,6 +7,7 @@ depth2disp scales are compared value by value with what was written.
 
 import gzip
 import json
+import pathlib
 import pickle
 import shutil
 import struct
@@ -185,11 +186,20 @@ def _dynamic_replica(root, rng, split, seqs):
   return truth
 
 
-def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch):
+def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch, caplog):
   seqs_spec = [("seq_b", 3, "ndc_isotropic"), ("seq_a", 2, "ndc_norm_image_bounds")]
   truth = _dynamic_replica(tmp_path, np.random.default_rng(4), "test", seqs_spec)
-  # The official cut (150 frames) drops both short sequences; keep them whole here.
+  # The official cut (150 frames) drops both short sequences, saying so; keep them whole here.
   assert registry.get_sequences("dynamic_replica", tmp_path, "test") == []
+  assert "skipped 2 sequence(s) shorter than 150 frames, as the official evaluation does: " \
+         "seq_b, seq_a" in caplog.text
+  from eval import config as eval_config  # pylint: disable=import-outside-toplevel
+  from eval import data as eval_data  # pylint: disable=import-outside-toplevel
+  config = eval_config.load_config(
+      str(pathlib.Path(__file__).resolve().parents[2] / "configs/eval/dynamic_replica.py"))
+  with pytest.raises(ValueError, match=r"all 2 dynamic_replica/test sequences .* shorter than "
+                                       r"config.sample_len=150 .* at most 3"):
+    eval_data.load_sequences(config, tmp_path)
   seqs = registry.get_sequences("dynamic_replica", tmp_path, "test", max_frames=None)
   assert [s.name for s in seqs] == ["seq_b", "seq_a"]  # annotation order, not sorted
   for seq in seqs:
@@ -453,3 +463,20 @@ def test_registry_names_errors_and_pickling(tmp_path):
   assert base.digits_key(tmp_path / "rgb_00012.jpg") == base.digits_key(tmp_path / "d_12.png")
   with pytest.raises(ValueError, match="head"):
     seq.head(3)
+
+
+def test_gather_names_the_frame_of_another_size(tmp_path):
+  rng = np.random.default_rng(14)
+  files = {"left": [], "right": []}
+  for i in range(4):
+    size = (H - 2, W) if i == 3 else (H, W)  # as a Sintel frame 3 at 66x128 among 68x128
+    for side in files:
+      img = rng.integers(0, 256, (*size, 3), dtype=np.uint8)
+      _png(tmp_path / side / f"frame_{i:04d}.png", img)
+      files[side].append(tmp_path / side / f"frame_{i:04d}.png")
+  seq = base.StereoSequence("market_2", files, dataset="sintel_final")
+  assert seq.clip(0, 3)["left"].shape == (3, H, W, 3)
+  odd = tmp_path / "left" / "frame_0003.png"
+  with pytest.raises(ValueError, match=rf"sintel_final/market_2: frame 3 {odd} is {H - 2}x{W} "
+                                       rf"but frame 1 .*frame_0001.png is {H}x{W}"):
+    seq.gather([1, 2, -1])
