@@ -79,6 +79,9 @@ def load_sequences(config: ml_collections.ConfigDict, data_root) -> list:
     list of StereoSequence-like objects.
   """
   if config.dataset == SYNTHETIC:
+    if config.split != "test":
+      raise ValueError(f"the synthetic dataset has only the split 'test', got "
+                       f"config.split={config.split!r}")
     seqs = synthetic_sequences(config)
     length = config.sample_len
     seqs = [s if length <= 0 or length >= len(s) else _Head(s, length) for s in seqs]

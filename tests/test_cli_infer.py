@@ -196,6 +196,8 @@ def _bad_case(name, root, clip, npz_ckpt):
     (root / "out").mkdir()
     (root / "out" / "disparity").write_text("keep")
     return left, right, npz_ckpt, [], "disparity is a file, not a folder"
+  if name == "calib_folder":
+    return left, right, npz_ckpt, ["--calib", str(root)], "is a folder; give the calibration file"
   calib = {"calib_no_keys": ('{"left": {"fx": 720}, "baseline_m": 0.1}', "no calibration found"),
            "calib_null": ('{"fx": null, "baseline": 0.1}', "fx must be a number, got None"),
            "calib_units": ("fx: 720\nbaseline: 0.54 m\n", "line 2: baseline must be one number")}
@@ -209,7 +211,8 @@ def _bad_case(name, root, clip, npz_ckpt):
 @pytest.mark.parametrize("name", [
     "counts", "sizes", "empty", "unreadable", "mixed_sizes", "no_checkpoint",
     "incompatible_checkpoint", "vda_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
-    "calibration", "fy_zero", "fps", "out_is_file", "output_is_folder", "output_folder_is_file",
+    "calibration", "calib_folder", "fy_zero", "fps", "out_is_file", "output_is_folder",
+    "output_folder_is_file",
     "calib_no_keys", "calib_null",
     "calib_units"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):

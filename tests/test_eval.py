@@ -153,7 +153,8 @@ def test_overwrite_removes_only_the_earlier_runs_files(tmp_path, ckpt, capsys):
 
 @pytest.mark.parametrize("override,message", [
     ("--config.nope=1", "no such config field"), ("--config.iters=abc", "expected int"),
-    ("--config.iters=3", "even"), ("--config.plots.enabled=maybe", "true/false")])
+    ("--config.iters=3", "even"), ("--config.plots.enabled=maybe", "true/false"),
+    ("--config.split=train", "only the split 'test'")])
 def test_bad_overrides(tmp_path, ckpt, capsys, override, message):
   rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt),
              "--out", str(tmp_path / "o"), override])

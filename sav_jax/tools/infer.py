@@ -233,6 +233,8 @@ def read_calibration(path) -> dict[str, float]:
   baseline = (P2[0,3] - P3[0,3]) / fx.
   """
   path = pathlib.Path(path)
+  if path.is_dir():
+    raise ValueError(f"--calib {path} is a folder; give the calibration file")
   if not path.is_file():
     raise FileNotFoundError(f"calibration file not found: {path}")
   text = path.read_text(errors="replace")
