@@ -13,6 +13,7 @@ k-tap kernel is a product in the frequency domain: per frequency bin one complex
 3. the FFT form: one real FFT of the shared input along the width (zero-padded to `n`), one
    batched real product per bin (real and imaginary parts stacked: 2C x 2O), the inverse FFT,
    and the crop, with its parts timed alone;
+4. the same with both DFTs as real matrix products (`dft_correlate`);
 
 and prints the largest difference from the direct result.
 """
@@ -61,6 +62,26 @@ def fft_correlate(x, kernel):
   return jnp.moveaxis(y[..., pad:pad + w], -1, 2)
 
 
+def dft_correlate(x, kernel):
+  """`direct(x, kernel)` with the DFTs along the width written as real matrix products
+  (`[N, H, W, C] @ [W, 2F]` in, `[2F, W]` out): no FFT and no transposes asked for."""
+  w, taps, o = x.shape[2], kernel.shape[1], kernel.shape[3]
+  n = fft_size(w, taps)
+  bins, pad = n // 2 + 1, taps // 2
+  ang = 2 * np.pi * np.outer(np.arange(w), np.arange(bins)) / n
+  forward = np.concatenate([np.cos(ang), -np.sin(ang)], 1).astype(np.float32)  # [W, 2F]
+  weight = np.ones(bins)
+  weight[1:bins - 1] = 2  # n is even: bins 0 and n/2 appear once in the real inverse
+  ang = 2 * np.pi * np.outer(np.arange(bins), np.arange(w) + pad) / n
+  inverse = (np.concatenate([weight[:, None] * np.cos(ang), -weight[:, None] * np.sin(ang)], 0)
+             / n).astype(np.float32)  # [2F, W]: the cropped outputs only
+  spec = jnp.einsum("nhwc,wg->nhgc", x, forward)
+  spec = jnp.concatenate([spec[:, :, :bins], spec[:, :, bins:]], -1)  # [N, H, F, 2C]
+  y = jnp.einsum("nhfc,fco->nhfo", spec, spectrum_of_kernel(kernel, n))
+  y = jnp.concatenate([y[..., :o], y[..., o:]], 2)  # [N, H, 2F, O]
+  return jnp.einsum("nhgo,gw->nhwo", y, inverse)
+
+
 def main():
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   p.add_argument("--frames", type=int, default=5)
@@ -82,6 +103,7 @@ def main():
       "direct, z and r apart": (jax.jit(lambda x, a, b: (direct(x, a), direct(x, b))), kz, kr),
       "direct, z and r fused": (jax.jit(direct), both, None),
       "FFT, z and r fused": (jax.jit(fft_correlate), both, None),
+      "DFT products, fused": (jax.jit(dft_correlate), both, None),
   }
   ref = jnp.concatenate(runs["direct, z and r apart"][0](x, kz, kr), -1)
   for name, (fn, a, b) in runs.items():
