@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from typing import Optional
 
+import jax
 import jax.numpy as jnp
 
 # Default memory budget (MiB) of one block of frames of the per-frame stages
@@ -64,6 +66,11 @@ class SAVConfig:
   vit_attention: str = "blocked"
 
   def __post_init__(self):
+    for f in dataclasses.fields(self):
+      _check_type(f.name, getattr(self, f.name), f.type)
+    if self.remat_policy is not None and self.remat_policy not in remat_policies():
+      raise ValueError(f"SAVConfig.remat_policy={self.remat_policy!r}; expected None or one of "
+                       f"{remat_policies()} (jax.checkpoint_policies)")
     if self.vda_encoder not in VDA_VARIANTS:
       raise ValueError(
           f"SAVConfig.vda_encoder={self.vda_encoder!r}; expected one of {sorted(VDA_VARIANTS)}")
@@ -95,8 +102,39 @@ class SAVConfig:
 
   @classmethod
   def from_dict(cls, d: dict) -> "SAVConfig":
+    if not isinstance(d, dict):
+      raise ValueError(f"a SAVConfig dict is expected, got {type(d).__name__}: {d!r:.100}")
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(d) - names)
     if unknown:
       raise ValueError(f"unknown SAVConfig fields {unknown}; known: {sorted(names)}")
     return cls(**d)
+
+
+# Accepted Python types of each annotation of `SAVConfig` (JSON-able: a config is saved with
+# the weights); ints are not bools, floats accept ints.
+_TYPES = {"str": (str,), "int": (int,), "float": (int, float), "bool": (bool,),
+          "Optional[str]": (str, type(None))}
+
+
+def _check_type(name: str, value, annotation: str) -> None:
+  ok = isinstance(value, _TYPES[annotation]) and not (
+      isinstance(value, bool) and annotation in ("int", "float"))
+  if not ok:
+    raise ValueError(f"SAVConfig.{name}={value!r} ({type(value).__name__}); expected {annotation}")
+  if annotation == "int" and value < 1:
+    raise ValueError(f"SAVConfig.{name} must be >= 1, got {value!r}")
+
+
+def remat_policies() -> list[str]:
+  """Names usable as `SAVConfig.remat_policy`: the `jax.checkpoint_policies` that are policies
+  themselves (called as `policy(prim, *args, **params)`), not factories of policies such as
+  `save_only_these_names(*names)`."""
+  def is_policy(fn):
+    try:
+      params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+      return False
+    return any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
+  return sorted(k for k, v in vars(jax.checkpoint_policies).items()
+                if not k.startswith("_") and callable(v) and is_policy(v))

@@ -4,7 +4,9 @@ Single host, any number of local devices (1 CPU, N GPUs): nothing to add; the ba
 sharded over all devices. Several hosts: start one process per host with
 `--coordinator_address=host0:1234 --num_processes=N --process_id=i` (or
 `--distributed=auto` on TPU pods / SLURM, where JAX finds them itself).
-Config fields are overridable: `--config.train.batch_size=16`.
+Config fields are overridable: `--config.train.batch_size=16`. Bad input (a config value,
+the workdir, weights or data that cannot be used) exits with status 2 and one line on
+stderr; `-v 1` shows its traceback.
 """
 
 import logging
@@ -37,11 +39,14 @@ def main(argv):
   jax.config.update("jax_transfer_guard", "disallow")
   logging.getLogger().setLevel(logging.INFO)
   logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every save at INFO
-  from sav_jax.convert import CheckpointError  # pylint: disable=g-import-not-at-top
   from train import loop  # pylint: disable=g-import-not-at-top
   try:
     loop.run(_CONFIG.value, _WORKDIR.value)
-  except (CheckpointError, FileNotFoundError) as e:  # weights or data the config names
+  # Bad input: config values, the workdir, weights or data the config names (CheckpointError
+  # is a ValueError). With absl's -v 1 (--verbosity=1) the traceback is shown instead.
+  except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError) as e:
+    if flags.FLAGS.verbosity >= 1:
+      raise
     print(f"train: error: {e}", file=sys.stderr)
     sys.exit(2)
 

@@ -8,7 +8,8 @@ A checkpoint `workdir/checkpoints/<step>/` holds three items:
           `sav-jax infer`/`convert`, `python -m eval` and `init_from` can use the step
           folder (or the workdir: its latest step) as model weights.
 Orbax writes into a temporary directory and renames it when complete, so a run killed
-mid-save leaves no checkpoint under a final name; such leftovers are cleaned up at start.
+mid-save leaves no checkpoint under a final name; such leftovers (`<step>.orbax-checkpoint-tmp*`,
+nothing else) are deleted at start.
 
 Resume order (`initial_state` in `train.loop`): the latest checkpoint in the workdir,
 else converted init weights (`init_from`: `.pth/.pt/.npz/.safetensors` in the official
@@ -21,6 +22,8 @@ from __future__ import annotations
 
 import logging
 import pathlib
+import re
+import shutil
 
 import grain
 import jax
@@ -28,6 +31,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 import sav_jax
+from sav_jax.convert import orbax_io
 from train.state import TrainState
 
 log = logging.getLogger(__name__)
@@ -35,14 +39,39 @@ log = logging.getLogger(__name__)
 VDA_PATH = ("depthnet", "depthanything")
 
 
+# An unfinished save of a step (orbax's temporary name for it).
+_UNFINISHED = re.compile(r"\d+\.orbax-checkpoint-tmp(-\d+)?")
+
+
 def make_manager(workdir, config) -> ocp.CheckpointManager:
-  """A manager keeping the last `checkpoint.keep` checkpoints (0 = all)."""
+  """A manager keeping the last `checkpoint.keep` checkpoints (0 = all).
+
+  Raises:
+    CheckpointError: `workdir/checkpoints` holds a folder named like a step that is not a
+      checkpoint (orbax would take it for one: resume from it, or delete it as an old one).
+  """
   ck = config.checkpoint
+  directory = pathlib.Path(workdir).absolute() / "checkpoints"
+  steps = [p for p in directory.iterdir() if p.name.isdigit()] if directory.is_dir() else []
+  foreign = sorted(p.name for p in steps
+                   if not ((p / "_CHECKPOINT_METADATA").is_file() and (p / "state").is_dir()))
+  if foreign:
+    raise sav_jax.convert.CheckpointError(
+        f"{directory}: {foreign[:5]} are named like checkpoints but are not ones written by "
+        "python -m train (no _CHECKPOINT_METADATA and state/); this folder is for the run's "
+        "checkpoints only: move them elsewhere")
+  if jax.process_index() == 0 and directory.is_dir():
+    # Orbax's own clean-up (`cleanup_tmp_directories`) deletes any folder whose name holds
+    # its temporary suffix, e.g. a user's `notes.orbax-checkpoint-tmp-5`: only steps' here.
+    for path in directory.iterdir():
+      if _UNFINISHED.fullmatch(path.name) and path.is_dir() and not path.is_symlink():
+        log.info("removing %s, an unfinished save", path)
+        shutil.rmtree(path)
   options = ocp.CheckpointManagerOptions(
       max_to_keep=ck.keep if ck.keep > 0 else None, create=True,
-      enable_async_checkpointing=ck.async_save, cleanup_tmp_directories=True)
-  return ocp.CheckpointManager(pathlib.Path(workdir).absolute() / "checkpoints",
-                               item_names=("state", "data", "config"), options=options)
+      enable_async_checkpointing=ck.async_save, cleanup_tmp_directories=False)
+  return ocp.CheckpointManager(directory, item_names=("state", "data", "config"),
+                               options=options)
 
 
 def _state_dict(state: TrainState) -> dict:
@@ -90,20 +119,66 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
     step: checkpoint step (default: latest).
   """
   step = manager.latest_step() if step is None else step
+  directory = pathlib.Path(manager.directory) / str(step)
   target = jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
                         _state_dict(abstract_state), _state_dict(shardings))
   args = ocp.args.Composite(state=ocp.args.StandardRestore(target),
                             data=grain.checkpoint.CheckpointRestore(data_iterator))
+  corrupt = None
+  orbax_io.quiet_failed_reads()
   try:
     restored = manager.restore(step, args=args)["state"]
-  except (ValueError, KeyError, TypeError) as e:  # orbax: tree structures or shapes differ
-    first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+  except Exception as e:  # pylint: disable=broad-except  # orbax: a bare Exception if unreadable
+    corrupt = orbax_io.corrupt_checkpoint_error(directory, e)
+    if corrupt is None:
+      if not isinstance(e, (ValueError, KeyError, TypeError)):
+        raise
+      first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+      raise _mismatch(directory, f"{type(e).__name__}: {first[:300]}") from e
+  if corrupt is not None:
+    orbax_io.discard_failed_reads()  # outside the except block, which holds them
     raise sav_jax.convert.CheckpointError(
-        f"{manager.directory / str(step)}: cannot resume from this checkpoint: it does not match "
-        f"this run's model or optimizer config ({type(e).__name__}: {first[:300]}). Resume "
-        "with the config it was written with, or start a new WORKDIR with "
-        "--config.init_from=<that workdir> to keep only its weights") from e
+        f"{corrupt}. Move this step folder out of {directory.parent} to resume from the "
+        "checkpoint before it, or start a new WORKDIR")
+  _check_restored_tree(directory, restored, target)
   return TrainState(**restored)
+
+
+def _mismatch(directory, detail: str) -> sav_jax.convert.CheckpointError:
+  return sav_jax.convert.CheckpointError(
+      f"{directory}: cannot resume from this checkpoint: it does not match this run's model or "
+      f"optimizer config ({detail}). Resume with the config it was written with, or start a new "
+      "WORKDIR with --config.init_from=<that workdir> to keep only its weights")
+
+
+def _check_restored_tree(directory, restored: dict, target: dict) -> None:
+  """Raises the resume-mismatch error unless the checkpoint held exactly `target`'s arrays.
+
+  Orbax restores a checkpoint of another optimizer tree without complaint when only leaves
+  differ (e.g. another `optimizer.frozen`): leaves the checkpoint lacks come back as None
+  (and the first update fails inside optax), leaves the target lacks are dropped.
+  """
+  problem = None
+  if jax.tree.structure(restored) != jax.tree.structure(target):
+    missing = [jax.tree_util.keystr(p) for p, x in jax.tree_util.tree_leaves_with_path(
+        restored, is_leaf=lambda x: x is None) if x is None]
+    problem = (f"the checkpoint lacks {len(missing)} arrays of this run's state, e.g. "
+               f"{missing[0]}" if missing else "the state trees differ")
+  else:
+    handler = ocp.PyTreeCheckpointHandler()
+    try:
+      saved = handler.metadata(directory / "state").tree
+      n_saved = sum(hasattr(x, "shape") for x in jax.tree.leaves(saved))
+    except (ValueError, KeyError, TypeError, AttributeError, OSError):
+      n_saved = None  # the restore itself worked: nothing more to say
+    finally:
+      handler.close()
+    n_target = len(jax.tree.leaves(target))
+    if n_saved is not None and n_saved != n_target:
+      problem = (f"the checkpoint holds {n_saved} arrays, this run's state {n_target}; e.g. "
+                 "optimizer.frozen differs")
+  if problem is not None:
+    raise _mismatch(directory, problem)
 
 
 def load_model_params(path, cfg: sav_jax.SAVConfig, abstract_params) -> dict:
@@ -122,14 +197,16 @@ def load_model_params(path, cfg: sav_jax.SAVConfig, abstract_params) -> dict:
     Nested dict of numpy arrays; `torch_unused` and other collections are dropped.
   """
   path = pathlib.Path(path)
-  if path.is_dir() and jax.process_count() == 1:  # any collections (e.g. torch_unused)
-    variables, _ = sav_jax.convert.restore_variables(path)
-    variables = jax.device_get(variables)
-  elif path.is_dir():  # the default target would name another host's device
-    local = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-    target = {"params": jax.tree.map(
-        lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=local), abstract_params)}
-    variables, _ = sav_jax.convert.restore_variables(path, target)
+  if path.is_dir():
+    target = None  # any collections (e.g. torch_unused)
+    if jax.process_count() > 1:  # the default target would name another host's device
+      local = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+      target = {"params": jax.tree.map(
+          lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=local), abstract_params)}
+    try:
+      variables, _ = sav_jax.convert.restore_variables(path, target)
+    except sav_jax.convert.CheckpointError as e:  # it names the folder; say which field
+      raise sav_jax.convert.CheckpointError(f"config.init_from: {e}") from e
     variables = jax.device_get(variables)
   else:
     variables = _convert(path, "sav", "init_from",

@@ -45,7 +45,7 @@ def train_dataset(config, process_index=None, process_count=None):
   count = jax.process_count() if process_count is None else process_count
   batch = config.train.batch_size
   if batch % count:
-    raise ValueError(f"train.batch_size={batch} is not divisible by {count} processes")
+    raise ValueError(f"config.train.batch_size={batch} is not divisible by {count} processes")
   sources, transforms, weights = [], [], []
   for name, spec in sorted(config.data.sources.items()):
     src, tf = _source(config, spec, "train", seed=config.data.synthetic.seed)

@@ -14,7 +14,9 @@
 from __future__ import annotations
 
 import logging
+import math
 import pathlib
+import re
 
 import flax
 import jax
@@ -37,7 +39,23 @@ def _merge_vda(params, vda):
   return flax.traverse_util.unflatten_dict(flat)
 
 
-def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_params=None):
+def initial_weights(config, abstract_params):
+  """`(params, vda params)` on the host from `init_from` and `vda_weights` (None where unset).
+
+  Raises:
+    CheckpointError or FileNotFoundError: naming the field and the file.
+  """
+  cfg = state_lib.model_config(config)
+  # Conversion is host work that may touch the default device (e.g. eager shape probes).
+  with jax.transfer_guard("allow"):
+    vda = ckpt_lib.load_vda_params(config.vda_weights) if config.vda_weights else None
+    host = (ckpt_lib.load_model_params(config.init_from, cfg, abstract_params)
+            if config.init_from else None)
+  return host, vda
+
+
+def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_params=None,
+                  weights=None):
   """Resume order: latest checkpoint > `init_from`/`vda_weights` > the official init.
 
   From scratch, a `StereoAnyVideo` starts from `init_variables(cfg, config.seed)` (PyTorch's
@@ -49,6 +67,7 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     manager: its checkpoint manager.
     data_iterator: grain iterator, restored in place from a checkpoint.
     abstract_params: `state.abstract_params(model, config)` if already computed.
+    weights: `initial_weights(config, ...)` if already loaded (not used on resume).
 
   Returns:
     `(state, shardings, source)` with source "checkpoint", "weights" or "scratch".
@@ -61,11 +80,7 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     log.info("resuming from checkpoint %d", manager.latest_step())
     return ckpt_lib.restore(manager, abstract, shardings, data_iterator), shardings, "checkpoint"
   cfg = state_lib.model_config(config)
-  # Conversion is host work that may touch the default device (e.g. eager shape probes).
-  with jax.transfer_guard("allow"):
-    vda = ckpt_lib.load_vda_params(config.vda_weights) if config.vda_weights else None
-    host = (ckpt_lib.load_model_params(config.init_from, cfg, abstract.params)
-            if config.init_from else None)
+  host, vda = weights if weights is not None else initial_weights(config, abstract.params)
   source = "weights"
   if host is None and isinstance(model, sav_jax.StereoAnyVideo):
     # The official initialisation (PyTorch's defaults), the same on every host.
@@ -118,15 +133,108 @@ def _every(step: int, period: int) -> bool:
   return period > 0 and step % period == 0
 
 
+def _is_int(x) -> bool:
+  return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_real(x) -> bool:
+  return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _is_crop(x) -> bool:
+  return (isinstance(x, (tuple, list)) and len(x) == 2
+          and all(_is_int(v) and v > 0 and v % 16 == 0 for v in x))
+
+
+def _is_regex(x) -> bool:
+  try:
+    re.compile(x)
+  except (re.error, TypeError):
+    return False
+  return isinstance(x, str)
+
+
+# (field, test, what it must be): the values a run cannot use, found before anything is
+# created in the workdir or compiled (later they fail deep inside grain, optax or a trace).
+_CHECKS = (
+    ("seed", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
+    ("data.frames", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
+    ("data.crop", _is_crop, "(height, width): two positive multiples of 16 (the model's "
+     "coarsest scale is 1/16)"),
+    ("train.batch_size", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
+    ("train.num_steps", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
+    ("train.iters", lambda x: _is_int(x) and x >= 2 and x % 2 == 0,
+     "an even integer >= 2 (the 1/16 and 1/8 stages run iters//2 steps each)"),
+    ("train.max_skipped_steps", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
+    ("optimizer.lr", lambda x: _is_real(x) and x > 0, "a number > 0"),
+    ("optimizer.weight_decay", lambda x: _is_real(x) and x >= 0, "a number >= 0"),
+    ("optimizer.eps", lambda x: _is_real(x) and x > 0, "a number > 0"),
+    ("optimizer.b1", lambda x: _is_real(x) and 0 <= x < 1, "a number in [0, 1)"),
+    ("optimizer.b2", lambda x: _is_real(x) and 0 <= x < 1, "a number in [0, 1)"),
+    ("optimizer.clip_norm", lambda x: _is_real(x) and x >= 0, "a number >= 0 (0 disables)"),
+    ("optimizer.schedule", lambda x: x in ("one_cycle", "constant"), "'one_cycle' or 'constant'"),
+    ("optimizer.pct_start", lambda x: _is_real(x) and 0 < x < 1, "a number in (0, 1)"),
+    ("optimizer.div_factor", lambda x: _is_real(x) and x > 0, "a number > 0"),
+    ("optimizer.final_div_factor", lambda x: _is_real(x) and x > 0, "a number > 0"),
+    ("optimizer.schedule_steps", _is_int, "an integer (<= 0: train.num_steps + 100)"),
+    ("optimizer.frozen", _is_regex, "a regular expression ('' freezes nothing)"),
+    ("loss.gamma", lambda x: _is_real(x) and x > 0, "a number > 0"),
+    ("loss.max_disparity", lambda x: _is_real(x) and x > 0, "a number > 0"),
+    ("checkpoint.every_steps", _is_int, "an integer (<= 0: at the end only)"),
+    ("checkpoint.keep", lambda x: _is_int(x) and x >= 0, "an integer >= 0 (0 keeps all)"),
+)
+_EVAL_CHECKS = (
+    ("eval.iters", lambda x: _is_int(x) and x >= 2 and x % 2 == 0, "an even integer >= 2"),
+    ("eval.batch_size", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
+    ("eval.num_clips", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
+)
+
+
+def validate_config(config, workdir, num_devices: int | None = None) -> None:
+  """Checks the values of a training config and the workdir before a run creates anything.
+
+  Args:
+    config: the training config.
+    workdir: the run directory (need not exist).
+    num_devices: devices of the mesh, which the batch sizes must be multiples of.
+
+  Raises:
+    ValueError: naming `config.<field>`, its value and what it must be.
+    NotADirectoryError: `workdir` (or a folder above it, or its `checkpoints`) is a file.
+  """
+  workdir = pathlib.Path(workdir)
+  existing = next(p for p in (workdir, *workdir.absolute().parents) if p.exists())
+  for path in (existing, workdir / "checkpoints"):
+    if path.exists() and not path.is_dir():
+      raise NotADirectoryError(f"--workdir {workdir}: {path} exists and is not a directory")
+  evaluating = config.eval.every_steps > 0
+  for field, ok, want in _CHECKS + (_EVAL_CHECKS if evaluating else ()):
+    value = _value(config, field)
+    if not ok(value):
+      raise ValueError(f"config.{field}={value!r}: expected {want}")
+  try:
+    state_lib.model_config(config)
+  except ValueError as e:  # SAVConfig names the field as `SAVConfig.<name>`
+    raise ValueError(str(e).replace("SAVConfig.", "config.model.")) from e
+  for field in ("train.batch_size", "eval.batch_size")[:2 if evaluating else 1]:
+    if num_devices and _value(config, field) % num_devices:
+      raise ValueError(f"config.{field}={_value(config, field)} is not divisible by the "
+                       f"{num_devices} devices")
+
+
+def _value(config, field: str):
+  for key in field.split("."):
+    config = config[key]
+  return config
+
+
 def _setup(config, workdir):
   """Steps 2-8 of the module docstring. Returns a dict of the run's parts."""
   for field in ("init_from", "vda_weights"):  # before anything is created in the workdir
     if config[field] and not pathlib.Path(config[field]).exists():
       raise FileNotFoundError(f"config.{field}={config[field]}: no such file or directory")
   mesh = state_lib.make_mesh()
-  if config.train.batch_size % mesh.size:
-    raise ValueError(f"train.batch_size={config.train.batch_size} is not divisible by the "
-                     f"{mesh.size} devices")
+  validate_config(config, workdir, mesh.size)
   log.info("mesh %s over %d devices, %d processes", dict(mesh.shape), mesh.size,
            jax.process_count())
   grain_it = iter(input_lib.train_dataset(config))
@@ -135,9 +243,14 @@ def _setup(config, workdir):
   labels = optim.param_labels(abstract_params, config.optimizer.frozen)
   log.info("parameters: %s", state_lib.param_count(abstract_params, labels))
   tx = optim.make_optimizer(config.optimizer, config.train.num_steps, abstract_params)
+  weights = None
+  if ((config.init_from or config.vda_weights)
+      and sav_jax.convert.find_training_checkpoint(pathlib.Path(workdir) / "checkpoints") is None):
+    # Not resuming: weights that cannot be read fail before the workdir is created.
+    weights = initial_weights(config, abstract_params)
   manager = ckpt_lib.make_manager(workdir, config)
   state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it,
-                                           abstract_params)
+                                           abstract_params, weights)
   train_step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels),
                                        shardings, mesh)
   evaluator = (evaluation.Evaluator(config, model, shardings.params, mesh)

@@ -11,11 +11,15 @@ checkpoint under the final name.
 written by `python -m train`): only `state["params"]` is read, not the optimizer state.
 """
 
+import gc
 import json
 import logging
 import os
 import pathlib
+import re
 import shutil
+import sys
+import traceback
 
 import jax
 import numpy as np
@@ -23,7 +27,8 @@ import numpy as np
 from sav_jax.convert.pickle_reader import CheckpointError
 
 __all__ = ["save_variables", "restore_variables", "is_variables_checkpoint",
-           "find_training_checkpoint", "is_orbax_checkpoint"]
+           "find_training_checkpoint", "is_orbax_checkpoint", "corrupt_checkpoint_error",
+           "quiet_failed_reads", "discard_failed_reads"]
 
 log = logging.getLogger(__name__)
 
@@ -171,12 +176,105 @@ def restore_variables(directory, target=None):
     ocp = _ocp()
     args = ocp.args.Composite(variables=ocp.args.StandardRestore(target),
                               config=ocp.args.JsonRestore())
-    try:
-      restored = ckptr.restore(directory, args=args)
-    except (ValueError, KeyError, TypeError) as e:
-      raise CheckpointError(f"{directory}: cannot restore variables ({type(e).__name__}: {e})"
-                           ) from e
+    restored = _restore(ckptr, directory, args, "cannot restore variables")
   return restored["variables"], restored["config"]
+
+
+def _restore(ckptr, directory, args, what: str):
+  """`ckptr.restore(directory, args=args)`; a `CheckpointError` naming `directory` if the data
+  cannot be read (`corrupt_checkpoint_error`) or does not fit `args` ("{what} (...)")."""
+  quiet_failed_reads()
+  try:
+    return ckptr.restore(directory, args=args)
+  except Exception as e:  # pylint: disable=broad-except  # orbax: a bare Exception if unreadable
+    corrupt = corrupt_checkpoint_error(directory, e)
+    if corrupt is None:
+      if not isinstance(e, (ValueError, KeyError, TypeError)):
+        raise
+      raise CheckpointError(f"{directory}: {what} ({type(e).__name__}: {e})") from e
+  discard_failed_reads()  # outside the except block, which holds them
+  raise corrupt
+
+
+# Tensorstore's errors start with an absl status code, e.g. 'OUT_OF_RANGE: Error reading
+# "params.w/0" in OCDBT database at local file ...'.
+_TENSORSTORE_ERROR = re.compile(r"^[A-Z_]+: Error (reading|opening|decoding|writing)")
+# Orbax wraps a failed array read in a bare Exception: 'Encountered error while reading array
+# index: (slice(0, 4, 1),). See full TensorStore details: <a long spec>'.
+_ORBAX_READ_ERROR = "Encountered error while reading array"
+
+
+def corrupt_checkpoint_error(directory, error: BaseException) -> CheckpointError | None:
+  """A `CheckpointError` saying that the checkpoint at `directory` is corrupt or incomplete
+  when `error` (or its cause) is a failed tensorstore read (e.g. truncated or deleted chunk
+  files under `ocdbt.process_*/d/`) or a JSON file that does not parse, else None.
+
+  Args:
+    directory: the checkpoint, named in the message.
+    error: what orbax raised.
+
+  Returns:
+    The error to raise (from `error`), or None for any other kind of error.
+  """
+  chain, e = [], error
+  while e is not None and len(chain) < 8:
+    chain.append(e)
+    e = e.__cause__ or e.__context__
+  lines = [str(e).strip().splitlines()[0] if str(e).strip() else "" for e in chain]
+  if not any(l.startswith(_ORBAX_READ_ERROR) or _TENSORSTORE_ERROR.match(l) for l in lines):
+    json_errors = [e for e in chain if isinstance(e, json.JSONDecodeError)]
+    if not json_errors:
+      return None
+    lines = [f"a JSON file cannot be parsed: {json_errors[0]}"]
+  # The most specific line: tensorstore's own (the file and what is wrong), else orbax's
+  # without the store's multi-line spec.
+  detail = next((l.split(" [tensorstore_spec=")[0] for l in lines if _TENSORSTORE_ERROR.match(l)),
+                lines[0].split(" See full TensorStore details")[0])
+  if log.isEnabledFor(logging.DEBUG):  # formatted now: a record must not keep the traceback
+    log.debug("%s: %s", directory, "".join(traceback.format_exception(error)))
+  return CheckpointError(f"{directory}: the checkpoint is corrupt or incomplete (a file of it "
+                         f"is truncated or missing): {detail[:300]}")
+
+
+def quiet_failed_reads() -> None:
+  """Makes `sys.unraisablehook` drop the reports of a restore that failed on unreadable data.
+
+  Orbax turns even the `GeneratorExit` of a pending read coroutine into an `Exception`, so
+  each one prints "Exception ignored in: <coroutine ...>" and a TensorStore spec of some 50
+  lines when it is garbage-collected, e.g. at exit after the one-line error; and reads that
+  complete after orbax closed its event loop print "RuntimeError: Event loop is closed" from
+  tensorstore's threads, at any later time. Called before every restore (the hook stays, for
+  the rest of the process): exactly these two reports are dropped, every other unraisable
+  exception goes to the previous hook.
+  """
+  if getattr(sys.unraisablehook, "_sav_jax_quiet_reads", False):
+    return
+  previous = sys.unraisablehook
+
+  def hook(unraisable):
+    if not _is_failed_read_noise(unraisable):
+      previous(unraisable)
+
+  hook._sav_jax_quiet_reads = True  # pylint: disable=protected-access
+  sys.unraisablehook = hook
+
+
+def discard_failed_reads() -> None:
+  """Finalises the other array reads of a restore that failed on unreadable data, quietly
+  (`quiet_failed_reads`). Call it once the exception that holds them is released: after the
+  `except` block, with the error raised not from it."""
+  quiet_failed_reads()
+  gc.collect()
+
+
+def _is_failed_read_noise(unraisable) -> bool:
+  exc = unraisable.exc_value
+  if type(exc) is Exception and str(exc).startswith(_ORBAX_READ_ERROR):  # pylint: disable=C0123
+    return True
+  return (isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"
+          and unraisable.object is None and any(
+              f.name == "call_soon_threadsafe"
+              for f in traceback.extract_tb(unraisable.exc_traceback)))
 
 
 def _not_a_checkpoint_message(directory):
@@ -197,30 +295,36 @@ def _restore_training_params(step: pathlib.Path, target=None):
   if has_config:
     handlers["config"] = ocp.JsonCheckpointHandler()
   with ocp.Checkpointer(ocp.CompositeCheckpointHandler(**handlers)) as ckptr:
-    params = (_target_from_metadata(ckptr, step, "state", "params") if target is None
-              else target["params"])
+    # The tree from the `state` item's own metadata: the composite's would also look at the
+    # `data` item (the grain iterator, which has no handler here) and warn about it.
+    params = (_target_from_metadata(handlers["state"], step / "state", None, "params")
+              if target is None else target["params"])
     args = {"state": ocp.args.PyTreeRestore(
         {"params": params}, restore_args={"params": ocp.checkpoint_utils.construct_restore_args(
             params)}, partial_restore=True)}  # the optimizer state is not read
     if has_config:
       args["config"] = ocp.args.JsonRestore()
-    try:
-      restored = ckptr.restore(step, args=ocp.args.Composite(**args))
-    except (ValueError, KeyError, TypeError) as e:
-      raise CheckpointError(f"{step}: cannot restore the parameters of this training checkpoint "
-                            f"({type(e).__name__}: {e})") from e
+    restored = _restore(ckptr, step, ocp.args.Composite(**args),
+                        "cannot restore the parameters of this training checkpoint")
   if not has_config:
     log.warning("%s: no model config saved with this checkpoint; assuming the default model", step)
   return {"params": restored["state"]["params"]}, restored["config"] if has_config else {}
 
 
-def _target_from_metadata(ckptr, directory, item, key=None):
+def _target_from_metadata(reader, directory, item, key=None):
   """Abstract arrays on the default device, from the saved tree metadata of `item` (its
-  `key` subtree when given)."""
+  `key` subtree when given); with `item=None`, `reader` is the item's own handler and
+  `directory` the item's folder."""
   try:
-    tree = ckptr.metadata(directory).item_metadata[item].tree
+    if item is None:
+      tree = reader.metadata(directory).tree
+    else:
+      tree = reader.metadata(directory).item_metadata[item].tree
     tree = tree if key is None else tree[key]
   except (KeyError, AttributeError, TypeError, ValueError) as e:
+    corrupt = corrupt_checkpoint_error(directory, e)
+    if corrupt is not None:
+      raise corrupt from e
     raise CheckpointError(f"{directory}: unreadable checkpoint metadata ({e})") from e
   sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
 

@@ -114,3 +114,58 @@ def test_mismatched_target(tmp_path):
   target = {"params": {"other": jax.ShapeDtypeStruct((2,), jnp.float32)}}
   with pytest.raises(CheckpointError, match="cannot restore"):
     orbax_io.restore_variables(tmp_path / "ckpt", target=target)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "deleted", "manifest", "config"])
+def test_corrupt_checkpoint_is_named_as_such(tmp_path, damage, monkeypatch):
+  """Damaged files (a copy cut short, a sync that lost files) give one CheckpointError naming
+  the folder, not orbax's bare Exception with a TensorStore spec."""
+  import gc  # pylint: disable=import-outside-toplevel
+  import sys  # pylint: disable=import-outside-toplevel
+  rng = np.random.default_rng(0)  # random values: too large to be stored inline
+  path = orbax_io.save_variables(tmp_path / "ckpt", {"params": {
+      "w": rng.normal(size=3000).astype(np.float32),
+      "b": rng.normal(size=(50, 50)).astype(np.float32)}}, _CONFIG)
+  chunks = list(path.glob("variables/ocdbt.process_*/d/*"))
+  assert chunks
+  if damage == "manifest":
+    (path / "variables" / "manifest.ocdbt").write_bytes(b"xx")
+  elif damage == "config":
+    (path / "config" / "metadata").write_text("{")
+  for chunk in chunks if damage in ("truncated", "deleted") else ():
+    if damage == "truncated":
+      chunk.write_bytes(chunk.read_bytes()[:10])
+    else:
+      chunk.unlink()
+  orbax_io.quiet_failed_reads()  # for late reports too, once the test has put its hook back
+  unraisable = []
+  monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+  with pytest.raises(CheckpointError, match=f"{path}: the checkpoint is corrupt or incomplete"
+                     ) as e:
+    orbax_io.restore_variables(path)
+  assert "TensorStore" not in str(e.value) and len(str(e.value)) < 600
+  gc.collect()  # orbax's other pending reads: no "Exception ignored in <coroutine ...>"
+  assert not unraisable
+
+
+def test_only_the_reports_of_failed_reads_are_dropped(monkeypatch):
+  import asyncio  # pylint: disable=import-outside-toplevel
+  import sys  # pylint: disable=import-outside-toplevel
+  import types  # pylint: disable=import-outside-toplevel
+  seen = []
+  monkeypatch.setattr(sys, "unraisablehook", seen.append)
+  orbax_io.quiet_failed_reads()
+  loop = asyncio.new_event_loop()
+  loop.close()
+  try:  # what tensorstore's threads hit when a read completes after orbax closed its loop
+    loop.call_soon_threadsafe(lambda: None)
+  except RuntimeError as e:
+    closed = e
+  report = lambda e: types.SimpleNamespace(exc_value=e, exc_traceback=e.__traceback__,
+                                           object=None)
+  mine = [report(RuntimeError("mine")), report(RuntimeError("Event loop is closed")),
+          report(ValueError("Encountered error while reading array index"))]
+  for r in [report(Exception("Encountered error while reading array index: (slice(0, 3, 1),).")),
+            report(closed), *mine]:
+    sys.unraisablehook(r)
+  assert seen == mine

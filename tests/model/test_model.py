@@ -75,6 +75,30 @@ def test_bad_config_raises():
     sav_jax.SAVConfig(dtype="float16")
 
 
+@pytest.mark.parametrize("fields,match", [
+    ({"hidden_dim": "abc"}, r"SAVConfig\.hidden_dim='abc' \(str\); expected int"),
+    ({"corr_groups": True}, r"SAVConfig\.corr_groups=True \(bool\); expected int"),
+    ({"hidden_dim": 0}, r"SAVConfig\.hidden_dim must be >= 1"),
+    ({"frame_block_mb": "1"}, r"SAVConfig\.frame_block_mb='1' \(str\); expected float"),
+    ({"remat": 1}, r"SAVConfig\.remat=1 \(int\); expected bool"),
+    ({"dtype": None}, r"SAVConfig\.dtype=None \(NoneType\); expected str"),
+    ({"remat_policy": "bogus"}, r"remat_policy='bogus'; expected None or one of .*dots_saveable"),
+    ({"remat_policy": "save_only_these_names"}, r"remat_policy='save_only_these_names'"),
+])
+def test_config_fields_of_the_wrong_type_or_value_are_named(fields, match):
+  """A config read from a checkpoint's JSON fails here, not deep inside JAX at trace time."""
+  with pytest.raises(ValueError, match=match):
+    sav_jax.SAVConfig.from_dict(fields)
+
+
+def test_config_accepts_ints_for_floats_and_named_remat_policies():
+  cfg = sav_jax.SAVConfig(frame_block_mb=512, remat=True, remat_policy="dots_saveable")
+  assert cfg.frame_block_mb == 512 and cfg.remat_policy == "dots_saveable"
+  assert sav_jax.SAVConfig.from_dict(cfg.to_dict()) == cfg
+  with pytest.raises(ValueError, match="SAVConfig dict"):
+    sav_jax.SAVConfig.from_dict(["hidden_dim"])
+
+
 @pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
 def test_gradients_are_finite_and_the_depth_prior_is_frozen(variables, clip, dtype):
   """jax.grad w.r.t. variables and images, under jit, with remat on (training's setting)."""

@@ -338,3 +338,194 @@ def test_train_command_reports_a_missing_init_file_in_one_line(tmp_path):
   assert proc.returncode == 2, proc.stderr[-2000:]
   assert f"train: error: config.init_from={tmp_path / 'missing.pth'}: no such" in proc.stderr
   assert "Traceback" not in proc.stderr and not (tmp_path / "w").exists()
+
+
+class _BigToy(ToyStereo):
+  """`ToyStereo` with one parameter large enough that orbax writes it to a chunk file
+  (smaller arrays are stored inline in the checkpoint's index)."""
+
+  @nn.compact
+  def __call__(self, left, right, iters=2, final_only=False):
+    self.param("big", nn.initializers.normal(), (2000,))
+    return ToyStereo.__call__(self, left, right, iters, final_only)
+
+
+def _toy_run(workdir, frozen=None):
+  """A toy training run's config, model, optimizer and mesh, and its checkpoint at step 1 in
+  `workdir` (with `optimizer.frozen=frozen` if given)."""
+  c = _config()
+  c.checkpoint.async_save = False
+  if frozen is not None:
+    c.optimizer.frozen = frozen
+  model, mesh = _BigToy(), state_lib.make_mesh()
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, state_lib.abstract_params(model, c))
+  state, _ = state_lib.create_train_state(model, tx, c, mesh)
+  manager = ckpt_lib.make_manager(workdir, c)
+  assert ckpt_lib.save(manager, state, _toy_iterator(), 1, force=True)
+  manager.wait_until_finished()
+  manager.close()
+  return c, model, tx, mesh
+
+
+def _toy_iterator():
+  src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
+                                                  max_disparity=8.0), 10)
+  return iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1))
+
+
+def _toy_restore(workdir, c, model, tx, mesh):
+  abstract = jax.eval_shape(state_lib.make_init_fn(model, tx, c))
+  manager = ckpt_lib.make_manager(workdir, c)
+  try:
+    return ckpt_lib.restore(manager, abstract, state_lib.state_shardings(abstract, mesh),
+                            _toy_iterator())
+  finally:
+    manager.close()
+
+
+@pytest.fixture(scope="module")
+def toy_run(tmp_path_factory):
+  """`(workdir, config, model, tx, mesh)` of a toy run with a checkpoint at step 1; tests
+  that damage it work on a copy."""
+  workdir = tmp_path_factory.mktemp("toy_run")
+  return (workdir, *_toy_run(workdir))
+
+
+def test_training_checkpoint_params_restore_without_orbax_warnings(toy_run, caplog):
+  workdir = toy_run[0]
+  with caplog.at_level("WARNING"):
+    variables, config = sav_jax.convert.restore_variables(workdir)
+  assert set(variables) == {"params"} and config["step"] == 1
+  assert not [r for r in caplog.records if "could not be restored" in r.getMessage()]
+
+
+def _corrupt_copy(workdir, tmp_path, how):
+  import shutil  # pylint: disable=g-import-not-at-top
+  copy = tmp_path / "run"
+  shutil.copytree(workdir, copy)
+  chunks = list((copy / "checkpoints" / "1" / "state").glob("ocdbt.process_*/d/*"))
+  assert chunks
+  for chunk in chunks:
+    if how == "truncated":
+      chunk.write_bytes(chunk.read_bytes()[:10])
+    else:
+      chunk.unlink()
+  return copy
+
+
+@pytest.mark.parametrize("how", ["truncated", "deleted"])
+def test_corrupt_training_checkpoint_is_named_as_such(toy_run, tmp_path, how, monkeypatch):
+  import gc  # pylint: disable=g-import-not-at-top
+  import sys  # pylint: disable=g-import-not-at-top
+  _, c, model, tx, mesh = toy_run
+  copy = _corrupt_copy(toy_run[0], tmp_path, how)
+  sav_jax.convert.orbax_io.quiet_failed_reads()  # also once the test has put its hook back
+  unraisable = []
+  monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+  step = copy / "checkpoints" / "1"
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=f"{step}: the checkpoint is corrupt or incomplete") as e:
+    sav_jax.convert.restore_variables(copy)  # infer, convert, eval, init_from
+  assert "TensorStore" not in str(e.value) and len(str(e.value)) < 600
+  with pytest.raises(sav_jax.convert.CheckpointError) as e:  # resuming the run
+    _toy_restore(copy, c, model, tx, mesh)
+  assert f"{step}: the checkpoint is corrupt or incomplete" in str(e.value)
+  assert "does not match" not in str(e.value) and "Move this step folder" in str(e.value)
+  gc.collect()  # orbax's other pending reads: no "Exception ignored in <coroutine ...>"
+  assert not [u for u in unraisable if "reading array" in str(u.exc_value)]
+
+
+def test_resume_with_another_frozen_pattern_is_refused(toy_run, tmp_path):
+  workdir, c, model, _, mesh = toy_run
+  c2 = _config()
+  c2.optimizer.frozen = ""  # Adam moments for the prior too: the checkpoint lacks them
+  tx2 = optim.make_optimizer(c2.optimizer, c2.train.num_steps,
+                             state_lib.abstract_params(model, c2))
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"does not match this run's model or optimizer config \(the "
+                     r"checkpoint lacks 4 arrays .*depthanything"):
+    _toy_restore(workdir, c2, model, tx2, mesh)
+  # The other way round: the checkpoint holds moments that this run has no place for.
+  c3, _, _, _ = _toy_run(tmp_path / "unfrozen", frozen="")
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, state_lib.abstract_params(model, c))
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"does not match .*holds 20 arrays, this run's state 16"):
+    _toy_restore(tmp_path / "unfrozen", c, model, tx, mesh)
+  restored = _toy_restore(tmp_path / "unfrozen", c3, model, tx2, mesh)  # its own config
+  assert jax.tree.structure(restored.opt_state) == jax.tree.structure(
+      jax.eval_shape(tx2.init, state_lib.abstract_params(model, c3)))
+
+
+def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
+  c = _config()
+  ckpts = tmp_path / "checkpoints"
+  (ckpts / "notes.orbax-checkpoint-tmp-5").mkdir(parents=True)
+  (ckpts / "notes.orbax-checkpoint-tmp-5" / "n.txt").write_text("keep me")
+  (ckpts / "7.orbax-checkpoint-tmp-1234").mkdir()  # a save cut by a kill
+  ckpt_lib.make_manager(tmp_path, c).close()
+  assert sorted(p.name for p in ckpts.iterdir()) == ["notes.orbax-checkpoint-tmp-5"]
+  (ckpts / "0").mkdir()
+  (ckpts / "0" / "mine.txt").write_text("keep me")
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"\['0'\] are named like checkpoints but are not"):
+    ckpt_lib.make_manager(tmp_path, c)
+  assert (ckpts / "0" / "mine.txt").read_text() == "keep me"
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("train.batch_size", 0, r"config\.train\.batch_size=0: expected an integer >= 1"),
+    ("train.batch_size", 3, r"config\.train\.batch_size=3 is not divisible by the 2 devices"),
+    ("train.num_steps", 0, r"config\.train\.num_steps=0"),
+    ("train.iters", 3, r"config\.train\.iters=3: expected an even integer >= 2"),
+    ("data.crop", (32,), r"config\.data\.crop=\(32,\): expected \(height, width\)"),
+    ("data.crop", (32, 40), r"config\.data\.crop=\(32, 40\).*multiples of 16"),
+    ("optimizer.lr", -1.0, r"config\.optimizer\.lr=-1\.0: expected a number > 0"),
+    ("optimizer.schedule", "cosine", r"config\.optimizer\.schedule='cosine'"),
+    ("optimizer.frozen", "(", r"config\.optimizer\.frozen='\(': expected a regular expression"),
+    ("eval.iters", 5, r"config\.eval\.iters=5"),
+    ("model.dtype", "float16", r"config\.model\.dtype='float16'; expected 'float32' or"),
+    ("model.remat_policy", "bogus", r"config\.model\.remat_policy='bogus'"),
+])
+def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match):
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = synthetic.get_config()
+  section, name = field.split(".")
+  c[section][name] = value
+  with pytest.raises(ValueError, match=match):
+    loop.validate_config(c, tmp_path / "w", num_devices=2)
+  loop.validate_config(synthetic.get_config(), tmp_path / "w", num_devices=2)
+  assert not (tmp_path / "w").exists()
+
+
+def test_a_workdir_that_is_a_file_is_refused(tmp_path):
+  from train import loop  # pylint: disable=g-import-not-at-top
+  (tmp_path / "notes.txt").write_text("keep me")
+  for workdir in (tmp_path / "notes.txt", tmp_path / "notes.txt" / "run"):
+    with pytest.raises(NotADirectoryError, match=f"{tmp_path / 'notes.txt'} exists and is not"):
+      loop.validate_config(synthetic.get_config(), workdir)
+  assert (tmp_path / "notes.txt").read_text() == "keep me"
+
+
+def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir(tmp_path):
+  """A config value (before any tracing) and unreadable init weights (after tracing the
+  model's shapes, before the workdir is created)."""
+  import subprocess  # pylint: disable=g-import-not-at-top
+  import sys  # pylint: disable=g-import-not-at-top
+  from sav_jax.convert import save_variables  # pylint: disable=g-import-not-at-top
+  from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
+  weights = tmp_path / "weights"
+  save_variables(weights, {"params": {"w": np.random.default_rng(0).normal(size=4000)}}, {})
+  for chunk in weights.glob("variables/ocdbt.process_*/d/*"):
+    chunk.write_bytes(chunk.read_bytes()[:10])
+  for flag, message in [("--config.train.iters=3", "config.train.iters=3: expected an even"),
+                        (f"--config.init_from={weights}", f"config.init_from: {weights}: the "
+                         "checkpoint is corrupt or incomplete")]:
+    proc = subprocess.run(
+        [sys.executable, "-m", "train", "--config", str(ROOT / "configs/synthetic.py"),
+         "--workdir", str(tmp_path / "w"), flag, "--config.train.progress_bar=False"],
+        cwd=ROOT, env=child_env(tmp_path / "cache"), capture_output=True, text=True,
+        timeout=300, check=False)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert f"train: error: {message}" in proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr
+    assert not (tmp_path / "w").exists()
