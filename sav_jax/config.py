@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
 import inspect
+import numbers
 from typing import Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 # Default memory budget (MiB) of one block of frames of the per-frame stages
 # (`SAVConfig.frame_block_mb`).
@@ -66,8 +69,8 @@ class SAVConfig:
   vit_attention: str = "blocked"
 
   def __post_init__(self):
-    for f in dataclasses.fields(self):
-      _check_type(f.name, getattr(self, f.name), f.type)
+    for f in dataclasses.fields(self):  # numpy scalars become Python values (hash, JSON)
+      object.__setattr__(self, f.name, _checked_value(f.name, getattr(self, f.name), f.type))
     if self.remat_policy is not None and self.remat_policy not in remat_policies():
       raise ValueError(f"SAVConfig.remat_policy={self.remat_policy!r}; expected None or one of "
                        f"{remat_policies()} (jax.checkpoint_policies)")
@@ -102,8 +105,10 @@ class SAVConfig:
 
   @classmethod
   def from_dict(cls, d: dict) -> "SAVConfig":
-    if not isinstance(d, dict):
-      raise ValueError(f"a SAVConfig dict is expected, got {type(d).__name__}: {d!r:.100}")
+    if not isinstance(d, collections.abc.Mapping):  # dict, ConfigDict, FrozenDict, ...
+      if not hasattr(d, "keys"):
+        raise ValueError(f"a SAVConfig mapping is expected, got {type(d).__name__}: {d!r:.100}")
+    d = {k: d[k] for k in d.keys()}
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(d) - names)
     if unknown:
@@ -111,19 +116,23 @@ class SAVConfig:
     return cls(**d)
 
 
-# Accepted Python types of each annotation of `SAVConfig` (JSON-able: a config is saved with
-# the weights); ints are not bools, floats accept ints.
-_TYPES = {"str": (str,), "int": (int,), "float": (int, float), "bool": (bool,),
-          "Optional[str]": (str, type(None))}
-
-
-def _check_type(name: str, value, annotation: str) -> None:
-  ok = isinstance(value, _TYPES[annotation]) and not (
-      isinstance(value, bool) and annotation in ("int", "float"))
-  if not ok:
-    raise ValueError(f"SAVConfig.{name}={value!r} ({type(value).__name__}); expected {annotation}")
+def _checked_value(name: str, value, annotation: str):
+  """`value` of field `name` as the Python type of its annotation (numpy scalars included;
+  ints are not bools, floats accept ints); a ValueError naming the field otherwise."""
+  kinds = {"str": str, "Optional[str]": str, "int": numbers.Integral, "float": numbers.Real,
+           "bool": (bool, np.bool_)}
+  assert annotation in kinds, f"SAVConfig.{name}: add its annotation {annotation!r} here"
+  if value is None and annotation.startswith("Optional["):
+    return None
+  is_bool = isinstance(value, (bool, np.bool_))
+  if not isinstance(value, kinds[annotation]) or (is_bool and annotation in ("int", "float")):
+    kind = type(value)
+    raise ValueError(f"SAVConfig.{name}={value!r} ({kind.__module__}.{kind.__qualname__}); "
+                     f"expected {annotation}")
+  value = {"int": int, "float": float, "bool": bool}.get(annotation, str)(value)
   if annotation == "int" and value < 1:
     raise ValueError(f"SAVConfig.{name} must be >= 1, got {value!r}")
+  return value
 
 
 def remat_policies() -> list[str]:

@@ -287,7 +287,32 @@ def _cache_key(kind, variables, cfg, iters, shape):
   return (kind, cfg, iters, shape, options, str(jax.config.jax_default_matmul_precision),
           str(jax.config.jax_default_device),
           bool(jax.config.values.get("jax_disable_most_optimizations")),
-          jax.tree_util.tree_structure(variables), sig)
+          jax.tree_util.tree_structure(variables), sig, _placement(variables))
+
+
+def _default_device():
+  device = jax.config.jax_default_device
+  if isinstance(device, str):  # a platform name
+    return jax.devices(device)[0]
+  return device or jax.devices()[0]
+
+
+def _abstract(x):
+  """Shape and dtype, and the placement unless it is just the default device: committed
+  arrays there (orbax restores) would otherwise lower to another program than numpy or
+  uncommitted ones, and miss the persistent compilation cache."""
+  sharding = getattr(x, "sharding", None)
+  if sharding is not None and sharding.device_set == {_default_device()}:
+    sharding = None
+  return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
+
+
+def _placement(tree) -> frozenset:
+  """The devices the arrays of `tree` are on, other than the default one (part of the key)."""
+  default = _default_device()
+  return frozenset(str(d) for x in jax.tree_util.tree_leaves(tree)
+                   for d in getattr(getattr(x, "sharding", None), "device_set", ())
+                   if d != default)
 
 
 def _compile(key, build, check_memory: bool):
@@ -305,9 +330,7 @@ def _compile(key, build, check_memory: bool):
   log.info("compiling the model (%s) for %d frames of %dx%d (iters=%d, %s)%s", kind, *shape,
            iters, cfg.dtype, cached)
   fn, args = build()
-  # Shapes and dtypes only: committed arrays (orbax restores) would otherwise lower to another
-  # program than numpy or uncommitted ones, and miss the persistent compilation cache.
-  args = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), args)
+  args = jax.tree_util.tree_map(_abstract, args)
   compiled = jax.jit(fn).lower(*args).compile(compiler_options=dict(key[4]))
   runtime.release_host_memory()  # the compiler's working memory, kept by the allocator
   if check_memory:

@@ -7,7 +7,10 @@ and a sweep) runs with a stand-in for the model that labels each output frame wi
 window and position it came from.
 """
 
+import os
 import re
+import subprocess
+import sys
 
 import jax
 import numpy as np
@@ -315,6 +318,30 @@ def test_same_program_for_committed_and_numpy_variables():
     inference._COMPILED.pop(key)  # pylint: disable=protected-access
     texts.append(compiled.as_text())
   assert texts[0] == texts[1]
+
+
+def test_variables_on_another_device_run_there():
+  """Weights placed on a device other than the default one: compiled for that device
+  (the shapes-only lowering keeps a placement that is not the default)."""
+  code = """if True:
+    import jax, numpy as np, sav_jax
+    from sav_jax import inference
+    fn = lambda v, x: v["w"] * x
+    spec = jax.ShapeDtypeStruct((3,), np.float32)
+    w = jax.device_put(np.full(3, 2.0, np.float32), jax.devices()[1])
+    key = inference._cache_key("t", {"w": w}, sav_jax.SAVConfig(), 2, (1, 1, 3))
+    assert key != inference._cache_key("t", {"w": np.ones(3, np.float32)}, sav_jax.SAVConfig(),
+                                       2, (1, 1, 3))
+    compiled = inference._compile(key, lambda: (fn, ({"w": w}, spec)), False)
+    x = jax.device_put(np.ones(3, np.float32), jax.devices()[1])
+    print(np.asarray(compiled({"w": w}, x)).tolist())
+  """
+  env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+         "JAX_PLATFORMS": "cpu"}
+  out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=120, check=False)
+  assert out.returncode == 0, out.stderr[-2000:]
+  assert out.stdout.strip() == "[2.0, 2.0, 2.0]"
 
 
 def test_cache_key_follows_the_default_device():

@@ -41,14 +41,16 @@ def main(argv):
   logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every save at INFO
   from train import loop  # pylint: disable=g-import-not-at-top
   try:
-    loop.run(_CONFIG.value, _WORKDIR.value)
+    parts = loop.setup(_CONFIG.value, _WORKDIR.value)
   # Bad input: config values, the workdir, weights or data the config names (CheckpointError
-  # is a ValueError). With absl's -v 1 (--verbosity=1) the traceback is shown instead.
+  # is a ValueError), all checked in `setup`. With absl's -v 1 (--verbosity=1) the traceback
+  # is shown instead. Errors of the training itself keep their traceback.
   except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError) as e:
     if flags.FLAGS.verbosity >= 1:
       raise
-    print(f"train: error: {e}", file=sys.stderr)
+    print(f"train: error: {e} (-v 1 for the traceback)", file=sys.stderr)
     sys.exit(2)
+  loop.run(_CONFIG.value, _WORKDIR.value, parts)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ import logging
 import pathlib
 import re
 import shutil
+import sys
 
 import grain
 import jax
@@ -53,8 +54,7 @@ def make_manager(workdir, config) -> ocp.CheckpointManager:
   ck = config.checkpoint
   directory = pathlib.Path(workdir).absolute() / "checkpoints"
   steps = [p for p in directory.iterdir() if p.name.isdigit()] if directory.is_dir() else []
-  foreign = sorted(p.name for p in steps
-                   if not ((p / "_CHECKPOINT_METADATA").is_file() and (p / "state").is_dir()))
+  foreign = sorted(p.name for p in steps if not orbax_io.is_training_step(p))
   if foreign:
     raise sav_jax.convert.CheckpointError(
         f"{directory}: {foreign[:5]} are named like checkpoints but are not ones written by "
@@ -125,7 +125,8 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
   args = ocp.args.Composite(state=ocp.args.StandardRestore(target),
                             data=grain.checkpoint.CheckpointRestore(data_iterator))
   corrupt = None
-  orbax_io.quiet_failed_reads()
+  previous = sys.unraisablehook
+  orbax_io.quiet_failed_reads()  # kept only if the restore fails (see there)
   try:
     restored = manager.restore(step, args=args)["state"]
   except Exception as e:  # pylint: disable=broad-except  # orbax: a bare Exception if unreadable
@@ -135,7 +136,9 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
         raise
       first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
       raise _mismatch(directory, f"{type(e).__name__}: {first[:300]}") from e
-  if corrupt is not None:
+  if corrupt is None:
+    sys.unraisablehook = previous  # a good checkpoint leaves no global hook behind
+  else:
     orbax_io.discard_failed_reads()  # outside the except block, which holds them
     raise sav_jax.convert.CheckpointError(
         f"{corrupt}. Move this step folder out of {directory.parent} to resume from the "

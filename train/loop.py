@@ -228,8 +228,10 @@ def _value(config, field: str):
   return config
 
 
-def _setup(config, workdir):
-  """Steps 2-8 of the module docstring. Returns a dict of the run's parts."""
+def setup(config, workdir):
+  """Steps 2-8 of the module docstring (every check of the config, the workdir and the
+  weights happens here, before the first step). Returns a dict of the run's parts for `run`."""
+  workdir = pathlib.Path(workdir)
   for field in ("init_from", "vda_weights"):  # before anything is created in the workdir
     if config[field] and not pathlib.Path(config[field]).exists():
       raise FileNotFoundError(f"config.{field}={config[field]}: no such file or directory")
@@ -245,7 +247,7 @@ def _setup(config, workdir):
   tx = optim.make_optimizer(config.optimizer, config.train.num_steps, abstract_params)
   weights = None
   if ((config.init_from or config.vda_weights)
-      and sav_jax.convert.find_training_checkpoint(pathlib.Path(workdir) / "checkpoints") is None):
+      and sav_jax.convert.find_training_checkpoint(workdir / "checkpoints") is None):
     # Not resuming: weights that cannot be read fail before the workdir is created.
     weights = initial_weights(config, abstract_params)
   manager = ckpt_lib.make_manager(workdir, config)
@@ -262,10 +264,13 @@ def _setup(config, workdir):
               batches=pipeline.GlobalBatchIterator(grain_it, state_lib.data_sharding(mesh)))
 
 
-def run(config, workdir) -> state_lib.TrainState:
-  """Trains `config` in `workdir` (created if needed) and returns the final state."""
+def run(config, workdir, parts: dict | None = None) -> state_lib.TrainState:
+  """Trains `config` in `workdir` (created if needed) and returns the final state.
+
+  `parts`: what `setup(config, workdir)` returned, if the caller ran it (else run here).
+  """
   workdir = pathlib.Path(workdir)
-  parts = _setup(config, workdir)
+  parts = setup(config, workdir) if parts is None else parts
   state, manager, evaluator = parts["state"], parts["manager"], parts["evaluator"]
   start, total = int(jax.device_get(state.step)), config.train.num_steps
   writer = MetricWriter(workdir, enabled=jax.process_index() == 0, start_step=start)

@@ -17,7 +17,7 @@ from sav_jax.convert.vda import vda_params_from_state_dict, vda_state_dict_from_
 __all__ = [
     "CheckpointError", "checkpoint_kind", "export_state_dict", "find_training_checkpoint",
     "is_orbax_checkpoint", "is_variables_checkpoint", "load_checkpoint_object",
-    "load_state_dict", "load_state_dict_of_kind", "params_from_state_dict", "restore_variables", "save_state_dict",
-    "save_variables", "state_dict_from_params", "unwrap_state_dict", "vda_params_from_state_dict",
-    "vda_state_dict_from_params",
+    "load_state_dict", "load_state_dict_of_kind", "params_from_state_dict", "restore_variables",
+    "save_state_dict", "save_variables", "state_dict_from_params", "unwrap_state_dict",
+    "vda_params_from_state_dict", "vda_state_dict_from_params",
 ]

@@ -57,7 +57,8 @@ def is_variables_checkpoint(directory) -> bool:
           and all((directory / item).is_dir() for item in _ITEMS))
 
 
-def _is_training_step(directory: pathlib.Path) -> bool:
+def is_training_step(directory: pathlib.Path) -> bool:
+  """Whether `directory` is a step folder written by `python -m train`."""
   return (directory / _METADATA_FILE).is_file() and (directory / "state").is_dir()
 
 
@@ -69,12 +70,12 @@ def find_training_checkpoint(path) -> pathlib.Path | None:
       run's `WORKDIR` (then the latest finished step).
   """
   path = pathlib.Path(path).absolute()
-  if _is_training_step(path):
+  if is_training_step(path):
     return path
   for root in (path, path / "checkpoints"):
     if root.is_dir():  # unfinished saves have temporary, non-numeric names
       steps = [(int(d.name), d) for d in root.iterdir()
-               if d.name.isdigit() and _is_training_step(d)]
+               if d.name.isdigit() and is_training_step(d)]
       if steps:
         return max(steps)[1]
   return None
@@ -183,15 +184,19 @@ def restore_variables(directory, target=None):
 def _restore(ckptr, directory, args, what: str):
   """`ckptr.restore(directory, args=args)`; a `CheckpointError` naming `directory` if the data
   cannot be read (`corrupt_checkpoint_error`) or does not fit `args` ("{what} (...)")."""
+  previous = sys.unraisablehook
   quiet_failed_reads()
   try:
-    return ckptr.restore(directory, args=args)
+    restored = ckptr.restore(directory, args=args)
   except Exception as e:  # pylint: disable=broad-except  # orbax: a bare Exception if unreadable
     corrupt = corrupt_checkpoint_error(directory, e)
     if corrupt is None:
       if not isinstance(e, (ValueError, KeyError, TypeError)):
         raise
       raise CheckpointError(f"{directory}: {what} ({type(e).__name__}: {e})") from e
+  else:
+    sys.unraisablehook = previous  # a good checkpoint leaves no global hook behind
+    return restored
   discard_failed_reads()  # outside the except block, which holds them
   raise corrupt
 
@@ -243,9 +248,9 @@ def quiet_failed_reads() -> None:
   each one prints "Exception ignored in: <coroutine ...>" and a TensorStore spec of some 50
   lines when it is garbage-collected, e.g. at exit after the one-line error; and reads that
   complete after orbax closed its event loop print "RuntimeError: Event loop is closed" from
-  tensorstore's threads, at any later time. Called before every restore (the hook stays, for
-  the rest of the process): exactly these two reports are dropped, every other unraisable
-  exception goes to the previous hook.
+  tensorstore's threads, at any later time. Installed around every restore, and kept (for the
+  rest of the process) only when the restore failed: exactly these two reports are dropped,
+  every other unraisable exception goes to the previous hook.
   """
   if getattr(sys.unraisablehook, "_sav_jax_quiet_reads", False):
     return
@@ -271,10 +276,8 @@ def _is_failed_read_noise(unraisable) -> bool:
   exc = unraisable.exc_value
   if type(exc) is Exception and str(exc).startswith(_ORBAX_READ_ERROR):  # pylint: disable=C0123
     return True
-  return (isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"
-          and unraisable.object is None and any(
-              f.name == "call_soon_threadsafe"
-              for f in traceback.extract_tb(unraisable.exc_traceback)))
+  # From tensorstore's threads or a pending read's coroutine, once orbax closed its loop.
+  return isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"
 
 
 def _not_a_checkpoint_message(directory):

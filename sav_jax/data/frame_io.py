@@ -17,7 +17,6 @@ Conventions (`docs/datasets.md`, section 0):
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 
 import cv2
@@ -102,15 +101,21 @@ def read_pfm(path: PathLike) -> np.ndarray:
     kind = f.readline().rstrip()
     if kind not in (b"PF", b"Pf"):
       raise ValueError(f"not a PFM file (header {kind[:16]!r}): {path}")
-    dims = re.fullmatch(rb"\s*(\d+)\s+(\d+)\s*", f.readline())
+    tokens = []  # width, height and scale; blank lines between them are tolerated
+    for _ in range(8):
+      line = f.readline()
+      tokens += line.split()
+      if not line or len(tokens) >= 3:
+        break
     try:
-      scale = float(f.readline())
+      scale = float(tokens[2]) if len(tokens) == 3 else 0.0
     except ValueError:
       scale = 0.0
-    if dims is None or scale == 0.0:
-      raise ValueError(f"malformed PFM header: {path}")
+    if len(tokens) != 3 or not (tokens[0].isdigit() and tokens[1].isdigit()) or scale == 0.0:
+      raise ValueError(f"malformed PFM header (expected 'width height' and a non-zero scale, "
+                       f"got {b' '.join(tokens)[:40]!r}): {path}")
     data = f.read()
-  width, height = int(dims.group(1)), int(dims.group(2))
+  width, height = int(tokens[0]), int(tokens[1])
   channels = 3 if kind == b"PF" else 1
   count = width * height * channels
   if len(data) < 4 * count:

@@ -70,6 +70,12 @@ def test_pfm_errors(tmp_path):
   (tmp_path / "short.pfm").write_bytes(b"Pf\n4 3\n-1\n" + bytes(40))
   with pytest.raises(ValueError, match="truncated.*short.pfm"):
     frame_io.read_pfm(tmp_path / "short.pfm")
+  # Blank lines inside the header, and width, height and scale on one line, are read.
+  values = np.arange(6, dtype="<f4")
+  for header in (b"Pf\n\n3 2\n\n-1.0\n", b"Pf\n3 2 -1.0\n"):
+    (tmp_path / "ok.pfm").write_bytes(header + values.tobytes())
+    np.testing.assert_array_equal(frame_io.read_pfm(tmp_path / "ok.pfm"),
+                                  values.reshape(2, 3)[::-1])
 
 
 def test_read_image_colour_grey_alpha_and_16_bit(tmp_path):

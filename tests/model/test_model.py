@@ -76,12 +76,12 @@ def test_bad_config_raises():
 
 
 @pytest.mark.parametrize("fields,match", [
-    ({"hidden_dim": "abc"}, r"SAVConfig\.hidden_dim='abc' \(str\); expected int"),
-    ({"corr_groups": True}, r"SAVConfig\.corr_groups=True \(bool\); expected int"),
+    ({"hidden_dim": "abc"}, r"SAVConfig\.hidden_dim='abc' \(builtins\.str\); expected int"),
+    ({"corr_groups": True}, r"SAVConfig\.corr_groups=True \(builtins\.bool\); expected int"),
     ({"hidden_dim": 0}, r"SAVConfig\.hidden_dim must be >= 1"),
-    ({"frame_block_mb": "1"}, r"SAVConfig\.frame_block_mb='1' \(str\); expected float"),
-    ({"remat": 1}, r"SAVConfig\.remat=1 \(int\); expected bool"),
-    ({"dtype": None}, r"SAVConfig\.dtype=None \(NoneType\); expected str"),
+    ({"frame_block_mb": "1"}, r"SAVConfig\.frame_block_mb='1' \(builtins\.str\); expected float"),
+    ({"remat": 1}, r"SAVConfig\.remat=1 \(builtins\.int\); expected bool"),
+    ({"dtype": None}, r"SAVConfig\.dtype=None \(builtins\.NoneType\); expected str"),
     ({"remat_policy": "bogus"}, r"remat_policy='bogus'; expected None or one of .*dots_saveable"),
     ({"remat_policy": "save_only_these_names"}, r"remat_policy='save_only_these_names'"),
 ])
@@ -95,8 +95,20 @@ def test_config_accepts_ints_for_floats_and_named_remat_policies():
   cfg = sav_jax.SAVConfig(frame_block_mb=512, remat=True, remat_policy="dots_saveable")
   assert cfg.frame_block_mb == 512 and cfg.remat_policy == "dots_saveable"
   assert sav_jax.SAVConfig.from_dict(cfg.to_dict()) == cfg
-  with pytest.raises(ValueError, match="SAVConfig dict"):
+  with pytest.raises(ValueError, match="SAVConfig mapping"):
     sav_jax.SAVConfig.from_dict(["hidden_dim"])
+  # numpy scalars (e.g. from a config array) are taken as the Python values they stand for
+  npcfg = sav_jax.SAVConfig(hidden_dim=np.int64(128), remat=np.True_,
+                            frame_block_mb=np.float32(512))
+  assert npcfg == sav_jax.SAVConfig(remat=True, frame_block_mb=512.0)
+  assert type(npcfg.hidden_dim) is int and type(npcfg.remat) is bool
+  with pytest.raises(ValueError, match=r"remat=np.int64\(1\) \(numpy\.int64\); expected bool"):
+    sav_jax.SAVConfig(remat=np.int64(1))
+  # any mapping: a ConfigDict (training configs) or a FrozenDict
+  import flax  # pylint: disable=import-outside-toplevel
+  import ml_collections  # pylint: disable=import-outside-toplevel
+  for mapping in (ml_collections.ConfigDict({"remat": True}), flax.core.FrozenDict(remat=True)):
+    assert sav_jax.SAVConfig.from_dict(mapping) == sav_jax.SAVConfig(remat=True)
 
 
 @pytest.mark.parametrize("dtype", ["float32", "bfloat16"])

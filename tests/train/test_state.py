@@ -6,6 +6,7 @@ compile it run in subprocesses (test_sharding, test_multihost, test_resume_and_l
 
 import functools
 import json
+import sys
 
 import flax.linen as nn
 import jax
@@ -327,7 +328,6 @@ def test_scratch_runs_start_from_the_official_initialisation(tmp_path):
 
 def test_train_command_reports_a_missing_init_file_in_one_line(tmp_path):
   import subprocess  # pylint: disable=g-import-not-at-top
-  import sys  # pylint: disable=g-import-not-at-top
   from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
   proc = subprocess.run(
       [sys.executable, "-m", "train", "--config", str(ROOT / "configs/synthetic.py"),
@@ -416,7 +416,6 @@ def _corrupt_copy(workdir, tmp_path, how):
 @pytest.mark.parametrize("how", ["truncated", "deleted"])
 def test_corrupt_training_checkpoint_is_named_as_such(toy_run, tmp_path, how, monkeypatch):
   import gc  # pylint: disable=g-import-not-at-top
-  import sys  # pylint: disable=g-import-not-at-top
   _, c, model, tx, mesh = toy_run
   copy = _corrupt_copy(toy_run[0], tmp_path, how)
   sav_jax.convert.orbax_io.quiet_failed_reads()  # also once the test has put its hook back
@@ -451,7 +450,9 @@ def test_resume_with_another_frozen_pattern_is_refused(toy_run, tmp_path):
   with pytest.raises(sav_jax.convert.CheckpointError,
                      match=r"does not match .*holds 20 arrays, this run's state 16"):
     _toy_restore(tmp_path / "unfrozen", c, model, tx, mesh)
+  hook = sys.unraisablehook
   restored = _toy_restore(tmp_path / "unfrozen", c3, model, tx2, mesh)  # its own config
+  assert sys.unraisablehook is hook  # a good checkpoint leaves no global hook behind
   assert jax.tree.structure(restored.opt_state) == jax.tree.structure(
       jax.eval_shape(tx2.init, state_lib.abstract_params(model, c3)))
 
@@ -510,7 +511,6 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
   """A config value (before any tracing) and unreadable init weights (after tracing the
   model's shapes, before the workdir is created)."""
   import subprocess  # pylint: disable=g-import-not-at-top
-  import sys  # pylint: disable=g-import-not-at-top
   from sav_jax.convert import save_variables  # pylint: disable=g-import-not-at-top
   from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
   weights = tmp_path / "weights"
