@@ -24,7 +24,6 @@ import logging
 import pathlib
 import re
 import shutil
-import sys
 
 import grain
 import jax
@@ -124,25 +123,15 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
                         _state_dict(abstract_state), _state_dict(shardings))
   args = ocp.args.Composite(state=ocp.args.StandardRestore(target),
                             data=grain.checkpoint.CheckpointRestore(data_iterator))
-  corrupt = None
-  previous = sys.unraisablehook
-  orbax_io.quiet_failed_reads()  # kept only if the restore fails (see there)
-  try:
-    restored = manager.restore(step, args=args)["state"]
-  except Exception as e:  # pylint: disable=broad-except  # orbax: a bare Exception if unreadable
-    corrupt = orbax_io.corrupt_checkpoint_error(directory, e)
-    if corrupt is None:
-      if not isinstance(e, (ValueError, KeyError, TypeError)):
-        raise
-      first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-      raise _mismatch(directory, f"{type(e).__name__}: {first[:300]}") from e
-  if corrupt is None:
-    sys.unraisablehook = previous  # a good checkpoint leaves no global hook behind
-  else:
-    orbax_io.discard_failed_reads()  # outside the except block, which holds them
-    raise sav_jax.convert.CheckpointError(
-        f"{corrupt}. Move this step folder out of {directory.parent} to resume from the "
-        "checkpoint before it, or start a new WORKDIR")
+
+  def mismatch(e):
+    first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    return _mismatch(directory, f"{type(e).__name__}: {first[:300]}")
+
+  restored = orbax_io.checked_restore(
+      lambda: manager.restore(step, args=args)["state"], directory, mismatch,
+      corrupt_hint=f". Move this step folder out of {directory.parent} to resume from the "
+      "checkpoint before it, or start a new WORKDIR")
   _check_restored_tree(directory, restored, target)
   return TrainState(**restored)
 

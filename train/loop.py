@@ -26,6 +26,7 @@ import sav_jax
 from sav_jax import runtime
 from sav_jax.data import pipeline
 from sav_jax.model.init import init_variables
+from sav_jax.model.stereo_any_video import check_iters
 from train import checkpoint as ckpt_lib
 from train import evaluation, input as input_lib, optim, state as state_lib, step as step_lib
 from train.logging_utils import MetricWriter, Progress
@@ -137,6 +138,15 @@ def _is_int(x) -> bool:
   return isinstance(x, int) and not isinstance(x, bool)
 
 
+def _is_iters(x) -> bool:
+  """An `iters` the model takes (`check_iters`), given as a Python int."""
+  try:
+    check_iters(x)
+  except ValueError:
+    return False
+  return _is_int(x)
+
+
 def _is_real(x) -> bool:
   return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
@@ -163,7 +173,7 @@ _CHECKS = (
      "coarsest scale is 1/16)"),
     ("train.batch_size", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("train.num_steps", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
-    ("train.iters", lambda x: _is_int(x) and x >= 2 and x % 2 == 0,
+    ("train.iters", _is_iters,
      "an even integer >= 2 (the 1/16 and 1/8 stages run iters//2 steps each)"),
     ("train.max_skipped_steps", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
     ("optimizer.lr", lambda x: _is_real(x) and x > 0, "a number > 0"),
@@ -184,7 +194,7 @@ _CHECKS = (
     ("checkpoint.keep", lambda x: _is_int(x) and x >= 0, "an integer >= 0 (0 keeps all)"),
 )
 _EVAL_CHECKS = (
-    ("eval.iters", lambda x: _is_int(x) and x >= 2 and x % 2 == 0, "an even integer >= 2"),
+    ("eval.iters", _is_iters, "an even integer >= 2"),
     ("eval.batch_size", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("eval.num_clips", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
 )

@@ -27,8 +27,8 @@ import numpy as np
 from sav_jax.convert.pickle_reader import CheckpointError
 
 __all__ = ["save_variables", "restore_variables", "is_variables_checkpoint",
-           "find_training_checkpoint", "is_orbax_checkpoint", "corrupt_checkpoint_error",
-           "quiet_failed_reads", "discard_failed_reads"]
+           "find_training_checkpoint", "is_orbax_checkpoint", "checked_restore",
+           "corrupt_checkpoint_error", "quiet_failed_reads", "discard_failed_reads"]
 
 log = logging.getLogger(__name__)
 
@@ -182,23 +182,41 @@ def restore_variables(directory, target=None):
 
 
 def _restore(ckptr, directory, args, what: str):
-  """`ckptr.restore(directory, args=args)`; a `CheckpointError` naming `directory` if the data
-  cannot be read (`corrupt_checkpoint_error`) or does not fit `args` ("{what} (...)")."""
+  """`ckptr.restore(directory, args=args)` through `checked_restore`, a mismatch with `args`
+  reported as "{directory}: {what} (...)"."""
+  return checked_restore(
+      lambda: ckptr.restore(directory, args=args), directory,
+      lambda e: CheckpointError(f"{directory}: {what} ({type(e).__name__}: {e})"))
+
+
+def checked_restore(restore, directory, mismatch, corrupt_hint: str = ""):
+  """`restore()` of the checkpoint at `directory`, with orbax's failures as CheckpointErrors.
+
+  Args:
+    restore: the orbax call.
+    directory: the checkpoint, named in the messages.
+    mismatch: `error -> exception` for a ValueError/KeyError/TypeError that is not a
+      failed read (the checkpoint does not fit the target); raised from the error.
+    corrupt_hint: appended to the corrupt-checkpoint message (`corrupt_checkpoint_error`).
+
+  The `quiet_failed_reads` filter is in place during the call and kept only if it fails;
+  other exceptions propagate unchanged.
+  """
   previous = sys.unraisablehook
   quiet_failed_reads()
   try:
-    restored = ckptr.restore(directory, args=args)
+    restored = restore()
   except Exception as e:  # pylint: disable=broad-except  # orbax: a bare Exception if unreadable
     corrupt = corrupt_checkpoint_error(directory, e)
     if corrupt is None:
       if not isinstance(e, (ValueError, KeyError, TypeError)):
         raise
-      raise CheckpointError(f"{directory}: {what} ({type(e).__name__}: {e})") from e
+      raise mismatch(e) from e
   else:
     sys.unraisablehook = previous  # a good checkpoint leaves no global hook behind
     return restored
   discard_failed_reads()  # outside the except block, which holds them
-  raise corrupt
+  raise CheckpointError(f"{corrupt}{corrupt_hint}") if corrupt_hint else corrupt
 
 
 # Tensorstore's errors start with an absl status code, e.g. 'OUT_OF_RANGE: Error reading

@@ -9,8 +9,8 @@ Layout (root = the `InfinigenStereo` folder or its parent):
 camera_0 is the left view. The three sorted lists are matched by index (stems must
 agree after the type prefix; left and right files must have the same frame number,
 Infinigen's suffix order being cam_rig, resample, frame, subcam). Depth is used as
-stored (units not confirmed; depth below 1e-5, NaN or inf is invalid). Scale: `K_left[0, 0] * ||t_left - t_right||`
-from frame 0's camview files. Splits (download script): test = scene001-030,
+stored (units not confirmed; depth below 1e-5, NaN or inf is invalid). Scale:
+`K_left[0, 0] * ||t_left - t_right||` from frame 0's camview files. Splits (download script): test = scene001-030,
 train = scene031-216, val = scene217-226, as folders.
 """
 

@@ -97,11 +97,15 @@ def output_paths(out: pathlib.Path, names: list[str], formats: list[str],
 def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
   """Raises FileExistsError if any output exists and `overwrite` is off, or if an output
   (or a folder it goes in) is something other than a file (folder) even with `overwrite`."""
+  checked = set()  # folders looked at already, with every folder above them
   for p in paths:
     if p.exists() and not p.is_file():
       raise FileExistsError(f"{p} exists and is not a file; move it away (it is not replaced, "
                             "even with --overwrite)")
     for parent in p.parents:
+      if parent in checked:
+        break
+      checked.add(parent)
       if parent.exists() and not parent.is_dir():
         raise FileExistsError(f"{parent} is a file, not a folder; move it away to write {p}")
   existing = [p for p in paths if p.exists()]
