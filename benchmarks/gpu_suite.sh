@@ -10,8 +10,10 @@
 #   train       the training step at the paper's shape (T=5 256x512 iters=10, remat)  (190 s)
 #   precision   distance from the official output per compute mode (precision_check.py) (> 90 s)
 #   parity      the end-to-end parity tests on this backend (needs SAV_FIXTURES)        (> 150 s)
-#   stages      per-stage wall times at the paper's window, bfloat16 (stage_times.py)  (not yet run)
-#   profile     per-module GPU time, multiply-adds and rate, bfloat16 (op_profile.py)  (not yet run)
+#   stages      per-stage wall times at the paper's window, bfloat16 (stage_times.py)  (106 s)
+#   profile     per-module GPU time, multiply-adds and rate, bfloat16 (op_profile.py)  (75 s)
+#   variants    candidate rewrites of the update block's parts and the ViT attention, timed
+#               against the model's modules at the paper's window (update_variants.py)
 # A lease of 15 device minutes holds about 10 minutes of steps (one machine start): pick
 # the steps. Each step has its own time limit; everything is logged to OUTDIR/suite.log and
 # the figures go to OUTDIR/*.json. A failure of the first step within 90 s (an import or API
@@ -52,10 +54,11 @@ run_step() {
     parity) step "$1" 300 "$py" -m pytest -x -q -p no:cacheprovider \
               tests/model/test_model_parity.py ;;
     stages) step "$1" 300 "$py" benchmarks/stage_times.py "${window[@]}" --dtype bfloat16 ;;
+    variants) step "$1" 300 "$py" benchmarks/update_variants.py "${window[@]}" --dtype bfloat16 ;;
     profile) step "$1" 240 "$py" benchmarks/op_profile.py "${window[@]}" --dtype bfloat16 \
                --repeats 1 --by module --depth 2 --top 25 ;;
     *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_cudnn train precision parity" \
-            "stages profile)" >&2
+            "stages profile variants)" >&2
        return 2 ;;
   esac
 }

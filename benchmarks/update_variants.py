@@ -1,0 +1,199 @@
+"""Candidate rewrites of the 1/4 update block's parts (and the ViT attention), timed against
+the model's own modules on the same weights and inputs.
+
+    python benchmarks/update_variants.py --frames 20 --height 720 --width 1280 --dtype bfloat16
+
+Each row is compiled alone and timed (median of 3 calls after a warm-up); `max diff` is the
+largest absolute difference from the model's module on the same inputs (the rewrites are
+the same arithmetic regrouped, so it is rounding only). The parts are the ones
+`stage_times.py` lists; the variants:
+
+- GRU: the z and r convolutions that read the same input as one convolution with both
+  kernels side by side (and the super kernel's second convs as one grouped convolution);
+- flow head: XLA's native 3-D convolution instead of per-frame 2-D taps; the taps with the
+  narrowing 256 -> 2 conv's three kernels as one 256 -> 6 convolution;
+- space attention: q, k and v projections as one 256 -> 768 product;
+- time attention: `jax.nn.dot_product_attention` (cuDNN on a GPU in bfloat16, else XLA's);
+- depth prior: the ViT attention blocked (default) or cuDNN's fused kernel (GPU, bfloat16).
+"""
+
+import argparse
+import pathlib
+import sys
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+import jax  # noqa: E402  pylint: disable=wrong-import-position
+import jax.numpy as jnp
+import numpy as np
+
+import sav_jax
+from sav_jax.model import update as U
+from sav_jax.model.init import init_variables
+from sav_jax.model.layers import Conv3D, conv2d, gelu, layer_norm
+from sav_jax.model.stereo_any_video import StereoAnyVideo
+
+from timing import add_clip_arguments, timed  # benchmarks/timing.py
+
+
+def _kb(p, names, dtype):
+  """Kernels and biases of the named convs, concatenated along the output channels."""
+  k = jnp.concatenate([p[n]["kernel"] for n in names], axis=-1).astype(dtype)
+  b = jnp.concatenate([p[n]["bias"] for n in names], axis=-1).astype(dtype)
+  return k, b
+
+
+def _conv_axis(y, kernel, bias, axis, groups=1):
+  """A 1-D kernel `[1,1,k]`/`[1,k,1]`/`[k,1,1]` conv of `[B,T,H,W,C]` along W, H or T."""
+  b, t, h, w, c = y.shape
+  k = kernel.shape[axis]
+  pad = ((k - 1) // 2,) * 2
+  if axis == 2:  # W
+    x2, k2, padding = y.reshape(b * t, h, w, c), kernel[0], ((0, 0), pad)
+  elif axis == 1:  # H
+    x2, k2, padding = y.reshape(b * t, h, w, c), kernel[0], (pad, (0, 0))
+  else:  # T
+    x2, k2, padding = y.reshape(b, t, h * w, c), kernel[:, 0], (pad, (0, 0))
+  out = jax.lax.conv_general_dilated(x2, k2, (1, 1), padding,
+                                     dimension_numbers=("NHWC", "HWIO", "NHWC"),
+                                     feature_group_count=groups)
+  return (out + bias).reshape(b, t, h, w, -1)
+
+
+def gru_fused(p, h, x, dtype):
+  """`SKSepConvGRU3D` with the z/r convolutions of one input as one convolution."""
+  h, x = h.astype(dtype), x.astype(dtype)
+  hd = h.shape[-1]
+
+  def update(h, zr, qname, axis):
+    z, r = jax.nn.sigmoid(zr[..., :hd]), jax.nn.sigmoid(zr[..., hd:])
+    kq, bq = _kb(p, [qname], dtype)
+    q = jnp.tanh(_conv_axis(jnp.concatenate([r * h, x], -1), kq, bq, axis))
+    return (1 - z) * h + z * q
+
+  k1, b1 = _kb(p, ["convz1_0", "convr1_0"], dtype)
+  zr = gelu(_conv_axis(jnp.concatenate([h, x], -1), k1, b1, 2))
+  k2, b2 = _kb(p, ["convz1_2", "convr1_2"], dtype)
+  zr = _conv_axis(zr, k2, b2, 2, groups=2)
+  h = update(h, zr, "convq1", 2)
+  for stage, axis in (("2", 1), ("3", 0)):
+    k, bias = _kb(p, [f"convz{stage}", f"convr{stage}"], dtype)
+    h = update(h, _conv_axis(jnp.concatenate([h, x], -1), k, bias, axis), f"convq{stage}", axis)
+  return h
+
+
+def flow_head_native(p, x, dtype):
+  """`FlowHead3D` with XLA's 3-D convolutions."""
+  def c3(y, name):
+    return jax.lax.conv_general_dilated(
+        y, p[name]["kernel"].astype(dtype), (1, 1, 1), [(1, 1)] * 3,
+        dimension_numbers=("NDHWC", "DHWIO", "NDHWC")) + p[name]["bias"].astype(dtype)
+  return c3(jax.nn.relu(c3(x.astype(dtype), "conv1")), "conv2")
+
+
+def flow_head_fused_narrow(p, x, dtype):
+  """`FlowHead3D` with the narrowing conv's three temporal taps as one convolution."""
+  y = jax.nn.relu(Conv3D(256, (3, 3, 3), (1, 1, 1), dtype=dtype).apply({"params": p["conv1"]}, x))
+  b, t, h, w, c = y.shape
+  k = p["conv2"]["kernel"].astype(dtype)  # [3, 3, 3, 256, 2]
+  taps = conv2d(y.reshape(b * t, h, w, c), jnp.concatenate(list(k), axis=-1),
+                ((1, 1), (1, 1))).reshape(b, t, h, w, 3, -1)
+  zero = jnp.zeros_like(taps[:, :1, ..., 0, :])
+  out = (taps[..., 1, :] + jnp.concatenate([zero, taps[:, :-1, ..., 0, :]], axis=1)
+         + jnp.concatenate([taps[:, 1:, ..., 2, :], zero], axis=1))
+  return out + p["conv2"]["bias"].astype(dtype)
+
+
+def space_attn_fused_qkv(p, x, dtype):
+  """`SpaceAttnBlock` (all frames at once) with one q/k/v product."""
+  p = p["encoder_layer"]
+  b, t, h, w, c = x.shape
+  x = x.reshape(b * t, h * w, c).astype(dtype)
+  wqkv = jnp.concatenate([p[n]["kernel"] for n in ("q_proj", "k_proj", "v_proj")],
+                         axis=-1).astype(dtype)
+  qkv = (x @ wqkv).reshape(b * t, h * w, 3, 8, c // 8)
+  msg = U.linear_attention(qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]).reshape(b * t, h * w, c)
+  dense = lambda y, n: y @ p[n]["kernel"].astype(dtype)  # noqa: E731
+  norm = lambda y, n: layer_norm(dtype=dtype).apply({"params": p[n]}, y)  # noqa: E731
+  msg = norm(dense(msg, "merge"), "norm1")
+  msg = dense(jax.nn.relu(dense(jnp.concatenate([x, msg], -1), "mlp_0")), "mlp_2")
+  return (x + norm(msg, "norm2")).reshape(b, t, h, w, c)
+
+
+def time_attn_dpa(p, x, dtype, implementation):
+  """`TimeAttnBlock` with `jax.nn.dot_product_attention` over time."""
+  b, t, h, w, c = x.shape
+  y = layer_norm(dtype=dtype).apply({"params": p["temporal_norm1"]}, x)
+  seq = y.reshape(b, t, h * w, 8, c // 8).transpose(0, 2, 1, 3, 4).reshape(b * h * w, t, 8, -1)
+  out = jax.nn.dot_product_attention(seq, seq, seq, implementation=implementation)
+  out = out.reshape(b, h * w, t, c).transpose(0, 2, 1, 3).reshape(b, t, h, w, c)
+  out = out @ p["temporal_attn"]["proj"]["kernel"].astype(dtype) + \
+      p["temporal_attn"]["proj"]["bias"].astype(dtype)
+  out = out @ p["temporal_fc"]["kernel"].astype(dtype) + p["temporal_fc"]["bias"].astype(dtype)
+  return x + out
+
+
+def main():
+  ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+  add_clip_arguments(ap)
+  ap.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
+  ap.add_argument("--skip-depth", action="store_true", help="leave out the depth-prior rows")
+  a = ap.parse_args()
+  dtype = jnp.dtype(a.dtype)
+  cfg = sav_jax.SAVConfig(dtype=a.dtype)
+  params = jax.device_put(init_variables(cfg, seed=0))["params"]
+  ub = params["update_block"]
+  lead = (1, a.frames, a.height // 4, a.width // 4)
+  rng = np.random.default_rng(0)
+  r = lambda c: jnp.asarray(rng.standard_normal((*lead, c)), dtype)  # noqa: E731
+  h128, x256, n128 = r(128), r(256), r(128)
+  gpu_bf16 = jax.default_backend() == "gpu" and a.dtype == "bfloat16"
+  rows = [
+      ("GRU (model)", lambda p, h, x: U.SKSepConvGRU3D(dtype=dtype).apply({"params": p}, h, x),
+       (ub["gru"], h128, x256), "gru"),
+      ("GRU z/r fused", lambda p, h, x: gru_fused(p, h, x, dtype), (ub["gru"], h128, x256), "gru"),
+      ("flow head (model)", lambda p, n: U.FlowHead3D(dtype=dtype).apply({"params": p}, n),
+       (ub["flow_head"], n128), "flow"),
+      ("flow head native 3-D", lambda p, n: flow_head_native(p, n, dtype),
+       (ub["flow_head"], n128), "flow"),
+      ("flow head narrow taps fused", lambda p, n: flow_head_fused_narrow(p, n, dtype),
+       (ub["flow_head"], n128), "flow"),
+      ("space attention (model)", lambda p, x: U.SpaceAttnBlock(dtype=dtype).apply(
+          {"params": p}, x), (ub["space_attn"], x256), "space"),
+      ("space attention qkv fused", lambda p, x: space_attn_fused_qkv(p, x, dtype),
+       (ub["space_attn"], x256), "space"),
+      ("time attention (model)", lambda p, x: U.TimeAttnBlock(dtype=dtype).apply(
+          {"params": p}, x), (ub["time_attn"], x256), "time"),
+      ("time attention dot_product_attention",
+       lambda p, x: time_attn_dpa(p, x, dtype, "cudnn" if gpu_bf16 else "xla"),
+       (ub["time_attn"], x256), "time"),
+  ]
+  print(f"T={a.frames} {a.height}x{a.width} (parts at 1/4: {lead[2]}x{lead[3]}) {a.dtype} "
+        f"({jax.devices()[0].device_kind}, jax {jax.__version__})")
+  ref = {}
+  for label, fn, args, group in rows:
+    f = jax.jit(fn)
+    try:
+      seconds = timed(f, *args)
+    except Exception as e:  # pylint: disable=broad-except  # a variant the backend lacks
+      print(f"  {label:40s} failed: {type(e).__name__}: {str(e).splitlines()[0][:100]}")
+      continue
+    out = np.asarray(f(*args), np.float32)
+    diff = "" if group not in ref else f"  max diff {np.abs(out - ref[group]).max():.2e}"
+    ref.setdefault(group, out)
+    print(f"  {label:40s} {seconds * 1e3:8.2f} ms{diff}", flush=True)
+  if a.skip_depth:
+    return
+  frames = jnp.asarray(rng.uniform(0, 255, (2, a.frames, a.height, a.width, 3)), jnp.float32)
+  for attention in ("blocked", "cudnn") if gpu_bf16 else ("blocked",):
+    model = StereoAnyVideo(sav_jax.SAVConfig(dtype=a.dtype, vit_attention=attention))
+    depth = jax.jit(lambda v, x, m=model: m.apply(v, x, method=lambda m, x: m.depthnet(x)))
+    seconds = timed(depth, {"params": params}, frames)
+    out = np.asarray(depth({"params": params}, frames), np.float32)
+    diff = "" if "depth" not in ref else f"  max diff {np.abs(out - ref['depth']).max():.2e}"
+    ref.setdefault("depth", out)
+    print(f"  depth prior, ViT attention {attention:12s} {seconds * 1e3:8.2f} ms{diff}")
+
+
+if __name__ == "__main__":
+  main()
