@@ -24,6 +24,7 @@ import numpy as np
 
 import sav_jax
 import sav_jax.ops.pool
+from sav_jax.config import resolve_vit_attention
 from sav_jax.model.init import init_variables
 from sav_jax.model.stereo_any_video import StereoAnyVideo
 from sav_jax.model import update as U
@@ -53,7 +54,11 @@ def main():
       v, x.reshape(-1, *x.shape[2:]), method=lambda m, x: (m.fnet(x), m.cnet(x))))
   feats = jax.jit(lambda v, l, r: model.apply(v, l, r, method=StereoAnyVideo.features))
   both = jnp.concatenate([left, right])
-  print(f"depth prior (both views)  {timed(depth, v, both):.3f} s")
+  print(f"depth prior (both views)  {timed(depth, v, both):.3f} s  (ViT attention "
+        f"{resolve_vit_attention(cfg.vit_attention, cfg.compute_dtype)})")
+  vit = jax.jit(lambda v, x: model.apply(
+      v, x.reshape(-1, *x.shape[2:]), method=lambda m, x: m.depthnet.tokens(x)))
+  print(f"  of which the ViT          {timed(vit, v, both):.3f} s")
   print(f"fnet + cnet (both views)  {timed(enc, v, both):.3f} s")
   total = timed(feats, v, left, right)
   print(f"feature stage (as run)    {total:.3f} s")

@@ -14,7 +14,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from sav_jax.config import FRAME_BLOCK_MB
+from sav_jax.config import FRAME_BLOCK_MB, resolve_vit_attention
 from sav_jax.model.layers import dense, frames_per_block, gelu, layer_norm
 from sav_jax.ops.resize import resize
 
@@ -158,8 +158,8 @@ class Attention(nn.Module):
     num_heads: heads.
     dtype: compute dtype (the softmax runs in float32).
     block_mb: memory budget of one block of logits (`softmax_attention`).
-    implementation: "blocked" (`softmax_attention`, every backend) or "cudnn"
-      (`fused_attention`: CUDA GPUs, bfloat16).
+    implementation: "blocked" (`softmax_attention`, every backend), "cudnn"
+      (`fused_attention`: CUDA GPUs, bfloat16) or "auto" (`config.resolve_vit_attention`).
   """
 
   num_heads: int
@@ -177,7 +177,7 @@ class Attention(nn.Module):
     qkv = qkv.reshape(n, length, 3, self.num_heads, head_dim)
     q, k, v = qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]
     q = q * head_dim**-0.5
-    if self.implementation == "cudnn":
+    if resolve_vit_attention(self.implementation, self.dtype) == "cudnn":
       out = fused_attention(q, k, v, "cudnn")
     else:
       out = softmax_attention(q, k, v, self.block_mb)

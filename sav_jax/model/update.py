@@ -96,6 +96,18 @@ def linear_attention(q: jax.Array, k: jax.Array, v: jax.Array, eps: float = 1e-6
   return jnp.einsum("nlhd,nhdv,nlh->nlhv", q, kv, z) * length
 
 
+class DenseKernel(nn.Module):
+  """The kernel of a bias-free `nn.Dense` (same name, shape and initialiser), for callers
+  that multiply several such kernels at once."""
+
+  features: int
+
+  @nn.compact
+  def __call__(self, in_features: int) -> jax.Array:
+    return self.param("kernel", nn.initializers.lecun_normal(), (in_features, self.features),
+                      jnp.float32)
+
+
 class LoFTREncoderLayer(nn.Module):
   """LoFTR encoder layer with linear attention (self-attention within a frame)."""
 
@@ -107,11 +119,10 @@ class LoFTREncoderLayer(nn.Module):
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x `[N, L, d_model]`. Returns the same shape."""
     n, length, c = x.shape
-    split = lambda y: y.reshape(n, length, self.nhead, c // self.nhead)
-    q = split(dense(c, False, self.dtype, "q_proj")(x))
-    k = split(dense(c, False, self.dtype, "k_proj")(x))
-    v = split(dense(c, False, self.dtype, "v_proj")(x))
-    msg = linear_attention(q, k, v).reshape(n, length, c)
+    # q, k and v as one product with the three kernels side by side (one read of x).
+    wqkv = jnp.concatenate([DenseKernel(c, name=f"{p}_proj")(c) for p in "qkv"], axis=-1)
+    qkv = (x.astype(self.dtype) @ wqkv.astype(self.dtype)).reshape(n, length, 3, self.nhead, -1)
+    msg = linear_attention(qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]).reshape(n, length, c)
     msg = dense(c, False, self.dtype, "merge")(msg)
     msg = layer_norm(dtype=self.dtype, name="norm1")(msg)
     msg = dense(2 * c, False, self.dtype, "mlp_0")(jnp.concatenate([x, msg], axis=-1))

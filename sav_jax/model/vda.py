@@ -30,7 +30,8 @@ class VideoDepthAnything(nn.Module):
     dtype: compute dtype; parameters are float32.
     attention_block_mb: memory budget of one block of the ViT's attention logits
       (`dinov2.softmax_attention`).
-    attention: the ViT attention's implementation ("blocked" or "cudnn", `SAVConfig.vit_attention`).
+    attention: the ViT attention's implementation ("blocked", "cudnn" or "auto",
+      `SAVConfig.vit_attention`).
   """
 
   encoder: str = "vits"

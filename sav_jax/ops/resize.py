@@ -1,10 +1,13 @@
 """Torch-compatible resizing: bilinear (both align_corners modes) and bicubic.
 
-Every resize here is separable, so it is written as two small dense interpolation
-matrices built in NumPy at trace time (shapes are static) and contracted with
-`einsum`. This reproduces `torch.nn.functional.interpolate` exactly (same source
-coordinates, same border handling) and lowers to matmuls, which are fast on every
-backend and differentiable, with no gathers.
+Every resize here is separable and its weights are built in NumPy at trace time (shapes
+are static), with torch's source coordinates and border handling
+(`torch.nn.functional.interpolate`). Bilinear resizes are two-tap blends per axis:
+`(1 - w) x[i0] + w x[i1]` with static indices (`bilinear_taps`), memory-bound and
+exact in float32. Bicubic ones (only the ViT's position table) contract a dense
+`[out, in]` matrix (`interp_matrix`) with `einsum`. A dense matrix would cost
+`out x in` multiply-adds per output pixel: at 720x1280 the depth prior's bilinear
+resizes alone took ~4 TMAC in float32 that way.
 """
 
 from __future__ import annotations
@@ -47,6 +50,41 @@ def _cubic_weights(t: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=256)
+def bilinear_taps(in_size: int, out_size: int, align_corners: bool = False,
+                  scale_factor: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """The two taps of a 1-D torch linear interpolation: output `i` is
+  `(1 - w[i]) * x[i0[i]] + w[i] * x[i1[i]]`.
+
+  Returns:
+    `(i0, i1, w)`: int32 indices and float64 weights, each `[out_size]`, read-only; where
+    both taps clamp to the same input (the last one), `w` is 0.
+  """
+  src = _source_coords(in_size, out_size, align_corners, scale_factor)
+  if not align_corners:
+    src = np.maximum(src, 0.0)  # torch clamps negative coordinates (linear only)
+  i0 = np.minimum(np.floor(src).astype(np.int64), in_size - 1)
+  i1 = np.minimum(i0 + 1, in_size - 1)
+  w1 = np.where(i1 == i0, 0.0, src - i0)
+  out = (i0.astype(np.int32), i1.astype(np.int32), w1)
+  for a in out:
+    a.flags.writeable = False  # shared through the cache
+  return out
+
+
+def _blend_axis(x: jax.Array, axis: int, taps) -> jax.Array:
+  """The two-tap blend of `bilinear_taps` along `axis` of float32 `x` (identity: `x`)."""
+  i0, i1, w1 = taps
+  if len(i0) == x.shape[axis] and not w1.any() and np.array_equal(i0, np.arange(len(i0))):
+    return x
+  shape = [1] * x.ndim
+  shape[axis] = len(w1)
+  w = jnp.asarray(w1.reshape(shape), jnp.float32)
+  a = jnp.take(x, jnp.asarray(i0), axis=axis, mode="clip")
+  b = jnp.take(x, jnp.asarray(i1), axis=axis, mode="clip")
+  return (1.0 - w) * a + w * b
+
+
+@functools.lru_cache(maxsize=256)
 def interp_matrix(
     in_size: int,
     out_size: int,
@@ -67,18 +105,14 @@ def interp_matrix(
   Returns:
     float64 array `[out_size, in_size]`; row i holds the weights of output i.
   """
-  src = _source_coords(in_size, out_size, align_corners, scale_factor)
   mat = np.zeros((out_size, in_size), np.float64)
   rows = np.arange(out_size)
   if mode == "bilinear":
-    if not align_corners:
-      src = np.maximum(src, 0.0)  # torch clamps negative coordinates (linear only)
-    i0 = np.minimum(np.floor(src).astype(np.int64), in_size - 1)
-    i1 = np.minimum(i0 + 1, in_size - 1)
-    w1 = src - i0
+    i0, i1, w1 = bilinear_taps(in_size, out_size, align_corners, scale_factor)
     np.add.at(mat, (rows, i0), 1.0 - w1)
     np.add.at(mat, (rows, i1), w1)
   elif mode == "bicubic":
+    src = _source_coords(in_size, out_size, align_corners, scale_factor)
     i0 = np.floor(src).astype(np.int64)
     weights = _cubic_weights(src - i0)
     for k in range(4):
@@ -112,6 +146,12 @@ def resize(
   in_h, in_w = x.shape[-3], x.shape[-2]
   out_h, out_w = size
   sy, sx = scale_factor if scale_factor is not None else (None, None)
+  if mode == "bilinear":
+    # Two taps per axis in float32 whatever the input dtype (bf16 inputs stay accurate).
+    y = _blend_axis(x.astype(jnp.float32), x.ndim - 3,
+                    bilinear_taps(in_h, out_h, align_corners, sy))
+    y = _blend_axis(y, x.ndim - 2, bilinear_taps(in_w, out_w, align_corners, sx))
+    return y.astype(x.dtype)
   my = interp_matrix(in_h, out_h, mode, align_corners, sy)
   mx = interp_matrix(in_w, out_w, mode, align_corners, sx)
   if (in_h, in_w) == (out_h, out_w) and np.array_equal(my, np.eye(in_h)) and np.array_equal(
@@ -119,7 +159,6 @@ def resize(
     return x
   my = jnp.asarray(my, dtype=jnp.float32)
   mx = jnp.asarray(mx, dtype=jnp.float32)
-  # Accumulate in float32 whatever the input dtype (bf16 inputs stay accurate).
   y = jnp.einsum("oh,...hwc->...owc", my, x.astype(jnp.float32))
   y = jnp.einsum("pw,...owc->...opc", mx, y)
   return y.astype(x.dtype)

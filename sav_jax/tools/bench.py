@@ -26,9 +26,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  help="refinement iterations at 1/4 (even; default 8)")
   p.add_argument("--batch", type=int, default=1, help="clips per call (default 1)")
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
-  p.add_argument("--vit-attention", choices=VIT_ATTENTION, default="blocked",
+  p.add_argument("--vit-attention", choices=VIT_ATTENTION, default="auto",
                  help="the depth prior's ViT attention (SAVConfig.vit_attention; 'cudnn': "
-                      "fused flash attention, CUDA GPUs with --dtype bfloat16)")
+                      "fused flash attention, CUDA GPUs with --dtype bfloat16; 'auto' "
+                      "(default): cudnn where it applies, else blocked)")
   p.add_argument("--repeats", type=int, default=5,
                  help="timed calls after the warm-up call (default 5)")
   p.add_argument("--all-predictions", action="store_true",
@@ -87,7 +88,7 @@ def memory_lines(res: dict, batch: int | None = None) -> list[str]:
 
 
 def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
-            final_only=True, compile_cache=None, vit_attention="blocked") -> dict:
+            final_only=True, compile_cache=None, vit_attention="auto") -> dict:
   """Compiles and times the forward pass on random weights and a random clip.
 
   Like the inference helpers, it returns freed host memory to the OS after
@@ -100,7 +101,8 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   Returns:
     dict with `compile_s`, `cache_hit`, `median_s`, `min_s`, `fps`, `peak_rss_gb`,
     `device_peak_gb` and `device_peak_compile_gb` (the peak after compiling, before the
-    first call; None on CPU), XLA's buffer sizes (`xla_buffers_gb`) and the settings.
+    first call; None on CPU), XLA's buffer sizes (`xla_buffers_gb`) and the settings
+    (`vit_attention`: the implementation that ran, "auto" resolved).
   """
   import jax  # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
@@ -108,6 +110,7 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
 
   import sav_jax  # pylint: disable=import-outside-toplevel
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel
+  from sav_jax.config import resolve_vit_attention  # pylint: disable=import-outside-toplevel
   from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
 
   cfg = sav_jax.SAVConfig(dtype=dtype, vit_attention=vit_attention)
@@ -137,7 +140,7 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   median = statistics.median(times)
   return dict(
       frames=frames, height=height, width=width, iters=iters, batch=batch, dtype=dtype,
-      vit_attention=vit_attention,
+      vit_attention=resolve_vit_attention(vit_attention, cfg.compute_dtype),
       final_only=final_only, compiler_options=options, compile_s=compile_s, cache_hit=cache_hit, median_s=median, min_s=min(times),
       fps=batch * frames / median, peak_rss_gb=peak_rss_gb(),
       device_peak_gb=device_peak_gb(device), device_peak_compile_gb=compile_peak,

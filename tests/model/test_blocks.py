@@ -63,6 +63,26 @@ def test_cudnn_vit_attention_is_checked_with_clear_errors():
       jax.eval_shape(vit.init, jax.random.key(0), jnp.zeros((1, 28, 28, 3)))
 
 
+def test_auto_vit_attention_picks_cudnn_only_on_a_gpu_in_bfloat16(monkeypatch):
+  from sav_jax.config import resolve_vit_attention  # pylint: disable=import-outside-toplevel
+  assert sav_jax.SAVConfig().vit_attention == "auto"
+  assert resolve_vit_attention("blocked", jnp.bfloat16) == "blocked"
+  assert resolve_vit_attention("cudnn", jnp.bfloat16) == "cudnn"
+  backend = jax.default_backend()
+  assert resolve_vit_attention("auto", jnp.bfloat16) == (
+      "cudnn" if backend == "gpu" else "blocked")
+  monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+  assert resolve_vit_attention("auto", jnp.bfloat16) == "cudnn"
+  assert resolve_vit_attention("auto", "bfloat16") == "cudnn"
+  assert resolve_vit_attention("auto", jnp.float32) == "blocked"
+  monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
+  assert resolve_vit_attention("auto", jnp.bfloat16) == "blocked"
+  # The default model traces the blocked path here (no dot_product_attention call).
+  vit = DinoVisionTransformer(depth=1, layers=(0,), dtype=jnp.bfloat16, attention="auto")
+  jaxpr = str(jax.make_jaxpr(lambda x: vit.init(jax.random.key(0), x))(jnp.zeros((1, 28, 28, 3))))
+  assert "dot_product_attention" not in jaxpr and "cudnn" not in jaxpr
+
+
 def test_frames_per_block_is_a_divisor_within_the_budget():
   assert frames_per_block(40, 2**20, 10) == 10
   assert frames_per_block(40, 2**20, 7) == 5

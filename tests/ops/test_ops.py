@@ -40,6 +40,33 @@ def test_resize_identity_and_rows_sum_to_one():
       np.testing.assert_allclose(m.sum(1), 1.0, atol=1e-12)
 
 
+@pytest.mark.parametrize("shape,size,align_corners", [
+    ((2, 7, 13, 3), (5, 29), False), ((2, 7, 13, 3), (16, 6), True), ((1, 9, 4, 2), (9, 11), True),
+    ((3, 1, 6, 2), (4, 6), False)])
+def test_bilinear_two_taps_equal_the_dense_interpolation(shape, size, align_corners):
+  """The two-tap blend gives the dense matrix product's values and gradients."""
+  x = jnp.asarray(RNG.normal(size=shape), jnp.float32)
+  my = jnp.asarray(interp_matrix(shape[1], size[0], "bilinear", align_corners), jnp.float32)
+  mx = jnp.asarray(interp_matrix(shape[2], size[1], "bilinear", align_corners), jnp.float32)
+  dense = lambda x: jnp.einsum("oh,pw,nhwc->nopc", my, mx, x)  # noqa: E731
+  fast = lambda x: resize(x, size, "bilinear", align_corners)  # noqa: E731
+  np.testing.assert_allclose(fast(x), dense(x), rtol=1e-6, atol=1e-6)
+  cot = jnp.asarray(RNG.normal(size=(shape[0], *size, shape[3])), jnp.float32)
+  grad = lambda f: jax.grad(lambda x: jnp.sum(f(x) * cot))(x)  # noqa: E731
+  np.testing.assert_allclose(grad(fast), grad(dense), rtol=1e-5, atol=1e-5)
+  assert resize(x.astype(jnp.bfloat16), size, "bilinear", align_corners).dtype == jnp.bfloat16
+
+
+def test_bilinear_resize_matches_opencv():
+  """align_corners=False is OpenCV's INTER_LINEAR (float input), up and down."""
+  import cv2  # pylint: disable=import-outside-toplevel
+  img = RNG.uniform(0, 1, (11, 17, 3)).astype(np.float32)
+  for out_h, out_w in ((23, 40), (6, 9)):
+    want = cv2.resize(img, (out_w, out_h), interpolation=cv2.INTER_LINEAR)
+    got = np.asarray(resize(jnp.asarray(img)[None], (out_h, out_w), "bilinear", False))[0]
+    np.testing.assert_allclose(got, want, atol=2e-5)
+
+
 def test_bicubic_scale_factor_source_coordinates():
   """torch maps dst -> (dst + 0.5) / scale - 0.5 with the *given* scale factor."""
   n_in, n_out = 37, 4
