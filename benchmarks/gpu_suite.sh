@@ -4,17 +4,18 @@
 #   bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]      # default: every step, in this order
 #
 # Steps (and what each took on an H200 on 2026-11-30, compile included):
-#   bench_bf16  forward at the paper's Table-6 window (B=1 T=20 720x1280 iters=20), bfloat16 (87 s)
-#   bench_fp32  the same in float32 (XLA's default matmul precision: TF32 on the GPU)  (98 s)
-#   bench_cudnn bench_bf16 with the ViT attention as cuDNN's fused kernel (--vit-attention cudnn)
+#   bench_bf16  forward at the paper's Table-6 window (B=1 T=20 720x1280 iters=20), bfloat16,
+#               the default ViT attention ("auto": cuDNN's fused kernel on a GPU)  (68 s)
+#   bench_fp32  the same in float32 (XLA's default matmul precision: TF32 on the GPU)  (87 s)
+#   bench_blocked  bench_bf16 with the blocked softmax ViT attention (--vit-attention blocked)
 #   train       the training step at the paper's shape (T=5 256x512 iters=10, remat)  (190 s)
-#   precision   distance from the official output per compute mode (precision_check.py) (> 90 s)
+#   precision   distance from the official output per compute mode (precision_check.py) (143 s)
 #   parity      the end-to-end parity tests on this backend (needs SAV_FIXTURES)        (> 150 s)
 #   stages      per-stage wall times at the paper's window, bfloat16 (stage_times.py)  (106 s)
 #   profile     per-module GPU time, multiply-adds and rate, bfloat16 (op_profile.py)  (75 s)
 #   variants    candidate rewrites of the update block's parts and the ViT attention, timed
 #               against the model's modules at the paper's window (update_variants.py)
-# A lease of 15 device minutes holds about 10 minutes of steps (one machine start): pick
+# A lease of 15 device minutes holds about 13 minutes of steps (a start took ~30 s): pick
 # the steps. Each step has its own time limit; everything is logged to OUTDIR/suite.log and
 # the figures go to OUTDIR/*.json. A failure of the first step within 90 s (an import or API
 # error) stops the run, so that the rest of a short lease is not spent.
@@ -22,7 +23,7 @@ set -u
 out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]}
 shift
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 bench_cudnn train precision parity stages profile)
+[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 train precision parity stages variants profile bench_blocked)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
@@ -45,9 +46,9 @@ run_step() {
                   --repeats 3 --json "$out/gpu_t20_720x1280_it20_bf16.json" ;;
     bench_fp32) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype float32 \
                   --repeats 2 --json "$out/gpu_t20_720x1280_it20_fp32.json" ;;
-    bench_cudnn) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype bfloat16 \
-                  --vit-attention cudnn --repeats 3 \
-                  --json "$out/gpu_t20_720x1280_it20_bf16_cudnn.json" ;;
+    bench_blocked) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype bfloat16 \
+                  --vit-attention blocked --repeats 3 \
+                  --json "$out/gpu_t20_720x1280_it20_bf16_blocked.json" ;;
     train) step "$1" 260 "$py" benchmarks/train_step.py --repeats 2 \
              --json "$out/gpu_train_t5_256x512_it10_remat_fp32.json" ;;
     precision) step "$1" 200 "$py" benchmarks/precision_check.py --json "$out/gpu_precision.json" ;;
@@ -57,7 +58,7 @@ run_step() {
     variants) step "$1" 300 "$py" benchmarks/update_variants.py "${window[@]}" --dtype bfloat16 ;;
     profile) step "$1" 240 "$py" benchmarks/op_profile.py "${window[@]}" --dtype bfloat16 \
                --repeats 1 --by module --depth 2 --top 25 ;;
-    *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_cudnn train precision parity" \
+    *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_blocked train precision parity" \
             "stages profile variants)" >&2
        return 2 ;;
   esac
