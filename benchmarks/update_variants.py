@@ -1,5 +1,5 @@
-"""Candidate rewrites of the 1/4 update block's parts (and the ViT attention), timed against
-the model's own modules on the same weights and inputs.
+"""Rewrites of the 1/4 update block's parts (and the ViT attention), timed against the model's
+own modules on the same weights and inputs.
 
     python benchmarks/update_variants.py --frames 20 --height 720 --width 1280 --dtype bfloat16
 
@@ -10,9 +10,11 @@ the same arithmetic regrouped, so it is rounding only). The parts are the ones
 
 - GRU: the z and r convolutions that read the same input as one convolution with both
   kernels side by side (and the super kernel's second convs as one grouped convolution);
-- flow head: XLA's native 3-D convolution instead of per-frame 2-D taps; the taps with the
-  narrowing 256 -> 2 conv's three kernels as one 256 -> 6 convolution;
-- space attention: q, k and v projections as one 256 -> 768 product;
+- flow head: XLA's native 3-D convolution instead of per-frame 2-D taps; the narrowing
+  256 -> 2 conv as three convolutions, one per temporal tap (the model's form before it
+  took them as one 256 -> 6 convolution);
+- space attention: q, k and v as three products (the model's form before it took them as
+  one 256 -> 768 product);
 - time attention: `jax.nn.dot_product_attention` (cuDNN on a GPU in bfloat16, else XLA's);
 - depth prior: the ViT attention blocked (default) or cuDNN's fused kernel (GPU, bfloat16).
 """
@@ -91,29 +93,28 @@ def flow_head_native(p, x, dtype):
   return c3(jax.nn.relu(c3(x.astype(dtype), "conv1")), "conv2")
 
 
-def flow_head_fused_narrow(p, x, dtype):
-  """`FlowHead3D` with the narrowing conv's three temporal taps as one convolution."""
+def flow_head_per_tap(p, x, dtype):
+  """`FlowHead3D` with the narrowing conv as one convolution per temporal tap."""
   y = jax.nn.relu(Conv3D(256, (3, 3, 3), (1, 1, 1), dtype=dtype).apply({"params": p["conv1"]}, x))
   b, t, h, w, c = y.shape
   k = p["conv2"]["kernel"].astype(dtype)  # [3, 3, 3, 256, 2]
-  taps = conv2d(y.reshape(b * t, h, w, c), jnp.concatenate(list(k), axis=-1),
-                ((1, 1), (1, 1))).reshape(b, t, h, w, 3, -1)
-  zero = jnp.zeros_like(taps[:, :1, ..., 0, :])
-  out = (taps[..., 1, :] + jnp.concatenate([zero, taps[:, :-1, ..., 0, :]], axis=1)
-         + jnp.concatenate([taps[:, 1:, ..., 2, :], zero], axis=1))
+  frames = y.reshape(b * t, h, w, c)
+  tap = lambda i: conv2d(frames, k[i], ((1, 1), (1, 1))).reshape(b, t, h, w, -1)  # noqa: E731
+  zero = jnp.zeros((b, 1, h, w, k.shape[-1]), dtype)
+  out = (tap(1) + jnp.concatenate([zero, tap(0)[:, :-1]], axis=1)
+         + jnp.concatenate([tap(2)[:, 1:], zero], axis=1))
   return out + p["conv2"]["bias"].astype(dtype)
 
 
-def space_attn_fused_qkv(p, x, dtype):
-  """`SpaceAttnBlock` (all frames at once) with one q/k/v product."""
+def space_attn_separate_qkv(p, x, dtype):
+  """`SpaceAttnBlock` (all frames at once) with q, k and v as three products."""
   p = p["encoder_layer"]
   b, t, h, w, c = x.shape
   x = x.reshape(b * t, h * w, c).astype(dtype)
-  wqkv = jnp.concatenate([p[n]["kernel"] for n in ("q_proj", "k_proj", "v_proj")],
-                         axis=-1).astype(dtype)
-  qkv = (x @ wqkv).reshape(b * t, h * w, 3, 8, c // 8)
-  msg = U.linear_attention(qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]).reshape(b * t, h * w, c)
   dense = lambda y, n: y @ p[n]["kernel"].astype(dtype)  # noqa: E731
+  split = lambda y: y.reshape(b * t, h * w, 8, c // 8)  # noqa: E731
+  msg = U.linear_attention(split(dense(x, "q_proj")), split(dense(x, "k_proj")),
+                           split(dense(x, "v_proj"))).reshape(b * t, h * w, c)
   norm = lambda y, n: layer_norm(dtype=dtype).apply({"params": p[n]}, y)  # noqa: E731
   msg = norm(dense(msg, "merge"), "norm1")
   msg = dense(jax.nn.relu(dense(jnp.concatenate([x, msg], -1), "mlp_0")), "mlp_2")
@@ -148,26 +149,7 @@ def main():
   r = lambda c: jnp.asarray(rng.standard_normal((*lead, c)), dtype)  # noqa: E731
   h128, x256, n128 = r(128), r(256), r(128)
   gpu_bf16 = jax.default_backend() == "gpu" and a.dtype == "bfloat16"
-  rows = [
-      ("GRU (model)", lambda p, h, x: U.SKSepConvGRU3D(dtype=dtype).apply({"params": p}, h, x),
-       (ub["gru"], h128, x256), "gru"),
-      ("GRU z/r fused", lambda p, h, x: gru_fused(p, h, x, dtype), (ub["gru"], h128, x256), "gru"),
-      ("flow head (model)", lambda p, n: U.FlowHead3D(dtype=dtype).apply({"params": p}, n),
-       (ub["flow_head"], n128), "flow"),
-      ("flow head native 3-D", lambda p, n: flow_head_native(p, n, dtype),
-       (ub["flow_head"], n128), "flow"),
-      ("flow head narrow taps fused", lambda p, n: flow_head_fused_narrow(p, n, dtype),
-       (ub["flow_head"], n128), "flow"),
-      ("space attention (model)", lambda p, x: U.SpaceAttnBlock(dtype=dtype).apply(
-          {"params": p}, x), (ub["space_attn"], x256), "space"),
-      ("space attention qkv fused", lambda p, x: space_attn_fused_qkv(p, x, dtype),
-       (ub["space_attn"], x256), "space"),
-      ("time attention (model)", lambda p, x: U.TimeAttnBlock(dtype=dtype).apply(
-          {"params": p}, x), (ub["time_attn"], x256), "time"),
-      ("time attention dot_product_attention",
-       lambda p, x: time_attn_dpa(p, x, dtype, "cudnn" if gpu_bf16 else "xla"),
-       (ub["time_attn"], x256), "time"),
-  ]
+  rows = variant_rows(ub, h128, x256, n128, dtype, gpu_bf16)
   print(f"T={a.frames} {a.height}x{a.width} (parts at 1/4: {lead[2]}x{lead[3]}) {a.dtype} "
         f"({jax.devices()[0].device_kind}, jax {jax.__version__})")
   ref = {}
@@ -193,6 +175,30 @@ def main():
     diff = "" if "depth" not in ref else f"  max diff {np.abs(out - ref['depth']).max():.2e}"
     ref.setdefault("depth", out)
     print(f"  depth prior, ViT attention {attention:12s} {seconds * 1e3:8.2f} ms{diff}")
+
+
+def variant_rows(ub, h128, x256, n128, dtype, gpu_bf16=False):
+  """`(label, fn, args, group)` rows: each group's first row is the model's module."""
+  return [
+      ("GRU (model)", lambda p, h, x: U.SKSepConvGRU3D(dtype=dtype).apply({"params": p}, h, x),
+       (ub["gru"], h128, x256), "gru"),
+      ("GRU z/r fused", lambda p, h, x: gru_fused(p, h, x, dtype), (ub["gru"], h128, x256), "gru"),
+      ("flow head (model)", lambda p, n: U.FlowHead3D(dtype=dtype).apply({"params": p}, n),
+       (ub["flow_head"], n128), "flow"),
+      ("flow head native 3-D", lambda p, n: flow_head_native(p, n, dtype),
+       (ub["flow_head"], n128), "flow"),
+      ("flow head narrowing conv per tap", lambda p, n: flow_head_per_tap(p, n, dtype),
+       (ub["flow_head"], n128), "flow"),
+      ("space attention (model)", lambda p, x: U.SpaceAttnBlock(dtype=dtype).apply(
+          {"params": p}, x), (ub["space_attn"], x256), "space"),
+      ("space attention q, k, v separate", lambda p, x: space_attn_separate_qkv(p, x, dtype),
+       (ub["space_attn"], x256), "space"),
+      ("time attention (model)", lambda p, x: U.TimeAttnBlock(dtype=dtype).apply(
+          {"params": p}, x), (ub["time_attn"], x256), "time"),
+      ("time attention dot_product_attention",
+       lambda p, x: time_attn_dpa(p, x, dtype, "cudnn" if gpu_bf16 else "xla"),
+       (ub["time_attn"], x256), "time"),
+  ]
 
 
 if __name__ == "__main__":

@@ -97,3 +97,27 @@ def test_fft_correlation_equals_the_direct_convolution():
   for got in (fft_conv.fft_correlate(x, k), fft_conv.dft_correlate(x, k)):
     assert got.shape == want.shape == (2, 3, 11, 6)
     assert float(jnp.abs(got - want).max()) < 1e-4 * float(jnp.abs(want).max())
+
+
+def test_update_block_rewrites_compute_the_modules_values():
+  """benchmarks/update_variants.py times rewrites of the same functions: each row of a
+  group gives its first row's (the model module's) values."""
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  import update_variants  # pylint: disable=import-outside-toplevel,import-error
+  from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
+  ub = init_variables(sav_jax.SAVConfig(), seed=0)["params"]["update_block"]
+  keys = jax.random.split(jax.random.PRNGKey(0), 3)
+  lead = (1, 3, 4, 5)
+  h, x, n = (jax.random.normal(k, (*lead, c)) for k, c in zip(keys, (128, 256, 128)))
+  rows = update_variants.variant_rows(ub, h, x, n, jnp.float32)
+  ref, checked = {}, 0
+  for label, fn, args, group in rows:
+    out = np.asarray(fn(*args))
+    channels = {"gru": 128, "flow": 2, "space": 256, "time": 256}[group]
+    assert out.shape == (*lead, channels), label
+    if group in ref:
+      np.testing.assert_allclose(out, ref[group], rtol=1e-4, atol=1e-4, err_msg=label)
+      checked += 1
+    ref.setdefault(group, out)
+  assert checked == 5 and set(ref) == {"gru", "flow", "space", "time"}
