@@ -58,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sav_jax import runtime
-from sav_jax.config import SAVConfig
+from sav_jax.config import SAVConfig, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 from sav_jax.model.init import abstract_variables
 from sav_jax.model.stereo_any_video import check_iters
@@ -210,7 +210,7 @@ def estimate_memory_bytes(frames: int, height: int, width: int, iters: int = 20,
   Returns:
     Bytes: a fixed part, per-pixel activations, a per-pixel-and-iteration term and one
     block of the DINOv2 attention logits (`dinov2.attention_blocks` under
-    `cfg.frame_block_mb`).
+    `cfg.frame_block_mb`; none where the ViT attention resolves to cuDNN's fused kernel).
   """
   cfg = SAVConfig() if cfg is None else cfg
   pixels = frames * height * width
@@ -218,6 +218,8 @@ def estimate_memory_bytes(frames: int, height: int, width: int, iters: int = 20,
   tokens = (height // 14) * (width // 14) + 1  # patches and the class token
   block_frames, block_rows = attention_blocks(2 * frames, heads, tokens, cfg.frame_block_mb)
   attention = block_frames * heads * block_rows * tokens * 4
+  if resolve_vit_attention(cfg.vit_attention, cfg.compute_dtype) == "cudnn":
+    attention = 0  # the fused kernel stores no logits
   est = _BYTES_PER_PIXEL * pixels + _BYTES_PER_PIXEL_ITER * iters * pixels
   if cfg.dtype == "bfloat16":
     est *= _BF16_FACTOR

@@ -288,6 +288,16 @@ def test_memory_estimate_follows_the_attention_blocks():
   assert 15 * 2**30 < unblocked - blocked < 40 * 2**30
 
 
+def test_memory_estimate_counts_no_logits_for_the_fused_attention(monkeypatch):
+  cfg = sav_jax.SAVConfig(dtype="bfloat16", frame_block_mb=1e6)
+  blocked = inference.estimate_memory_bytes(20, 736, 1280, 20, cfg)
+  fused = inference.estimate_memory_bytes(20, 736, 1280, 20,
+                                          sav_jax.SAVConfig(dtype="bfloat16", vit_attention="cudnn"))
+  assert 15 * 2**30 < blocked - fused < 40 * 2**30
+  monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # "auto" picks the fused kernel
+  assert inference.estimate_memory_bytes(20, 736, 1280, 20, cfg) == fused
+
+
 def test_per_frame_features_are_computed_once_per_frame(variables, golden, monkeypatch):
   """21 frames in windows [0, 20) and [10, 21): 21 frames of per-frame work, not 31."""
   counted = []
