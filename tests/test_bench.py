@@ -24,6 +24,7 @@ def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
   assert rec["frames"] == 2 and rec["height"] == 32 and rec["iters"] == 2
   assert rec["median_s"] > 0 and rec["compile_s"] > 0 and rec["peak_rss_gb"] > 0.1
   assert rec["cache_hit"] is False and any(cache.iterdir())
+  assert rec["vit_attention"] == "blocked"  # the default "auto", as resolved on the CPU
   assert "XLA buffers" in out and 0 < rec["xla_temp_gb"] < 1 and rec["xla_args_gb"] > 0.05
 
   assert cli.main([*ARGS, "--json", str(second), "--compile-cache", str(cache),
