@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import sav_jax
+from sav_jax.config import resolve_vit_attention
 from sav_jax.model import update as U
 from sav_jax.model.init import init_variables
 from sav_jax.model.layers import Conv3D, conv2d, gelu, layer_norm
@@ -148,8 +149,15 @@ def main():
   rng = np.random.default_rng(0)
   r = lambda c: jnp.asarray(rng.standard_normal((*lead, c)), dtype)  # noqa: E731
   h128, x256, n128 = r(128), r(256), r(128)
-  gpu_bf16 = jax.default_backend() == "gpu" and a.dtype == "bfloat16"
+  gpu_bf16 = resolve_vit_attention("auto", dtype) == "cudnn"  # cuDNN's kernels apply
   rows = variant_rows(ub, h128, x256, n128, dtype, gpu_bf16)
+  if not a.skip_depth:
+    frames = jnp.asarray(rng.uniform(0, 255, (2, a.frames, a.height, a.width, 3)), jnp.float32)
+    for attention in ("blocked", "cudnn") if gpu_bf16 else ("blocked",):
+      model = StereoAnyVideo(sav_jax.SAVConfig(dtype=a.dtype, vit_attention=attention))
+      rows.append((f"depth prior, ViT attention {attention}",
+                   lambda v, x, m=model: m.apply(v, x, method=lambda m, x: m.depthnet(x)),
+                   ({"params": params}, frames), "depth"))
   print(f"T={a.frames} {a.height}x{a.width} (parts at 1/4: {lead[2]}x{lead[3]}) {a.dtype} "
         f"({jax.devices()[0].device_kind}, jax {jax.__version__})")
   ref = {}
@@ -164,17 +172,6 @@ def main():
     diff = "" if group not in ref else f"  max diff {np.abs(out - ref[group]).max():.2e}"
     ref.setdefault(group, out)
     print(f"  {label:40s} {seconds * 1e3:8.2f} ms{diff}", flush=True)
-  if a.skip_depth:
-    return
-  frames = jnp.asarray(rng.uniform(0, 255, (2, a.frames, a.height, a.width, 3)), jnp.float32)
-  for attention in ("blocked", "cudnn") if gpu_bf16 else ("blocked",):
-    model = StereoAnyVideo(sav_jax.SAVConfig(dtype=a.dtype, vit_attention=attention))
-    depth = jax.jit(lambda v, x, m=model: m.apply(v, x, method=lambda m, x: m.depthnet(x)))
-    seconds = timed(depth, {"params": params}, frames)
-    out = np.asarray(depth({"params": params}, frames), np.float32)
-    diff = "" if "depth" not in ref else f"  max diff {np.abs(out - ref['depth']).max():.2e}"
-    ref.setdefault("depth", out)
-    print(f"  depth prior, ViT attention {attention:12s} {seconds * 1e3:8.2f} ms{diff}")
 
 
 def variant_rows(ub, h128, x256, n128, dtype, gpu_bf16=False):

@@ -190,14 +190,15 @@ def _temporal_taps(x: jax.Array, kernel: jax.Array, pt: int, padding) -> jax.Arr
   kt, o = kernel.shape[0], kernel.shape[-1]
   frames = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
   unframe = lambda a, n: a.reshape(b, n, *a.shape[1:])  # noqa: E731
-  taps = [dt for dt in range(kt) if min(t, t + pt - dt) > max(0, pt - dt)]  # reach a frame
+  # (tap, first and end output frame it reaches): output frame i reads input i + dt - pt.
+  reach = [(dt, max(0, pt - dt), min(t, t + pt - dt)) for dt in range(kt)]
+  taps = [(dt, lo, hi) for dt, lo, hi in reach if hi > lo]
   if o < c:  # every tap's kernel side by side: one convolution reads the input once
-    every = unframe(conv2d(frames(x), jnp.concatenate([kernel[dt] for dt in taps], -1),
+    every = unframe(conv2d(frames(x), jnp.concatenate([kernel[dt] for dt, _, _ in taps], -1),
                            padding), t)
   y = None
-  for i, dt in enumerate(taps):
-    off = dt - pt  # output frame i reads input frame i + off
-    lo, hi = max(0, -off), min(t, t - off)  # output frames this tap reaches
+  for i, (dt, lo, hi) in enumerate(taps):
+    off = dt - pt
     if o < c:
       part = every[:, lo + off:hi + off, ..., i * o:(i + 1) * o]
     else:

@@ -104,8 +104,7 @@ class DenseKernel(nn.Module):
 
   @nn.compact
   def __call__(self, in_features: int) -> jax.Array:
-    return self.param("kernel", nn.initializers.lecun_normal(), (in_features, self.features),
-                      jnp.float32)
+    return self.param("kernel", nn.Dense.kernel_init, (in_features, self.features), jnp.float32)
 
 
 class LoFTREncoderLayer(nn.Module):
