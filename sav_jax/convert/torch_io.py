@@ -297,9 +297,7 @@ def save_state_dict(sd: dict, path, *, overwrite: bool = False) -> pathlib.Path:
   """
   path = pathlib.Path(path)
   suffix = path.suffix.lower()
-  writers = {".safetensors": _write_safetensors, ".npz": _write_npz, ".pth": _write_torch,
-             ".pt": _write_torch}
-  if suffix not in writers:
+  if suffix not in _WRITERS:
     raise CheckpointError(f"{path}: cannot write {suffix!r}; use .safetensors, .npz or .pth")
   if suffix in (".pth", ".pt"):
     _require_torch(path)
@@ -312,7 +310,7 @@ def save_state_dict(sd: dict, path, *, overwrite: bool = False) -> pathlib.Path:
   fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
   try:
     with os.fdopen(fd, "wb") as fh:
-      writers[suffix](arrays, fh)
+      _WRITERS[suffix](arrays, fh)
       fh.flush()
       os.fsync(fh.fileno())
     os.replace(tmp, path)
@@ -344,3 +342,9 @@ def _write_npz(arrays, fh):
 def _write_torch(arrays, fh):
   import torch  # pylint: disable=import-outside-toplevel
   torch.save({k: torch.from_numpy(v.copy()) for k, v in arrays.items()}, fh)
+
+
+# The state-dict files `save_state_dict` writes, by suffix.
+_WRITERS = {".safetensors": _write_safetensors, ".npz": _write_npz, ".pth": _write_torch,
+            ".pt": _write_torch}
+WRITE_SUFFIXES = tuple(_WRITERS)

@@ -38,9 +38,6 @@ def count_params(tree) -> int:
   return int(sum(x.size for x in jax.tree_util.tree_leaves(tree)))
 
 
-STATE_DICT_SUFFIXES = (".safetensors", ".npz", ".pth", ".pt")
-
-
 def check_destination(src: str, dst: str, to_file: bool, overwrite: bool) -> None:
   """Raises UsageError before anything is read if DST cannot or must not be written."""
   import os  # pylint: disable=import-outside-toplevel
@@ -66,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
   import sav_jax  # pylint: disable=import-outside-toplevel
   from sav_jax import convert  # pylint: disable=import-outside-toplevel
 
-  to_file = os.path.splitext(args.dst)[1].lower() in STATE_DICT_SUFFIXES
+  to_file = os.path.splitext(args.dst)[1].lower() in convert.torch_io.WRITE_SUFFIXES
   check_destination(args.src, args.dst, to_file, args.overwrite)
   if os.path.isdir(args.src):  # restore_variables says what a folder must hold
     variables, config = convert.restore_variables(args.src)

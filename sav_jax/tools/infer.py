@@ -98,8 +98,11 @@ def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
   """Raises FileExistsError if any output exists and `overwrite` is off, or if an output
   (or a folder it goes in) is something other than a file (folder) even with `overwrite`."""
   checked = set()  # folders looked at already, with every folder above them
+  existing = []
   for p in paths:
-    if p.exists() and not p.is_file():
+    if p.is_file():
+      existing.append(p)
+    elif p.exists():
       raise FileExistsError(f"{p} exists and is not a file; move it away (it is not replaced, "
                             "even with --overwrite)")
     for parent in p.parents:
@@ -108,7 +111,6 @@ def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
       checked.add(parent)
       if parent.exists() and not parent.is_dir():
         raise FileExistsError(f"{parent} is a file, not a folder; move it away to write {p}")
-  existing = [p for p in paths if p.exists()]
   if existing and not overwrite:
     shown = ", ".join(str(p) for p in existing[:3])
     more = f" and {len(existing) - 3} more" if len(existing) > 3 else ""
