@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import collections.abc
 import dataclasses
 import inspect
 import numbers
@@ -116,9 +115,8 @@ class SAVConfig:
 
   @classmethod
   def from_dict(cls, d: dict) -> "SAVConfig":
-    if not isinstance(d, collections.abc.Mapping):  # dict, ConfigDict, FrozenDict, ...
-      if not hasattr(d, "keys"):
-        raise ValueError(f"a SAVConfig mapping is expected, got {type(d).__name__}: {d!r:.100}")
+    if not hasattr(d, "keys"):  # any mapping: dict, ConfigDict, FrozenDict, ...
+      raise ValueError(f"a SAVConfig mapping is expected, got {type(d).__name__}: {d!r:.100}")
     d = {k: d[k] for k in d.keys()}
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(d) - names)

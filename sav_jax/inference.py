@@ -284,12 +284,13 @@ def model_variables(variables) -> dict:
 
 
 def _cache_key(kind, variables, cfg, iters, shape):
-  sig = tuple((tuple(x.shape), str(x.dtype)) for x in jax.tree_util.tree_leaves(variables))
+  leaves = jax.tree_util.tree_leaves(variables)
+  sig = tuple((tuple(x.shape), str(x.dtype)) for x in leaves)
   options = tuple(sorted(runtime.inference_compiler_options().items()))
   return (kind, cfg, iters, shape, options, str(jax.config.jax_default_matmul_precision),
           str(jax.config.jax_default_device),
           bool(jax.config.values.get("jax_disable_most_optimizations")),
-          jax.tree_util.tree_structure(variables), sig, _placement(variables))
+          jax.tree_util.tree_structure(variables), sig, _placement(leaves))
 
 
 def _default_device():
@@ -309,10 +310,10 @@ def _abstract(x):
   return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
 
 
-def _placement(tree) -> frozenset:
-  """The devices the arrays of `tree` are on, other than the default one (part of the key)."""
+def _placement(leaves) -> frozenset:
+  """The devices the arrays `leaves` are on, other than the default one (part of the key)."""
   default = _default_device()
-  return frozenset(str(d) for x in jax.tree_util.tree_leaves(tree)
+  return frozenset(str(d) for x in leaves
                    for d in getattr(getattr(x, "sharding", None), "device_set", ())
                    if d != default)
 

@@ -28,7 +28,7 @@ from sav_jax.convert.pickle_reader import CheckpointError
 
 __all__ = ["save_variables", "restore_variables", "is_variables_checkpoint",
            "find_training_checkpoint", "is_orbax_checkpoint", "checked_restore",
-           "corrupt_checkpoint_error", "quiet_failed_reads", "discard_failed_reads"]
+           "corrupt_checkpoint_error", "quiet_failed_reads"]
 
 log = logging.getLogger(__name__)
 
@@ -215,7 +215,9 @@ def checked_restore(restore, directory, mismatch, corrupt_hint: str = ""):
   else:
     sys.unraisablehook = previous  # a good checkpoint leaves no global hook behind
     return restored
-  discard_failed_reads()  # outside the except block, which holds them
+  # Finalise the restore's other pending reads now, under the filter installed above: outside
+  # the except block, which holds them.
+  gc.collect()
   raise CheckpointError(f"{corrupt}{corrupt_hint}") if corrupt_hint else corrupt
 
 
@@ -280,14 +282,6 @@ def quiet_failed_reads() -> None:
 
   hook._sav_jax_quiet_reads = True  # pylint: disable=protected-access
   sys.unraisablehook = hook
-
-
-def discard_failed_reads() -> None:
-  """Finalises the other array reads of a restore that failed on unreadable data, quietly
-  (`quiet_failed_reads`). Call it once the exception that holds them is released: after the
-  `except` block, with the error raised not from it."""
-  quiet_failed_reads()
-  gc.collect()
 
 
 def _is_failed_read_noise(unraisable) -> bool:
