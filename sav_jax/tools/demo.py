@@ -122,6 +122,11 @@ OUTPUT_NAMES = ("comparison.mp4", "side_by_side.mp4", "metrics.json")
 _FRAME_GLOB = "frame_[0-9][0-9][0-9][0-9][0-9][0-9].png"
 
 
+def _frame_path(out: pathlib.Path, t: int) -> pathlib.Path:
+  """Where the demo writes frame `t`'s disparity (a name `_FRAME_GLOB` matches)."""
+  return out / "disparity" / f"frame_{t:06d}.png"
+
+
 def _is_demo_output(out: pathlib.Path) -> bool:
   """Whether `out` holds an earlier demo's outputs (its metrics.json says so)."""
   try:
@@ -139,8 +144,7 @@ def check_demo_output(out: pathlib.Path, frames: int, overwrite: bool) -> list[p
   frame_dir = out / "disparity"
   stale = sorted(frame_dir.glob(_FRAME_GLOB)) if frame_dir.is_dir() else []
   stale = [p for p in stale if int(p.stem[len("frame_"):]) >= frames]
-  paths = [out / n for n in OUTPUT_NAMES] + [frame_dir / f"frame_{t:06d}.png"
-                                            for t in range(frames)]
+  paths = [out / n for n in OUTPUT_NAMES] + [_frame_path(out, t) for t in range(frames)]
   check_overwrite(paths + stale, overwrite or _is_demo_output(out))
   return stale
 
@@ -186,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
       clip["left"], col(clip["disparity"], clip["valid"]), col(pred), col(sgbm)), fps=5)
   viz.write_video(out / "side_by_side.mp4", viz.side_by_side(clip["left"], col(pred)), fps=5)
   for t in range(args.frames):
-    video_io.write_map(out / "disparity" / f"frame_{t:06d}.png", pred[t], "png16")
+    video_io.write_map(_frame_path(out, t), pred[t], "png16")
   summary = {"weights": described, "synthetic": {"frames": args.frames, "height": args.height,
                                                  "width": args.width, "seed": args.seed},
              "iters": args.iters, "metrics": results, "seconds": times}
