@@ -48,16 +48,33 @@ def spectrum_of_kernel(kernel, n):
   return jnp.concatenate([jnp.concatenate([re, im], -1), jnp.concatenate([-im, re], -1)], 1)
 
 
+def _forward_fft(x, n):
+  """`[N, H, W, C]` -> `[N, H, C, F]`: the input's spectrum along the width."""
+  return jnp.fft.rfft(jnp.moveaxis(x, 2, -1), n=n, axis=-1)
+
+
+def _bin_products(stacked, kspec):
+  """`[N, H, 2C, F]` x `[F, 2C, 2O]` -> `[F, N, H, 2O]`: one real product per bin."""
+  return jnp.einsum("nhcf,fco->fnho", stacked, kspec)
+
+
+def _to_complex(y, o):
+  """`[F, N, H, 2O]` -> complex `[N, H, O, F]`."""
+  return jnp.moveaxis(jax.lax.complex(y[..., :o], y[..., o:]), 0, -1)
+
+
+def _inverse_fft(y, n):
+  """Complex `[N, H, O, F]` -> `[N, H, O, n]`."""
+  return jnp.fft.irfft(y, n=n, axis=-1)
+
+
 def fft_correlate(x, kernel):
   """`direct(x, kernel)` computed through real FFTs along the width."""
-  n_, h, w, c = x.shape
-  taps, o = kernel.shape[1], kernel.shape[3]
+  w, taps, o = x.shape[2], kernel.shape[1], kernel.shape[3]
   n = fft_size(w, taps)
-  spec = jnp.fft.rfft(jnp.moveaxis(x, 2, -1), n=n, axis=-1)  # [N, H, C, F]
+  spec = _forward_fft(x, n)
   stacked = jnp.concatenate([spec.real, spec.imag], axis=2)   # [N, H, 2C, F]
-  y = jnp.einsum("nhcf,fco->fnho", stacked, spectrum_of_kernel(kernel, n))
-  y = jax.lax.complex(y[..., :o], y[..., o:])                  # [F, N, H, O]
-  y = jnp.fft.irfft(jnp.moveaxis(y, 0, -1), n=n, axis=-1)      # [N, H, O, n]
+  y = _inverse_fft(_to_complex(_bin_products(stacked, spectrum_of_kernel(kernel, n)), o), n)
   pad = taps // 2
   return jnp.moveaxis(y[..., pad:pad + w], -1, 2)
 
@@ -114,16 +131,14 @@ def main():
     err = float(jnp.abs(out - ref).max())
     print(f"  {name:24s} {sec * 1e3:7.1f} ms   max |diff| {err:.1e} (outputs up to "
           f"{float(jnp.abs(ref).max()):.1f})")
-  spec_x = jnp.fft.rfft(jnp.moveaxis(x, 2, -1), n=n, axis=-1)
+  spec_x = _forward_fft(x, n)
   stacked = jnp.concatenate([spec_x.real, spec_x.imag], axis=2)
   kspec = spectrum_of_kernel(both, n)
-  y = jnp.einsum("nhcf,fco->fnho", stacked, kspec)
-  yc = jnp.moveaxis(jax.lax.complex(y[..., :256], y[..., 256:]), 0, -1)
+  yc = _to_complex(_bin_products(stacked, kspec), both.shape[3])
   parts = {
-      "forward FFT of the input": (lambda x: jnp.fft.rfft(jnp.moveaxis(x, 2, -1), n=n, axis=-1),
-                                   (x,)),
-      "per-bin products": (lambda s, k: jnp.einsum("nhcf,fco->fnho", s, k), (stacked, kspec)),
-      "inverse FFT": (lambda y: jnp.fft.irfft(y, n=n, axis=-1), (yc,)),
+      "forward FFT of the input": (lambda x: _forward_fft(x, n), (x,)),
+      "per-bin products": (_bin_products, (stacked, kspec)),
+      "inverse FFT": (lambda y: _inverse_fft(y, n), (yc,)),
   }
   for name, (fn, call_args) in parts.items():
     print(f"    of which {name:24s} {timed(jax.jit(fn), *call_args, repeats=args.repeats) * 1e3:7.1f}"
