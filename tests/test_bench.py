@@ -71,10 +71,18 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                             {"median_s": 2.0, "compile_s": 2.0, "peak_rss_gb": 1.0})
   assert line == ("forward x2.00 faster (1 s vs 2 s), compile x2.00 slower (4 s vs 2 s), "
                   "peak RSS x2.00 lower (0.5 GB vs 1 GB)")
+  eager = {"median_s": 3.0, "compile_s": None, "peak_rss_gb": 1.0}  # benchmarks/official_torch.py
+  assert bench.compare_line({"median_s": 1.0, "compile_s": 4.0, "peak_rss_gb": 0.5}, eager) == (
+      "forward x3.00 faster (1 s vs 3 s), compile 4 s (the baseline compiles nothing), "
+      "peak RSS x2.00 lower (0.5 GB vs 1 GB)")
+  (tmp_path / "eager.json").write_text(json.dumps({**eager, "median_s": None}))
+  (tmp_path / "shape.json").write_text(json.dumps({**eager, "iters": 8}))
   (tmp_path / "bad.json").write_text('{"median_s": 1}')
   (tmp_path / "text.json").write_text('{"median_s": "x", "compile_s": 1, "peak_rss_gb": 1}')
   for path, message in ((tmp_path / "none.json", "cannot read"), (tmp_path / "bad.json", "lacks"),
-                        (tmp_path / "text.json", "expected non-negative numbers")):
+                        (tmp_path / "text.json", "expected non-negative numbers"),
+                        (tmp_path / "eager.json", "expected non-negative numbers"),
+                        (tmp_path / "shape.json", "another shape (iters: 2 here, 8 there)")):
     assert cli.main([*ARGS, "--compare", str(path)]) == 2  # refused before measuring
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1

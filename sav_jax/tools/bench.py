@@ -37,7 +37,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--json", help="write the results to this JSON file (a new file, or an "
                                  "existing one with --overwrite)")
   p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
-  p.add_argument("--compare", help="a JSON written by --json: print the ratios against it")
+  p.add_argument("--compare", help="a JSON written by --json (or by benchmarks/official_torch.py, "
+                                    "the official PyTorch forward): print the ratios against it")
   add_compile_cache_arguments(p, default_on=False)
 
 
@@ -149,6 +150,7 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
 
 
 _COMPARED = ("median_s", "compile_s", "peak_rss_gb")
+_SHAPE = ("frames", "height", "width", "iters", "batch")  # a ratio needs the same work
 
 
 def _read_baseline(path) -> dict:
@@ -162,8 +164,9 @@ def _read_baseline(path) -> dict:
   if missing:
     raise UsageError(f"--compare {path}: not a `sav-jax bench --json` file (lacks {missing})")
   bad = {k: base[k] for k in _COMPARED
-         if isinstance(base[k], bool) or not isinstance(base[k], (int, float))
-         or not math.isfinite(base[k]) or base[k] < 0}
+         if not (k == "compile_s" and base[k] is None)  # an eager baseline compiles nothing
+         and (isinstance(base[k], bool) or not isinstance(base[k], (int, float))
+              or not math.isfinite(base[k]) or base[k] < 0)}
   if bad:
     raise UsageError(f"--compare {path}: expected non-negative numbers, got {bad}")
   return base
@@ -175,9 +178,11 @@ def compare_line(res: dict, base: dict) -> str:
     word = lower_is[0] if now <= before else lower_is[1]
     r = max(now, before) / max(min(now, before), 1e-12)
     return f"{name} x{r:.2f} {word} ({now:.3g} {unit} vs {before:.3g} {unit})"
+  compile_part = (f"compile {res['compile_s']:.3g} s (the baseline compiles nothing)"
+                  if base["compile_s"] is None
+                  else ratio("compile", res["compile_s"], base["compile_s"], "s"))
   return ", ".join([
-      ratio("forward", res["median_s"], base["median_s"], "s"),
-      ratio("compile", res["compile_s"], base["compile_s"], "s"),
+      ratio("forward", res["median_s"], base["median_s"], "s"), compile_part,
       ratio("peak RSS", res["peak_rss_gb"], base["peak_rss_gb"], "GB", ("lower", "higher"))])
 
 
@@ -202,6 +207,13 @@ def run(args: argparse.Namespace) -> int:
     if not os.path.isdir(parent):
       raise UsageError(f"--json {args.json}: folder {parent} does not exist")
   base = _read_baseline(args.compare) if args.compare else None  # before the long run
+  if base is not None:
+    differ = {k: (getattr(args, k), base[k]) for k in _SHAPE
+              if k in base and base[k] != getattr(args, k)}
+    if differ:
+      raise UsageError(f"--compare {args.compare} was measured at another shape "
+                       + ", ".join(f"({k}: {mine} here, {theirs} there)"
+                                   for k, (mine, theirs) in differ.items()))
   cache = setup_compile_cache(args, default_on=False)
   res = measure(args.frames, args.height, args.width, args.iters, args.batch, args.dtype,
                 args.repeats, final_only=not args.all_predictions, compile_cache=cache,
