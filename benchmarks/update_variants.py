@@ -14,7 +14,8 @@ the same arithmetic regrouped, so it is rounding only). The parts are the ones
   256 -> 2 conv as three convolutions, one per temporal tap (the model's form before it
   took them as one 256 -> 6 convolution);
 - space attention: q, k and v as three products (the model's form before it took them as
-  one 256 -> 768 product);
+  one 256 -> 768 product); the linear attention's per-head products batched over the heads
+  (the model's form before it took them as two plain products, see `update.linear_attention`);
 - time attention: `jax.nn.dot_product_attention` (cuDNN on a GPU in bfloat16, else XLA's);
 - depth prior: the ViT attention blocked (default) or cuDNN's fused kernel (GPU, bfloat16).
 """
@@ -107,15 +108,30 @@ def flow_head_per_tap(p, x, dtype):
   return out + p["conv2"]["bias"].astype(dtype)
 
 
-def space_attn_separate_qkv(p, x, dtype):
-  """`SpaceAttnBlock` (all frames at once) with q, k and v as three products."""
+def linear_attention_per_head(q, k, v, eps=1e-6):
+  """`update.linear_attention` as LoFTR writes it: batched per-head products (the model's
+  form before it took the heads' products as two plain matrix products)."""
+  q, k = jax.nn.elu(q) + 1, jax.nn.elu(k) + 1
+  length = v.shape[1]
+  kv = jnp.einsum("nshd,nshv->nhdv", k, v / length)
+  z = 1.0 / (jnp.einsum("nlhd,nhd->nlh", q, k.sum(axis=1)) + eps)
+  return jnp.einsum("nlhd,nhdv,nlh->nlhv", q, kv, z) * length
+
+
+def space_attn_rewrite(p, x, dtype, separate_qkv=False, attention=U.linear_attention):
+  """`SpaceAttnBlock` (all frames at once) with q, k and v as three products
+  (`separate_qkv`) and/or another linear attention."""
   p = p["encoder_layer"]
   b, t, h, w, c = x.shape
   x = x.reshape(b * t, h * w, c).astype(dtype)
   dense = lambda y, n: y @ p[n]["kernel"].astype(dtype)  # noqa: E731
   split = lambda y: y.reshape(b * t, h * w, 8, c // 8)  # noqa: E731
-  msg = U.linear_attention(split(dense(x, "q_proj")), split(dense(x, "k_proj")),
-                           split(dense(x, "v_proj"))).reshape(b * t, h * w, c)
+  if separate_qkv:
+    q, k, v = (dense(x, f"{n}_proj") for n in "qkv")
+  else:
+    q, k, v = jnp.split(x @ jnp.concatenate([p[f"{n}_proj"]["kernel"] for n in "qkv"],
+                                            axis=-1).astype(dtype), 3, axis=-1)
+  msg = attention(split(q), split(k), split(v)).reshape(b * t, h * w, c)
   norm = lambda y, n: layer_norm(dtype=dtype).apply({"params": p[n]}, y)  # noqa: E731
   msg = norm(dense(msg, "merge"), "norm1")
   msg = dense(jax.nn.relu(dense(jnp.concatenate([x, msg], -1), "mlp_0")), "mlp_2")
@@ -188,7 +204,11 @@ def variant_rows(ub, h128, x256, n128, dtype, gpu_bf16=False):
        (ub["flow_head"], n128), "flow"),
       ("space attention (model)", lambda p, x: U.SpaceAttnBlock(dtype=dtype).apply(
           {"params": p}, x), (ub["space_attn"], x256), "space"),
-      ("space attention q, k, v separate", lambda p, x: space_attn_separate_qkv(p, x, dtype),
+      ("space attention q, k, v separate",
+       lambda p, x: space_attn_rewrite(p, x, dtype, separate_qkv=True),
+       (ub["space_attn"], x256), "space"),
+      ("space attention per-head products",
+       lambda p, x: space_attn_rewrite(p, x, dtype, attention=linear_attention_per_head),
        (ub["space_attn"], x256), "space"),
       ("time attention (model)", lambda p, x: U.TimeAttnBlock(dtype=dtype).apply(
           {"params": p}, x), (ub["time_attn"], x256), "time"),

@@ -120,4 +120,4 @@ def test_update_block_rewrites_compute_the_modules_values():
       np.testing.assert_allclose(out, ref[group], rtol=1e-4, atol=1e-4, err_msg=label)
       checked += 1
     ref.setdefault(group, out)
-  assert checked == 5 and set(ref) == {"gru", "flow", "space", "time"}
+  assert checked == 6 and set(ref) == {"gru", "flow", "space", "time"}

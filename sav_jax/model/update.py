@@ -11,6 +11,7 @@ from typing import Any
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from sav_jax.config import FRAME_BLOCK_MB
 from sav_jax.model.layers import conv, dense, gelu, in_frame_blocks, layer_norm
@@ -76,24 +77,38 @@ class TimeAttnBlock(nn.Module):
 
 
 def linear_attention(q: jax.Array, k: jax.Array, v: jax.Array, eps: float = 1e-6) -> jax.Array:
-  """Linear attention ("Transformers are RNNs") as LoFTR implements it.
+  """Linear attention ("Transformers are RNNs") as LoFTR implements it, head by head.
+
+  The heads' `k^T v` products (`[D, Dv]` each) are computed together as one
+  `[heads*D, heads*Dv]` product whose off-diagonal blocks (products across heads) are
+  zeroed, and each head's normaliser rides along as `heads` more columns of the queries'
+  product. That is 8x the multiply-adds of the per-head products (still ~0.2 M per position
+  beside the layer's 0.65 M), but two plain matrix products instead of batched 32x32
+  ones and the transposes they need: the space attention runs ~15% faster on the CPU.
+  Every head's sums hold the same terms as the per-head form.
 
   Args:
     q: `[N, L, heads, D]`.
     k: `[N, S, heads, D]`.
-    v: `[N, S, heads, D]`.
+    v: `[N, S, heads, Dv]`.
     eps: denominator epsilon.
 
   Returns:
-    `[N, L, heads, D]`.
+    `[N, L, heads, Dv]`.
   """
-  q = jax.nn.elu(q) + 1
-  k = jax.nn.elu(k) + 1
+  n, length_q, heads, d = q.shape
+  dv = v.shape[-1]
   length = v.shape[1]
-  v = v / length  # the official code divides and multiplies back (fp16 overflow guard)
-  kv = jnp.einsum("nshd,nshv->nhdv", k, v)
-  z = 1.0 / (jnp.einsum("nlhd,nhd->nlh", q, k.sum(axis=1)) + eps)
-  return jnp.einsum("nlhd,nhdv,nlh->nlhv", q, kv, z) * length
+  q = (jax.nn.elu(q) + 1).reshape(n, length_q, heads * d)
+  k = (jax.nn.elu(k) + 1).reshape(n, length, heads * d)
+  v = (v / length).reshape(n, length, heads * dv)  # the official code divides and multiplies
+  head_of_k = np.arange(heads * d) // d             # back (an fp16 overflow guard)
+  same_head = head_of_k[:, None] == np.arange(heads * dv)[None, :] // dv
+  kv = jnp.where(same_head, jnp.einsum("nsc,nse->nce", k, v), 0)
+  k_sum = jnp.where(head_of_k[:, None] == np.arange(heads), k.sum(axis=1)[:, :, None], 0)
+  out = q @ jnp.concatenate([kv, k_sum.astype(kv.dtype)], axis=-1)
+  z = 1.0 / (out[..., heads * dv:] + eps)
+  return out[..., :heads * dv].reshape(n, length_q, heads, dv) * z[..., None] * length
 
 
 class DenseKernel(nn.Module):

@@ -115,3 +115,21 @@ def test_blocked_space_attention_has_the_same_values_and_gradients():
   for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
     np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
   assert "scan[" in str(jax.make_jaxpr(lambda v, x: blocked.apply(v, x))(variables, x))
+
+
+@pytest.mark.parametrize("dtype,tol", [(jnp.float32, 1e-5), (jnp.bfloat16, 3e-2)])
+def test_linear_attention_keeps_the_heads_apart(dtype, tol):
+  """The heads' products taken as one block-diagonal product give LoFTR's per-head linear
+  attention (queries and keys of different lengths, value width != key width)."""
+  from sav_jax.model.update import linear_attention  # pylint: disable=import-outside-toplevel
+  rng = np.random.default_rng(2)
+  q, k, v = (rng.standard_normal(s) for s in ((2, 7, 3, 4), (2, 5, 3, 4), (2, 5, 3, 6)))
+  fq, fk = (np.where(a > 0, a + 1, np.exp(a)) for a in (q, k))  # elu(a) + 1
+  want = np.zeros((2, 7, 3, 6))
+  for n in range(2):
+    for h in range(3):
+      num = fq[n, :, h] @ (fk[n, :, h].T @ v[n, :, h])
+      want[n, :, h] = num / (fq[n, :, h] @ fk[n, :, h].sum(axis=0) + 1e-6)[:, None]
+  got = linear_attention(*(jnp.asarray(a, dtype) for a in (q, k, v)))
+  assert got.shape == want.shape and got.dtype == dtype
+  np.testing.assert_allclose(np.asarray(got, np.float64), want, rtol=tol, atol=tol)
