@@ -121,3 +121,68 @@ def test_update_block_rewrites_compute_the_modules_values():
       checked += 1
     ref.setdefault(group, out)
   assert checked == 6 and set(ref) == {"gru", "flow", "space", "time"}
+
+
+def test_official_torch_script_checks_its_arguments_and_times_parts_per_scale(tmp_path, capsys):
+  """benchmarks/official_torch.py (run where torch and an official checkout exist): its
+  argument checks, the stand-ins for unused imports and the per-part timing need neither."""
+  import types  # pylint: disable=import-outside-toplevel
+  import pytest  # pylint: disable=import-outside-toplevel
+  import official_torch  # pylint: disable=import-outside-toplevel,import-error
+  mine = tmp_path / "mine.json"
+  mine.write_text("precious")
+  repo = tmp_path / "checkout"
+  (repo / "models" / "core").mkdir(parents=True)
+  for argv, message in ((["--repo", str(tmp_path)], "no models/core/stereoanyvideo.py"),
+                        (["--repo", str(repo)], "no models/core/stereoanyvideo.py")):
+    with pytest.raises(SystemExit):
+      official_torch.parse_args(argv)
+    assert message in capsys.readouterr().err
+  (repo / "models" / "core" / "stereoanyvideo.py").write_text("")
+  for extra, message in ((["--iters", "3"], "--iters must be even"),
+                         (["--json", str(mine)], "exists; pass --overwrite")):
+    with pytest.raises(SystemExit):
+      official_torch.parse_args(["--repo", str(repo), *extra])
+    assert message in capsys.readouterr().err
+  assert mine.read_text() == "precious"
+  assert official_torch.parse_args(["--repo", str(repo)]).repo == repo.resolve()
+
+  official_torch._stand_in("json", loads=None)  # pylint: disable=protected-access
+  assert sys.modules["json"].loads is not None  # a module that imports is left alone
+  try:
+    official_torch._stand_in("no_such_pkg.transforms", Compose=list)  # pylint: disable=protected-access
+    import no_such_pkg.transforms as t  # pylint: disable=import-outside-toplevel,import-error
+    assert t.Compose is list and sys.modules["no_such_pkg"].transforms is t
+  finally:
+    sys.modules.pop("no_such_pkg.transforms", None)
+    sys.modules.pop("no_such_pkg", None)
+
+  class Part:  # the hook API of torch.nn.Module, enough for time_parts
+    def __init__(self):
+      self.pre, self.post = [], []
+    def register_forward_pre_hook(self, f):
+      self.pre.append(f)
+      return types.SimpleNamespace(remove=lambda: self.pre.remove(f))
+    def register_forward_hook(self, f):
+      self.post.append(f)
+      return types.SimpleNamespace(remove=lambda: self.post.remove(f))
+    def __call__(self, x):
+      for f in self.pre:
+        f(self, (x,))
+      for f in self.post:
+        f(self, (x,), x)
+
+  parts = {name: Part() for name in official_torch.PARTS}
+  model = types.SimpleNamespace(get_submodule=parts.__getitem__)
+  small, large = types.SimpleNamespace(shape=(1, 8, 16)), types.SimpleNamespace(shape=(1, 32, 64))
+
+  def call():
+    for x in (small, large, large):
+      parts["update_block.gru"](x)
+    parts["depthnet"](large)
+
+  got = official_torch.time_parts(model, call)
+  assert {k: v["calls"] for k, v in got["parts"].items()} == {
+      "update_block.gru @8x16": 1, "update_block.gru @32x64": 2, "depthnet @32x64": 1}
+  assert all(v["s"] >= 0 for v in got["parts"].values()) and got["total"] >= 0
+  assert all(not p.pre and not p.post for p in parts.values())  # hooks removed
