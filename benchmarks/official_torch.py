@@ -1,6 +1,7 @@
 """The official PyTorch forward, timed on this machine: the baseline for `sav-jax bench --compare`.
 
-    pip install torch==2.13.0 einops opt_einsum unfoldNd scipy opencv-python-headless tqdm
+    pip install torch==2.13.0 easydict einops opt_einsum unfoldNd scipy \
+        opencv-python-headless tqdm
     git clone https://github.com/TomTomTommi/stereoanyvideo /path/to/stereoanyvideo
     python benchmarks/official_torch.py --repo /path/to/stereoanyvideo \
         --json results/cpu_official_torch_t5_128x256_it8.json
@@ -25,6 +26,7 @@ compiles nothing; the warm-up call's time is in `first_call_s`).
 from __future__ import annotations
 
 import argparse
+import atexit
 import datetime
 import importlib
 import json
@@ -32,6 +34,7 @@ import os
 import pathlib
 import platform
 import resource
+import shutil
 import statistics
 import sys
 import tempfile
@@ -94,6 +97,7 @@ def build_official_model(repo: pathlib.Path):
 
   # The official code imports itself as the package `stereoanyvideo`.
   link_dir = pathlib.Path(tempfile.mkdtemp(prefix="sav_official_"))
+  atexit.register(shutil.rmtree, link_dir, ignore_errors=True)  # removes the link, not `repo`
   (link_dir / "stereoanyvideo").symlink_to(repo, target_is_directory=True)
   sys.path.insert(0, str(link_dir))
   _stand_in("timm")
