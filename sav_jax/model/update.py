@@ -101,12 +101,13 @@ def linear_attention(q: jax.Array, k: jax.Array, v: jax.Array, eps: float = 1e-6
   length = v.shape[1]
   q = (jax.nn.elu(q) + 1).reshape(n, length_q, heads * d)
   k = (jax.nn.elu(k) + 1).reshape(n, length, heads * d)
-  v = (v / length).reshape(n, length, heads * dv)  # the official code divides and multiplies
-  head_of_k = np.arange(heads * d) // d             # back (an fp16 overflow guard)
+  # The official code divides by the length and multiplies back (an fp16 overflow guard).
+  v = (v / length).reshape(n, length, heads * dv)
+  head_of_k = np.arange(heads * d) // d
   same_head = head_of_k[:, None] == np.arange(heads * dv)[None, :] // dv
   kv = jnp.where(same_head, jnp.einsum("nsc,nse->nce", k, v), 0)
   k_sum = jnp.where(head_of_k[:, None] == np.arange(heads), k.sum(axis=1)[:, :, None], 0)
-  out = q @ jnp.concatenate([kv, k_sum.astype(kv.dtype)], axis=-1)
+  out = q @ jnp.concatenate([kv, k_sum], axis=-1)
   z = 1.0 / (out[..., heads * dv:] + eps)
   return out[..., :heads * dv].reshape(n, length_q, heads, dv) * z[..., None] * length
 
