@@ -68,8 +68,14 @@ def parse_args(argv=None):
   a.repo = repo
   if a.iters < 2 or a.iters % 2:
     p.error(f"--iters must be even and >= 2 (got {a.iters})")
-  if a.json and os.path.exists(a.json) and not a.overwrite:
-    p.error(f"--json {a.json} exists; pass --overwrite to replace it")
+  if a.json:  # checked before the long run, as `sav-jax bench` does
+    if os.path.isdir(a.json):
+      p.error(f"--json {a.json} is a folder; give a file name")
+    if os.path.exists(a.json) and not a.overwrite:
+      p.error(f"--json {a.json} exists; pass --overwrite to replace it")
+    parent = os.path.dirname(os.path.abspath(a.json))
+    if not os.path.isdir(parent):
+      p.error(f"--json {a.json}: folder {parent} does not exist")
   return a
 
 
