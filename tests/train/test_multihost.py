@@ -45,13 +45,13 @@ def launch(jobs, workdir):
   sd = _load_make_weights().make_state_dict(str(FIXTURES / "sav_manifest.json"), 0)
   save_state_dict(sd, workdir / "init.safetensors")
   port = _free_port()
+  env = conftest.child_env(jobs.cache, llvm_o0=True)  # both compile; they run 2 steps
   procs = []
   for pid in range(2):
     cmd = [sys.executable, "-m", "tests.train.test_multihost", "--child",
            f"--coordinator=127.0.0.1:{port}", f"--process_id={pid}",
            f"--workdir={workdir / 'run'}", f"--init_from={workdir / 'init.safetensors'}",
            f"--out={workdir / f'report_{pid}.json'}"]
-    env = conftest.child_env(jobs.cache, llvm_o0=True)  # both compile; they run 2 steps
     procs.append((conftest.start(cmd, env, workdir / f"log_{pid}.txt"), workdir / f"log_{pid}.txt"))
   for proc, log in procs:
     try:
