@@ -64,6 +64,10 @@ def run(args, overrides) -> int:
   """Loads config, data and weights, evaluates every sequence, writes the reports."""
   config = eval_config.apply_overrides(eval_config.load_config(args.config), overrides)
   out = check_output_dir(args.out or f"outputs/eval/{config.dataset}")
+  restored = runner.restore_set_aside(out)
+  if restored:
+    print(f"restored {len(restored)} prediction and plot files that an interrupted "
+          f"--overwrite run had set aside in {out / runner.SET_ASIDE}")
   earlier = [p for p in (*(out / f"results.{x}" for x in ("json", "csv", "md")),
                          out / runner.WRITTEN_LIST, out / "predictions", out / "plots")
              if p.is_file() or (p.is_dir() and any(p.iterdir()))]
@@ -72,14 +76,29 @@ def run(args, overrides) -> int:
                           "them")
   if config.iters < 2 or config.iters % 2:
     raise ValueError(f"config.iters must be an even number >= 2, got {config.iters}")
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
+  inference.check_window(config.window, config.stride)
   seqs = eval_data.load_sequences(config, args.data_root)
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)
-  if args.overwrite:  # only now that the inputs are known good
-    removed = runner.remove_written(out)
-    if removed:
-      print(f"--overwrite: removed the earlier run's {len(removed)} prediction and plot files "
-            f"(listed in {out / runner.WRITTEN_LIST})")
+  if not args.overwrite:
+    return evaluate(args, config, out, seqs, variables, model_cfg, described)
+  # The earlier run's predictions and plots go aside, and come back if this run fails
+  # (a frame that cannot be read, an interrupt): a failed run loses nothing.
+  moved = runner.set_aside_written(out)
+  try:
+    rc = evaluate(args, config, out, seqs, variables, model_cfg, described)
+  except BaseException:
+    runner.restore_set_aside(out)
+    raise
+  runner.drop_set_aside(out)
+  if moved:
+    print(f"--overwrite: removed the earlier run's {len(moved)} prediction and plot files")
+  return rc
+
+
+def evaluate(args, config, out, seqs, variables, model_cfg, described) -> int:
+  """Evaluates every sequence and writes the reports."""
   methods = ["sav"] + [b for b in dict.fromkeys(args.baseline)]
   print(f"{config.dataset}/{config.split}: {len(seqs)} sequences; weights: {described}")
   results = []

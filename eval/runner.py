@@ -13,6 +13,7 @@ import dataclasses
 import logging
 import pathlib
 import re
+import shutil
 import time
 
 import numpy as np
@@ -141,26 +142,77 @@ def record_written(out: pathlib.Path, paths) -> None:
       f.writelines(f"{p.relative_to(out).as_posix()}\n" for p in paths)
 
 
-def remove_written(out: pathlib.Path) -> list[pathlib.Path]:
-  """Deletes the files an earlier run listed in `out/written_files.txt`, and the list.
-
-  Only plain files directly in `out/predictions` or `out/plots` are deleted (a list that
-  names anything else, e.g. `../x`, is ignored for that line). Returns the deleted paths.
-  """
+def _listed_files(out: pathlib.Path) -> list[pathlib.Path]:
+  """The files `out/written_files.txt` lists that exist: plain files directly in
+  `out/predictions` or `out/plots` (a line naming anything else, e.g. `../x`, is ignored)."""
   listing = out / WRITTEN_LIST
   if not listing.is_file():
     return []
-  removed = []
+  files = []
   for line in listing.read_text(encoding="utf-8").splitlines():
     parts = pathlib.PurePosixPath(line.strip()).parts
     if len(parts) != 2 or parts[0] not in _OUTPUT_FOLDERS or parts[1] in ("", ".", ".."):
       continue
     path = out / parts[0] / parts[1]
     if path.is_file() and not path.is_symlink():
-      path.unlink()
-      removed.append(path)
-  listing.unlink()
+      files.append(path)
+  return files
+
+
+def remove_written(out: pathlib.Path) -> list[pathlib.Path]:
+  """Deletes the files an earlier run listed in `out/written_files.txt`, and the list.
+
+  Only plain files directly in `out/predictions` or `out/plots` are deleted. Returns the
+  deleted paths.
+  """
+  removed = _listed_files(out)
+  for path in removed:
+    path.unlink()
+  (out / WRITTEN_LIST).unlink(missing_ok=True)
   return removed
+
+
+SET_ASIDE = ".earlier_run"
+
+
+def set_aside_written(out: pathlib.Path) -> list[pathlib.Path]:
+  """Moves the files an earlier run listed (and the list) into `out/.earlier_run/`.
+
+  `--overwrite` sets the earlier run's files aside instead of deleting them:
+  `drop_set_aside` deletes them once the new run has finished, `restore_set_aside` puts
+  them back if it fails. Returns the moved paths (their places before the move).
+  """
+  aside = out / SET_ASIDE
+  moved = _listed_files(out)
+  for path in [*moved, out / WRITTEN_LIST]:
+    if path.is_file():
+      target = aside / path.relative_to(out)
+      target.parent.mkdir(parents=True, exist_ok=True)
+      path.replace(target)
+  return moved
+
+
+def restore_set_aside(out: pathlib.Path) -> list[pathlib.Path]:
+  """Undoes `set_aside_written` after a failed (or killed) run: deletes the files the
+  failed run listed, then moves the earlier run's files and list back. Returns them."""
+  aside = out / SET_ASIDE
+  if not aside.is_dir():
+    return []
+  remove_written(out)
+  restored = []
+  for path in sorted(p for p in aside.rglob("*") if p.is_file()):
+    target = out / path.relative_to(aside)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    path.replace(target)
+    restored.append(target)
+  drop_set_aside(out)
+  return [p for p in restored if p.name != WRITTEN_LIST]
+
+
+def drop_set_aside(out: pathlib.Path) -> None:
+  """Deletes `out/.earlier_run/` (made by `set_aside_written`), if there is one."""
+  if (out / SET_ASIDE).is_dir():
+    shutil.rmtree(out / SET_ASIDE)
 
 
 def aggregate(results: list[SequenceResult], method: str) -> dict[str, float]:

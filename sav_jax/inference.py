@@ -113,7 +113,8 @@ def _is_int(x) -> bool:
   return isinstance(x, numbers.Integral) and not isinstance(x, bool)
 
 
-def _check_window(window: int, stride: int) -> None:
+def check_window(window: int, stride: int) -> None:
+  """Raises ValueError unless window and stride are integers with 1 <= stride <= window."""
   if not (_is_int(window) and _is_int(stride) and 1 <= stride <= window):
     raise ValueError(f"need integers 1 <= stride <= window, got window={window!r}, "
                      f"stride={stride!r}")
@@ -130,7 +131,7 @@ def window_plan(num_frames: int, window: int = WINDOW, stride: int = STRIDE) -> 
   Returns:
     The windows in order. N < window gives one window keeping everything.
   """
-  _check_window(window, stride)
+  check_window(window, stride)
   if num_frames < 1:
     raise ValueError(f"need at least one frame, got {num_frames}")
   head = (window - stride) // 2
@@ -152,7 +153,7 @@ def official_window_plan(num_frames: int, window: int = WINDOW,
   `[stride // 2 : -stride // 2]` when full, `[stride // 2 :]` when shorter; shorter
   windows are run but dropped (empty keep range). Python slicing semantics.
   """
-  _check_window(window, stride)
+  check_window(window, stride)
   plan = []
   for start in range(0, num_frames, stride):
     length = min(window, num_frames - start)

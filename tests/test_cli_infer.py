@@ -105,6 +105,27 @@ def test_overwrite_protection(tmp_path, folders, npz_ckpt, capsys):
   assert np.load(target).shape == (H, W)
 
 
+def test_outputs_never_replace_the_inputs(tmp_path, clip, npz_ckpt, capsys):
+  # Input frames in OUT/disparity (the folder the PNG disparities go to) and an input video
+  # at OUT/side_by_side.mp4: refused even with --overwrite, and the inputs stay as they were.
+  out = tmp_path / "out"
+  left = _write_frames(out / "disparity", clip["left"])
+  right = _write_frames(tmp_path / "right", clip["right"])
+  before = (left / "0000.png").read_bytes()
+  assert _infer(left, right, npz_ckpt, out, "--overwrite") == 2
+  err = capsys.readouterr().err
+  assert "would replace the input" in err and str(left) in err
+  assert (left / "0000.png").read_bytes() == before
+  assert not (out / "summary.json").exists()
+  video = tmp_path / "v" / "side_by_side.mp4"
+  video.parent.mkdir()
+  viz.write_video(video, clip["left"])
+  before = video.read_bytes()
+  assert _infer(video, right, npz_ckpt, video.parent, "--format", "npy", "--overwrite") == 2
+  assert "would replace the input" in capsys.readouterr().err
+  assert video.read_bytes() == before
+
+
 def test_video_files_and_orbax_checkpoint(tmp_path, clip, orbax_ckpt, variables):
   viz.write_video(tmp_path / "left.mp4", clip["left"])
   viz.write_video(tmp_path / "right.mp4", clip["right"])

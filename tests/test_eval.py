@@ -16,6 +16,7 @@ import pytest
 import sav_jax
 from eval import config as eval_config
 from eval import data as eval_data
+from eval import runner as eval_runner
 from eval.main import main
 from sav_jax import inference, metrics
 from sav_jax.data import synthetic
@@ -149,6 +150,46 @@ def test_overwrite_removes_only_the_earlier_runs_files(tmp_path, ckpt, capsys):
   assert (out / "written_files.txt").read_text().splitlines() == [
       f"predictions/{first[0]}", f"plots/{first[0][:-4]}_strip.png",
       f"plots/{first[0][:-4]}_curves.png"]
+
+
+def _snapshot(out):
+  return {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*"))
+          if p.is_file()}
+
+
+def test_failed_overwrite_run_loses_nothing(tmp_path, ckpt, capsys, monkeypatch):
+  # The earlier run's files are set aside, not deleted: a run that fails halfway (here the
+  # second sequence cannot be read), or is stopped before its end, puts them back.
+  out = tmp_path / "run"
+  args = ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), "--out", str(out),
+          *SMALL]
+  assert main(args) == 0
+  before = _snapshot(out)
+  assert len([k for k in before if k.startswith("predictions/")]) == 2
+  assert main([*args, "--overwrite", "--config.window=0"]) == 2  # refused before any change
+  assert "stride <= window" in capsys.readouterr().err
+  assert _snapshot(out) == before
+  real = eval_runner.evaluate_sequence
+  calls = []
+
+  def second_fails(seq, *a, **kw):
+    calls.append(seq.name)
+    if len(calls) == 2:
+      assert (out / "predictions").is_dir() and (out / eval_runner.SET_ASIDE).is_dir()
+      raise ValueError(f"{seq.name}: frame 1 cannot be read")
+    return real(seq, *a, **kw)
+
+  monkeypatch.setattr(eval_runner, "evaluate_sequence", second_fails)
+  assert main([*args, "--overwrite", "--config.synthetic.max_disparity=5"]) == 2
+  assert "cannot be read" in capsys.readouterr().err
+  assert _snapshot(out) == before  # the first sequence's new prediction is gone again
+  # A run killed after setting the files aside: the next run puts them back first.
+  eval_runner.set_aside_written(out)
+  (out / "predictions" / "partial.npy").write_bytes(b"new")
+  eval_runner.record_written(out, [out / "predictions" / "partial.npy"])
+  assert main(args) == 2  # no --overwrite: refused, after the restore
+  assert "restored 6 prediction and plot files" in capsys.readouterr().out
+  assert _snapshot(out) == before
 
 
 @pytest.mark.parametrize("override,message", [

@@ -117,6 +117,27 @@ def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
     raise FileExistsError(f"output files exist ({shown}{more}); pass --overwrite to replace them")
 
 
+def check_not_inputs(paths: list[pathlib.Path], inputs) -> None:
+  """Raises FileExistsError if an output would replace an input: a file of an input frame
+  folder (any file directly in it, not only the frames read) or an input video file.
+  Holds with --overwrite too: a user's input data is never written over."""
+  taken = {}
+  for source in inputs:
+    source = pathlib.Path(source)
+    if source.is_dir():
+      taken.update({f.resolve(): source for f in source.iterdir() if f.is_file()})
+      taken[source.resolve()] = source
+    else:
+      taken[source.resolve()] = source
+  for p in paths:
+    source = taken.get(p.resolve())
+    if source is not None:
+      raise FileExistsError(f"output {p} would replace the input {source}"
+                            f"{'' if source.resolve() == p.resolve() else ' (a file of it)'}; "
+                            "choose another --out (inputs are never overwritten, even with "
+                            "--overwrite)")
+
+
 def check_model_args(iters: int, window: int, stride: int) -> None:
   if iters < 2 or iters % 2:
     raise UsageError(f"--iters must be an even number >= 2, got {iters}")
@@ -137,7 +158,9 @@ def run(args: argparse.Namespace) -> int:
   t, h, w = left.shape[:3]
   calib = None if calib_spec is None else calib_spec.resolve(w, h)
   out = check_output_dir(args.out)
-  check_overwrite(output_paths(out, names, formats, calib, args.depth_format), args.overwrite)
+  outputs = output_paths(out, names, formats, calib, args.depth_format)
+  check_not_inputs(outputs, (args.left, args.right))
+  check_overwrite(outputs, args.overwrite)
 
   setup_compile_cache(args)
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
