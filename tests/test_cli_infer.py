@@ -306,16 +306,23 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   assert "RANDOM (untrained) weights" in printed and "StereoSGBM" in printed
   for name in ("comparison.mp4", "side_by_side.mp4", "metrics.json"):
     assert (out / name).is_file()
+  # --overwrite replaces the demo's own names only: frame T (the user's) stays.
   assert sorted(p.name for p in (out / "disparity").glob("*.png")) == [
-      f"frame_{t:06d}.png" for t in range(T)] + ["mine.png"]
+      f"frame_{t:06d}.png" for t in range(T + 1)] + ["mine.png"]
+  assert (out / "disparity" / f"frame_{T:06d}.png").read_bytes() == b"old"
   results = json.loads((out / "metrics.json").read_text())["metrics"]
   assert set(results) == {"Stereo Any Video", "StereoSGBM"}
   assert results["StereoSGBM"]["disp_epe_mean"] < 2.0  # SGBM works on the synthetic scene
-  # An earlier demo's folder is replaced without --overwrite, its extra frames removed.
-  (out / "disparity" / f"frame_{T + 1:06d}.png").write_bytes(b"old")
+  # An earlier demo's folder is replaced without --overwrite, and the frames that a longer
+  # earlier demo wrote (its metrics.json says T + 2) are removed; frame T + 2 is not its.
+  summary = json.loads((out / "metrics.json").read_text())
+  summary["synthetic"]["frames"] = T + 2
+  (out / "metrics.json").write_text(json.dumps(summary))
+  for t in (T + 1, T + 2):
+    (out / "disparity" / f"frame_{t:06d}.png").write_bytes(b"old")
   assert cli.main(args) == 0
   assert sorted(p.name for p in (out / "disparity").glob("*.png")) == [
-      f"frame_{t:06d}.png" for t in range(T)] + ["mine.png"]
+      f"frame_{t:06d}.png" for t in range(T)] + [f"frame_{T + 2:06d}.png", "mine.png"]
 
 
 def test_compile_cache_folder_option(tmp_path, folders, npz_ckpt, restore_cache_config):

@@ -119,33 +119,36 @@ def _weights(args, cfg_dtype):
 
 
 OUTPUT_NAMES = ("comparison.mp4", "side_by_side.mp4", "metrics.json")
-_FRAME_GLOB = "frame_[0-9][0-9][0-9][0-9][0-9][0-9].png"
 
 
 def _frame_path(out: pathlib.Path, t: int) -> pathlib.Path:
-  """Where the demo writes frame `t`'s disparity (a name `_FRAME_GLOB` matches)."""
+  """Where the demo writes frame `t`'s disparity."""
   return out / "disparity" / f"frame_{t:06d}.png"
 
 
-def _is_demo_output(out: pathlib.Path) -> bool:
-  """Whether `out` holds an earlier demo's outputs (its metrics.json says so)."""
+def _earlier_demo_frames(out: pathlib.Path) -> int | None:
+  """The frame count of an earlier demo in `out` (its metrics.json says so), else None."""
   try:
     summary = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
   except (OSError, ValueError):
-    return False
-  return isinstance(summary, dict) and {"weights", "synthetic", "metrics"} <= summary.keys()
+    return None
+  if not (isinstance(summary, dict) and {"weights", "synthetic", "metrics"} <= summary.keys()):
+    return None
+  frames = summary["synthetic"].get("frames") if isinstance(summary["synthetic"], dict) else None
+  return frames if isinstance(frames, int) and not isinstance(frames, bool) else 0
 
 
 def check_demo_output(out: pathlib.Path, frames: int, overwrite: bool) -> list[pathlib.Path]:
-  """The earlier frame PNGs to delete; raises FileExistsError before anything is written
-  if files of the demo's names exist that an earlier demo did not write (unless `overwrite`).
+  """The earlier demo's frame PNGs to delete; raises FileExistsError before anything is
+  written if files of the demo's names exist that an earlier demo did not write (unless
+  `overwrite`). Only frames an earlier demo in `out` wrote (below the count its
+  metrics.json records) are ever deleted; other files are left alone, even with `overwrite`.
   """
   from sav_jax.tools.infer import check_overwrite  # pylint: disable=import-outside-toplevel
-  frame_dir = out / "disparity"
-  stale = sorted(frame_dir.glob(_FRAME_GLOB)) if frame_dir.is_dir() else []
-  stale = [p for p in stale if int(p.stem[len("frame_"):]) >= frames]
+  earlier = _earlier_demo_frames(out)
+  stale = [p for t in range(frames, earlier or 0) if (p := _frame_path(out, t)).is_file()]
   paths = [out / n for n in OUTPUT_NAMES] + [_frame_path(out, t) for t in range(frames)]
-  check_overwrite(paths + stale, overwrite or _is_demo_output(out))
+  check_overwrite(paths + stale, overwrite or earlier is not None)
   return stale
 
 
