@@ -126,6 +126,29 @@ def test_outputs_never_replace_the_inputs(tmp_path, clip, npz_ckpt, capsys):
   assert video.read_bytes() == before
 
 
+def test_unusable_checkpoints_are_refused_before_the_run(tmp_path, folders, variables,
+                                                         sav_state_dict, capsys):
+  from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
+  sd = dict(sav_state_dict)
+  sd["cnet.conv1.weight"] = np.full_like(sd["cnet.conv1.weight"], np.nan)  # a diverged run
+  np.savez(tmp_path / "nan.npz", **sd)
+  assert _infer(*folders, tmp_path / "nan.npz", tmp_path / "out") == 2
+  err = capsys.readouterr().err
+  assert "cnet.conv1.weight" in err and "NaN or inf" in err and err.count("\n") == 1, err
+  assert not (tmp_path / "out").exists()
+  bad = jax.tree_util.tree_map(np.asarray, variables)
+  bad["params"]["fnet"]["conv1"]["bias"] = np.full_like(bad["params"]["fnet"]["conv1"]["bias"],
+                                                        np.inf)
+  sav_jax.convert.save_variables(tmp_path / "inf", bad, {"model": sav_jax.SAVConfig().to_dict()})
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"1 parameter\(s\) hold NaN or inf.*"
+                     r"\['fnet'\]\['conv1'\]\['bias'\]"):
+    load_checkpoint(tmp_path / "inf")
+  for stored in ({"model": "abc"}, {"model": [1, 2]}):  # a config there, but not one
+    sav_jax.convert.save_variables(tmp_path / "cfg", variables, stored, overwrite=True)
+    with pytest.raises(sav_jax.convert.CheckpointError, match="invalid model config"):
+      load_checkpoint(tmp_path / "cfg")
+
+
 def test_video_files_and_orbax_checkpoint(tmp_path, clip, orbax_ckpt, variables):
   viz.write_video(tmp_path / "left.mp4", clip["left"])
   viz.write_video(tmp_path / "right.mp4", clip["right"])

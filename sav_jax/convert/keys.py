@@ -59,3 +59,19 @@ def flax_to_torch_array(x: np.ndarray, leaf: str = "kernel") -> np.ndarray:
     n = x.ndim
     x = np.transpose(x, (n - 1, n - 2, *range(n - 2)))
   return np.asarray(x, order="C")
+
+
+def value_problem(key: str, x: np.ndarray) -> str | None:
+  """Why `x` cannot be the model parameter `key` (not floating point, or NaN/inf), else None.
+
+  A float16, bfloat16 or float64 tensor is fine (converted to float32); an integer, bool
+  or complex one is not a weight, and a NaN or inf (e.g. from a diverged training run)
+  would silently turn every prediction into NaN.
+  """
+  x = np.asarray(x)
+  if not (np.issubdtype(x.dtype, np.floating) or x.dtype.name == "bfloat16"):
+    return f"key {key!r}: dtype {x.dtype}; expected a floating-point tensor"
+  bad = x.size - int(np.count_nonzero(np.isfinite(x)))
+  if bad:
+    return f"key {key!r}: {bad} of {x.size} values are NaN or inf"
+  return None

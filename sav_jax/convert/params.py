@@ -21,7 +21,8 @@ import numpy as np
 from flax import traverse_util
 
 from sav_jax.config import SAVConfig
-from sav_jax.convert.keys import flax_to_torch_array, path_to_torch, torch_to_flax_array
+from sav_jax.convert.keys import (flax_to_torch_array, path_to_torch, torch_to_flax_array,
+                                  value_problem)
 from sav_jax.model.init import abstract_variables
 from sav_jax.convert.vda import vda_params_from_state_dict, vda_state_dict_from_params
 
@@ -48,7 +49,8 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
     `{"params": ..., "torch_unused": {torch_name: array}}`.
 
   Raises:
-    ValueError: listing every missing, unexpected and mis-shaped key at once.
+    ValueError: listing every missing, unexpected and mis-shaped key, and every tensor that
+      is not floating point or holds NaN/inf, at once.
   """
   cfg = cfg or SAVConfig()
   sd = strip_module_prefix(state_dict)
@@ -80,6 +82,10 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
     if arr.shape != tuple(target[path].shape):
       problems.append(f"key {key!r}: shape {value.shape} does not match the model "
                       f"(expects {flax_to_torch_array(np.empty(target[path].shape), path[-1]).shape})")
+      continue
+    problem = value_problem(key, value)
+    if problem:
+      problems.append(problem)
       continue
     flat[path] = arr.astype(np.float32)
   problems += [f"missing key {key!r}" for key in by_torch if key not in sd]

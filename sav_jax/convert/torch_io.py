@@ -346,5 +346,5 @@ def _write_torch(arrays, fh):
 
 # The state-dict files `save_state_dict` writes, by suffix.
 _WRITERS = {".safetensors": _write_safetensors, ".npz": _write_npz, ".pth": _write_torch,
-            ".pt": _write_torch}
+            ".pt": _write_torch, ".bin": _write_torch}
 WRITE_SUFFIXES = tuple(_WRITERS)

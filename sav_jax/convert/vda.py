@@ -25,7 +25,8 @@ import numpy as np
 
 from flax.traverse_util import flatten_dict, unflatten_dict
 
-from sav_jax.convert.keys import flax_to_torch_array, path_to_torch, torch_to_flax_array
+from sav_jax.convert.keys import (flax_to_torch_array, path_to_torch, torch_to_flax_array,
+                                  value_problem)
 from sav_jax.model.dpt_temporal import MOTION_ATTENTION_BLOCKS, TEMPORAL_MAX_LEN, sinusoidal_table
 from sav_jax.model.vda import VideoDepthAnything
 
@@ -112,7 +113,8 @@ def vda_params_from_state_dict(sd: dict[str, np.ndarray],
                                ) -> tuple[dict, dict[str, np.ndarray]]:
   """Converts a flat VDA state dict (public `video_depth_anything_vits.pth` layout).
 
-  Strict: every missing, unexpected or mis-shaped key, and any `pos_encoder.pe`
+  Strict: every missing, unexpected or mis-shaped key, every tensor that is not floating
+  point or holds NaN/inf, and any `pos_encoder.pe`
   buffer that is not the sinusoidal table, is collected and reported in one
   `ValueError`.
 
@@ -148,6 +150,10 @@ def vda_params_from_state_dict(sd: dict[str, np.ndarray],
     if converted.shape != target[path].shape:
       want = flax_to_torch_array(np.empty(target[path].shape, np.int8), path[-1]).shape
       problems.append(f"shape mismatch for {key}: got {a.shape}, expected {want}")
+      continue
+    problem = value_problem(key, a)
+    if problem:
+      problems.append(problem)
       continue
     flat[path] = converted.astype(np.float32)
   problems += [f"missing key {k}" for k, p in by_torch.items() if p not in flat and k not in sd]

@@ -63,7 +63,12 @@ def run(args: argparse.Namespace) -> int:
   import sav_jax  # pylint: disable=import-outside-toplevel
   from sav_jax import convert  # pylint: disable=import-outside-toplevel
 
-  to_file = os.path.splitext(args.dst)[1].lower() in convert.torch_io.WRITE_SUFFIXES
+  suffix = os.path.splitext(args.dst)[1].lower()
+  to_file = suffix in convert.torch_io.WRITE_SUFFIXES
+  if not to_file and suffix in convert.torch_io.TORCH_SUFFIXES:
+    raise UsageError(f"{args.dst}: cannot write a {suffix} file; name a "
+                     f"{'/'.join(convert.torch_io.WRITE_SUFFIXES)} file, or a folder name "
+                     "without a checkpoint suffix for an orbax directory")
   check_destination(args.src, args.dst, to_file, args.overwrite)
   if os.path.isdir(args.src):  # restore_variables says what a folder must hold
     variables, config = convert.restore_variables(args.src)

@@ -335,6 +335,7 @@ def load_checkpoint(path, dtype: str | None = None):
     variables, cfg_dict = convert.restore_variables(path)
     cfg = _config_from_dict(cfg_dict, path)
     inference.check_variables(variables, cfg, path)
+    _check_finite(variables["params"], path)
     step = None if convert.is_variables_checkpoint(path) else convert.find_training_checkpoint(path)
     described = (f"orbax checkpoint {path}" if step is None
                  else f"training checkpoint {step} (params)")
@@ -356,13 +357,35 @@ def load_checkpoint(path, dtype: str | None = None):
   return variables, inference.resolve_config(cfg, dtype), described
 
 
+def _check_finite(params, path) -> None:
+  """Raises CheckpointError naming the parameters with NaN or inf values (a diverged run's
+  weights would turn every prediction into NaN, written as invalid everywhere)."""
+  import jax  # pylint: disable=import-outside-toplevel
+
+  from sav_jax import convert  # pylint: disable=import-outside-toplevel
+  bad = [(jax.tree_util.keystr(k), np.asarray(v)) for k, v in
+         jax.tree_util.tree_leaves_with_path(params) if not np.isfinite(np.asarray(v)).all()]
+  if bad:
+    name, v = bad[0]
+    raise convert.CheckpointError(
+        f"{path}: {len(bad)} parameter(s) hold NaN or inf values, e.g. {name} "
+        f"({v.size - np.count_nonzero(np.isfinite(v))} of {v.size}); the checkpoint is not "
+        "usable (a diverged training run?)")
+
+
 def _config_from_dict(cfg_dict, path):
   import dataclasses  # pylint: disable=import-outside-toplevel
 
   import sav_jax  # pylint: disable=import-outside-toplevel
-  d = cfg_dict.get("model", cfg_dict) if isinstance(cfg_dict, dict) else {}
+  if cfg_dict is None:
+    cfg_dict = {}
+  d = cfg_dict.get("model", cfg_dict) if isinstance(cfg_dict, dict) else cfg_dict
+  if not isinstance(d, dict):
+    raise sav_jax.convert.CheckpointError(
+        f"{path}: invalid model config: the stored config's model is a {type(d).__name__}, "
+        "not a mapping of SAVConfig fields")
   names = {f.name for f in dataclasses.fields(sav_jax.SAVConfig)}
-  known = {k: v for k, v in d.items() if k in names} if isinstance(d, dict) else {}
+  known = {k: v for k, v in d.items() if k in names}
   if not known:
     log.warning("%s: no model config stored; using the default SAVConfig", path)
   try:

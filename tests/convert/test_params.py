@@ -78,6 +78,27 @@ def test_only_official_names_are_accepted(sav_state_dict):
   assert msg.count("problem") == 1 and "4 problem(s)" in msg, msg
 
 
+def test_non_float_and_non_finite_tensors_are_refused(sav_state_dict):
+  sd = dict(sav_state_dict)
+  w = sd["cnet.conv1.weight"].copy()
+  w.flat[[0, 5]] = [np.nan, np.inf]
+  sd["cnet.conv1.weight"] = w
+  sd["fnet.conv1.bias"] = sd["fnet.conv1.bias"].astype(np.int32)
+  sd["corr_mlp.fc1.weight"] = sd["corr_mlp.fc1.weight"].astype(np.complex64)
+  vda = "depthnet.depthanything.pretrained.blocks.0.attn.qkv.bias"
+  sd[vda] = np.full_like(sd[vda], np.nan)
+  with pytest.raises(ValueError) as e:
+    convert.params_from_state_dict(sd)
+  msg = str(e.value)
+  for needle in (f"key 'cnet.conv1.weight': 2 of {w.size} values are NaN or inf",
+                 "key 'fnet.conv1.bias': dtype int32", "key 'corr_mlp.fc1.weight': dtype complex64",
+                 "blocks.0.attn.qkv.bias", "4 problem(s)"):
+    assert needle in msg, (needle, msg)
+  sd = dict(sav_state_dict)
+  sd["cnet.conv1.weight"] = sd["cnet.conv1.weight"].astype(np.float16)  # floats of any width
+  assert convert.params_from_state_dict(sd)["params"]["cnet"]["conv1"]["kernel"].dtype == np.float32
+
+
 def test_export_of_trained_params_is_complete(sav_state_dict, variables):
   exported = convert.state_dict_from_params({"params": variables["params"]})  # no torch_unused
   assert sorted(exported) == sorted(sav_state_dict)
@@ -145,12 +166,14 @@ def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dic
   for dst, message in ((src, "SRC and DST are the same path"),
                        (tmp_path / "folder.npz", "is not a file; it is not replaced"),
                        (tmp_path / "notes.txt", "is not a `sav-jax convert` variables folder"),
-                       (tmp_path / "folder", "is not a `sav-jax convert` variables folder")):
+                       (tmp_path / "folder", "is not a `sav-jax convert` variables folder"),
+                       (tmp_path / "sav.ckpt", "cannot write a .ckpt file")):
     assert cli.main(["convert", str(src), str(dst), "--overwrite"]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
   assert (tmp_path / "notes.txt").read_text() == "mine"
   assert (tmp_path / "folder" / "a.txt").read_text() == "mine"
+  assert not (tmp_path / "sav.ckpt").exists()
   assert cli.main(["convert", str(tmp_path / "folder"), str(tmp_path / "x.npz")]) == 2
   err = capsys.readouterr().err
   assert "folder" in err and "not a regular file" not in err and err.count("\n") == 1, err
