@@ -36,6 +36,13 @@ class SAVOutput:
 
 def check_inputs(left, right, iters: int) -> int:
   """Raises a ValueError naming the problem with the inputs; returns `iters` as an int."""
+  for name, x in (("left", left), ("right", right)):
+    if not hasattr(x, "shape") or not hasattr(x, "dtype"):
+      raise ValueError(f"{name} must be an array [B, T, H, W, 3] (numpy or jax), got a "
+                       f"{type(x).__name__}")
+    if not (jnp.issubdtype(x.dtype, jnp.floating) or jnp.issubdtype(x.dtype, jnp.integer)):
+      raise ValueError(f"{name} has dtype {x.dtype}; expected RGB values 0..255 as floats or "
+                       "integers (uint8)")
   if left.shape != right.shape:
     raise ValueError(f"left and right videos differ in shape: {left.shape} vs {right.shape}")
   if left.ndim != 5 or left.shape[-1] != 3 or min(left.shape[:4]) < 1:

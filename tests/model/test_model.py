@@ -59,6 +59,19 @@ def test_bad_inputs_raise_clear_errors(model, left_shape, right_shape, iters, ma
     jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=iters), left, right)
 
 
+@pytest.mark.parametrize("dtype", [jnp.bool_, jnp.complex64])
+def test_frames_of_a_non_numeric_dtype_are_refused(model, dtype):
+  left = jnp.zeros((1, 2, 32, 48, 3), dtype)
+  with pytest.raises(ValueError, match=f"left has dtype {jnp.dtype(dtype).name}; expected RGB"):
+    jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=2), left, left)
+
+
+def test_frames_given_as_lists_are_refused(model):
+  frames = np.zeros((1, 2, 32, 48, 3)).tolist()
+  with pytest.raises(ValueError, match="left must be an array .* got a list"):
+    model.init(jax.random.PRNGKey(0), frames, frames, iters=2)
+
+
 def test_numpy_integer_iters_accepted(model):
   """`iters=np.int64(2)` (e.g. from a config array) runs like `iters=2`."""
   left = jnp.zeros((1, 2, 32, 48, 3))
