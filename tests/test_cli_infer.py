@@ -292,6 +292,7 @@ def test_frame_folder_names_the_frame_of_another_size(tmp_path):
 
 
 def test_calibration_file(tmp_path):
+  from sav_jax.tools import UsageError
   from sav_jax.tools.infer import read_calibration
   kitti = tmp_path / "calib_cam_to_cam.txt"
   kitti.write_text("calib_time: 09-Jan-2012 13:57:47\n"
@@ -307,6 +308,10 @@ def test_calibration_file(tmp_path):
   assert read_calibration(txt) == {"fx": 400.0, "baseline": 0.2, "cx": 10.0}
   txt.write_text("# rig 3\nfx\t400  # px\nfy   410\nbaseline:0.2\nname: left camera\n")
   assert read_calibration(txt) == {"fx": 400.0, "fy": 410.0, "baseline": 0.2}
+  for line in (": 400", "= 5"):  # no key
+    txt.write_text(f"fx 400\n{line}\n")
+    with pytest.raises(UsageError, match=f"c.txt, line 2: expected 'key value'.*got '{line}'"):
+      read_calibration(txt)
 
 
 def test_demo_random_weights(tmp_path, monkeypatch, capsys):

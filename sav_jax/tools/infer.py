@@ -290,7 +290,11 @@ def read_calibration(path) -> dict[str, float]:
     line = line.split("#", 1)[0].strip()  # comments
     if not line:
       continue
-    key, rest = re.match(r"([^\s:=]+)\s*[:=]?\s*(.*)$", line).groups()  # 'k: v', 'k = v', 'k v'
+    match = re.match(r"([^\s:=]+)\s*[:=]?\s*(.*)$", line)  # 'k: v', 'k = v', 'k v'
+    if match is None:
+      raise UsageError(f"{path}, line {number}: expected 'key value' (or 'key: value', "
+                       f"'key = value'), got {line!r}")
+    key, rest = match.groups()
     try:
       entries[key] = [float(v) for v in rest.replace(",", " ").split()]
     except ValueError:
