@@ -28,8 +28,51 @@ _DISTRIBUTED = flags.DEFINE_enum("distributed", "off", ["off", "auto"],
 flags.mark_flags_as_required(["config", "workdir"])
 
 
+def _fail(message: str) -> None:
+  print(f"train: error: {message}", file=sys.stderr)
+  sys.exit(2)
+
+
+def parse_flags(argv):
+  """absl's flag parsing, with a config file that does not parse, or an override of a field
+  that does not exist, as one line (ml_collections raises them from inside the parser, and
+  absl would print their traceback)."""
+  try:
+    return app.parse_flags_with_usage(argv)
+  except SyntaxError as e:  # the --config file is loaded while the flags are parsed
+    _fail(f"the config file {e.filename} does not parse: line {e.lineno}: {e.msg}")
+  except OSError as e:  # a missing --config file, met by an override
+    _config_file_error(e)
+  except (AttributeError, KeyError) as e:
+    key_error = e if isinstance(e, KeyError) else e.__context__
+    if not isinstance(key_error, KeyError) or not key_error.args:
+      raise
+    detail = str(key_error.args[0]).strip().replace("\n", "; ")
+    overrides = [a.split("=", 1)[0] for a in argv if a.startswith("--config.")]
+    _fail(f"no such config field {detail} (overrides: {', '.join(overrides)}); the fields "
+          "are those of the --config file's get_config()")
+
+
+def load_config():
+  """The --config file's ConfigDict; a file that cannot be found is one line naming it
+  (ml_collections defers that error to the first use of the config)."""
+  config = _CONFIG.value
+  try:
+    config.keys()
+  except OSError as e:
+    _config_file_error(e)
+  return config
+
+
+def _config_file_error(e: OSError) -> None:
+  """Exits with the last line of ml_collections' multi-line report (it names the file)."""
+  lines = [l.strip() for l in str(e).splitlines() if l.strip()]
+  _fail(f"cannot load the --config file: {lines[-1] if lines else e}")
+
+
 def main(argv):
   del argv
+  config = load_config()
   import jax  # pylint: disable=g-import-not-at-top
   if _COORD.value is not None:
     jax.distributed.initialize(_COORD.value, _NUM_PROC.value, _PROC_ID.value)
@@ -41,7 +84,7 @@ def main(argv):
   logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every save at INFO
   from train import loop  # pylint: disable=g-import-not-at-top
   try:
-    parts = loop.setup(_CONFIG.value, _WORKDIR.value)
+    parts = loop.setup(config, _WORKDIR.value)
   # Bad input: config values, the workdir, weights or data the config names (CheckpointError
   # is a ValueError), all checked in `setup`. With absl's -v 1 (--verbosity=1) the traceback
   # is shown instead. Errors of the training itself keep their traceback.
@@ -50,8 +93,8 @@ def main(argv):
       raise
     print(f"train: error: {e} (-v 1 for the traceback)", file=sys.stderr)
     sys.exit(2)
-  loop.run(_CONFIG.value, _WORKDIR.value, parts)
+  loop.run(config, _WORKDIR.value, parts)
 
 
 if __name__ == "__main__":
-  app.run(main)
+  app.run(main, flags_parser=parse_flags)

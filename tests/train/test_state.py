@@ -508,8 +508,9 @@ def test_a_workdir_that_is_a_file_is_refused(tmp_path):
 
 
 def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir(tmp_path):
-  """A config value (before any tracing) and unreadable init weights (after tracing the
-  model's shapes, before the workdir is created)."""
+  """A config value (before any tracing), unreadable init weights (after tracing the
+  model's shapes, before the workdir is created), an override of a field that does not
+  exist, and a config file that is missing or does not parse (while absl parses the flags)."""
   import subprocess  # pylint: disable=g-import-not-at-top
   from sav_jax.convert import save_variables  # pylint: disable=g-import-not-at-top
   from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
@@ -517,12 +518,21 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
   save_variables(weights, {"params": {"w": np.random.default_rng(0).normal(size=4000)}}, {})
   for chunk in weights.glob("variables/ocdbt.process_*/d/*"):
     chunk.write_bytes(chunk.read_bytes()[:10])
-  for flag, message in [("--config.train.iters=3", "config.train.iters=3: expected an even"),
-                        (f"--config.init_from={weights}", f"config.init_from: {weights}: the "
-                         "checkpoint is corrupt or incomplete")]:
+  config = str(ROOT / "configs/synthetic.py")
+  broken = tmp_path / "broken.py"
+  broken.write_text("def get_config(:\n")
+  for flags, message in [
+      ([config, "--config.train.iters=3"], "config.train.iters=3: expected an even"),
+      ([config, f"--config.init_from={weights}"], f"config.init_from: {weights}: the "
+       "checkpoint is corrupt or incomplete"),
+      ([config, "--config.train.batchsize=1"], "no such config field 'batchsize'; Did you mean "
+       '"batch_size" instead of "batchsize"? (overrides: --config.train.batchsize, '),
+      ([str(tmp_path / "nope.py")], "cannot load the --config file: "
+       f"[Errno 2] No such file or directory: '{tmp_path / 'nope.py'}'"),
+      ([str(broken)], f"the config file {broken} does not parse: line 1: ")]:
     proc = subprocess.run(
-        [sys.executable, "-m", "train", "--config", str(ROOT / "configs/synthetic.py"),
-         "--workdir", str(tmp_path / "w"), flag, "--config.train.progress_bar=False"],
+        [sys.executable, "-m", "train", "--config", *flags, "--workdir", str(tmp_path / "w"),
+         "--config.train.progress_bar=False"],
         cwd=ROOT, env=child_env(tmp_path / "cache"), capture_output=True, text=True,
         timeout=300, check=False)
     assert proc.returncode == 2, proc.stderr[-2000:]
