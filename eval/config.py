@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ast
 import importlib.util
+import inspect
 import pathlib
 
 import ml_collections
@@ -25,9 +26,19 @@ def load_config(spec: str) -> ml_collections.ConfigDict:
     raise FileNotFoundError(f"config file not found: {file}")
   module_spec = importlib.util.spec_from_file_location(f"_eval_config_{file.stem}", file)
   module = importlib.util.module_from_spec(module_spec)
-  module_spec.loader.exec_module(module)
+  try:
+    module_spec.loader.exec_module(module)
+  except SyntaxError as e:
+    raise ValueError(f"{file} does not parse: line {e.lineno}: {e.msg}") from e
   if not hasattr(module, "get_config"):
     raise ValueError(f"{file}: defines no get_config()")
+  signature = inspect.signature(module.get_config)
+  try:
+    signature.bind(arg) if arg else signature.bind()  # pylint: disable=expression-not-assigned
+  except TypeError as e:
+    raise ValueError(f"{file}: get_config{signature} cannot be called "
+                     f"{f'with the argument {arg!r} (from {spec})' if arg else 'without an argument'}"
+                     ) from e
   config = module.get_config(arg) if arg else module.get_config()
   if not isinstance(config, ml_collections.ConfigDict):
     raise ValueError(f"{file}: get_config() returned {type(config).__name__}, not a ConfigDict")

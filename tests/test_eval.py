@@ -203,6 +203,20 @@ def test_bad_overrides(tmp_path, ckpt, capsys, override, message):
   assert not (tmp_path / "o").exists()
 
 
+def test_config_files_that_cannot_be_used(tmp_path):
+  broken = tmp_path / "broken.py"
+  broken.write_text("def get_config(:\n")
+  with pytest.raises(ValueError, match=f"{broken} does not parse: line 1"):
+    eval_config.load_config(str(broken))
+  with pytest.raises(ValueError, match=r"synthetic.py: get_config\(\) cannot be called with the "
+                     r"argument 'foo' \(from .*synthetic.py:foo\)"):
+    eval_config.load_config(f"{CONFIGS / 'synthetic.py'}:foo")
+  needs_arg = tmp_path / "needs_arg.py"
+  needs_arg.write_text("def get_config(variant):\n  raise AssertionError\n")
+  with pytest.raises(ValueError, match=r"get_config\(variant\) cannot be called without"):
+    eval_config.load_config(str(needs_arg))
+
+
 def test_config_overrides_and_head():
   config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
   rest, ov = eval_config.split_overrides(["--x", "--config.iters", "4",
