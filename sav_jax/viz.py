@@ -217,7 +217,11 @@ def depth_from_disparity(disp, fx: float, baseline: float) -> np.ndarray:
 
   Returns:
     `[..., H, W]` float32 depth.
+
+  Raises:
+    ValueError: unless fx and baseline are finite and positive.
   """
+  check_intrinsics(fx=fx, baseline=baseline)
   d = np.asarray(disp, np.float32)
   ok = np.isfinite(d) & (d > 0)
   z = np.zeros(d.shape, np.float32)
@@ -341,11 +345,19 @@ def read_ply(path) -> tuple[np.ndarray, np.ndarray]:
   return xyz, rgb
 
 
+def _map_to_write(path, data, what: str, rgb: bool) -> np.ndarray:
+  """`data` as float32, or a ValueError naming `path` unless it is `[H, W]` (or `[H, W, 3]`
+  with `rgb`) with H, W >= 1."""
+  a = np.asarray(data, np.float32)
+  if not (a.ndim == 2 or (rgb and a.ndim == 3 and a.shape[2] == 3)) or 0 in a.shape:
+    shapes = "[H, W] or [H, W, 3] arrays" if rgb else "[H, W] maps"
+    raise ValueError(f"{path}: {what} stores {shapes} with H, W >= 1, got shape {a.shape}")
+  return a
+
+
 def write_png16(path, disp) -> None:
   """16-bit PNG disparity, KITTI convention (`round(256 d)` clipped to 1..65535, 0 = invalid)."""
-  d = np.asarray(disp, np.float32)
-  if d.ndim != 2:
-    raise ValueError(f"expected a [H, W] disparity map, got shape {d.shape}")
+  d = _map_to_write(path, disp, "a 16-bit PNG disparity file", rgb=False)
   ok = np.isfinite(d) & (d > 0)
   v = np.zeros(d.shape, np.uint16)
   v[ok] = np.clip(np.round(d[ok].astype(np.float64) * 256.0), 1, 65535).astype(np.uint16)
@@ -365,13 +377,8 @@ def read_png16(path) -> tuple[np.ndarray, np.ndarray]:
 
 def write_pfm(path, data) -> None:
   """PFM file (`Pf` for `[H, W]`, `PF` for `[H, W, 3]`), little-endian, bottom row first."""
-  a = np.asarray(data, np.float32)
-  if a.ndim == 2:
-    kind = "Pf"
-  elif a.ndim == 3 and a.shape[2] == 3:
-    kind = "PF"
-  else:
-    raise ValueError(f"PFM stores [H, W] or [H, W, 3] arrays, got shape {a.shape}")
+  a = _map_to_write(path, data, "PFM", rgb=True)
+  kind = "Pf" if a.ndim == 2 else "PF"
   with open(path, "wb") as fh:
     fh.write(f"{kind}\n{a.shape[1]} {a.shape[0]}\n-1.0\n".encode("ascii"))
     fh.write(np.ascontiguousarray(a[::-1]).astype("<f4").tobytes())
@@ -390,13 +397,11 @@ def read_pfm(path) -> np.ndarray:
 def write_exr(path, data, channel: str = "Y") -> None:
   """OpenEXR file of float32 values (`[H, W]` -> one channel, `[H, W, 3]` -> R, G, B)."""
   import OpenEXR  # pylint: disable=import-outside-toplevel
-  a = np.asarray(data, np.float32)
+  a = _map_to_write(path, data, "EXR", rgb=True)
   if a.ndim == 2:
     channels = {channel: np.ascontiguousarray(a)}
-  elif a.ndim == 3 and a.shape[2] == 3:
-    channels = {c: np.ascontiguousarray(a[..., i]) for i, c in enumerate("RGB")}
   else:
-    raise ValueError(f"EXR stores [H, W] or [H, W, 3] arrays, got shape {a.shape}")
+    channels = {c: np.ascontiguousarray(a[..., i]) for i, c in enumerate("RGB")}
   header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
   with OpenEXR.File(header, channels) as f:
     f.write(str(path))

@@ -133,6 +133,10 @@ def test_missing_and_corrupt_disparity_files_name_the_file(tmp_path):
       reader(junk)
   with pytest.raises(FileNotFoundError, match="missing.ply"):
     viz.read_ply(tmp_path / "missing.ply")
+  from sav_jax.tools import video_io  # pylint: disable=import-outside-toplevel
+  np.save(tmp_path / "objects.npy", np.array([{}], dtype=object), allow_pickle=True)
+  with pytest.raises(ValueError, match="objects.npy"):  # never unpickled
+    video_io.read_map(tmp_path / "objects.npy")
   with pytest.raises(ValueError, match="junk.bin: not a PLY file"):
     viz.read_ply(junk)
   cv2.imwrite(str(tmp_path / "rgb.png"), np.zeros((2, 3, 3), np.uint8))
@@ -237,6 +241,16 @@ def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
     viz.disparity_to_points(disp, rgb.transpose(2, 0, 1), **calib)
   with pytest.raises(ValueError, match="fy must be a finite positive number"):
     viz.disparity_to_points(disp, rgb, **{**calib, "fy": 0.0})
+  for fx in (0.0, float("nan")):
+    with pytest.raises(ValueError, match="fx must be a finite positive number"):
+      viz.depth_from_disparity(disp, fx, 0.1)
+  for writer, what in ((viz.write_png16, "16-bit PNG"), (viz.write_pfm, "PFM"),
+                       (viz.write_exr, "EXR")):
+    for shape in ((0, 4), (4, 5, 2)):
+      path = tmp_path / f"empty_{what[-3:]}_{len(shape)}"
+      with pytest.raises(ValueError, match=f"{path.name}: .*{what}.*got shape"):
+        writer(path, np.ones(shape, np.float32))
+      assert not path.exists()
 
 
 def test_submodules_reachable_from_the_package():

@@ -16,6 +16,7 @@ Conventions (`docs/datasets.md`, section 0):
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -325,7 +326,13 @@ def depth_to_disparity(depth: np.ndarray, scale: float,
 
   Returns:
     (disparity [H, W] float32, valid [H, W] bool).
+
+  Raises:
+    ValueError: unless scale is finite and positive.
   """
+  if not (math.isfinite(scale) and scale > 0):
+    raise ValueError(f"depth_to_disparity: scale (fx * baseline) must be a finite positive "
+                     f"number, got {scale}")
   depth = np.asarray(depth, np.float32)
   bad = ~(depth >= eps)  # also catches NaN
   with np.errstate(divide="ignore"):

@@ -178,7 +178,8 @@ def read_map(path) -> np.ndarray:
   if suffix == ".png":
     return viz.read_png16(path)[0]
   if suffix == ".npy":
-    return np.load(path).astype(np.float32)
+    from sav_jax.data import frame_io  # pylint: disable=import-outside-toplevel
+    return frame_io.read_npy(path).astype(np.float32)
   if suffix == ".pfm":
     return viz.read_pfm(path)
   if suffix == ".exr":

@@ -220,3 +220,6 @@ def test_depth_to_disparity_rules():
   # Z < 1e-5 -> d = 0 invalid; d >= 512 invalid; infinite or NaN depth -> d = 0 invalid.
   np.testing.assert_array_equal(valid, [0, 0, 0, 0, 1, 1, 1, 0, 0])
   assert disp.dtype == np.float32 and valid.dtype == bool
+  for bad in (0.0, -1.0, np.nan, np.inf):
+    with pytest.raises(ValueError, match="scale .* must be a finite positive number"):
+      frame_io.depth_to_disparity(depth, bad)
