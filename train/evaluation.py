@@ -33,14 +33,15 @@ class Evaluator:
     model: `sav_jax.StereoAnyVideo`.
     params_sharding: sharding tree of the params.
     mesh: device mesh.
+    clips: the held-out clips, if already read (`input_lib.eval_clips(config)`).
   """
 
-  def __init__(self, config, model, params_sharding, mesh):
+  def __init__(self, config, model, params_sharding, mesh, clips=None):
     ev = config.eval
     batch_size = ev.batch_size
     if batch_size % mesh.size:
       raise ValueError(f"eval.batch_size={batch_size} is not divisible by {mesh.size} devices")
-    self.clips = input_lib.eval_clips(config)
+    self.clips = input_lib.eval_clips(config) if clips is None else clips
     self.batches = pipeline.eval_batches(self.clips, batch_size)
     self.predict = step_lib.make_eval_fn(model, ev.iters, params_sharding, mesh)
     self.sharding = state_lib.data_sharding(mesh)

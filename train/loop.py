@@ -260,13 +260,15 @@ def setup(config, workdir):
       and sav_jax.convert.find_training_checkpoint(workdir / "checkpoints") is None):
     # Not resuming: weights that cannot be read fail before the workdir is created.
     weights = initial_weights(config, abstract_params)
+  evaluating = config.eval.every_steps > 0
+  eval_clips = input_lib.eval_clips(config) if evaluating else None  # before the workdir, too
   manager = ckpt_lib.make_manager(workdir, config)
   state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it,
                                            abstract_params, weights)
   train_step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels),
                                        shardings, mesh)
-  evaluator = (evaluation.Evaluator(config, model, shardings.params, mesh)
-               if config.eval.every_steps > 0 else None)
+  evaluator = (evaluation.Evaluator(config, model, shardings.params, mesh, eval_clips)
+               if evaluating else None)
   log.info("start at step %d of %d (state from %s)", int(jax.device_get(state.step)),
            config.train.num_steps, source)
   return dict(grain_it=grain_it, manager=manager, state=state, train_step=train_step, model=model,

@@ -508,8 +508,8 @@ def test_a_workdir_that_is_a_file_is_refused(tmp_path):
 
 
 def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir(tmp_path):
-  """A config value (before any tracing), unreadable init weights (after tracing the
-  model's shapes, before the workdir is created), an override of a field that does not
+  """A config value (before any tracing), unreadable init weights and an unknown validation
+  dataset (after tracing the model's shapes, before the workdir is created), an override of a field that does not
   exist, and a config file that is missing or does not parse (while absl parses the flags)."""
   import subprocess  # pylint: disable=g-import-not-at-top
   from sav_jax.convert import save_variables  # pylint: disable=g-import-not-at-top
@@ -529,7 +529,9 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
        '"batch_size" instead of "batchsize"? (overrides: --config.train.batchsize, '),
       ([str(tmp_path / "nope.py")], "cannot load the --config file: "
        f"[Errno 2] No such file or directory: '{tmp_path / 'nope.py'}'"),
-      ([str(broken)], f"the config file {broken} does not parse: line 1: ")]:
+      ([str(broken)], f"the config file {broken} does not parse: line 1: "),
+      ([config, "--config.eval.every_steps=1", "--config.eval.dataset=foo"],
+       "unknown dataset 'foo'; known datasets: sceneflow")]:
     proc = subprocess.run(
         [sys.executable, "-m", "train", "--config", *flags, "--workdir", str(tmp_path / "w"),
          "--config.train.progress_bar=False"],
