@@ -128,10 +128,16 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
     first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
     return _mismatch(directory, f"{type(e).__name__}: {first[:300]}")
 
+  hint = (f". Move this step folder out of {directory.parent} to resume from the checkpoint "
+          "before it, or start a new WORKDIR")
+  missing = [item for item in ("state", "data") if not (directory / item).is_dir()]
+  if missing:  # e.g. a copy interrupted, or a folder edited by hand
+    raise sav_jax.convert.CheckpointError(
+        f"{directory}: the checkpoint is incomplete: it has no {' and no '.join(missing)} "
+        f"folder (the {'training state' if 'state' in missing else 'data iterator'}){hint}")
   restored = orbax_io.checked_restore(
       lambda: manager.restore(step, args=args)["state"], directory, mismatch,
-      corrupt_hint=f". Move this step folder out of {directory.parent} to resume from the "
-      "checkpoint before it, or start a new WORKDIR")
+      corrupt_hint=hint)
   _check_restored_tree(directory, restored, target)
   return TrainState(**restored)
 

@@ -434,6 +434,19 @@ def test_corrupt_training_checkpoint_is_named_as_such(toy_run, tmp_path, how, mo
   assert not [u for u in unraisable if "reading array" in str(u.exc_value)]
 
 
+def test_training_checkpoint_without_an_item_is_named_incomplete(toy_run, tmp_path):
+  import shutil  # pylint: disable=g-import-not-at-top
+  _, c, model, tx, mesh = toy_run
+  copy = tmp_path / "run"
+  shutil.copytree(toy_run[0], copy)
+  step = copy / "checkpoints" / "1"
+  shutil.rmtree(step / "data")  # the grain iterator's state
+  with pytest.raises(sav_jax.convert.CheckpointError) as e:
+    _toy_restore(copy, c, model, tx, mesh)
+  assert str(e.value).startswith(f"{step}: the checkpoint is incomplete: it has no data folder")
+  assert "does not match" not in str(e.value) and "Move this step folder" in str(e.value)
+
+
 def test_resume_with_another_frozen_pattern_is_refused(toy_run, tmp_path):
   workdir, c, model, _, mesh = toy_run
   c2 = _config()
