@@ -71,13 +71,16 @@ def load_sequences(root, split: str, dataset: str = "vkitti2"):
     raise ValueError(f"VKITTI2 split must be one of {SPLITS}, got {split!r}")
   root = find_root(root, "vkitti2")
   names = TEST if split == "test" else [f"{s}_{v}" for s in SCENES for v in VARIATIONS]
-  seqs = []
+  seqs, missing = [], []
   for name in names:
     scene, variation = name.split("_", 1)
     if split == "train" and not (root / scene / variation).is_dir():
-      logging.warning("VKITTI2: skipping missing training sequence %s", root / scene / variation)
+      missing.append(f"{scene}/{variation}")
       continue
     seqs.append(_sequence(root, name, dataset))
   if not seqs:
     raise FileNotFoundError(f"no VKITTI2 {split} sequences under {root}")
+  if missing:  # one line for all of them
+    logging.warning("VKITTI2: skipping %d missing training sequences under %s: %s", len(missing),
+                    root, ", ".join(missing))
   return seqs

@@ -7,6 +7,7 @@ depth2disp scales are compared value by value with what was written.
 
 import gzip
 import json
+import logging
 import pathlib
 import pickle
 import shutil
@@ -317,7 +318,7 @@ def _vkitti2(root, rng, names, n=2):
     (seq / "intrinsic.txt").write_text("\n".join(rows) + "\n")
 
 
-def test_vkitti2_splits_depth_and_sky(tmp_path):
+def test_vkitti2_splits_depth_and_sky(tmp_path, caplog):
   _vkitti2(tmp_path, np.random.default_rng(9), registry.vkitti2.TEST)
   test = registry.get_sequences("vkitti2", tmp_path, "test")
   assert [s.name for s in test] == list(registry.vkitti2.TEST)
@@ -330,7 +331,10 @@ def test_vkitti2_splits_depth_and_sky(tmp_path):
                              rtol=1e-6)
   np.testing.assert_array_equal(f["valid"][0, :6], [0, 1, 1, 0, 1, 1])  # v=0; d >= 512
   # "train" lists all 50 pairs; missing ones are skipped (the 5 test ones exist here).
-  assert len(registry.get_sequences("vkitti2", tmp_path / "vkitti2", "train")) == 5
+  with caplog.at_level(logging.WARNING):
+    assert len(registry.get_sequences("vkitti2", tmp_path / "vkitti2", "train")) == 5
+  (warning,) = [r.getMessage() for r in caplog.records if "VKITTI2" in r.getMessage()]
+  assert "skipping 45 missing training sequences under" in warning and "Scene01/clone" in warning
   clips = registry.get_training_clips("vkitti2", tmp_path, frames=1)
   assert [c.indices for c in clips] == [[0]] * 5
   shutil.rmtree(tmp_path / "vkitti2/Scene06/fog")
