@@ -331,8 +331,10 @@ def _compile(key, build, check_memory: bool):
   kind, cfg, iters, shape = key[:4]
   cached = (" (or loading it from the compilation cache)"
             if jax.config.jax_compilation_cache_dir else "")
-  log.info("compiling the model (%s) for %d frames of %dx%d (iters=%d, %s)%s", kind, *shape,
-           iters, cfg.dtype, cached)
+  what = {"frames": "per-frame features", "window": "refinement of a window"}.get(kind, kind)
+  its = "" if kind == "frames" else f"iters={iters}, "  # the per-frame part runs no iterations
+  log.info("compiling the model (%s) for %d frames of %dx%d (%s%s)%s", what, *shape, its,
+           cfg.dtype, cached)
   fn, args = build()
   args = jax.tree_util.tree_map(_abstract, args)
   compiled = jax.jit(fn).lower(*args).compile(compiler_options=dict(key[4]))

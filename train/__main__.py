@@ -34,11 +34,14 @@ def _fail(message: str) -> None:
 
 
 def parse_flags(argv):
-  """absl's flag parsing, with a config file that does not parse, or an override of a field
-  that does not exist, as one line (ml_collections raises them from inside the parser, and
-  absl would print their traceback)."""
+  """absl's flag parsing, with every error as one line and exit status 2: a flag value of the
+  wrong type, a config file that does not parse, an override of a field that does not exist
+  (ml_collections raises the last two from inside the parser, and absl would print their
+  traceback)."""
   try:
-    return app.parse_flags_with_usage(argv)
+    return flags.FLAGS(argv)
+  except flags.Error as e:  # a value of the wrong type, a missing --workdir, an unknown flag
+    _fail(f"{e} (--helpfull lists the flags)")
   except SyntaxError as e:  # the --config file is loaded while the flags are parsed
     _fail(f"the config file {e.filename} does not parse: line {e.lineno}: {e.msg}")
   except OSError as e:  # a missing --config file, met by an override

@@ -145,7 +145,7 @@ def fused_attention(q: jax.Array, k: jax.Array, v: jax.Array,
     backend = jax.default_backend()
     if backend != "gpu":
       raise ValueError(f"SAVConfig.vit_attention='cudnn' needs a CUDA GPU; JAX's backend is "
-                       f"{backend!r} (use the default, 'blocked')")
+                       f"{backend!r} (use 'blocked', or the default 'auto', which picks it there)")
     if q.dtype not in (jnp.bfloat16, jnp.float16):
       raise ValueError(f"SAVConfig.vit_attention='cudnn' needs bfloat16 compute, got {q.dtype}")
   return jax.nn.dot_product_attention(q, k, v, scale=1.0, implementation=implementation)

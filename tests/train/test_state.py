@@ -543,6 +543,8 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
       ([str(tmp_path / "nope.py")], "cannot load the --config file: "
        f"[Errno 2] No such file or directory: '{tmp_path / 'nope.py'}'"),
       ([str(broken)], f"the config file {broken} does not parse: line 1: "),
+      ([config, "--config.train.batch_size=abc"], "flag --config.train.batch_size=abc: "
+       "invalid literal for int()"),
       ([config, "--config.eval.every_steps=1", "--config.eval.dataset=foo"],
        "unknown dataset 'foo'; known datasets: sceneflow")]:
     proc = subprocess.run(
