@@ -170,14 +170,18 @@ def side_by_side(*images) -> np.ndarray:
   return np.concatenate(parts, axis=-2)
 
 
+# File names `write_video` accepts: containers that hold mp4v video.
+VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".avi", ".mkv")
+
+
 def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
-  """Writes RGB frames as an MPEG-4 (mp4v) video with OpenCV.
+  """Writes RGB frames as an MPEG-4 (mp4v) video with OpenCV (replacing a file at `path`).
 
   Odd heights or widths are padded by one replicated row/column (the codec needs
   even sizes and would otherwise crop).
 
   Args:
-    path: output file (`.mp4`).
+    path: output file (`.mp4`, or another of `VIDEO_SUFFIXES`; other names are refused).
     frames: `[T, H, W, 3]` uint8 RGB (or an iterable of `[H, W, 3]` frames).
     fps: frame rate.
 
@@ -185,6 +189,9 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
     The path written.
   """
   path = pathlib.Path(path)
+  if path.suffix.lower() not in VIDEO_SUFFIXES:
+    raise ValueError(f"{path}: write_video writes mp4v video files; name one "
+                     f"{'/'.join(VIDEO_SUFFIXES)}")
   frames = [as_uint8_image(f, f"{path} frame {i}") for i, f in enumerate(frames)]
   if not frames:
     raise ValueError(f"{path}: no frames to write")
@@ -356,7 +363,13 @@ def _map_to_write(path, data, what: str, rgb: bool) -> np.ndarray:
 
 
 def write_png16(path, disp) -> None:
-  """16-bit PNG disparity, KITTI convention (`round(256 d)` clipped to 1..65535, 0 = invalid)."""
+  """16-bit PNG disparity, KITTI convention (`round(256 d)` clipped to 1..65535, 0 = invalid).
+
+  `path` must end in `.png` (OpenCV picks the format from the name: another one would store
+  the values lossily or scaled); a file there is replaced.
+  """
+  if pathlib.Path(path).suffix.lower() != ".png":
+    raise ValueError(f"{path}: a 16-bit PNG disparity file must be named *.png")
   d = _map_to_write(path, disp, "a 16-bit PNG disparity file", rgb=False)
   ok = np.isfinite(d) & (d > 0)
   v = np.zeros(d.shape, np.uint16)
@@ -376,7 +389,8 @@ def read_png16(path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_pfm(path, data) -> None:
-  """PFM file (`Pf` for `[H, W]`, `PF` for `[H, W, 3]`), little-endian, bottom row first."""
+  """PFM file (`Pf` for `[H, W]`, `PF` for `[H, W, 3]`), little-endian, bottom row first;
+  a file at `path` is replaced."""
   a = _map_to_write(path, data, "PFM", rgb=True)
   kind = "Pf" if a.ndim == 2 else "PF"
   with open(path, "wb") as fh:
@@ -395,7 +409,8 @@ def read_pfm(path) -> np.ndarray:
 
 
 def write_exr(path, data, channel: str = "Y") -> None:
-  """OpenEXR file of float32 values (`[H, W]` -> one channel, `[H, W, 3]` -> R, G, B)."""
+  """OpenEXR file of float32 values (`[H, W]` -> one channel, `[H, W, 3]` -> R, G, B); a file
+  at `path` is replaced."""
   import OpenEXR  # pylint: disable=import-outside-toplevel
   a = _map_to_write(path, data, "EXR", rgb=True)
   if a.ndim == 2:

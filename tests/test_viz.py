@@ -244,13 +244,25 @@ def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
   for fx in (0.0, float("nan")):
     with pytest.raises(ValueError, match="fx must be a finite positive number"):
       viz.depth_from_disparity(disp, fx, 0.1)
-  for writer, what in ((viz.write_png16, "16-bit PNG"), (viz.write_pfm, "PFM"),
-                       (viz.write_exr, "EXR")):
+  for writer, what, suffix in ((viz.write_png16, "16-bit PNG", ".png"), (viz.write_pfm, "PFM", ".pfm"),
+                               (viz.write_exr, "EXR", ".exr")):
     for shape in ((0, 4), (4, 5, 2)):
-      path = tmp_path / f"empty_{what[-3:]}_{len(shape)}"
+      path = tmp_path / f"empty_{len(shape)}{suffix}"
       with pytest.raises(ValueError, match=f"{path.name}: .*{what}.*got shape"):
         writer(path, np.ones(shape, np.float32))
       assert not path.exists()
+  # A name of another format would store the values lossily or scaled: refused, and a file
+  # of that name is left as it was.
+  for name in ("d.jpg", "d.pfm", "d"):
+    (tmp_path / name).write_bytes(b"mine")
+    with pytest.raises(ValueError, match=f"{name}: a 16-bit PNG disparity file must be named"):
+      viz.write_png16(tmp_path / name, disp)
+    assert (tmp_path / name).read_bytes() == b"mine"
+  for name in ("photo.png", "clip.jpg", "clip"):
+    (tmp_path / name).write_bytes(b"mine")
+    with pytest.raises(ValueError, match=f"{name}: write_video writes mp4v video files"):
+      viz.write_video(tmp_path / name, np.zeros((2, 8, 8, 3), np.uint8))
+    assert (tmp_path / name).read_bytes() == b"mine"
 
 
 def test_submodules_reachable_from_the_package():
