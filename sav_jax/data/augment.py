@@ -224,8 +224,9 @@ def _crop(out: dict, cfg: AugmentConfig, rng, jitter: bool) -> None:
   if h < ch or w < cw:
     raise ValueError(f"cannot crop {cfg.crop_size} from {(h, w)} frames (resize disabled?)")
   m = 2 if jitter else 0  # the official y-jitter crop keeps a 2 px margin
-  y0 = int(rng.integers(m, max(h - ch - m, m + 1)))
-  x0 = int(rng.integers(m, max(w - cw - m, m + 1)))
+  # Frames within 2 px of the crop (where the official randint fails): the margin shrinks.
+  y0 = min(int(rng.integers(m, max(h - ch - m, m + 1))), h - ch)
+  x0 = min(int(rng.integers(m, max(w - cw - m, m + 1))), w - cw)
   r = cfg.yjitter_range if jitter else 0
   y1 = [min(max(y0 + int(rng.integers(-r, r + 1)), 0), h - ch) if jitter else y0
         for _ in range(t)]
@@ -255,7 +256,8 @@ def augment_clip(clip: dict, cfg: AugmentConfig, rng: np.random.Generator,
   """
   sparse = bool(clip.get("sparse", False)) if sparse is None else bool(sparse)
   left, right = np.asarray(clip["left"]), np.asarray(clip["right"])
-  if left.ndim != 4 or left.shape != right.shape or left.dtype != np.uint8:
+  if (left.ndim != 4 or left.shape[-1] != 3 or left.shape != right.shape
+      or left.dtype != np.uint8):
     raise ValueError(f"left/right must be equal [T, H, W, 3] uint8, got {left.shape} "
                      f"{left.dtype} and {right.shape} {right.dtype}")
   out = dict(clip)

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import warnings
 from typing import Any, Callable, Mapping, Sequence
 
 import grain
@@ -72,6 +73,9 @@ def as_example(clip: Mapping[str, Any]) -> dict[str, np.ndarray]:
   if disp.shape != left.shape[:3] or valid.shape != left.shape[:3]:
     raise ValueError(f"disparity {disp.shape} / valid {valid.shape} do not match the "
                      f"images {left.shape[:3]}")
+  if left.dtype.kind == "f" and left.size and 0 < float(left.max()) <= 1.0:
+    warnings.warn(f"float frames with values up to {float(left.max()):g}: the pipeline expects "
+                  "0..255 (multiply 0..1 images by 255)", stacklevel=2)
   as_u8 = lambda a: a if a.dtype == np.uint8 else np.clip(np.rint(a), 0, 255).astype(np.uint8)
   return {"left": as_u8(left), "right": as_u8(right), "disparity": disp, "valid": valid}
 
@@ -153,8 +157,8 @@ def center_crop(clip: Mapping[str, np.ndarray], crop: tuple[int, int]) -> dict[s
   ex = as_example(clip)
   h, w = ex["left"].shape[1:3]
   ch, cw = crop
-  if ch > h or cw > w:
-    raise ValueError(f"crop {crop} larger than the frames {(h, w)}")
+  if not (1 <= ch <= h and 1 <= cw <= w):
+    raise ValueError(f"crop {crop} must be at least 1x1 and at most the frames {(h, w)}")
   y0, x0 = (h - ch) // 2, (w - cw) // 2
   return {k: v[:, y0:y0 + ch, x0:x0 + cw] for k, v in ex.items()}
 
@@ -192,8 +196,9 @@ def mixture_weights(lengths: Sequence[int], weights: Sequence[float], mode: str)
     raw = [float(w) for w in weights]
   else:
     raise ValueError(f"unknown mixing mode {mode!r}; expected 'ratio' or 'concat'")
-  if min(raw) < 0 or sum(raw) <= 0:
-    raise ValueError(f"mixture weights must be >= 0 with a positive sum, got {weights}")
+  if not all(np.isfinite(raw)) or min(raw) <= 0:
+    raise ValueError(f"mixture weights must be finite and > 0 (leave a source out instead of "
+                     f"giving it 0), got {list(weights)}")
   return [r / sum(raw) for r in raw]
 
 
@@ -223,6 +228,9 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
     [B, T, H, W] float32`, `valid [B, T, H, W] bool`.
   """
   transforms = list(transforms) if transforms is not None else [None] * len(sources)
+  if len(transforms) != len(sources):
+    raise ValueError(f"need one transform (or None) per source, got {len(transforms)} for "
+                     f"{len(sources)} sources")
   props = mixture_weights([len(s) for s in sources], weights, mode)
   streams = []
   for i, (src, tf) in enumerate(zip(sources, transforms)):
@@ -278,6 +286,8 @@ def fixed_clips(ds: grain.MapDataset, num_clips: int,
                 transform: Callable[[Mapping[str, Any]], dict] = as_example
                 ) -> list[dict[str, np.ndarray]]:
   """The first `num_clips` clips of `ds` on the host (a held-out validation set)."""
+  if not (isinstance(num_clips, int) and num_clips >= 1):
+    raise ValueError(f"num_clips must be an integer >= 1, got {num_clips!r}")
   if len(ds) < num_clips:
     raise ValueError(f"validation set has {len(ds)} clips, {num_clips} requested")
   return [transform(ds[i]) for i in range(num_clips)]
@@ -292,6 +302,10 @@ def eval_batches(clips: Sequence[Mapping[str, np.ndarray]], batch_size: int
   Returns:
     `[(batch, num_real_clips)]` with `batch` arrays `[batch_size, ...]`.
   """
+  if not (isinstance(batch_size, int) and batch_size >= 1):
+    raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
+  if not clips:
+    raise ValueError("no clips to batch")
   out = []
   for start in range(0, len(clips), batch_size):
     part = list(clips[start:start + batch_size])

@@ -232,3 +232,19 @@ def test_bad_inputs():
                  np.random.default_rng(0))
   with pytest.raises(ValueError, match="scale_range"):
     AugmentConfig(scale_range=(0.4, -0.2))
+  with pytest.raises(ValueError, match=r"\[T, H, W, 3\] uint8, got \(2, 3, 4, 1\)"):
+    gray = np.zeros((2, 3, 4, 1), np.uint8)
+    augment_clip({**clip, "left": gray, "right": gray}, IDENTITY, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("margin", [0, 1, 3])
+def test_crop_within_two_pixels_of_the_frame_keeps_its_size(margin):
+  # The y-jitter crop keeps a 2 px margin where the frame allows it; closer, the margin
+  # shrinks and the crop still has the asked size, left and right alike.
+  clip = _planar_clip(np.random.default_rng(0))
+  cfg = dataclasses.replace(IDENTITY, crop_size=(H - margin, W - margin), spatial_prob=0.0,
+                            yjitter=True)
+  for seed in range(4):
+    out = augment_clip(clip, cfg, np.random.default_rng(seed))
+    for k in ("left", "right", "disparity", "valid"):
+      assert out[k].shape[1:3] == (H - margin, W - margin), (k, out[k].shape)

@@ -83,6 +83,29 @@ def test_mixture_weights_validation():
     pipeline.mixture_weights([1], [1], "sum")
   with pytest.raises(ValueError, match="one weight per source"):
     pipeline.mixture_weights([1, 2], [1], "ratio")
+  for weights in ([1, 0], [float("nan"), 1], [float("inf"), 1], [-1, 2]):
+    with pytest.raises(ValueError, match="must be finite and > 0"):
+      pipeline.mixture_weights([1, 2], weights, "ratio")
+
+
+def test_bad_pipeline_arguments_are_named():
+  a, b = _tagged(1, 4), _tagged(2, 4)
+  with pytest.raises(ValueError, match="one transform .* per source, got 1 for 2 sources"):
+    pipeline.make_train_dataset([a, b], [1.0, 1.0], batch_size=1, seed=0, transforms=[None])
+  clip = a[3]  # frames of value 3
+  for crop in ((0, 4), (-4, 10), (17, 4)):
+    with pytest.raises(ValueError, match="must be at least 1x1 and at most the frames"):
+      pipeline.center_crop(clip, crop)
+  for size in (0, -1, 1.5):
+    with pytest.raises(ValueError, match="batch_size must be an integer >= 1"):
+      pipeline.eval_batches([clip], size)
+  with pytest.raises(ValueError, match="no clips"):
+    pipeline.eval_batches([], 2)
+  with pytest.raises(ValueError, match="num_clips must be an integer >= 1"):
+    pipeline.fixed_clips(a, 0)
+  unit = {**clip, "left": clip["left"] / 255.0, "right": clip["right"] / 255.0}
+  with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
+    pipeline.as_example(unit)
 
 
 def test_interrupt_and_restore_iterator_state():
