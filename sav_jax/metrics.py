@@ -50,7 +50,8 @@ of frames of sequence s (T_s, not T_s - 1, also for the temporal metrics).
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+import numbers
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -276,7 +277,18 @@ def _as_flows(name: str, f, t: int, hw: tuple[int, int]) -> np.ndarray:
     f = f[:, 0]
   if f.shape != (t, 2, *hw):
     raise ValueError(f"{name} must have shape {(t, 2, *hw)}, got shape {f.shape}")
+  _check_finite(name, f)
   return f
+
+
+def _check_finite(name: str, a: np.ndarray) -> None:
+  """ValueError naming the frames of `a` with NaN/inf values: the official metrics would
+  score them as perfect (no bad pixels, zero photometric error)."""
+  bad = ~np.isfinite(a).reshape(len(a), -1).all(axis=1)
+  if bad.any():
+    raise ValueError(f"{name} has NaN or inf values in frame(s) "
+                     f"{np.flatnonzero(bad)[:10].tolist()}; the metrics would count them as "
+                     "perfect")
 
 
 def tcm_flow_inputs(pred_depth, gt_depth, mask, t: int, mask_thr: float = 0.5):
@@ -504,6 +516,7 @@ def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
   """
   x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("mask", mask)
   _check_same(("pred", "gt", "mask"), (x, y, m))
+  _check_finite("pred", x)  # GT may hold NaN (masked out), a prediction may not
   if scale is not None:
     scale = _check_scale(scale)
   if depth_flows is not None:
@@ -567,7 +580,13 @@ def aggregate(results: Sequence[tuple[dict[str, float], int]]) -> dict[str, floa
   """
   total = 0
   sums: dict[str, float] = {}
-  for metrics, length in results:
+  for i, item in enumerate(results):
+    if not (isinstance(item, (tuple, list)) and len(item) == 2 and isinstance(item[0], Mapping)
+            and isinstance(item[1], numbers.Integral) and not isinstance(item[1], bool)
+            and item[1] >= 1):
+      raise ValueError(f"aggregate: item {i} must be a (metrics dict, frame count >= 1) pair, "
+                       f"as eval_batch returns, got {type(item).__name__} {str(item)[:80]}")
+    metrics, length = item
     total += int(length)
     for k, v in metrics.items():
       sums[k] = sums.get(k, 0.0) + float(np.asarray(v, np.float64).reshape(())) * length

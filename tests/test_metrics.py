@@ -255,6 +255,30 @@ def test_aggregate_is_frame_weighted():
   assert out["a"] == pytest.approx(13.0 / 4.0)
   assert out["b"] == pytest.approx(0.5)  # missing metric still divides by all frames
   assert M.aggregate([]) == {}
+  for bad in ([({"a": 1.0}, -3), ({"a": 1.0}, 3)], [({"a": 1.0}, 2.7)], [{"a": 1.0}],
+              [({"a": 1.0}, True)]):
+    with pytest.raises(ValueError, match=r"item 0 must be a \(metrics dict, frame count >= 1\)"):
+      M.aggregate(bad)
+
+
+def test_non_finite_predictions_and_flows_are_refused():
+  # The official formulas would score a NaN prediction as 0 % bad pixels and a NaN flow as
+  # a perfect OPW; GT NaN stays allowed (it is masked out).
+  rng = np.random.default_rng(0)
+  gt = rng.uniform(1, 5, (3, 8, 10)).astype(np.float32)
+  valid = np.ones_like(gt)
+  pred = gt.copy()
+  pred[1, 2, 3] = np.nan
+  with pytest.raises(ValueError, match=r"pred has NaN or inf values in frame\(s\) \[1\]"):
+    M.eval_sequence(pred, gt, valid)
+  gt_nan = gt.copy()
+  gt_nan[0, 0, 0] = np.nan
+  assert np.isfinite(M.eval_sequence(gt, gt_nan, valid)["disp_epe_mean"])
+  flows = np.zeros((2, 2, 8, 10), np.float32)
+  flows[0, 0, 0, 0] = np.inf
+  video = rng.uniform(0, 255, (3, 3, 8, 10)).astype(np.float32)
+  with pytest.raises(ValueError, match=r"flows has NaN or inf values in frame\(s\) \[0\]"):
+    M.eval_batch(gt, gt, valid, scale=10.0, left_video=video, video_flows=flows)
 
 
 def test_eval_sequence_preprocessing():
