@@ -434,9 +434,9 @@ class FrameFeatureCache:
   """
 
   def __init__(self, chunk: int = STRIDE):
-    if not (isinstance(chunk, int) and chunk >= 1):
+    if not (_is_int(chunk) and chunk >= 1):
       raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
-    self.chunk = chunk
+    self.chunk = int(chunk)
     self.frames: dict[int, dict] = {}
 
   def evict_before(self, index: int) -> None:
@@ -565,8 +565,29 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
 
   Returns:
     `[T, Hp, Wp]` float32 raw test-mode output on the padded frames (signed, not unpadded).
+
+  Raises:
+    ValueError: for the inputs `predict_video` refuses, and pads that are not 4 integers
+      >= 0 giving a padded size of multiples of 16.
   """
-  pads = pad_amounts(*left.shape[1:3]) if pads is None else pads
+  cfg = resolve_config(cfg)
+  iters = check_iters(iters)
+  left, right = _as_video_pair(left, right)
+  if not (_is_int(start) and start >= 0):
+    raise ValueError(f"start must be an integer >= 0, got {start!r}")
+  if pads is None:
+    pads = pad_amounts(*left.shape[1:3])
+  elif not (len(tuple(pads)) == 4 and all(_is_int(p) and p >= 0 for p in pads)
+            and (left.shape[1] + pads[0] + pads[1]) % 16 == 0
+            and (left.shape[2] + pads[2] + pads[3]) % 16 == 0):
+    raise ValueError(f"pads must be 4 integers (top, bottom, left, right) >= 0 that pad "
+                     f"{left.shape[1]}x{left.shape[2]} frames to multiples of 16, got {pads!r}")
+  return _run_window(variables, left, right, cfg=cfg, iters=iters, pads=tuple(pads),
+                     check_memory=check_memory, cache=cache, start=start)
+
+
+def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache, start):
+  """`run_window` on inputs already checked (by `predict_video`)."""
   cache = FrameFeatureCache() if cache is None else cache
   variables = model_variables(variables)
   n = left.shape[0]
@@ -603,7 +624,7 @@ def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk, 
     cache = FrameFeatureCache(chunk)
     for win in plan:
       sl = slice(win.start, win.start + win.length)
-      raw = run_window(variables, left[sl], right[sl], cfg=cfg, iters=iters, pads=pads,
+      raw = _run_window(variables, left[sl], right[sl], cfg=cfg, iters=iters, pads=pads,
                        check_memory=check_memory, cache=cache, start=win.start)
       if raw_windows is not None:
         raw_windows.append(raw)

@@ -200,6 +200,33 @@ def test_bad_inputs():
       inference.predict_video({}, left, right)
 
 
+def test_numpy_integer_window_and_stride(variables, golden, predicted):
+  disp = _predict(variables, golden["left"], golden["right"], window=np.int64(20),
+                  stride=np.int64(10))
+  np.testing.assert_array_equal(disp, predicted[0])
+
+
+def test_run_window_checks_its_inputs_before_compiling(variables):
+  before = inference.cache_size()
+  video = np.full((2, 32, 32, 3), 100, np.uint8)
+  cfg = sav_jax.SAVConfig()
+  run = lambda l, r, **kw: inference.run_window(variables, l, r, **{"cfg": cfg, "iters": ITERS,
+                                                                     **kw})
+  cases = [((video, video[:, :, :24]), {}, "differ in shape"),
+           ((video, np.concatenate([video, video])), {}, "differ in shape"),
+           ((video[..., 0], video[..., 0]), {}, r"\[T, H, W, 3\]"),
+           ((video, np.full(video.shape, np.nan, np.float32)), {}, "right: non-finite"),
+           ((video[:0], video[:0]), {}, r"\[T, H, W, 3\]"),
+           ((video, video), {"iters": 3}, "even integer"),
+           ((video, video), {"pads": (1, 1, 0, 0)}, "pads must be 4 integers"),
+           ((video, video), {"pads": (0, 0, -1, 1)}, "pads must be 4 integers"),
+           ((video, video), {"start": -1}, "start must be an integer >= 0")]
+  for args, kw, match in cases:
+    with pytest.raises(ValueError, match=match):
+      run(*args, **kw)
+  assert inference.cache_size() == before  # nothing compiled
+
+
 def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   before = inference.cache_size()
   video = np.full((3, 32, 32, 3), 100, np.uint8)
