@@ -40,12 +40,12 @@ class SAVConfig:
 
   Attributes:
     vda_encoder: Video Depth Anything variant of the frozen depth prior.
-    hidden_dim: GRU hidden channels.
-    context_dim: context channels (depth 32 + cnet 96).
+    hidden_dim: GRU hidden channels (128 only).
+    context_dim: context channels (depth 32 + cnet 96; 128 only).
     fnet_dim: channels of the fnet/cnet encoders' output.
     depth_dim: channels of the VDA feature map fed to the model.
-    corr_groups: channel groups of the all-pairs correlation.
-    upsample_rate: convex upsampling factor (1/4 -> 1).
+    corr_groups: channel groups of the all-pairs correlation (a divisor of context_dim).
+    upsample_rate: convex upsampling factor (1/4 -> 1; 4 only).
     dtype: compute dtype of convolutions, attention and the GRU ("float32" or
       "bfloat16"); parameters, correlation, softmaxes, convex upsampling and the
       disparity accumulator stay float32.
@@ -89,8 +89,9 @@ class SAVConfig:
           f"SAVConfig.vda_encoder={self.vda_encoder!r}; expected one of {sorted(VDA_VARIANTS)}")
     if self.dtype not in ("float32", "bfloat16"):
       raise ValueError(f"SAVConfig.dtype={self.dtype!r}; expected 'float32' or 'bfloat16'")
-    if not self.frame_block_mb > 0:
-      raise ValueError(f"SAVConfig.frame_block_mb must be > 0, got {self.frame_block_mb!r}")
+    if not 0 < self.frame_block_mb < float("inf"):
+      raise ValueError(f"SAVConfig.frame_block_mb must be a finite number > 0, got "
+                       f"{self.frame_block_mb!r}")
     if self.vit_attention not in VIT_ATTENTION:
       raise ValueError(f"SAVConfig.vit_attention={self.vit_attention!r}; expected one of "
                        f"{VIT_ATTENTION}")
@@ -101,6 +102,15 @@ class SAVConfig:
       raise ValueError(
           f"depth_dim + fnet_dim must equal context_dim ({self.depth_dim} + {self.fnet_dim} "
           f"!= {self.context_dim})")
+    # The update block's layer widths are the official ones (its attention runs on 256 =
+    # 128 context + 128 motion channels, its GRU on 128): these three are fixed.
+    for name, value in (("hidden_dim", 128), ("context_dim", 128), ("upsample_rate", 4)):
+      if getattr(self, name) != value:
+        raise ValueError(f"SAVConfig.{name}={getattr(self, name)!r}: the model supports only "
+                         f"{value} (the official architecture)")
+    if self.corr_groups < 1 or self.context_dim % self.corr_groups:
+      raise ValueError(f"SAVConfig.corr_groups={self.corr_groups!r} must divide the "
+                       f"{self.context_dim} feature channels of the correlation")
 
   @property
   def compute_dtype(self):

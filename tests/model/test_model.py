@@ -97,6 +97,11 @@ def test_bad_config_raises():
     ({"dtype": None}, r"SAVConfig\.dtype=None \(builtins\.NoneType\); expected str"),
     ({"remat_policy": "bogus"}, r"remat_policy='bogus'; expected None or one of .*dots_saveable"),
     ({"remat_policy": "save_only_these_names"}, r"remat_policy='save_only_these_names'"),
+    ({"hidden_dim": 64}, r"SAVConfig\.hidden_dim=64: the model supports only 128"),
+    ({"context_dim": 160, "fnet_dim": 128}, r"context_dim=160: the model supports only 128"),
+    ({"upsample_rate": 2}, r"upsample_rate=2: the model supports only 4"),
+    ({"corr_groups": 5}, r"corr_groups=5 must divide the 128 feature channels"),
+    ({"frame_block_mb": float("inf")}, r"frame_block_mb must be a finite number > 0"),
 ])
 def test_config_fields_of_the_wrong_type_or_value_are_named(fields, match):
   """A config read from a checkpoint's JSON fails here, not deep inside JAX at trace time."""
