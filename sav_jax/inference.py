@@ -132,8 +132,8 @@ def window_plan(num_frames: int, window: int = WINDOW, stride: int = STRIDE) -> 
     The windows in order. N < window gives one window keeping everything.
   """
   check_window(window, stride)
-  if num_frames < 1:
-    raise ValueError(f"need at least one frame, got {num_frames}")
+  if not (_is_int(num_frames) and num_frames >= 1):
+    raise ValueError(f"need an integer number of frames >= 1, got {num_frames!r}")
   head = (window - stride) // 2
   plan, covered, start = [], 0, 0
   while covered < num_frames:

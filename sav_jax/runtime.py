@@ -34,6 +34,7 @@ import pathlib
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 log = logging.getLogger(__name__)
 
@@ -138,6 +139,8 @@ def set_low_memory_compile(enabled: bool = True) -> None:
   compile. Process-wide, like `enable_compilation_cache`.
   """
   global _low_memory_compile  # pylint: disable=global-statement
+  if not isinstance(enabled, (bool, np.bool_)):  # bool("no") would be True
+    raise TypeError(f"set_low_memory_compile takes True or False, got {enabled!r}")
   _low_memory_compile = bool(enabled)
 
 

@@ -140,7 +140,7 @@ def _labelled_video(n):
 def test_every_frame_returned(monkeypatch, n):
   fake = _LabelModel()
   monkeypatch.setattr(inference, "check_variables", lambda *a: None)
-  monkeypatch.setattr(inference, "run_window", fake)
+  monkeypatch.setattr(inference, "_run_window", fake)
   video = _labelled_video(n)
   disp = inference.predict_video({}, video, video)
   assert disp.shape == (n, 5, 7)
@@ -159,7 +159,7 @@ def test_every_frame_returned(monkeypatch, n):
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
 @pytest.mark.parametrize("window,stride", [(20, 10), (8, 4), (6, 3), (5, 5)])
 def test_stitching_sweep(monkeypatch, window, stride):
-  monkeypatch.setattr(inference, "run_window", _LabelModel())
+  monkeypatch.setattr(inference, "_run_window", _LabelModel())
   monkeypatch.setattr(inference, "check_variables", lambda *a: None)
   for n in range(1, 3 * window + 4):
     video = _labelled_video(n)
@@ -190,6 +190,9 @@ def test_bad_inputs():
     inference.predict_video({}, np.zeros((2, 8, 8)), np.zeros((2, 8, 8)))
   with pytest.raises(ValueError, match="stride"):
     inference.window_plan(10, window=4, stride=5)
+  for n in (0, 25.5):
+    with pytest.raises(ValueError, match="need an integer number of frames >= 1"):
+      inference.window_plan(n)
   assert inference.window_plan(30, window=np.int64(20), stride=np.int64(10)) == \
       inference.window_plan(30, window=20, stride=10)
   frames = [np.zeros((8, 8, 3), np.uint8)] * 3

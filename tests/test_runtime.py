@@ -67,6 +67,9 @@ def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch
   assert runtime.inference_compiler_options("cpu") == {"xla_cpu_use_fusion_emitters": False}
   runtime.set_low_memory_compile(False)
   assert runtime.inference_compiler_options("cpu") == {}
+  with pytest.raises(TypeError, match="takes True or False, got 'no'"):
+    runtime.set_low_memory_compile("no")
+  assert runtime.inference_compiler_options("cpu") == {}  # unchanged
 
 
 def test_low_memory_compile_gives_the_same_values(restore_low_memory_compile):
