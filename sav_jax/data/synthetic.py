@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import operator
 from typing import NamedTuple
 
@@ -109,12 +110,28 @@ class SyntheticConfig:
   seed: int = 0
 
   def __post_init__(self):
+    _normalise_scalars(self)
     _validate(self)
 
   @property
   def fx(self) -> float:
     """Focal length in pixels."""
     return float(self.width if self.focal is None else self.focal)
+
+
+def _normalise_scalars(c: SyntheticConfig) -> None:
+  """Numpy integers and floats become Python ones; a bool where a number is expected, a
+  string, or a NaN/inf is a ValueError naming the field."""
+  for f in dataclasses.fields(c):
+    value = getattr(c, f.name)
+    if f.type == "int":
+      _check(isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_)),
+             f.name, "must be an int", value)
+      object.__setattr__(c, f.name, int(value))
+    elif f.type in ("float", "float | None") and not (value is None and "None" in f.type):
+      _check(isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+             and math.isfinite(value), f.name, "must be a finite number", value)
+      object.__setattr__(c, f.name, float(value))
 
 
 def _check(ok: bool, field: str, message: str, value) -> None:

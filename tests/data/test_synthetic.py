@@ -305,10 +305,22 @@ def test_textures_tile_seamlessly():
     ("noise_std", dict(noise_std=-1.0)),
     ("baseline", dict(baseline=0.0)),
     ("seed", dict(seed=-2)),
+    ("frames", dict(frames=True)),
+    ("max_speed", dict(max_speed=float("inf"))),
+    ("noise_std", dict(noise_std=float("nan"))),
+    ("max_disparity", dict(max_disparity="64")),
+    ("focal", dict(focal=float("inf"))),
 ])
 def test_bad_config_names_the_field(field, kwargs):
   with pytest.raises(ValueError, match=rf"SyntheticConfig\.{field}\b"):
     SyntheticConfig(**kwargs)
+
+
+def test_config_takes_numpy_scalars_as_python_values():
+  cfg = SyntheticConfig(frames=np.int64(2), height=np.int32(32), width=64,
+                        max_disparity=np.float32(6.0), seed=np.uint8(3))
+  assert cfg == SyntheticConfig(frames=2, height=32, width=64, max_disparity=6.0, seed=3)
+  assert type(cfg.frames) is int and type(cfg.max_disparity) is float
 
 
 def test_source_rejects_bad_length():
