@@ -28,6 +28,7 @@ turns; values can differ from torchvision's by a grey level.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import cv2
 import numpy as np
@@ -80,17 +81,45 @@ class AugmentConfig:
   max_disparity: float = 512.0
 
   def __post_init__(self):
-    ch, cw = self.crop_size
+    def pair(name):
+      value = getattr(self, name)
+      try:
+        lo, hi = value
+        ok = all(math.isfinite(v) for v in (lo, hi))
+      except (TypeError, ValueError):
+        ok = False
+      if not ok:
+        raise ValueError(f"AugmentConfig.{name} must be a pair of finite numbers, got {value!r}")
+      return lo, hi
+
+    ch, cw = pair("crop_size")
     if ch < 1 or cw < 1:
       raise ValueError(f"AugmentConfig.crop_size must be positive, got {self.crop_size}")
     for name in ("scale_range", "brightness", "contrast", "saturation", "hue", "gamma", "gain",
                  "eraser_count", "eraser_size"):
-      lo, hi = getattr(self, name)
+      lo, hi = pair(name)
       if lo > hi:
         raise ValueError(f"AugmentConfig.{name} must be (min, max), got {(lo, hi)}")
-    if self.eraser_size[0] >= self.eraser_size[1] or self.eraser_count[0] < 0:
-      raise ValueError("AugmentConfig.eraser_size must be [min, max) with min < max and "
-                       "eraser_count non-negative")
+    for name in ("brightness", "contrast", "saturation", "gain"):
+      if getattr(self, name)[0] < 0:
+        raise ValueError(f"AugmentConfig.{name} factors must be >= 0, got {getattr(self, name)}")
+    if self.gamma[0] <= 0:
+      raise ValueError(f"AugmentConfig.gamma must be > 0, got {self.gamma}")
+    for name in ("stretch_prob", "spatial_prob", "asymmetric_prob", "eraser_prob"):
+      if not 0 <= getattr(self, name) <= 1:
+        raise ValueError(f"AugmentConfig.{name} is a probability in [0, 1], got "
+                         f"{getattr(self, name)!r}")
+    if not (self.yjitter_range >= 0 and self.max_stretch >= 0 and self.max_disparity > 0):
+      raise ValueError("AugmentConfig.yjitter_range and max_stretch must be >= 0 and "
+                       f"max_disparity > 0, got {self.yjitter_range!r}, {self.max_stretch!r}, "
+                       f"{self.max_disparity!r}")
+    if not -30 < self.scale_range[1] < 30:
+      raise ValueError(f"AugmentConfig.scale_range is a range of log2 scales, got "
+                       f"{self.scale_range}")
+    if (self.eraser_size[0] >= self.eraser_size[1] or self.eraser_size[0] < 1
+        or self.eraser_count[0] < 0):
+      raise ValueError("AugmentConfig.eraser_size must be [min, max) with 1 <= min < max and "
+                       f"eraser_count non-negative, got {self.eraser_size}, {self.eraser_count}")
 
 
 class _Jitter:

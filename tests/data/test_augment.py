@@ -232,6 +232,18 @@ def test_bad_inputs():
                  np.random.default_rng(0))
   with pytest.raises(ValueError, match="scale_range"):
     AugmentConfig(scale_range=(0.4, -0.2))
+  for kw, match in ((dict(stretch_prob=1.5), "stretch_prob is a probability"),
+                    (dict(eraser_prob=-0.1), "eraser_prob is a probability"),
+                    (dict(scale_range=(float("nan"),) * 2), "scale_range must be a pair of finite"),
+                    (dict(crop_size=256), "crop_size must be a pair"),
+                    (dict(crop_size=(1, 2, 3)), "crop_size must be a pair"),
+                    (dict(brightness=(-1.0, 1.0)), "brightness factors must be >= 0"),
+                    (dict(gamma=(0.0, 1.0)), "gamma must be > 0"),
+                    (dict(eraser_size=(-5, 10)), "eraser_size must be"),
+                    (dict(yjitter_range=-3), "yjitter_range"),
+                    (dict(scale_range=(0.0, 100.0)), "log2 scales")):
+    with pytest.raises(ValueError, match=match):
+      AugmentConfig(**kw)
   with pytest.raises(ValueError, match=r"\[T, H, W, 3\] uint8, got \(2, 3, 4, 1\)"):
     gray = np.zeros((2, 3, 4, 1), np.uint8)
     augment_clip({**clip, "left": gray, "right": gray}, IDENTITY, np.random.default_rng(0))
