@@ -12,6 +12,7 @@ decodes frames on demand, so building a dataset index costs only directory listi
 from __future__ import annotations
 
 import copy
+import numbers
 import re
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, Sequence
@@ -70,6 +71,9 @@ class StereoSequence:
 
   def _index(self, index: int) -> int:
     n = len(self)
+    if not isinstance(index, numbers.Integral) or isinstance(index, (bool, np.bool_)):
+      raise TypeError(f"{self.dataset}/{self.name}: frame index must be an integer, got "
+                      f"{index!r}")
     i = int(index)
     if i < 0:
       i += n

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import numbers
 from pathlib import Path
 from typing import NamedTuple
 
@@ -87,6 +88,9 @@ def eval_chunk(sequences: list[StereoSequence], length: int | None,
     drop_short: skip sequences shorter than L (the official Dynamic Replica loader
       fails on them and skips them silently).
   """
+  if length is not None and not (isinstance(length, numbers.Integral)
+                                 and not isinstance(length, bool)):
+    raise TypeError(f"the evaluation chunk length must be an integer or None, got {length!r}")
   if length is None or length <= 0:
     return list(sequences)
   out, short = [], []
@@ -123,6 +127,9 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
   _check_name(dataset)
   if split not in SPLITS[dataset]:
     raise ValueError(f"{dataset} has no split {split!r}; its splits: {SPLITS[dataset]}")
+  if not (max_frames is None or max_frames == OFFICIAL or (
+      isinstance(max_frames, numbers.Integral) and not isinstance(max_frames, bool))):
+    raise ValueError(f"max_frames must be {OFFICIAL!r}, an integer or None, got {max_frames!r}")
   seqs = _LOADERS[dataset](root, split, **options)
   if max_frames == OFFICIAL:
     length = EVAL_FRAMES.get(dataset) if split == "test" else None

@@ -147,6 +147,10 @@ def test_sintel_values_mask_and_scale(tmp_path):
   np.testing.assert_array_equal(rev["disparity"], clip["disparity"][::-1])
   with pytest.raises(IndexError):
     seqs[1].clip(1, 2)
+  with pytest.raises(TypeError, match="frame index must be an integer, got 1.7"):
+    seqs[0][1.7]
+  with pytest.raises(ValueError, match="max_frames must be 'official', an integer or None"):
+    registry.get_sequences("sintel_final", tmp_path, "test", max_frames="all")
   with pytest.raises(ValueError, match="no official training clips"):
     registry.get_training_clips("sintel_final", tmp_path, frames=2)
   _sintel(tmp_path / "b", np.random.default_rng(3), seqs=(("alley_1", 2),))
