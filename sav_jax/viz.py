@@ -22,6 +22,7 @@ File formats (all round trips are tested value by value):
 from __future__ import annotations
 
 import math
+import numbers
 import pathlib
 import warnings
 
@@ -40,8 +41,8 @@ def disparity_range(disp, valid=None, percentiles=(0.0, 100.0)) -> tuple[float, 
 
   Args:
     disp: `[H, W]` or `[T, H, W]` disparity (px).
-    valid: optional bool mask of the same shape; otherwise pixels with a finite
-      disparity > 0 are used.
+    valid: optional mask of the same shape (bool, or weights: > 0.5 is valid); only
+      pixels with a finite disparity > 0 are used either way.
     percentiles: (low, high) percentiles of the used values; (0, 100) = min/max.
 
   Returns:
@@ -50,7 +51,14 @@ def disparity_range(disp, valid=None, percentiles=(0.0, 100.0)) -> tuple[float, 
   d = np.asarray(disp, np.float32)
   use = np.isfinite(d) & (d > 0)
   if valid is not None:
-    use &= np.asarray(valid, bool)
+    mask = np.asarray(valid)
+    if mask.shape != d.shape:
+      raise ValueError(f"valid has shape {mask.shape}; expected the disparity's {d.shape}")
+    use &= mask > 0.5  # as colorize and the metrics: a fractional weight counts above 0.5
+  lo_p, hi_p = percentiles
+  if not 0 <= lo_p <= hi_p <= 100:
+    raise ValueError(f"percentiles must be (low, high) with 0 <= low <= high <= 100, got "
+                     f"{percentiles}")
   vals = d[use]
   if vals.size == 0:
     return 0.0, 1.0
@@ -82,10 +90,15 @@ def as_uint8_image(image, what: str = "image") -> np.ndarray:
   return np.rint(a).astype(np.uint8)
 
 
+def _shown(value) -> str:
+  """A number as printed (`0.0`, not `np.float64(0.0)`); anything else as its repr."""
+  return str(float(value)) if isinstance(value, numbers.Real) else repr(value)
+
+
 def check_fps(fps, what: str = "fps") -> None:
   """Raises ValueError unless `fps` is a finite positive frame rate."""
-  if not (math.isfinite(fps) and fps > 0):
-    raise ValueError(f"{what} must be a positive number, got {fps}")
+  if not (isinstance(fps, numbers.Real) and math.isfinite(fps) and fps > 0):
+    raise ValueError(f"{what} must be a positive number, got {_shown(fps)}")
 
 
 def check_intrinsics(what: str = "", **values) -> None:
@@ -93,9 +106,10 @@ def check_intrinsics(what: str = "", **values) -> None:
   `cx`, `cy` finite; the message starts with `what`."""
   for name, value in values.items():
     positive = name in ("fx", "fy", "baseline")
-    if not math.isfinite(value) or (positive and value <= 0):
+    if (not isinstance(value, numbers.Real) or not math.isfinite(value)
+        or (positive and value <= 0)):
       raise ValueError(f"{what}{name} must be a finite{' positive' if positive else ''} number, "
-                       f"got {value}")
+                       f"got {_shown(value)}")
 
 
 def _check_range(vmin, vmax) -> tuple[float, float]:

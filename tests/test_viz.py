@@ -231,6 +231,16 @@ def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
   for lo, hi in ((3.0, 1.0), (float("nan"), 1.0)):
     with pytest.raises(ValueError, match="finite vmin < vmax"):
       viz.colorize(np.ones((2, 2)), lo, hi)
+  ramp = np.arange(1, 7, dtype=np.float32).reshape(2, 3)
+  assert viz.disparity_range(ramp, np.array([[0.2, 0.9, 1], [0, 0, 0.6]])) == (2.0, 6.0)
+  with pytest.raises(ValueError, match=r"valid has shape \(3, 2\); expected the disparity's"):
+    viz.disparity_range(ramp, np.ones((3, 2), bool))
+  with pytest.raises(ValueError, match="percentiles must be"):
+    viz.disparity_range(ramp, percentiles=(100, 0))
+  with pytest.raises(ValueError, match="fps must be a positive number, got '10'"):
+    viz.check_fps("10")
+  with pytest.raises(ValueError, match="fx must be a finite positive number, got '10'"):
+    viz.check_intrinsics(fx="10")
   assert viz.colorize(np.zeros((0, 4, 4)), 0.0, 1.0).shape == (0, 4, 4, 3)
   disp, rgb = np.full((4, 5), 2.0, np.float32), np.zeros((4, 5, 3), np.uint8)
   calib = dict(fx=10.0, fy=10.0, cx=2.0, cy=2.0, baseline=0.1)
