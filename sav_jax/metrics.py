@@ -150,6 +150,10 @@ def endpoint_error_maps(pred, gt, mask, crop: int = 0, mask_thr: float = 0.5):
   """
   x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("mask", mask)
   _check_same(("pred", "gt", "mask"), (x, y, m))
+  if not (isinstance(crop, numbers.Integral) and not isinstance(crop, bool) and crop >= 0):
+    raise ValueError(f"crop must be an integer >= 0 (border pixels), got {crop!r}")
+  if not 0 <= mask_thr < 1:
+    raise ValueError(f"mask_thr must be in [0, 1) (mask values are in [0, 1]), got {mask_thr!r}")
   if crop > 0:
     if crop >= min(x.shape[1:]) - crop:  # the official check is `>`: it let an empty crop by
       raise ValueError(f"Incorrect crop size {crop} for spatial shape {x.shape[1:]} (nothing "

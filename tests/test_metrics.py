@@ -196,6 +196,12 @@ def test_crop_and_channel_axis():
   for crop in (11, 10):  # 10: 20 rows minus 2 x 10 leaves nothing
     with pytest.raises(ValueError, match="crop"):
       M.eval_endpoint_error_sequence(pred, gt, mask, crop=crop)
+  for crop in (-2, 1.5):
+    with pytest.raises(ValueError, match="crop must be an integer >= 0"):
+      M.eval_endpoint_error_sequence(pred, gt, mask, crop=crop)
+  for thr in (float("nan"), 2.0):
+    with pytest.raises(ValueError, match=r"mask_thr must be in \[0, 1\)"):
+      M.eval_endpoint_error_sequence(pred, gt, mask, mask_thr=thr)
 
 
 def test_shape_mismatch_names_both_shapes():
