@@ -16,6 +16,7 @@ import re
 import shutil
 import time
 
+import jax
 import numpy as np
 
 from eval import data as eval_data
@@ -72,9 +73,10 @@ def per_frame_errors(pred, gt, valid) -> tuple[np.ndarray, np.ndarray]:
 def predict(method: str, clip: dict, *, variables, model_cfg, config) -> np.ndarray:
   """`[T, H, W]` disparity of one method on a sequence's frames."""
   if method == "sav":
-    return inference.predict_video(variables, clip["left"], clip["right"], cfg=model_cfg,
-                                   iters=config.iters, window=config.window,
-                                   stride=config.stride, progress=True)
+    with jax.default_matmul_precision(config.matmul_precision):
+      return inference.predict_video(variables, clip["left"], clip["right"], cfg=model_cfg,
+                                     iters=config.iters, window=config.window,
+                                     stride=config.stride, progress=True)
   if method == "sgbm":
     from sav_jax.tools.demo import stereo_sgbm  # pylint: disable=import-outside-toplevel
     return stereo_sgbm(clip["left"], clip["right"], max_disparity=config.baseline.max_disparity,

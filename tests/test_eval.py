@@ -192,6 +192,22 @@ def test_failed_overwrite_run_loses_nothing(tmp_path, ckpt, capsys, monkeypatch)
   assert _snapshot(out) == before
 
 
+def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch):
+  seen = []
+
+  def fake_predict(variables, left, right, **kw):
+    seen.append(jax.config.jax_default_matmul_precision)
+    return np.ones(left.shape[:3], np.float32)
+
+  monkeypatch.setattr(eval_runner.inference, "predict_video", fake_predict)
+  args = ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL]
+  assert main([*args, "--out", str(tmp_path / "a"), "--config.matmul_precision=highest"]) == 0
+  assert main([*args, "--out", str(tmp_path / "b")]) == 0
+  assert seen == ["highest", "highest", "default", "default"]  # two sequences each
+  assert main([*args, "--out", str(tmp_path / "c"), "--config.matmul_precision=tf32"]) == 2
+  assert "config.matmul_precision must be one of" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("override,message", [
     ("--config.nope=1", "no such config field"), ("--config.iters=abc", "expected int"),
     ("--config.iters=3", "even"), ("--config.plots.enabled=maybe", "true/false"),

@@ -33,6 +33,10 @@ def eval_config(dataset: str, split: str = "test", sample_len: int = -1
   c.stride = 10
   # Compute dtype of the model: "float32" (official, mixed precision off) or "bfloat16".
   c.dtype = "float32"
+  # Precision of float32 products and convolutions: "default" (XLA's choice: TF32 on recent
+  # NVIDIA GPUs, about 1e-3 px from the official float32 output; full float32 on CPU) or
+  # "highest" (full float32 everywhere, within ~1e-5 px of it; slower on GPUs).
+  c.matmul_precision = "default"
   # Evaluate only the first N sequences (<= 0: all); for quick checks.
   c.max_sequences = -1
   # Write each sequence's predicted disparity as predictions/<sequence>.npy.
