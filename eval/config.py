@@ -36,9 +36,8 @@ def load_config(spec: str) -> ml_collections.ConfigDict:
   try:
     signature.bind(arg) if arg else signature.bind()  # pylint: disable=expression-not-assigned
   except TypeError as e:
-    raise ValueError(f"{file}: get_config{signature} cannot be called "
-                     f"{f'with the argument {arg!r} (from {spec})' if arg else 'without an argument'}"
-                     ) from e
+    how = f"with the argument {arg!r} (from {spec})" if arg else "without an argument"
+    raise ValueError(f"{file}: get_config{signature} cannot be called {how}") from e
   config = module.get_config(arg) if arg else module.get_config()
   if not isinstance(config, ml_collections.ConfigDict):
     raise ValueError(f"{file}: get_config() returned {type(config).__name__}, not a ConfigDict")

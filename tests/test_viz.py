@@ -254,8 +254,8 @@ def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
   for fx in (0.0, float("nan")):
     with pytest.raises(ValueError, match="fx must be a finite positive number"):
       viz.depth_from_disparity(disp, fx, 0.1)
-  for writer, what, suffix in ((viz.write_png16, "16-bit PNG", ".png"), (viz.write_pfm, "PFM", ".pfm"),
-                               (viz.write_exr, "EXR", ".exr")):
+  for writer, what, suffix in ((viz.write_png16, "16-bit PNG", ".png"),
+                               (viz.write_pfm, "PFM", ".pfm"), (viz.write_exr, "EXR", ".exr")):
     for shape in ((0, 4), (4, 5, 2)):
       path = tmp_path / f"empty_{len(shape)}{suffix}"
       with pytest.raises(ValueError, match=f"{path.name}: .*{what}.*got shape"):

@@ -239,10 +239,28 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
     streams.append(ds)
   ds = streams[0] if len(streams) == 1 else grain.MapDataset.mix(streams, props)
   read = grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch)
-  it = ds.to_iter_dataset(read).batch(batch_size, drop_remainder=True)
+  it = ds.to_iter_dataset(read).batch(batch_size, drop_remainder=True, batch_fn=stack_examples)
   if worker_count > 0:
     it = it.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count))
   return it
+
+
+def stack_examples(examples: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
+  """Stacks examples into a batch; examples of different keys, shapes or dtypes (e.g.
+  sources of another crop or frame count) are a ValueError that names the difference."""
+  first = examples[0]
+  for i, ex in enumerate(examples[1:], 1):
+    if ex.keys() != first.keys():
+      raise ValueError(f"examples of one batch have different keys: {sorted(first)} and "
+                       f"{sorted(ex)}")
+    for k in first:
+      a, b = np.asarray(first[k]), np.asarray(ex[k])
+      if a.shape != b.shape or a.dtype != b.dtype:
+        raise ValueError(
+            f"examples of one batch differ in {k!r}: {a.shape} {a.dtype} (example 0) and "
+            f"{b.shape} {b.dtype} (example {i}); every source of a batch needs the same "
+            "frame count and crop")
+  return {k: np.stack([ex[k] for ex in examples]) for k in first}
 
 
 def to_global(batch: Mapping[str, np.ndarray], sharding: jax.sharding.Sharding
@@ -311,5 +329,5 @@ def eval_batches(clips: Sequence[Mapping[str, np.ndarray]], batch_size: int
     part = list(clips[start:start + batch_size])
     n = len(part)
     part += [part[-1]] * (batch_size - n)
-    out.append(({k: np.stack([c[k] for c in part]) for k in EXAMPLE_KEYS}, n))
+    out.append((stack_examples([{k: c[k] for k in EXAMPLE_KEYS} for c in part]), n))
   return out

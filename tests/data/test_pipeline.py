@@ -103,6 +103,15 @@ def test_bad_pipeline_arguments_are_named():
     pipeline.eval_batches([], 2)
   with pytest.raises(ValueError, match="num_clips must be an integer >= 1"):
     pipeline.fixed_clips(a, 0)
+  # Sources of another frame size in one mixture: the batch names the key and both shapes.
+  it = iter(pipeline.make_train_dataset([a, _tagged(2, 4, h=8)], [1.0, 1.0], batch_size=4,
+                                        seed=0))
+  with pytest.raises(ValueError, match=r"differ in 'left': \(2, (16|8), 16, 3\) uint8 .*same frame "
+                     "count and crop"):
+    _take(it, 4)
+  with pytest.raises(ValueError,
+                     match=r"differ in 'left': \(2, 16, 16, 3\) uint8 \(example 0\) and \(3, "):
+    pipeline.eval_batches([clip, _tagged(2, 1, t=3)[0]], 2)
   unit = {**clip, "left": clip["left"] / 255.0, "right": clip["right"] / 255.0}
   with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
     pipeline.as_example(unit)

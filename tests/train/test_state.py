@@ -522,8 +522,9 @@ def test_a_workdir_that_is_a_file_is_refused(tmp_path):
 
 def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir(tmp_path):
   """A config value (before any tracing), unreadable init weights and an unknown validation
-  dataset (after tracing the model's shapes, before the workdir is created), an override of a field that does not
-  exist, and a config file that is missing or does not parse (while absl parses the flags)."""
+  dataset (after tracing the model's shapes, before the workdir is created), an override of
+  a field that does not exist or of the wrong type, and a config file that is missing or
+  does not parse (while absl parses the flags)."""
   import subprocess  # pylint: disable=g-import-not-at-top
   from sav_jax.convert import save_variables  # pylint: disable=g-import-not-at-top
   from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
