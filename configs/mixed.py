@@ -3,8 +3,10 @@
 The official script builds this mixture with `--train_datasets dynamic_replica
 infinigen_stereovideo vkitti2`: a concatenation in which Infinigen SV appears three
 times, so a dataset's share is (repeats x clips). The released MIX checkpoint's exact
-recipe is not in the official repository (not confirmed); everything else is the
-SceneFlow recipe with 80k steps, starting from the SceneFlow weights.
+recipe is not in the official repository (not confirmed: the official KITTI Depth loader
+has a training split, so the MIX model may have seen KITTI too; add a source for it if so);
+everything else is the SceneFlow recipe with 80k steps, starting from the SceneFlow weights
+(pass them as init_from: without it, or vda_weights, the run refuses to start).
 
 Usage:
   python -m train --config configs/mixed.py --workdir runs/mix \

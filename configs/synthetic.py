@@ -19,6 +19,8 @@ from sav_jax.data.synthetic import SyntheticConfig
 
 def get_config() -> ml_collections.ConfigDict:
   c = sceneflow.base_config()
+  # The toy runs on the generator start from scratch, depth prior included.
+  c.random_depth_prior = True
   # Short clips (T).
   c.data.frames = 3
   # Small crop (H, W), multiples of 16.

@@ -245,6 +245,13 @@ def setup(config, workdir):
   for field in ("init_from", "vda_weights"):  # before anything is created in the workdir
     if config[field] and not pathlib.Path(config[field]).exists():
       raise FileNotFoundError(f"config.{field}={config[field]}: no such file or directory")
+  if (not (config.init_from or config.vda_weights or config.random_depth_prior)
+      and sav_jax.convert.find_training_checkpoint(workdir / "checkpoints") is None):
+    raise ValueError(
+        "config.vda_weights and config.init_from are both empty: the frozen depth prior would "
+        "stay random for the whole run (the official model always loads Video Depth "
+        "Anything). Pass --config.vda_weights=video_depth_anything_vits.pth (or init_from), "
+        "or --config.random_depth_prior=true for a toy run")
   mesh = state_lib.make_mesh()
   validate_config(config, workdir, mesh.size)
   log.info("mesh %s over %d devices, %d processes", dict(mesh.shape), mesh.size,

@@ -521,10 +521,10 @@ def test_a_workdir_that_is_a_file_is_refused(tmp_path):
 
 
 def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir(tmp_path):
-  """A config value (before any tracing), unreadable init weights and an unknown validation
-  dataset (after tracing the model's shapes, before the workdir is created), an override of
-  a field that does not exist or of the wrong type, and a config file that is missing or
-  does not parse (while absl parses the flags)."""
+  """A config value or no depth-prior weights (before any tracing), unreadable init weights
+  and an unknown validation dataset (after tracing the model's shapes, before the workdir is
+  created), an override of a field that does not exist or of the wrong type, and a config
+  file that is missing or does not parse (while absl parses the flags)."""
   import subprocess  # pylint: disable=g-import-not-at-top
   from sav_jax.convert import save_variables  # pylint: disable=g-import-not-at-top
   from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
@@ -544,6 +544,8 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
       ([str(tmp_path / "nope.py")], "cannot load the --config file: "
        f"[Errno 2] No such file or directory: '{tmp_path / 'nope.py'}'"),
       ([str(broken)], f"the config file {broken} does not parse: line 1: "),
+      ([str(ROOT / "configs/sceneflow.py")], "config.vda_weights and config.init_from are "
+       "both empty: the frozen depth prior would stay random"),
       ([config, "--config.train.batch_size=abc"], "flag --config.train.batch_size=abc: "
        "invalid literal for int()"),
       ([config, "--config.eval.every_steps=1", "--config.eval.dataset=foo"],
