@@ -43,6 +43,10 @@ def base_config() -> ml_collections.ConfigDict:
   # Allow a run with neither init_from nor vda_weights, whose frozen depth prior stays random
   # (the official model always loads Video Depth Anything): for toy runs only.
   c.random_depth_prior = False
+  # Precision of float32 products and convolutions: "default" (XLA's: TF32 on recent NVIDIA
+  # GPUs, full float32 on CPUs) or "highest" (full float32; the official float32 training
+  # has full-precision products and TF32 convolutions), "high" in between.
+  c.matmul_precision = "default"
 
   c.model = ml_collections.ConfigDict()
   # Frozen depth prior variant: "vits" (the paper) or "vitl".

@@ -168,6 +168,8 @@ def _is_regex(x) -> bool:
 # created in the workdir or compiled (later they fail deep inside grain, optax or a trace).
 _CHECKS = (
     ("seed", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
+    ("matmul_precision", lambda x: x in ("default", "high", "highest"),
+     "'default', 'high' or 'highest'"),
     ("data.frames", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("data.crop", _is_crop, "(height, width): two positive multiples of 16 (the model's "
      "coarsest scale is 1/16)"),
@@ -287,7 +289,13 @@ def run(config, workdir, parts: dict | None = None) -> state_lib.TrainState:
   """Trains `config` in `workdir` (created if needed) and returns the final state.
 
   `parts`: what `setup(config, workdir)` returned, if the caller ran it (else run here).
+  The train and validation steps are traced under `config.matmul_precision`.
   """
+  with jax.default_matmul_precision(config.matmul_precision):
+    return _run(config, workdir, parts)
+
+
+def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
   workdir = pathlib.Path(workdir)
   parts = setup(config, workdir) if parts is None else parts
   state, manager, evaluator = parts["state"], parts["manager"], parts["evaluator"]

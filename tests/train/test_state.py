@@ -499,16 +499,30 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
     ("eval.iters", 5, r"config\.eval\.iters=5"),
     ("model.dtype", "float16", r"config\.model\.dtype='float16'; expected 'float32' or"),
     ("model.remat_policy", "bogus", r"config\.model\.remat_policy='bogus'"),
+    ("matmul_precision", "tf32", r"config\.matmul_precision='tf32': expected 'default', "),
 ])
 def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match):
   from train import loop  # pylint: disable=g-import-not-at-top
   c = synthetic.get_config()
-  section, name = field.split(".")
-  c[section][name] = value
+  *sections, name = field.split(".")
+  node = c
+  for section in sections:
+    node = node[section]
+  node[name] = value
   with pytest.raises(ValueError, match=match):
     loop.validate_config(c, tmp_path / "w", num_devices=2)
   loop.validate_config(synthetic.get_config(), tmp_path / "w", num_devices=2)
   assert not (tmp_path / "w").exists()
+
+
+def test_run_traces_under_the_configured_matmul_precision(monkeypatch):
+  from train import loop  # pylint: disable=g-import-not-at-top
+  seen = []
+  monkeypatch.setattr(loop, "_run", lambda *a: seen.append(jax.config.jax_default_matmul_precision))
+  c = synthetic.get_config()
+  c.matmul_precision = "highest"
+  loop.run(c, "unused", parts={})
+  assert seen == ["highest"] and jax.config.jax_default_matmul_precision is None
 
 
 def test_a_workdir_that_is_a_file_is_refused(tmp_path):
