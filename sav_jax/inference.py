@@ -615,22 +615,35 @@ def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache
 def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk, progress=False,
               raw_windows=None):
   """Runs the windows of `plan` and stitches `abs()` of their kept frames, `[N', H, W]`."""
+  return np.concatenate([d for _, d in _iter_plan(
+      variables, left, right, plan, cfg=cfg, iters=iters, check_memory=check_memory,
+      chunk=chunk, progress=progress, raw_windows=raw_windows)], axis=0)
+
+
+def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk, progress=False,
+               raw_windows=None, check_frames=False):
+  """Yields `(first frame index, abs() of the window's kept frames [k, H, W])` per window.
+
+  `left[sl]` / `right[sl]` are read per window (a lazy source decodes them then); with
+  `check_frames` each window's frames are checked as `predict_video` checks arrays.
+  """
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
   pads = pad_amounts(*left.shape[1:3])
   variables = jax.device_put(model_variables(variables))
-  kept = []
   total = sum(w.keep_stop - w.keep_start for w in plan)
   with tqdm(total=total, unit="frame", desc="disparity", disable=not progress) as bar:
     cache = FrameFeatureCache(chunk)
     for win in plan:
       sl = slice(win.start, win.start + win.length)
-      raw = _run_window(variables, left[sl], right[sl], cfg=cfg, iters=iters, pads=pads,
-                       check_memory=check_memory, cache=cache, start=win.start)
+      lw, rw = left[sl], right[sl]
+      if check_frames:
+        lw, rw = _as_video_pair(lw, rw)
+      raw = _run_window(variables, lw, rw, cfg=cfg, iters=iters, pads=pads,
+                        check_memory=check_memory, cache=cache, start=win.start)
       if raw_windows is not None:
         raw_windows.append(raw)
-      kept.append(np.abs(unpad(raw, pads)[win.keep_start:win.keep_stop]))
+      yield win.start + win.keep_start, np.abs(unpad(raw, pads)[win.keep_start:win.keep_stop])
       bar.update(win.keep_stop - win.keep_start)
-  return np.concatenate(kept, axis=0)
 
 
 def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters: int = 20,
@@ -640,7 +653,8 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
 
   Args:
     variables: model variables (`params_from_state_dict` or `restore_variables`).
-    left, right: `[T, H, W, 3]` RGB frames, uint8 or float in 0..255.
+    left, right: `[T, H, W, 3]` RGB frames, uint8 or float in 0..255, or lazy video
+      sources (see `iter_predict_video`).
     cfg: model config (default `SAVConfig()`).
     iters: refinement iterations at 1/4 resolution (even; the official evaluation uses 20).
     window, stride: sliding window (official: 20, 10).
@@ -651,13 +665,50 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
   Returns:
     `[T, H, W]` float32 positive disparity (px) of the left view, every frame.
   """
+  return np.concatenate([d for _, d in iter_predict_video(
+      variables, left, right, cfg=cfg, iters=iters, window=window, stride=stride, dtype=dtype,
+      progress=progress, check_memory=check_memory)], axis=0)
+
+
+def _is_lazy_video(x) -> bool:
+  """A lazy video source: not an array or a list, with a `[T, H, W, 3]` shape and slicing."""
+  return (not isinstance(x, (np.ndarray, jax.Array, list, tuple)) and hasattr(x, "shape")
+          and hasattr(x, "__getitem__") and len(getattr(x, "shape", ())) == 4)
+
+
+def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
+                       iters: int = 20, window: int = WINDOW, stride: int = STRIDE,
+                       dtype: str | None = None, progress: bool = False,
+                       check_memory: bool = True):
+  """`predict_video` one window at a time, for videos that do not fit in memory.
+
+  `left` and `right` are arrays as for `predict_video`, or lazy video sources: objects with
+  a `shape` `(T, H, W, 3)` whose `source[a:b]` returns those frames as an array (e.g.
+  `sav_jax.tools.video_io.FrameSource`, which decodes frames when asked). Only one window
+  of frames (and the per-frame features of its overlap) is held at a time; a lazy
+  source's frames are checked as they are read. The arguments are checked by the call;
+  the windows run as the returned iterator is consumed.
+
+  Returns:
+    An iterator of `(t, disparities [k, H, W])`: frames `t .. t + k - 1`, in order, every frame once
+    (the same values `predict_video` returns).
+  """
   cfg = resolve_config(cfg, dtype)
   iters = check_iters(iters)
-  left, right = _as_video_pair(left, right)
+  lazy = _is_lazy_video(left) or _is_lazy_video(right)
+  if lazy:
+    shapes = tuple(tuple(getattr(x, "shape", ())) for x in (left, right))
+    if shapes[0] != shapes[1]:
+      raise ValueError(f"left and right videos differ in shape: {shapes[0]} vs {shapes[1]}")
+    if shapes[0][-1] != 3 or min(shapes[0][:3]) < 1:
+      raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {shapes[0]}")
+  else:
+    left, right = _as_video_pair(left, right)
   check_variables(variables, cfg)
-  plan = window_plan(left.shape[0], window, stride)
-  return _run_plan(variables, left, right, plan, cfg=cfg, iters=iters,
-                   check_memory=check_memory, chunk=stride, progress=progress)
+  plan = window_plan(int(left.shape[0]), window, stride)
+  return _iter_plan(variables, left, right, plan, cfg=cfg, iters=iters,
+                    check_memory=check_memory, chunk=stride, progress=progress,
+                    check_frames=lazy)
 
 
 def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None = None,

@@ -196,7 +196,9 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
 
   Args:
     path: output file (`.mp4`, or another of `VIDEO_SUFFIXES`; other names are refused).
-    frames: `[T, H, W, 3]` uint8 RGB (or an iterable of `[H, W, 3]` frames).
+    frames: `[T, H, W, 3]` uint8 RGB, a list of `[H, W, 3]` frames (all checked before the
+      file is created), or an iterator of them (written as they come, so a long video need
+      not be in memory; a bad frame stops the writing and removes the partial file).
     fps: frame rate.
 
   Returns:
@@ -206,26 +208,50 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
   if path.suffix.lower() not in VIDEO_SUFFIXES:
     raise ValueError(f"{path}: write_video writes mp4v video files; name one "
                      f"{'/'.join(VIDEO_SUFFIXES)}")
-  frames = [as_uint8_image(f, f"{path} frame {i}") for i, f in enumerate(frames)]
-  if not frames:
-    raise ValueError(f"{path}: no frames to write")
   check_fps(fps, f"{path}: fps")
-  h, w = frames[0].shape[:2]
-  for i, f in enumerate(frames):  # all checked before the file is created
-    if f.shape != (h, w, 3) or h < 1 or w < 1:
-      raise ValueError(f"{path}: frame {i} has shape {f.shape}; expected RGB [H, W, 3] "
-                       f"frames of one size{f' ({h}, {w}, 3)' if i else ''}")
-  he, we = h + h % 2, w + w % 2
-  writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (we, he))
-  if not writer.isOpened():
-    raise OSError(f"{path}: OpenCV cannot open an mp4v video writer")
+  streamed = not isinstance(frames, (np.ndarray, list, tuple))
+  if not streamed:  # all checked before the file is created
+    frames = [_video_frame(path, i, f, None) for i, f in enumerate(frames)]
+    if not frames:
+      raise ValueError(f"{path}: no frames to write")
+    for i, f in enumerate(frames):
+      _video_frame(path, i, f, frames[0].shape)
+  writer, size = None, None
   try:
-    for f in frames:
+    for i, f in enumerate(frames):
+      f = _video_frame(path, i, f, size)
+      if writer is None:
+        size = f.shape
+        h, w = size[:2]
+        he, we = h + h % 2, w + w % 2
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
+                                 (we, he))
+        if not writer.isOpened():
+          writer = None
+          raise OSError(f"{path}: OpenCV cannot open an mp4v video writer")
       f = np.pad(f, ((0, he - h), (0, we - w), (0, 0)), mode="edge")
       writer.write(np.ascontiguousarray(f[..., ::-1]))
+    if writer is None:
+      raise ValueError(f"{path}: no frames to write")
+  except BaseException:
+    if writer is not None and streamed:  # a frame of an iterator was bad: no half video
+      writer.release()
+      writer = None
+      path.unlink(missing_ok=True)
+    raise
   finally:
-    writer.release()
+    if writer is not None:
+      writer.release()
   return path
+
+
+def _video_frame(path, i: int, frame, size) -> np.ndarray:
+  """Frame `i` as uint8 `[H, W, 3]`; a ValueError unless it is that (and `size`, if given)."""
+  f = as_uint8_image(frame, f"{path} frame {i}")
+  if f.ndim != 3 or f.shape[2] != 3 or min(f.shape[:2]) < 1 or (size and f.shape != size):
+    raise ValueError(f"{path}: frame {i} has shape {f.shape}; expected RGB [H, W, 3] "
+                     f"frames of one size{f' {size}' if size else ''}")
+  return f
 
 
 def depth_from_disparity(disp, fx: float, baseline: float) -> np.ndarray:

@@ -149,6 +149,61 @@ def test_unusable_checkpoints_are_refused_before_the_run(tmp_path, folders, vari
       load_checkpoint(tmp_path / "cfg")
 
 
+def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch):
+  # 25 frames in sliding windows, the model replaced by a stand-in whose output labels
+  # each frame with its index: every file lands at the right name, the frame sources are
+  # read window by window (never the whole video), and the colour range of the video
+  # comes from all frames.
+  n = 25
+  labels = np.arange(n, dtype=np.uint8) * 9
+  frames = np.broadcast_to(labels[:, None, None, None], (n, 16, 24, 3)).copy()
+  left = _write_frames(tmp_path / "left", frames)
+  viz.write_video(tmp_path / "right.mp4", frames)
+  read = []
+  real_getitem = video_io.FrameSource.__getitem__
+
+  def counting_getitem(self, index):
+    out = real_getitem(self, index)
+    read.append(len(out))
+    return out
+
+  def label_model(variables, lw, rw, *, cfg, iters, pads, check_memory, cache, start):
+    value = np.round(lw[:, 0, 0, 0] / 9).astype(np.float32) + 1  # frame index + 1
+    hp, wp = lw.shape[1] + pads[0] + pads[1], lw.shape[2] + pads[2] + pads[3]
+    return -np.broadcast_to(value[:, None, None], (len(lw), hp, wp)).copy()
+
+  monkeypatch.setattr(video_io.FrameSource, "__getitem__", counting_getitem)
+  monkeypatch.setattr(inference, "_run_window", label_model)
+  out = tmp_path / "out"
+  assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy", "--fx", "10",
+                "--baseline", "1") == 0
+  for i in range(n):
+    np.testing.assert_array_equal(np.load(out / "disparity" / f"{i:04d}.npy"), i + 1)
+    np.testing.assert_allclose(np.load(out / "depth" / f"{i:04d}.npy"), 10 / (i + 1), rtol=1e-6)
+  assert max(read) <= 20  # windows (and video batches), never all 25 frames at once
+  assert len(video_io.read_video_file(out / "side_by_side.mp4")) == n
+  assert not list(out.glob(".disparity_*"))  # the temporary file is gone
+  assert json.loads((out / "summary.json").read_text())["frames"] == n
+
+
+def test_frame_sources_check_every_frame_when_opened(tmp_path, clip):
+  left = _write_frames(tmp_path / "left", clip["left"])
+  right = _write_frames(tmp_path / "right", clip["right"])
+  viz.write_video(tmp_path / "v.mp4", clip["left"])
+  lv, rv, names = video_io.open_stereo(left, right)
+  arrays = video_io.load_stereo(left, right)
+  assert names == arrays[2] and lv.shape == arrays[0].shape
+  np.testing.assert_array_equal(lv[1:3], arrays[0][1:3])
+  np.testing.assert_array_equal(rv[-1], arrays[1][-1])
+  video = video_io.FrameSource(tmp_path / "v.mp4")
+  whole = video_io.read_video_file(tmp_path / "v.mp4")
+  np.testing.assert_array_equal(np.concatenate([video[1:3], video[0:1], video[2:]]),
+                                whole[[1, 2, 0, 2]])  # backwards restarts the decoder
+  (left / "0002.png").write_bytes(b"not a png")  # the last frame: found before any work
+  with pytest.raises(ValueError, match="0002.png: unreadable frame"):
+    video_io.open_stereo(left, right)
+
+
 def test_video_files_and_orbax_checkpoint(tmp_path, clip, orbax_ckpt, variables):
   viz.write_video(tmp_path / "left.mp4", clip["left"])
   viz.write_video(tmp_path / "right.mp4", clip["right"])

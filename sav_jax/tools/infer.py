@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
   ckpt = pathlib.Path(args.checkpoint)
   if not ckpt.exists():
     raise FileNotFoundError(f"checkpoint not found: {ckpt}")
-  left, right, names = video_io.load_stereo(args.left, args.right, args.max_frames)
+  left, right, names = video_io.open_stereo(args.left, args.right, args.max_frames)
   t, h, w = left.shape[:3]
   calib = None if calib_spec is None else calib_spec.resolve(w, h)
   out = check_output_dir(args.out)
@@ -168,43 +168,71 @@ def run(args: argparse.Namespace) -> int:
   print(f"weights: {described}")
   print(f"input: {t} frames of {h}x{w} (height x width); iters {args.iters}, {cfg.dtype}")
   start = time.perf_counter()
-  disp = inference.predict_video(variables, left, right, cfg=cfg, iters=args.iters,
-                                 window=args.window, stride=args.stride, progress=True)
+  chunks = inference.iter_predict_video(variables, left, right, cfg=cfg, iters=args.iters,
+                                        window=args.window, stride=args.stride, progress=True)
+  write_outputs(out, names, left, chunks, formats, calib, args)
   seconds = time.perf_counter() - start
-  write_outputs(out, names, left, disp, formats, calib, args)
   summary = {"frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
              "window": args.window, "stride": args.stride, "weights": described,
              "left": str(args.left), "right": str(args.right), "formats": formats,
              "seconds": round(seconds, 3), "frames_per_second": round(t / seconds, 3),
              "calibration": None if calib is None else calib._asdict()}
   (out / "summary.json").write_text(json.dumps(summary, indent=1))
-  print(f"{t} frames in {seconds:.1f} s ({t / seconds:.2f} frames/s, compilation included); "
-        f"outputs in {out}")
+  print(f"{t} frames in {seconds:.1f} s ({t / seconds:.2f} frames/s, compilation and writing "
+        f"included); outputs in {out}")
   return 0
 
 
-def write_outputs(out: pathlib.Path, names, left, disp, formats, calib, args) -> None:
-  """Disparity files, the side-by-side video and, with calibration, depth and PLY files."""
+# Most disparity values the side-by-side video's colour range is computed from (a regular
+# subsample of longer videos' frames).
+RANGE_SAMPLE = 1 << 24
+
+
+def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) -> None:
+  """Disparity files, the side-by-side video and, with calibration, depth and PLY files.
+
+  `chunks` yields `(first frame, disparities [k, H, W])` in order (or is a `[T, H, W]`
+  array). Each chunk's files are written as it comes; the disparities wait in a temporary
+  file in `out` (not in memory) for the video, whose one colour range needs them all.
+  """
+  import tempfile  # pylint: disable=import-outside-toplevel
+
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
 
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
+  if isinstance(chunks, np.ndarray):
+    chunks = [(0, chunks)]
   (out / "disparity").mkdir(parents=True, exist_ok=True)
   if calib is not None:
     (out / "depth").mkdir(exist_ok=True)
     (out / "pointclouds").mkdir(exist_ok=True)
-  vmin, vmax = viz.disparity_range(disp, percentiles=(1.0, 99.0))
-  frames = []
-  for i, name in enumerate(tqdm(names, desc="writing", unit="frame")):
-    for fmt in formats:
-      video_io.write_map(video_io.disparity_path(out / "disparity", name, fmt), disp[i], fmt)
-    frames.append(viz.side_by_side(left[i], viz.colorize(disp[i], vmin, vmax)))
-    if calib is not None:
-      depth = viz.depth_from_disparity(disp[i], calib.fx, calib.baseline)
-      video_io.write_map(video_io.disparity_path(out / "depth", name, args.depth_format), depth,
-                         args.depth_format)
-      xyz, rgb = viz.disparity_to_points(disp[i], left[i], **calib._asdict())
-      viz.write_ply(out / "pointclouds" / f"{name}.ply", xyz, rgb)
-  viz.write_video(out / "side_by_side.mp4", frames, fps=args.fps)
+  h, w = left.shape[1:3]
+  with tempfile.TemporaryFile(dir=out, prefix=".disparity_", suffix=".tmp") as held:
+    disp = np.memmap(held, np.float32, "w+", shape=(len(names), h, w))
+    for t0, chunk in chunks:
+      frames = left[t0:t0 + len(chunk)] if calib is not None else None
+      for k, d in enumerate(chunk):
+        i, name = t0 + k, names[t0 + k]
+        disp[i] = d
+        for fmt in formats:
+          video_io.write_map(video_io.disparity_path(out / "disparity", name, fmt), d, fmt)
+        if calib is not None:
+          depth = viz.depth_from_disparity(d, calib.fx, calib.baseline)
+          video_io.write_map(video_io.disparity_path(out / "depth", name, args.depth_format),
+                             depth, args.depth_format)
+          xyz, rgb = viz.disparity_to_points(d, frames[k], **calib._asdict())
+          viz.write_ply(out / "pointclouds" / f"{name}.ply", xyz, rgb)
+    step = max(1, int(np.ceil(np.sqrt(disp.size / RANGE_SAMPLE))))
+    vmin, vmax = viz.disparity_range(disp[:, ::step, ::step], percentiles=(1.0, 99.0))
+    batch = max(1, int(args.window))
+
+    def video_frames():
+      for a in tqdm(range(0, len(names), batch), desc="video", unit="batch"):
+        for f, d in zip(left[a:a + batch], disp[a:a + batch]):
+          yield viz.side_by_side(f, viz.colorize(np.asarray(d), vmin, vmax))
+
+    viz.write_video(out / "side_by_side.mp4", video_frames(), fps=args.fps)
+    del disp
 
 
 class Calibration(NamedTuple):

@@ -75,18 +75,7 @@ def read_frame(path, notes: set[str]) -> np.ndarray:
 
 def read_video_file(path, max_frames: int | None = None) -> np.ndarray:
   """Decodes a video file to `[T, H, W, 3]` uint8 RGB."""
-  cap = cv2.VideoCapture(str(path))
-  if not cap.isOpened():
-    raise ValueError(f"{path}: unreadable video (OpenCV cannot open it)")
-  frames, notes = [], set()
-  try:
-    while max_frames is None or len(frames) < max_frames:
-      ok, img = cap.read()
-      if not ok:
-        break
-      frames.append(to_rgb8(img, str(path), notes))
-  finally:
-    cap.release()
+  frames = list(_decode(path, max_frames, set()))
   if not frames:
     raise ValueError(f"{path}: the video has no decodable frames")
   return np.stack(frames)
@@ -113,13 +102,123 @@ def _read_source(path, max_frames: int | None, notes: set[str]):
     if len(set(names)) != len(names):
       names = [f"frame_{i:06d}" for i in range(len(files))]
     return np.stack(frames), names
+  _check_video_path(path)
+  frames = read_video_file(path, max_frames)
+  return frames, [f"frame_{i:06d}" for i in range(len(frames))]
+
+
+class FrameSource:
+  """The frames of a folder or a video file, decoded when asked: `source[a:b]` gives
+  `[b - a, H, W, 3]` uint8 RGB (a lazy video source of `inference.iter_predict_video`).
+
+  Opening it decodes every frame once to check it (readable, one size, 8 or 16 bit) and
+  keeps none, so that a bad frame is found before anything is computed or written. A video
+  file is then read forward once more: reading the windows in order re-decodes nothing.
+  """
+
+  def __init__(self, path, max_frames: int | None = None, notes: set[str] | None = None):
+    self.path = pathlib.Path(path)
+    self.notes = set() if notes is None else notes
+    self._files = None
+    if self.path.is_dir():
+      self._files = list_frames(self.path)[:max_frames]
+      first = None
+      for file in self._files:
+        shape = read_frame(file, self.notes).shape
+        first = first or (file, shape)
+        if shape != first[1]:
+          raise ValueError(f"{self.path}: frames differ in size: {file.name} is {_size(shape)} "
+                           f"but the first frame {first[0].name} is {_size(first[1])} "
+                           "(height x width)")
+      names = [f.stem for f in self._files]
+      if len(set(names)) != len(names):
+        names = [f"frame_{i:06d}" for i in range(len(names))]
+      self.names, (h, w) = names, first[1][:2]
+    else:
+      _check_video_path(self.path)
+      count, shape = 0, None
+      for frame in _decode(self.path, max_frames, self.notes):
+        if shape is not None and frame.shape != shape:
+          raise ValueError(f"{self.path}: frame {count} is {_size(frame.shape)}, the first "
+                           f"{_size(shape)} (height x width)")
+        shape, count = frame.shape, count + 1
+      if not count:
+        raise ValueError(f"{self.path}: the video has no decodable frames")
+      self.names, (h, w) = [f"frame_{i:06d}" for i in range(count)], shape[:2]
+    self.shape = (len(self.names), h, w, 3)
+    self._reader, self._next, self._buffer = None, 0, {}
+
+  def __len__(self) -> int:
+    return self.shape[0]
+
+  def __getitem__(self, index) -> np.ndarray:
+    if not isinstance(index, slice):
+      return self[index:index + 1][0] if index >= 0 else self[len(self) + index]
+    start, stop, step = index.indices(len(self))
+    if step != 1:
+      raise ValueError("FrameSource slices take step 1")
+    if self._files is not None:
+      frames = [read_frame(f, self.notes) for f in self._files[start:stop]]
+    else:
+      frames = [self._video_frame(i) for i in range(start, stop)]
+    return np.stack(frames) if frames else np.zeros((0, *self.shape[1:]), np.uint8)
+
+  def _video_frame(self, i: int) -> np.ndarray:
+    if i in self._buffer:
+      return self._buffer[i]
+    if self._reader is None or i < self._next:  # (re)start from the first frame
+      self._reader, self._next, self._buffer = _decode(self.path, None, self.notes), 0, {}
+    while self._next <= i:
+      frame = next(self._reader, None)
+      if frame is None:
+        raise ValueError(f"{self.path}: frame {self._next} cannot be decoded any more")
+      self._buffer[self._next] = frame
+      self._next += 1
+    # Keep the last window's worth of frames: the next window starts inside it.
+    for old in [k for k in self._buffer if k < i - 64]:
+      del self._buffer[old]
+    return self._buffer[i]
+
+
+def _check_video_path(path: pathlib.Path) -> None:
   if not path.exists():
     raise FileNotFoundError(f"{path}: no such file or folder")
   if path.suffix.lower() not in VIDEO_EXTENSIONS:
     raise ValueError(f"{path}: expected a frame folder or a video file "
                      f"({'/'.join(VIDEO_EXTENSIONS)})")
-  frames = read_video_file(path, max_frames)
-  return frames, [f"frame_{i:06d}" for i in range(len(frames))]
+
+
+def _decode(path, max_frames: int | None, notes: set[str]):
+  """Yields the frames of a video file as `[H, W, 3]` uint8 RGB."""
+  cap = cv2.VideoCapture(str(path))
+  if not cap.isOpened():
+    raise ValueError(f"{path}: unreadable video (OpenCV cannot open it)")
+  try:
+    count = 0
+    while max_frames is None or count < max_frames:
+      ok, img = cap.read()
+      if not ok:
+        break
+      count += 1
+      yield to_rgb8(img, str(path), notes)
+  finally:
+    cap.release()
+
+
+def open_stereo(left, right, max_frames: int | None = None):
+  """`load_stereo` without loading: `(FrameSource, FrameSource, names)`, checked alike."""
+  if max_frames is not None and max_frames < 1:
+    raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
+  notes: set[str] = set()
+  lv, rv = FrameSource(left, max_frames, notes), FrameSource(right, max_frames, notes)
+  if len(lv) != len(rv):
+    raise ValueError(f"different frame counts: left has {len(lv)}, right has {len(rv)}")
+  if lv.shape != rv.shape:
+    raise ValueError(f"different frame sizes: left is {_size(lv.shape[1:])}, right is "
+                     f"{_size(rv.shape[1:])} (height x width)")
+  for note in sorted(notes):
+    log.warning("note: %s", note)
+  return lv, rv, lv.names
 
 
 def load_stereo(left, right, max_frames: int | None = None):
