@@ -188,3 +188,23 @@ def test_official_torch_script_checks_its_arguments_and_times_parts_per_scale(tm
       "update_block.gru @8x16": 1, "update_block.gru @32x64": 2, "depthnet @32x64": 1}
   assert all(v["s"] >= 0 for v in got["parts"].values()) and got["total"] >= 0
   assert all(not p.pre and not p.post for p in parts.values())  # hooks removed
+
+
+def test_infer_memory_script_runs_the_streaming_infer(tmp_path, monkeypatch, capsys):
+  """benchmarks/infer_memory.py's stand-in still fits `inference._run_window`: the command
+  it measures writes every frame's disparity."""
+  import numpy as np  # pylint: disable=import-outside-toplevel
+
+  import infer_memory  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
+  # The script replaces the model with its stand-in; monkeypatch puts the model back after.
+  monkeypatch.setattr(inference, "_run_window",
+                      inference._run_window)  # pylint: disable=protected-access
+  monkeypatch.setattr(sys, "argv", ["infer_memory.py", str(tmp_path), "--frames", "23",
+                                    "--height", "16", "--width", "24"])
+  infer_memory.main()
+  assert "exit 0;" in capsys.readouterr().out
+  (out,) = tmp_path.glob("out_*")
+  # Window [0, 20) keeps frames 0-14 (local 0-14), window [10, 23) frames 15-22 (local 5-12).
+  expected = list(range(1, 16)) + list(range(6, 14))
+  assert [float(np.load(out / "disparity" / f"{i:05d}.npy")[0, 0]) for i in range(23)] == expected
