@@ -211,6 +211,12 @@ def open_stereo(left, right, max_frames: int | None = None):
     raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
   notes: set[str] = set()
   lv, rv = FrameSource(left, max_frames, notes), FrameSource(right, max_frames, notes)
+  _check_pair(lv, rv, notes)
+  return lv, rv, lv.names
+
+
+def _check_pair(lv, rv, notes: set[str]) -> None:
+  """Raises ValueError unless the two videos match in length and size; logs the notes."""
   if len(lv) != len(rv):
     raise ValueError(f"different frame counts: left has {len(lv)}, right has {len(rv)}")
   if lv.shape != rv.shape:
@@ -218,7 +224,6 @@ def open_stereo(left, right, max_frames: int | None = None):
                      f"{_size(rv.shape[1:])} (height x width)")
   for note in sorted(notes):
     log.warning("note: %s", note)
-  return lv, rv, lv.names
 
 
 def load_stereo(left, right, max_frames: int | None = None):
@@ -240,13 +245,7 @@ def load_stereo(left, right, max_frames: int | None = None):
   notes: set[str] = set()
   lv, names = _read_source(left, max_frames, notes)
   rv, _ = _read_source(right, max_frames, notes)
-  if len(lv) != len(rv):
-    raise ValueError(f"different frame counts: left has {len(lv)}, right has {len(rv)}")
-  if lv.shape != rv.shape:
-    raise ValueError(f"different frame sizes: left is {_size(lv.shape[1:])}, right is "
-                     f"{_size(rv.shape[1:])} (height x width)")
-  for note in sorted(notes):
-    log.warning("note: %s", note)
+  _check_pair(lv, rv, notes)
   return lv, rv, names
 
 
