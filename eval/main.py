@@ -22,10 +22,8 @@ import time
 from eval import config as eval_config
 from eval import data as eval_data
 from eval import report, runner
+from sav_jax import inference, runtime
 from sav_jax.tools import UsageError, check_output_dir, command_logging
-
-# Values of config.matmul_precision (jax.default_matmul_precision's names).
-MATMUL_PRECISIONS = ("default", "high", "highest")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -79,10 +77,9 @@ def run(args, overrides) -> int:
                           "them")
   if config.iters < 2 or config.iters % 2:
     raise ValueError(f"config.iters must be an even number >= 2, got {config.iters}")
-  if config.matmul_precision not in MATMUL_PRECISIONS:
-    raise ValueError(f"config.matmul_precision must be one of {MATMUL_PRECISIONS}, got "
+  if config.matmul_precision not in runtime.MATMUL_PRECISIONS:
+    raise ValueError(f"config.matmul_precision must be one of {runtime.MATMUL_PRECISIONS}, got "
                      f"{config.matmul_precision!r}")
-  from sav_jax import inference  # pylint: disable=import-outside-toplevel
   inference.check_window(config.window, config.stride)
   seqs = eval_data.load_sequences(config, args.data_root)
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel

@@ -508,12 +508,16 @@ def _as_video(video, name: str) -> np.ndarray:
   return np.asarray(video)
 
 
+def _check_video_shapes(left_shape: tuple, right_shape: tuple) -> None:
+  if left_shape != right_shape:
+    raise ValueError(f"left and right videos differ in shape: {left_shape} vs {right_shape}")
+  if len(left_shape) != 4 or left_shape[-1] != 3 or min(left_shape[:3]) < 1:
+    raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {left_shape}")
+
+
 def _as_video_pair(left, right) -> tuple[np.ndarray, np.ndarray]:
   left, right = _as_video(left, "left"), _as_video(right, "right")
-  if left.shape != right.shape:
-    raise ValueError(f"left and right videos differ in shape: {left.shape} vs {right.shape}")
-  if left.ndim != 4 or left.shape[-1] != 3 or min(left.shape[:3]) < 1:
-    raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {left.shape}")
+  _check_video_shapes(left.shape, right.shape)
   for name, video in (("left", left), ("right", right)):
     check_video_values(video, name)
   return left, right  # cast to float32 per window, so long uint8 videos stay small
@@ -690,18 +694,14 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
   the windows run as the returned iterator is consumed.
 
   Returns:
-    An iterator of `(t, disparities [k, H, W])`: frames `t .. t + k - 1`, in order, every frame once
-    (the same values `predict_video` returns).
+    An iterator of `(t, disparities [k, H, W])`: frames `t .. t + k - 1`, in order, every
+    frame once (the same values `predict_video` returns).
   """
   cfg = resolve_config(cfg, dtype)
   iters = check_iters(iters)
   lazy = _is_lazy_video(left) or _is_lazy_video(right)
-  if lazy:
-    shapes = tuple(tuple(getattr(x, "shape", ())) for x in (left, right))
-    if shapes[0] != shapes[1]:
-      raise ValueError(f"left and right videos differ in shape: {shapes[0]} vs {shapes[1]}")
-    if shapes[0][-1] != 3 or min(shapes[0][:3]) < 1:
-      raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {shapes[0]}")
+  if lazy:  # the frames themselves are checked window by window, as they are read
+    _check_video_shapes(*(tuple(getattr(x, "shape", ())) for x in (left, right)))
   else:
     left, right = _as_video_pair(left, right)
   check_variables(variables, cfg)

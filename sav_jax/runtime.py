@@ -129,6 +129,11 @@ LOW_MEMORY_COMPILE_DEFAULT = True
 _low_memory_compile = LOW_MEMORY_COMPILE_DEFAULT
 
 
+# Names `jax.default_matmul_precision` takes, for the eval and training configs'
+# `matmul_precision` ("default": XLA's choice, TF32 on recent NVIDIA GPUs).
+MATMUL_PRECISIONS = ("default", "high", "highest")
+
+
 def set_low_memory_compile(enabled: bool = True) -> None:
   """Whether later inference executables compile on CPU with XLA's older loop emitters.
 

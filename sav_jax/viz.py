@@ -211,15 +211,15 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
   check_fps(fps, f"{path}: fps")
   streamed = not isinstance(frames, (np.ndarray, list, tuple))
   if not streamed:  # all checked before the file is created
-    frames = [_video_frame(path, i, f, None) for i, f in enumerate(frames)]
-    if not frames:
-      raise ValueError(f"{path}: no frames to write")
+    checked = []
     for i, f in enumerate(frames):
-      _video_frame(path, i, f, frames[0].shape)
+      checked.append(_video_frame(path, i, f, checked[0].shape if checked else None))
+    frames = checked
   writer, size = None, None
   try:
     for i, f in enumerate(frames):
-      f = _video_frame(path, i, f, size)
+      if streamed:
+        f = _video_frame(path, i, f, size)
       if writer is None:
         size = f.shape
         h, w = size[:2]

@@ -168,7 +168,7 @@ def _is_regex(x) -> bool:
 # created in the workdir or compiled (later they fail deep inside grain, optax or a trace).
 _CHECKS = (
     ("seed", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
-    ("matmul_precision", lambda x: x in ("default", "high", "highest"),
+    ("matmul_precision", lambda x: x in runtime.MATMUL_PRECISIONS,
      "'default', 'high' or 'highest'"),
     ("data.frames", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("data.crop", _is_crop, "(height, width): two positive multiples of 16 (the model's "

@@ -191,17 +191,16 @@ RANGE_SAMPLE = 1 << 24
 def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) -> None:
   """Disparity files, the side-by-side video and, with calibration, depth and PLY files.
 
-  `chunks` yields `(first frame, disparities [k, H, W])` in order (or is a `[T, H, W]`
-  array). Each chunk's files are written as it comes; the disparities wait in a temporary
-  file in `out` (not in memory) for the video, whose one colour range needs them all.
+  `chunks` yields `(first frame, disparities [k, H, W])` in order
+  (`inference.iter_predict_video`). Each chunk's files are written as it comes; the
+  disparities wait in a temporary file in `out` (not in memory) for the video, whose one
+  colour range needs them all.
   """
   import tempfile  # pylint: disable=import-outside-toplevel
 
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
 
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
-  if isinstance(chunks, np.ndarray):
-    chunks = [(0, chunks)]
   (out / "disparity").mkdir(parents=True, exist_ok=True)
   if calib is not None:
     (out / "depth").mkdir(exist_ok=True)
@@ -395,14 +394,13 @@ def _check_finite(params, path) -> None:
   import jax  # pylint: disable=import-outside-toplevel
 
   from sav_jax import convert  # pylint: disable=import-outside-toplevel
-  bad = [(jax.tree_util.keystr(k), np.asarray(v)) for k, v in
-         jax.tree_util.tree_leaves_with_path(params) if not np.isfinite(np.asarray(v)).all()]
+  from sav_jax.convert.keys import value_problem  # pylint: disable=import-outside-toplevel
+  bad = [p for k, v in jax.tree_util.tree_leaves_with_path(params)
+         if (p := value_problem(jax.tree_util.keystr(k), v))]
   if bad:
-    name, v = bad[0]
     raise convert.CheckpointError(
-        f"{path}: {len(bad)} parameter(s) hold NaN or inf values, e.g. {name} "
-        f"({v.size - np.count_nonzero(np.isfinite(v))} of {v.size}); the checkpoint is not "
-        "usable (a diverged training run?)")
+        f"{path}: {len(bad)} parameter(s) hold NaN or inf values, e.g. {bad[0]}; the "
+        "checkpoint is not usable (a diverged training run?)")
 
 
 def _config_from_dict(cfg_dict, path):
