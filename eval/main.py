@@ -130,8 +130,10 @@ def build_summary(config, described: str, results: list, methods: list[str]) -> 
     summary["methods"][m] = {"name": runner.METHOD_NAMES[m],
                              "aggregate": runner.aggregate(results, m),
                              "seconds": seconds,
+                             "compile_seconds": sum(r.compile_seconds.get(m, 0.0)
+                                                    for r in results),
                              "frames_per_second": frames / seconds if seconds > 0 else 0.0}
   for r in results:
     summary["sequences"].append({"name": r.name, "frames": r.frames, "metrics": r.metrics,
-                                 "seconds": r.seconds})
+                                 "seconds": r.seconds, "compile_seconds": r.compile_seconds})
   return summary

@@ -60,11 +60,15 @@ def _panel(series: dict[str, np.ndarray], title: str, xlabel: str) -> np.ndarray
   cv2.rectangle(img, (left, top), (left + pw, top + ph), (0, 0, 0), 1)
   for c, (label, v) in enumerate(series.items()):
     colour = _COLOURS[c % len(_COLOURS)]
-    pts = np.array([to_px(i, y) for i, y in enumerate(np.nan_to_num(np.asarray(v, float)))],
-                   np.float64).round().astype(np.int32)
-    if len(pts) > 1:
-      cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, colour, 2, cv2.LINE_AA)
-    for p in pts if len(pts) <= 60 else ():
+    v = np.asarray(v, np.float64)
+    ok = np.isfinite(v)  # NaN (a frame without valid GT): a gap in the line, no point
+    pts = np.array([to_px(i, y) for i, y in enumerate(np.where(ok, v, 0.0))],
+                   np.float64).round().astype(np.int32).reshape(-1, 2)
+    runs = np.split(np.arange(len(v)), np.flatnonzero(np.diff(ok.astype(np.int8))) + 1)
+    lines = [pts[r].reshape(-1, 1, 2) for r in runs if len(r) > 1 and ok[r[0]]]
+    if lines:
+      cv2.polylines(img, lines, False, colour, 2, cv2.LINE_AA)
+    for p in pts[ok] if len(pts) <= 60 else ():
       cv2.circle(img, tuple(int(q) for q in p), 3, colour, -1, cv2.LINE_AA)
     ly = top + 16 + 18 * c
     cv2.line(img, (left + pw - 190, ly - 4), (left + pw - 165, ly - 4), colour, 2)

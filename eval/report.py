@@ -47,7 +47,9 @@ def markdown(summary: dict) -> str:
   lines += ["| " + " | ".join(head) + " |", "|---" + "|---:" * (len(head) - 1) + "|"]
   for m in methods.values():
     vals = [_fmt(m["aggregate"].get(k)) for _, k in cols]
-    lines.append(f"| {m['name']} | " + " | ".join(vals) + f" | {m['frames_per_second']:.2f} |")
+    lines.append("| " + " | ".join([m["name"], *vals, f"{m['frames_per_second']:.2f}"]) + " |")
+  if not cols:
+    lines += ["", "No ground truth in this dataset: no metrics (predictions and plots only)."]
   lines += ["", "## Per sequence", ""]
   head = ["Sequence", "Frames", "Method"] + [h for h, _ in cols]
   lines += ["| " + " | ".join(head) + " |", "|---|---:|---" + "|---:" * len(cols) + "|"]
@@ -56,8 +58,12 @@ def markdown(summary: dict) -> str:
       vals = [_fmt(res.get(k)) for _, k in cols]
       lines.append(f"| {seq['name']} | {seq['frames']} | {methods[key]['name']} | "
                    + " | ".join(vals) + " |")
+  compiled = ", ".join(f"{m['name']} {m.get('compile_seconds', 0.0):.1f} s"
+                       for m in methods.values() if m.get("compile_seconds"))
   lines += ["", "EPE/TEPE in px with the official denominators (non-zero errors); bad-N and "
-            "δt-N px: % of those pixels above N px. δt-1px is the paper's δ^t_1px.", ""]
+            "δt-N px: % of those pixels above N px. δt-1px is the paper's δ^t_1px. frames/s: "
+            "prediction time without compilation"
+            + (f" (compilation: {compiled})." if compiled else "."), ""]
   return "\n".join(lines)
 
 

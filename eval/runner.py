@@ -37,8 +37,11 @@ class SequenceResult:
     name: sequence name.
     frames: evaluated frames T (the aggregation weight).
     metrics: method -> metric dict of `metrics.eval_sequence` (empty without GT).
-    curves: method -> (per-frame EPE `[T]`, per-frame-pair TEPE `[T-1]`).
-    seconds: method -> wall time of its predictions.
+    curves: method -> (per-frame EPE `[T]`, per-frame-pair TEPE `[T-1]`; NaN where a
+      frame (pair) has no valid GT pixel).
+    seconds: method -> wall time of its predictions, compilation excluded.
+    compile_seconds: method -> time spent compiling the model for them (0 once the
+      executables of this sequence's shapes exist).
   """
 
   name: str
@@ -46,6 +49,7 @@ class SequenceResult:
   metrics: dict = dataclasses.field(default_factory=dict)
   curves: dict = dataclasses.field(default_factory=dict)
   seconds: dict = dataclasses.field(default_factory=dict)
+  compile_seconds: dict = dataclasses.field(default_factory=dict)
 
 
 def safe_name(name: str) -> str:
@@ -57,17 +61,20 @@ def per_frame_errors(pred, gt, valid) -> tuple[np.ndarray, np.ndarray]:
   """Per-frame EPE `[T]` and TEPE `[T-1]`, each frame reduced with the official rule.
 
   The evaluator's pre-processing (x * round(m), |y|) is applied first; each frame's
-  value is `sum(e_t) / max(count_nonzero(e_t), 1e-5)`.
+  value is `sum(e_t) / max(count_nonzero(e_t), 1e-5)`. A frame (pair) without any valid GT
+  pixel, which that rule scores 0, is NaN here: no measurement, not a perfect one.
   """
   m = np.asarray(valid, np.float32)
   epe, tepe = metrics.endpoint_error_maps(np.asarray(pred, np.float32) * np.round(m),
                                           np.abs(np.asarray(gt, np.float32)), m)
 
-  def reduce(e):
+  def reduce(e, mask):
     e = e.reshape(len(e), -1)
-    return e.sum(axis=1, dtype=np.float64) / np.maximum(np.count_nonzero(e, axis=1), 1e-5)
+    value = e.sum(axis=1, dtype=np.float64) / np.maximum(np.count_nonzero(e, axis=1), 1e-5)
+    return np.where(mask.reshape(len(mask), -1).any(axis=1), value, np.nan)
 
-  return reduce(epe), reduce(tepe)
+  has = m > 0.5  # the metrics' mask threshold
+  return reduce(epe, has), reduce(tepe, has[:-1] & has[1:])
 
 
 def predict(method: str, clip: dict, *, variables, model_cfg, config) -> np.ndarray:
@@ -93,9 +100,10 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
   scale = seq.depth2disp_scale if config.metrics.tcc else None
   preds = {}
   for method in methods:
-    start = time.perf_counter()
+    start, compiled = time.perf_counter(), inference.compile_seconds()
     pred = predict(method, clip, variables=variables, model_cfg=model_cfg, config=config)
-    res.seconds[method] = time.perf_counter() - start
+    res.compile_seconds[method] = inference.compile_seconds() - compiled
+    res.seconds[method] = time.perf_counter() - start - res.compile_seconds[method]
     preds[method] = pred
     if has_gt:
       res.metrics[method] = metrics.eval_sequence(pred, clip["disparity"],

@@ -50,6 +50,7 @@ import dataclasses
 import logging
 import numbers
 import os
+import time
 import warnings
 from typing import Mapping
 
@@ -70,6 +71,7 @@ WINDOW = 20
 STRIDE = 10
 _CACHE_SIZE = 16
 _COMPILED: "collections.OrderedDict[tuple, object]" = collections.OrderedDict()
+_compile_seconds = 0.0  # `compile_seconds()`
 _SKIP_COLLECTIONS = ("torch_unused",)
 # Fitted to XLA's memory analysis of the compiled forward pass (temporaries, output and
 # the two input windows; CPU, float32, default `frame_block_mb`, T=1..20, 32x32..736x1280,
@@ -335,9 +337,14 @@ def _compile(key, build, check_memory: bool):
   its = "" if kind == "frames" else f"iters={iters}, "  # the per-frame part runs no iterations
   log.info("compiling the model (%s) for %d frames of %dx%d (%s%s)%s", what, *shape, its,
            cfg.dtype, cached)
+  global _compile_seconds
+  start = time.perf_counter()
   fn, args = build()
   args = jax.tree_util.tree_map(_abstract, args)
-  compiled = jax.jit(fn).lower(*args).compile(compiler_options=dict(key[4]))
+  try:
+    compiled = jax.jit(fn).lower(*args).compile(compiler_options=dict(key[4]))
+  finally:
+    _compile_seconds += time.perf_counter() - start
   runtime.release_host_memory()  # the compiler's working memory, kept by the allocator
   if check_memory:
     input_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(args[1:]))
@@ -488,6 +495,13 @@ def check_variables(variables, cfg: SAVConfig | None = None, source: str = "vari
 def clear_cache() -> None:
   """Forgets every compiled executable."""
   _COMPILED.clear()
+
+
+def compile_seconds() -> float:
+  """Seconds this process has spent compiling (or loading from the persistent compilation
+  cache) the executables of `predict_video` and friends; the difference of two readings
+  separates compilation from running in a timing."""
+  return _compile_seconds
 
 
 def cache_size() -> int:

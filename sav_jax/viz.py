@@ -102,10 +102,10 @@ def check_fps(fps, what: str = "fps") -> None:
 
 
 def check_intrinsics(what: str = "", **values) -> None:
-  """Raises ValueError unless the given `fx`, `fy`, `baseline` are finite and positive and
-  `cx`, `cy` finite; the message starts with `what`."""
+  """Raises ValueError unless the given `fx`, `fy`, `baseline`, `max_depth` are finite and
+  positive and the others (`cx`, `cy`, `doffs`) finite; the message starts with `what`."""
   for name, value in values.items():
-    positive = name in ("fx", "fy", "baseline")
+    positive = name in ("fx", "fy", "baseline", "max_depth")
     if (not isinstance(value, numbers.Real) or not math.isfinite(value)
         or (positive and value <= 0)):
       raise ValueError(f"{what}{name} must be a finite{' positive' if positive else ''} number, "
@@ -145,8 +145,14 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
     raise ValueError(f"valid mask shape {np.shape(valid)} differs from disparity {d.shape}")
   if vmin is None or vmax is None:
     lo, hi = disparity_range(d, valid)
+    filled = "vmin" if vmin is None else "vmax"
     vmin = lo if vmin is None else vmin
     vmax = hi if vmax is None else vmax
+    try:
+      vmin, vmax = _check_range(vmin, vmax)
+    except ValueError as e:
+      raise ValueError(f"{e} ({filled} taken from the data's range {lo:.4g}..{hi:.4g}, which "
+                       f"lies beyond the given end; give both vmin and vmax)") from None
   vmin, vmax = _check_range(vmin, vmax)
   if d.size == 0:
     return np.zeros((*d.shape, 3), np.uint8)
@@ -254,22 +260,25 @@ def _video_frame(path, i: int, frame, size) -> np.ndarray:
   return f
 
 
-def depth_from_disparity(disp, fx: float, baseline: float) -> np.ndarray:
-  """Metric depth `Z = fx * baseline / d`; 0 where `d <= 0` or not finite.
+def depth_from_disparity(disp, fx: float, baseline: float, doffs: float = 0.0) -> np.ndarray:
+  """Metric depth `Z = fx * baseline / (d + doffs)`; 0 where that denominator is not
+  positive or `d` is not finite.
 
   Args:
     disp: `[..., H, W]` disparity (px).
     fx: focal length (px).
     baseline: stereo baseline (metres, or any unit: Z is in that unit).
+    doffs: x-difference of the two cameras' principal points (px; Middlebury's `doffs`,
+      `cx_right - cx_left`); 0 for cameras rectified to one principal point (KITTI).
 
   Returns:
     `[..., H, W]` float32 depth.
 
   Raises:
-    ValueError: unless fx and baseline are finite and positive.
+    ValueError: unless fx and baseline are finite and positive and doffs finite.
   """
-  check_intrinsics(fx=fx, baseline=baseline)
-  d = np.asarray(disp, np.float32)
+  check_intrinsics(fx=fx, baseline=baseline, doffs=doffs)
+  d = np.asarray(disp, np.float32) + np.float32(doffs)
   ok = np.isfinite(d) & (d > 0)
   z = np.zeros(d.shape, np.float32)
   z[ok] = np.float32(fx * baseline) / d[ok]
@@ -277,17 +286,24 @@ def depth_from_disparity(disp, fx: float, baseline: float) -> np.ndarray:
 
 
 def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float,
-                        baseline: float, valid=None) -> tuple[np.ndarray, np.ndarray]:
-  """Back-projects the left view's pixels with positive disparity.
+                        baseline: float, doffs: float = 0.0, valid=None,
+                        max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+  """Back-projects the left view's pixels with positive depth.
 
-  Pixel (u, v) with depth Z maps to `((u - cx) Z / fx, (v - cy) Z / fy, Z)`.
+  Pixel (u, v) with depth Z (`depth_from_disparity`) maps to
+  `((u - cx) Z / fx, (v - cy) Z / fy, Z)`: OpenCV's camera axes (x right, y down, z
+  forward), in the baseline's unit.
 
   Args:
     disp: `[H, W]` disparity (px).
     rgb: `[H, W, 3]` uint8 colours of the left view.
     fx, fy, cx, cy: intrinsics of the left camera (px).
     baseline: stereo baseline.
-    valid: optional extra `[H, W]` bool mask.
+    doffs: see `depth_from_disparity`.
+    valid: optional extra `[H, W]` mask: bool, or weights (> 0.5 is valid, as in the
+      metrics and `colorize`).
+    max_depth: drop points farther than this (in the baseline's unit): disparities near
+      0 (sky, far background) back-project to huge depths.
 
   Returns:
     `(xyz [N, 3] float32, colours [N, 3] uint8)`, rows in raster order.
@@ -300,11 +316,17 @@ def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float
   if valid is not None and np.shape(valid) != d.shape:
     raise ValueError(f"disparity_to_points: valid mask shape {np.shape(valid)} differs from "
                      f"disp {d.shape}")
-  check_intrinsics("disparity_to_points: ", fx=fx, fy=fy, baseline=baseline, cx=cx, cy=cy)
-  z = depth_from_disparity(d, fx, baseline)
+  check_intrinsics("disparity_to_points: ", fx=fx, fy=fy, baseline=baseline, cx=cx, cy=cy,
+                   doffs=doffs)
+  if max_depth is not None:
+    check_intrinsics("disparity_to_points: ", max_depth=max_depth)
+  z = depth_from_disparity(d, fx, baseline, doffs)
   keep = z > 0
+  if max_depth is not None:
+    keep &= z <= max_depth
   if valid is not None:
-    keep &= np.asarray(valid, bool)
+    v = np.asarray(valid)
+    keep &= v if v.dtype == bool else (v > 0.5)
   v, u = np.nonzero(keep)
   zk = z[v, u]
   xyz = np.stack([(u - cx) * zk / fx, (v - cy) * zk / fy, zk], axis=-1).astype(np.float32)
@@ -402,20 +424,34 @@ def _map_to_write(path, data, what: str, rgb: bool) -> np.ndarray:
   return a
 
 
-def write_png16(path, disp) -> None:
+# The largest disparity a KITTI-style 16-bit PNG holds (px); larger ones are stored as it.
+PNG16_MAX_DISPARITY = 65535 / 256.0
+
+
+def write_png16(path, disp) -> int:
   """16-bit PNG disparity, KITTI convention (`round(256 d)` clipped to 1..65535, 0 = invalid).
+
+  The format holds disparities up to `PNG16_MAX_DISPARITY` (255.996 px): larger ones are
+  stored as that value, still valid; the return value counts them, so that callers can warn
+  (use a float format, .npy / .pfm / .exr, for such maps). Non-positive and non-finite
+  values are stored as 0 (invalid).
 
   `path` must end in `.png` (OpenCV picks the format from the name: another one would store
   the values lossily or scaled); a file there is replaced.
+
+  Returns:
+    The number of saturated pixels.
   """
   if pathlib.Path(path).suffix.lower() != ".png":
     raise ValueError(f"{path}: a 16-bit PNG disparity file must be named *.png")
   d = _map_to_write(path, disp, "a 16-bit PNG disparity file", rgb=False)
   ok = np.isfinite(d) & (d > 0)
   v = np.zeros(d.shape, np.uint16)
-  v[ok] = np.clip(np.round(d[ok].astype(np.float64) * 256.0), 1, 65535).astype(np.uint16)
+  scaled = np.round(d[ok].astype(np.float64) * 256.0)
+  v[ok] = np.clip(scaled, 1, 65535).astype(np.uint16)
   if not cv2.imwrite(str(path), v):
     raise OSError(f"{path}: cannot write PNG")
+  return int(np.count_nonzero(scaled > 65535))
 
 
 def read_png16(path) -> tuple[np.ndarray, np.ndarray]:

@@ -149,11 +149,12 @@ def test_unusable_checkpoints_are_refused_before_the_run(tmp_path, folders, vari
       load_checkpoint(tmp_path / "cfg")
 
 
-def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch):
+def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsys):
   # 25 frames in sliding windows, the model replaced by a stand-in whose output labels
-  # each frame with its index: every file lands at the right name, the frame sources are
-  # read window by window (never the whole video), and the colour range of the video
-  # comes from all frames.
+  # each frame with its index (disparity 12 (i + 1)): every file lands at the right name,
+  # the frame sources are read window by window (never the whole video), the colour range
+  # of the video comes from all frames, and the 16-bit PNGs' saturation (d > 256 from frame
+  # 21 on) is reported.
   n = 25
   labels = np.arange(n, dtype=np.uint8) * 9
   frames = np.broadcast_to(labels[:, None, None, None], (n, 16, 24, 3)).copy()
@@ -168,22 +169,35 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch):
     return out
 
   def label_model(variables, lw, rw, *, cfg, iters, pads, check_memory, cache, start):
-    value = np.round(lw[:, 0, 0, 0] / 9).astype(np.float32) + 1  # frame index + 1
+    value = (np.round(lw[:, 0, 0, 0] / 9).astype(np.float32) + 1) * 12  # 12 (index + 1)
     hp, wp = lw.shape[1] + pads[0] + pads[1], lw.shape[2] + pads[2] + pads[3]
     return -np.broadcast_to(value[:, None, None], (len(lw), hp, wp)).copy()
 
   monkeypatch.setattr(video_io.FrameSource, "__getitem__", counting_getitem)
   monkeypatch.setattr(inference, "_run_window", label_model)
   out = tmp_path / "out"
-  assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy", "--fx", "10",
-                "--baseline", "1") == 0
+  assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy,png16", "--fx",
+                "10", "--baseline", "1", "--max-depth", "0.5") == 0
   for i in range(n):
-    np.testing.assert_array_equal(np.load(out / "disparity" / f"{i:04d}.npy"), i + 1)
-    np.testing.assert_allclose(np.load(out / "depth" / f"{i:04d}.npy"), 10 / (i + 1), rtol=1e-6)
+    d = 12.0 * (i + 1)
+    np.testing.assert_array_equal(np.load(out / "disparity" / f"{i:04d}.npy"), d)
+    assert viz.read_png16(out / "disparity" / f"{i:04d}.png")[0].max() == min(d, 65535 / 256)
+    np.testing.assert_allclose(np.load(out / "depth" / f"{i:04d}.npy"), 10 / d, rtol=1e-6)
+    points = len(viz.read_ply(out / "pointclouds" / f"{i:04d}.ply")[0])
+    assert points == (16 * 24 if 10 / d <= 0.5 else 0)  # --max-depth: frame 0 is at 0.83
   assert max(read) <= 20  # windows (and video batches), never all 25 frames at once
   assert len(video_io.read_video_file(out / "side_by_side.mp4")) == n
   assert not list(out.glob(".disparity_*"))  # the temporary file is gone
-  assert json.loads((out / "summary.json").read_text())["frames"] == n
+  summary = json.loads((out / "summary.json").read_text())
+  assert summary["frames"] == n and summary["max_depth"] == 0.5
+  saturated = 4 * 16 * 24  # frames 21..24: 264..300 px
+  assert summary["png16_saturated_pixels"] == saturated
+  video = np.broadcast_to(12.0 * np.arange(1, n + 1)[:, None, None], (n, 16, 24))
+  lo, hi = viz.disparity_range(video, percentiles=(1.0, 99.0))
+  assert summary["video_disparity_range"] == [round(lo, 4), round(hi, 4)]
+  printed = capsys.readouterr().out
+  assert f"side-by-side video colours: {lo:.2f} px (dark) to {hi:.2f} px (bright)" in printed
+  assert f"warning: {saturated} disparities above 255.996 px were stored as 255.996" in printed
 
 
 def test_frame_sources_check_every_frame_when_opened(tmp_path, clip):
@@ -297,9 +311,21 @@ def _bad_case(name, root, clip, npz_ckpt):
     return left, right, npz_ckpt, [], "disparity is a file, not a folder"
   if name == "calib_folder":
     return left, right, npz_ckpt, ["--calib", str(root)], "is a folder; give the calibration file"
+  if name == "principal_point":  # full-resolution intrinsics for small frames
+    return left, right, npz_ckpt, ["--fx", "700", "--cx", "600", "--baseline", "0.5"], \
+        f"principal point (cx 600, cy {(H - 1) / 2:g}) is outside the {W}x{H} frames"
+  if name == "max_depth_without_calibration":
+    return left, right, npz_ckpt, ["--max-depth", "5"], "--max-depth applies to point clouds"
+  if name == "max_depth_negative":
+    return left, right, npz_ckpt, ["--fx", "9", "--baseline", "1", "--max-depth", "-1"], \
+        "--max-depth must be a finite positive number"
   calib = {"calib_no_keys": ('{"left": {"fx": 720}, "baseline_m": 0.1}', "no calibration found"),
            "calib_null": ('{"fx": null, "baseline": 0.1}', "fx must be a number, got None"),
-           "calib_units": ("fx: 720\nbaseline: 0.54 m\n", "line 2: baseline must be one number")}
+           "calib_units": ("fx: 720\nbaseline: 0.54 m\n", "line 2: baseline must be one number"),
+           "calib_no_baseline": ("cam0=[700 0 10; 0 700 8; 0 0 1]\n",
+                                 "calib.txt: no baseline found (read: cx, cy, fx, fy)"),
+           "middlebury_size": (f"cam0=[700 0 10; 0 700 8; 0 0 1]\nbaseline=190\nwidth={W * 4}\n",
+                               f"for images of width {W * 4}, the frames' width is {W}")}
   if name in calib:
     text, message = calib[name]
     (root / "calib.txt").write_text(text)
@@ -313,7 +339,8 @@ def _bad_case(name, root, clip, npz_ckpt):
     "calibration", "calib_folder", "fy_zero", "fps", "out_is_file", "output_is_folder",
     "output_folder_is_file",
     "calib_no_keys", "calib_null",
-    "calib_units"])
+    "calib_units", "calib_no_baseline", "middlebury_size", "principal_point",
+    "max_depth_without_calibration", "max_depth_negative"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):
   left, right, ckpt, extra, message = _bad_case(name, tmp_path, clip, npz_ckpt)
   out = tmp_path / "out"
@@ -363,6 +390,17 @@ def test_calibration_file(tmp_path):
   assert read_calibration(txt) == {"fx": 400.0, "baseline": 0.2, "cx": 10.0}
   txt.write_text("# rig 3\nfx\t400  # px\nfy   410\nbaseline:0.2\nname: left camera\n")
   assert read_calibration(txt) == {"fx": 400.0, "fy": 410.0, "baseline": 0.2}
+  mb = tmp_path / "calib_middlebury.txt"  # Middlebury 2014 (baseline in mm)
+  mb.write_text("cam0=[3997.684 0 1176.728; 0 3997.684 1011.728; 0 0 1]\n"
+                "cam1=[3997.684 0 1307.839; 0 3997.684 1011.728; 0 0 1]\n"
+                "doffs=131.111\nbaseline=193.001\nwidth=2964\nheight=1988\nndisp=280\n"
+                "isint=0\nvmin=31\nvmax=257\ndyavg=0.918\ndymax=1.516\n")
+  assert read_calibration(mb) == {"fx": 3997.684, "fy": 3997.684, "cx": 1176.728,
+                                  "cy": 1011.728, "baseline": 193.001, "doffs": 131.111,
+                                  "width": 2964.0, "height": 1988.0}
+  mb.write_text("cam0=[3997.684 0 1176.728; 0 3997.684 1011.728; 0 0 1]\n"
+                "cam1=[3997.684 0 1307.839; 0 3997.684 1011.728; 0 0 1]\nbaseline=193.001\n")
+  assert read_calibration(mb)["doffs"] == pytest.approx(1307.839 - 1176.728)  # from cam1
   for line in (": 400", "= 5"):  # no key
     txt.write_text(f"fx 400\n{line}\n")
     with pytest.raises(UsageError, match=f"c.txt, line 2: expected 'key value'.*got '{line}'"):
@@ -451,3 +489,19 @@ def test_command_logging_quiets_jax_and_absl_and_restores():
   with command_logging(verbose=True):
     assert absl.level == logging.NOTSET  # --verbose shows everything
   absl.setLevel(before[0])
+
+
+def test_frame_folders_in_number_order_without_hidden_files(tmp_path):
+  # `frame_2` before `frame_10` (unpadded numbering), and macOS `._*` copies left out
+  frames = [np.full((H, W, 3), 20 * i, np.uint8) for i in range(4)]
+  for side in ("l", "r"):
+    (tmp_path / side).mkdir()
+    for i, f in zip((1, 2, 10, 11), frames):
+      cv2.imwrite(str(tmp_path / side / f"frame_{i}.png"), f)
+    (tmp_path / side / "._frame_1.png").write_bytes(b"\x00\x05\x16\x07")
+  lv, rv, names = video_io.load_stereo(tmp_path / "l", tmp_path / "r")
+  assert names == ["frame_1", "frame_2", "frame_10", "frame_11"]
+  np.testing.assert_array_equal(lv, np.stack(frames))
+  lazy, _, lazy_names = video_io.open_stereo(tmp_path / "l", tmp_path / "r")
+  assert lazy_names == names
+  np.testing.assert_array_equal(lazy[0:4], lv)

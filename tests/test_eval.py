@@ -7,6 +7,7 @@ reported numbers are checked against `sav_jax.metrics` applied to the saved pred
 import csv
 import json
 import pathlib
+import time
 
 import cv2
 import jax
@@ -16,6 +17,8 @@ import pytest
 import sav_jax
 from eval import config as eval_config
 from eval import data as eval_data
+from eval import plots as eval_plots
+from eval import report as eval_report
 from eval import runner as eval_runner
 from eval.main import main
 from sav_jax import inference, metrics
@@ -246,7 +249,7 @@ def test_config_overrides_and_head():
   (seq,) = eval_data.load_sequences(config, None)
   assert len(seq) == 4 and eval_data.read_sequence(seq)["left"].shape == (4, 16, 32, 3)
   for name in ("sintel_clean", "sintel_final", "dynamic_replica", "infinigen_sv", "vkitti2",
-               "kitti_depth", "spring"):
+               "kitti_depth", "spring", "south_kensington"):
     c = eval_config.load_config(str(CONFIGS / f"{name}.py"))
     assert c.dataset == name and c.split == "test" and c.iters == 20 and c.window == 20
 
@@ -281,3 +284,70 @@ def test_vkitti2_on_disk(tmp_path, ckpt):
   seqs = registry.get_sequences("vkitti2", tmp_path / "data", "test", max_frames=300)
   summary = _check_against_metrics(out, seqs, ["sav"], with_scale=False)
   assert summary["frames"] == 5 * T and not (out / "plots").exists()
+
+
+def test_speed_excludes_compilation_and_curves_leave_frames_without_gt_out(tmp_path,
+                                                                          monkeypatch):
+  config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")),
+                                       eval_config.split_overrides(SMALL)[1])
+  config.plots.enabled, config.save_predictions = True, False
+  seq = eval_data.load_sequences(config, None)[0]
+  clip = eval_data.read_sequence(seq)
+
+  def fake_predict(method, clip, **_):  # takes 0.5 s, 0.4 s of them "compiling"
+    time.sleep(0.5)
+    inference._compile_seconds += 0.4  # pylint: disable=protected-access
+    return clip["disparity"].copy()
+
+  monkeypatch.setattr(eval_runner, "predict", fake_predict)
+  res = eval_runner.evaluate_sequence(seq, ["sav"], variables=None, model_cfg=None,
+                                      config=config, out=tmp_path)
+  assert res.compile_seconds == {"sav": pytest.approx(0.4)}
+  assert 0.09 < res.seconds["sav"] < 0.35  # the compilation is not in the speed
+  from eval.main import build_summary  # pylint: disable=import-outside-toplevel
+  summary = build_summary(config, "test", [res], ["sav"])
+  assert summary["methods"]["sav"]["compile_seconds"] == pytest.approx(0.4)
+  assert summary["methods"]["sav"]["frames_per_second"] == pytest.approx(
+      res.frames / res.seconds["sav"])
+  assert "prediction time without compilation (compilation: Stereo Any Video 0.4 s)" in \
+      eval_report.markdown(summary)
+  # A frame without any valid GT pixel has no EPE (the official rule would say 0), and the
+  # pairs it is part of no TEPE; the curves leave a gap there.
+  valid = clip["valid"].copy()
+  valid[1] = False
+  pred = clip["disparity"] + 1.0
+  epe, tepe = eval_runner.per_frame_errors(pred, clip["disparity"], valid)
+  assert np.isnan(epe[1]) and np.isnan(tepe[0]) and np.isnan(tepe[1])
+  np.testing.assert_allclose(np.delete(epe, 1), 1.0, rtol=1e-6)
+  assert np.all(np.isfinite(tepe[2:]))
+  gap, zero = tmp_path / "gap.png", tmp_path / "zero.png"
+  eval_plots.write_curves(gap, {"m": (epe, tepe)})
+  eval_plots.write_curves(zero, {"m": (np.nan_to_num(epe), np.nan_to_num(tepe))})
+  assert np.any(cv2.imread(str(gap)) != cv2.imread(str(zero)))
+
+
+def test_south_kensington_has_no_metrics_but_predictions_and_strips(tmp_path, ckpt, variables):
+  # Real stereo videos without ground truth (the official script's qualitative run).
+  rng = np.random.default_rng(3)
+  seq = tmp_path / "data" / "SouthKensington" / "data" / "indoor_1"
+  frames = {side: rng.integers(0, 256, (T, H, W, 3), dtype=np.uint8) for side in ("left", "right")}
+  for side, video in frames.items():
+    (seq / "images" / side).mkdir(parents=True)
+    for t, f in enumerate(video):
+      cv2.imwrite(str(seq / "images" / side / f"{side}{t:06d}.png"), f[..., ::-1])
+  (seq / "tracking_data.txt").write_text("Intrinsic: [[500. 0. 32.]\n [0. 500. 16.]\n"
+                                         " [0. 0. 1.]]\n")
+  out = tmp_path / "out"
+  rc = main(["--config", str(CONFIGS / "south_kensington.py"), "--checkpoint", str(ckpt),
+             "--data-root", str(tmp_path / "data"), "--out", str(out), "--config.iters=2",
+             "--config.save_predictions=true"])
+  assert rc == 0
+  summary = json.loads((out / "results.json").read_text())
+  assert summary["sequences"][0]["metrics"] == {} and summary["frames"] == T
+  assert eval_config.load_config(str(CONFIGS / "south_kensington.py")).sample_len == 300
+  expected = inference.predict_video(variables, frames["left"], frames["right"], iters=2)
+  np.testing.assert_array_equal(np.load(out / "predictions" / "indoor_1.npy"), expected)
+  assert cv2.imread(str(out / "plots" / "indoor_1_strip.png")) is not None
+  assert not (out / "plots" / "indoor_1_curves.png").exists()
+  md = (out / "results.md").read_text()
+  assert "| Stereo Any Video | " in md and "No ground truth in this dataset: no metrics" in md

@@ -39,18 +39,25 @@ def golden(fixtures_dir):
   return g
 
 
+_COMPILE_SECONDS = {}  # inference.compile_seconds() around the module's first runs
+
+
 @pytest.fixture(scope="module")
 def official(variables, golden):
+  _COMPILE_SECONDS["before_official"] = inference.compile_seconds()
   with jax.default_matmul_precision("highest"):
-    return inference.forward_batch_test_official(variables, golden["left"], golden["right"],
-                                                 iters=ITERS, return_windows=True)
+    out = inference.forward_batch_test_official(variables, golden["left"], golden["right"],
+                                                iters=ITERS, return_windows=True)
+  _COMPILE_SECONDS["after_official"] = inference.compile_seconds()
+  return out
 
 
 @pytest.fixture(scope="module")
 def predicted(variables, golden):
   """predict_video on the 21 golden frames, with the cache size before and after."""
-  before = inference.cache_size()
+  before, seconds = inference.cache_size(), inference.compile_seconds()
   disp = _predict(variables, golden["left"], golden["right"])
+  _COMPILE_SECONDS["predicted"] = inference.compile_seconds() - seconds
   return disp, before, inference.cache_size()
 
 
@@ -77,6 +84,8 @@ def test_official_stitching_matches_golden(official, golden):
 def test_predict_video_equals_official_for_long_clips(predicted, golden, official):
   disp, before, after = predicted
   assert after == before  # the official run compiled these padded shapes: nothing new
+  assert _COMPILE_SECONDS["predicted"] == 0  # ... so no compile time was counted
+  assert _COMPILE_SECONDS["after_official"] > _COMPILE_SECONDS["before_official"]
   assert disp.shape == (21, 28, 30) and disp.dtype == np.float32
   np.testing.assert_array_equal(disp, official[0])
   np.testing.assert_allclose(disp, golden["disparity"][:, 0], atol=ATOL, rtol=0)

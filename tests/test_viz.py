@@ -28,8 +28,12 @@ def test_png16_round_trip(tmp_path, disp):
   np.testing.assert_array_equal(back[ok], np.round(disp[ok].astype(np.float64) * 256) / 256)
   assert np.all(back[~ok] == 0)
   assert np.abs(back[ok] - disp[ok]).max() <= 1 / 512 + 1e-6
-  viz.write_png16(tmp_path / "big.png", np.full((2, 2), 300.0))  # saturates at 65535/256
-  assert viz.read_png16(tmp_path / "big.png")[0].max() == 65535 / 256
+  assert viz.write_png16(tmp_path / "d.png", disp) == 0  # nothing saturated
+  big = np.array([[300.0, viz.PNG16_MAX_DISPARITY], [256.0, 1.0]])
+  assert viz.write_png16(tmp_path / "big.png", big) == 2  # 300 and 256 saturate, still valid
+  back, valid = viz.read_png16(tmp_path / "big.png")
+  np.testing.assert_array_equal(back, [[65535 / 256] * 2, [65535 / 256, 1.0]])
+  assert valid.all()
 
 
 @pytest.mark.parametrize("shape", [(13, 17), (6, 5, 3)])
@@ -70,6 +74,24 @@ def test_depth_and_points(tmp_path):
   np.testing.assert_allclose(xyz[0], [(0 - 1.0) * 5 / 100, (0 - 0.5) * 5 / 50, 5.0], rtol=1e-6)
   np.testing.assert_allclose(xyz[2], [0.0, (1 - 0.5) * 2.5 / 50, 2.5], rtol=1e-6)
   np.testing.assert_array_equal(col, rgb[[0, 0, 1], [0, 2, 1]])
+  # Middlebury's doffs: Z = fx B / (d + doffs); d + doffs <= 0 is invalid
+  np.testing.assert_allclose(viz.depth_from_disparity(d, 100.0, 0.5, doffs=-5.0),
+                             [[10.0, 0.0, 0.0], [0.0, 50 / 15, 0.0]], rtol=1e-6)
+  calib = dict(fx=100.0, fy=50.0, cx=1.0, cy=0.5, baseline=0.5)
+  xyz, _ = viz.disparity_to_points(d, rgb, **calib, doffs=-5.0)
+  np.testing.assert_allclose(xyz[:, 2], [10.0, 50 / 15], rtol=1e-6)
+  # weights count above 0.5 (as in colorize and the metrics); NaN weights are invalid
+  weights = np.array([[0.3, 1.0, 0.6], [1.0, np.nan, 1.0]])
+  xyz, col = viz.disparity_to_points(d, rgb, **calib, valid=weights)
+  np.testing.assert_array_equal(col, rgb[[0], [2]])
+  xyz, _ = viz.disparity_to_points(d, rgb, **calib, valid=weights > 0.1)  # bool as given
+  np.testing.assert_allclose(xyz[:, 2], [5.0, 10.0])
+  # max_depth drops the far points (depths 5, 10, 2.5 here)
+  xyz, col = viz.disparity_to_points(d, rgb, **calib, max_depth=5.0)
+  np.testing.assert_allclose(xyz[:, 2], [5.0, 2.5])
+  for bad in (0.0, -1.0, np.inf, np.nan):
+    with pytest.raises(ValueError, match="max_depth must be a finite positive number"):
+      viz.disparity_to_points(d, rgb, **calib, max_depth=bad)
 
 
 def test_ply_header_count_and_values(tmp_path):
@@ -286,3 +308,9 @@ def test_submodules_reachable_from_the_package():
 def test_colorize_fractional_valid_follows_the_metrics_threshold():
   rgb = viz.colorize(np.ones((1, 3), np.float32), 0.0, 2.0, valid=np.array([[0.3, 0.6, 1.0]]))
   assert tuple(rgb[0, 0]) == viz.INVALID_COLOR and tuple(rgb[0, 1]) != viz.INVALID_COLOR
+
+
+def test_colorize_names_the_end_taken_from_the_data():
+  with pytest.raises(ValueError, match=r"vmin=3.0, vmax=2.0 \(vmin taken from the data's range "
+                                       r"3..5, which lies beyond the given end; give both"):
+    viz.colorize(np.array([[3.0, 4.0, 5.0]]), vmax=2.0)

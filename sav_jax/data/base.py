@@ -212,17 +212,32 @@ def require_dir(path: Path, what: str = "directory") -> Path:
   return Path(path)
 
 
+def natural_key(path: Path) -> tuple:
+  """Sort key of a file name with its digit runs compared as numbers (`f2` before `f10`);
+  the same order as plain sorting for zero-padded names."""
+  parts = re.split(r"(\d+)", Path(path).name)
+  return tuple((0, int(t), t) if i % 2 else (1, t, "") for i, t in enumerate(parts) if t)
+
+
+def is_hidden(path: Path) -> bool:
+  """Names starting with a dot (`.DS_Store`, macOS `._0001.png` copies, `.ipynb_checkpoints`),
+  which a shell glob and the official loaders skip."""
+  return Path(path).name.startswith(".")
+
+
 def list_files(directory: Path, *suffixes: str) -> list[Path]:
-  """Files of `directory` with one of `suffixes` (e.g. ".png"), sorted by name."""
+  """Files of `directory` with one of `suffixes` (e.g. ".png"), in natural name order
+  (`natural_key`), hidden ones left out."""
   require_dir(directory)
-  return sorted(p for p in Path(directory).iterdir()
-                if p.suffix.lower() in suffixes and p.is_file())
+  return sorted((p for p in Path(directory).iterdir()
+                 if p.suffix.lower() in suffixes and not is_hidden(p) and p.is_file()),
+                key=natural_key)
 
 
 def list_dirs(directory: Path) -> list[Path]:
-  """Sub-directories of `directory`, sorted by name."""
+  """Sub-directories of `directory`, sorted by name, hidden ones left out."""
   require_dir(directory)
-  return sorted(p for p in Path(directory).iterdir() if p.is_dir())
+  return sorted(p for p in Path(directory).iterdir() if p.is_dir() and not is_hidden(p))
 
 
 def digits_key(path: Path) -> int | str:

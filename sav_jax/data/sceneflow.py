@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from sav_jax.data import frame_io
-from sav_jax.data.base import StereoSequence, check_matching, find_root, list_files, require_dir
+from sav_jax.data.base import (StereoSequence, check_matching, find_root, is_hidden,
+                               list_files, require_dir)
 
 SUBSETS = ("FlyingThings3D", "Monkaa", "Driving")
 SPLITS = ("train", "test")
@@ -58,7 +59,7 @@ def _subset_sequences(root: Path, subset: str, split: str, pass_name: str,
       else pass_dir
   # A sequence folder is any folder at the subset's depth that holds `left/`.
   seq_dirs = sorted(p.parent for p in require_dir(base).glob(_SEQ_GLOB[subset] + "/left")
-                    if p.is_dir())
+                    if p.is_dir() and not any(map(is_hidden, p.relative_to(base).parts)))
   if not seq_dirs:
     raise FileNotFoundError(f"no {subset} sequences (<seq>/left/) under {base}")
   return [_sequence(subset, d, pass_dir, dataset) for d in seq_dirs]

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from sav_jax.data import frame_io
-from sav_jax.data.base import (StereoSequence, check_matching, digits_key, find_root,
+from sav_jax.data.base import (StereoSequence, check_matching, digits_key, find_root, is_hidden,
                                list_dirs, list_files)
 
 SPLITS = ("test",)
@@ -57,7 +57,7 @@ def load_sequences(root, split: str = "test", dataset: str = "south_kensington")
     root = root / "data"
   seqs = []
   for seq_dir in list_dirs(root):
-    txts = sorted(p for p in seq_dir.glob("*.txt") if p.is_file())
+    txts = sorted(p for p in seq_dir.glob("*.txt") if p.is_file() and not is_hidden(p))
     if not txts:
       logging.info("South Kensington: skipping %s (no camera txt)", seq_dir)
       continue

@@ -6,9 +6,9 @@
 
 Outputs in --out: `disparity/<frame>.<png|npy|pfm|exr>` (16-bit PNGs use the KITTI
 x256 convention), `side_by_side.mp4` (left | colourized disparity, one colour range for
-the whole video), `summary.json`; with calibration also `depth/<frame>.<npy|exr>`
-(metres if the baseline is, 0 where the disparity is not positive) and
-`pointclouds/<frame>.ply`. Inputs, checkpoint and existing outputs are all checked
+the whole video, recorded in the summary), `summary.json`; with calibration also
+`depth/<frame>.<npy|exr>` (in the baseline's unit, 0 where the disparity is not positive)
+and `pointclouds/<frame>.ply` (OpenCV camera axes: x right, y down, z forward). Inputs, checkpoint and existing outputs are all checked
 before anything is computed; on an error nothing is written.
 """
 
@@ -47,6 +47,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   add_calibration_arguments(p)
   p.add_argument("--depth-format", choices=("npy", "exr"), default="npy",
                  help="file format of metric depth (with calibration)")
+  p.add_argument("--max-depth", type=float, default=None,
+                 help="leave points farther than this (baseline's unit) out of the point "
+                      "clouds (near-zero disparities of sky and far background give huge depths)")
   p.add_argument("--overwrite", action="store_true", help="replace existing output files")
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
                  help="compute dtype (default: the checkpoint's, float32)")
@@ -64,10 +67,15 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
   g.add_argument("--fy", type=float, help="vertical focal length (px; default fx)")
   g.add_argument("--cx", type=float, help="principal point x (px; default image centre)")
   g.add_argument("--cy", type=float, help="principal point y (px; default image centre)")
-  g.add_argument("--baseline", type=float, help="stereo baseline (metres)")
+  g.add_argument("--baseline", type=float,
+                 help="stereo baseline (metres; depth comes out in its unit)")
+  g.add_argument("--doffs", type=float,
+                 help="cx of the right camera minus cx of the left (px; default 0): "
+                      "depth = fx * baseline / (disparity + doffs)")
   g.add_argument("--calib", help="calibration file: JSON or 'key value' text with fx, fy, "
-                                  "cx, cy, baseline, or a KITTI calib file (P_rect_02/P_rect_03 "
-                                  "or P2/P3)")
+                                  "cx, cy, baseline, doffs; a KITTI calib file (P_rect_02/"
+                                  "P_rect_03 or P2/P3); or a Middlebury calib.txt (cam0, cam1, "
+                                  "doffs, baseline in mm: depth in mm)")
 
 
 def parse_formats(values: list[str] | None) -> list[str]:
@@ -157,6 +165,11 @@ def run(args: argparse.Namespace) -> int:
   left, right, names = video_io.open_stereo(args.left, args.right, args.max_frames)
   t, h, w = left.shape[:3]
   calib = None if calib_spec is None else calib_spec.resolve(w, h)
+  if args.max_depth is not None:
+    if calib is None:
+      raise UsageError("--max-depth applies to point clouds: give a calibration too")
+    if not (np.isfinite(args.max_depth) and args.max_depth > 0):
+      raise UsageError(f"--max-depth must be a finite positive number, got {args.max_depth}")
   out = check_output_dir(args.out)
   outputs = output_paths(out, names, formats, calib, args.depth_format)
   check_not_inputs(outputs, (args.left, args.right))
@@ -167,19 +180,28 @@ def run(args: argparse.Namespace) -> int:
   variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
   print(f"weights: {described}")
   print(f"input: {t} frames of {h}x{w} (height x width); iters {args.iters}, {cfg.dtype}")
-  start = time.perf_counter()
+  start, compiled = time.perf_counter(), inference.compile_seconds()
   chunks = inference.iter_predict_video(variables, left, right, cfg=cfg, iters=args.iters,
                                         window=args.window, stride=args.stride, progress=True)
-  write_outputs(out, names, left, chunks, formats, calib, args)
+  written = write_outputs(out, names, left, chunks, formats, calib, args)
   seconds = time.perf_counter() - start
+  compiling = inference.compile_seconds() - compiled
   summary = {"frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
              "window": args.window, "stride": args.stride, "weights": described,
              "left": str(args.left), "right": str(args.right), "formats": formats,
              "seconds": round(seconds, 3), "frames_per_second": round(t / seconds, 3),
-             "calibration": None if calib is None else calib._asdict()}
+             "compile_seconds": round(compiling, 3),
+             "calibration": None if calib is None else calib._asdict(),
+             "max_depth": args.max_depth, **written}
   (out / "summary.json").write_text(json.dumps(summary, indent=1))
-  print(f"{t} frames in {seconds:.1f} s ({t / seconds:.2f} frames/s, compilation and writing "
-        f"included); outputs in {out}")
+  vmin, vmax = written["video_disparity_range"]
+  print(f"side-by-side video colours: {vmin:.2f} px (dark) to {vmax:.2f} px (bright)")
+  if written["png16_saturated_pixels"]:
+    print(f"warning: {written['png16_saturated_pixels']} disparities above "
+          f"{viz.PNG16_MAX_DISPARITY:.3f} px were stored as {viz.PNG16_MAX_DISPARITY:.3f} in the "
+          "16-bit PNGs (the format's largest value); use --format npy, pfm or exr for them")
+  print(f"{t} frames in {seconds:.1f} s ({t / seconds:.2f} frames/s, writing included; "
+        f"{compiling:.1f} s of it compiling); outputs in {out}")
   return 0
 
 
@@ -188,13 +210,17 @@ def run(args: argparse.Namespace) -> int:
 RANGE_SAMPLE = 1 << 24
 
 
-def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) -> None:
+def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) -> dict:
   """Disparity files, the side-by-side video and, with calibration, depth and PLY files.
 
   `chunks` yields `(first frame, disparities [k, H, W])` in order
   (`inference.iter_predict_video`). Each chunk's files are written as it comes; the
   disparities wait in a temporary file in `out` (not in memory) for the video, whose one
   colour range needs them all.
+
+  Returns:
+    For the summary: `video_disparity_range` (the video's colour range, px) and
+    `png16_saturated_pixels` (disparities stored as the 16-bit PNG's largest value).
   """
   import tempfile  # pylint: disable=import-outside-toplevel
 
@@ -206,6 +232,8 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) 
     (out / "depth").mkdir(exist_ok=True)
     (out / "pointclouds").mkdir(exist_ok=True)
   h, w = left.shape[1:3]
+  saturated = 0
+  max_depth = getattr(args, "max_depth", None)
   with tempfile.TemporaryFile(dir=out, prefix=".disparity_", suffix=".tmp") as held:
     disp = np.memmap(held, np.float32, "w+", shape=(len(names), h, w))
     for t0, chunk in chunks:
@@ -214,12 +242,14 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) 
         i, name = t0 + k, names[t0 + k]
         disp[i] = d
         for fmt in formats:
-          video_io.write_map(video_io.disparity_path(out / "disparity", name, fmt), d, fmt)
+          saturated += video_io.write_map(video_io.disparity_path(out / "disparity", name, fmt),
+                                          d, fmt)
         if calib is not None:
-          depth = viz.depth_from_disparity(d, calib.fx, calib.baseline)
+          depth = viz.depth_from_disparity(d, calib.fx, calib.baseline, calib.doffs)
           video_io.write_map(video_io.disparity_path(out / "depth", name, args.depth_format),
                              depth, args.depth_format)
-          xyz, rgb = viz.disparity_to_points(d, frames[k], **calib._asdict())
+          xyz, rgb = viz.disparity_to_points(d, frames[k], **calib._asdict(),
+                                             max_depth=max_depth)
           viz.write_ply(out / "pointclouds" / f"{name}.ply", xyz, rgb)
     step = max(1, int(np.ceil(np.sqrt(disp.size / RANGE_SAMPLE))))
     vmin, vmax = viz.disparity_range(disp[:, ::step, ::step], percentiles=(1.0, 99.0))
@@ -232,16 +262,20 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) 
 
     viz.write_video(out / "side_by_side.mp4", video_frames(), fps=args.fps)
     del disp
+  return {"video_disparity_range": [round(float(vmin), 4), round(float(vmax), 4)],
+          "png16_saturated_pixels": saturated}
 
 
 class Calibration(NamedTuple):
-  """Left-camera intrinsics (px) and the stereo baseline."""
+  """Left-camera intrinsics (px), the stereo baseline and the principal points' offset
+  (`doffs`, px: depth = fx * baseline / (disparity + doffs))."""
 
   fx: float
   fy: float
   cx: float
   cy: float
   baseline: float
+  doffs: float = 0.0
 
 
 class CalibrationSpec(NamedTuple):
@@ -252,41 +286,71 @@ class CalibrationSpec(NamedTuple):
   fy: float | None = None
   cx: float | None = None
   cy: float | None = None
+  doffs: float = 0.0
+  width: float | None = None   # the image size the calibration is for, where a file says
+  height: float | None = None
 
   def resolve(self, width: int, height: int) -> Calibration:
-    """Fills fy = fx and the principal point at the image centre where not given."""
-    return Calibration(self.fx, self.fx if self.fy is None else self.fy,
-                       (width - 1) / 2 if self.cx is None else self.cx,
-                       (height - 1) / 2 if self.cy is None else self.cy, self.baseline)
+    """Fills fy = fx and the principal point at the image centre where not given.
+
+    Raises:
+      UsageError: the calibration is for another image size (a file's width/height, or a
+        principal point outside the frames: e.g. full-resolution intrinsics for resized
+        frames).
+    """
+    for name, want, got in (("width", self.width, width), ("height", self.height, height)):
+      if want is not None and want != got:
+        raise UsageError(f"the calibration is for images of {name} {want:g}, the frames' "
+                         f"{name} is {got}; scale fx, fy, cx, cy (and doffs) by the resize "
+                         "factor, or use frames of that size")
+    calib = Calibration(self.fx, self.fx if self.fy is None else self.fy,
+                        (width - 1) / 2 if self.cx is None else self.cx,
+                        (height - 1) / 2 if self.cy is None else self.cy, self.baseline,
+                        self.doffs)
+    if not (0 <= calib.cx < width and 0 <= calib.cy < height):
+      raise UsageError(f"the calibration's principal point (cx {calib.cx:g}, cy {calib.cy:g}) "
+                       f"is outside the {width}x{height} frames: is it for another image "
+                       "size? Scale fx, fy, cx, cy (and doffs) by the resize factor")
+    return calib
 
 
 def calibration_from_args(args) -> CalibrationSpec | None:
   """--fx/--fy/--cx/--cy/--baseline or --calib -> a spec, or None without calibration."""
-  given = {k: getattr(args, k, None) for k in ("fx", "fy", "cx", "cy", "baseline")}
+  given = {k: getattr(args, k, None) for k in _CALIB_KEYS}
   given = {k: v for k, v in given.items() if v is not None}
+  source = "calibration"
   if getattr(args, "calib", None):
     if given:
-      raise UsageError("give either --calib or --fx/--fy/--cx/--cy/--baseline, not both")
+      raise UsageError("give either --calib or --fx/--fy/--cx/--cy/--baseline/--doffs, not both")
     given = read_calibration(args.calib)
+    source = f"--calib {args.calib}"
   if not given:
     return None
   missing = [k for k in ("fx", "baseline") if k not in given]
   if missing:
+    if source != "calibration":
+      raise UsageError(f"{source}: no {' and no '.join(missing)} found (read: "
+                       f"{', '.join(sorted(given))}); the file needs fx and baseline (fy, cx, "
+                       "cy, doffs optional), KITTI P2/P3 or Middlebury cam0 + baseline")
     raise UsageError(f"calibration needs {' and '.join('--' + m for m in missing)} "
-                     "(fy, cx, cy are optional)")
+                     "(fy, cx, cy, doffs are optional)")
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
-  viz.check_intrinsics("calibration ", **given)
+  viz.check_intrinsics(f"{source}: " if source != "calibration" else "calibration ",
+                       **{k: v for k, v in given.items() if k not in ("width", "height")})
   return CalibrationSpec(**{k: float(v) for k, v in given.items()})
 
 
-_CALIB_KEYS = ("fx", "fy", "cx", "cy", "baseline")
+_CALIB_KEYS = ("fx", "fy", "cx", "cy", "baseline", "doffs")
 
 
 def read_calibration(path) -> dict[str, float]:
-  """Reads fx, fy, cx, cy, baseline from JSON, `key value` text or a KITTI calib file.
+  """Reads fx, fy, cx, cy, baseline (doffs) from JSON, `key value` text, a KITTI calib file
+  or a Middlebury `calib.txt`.
 
   KITTI: `P_rect_02`/`P_rect_03` (raw data) or `P2`/`P3` (odometry, stereo benchmarks);
-  baseline = (P2[0,3] - P3[0,3]) / fx.
+  baseline = (P2[0,3] - P3[0,3]) / fx. Middlebury: `cam0=[fx 0 cx; 0 fy cy; 0 0 1]`,
+  `baseline` (mm), `doffs` (else cam1's cx - cam0's cx), and `width`/`height`, which must
+  match the frames.
   """
   path = pathlib.Path(path)
   if path.is_dir():
@@ -322,8 +386,8 @@ def read_calibration(path) -> dict[str, float]:
       raise UsageError(f"{path}, line {number}: expected 'key value' (or 'key: value', "
                        f"'key = value'), got {line!r}")
     key, rest = match.groups()
-    try:
-      entries[key] = [float(v) for v in rest.replace(",", " ").split()]
+    try:  # numbers, or a matrix written as [a b c; d e f; g h i] (Middlebury)
+      entries[key] = [float(v) for v in re.sub(r"[,;\[\]]", " ", rest).split()]
     except ValueError:
       entries[key] = None  # text values (KITTI's calib_time, ...)
     if key in _CALIB_KEYS and (entries[key] is None or len(entries[key]) != 1):
@@ -335,9 +399,17 @@ def read_calibration(path) -> dict[str, float]:
       return {"fx": m2[0, 0], "fy": m2[1, 1], "cx": m2[0, 2], "cy": m2[1, 2],
               "baseline": abs(m2[0, 3] - m3[0, 3]) / m2[0, 0]}
   out = {k: entries[k][0] for k in _CALIB_KEYS if k in entries}
+  if len(entries.get("cam0") or ()) == 9 and "fx" not in out:  # Middlebury
+    k0 = np.reshape(entries["cam0"], (3, 3))
+    out.update(fx=k0[0, 0], fy=k0[1, 1], cx=k0[0, 2], cy=k0[1, 2])
+    if "doffs" not in out and len(entries.get("cam1") or ()) == 9:
+      out["doffs"] = entries["cam1"][2] - k0[0, 2]
+    for key in ("width", "height"):
+      if len(entries.get(key) or ()) == 1:
+        out[key] = entries[key][0]
   if not out:
-    raise UsageError(f"{path}: no calibration found (expected JSON, 'fx 720' lines or KITTI "
-                     "P_rect_02/P_rect_03 matrices)")
+    raise UsageError(f"{path}: no calibration found (expected JSON, 'fx 720' lines, KITTI "
+                     "P_rect_02/P_rect_03 matrices or a Middlebury calib.txt)")
   return out
 
 

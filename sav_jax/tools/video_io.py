@@ -25,12 +25,15 @@ _FORMAT_SUFFIX = {"png16": ".png", "npy": ".npy", "pfm": ".pfm", "exr": ".exr"}
 
 
 def list_frames(folder) -> list[pathlib.Path]:
-  """Image files of a frame folder, sorted by name (the official demo's order)."""
+  """Image files of a frame folder in natural name order (`frame_2` before `frame_10`;
+  for zero-padded names the official demo's sorted order); hidden files (`._0001.png`
+  copies of macOS archives) are left out."""
+  from sav_jax.data import base  # pylint: disable=import-outside-toplevel
   folder = pathlib.Path(folder)
   if not folder.is_dir():
     raise FileNotFoundError(f"{folder}: not a folder")
-  files = sorted(p for p in folder.iterdir()
-                 if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+  files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS
+                  and not base.is_hidden(p) and p.is_file()), key=base.natural_key)
   if not files:
     raise ValueError(f"{folder}: empty folder (no {'/'.join(IMAGE_EXTENSIONS)} images)")
   return files
@@ -256,11 +259,14 @@ def disparity_path(folder, name: str, fmt: str) -> pathlib.Path:
   return pathlib.Path(folder) / f"{name}{_FORMAT_SUFFIX[fmt]}"
 
 
-def write_map(path, data: np.ndarray, fmt: str) -> None:
-  """Writes one `[H, W]` float map (disparity or depth) in `fmt`."""
+def write_map(path, data: np.ndarray, fmt: str) -> int:
+  """Writes one `[H, W]` float map (disparity or depth) in `fmt`.
+
+  Returns the number of values the format could not hold and stored as its largest
+  (png16: disparities above 255.996 px; 0 for the float formats)."""
   if fmt == "png16":
-    viz.write_png16(path, data)
-  elif fmt == "npy":
+    return viz.write_png16(path, data)
+  if fmt == "npy":
     np.save(path, np.asarray(data, np.float32))
   elif fmt == "pfm":
     viz.write_pfm(path, data)
@@ -268,6 +274,7 @@ def write_map(path, data: np.ndarray, fmt: str) -> None:
     viz.write_exr(path, data)
   else:
     raise ValueError(f"unknown format {fmt!r}")
+  return 0
 
 
 def read_map(path) -> np.ndarray:

@@ -488,3 +488,36 @@ def test_gather_names_the_frame_of_another_size(tmp_path):
   with pytest.raises(ValueError, match=rf"sintel_final/market_2: frame 3 {odd} is {H - 2}x{W} "
                                        rf"but frame 1 .*frame_0001.png is {H}x{W}"):
     seq.gather([1, 2, -1])
+
+
+def test_hidden_files_are_skipped_and_frame_numbers_sort_as_numbers(tmp_path):
+  # macOS archives leave `._<name>` copies beside every file, notebooks `.ipynb_checkpoints`:
+  # shell globs (and the official loaders) skip them, so must we.
+  rng = np.random.default_rng(13)
+  _sceneflow(tmp_path, rng, frames=2)
+  seq_dir = tmp_path / "Monkaa/frames_finalpass/a_rain_of_stones_x2"
+  for junk in (seq_dir / "left/._0006.png", seq_dir / "right/._0006.png",
+               tmp_path / "Monkaa/disparity/a_rain_of_stones_x2/left/._0006.pfm"):
+    junk.write_bytes(b"\x00\x05\x16\x07 AppleDouble")
+  (tmp_path / "Monkaa/frames_finalpass/.ipynb_checkpoints/left").mkdir(parents=True)
+  seqs = registry.get_sequences("monkaa", tmp_path, "train")
+  assert [(s.name, len(s)) for s in seqs] == [("Monkaa/a_rain_of_stones_x2", 2)]
+  assert seqs[0][0]["left"].shape == (H, W, 3)
+  # Unpadded frame numbers (South Kensington's naming is not documented) in time order,
+  # and a hidden copy of the camera file is not read as the camera file.
+  data = tmp_path / "SouthKensington" / "data"
+  written = []
+  for i in (0, 1, 2, 9, 10, 11):
+    img = _rgb(rng)
+    written.append(img)
+    for side in ("left", "right"):
+      _png(data / "s1/images" / side / f"{side}{i}.png", img)
+  (data / "s1/._tracking_data.txt").write_bytes(b"\x00\x05\x16\x07\xff\xfe")
+  (data / "s1/tracking_data.txt").write_text("Intrinsic: [[500. 0. 10.]\n [0. 500. 8.]\n"
+                                             " [0. 0. 1.]]\n")
+  (data / ".ipynb_checkpoints").mkdir()
+  seq, = registry.get_sequences("south_kensington", tmp_path, "test")
+  assert [p.name for p in seq.files["left"]] == [f"left{i}.png" for i in (0, 1, 2, 9, 10, 11)]
+  assert seq.depth2disp_scale == pytest.approx(500 * 0.12)
+  np.testing.assert_array_equal(seq.clip(0, 6)["left"], np.stack(written))
+  assert base.list_dirs(data) == [data / "s1"]
