@@ -4,7 +4,10 @@
 
 1. Forward GFLOP/s of the update block's main convolutions at 1/4 of a T=5, 128x256 clip
    (the layers that make up ~90% of the model's work): the ceiling for any exact float32
-   implementation on this machine.
+   implementation on this machine. Beside each: the same convolution as one matrix product
+   over gathered patches ("im2col": XLA builds the patch matrix, then one dot), and the
+   bare matrix product of that size ([pixels, kh kw in] x [kh kw in, out], patches given):
+   the rate of XLA's matrix products on this machine, which the convolutions already reach.
 2. Gradient of a 4-step `lax.scan` of 3x3 convolutions (the refinement loop's shape):
    XLA's own convolution gradient vs `sav_jax.model.layers.conv2d`'s canonical-form one,
    and the same loop unrolled.
@@ -33,16 +36,33 @@ def xla_conv(x, k, padding):
                                       dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
+def im2col_conv(x, k, padding):
+  """The convolution as one product of the gathered patches `[N, H, W, kh kw C]`."""
+  kh, kw, cin, cout = k.shape
+  h, w = x.shape[1:3]
+  xp = jnp.pad(x, ((0, 0), *padding, (0, 0)))
+  patches = jnp.concatenate([xp[:, i:i + h, j:j + w] for i in range(kh) for j in range(kw)],
+                            axis=-1)
+  return patches @ k.reshape(kh * kw * cin, cout)
+
+
 def main():
   rng = np.random.default_rng(0)
-  print("forward convolutions, [5, 32, 64] pixels:")
+  print("forward convolutions, [5, 32, 64] pixels: direct | im2col + one product | the bare "
+        "product of that size")
   for name, kh, kw, cin, cout in SHAPES:
     x = jnp.asarray(rng.standard_normal((5, 32, 64, cin)), jnp.float32)
     k = jnp.asarray(0.01 * rng.standard_normal((kh, kw, cin, cout)), jnp.float32)
     pad = ((kh // 2, kh // 2), (kw // 2, kw // 2))
-    sec = timed(jax.jit(lambda x, k, pad=pad: xla_conv(x, k, pad)), x, k)
     flops = 2 * 5 * 32 * 64 * kh * kw * cin * cout
-    print(f"  {name:32s} {sec * 1e3:7.1f} ms  {flops / sec / 1e9:6.1f} GFLOP/s")
+    a = jnp.asarray(rng.standard_normal((5 * 32 * 64, kh * kw * cin)), jnp.float32)
+    row = []
+    for fn, args in ((lambda x, k, pad=pad: xla_conv(x, k, pad), (x, k)),
+                     (lambda x, k, pad=pad: im2col_conv(x, k, pad), (x, k)),
+                     (lambda a, k: a @ k.reshape(-1, k.shape[-1]), (a, k))):
+      sec = timed(jax.jit(fn), *args)
+      row.append(f"{sec * 1e3:7.1f} ms {flops / sec / 1e9:6.1f} GFLOP/s")
+    print(f"  {name:32s} " + " | ".join(row))
 
   x = jnp.asarray(rng.standard_normal((6, 8, 16, 128)), jnp.float32)
   k = jnp.asarray(0.03 * rng.standard_normal((3, 3, 128, 128)), jnp.float32)

@@ -68,7 +68,8 @@ def _panel(series: dict[str, np.ndarray], title: str, xlabel: str) -> np.ndarray
     lines = [pts[r].reshape(-1, 1, 2) for r in runs if len(r) > 1 and ok[r[0]]]
     if lines:
       cv2.polylines(img, lines, False, colour, 2, cv2.LINE_AA)
-    for p in pts[ok] if len(pts) <= 60 else ():
+    alone = [r[0] for r in runs if len(r) == 1 and ok[r[0]]]  # no line shows these
+    for p in pts[np.flatnonzero(ok)] if len(pts) <= 60 else pts[alone]:
       cv2.circle(img, tuple(int(q) for q in p), 3, colour, -1, cv2.LINE_AA)
     ly = top + 16 + 18 * c
     cv2.line(img, (left + pw - 190, ly - 4), (left + pw - 165, ly - 4), colour, 2)

@@ -54,10 +54,11 @@ def markdown(summary: dict) -> str:
   head = ["Sequence", "Frames", "Method"] + [h for h, _ in cols]
   lines += ["| " + " | ".join(head) + " |", "|---|---:|---" + "|---:" * len(cols) + "|"]
   for seq in summary["sequences"]:
-    for key, res in seq["metrics"].items():
+    for key in seq["metrics"] or seq.get("seconds", {}):  # without GT: the rows, no values
+      res = seq["metrics"].get(key, {})
       vals = [_fmt(res.get(k)) for _, k in cols]
-      lines.append(f"| {seq['name']} | {seq['frames']} | {methods[key]['name']} | "
-                   + " | ".join(vals) + " |")
+      lines.append("| " + " | ".join([seq["name"], str(seq["frames"]), methods[key]["name"],
+                                      *vals]) + " |")
   compiled = ", ".join(f"{m['name']} {m.get('compile_seconds', 0.0):.1f} s"
                        for m in methods.values() if m.get("compile_seconds"))
   lines += ["", "EPE/TEPE in px with the official denominators (non-zero errors); bad-N and "

@@ -69,9 +69,10 @@ def per_frame_errors(pred, gt, valid) -> tuple[np.ndarray, np.ndarray]:
                                           np.abs(np.asarray(gt, np.float32)), m)
 
   def reduce(e, mask):
-    e = e.reshape(len(e), -1)
+    pixels = int(np.prod(e.shape[1:]))  # (reshape's -1 cannot size an empty T-1 = 0)
+    e, mask = e.reshape(len(e), pixels), mask.reshape(len(mask), pixels)
     value = e.sum(axis=1, dtype=np.float64) / np.maximum(np.count_nonzero(e, axis=1), 1e-5)
-    return np.where(mask.reshape(len(mask), -1).any(axis=1), value, np.nan)
+    return np.where(mask.any(axis=1), value, np.nan)
 
   has = m > 0.5  # the metrics' mask threshold
   return reduce(epe, has), reduce(tepe, has[:-1] & has[1:])

@@ -99,6 +99,19 @@ def test_fft_correlation_equals_the_direct_convolution():
     assert float(jnp.abs(got - want).max()) < 1e-4 * float(jnp.abs(want).max())
 
 
+def test_im2col_form_equals_the_direct_convolution():
+  """benchmarks/conv_throughput.py's patch-matrix form is the same 'same'-padded conv."""
+  import conv_throughput  # pylint: disable=import-outside-toplevel,import-error
+  x = jax.random.normal(jax.random.PRNGKey(2), (2, 6, 9, 4))
+  for kh, kw in ((3, 3), (1, 5), (5, 1)):
+    k = jax.random.normal(jax.random.PRNGKey(kh), (kh, kw, 4, 7))
+    pad = ((kh // 2, kh // 2), (kw // 2, kw // 2))
+    want = conv_throughput.xla_conv(x, k, pad)
+    got = conv_throughput.im2col_conv(x, k, pad)
+    assert got.shape == want.shape == (2, 6, 9, 7)
+    assert float(jnp.abs(got - want).max()) < 1e-5 * float(jnp.abs(want).max())
+
+
 def test_update_block_rewrites_compute_the_modules_values():
   """benchmarks/update_variants.py times rewrites of the same functions: each row of a
   group gives its first row's (the model module's) values."""

@@ -322,10 +322,15 @@ def _bad_case(name, root, clip, npz_ckpt):
   calib = {"calib_no_keys": ('{"left": {"fx": 720}, "baseline_m": 0.1}', "no calibration found"),
            "calib_null": ('{"fx": null, "baseline": 0.1}', "fx must be a number, got None"),
            "calib_units": ("fx: 720\nbaseline: 0.54 m\n", "line 2: baseline must be one number"),
-           "calib_no_baseline": ("cam0=[700 0 10; 0 700 8; 0 0 1]\n",
-                                 "calib.txt: no baseline found (read: cx, cy, fx, fy)"),
-           "middlebury_size": (f"cam0=[700 0 10; 0 700 8; 0 0 1]\nbaseline=190\nwidth={W * 4}\n",
-                               f"for images of width {W * 4}, the frames' width is {W}")}
+           "calib_no_baseline": ("cam0=[700 0 10; 0 700 8; 0 0 1]\ndoffs=5\n",
+                                 "calib.txt: no baseline found (read: cx, cy, doffs, fx, fy)"),
+           "middlebury_no_doffs": ("cam0=[700 0 10; 0 700 8; 0 0 1]\nbaseline=190\n",
+                                   "a Middlebury calibration (cam0) needs doffs or cam1"),
+           "middlebury_size": (f"cam0=[700 0 10; 0 700 8; 0 0 1]\nbaseline=190\ndoffs=3\n"
+                               f"width={W * 4}\n",
+                               f"for images of width {W * 4}, the frames' width is {W}"),
+           "json_size": (json.dumps({"fx": 700, "baseline": 0.5, "height": H * 2}),
+                         f"for images of height {H * 2}, the frames' height is {H}")}
   if name in calib:
     text, message = calib[name]
     (root / "calib.txt").write_text(text)
@@ -339,7 +344,8 @@ def _bad_case(name, root, clip, npz_ckpt):
     "calibration", "calib_folder", "fy_zero", "fps", "out_is_file", "output_is_folder",
     "output_folder_is_file",
     "calib_no_keys", "calib_null",
-    "calib_units", "calib_no_baseline", "middlebury_size", "principal_point",
+    "calib_units", "calib_no_baseline", "middlebury_no_doffs", "middlebury_size", "json_size",
+    "principal_point",
     "max_depth_without_calibration", "max_depth_negative"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):
   left, right, ckpt, extra, message = _bad_case(name, tmp_path, clip, npz_ckpt)
@@ -401,6 +407,15 @@ def test_calibration_file(tmp_path):
   mb.write_text("cam0=[3997.684 0 1176.728; 0 3997.684 1011.728; 0 0 1]\n"
                 "cam1=[3997.684 0 1307.839; 0 3997.684 1011.728; 0 0 1]\nbaseline=193.001\n")
   assert read_calibration(mb)["doffs"] == pytest.approx(1307.839 - 1176.728)  # from cam1
+  txt.write_text("fx 400\nbaseline 0.2\nwidth 64\nheight: 32\n")  # any format may say its size
+  assert read_calibration(txt) == {"fx": 400.0, "baseline": 0.2, "width": 64.0, "height": 32.0}
+  # the principal point may lie anywhere on the frame, [-0.5, size - 0.5] (pixel centres)
+  from sav_jax.tools.infer import CalibrationSpec  # pylint: disable=import-outside-toplevel
+  assert CalibrationSpec(400.0, 0.2, cx=-0.5, cy=31.5).resolve(64, 32).cx == -0.5
+  assert CalibrationSpec(400.0, 0.2, cx=63.5, width=64, height=32).resolve(64, 32).cx == 63.5
+  for cx, cy in ((-0.6, 10.0), (63.6, 10.0), (10.0, 31.6)):
+    with pytest.raises(UsageError, match="principal point"):
+      CalibrationSpec(400.0, 0.2, cx=cx, cy=cy).resolve(64, 32)
   for line in (": 400", "= 5"):  # no key
     txt.write_text(f"fx 400\n{line}\n")
     with pytest.raises(UsageError, match=f"c.txt, line 2: expected 'key value'.*got '{line}'"):

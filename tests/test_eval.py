@@ -324,6 +324,17 @@ def test_speed_excludes_compilation_and_curves_leave_frames_without_gt_out(tmp_p
   eval_plots.write_curves(gap, {"m": (epe, tepe)})
   eval_plots.write_curves(zero, {"m": (np.nan_to_num(epe), np.nan_to_num(tepe))})
   assert np.any(cv2.imread(str(gap)) != cv2.imread(str(zero)))
+  # A lone frame with GT between frames without (no line reaches it) still gets its point,
+  # in long series too (which draw no points otherwise).
+  for n in (10, 100):
+    series = np.full(n, np.nan)
+    series[5] = 1.0
+    img = eval_plots._panel({"m": series}, "", "frame")  # pylint: disable=protected-access
+    blank = eval_plots._panel({"m": np.full(n, np.nan)}, "", "frame")  # pylint: disable=protected-access
+    assert np.count_nonzero(np.any(img != blank, axis=-1)) > 10, n
+  # One frame: no pairs, no TEPE (an empty curve, not an error)
+  epe1, tepe1 = eval_runner.per_frame_errors(pred[:1], clip["disparity"][:1], clip["valid"][:1])
+  assert epe1.shape == (1,) and tepe1.shape == (0,)
 
 
 def test_south_kensington_has_no_metrics_but_predictions_and_strips(tmp_path, ckpt, variables):
@@ -351,3 +362,4 @@ def test_south_kensington_has_no_metrics_but_predictions_and_strips(tmp_path, ck
   assert not (out / "plots" / "indoor_1_curves.png").exists()
   md = (out / "results.md").read_text()
   assert "| Stereo Any Video | " in md and "No ground truth in this dataset: no metrics" in md
+  assert f"| indoor_1 | {T} | Stereo Any Video |\n" in md  # the sequence is listed

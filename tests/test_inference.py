@@ -339,16 +339,32 @@ def test_memory_estimate_counts_no_logits_for_the_fused_attention(monkeypatch):
 
 def test_per_frame_features_are_computed_once_per_frame(variables, golden, monkeypatch):
   """21 frames in windows [0, 20) and [10, 21): 21 frames of per-frame work, not 31."""
-  counted = []
-  real = inference.compiled_frame_features
+  counted, events = [], []
+  real_frames, real_window = inference.compiled_frame_features, inference.compiled_window
+
+  def logged(kind, fn):
+    def run(*args):
+      events.append(f"run {kind}")
+      return fn(*args)
+    return run
 
   def counting(variables, frames, *args, **kwargs):
     counted.append(frames)
-    return real(variables, frames, *args, **kwargs)
+    events.append("compile frames")
+    return logged("frames", real_frames(variables, frames, *args, **kwargs))
+
+  def window(*args, **kwargs):
+    events.append("compile window")
+    return logged("window", real_window(*args, **kwargs))
 
   monkeypatch.setattr(inference, "compiled_frame_features", counting)
+  monkeypatch.setattr(inference, "compiled_window", window)
   disp = _predict(variables, golden["left"], golden["right"])
   assert counted == [10, 10, 1]  # chunks [0, 10), [10, 20), [20, 21)
+  # Each window gets its executables before running anything (so that no computation runs
+  # during a compile and is counted as compilation by `compile_seconds`).
+  assert events == ["compile frames"] * 2 + ["compile window"] + ["run frames"] * 2 + [
+      "run window", "compile frames", "compile window", "run frames", "run window"]
   assert disp.shape == (21, 28, 30)
   with pytest.raises(ValueError, match="chunk"):
     inference.FrameFeatureCache(chunk=0)

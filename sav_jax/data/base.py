@@ -12,6 +12,7 @@ decodes frames on demand, so building a dataset index costs only directory listi
 from __future__ import annotations
 
 import copy
+import decimal
 import numbers
 import re
 from pathlib import Path
@@ -213,10 +214,12 @@ def require_dir(path: Path, what: str = "directory") -> Path:
 
 
 def natural_key(path: Path) -> tuple:
-  """Sort key of a file name with its digit runs compared as numbers (`f2` before `f10`);
-  the same order as plain sorting for zero-padded names."""
-  parts = re.split(r"(\d+)", Path(path).name)
-  return tuple((0, int(t), t) if i % 2 else (1, t, "") for i, t in enumerate(parts) if t)
+  """Sort key of a file name with its numbers compared by value: `f2` before `f10`, and
+  decimal timestamps too (`1701.25` before `1701.5`); for zero-padded names the same order
+  as plain sorting."""
+  parts = re.split(r"(\d+(?:\.\d+)?)", Path(path).name)
+  return tuple((0, decimal.Decimal(t), t) if i % 2 else (1, t, "")
+               for i, t in enumerate(parts) if t)
 
 
 def is_hidden(path: Path) -> bool:

@@ -7,7 +7,7 @@
 Outputs in --out: `disparity/<frame>.<png|npy|pfm|exr>` (16-bit PNGs use the KITTI
 x256 convention), `side_by_side.mp4` (left | colourized disparity, one colour range for
 the whole video, recorded in the summary), `summary.json`; with calibration also
-`depth/<frame>.<npy|exr>` (in the baseline's unit, 0 where the disparity is not positive)
+`depth/<frame>.<npy|exr>` (in the baseline's unit, 0 where disparity + doffs is not positive)
 and `pointclouds/<frame>.ply` (OpenCV camera axes: x right, y down, z forward). Inputs, checkpoint and existing outputs are all checked
 before anything is computed; on an error nothing is written.
 """
@@ -298,25 +298,28 @@ class CalibrationSpec(NamedTuple):
         principal point outside the frames: e.g. full-resolution intrinsics for resized
         frames).
     """
+    rescale = ("scale fx, fy, cx, cy and doffs by the frames' resize factor (in a --calib "
+               "file, and its width/height too), or use frames of the calibrated size")
     for name, want, got in (("width", self.width, width), ("height", self.height, height)):
       if want is not None and want != got:
         raise UsageError(f"the calibration is for images of {name} {want:g}, the frames' "
-                         f"{name} is {got}; scale fx, fy, cx, cy (and doffs) by the resize "
-                         "factor, or use frames of that size")
+                         f"{name} is {got}: {rescale}")
     calib = Calibration(self.fx, self.fx if self.fy is None else self.fy,
                         (width - 1) / 2 if self.cx is None else self.cx,
                         (height - 1) / 2 if self.cy is None else self.cy, self.baseline,
                         self.doffs)
-    if not (0 <= calib.cx < width and 0 <= calib.cy < height):
+    # pixel centres at integers: the frame spans [-0.5, width - 0.5] (the default centre,
+    # (width - 1) / 2, is its middle)
+    if not (-0.5 <= calib.cx <= width - 0.5 and -0.5 <= calib.cy <= height - 0.5):
       raise UsageError(f"the calibration's principal point (cx {calib.cx:g}, cy {calib.cy:g}) "
                        f"is outside the {width}x{height} frames: is it for another image "
-                       "size? Scale fx, fy, cx, cy (and doffs) by the resize factor")
+                       f"size? {rescale[0].upper()}{rescale[1:]}")
     return calib
 
 
 def calibration_from_args(args) -> CalibrationSpec | None:
   """--fx/--fy/--cx/--cy/--baseline or --calib -> a spec, or None without calibration."""
-  given = {k: getattr(args, k, None) for k in _CALIB_KEYS}
+  given = {k: getattr(args, k, None) for k in _CALIB_KEYS}  # (a file may add width, height)
   given = {k: v for k, v in given.items() if v is not None}
   source = "calibration"
   if getattr(args, "calib", None):
@@ -341,6 +344,7 @@ def calibration_from_args(args) -> CalibrationSpec | None:
 
 
 _CALIB_KEYS = ("fx", "fy", "cx", "cy", "baseline", "doffs")
+_SIZE_KEYS = ("width", "height")  # the image size a calibration file is for (optional)
 
 
 def read_calibration(path) -> dict[str, float]:
@@ -349,8 +353,8 @@ def read_calibration(path) -> dict[str, float]:
 
   KITTI: `P_rect_02`/`P_rect_03` (raw data) or `P2`/`P3` (odometry, stereo benchmarks);
   baseline = (P2[0,3] - P3[0,3]) / fx. Middlebury: `cam0=[fx 0 cx; 0 fy cy; 0 0 1]`,
-  `baseline` (mm), `doffs` (else cam1's cx - cam0's cx), and `width`/`height`, which must
-  match the frames.
+  `baseline` (mm), `doffs` (else cam1's cx - cam0's cx). Any format may give `width` and
+  `height`, the image size it is for, which the frames must then have.
   """
   path = pathlib.Path(path)
   if path.is_dir():
@@ -368,7 +372,7 @@ def read_calibration(path) -> dict[str, float]:
       raise UsageError(f"{path}: no calibration found: expected a JSON object with fx and "
                        f"baseline (fy, cx, cy optional) at the top level; found {found}")
     out = {}
-    for k in (k for k in _CALIB_KEYS if k in data):
+    for k in (k for k in _CALIB_KEYS + _SIZE_KEYS if k in data):
       if isinstance(data[k], bool) or not isinstance(data[k], (int, float, str)):
         raise UsageError(f"{path}: {k} must be a number, got {data[k]!r}")
       try:
@@ -390,23 +394,26 @@ def read_calibration(path) -> dict[str, float]:
       entries[key] = [float(v) for v in re.sub(r"[,;\[\]]", " ", rest).split()]
     except ValueError:
       entries[key] = None  # text values (KITTI's calib_time, ...)
-    if key in _CALIB_KEYS and (entries[key] is None or len(entries[key]) != 1):
+    if key in _CALIB_KEYS + _SIZE_KEYS and (entries[key] is None or len(entries[key]) != 1):
       raise UsageError(f"{path}, line {number}: {key} must be one number (pixels, or metres "
                        f"for the baseline), got {rest!r}")
+  size = {k: entries[k][0] for k in _SIZE_KEYS if k in entries}
   for p2, p3 in (("P_rect_02", "P_rect_03"), ("P2", "P3")):
     if len(entries.get(p2) or ()) == 12 and len(entries.get(p3) or ()) == 12:
       m2, m3 = np.reshape(entries[p2], (3, 4)), np.reshape(entries[p3], (3, 4))
       return {"fx": m2[0, 0], "fy": m2[1, 1], "cx": m2[0, 2], "cy": m2[1, 2],
-              "baseline": abs(m2[0, 3] - m3[0, 3]) / m2[0, 0]}
+              "baseline": abs(m2[0, 3] - m3[0, 3]) / m2[0, 0], **size}
   out = {k: entries[k][0] for k in _CALIB_KEYS if k in entries}
   if len(entries.get("cam0") or ()) == 9 and "fx" not in out:  # Middlebury
     k0 = np.reshape(entries["cam0"], (3, 3))
     out.update(fx=k0[0, 0], fy=k0[1, 1], cx=k0[0, 2], cy=k0[1, 2])
-    if "doffs" not in out and len(entries.get("cam1") or ()) == 9:
+    if "doffs" not in out:
+      if len(entries.get("cam1") or ()) != 9:
+        raise UsageError(f"{path}: a Middlebury calibration (cam0) needs doffs or cam1: "
+                         "depth = fx * baseline / (disparity + doffs)")
       out["doffs"] = entries["cam1"][2] - k0[0, 2]
-    for key in ("width", "height"):
-      if len(entries.get(key) or ()) == 1:
-        out[key] = entries[key][0]
+  if out:
+    out.update(size)
   if not out:
     raise UsageError(f"{path}: no calibration found (expected JSON, 'fx 720' lines, KITTI "
                      "P_rect_02/P_rect_03 matrices or a Middlebury calib.txt)")

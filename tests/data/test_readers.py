@@ -521,3 +521,13 @@ def test_hidden_files_are_skipped_and_frame_numbers_sort_as_numbers(tmp_path):
   assert seq.depth2disp_scale == pytest.approx(500 * 0.12)
   np.testing.assert_array_equal(seq.clip(0, 6)["left"], np.stack(written))
   assert base.list_dirs(data) == [data / "s1"]
+
+
+def test_natural_order_of_frame_names():
+  names = ["f10.png", "f2.png", "f1.png", "0010.png", "0009.png", "1701.5.png", "1701.25.png",
+           "1701.125.png", "1403636579.763555584.png", "1403636579.063555584.png"]
+  assert sorted(names, key=base.natural_key) == [
+      "0009.png", "0010.png", "1701.125.png", "1701.25.png", "1701.5.png",  # decimal timestamps
+      "1403636579.063555584.png", "1403636579.763555584.png", "f1.png", "f2.png", "f10.png"]
+  padded = [f"frame_{i:04d}_left.png" for i in (3, 12, 0, 100)]
+  assert sorted(padded, key=base.natural_key) == sorted(padded)  # the official sorted() order
