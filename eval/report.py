@@ -59,7 +59,7 @@ def markdown(summary: dict) -> str:
       vals = [_fmt(res.get(k)) for _, k in cols]
       lines.append("| " + " | ".join([seq["name"], str(seq["frames"]), methods[key]["name"],
                                       *vals]) + " |")
-  compiled = ", ".join(f"{m['name']} {m.get('compile_seconds', 0.0):.1f} s"
+  compiled = ", ".join(f"{m['name']} {m['compile_seconds']:.1f} s"
                        for m in methods.values() if m.get("compile_seconds"))
   lines += ["", "EPE/TEPE in px with the official denominators (non-zero errors); bad-N and "
             "δt-N px: % of those pixels above N px. δt-1px is the paper's δ^t_1px. frames/s: "

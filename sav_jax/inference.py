@@ -48,7 +48,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
-import numbers
 import os
 import time
 import warnings
@@ -59,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sav_jax import runtime
+from sav_jax._checks import is_int as _is_int
 from sav_jax.config import SAVConfig, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 from sav_jax.model.init import abstract_variables
@@ -109,10 +109,6 @@ class Window:
   length: int
   keep_start: int
   keep_stop: int
-
-
-def _is_int(x) -> bool:
-  return isinstance(x, numbers.Integral) and not isinstance(x, bool)
 
 
 def check_window(window: int, stride: int) -> None:

@@ -50,10 +50,11 @@ of frames of sequence s (T_s, not T_s - 1, also for the temporal metrics).
 
 from __future__ import annotations
 
-import numbers
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
+
+from sav_jax._checks import is_int
 
 _F32 = np.float32
 BAD_THRESHOLDS = (0.5, 1.0, 2.0, 3.0)
@@ -150,7 +151,7 @@ def endpoint_error_maps(pred, gt, mask, crop: int = 0, mask_thr: float = 0.5):
   """
   x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("mask", mask)
   _check_same(("pred", "gt", "mask"), (x, y, m))
-  if not (isinstance(crop, numbers.Integral) and not isinstance(crop, bool) and crop >= 0):
+  if not (is_int(crop) and crop >= 0):
     raise ValueError(f"crop must be an integer >= 0 (border pixels), got {crop!r}")
   if not 0 <= mask_thr < 1:
     raise ValueError(f"mask_thr must be in [0, 1) (mask values are in [0, 1]), got {mask_thr!r}")
@@ -586,8 +587,7 @@ def aggregate(results: Sequence[tuple[dict[str, float], int]]) -> dict[str, floa
   sums: dict[str, float] = {}
   for i, item in enumerate(results):
     if not (isinstance(item, (tuple, list)) and len(item) == 2 and isinstance(item[0], Mapping)
-            and isinstance(item[1], numbers.Integral) and not isinstance(item[1], bool)
-            and item[1] >= 1):
+            and is_int(item[1]) and item[1] >= 1):
       raise ValueError(f"aggregate: item {i} must be a (metrics dict, frame count >= 1) pair, "
                        f"as eval_batch returns, got {type(item).__name__} {str(item)[:80]}")
     metrics, length = item

@@ -153,7 +153,8 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
     except ValueError as e:
       raise ValueError(f"{e} ({filled} taken from the data's range {lo:.4g}..{hi:.4g}, which "
                        f"lies beyond the given end; give both vmin and vmax)") from None
-  vmin, vmax = _check_range(vmin, vmax)
+  else:
+    vmin, vmax = _check_range(vmin, vmax)
   if d.size == 0:
     return np.zeros((*d.shape, 3), np.uint8)
   scale = 255.0 / (vmax - vmin)
@@ -316,17 +317,15 @@ def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float
   if valid is not None and np.shape(valid) != d.shape:
     raise ValueError(f"disparity_to_points: valid mask shape {np.shape(valid)} differs from "
                      f"disp {d.shape}")
+  far = {} if max_depth is None else {"max_depth": max_depth}
   check_intrinsics("disparity_to_points: ", fx=fx, fy=fy, baseline=baseline, cx=cx, cy=cy,
-                   doffs=doffs)
-  if max_depth is not None:
-    check_intrinsics("disparity_to_points: ", max_depth=max_depth)
+                   doffs=doffs, **far)
   z = depth_from_disparity(d, fx, baseline, doffs)
   keep = z > 0
   if max_depth is not None:
     keep &= z <= max_depth
   if valid is not None:
-    v = np.asarray(valid)
-    keep &= v if v.dtype == bool else (v > 0.5)
+    keep &= np.asarray(valid) > 0.5  # bool masks as they are (True > 0.5)
   v, u = np.nonzero(keep)
   zk = z[v, u]
   xyz = np.stack([(u - cx) * zk / fx, (v - cy) * zk / fy, zk], axis=-1).astype(np.float32)

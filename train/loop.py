@@ -169,7 +169,8 @@ def _is_regex(x) -> bool:
 _CHECKS = (
     ("seed", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
     ("matmul_precision", lambda x: x in runtime.MATMUL_PRECISIONS,
-     "'default', 'high' or 'highest'"),
+     ", ".join(map(repr, runtime.MATMUL_PRECISIONS[:-1]))
+     + f" or {runtime.MATMUL_PRECISIONS[-1]!r}"),
     ("data.frames", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("data.crop", _is_crop, "(height, width): two positive multiples of 16 (the model's "
      "coarsest scale is 1/16)"),

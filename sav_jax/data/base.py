@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import copy
 import decimal
-import numbers
 import re
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from sav_jax._checks import is_int
 from sav_jax.data import frame_io
 
 class StereoSequence:
@@ -72,7 +72,7 @@ class StereoSequence:
 
   def _index(self, index: int) -> int:
     n = len(self)
-    if not isinstance(index, numbers.Integral) or isinstance(index, (bool, np.bool_)):
+    if not is_int(index):  # (numpy's bool is no Integral either)
       raise TypeError(f"{self.dataset}/{self.name}: frame index must be an integer, got "
                       f"{index!r}")
     i = int(index)

@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import functools
 import logging
-import numbers
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
+from sav_jax._checks import is_int
 from sav_jax.data import (dynamic_replica, infinigen, kitti_depth, sceneflow, sintel,
                           south_kensington, spring, vkitti2)
 from sav_jax.data.base import StereoSequence, sceneflow_clips, strided_clips
@@ -88,8 +88,7 @@ def eval_chunk(sequences: list[StereoSequence], length: int | None,
     drop_short: skip sequences shorter than L (the official Dynamic Replica loader
       fails on them and skips them silently).
   """
-  if length is not None and not (isinstance(length, numbers.Integral)
-                                 and not isinstance(length, bool)):
+  if length is not None and not is_int(length):
     raise TypeError(f"the evaluation chunk length must be an integer or None, got {length!r}")
   if length is None or length <= 0:
     return list(sequences)
@@ -128,7 +127,7 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
   if split not in SPLITS[dataset]:
     raise ValueError(f"{dataset} has no split {split!r}; its splits: {SPLITS[dataset]}")
   if not (max_frames is None or max_frames == OFFICIAL or (
-      isinstance(max_frames, numbers.Integral) and not isinstance(max_frames, bool))):
+      is_int(max_frames))):
     raise ValueError(f"max_frames must be {OFFICIAL!r}, an integer or None, got {max_frames!r}")
   seqs = _LOADERS[dataset](root, split, **options)
   if max_frames == OFFICIAL:

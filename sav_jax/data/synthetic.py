@@ -46,6 +46,8 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from sav_jax._checks import is_int
+
 from sav_jax.data.raycast import Camera, Layer, plane_axes, render_view, unit, valid_mask
 from sav_jax.data.textures import TEXTURE_KINDS, make_texture
 
@@ -125,8 +127,7 @@ def _normalise_scalars(c: SyntheticConfig) -> None:
   for f in dataclasses.fields(c):
     value = getattr(c, f.name)
     if f.type == "int":
-      _check(isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_)),
-             f.name, "must be an int", value)
+      _check(is_int(value), f.name, "must be an int", value)
       object.__setattr__(c, f.name, int(value))
     elif f.type in ("float", "float | None") and not (value is None and "None" in f.type):
       _check(isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))

@@ -321,25 +321,24 @@ def calibration_from_args(args) -> CalibrationSpec | None:
   """--fx/--fy/--cx/--cy/--baseline or --calib -> a spec, or None without calibration."""
   given = {k: getattr(args, k, None) for k in _CALIB_KEYS}  # (a file may add width, height)
   given = {k: v for k, v in given.items() if v is not None}
-  source = "calibration"
+  what = "calibration "  # the start of the messages
   if getattr(args, "calib", None):
     if given:
       raise UsageError("give either --calib or --fx/--fy/--cx/--cy/--baseline/--doffs, not both")
     given = read_calibration(args.calib)
-    source = f"--calib {args.calib}"
+    what = f"--calib {args.calib}: "
   if not given:
     return None
   missing = [k for k in ("fx", "baseline") if k not in given]
+  if missing and getattr(args, "calib", None):
+    raise UsageError(f"{what}no {' and no '.join(missing)} found (read: "
+                     f"{', '.join(sorted(given))}); the file needs fx and baseline (fy, cx, "
+                     "cy, doffs optional), KITTI P2/P3 or Middlebury cam0 + baseline")
   if missing:
-    if source != "calibration":
-      raise UsageError(f"{source}: no {' and no '.join(missing)} found (read: "
-                       f"{', '.join(sorted(given))}); the file needs fx and baseline (fy, cx, "
-                       "cy, doffs optional), KITTI P2/P3 or Middlebury cam0 + baseline")
     raise UsageError(f"calibration needs {' and '.join('--' + m for m in missing)} "
                      "(fy, cx, cy, doffs are optional)")
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
-  viz.check_intrinsics(f"{source}: " if source != "calibration" else "calibration ",
-                       **{k: v for k, v in given.items() if k not in ("width", "height")})
+  viz.check_intrinsics(what, **{k: v for k, v in given.items() if k not in _SIZE_KEYS})
   return CalibrationSpec(**{k: float(v) for k, v in given.items()})
 
 
@@ -412,12 +411,10 @@ def read_calibration(path) -> dict[str, float]:
         raise UsageError(f"{path}: a Middlebury calibration (cam0) needs doffs or cam1: "
                          "depth = fx * baseline / (disparity + doffs)")
       out["doffs"] = entries["cam1"][2] - k0[0, 2]
-  if out:
-    out.update(size)
   if not out:
     raise UsageError(f"{path}: no calibration found (expected JSON, 'fx 720' lines, KITTI "
                      "P_rect_02/P_rect_03 matrices or a Middlebury calib.txt)")
-  return out
+  return {**out, **size}
 
 
 def load_checkpoint(path, dtype: str | None = None):

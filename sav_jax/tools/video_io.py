@@ -89,25 +89,46 @@ def _size(shape) -> str:
   return f"{shape[0]}x{shape[1]}"
 
 
+def _frame_files(path: pathlib.Path, max_frames: int | None) -> list[pathlib.Path] | None:
+  """The frame files of a folder (the first `max_frames`), or None for a video file."""
+  if path.is_dir():
+    return list_frames(path)[:max_frames]
+  _check_video_path(path)
+  return None
+
+
+def _checked_frames(path: pathlib.Path, files, max_frames: int | None, notes: set[str]):
+  """Yields the frames of a folder (`files`) or of a video file (`files` None) as `[H, W, 3]`
+  uint8 RGB; a ValueError naming the frame if one cannot be decoded or differs in size from
+  the first, or if a video has none."""
+  frames = ((read_frame(f, notes) for f in files) if files is not None
+            else _decode(path, max_frames, notes))
+  label = (lambda i: files[i].name) if files is not None else (lambda i: f"frame {i}")
+  first = None
+  for i, frame in enumerate(frames):
+    first = frame.shape if first is None else first
+    if frame.shape != first:
+      raise ValueError(f"{path}: frames differ in size: {label(i)} is {_size(frame.shape)} but "
+                       f"the first frame {label(0)} is {_size(first)} (height x width)")
+    yield frame
+  if first is None:
+    raise ValueError(f"{path}: the video has no decodable frames")
+
+
+def _frame_names(files, count: int) -> list[str]:
+  """Output names: the files' stems, or `frame_000000`... for a video or clashing stems."""
+  names = [f.stem for f in files] if files is not None else []
+  if files is None or len(set(names)) != len(names):
+    names = [f"frame_{i:06d}" for i in range(count)]
+  return names
+
+
 def _read_source(path, max_frames: int | None, notes: set[str]):
   """`(frames [T, H, W, 3] uint8, names)` of a frame folder or a video file."""
   path = pathlib.Path(path)
-  if path.is_dir():
-    files = list_frames(path)[:max_frames]
-    frames = []
-    for file in files:
-      frames.append(read_frame(file, notes))
-      if frames[-1].shape != frames[0].shape:
-        raise ValueError(f"{path}: frames differ in size: {file.name} is "
-                         f"{_size(frames[-1].shape)} but the first frame {files[0].name} is "
-                         f"{_size(frames[0].shape)} (height x width)")
-    names = [f.stem for f in files]
-    if len(set(names)) != len(names):
-      names = [f"frame_{i:06d}" for i in range(len(files))]
-    return np.stack(frames), names
-  _check_video_path(path)
-  frames = read_video_file(path, max_frames)
-  return frames, [f"frame_{i:06d}" for i in range(len(frames))]
+  files = _frame_files(path, max_frames)
+  frames = np.stack(list(_checked_frames(path, files, max_frames, notes)))
+  return frames, _frame_names(files, len(frames))
 
 
 class FrameSource:
@@ -122,33 +143,12 @@ class FrameSource:
   def __init__(self, path, max_frames: int | None = None, notes: set[str] | None = None):
     self.path = pathlib.Path(path)
     self.notes = set() if notes is None else notes
-    self._files = None
-    if self.path.is_dir():
-      self._files = list_frames(self.path)[:max_frames]
-      first = None
-      for file in self._files:
-        shape = read_frame(file, self.notes).shape
-        first = first or (file, shape)
-        if shape != first[1]:
-          raise ValueError(f"{self.path}: frames differ in size: {file.name} is {_size(shape)} "
-                           f"but the first frame {first[0].name} is {_size(first[1])} "
-                           "(height x width)")
-      names = [f.stem for f in self._files]
-      if len(set(names)) != len(names):
-        names = [f"frame_{i:06d}" for i in range(len(names))]
-      self.names, (h, w) = names, first[1][:2]
-    else:
-      _check_video_path(self.path)
-      count, shape = 0, None
-      for frame in _decode(self.path, max_frames, self.notes):
-        if shape is not None and frame.shape != shape:
-          raise ValueError(f"{self.path}: frame {count} is {_size(frame.shape)}, the first "
-                           f"{_size(shape)} (height x width)")
-        shape, count = frame.shape, count + 1
-      if not count:
-        raise ValueError(f"{self.path}: the video has no decodable frames")
-      self.names, (h, w) = [f"frame_{i:06d}" for i in range(count)], shape[:2]
-    self.shape = (len(self.names), h, w, 3)
+    self._files = _frame_files(self.path, max_frames)
+    count = 0
+    for frame in _checked_frames(self.path, self._files, max_frames, self.notes):
+      count, (h, w) = count + 1, frame.shape[:2]
+    self.names = _frame_names(self._files, count)
+    self.shape = (count, h, w, 3)
     self._reader, self._next, self._buffer = None, 0, {}
 
   def __len__(self) -> int:
