@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import functools
-import numbers
 
 import flax
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from sav_jax._checks import is_int
 from sav_jax.config import SAVConfig
 from sav_jax.model.depth import DepthExtractor
 from sav_jax.model.encoder import BasicEncoder
@@ -63,8 +63,7 @@ def check_iters(iters) -> int:
   Any integer type is accepted (numpy's too, not bool), so `iters=np.int64(4)` and
   `iters=4` run, and cache, the same computation.
   """
-  if (not isinstance(iters, numbers.Integral) or isinstance(iters, bool) or iters < 2
-      or iters % 2):
+  if not is_int(iters) or iters < 2 or iters % 2:
     raise ValueError(
         f"iters must be an even integer >= 2 (the 1/16 and 1/8 stages run iters//2 "
         f"steps each, and steps alternate 1x9 / 3x3 windows), got {iters!r}")
