@@ -249,11 +249,11 @@ def available_memory_bytes(device=None) -> int | None:
 
 
 def _raise_if_too_big(needed: float, shape: tuple[int, int, int], what: str,
-                      margin: float = 1.0) -> None:
-  free = available_memory_bytes()
+                      margin: float = 1.0, device=None) -> None:
+  device = _default_device() if device is None else device
+  free = available_memory_bytes(device)
   if free is not None and needed > margin * free:
     t, h, w = shape
-    device = jax.devices()[0]
     raise InsufficientMemoryError(
         f"a {t}-frame window of {h}x{w} (padded) needs about {needed / 2**30:.1f} GB "
         f"({what}), but only {free / 2**30:.1f} GB is free on {device.platform}:{device.id}; "
@@ -350,18 +350,28 @@ def _compile(key, build, check_memory: bool):
     except Exception:  # pylint: disable=broad-except  # analysis not offered by every backend
       ma = None
     if ma is not None:
-      _raise_if_too_big(needed, shape, "from the compiled program")
+      _raise_if_too_big(needed, shape, "from the compiled program", device=_device_of(args[0]))
   _COMPILED[key] = compiled
   while len(_COMPILED) > _CACHE_SIZE:
     _COMPILED.popitem(last=False)
   return compiled
 
 
-def _precheck(frames, height, width, cfg, iters, check_memory) -> None:
+def _device_of(tree):
+  """The device the arrays of `tree` are on (the default device for host or abstract ones)."""
+  for x in jax.tree_util.tree_leaves(tree):
+    devices = getattr(getattr(x, "sharding", None), "device_set", None)
+    if devices and len(devices) == 1:
+      return next(iter(devices))
+  return _default_device()
+
+
+def _precheck(frames, height, width, cfg, iters, check_memory, device=None) -> None:
   # Cheap check first, so that hopeless sizes fail before a long compile.
   if check_memory:
     _raise_if_too_big(estimate_memory_bytes(frames, height, width, iters, cfg),
-                      (frames, height, width), "estimated", margin=_PRECHECK_MARGIN)
+                      (frames, height, width), "estimated", margin=_PRECHECK_MARGIN,
+                      device=device)
 
 
 def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SAVConfig,
@@ -447,9 +457,12 @@ class FrameFeatureCache:
     for i in [i for i in self.frames if i < index]:
       del self.frames[i]
 
-  def gather(self, start: int, stop: int):
-    """The cached features of frames `[start, stop)` stacked on the T axis."""
+  def gather(self, start: int, stop: int, device=None):
+    """The cached features of frames `[start, stop)` stacked on the T axis (copied to
+    `device` first when given: frames computed on other devices)."""
     items = [self.frames[i] for i in range(start, stop)]
+    if device is not None:
+      items = jax.device_put(items, device)
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *items)
 
 
@@ -604,30 +617,50 @@ def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache
   """`run_window` on inputs already checked (by `predict_video`)."""
   cache = FrameFeatureCache() if cache is None else cache
   variables = model_variables(variables)
-  n = left.shape[0]
-  hp, wp = left.shape[1] + pads[0] + pads[1], left.shape[2] + pads[2] + pads[3]
-  _precheck(n, hp, wp, cfg, iters, check_memory and
-            _cache_key("window", variables, cfg, iters, (n, hp, wp)) not in _COMPILED)
   cache.evict_before(start)
-  c = cache.chunk
-  todo = []  # (a, b): frames start+a .. start+b-1 need features, in chunks aligned to c
-  for lo in range(start // c * c, start + n, c):
-    hi = lo + c
-    if not all(i in cache.frames for i in range(max(lo, start), min(hi, start + n))):
+  todo = _feature_todo(cache.frames, cache.chunk, start, left.shape[0])
+  programs = _window_programs(variables, left.shape, pads, todo, cfg=cfg, iters=iters,
+                              check_memory=check_memory)
+  return np.asarray(jax.device_get(_dispatch_window(
+      variables, left, right, todo, programs, pads=pads, cache=cache, start=start)))
+
+
+def _feature_todo(have, chunk: int, start: int, n: int) -> list[tuple[int, int]]:
+  """The chunks `(a, b)` (frames `start + a .. start + b - 1`, aligned to multiples of
+  `chunk` and cut to the window) whose features a window of `n` frames from `start` computes:
+  those with a frame not in `have`."""
+  todo = []
+  for lo in range(start // chunk * chunk, start + n, chunk):
+    hi = lo + chunk
+    if not all(i in have for i in range(max(lo, start), min(hi, start + n))):
       todo.append((max(lo, start) - start, min(hi, start + n) - start))
-  # Every executable first, so that no computation runs during a compile (which would make
-  # `compile_seconds()` count it as compilation).
+  return todo
+
+
+def _window_programs(variables, shape, pads, todo, *, cfg, iters, check_memory, device=None):
+  """The executables of one window (`{chunk length: frame features}`, window), compiled
+  before any of its work runs, so that no computation is counted as compilation."""
+  n = shape[0]
+  hp, wp = shape[1] + pads[0] + pads[1], shape[2] + pads[2] + pads[3]
+  _precheck(n, hp, wp, cfg, iters, check_memory and
+            _cache_key("window", variables, cfg, iters, (n, hp, wp)) not in _COMPILED, device)
   fns = {b - a: compiled_frame_features(variables, b - a, hp, wp, cfg=cfg,
                                         check_memory=check_memory) for a, b in todo}
-  window = compiled_window(variables, n, hp, wp, cfg=cfg, iters=iters,
-                           check_memory=check_memory)
+  return fns, compiled_window(variables, n, hp, wp, cfg=cfg, iters=iters,
+                              check_memory=check_memory)
+
+
+def _dispatch_window(variables, left, right, todo, programs, *, pads, cache, start, device=None):
+  """Starts a window's work (its missing per-frame features, then the window) on the
+  device of `variables`; returns the raw disparity `[T, Hp, Wp]` as a device array."""
+  fns, window = programs
   for a, b in todo:
     lp = pad_frames(np.asarray(left[a:b], np.float32), pads)
     rp = pad_frames(np.asarray(right[a:b], np.float32), pads)
     feats = fns[b - a](variables, lp, rp)
     for k in range(b - a):
       cache.frames[start + a + k] = jax.tree_util.tree_map(lambda x, k=k: x[:, k:k + 1], feats)
-  return np.asarray(jax.device_get(window(variables, cache.gather(start, start + n))))
+  return window(variables, cache.gather(start, start + left.shape[0], device))
 
 
 def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk, progress=False,
@@ -639,34 +672,103 @@ def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk, 
 
 
 def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk, progress=False,
-               raw_windows=None, check_frames=False):
+               raw_windows=None, check_frames=False, devices=None):
   """Yields `(first frame index, abs() of the window's kept frames [k, H, W])` per window.
 
   `left[sl]` / `right[sl]` are read per window (a lazy source decodes them then); with
   `check_frames` each window's frames are checked as `predict_video` checks arrays.
+  `devices` (from `resolve_devices`; default: the default device) run consecutive windows
+  at once, one each.
   """
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+  devices = [_default_device()] if devices is None else list(devices)
   pads = pad_amounts(*left.shape[1:3])
-  variables = jax.device_put(model_variables(variables))
+  variables = model_variables(variables)
+  placed = ([jax.device_put(variables)] if devices == [_default_device()] else
+            [jax.device_put(variables, d) for d in devices])
   total = sum(w.keep_stop - w.keep_start for w in plan)
+
+  def frames(win):
+    sl = slice(win.start, win.start + win.length)
+    lw, rw = left[sl], right[sl]
+    return _as_video_pair(lw, rw) if check_frames else (lw, rw)
+
+  def kept(win, raw):
+    if raw_windows is not None:
+      raw_windows.append(raw)
+    return win.start + win.keep_start, np.abs(unpad(raw, pads)[win.keep_start:win.keep_stop])
+
   with tqdm(total=total, unit="frame", desc="disparity", disable=not progress) as bar:
     cache = FrameFeatureCache(chunk)
-    for win in plan:
-      sl = slice(win.start, win.start + win.length)
-      lw, rw = left[sl], right[sl]
-      if check_frames:
-        lw, rw = _as_video_pair(lw, rw)
-      raw = _run_window(variables, lw, rw, cfg=cfg, iters=iters, pads=pads,
-                        check_memory=check_memory, cache=cache, start=win.start)
-      if raw_windows is not None:
-        raw_windows.append(raw)
-      yield win.start + win.keep_start, np.abs(unpad(raw, pads)[win.keep_start:win.keep_stop])
-      bar.update(win.keep_stop - win.keep_start)
+    if len(placed) == 1:
+      for win in plan:
+        lw, rw = frames(win)
+        yield kept(win, _run_window(placed[0], lw, rw, cfg=cfg, iters=iters, pads=pads,
+                                    check_memory=check_memory, cache=cache, start=win.start))
+        bar.update(win.keep_stop - win.keep_start)
+      return
+    for g in range(0, len(plan), len(placed)):
+      group = plan[g:g + len(placed)]
+      cache.evict_before(group[0].start)
+      have, work = set(cache.frames), []
+      for win, v, d in zip(group, placed, devices):  # every executable first, then the work
+        todo = _feature_todo(have, cache.chunk, win.start, win.length)
+        have.update(win.start + i for a, b in todo for i in range(a, b))
+        programs = _window_programs(v, (win.length, *left.shape[1:3]), pads, todo, cfg=cfg,
+                                    iters=iters, check_memory=check_memory, device=d)
+        work.append((win, v, d, todo, programs))
+      raws = []  # dispatched in order, run at once on their devices
+      for win, v, d, todo, programs in work:
+        lw, rw = frames(win)
+        raws.append(_dispatch_window(v, lw, rw, todo, programs, pads=pads, cache=cache,
+                                     start=win.start, device=d))
+      for win, raw in zip(group, raws):
+        yield kept(win, np.asarray(jax.device_get(raw)))
+        bar.update(win.keep_stop - win.keep_start)
+
+
+def resolve_devices(devices=None) -> list:
+  """The devices `predict_video` runs windows on.
+
+  Args:
+    devices: None (the default device), a number n >= 1 (the first n local devices of the
+      default backend), "all" (every local device of it), or a sequence of `jax.Device`.
+
+  Returns:
+    A list of distinct devices.
+
+  Raises:
+    ValueError: a number above the local device count, an empty or repeated list, or
+      something else.
+  """
+  if devices is None:
+    return [_default_device()]
+  local = jax.local_devices(backend=_default_device().platform)
+  if isinstance(devices, str):
+    if devices != "all":
+      raise ValueError(f"devices must be a number, 'all' or a list of jax devices, got "
+                       f"{devices!r}")
+    return list(local)
+  if _is_int(devices):
+    if not 1 <= devices <= len(local):
+      raise ValueError(f"devices={devices}, but {len(local)} local {local[0].platform} "
+                       f"device{'s are' if len(local) > 1 else ' is'} available")
+    return list(local[:int(devices)])
+  try:
+    devices = list(devices)
+  except TypeError:
+    raise ValueError(f"devices must be a number, 'all' or a list of jax devices, got "
+                     f"{devices!r}") from None
+  bad = [d for d in devices if not isinstance(d, jax.Device)]
+  if not devices or bad or len(set(devices)) != len(devices):
+    raise ValueError(f"devices must be a non-empty list of distinct jax devices, got {devices!r}")
+  return devices
 
 
 def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters: int = 20,
                   window: int = WINDOW, stride: int = STRIDE, dtype: str | None = None,
-                  progress: bool = False, check_memory: bool = True) -> np.ndarray:
+                  progress: bool = False, check_memory: bool = True,
+                  devices=None) -> np.ndarray:
   """Disparity of every frame of a stereo video of any length and size.
 
   Args:
@@ -679,13 +781,18 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
     dtype: compute dtype override ("float32" or "bfloat16").
     progress: show a tqdm progress bar (frames, frames per second).
     check_memory: refuse sizes that cannot fit (InsufficientMemoryError).
+    devices: where the windows run (`resolve_devices`: None for the default device, a
+      number n for the first n local devices, "all", or a list of devices). With n
+      devices, n consecutive windows run at once, one per device; every frame's features
+      are still computed once (on the device of the first window that needs them, and
+      copied to the next), and the result is the same as on one device.
 
   Returns:
     `[T, H, W]` float32 positive disparity (px) of the left view, every frame.
   """
   return np.concatenate([d for _, d in iter_predict_video(
       variables, left, right, cfg=cfg, iters=iters, window=window, stride=stride, dtype=dtype,
-      progress=progress, check_memory=check_memory)], axis=0)
+      progress=progress, check_memory=check_memory, devices=devices)], axis=0)
 
 
 def _is_lazy_video(x) -> bool:
@@ -697,7 +804,7 @@ def _is_lazy_video(x) -> bool:
 def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
                        iters: int = 20, window: int = WINDOW, stride: int = STRIDE,
                        dtype: str | None = None, progress: bool = False,
-                       check_memory: bool = True):
+                       check_memory: bool = True, devices=None):
   """`predict_video` one window at a time, for videos that do not fit in memory.
 
   `left` and `right` are arrays as for `predict_video`, or lazy video sources: objects with
@@ -705,7 +812,8 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
   `sav_jax.tools.video_io.FrameSource`, which decodes frames when asked). Only one window
   of frames (and the per-frame features of its overlap) is held at a time; a lazy
   source's frames are checked as they are read. The arguments are checked by the call;
-  the windows run as the returned iterator is consumed.
+  the windows run as the returned iterator is consumed. With several `devices`, a group of
+  that many windows (and their frames) is held at a time.
 
   Returns:
     An iterator of `(t, disparities [k, H, W])`: frames `t .. t + k - 1`, in order, every
@@ -719,10 +827,11 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
   else:
     left, right = _as_video_pair(left, right)
   check_variables(variables, cfg)
+  devices = resolve_devices(devices)
   plan = window_plan(int(left.shape[0]), window, stride)
   return _iter_plan(variables, left, right, plan, cfg=cfg, iters=iters,
                     check_memory=check_memory, chunk=stride, progress=progress,
-                    check_frames=lazy)
+                    check_frames=lazy, devices=devices)
 
 
 def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None = None,

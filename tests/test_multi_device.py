@@ -1,0 +1,124 @@
+"""`predict_video(..., devices=n)`: windows run on several devices, same values as on one.
+
+The check runs in a subprocess (`python -m tests.test_multi_device OUT`) with
+`XLA_FLAGS=--xla_force_host_platform_device_count=3`, because this process has already
+initialised JAX with one CPU device. The child runs the golden_batch_test clip (21 frames
+of 28x30, weights seed 0, iters=2) on two devices and compares it with the official
+output, then a 41-frame clip (the 21 frames there and back) on two devices and on one:
+four windows, two groups, the second ending in a shorter window, with per-frame features
+computed on one device and used on the other.
+"""
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from sav_jax import inference
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+ATOL = 1e-4  # px, the fixture README's criterion for final disparities
+
+
+@pytest.fixture(scope="module")
+def child(tmp_path_factory):
+  out = tmp_path_factory.mktemp("multi_device") / "result.npz"
+  env = dict(os.environ, JAX_PLATFORMS="cpu", TF_CPP_MIN_LOG_LEVEL="1",
+             XLA_FLAGS="--xla_force_host_platform_device_count=3",
+             PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+  proc = subprocess.run([sys.executable, "-m", "tests.test_multi_device", str(out)], cwd=ROOT,
+                        env=env, capture_output=True, text=True, timeout=900, check=False)
+  assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+  result = dict(np.load(out))
+  result["log"] = json.loads(str(result["log"]))
+  return result
+
+
+def test_two_devices_reproduce_the_official_output(child, fixtures_dir):
+  ref = np.load(fixtures_dir / "golden_batch_test.npz")["disparity"][:, 0]
+  assert child["golden2"].shape == ref.shape == (21, 28, 30)
+  err = np.abs(child["golden2"] - ref).max()
+  assert err <= ATOL, f"max abs error {err:.2e} px"
+
+
+def test_windows_run_at_once_on_their_devices(child):
+  log = child["log"]
+  assert log["devices"] == 3
+  # 41 frames: windows [0, 20), [10, 30), [20, 40), [30, 41), two at a time on devices 0, 1.
+  assert log["windows"] == [[0, 0], [10, 1], [20, 0], [30, 1]]
+  assert log["outputs_on"] == [0, 1, 0, 1]
+  # Every frame's features once, in chunks of 10 (the last one frame), each on the device of
+  # the first window that needs it.
+  assert log["chunks"] == [[0, 10, 0], [10, 20, 0], [20, 30, 1], [30, 40, 0], [40, 41, 1]]
+  # Per group, every executable is compiled before any work of the group starts.
+  assert log["events"] == ["compile"] * 2 + ["run"] * 2 + ["compile"] * 2 + ["run"] * 2
+
+
+def test_same_values_as_one_device(child):
+  assert child["long2"].shape == child["long1"].shape == (41, 28, 30)
+  np.testing.assert_array_equal(child["long2"], child["long1"])
+
+
+def test_device_choices_are_checked():
+  import jax  # pylint: disable=import-outside-toplevel
+  n = len(jax.local_devices())
+  assert inference.resolve_devices(None) == [jax.devices()[0]]
+  assert inference.resolve_devices(1) == jax.local_devices()[:1]
+  assert inference.resolve_devices(np.int64(1)) == jax.local_devices()[:1]
+  assert inference.resolve_devices("all") == jax.local_devices()
+  assert inference.resolve_devices(jax.local_devices()) == jax.local_devices()
+  with pytest.raises(ValueError, match=f"devices={n + 1}, but {n} local cpu device"):
+    inference.resolve_devices(n + 1)
+  for bad in (0, -1, True, 1.5, "gpu", [], [jax.devices()[0]] * 2, ["cpu:0"], object()):
+    with pytest.raises(ValueError, match="devices"):
+      inference.resolve_devices(bad)
+
+
+def _child(out_path):
+  """Runs in a fresh process with 3 CPU devices."""
+  import jax  # pylint: disable=import-outside-toplevel
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from tests.conftest import FIXTURES, _load_make_weights  # pylint: disable=import-outside-toplevel
+  jax.config.update("jax_disable_most_optimizations", True)  # as tests/test_inference.py
+  sd = _load_make_weights().make_state_dict(str(FIXTURES / "sav_manifest.json"), 0)
+  variables = sav_jax.convert.params_from_state_dict(sd, sav_jax.SAVConfig())
+  g = np.load(FIXTURES / "golden_batch_test.npz")
+  video = np.transpose(g["stereo_video"], (0, 1, 3, 4, 2))  # [T, 2, H, W, 3]
+  left, right = video[:, 0], video[:, 1]
+  log = {"devices": jax.device_count(), "windows": [], "outputs_on": [], "chunks": [],
+         "events": []}
+  real_programs, real_dispatch = inference._window_programs, inference._dispatch_window
+
+  def programs(*args, **kwargs):
+    log["events"].append("compile")
+    return real_programs(*args, **kwargs)
+
+  def dispatch(variables, left, right, todo, programs, *, pads, cache, start, device=None):
+    log["events"].append("run")
+    log["windows"].append([start, device.id])
+    log["chunks"] += [[start + a, start + b, device.id] for a, b in todo]
+    raw = real_dispatch(variables, left, right, todo, programs, pads=pads, cache=cache,
+                        start=start, device=device)
+    log["outputs_on"].append(next(iter(raw.devices())).id)
+    return raw
+
+  def predict(l, r, devices):
+    with jax.default_matmul_precision("highest"):
+      return inference.predict_video(variables, l, r, iters=2, devices=devices)
+
+  long_left = np.concatenate([left, left[::-1][1:]])
+  long_right = np.concatenate([right, right[::-1][1:]])
+  inference._window_programs, inference._dispatch_window = programs, dispatch
+  long2 = predict(long_left, long_right, 2)
+  inference._window_programs, inference._dispatch_window = real_programs, real_dispatch
+  golden2 = predict(left, right, 2)
+  long1 = predict(long_left, long_right, None)
+  np.savez(out_path, golden2=golden2, long2=long2, long1=long1, log=json.dumps(log))
+
+
+if __name__ == "__main__":
+  _child(sys.argv[1])
