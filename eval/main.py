@@ -23,7 +23,7 @@ from eval import config as eval_config
 from eval import data as eval_data
 from eval import report, runner
 from sav_jax import inference, runtime
-from sav_jax.tools import UsageError, check_output_dir, command_logging
+from sav_jax.tools import UsageError, check_output_dir, command_logging, devices_choice
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -81,16 +81,20 @@ def run(args, overrides) -> int:
     raise ValueError(f"config.matmul_precision must be one of {runtime.MATMUL_PRECISIONS}, got "
                      f"{config.matmul_precision!r}")
   inference.check_window(config.window, config.stride)
+  try:
+    devices = inference.resolve_devices(devices_choice(config.devices))
+  except (UsageError, ValueError) as e:
+    raise ValueError(f"config.devices: {e}") from None
   seqs = eval_data.load_sequences(config, args.data_root)
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)
   if not args.overwrite:
-    return evaluate(args, config, out, seqs, variables, model_cfg, described)
+    return evaluate(args, config, out, seqs, variables, model_cfg, described, devices)
   # The earlier run's predictions and plots go aside, and come back if this run fails
   # (a frame that cannot be read, an interrupt): a failed run loses nothing.
   moved = runner.set_aside_written(out)
   try:
-    rc = evaluate(args, config, out, seqs, variables, model_cfg, described)
+    rc = evaluate(args, config, out, seqs, variables, model_cfg, described, devices)
   except BaseException:
     runner.restore_set_aside(out)
     raise
@@ -100,14 +104,15 @@ def run(args, overrides) -> int:
   return rc
 
 
-def evaluate(args, config, out, seqs, variables, model_cfg, described) -> int:
+def evaluate(args, config, out, seqs, variables, model_cfg, described, devices=None) -> int:
   """Evaluates every sequence and writes the reports."""
   methods = ["sav"] + [b for b in dict.fromkeys(args.baseline)]
-  print(f"{config.dataset}/{config.split}: {len(seqs)} sequences; weights: {described}")
+  on = f"; {len(devices)} {devices[0].platform} devices" if devices and len(devices) > 1 else ""
+  print(f"{config.dataset}/{config.split}: {len(seqs)} sequences; weights: {described}{on}")
   results = []
   for i, seq in enumerate(seqs):
     res = runner.evaluate_sequence(seq, methods, variables=variables, model_cfg=model_cfg,
-                                   config=config, out=out)
+                                   config=config, out=out, devices=devices)
     results.append(res)
     line = "  ".join(f"{runner.METHOD_NAMES[m]}: EPE {r['disp_epe_mean']:.3f} TEPE "
                      f"{r['disp_temp_epe_mean']:.3f}" for m, r in res.metrics.items())

@@ -78,13 +78,15 @@ def per_frame_errors(pred, gt, valid) -> tuple[np.ndarray, np.ndarray]:
   return reduce(epe, has), reduce(tepe, has[:-1] & has[1:])
 
 
-def predict(method: str, clip: dict, *, variables, model_cfg, config) -> np.ndarray:
-  """`[T, H, W]` disparity of one method on a sequence's frames."""
+def predict(method: str, clip: dict, *, variables, model_cfg, config,
+            devices=None) -> np.ndarray:
+  """`[T, H, W]` disparity of one method on a sequence's frames (SAV's windows on `devices`,
+  see `inference.resolve_devices`)."""
   if method == "sav":
     with jax.default_matmul_precision(config.matmul_precision):
       return inference.predict_video(variables, clip["left"], clip["right"], cfg=model_cfg,
                                      iters=config.iters, window=config.window,
-                                     stride=config.stride, progress=True)
+                                     stride=config.stride, progress=True, devices=devices)
   if method == "sgbm":
     from sav_jax.tools.demo import stereo_sgbm  # pylint: disable=import-outside-toplevel
     return stereo_sgbm(clip["left"], clip["right"], max_disparity=config.baseline.max_disparity,
@@ -93,7 +95,7 @@ def predict(method: str, clip: dict, *, variables, model_cfg, config) -> np.ndar
 
 
 def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
-                      out: pathlib.Path | None = None) -> SequenceResult:
+                      out: pathlib.Path | None = None, devices=None) -> SequenceResult:
   """Predicts and scores one sequence; writes its predictions and plots under `out`."""
   clip = eval_data.read_sequence(seq)
   res = SequenceResult(name=str(seq.name), frames=len(clip["left"]))
@@ -102,7 +104,8 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
   preds = {}
   for method in methods:
     start, compiled = time.perf_counter(), inference.compile_seconds()
-    pred = predict(method, clip, variables=variables, model_cfg=model_cfg, config=config)
+    pred = predict(method, clip, variables=variables, model_cfg=model_cfg, config=config,
+                   devices=devices)
     res.compile_seconds[method] = inference.compile_seconds() - compiled
     res.seconds[method] = time.perf_counter() - start - res.compile_seconds[method]
     preds[method] = pred

@@ -32,7 +32,11 @@ the windows that contain the frame run (`FrameFeatureCache`); only the temporal 
 20/10 windows this halves the per-frame work. The result is bit-identical to running
 each window on its own (`run_window` uses the same chunks).
 
-Compilation: XLA executables per (config, iters, padded shape, matmul precision),
+Several devices (`devices=`): consecutive windows run at once, one per device, with the
+weights copied to each; a frame's per-frame features are computed on the device of the first
+window that needs them and copied to the others. Same values as on one device.
+
+Compilation: XLA executables per (config, iters, padded shape, matmul precision, device),
 cached for the process: the per-frame part per chunk length (at most two for a video)
 and the windowed part per window length (at most two for N >= 20 frames).
 

@@ -319,6 +319,10 @@ def _bad_case(name, root, clip, npz_ckpt):
   if name == "max_depth_negative":
     return left, right, npz_ckpt, ["--fx", "9", "--baseline", "1", "--max-depth", "-1"], \
         "--max-depth must be a finite positive number"
+  if name == "devices_word":
+    return left, right, npz_ckpt, ["--devices", "two"], "devices must be a number of local devices"
+  if name == "devices_too_many":  # this process has one CPU device
+    return left, right, npz_ckpt, ["--devices", "3"], "--devices: devices=3, but 1 local cpu device"
   calib = {"calib_no_keys": ('{"left": {"fx": 720}, "baseline_m": 0.1}', "no calibration found"),
            "calib_null": ('{"fx": null, "baseline": 0.1}', "fx must be a number, got None"),
            "calib_units": ("fx: 720\nbaseline: 0.54 m\n", "line 2: baseline must be one number"),
@@ -346,7 +350,7 @@ def _bad_case(name, root, clip, npz_ckpt):
     "calib_no_keys", "calib_null",
     "calib_units", "calib_no_baseline", "middlebury_no_doffs", "middlebury_size", "json_size",
     "principal_point",
-    "max_depth_without_calibration", "max_depth_negative"])
+    "max_depth_without_calibration", "max_depth_negative", "devices_word", "devices_too_many"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):
   left, right, ckpt, extra, message = _bad_case(name, tmp_path, clip, npz_ckpt)
   out = tmp_path / "out"

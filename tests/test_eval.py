@@ -200,6 +200,7 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
 
   def fake_predict(variables, left, right, **kw):
     seen.append(jax.config.jax_default_matmul_precision)
+    assert kw["devices"] == jax.devices()[:1]  # config.devices = 1
     return np.ones(left.shape[:3], np.float32)
 
   monkeypatch.setattr(eval_runner.inference, "predict_video", fake_predict)
@@ -214,7 +215,9 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
 @pytest.mark.parametrize("override,message", [
     ("--config.nope=1", "no such config field"), ("--config.iters=abc", "expected int"),
     ("--config.iters=3", "even"), ("--config.plots.enabled=maybe", "true/false"),
-    ("--config.split=train", "only the split 'test'")])
+    ("--config.split=train", "only the split 'test'"),
+    ("--config.devices=4", "config.devices: devices=4, but 1 local cpu device is available"),
+    ("--config.devices=-1", "config.devices: devices must be a number of local devices")])
 def test_bad_overrides(tmp_path, ckpt, capsys, override, message):
   rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt),
              "--out", str(tmp_path / "o"), override])

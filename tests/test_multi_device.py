@@ -58,6 +58,11 @@ def test_windows_run_at_once_on_their_devices(child):
   assert log["events"] == ["compile"] * 2 + ["run"] * 2 + ["compile"] * 2 + ["run"] * 2
 
 
+def test_infer_command_runs_on_two_devices(child):
+  assert child["log"]["infer_devices"] == ["cpu:0", "cpu:1"]
+  np.testing.assert_array_equal(child["cli2"], child["golden2"])
+
+
 def test_same_values_as_one_device(child):
   assert child["long2"].shape == child["long1"].shape == (41, 28, 30)
   np.testing.assert_array_equal(child["long2"], child["long1"])
@@ -84,6 +89,7 @@ def _child(out_path):
   import sav_jax  # pylint: disable=import-outside-toplevel
   from tests.conftest import FIXTURES, _load_make_weights  # pylint: disable=import-outside-toplevel
   jax.config.update("jax_disable_most_optimizations", True)  # as tests/test_inference.py
+  jax.config.update("jax_default_matmul_precision", "highest")
   sd = _load_make_weights().make_state_dict(str(FIXTURES / "sav_manifest.json"), 0)
   variables = sav_jax.convert.params_from_state_dict(sd, sav_jax.SAVConfig())
   g = np.load(FIXTURES / "golden_batch_test.npz")
@@ -107,8 +113,7 @@ def _child(out_path):
     return raw
 
   def predict(l, r, devices):
-    with jax.default_matmul_precision("highest"):
-      return inference.predict_video(variables, l, r, iters=2, devices=devices)
+    return inference.predict_video(variables, l, r, iters=2, devices=devices)
 
   long_left = np.concatenate([left, left[::-1][1:]])
   long_right = np.concatenate([right, right[::-1][1:]])
@@ -117,7 +122,22 @@ def _child(out_path):
   inference._window_programs, inference._dispatch_window = real_programs, real_dispatch
   golden2 = predict(left, right, 2)
   long1 = predict(long_left, long_right, None)
-  np.savez(out_path, golden2=golden2, long2=long2, long1=long1, log=json.dumps(log))
+  # `sav-jax infer --devices 2` on the golden frames as PNG folders (the same executables).
+  import cv2  # pylint: disable=import-outside-toplevel
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  root = pathlib.Path(out_path).parent
+  np.savez(root / "weights.npz", **sd)
+  for name, frames in (("left", left), ("right", right)):
+    (root / name).mkdir()
+    for i, frame in enumerate(frames):
+      cv2.imwrite(str(root / name / f"{i:06d}.png"), frame[..., ::-1].astype(np.uint8))
+  argv = ["infer", "--left", str(root / "left"), "--right", str(root / "right"),
+          "--checkpoint", str(root / "weights.npz"), "--out", str(root / "infer"), "--iters", "2",
+          "--format", "npy", "--devices", "2", "--no-compile-cache"]
+  assert cli.main(argv) == 0
+  cli2 = np.stack([np.load(root / "infer" / "disparity" / f"{i:06d}.npy") for i in range(21)])
+  log["infer_devices"] = json.loads((root / "infer" / "summary.json").read_text())["devices"]
+  np.savez(out_path, golden2=golden2, long2=long2, long1=long1, cli2=cli2, log=json.dumps(log))
 
 
 if __name__ == "__main__":

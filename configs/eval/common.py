@@ -37,6 +37,9 @@ def eval_config(dataset: str, split: str = "test", sample_len: int = -1
   # NVIDIA GPUs, about 1e-3 px from the official float32 output; full float32 on CPU) or
   # "highest" (full float32 everywhere, within ~1e-5 px of it; slower on GPUs).
   c.matmul_precision = "default"
+  # Local devices that run consecutive windows at once, one window each (0: every device of
+  # the default backend); the values are those of one device.
+  c.devices = 1
   # Evaluate only the first N sequences (<= 0: all); for quick checks.
   c.max_sequences = -1
   # Write each sequence's predicted disparity as predictions/<sequence>.npy.

@@ -17,6 +17,24 @@ class UsageError(Exception):
   """Bad input from the user: reported without a traceback, exit status 2."""
 
 
+def devices_choice(value):
+  """A `--devices` value for `inference.resolve_devices`: "all" or 0 -> "all", n >= 1 -> n."""
+  text = str(value).strip().lower()
+  if text == "all":
+    return "all"
+  if not text.isdigit():
+    raise UsageError(f"devices must be a number of local devices >= 1, or 0 or 'all' for every "
+                     f"one, got {value!r}")
+  return "all" if int(text) == 0 else int(text)
+
+
+def add_devices_argument(p) -> None:
+  """--devices N|all: how many local devices run windows at once."""
+  p.add_argument("--devices", default="1", metavar="N",
+                 help="run N consecutive windows at once, one per local device "
+                      "(0 or 'all': every device of the default backend; default 1)")
+
+
 def add_compile_cache_arguments(p, default_on: bool = True) -> None:
   """--compile-cache DIR / --no-compile-cache (JAX's persistent compilation cache)."""
   from sav_jax.runtime import (  # pylint: disable=import-outside-toplevel

@@ -25,8 +25,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sav_jax.tools import (UsageError, add_compile_cache_arguments, check_output_dir,
-                           setup_compile_cache, video_io)
+from sav_jax.tools import (UsageError, add_compile_cache_arguments, add_devices_argument,
+                           check_output_dir, devices_choice, setup_compile_cache, video_io)
 
 HELP = "estimate disparity for a stereo video (frame folders or video files)"
 log = logging.getLogger(__name__)
@@ -57,6 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--window", type=int, default=20, help="frames per sliding window (20)")
   p.add_argument("--stride", type=int, default=10, help="sliding window stride (10)")
   p.add_argument("--fps", type=float, default=10.0, help="frame rate of the output video")
+  add_devices_argument(p)
   add_compile_cache_arguments(p)
 
 
@@ -156,6 +157,7 @@ def check_model_args(iters: int, window: int, stride: int) -> None:
 def run(args: argparse.Namespace) -> int:
   formats = parse_formats(args.formats)
   check_model_args(args.iters, args.window, args.stride)
+  devices = devices_choice(args.devices)
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
   viz.check_fps(args.fps, "--fps")
   calib_spec = calibration_from_args(args)
@@ -177,17 +179,24 @@ def run(args: argparse.Namespace) -> int:
 
   setup_compile_cache(args)
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
+  try:
+    devices = inference.resolve_devices(devices)
+  except ValueError as e:
+    raise UsageError(f"--devices: {e}") from None
   variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
   print(f"weights: {described}")
-  print(f"input: {t} frames of {h}x{w} (height x width); iters {args.iters}, {cfg.dtype}")
+  on = f"; {len(devices)} devices ({devices[0].platform})" if len(devices) > 1 else ""
+  print(f"input: {t} frames of {h}x{w} (height x width); iters {args.iters}, {cfg.dtype}{on}")
   start, compiled = time.perf_counter(), inference.compile_seconds()
   chunks = inference.iter_predict_video(variables, left, right, cfg=cfg, iters=args.iters,
-                                        window=args.window, stride=args.stride, progress=True)
+                                        window=args.window, stride=args.stride, progress=True,
+                                        devices=devices)
   written = write_outputs(out, names, left, chunks, formats, calib, args)
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
   summary = {"frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
              "window": args.window, "stride": args.stride, "weights": described,
+             "devices": [str(d) for d in devices],
              "left": str(args.left), "right": str(args.right), "formats": formats,
              "seconds": round(seconds, 3), "frames_per_second": round(t / seconds, 3),
              "compile_seconds": round(compiling, 3),
