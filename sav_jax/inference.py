@@ -624,7 +624,7 @@ def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache
   cache.evict_before(start)
   todo = _feature_todo(cache.frames, cache.chunk, start, left.shape[0])
   programs = _window_programs(variables, left.shape, pads, todo, cfg=cfg, iters=iters,
-                              check_memory=check_memory)
+                              check_memory=check_memory, device=_device_of(variables))
   return np.asarray(jax.device_get(_dispatch_window(
       variables, left, right, todo, programs, pads=pads, cache=cache, start=start)))
 
