@@ -112,6 +112,21 @@ def test_im2col_form_equals_the_direct_convolution():
     assert float(jnp.abs(got - want).max()) < 1e-5 * float(jnp.abs(want).max())
 
 
+def test_winograd_forms_equal_the_direct_convolution():
+  """benchmarks/winograd_conv.py's F(m, 5) forms are the same 'same'-padded 5-tap
+  convolution, for heights that are not multiples of m too."""
+  import winograd_conv  # pylint: disable=import-outside-toplevel,import-error
+  w = jax.random.normal(jax.random.PRNGKey(1), (5, 6, 3))
+  for h in (8, 11):
+    x = jax.random.normal(jax.random.PRNGKey(h), (2, h, 4, 6))
+    want = winograd_conv.direct_h(x, w)
+    for m in (2, 4, 6):
+      for form in (winograd_conv.winograd_h, winograd_conv.winograd_h_sums):
+        got = form(x, w, m)
+        assert got.shape == want.shape == (2, h, 4, 3)
+        assert float(jnp.abs(got - want).max()) < 1e-5 * float(jnp.abs(want).max()), (h, m)
+
+
 def test_update_block_rewrites_compute_the_modules_values():
   """benchmarks/update_variants.py times rewrites of the same functions: each row of a
   group gives its first row's (the model module's) values."""
