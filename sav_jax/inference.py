@@ -73,7 +73,7 @@ log = logging.getLogger(__name__)
 PAD_MULTIPLE = 32
 WINDOW = 20
 STRIDE = 10
-_CACHE_SIZE = 16
+_CACHE_SIZE = 16  # executables per device
 _COMPILED: "collections.OrderedDict[tuple, object]" = collections.OrderedDict()
 _compile_seconds = 0.0  # `compile_seconds()`
 _SKIP_COLLECTIONS = ("torch_unused",)
@@ -356,8 +356,11 @@ def _compile(key, build, check_memory: bool):
     if ma is not None:
       _raise_if_too_big(needed, shape, "from the compiled program", device=_device_of(args[0]))
   _COMPILED[key] = compiled
-  while len(_COMPILED) > _CACHE_SIZE:
-    _COMPILED.popitem(last=False)
+  # At most _CACHE_SIZE executables per placement (the last key field), the least recently
+  # used go first: several devices each keep their own set of a video's executables.
+  same = [k for k in _COMPILED if k[-1] == key[-1]]
+  for k in same[:max(0, len(same) - _CACHE_SIZE)]:
+    del _COMPILED[k]
   return compiled
 
 

@@ -162,3 +162,28 @@ def _child(out_path):
 
 if __name__ == "__main__":
   _child(sys.argv[1])
+
+
+def test_each_device_keeps_its_own_executables(monkeypatch):
+  """The executable cache holds `_CACHE_SIZE` programs per placement (least recently used
+  out first), so n devices running a video do not evict each other's."""
+  import collections  # pylint: disable=import-outside-toplevel
+  import jax  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  monkeypatch.setattr(inference, "_COMPILED", collections.OrderedDict())
+  monkeypatch.setattr(inference, "_CACHE_SIZE", 3)
+  spec = jax.ShapeDtypeStruct((2,), jnp.float32)
+
+  def compile_one(i, placement):
+    key = ("test", sav_jax.SAVConfig(), i, (1, 1, 1), (), placement)
+    return inference._compile(key, lambda: (lambda v, x: x + v, (spec, spec)), False)
+
+  for i in range(4):
+    compile_one(i, frozenset())
+  compile_one(9, frozenset({"other device"}))
+  assert [(k[2], k[-1]) for k in inference._COMPILED] == [
+      (1, frozenset()), (2, frozenset()), (3, frozenset()), (9, frozenset({"other device"}))]
+  compile_one(1, frozenset())  # a hit moves it to the end: 2 is now the oldest
+  compile_one(4, frozenset())
+  assert [k[2] for k in inference._COMPILED] == [3, 9, 1, 4]
