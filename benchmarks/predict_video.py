@@ -1,10 +1,13 @@
 """Long-video inference: `predict_video` (per-frame features reused across windows) vs
-running every window through the whole model (`compiled_forward`, no reuse).
+running every window through the whole model (`compiled_forward`, no reuse), and with
+`--devices N` also `predict_video(..., devices=N)` (N windows at once on N local devices).
 
     python benchmarks/predict_video.py --frames 40 --height 128 --width 256 --iters 8
+    python benchmarks/predict_video.py --frames 200 --height 720 --width 1280 --iters 20 \
+        --dtype bfloat16 --devices 8 --skip-whole     # a multi-GPU host
 
-Random weights and a random video; both paths run the same official windows (20 frames,
-stride 10) and are timed after a first run that compiles everything.
+Random weights and a random video; every path runs the same official windows (20 frames,
+stride 10) and is timed after a first run that compiles everything.
 """
 
 import argparse
@@ -37,24 +40,35 @@ def main():
   p.add_argument("--height", type=int, default=128)
   p.add_argument("--width", type=int, default=256)
   p.add_argument("--iters", type=int, default=8)
+  p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
+  p.add_argument("--devices", default="1", help="also run on N local devices (a number or 'all')")
+  p.add_argument("--skip-whole", action="store_true", help="leave out the whole-model path")
   a = p.parse_args()
-  cfg = sav_jax.SAVConfig()
+  cfg = sav_jax.SAVConfig(dtype=a.dtype)
+  devices = inference.resolve_devices("all" if a.devices == "all" else int(a.devices))
   variables = jax.device_put(inference.model_variables(init_variables(cfg, seed=0)))
   rng = np.random.default_rng(0)
   left = rng.integers(0, 256, (a.frames, a.height, a.width, 3), dtype=np.uint8)
   right = np.roll(left, -4, axis=2)
   runs = {"predict_video (reuse)": lambda: inference.predict_video(
-              variables, left, right, cfg=cfg, iters=a.iters),
-          "whole model per window": lambda: without_reuse(variables, left, right, cfg, a.iters)}
-  results = {}
+      variables, left, right, cfg=cfg, iters=a.iters)}
+  if not a.skip_whole:
+    runs["whole model per window"] = lambda: without_reuse(variables, left, right, cfg, a.iters)
+  if len(devices) > 1:
+    runs[f"predict_video, {len(devices)} devices"] = lambda: inference.predict_video(
+        variables, left, right, cfg=cfg, iters=a.iters, devices=devices)
+  results, seconds = {}, {}
   for name, fn in runs.items():
     fn()  # compiles
     t0 = time.perf_counter()
     results[name] = fn()
-    sec = time.perf_counter() - t0
-    print(f"{name:24s} {sec:7.2f} s  ({a.frames / sec:.2f} frames/s)")
-  a_, b_ = results.values()
-  print(f"max |difference| {np.max(np.abs(a_ - b_)):.2e} px")
+    seconds[name] = time.perf_counter() - t0
+    sec = seconds[name]
+    print(f"{name:28s} {sec:7.2f} s  ({a.frames / sec:.2f} frames/s, "
+          f"{seconds['predict_video (reuse)'] / sec:.2f}x predict_video)", flush=True)
+  first = results.pop("predict_video (reuse)")
+  for name, other in results.items():
+    print(f"max |difference| from predict_video, {name}: {np.max(np.abs(first - other)):.2e} px")
 
 
 if __name__ == "__main__":
