@@ -19,6 +19,7 @@ import numpy as np
 import sav_jax
 from sav_jax import inference
 from sav_jax.model.init import init_variables
+from sav_jax.tools import resolve_devices_option
 
 
 def without_reuse(variables, left, right, cfg, iters):
@@ -45,7 +46,7 @@ def main():
   p.add_argument("--skip-whole", action="store_true", help="leave out the whole-model path")
   a = p.parse_args()
   cfg = sav_jax.SAVConfig(dtype=a.dtype)
-  devices = inference.resolve_devices("all" if a.devices == "all" else int(a.devices))
+  devices = resolve_devices_option(a.devices)
   variables = jax.device_put(inference.model_variables(init_variables(cfg, seed=0)))
   rng = np.random.default_rng(0)
   left = rng.integers(0, 256, (a.frames, a.height, a.width, 3), dtype=np.uint8)

@@ -23,7 +23,8 @@ from eval import config as eval_config
 from eval import data as eval_data
 from eval import report, runner
 from sav_jax import inference, runtime
-from sav_jax.tools import UsageError, check_output_dir, command_logging, devices_choice
+from sav_jax.tools import (UsageError, check_output_dir, command_logging,
+                           resolve_devices_option)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -81,10 +82,7 @@ def run(args, overrides) -> int:
     raise ValueError(f"config.matmul_precision must be one of {runtime.MATMUL_PRECISIONS}, got "
                      f"{config.matmul_precision!r}")
   inference.check_window(config.window, config.stride)
-  try:
-    devices = inference.resolve_devices(devices_choice(config.devices))
-  except (UsageError, ValueError) as e:
-    raise ValueError(f"config.devices: {e}") from None
+  devices = resolve_devices_option(config.devices, "config.devices")
   seqs = eval_data.load_sequences(config, args.data_root)
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)

@@ -401,7 +401,7 @@ def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SA
   shape = (frames, height, width)
   key = _cache_key("forward", variables, cfg, iters, shape)
   if key not in _COMPILED:
-    _precheck(*shape, cfg, iters, check_memory)
+    _precheck(*shape, cfg, iters, check_memory, _device_of(variables))
   spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
   return _compile(key, lambda: (_forward_fn(cfg, iters), (variables, spec, spec)), check_memory)
 
@@ -627,7 +627,7 @@ def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache
   cache.evict_before(start)
   todo = _feature_todo(cache.frames, cache.chunk, start, left.shape[0])
   programs = _window_programs(variables, left.shape, pads, todo, cfg=cfg, iters=iters,
-                              check_memory=check_memory, device=_device_of(variables))
+                              check_memory=check_memory)
   return np.asarray(jax.device_get(_dispatch_window(
       variables, left, right, todo, programs, pads=pads, cache=cache, start=start)))
 
@@ -644,22 +644,25 @@ def _feature_todo(have, chunk: int, start: int, n: int) -> list[tuple[int, int]]
   return todo
 
 
-def _window_programs(variables, shape, pads, todo, *, cfg, iters, check_memory, device=None):
-  """The executables of one window (`{chunk length: frame features}`, window), compiled
-  before any of its work runs, so that no computation is counted as compilation."""
+def _window_programs(variables, shape, pads, todo, *, cfg, iters, check_memory):
+  """The executables of one window (`{chunk length: frame features}`, window) on the device
+  of `variables`, compiled before any of its work runs, so that no computation is counted
+  as compilation."""
   n = shape[0]
   hp, wp = shape[1] + pads[0] + pads[1], shape[2] + pads[2] + pads[3]
   _precheck(n, hp, wp, cfg, iters, check_memory and
-            _cache_key("window", variables, cfg, iters, (n, hp, wp)) not in _COMPILED, device)
+            _cache_key("window", variables, cfg, iters, (n, hp, wp)) not in _COMPILED,
+            _device_of(variables))
   fns = {b - a: compiled_frame_features(variables, b - a, hp, wp, cfg=cfg,
                                         check_memory=check_memory) for a, b in todo}
   return fns, compiled_window(variables, n, hp, wp, cfg=cfg, iters=iters,
                               check_memory=check_memory)
 
 
-def _dispatch_window(variables, left, right, todo, programs, *, pads, cache, start, device=None):
+def _dispatch_window(variables, left, right, todo, programs, *, pads, cache, start):
   """Starts a window's work (its missing per-frame features, then the window) on the
-  device of `variables`; returns the raw disparity `[T, Hp, Wp]` as a device array."""
+  device of `variables`, where the features of frames computed elsewhere are copied;
+  returns the raw disparity `[T, Hp, Wp]` as a device array."""
   fns, window = programs
   for a, b in todo:
     lp = pad_frames(np.asarray(left[a:b], np.float32), pads)
@@ -667,7 +670,7 @@ def _dispatch_window(variables, left, right, todo, programs, *, pads, cache, sta
     feats = fns[b - a](variables, lp, rp)
     for k in range(b - a):
       cache.frames[start + a + k] = jax.tree_util.tree_map(lambda x, k=k: x[:, k:k + 1], feats)
-  return window(variables, cache.gather(start, start + left.shape[0], device))
+  return window(variables, cache.gather(start, start + left.shape[0], _device_of(variables)))
 
 
 def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk, progress=False,
@@ -684,14 +687,13 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
 
   `left[sl]` / `right[sl]` are read per window (a lazy source decodes them then); with
   `check_frames` each window's frames are checked as `predict_video` checks arrays.
-  `devices` (from `resolve_devices`; default: the default device) run consecutive windows
-  at once, one each.
+  `devices` (from `resolve_devices`) run consecutive windows at once, one each; None runs
+  them where the variables are (the default device for host arrays).
   """
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
-  devices = [_default_device()] if devices is None else list(devices)
   pads = pad_amounts(*left.shape[1:3])
   variables = model_variables(variables)
-  placed = ([jax.device_put(variables)] if devices == [_default_device()] else
+  placed = ([jax.device_put(variables)] if devices is None else
             [jax.device_put(variables, d) for d in devices])
   total = sum(w.keep_stop - w.keep_start for w in plan)
 
@@ -718,17 +720,17 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
       group = plan[g:g + len(placed)]
       cache.evict_before(group[0].start)
       have, work = set(cache.frames), []
-      for win, v, d in zip(group, placed, devices):  # every executable first, then the work
+      for win, v in zip(group, placed):  # every executable first, then the work
         todo = _feature_todo(have, cache.chunk, win.start, win.length)
         have.update(win.start + i for a, b in todo for i in range(a, b))
         programs = _window_programs(v, (win.length, *left.shape[1:3]), pads, todo, cfg=cfg,
-                                    iters=iters, check_memory=check_memory, device=d)
-        work.append((win, v, d, todo, programs))
+                                    iters=iters, check_memory=check_memory)
+        work.append((win, v, todo, programs))
       raws = []  # dispatched in order, run at once on their devices
-      for win, v, d, todo, programs in work:
+      for win, v, todo, programs in work:
         lw, rw = frames(win)
         raws.append(_dispatch_window(v, lw, rw, todo, programs, pads=pads, cache=cache,
-                                     start=win.start, device=d))
+                                     start=win.start))
       for win, raw in zip(group, raws):
         yield kept(win, np.asarray(jax.device_get(raw)))
         bar.update(win.keep_stop - win.keep_start)
@@ -788,8 +790,9 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
     dtype: compute dtype override ("float32" or "bfloat16").
     progress: show a tqdm progress bar (frames, frames per second).
     check_memory: refuse sizes that cannot fit (InsufficientMemoryError).
-    devices: where the windows run (`resolve_devices`: None for the default device, a
-      number n for the first n local devices, "all", or a list of devices). With n
+    devices: where the windows run: None where the variables are (the default device for
+      numpy ones), or as `resolve_devices` takes them: a number n for the first n local
+      devices, "all", or a list of devices. With n
       devices, n consecutive windows run at once, one per device; every frame's features
       are still computed once (on the device of the first window that needs them, and
       copied to the next), and the result is the same as on one device.
@@ -834,7 +837,7 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
   else:
     left, right = _as_video_pair(left, right)
   check_variables(variables, cfg)
-  devices = resolve_devices(devices)
+  devices = None if devices is None else resolve_devices(devices)
   plan = window_plan(int(left.shape[0]), window, stride)
   return _iter_plan(variables, left, right, plan, cfg=cfg, iters=iters,
                     check_memory=check_memory, chunk=stride, progress=progress,

@@ -125,12 +125,13 @@ def _child(out_path):
     log["events"].append("compile")
     return real_programs(*args, **kwargs)
 
-  def dispatch(variables, left, right, todo, programs, *, pads, cache, start, device=None):
+  def dispatch(variables, left, right, todo, programs, *, pads, cache, start):
+    device = inference._device_of(variables)
     log["events"].append("run")
     log["windows"].append([start, device.id])
     log["chunks"] += [[start + a, start + b, device.id] for a, b in todo]
     raw = real_dispatch(variables, left, right, todo, programs, pads=pads, cache=cache,
-                        start=start, device=device)
+                        start=start)
     log["outputs_on"].append(next(iter(raw.devices())).id)
     return raw
 

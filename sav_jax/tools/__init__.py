@@ -17,15 +17,18 @@ class UsageError(Exception):
   """Bad input from the user: reported without a traceback, exit status 2."""
 
 
-def devices_choice(value):
-  """A `--devices` value for `inference.resolve_devices`: "all" or 0 -> "all", n >= 1 -> n."""
+def resolve_devices_option(value, name: str = "--devices") -> list:
+  """The devices of a `--devices` value (`inference.resolve_devices`): a number n >= 1 of
+  local devices, or 0 or "all" for every one. Bad values raise UsageError naming `name`."""
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
   text = str(value).strip().lower()
-  if text == "all":
-    return "all"
-  if not text.isdigit():
-    raise UsageError(f"devices must be a number of local devices >= 1, or 0 or 'all' for every "
-                     f"one, got {value!r}")
-  return "all" if int(text) == 0 else int(text)
+  if text != "all" and not text.isdigit():
+    raise UsageError(f"{name}: devices must be a number of local devices >= 1, or 0 or 'all' "
+                     f"for every one, got {value!r}")
+  try:
+    return inference.resolve_devices("all" if text in ("all", "0") else int(text))
+  except ValueError as e:
+    raise UsageError(f"{name}: {e}") from None
 
 
 def add_devices_argument(p) -> None:

@@ -26,7 +26,8 @@ from typing import NamedTuple
 import numpy as np
 
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, add_devices_argument,
-                           check_output_dir, devices_choice, setup_compile_cache, video_io)
+                           check_output_dir, resolve_devices_option, setup_compile_cache,
+                           video_io)
 
 HELP = "estimate disparity for a stereo video (frame folders or video files)"
 log = logging.getLogger(__name__)
@@ -157,7 +158,6 @@ def check_model_args(iters: int, window: int, stride: int) -> None:
 def run(args: argparse.Namespace) -> int:
   formats = parse_formats(args.formats)
   check_model_args(args.iters, args.window, args.stride)
-  devices = devices_choice(args.devices)
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
   viz.check_fps(args.fps, "--fps")
   calib_spec = calibration_from_args(args)
@@ -179,10 +179,7 @@ def run(args: argparse.Namespace) -> int:
 
   setup_compile_cache(args)
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
-  try:
-    devices = inference.resolve_devices(devices)
-  except ValueError as e:
-    raise UsageError(f"--devices: {e}") from None
+  devices = resolve_devices_option(args.devices)
   variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
   print(f"weights: {described}")
   on = f"; {len(devices)} devices ({devices[0].platform})" if len(devices) > 1 else ""
