@@ -224,7 +224,16 @@ class SequenceUpdateBlock3D(nn.Module):
   dtype: Any = jnp.float32
   block_mb: float = FRAME_BLOCK_MB
 
-  @nn.compact
+  def setup(self):
+    dt = self.dtype
+    self.encoder = BasicMotionEncoder(dt)
+    self.time_attn = TimeAttnBlock(256, dt)
+    self.space_attn = SpaceAttnBlock(256, dt, self.block_mb)
+    self.gru = SKSepConvGRU3D(self.hidden_dim, dt)
+    self.flow_head = FlowHead3D(dt)
+    self.mask3d_0 = conv(256, (3, 3, 3), 1, 1, dtype=dt)
+    self.mask3d_2 = conv(27 * self.mask_size ** 2, (1, 1, 1), 1, 0, dtype=dt)
+
   def __call__(self, net, inp, corr, flow, with_mask: bool = True):
     """One refinement update.
 
@@ -237,18 +246,20 @@ class SequenceUpdateBlock3D(nn.Module):
 
     Returns:
       `(net, mask, delta_flow)`: new state, upsampling-mask logits
-      `[B, T, h, w, 27*mask_size**2]` (already x0.25), and `[B, T, h, w, 2]`.
+      `[B, T, h, w, 27*mask_size**2]` (already x0.25, `mask_logits` of the new state), and
+      `[B, T, h, w, 2]`.
     """
     dt = self.dtype
-    motion = BasicMotionEncoder(dt, name="encoder")(flow, corr.astype(dt))
+    motion = self.encoder(flow, corr.astype(dt))
     x = jnp.concatenate([inp.astype(dt), motion], axis=-1)
-    x = TimeAttnBlock(256, dt, name="time_attn")(x)
-    x = SpaceAttnBlock(256, dt, self.block_mb, name="space_attn")(x)
-    net = SKSepConvGRU3D(self.hidden_dim, dt, name="gru")(net.astype(dt), x)
-    c3 = lambda f, k, p, n: conv(f, (k, k, k), 1, p, dtype=dt, name=n)
-    delta = FlowHead3D(dt, name="flow_head")(net)
-    if not with_mask:
-      return net, None, delta.astype(jnp.float32)
-    mask = c3(256, 3, 1, "mask3d_0")(net)
-    mask = c3(27 * self.mask_size ** 2, 1, 0, "mask3d_2")(nn.relu(mask))
-    return net, 0.25 * mask.astype(jnp.float32), delta.astype(jnp.float32)
+    x = self.time_attn(x)
+    x = self.space_attn(x)
+    net = self.gru(net.astype(dt), x)
+    delta = self.flow_head(net).astype(jnp.float32)
+    return net, self.mask_logits(net) if with_mask else None, delta
+
+  def mask_logits(self, net):
+    """The upsampling-mask head on a GRU state `[B, T, h, w, hidden]`: float32 logits
+    `[B, T, h, w, 27*mask_size**2]`, already x0.25 (as the official code scales them)."""
+    mask = self.mask3d_2(nn.relu(self.mask3d_0(net.astype(self.dtype))))
+    return 0.25 * mask.astype(jnp.float32)
