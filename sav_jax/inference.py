@@ -289,7 +289,7 @@ def model_variables(variables) -> dict:
 def _cache_key(kind, variables, cfg, iters, shape):
   leaves = jax.tree_util.tree_leaves(variables)
   sig = tuple((tuple(x.shape), str(x.dtype)) for x in leaves)
-  options = tuple(sorted(runtime.inference_compiler_options().items()))
+  options = tuple(sorted(runtime.inference_compiler_options(per_frame=kind == "frames").items()))
   return (kind, cfg, iters, shape, options, str(jax.config.jax_default_matmul_precision),
           str(jax.config.jax_default_device),
           bool(jax.config.values.get("jax_disable_most_optimizations")),

@@ -17,8 +17,10 @@ execution's, not both stacked.
 compiled with (on CPU: YNNPACK only for matrix products and convolutions, which
 halves the forward's temporary memory at the same speed; see
 `benchmarks/README.md`, "Memory"), and XLA's older loop emitters, which need
-about half of the compiler's memory for ~20% more compile time at the same speed
-(`set_low_memory_compile(False)`, `--no-low-memory-compile` in the CLI, turns them off).
+about half of the compiler's memory for more compile time at the same speed
+(`set_low_memory_compile(False)`, `--no-low-memory-compile` in the CLI, turns them off);
+the per-frame program of long-video inference keeps the newer emitters, which compile
+it 8x faster (`inference_compiler_options(per_frame=True)`).
 """
 
 from __future__ import annotations
@@ -123,7 +125,10 @@ _YNN_FUSION_FLAG = "xla_cpu_experimental_ynn_fusion_type"
 _LEAN_YNN_FUSIONS = ",".join("LIBRARY_FUSION_TYPE_" + t for t in
                              ("DOT", "INDIVIDUAL_DOT", "INDIVIDUAL_CONVOLUTION"))
 # XLA:CPU's MLIR fusion emitters need ~0.85 GB of compiler memory for the model; the
-# older emitters ~0.25 GB, for ~20% more compile time and the same run time.
+# older emitters ~0.25 GB, for more compile time (20% on 2026-11-30's machine, 1.9x for the
+# whole forward on 2026-12-01's) and the same run time. The per-frame part is where they
+# are slow (8x: they compile every ViT block's and instance norm's kernels anew), so its
+# own program keeps the newer ones.
 _FUSION_EMITTERS_FLAG = "xla_cpu_use_fusion_emitters"
 LOW_MEMORY_COMPILE_DEFAULT = True
 _low_memory_compile = LOW_MEMORY_COMPILE_DEFAULT
@@ -138,9 +143,11 @@ def set_low_memory_compile(enabled: bool = True) -> None:
   """Whether later inference executables compile on CPU with XLA's older loop emitters.
 
   On by default: the compiler's peak memory for the model drops by ~0.55 GB (whole
-  process at T=5 128x256: 1.33-1.40 -> 0.84 GB) for ~20% more compile time (14.2 ->
-  17.1 s there, 13.2 -> 16.3 s at 256x512), and the forward runs at the same speed
-  (`benchmarks/compile_options.py`). `set_low_memory_compile(False)` gives the faster
+  process at T=5 128x256: 1.33-1.40 -> 0.84 GB) for more compile time (14.2 -> 17.1 s
+  there on 2026-11-30's machine, 20 -> 38 s for the whole forward on 2026-12-01's), and
+  the forward runs at the same speed (`benchmarks/compile_options.py`). The per-frame
+  program of `predict_video` is compiled with the newer emitters either way (see
+  `inference_compiler_options`). `set_low_memory_compile(False)` gives the faster
   compile. Process-wide, like `enable_compilation_cache`.
   """
   global _low_memory_compile  # pylint: disable=global-statement
@@ -184,18 +191,27 @@ def _accepts_options(platform: str, options: tuple) -> bool:
   return True
 
 
-def inference_compiler_options(platform: str | None = None) -> dict[str, str | bool]:
+def inference_compiler_options(platform: str | None = None,
+                               per_frame: bool = False) -> dict[str, str | bool]:
   """XLA compiler options for the model's inference executables.
 
   On CPU, YNNPACK fusions are limited to matrix products and convolutions
   (`--xla_cpu_experimental_ynn_fusion_type`): the same values (within float32
   summation order), the same speed, about half the forward's temporary memory.
-  Unless `set_low_memory_compile(False)`, also `xla_cpu_use_fusion_emitters=False`.
-  Nothing on other backends; an option the user sets in `XLA_FLAGS` is left to
-  them, and one this jaxlib does not know is dropped.
+  Unless `set_low_memory_compile(False)` or `per_frame`, also
+  `xla_cpu_use_fusion_emitters=False`. Nothing on other backends; an option the
+  user sets in `XLA_FLAGS` is left to them, and one this jaxlib does not know is
+  dropped.
 
   Args:
     platform: the backend the program is compiled for (default: JAX's default).
+    per_frame: options for a program of the per-frame part alone (DINOv2 tokens,
+      fnet, cnet: `sav_jax.inference.compiled_frame_features`), which keeps XLA's
+      newer fusion emitters: they compile the twelve identical ViT blocks' kernels
+      once and the encoders' instance-norm reductions quickly, where the older
+      emitters take 8x longer (T=5 128x256: 2.5 s against 20 s) for 10% less
+      compiler memory (0.61 against 0.66 GB peak RSS); the refinement's program
+      compiles faster with the older ones.
 
   Returns:
     A dict for `jax.stages.Lowered.compile(compiler_options=...)`.
@@ -205,7 +221,7 @@ def inference_compiler_options(platform: str | None = None) -> dict[str, str | b
     return {}
   user_flags = os.environ.get("XLA_FLAGS", "")
   wanted = [(_YNN_FUSION_FLAG, _LEAN_YNN_FUSIONS)]
-  if _low_memory_compile:
+  if _low_memory_compile and not per_frame:
     wanted.append((_FUSION_EMITTERS_FLAG, False))
   return {k: v for k, v in wanted
           if k not in user_flags and _accepts_options(platform, ((k, v),))}

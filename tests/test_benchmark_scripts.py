@@ -5,6 +5,7 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import pytest
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
 import op_profile  # noqa: E402  pylint: disable=wrong-import-position,import-error
@@ -236,3 +237,25 @@ def test_infer_memory_script_runs_the_streaming_infer(tmp_path, monkeypatch, cap
   # Window [0, 20) keeps frames 0-14 (local 0-14), window [10, 23) frames 15-22 (local 5-12).
   expected = list(range(1, 16)) + list(range(6, 14))
   assert [float(np.load(out / "disparity" / f"{i:05d}.npy")[0, 0]) for i in range(23)] == expected
+
+
+@pytest.mark.usefixtures("fast_compile")  # the last test here: the fixture is module-scoped
+def test_compile_times_script_compiles_what_predict_video_runs(capsys):
+  """benchmarks/compile_times.py compiles the per-frame program with the newer fusion
+  emitters and the window's with the older ones (low-memory mode), and refuses bad sizes."""
+  import compile_times  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  from sav_jax import inference, runtime  # pylint: disable=import-outside-toplevel
+
+  before = (jax.config.jax_compilation_cache_dir, runtime._low_memory_compile)  # pylint: disable=protected-access
+  result = compile_times.main(["--frames", "1", "--height", "16", "--width", "16",
+                               "--iters", "2"])
+  assert (jax.config.jax_compilation_cache_dir, runtime._low_memory_compile) == before  # pylint: disable=protected-access
+  assert list(result["compile_s"]) == ["frames", "window"]
+  assert all(s > 0 for s in result["compile_s"].values()) and result["peak_rss_gb"] > 0
+  assert "total" in capsys.readouterr().out
+  options = {k[0]: dict(k[4]) for k in inference._COMPILED if k[3] == (1, 16, 16)}  # pylint: disable=protected-access
+  assert "xla_cpu_use_fusion_emitters" not in options["frames"]
+  assert options["window"]["xla_cpu_use_fusion_emitters"] is False
+  with pytest.raises(SystemExit):
+    compile_times.main(["--height", "30"])
+  assert "multiples of 16" in capsys.readouterr().err

@@ -366,6 +366,11 @@ def test_per_frame_features_are_computed_once_per_frame(variables, golden, monke
   assert events == ["compile frames"] * 2 + ["compile window"] + ["run frames"] * 2 + [
       "run window", "compile frames", "compile window", "run frames", "run window"]
   assert disp.shape == (21, 28, 30)
+  # On CPU the per-frame programs keep XLA's newer fusion emitters (8x faster to compile
+  # there); the window's are compiled with the older, leaner ones (the default).
+  options = {k[0]: dict(k[4]) for k in inference._COMPILED}  # pylint: disable=protected-access
+  assert "xla_cpu_use_fusion_emitters" not in options["frames"]
+  assert options["window"]["xla_cpu_use_fusion_emitters"] is False
   with pytest.raises(ValueError, match="chunk"):
     inference.FrameFeatureCache(chunk=0)
 
