@@ -92,12 +92,14 @@ def test_unknown_xla_options_are_detected_not_raised():
 
 
 @pytest.mark.usefixtures("fast_compile")  # the last test here: the fixture is module-scoped
-def test_inference_options_halve_the_forwards_temporary_memory_with_the_same_values():
+def test_inference_forward_keeps_its_temporary_memory_small_with_the_same_values():
   """The whole model (the effect needs the refinement loop's context; a lone attention
-  block shows none): T=2, 128x256, iters=2. At T=5 iters=8 the forward's `temp` goes
-  348 -> 181 MB at the same speed (benchmarks/README.md, "Memory"). With most XLA
-  optimisations off the buffers come out the same (107 -> 65 MB here either way) and the
-  two compiles take 12 s instead of 42 s."""
+  block shows none): T=2, 128x256, iters=2, most XLA optimisations off (the two compiles
+  take 12 s instead of 42 s). The inference options' forward needs at most XLA's default
+  `temp` and under 80 MB: 62 and 65 MB here (107 MB with XLA's default options while the
+  refinement scanned (1x9, 3x3) pairs beside an unrolled last pair, whose extra YNNPACK
+  fusion buffers the options then halved; at T=5 iters=8 now 139 vs 142 MB, then 181 vs
+  348 MB)."""
   import numpy as np  # pylint: disable=import-outside-toplevel
 
   import sav_jax  # pylint: disable=import-outside-toplevel
@@ -114,6 +116,6 @@ def test_inference_options_halve_the_forwards_temporary_memory_with_the_same_val
                     ).lower(variables, left, right)
   default, lean = lowered.compile(), lowered.compile(compiler_options=options)
   temp = lambda c: c.memory_analysis().temp_size_in_bytes  # noqa: E731
-  assert temp(lean) < 0.75 * temp(default), (temp(lean), temp(default))
+  assert temp(lean) <= temp(default) and temp(lean) < 80 * 2**20, (temp(lean), temp(default))
   np.testing.assert_allclose(np.asarray(lean(variables, left, right)),
                              np.asarray(default(variables, left, right)), atol=1e-4)
