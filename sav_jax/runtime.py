@@ -15,7 +15,8 @@ execution's, not both stacked.
 
 `inference_compiler_options` are the XLA options the inference executables are
 compiled with (on CPU: YNNPACK only for matrix products and convolutions, which
-halves the forward's temporary memory at the same speed; see
+halved the forward's temporary memory at the same speed before the refinement's
+single-step scan and needs no more than XLA's default since; see
 `benchmarks/README.md`, "Memory"), and XLA's older loop emitters, which need
 about half of the compiler's memory for more compile time at the same speed
 (`set_low_memory_compile(False)`, `--no-low-memory-compile` in the CLI, turns them off);
@@ -197,7 +198,8 @@ def inference_compiler_options(platform: str | None = None,
 
   On CPU, YNNPACK fusions are limited to matrix products and convolutions
   (`--xla_cpu_experimental_ynn_fusion_type`): the same values (within float32
-  summation order), the same speed, about half the forward's temporary memory.
+  summation order), the same speed, and no more temporary memory than XLA's
+  default (half of it while the refinement unrolled a last pair of steps).
   Unless `set_low_memory_compile(False)` or `per_frame`, also
   `xla_cpu_use_fusion_emitters=False`. Nothing on other backends; an option the
   user sets in `XLA_FLAGS` is left to them, and one this jaxlib does not know is
