@@ -13,8 +13,6 @@ is the process's. No persistent compilation cache is used.
 
 import argparse
 import json
-import resource
-import sys
 import time
 
 import jax
@@ -22,6 +20,7 @@ import jax
 import sav_jax
 from sav_jax import inference, runtime
 from sav_jax.model.init import init_variables
+from sav_jax.tools.bench import peak_rss_gb
 
 
 def measure(frames: int, height: int, width: int, iters: int, whole: bool = False) -> dict:
@@ -39,10 +38,7 @@ def measure(frames: int, height: int, width: int, iters: int, whole: bool = Fals
     start = time.perf_counter()
     compile_fn()
     seconds[name] = time.perf_counter() - start
-  scale = 2**30 if sys.platform == "darwin" else 2**20  # ru_maxrss: bytes on macOS, KiB here
-  return {"compile_s": seconds, "total_s": sum(seconds.values()),
-          "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / scale,
-          "low_memory_compile": runtime._low_memory_compile,  # pylint: disable=protected-access
+  return {"compile_s": seconds, "total_s": sum(seconds.values()), "peak_rss_gb": peak_rss_gb(),
           "frames": frames, "height": height, "width": width, "iters": iters,
           "device": jax.devices()[0].device_kind, "jax": jax.__version__}
 
@@ -64,6 +60,7 @@ def main(argv=None):
     jax.config.update("jax_compilation_cache_dir", None)
     runtime.set_low_memory_compile(args.low_memory_compile)
     result = measure(args.frames, args.height, args.width, args.iters, args.whole)
+  result["low_memory_compile"] = args.low_memory_compile
   if args.json:
     print(json.dumps(result, indent=1))
   else:

@@ -168,11 +168,12 @@ class StereoAnyVideo(nn.Module):
     flow = jax.lax.stop_gradient(flow)
     args = (fmap1.reshape(b * t, h, w, c), fmap2.reshape(b * t, h, w, c),
             flow.reshape(b * t, h, w))
-    corr_of = lambda win: lambda a: aapc(*a, win, self.cfg.corr_groups)  # noqa: E731
     if isinstance(window, tuple):
-      corr = corr_of(window)(args)
+      corr = aapc(*args, window, self.cfg.corr_groups)
     else:
-      corr = jax.lax.cond(window % 2 == 0, corr_of(WIDE_WINDOW), corr_of(SMALL_WINDOW), args)
+      wide, small = (functools.partial(aapc, window=win, groups=self.cfg.corr_groups)
+                     for win in (WIDE_WINDOW, SMALL_WINDOW))
+      corr = jax.lax.cond(window % 2 == 0, wide, small, *args)
     corr = self.corr_mlp(corr).reshape(b, t, h, w, -1)
     flow2 = jnp.concatenate([flow, jnp.zeros_like(flow)], axis=-1)
     net, mask, delta = self.update_block(net, inp, corr, flow2, with_mask=with_up)
