@@ -18,10 +18,12 @@ compiled with (on CPU: YNNPACK only for matrix products and convolutions, which
 halved the forward's temporary memory at the same speed before the refinement's
 single-step scan and needs no more than XLA's default since; see
 `benchmarks/README.md`, "Memory"), and XLA's older loop emitters, which need
-about half of the compiler's memory for more compile time at the same speed
-(`set_low_memory_compile(False)`, `--no-low-memory-compile` in the CLI, turns them off);
+about half of the compiler's memory at the same speed, without XLA's tree reduction
+rewriter, whose 32x32 reduce-windows those emitters unroll (with it they compiled the
+whole forward 2x slower than the newer emitters; without it somewhat faster)
+(`set_low_memory_compile(False)`, `--no-low-memory-compile` in the CLI, turns both off);
 the per-frame program of long-video inference keeps the newer emitters, which compile
-it 8x faster (`inference_compiler_options(per_frame=True)`).
+its twelve identical ViT blocks once (`inference_compiler_options(per_frame=True)`).
 """
 
 from __future__ import annotations
@@ -126,11 +128,20 @@ _YNN_FUSION_FLAG = "xla_cpu_experimental_ynn_fusion_type"
 _LEAN_YNN_FUSIONS = ",".join("LIBRARY_FUSION_TYPE_" + t for t in
                              ("DOT", "INDIVIDUAL_DOT", "INDIVIDUAL_CONVOLUTION"))
 # XLA:CPU's MLIR fusion emitters need ~0.85 GB of compiler memory for the model; the
-# older emitters ~0.25 GB, for more compile time (20% on 2026-11-30's machine, 1.9x for the
-# whole forward on 2026-12-01's) and the same run time. The per-frame part is where they
-# are slow (8x: they compile every ViT block's and instance norm's kernels anew), so its
-# own program keeps the newer ones.
+# older emitters ~0.25 GB, at the same run time. With XLA's tree reduction rewriter they
+# compiled the whole forward 1.9x slower (they unroll its reduce-windows, below); without
+# it 20-23 s against the newer emitters' 26 s (T=5 128x256 iters=8, 2026-12-01). They
+# compile each of the twelve identical ViT blocks anew, so the per-frame program keeps
+# the newer ones.
 _FUSION_EMITTERS_FLAG = "xla_cpu_use_fusion_emitters"
+# XLA's tree reduction rewriter splits every reduction longer than 32 into 32-wide (32x32
+# over two axes) reduce-windows for pairwise-like summation; the older emitters unroll
+# each such window (~0.35 s of compile per instance norm, 38 in the encoders). Without
+# it the whole forward compiles 1.7-1.9x faster (T=5 128x256 iters=8: 37-46 -> 20-24 s) at
+# the same speed; the norms' sums lose a little precision (max error of an instance norm
+# of 360x640 maps: 1.0e-5 against 1.6e-6).
+_DISABLED_PASSES_FLAG = "xla_disable_hlo_passes"
+_DISABLED_PASSES = "tree_reduction_rewriter"
 LOW_MEMORY_COMPILE_DEFAULT = True
 _low_memory_compile = LOW_MEMORY_COMPILE_DEFAULT
 
@@ -141,15 +152,16 @@ MATMUL_PRECISIONS = ("default", "high", "highest")
 
 
 def set_low_memory_compile(enabled: bool = True) -> None:
-  """Whether later inference executables compile on CPU with XLA's older loop emitters.
+  """Whether later inference executables compile on CPU with XLA's older loop emitters
+  (and without XLA's tree reduction rewriter, whose reduce-windows they unroll).
 
-  On by default: the compiler's peak memory for the model drops by ~0.55 GB (whole
-  process at T=5 128x256: 1.33-1.40 -> 0.84 GB) for more compile time (14.2 -> 17.1 s
-  there on 2026-11-30's machine, 20 -> 38 s for the whole forward on 2026-12-01's), and
-  the forward runs at the same speed (`benchmarks/compile_options.py`). The per-frame
-  program of `predict_video` is compiled with the newer emitters either way (see
-  `inference_compiler_options`). `set_low_memory_compile(False)` gives the faster
-  compile. Process-wide, like `enable_compilation_cache`.
+  On by default: the compiler's peak memory for the model drops by ~0.6 GB (whole
+  forward at T=5 128x256 iters=8: 1.26 -> 0.64 GB peak RSS for the compile) and the
+  forward runs at the same speed (`benchmarks/compile_options.py`); the compile is no
+  slower (20-23 s against 26 s there on 2026-12-01; `benchmarks/compile_times.py`). The
+  per-frame program of `predict_video` is compiled with the newer emitters either way
+  (see `inference_compiler_options`). `set_low_memory_compile(False)` gives XLA's
+  default emitters. Process-wide, like `enable_compilation_cache`.
   """
   global _low_memory_compile  # pylint: disable=global-statement
   if not isinstance(enabled, (bool, np.bool_)):  # bool("no") would be True
@@ -201,9 +213,12 @@ def inference_compiler_options(platform: str | None = None,
   summation order), the same speed, and no more temporary memory than XLA's
   default (half of it while the refinement unrolled a last pair of steps).
   Unless `set_low_memory_compile(False)` or `per_frame`, also
-  `xla_cpu_use_fusion_emitters=False`. Nothing on other backends; an option the
-  user sets in `XLA_FLAGS` is left to them, and one this jaxlib does not know is
-  dropped.
+  `xla_cpu_use_fusion_emitters=False` and `xla_disable_hlo_passes=tree_reduction_rewriter`
+  (the older emitters unroll the rewriter's 32x32 reduce-windows: ~0.35 s of compile
+  per instance norm; plain reductions sum in a different order, ~1e-5 max error for
+  an instance norm over 360x640 maps, 1.8e-6 px on the output at T=2 368x640). Nothing
+  on other backends; an option the user sets in `XLA_FLAGS` is left to them, and one
+  this jaxlib does not know is dropped.
 
   Args:
     platform: the backend the program is compiled for (default: JAX's default).
@@ -224,6 +239,6 @@ def inference_compiler_options(platform: str | None = None,
   user_flags = os.environ.get("XLA_FLAGS", "")
   wanted = [(_YNN_FUSION_FLAG, _LEAN_YNN_FUSIONS)]
   if _low_memory_compile and not per_frame:
-    wanted.append((_FUSION_EMITTERS_FLAG, False))
+    wanted += [(_FUSION_EMITTERS_FLAG, False), (_DISABLED_PASSES_FLAG, _DISABLED_PASSES)]
   return {k: v for k, v in wanted
           if k not in user_flags and _accepts_options(platform, ((k, v),))}

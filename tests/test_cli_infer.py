@@ -218,6 +218,21 @@ def test_frame_sources_check_every_frame_when_opened(tmp_path, clip):
     video_io.open_stereo(left, right)
 
 
+def test_read_video_file_checks_the_name_and_every_frame(tmp_path, clip, monkeypatch):
+  viz.write_video(tmp_path / "v.mp4", clip["left"])
+  assert video_io.read_video_file(tmp_path / "v.mp4", max_frames=2).shape == (2, H, W, 3)
+  with pytest.raises(FileNotFoundError, match="nope.mp4: no such file"):
+    video_io.read_video_file(tmp_path / "nope.mp4")
+  (tmp_path / "notes.txt").write_text("not a video")
+  with pytest.raises(ValueError, match="notes.txt: expected a frame folder or a video file"):
+    video_io.read_video_file(tmp_path / "notes.txt")
+  sizes = [(16, 24, 3), (16, 24, 3), (8, 24, 3)]  # a stream whose third frame is smaller
+  monkeypatch.setattr(video_io, "_decode", lambda *_: (np.zeros(s, np.uint8) for s in sizes))
+  with pytest.raises(ValueError, match="v.mp4: frames differ in size: frame 2 is 8x24 but the "
+                                       "first frame frame 0 is 16x24"):
+    video_io.read_video_file(tmp_path / "v.mp4")
+
+
 def test_video_files_and_orbax_checkpoint(tmp_path, clip, orbax_ckpt, variables):
   viz.write_video(tmp_path / "left.mp4", clip["left"])
   viz.write_video(tmp_path / "right.mp4", clip["right"])

@@ -62,11 +62,13 @@ def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch
   assert runtime.inference_compiler_options("gpu") == {}
   assert runtime.inference_compiler_options("tpu") == {}
   assert set(runtime.inference_compiler_options("cpu")) == {
-      "xla_cpu_experimental_ynn_fusion_type", "xla_cpu_use_fusion_emitters"}
+      "xla_cpu_experimental_ynn_fusion_type", "xla_cpu_use_fusion_emitters",
+      "xla_disable_hlo_passes"}
   # the per-frame program keeps the newer emitters (8x faster to compile there)
   assert set(runtime.inference_compiler_options("cpu", per_frame=True)) == {
       "xla_cpu_experimental_ynn_fusion_type"}
-  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT")
+  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT"
+                     " --xla_disable_hlo_passes=algsimp")
   assert runtime.inference_compiler_options("cpu") == {"xla_cpu_use_fusion_emitters": False}
   runtime.set_low_memory_compile(False)
   assert runtime.inference_compiler_options("cpu") == {}
@@ -85,6 +87,27 @@ def test_low_memory_compile_gives_the_same_values(restore_low_memory_compile):
   want = lowered.compile()(x)
   got = lowered.compile(compiler_options=options)(x)
   assert jnp.allclose(got, want, rtol=1e-5, atol=1e-4), float(jnp.abs(got - want).max())
+
+
+def test_low_memory_compile_keeps_long_reductions_whole(restore_low_memory_compile):
+  """An instance norm over 96x128 maps: XLA's tree reduction rewriter would cut its sums
+  into 32x32 reduce-windows, which the older emitters unroll (the encoders' 38 norms made
+  up half the whole forward's compile); the low-memory options keep plain reductions,
+  and the values stay within float32 summation error of the float64 norm."""
+  import numpy as np  # pylint: disable=import-outside-toplevel
+
+  from sav_jax.model.layers import instance_norm  # pylint: disable=import-outside-toplevel
+  x = np.random.default_rng(0).normal(5.0, 3.0, (2, 96, 128, 8)).astype(np.float32)
+  lowered = jax.jit(instance_norm).lower(x)
+  runtime.set_low_memory_compile(True)
+  lean = lowered.compile(compiler_options=runtime.inference_compiler_options("cpu"))
+  runtime.set_low_memory_compile(False)
+  fast = lowered.compile(compiler_options=runtime.inference_compiler_options("cpu"))
+  assert "reduce-window" in fast.as_text() and "reduce-window" not in lean.as_text()
+  x64 = x.astype(np.float64)
+  want = (x64 - x64.mean((1, 2), keepdims=True)) / np.sqrt(x64.var((1, 2), keepdims=True) + 1e-5)
+  for compiled in (lean, fast):
+    np.testing.assert_allclose(np.asarray(compiled(x)), want, atol=2e-5)
 
 
 def test_unknown_xla_options_are_detected_not_raised():

@@ -52,9 +52,9 @@ def add_compile_cache_arguments(p, default_on: bool = True) -> None:
                    help="do not read or write the persistent compilation cache")
   p.add_argument("--low-memory-compile", action=argparse.BooleanOptionalAction,
                  default=LOW_MEMORY_COMPILE_DEFAULT,
-                 help="CPU: compile the refinement with XLA's older loop emitters (default: "
-                      "on): ~0.55 GB less compiler memory for a slower compile (up to 2x), "
-                      "the same speed; --no-low-memory-compile for the faster compile")
+                 help="CPU: compile the refinement with XLA's older loop emitters and "
+                      "plain reductions (default: on): ~0.6 GB less compiler memory, the "
+                      "same speed; --no-low-memory-compile for XLA's default emitters")
 
 
 def setup_compile_cache(args, default_on: bool = True):

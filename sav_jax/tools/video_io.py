@@ -77,11 +77,16 @@ def read_frame(path, notes: set[str]) -> np.ndarray:
 
 
 def read_video_file(path, max_frames: int | None = None) -> np.ndarray:
-  """Decodes a video file to `[T, H, W, 3]` uint8 RGB."""
-  frames = list(_decode(path, max_frames, set()))
-  if not frames:
-    raise ValueError(f"{path}: the video has no decodable frames")
-  return np.stack(frames)
+  """Decodes a video file to `[T, H, W, 3]` uint8 RGB (the first `max_frames` frames).
+
+  Raises:
+    FileNotFoundError: no such file.
+    ValueError: not a video file name, unreadable, no frames, or frames that differ in
+      size (named, with both sizes).
+  """
+  path = pathlib.Path(path)
+  _check_video_path(path)
+  return np.stack(list(_checked_frames(path, None, max_frames, set())))
 
 
 def _size(shape) -> str:
