@@ -37,11 +37,14 @@ OPTION_SETS = {
     "xla default": {},
     "older emitters": {"xla_cpu_use_fusion_emitters": False},
     "ynn dots/convs (inference)": {_YNN: _DOTS_CONVS},
-    "ynn dots/convs + older emitters (--low-memory-compile)": {
+    "ynn dots/convs + older emitters (--low-memory-compile before 2026-12-01)": {
         _YNN: _DOTS_CONVS, "xla_cpu_use_fusion_emitters": False},
     "ynn dots/convs + older emitters + LLVM -O1": {
         _YNN: _DOTS_CONVS, "xla_cpu_use_fusion_emitters": False,
         "xla_backend_optimization_level": 1},
+    "ynn dots/convs + older emitters, no tree reduction rewriter (--low-memory-compile)": {
+        _YNN: _DOTS_CONVS, "xla_cpu_use_fusion_emitters": False,
+        "xla_disable_hlo_passes": "tree_reduction_rewriter"},
 }
 
 
