@@ -128,18 +128,16 @@ _YNN_FUSION_FLAG = "xla_cpu_experimental_ynn_fusion_type"
 _LEAN_YNN_FUSIONS = ",".join("LIBRARY_FUSION_TYPE_" + t for t in
                              ("DOT", "INDIVIDUAL_DOT", "INDIVIDUAL_CONVOLUTION"))
 # XLA:CPU's MLIR fusion emitters need ~0.85 GB of compiler memory for the model; the
-# older emitters ~0.25 GB, at the same run time. With XLA's tree reduction rewriter they
-# compiled the whole forward 1.9x slower (they unroll its reduce-windows, below); without
-# it 20-23 s against the newer emitters' 26 s (T=5 128x256 iters=8, 2026-12-01). They
-# compile each of the twelve identical ViT blocks anew, so the per-frame program keeps
-# the newer ones.
+# older emitters ~0.25 GB, at the same run time and (without the pass below) no slower
+# a compile. They compile each of the twelve identical ViT blocks anew, so the
+# per-frame program keeps the newer ones.
 _FUSION_EMITTERS_FLAG = "xla_cpu_use_fusion_emitters"
 # XLA's tree reduction rewriter splits every reduction longer than 32 into 32-wide (32x32
 # over two axes) reduce-windows for pairwise-like summation; the older emitters unroll
 # each such window (~0.35 s of compile per instance norm, 38 in the encoders). Without
-# it the whole forward compiles 1.7-1.9x faster (T=5 128x256 iters=8: 37-46 -> 20-24 s) at
-# the same speed; the norms' sums lose a little precision (max error of an instance norm
-# of 360x640 maps: 1.0e-5 against 1.6e-6).
+# it the whole forward compiles 1.7-1.9x faster (T=5 128x256 iters=8: 37-46 -> 20-24 s,
+# against the newer emitters' 26 s) at the same speed; the norms' sums lose a little
+# precision (max error of an instance norm of 360x640 maps: 1.0e-5 against 1.6e-6).
 _DISABLED_PASSES_FLAG = "xla_disable_hlo_passes"
 _DISABLED_PASSES = "tree_reduction_rewriter"
 LOW_MEMORY_COMPILE_DEFAULT = True
@@ -225,10 +223,10 @@ def inference_compiler_options(platform: str | None = None,
     per_frame: options for a program of the per-frame part alone (DINOv2 tokens,
       fnet, cnet: `sav_jax.inference.compiled_frame_features`), which keeps XLA's
       newer fusion emitters: they compile the twelve identical ViT blocks' kernels
-      once and the encoders' instance-norm reductions quickly, where the older
-      emitters take 8x longer (T=5 128x256: 2.5 s against 20 s) for 10% less
-      compiler memory (0.61 against 0.66 GB peak RSS); the refinement's program
-      compiles faster with the older ones.
+      once, where the older emitters (without the tree reduction rewriter) take about
+      2x longer (T=5 128x256: 4.2 s against 7.9-8.5 s; with the rewriter 20-23 s) for
+      0.54 against 0.62 GB peak RSS; the refinement's program compiles faster with
+      the older ones.
 
   Returns:
     A dict for `jax.stages.Lowered.compile(compiler_options=...)`.

@@ -52,9 +52,10 @@ def add_compile_cache_arguments(p, default_on: bool = True) -> None:
                    help="do not read or write the persistent compilation cache")
   p.add_argument("--low-memory-compile", action=argparse.BooleanOptionalAction,
                  default=LOW_MEMORY_COMPILE_DEFAULT,
-                 help="CPU: compile the refinement with XLA's older loop emitters and "
-                      "plain reductions (default: on): ~0.6 GB less compiler memory, the "
-                      "same speed; --no-low-memory-compile for XLA's default emitters")
+                 help="CPU: compile with XLA's older loop emitters and plain reductions "
+                      "(default: on; the per-frame program of long-video inference keeps "
+                      "the newer emitters): ~0.6 GB less compiler memory, the same speed; "
+                      "--no-low-memory-compile for XLA's default emitters")
 
 
 def setup_compile_cache(args, default_on: bool = True):
