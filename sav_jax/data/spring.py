@@ -11,8 +11,9 @@ expects, the second is the one the Spring download unpacks to:
 
 A `.dsp5` holds dataset `disparity` at 2x resolution per axis with NaN where unknown;
 the standard subsampling `[::2, ::2]` is applied and values are used as stored.
-Valid = finite (not confirmed: SAV's code cannot read `.dsp5`, so its Spring protocol
-is unknown); unknown pixels get d = 0. Scale: fx of the first intrinsics row times
+Valid = finite and the official dense rule `0 < |d| < 512` (SAV's code cannot read
+`.dsp5`, so its Spring protocol is unknown; every other dense dataset gets this rule there,
+and it keeps d = 0 (infinitely far) out of the depth metrics); invalid pixels get d = 0. Scale: fx of the first intrinsics row times
 0.065 m. Only the train half has GT: "test" (SAV's name) and "train" both read it.
 Only the left GT is used.
 """
@@ -36,8 +37,9 @@ class SpringSequence(StereoSequence):
 
   def _read_gt(self, i: int, side: str):
     disp = frame_io.read_dsp5(self.files[side + "_gt"][i])[::2, ::2]
-    valid = np.isfinite(disp)
-    return np.where(valid, disp, np.float32(0)), valid
+    finite = np.isfinite(disp)
+    disp = np.where(finite, disp, np.float32(0))
+    return disp, (disp != 0) & (np.abs(disp) < frame_io.MAX_DISPARITY)
 
 
 def read_fx(path: Path) -> float:

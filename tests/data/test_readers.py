@@ -406,6 +406,7 @@ def test_spring_dsp5(tmp_path, layout):
                                                    "cam_data"))
   full = rng.uniform(1, 50, (2 * H, 2 * W)).astype(np.float32)
   full[0, 0] = full[2, 4] = np.nan
+  full[4, 6], full[6, 8] = 0.0, 600.0  # infinitely far, and beyond the dense rule's 512
   for i in (1, 2):
     _png(dirs[0] / f"frame_left_{i:04d}.png", _rgb(rng))
     _png(dirs[1] / f"frame_right_{i:04d}.png", _rgb(rng))
@@ -418,9 +419,10 @@ def test_spring_dsp5(tmp_path, layout):
   assert seq.depth2disp_scale == pytest.approx(1500.5 * 0.065) and not seq.sparse
   f = seq[0]
   sub = full[::2, ::2]
-  np.testing.assert_array_equal(f["valid"], np.isfinite(sub))
+  np.testing.assert_array_equal(f["valid"], np.isfinite(sub) & (sub > 0) & (sub < 512))
   np.testing.assert_array_equal(f["disparity"], np.nan_to_num(sub, nan=0.0))
   assert not f["valid"][0, 0] and not f["valid"][1, 2]
+  assert not f["valid"][2, 3] and not f["valid"][3, 4] and f["valid"][1, 1]
   with pytest.raises(ValueError, match="disp1_left_0002.dsp5"):  # stored at image size
     seq[1]
 
