@@ -84,6 +84,11 @@ def run(args, overrides) -> int:
   inference.check_window(config.window, config.stride)
   devices = resolve_devices_option(config.devices, "config.devices")
   seqs = eval_data.load_sequences(config, args.data_root)
+  unscaled = [str(s.name) for s in seqs if s.depth2disp_scale is None]
+  if config.metrics.tcc and unscaled:
+    raise ValueError(f"config.metrics.tcc needs depth, but {config.dataset} sequence "
+                     f"{unscaled[0]} has no depth-to-disparity scale (no camera data; "
+                     f"{len(unscaled)} of {len(seqs)} sequences): drop metrics.tcc")
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)
   if not args.overwrite:

@@ -225,6 +225,25 @@ def test_bad_overrides(tmp_path, ckpt, capsys, override, message):
   assert not (tmp_path / "o").exists()
 
 
+def test_tcc_without_camera_data_is_refused_before_predicting(tmp_path, ckpt, capsys,
+                                                               monkeypatch):
+  load = eval_data.load_sequences
+
+  def without_scale(config, root):
+    seqs = load(config, root)
+    for seq in seqs:
+      seq.depth2disp_scale = None  # as a dataset without camera data (SceneFlow)
+    return seqs
+
+  monkeypatch.setattr(eval_data, "load_sequences", without_scale)
+  monkeypatch.setattr(eval_runner.inference, "predict_video", None)  # must not be reached
+  rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL,
+             "--out", str(tmp_path / "o"), "--config.metrics.tcc=true"])
+  err = capsys.readouterr().err
+  assert rc == 2 and "config.metrics.tcc needs depth" in err and "synthetic_000" in err, err
+  assert not (tmp_path / "o").exists()
+
+
 def test_config_files_that_cannot_be_used(tmp_path):
   broken = tmp_path / "broken.py"
   broken.write_text("def get_config(:\n")
