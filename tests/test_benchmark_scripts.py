@@ -30,7 +30,7 @@ def test_multiply_adds_of_a_convolution_and_a_product_from_the_optimized_hlo():
 
 def test_module_path_from_the_operation_metadata():
   op = {"op_name": "jit(<lambda>)/StereoAnyVideo/StereoAnyVideo.cascade/StereoAnyVideo.refine/"
-                   "while/body/closed_call/StereoAnyVideo.pair/StereoAnyVideo.step/update_block/"
+                   "while/body/closed_call/StereoAnyVideo.one/StereoAnyVideo.step/update_block/"
                    "gru/convz1_0/conv_general_dilated"}
   assert op_profile.module_of(op, 2) == "update_block/gru"
   assert op_profile.module_of(op, 8) == "update_block/gru/convz1_0"

@@ -20,6 +20,13 @@ from sav_jax.ops.pool import avg_pool
 from sav_jax.ops.resize import resize
 from sav_jax.ops.upsample import convex_upsample_3d
 
+# With `SAVConfig.remat`, the encoders' backward pass holds about this many maps the size of
+# their largest intermediate (the 64-channel map at 1/2) per frame of a block: XLA's buffer
+# assignment of the paper's training step (B=1 T=5 256x512) has ~4 GB of them live for
+# the 15 frames of fnet (both views) and cnet at once.
+ENCODER_BACKWARD_MAPS = 32
+
+
 @flax.struct.dataclass
 class SAVOutput:
   """Model output.
@@ -104,10 +111,15 @@ class StereoAnyVideo(nn.Module):
     tokens = [x.reshape(2 * b, t, *x.shape[1:]) for x in self.depthnet.tokens(both)]
     # The encoders' largest intermediate: the 64-channel map at 1/2 (float32 norms).
     frame_bytes = h * w * 64
-    fnet = in_frame_blocks(self, lambda m, x: m.fnet(x).astype(jnp.float32), both, frame_bytes,
-                           self.cfg.frame_block_mb)
-    cnet = in_frame_blocks(self, lambda m, x: m.cnet(x).astype(jnp.float32), both[:b * t],
+    remat = lambda fn: fn  # noqa: E731
+    if self.cfg.remat:
+      # A backward pass recomputes the encoders block by block from the frames instead of
+      # keeping their activations, so the blocks are sized for the backward's maps.
+      remat, frame_bytes = nn.remat, frame_bytes * ENCODER_BACKWARD_MAPS
+    fnet = in_frame_blocks(self, remat(lambda m, x: m.fnet(x).astype(jnp.float32)), both,
                            frame_bytes, self.cfg.frame_block_mb)
+    cnet = in_frame_blocks(self, remat(lambda m, x: m.cnet(x).astype(jnp.float32)),
+                           both[:b * t], frame_bytes, self.cfg.frame_block_mb)
     return {"tokens": tokens, "fnet": fnet.reshape(2 * b, t, *fnet.shape[1:]),
             "cnet": cnet.reshape(b, t, *cnet.shape[1:])}
 
@@ -184,15 +196,17 @@ class StereoAnyVideo(nn.Module):
   def refine(self, net, flow, inp, fmap1, fmap2, num_iters: int, all_ups: bool = True):
     """`num_iters` iterations at one scale, alternating 1x9 and 3x3 windows, in a `lax.scan`.
 
-    With `all_ups=True` (training, every prediction) the scan runs over (1x9, 3x3) pairs,
-    plus a last 1x9 step for an odd count. With `all_ups=False` only the last iteration's
-    upsampled flow is computed: the scan runs over single steps, each choosing its
-    window's correlation with `lax.cond` on the step index, and no iteration runs the
-    mask head or the convex upsampling, which run once on the final state (the same
-    values as the last iteration's own). The program then holds the update block once
-    per scale instead of four times (a pair in the scan and an unrolled last pair): on
-    CPU the window program at T=5 128x256 iters=8 compiles in 17 s instead of 29-34 s,
-    with bit-identical outputs and the same speed.
+    The scan runs over single steps, each choosing its window's correlation with
+    `lax.cond` on the step index, so the program holds the update block once per scale
+    (a scan over (1x9, 3x3) pairs plus an unrolled last step for odd counts held it three
+    times: on CPU the window program at T=5 128x256 iters=8 compiled in 17 s instead of
+    29-34 s, with bit-identical outputs and the same speed). With `remat`, each step is
+    rematerialized on its own, so a backward pass holds one step's activations at a time.
+
+    With `all_ups=True` (training, every prediction) every step runs the mask head and
+    the convex upsampling. With `all_ups=False` only the last iteration's upsampled flow
+    is computed: no iteration runs them; they run once on the final state (the same
+    values as the last iteration's own).
 
     Returns:
       `(flow_ups, last_flow)`: `[num_iters or 1, B, T, 4h, 4w, 1]` and `[B, T, h, w, 1]`.
@@ -203,44 +217,22 @@ class StereoAnyVideo(nn.Module):
       remat = lambda fn: nn.remat(  # noqa: E731
           fn, prevent_cse=False,
           policy=getattr(jax.checkpoint_policies, policy) if policy else None)
-    scan = lambda fn, n: nn.scan(  # noqa: E731
-        remat(fn), variable_broadcast="params", split_rngs={"params": False},
-        in_axes=(nn.broadcast, nn.broadcast, nn.broadcast), length=n)
 
-    if not all_ups:
-      def one(mdl, carry, inp, fmap1, fmap2):
-        net, flow, i = carry
-        net, new_flow, _ = mdl.step(net, flow, inp, fmap1, fmap2, i, False)
-        return (net, new_flow, i + 1), flow
+    def one(mdl, carry, inp, fmap1, fmap2):
+      net, flow, i = carry
+      net, new_flow, up = mdl.step(net, flow, inp, fmap1, fmap2, i, all_ups)
+      return (net, new_flow, i + 1), (flow if up is None else (up, flow))
 
-      (net, flow, _), flows_in = scan(one, num_iters)(
-          self, (net, flow, jnp.zeros((), jnp.int32)), inp, fmap1, fmap2)
+    scan = nn.scan(remat(one), variable_broadcast="params", split_rngs={"params": False},
+                   in_axes=(nn.broadcast, nn.broadcast, nn.broadcast), length=num_iters)
+    (net, flow, _), outs = scan(self, (net, flow, jnp.zeros((), jnp.int32)), inp, fmap1, fmap2)
+    if all_ups:
+      ups, flows_in = outs
+    else:
       mask = self.update_block.mask_logits(net)
-      ups = convex_upsample_3d(flow, mask, self.cfg.upsample_rate)[None]
-      self._sow_flows_in(fmap1, flows_in)
-      return ups, flow
-
-    def pair(mdl, carry, inp, fmap1, fmap2):
-      net, flow = carry
-      flow_a = flow
-      net, flow, up_a = mdl.step(net, flow, inp, fmap1, fmap2, WIDE_WINDOW)
-      flow_b = flow
-      net, flow, up_b = mdl.step(net, flow, inp, fmap1, fmap2, SMALL_WINDOW)
-      return (net, flow), (jnp.stack([up_a, up_b]), jnp.stack([flow_a, flow_b]))
-
-    ups, flows_in = [], []
-    num_pairs = num_iters // 2
-    if num_pairs:
-      (net, flow), (up_pairs, flow_pairs) = scan(pair, num_pairs)(self, (net, flow), inp,
-                                                                  fmap1, fmap2)
-      ups.append(up_pairs.reshape(-1, *up_pairs.shape[2:]))
-      flows_in.append(flow_pairs.reshape(-1, *flow_pairs.shape[2:]))
-    if num_iters % 2:  # an odd count's last (1x9) step (1/16 and 1/8 run iters//2 steps)
-      flows_in.append(flow[None])
-      net, flow, up = self.step(net, flow, inp, fmap1, fmap2, WIDE_WINDOW)
-      ups.append(up[None])
-    self._sow_flows_in(fmap1, jnp.concatenate(flows_in, axis=0))
-    return jnp.concatenate(ups, axis=0), flow
+      ups, flows_in = convex_upsample_3d(flow, mask, self.cfg.upsample_rate)[None], outs
+    self._sow_flows_in(fmap1, flows_in)
+    return ups, flow
 
   def _sow_flows_in(self, fmap1, flows_in):
     """The flow entering every iteration, for inspection (no-op unless mutable)."""

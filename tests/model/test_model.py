@@ -179,6 +179,34 @@ def test_inference_runs_every_update_inside_the_refinement_loops(model, variable
   assert [e.params["length"] for e in scans] == [2, 2, 4]  # iters//2, iters//2, iters
 
 
+def test_training_rematerializes_single_steps_and_encoder_blocks(variables, clip):
+  """remat (training, every prediction): each scale's refinement is one scan over single
+  steps, each step under its own checkpoint (a backward pass holds one step's activations),
+  with the update block once per scale and nothing of it unrolled; the fnet and cnet
+  encoders run under checkpoints over blocks of frames sized for their backward pass:
+  here one frame per block (32 x 96 KiB of maps per frame against a 4 MiB budget)."""
+
+  def structure(cfg):
+    m = sav_jax.StereoAnyVideo(cfg)
+    jaxpr = jax.make_jaxpr(lambda v, l, r: m.apply(v, l, r, iters=6).disparities)(
+        variables, *clip).jaxpr
+    scans = [e for e in jaxpr.eqns if e.primitive.name == "scan"]
+    bodies = [e.params["jaxpr"].jaxpr for e in scans]
+    checkpoints = [sum(q.primitive.name == "remat2" for q in b.eqns) for b in bodies]
+    gates = [_primitive_counts(b).get("logistic", 0) for b in bodies]
+    return ([e.params["length"] for e in scans], checkpoints, gates,
+            _primitive_counts(jaxpr)["logistic"])
+
+  lengths, checkpoints, gates, all_gates = structure(
+      sav_jax.SAVConfig(remat=True, frame_block_mb=4))
+  assert lengths == [2 * SHAPE[1], SHAPE[1], 3, 3, 6]  # fnet (both views), cnet, 3 scales
+  assert checkpoints == [1] * 5
+  assert gates == [0, 0, 6, 6, 6] and all_gates == 18
+  # Without remat the encoders' maps fit the same budget whole: no blocks, no checkpoints.
+  lengths, checkpoints, gates, all_gates = structure(sav_jax.SAVConfig(frame_block_mb=4))
+  assert lengths == [3, 3, 6] and checkpoints == [0] * 3 and gates == [6] * 3
+
+
 def test_batch_elements_are_independent(model, variables, clip):
   """Changing one clip of a batch leaves the other's result unchanged (one compile)."""
   left, right = clip
