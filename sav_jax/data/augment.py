@@ -33,6 +33,8 @@ import math
 import cv2
 import numpy as np
 
+from sav_jax.data import frame_io
+
 # (disparity key, valid key, image key it belongs to).
 _GT = (("disparity", "valid", "left"), ("right_disparity", "right_valid", "right"))
 
@@ -313,8 +315,7 @@ def augment_clip(clip: dict, cfg: AugmentConfig, rng: np.random.Generator,
   _crop(out, cfg, rng, jitter=cfg.yjitter and not sparse)
   for dkey, vkey, _ in _GT:
     if out.get(dkey) is not None and not sparse:
-      d = out[dkey]
-      out[vkey] = (np.abs(d) < cfg.max_disparity) & (d != 0)
+      out[vkey] = frame_io.dense_valid(out[dkey], cfg.max_disparity)
   for k in ("left", "right") + tuple(k for g in _GT for k in g[:2]):
     if out.get(k) is not None:
       out[k] = np.ascontiguousarray(out[k])

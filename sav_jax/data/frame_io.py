@@ -31,6 +31,11 @@ DEPTH_EPS = 1e-5
 MAX_DISPARITY = 512.0
 
 
+def dense_valid(disp: np.ndarray, max_disparity: float = MAX_DISPARITY) -> np.ndarray:
+  """The official valid rule of dense ground truth: `d != 0 and |d| < max_disparity`."""
+  return (disp != 0) & (np.abs(disp) < max_disparity)
+
+
 def require_file(path: PathLike, what: str = "file") -> Path:
   """Returns `path` as a Path; raises FileNotFoundError naming it when missing."""
   path = Path(path)

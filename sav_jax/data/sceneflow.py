@@ -35,7 +35,7 @@ class SceneFlowSequence(StereoSequence):
 
   def _read_gt(self, i: int, side: str):
     disp = frame_io.read_pfm_disparity(self.files[side + "_gt"][i])
-    return disp, (disp != 0) & (np.abs(disp) < frame_io.MAX_DISPARITY)
+    return disp, frame_io.dense_valid(disp)
 
 
 def _sequence(subset: str, seq_dir: Path, pass_dir: Path, dataset: str) -> SceneFlowSequence:

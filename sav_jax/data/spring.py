@@ -13,8 +13,8 @@ A `.dsp5` holds dataset `disparity` at 2x resolution per axis with NaN where unk
 the standard subsampling `[::2, ::2]` is applied and values are used as stored.
 Valid = finite and the official dense rule `0 < |d| < 512` (SAV's code cannot read
 `.dsp5`, so its Spring protocol is unknown; every other dense dataset gets this rule there,
-and it keeps d = 0 (infinitely far) out of the depth metrics); invalid pixels get d = 0. Scale: fx of the first intrinsics row times
-0.065 m. Only the train half has GT: "test" (SAV's name) and "train" both read it.
+and it keeps d = 0 (infinitely far) out of the depth metrics); invalid pixels get d = 0.
+Scale: fx of the first intrinsics row times 0.065 m. Only the train half has GT: "test" (SAV's name) and "train" both read it.
 Only the left GT is used.
 """
 
@@ -37,9 +37,8 @@ class SpringSequence(StereoSequence):
 
   def _read_gt(self, i: int, side: str):
     disp = frame_io.read_dsp5(self.files[side + "_gt"][i])[::2, ::2]
-    finite = np.isfinite(disp)
-    disp = np.where(finite, disp, np.float32(0))
-    return disp, (disp != 0) & (np.abs(disp) < frame_io.MAX_DISPARITY)
+    disp = np.where(np.isfinite(disp), disp, np.float32(0))
+    return disp, frame_io.dense_valid(disp)
 
 
 def read_fx(path: Path) -> float:
