@@ -2,7 +2,7 @@
 
     python -m eval --config configs/eval/<dataset>.py --checkpoint CKPT \\
         --data-root data/datasets [--out DIR] [--baseline sgbm] [--overwrite] \\
-        [--config.iters=20 --config.max_sequences=2 ...]
+        [--compile-cache DIR | --no-compile-cache] [--config.iters=20 --config.max_sequences=2 ...]
 
 Writes to --out (default `outputs/eval/<dataset>`): `results.md` (the paper's columns),
 `results.json` (config, weights, per-sequence and aggregate metrics), `results.csv`,
@@ -23,8 +23,8 @@ from eval import config as eval_config
 from eval import data as eval_data
 from eval import report, runner
 from sav_jax import inference, runtime
-from sav_jax.tools import (UsageError, check_output_dir, command_logging,
-                           resolve_devices_option)
+from sav_jax.tools import (UsageError, add_compile_cache_arguments, check_output_dir,
+                           command_logging, resolve_devices_option, setup_compile_cache)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--baseline", action="append", choices=runner.BASELINES, default=[],
                  help="add a baseline row computed on the same frames (repeatable)")
   p.add_argument("--overwrite", action="store_true", help="replace existing results")
+  add_compile_cache_arguments(p)
   p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
   return p
 
@@ -83,6 +84,7 @@ def run(args, overrides) -> int:
                      f"{config.matmul_precision!r}")
   inference.check_window(config.window, config.stride)
   devices = resolve_devices_option(config.devices, "config.devices")
+  setup_compile_cache(args)
   seqs = eval_data.load_sequences(config, args.data_root)
   unscaled = [str(s.name) for s in seqs if s.depth2disp_scale is None]
   if config.metrics.tcc and unscaled:

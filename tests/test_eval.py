@@ -244,6 +244,36 @@ def test_tcc_without_camera_data_is_refused_before_predicting(tmp_path, ckpt, ca
   assert not (tmp_path / "o").exists()
 
 
+def test_compile_cache_options(tmp_path, ckpt, capsys, monkeypatch, restore_cache_config):
+  """As `sav-jax infer`: on by default (here the test session's folder, which JAX was given),
+  `--compile-cache DIR` for a folder, `--no-compile-cache` to leave JAX's setting alone; a
+  folder that cannot be one is named before anything is written."""
+  (tmp_path / "notes.txt").write_text("keep me")
+  args = ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL,
+          "--out", str(tmp_path / "o")]
+  assert main([*args, "--compile-cache", str(tmp_path / "notes.txt")]) == 2
+  err = capsys.readouterr().err
+  assert f"compilation cache {tmp_path / 'notes.txt'} exists and is not a folder" in err, err
+  assert not (tmp_path / "o").exists() and (tmp_path / "notes.txt").read_text() == "keep me"
+
+  class Reached(Exception):
+    pass
+
+  def predict_video(*args, **kwargs):
+    raise Reached(jax.config.jax_compilation_cache_dir)
+
+  monkeypatch.setattr(eval_runner.inference, "predict_video", predict_video)
+  session = jax.config.jax_compilation_cache_dir
+  for extra, folder in (([], session), (["--compile-cache", str(tmp_path / "xla")],
+                                       str(tmp_path / "xla")), (["--no-compile-cache"], None)):
+    if extra == ["--no-compile-cache"]:
+      jax.config.update("jax_compilation_cache_dir", None)
+    with pytest.raises(Reached) as seen:
+      main([*args, *extra])
+    assert seen.value.args[0] == folder, extra
+  assert (tmp_path / "xla").is_dir()
+
+
 def test_config_files_that_cannot_be_used(tmp_path):
   broken = tmp_path / "broken.py"
   broken.write_text("def get_config(:\n")

@@ -168,6 +168,7 @@ def _is_regex(x) -> bool:
 # created in the workdir or compiled (later they fail deep inside grain, optax or a trace).
 _CHECKS = (
     ("seed", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
+    ("compile_cache", lambda x: isinstance(x, str), "a folder, 'default' or '' (off)"),
     ("matmul_precision", lambda x: x in runtime.MATMUL_PRECISIONS,
      ", ".join(map(repr, runtime.MATMUL_PRECISIONS[:-1]))
      + f" or {runtime.MATMUL_PRECISIONS[-1]!r}"),
@@ -241,6 +242,30 @@ def _value(config, field: str):
   return config
 
 
+def setup_compile_cache(config) -> pathlib.Path | None:
+  """Turns on JAX's persistent compilation cache as `config.compile_cache` says.
+
+  "default": the folder the user configured for JAX (`JAX_COMPILATION_CACHE_DIR`), else
+  `sav_jax.runtime.default_cache_dir()`; "": off (JAX's own setting is left as it is); any
+  other value: that folder, created if missing. A resumed run then loads the train and
+  validation steps its first run compiled. Returns the folder in use, or None (also when
+  the default folder cannot be created: the run goes on without the cache, with a warning).
+
+  Raises:
+    ValueError: naming `config.compile_cache`, when the folder it names cannot be used.
+  """
+  value = config.compile_cache
+  if not value:
+    return None
+  try:
+    return runtime.enable_compilation_cache(None if value == "default" else value)
+  except ValueError as e:
+    if value == "default":
+      log.warning("no compilation cache: %s", e)
+      return None
+    raise ValueError(f"config.compile_cache={value!r}: {e}") from e
+
+
 def setup(config, workdir):
   """Steps 2-8 of the module docstring (every check of the config, the workdir and the
   weights happens here, before the first step). Returns a dict of the run's parts for `run`."""
@@ -257,6 +282,7 @@ def setup(config, workdir):
         "or --config.random_depth_prior=true for a toy run")
   mesh = state_lib.make_mesh()
   validate_config(config, workdir, mesh.size)
+  log.info("compilation cache: %s", setup_compile_cache(config) or "off")
   log.info("mesh %s over %d devices, %d processes", dict(mesh.shape), mesh.size,
            jax.process_count())
   grain_it = iter(input_lib.train_dataset(config))

@@ -70,6 +70,8 @@ def child_env(cache_dir, device_count: int | None = None, llvm_o0: bool = False,
               fast_compile: bool = False) -> dict:
   """Environment of a subprocess: CPU, shared compilation cache, fast LLVM codegen.
 
+  `cache_dir`: JAX_COMPILATION_CACHE_DIR; None for a run given `--config.compile_cache`.
+
   `fast_compile`: most of XLA's HLO optimisations off (`jax_disable_most_optimizations`,
   as the `fast_compile` fixture): the sharding job's two train steps compile in 46-52 s
   instead of 65 s each, its whole run takes 225 instead of 285 CPU-seconds, and its 8- and
@@ -84,6 +86,7 @@ def child_env(cache_dir, device_count: int | None = None, llvm_o0: bool = False,
   differ ~10x more (2.1e-7 against 1.5e-8), too close to its 5e-7 tolerance.
   """
   env = dict(os.environ)
+  env.pop("JAX_COMPILATION_CACHE_DIR", None)
   flags = ["--xla_llvm_disable_expensive_passes=true"]
   if llvm_o0:
     flags.append("--xla_backend_optimization_level=0")
@@ -91,8 +94,10 @@ def child_env(cache_dir, device_count: int | None = None, llvm_o0: bool = False,
     flags.append(f"--xla_force_host_platform_device_count={device_count}")
   if fast_compile:
     env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
-  env.update(JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(cache_dir),
-             JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", XLA_FLAGS=" ".join(flags),
+  if cache_dir is not None:
+    env["JAX_COMPILATION_CACHE_DIR"] = str(cache_dir)
+  env.update(JAX_PLATFORMS="cpu", JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+             XLA_FLAGS=" ".join(flags),
              PYTHONPATH=os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]),
              TF_CPP_MIN_LOG_LEVEL="1")
   return env
@@ -121,10 +126,12 @@ def run(cmd, env, log_path, timeout=900) -> None:
     raise AssertionError(f"{cmd} exited with {rc}:\n{tail(log_path)}")
 
 
-def train_cmd(workdir, *overrides) -> list[str]:
-  """python -m train on the TINY config, one clip per step (the cheapest learning run)."""
+def train_cmd(jobs, workdir, *overrides) -> list[str]:
+  """python -m train on the TINY config, one clip per step (the cheapest learning run),
+  with the jobs' compilation cache as `--config.compile_cache`."""
   return [sys.executable, "-m", "train", "--config", str(ROOT / "configs" / "synthetic.py"),
-          "--workdir", str(workdir), *TINY, "--config.train.batch_size=1", *overrides]
+          "--workdir", str(workdir), *TINY, "--config.train.batch_size=1",
+          f"--config.compile_cache={jobs.cache}", *overrides]
 
 
 class Jobs:
@@ -174,18 +181,19 @@ class Jobs:
 
 def _learn(jobs: Jobs, workdir):
   """python -m train: validation at step 0 and LEARN_STEPS, checkpoints at CHECK_STEP."""
-  run(train_cmd(workdir, f"--config.train.num_steps={LEARN_STEPS}",
+  run(train_cmd(jobs, workdir, f"--config.train.num_steps={LEARN_STEPS}",
                 f"--config.eval.every_steps={LEARN_STEPS}",
                 f"--config.checkpoint.every_steps={CHECK_STEP}", "--config.checkpoint.keep=0"),
-      child_env(jobs.cache, fast_compile=True), workdir / "log.txt")
+      child_env(None, fast_compile=True), workdir / "log.txt")
   return workdir
 
 
 def _kill_resume(jobs: Jobs, workdir):
   """The learn run again, SIGKILLed once its checkpoint KILL_AFTER exists, then resumed."""
-  cmd = train_cmd(workdir, f"--config.train.num_steps={LEARN_STEPS}", "--config.eval.every_steps=0",
-                  f"--config.checkpoint.every_steps={KILL_AFTER}", "--config.checkpoint.keep=0")
-  proc = start(cmd, child_env(jobs.cache, fast_compile=True), workdir / "killed_log.txt")
+  cmd = train_cmd(jobs, workdir, f"--config.train.num_steps={LEARN_STEPS}",
+                  "--config.eval.every_steps=0", f"--config.checkpoint.every_steps={KILL_AFTER}",
+                  "--config.checkpoint.keep=0")
+  proc = start(cmd, child_env(None, fast_compile=True), workdir / "killed_log.txt")
   target = workdir / "checkpoints" / str(KILL_AFTER)
   deadline = time.time() + 900
   while not target.is_dir() and proc.poll() is None and time.time() < deadline:
@@ -195,9 +203,10 @@ def _kill_resume(jobs: Jobs, workdir):
   assert target.is_dir(), f"no checkpoint {KILL_AFTER} before the kill:\n" + \
       tail(workdir / "killed_log.txt")
   steps = sorted(int(p.name) for p in (workdir / "checkpoints").iterdir() if p.name.isdigit())
-  run(train_cmd(workdir, f"--config.train.num_steps={CHECK_STEP}", "--config.eval.every_steps=0",
-                f"--config.checkpoint.every_steps={CHECK_STEP}", "--config.checkpoint.keep=0"),
-      child_env(jobs.cache, fast_compile=True), workdir / "resumed_log.txt")
+  resumed_env = dict(child_env(None, fast_compile=True), JAX_LOG_COMPILES="1")  # cache hits
+  run(train_cmd(jobs, workdir, f"--config.train.num_steps={CHECK_STEP}",
+                "--config.eval.every_steps=0", f"--config.checkpoint.every_steps={CHECK_STEP}",
+                "--config.checkpoint.keep=0"), resumed_env, workdir / "resumed_log.txt")
   return {"workdir": workdir, "steps_at_kill": steps, "rc": proc.returncode,
           "reference": jobs.get("learn")}
 

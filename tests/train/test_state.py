@@ -6,6 +6,7 @@ compile it run in subprocesses (test_sharding, test_multihost, test_resume_and_l
 
 import functools
 import json
+import pathlib
 import sys
 
 import flax.linen as nn
@@ -500,6 +501,7 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
     ("model.dtype", "float16", r"config\.model\.dtype='float16'; expected 'float32' or"),
     ("model.remat_policy", "bogus", r"config\.model\.remat_policy='bogus'"),
     ("matmul_precision", "tf32", r"config\.matmul_precision='tf32': expected 'default', "),
+    ("compile_cache", None, r"config\.compile_cache=None: expected a folder, 'default' or ''"),
 ])
 def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match):
   from train import loop  # pylint: disable=g-import-not-at-top
@@ -523,6 +525,38 @@ def test_run_traces_under_the_configured_matmul_precision(monkeypatch):
   c.matmul_precision = "highest"
   loop.run(c, "unused", parts={})
   assert seen == ["highest"] and jax.config.jax_default_matmul_precision is None
+
+
+def test_compile_cache_setting(tmp_path, restore_cache_config, monkeypatch, caplog):
+  """"default" keeps the folder the user gave JAX (here: the test session's), else takes
+  sav-jax's default folder; a folder is created and used; "" changes nothing; a folder that
+  cannot be one is named (the default folder falls back to no cache, with a warning)."""
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = synthetic.get_config()
+  session = jax.config.jax_compilation_cache_dir
+  assert session and c.compile_cache == "default"
+  assert loop.setup_compile_cache(c) == pathlib.Path(session)
+  c.compile_cache = ""
+  assert loop.setup_compile_cache(c) is None
+  assert jax.config.jax_compilation_cache_dir == session
+  c.compile_cache = str(tmp_path / "xla")
+  assert loop.setup_compile_cache(c) == tmp_path / "xla" and (tmp_path / "xla").is_dir()
+  assert jax.config.jax_compilation_cache_dir == str(tmp_path / "xla")
+  (tmp_path / "notes.txt").write_text("keep me")
+  c.compile_cache = str(tmp_path / "notes.txt")
+  with pytest.raises(ValueError, match=r"config\.compile_cache='.*notes\.txt': compilation "
+                     "cache .* exists and is not a folder"):
+    loop.setup_compile_cache(c)
+  assert (tmp_path / "notes.txt").read_text() == "keep me"
+  jax.config.update("jax_compilation_cache_dir", None)  # no folder given to JAX
+  monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "home_cache"))
+  c.compile_cache = "default"
+  assert loop.setup_compile_cache(c) == tmp_path / "home_cache" / "sav-jax" / "xla"
+  jax.config.update("jax_compilation_cache_dir", None)
+  monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "notes.txt"))  # cannot hold a folder
+  with caplog.at_level("WARNING", logger="train.loop"):
+    assert loop.setup_compile_cache(c) is None
+  assert "no compilation cache: cannot create the compilation cache folder" in caplog.text
 
 
 def test_a_workdir_that_is_a_file_is_refused(tmp_path):

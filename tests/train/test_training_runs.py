@@ -4,7 +4,7 @@
   metric, fixed held-out clips) by a clear margin, and writes JSONL + TensorBoard logs.
 * kill_resume: the same run SIGKILLed after its step-KILL_AFTER checkpoint and resumed
   reaches step CHECK_STEP with exactly the parameters, optimizer state, RNG and data
-  position of the uninterrupted run.
+  position of the uninterrupted run, loading its train step from the compilation cache.
 """
 
 import json
@@ -43,6 +43,9 @@ def test_synthetic_training_lowers_validation_epe(jobs):
     assert all(np.isfinite(r[key]) for r in train), key
   assert train[-1]["num_skipped"] == 0
   assert list((workdir / "tb").glob("events.out.tfevents.*"))
+  # --config.compile_cache: the run keeps its compiled steps there for later runs.
+  assert f"compilation cache: {jobs.cache}" in (workdir / "log.txt").read_text()
+  assert list(jobs.cache.glob("jit_train_step-*")) and list(jobs.cache.glob("jit_predict-*"))
 
 
 @pytest.mark.train_job("learn")
@@ -94,3 +97,8 @@ def test_killed_run_resumes_exactly(jobs):
   data = lambda w: (w / "checkpoints" / str(CHECK_STEP) / "data" / "process_0-of-1.json"
                     ).read_text()
   assert json.loads(data(workdir)) == json.loads(data(reference))
+  # The resumed run loaded its train step from the compilation cache (--config.compile_cache)
+  # instead of compiling it again (JAX_LOG_COMPILES=1 logs the hits).
+  log = (workdir / "resumed_log.txt").read_text()
+  assert f"compilation cache: {jobs.cache}" in log
+  assert "Persistent compilation cache hit for 'jit_train_step'" in log, log[-3000:]
