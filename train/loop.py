@@ -286,6 +286,10 @@ def setup(config, workdir):
   log.info("mesh %s over %d devices, %d processes", dict(mesh.shape), mesh.size,
            jax.process_count())
   grain_it = iter(input_lib.train_dataset(config))
+  # The validation clips, read before the model is traced: data that cannot be used fails
+  # within seconds, and before the workdir is created.
+  evaluating = config.eval.every_steps > 0
+  eval_clips = input_lib.eval_clips(config) if evaluating else None
   model = sav_jax.StereoAnyVideo(state_lib.model_config(config))
   abstract_params = state_lib.abstract_params(model, config)
   labels = optim.param_labels(abstract_params, config.optimizer.frozen)
@@ -296,8 +300,6 @@ def setup(config, workdir):
       and sav_jax.convert.find_training_checkpoint(workdir / "checkpoints") is None):
     # Not resuming: weights that cannot be read fail before the workdir is created.
     weights = initial_weights(config, abstract_params)
-  evaluating = config.eval.every_steps > 0
-  eval_clips = input_lib.eval_clips(config) if evaluating else None  # before the workdir, too
   manager = ckpt_lib.make_manager(workdir, config)
   state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it,
                                            abstract_params, weights)

@@ -569,8 +569,8 @@ def test_a_workdir_that_is_a_file_is_refused(tmp_path):
 
 
 def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir(tmp_path):
-  """A config value or no depth-prior weights (before any tracing), unreadable init weights
-  and an unknown validation dataset (after tracing the model's shapes, before the workdir is
+  """A config value, no depth-prior weights or an unknown validation dataset (before any
+  tracing), unreadable init weights (after tracing the model's shapes, before the workdir is
   created), an override of a field that does not exist or of the wrong type, and a config
   file that is missing or does not parse (while absl parses the flags)."""
   import subprocess  # pylint: disable=g-import-not-at-top
