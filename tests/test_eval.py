@@ -262,16 +262,18 @@ def test_compile_cache_options(tmp_path, ckpt, capsys, monkeypatch, restore_cach
   def predict_video(*args, **kwargs):
     raise Reached(jax.config.jax_compilation_cache_dir)
 
-  monkeypatch.setattr(eval_runner.inference, "predict_video", predict_video)
-  session = jax.config.jax_compilation_cache_dir
-  for extra, folder in (([], session), (["--compile-cache", str(tmp_path / "xla")],
-                                       str(tmp_path / "xla")), (["--no-compile-cache"], None)):
-    if extra == ["--no-compile-cache"]:
-      jax.config.update("jax_compilation_cache_dir", None)
+  def folder_in_use(*extra):
     with pytest.raises(Reached) as seen:
       main([*args, *extra])
-    assert seen.value.args[0] == folder, extra
+    return seen.value.args[0]
+
+  monkeypatch.setattr(eval_runner.inference, "predict_video", predict_video)
+  session = jax.config.jax_compilation_cache_dir
+  assert folder_in_use() == session
+  assert folder_in_use("--compile-cache", str(tmp_path / "xla")) == str(tmp_path / "xla")
   assert (tmp_path / "xla").is_dir()
+  jax.config.update("jax_compilation_cache_dir", None)
+  assert folder_in_use("--no-compile-cache") is None
 
 
 def test_config_files_that_cannot_be_used(tmp_path):

@@ -14,8 +14,8 @@ the standard subsampling `[::2, ::2]` is applied and values are used as stored.
 Valid = finite and the official dense rule `0 < |d| < 512` (SAV's code cannot read
 `.dsp5`, so its Spring protocol is unknown; every other dense dataset gets this rule there,
 and it keeps d = 0 (infinitely far) out of the depth metrics); invalid pixels get d = 0.
-Scale: fx of the first intrinsics row times 0.065 m. Only the train half has GT: "test" (SAV's name) and "train" both read it.
-Only the left GT is used.
+Scale: fx of the first intrinsics row times 0.065 m. Only the train half has GT: "test"
+(SAV's name) and "train" both read it. Only the left GT is used.
 """
 
 from __future__ import annotations
