@@ -10,6 +10,8 @@ import pytest
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
 import op_profile  # noqa: E402  pylint: disable=wrong-import-position,import-error
 
+pytestmark = pytest.mark.usefixtures("fast_compile")  # values and HLO shapes, not speed
+
 
 def test_multiply_adds_of_a_convolution_and_a_product_from_the_optimized_hlo():
   def fn(x, k, w):
@@ -239,7 +241,6 @@ def test_infer_memory_script_runs_the_streaming_infer(tmp_path, monkeypatch, cap
   assert [float(np.load(out / "disparity" / f"{i:05d}.npy")[0, 0]) for i in range(23)] == expected
 
 
-@pytest.mark.usefixtures("fast_compile")  # the last test here: the fixture is module-scoped
 def test_compile_times_script_compiles_what_predict_video_runs(capsys):
   """benchmarks/compile_times.py compiles the per-frame program with the newer fusion
   emitters and the window's with the older ones (low-memory mode), and refuses bad sizes."""
@@ -254,8 +255,8 @@ def test_compile_times_script_compiles_what_predict_video_runs(capsys):
   assert all(s > 0 for s in result["compile_s"].values()) and result["peak_rss_gb"] > 0
   assert "total" in capsys.readouterr().out
   options = {k[0]: dict(k[4]) for k in inference._COMPILED if k[3] == (1, 16, 16)}  # pylint: disable=protected-access
-  assert "xla_cpu_use_fusion_emitters" not in options["frames"]
-  assert options["window"]["xla_cpu_use_fusion_emitters"] is False
+  assert options["frames"] == runtime.inference_compiler_options(per_frame=True)
+  assert options["window"] == runtime.inference_compiler_options() != options["frames"]
   with pytest.raises(SystemExit):
     compile_times.main(["--height", "30"])
   assert "multiples of 16" in capsys.readouterr().err

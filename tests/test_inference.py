@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import sav_jax
-from sav_jax import inference
+from sav_jax import inference, runtime
 
 ATOL = 1e-4  # px, the fixture README's criterion for final disparities
 ITERS = 2
@@ -367,10 +367,11 @@ def test_per_frame_features_are_computed_once_per_frame(variables, golden, monke
       "run window", "compile frames", "compile window", "run frames", "run window"]
   assert disp.shape == (21, 28, 30)
   # On CPU the per-frame programs keep XLA's newer fusion emitters (8x faster to compile
-  # there); the window's are compiled with the older, leaner ones (the default).
+  # there); the window's are compiled with the older, leaner ones (the default). Which
+  # options those are is tests/test_runtime.py's check (without the suite's XLA_FLAGS).
   options = {k[0]: dict(k[4]) for k in inference._COMPILED}  # pylint: disable=protected-access
-  assert "xla_cpu_use_fusion_emitters" not in options["frames"]
-  assert options["window"]["xla_cpu_use_fusion_emitters"] is False
+  assert options["frames"] == runtime.inference_compiler_options(per_frame=True)
+  assert options["window"] == runtime.inference_compiler_options() != options["frames"]
   with pytest.raises(ValueError, match="chunk"):
     inference.FrameFeatureCache(chunk=0)
 

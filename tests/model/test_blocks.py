@@ -10,6 +10,9 @@ from sav_jax.model.dinov2 import (DinoVisionTransformer, attention_blocks, fused
                                   softmax_attention)
 from sav_jax.model.layers import frames_per_block
 
+# Blocked and single computations compared: no need for XLA's optimisations.
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 
 def test_attention_blocks_choose_frames_then_query_rows():
   per_frame_mb = 6 * 100 * 100 * 4 / 2**20

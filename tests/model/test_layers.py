@@ -7,6 +7,9 @@ import pytest
 
 from sav_jax.model.layers import Conv2D, Conv3D, conv2d, set_canonical_conv_gradient
 
+# Checks of values against XLA's own ops: no need for XLA's optimisations (tests/conftest.py).
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 
 def _reference(x, kernel, padding):
   return jax.lax.conv_general_dilated(x, kernel, (1, 1), padding,

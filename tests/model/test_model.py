@@ -139,16 +139,17 @@ def test_gradients_are_finite_and_the_depth_prior_is_frozen(variables, clip, dty
     loss = lambda v, l, r: jnp.abs(remat_model.apply(v, l, r, iters=2).disparities[-1] - 3).mean()
     return jax.grad(loss, argnums=(0, 1, 2))(v, left, right)
 
-  g_vars, g_left, g_right = grads(variables, *clip)
+  # checked on the host: ~500 leaves of different shapes, one small compile each on device
+  g_vars, g_left, g_right = jax.device_get(grads(variables, *clip))
   leaves = jax.tree_util.tree_leaves(g_vars)
-  assert all(bool(jnp.isfinite(x).all()) for x in leaves)
-  assert bool(jnp.isfinite(g_left).all()) and bool(jnp.isfinite(g_right).all())
-  assert float(jnp.abs(g_left).sum()) > 0
+  assert all(np.isfinite(x).all() for x in leaves)
+  assert np.isfinite(g_left).all() and np.isfinite(g_right).all()
+  assert np.abs(g_left).sum() > 0
   vda = jax.tree_util.tree_leaves(g_vars["params"]["depthnet"]["depthanything"])
-  assert all(float(jnp.abs(x).max()) == 0 for x in vda)
+  assert all(np.abs(x).max() == 0 for x in vda)
   for name in ("fnet", "cnet", "update_block", "corr_mlp"):
-    assert any(float(jnp.abs(x).max()) > 0 for x in jax.tree_util.tree_leaves(g_vars["params"][name]))
-  assert float(jnp.abs(g_vars["params"]["depthnet"]["conv"]["kernel"]).max()) > 0
+    assert any(np.abs(x).max() > 0 for x in jax.tree_util.tree_leaves(g_vars["params"][name]))
+  assert np.abs(g_vars["params"]["depthnet"]["conv"]["kernel"]).max() > 0
 
 
 def _primitive_counts(jaxpr, counts=None) -> dict:

@@ -13,6 +13,9 @@ from sav_jax.ops.upsample import convex_upsample_3d, neighbours_3d
 
 RNG = np.random.default_rng(0)
 
+# Checks of values against references: no need for XLA's optimisations (tests/conftest.py).
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 
 # ---------------------------------------------------------------- resize
 def test_bilinear_align_corners_true_keeps_corners_and_ramps():

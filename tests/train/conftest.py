@@ -27,6 +27,8 @@ import time
 
 import pytest
 
+from tests.conftest import TEST_XLA_FLAGS
+
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 _WORKERS = 2
 _ORDER = ("learn", "sharding", "kill_resume", "multihost")
@@ -68,7 +70,8 @@ def tiny_config(*overrides):
 
 def child_env(cache_dir, device_count: int | None = None, llvm_o0: bool = False,
               fast_compile: bool = False) -> dict:
-  """Environment of a subprocess: CPU, shared compilation cache, fast LLVM codegen.
+  """Environment of a subprocess: CPU, shared compilation cache, fast LLVM codegen, the
+  suite's `TEST_XLA_FLAGS` (the sharding job: 173 -> 159 CPU-seconds).
 
   `cache_dir`: JAX_COMPILATION_CACHE_DIR; None for a run given `--config.compile_cache`.
 
@@ -87,7 +90,7 @@ def child_env(cache_dir, device_count: int | None = None, llvm_o0: bool = False,
   """
   env = dict(os.environ)
   env.pop("JAX_COMPILATION_CACHE_DIR", None)
-  flags = ["--xla_llvm_disable_expensive_passes=true"]
+  flags = ["--xla_llvm_disable_expensive_passes=true", TEST_XLA_FLAGS]
   if llvm_o0:
     flags.append("--xla_backend_optimization_level=0")
   if device_count:
