@@ -1,5 +1,6 @@
 """Shared test fixtures: paths to the oracle fixtures, the generated weights."""
 
+import contextlib
 import importlib.util
 import os
 import pathlib
@@ -53,15 +54,30 @@ def vda_state_dict(fixtures_dir):
   return _load_make_weights().make_state_dict(str(fixtures_dir / "vda_vits_manifest.json"), 0)
 
 
+@contextlib.contextmanager
+def _most_optimizations_off():
+  import jax  # pylint: disable=import-outside-toplevel
+  old = jax.config.read("jax_disable_most_optimizations")
+  jax.config.update("jax_disable_most_optimizations", True)
+  try:
+    yield
+  finally:
+    jax.config.update("jax_disable_most_optimizations", old)
+
+
 @pytest.fixture(scope="module")
 def fast_compile():
   """Most XLA optimisations off while a module compiles: about 2x faster on CPU, same
   float32 graph (parity stays ~1e-5 px). Use with `pytestmark = pytest.mark.usefixtures(...)`."""
-  import jax  # pylint: disable=import-outside-toplevel
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+  with _most_optimizations_off():
+    yield
+
+
+@pytest.fixture
+def fast_compile_test():
+  """`fast_compile` for one test, in a module whose other programs compile as users' do."""
+  with _most_optimizations_off():
+    yield
 
 
 @pytest.fixture

@@ -4,6 +4,8 @@ Weights: make_weights.py seed 0, converted by `params_from_state_dict`. Input: t
 fixture's 1x3x64x128 stereo clip, iters=4 (8 predictions). Tolerances (stated per
 check): features `|a-b| <= 1e-4*max|b| + 1e-5`; disparities of every prediction
 `atol = 1e-4 px` (the fixture README's target; the issue's hard limit is 1e-3 px).
+The forward of `run` compiles with XLA's default optimisations, the bfloat16 and
+frame-block variants with most of them off (`fast_compile_test`: half the compile time).
 """
 
 import jax
@@ -73,6 +75,7 @@ def test_every_iteration_flow(run, golden_small, scale, hw):
 BF16_EPE = 0.05  # px: issue 7's bound for the bfloat16 mode against float32
 
 
+@pytest.mark.usefixtures("fast_compile_test")  # the module's `run` is the default compile
 def test_bfloat16_mode_stays_close_to_float32(variables, golden_small):
   """bfloat16 compute (float32 params, softmaxes, correlation, upsampling, accumulator).
 
@@ -93,6 +96,7 @@ def test_bfloat16_mode_stays_close_to_float32(variables, golden_small):
   assert epe > 0  # it did compute in bfloat16
 
 
+@pytest.mark.usefixtures("fast_compile_test")  # the module's `run` is the default compile
 def test_frame_blocks_reproduce_the_official_output(variables, golden_small):
   """A tiny `frame_block_mb` runs every per-frame stage one frame at a time (encoders,
   the depth head's full-resolution end, the space attention) and the ViT attention in
