@@ -17,6 +17,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 import sav_jax
+from sav_jax.model.init import abstract_variables
 from train import optim
 
 DATA_AXIS = "data"
@@ -90,7 +91,15 @@ def make_init_fn(model, tx: optax.GradientTransformation, config):
 
 
 def abstract_params(model, config):
-  """`jax.ShapeDtypeStruct` tree of the model's params (traced, nothing computed)."""
+  """`jax.ShapeDtypeStruct` tree of the model's params (traced, nothing computed).
+
+  For a `sav_jax.StereoAnyVideo` this is `sav_jax.model.init.abstract_variables`, traced
+  once per model config and shared with `init_variables` and the weight converters (the
+  shapes do not depend on the clip size): a run from scratch or from official weights
+  then traces the model's initialisation once instead of twice (4-7 s on CPU).
+  """
+  if isinstance(model, sav_jax.StereoAnyVideo):
+    return abstract_variables(model.cfg)["params"]
   video = _dummy_video(config)
   return jax.eval_shape(
       lambda: model.lazy_init(jax.random.key(0), video, video, iters=2))["params"]

@@ -169,6 +169,9 @@ def test_real_model_optimizer_state_has_no_frozen_entries():
   n_trainable = sum(x.size for x in jax.tree.leaves(params)) - n_frozen
   n_opt = sum(x.size for x in jax.tree.leaves(opt_shapes) if x.ndim > 0)
   assert n_frozen > 2e7 and n_opt == 2 * n_trainable  # Adam mu and nu, trainable only
+  # the shapes traced once per model config, shared with init_variables and the converters
+  from sav_jax.model.init import abstract_variables  # pylint: disable=g-import-not-at-top
+  assert params is abstract_variables(state_lib.model_config(c))["params"]
 
 
 def test_step_updates_trainable_only_and_skips_nan_batches():
