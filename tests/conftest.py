@@ -17,8 +17,9 @@ FIXTURES = pathlib.Path(os.environ.get("SAV_FIXTURES", ROOT.parent / "shared" / 
 # test_model_parity.py take 308 instead of 404 CPU-seconds (2026-12-02); the values agree to
 # float32 rounding. Set before JAX creates its CPU client (the first computation), and
 # inherited by the subprocesses that keep os.environ's XLA_FLAGS (tests/train/conftest.py's
-# jobs add it to theirs). The child of tests/test_multi_device.py sets its own XLA_FLAGS:
-# it checks the official outputs with XLA's default emitters.
+# jobs add it to theirs; tests/test_multi_device.py's child, whose compiles it would not
+# speed up, keeps XLA's default). The end-to-end parity forward of
+# tests/model/test_model_parity.py asks for XLA's default emitters.
 TEST_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false"
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):  # else as asked
   os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
