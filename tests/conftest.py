@@ -20,8 +20,11 @@ FIXTURES = pathlib.Path(os.environ.get("SAV_FIXTURES", ROOT.parent / "shared" / 
 # jobs add it to theirs; tests/test_multi_device.py's child, whose compiles it would not
 # speed up, keeps XLA's default). The end-to-end parity forward of
 # tests/model/test_model_parity.py asks for XLA's default emitters.
-TEST_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false"
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):  # else as asked
+_EMITTERS = "xla_cpu_use_fusion_emitters"
+TEST_XLA_FLAGS = f"--{_EMITTERS}=false"
+# Compiler options for a program that should compile with XLA's default emitters.
+XLA_DEFAULT_EMITTERS = {_EMITTERS: True}
+if _EMITTERS not in os.environ.get("XLA_FLAGS", ""):  # else as asked
   os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
 
 
@@ -79,6 +82,13 @@ def fast_compile_test():
   """`fast_compile` for one test, in a module whose other programs compile as users' do."""
   with _most_optimizations_off():
     yield
+
+
+@pytest.fixture
+def without_suite_xla_flags(monkeypatch):
+  """No XLA_FLAGS in os.environ, as for a user who sets none: what
+  `sav_jax.runtime.inference_compiler_options` gives then (the suite sets its own above)."""
+  monkeypatch.delenv("XLA_FLAGS", raising=False)
 
 
 @pytest.fixture

@@ -12,10 +12,10 @@ ARGS = ["bench", "--frames", "2", "--height", "32", "--width", "64", "--iters", 
         "--repeats", "1"]
 
 
-def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys, monkeypatch,
+@pytest.mark.usefixtures("without_suite_xla_flags")  # the options a user gets
+def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
                                                               restore_cache_config,
                                                               restore_low_memory_compile):
-  monkeypatch.delenv("XLA_FLAGS", raising=False)  # the options without the suite's flags
   cache = tmp_path / "xla"
   first, second = tmp_path / "first.json", tmp_path / "second.json"
   assert cli.main([*ARGS, "--json", str(first), "--compile-cache", str(cache)]) == 0

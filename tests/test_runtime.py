@@ -7,9 +7,7 @@ import jax.numpy as jnp
 import pytest
 
 from sav_jax import cli, runtime
-
-# XLA's default emitters, named: the suite's XLA_FLAGS (tests/conftest.py) change them.
-_NEWER_EMITTERS = {"xla_cpu_use_fusion_emitters": True}
+from tests.conftest import XLA_DEFAULT_EMITTERS
 
 
 def test_explicit_folder_is_created_and_receives_compiled_programs(tmp_path, restore_cache_config):
@@ -58,9 +56,9 @@ def test_cli_cache_flags_are_exclusive(capsys):
   assert "not allowed with" in capsys.readouterr().err
 
 
+@pytest.mark.usefixtures("without_suite_xla_flags")
 def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch,
                                                                     restore_low_memory_compile):
-  monkeypatch.delenv("XLA_FLAGS", raising=False)  # a user's setting: the suite sets its own
   assert runtime.LOW_MEMORY_COMPILE_DEFAULT is True  # the older emitters by default
   runtime.set_low_memory_compile(True)
   assert runtime.inference_compiler_options("gpu") == {}
@@ -81,20 +79,21 @@ def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch
   assert runtime.inference_compiler_options("cpu") == {}  # unchanged
 
 
-def test_low_memory_compile_gives_the_same_values(monkeypatch, restore_low_memory_compile):
-  monkeypatch.delenv("XLA_FLAGS", raising=False)  # the options without the suite's flags
+@pytest.mark.usefixtures("without_suite_xla_flags")
+def test_low_memory_compile_gives_the_same_values(restore_low_memory_compile):
   runtime.set_low_memory_compile(True)
   options = runtime.inference_compiler_options("cpu")
   assert options["xla_cpu_use_fusion_emitters"] is False
   x = jnp.linspace(-3.0, 3.0, 4096).reshape(64, 64)
   fn = lambda x: jax.nn.gelu(x @ x.T).sum(axis=-1) / (1.0 + jnp.abs(x).max())  # noqa: E731
   lowered = jax.jit(fn).lower(x)
-  want = lowered.compile(compiler_options=_NEWER_EMITTERS)(x)
+  want = lowered.compile(compiler_options=XLA_DEFAULT_EMITTERS)(x)
   got = lowered.compile(compiler_options=options)(x)
   assert jnp.allclose(got, want, rtol=1e-5, atol=1e-4), float(jnp.abs(got - want).max())
 
 
-def test_low_memory_compile_keeps_long_reductions_whole(monkeypatch, restore_low_memory_compile):
+@pytest.mark.usefixtures("without_suite_xla_flags")
+def test_low_memory_compile_keeps_long_reductions_whole(restore_low_memory_compile):
   """An instance norm over 96x128 maps: XLA's tree reduction rewriter would cut its sums
   into 32x32 reduce-windows, which the older emitters unroll (the encoders' 38 norms made
   up half the whole forward's compile); the low-memory options keep plain reductions,
@@ -102,14 +101,13 @@ def test_low_memory_compile_keeps_long_reductions_whole(monkeypatch, restore_low
   import numpy as np  # pylint: disable=import-outside-toplevel
 
   from sav_jax.model.layers import instance_norm  # pylint: disable=import-outside-toplevel
-  monkeypatch.delenv("XLA_FLAGS", raising=False)  # the options without the suite's flags
   x = np.random.default_rng(0).normal(5.0, 3.0, (2, 96, 128, 8)).astype(np.float32)
   lowered = jax.jit(instance_norm).lower(x)
   runtime.set_low_memory_compile(True)
   lean = lowered.compile(compiler_options=runtime.inference_compiler_options("cpu"))
   runtime.set_low_memory_compile(False)
   newer = lowered.compile(compiler_options={
-      **runtime.inference_compiler_options("cpu"), **_NEWER_EMITTERS})
+      **runtime.inference_compiler_options("cpu"), **XLA_DEFAULT_EMITTERS})
   assert "reduce-window" in newer.as_text() and "reduce-window" not in lean.as_text()
   x64 = x.astype(np.float64)
   want = (x64 - x64.mean((1, 2), keepdims=True)) / np.sqrt(x64.var((1, 2), keepdims=True) + 1e-5)
@@ -121,8 +119,9 @@ def test_unknown_xla_options_are_detected_not_raised():
   assert runtime._accepts_options("cpu", (("xla_sav_jax_no_such_option", "1"),)) is False  # pylint: disable=protected-access
 
 
-@pytest.mark.usefixtures("fast_compile")  # the last test here: the fixture is module-scoped
-def test_inference_forward_keeps_its_temporary_memory_small_with_the_same_values(monkeypatch):
+@pytest.mark.usefixtures("fast_compile",  # the last test here: the fixture is module-scoped
+                         "without_suite_xla_flags")
+def test_inference_forward_keeps_its_temporary_memory_small_with_the_same_values():
   """The whole model (the effect needs the refinement loop's context; a lone attention
   block shows none): T=2, 128x256, iters=2, most XLA optimisations off (the two compiles
   take 12 s instead of 42 s). The inference options' forward needs at most XLA's default
@@ -135,7 +134,6 @@ def test_inference_forward_keeps_its_temporary_memory_small_with_the_same_values
   import sav_jax  # pylint: disable=import-outside-toplevel
   from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
 
-  monkeypatch.delenv("XLA_FLAGS", raising=False)  # the options without the suite's flags
   options = runtime.inference_compiler_options("cpu")
   assert options, "this jaxlib should accept --xla_cpu_experimental_ynn_fusion_type"
   cfg = sav_jax.SAVConfig()
@@ -145,7 +143,7 @@ def test_inference_forward_keeps_its_temporary_memory_small_with_the_same_values
   right = jnp.roll(left, -4, axis=3)
   lowered = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=2, final_only=True).disparities
                     ).lower(variables, left, right)
-  default, lean = (lowered.compile(compiler_options=_NEWER_EMITTERS),
+  default, lean = (lowered.compile(compiler_options=XLA_DEFAULT_EMITTERS),
                    lowered.compile(compiler_options=options))
   temp = lambda c: c.memory_analysis().temp_size_in_bytes  # noqa: E731
   assert temp(lean) <= temp(default) and temp(lean) < 80 * 2**20, (temp(lean), temp(default))

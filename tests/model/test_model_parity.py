@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import sav_jax
+from tests.conftest import XLA_DEFAULT_EMITTERS
 from tests.parity import feature_close, nchw_to_nhwc
 
 DISP_ATOL = 1e-4  # px
@@ -40,8 +41,7 @@ def run(variables, golden_small):
 
   with jax.default_matmul_precision("highest"):
     # XLA's default compile, emitters included (the suite's XLA_FLAGS change them)
-    compiled = fwd.lower(variables, left, right).compile(
-        compiler_options={"xla_cpu_use_fusion_emitters": True})
+    compiled = fwd.lower(variables, left, right).compile(compiler_options=XLA_DEFAULT_EMITTERS)
     return jax.device_get(compiled(variables, left, right))
 
 
