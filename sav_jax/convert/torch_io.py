@@ -35,6 +35,9 @@ _MODULE_PREFIX = "module."
 # Top-level submodule names of the two layouts (sav_manifest.json, vda_vits_manifest.json).
 SAV_TOP_LEVEL = frozenset({"fnet", "cnet", "update_block", "depthnet", "corr_mlp"})
 VDA_TOP_LEVEL = frozenset({"pretrained", "head"})
+# RAFT (the evaluator's optical flow) has three of the stereo model's names and this head.
+RAFT_TOP_LEVEL = frozenset({"fnet", "cnet", "update_block"})
+RAFT_MARKER = "update_block.mask.0.weight"
 
 
 def _check_file(path):
@@ -224,7 +227,9 @@ def checkpoint_kind(sd: dict, source: str = "<state dict>") -> str:
   Returns:
     "sav" for a full Stereo Any Video state dict (`fnet.*`, `cnet.*`, `update_block.*`,
     `corr_mlp.*`, `depthnet.*` including `depthnet.depthanything.*`), or "vda" for a
-    standalone Video Depth Anything file (flat `pretrained.*` and `head.*` keys).
+    standalone Video Depth Anything file (flat `pretrained.*` and `head.*` keys), or "raft"
+    for the evaluator's RAFT optical-flow model (`fnet.*`, `cnet.*`, `update_block.*` with
+    `update_block.mask.0.weight`).
 
   Raises:
     CheckpointError: the keys match neither layout (the message lists what was found).
@@ -236,6 +241,8 @@ def checkpoint_kind(sd: dict, source: str = "<state dict>") -> str:
     top = str(k).split(".", 1)[0]
     tops[top] = tops.get(top, 0) + 1
   sav_like = tops.keys() & {"fnet", "cnet", "update_block"}
+  if set(tops) == RAFT_TOP_LEVEL and RAFT_MARKER in sd:
+    return "raft"
   if set(tops) <= SAV_TOP_LEVEL and sav_like:
     return "sav"
   if set(tops) == VDA_TOP_LEVEL:
@@ -254,7 +261,8 @@ def checkpoint_kind(sd: dict, source: str = "<state dict>") -> str:
       f"({', '.join(sorted(SAV_TOP_LEVEL))}) or Video Depth Anything keys (pretrained, head)")
 
 
-KIND_NAMES = {"sav": "a Stereo Any Video", "vda": "a Video Depth Anything (depth prior only)"}
+KIND_NAMES = {"sav": "a Stereo Any Video", "vda": "a Video Depth Anything (depth prior only)",
+              "raft": "a RAFT (optical flow)"}
 
 
 def load_state_dict_of_kind(path, want: str, hints: Mapping[str, str] | None = None,
@@ -263,7 +271,7 @@ def load_state_dict_of_kind(path, want: str, hints: Mapping[str, str] | None = N
 
   Args:
     path: the checkpoint file.
-    want: "sav" or "vda".
+    want: "sav", "vda" or "raft".
     hints: what to do instead, by the kind found (appended to the error).
     label: how the error names the file (default: the path).
 

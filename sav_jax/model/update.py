@@ -172,18 +172,20 @@ class SpaceAttnBlock(nn.Module):
     return y.reshape(b, t, h, w, c)
 
 
+def conv_gru(h: jax.Array, x: jax.Array, convz, convr, convq) -> jax.Array:
+  """One ConvGRU update of the state `h` from the input `x` (channels last)."""
+  hx = jnp.concatenate([h, x], axis=-1)
+  z = jax.nn.sigmoid(convz(hx))
+  r = jax.nn.sigmoid(convr(hx))
+  q = jnp.tanh(convq(jnp.concatenate([r * h, x], axis=-1)))
+  return (1 - z) * h + z * q
+
+
 class SKSepConvGRU3D(nn.Module):
   """Separable 3-D ConvGRU: a W pass (large-kernel z/r), then H, then T."""
 
   hidden_dim: int = 128
   dtype: Any = jnp.float32
-
-  def _gru(self, h, x, convz, convr, convq):
-    hx = jnp.concatenate([h, x], axis=-1)
-    z = jax.nn.sigmoid(convz(hx))
-    r = jax.nn.sigmoid(convr(hx))
-    q = jnp.tanh(convq(jnp.concatenate([r * h, x], axis=-1)))
-    return (1 - z) * h + z * q
 
   @nn.compact
   def __call__(self, h: jax.Array, x: jax.Array) -> jax.Array:
@@ -196,12 +198,12 @@ class SKSepConvGRU3D(nn.Module):
       second = c3((1, 1, 5), (0, 0, 2), f"{name}_2")
       return lambda y: second(gelu(first(y)))
 
-    h = self._gru(h, x, super_kernel("convz1"), super_kernel("convr1"),
-                  c3((1, 1, 5), (0, 0, 2), "convq1"))
+    h = conv_gru(h, x, super_kernel("convz1"), super_kernel("convr1"),
+                 c3((1, 1, 5), (0, 0, 2), "convq1"))
     k, p = (1, 5, 1), (0, 2, 0)
-    h = self._gru(h, x, c3(k, p, "convz2"), c3(k, p, "convr2"), c3(k, p, "convq2"))
+    h = conv_gru(h, x, c3(k, p, "convz2"), c3(k, p, "convr2"), c3(k, p, "convq2"))
     k, p = (5, 1, 1), (2, 0, 0)
-    return self._gru(h, x, c3(k, p, "convz3"), c3(k, p, "convr3"), c3(k, p, "convq3"))
+    return conv_gru(h, x, c3(k, p, "convz3"), c3(k, p, "convr3"), c3(k, p, "convq3"))
 
 
 class FlowHead3D(nn.Module):

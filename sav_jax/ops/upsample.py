@@ -50,3 +50,39 @@ def convex_upsample_3d(flow: jax.Array, mask: jax.Array, rate: int = 4) -> jax.A
   up = jnp.einsum(
       "bthwyxk,bthwkc->bthywxc", weights, nb, precision=jax.lax.Precision.HIGHEST)
   return up.reshape(b, t, h * rate, w * rate, c)
+
+
+def neighbours_2d(x: jax.Array) -> jax.Array:
+  """The 9 zero-padded 3x3 neighbours of every position (`F.unfold`, kernel 3, padding 1).
+
+  Args:
+    x: `[B, H, W, C]`.
+
+  Returns:
+    `[B, H, W, 9, C]`; neighbour `k = dy*3 + dx` holds `x[y + dy - 1, x + dx - 1]`,
+    zero outside the image.
+  """
+  _, h, w, _ = x.shape
+  xp = jnp.pad(x, [(0, 0), (1, 1), (1, 1), (0, 0)])
+  return jnp.stack([xp[:, dy:dy + h, dx:dx + w, :] for dy in range(3) for dx in range(3)], axis=3)
+
+
+def convex_upsample_2d(flow: jax.Array, mask: jax.Array, rate: int = 8) -> jax.Array:
+  """RAFT's convex upsampling: each output pixel a softmax-weighted sum of 3x3 neighbours.
+
+  The flow is multiplied by `rate` first; computed in float32 whatever the input dtype.
+
+  Args:
+    flow: `[B, h, w, C]`.
+    mask: `[B, h, w, 9 * rate * rate]` logits; channel `k*rate*rate + ry*rate + rx`.
+    rate: upsampling factor.
+
+  Returns:
+    `[B, rate*h, rate*w, C]`, float32.
+  """
+  b, h, w, c = flow.shape
+  weights = mask.astype(jnp.float32).reshape(b, h, w, 9, rate, rate)
+  weights = jax.nn.softmax(jnp.moveaxis(weights, 3, -1), axis=-1)  # [B,h,w,ry,rx,9]
+  nb = neighbours_2d(rate * flow.astype(jnp.float32))  # [B,h,w,9,C]
+  up = jnp.einsum("bhwyxk,bhwkc->bhywxc", weights, nb, precision=jax.lax.Precision.HIGHEST)
+  return up.reshape(b, h * rate, w * rate, c)
