@@ -87,19 +87,22 @@ def run(args, overrides) -> int:
   setup_compile_cache(args)
   seqs = eval_data.load_sequences(config, args.data_root)
   unscaled = [str(s.name) for s in seqs if s.depth2disp_scale is None]
-  if config.metrics.tcc and unscaled:
-    raise ValueError(f"config.metrics.tcc needs depth, but {config.dataset} sequence "
-                     f"{unscaled[0]} has no depth-to-disparity scale (no camera data; "
-                     f"{len(unscaled)} of {len(seqs)} sequences): drop metrics.tcc")
+  depth_metrics = [f"metrics.{k}" for k in ("tcc", "raft") if config.metrics[k]]
+  if depth_metrics and unscaled:
+    raise ValueError(f"config.{' and config.'.join(depth_metrics)} need depth, but "
+                     f"{config.dataset} sequence {unscaled[0]} has no depth-to-disparity scale "
+                     f"(no camera data; {len(unscaled)} of {len(seqs)} sequences): drop "
+                     f"{' and '.join(depth_metrics)}")
+  flow_fn = runner.raft_flow_fn(config.metrics)
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)
   if not args.overwrite:
-    return evaluate(args, config, out, seqs, variables, model_cfg, described, devices)
+    return evaluate(args, config, out, seqs, variables, model_cfg, described, devices, flow_fn)
   # The earlier run's predictions and plots go aside, and come back if this run fails
   # (a frame that cannot be read, an interrupt): a failed run loses nothing.
   moved = runner.set_aside_written(out)
   try:
-    rc = evaluate(args, config, out, seqs, variables, model_cfg, described, devices)
+    rc = evaluate(args, config, out, seqs, variables, model_cfg, described, devices, flow_fn)
   except BaseException:
     runner.restore_set_aside(out)
     raise
@@ -109,7 +112,8 @@ def run(args, overrides) -> int:
   return rc
 
 
-def evaluate(args, config, out, seqs, variables, model_cfg, described, devices=None) -> int:
+def evaluate(args, config, out, seqs, variables, model_cfg, described, devices=None,
+             flow_fn=None) -> int:
   """Evaluates every sequence and writes the reports."""
   methods = ["sav"] + [b for b in dict.fromkeys(args.baseline)]
   on = f"; {len(devices)} {devices[0].platform} devices" if devices and len(devices) > 1 else ""
@@ -117,7 +121,7 @@ def evaluate(args, config, out, seqs, variables, model_cfg, described, devices=N
   results = []
   for i, seq in enumerate(seqs):
     res = runner.evaluate_sequence(seq, methods, variables=variables, model_cfg=model_cfg,
-                                   config=config, out=out, devices=devices)
+                                   config=config, out=out, devices=devices, flow_fn=flow_fn)
     results.append(res)
     line = "  ".join(f"{runner.METHOD_NAMES[m]}: EPE {r['disp_epe_mean']:.3f} TEPE "
                      f"{r['disp_temp_epe_mean']:.3f}" for m, r in res.metrics.items())

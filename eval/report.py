@@ -18,8 +18,9 @@ COLUMNS = (
     ("bad-3 %", "disp_epe_bad_3px"), ("TEPE", "disp_temp_epe_mean"),
     ("δt-0.5px %", "disp_temp_epe_bad_0.5px"), ("δt-1px %", "disp_temp_epe_bad_1px"),
     ("δt-2px %", "disp_temp_epe_bad_2px"), ("δt-3px %", "disp_temp_epe_bad_3px"),
-    ("TCC", "disp_TCC"),
+    ("TCC", "disp_TCC"), ("TCM", "disp_TCM"), ("OPW", "disp_OPW"), ("RTC", "disp_RTC"),
 )
+HIGHER_IS_BETTER = ("disp_TCC", "disp_TCM", "disp_RTC")
 ALL = "ALL (frame-weighted)"
 
 
@@ -36,13 +37,14 @@ def markdown(summary: dict) -> str:
   """The Markdown report of `build_summary`'s dictionary."""
   methods = summary["methods"]
   cols = _columns([m["aggregate"] for m in methods.values()])
+  higher = [h for h, k in cols if k in HIGHER_IS_BETTER]
   lines = [f"# {summary['dataset']} ({summary['split']})", "",
            f"Weights: {summary['weights']}  ",
            f"iters {summary['config']['iters']}, window {summary['config']['window']} / stride "
            f"{summary['config']['stride']}, {summary['config']['dtype']}; "
            f"{len(summary['sequences'])} sequences, {summary['frames']} frames.", "",
            "## Aggregate (frame-weighted mean over sequences; lower is better"
-           + (", except TCC)" if any(k == "disp_TCC" for _, k in cols) else ")"), ""]
+           + (f", except {', '.join(higher)})" if higher else ")"), ""]
   head = ["Method"] + [h for h, _ in cols] + ["frames/s"]
   lines += ["| " + " | ".join(head) + " |", "|---" + "|---:" * (len(head) - 1) + "|"]
   for m in methods.values():

@@ -94,13 +94,49 @@ def predict(method: str, clip: dict, *, variables, model_cfg, config,
   raise ValueError(f"unknown method {method!r}; baselines: {', '.join(BASELINES)}")
 
 
+def raft_flow_fn(metrics_config):
+  """The `flow_fn` of `config.metrics.raft` (a RAFT checkpoint file), or None when unset.
+
+  Raises:
+    ValueError: the file is missing, unreadable or not a RAFT checkpoint (named).
+  """
+  path = metrics_config.raft
+  if not path:
+    return None
+  if not isinstance(path, str):
+    raise ValueError(f"config.metrics.raft must be a file path, got {path!r}")
+  if not pathlib.Path(path).is_file():
+    raise ValueError(f"config.metrics.raft: {path} is not a file (the official RAFT checkpoint, "
+                     "raft-things.pth)")
+  if not isinstance(metrics_config.raft_iters, int) or metrics_config.raft_iters < 1:
+    raise ValueError(f"config.metrics.raft_iters must be a positive integer, got "
+                     f"{metrics_config.raft_iters!r}")
+  from sav_jax.convert.raft import load_raft  # pylint: disable=import-outside-toplevel
+  from sav_jax.model import raft  # pylint: disable=import-outside-toplevel
+  try:
+    variables = load_raft(path)
+  except ValueError as e:
+    raise ValueError(f"config.metrics.raft: {e}") from None
+  return raft.raft_flow_fn(variables, iters=metrics_config.raft_iters)
+
+
 def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
-                      out: pathlib.Path | None = None, devices=None) -> SequenceResult:
-  """Predicts and scores one sequence; writes its predictions and plots under `out`."""
+                      out: pathlib.Path | None = None, devices=None,
+                      flow_fn=None) -> SequenceResult:
+  """Predicts and scores one sequence; writes its predictions and plots under `out`.
+
+  With `flow_fn` (RAFT, `raft_flow_fn`), the flow-based TCM, OPW and RTC are computed too;
+  the left video's flows are computed once and shared by the methods.
+  """
   clip = eval_data.read_sequence(seq)
   res = SequenceResult(name=str(seq.name), frames=len(clip["left"]))
   has_gt = clip["disparity"] is not None
-  scale = seq.depth2disp_scale if config.metrics.tcc else None
+  depth = config.metrics.tcc or flow_fn is not None
+  scale = seq.depth2disp_scale if depth else None
+  video = flows = None
+  if has_gt and flow_fn is not None:
+    video = np.moveaxis(clip["left"], -1, 1)  # [T, 3, H, W], RGB 0..255
+    flows = metrics.video_flows_from_fn(video, flow_fn)
   preds = {}
   for method in methods:
     start, compiled = time.perf_counter(), inference.compile_seconds()
@@ -110,8 +146,9 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
     res.seconds[method] = time.perf_counter() - start - res.compile_seconds[method]
     preds[method] = pred
     if has_gt:
-      res.metrics[method] = metrics.eval_sequence(pred, clip["disparity"],
-                                                  clip["valid"].astype(np.float32), scale=scale)
+      res.metrics[method] = metrics.eval_sequence(
+          pred, clip["disparity"], clip["valid"].astype(np.float32), flows, scale=scale,
+          video=video, flow_fn=flow_fn)
       res.curves[method] = per_frame_errors(pred, clip["disparity"], clip["valid"])
   if out is not None:
     _write_sequence_outputs(out, res, clip, preds, config)

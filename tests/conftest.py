@@ -52,6 +52,22 @@ def sav_state_dict(fixtures_dir):
   return _load_make_weights().make_state_dict(str(fixtures_dir / "sav_manifest.json"), 0)
 
 
+RAFT_FIXTURES = ROOT / "tests" / "fixtures" / "raft"
+
+
+@pytest.fixture(scope="session")
+def raft_state_dict(fixtures_dir):
+  """The official RAFT's state dict (raft-things layout) from make_weights.py, seed 0: the
+  weights of tests/fixtures/raft/raft_oracle.npz (written by make_raft_oracle.py)."""
+  return _load_make_weights().make_state_dict(str(RAFT_FIXTURES / "raft_manifest.json"), 0)
+
+
+@pytest.fixture(scope="session")
+def raft_oracle():
+  """Inputs and outputs of the official RAFT code for `raft_state_dict`."""
+  return dict(np.load(RAFT_FIXTURES / "raft_oracle.npz"))
+
+
 @pytest.fixture(scope="session")
 def vda_state_dict(fixtures_dir):
   """The standalone VDA-S state dict of make_weights.py, seed 0 (351 arrays)."""

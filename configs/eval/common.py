@@ -45,9 +45,13 @@ def eval_config(dataset: str, split: str = "test", sample_len: int = -1
   # Write each sequence's predicted disparity as predictions/<sequence>.npy.
   c.save_predictions = False
   c.metrics = ml_collections.ConfigDict()
-  # Also compute TCC (needs the depth-to-disparity scale); the flow-based TCM/OPW/RTC
-  # need RAFT and are not computed here.
+  # Also compute TCC (needs the depth-to-disparity scale).
   c.metrics.tcc = False
+  # The official RAFT checkpoint (raft-things.pth): also compute the flow-based TCM, OPW
+  # (and OPW_30/50/100) and RTC (and RTC_30), with TCC; needs the scale too. "" = off.
+  c.metrics.raft = ""
+  # RAFT iterations (the official evaluator: 20).
+  c.metrics.raft_iters = 20
   c.baseline = ml_collections.ConfigDict()
   # StereoSGBM search range (px, rounded up to a multiple of 16) and block size.
   c.baseline.max_disparity = 256
