@@ -89,7 +89,8 @@ def run(args, overrides) -> int:
   unscaled = [str(s.name) for s in seqs if s.depth2disp_scale is None]
   depth_metrics = [f"metrics.{k}" for k in ("tcc", "raft") if config.metrics[k]]
   if depth_metrics and unscaled:
-    raise ValueError(f"config.{' and config.'.join(depth_metrics)} need depth, but "
+    need = "needs" if len(depth_metrics) == 1 else "need"
+    raise ValueError(f"config.{' and config.'.join(depth_metrics)} {need} depth, but "
                      f"{config.dataset} sequence {unscaled[0]} has no depth-to-disparity scale "
                      f"(no camera data; {len(unscaled)} of {len(seqs)} sequences): drop "
                      f"{' and '.join(depth_metrics)}")

@@ -417,3 +417,66 @@ def test_south_kensington_has_no_metrics_but_predictions_and_strips(tmp_path, ck
   md = (out / "results.md").read_text()
   assert "| Stereo Any Video | " in md and "No ground truth in this dataset: no metrics" in md
   assert f"| indoor_1 | {T} | Stereo Any Video |\n" in md  # the sequence is listed
+
+
+def _stand_in_flow(img1, img2):
+  """A cheap, image-dependent flow for 32x64 frames (RAFT needs 128x128)."""
+  diff = (np.asarray(img2, np.float32) - np.asarray(img1, np.float32)).mean(axis=0)
+  return np.stack([0.02 * diff, np.full_like(diff, 0.5)])
+
+
+def test_raft_flow_metrics(tmp_path, ckpt, raft_state_dict, monkeypatch):
+  """`--config.metrics.raft=FILE` reads the RAFT checkpoint and adds TCM, OPW and RTC, each
+  as `metrics.eval_sequence` computes it with that flow function (a stand-in for RAFT's
+  flow here: these frames are below RAFT's smallest size)."""
+  from sav_jax.convert.raft import raft_variables_from_state_dict
+  from sav_jax.model import raft
+  path = sav_jax.convert.save_state_dict(raft_state_dict, tmp_path / "raft-things.safetensors")
+  got = {}
+
+  def flow_fn_of(variables, iters):
+    got.update(variables=variables, iters=iters)
+    return _stand_in_flow
+
+  monkeypatch.setattr(raft, "raft_flow_fn", flow_fn_of)
+  out = tmp_path / "o"
+  assert main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL,
+               "--out", str(out), f"--config.metrics.raft={path}",
+               "--config.metrics.raft_iters=7"]) == 0
+  assert got["iters"] == 7
+  jax.tree_util.tree_map(np.testing.assert_array_equal, got["variables"],
+                         raft_variables_from_state_dict(raft_state_dict))
+  summary = json.loads((out / "results.json").read_text())
+  config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")),
+                                       eval_config.split_overrides(SMALL)[1])
+  for seq, rec in zip(eval_data.load_sequences(config, None), summary["sequences"]):
+    clip = eval_data.read_sequence(seq)
+    pred = np.load(out / "predictions" / f"{eval_data_safe(seq.name)}.npy")
+    ref = metrics.eval_sequence(pred, clip["disparity"], clip["valid"].astype(np.float32),
+                                scale=seq.depth2disp_scale, video=np.moveaxis(clip["left"], -1, 1),
+                                flow_fn=_stand_in_flow)
+    for key in ("disp_TCC", "disp_TCM", "disp_OPW", "disp_OPW_30", "disp_RTC", "disp_RTC_30"):
+      assert key in rec["metrics"]["sav"], key
+    assert rec["metrics"]["sav"] == pytest.approx(ref, rel=1e-12, abs=1e-12)
+  md = (out / "results.md").read_text()
+  assert "| TCM | OPW | RTC |" in md and "lower is better, except TCC, TCM, RTC" in md
+
+
+@pytest.mark.parametrize("override,message", [
+    ("--config.metrics.raft=missing.pth", "config.metrics.raft: missing.pth is not a file"),
+    ("--config.metrics.raft=SAV", "is a Stereo Any Video checkpoint, not a RAFT (optical flow) one"),
+    ("--config.metrics.raft_iters=0", "config.metrics.raft_iters must be a positive integer")])
+def test_bad_raft_settings_are_refused_before_predicting(tmp_path, ckpt, sav_state_dict,
+                                                         raft_state_dict, capsys, monkeypatch,
+                                                         override, message):
+  sav = sav_jax.convert.save_state_dict(sav_state_dict, tmp_path / "sav.safetensors")
+  good = sav_jax.convert.save_state_dict(raft_state_dict, tmp_path / "raft.safetensors")
+  override = override.replace("SAV", str(sav))
+  extra = [] if "metrics.raft=" in override else [f"--config.metrics.raft={good}"]
+  monkeypatch.setattr(eval_runner.inference, "predict_video", None)  # must not be reached
+  monkeypatch.chdir(tmp_path)
+  rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL,
+             "--out", str(tmp_path / "o"), *extra, override])
+  err = capsys.readouterr().err
+  assert rc == 2 and message in err and err.count("\n") == 1, err
+  assert not (tmp_path / "o").exists()

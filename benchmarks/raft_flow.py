@@ -1,0 +1,85 @@
+"""Time of one RAFT flow as the evaluator computes it (`sav_jax.model.raft.raft_flow`).
+
+    python benchmarks/raft_flow.py [--height 436 --width 1024 --iters 20 --repeats 3]
+        [--official CHECKOUT]
+
+Random weights of the official layout (make_weights.py's recipe, the test manifest), a random
+RGB frame and a copy moved by 3 px. Prints the first call (compile + run), the median of the
+next `--repeats` calls and the process's peak RSS. `--official CHECKOUT` (a checkout of the
+official Stereo Any Video repository; needs torch and scipy) times the official RAFT code
+(`third_party/RAFT`, imported from the checkout, same padding and iterations) in the same
+process, after ours.
+"""
+
+import argparse
+import importlib
+import pathlib
+import resource
+import sys
+import time
+from types import SimpleNamespace
+
+import jax
+import numpy as np
+
+from sav_jax.convert.raft import raft_variables_from_state_dict
+from sav_jax.model.raft import raft_flow
+
+from timing import timed  # benchmarks/timing.py
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+MANIFEST = ROOT / "tests" / "fixtures" / "raft" / "raft_manifest.json"
+
+
+def make_weights_module():
+  path = ROOT.parent / "shared" / "fixtures" / "make_weights.py"
+  spec = importlib.util.spec_from_file_location("make_weights", path)
+  mod = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(mod)
+  return mod
+
+
+def official_seconds(checkout, a, b, iters, repeats):
+  import torch  # pylint: disable=import-outside-toplevel
+  torch.set_grad_enabled(False)
+  sys.path.insert(0, str(pathlib.Path(checkout) / "third_party" / "RAFT"))
+  raft = importlib.import_module("core.raft")
+  utils = importlib.import_module("core.utils.utils")
+  model = raft.RAFT(SimpleNamespace(small=False, mixed_precision=False, dropout=0.0)).eval()
+  t1, t2 = (torch.from_numpy(np.moveaxis(x, -1, 0)[None].copy()) for x in (a, b))
+  t1, t2 = utils.InputPadder(t1.shape).pad(t1, t2)
+  times = []
+  for _ in range(repeats):
+    start = time.perf_counter()
+    model(t1, t2, iters=iters, test_mode=True)
+    times.append(time.perf_counter() - start)
+  return float(np.median(times)), torch.get_num_threads()
+
+
+def main():
+  ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  ap.add_argument("--height", type=int, default=436)
+  ap.add_argument("--width", type=int, default=1024)
+  ap.add_argument("--iters", type=int, default=20)
+  ap.add_argument("--repeats", type=int, default=3)
+  ap.add_argument("--official", help="checkout of the official repository (times its RAFT)")
+  args = ap.parse_args()
+  sd = make_weights_module().make_state_dict(str(MANIFEST), 0)
+  variables = jax.device_put(raft_variables_from_state_dict(sd))
+  rng = np.random.default_rng(0)
+  a = rng.uniform(0, 255, (args.height, args.width, 3)).astype(np.float32)
+  b = np.roll(a, 3, axis=1)
+  start = time.perf_counter()
+  jax.block_until_ready(raft_flow(variables, a, b, args.iters))
+  first = time.perf_counter() - start
+  run = timed(lambda: raft_flow(variables, a, b, args.iters), repeats=args.repeats)
+  rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+  print(f"sav-jax RAFT {args.height}x{args.width} iters={args.iters} ({jax.default_backend()}): "
+        f"first call {first:.2f} s, then {run:.2f} s median; peak RSS {rss:.2f} GB")
+  if args.official:
+    sec, threads = official_seconds(args.official, a, b, args.iters, args.repeats)
+    print(f"official RAFT (PyTorch, {threads} threads): {sec:.2f} s median")
+
+
+if __name__ == "__main__":
+  main()
