@@ -260,3 +260,14 @@ def test_compile_times_script_compiles_what_predict_video_runs(capsys):
   with pytest.raises(SystemExit):
     compile_times.main(["--height", "30"])
   assert "multiples of 16" in capsys.readouterr().err
+
+
+def test_raft_flow_script_times_the_evaluators_flow(monkeypatch, capsys):
+  """benchmarks/raft_flow.py builds RAFT from the test manifest's layout and times
+  `raft_flow` at the size asked for (a size that needs padding)."""
+  import raft_flow  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  monkeypatch.setattr(sys, "argv", ["raft_flow.py", "--height", "130", "--width", "129",
+                                    "--iters", "1", "--repeats", "1"])
+  raft_flow.main()
+  out = capsys.readouterr().out
+  assert "sav-jax RAFT 130x129 iters=1 (cpu): first call " in out and "peak RSS" in out, out
