@@ -94,7 +94,7 @@ def run(args, overrides) -> int:
                      f"{config.dataset} sequence {unscaled[0]} has no depth-to-disparity scale "
                      f"(no camera data; {len(unscaled)} of {len(seqs)} sequences): drop "
                      f"{' and '.join(depth_metrics)}")
-  flow_fn = runner.raft_flow_fn(config.metrics)
+  flow_fn = runner.raft_flow_fn(config)
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)
   if not args.overwrite:

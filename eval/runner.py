@@ -94,12 +94,15 @@ def predict(method: str, clip: dict, *, variables, model_cfg, config,
   raise ValueError(f"unknown method {method!r}; baselines: {', '.join(BASELINES)}")
 
 
-def raft_flow_fn(metrics_config):
+def raft_flow_fn(config):
   """The `flow_fn` of `config.metrics.raft` (a RAFT checkpoint file), or None when unset.
+
+  RAFT runs at `config.matmul_precision`, as the stereo model.
 
   Raises:
     ValueError: the file is missing, unreadable or not a RAFT checkpoint (named).
   """
+  metrics_config = config.metrics
   path = metrics_config.raft
   if not path:
     return None
@@ -117,7 +120,13 @@ def raft_flow_fn(metrics_config):
     variables = load_raft(path)
   except ValueError as e:
     raise ValueError(f"config.metrics.raft: {e}") from None
-  return raft.raft_flow_fn(variables, iters=metrics_config.raft_iters)
+  flow = raft.raft_flow_fn(variables, iters=metrics_config.raft_iters)
+
+  def flow_fn(img1, img2):
+    with jax.default_matmul_precision(config.matmul_precision):
+      return flow(img1, img2)
+
+  return flow_fn
 
 
 def evaluate_sequence(seq, methods, *, variables, model_cfg, config,

@@ -61,6 +61,21 @@ def flax_to_torch_array(x: np.ndarray, leaf: str = "kernel") -> np.ndarray:
   return np.asarray(x, order="C")
 
 
+def converted(key: str, value, leaf: str, shape: tuple[int, ...], model: str = "the model"):
+  """`(float32 Flax array, None)` for the torch tensor `key`, or `(None, problem)`.
+
+  The problem names the key: a shape that is not the model's (given in torch's layout),
+  or a `value_problem`.
+  """
+  value = np.asarray(value)
+  arr = torch_to_flax_array(value, leaf)
+  if arr.shape != tuple(shape):
+    return None, (f"key {key!r}: shape {value.shape} does not match {model} (expects "
+                  f"{flax_to_torch_array(np.empty(shape), leaf).shape})")
+  problem = value_problem(key, value)
+  return (None, problem) if problem else (arr.astype(np.float32), None)
+
+
 def value_problem(key: str, x: np.ndarray) -> str | None:
   """Why `x` cannot be the model parameter `key` (not floating point, or NaN/inf), else None.
 

@@ -21,8 +21,7 @@ import numpy as np
 from flax import traverse_util
 
 from sav_jax.config import SAVConfig
-from sav_jax.convert.keys import (flax_to_torch_array, path_to_torch, torch_to_flax_array,
-                                  value_problem)
+from sav_jax.convert.keys import converted, flax_to_torch_array, path_to_torch
 from sav_jax.model.init import abstract_variables
 from sav_jax.convert.vda import vda_params_from_state_dict, vda_state_dict_from_params
 
@@ -73,21 +72,15 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
   for key, value in sd.items():
     if key.startswith(VDA_PREFIX) or key in SAV_UNUSED_KEYS:
       continue
-    value = np.asarray(value)
     path = by_torch.get(key)
     if path is None:
       problems.append(f"unexpected key {key!r}")
       continue
-    arr = torch_to_flax_array(value, path[-1])
-    if arr.shape != tuple(target[path].shape):
-      problems.append(f"key {key!r}: shape {value.shape} does not match the model "
-                      f"(expects {flax_to_torch_array(np.empty(target[path].shape), path[-1]).shape})")
-      continue
-    problem = value_problem(key, value)
+    arr, problem = converted(key, value, path[-1], tuple(target[path].shape))
     if problem:
       problems.append(problem)
-      continue
-    flat[path] = arr.astype(np.float32)
+    else:
+      flat[path] = arr
   problems += [f"missing key {key!r}" for key in by_torch if key not in sd]
   if problems:
     raise ValueError(f"state dict does not match Stereo Any Video ({cfg.vda_encoder}): "

@@ -18,8 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from sav_jax.convert.keys import (flax_to_torch_array, path_to_torch, torch_to_flax_array,
-                                  value_problem)
+from sav_jax.convert.keys import converted, path_to_torch
 from sav_jax.convert.torch_io import load_state_dict_of_kind
 
 @functools.cache
@@ -73,18 +72,11 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
       problems.append(f"unexpected key {key!r}")
       continue
     col, path = entry
-    value = np.asarray(value)
-    arr = torch_to_flax_array(value, path[-1])
-    want = tuple(target[entry].shape)
-    if arr.shape != want:
-      problems.append(f"key {key!r}: shape {value.shape} does not match RAFT (expects "
-                      f"{flax_to_torch_array(np.empty(want), path[-1]).shape})")
-      continue
-    problem = value_problem(key, value)
+    arr, problem = converted(key, value, path[-1], tuple(target[entry].shape), "RAFT")
     if problem:
       problems.append(problem)
-      continue
-    flat[col][path] = arr.astype(np.float32)
+    else:
+      flat[col][path] = arr
   problems += [f"missing key {k!r}" for k in by_torch if k not in sd]
   if problems:
     raise ValueError(f"state dict does not match RAFT (the large model of raft-things.pth): "
