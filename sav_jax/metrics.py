@@ -29,12 +29,13 @@ disparity scale), then x <- Z_x*b, y <- Z_y*b, NaN(y) -> 0; dm_t = m_t m_{t+1}.
   TCC = mean_t relu(SSIM(|x_t - x_{t+1}| dm_t, |y_t - y_{t+1}| dm_t)), NaN(x) -> 0.
   TCM = (1/(T-1)) sum_{t: sum(M_t)>0} mean_{c=u,v} relu(SSIM_c(F^x_t M_t, F^y_t M_t)),
         F^x_t / F^y_t = optical flow between the min-max normalised depths of
-        frames t, t+1 of x / y (RAFT in the official code: passed in here),
+        frames t, t+1 of x / y (RAFT in the official code: passed in as flows or
+        a `flow_fn`, e.g. `sav_jax.model.raft.raft_flow_fn`),
         M_t = dm_t * [no channel of F^y_t > 250].
   SSIM: Gaussian window 11, sigma 1.5, "valid" filtering (an axis shorter than the
   window is not filtered), data_range 1, K = (0.01, 0.03), mean over the map.
   OPW / RTC use the optical flow F_t of the left video from frame t to t+1
-  (RAFT in the official code: passed in here) and W_t = backward warp of x_{t+1}
+  (RAFT, passed in the same way) and W_t = backward warp of x_{t+1}
   (`grid_sample`, bilinear, zero padding, align_corners=True) and
   V_t = [dm_t exp(-50 ||warp(I_{t+1}) - I_t||_2 / 255) [no F_t channel > 250]
          [W_t > 0] > 0.01].
@@ -512,7 +513,8 @@ def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
     left_video: `[T, 3, H, W]` or `[T, 2, 3, H, W]`, needed for OPW/RTC.
     video_flows: `[T-1, 2, H, W]` left-video flows (else from `flow_fn`).
     depth_flows: `(pred_flows, gt_flows)` for TCM (else from `flow_fn`).
-    flow_fn: optical flow `(img1 [3,H,W], img2 [3,H,W]) -> [2,H,W]` (RAFT).
+    flow_fn: optical flow `(img1 [3,H,W], img2 [3,H,W]) -> [2,H,W]` (RAFT:
+      `sav_jax.model.raft.raft_flow_fn`).
 
   Returns:
     `({"disp_epe_mean", ..., "disp_TCC", "disp_TCM", "disp_OPW", "disp_OPW_{100,50,30}",
