@@ -15,6 +15,8 @@
 #   profile     per-module GPU time, multiply-adds and rate, bfloat16 (op_profile.py)  (75 s)
 #   variants    candidate rewrites of the update block's parts and the ViT attention, timed
 #               against the model's modules at the paper's window (update_variants.py)
+#   raft        the evaluator's RAFT flow for one 720x1280 pair, 20 iterations (raft_flow.py)
+#               and its parity tests (tests/model/test_raft.py); not in the default list
 # A lease of 15 device minutes holds about 13 minutes of steps (a start took ~30 s): pick
 # the steps. Each step has its own time limit; everything is logged to OUTDIR/suite.log and
 # the figures go to OUTDIR/*.json. A failure of the first step within 90 s (an import or API
@@ -58,8 +60,10 @@ run_step() {
     variants) step "$1" 300 "$py" benchmarks/update_variants.py "${window[@]}" --dtype bfloat16 ;;
     profile) step "$1" 240 "$py" benchmarks/op_profile.py "${window[@]}" --dtype bfloat16 \
                --repeats 1 --by module --depth 2 --top 25 ;;
+    raft) step "$1" 200 bash -c "'$py' benchmarks/raft_flow.py --height 720 --width 1280 &&
+            '$py' -m pytest -x -q -p no:cacheprovider tests/model/test_raft.py" ;;
     *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_blocked train precision parity" \
-            "stages profile variants)" >&2
+            "stages profile variants raft)" >&2
        return 2 ;;
   esac
 }
