@@ -139,6 +139,7 @@ def build_summary(config, described: str, results: list, methods: list[str]) -> 
   frames = sum(r.frames for r in results)
   summary = {"dataset": config.dataset, "split": config.split, "config": config.to_dict(),
              "weights": described, "frames": frames,
+             "metrics_seconds": sum(r.metrics_seconds for r in results),
              "created": time.strftime("%Y-%m-%d %H:%M:%S"), "methods": {}, "sequences": []}
   for m in methods:
     seconds = sum(r.seconds.get(m, 0.0) for r in results)
@@ -150,5 +151,6 @@ def build_summary(config, described: str, results: list, methods: list[str]) -> 
                              "frames_per_second": frames / seconds if seconds > 0 else 0.0}
   for r in results:
     summary["sequences"].append({"name": r.name, "frames": r.frames, "metrics": r.metrics,
-                                 "seconds": r.seconds, "compile_seconds": r.compile_seconds})
+                                 "seconds": r.seconds, "compile_seconds": r.compile_seconds,
+                                 "metrics_seconds": r.metrics_seconds})
   return summary

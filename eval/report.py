@@ -66,7 +66,10 @@ def markdown(summary: dict) -> str:
   lines += ["", "EPE/TEPE in px with the official denominators (non-zero errors); bad-N and "
             "δt-N px: % of those pixels above N px. δt-1px is the paper's δ^t_1px. frames/s: "
             "prediction time without compilation"
-            + (f" (compilation: {compiled})." if compiled else "."), ""]
+            + (f" (compilation: {compiled})." if compiled else ".")
+            + (f" Metrics: {summary['metrics_seconds']:.1f} s"
+               + (" (RAFT's flows included)." if summary["config"]["metrics"].get("raft") else ".")
+               if "metrics_seconds" in summary else ""), ""]
   return "\n".join(lines)
 
 

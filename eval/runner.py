@@ -42,6 +42,8 @@ class SequenceResult:
     seconds: method -> wall time of its predictions, compilation excluded.
     compile_seconds: method -> time spent compiling the model for them (0 once the
       executables of this sequence's shapes exist).
+    metrics_seconds: time spent computing every method's metrics (with RAFT's flows
+      when the flow-based metrics are on).
   """
 
   name: str
@@ -50,6 +52,7 @@ class SequenceResult:
   curves: dict = dataclasses.field(default_factory=dict)
   seconds: dict = dataclasses.field(default_factory=dict)
   compile_seconds: dict = dataclasses.field(default_factory=dict)
+  metrics_seconds: float = 0.0
 
 
 def safe_name(name: str) -> str:
@@ -144,8 +147,10 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
   scale = seq.depth2disp_scale if depth else None
   video = flows = None
   if has_gt and flow_fn is not None:
+    start = time.perf_counter()
     video = np.moveaxis(clip["left"], -1, 1)  # [T, 3, H, W], RGB 0..255
     flows = metrics.video_flows_from_fn(video, flow_fn)
+    res.metrics_seconds += time.perf_counter() - start
   preds = {}
   for method in methods:
     start, compiled = time.perf_counter(), inference.compile_seconds()
@@ -155,9 +160,11 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
     res.seconds[method] = time.perf_counter() - start - res.compile_seconds[method]
     preds[method] = pred
     if has_gt:
+      start = time.perf_counter()
       res.metrics[method] = metrics.eval_sequence(
           pred, clip["disparity"], clip["valid"].astype(np.float32), flows, scale=scale,
           video=video, flow_fn=flow_fn)
+      res.metrics_seconds += time.perf_counter() - start
       res.curves[method] = per_frame_errors(pred, clip["disparity"], clip["valid"])
   if out is not None:
     _write_sequence_outputs(out, res, clip, preds, config)

@@ -460,6 +460,9 @@ def test_raft_flow_metrics(tmp_path, ckpt, raft_state_dict, monkeypatch):
     assert rec["metrics"]["sav"] == pytest.approx(ref, rel=1e-12, abs=1e-12)
   md = (out / "results.md").read_text()
   assert "| TCM | OPW | RTC |" in md and "lower is better, except TCC, TCM, RTC" in md
+  seconds = [s["metrics_seconds"] for s in summary["sequences"]]
+  assert all(s > 0 for s in seconds) and summary["metrics_seconds"] == pytest.approx(sum(seconds))
+  assert f"Metrics: {summary['metrics_seconds']:.1f} s (RAFT's flows included)." in md
 
 
 @pytest.mark.parametrize("override,message", [
