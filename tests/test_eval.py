@@ -467,7 +467,8 @@ def test_raft_flow_metrics(tmp_path, ckpt, raft_state_dict, monkeypatch):
 
 @pytest.mark.parametrize("override,message", [
     ("--config.metrics.raft=missing.pth", "config.metrics.raft: missing.pth is not a file"),
-    ("--config.metrics.raft=SAV", "is a Stereo Any Video checkpoint, not a RAFT (optical flow) one"),
+    ("--config.metrics.raft=SAV",
+     "is a Stereo Any Video checkpoint, not a RAFT (optical flow) one"),
     ("--config.metrics.raft_iters=0", "config.metrics.raft_iters must be a positive integer")])
 def test_bad_raft_settings_are_refused_before_predicting(tmp_path, ckpt, sav_state_dict,
                                                          raft_state_dict, capsys, monkeypatch,

@@ -40,7 +40,8 @@ HIDDEN = 128
 CONTEXT = 128
 LEVELS = 4
 RADIUS = 4
-MIN_SIZE = 8 * 2 ** LEVELS  # the coarsest level needs two rows and columns (sampling divides by size - 1)
+# The coarsest level needs two rows and columns (its sampling divides by size - 1).
+MIN_SIZE = 8 * 2 ** LEVELS
 
 
 def _norm(kind: str, name: str):
@@ -224,8 +225,9 @@ def _check_images(image1, image2):
     raise ValueError(f"RAFT needs H and W multiples of 8, got {h}x{w} "
                      "(pad with sav_jax.model.raft.pad_to_multiple_of_8)")
   if min(h, w) < MIN_SIZE:
+    coarsest = 8 * 2 ** (LEVELS - 1)
     raise ValueError(f"RAFT needs images of at least {MIN_SIZE}x{MIN_SIZE} pixels after "
-                     f"padding, got {h}x{w}: its coarsest correlation level (1/{8 * 2 ** (LEVELS - 1)}) "
+                     f"padding, got {h}x{w}: its coarsest correlation level (1/{coarsest}) "
                      "would have fewer than two rows or columns")
 
 
