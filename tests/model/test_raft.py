@@ -3,7 +3,7 @@
 The oracle (`tests/fixtures/raft/raft_oracle.npz`, from `make_raft_oracle.py`) holds the
 official model's outputs for make_weights.py's seed-0 weights on a 130x150 pair (padded to
 136x152 as the evaluator pads): the encoders, the correlation lookup at random positions,
-the convex upsampling, and the flow after 1, 3 and 20 iterations.
+the convex upsampling, and the flow after 1, 3 and 20 iterations (the tests run 1 and 20).
 """
 
 import jax
@@ -67,28 +67,22 @@ def test_convex_upsampling_matches_official(raft_oracle):
   np.testing.assert_allclose(got[0], hwc(raft_oracle["up_flow"])[0], atol=1e-5, rtol=0)
 
 
-@pytest.mark.parametrize("iters", [1, 3])
-def test_flow_matches_official(variables, raft_oracle, iters):
-  """`raft_flow` is the evaluator's call: padding, RAFT, cropping back to 130x150."""
+def test_flow_matches_official(variables, raft_oracle):
+  """`raft_flow` is the evaluator's call: padding, RAFT, cropping back to 130x150 (one
+  iteration here; the evaluator's 20 below). The oracle's 3-iteration flow is not run: each
+  iteration count is a program of its own to compile."""
   flow = raft.raft_flow(variables, hwc(raft_oracle["image1"])[0],
-                        hwc(raft_oracle["image2"])[0], iters=iters)
+                        hwc(raft_oracle["image2"])[0], iters=1)
   assert flow.shape == (130, 150, 2)
-  np.testing.assert_allclose(flow, hwc(raft_oracle[f"flow_it{iters}"])[0], atol=FLOW_ATOL, rtol=0)
+  np.testing.assert_allclose(flow, hwc(raft_oracle["flow_it1"])[0], atol=FLOW_ATOL, rtol=0)
 
 
 def test_flow_fn_is_the_evaluators_flow(variables, raft_oracle):
-  """`raft_flow_fn` at the evaluator's 20 iterations, channels first as `metrics` calls it;
-  the 1/8 flow of `RAFT` itself too."""
+  """`raft_flow_fn` at the evaluator's 20 iterations, channels first as `metrics` calls it."""
   flow = raft.raft_flow_fn(variables)(raft_oracle["image1"], raft_oracle["image2"])
   assert flow.shape == (2, 130, 150) and flow.dtype == np.float32
   np.testing.assert_allclose(flow, raft_oracle["flow_it20"], atol=FLOW_ATOL, rtol=0)
   assert np.abs(raft_oracle["flow_it20"]).max() > 10  # a flow that moved, not a near-zero one
-  pair = raft.pad_to_multiple_of_8(jnp.asarray(np.concatenate(
-      [hwc(raft_oracle["image1"]), hwc(raft_oracle["image2"])])))
-  low, _ = jax.jit(lambda v, a, b: raft.RAFT().apply(v, a, b, iters=20))(
-      variables, pair[:1], pair[1:])
-  np.testing.assert_allclose(low[0], hwc(raft_oracle["flow_low_it20"])[0], atol=FLOW_ATOL / 8,
-                             rtol=0)
 
 
 @pytest.mark.parametrize("h,w", [(130, 150), (128, 128), (436, 1024), (375, 1242), (1, 9)])
