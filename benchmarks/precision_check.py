@@ -15,9 +15,7 @@ bfloat16; this script measures, it asserts nothing.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-import os
 import pathlib
 import sys
 
@@ -29,6 +27,7 @@ import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
 import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
+from timing import fixtures_folder, make_weights_module  # noqa: E402  benchmarks/timing.py
 
 MODES = (("float32", "highest", "blocked"), ("float32", "default", "blocked"),
          ("bfloat16", "default", "blocked"))
@@ -41,9 +40,7 @@ def load_fixture(fixtures: pathlib.Path):
     if not (fixtures / name).is_file():
       raise SystemExit(f"precision_check: {fixtures / name} not found (set SAV_FIXTURES "
                        "or --fixtures to the oracle fixtures folder)")
-  spec = importlib.util.spec_from_file_location("make_weights", fixtures / "make_weights.py")
-  mod = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(mod)
+  mod = make_weights_module(fixtures, "precision_check")
   state_dict = mod.make_state_dict(str(fixtures / "sav_manifest.json"), 0)
   return state_dict, dict(np.load(fixtures / "golden_small.npz"))
 
@@ -73,8 +70,7 @@ def measure(fixtures: pathlib.Path, iters: int = 4) -> list[dict]:
 
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  default = os.environ.get("SAV_FIXTURES", str(ROOT.parent / "shared" / "fixtures"))
-  p.add_argument("--fixtures", default=default, help="the oracle fixtures folder")
+  p.add_argument("--fixtures", default=str(fixtures_folder()), help="the oracle fixtures folder")
   p.add_argument("--json", help="write the rows to this JSON file")
   a = p.parse_args(argv)
   rows = measure(pathlib.Path(a.fixtures))

@@ -3,7 +3,8 @@
     python benchmarks/raft_flow.py [--height 436 --width 1024 --iters 20 --repeats 3]
         [--official CHECKOUT]
 
-Random weights of the official layout (make_weights.py's recipe, the test manifest), a random
+Random weights of the official layout (the fixtures' make_weights.py recipe, found as the
+tests find it: `--fixtures`, `SAV_FIXTURES` or ../shared/fixtures; the test manifest), a random
 RGB frame and a copy moved by 3 px. Prints the first call (compile + run), the median of the
 next `--repeats` calls and the process's peak RSS. `--official CHECKOUT` (a checkout of the
 official Stereo Any Video repository; needs torch and scipy) times the official RAFT code
@@ -25,18 +26,10 @@ import numpy as np
 from sav_jax.convert.raft import raft_variables_from_state_dict
 from sav_jax.model.raft import raft_flow
 
-from timing import timed  # benchmarks/timing.py
+from timing import fixtures_folder, make_weights_module, timed  # benchmarks/timing.py
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 MANIFEST = ROOT / "tests" / "fixtures" / "raft" / "raft_manifest.json"
-
-
-def make_weights_module():
-  path = ROOT.parent / "shared" / "fixtures" / "make_weights.py"
-  spec = importlib.util.spec_from_file_location("make_weights", path)
-  mod = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(mod)
-  return mod
 
 
 def official_seconds(checkout, a, b, iters, repeats):
@@ -63,8 +56,11 @@ def main():
   ap.add_argument("--iters", type=int, default=20)
   ap.add_argument("--repeats", type=int, default=3)
   ap.add_argument("--official", help="checkout of the official repository (times its RAFT)")
+  ap.add_argument("--fixtures", help="oracle fixtures folder with make_weights.py (default: "
+                  "SAV_FIXTURES, else ../shared/fixtures)")
   args = ap.parse_args()
-  sd = make_weights_module().make_state_dict(str(MANIFEST), 0)
+  make_weights = make_weights_module(fixtures_folder(args.fixtures), "raft_flow")
+  sd = make_weights.make_state_dict(str(MANIFEST), 0)
   variables = jax.device_put(raft_variables_from_state_dict(sd))
   rng = np.random.default_rng(0)
   a = rng.uniform(0, 255, (args.height, args.width, 3)).astype(np.float32)

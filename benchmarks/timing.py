@@ -66,3 +66,25 @@ def compile_for_shape(cfg, frames, height, width, iters):
   compiled = jax.jit(forward).lower(variables, video, video).compile(
       compiler_options=inference_compiler_options())
   return compiled, time.perf_counter() - t0
+
+
+def fixtures_folder(arg=None):
+  """The oracle fixtures folder: `arg`, else `SAV_FIXTURES`, else `../shared/fixtures`."""
+  import os  # pylint: disable=import-outside-toplevel
+  import pathlib  # pylint: disable=import-outside-toplevel
+  root = pathlib.Path(__file__).resolve().parents[1]
+  return pathlib.Path(arg or os.environ.get("SAV_FIXTURES", root.parent / "shared" / "fixtures"))
+
+
+def make_weights_module(fixtures, script: str):
+  """The fixtures' `make_weights.py` (the deterministic weights of the parity tests), loaded
+  as a module; a missing file ends `script` with a message naming it."""
+  import importlib.util  # pylint: disable=import-outside-toplevel
+  path = fixtures / "make_weights.py"
+  if not path.is_file():
+    raise SystemExit(f"{script}: {path} not found (set SAV_FIXTURES or --fixtures to the "
+                     "oracle fixtures folder)")
+  spec = importlib.util.spec_from_file_location("make_weights", path)
+  mod = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(mod)
+  return mod

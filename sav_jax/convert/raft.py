@@ -19,6 +19,7 @@ import numpy as np
 from flax import traverse_util
 
 from sav_jax.convert.keys import converted, path_to_torch
+from sav_jax.convert.params import strip_module_prefix
 from sav_jax.convert.torch_io import load_state_dict_of_kind
 
 @functools.cache
@@ -50,7 +51,7 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
       not floating point or holds NaN/inf, and every `norm3` that differs from its
       `downsample.1`, at once.
   """
-  sd = {(k[len("module."):] if k.startswith("module.") else k): v for k, v in state_dict.items()}
+  sd = strip_module_prefix(state_dict)
   target = {(col, path): leaf for col, tree in abstract_raft_variables().items()
             for path, leaf in traverse_util.flatten_dict(tree).items()}
   by_torch = {_torch_name(col, path): (col, path) for col, path in target}
