@@ -129,10 +129,12 @@ def test_config_accepts_ints_for_floats_and_named_remat_policies():
     assert sav_jax.SAVConfig.from_dict(mapping) == sav_jax.SAVConfig(remat=True)
 
 
-@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
-def test_gradients_are_finite_and_the_depth_prior_is_frozen(variables, clip, dtype):
-  """jax.grad w.r.t. variables and images, under jit, with remat on (training's setting)."""
-  remat_model = sav_jax.StereoAnyVideo(sav_jax.SAVConfig(remat=True, dtype=dtype))
+def test_gradients_are_finite_and_the_depth_prior_is_frozen(variables, clip):
+  """jax.grad w.r.t. variables and images, under jit, with remat on (training's setting),
+  in the bfloat16 mode. The float32 mode's gradients are those of the train step, which
+  tests/train checks more strictly (finite norms, frozen depth prior unchanged, the other
+  parameters updated, the same on 8 devices as on one, the validation EPE lowered)."""
+  remat_model = sav_jax.StereoAnyVideo(sav_jax.SAVConfig(remat=True, dtype="bfloat16"))
 
   @jax.jit
   def grads(v, left, right):
