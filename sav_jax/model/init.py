@@ -16,6 +16,7 @@ model is initialised before training:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -29,9 +30,24 @@ from sav_jax.config import SAVConfig
 _NORM_NAMES = ("norm", "ln")
 
 
-@functools.lru_cache(maxsize=8)
+# SAVConfig fields that set how the model computes, not its parameters (every parameter
+# is float32 whatever `dtype` says).
+COMPUTE_FIELDS = ("dtype", "remat", "remat_policy", "frame_block_mb", "vit_attention")
+
+
 def abstract_variables(cfg: SAVConfig):
-  """Shapes of the model's variables (nothing allocated; traced once per config)."""
+  """Shapes of the model's variables (nothing allocated).
+
+  Traced once per architecture (~7 s on CPU): configs that differ only in
+  `COMPUTE_FIELDS` (a bfloat16 or rematerialised model of the same weights) share it.
+  """
+  defaults = SAVConfig()
+  return _abstract_variables(
+      dataclasses.replace(cfg, **{f: getattr(defaults, f) for f in COMPUTE_FIELDS}))
+
+
+@functools.lru_cache(maxsize=8)
+def _abstract_variables(cfg: SAVConfig):
   from sav_jax.model.stereo_any_video import StereoAnyVideo  # pylint: disable=import-outside-toplevel
   model = StereoAnyVideo(cfg)
   dummy = jax.ShapeDtypeStruct((1, 2, 64, 64, 3), jnp.float32)

@@ -1,11 +1,14 @@
 """Model structure, input validation, gradients and shape generality."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import sav_jax
+from sav_jax.model import init as init_lib
 from sav_jax.model.init import abstract_variables, init_variables
 
 SHAPE = (1, 2, 32, 48, 3)  # B, T, H, W, C: smallest shape with a 2x3 grid at 1/16
@@ -39,6 +42,23 @@ def test_parameter_tree_matches_the_official_manifest(fixtures_dir):
   shapes = abstract_variables(sav_jax.SAVConfig())["params"]
   assert sum(int(np.prod(x.shape)) for x in jax.tree_util.tree_leaves(shapes)) == used
   assert set(shapes) == {"cnet", "fnet", "depthnet", "corr_mlp", "update_block"}
+
+
+def test_compute_settings_share_the_parameter_shapes():
+  """`abstract_variables` traces once for configs that differ only in how the model
+  computes; a real trace of such a model gives that very tree (shapes and float32)."""
+  base = sav_jax.SAVConfig()
+  other = sav_jax.SAVConfig(dtype="bfloat16", remat=True, remat_policy="dots_saveable",
+                            frame_block_mb=1.0, vit_attention="blocked")
+  assert set(init_lib.COMPUTE_FIELDS) == {f.name for f in dataclasses.fields(base)
+                                          if getattr(base, f.name) != getattr(other, f.name)}
+  assert abstract_variables(other) is abstract_variables(base)
+  dummy = jax.ShapeDtypeStruct((1, 2, 64, 64, 3), jnp.float32)
+  traced = jax.eval_shape(lambda l, r: sav_jax.StereoAnyVideo(other).init(
+      jax.random.PRNGKey(0), l, r, iters=2), dummy, dummy)
+  assert jax.tree.structure(traced) == jax.tree.structure(abstract_variables(base))
+  for got, want in zip(jax.tree.leaves(traced), jax.tree.leaves(abstract_variables(base))):
+    assert (got.shape, got.dtype) == (want.shape, want.dtype) and got.dtype == jnp.float32
 
 
 @pytest.mark.parametrize("left_shape,right_shape,iters,match", [
