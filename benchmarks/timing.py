@@ -1,5 +1,8 @@
 """Shared by the benchmark scripts: the median wall time of a compiled call."""
 
+import importlib.util
+import os
+import pathlib
 import statistics
 import time
 
@@ -70,8 +73,6 @@ def compile_for_shape(cfg, frames, height, width, iters):
 
 def fixtures_folder(arg=None):
   """The oracle fixtures folder: `arg`, else `SAV_FIXTURES`, else `../shared/fixtures`."""
-  import os  # pylint: disable=import-outside-toplevel
-  import pathlib  # pylint: disable=import-outside-toplevel
   root = pathlib.Path(__file__).resolve().parents[1]
   return pathlib.Path(arg or os.environ.get("SAV_FIXTURES", root.parent / "shared" / "fixtures"))
 
@@ -79,7 +80,6 @@ def fixtures_folder(arg=None):
 def make_weights_module(fixtures, script: str):
   """The fixtures' `make_weights.py` (the deterministic weights of the parity tests), loaded
   as a module; a missing file ends `script` with a message naming it."""
-  import importlib.util  # pylint: disable=import-outside-toplevel
   path = fixtures / "make_weights.py"
   if not path.is_file():
     raise SystemExit(f"{script}: {path} not found (set SAV_FIXTURES or --fixtures to the "
