@@ -7,8 +7,9 @@
 
 Builds the same state, optimizer and step as `train/` (`configs/sceneflow.py` with the
 shape overridden; official initialisation), feeds a random batch (the step's cost does
-not depend on the values) and reports the compile time, the median step time, samples/s,
-and the peak memory (host RSS on CPU, device peak on GPU), also divided by the batch.
+not depend on the values) and reports the compile time (with its trace, lowering and XLA
+parts), the median step time, samples/s, and the peak memory (host RSS on CPU, device
+peak on GPU), also divided by the batch.
 """
 
 from __future__ import annotations
@@ -61,15 +62,20 @@ def measure(config, repeats: int) -> dict:
   model = sav_jax.StereoAnyVideo(state_lib.model_config(config))
   abstract = state_lib.abstract_params(model, config)
   labels = optim.param_labels(abstract, config.optimizer.frozen)
-  tx = optim.make_optimizer(config.optimizer, config.train.num_steps, abstract)
+  tx = optim.make_optimizer(config.optimizer, config.train.num_steps)
   params = state_lib.place_params(init_variables(model.cfg, seed=0)["params"], abstract, mesh)
   state, shardings = state_lib.create_train_state(model, tx, config, mesh, params)
   step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels),
                                  shardings, mesh)
   batch = jax.device_put(random_batch(config), state_lib.data_sharding(mesh))
-  t0 = time.perf_counter()
-  compiled = step.lower(state, batch).compile()
-  compile_s = time.perf_counter() - t0
+  c0 = time.perf_counter()
+  traced = step.trace(state, batch)
+  c1 = time.perf_counter()
+  lowered = traced.lower()
+  c2 = time.perf_counter()
+  compiled = lowered.compile()
+  c3 = time.perf_counter()
+  compile_s = c3 - c0
   compile_peak = device_peak_gb(jax.devices()[0])  # the GPU compiler's autotuning scratch
   runtime.release_host_memory()  # as the training loop does after its first step
   state, metrics = compiled(state, batch)  # warm-up
@@ -87,7 +93,8 @@ def measure(config, repeats: int) -> dict:
   return dict(
       frames=config.data.frames, height=config.data.crop[0], width=config.data.crop[1],
       iters=config.train.iters, batch=b, remat=config.model.remat, dtype=config.model.dtype,
-      devices=mesh.size, compile_s=compile_s, median_s=median, min_s=min(times),
+      devices=mesh.size, compile_s=compile_s, trace_s=c1 - c0, lower_s=c2 - c1,
+      xla_compile_s=c3 - c2, median_s=median, min_s=min(times),
       samples_per_s=b / median, peak_rss_gb=rss, peak_rss_gb_per_sample=rss / b,
       device_peak_gb=dev, device_peak_gb_per_sample=None if dev is None else dev / b,
       device_peak_compile_gb=compile_peak, **xla_buffers_gb(compiled),
@@ -111,7 +118,8 @@ def main():
   print(f"device        {res['device']} x{res['devices']}  (jax {res['jax']})")
   print(f"step          B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
         f"iters={res['iters']} {res['dtype']} remat={res['remat']}")
-  print(f"compile       {res['compile_s']:.1f} s")
+  print(f"compile       {res['compile_s']:.1f} s (trace {res['trace_s']:.1f} s, lower "
+        f"{res['lower_s']:.1f} s, XLA {res['xla_compile_s']:.1f} s)")
   print(f"step time     median {res['median_s']:.2f} s (min {res['min_s']:.2f} s), "
         f"{res['samples_per_s']:.3f} samples/s")
   print("\n".join(memory_lines(res, batch=res["batch"])))

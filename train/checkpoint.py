@@ -135,10 +135,12 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
     raise sav_jax.convert.CheckpointError(
         f"{directory}: the checkpoint is incomplete: it has no {' and no '.join(missing)} "
         f"folder (the {'training state' if 'state' in missing else 'data iterator'}){hint}")
+  saved = _saved_shapes(directory / "state")
+  _check_saved_shapes(directory, saved, target)
   restored = orbax_io.checked_restore(
       lambda: manager.restore(step, args=args)["state"], directory, mismatch,
       corrupt_hint=hint)
-  _check_restored_tree(directory, restored, target)
+  _check_restored_tree(directory, restored, target, saved)
   return TrainState(**restored)
 
 
@@ -149,12 +151,48 @@ def _mismatch(directory, detail: str) -> sav_jax.convert.CheckpointError:
       "WORKDIR with --config.init_from=<that workdir> to keep only its weights")
 
 
-def _check_restored_tree(directory, restored: dict, target: dict) -> None:
+def _path_name(path) -> str:
+  """`opt_state/1/0/mu` for a key path of the state (dict keys, tuple indices, fields)."""
+  return "/".join(str(getattr(k, "key", getattr(k, "idx", getattr(k, "name", k)))) for k in path)
+
+
+def _saved_shapes(state_dir: pathlib.Path) -> dict[str, tuple] | None:
+  """`{path name: shape}` of the arrays in a checkpoint's state item (None if unreadable:
+  the restore then names the problem)."""
+  handler = ocp.PyTreeCheckpointHandler()
+  try:
+    tree = handler.metadata(state_dir).tree
+    return {_path_name(p): tuple(x.shape)
+            for p, x in jax.tree_util.tree_leaves_with_path(tree) if hasattr(x, "shape")}
+  except (ValueError, KeyError, TypeError, AttributeError, OSError):
+    return None
+  finally:
+    handler.close()
+
+
+def _check_saved_shapes(directory, saved: dict | None, target: dict) -> None:
+  """Raises the resume-mismatch error, naming the array, when one of `target`'s arrays has
+  another shape in the checkpoint (orbax's own error would not say why)."""
+  if saved is None:
+    return
+  wanted = {_path_name(p): tuple(x.shape) for p, x in jax.tree_util.tree_leaves_with_path(target)}
+  # The parameters first: another model also changes the optimizer's moment vectors.
+  for name in sorted(wanted, key=lambda n: not n.startswith("params/")):
+    if name in saved and saved[name] != wanted[name]:
+      why = ("AdamW's moment vectors hold one value per trainable parameter: e.g. "
+             "optimizer.frozen differs" if name.startswith("opt_state/") else
+             "e.g. another model config")
+      raise _mismatch(directory, f"{name} has shape {saved[name]} in the checkpoint, "
+                      f"{wanted[name]} in this run; {why}")
+
+
+def _check_restored_tree(directory, restored: dict, target: dict, saved: dict | None) -> None:
   """Raises the resume-mismatch error unless the checkpoint held exactly `target`'s arrays.
 
-  Orbax restores a checkpoint of another optimizer tree without complaint when only leaves
-  differ (e.g. another `optimizer.frozen`): leaves the checkpoint lacks come back as None
+  Orbax restores a checkpoint of another state tree without complaint when only leaves
+  differ (e.g. another optimizer config): leaves the checkpoint lacks come back as None
   (and the first update fails inside optax), leaves the target lacks are dropped.
+  `saved`: `_saved_shapes` of the checkpoint.
   """
   problem = None
   if jax.tree.structure(restored) != jax.tree.structure(target):
@@ -163,18 +201,10 @@ def _check_restored_tree(directory, restored: dict, target: dict) -> None:
     problem = (f"the checkpoint lacks {len(missing)} arrays of this run's state, e.g. "
                f"{missing[0]}" if missing else "the state trees differ")
   else:
-    handler = ocp.PyTreeCheckpointHandler()
-    try:
-      saved = handler.metadata(directory / "state").tree
-      n_saved = sum(hasattr(x, "shape") for x in jax.tree.leaves(saved))
-    except (ValueError, KeyError, TypeError, AttributeError, OSError):
-      n_saved = None  # the restore itself worked: nothing more to say
-    finally:
-      handler.close()
     n_target = len(jax.tree.leaves(target))
-    if n_saved is not None and n_saved != n_target:
-      problem = (f"the checkpoint holds {n_saved} arrays, this run's state {n_target}; e.g. "
-                 "optimizer.frozen differs")
+    if saved is not None and len(saved) != n_target:
+      problem = (f"the checkpoint holds {len(saved)} arrays, this run's state {n_target}; e.g. "
+                 "another optimizer config")
   if problem is not None:
     raise _mismatch(directory, problem)
 

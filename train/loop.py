@@ -294,7 +294,7 @@ def setup(config, workdir):
   abstract_params = state_lib.abstract_params(model, config)
   labels = optim.param_labels(abstract_params, config.optimizer.frozen)
   log.info("parameters: %s", state_lib.param_count(abstract_params, labels))
-  tx = optim.make_optimizer(config.optimizer, config.train.num_steps, abstract_params)
+  tx = optim.make_optimizer(config.optimizer, config.train.num_steps)
   weights = None
   if ((config.init_from or config.vda_weights)
       and sav_jax.convert.find_training_checkpoint(workdir / "checkpoints") is None):

@@ -30,7 +30,8 @@ class TrainState:
   Attributes:
     step: int32 scalar, number of batches consumed (skipped ones included).
     params: model parameters (`{"params": ...}` contents, frozen VDA included).
-    opt_state: optax state; no entries for the frozen depth prior.
+    opt_state: optax state of the `optim.TrainableVector` of `params` (AdamW's moments
+      are two vectors of the trainable size; nothing for the frozen depth prior).
     rng: uint32 `[2]` raw key data; step randomness is `fold_in(rng, step)`.
     num_skipped: int32 scalar, updates skipped because the loss or a norm was
       not finite.
@@ -83,8 +84,9 @@ def make_init_fn(model, tx: optax.GradientTransformation, config):
     if params is None:
       variables = model.lazy_init(init_rng, video, video, iters=2)
       params = variables["params"]
+    vector = optim.TrainableVector(optim.param_labels(params, config.optimizer.frozen))
     return TrainState(step=jnp.zeros((), jnp.int32), params=params,
-                      opt_state=tx.init(params), rng=jax.random.key_data(train_rng),
+                      opt_state=tx.init(vector.gather(params)), rng=jax.random.key_data(train_rng),
                       num_skipped=jnp.zeros((), jnp.int32))
 
   return init

@@ -14,16 +14,6 @@ from train import optim
 from train.state import TrainState, data_sharding, replicated
 
 
-def _tree_where(pred, new, old):
-  return jax.tree.map(lambda a, b: jnp.where(pred, a, b), new, old)
-
-
-def _trainable_norm(tree, labels) -> jax.Array:
-  leaves = [x for x, lab in zip(jax.tree.leaves(tree), jax.tree.leaves(labels))
-            if lab == optim.TRAINABLE]
-  return optax.tree.norm(leaves)
-
-
 def make_train_step(model, tx: optax.GradientTransformation, config, labels):
   """`train_step(state, batch) -> (state, metrics)` (not jitted; see `jit_train_step`).
 
@@ -33,6 +23,10 @@ def make_train_step(model, tx: optax.GradientTransformation, config, labels):
   `num_skipped`; `step` always advances (it counts consumed batches), while the
   learning-rate schedule follows the number of applied updates.
 
+  The gradient, the optimizer and the update work on the `optim.TrainableVector` of the
+  params: the frozen leaves (the depth prior) are constants of the loss, so autodiff
+  builds no backward pass for them, and they come out of the step untouched.
+
   Args:
     model: `sav_jax.StereoAnyVideo`.
     tx: optimizer from `train.optim.make_optimizer`.
@@ -41,38 +35,40 @@ def make_train_step(model, tx: optax.GradientTransformation, config, labels):
   """
   schedule = optim.make_schedule(config.optimizer, config.train.num_steps)
   iters = config.train.iters
+  vector = optim.TrainableVector(labels)
 
   def train_step(state: TrainState, batch):
     step_rng = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)
     left = batch["left"].astype(jnp.float32)
     right = batch["right"].astype(jnp.float32)
+    trainable = vector.leaves(state.params)
 
-    def loss_fn(params):
-      # Frozen leaves (the depth prior) get no gradient: autodiff builds no backward
-      # pass for them at all (their gradients come out as zeros the optimizer ignores).
-      params = jax.tree.map(lambda p, lab: jax.lax.stop_gradient(p) if lab == optim.FROZEN else p,
-                            params, labels)
-      out = model.apply({"params": params}, left, right, iters=iters,
-                        rngs={"dropout": step_rng})
+    def loss_fn(trainable):
+      out = model.apply({"params": vector.replace(state.params, trainable)}, left, right,
+                        iters=iters, rngs={"dropout": step_rng})
       return loss_lib.sequence_loss(out.disparities, batch["disparity"], batch["valid"],
                                     gamma=config.loss.gamma,
                                     max_disparity=config.loss.max_disparity,
                                     per_sample=config.loss.per_sample)
 
-    (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
-    updates, new_opt_state = tx.update(grads, state.opt_state, state.params)
-    new_params = optax.apply_updates(state.params, updates)
-    l2_grads = _trainable_norm(grads, labels)
-    l2_updates = _trainable_norm(updates, labels)
+    # The gradient of the leaves, then one concatenation: differentiating through slices
+    # of the vector would sum one vector-sized padded gradient per leaf.
+    (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(trainable)
+    grads, theta = vector.concat(grads), vector.concat(trainable)
+    updates, new_opt_state = tx.update(grads, state.opt_state, theta)
+    l2_grads = jnp.linalg.norm(grads)
+    l2_updates = jnp.linalg.norm(updates)
     finite = jnp.isfinite(loss) & jnp.isfinite(l2_grads) & jnp.isfinite(l2_updates)
+    new_theta = jnp.where(finite, optax.apply_updates(theta, updates), theta)
     num_updates = state.step - state.num_skipped
     new_state = state.replace(
         step=state.step + 1,
-        params=_tree_where(finite, new_params, state.params),
-        opt_state=_tree_where(finite, new_opt_state, state.opt_state),
+        params=vector.scatter(state.params, new_theta),
+        opt_state=jax.tree.map(lambda a, b: jnp.where(finite, a, b), new_opt_state,
+                               state.opt_state),
         num_skipped=state.num_skipped + jnp.where(finite, 0, 1).astype(jnp.int32))
     metrics = dict(metrics, loss=loss, l2_grads=l2_grads, l2_updates=l2_updates,
-                   l2_params=_trainable_norm(new_state.params, labels),
+                   l2_params=jnp.linalg.norm(new_theta),
                    lr=schedule(num_updates), finite=finite.astype(jnp.float32),
                    num_skipped=new_state.num_skipped)
     return new_state, metrics

@@ -100,7 +100,7 @@ def _child(out_path):
   model = sav_jax.StereoAnyVideo(S.model_config(c))
   params = S.abstract_params(model, c)
   labels = optim.param_labels(params, c.optimizer.frozen)
-  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
   train_step = st.make_train_step(model, tx, c, labels)
   batch = next(iter(input_lib.train_dataset(c, process_index=0, process_count=1)))
   batch = dict(batch, left=batch["left"].astype(np.float32),

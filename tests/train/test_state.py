@@ -70,7 +70,7 @@ def _setup(c):
   mesh = state_lib.make_mesh()
   params = state_lib.abstract_params(model, c)
   labels = optim.param_labels(params, c.optimizer.frozen)
-  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
   state, shardings = state_lib.create_train_state(model, tx, c, mesh)
   step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, c, labels), shardings, mesh)
   return model, mesh, tx, state, shardings, step
@@ -158,17 +158,33 @@ def _real_abstract_params():
   return state_lib.abstract_params(sav_jax.StereoAnyVideo(state_lib.model_config(c)), c)
 
 
+def test_trainable_vector_gathers_and_scatters_the_trainable_leaves_only():
+  params = {"a": np.arange(6, dtype=np.float32).reshape(2, 3),
+            "depthanything": {"w": np.full((4,), 7.0, np.float32)},
+            "b": {"c": np.array([10.0, 11.0], np.float32)}}
+  vector = optim.TrainableVector(optim.param_labels(params, "depthanything"))
+  flat = vector.gather(params)  # jax.tree.leaves order: a, b/c (dict keys sorted)
+  np.testing.assert_array_equal(flat, [0, 1, 2, 3, 4, 5, 10, 11])
+  assert vector.size(params) == 8
+  back = vector.scatter(params, -flat)
+  np.testing.assert_array_equal(back["a"], -params["a"])
+  np.testing.assert_array_equal(back["b"]["c"], [-10, -11])
+  assert back["depthanything"]["w"] is params["depthanything"]["w"]  # frozen: untouched
+  with pytest.raises(ValueError, match="a vector of 9 values for 8 trainable parameters"):
+    vector.scatter(params, jnp.zeros(9))
+
+
 def test_real_model_optimizer_state_has_no_frozen_entries():
   c = synthetic.get_config()
   params = _real_abstract_params()
-  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
-  opt_shapes = jax.eval_shape(tx.init, params)
-  paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_leaves_with_path(opt_shapes)]
-  assert paths and not [p for p in paths if "depthanything" in p]
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
+  vector = optim.TrainableVector(optim.param_labels(params, c.optimizer.frozen))
+  opt_shapes = jax.eval_shape(lambda p: tx.init(vector.gather(p)), params)
   n_frozen = sum(x.size for x in jax.tree.leaves(params["depthnet"]["depthanything"]))
   n_trainable = sum(x.size for x in jax.tree.leaves(params)) - n_frozen
-  n_opt = sum(x.size for x in jax.tree.leaves(opt_shapes) if x.ndim > 0)
-  assert n_frozen > 2e7 and n_opt == 2 * n_trainable  # Adam mu and nu, trainable only
+  assert n_frozen > 2e7 and vector.size(params) == n_trainable
+  moments = [x.shape for x in jax.tree.leaves(opt_shapes) if x.ndim > 0]
+  assert moments == [(n_trainable,)] * 2  # Adam mu and nu, trainable only
   # the shapes traced once per model config, shared with init_variables and the converters
   from sav_jax.model.init import abstract_variables  # pylint: disable=g-import-not-at-top
   assert params is abstract_variables(state_lib.model_config(c))["params"]
@@ -223,7 +239,7 @@ def test_checkpoint_roundtrip_with_data_iterator(tmp_path):
   # A checkpoint of another optimizer config (no clipping: another state tree) is refused
   # with a message that says so, not orbax's tree diff.
   c.optimizer.clip_norm = 0.0
-  tx2 = optim.make_optimizer(c.optimizer, c.train.num_steps, state_lib.abstract_params(model, c))
+  tx2 = optim.make_optimizer(c.optimizer, c.train.num_steps)
   _, shardings2 = state_lib.create_train_state(model, tx2, c, mesh)
   abstract2 = jax.eval_shape(state_lib.make_init_fn(model, tx2, c))
   with pytest.raises(sav_jax.convert.CheckpointError, match="does not match this run's model or "
@@ -250,7 +266,7 @@ def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path):
   c.checkpoint.async_save = False
   model, mesh, tx = ToyStereo(), state_lib.make_mesh(), None
   params = state_lib.abstract_params(model, c)
-  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
   src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
                                                   max_disparity=8.0), 10)
   it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1))
@@ -322,7 +338,7 @@ def test_scratch_runs_start_from_the_official_initialisation(tmp_path):
   c.seed = 3
   model, mesh = sav_jax.StereoAnyVideo(state_lib.model_config(c)), state_lib.make_mesh()
   params = _real_abstract_params()
-  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, params)
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
   manager = ckpt_lib.make_manager(tmp_path / "run", c)
   state, _, source = loop.initial_state(c, model, tx, mesh, manager, None, params)
   assert source == "scratch"
@@ -348,9 +364,11 @@ class _BigToy(ToyStereo):
   """`ToyStereo` with one parameter large enough that orbax writes it to a chunk file
   (smaller arrays are stored inline in the checkpoint's index)."""
 
+  big: int = 2000
+
   @nn.compact
   def __call__(self, left, right, iters=2, final_only=False):
-    self.param("big", nn.initializers.normal(), (2000,))
+    self.param("big", nn.initializers.normal(), (self.big,))
     return ToyStereo.__call__(self, left, right, iters, final_only)
 
 
@@ -362,7 +380,7 @@ def _toy_run(workdir, frozen=None):
   if frozen is not None:
     c.optimizer.frozen = frozen
   model, mesh = _BigToy(), state_lib.make_mesh()
-  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, state_lib.abstract_params(model, c))
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
   state, _ = state_lib.create_train_state(model, tx, c, mesh)
   manager = ckpt_lib.make_manager(workdir, c)
   assert ckpt_lib.save(manager, state, _toy_iterator(), 1, force=True)
@@ -454,24 +472,36 @@ def test_training_checkpoint_without_an_item_is_named_incomplete(toy_run, tmp_pa
 def test_resume_with_another_frozen_pattern_is_refused(toy_run, tmp_path):
   workdir, c, model, _, mesh = toy_run
   c2 = _config()
-  c2.optimizer.frozen = ""  # Adam moments for the prior too: the checkpoint lacks them
-  tx2 = optim.make_optimizer(c2.optimizer, c2.train.num_steps,
-                             state_lib.abstract_params(model, c2))
+  c2.optimizer.frozen = ""  # Adam moments for the prior too: longer moment vectors
+  tx2 = optim.make_optimizer(c2.optimizer, c2.train.num_steps)
   with pytest.raises(sav_jax.convert.CheckpointError,
-                     match=r"does not match this run's model or optimizer config \(the "
-                     r"checkpoint lacks 4 arrays .*depthanything"):
+                     match=r"does not match this run's model or optimizer config \(opt_state/1/0/"
+                     r"mu has shape \(2010,\) in the checkpoint, \(2031,\) in this run; AdamW's "
+                     r"moment vectors hold one value per trainable parameter: e.g. "
+                     r"optimizer.frozen differs\)"):
     _toy_restore(workdir, c2, model, tx2, mesh)
-  # The other way round: the checkpoint holds moments that this run has no place for.
+  # The other way round: the checkpoint's moments cover the prior, this run's do not.
   c3, _, _, _ = _toy_run(tmp_path / "unfrozen", frozen="")
-  tx = optim.make_optimizer(c.optimizer, c.train.num_steps, state_lib.abstract_params(model, c))
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
   with pytest.raises(sav_jax.convert.CheckpointError,
-                     match=r"does not match .*holds 20 arrays, this run's state 16"):
+                     match=r"opt_state/1/0/mu has shape \(2031,\) in the checkpoint, \(2010,\)"):
     _toy_restore(tmp_path / "unfrozen", c, model, tx, mesh)
   hook = sys.unraisablehook
   restored = _toy_restore(tmp_path / "unfrozen", c3, model, tx2, mesh)  # its own config
   assert sys.unraisablehook is hook  # a good checkpoint leaves no global hook behind
-  assert jax.tree.structure(restored.opt_state) == jax.tree.structure(
-      jax.eval_shape(tx2.init, state_lib.abstract_params(model, c3)))
+  abstract3 = jax.eval_shape(state_lib.make_init_fn(model, tx2, c3))
+  assert jax.tree.map(jnp.shape, restored.opt_state) == jax.tree.map(jnp.shape,
+                                                                     abstract3.opt_state)
+
+
+def test_resume_with_another_parameter_shape_names_the_array(toy_run):
+  workdir, c, _, tx, mesh = toy_run
+  # The parameter is named, not the optimizer's moment vectors that change with it.
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"does not match this run's model or optimizer config \(params/big has "
+                     r"shape \(2000,\) in the checkpoint, \(1000,\) in this run; e.g. another "
+                     r"model config\)"):
+    _toy_restore(workdir, c, _BigToy(big=1000), tx, mesh)
 
 
 def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
