@@ -175,6 +175,12 @@ def _check_saved_shapes(directory, saved: dict | None, target: dict) -> None:
   another shape in the checkpoint (orbax's own error would not say why)."""
   if saved is None:
     return
+  if any(name.startswith("opt_state/inner_states/") for name in saved):
+    raise sav_jax.convert.CheckpointError(
+        f"{directory}: cannot resume from this checkpoint: its optimizer state has the "
+        "per-parameter layout of sav-jax before 2026-12-02 (AdamW's moments are one vector of "
+        "the trainable parameters now). Start a new WORKDIR with --config.init_from=<that "
+        "workdir> to keep its weights (the optimizer state then starts anew)")
   wanted = {_path_name(p): tuple(x.shape) for p, x in jax.tree_util.tree_leaves_with_path(target)}
   # The parameters first: another model also changes the optimizer's moment vectors.
   for name in sorted(wanted, key=lambda n: not n.startswith("params/")):

@@ -494,6 +494,33 @@ def test_resume_with_another_frozen_pattern_is_refused(toy_run, tmp_path):
                                                                      abstract3.opt_state)
 
 
+def test_checkpoint_of_the_per_parameter_optimizer_layout_is_named(tmp_path):
+  """Checkpoints written before the optimizer worked on one vector held the moments per leaf
+  (`optax.multi_transform`): resuming names that, and init_from still reads the weights."""
+  import optax  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.checkpoint.async_save = False
+  model, mesh = _BigToy(), state_lib.make_mesh()
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
+  state, _ = state_lib.create_train_state(model, tx, c, mesh)
+  labels = optim.param_labels(state.params, c.optimizer.frozen)
+  old_tx = optax.multi_transform({optim.TRAINABLE: tx, optim.FROZEN: optax.set_to_zero()},
+                                 labels)
+  old = state.replace(opt_state=old_tx.init(state.params))
+  manager = ckpt_lib.make_manager(tmp_path, c)
+  assert ckpt_lib.save(manager, old, _toy_iterator(), 1, force=True)
+  manager.wait_until_finished()
+  manager.close()
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"checkpoints/1: cannot resume from this checkpoint: its optimizer state "
+                     r"has the per-parameter layout of sav-jax before 2026-12-02 .*Start a new "
+                     r"WORKDIR with --config.init_from=<that workdir> to keep its weights"):
+    _toy_restore(tmp_path, c, model, tx, mesh)
+  variables, _ = sav_jax.convert.restore_variables(tmp_path)  # what init_from reads
+  jax.tree.map(np.testing.assert_array_equal, variables["params"],
+               jax.device_get(state.params))
+
+
 def test_resume_with_another_parameter_shape_names_the_array(toy_run):
   workdir, c, _, tx, mesh = toy_run
   # The parameter is named, not the optimizer's moment vectors that change with it.
