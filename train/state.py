@@ -86,8 +86,8 @@ def make_init_fn(model, tx: optax.GradientTransformation, config):
       params = variables["params"]
     vector = optim.TrainableVector(optim.param_labels(params, config.optimizer.frozen))
     return TrainState(step=jnp.zeros((), jnp.int32), params=params,
-                      opt_state=tx.init(vector.gather(params)), rng=jax.random.key_data(train_rng),
-                      num_skipped=jnp.zeros((), jnp.int32))
+                      opt_state=tx.init(vector.gather(params)),
+                      rng=jax.random.key_data(train_rng), num_skipped=jnp.zeros((), jnp.int32))
 
   return init
 

@@ -512,9 +512,9 @@ def test_checkpoint_of_the_per_parameter_optimizer_layout_is_named(tmp_path):
   manager.wait_until_finished()
   manager.close()
   with pytest.raises(sav_jax.convert.CheckpointError,
-                     match=r"checkpoints/1: cannot resume from this checkpoint: its optimizer state "
-                     r"has the per-parameter layout of sav-jax before 2026-12-02 .*Start a new "
-                     r"WORKDIR with --config.init_from=<that workdir> to keep its weights"):
+                     match=r"checkpoints/1: cannot resume from this checkpoint: its optimizer "
+                     r"state has the per-parameter layout of sav-jax before 2026-12-02 .*Start a "
+                     r"new WORKDIR with --config.init_from=<that workdir> to keep its weights"):
     _toy_restore(tmp_path, c, model, tx, mesh)
   variables, _ = sav_jax.convert.restore_variables(tmp_path)  # what init_from reads
   jax.tree.map(np.testing.assert_array_equal, variables["params"],
