@@ -32,6 +32,7 @@ import orbax.checkpoint as ocp
 
 import sav_jax
 from sav_jax.convert import orbax_io
+from train import optim
 from train.state import TrainState
 
 log = logging.getLogger(__name__)
@@ -151,18 +152,13 @@ def _mismatch(directory, detail: str) -> sav_jax.convert.CheckpointError:
       "WORKDIR with --config.init_from=<that workdir> to keep only its weights")
 
 
-def _path_name(path) -> str:
-  """`opt_state/1/0/mu` for a key path of the state (dict keys, tuple indices, fields)."""
-  return "/".join(str(getattr(k, "key", getattr(k, "idx", getattr(k, "name", k)))) for k in path)
-
-
 def _saved_shapes(state_dir: pathlib.Path) -> dict[str, tuple] | None:
   """`{path name: shape}` of the arrays in a checkpoint's state item (None if unreadable:
   the restore then names the problem)."""
   handler = ocp.PyTreeCheckpointHandler()
   try:
     tree = handler.metadata(state_dir).tree
-    return {_path_name(p): tuple(x.shape)
+    return {optim.path_name(p): tuple(x.shape)
             for p, x in jax.tree_util.tree_leaves_with_path(tree) if hasattr(x, "shape")}
   except (ValueError, KeyError, TypeError, AttributeError, OSError):
     return None
@@ -181,7 +177,8 @@ def _check_saved_shapes(directory, saved: dict | None, target: dict) -> None:
         "per-parameter layout of sav-jax before 2026-12-02 (AdamW's moments are one vector of "
         "the trainable parameters now). Start a new WORKDIR with --config.init_from=<that "
         "workdir> to keep its weights (the optimizer state then starts anew)")
-  wanted = {_path_name(p): tuple(x.shape) for p, x in jax.tree_util.tree_leaves_with_path(target)}
+  wanted = {optim.path_name(p): tuple(x.shape)
+            for p, x in jax.tree_util.tree_leaves_with_path(target)}
   # The parameters first: another model also changes the optimizer's moment vectors.
   for name in sorted(wanted, key=lambda n: not n.startswith("params/")):
     if name in saved and saved[name] != wanted[name]:

@@ -60,6 +60,12 @@ def one_cycle_linear(max_lr: float, total_steps: int, pct_start: float = 0.01,
   return schedule
 
 
+def path_name(path) -> str:
+  """`depthnet/depthanything/.../kernel` or `opt_state/1/0/mu` for a pytree key path (dict
+  keys, sequence indices and attribute names joined by `/`)."""
+  return "/".join(str(getattr(k, "key", getattr(k, "idx", getattr(k, "name", k)))) for k in path)
+
+
 def param_labels(params, frozen_pattern: str):
   """`"frozen"` for leaves whose `/`-joined path matches `frozen_pattern`, else `"trainable"`.
 
@@ -74,8 +80,7 @@ def param_labels(params, frozen_pattern: str):
   regex = re.compile(frozen_pattern) if frozen_pattern else None
 
   def label(path, _):
-    name = "/".join(str(getattr(k, "key", getattr(k, "name", k))) for k in path)
-    return FROZEN if regex is not None and regex.search(name) else TRAINABLE
+    return FROZEN if regex is not None and regex.search(path_name(path)) else TRAINABLE
 
   return jax.tree_util.tree_map_with_path(label, params)
 
