@@ -17,6 +17,11 @@
 #               against the model's modules at the paper's window (update_variants.py)
 #   raft        the evaluator's RAFT flow for one 720x1280 pair, 20 iterations (raft_flow.py)
 #               and its parity tests (tests/model/test_raft.py); not in the default list
+#   flags       bench_bf16 (2 calls) under XLA:GPU flag sets that may speed up the refinement
+#               loop (~75 s each, compile included): command buffers off / over the whole
+#               loop and its conditional, cuBLAS instead of Triton for the products, the
+#               exhaustive Triton tiling search; one JSON per set. Not in the default list
+#               (5 sets: ~7 minutes); `FLAG_SETS="name=flags;..."` replaces the sets
 # A lease of 15 device minutes holds about 13 minutes of steps (a start took ~30 s): pick
 # the steps. Each step has its own time limit; everything is logged to OUTDIR/suite.log and
 # the figures go to OUTDIR/*.json. A failure of the first step within 90 s (an import or API
@@ -31,6 +36,11 @@ export PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
 log="$out/suite.log"
 window=(--frames 20 --height 720 --width 1280 --iters 20)
+# The `flags` step's sets, "name=XLA flags" separated by ';' (the default set is the baseline).
+flag_sets=${FLAG_SETS:-"default=;cmdbuf_off=--xla_gpu_enable_command_buffer=;\
+cmdbuf_loop=--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,CONDITIONAL,WHILE \
+--xla_gpu_graph_min_graph_size=1;cublas=--xla_gpu_enable_triton_gemm=false;\
+exhaustive=--xla_gpu_exhaustive_tiling_search=true"}
 
 step() {  # step NAME LIMIT_S COMMAND...
   local name=$1 limit=$2 t0=$SECONDS rc
@@ -62,8 +72,17 @@ run_step() {
                --repeats 1 --by module --depth 2 --top 25 ;;
     raft) step "$1" 200 bash -c "'$py' benchmarks/raft_flow.py --height 720 --width 1280 &&
             '$py' -m pytest -x -q -p no:cacheprovider tests/model/test_raft.py" ;;
+    flags) local set name rc=0
+           IFS=';' read -ra sets <<< "$flag_sets"
+           for set in "${sets[@]}"; do
+             name=${set%%=*}
+             XLA_FLAGS="${XLA_FLAGS:-} ${set#*=}" step "flags_$name" 130 "$py" -m sav_jax.cli \
+               bench "${window[@]}" --dtype bfloat16 --repeats 2 \
+               --json "$out/gpu_t20_720x1280_it20_bf16_flags_$name.json" || rc=$?
+           done
+           return "$rc" ;;
     *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_blocked train precision parity" \
-            "stages profile variants raft)" >&2
+            "stages profile variants raft flags)" >&2
        return 2 ;;
   esac
 }

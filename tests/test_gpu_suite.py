@@ -1,0 +1,68 @@
+"""benchmarks/gpu_suite.sh's `flags` step, checked without a GPU: every flag set reaches its
+benchmark, and XLA accepts every flag (an unknown flag or enum value aborts the process, which
+on a short GPU lease would cost a whole step)."""
+
+import os
+import pathlib
+import subprocess
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SUITE = ROOT / "benchmarks" / "gpu_suite.sh"
+
+
+def _run_flags_step(tmp_path, flag_sets=None):
+  """Runs the `flags` step with a stand-in Python that records its XLA_FLAGS and arguments;
+  returns the recorded `(XLA_FLAGS, argv)` of every benchmark call."""
+  fake = tmp_path / "python"
+  fake.write_text('#!/bin/bash\n[ "$1" = -c ] && exit 0\n'
+                  'printf "%s\\t%s\\n" "$XLA_FLAGS" "$*" >> "$RECORD"\n')
+  fake.chmod(0o755)
+  env = dict(os.environ, PYTHON=str(fake), RECORD=str(tmp_path / "calls.tsv"), XLA_FLAGS="")
+  if flag_sets is not None:
+    env["FLAG_SETS"] = flag_sets
+  else:
+    env.pop("FLAG_SETS", None)
+  proc = subprocess.run(["bash", str(SUITE), str(tmp_path / "out"), "flags"], env=env,
+                        capture_output=True, text=True, timeout=60, check=False)
+  assert proc.returncode == 0, proc.stdout + proc.stderr
+  rows = (tmp_path / "calls.tsv").read_text().splitlines()
+  return [tuple(r.split("\t")) for r in rows]
+
+
+def test_every_flag_set_runs_the_window_benchmark_with_its_own_flags(tmp_path):
+  calls = _run_flags_step(tmp_path)
+  names = [argv.split("_flags_")[-1].removesuffix(".json") for _, argv in calls]
+  assert names == ["default", "cmdbuf_off", "cmdbuf_loop", "cublas", "exhaustive"]
+  for (flags, argv), name in zip(calls, names):
+    assert "-m sav_jax.cli bench --frames 20 --height 720 --width 1280 --iters 20" in argv
+    assert "--dtype bfloat16" in argv
+    if name == "default":
+      assert flags.strip() == ""
+    else:
+      assert flags.strip().startswith("--xla_gpu_"), (name, flags)
+  assert len({flags for flags, _ in calls}) == len(calls)  # no set repeats another's flags
+
+
+def test_flag_sets_can_be_replaced(tmp_path):
+  calls = _run_flags_step(tmp_path, "a=--xla_gpu_autotune_level=0;b=")
+  assert [(f.strip(), a.split("_flags_")[-1]) for f, a in calls] == [
+      ("--xla_gpu_autotune_level=0", "a.json"), ("", "b.json")]
+
+
+def test_xla_accepts_every_flag_of_the_default_sets(tmp_path):
+  probe = "import jax.numpy as jnp; assert float(jnp.ones(3).sum()) == 3.0"
+  sets = {flags.strip() for flags, _ in _run_flags_step(tmp_path) if flags.strip()}
+  # One process: XLA reads XLA_FLAGS once, so each set needs its own interpreter; all run
+  # at once to keep the test short.
+  procs = {f: subprocess.Popen([sys.executable, "-c", probe], env=dict(os.environ, XLA_FLAGS=f),
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+           for f in sets}
+  outputs = {f: p.communicate(timeout=120)[0] for f, p in procs.items()}
+  bad = {f: out[-300:] for f, out in outputs.items() if procs[f].returncode != 0}
+  assert not bad, bad
+  # And the probe would have caught a typo: an unknown flag aborts.
+  typo = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                        env=dict(os.environ, XLA_FLAGS="--xla_gpu_enable_comand_buffer="),
+                        timeout=120, check=False)
+  assert typo.returncode != 0
