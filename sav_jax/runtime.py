@@ -216,7 +216,10 @@ def inference_compiler_options(platform: str | None = None,
   per instance norm; plain reductions sum in a different order, ~1e-5 max error for
   an instance norm over 360x640 maps, 1.8e-6 px on the output at T=2 368x640). Nothing
   on other backends; an option the user sets in `XLA_FLAGS` is left to them, and one
-  this jaxlib does not know is dropped.
+  this jaxlib does not know is dropped. jaxlib 0.11 and later have only the newer
+  emitters: there the low-memory compile asks for neither option (the rewriter's
+  reduce-windows cost compile time only with the older emitters, so its more precise
+  sums stay).
 
   Args:
     platform: the backend the program is compiled for (default: JAX's default).
@@ -236,7 +239,8 @@ def inference_compiler_options(platform: str | None = None,
     return {}
   user_flags = os.environ.get("XLA_FLAGS", "")
   wanted = [(_YNN_FUSION_FLAG, _LEAN_YNN_FUSIONS)]
-  if _low_memory_compile and not per_frame:
-    wanted += [(_FUSION_EMITTERS_FLAG, False), (_DISABLED_PASSES_FLAG, _DISABLED_PASSES)]
+  older_emitters = ((_FUSION_EMITTERS_FLAG, False),)
+  if _low_memory_compile and not per_frame and _accepts_options(platform, older_emitters):
+    wanted += [*older_emitters, (_DISABLED_PASSES_FLAG, _DISABLED_PASSES)]
   return {k: v for k, v in wanted
           if k not in user_flags and _accepts_options(platform, ((k, v),))}

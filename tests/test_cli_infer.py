@@ -483,10 +483,14 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
 def test_compile_cache_folder_option(tmp_path, folders, npz_ckpt, restore_cache_config):
   import logging  # pylint: disable=import-outside-toplevel
 
-  from sav_jax import runtime  # pylint: disable=import-outside-toplevel
+  from sav_jax import inference, runtime  # pylint: disable=import-outside-toplevel
   cache = tmp_path / "xla"
   before = (jax.config.jax_compilation_cache_dir, runtime._low_memory_compile,  # pylint: disable=protected-access
             len(logging.getLogger().handlers), logging.getLogger("absl").level)
+  # The executables of earlier tests would be reused in this process, and nothing compiled
+  # (with only XLA's newer emitters, as in jaxlib 0.11+, --no-low-memory-compile changes
+  # no option).
+  inference.clear_cache()
   assert _infer(*folders, npz_ckpt, tmp_path / "out", "--compile-cache", str(cache),
                 "--no-low-memory-compile") == 0
   assert cache.is_dir() and any(cache.iterdir())  # the program went to the folder given

@@ -90,7 +90,7 @@ def child_env(cache_dir, device_count: int | None = None, llvm_o0: bool = False,
   """
   env = dict(os.environ)
   env.pop("JAX_COMPILATION_CACHE_DIR", None)
-  flags = ["--xla_llvm_disable_expensive_passes=true", TEST_XLA_FLAGS]
+  flags = ["--xla_llvm_disable_expensive_passes=true", *TEST_XLA_FLAGS.split()]
   if llvm_o0:
     flags.append("--xla_backend_optimization_level=0")
   if device_count:
