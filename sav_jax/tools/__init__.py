@@ -55,7 +55,8 @@ def add_compile_cache_arguments(p, default_on: bool = True) -> None:
                  help="CPU: compile with XLA's older loop emitters and plain reductions "
                       "(default: on; the per-frame program of long-video inference keeps "
                       "the newer emitters): ~0.6 GB less compiler memory, the same speed; "
-                      "--no-low-memory-compile for XLA's default emitters")
+                      "--no-low-memory-compile for XLA's default emitters. No effect with "
+                      "jaxlib 0.11+, which has only the newer emitters")
 
 
 def setup_compile_cache(args, default_on: bool = True):
