@@ -6,7 +6,12 @@
 # Steps (and what each took on an H200 on 2026-11-30, compile included):
 #   bench_bf16  forward at the paper's Table-6 window (B=1 T=20 720x1280 iters=20), bfloat16,
 #               the default ViT attention ("auto": cuDNN's fused kernel on a GPU)  (68 s)
-#   bench_fp32  the same in float32 (XLA's default matmul precision: TF32 on the GPU)  (87 s)
+#   bench_fp32  the same in float32 (XLA's default matmul precision: TF32 on the GPU)  (87 s);
+#               its program goes to the compilation cache OUTDIR/xla_cache
+#   bench_fp32_warm  bench_fp32 again, its program loaded from OUTDIR/xla_cache (run it after
+#               bench_fp32): no autotuner runs, so the device peak is the program's, as in a
+#               second `sav-jax infer` run (bench_fp32's 29.9 GB peak on 2026-11-30 was the
+#               autotuner's scratch; the program's buffers are 9.4 GB)
 #   bench_blocked  bench_bf16 with the blocked softmax ViT attention (--vit-attention blocked)
 #   train       the training step at the paper's shape (T=5 256x512 iters=10, remat)  (190 s)
 #   precision   distance from the official output per compute mode (precision_check.py) (143 s)
@@ -30,7 +35,7 @@ set -u
 out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]}
 shift
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 train precision parity stages variants profile bench_blocked)
+[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 bench_fp32_warm train precision parity stages variants profile bench_blocked)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
@@ -57,7 +62,11 @@ run_step() {
     bench_bf16) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype bfloat16 \
                   --repeats 3 --json "$out/gpu_t20_720x1280_it20_bf16.json" ;;
     bench_fp32) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype float32 \
-                  --repeats 2 --json "$out/gpu_t20_720x1280_it20_fp32.json" ;;
+                  --repeats 2 --compile-cache "$out/xla_cache" \
+                  --json "$out/gpu_t20_720x1280_it20_fp32.json" ;;
+    bench_fp32_warm) step "$1" 120 "$py" -m sav_jax.cli bench "${window[@]}" --dtype float32 \
+                  --repeats 2 --compile-cache "$out/xla_cache" \
+                  --json "$out/gpu_t20_720x1280_it20_fp32_warm.json" ;;
     bench_blocked) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype bfloat16 \
                   --vit-attention blocked --repeats 3 \
                   --json "$out/gpu_t20_720x1280_it20_bf16_blocked.json" ;;
@@ -81,7 +90,7 @@ run_step() {
                --json "$out/gpu_t20_720x1280_it20_bf16_flags_$name.json" || rc=$?
            done
            return "$rc" ;;
-    *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_blocked train precision parity" \
+    *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train precision parity" \
             "stages profile variants raft flags)" >&2
        return 2 ;;
   esac

@@ -1,6 +1,7 @@
-"""benchmarks/gpu_suite.sh's `flags` step, checked without a GPU: every flag set reaches its
-benchmark, and XLA accepts every flag (an unknown flag or enum value aborts the process, which
-on a short GPU lease would cost a whole step)."""
+"""benchmarks/gpu_suite.sh, checked without a GPU: in the `flags` step every flag set reaches
+its benchmark and XLA accepts every flag (an unknown flag or enum value aborts the process,
+which on a short GPU lease would cost a whole step); the float32 benchmark's warm rerun loads
+the program the cold run stored."""
 
 import os
 import pathlib
@@ -12,8 +13,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 SUITE = ROOT / "benchmarks" / "gpu_suite.sh"
 
 
-def _run_flags_step(tmp_path, flag_sets=None):
-  """Runs the `flags` step with a stand-in Python that records its XLA_FLAGS and arguments;
+def _run_steps(tmp_path, steps, flag_sets=None):
+  """Runs suite steps with a stand-in Python that records its XLA_FLAGS and arguments;
   returns the recorded `(XLA_FLAGS, argv)` of every benchmark call."""
   fake = tmp_path / "python"
   fake.write_text('#!/bin/bash\n[ "$1" = -c ] && exit 0\n'
@@ -23,7 +24,7 @@ def _run_flags_step(tmp_path, flag_sets=None):
   env.pop("FLAG_SETS", None)
   if flag_sets is not None:
     env["FLAG_SETS"] = flag_sets
-  proc = subprocess.run(["bash", str(SUITE), str(tmp_path / "out"), "flags"], env=env,
+  proc = subprocess.run(["bash", str(SUITE), str(tmp_path / "out"), *steps], env=env,
                         capture_output=True, text=True, timeout=60, check=False)
   assert proc.returncode == 0, proc.stdout + proc.stderr
   rows = (tmp_path / "calls.tsv").read_text().splitlines()
@@ -31,7 +32,7 @@ def _run_flags_step(tmp_path, flag_sets=None):
 
 
 def test_every_flag_set_runs_the_window_benchmark_with_its_own_flags(tmp_path):
-  calls = _run_flags_step(tmp_path)
+  calls = _run_steps(tmp_path, ["flags"])
   names = [argv.split("_flags_")[-1].removesuffix(".json") for _, argv in calls]
   assert names == ["default", "cmdbuf_off", "cmdbuf_loop", "cublas", "exhaustive"]
   for (flags, argv), name in zip(calls, names):
@@ -45,14 +46,28 @@ def test_every_flag_set_runs_the_window_benchmark_with_its_own_flags(tmp_path):
 
 
 def test_flag_sets_can_be_replaced(tmp_path):
-  calls = _run_flags_step(tmp_path, "a=--xla_gpu_autotune_level=0;b=")
+  calls = _run_steps(tmp_path, ["flags"], "a=--xla_gpu_autotune_level=0;b=")
   assert [(f.strip(), a.split("_flags_")[-1]) for f, a in calls] == [
       ("--xla_gpu_autotune_level=0", "a.json"), ("", "b.json")]
 
 
 def test_xla_accepts_every_flag_of_the_default_sets(tmp_path):
-  sets = [flags.strip() for flags, _ in _run_flags_step(tmp_path) if flags.strip()]
+  sets = [flags.strip() for flags, _ in _run_steps(tmp_path, ["flags"]) if flags.strip()]
   typo = "--xla_gpu_enable_comand_buffer="  # and the probe would catch a misspelt flag
   accepted = xla_accepts([*sets, typo])
   assert [f for f in sets if not accepted[f]] == []
   assert accepted[typo] is False
+
+
+def test_the_warm_float32_benchmark_reads_the_cold_ones_compilation_cache(tmp_path):
+  calls = _run_steps(tmp_path, ["bench_fp32", "bench_fp32_warm"])
+  assert len(calls) == 2
+  caches, jsons = [], []
+  for flags, argv in calls:
+    args = argv.split()
+    assert args[:4] == ["-m", "sav_jax.cli", "bench", "--frames"] and flags.strip() == ""
+    assert args[args.index("--dtype") + 1] == "float32"
+    caches.append(args[args.index("--compile-cache") + 1])
+    jsons.append(pathlib.Path(args[args.index("--json") + 1]).name)
+  assert caches[0] == caches[1] == str(tmp_path / "out" / "xla_cache")
+  assert jsons == ["gpu_t20_720x1280_it20_fp32.json", "gpu_t20_720x1280_it20_fp32_warm.json"]
