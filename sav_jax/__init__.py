@@ -5,21 +5,39 @@
     model = sav_jax.StereoAnyVideo(cfg)
     variables = sav_jax.convert.params_from_state_dict(sav_jax.convert.load_state_dict(path), cfg)
     out = model.apply(variables, left, right, iters=20)   # out.disparities [P, B, T, H, W]
+
+Every name here loads on first use, so `import sav_jax` (and the CLI's `--help`, a training
+config file that imports `sav_jax.data.augment`) does not import JAX until it is needed.
 """
 
-from sav_jax import convert, inference
-from sav_jax.config import SAVConfig
-from sav_jax.model.stereo_any_video import SAVOutput, StereoAnyVideo
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # for type checkers and IDEs; at run time `__getattr__` loads these
+  from sav_jax import convert, data, inference, metrics, model, runtime, viz
+  from sav_jax.config import SAVConfig
+  from sav_jax.model.stereo_any_video import SAVOutput, StereoAnyVideo
 
 __version__ = "0.1.0"
 __all__ = ["SAVConfig", "SAVOutput", "StereoAnyVideo", "convert", "inference", "data",
            "metrics", "model", "runtime", "viz"]
-_LAZY = ("data", "metrics", "model", "runtime", "viz")
+_SUBMODULES = ("convert", "inference", "data", "metrics", "model", "runtime", "viz")
+_NAMES = {"SAVConfig": "sav_jax.config", "SAVOutput": "sav_jax.model.stereo_any_video",
+          "StereoAnyVideo": "sav_jax.model.stereo_any_video"}
 
 
 def __getattr__(name):
-  """`sav_jax.metrics`, `sav_jax.viz`, ... without importing each first (loaded on use)."""
-  if name in _LAZY:
-    import importlib  # pylint: disable=import-outside-toplevel
+  """`sav_jax.StereoAnyVideo`, `sav_jax.metrics`, ...: each is imported on first use."""
+  if name in _SUBMODULES:
     return importlib.import_module(f"sav_jax.{name}")
+  if name in _NAMES:
+    value = getattr(importlib.import_module(_NAMES[name]), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
   raise AttributeError(f"module 'sav_jax' has no attribute {name!r}")
+
+
+def __dir__():
+  return sorted(set(globals()) | set(__all__))

@@ -7,9 +7,10 @@ import inspect
 import numbers
 from typing import Optional
 
-import jax
-import jax.numpy as jnp
 import numpy as np
+
+# JAX is imported where it is used, so that importing this module (the CLI's `--help`, a
+# training config file) does not import it.
 
 # Default memory budget (MiB) of one block of frames of the per-frame stages
 # (`SAVConfig.frame_block_mb`).
@@ -24,6 +25,8 @@ def resolve_vit_attention(choice: str, dtype) -> str:
   "auto" is "cudnn" on a GPU backend with bfloat16 compute, else "blocked"."""
   if choice != "auto":
     return choice
+  import jax  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
   return ("cudnn" if jax.default_backend() == "gpu" and jnp.dtype(dtype) == jnp.bfloat16
           else "blocked")
 
@@ -120,6 +123,7 @@ class SAVConfig:
 
   @property
   def compute_dtype(self):
+    import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
     return jnp.bfloat16 if self.dtype == "bfloat16" else jnp.float32
 
   @property
@@ -164,6 +168,7 @@ def remat_policies() -> list[str]:
   """Names usable as `SAVConfig.remat_policy`: the `jax.checkpoint_policies` that are policies
   themselves (called as `policy(prim, *args, **params)`), not factories of policies such as
   `save_only_these_names(*names)`."""
+  import jax  # pylint: disable=import-outside-toplevel
   def is_policy(fn):
     try:
       params = inspect.signature(fn).parameters.values()

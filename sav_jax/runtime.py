@@ -37,9 +37,9 @@ import logging
 import os
 import pathlib
 
-import jax
-import jax.numpy as jnp
 import numpy as np
+
+# JAX is imported where it is used: `sav-jax --help` imports this module for its defaults.
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +68,7 @@ def enable_compilation_cache(path: str | os.PathLike | None = None,
   Raises:
     ValueError: `path` exists and is not a folder, or cannot be created.
   """
+  import jax  # pylint: disable=import-outside-toplevel
   current = jax.config.jax_compilation_cache_dir
   if path is None and current:
     return pathlib.Path(current)  # the user's own setup, left as it is
@@ -175,6 +176,7 @@ def preserved_settings():
   `sav_jax.cli.main` runs commands inside it, so calling the command line from Python
   (a notebook, a test) leaves the caller's JAX configuration as it was.
   """
+  import jax  # pylint: disable=import-outside-toplevel
   keys = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
   before = {k: getattr(jax.config, k) for k in keys}
   low_memory = _low_memory_compile
@@ -193,6 +195,8 @@ def preserved_settings():
 @functools.cache
 def _accepts_options(platform: str, options: tuple) -> bool:
   """Whether this jaxlib compiles a trivial program with `options` on `platform`."""
+  import jax  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
   try:
     x = jax.device_put(jnp.zeros((2,), jnp.float32), jax.devices(platform)[0])
     jax.jit(lambda x: x + 1).lower(x).compile(compiler_options=dict(options))
@@ -234,6 +238,7 @@ def inference_compiler_options(platform: str | None = None,
   Returns:
     A dict for `jax.stages.Lowered.compile(compiler_options=...)`.
   """
+  import jax  # pylint: disable=import-outside-toplevel
   platform = platform or jax.default_backend()
   if platform != "cpu":
     return {}

@@ -297,13 +297,6 @@ def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
     assert (tmp_path / name).read_bytes() == b"mine"
 
 
-def test_submodules_reachable_from_the_package():
-  import sav_jax  # pylint: disable=import-outside-toplevel
-  from sav_jax import metrics  # pylint: disable=import-outside-toplevel
-  assert sav_jax.viz is viz and sav_jax.metrics is metrics and callable(sav_jax.runtime.enable_compilation_cache)
-  with pytest.raises(AttributeError, match="no attribute 'nope'"):
-    sav_jax.nope  # pylint: disable=pointless-statement
-
 
 def test_colorize_fractional_valid_follows_the_metrics_threshold():
   rgb = viz.colorize(np.ones((1, 3), np.float32), 0.0, 2.0, valid=np.array([[0.3, 0.6, 1.0]]))

@@ -1,0 +1,43 @@
+"""The package's top level: its names load on use, and the light entry points skip JAX."""
+
+import subprocess
+import sys
+
+import pytest
+
+import sav_jax
+from tests.conftest import ROOT
+
+
+def test_names_and_submodules_load_on_use():
+  from sav_jax import config, metrics, viz  # pylint: disable=import-outside-toplevel
+  from sav_jax.model import stereo_any_video  # pylint: disable=import-outside-toplevel
+  assert sav_jax.SAVConfig is config.SAVConfig
+  assert sav_jax.StereoAnyVideo is stereo_any_video.StereoAnyVideo
+  assert sav_jax.SAVOutput is stereo_any_video.SAVOutput
+  assert sav_jax.viz is viz and sav_jax.metrics is metrics
+  assert callable(sav_jax.runtime.enable_compilation_cache)
+  assert callable(sav_jax.convert.params_from_state_dict)
+  assert callable(sav_jax.inference.predict_video)
+  assert set(sav_jax.__all__) <= set(dir(sav_jax))
+  with pytest.raises(AttributeError, match="no attribute 'nope'"):
+    sav_jax.nope  # pylint: disable=pointless-statement
+
+
+# Importing JAX takes ~2 s on a 2-core machine: `sav-jax --help`, an argument error and a
+# training config file that does not parse are reported without it.
+_NO_JAX = """
+import sys
+import sav_jax, sav_jax.cli
+sav_jax.cli.build_parser()
+import configs.sceneflow, configs.synthetic, configs.mixed, configs.eval.sintel_final
+configs.sceneflow.get_config(); configs.synthetic.get_config()
+print(sorted(m for m in ("jax", "flax", "optax", "orbax") if m in sys.modules))
+"""
+
+
+def test_cli_parser_and_configs_do_not_import_jax():
+  result = subprocess.run([sys.executable, "-c", _NO_JAX], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120, check=False)
+  assert result.returncode == 0, result.stderr
+  assert result.stdout.strip() == "[]", result.stdout
