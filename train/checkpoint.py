@@ -32,6 +32,7 @@ import orbax.checkpoint as ocp
 
 import sav_jax
 from sav_jax.convert import orbax_io
+from sav_jax.model.vda import VideoDepthAnything
 from train import optim
 from train.state import TrainState
 
@@ -246,9 +247,12 @@ def load_model_params(path, cfg: sav_jax.SAVConfig, abstract_params) -> dict:
   return dict(variables["params"])
 
 
-def load_vda_params(path) -> dict:
-  """Host params of the frozen prior (to go under `params/depthnet/depthanything`)."""
-  params, unused = _convert(path, "vda", "vda_weights", sav_jax.convert.vda_params_from_state_dict)
+def load_vda_params(path, cfg: sav_jax.SAVConfig | None = None) -> dict:
+  """Host params of the frozen prior (to go under `params/depthnet/depthanything`), for the
+  depth prior of `cfg.vda_encoder` (default: the paper's model)."""
+  model = VideoDepthAnything(**(cfg or sav_jax.SAVConfig()).vda)
+  params, unused = _convert(path, "vda", "vda_weights",
+                            lambda sd: sav_jax.convert.vda_params_from_state_dict(sd, model))
   log.info("frozen depth prior from %s (%d unused keys)", path, len(unused))
   return jax.tree.map(np.asarray, params)
 

@@ -49,7 +49,7 @@ def initial_weights(config, abstract_params):
   cfg = state_lib.model_config(config)
   # Conversion is host work that may touch the default device (e.g. eager shape probes).
   with jax.transfer_guard("allow"):
-    vda = ckpt_lib.load_vda_params(config.vda_weights) if config.vda_weights else None
+    vda = ckpt_lib.load_vda_params(config.vda_weights, cfg) if config.vda_weights else None
     host = (ckpt_lib.load_model_params(config.init_from, cfg, abstract_params)
             if config.init_from else None)
   return host, vda

@@ -8,6 +8,7 @@ ndim >= 2 -> `kernel` (Linear transposed, ConvNd `O, I, *k -> *k, I, O`), 1-D
 
 from __future__ import annotations
 
+import collections
 import re
 
 import numpy as np
@@ -90,3 +91,70 @@ def value_problem(key: str, x: np.ndarray) -> str | None:
   if bad:
     return f"key {key!r}: {bad} of {x.size} values are NaN or inf"
   return None
+
+
+class KeyProblems:
+  """What keeps a state dict from being a model's, reported at once as one ValueError.
+
+  Every problem is collected, but the report lists at most `limit` of each kind (other
+  problems such as shapes and values first, then unexpected, then missing keys) and counts
+  the rest: a checkpoint of another variant has hundreds of mismatches, and a report of
+  hundreds of lines hides the first, telling one. When none of the state dict's keys is the
+  model's, the report says so first.
+  """
+
+  def __init__(self, prefix: str = "", limit: int = 10):
+    self.prefix, self.limit = prefix, limit
+    self.missing: list[str] = []
+    self.unexpected: list[str] = []
+    self.other: list[str] = []
+
+  def __len__(self) -> int:
+    return len(self.missing) + len(self.unexpected) + len(self.other)
+
+  def add_missing(self, key: str) -> None:
+    self.missing.append(f"missing key {self.prefix + key!r}")
+
+  def add_unexpected(self, key: str) -> None:
+    self.unexpected.append(f"unexpected key {self.prefix + key!r}")
+
+  def add(self, problem: str | None) -> None:
+    """A problem of one key (a shape, a value), written with the key's full name."""
+    if problem:
+      self.other.append(problem)
+
+  def extend(self, other: KeyProblems) -> None:
+    self.missing += other.missing
+    self.unexpected += other.unexpected
+    self.other += other.other
+
+  def raise_if_any(self, what: str, keys_given: int) -> None:
+    """Raises `ValueError("<what>: N problem(s) ...")` unless nothing was collected.
+
+    Args:
+      what: the header, e.g. "state dict does not match RAFT".
+      keys_given: how many keys the state dict has (all unexpected: a note says so).
+    """
+    if not len(self):
+      return
+    kinds = [(self.other, "key", "of a wrong shape or value"),
+             (self.unexpected, "unexpected key", ""), (self.missing, "missing key", "")]
+    counts = ", ".join(_count(len(items), noun, tail) for items, noun, tail in kinds if items)
+    lines = [f"{what}: {len(self)} problem(s)"
+             + (f" ({counts})" if sum(bool(items) for items, _, _ in kinds) > 1 else "") + ":"]
+    if keys_given and len(self.unexpected) == keys_given:
+      lines.append(f"none of the state dict's {_count(keys_given, 'key', '')} is one of the "
+                   "model's: is it a checkpoint of another model?")
+    for items, noun, tail in kinds:
+      lines += items[:self.limit]
+      rest = items[self.limit:]
+      if rest:
+        modules = collections.Counter(re.search(r"'([^.']*)", item).group(1) for item in rest)
+        lines.append(f"... and {_count(len(rest), 'more ' + noun, tail)} (by module: "
+                     + ", ".join(f"{m} {n}" for m, n in modules.most_common()) + ")")
+    raise ValueError("\n  ".join(lines))
+
+
+def _count(n: int, noun: str, tail: str) -> str:
+  """`3 missing keys`, `1 key of a wrong shape`: the noun's last word takes the plural."""
+  return f"{n} {noun}{'' if n == 1 else 's'}" + (f" {tail}" if tail else "")

@@ -21,9 +21,10 @@ import numpy as np
 from flax import traverse_util
 
 from sav_jax.config import SAVConfig
-from sav_jax.convert.keys import converted, flax_to_torch_array, path_to_torch
+from sav_jax.convert.keys import KeyProblems, converted, flax_to_torch_array, path_to_torch
 from sav_jax.model.init import abstract_variables
-from sav_jax.convert.vda import vda_params_from_state_dict, vda_state_dict_from_params
+from sav_jax.convert.vda import convert_vda_state_dict, vda_state_dict_from_params
+from sav_jax.model.vda import VideoDepthAnything
 
 VDA_PREFIX = "depthnet.depthanything."
 UNUSED_COLLECTION = "torch_unused"
@@ -54,18 +55,17 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
   cfg = cfg or SAVConfig()
   sd = strip_module_prefix(state_dict)
   target = traverse_util.flatten_dict(abstract_variables(cfg)["params"])
-  problems: list[str] = []
+  problems = KeyProblems()
   flat: dict[tuple[str, ...], np.ndarray] = {}
   unused = {k: np.asarray(sd[k]) for k in SAV_UNUSED_KEYS if k in sd}
-  problems += [f"missing key {k!r}" for k in SAV_UNUSED_KEYS if k not in sd]
   vda_sd = {k[len(VDA_PREFIX):]: v for k, v in sd.items() if k.startswith(VDA_PREFIX)}
-  try:
-    vda_params, vda_unused = vda_params_from_state_dict(vda_sd)
-    flat.update({("depthnet", "depthanything", *p): v
-                 for p, v in traverse_util.flatten_dict(vda_params).items()})
-    unused.update({VDA_PREFIX + k: v for k, v in vda_unused.items()})
-  except ValueError as e:
-    problems.append(f"in the depth prior ({VDA_PREFIX}*): {e}")
+  vda_problems = KeyProblems(prefix=VDA_PREFIX)
+  vda_params, vda_unused = convert_vda_state_dict(vda_sd, VideoDepthAnything(**cfg.vda),
+                                                  vda_problems)
+  problems.extend(vda_problems)
+  flat.update({("depthnet", "depthanything", *p): v
+               for p, v in traverse_util.flatten_dict(vda_params).items()})
+  unused.update({VDA_PREFIX + k: v for k, v in vda_unused.items()})
   # Exact official names only: `x.kernel` or `a.b_0.c` are not aliases of `x.weight`, `a.b.0.c`.
   by_torch = {path_to_torch(path): path for path in target
               if path[:2] != ("depthnet", "depthanything")}
@@ -74,17 +74,17 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
       continue
     path = by_torch.get(key)
     if path is None:
-      problems.append(f"unexpected key {key!r}")
+      problems.add_unexpected(key)
       continue
     arr, problem = converted(key, value, path[-1], tuple(target[path].shape))
-    if problem:
-      problems.append(problem)
-    else:
+    problems.add(problem)
+    if arr is not None:
       flat[path] = arr
-  problems += [f"missing key {key!r}" for key in by_torch if key not in sd]
-  if problems:
-    raise ValueError(f"state dict does not match Stereo Any Video ({cfg.vda_encoder}): "
-                     f"{len(problems)} problem(s):\n  " + "\n  ".join(problems))
+  for key in [*SAV_UNUSED_KEYS, *by_torch]:
+    if key not in sd:
+      problems.add_missing(key)
+  problems.raise_if_any(f"state dict does not match Stereo Any Video ({cfg.vda_encoder})",
+                        len(sd))
   return {"params": traverse_util.unflatten_dict(flat), UNUSED_COLLECTION: unused}
 
 

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from sav_jax.convert.keys import converted, path_to_torch
+from sav_jax.convert.keys import KeyProblems, converted, path_to_torch
 from sav_jax.convert.params import strip_module_prefix
 from sav_jax.convert.torch_io import load_state_dict_of_kind
 
@@ -55,7 +55,7 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
   target = {(col, path): leaf for col, tree in abstract_raft_variables().items()
             for path, leaf in traverse_util.flatten_dict(tree).items()}
   by_torch = {_torch_name(col, path): (col, path) for col, path in target}
-  problems: list[str] = []
+  problems = KeyProblems()
   flat: dict[str, dict] = {"params": {}, "batch_stats": {}}
   for key, value in sd.items():
     if key.endswith(".num_batches_tracked"):
@@ -63,25 +63,25 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
     if ".norm3." in key:
       twin = key.replace(".norm3.", ".downsample.1.")
       if twin not in by_torch:
-        problems.append(f"unexpected key {key!r}")
+        problems.add_unexpected(key)
       elif twin in sd and not np.array_equal(np.asarray(sd[twin]), np.asarray(value)):
-        problems.append(f"key {key!r} differs from {twin!r} (one BatchNorm in RAFT, "
+        problems.add(f"key {key!r} differs from {twin!r} (one BatchNorm in RAFT, "
                         "stored under both names)")
       continue
     entry = by_torch.get(key)
     if entry is None:
-      problems.append(f"unexpected key {key!r}")
+      problems.add_unexpected(key)
       continue
     col, path = entry
     arr, problem = converted(key, value, path[-1], tuple(target[entry].shape), "RAFT")
-    if problem:
-      problems.append(problem)
-    else:
+    problems.add(problem)
+    if arr is not None:
       flat[col][path] = arr
-  problems += [f"missing key {k!r}" for k in by_torch if k not in sd]
-  if problems:
-    raise ValueError(f"state dict does not match RAFT (the large model of raft-things.pth): "
-                     f"{len(problems)} problem(s):\n  " + "\n  ".join(problems))
+  for key in by_torch:
+    if key not in sd:
+      problems.add_missing(key)
+  problems.raise_if_any("state dict does not match RAFT (the large model of raft-things.pth)",
+                        len(sd))
   return {col: traverse_util.unflatten_dict(tree) for col, tree in flat.items()}
 
 

@@ -25,8 +25,7 @@ import numpy as np
 
 from flax.traverse_util import flatten_dict, unflatten_dict
 
-from sav_jax.convert.keys import (flax_to_torch_array, path_to_torch, torch_to_flax_array,
-                                  value_problem)
+from sav_jax.convert.keys import KeyProblems, converted, flax_to_torch_array, path_to_torch
 from sav_jax.model.dpt_temporal import MOTION_ATTENTION_BLOCKS, TEMPORAL_MAX_LEN, sinusoidal_table
 from sav_jax.model.vda import VideoDepthAnything
 
@@ -84,7 +83,12 @@ def _unused_shapes(embed: int, f: int) -> dict[str, tuple[int, ...]]:
 def vda_pe_buffers(model: VideoDepthAnything | None = None) -> dict[str, np.ndarray]:
   """The `pos_encoder.pe` buffers `{torch_key: [1, max_len, C]}` the official module holds."""
   model = model or VideoDepthAnything()
-  widths = (model.out_channels[2], model.out_channels[3], model.features, model.features)
+  return _pe_buffers((model.out_channels[2], model.out_channels[3], model.features,
+                      model.features))
+
+
+def _pe_buffers(widths) -> dict[str, np.ndarray]:
+  """The buffers of the four motion modules of these channel widths."""
   out = {}
   for i, c in enumerate(widths):
     for j in range(MOTION_ATTENTION_BLOCKS):
@@ -95,17 +99,20 @@ def vda_pe_buffers(model: VideoDepthAnything | None = None) -> dict[str, np.ndar
 
 
 def _check_pe(sd: dict[str, np.ndarray], expected: dict[str, np.ndarray],
-              problems: list[str]) -> None:
+              problems: KeyProblems) -> None:
   for key, table in expected.items():
     if key not in sd:
-      problems.append(f"missing key {key} (sinusoidal buffer)")
+      problems.add_missing(key)
       continue
     a = np.asarray(sd[key])
+    name = repr(problems.prefix + key)
     if a.shape != table.shape:
-      problems.append(f"shape mismatch for {key}: got {a.shape}, expected {table.shape}")
+      problems.add(f"key {name}: shape {a.shape} does not match Video Depth Anything (expects "
+                   f"{table.shape}, a sinusoidal buffer)")
     elif not np.allclose(a, table, rtol=0.0, atol=PE_ATOL):
       err = float(np.max(np.abs(a.astype(np.float64) - table)))
-      problems.append(f"{key} is not the sinusoidal table (max abs diff {err:.3g} > {PE_ATOL})")
+      problems.add(f"key {name} is not the sinusoidal table (max abs diff {err:.3g} > "
+                   f"{PE_ATOL})")
 
 
 def vda_params_from_state_dict(sd: dict[str, np.ndarray],
@@ -126,42 +133,45 @@ def vda_params_from_state_dict(sd: dict[str, np.ndarray],
     `(params, unused)`: the `params` collection of `VideoDepthAnything` (float32
     numpy leaves) and `{key: array}` for exactly the `VDA_UNUSED_KEYS`.
   """
-  model = model or VideoDepthAnything()
+  problems = KeyProblems()
+  params, unused = convert_vda_state_dict(sd, model or VideoDepthAnything(), problems)
+  problems.raise_if_any("state dict does not match Video Depth Anything", len(sd))
+  return params, unused
+
+
+def convert_vda_state_dict(sd: dict[str, np.ndarray], model: VideoDepthAnything,
+                           problems: KeyProblems) -> tuple[dict, dict[str, np.ndarray]]:
+  """`vda_params_from_state_dict`, collecting its problems in `problems` (whose `prefix`
+  names the keys as the caller's file does) instead of raising."""
   target = flatten_dict(_abstract_params(model))
   by_torch = {path_to_torch(path): path for path in target}
   unused_shapes = vda_unused_shapes(model)
   pe = vda_pe_buffers(model)
-  problems: list[str] = []
   flat, unused = {}, {}
   for key, value in sd.items():
-    a = np.asarray(value)
+    name = problems.prefix + key
     if key in pe:
       continue
     if key in unused_shapes:
+      a = np.asarray(value)
       if a.shape != unused_shapes[key]:
-        problems.append(f"shape mismatch for {key}: got {a.shape}, expected {unused_shapes[key]}")
+        problems.add(f"key {name!r}: shape {a.shape} does not match Video Depth Anything "
+                     f"(expects {unused_shapes[key]})")
       unused[key] = a
       continue
     path = by_torch.get(key)
     if path is None:
-      problems.append(f"unexpected key {key}")
+      problems.add_unexpected(key)
       continue
-    converted = torch_to_flax_array(a, path[-1])
-    if converted.shape != target[path].shape:
-      want = flax_to_torch_array(np.empty(target[path].shape, np.int8), path[-1]).shape
-      problems.append(f"shape mismatch for {key}: got {a.shape}, expected {want}")
-      continue
-    problem = value_problem(key, a)
-    if problem:
-      problems.append(problem)
-      continue
-    flat[path] = converted.astype(np.float32)
-  problems += [f"missing key {k}" for k, p in by_torch.items() if p not in flat and k not in sd]
-  problems += [f"missing key {k}" for k in unused_shapes if k not in sd]
+    arr, problem = converted(name, value, path[-1], tuple(target[path].shape),
+                             "Video Depth Anything")
+    problems.add(problem)
+    if arr is not None:
+      flat[path] = arr
+  for key in [*by_torch, *unused_shapes]:
+    if key not in sd:
+      problems.add_missing(key)
   _check_pe(sd, pe, problems)
-  if problems:
-    raise ValueError(f"{len(problems)} problem(s) converting the VDA state dict:\n  "
-                     + "\n  ".join(problems))
   return unflatten_dict(flat), unused
 
 
@@ -173,7 +183,8 @@ def vda_state_dict_from_params(params: dict, unused: dict[str, np.ndarray] | Non
     params: the `params` collection of `VideoDepthAnything`.
     unused: the `VDA_UNUSED_KEYS` arrays to carry over; keys not given (all, when None)
       are written as zeros of the official shape, so the file stays complete.
-    model: the configuration, for the sinusoidal buffers (default ViT-S).
+    model: the configuration, for the sinusoidal buffers (default: read from `params`, the
+      width of each motion module).
 
   Returns:
     `{torch_key: np.ndarray}` including the recomputed `pos_encoder.pe` buffers.
@@ -186,5 +197,10 @@ def vda_state_dict_from_params(params: dict, unused: dict[str, np.ndarray] | Non
                           np.shape(params["head"]["scratch"]["refinenet4"]["out_conv"]["bias"])[0])
   sd.update({k: np.asarray(unused[k]) if k in unused else np.zeros(shape, np.float32)
              for k, shape in shapes.items()})
-  sd.update(vda_pe_buffers(model))
+  if model is None:
+    head = params["head"]
+    sd.update(_pe_buffers([np.shape(head[f"motion_modules_{i}"]["temporal_transformer"]["norm"]
+                                    ["scale"])[0] for i in range(4)]))
+  else:
+    sd.update(vda_pe_buffers(model))
   return sd

@@ -110,9 +110,10 @@ def init_with_vda(vda_sd, cfg, seed: int) -> dict:
   """The whole model initialised as the official one, with the depth prior from `vda_sd`."""
   from sav_jax import convert  # pylint: disable=import-outside-toplevel
   from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
+  from sav_jax.model.vda import VideoDepthAnything  # pylint: disable=import-outside-toplevel
 
   params = init_variables(cfg, seed)["params"]
-  vda, unused = convert.vda_params_from_state_dict(vda_sd)
+  vda, unused = convert.vda_params_from_state_dict(vda_sd, VideoDepthAnything(**cfg.vda))
   params["depthnet"]["depthanything"] = vda
   prefix = convert.params.VDA_PREFIX
   return {"params": params, convert.params.UNUSED_COLLECTION: {prefix + k: v for k, v in unused.items()}}

@@ -68,6 +68,48 @@ def test_only_official_names_are_accepted(sav_state_dict):
   assert msg.count("problem") == 1 and "4 problem(s)" in msg, msg
 
 
+
+def test_long_reports_are_bounded_and_name_full_keys(sav_state_dict):
+  sd = {k: v for k, v in sav_state_dict.items() if not k.startswith("update_block.")}
+  vda = "depthnet.depthanything.pretrained.norm.bias"
+  del sd[vda]
+  sd["extra.weight"] = np.zeros(3, np.float32)
+  n_update = sum(k.startswith("update_block.") for k in sav_state_dict)
+  with pytest.raises(ValueError) as e:
+    convert.params_from_state_dict(sd)
+  lines = str(e.value).splitlines()
+  assert lines[0] == (f"state dict does not match Stereo Any Video (vits): {n_update + 2} "
+                      f"problem(s) (1 unexpected key, {n_update + 1} missing keys):"), lines[0]
+  assert "  unexpected key 'extra.weight'" in lines
+  assert f"  missing key '{vda}'" in lines  # the depth prior's keys by their name in the file
+  # Listed first: the depth prior's missing key, then 9 of update_block's.
+  assert lines[-1] == (f"  ... and {n_update - 9} more missing keys (by module: "
+                       f"update_block {n_update - 9})"), lines[-1]
+  assert len(lines) == 1 + 1 + 10 + 1, lines  # header, unexpected, 10 missing, the rest counted
+
+
+def test_a_state_dict_of_another_model_is_named_so():
+  with pytest.raises(ValueError) as e:
+    convert.params_from_state_dict({"encoder.conv.weight": np.zeros((2, 3), np.float32),
+                                    "head.bias": np.zeros(2, np.float32)})
+  assert e.value.args[0].splitlines()[1] == (
+      "  none of the state dict's 2 keys is one of the model's: is it a checkpoint of another "
+      "model?"), e.value
+  assert len(str(e.value).splitlines()) < 20
+
+
+def test_depth_prior_is_converted_for_the_configured_encoder():
+  # The ViT-L depth prior's keys have ViT-L shapes: only the missing keys are reported.
+  cfg = sav_jax.SAVConfig(vda_encoder="vitl")
+  sd = {"depthnet.depthanything.pretrained.cls_token": np.zeros((1, 1, 1024), np.float32),
+        "depthnet.depthanything.head.projects.3.weight": np.zeros((1024, 1024, 1, 1),
+                                                                  np.float32)}
+  with pytest.raises(ValueError) as e:
+    convert.params_from_state_dict(sd, cfg)
+  msg = str(e.value)
+  assert "(vitl)" in msg and "missing key" in msg
+  assert "wrong shape" not in msg and "cls_token'" not in msg, msg
+
 def test_non_float_and_non_finite_tensors_are_refused(sav_state_dict):
   sd = dict(sav_state_dict)
   w = sd["cnet.conv1.weight"].copy()

@@ -146,11 +146,12 @@ def test_sav_prefixed_subset_gives_same_params(converted, sav_state_dict):
 
 
 @pytest.mark.parametrize("edit,message", [
-    ("missing", "missing key pretrained.blocks.3.attn.qkv.weight"),
-    ("extra", "unexpected key head.scratch.refinenet5.out_conv.weight"),
-    ("shape", "shape mismatch for head.projects.0.weight"),
-    ("pe", f"{PE_KEY} is not the sinusoidal table"),
-    ("unused", "missing key pretrained.mask_token"),
+    ("missing", "missing key 'pretrained.blocks.3.attn.qkv.weight'"),
+    ("extra", "unexpected key 'head.scratch.refinenet5.out_conv.weight'"),
+    ("shape", "key 'head.projects.0.weight': shape (48, 384, 1, 2) does not match Video Depth "
+              "Anything (expects (48, 384, 1, 1))"),
+    ("pe", f"key '{PE_KEY}' is not the sinusoidal table"),
+    ("unused", "missing key 'pretrained.mask_token'"),
 ])
 def test_converter_is_strict(vda_state_dict, edit, message):
   sd = dict(vda_state_dict)
@@ -178,6 +179,17 @@ def test_converter_lists_all_problems(vda_state_dict):
     vda_params_from_state_dict(sd)
   msg = str(info.value)
   assert "3 problem" in msg
-  for part in ("missing key pretrained.norm.bias", "unexpected key pretrained.extra",
-               "shape mismatch for head.scratch.layer1_rn.weight"):
+  for part in ("missing key 'pretrained.norm.bias'", "unexpected key 'pretrained.extra'",
+               "key 'head.scratch.layer1_rn.weight': shape (64, 48, 1, 1)"):
     assert part in msg
+
+
+def test_export_writes_buffers_of_the_params_widths():
+  # A head narrower than VDA-S's: the sinusoidal buffers follow the params' widths.
+  from sav_jax.convert.vda import _abstract_params  # pylint: disable=import-outside-toplevel
+  model = VideoDepthAnything(features=32, out_channels=(24, 48, 96, 192))
+  params = jax.tree.map(lambda a: np.full(a.shape, 0.5, np.float32), _abstract_params(model))
+  sd = vda_state_dict_from_params(params)
+  assert sd[PE_KEY].shape == (1, sd[PE_KEY].shape[1], 32)
+  back, _ = vda_params_from_state_dict(sd, model)
+  jax.tree.map(np.testing.assert_array_equal, back, params)

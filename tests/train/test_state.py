@@ -286,12 +286,17 @@ def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path):
 
 
 def test_vda_weights_load_into_the_real_model(tmp_path, vda_state_dict):
-  from sav_jax.convert import save_state_dict  # pylint: disable=g-import-not-at-top
+  from sav_jax.convert import CheckpointError, save_state_dict  # pylint: disable=g-import-not-at-top
   save_state_dict(vda_state_dict, tmp_path / "vda.npz")
   vda = ckpt_lib.load_vda_params(tmp_path / "vda.npz")
   abstract = _real_abstract_params()["depthnet"]["depthanything"]
   assert jax.tree.structure(vda) == jax.tree.structure(abstract)
   jax.tree.map(lambda a, b: np.testing.assert_equal(np.shape(a), b.shape), vda, abstract)
+  # Converted for the run's depth prior: VDA-S weights are not a ViT-L prior.
+  with pytest.raises(CheckpointError, match=r"(?s)config\.vda_weights=.*vda\.npz: .*key "
+                     r"'pretrained\.cls_token': shape \(1, 1, 384\) does not match Video Depth "
+                     r"Anything \(expects \(1, 1, 1024\)\)"):
+    ckpt_lib.load_vda_params(tmp_path / "vda.npz", sav_jax.SAVConfig(vda_encoder="vitl"))
 
 
 def test_init_files_of_the_wrong_kind_name_the_file_and_the_field(tmp_path, vda_state_dict,
