@@ -118,6 +118,23 @@ class KeyProblems:
   def add_unexpected(self, key: str) -> None:
     self.unexpected.append(f"unexpected key {self.prefix + key!r}")
 
+  def convert(self, key: str, value, path: tuple[str, ...] | None, shape: tuple[int, ...],
+              model: str = "the model") -> np.ndarray | None:
+    """`converted` for the torch tensor `key` of the model's Flax `path` (None: not a key of
+    the model) and `shape`: the float32 Flax array, or None with the problem collected."""
+    if path is None:
+      self.add_unexpected(key)
+      return None
+    arr, problem = converted(self.prefix + key, value, path[-1], tuple(shape), model)
+    self.add(problem)
+    return arr
+
+  def add_absent(self, keys, state_dict) -> None:
+    """Each of `keys` that `state_dict` lacks is a missing key."""
+    for key in keys:
+      if key not in state_dict:
+        self.add_missing(key)
+
   def add(self, problem: str | None) -> None:
     """A problem of one key (a shape, a value), written with the key's full name."""
     if problem:

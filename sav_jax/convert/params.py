@@ -21,7 +21,7 @@ import numpy as np
 from flax import traverse_util
 
 from sav_jax.config import SAVConfig
-from sav_jax.convert.keys import KeyProblems, converted, flax_to_torch_array, path_to_torch
+from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch
 from sav_jax.model.init import abstract_variables
 from sav_jax.convert.vda import convert_vda_state_dict, vda_state_dict_from_params
 from sav_jax.model.vda import VideoDepthAnything
@@ -73,16 +73,10 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
     if key.startswith(VDA_PREFIX) or key in SAV_UNUSED_KEYS:
       continue
     path = by_torch.get(key)
-    if path is None:
-      problems.add_unexpected(key)
-      continue
-    arr, problem = converted(key, value, path[-1], tuple(target[path].shape))
-    problems.add(problem)
+    arr = problems.convert(key, value, path, path and target[path].shape)
     if arr is not None:
       flat[path] = arr
-  for key in [*SAV_UNUSED_KEYS, *by_torch]:
-    if key not in sd:
-      problems.add_missing(key)
+  problems.add_absent([*SAV_UNUSED_KEYS, *by_torch], sd)
   problems.raise_if_any(f"state dict does not match Stereo Any Video ({cfg.vda_encoder})",
                         len(sd))
   return {"params": traverse_util.unflatten_dict(flat), UNUSED_COLLECTION: unused}

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from sav_jax.convert.keys import KeyProblems, converted, path_to_torch
+from sav_jax.convert.keys import KeyProblems, path_to_torch
 from sav_jax.convert.params import strip_module_prefix
 from sav_jax.convert.torch_io import load_state_dict_of_kind
 
@@ -68,18 +68,11 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
         problems.add(f"key {key!r} differs from {twin!r} (one BatchNorm in RAFT, "
                         "stored under both names)")
       continue
-    entry = by_torch.get(key)
-    if entry is None:
-      problems.add_unexpected(key)
-      continue
-    col, path = entry
-    arr, problem = converted(key, value, path[-1], tuple(target[entry].shape), "RAFT")
-    problems.add(problem)
+    col, path = by_torch.get(key, (None, None))
+    arr = problems.convert(key, value, path, path and target[col, path].shape, "RAFT")
     if arr is not None:
       flat[col][path] = arr
-  for key in by_torch:
-    if key not in sd:
-      problems.add_missing(key)
+  problems.add_absent(by_torch, sd)
   problems.raise_if_any("state dict does not match RAFT (the large model of raft-things.pth)",
                         len(sd))
   return {col: traverse_util.unflatten_dict(tree) for col, tree in flat.items()}

@@ -25,7 +25,7 @@ import numpy as np
 
 from flax.traverse_util import flatten_dict, unflatten_dict
 
-from sav_jax.convert.keys import KeyProblems, converted, flax_to_torch_array, path_to_torch
+from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch
 from sav_jax.model.dpt_temporal import MOTION_ATTENTION_BLOCKS, TEMPORAL_MAX_LEN, sinusoidal_table
 from sav_jax.model.vda import VideoDepthAnything
 
@@ -160,17 +160,11 @@ def convert_vda_state_dict(sd: dict[str, np.ndarray], model: VideoDepthAnything,
       unused[key] = a
       continue
     path = by_torch.get(key)
-    if path is None:
-      problems.add_unexpected(key)
-      continue
-    arr, problem = converted(name, value, path[-1], tuple(target[path].shape),
-                             "Video Depth Anything")
-    problems.add(problem)
+    arr = problems.convert(key, value, path, path and target[path].shape,
+                           "Video Depth Anything")
     if arr is not None:
       flat[path] = arr
-  for key in [*by_torch, *unused_shapes]:
-    if key not in sd:
-      problems.add_missing(key)
+  problems.add_absent([*by_torch, *unused_shapes], sd)
   _check_pe(sd, pe, problems)
   return unflatten_dict(flat), unused
 
