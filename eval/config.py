@@ -15,6 +15,10 @@ import pathlib
 
 import ml_collections
 
+# The methods a run evaluates: the model, and the baselines `--baseline` adds.
+METHOD_NAMES = {"sav": "Stereo Any Video", "sgbm": "StereoSGBM"}
+BASELINES = ("sgbm",)
+
 
 def load_config(spec: str) -> ml_collections.ConfigDict:
   """Loads `path/to/config.py` or `path/to/config.py:arg`."""

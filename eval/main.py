@@ -20,9 +20,11 @@ import sys
 import time
 
 from eval import config as eval_config
-from eval import data as eval_data
-from eval import report, runner
-from sav_jax import inference, runtime
+from eval import report
+from sav_jax import runtime
+# The evaluation's own modules (`eval.runner`, `sav_jax.inference`) import JAX: they are
+# imported once the arguments and the config are checked, so `--help` and a bad config or
+# override are answered at once.
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, check_output_dir,
                            command_logging, resolve_devices_option, setup_compile_cache)
 
@@ -39,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--data-root", default="data/datasets",
                  help="datasets folder or the dataset's own folder (default data/datasets)")
   p.add_argument("--out", help="output folder (default outputs/eval/<dataset>)")
-  p.add_argument("--baseline", action="append", choices=runner.BASELINES, default=[],
+  p.add_argument("--baseline", action="append", choices=eval_config.BASELINES, default=[],
                  help="add a baseline row computed on the same frames (repeatable)")
   p.add_argument("--overwrite", action="store_true", help="replace existing results")
   add_compile_cache_arguments(p)
@@ -66,6 +68,14 @@ def main(argv: list[str] | None = None) -> int:
 def run(args, overrides) -> int:
   """Loads config, data and weights, evaluates every sequence, writes the reports."""
   config = eval_config.apply_overrides(eval_config.load_config(args.config), overrides)
+  if config.iters < 2 or config.iters % 2:
+    raise ValueError(f"config.iters must be an even number >= 2, got {config.iters}")
+  if config.matmul_precision not in runtime.MATMUL_PRECISIONS:
+    raise ValueError(f"config.matmul_precision must be one of {runtime.MATMUL_PRECISIONS}, got "
+                     f"{config.matmul_precision!r}")
+  from eval import data as eval_data  # pylint: disable=import-outside-toplevel
+  from eval import runner  # pylint: disable=import-outside-toplevel
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
   out = check_output_dir(args.out or f"outputs/eval/{config.dataset}")
   restored = runner.restore_set_aside(out)
   if restored:
@@ -77,11 +87,6 @@ def run(args, overrides) -> int:
   if earlier and not args.overwrite:  # also the predictions of an interrupted run
     raise FileExistsError(f"{', '.join(map(str, earlier))} exist; pass --overwrite to replace "
                           "them")
-  if config.iters < 2 or config.iters % 2:
-    raise ValueError(f"config.iters must be an even number >= 2, got {config.iters}")
-  if config.matmul_precision not in runtime.MATMUL_PRECISIONS:
-    raise ValueError(f"config.matmul_precision must be one of {runtime.MATMUL_PRECISIONS}, got "
-                     f"{config.matmul_precision!r}")
   inference.check_window(config.window, config.stride)
   devices = resolve_devices_option(config.devices, "config.devices")
   setup_compile_cache(args)
@@ -116,6 +121,7 @@ def run(args, overrides) -> int:
 def evaluate(args, config, out, seqs, variables, model_cfg, described, devices=None,
              flow_fn=None) -> int:
   """Evaluates every sequence and writes the reports."""
+  from eval import runner  # pylint: disable=import-outside-toplevel
   methods = ["sav"] + [b for b in dict.fromkeys(args.baseline)]
   on = f"; {len(devices)} {devices[0].platform} devices" if devices and len(devices) > 1 else ""
   print(f"{config.dataset}/{config.split}: {len(seqs)} sequences; weights: {described}{on}")
@@ -124,7 +130,7 @@ def evaluate(args, config, out, seqs, variables, model_cfg, described, devices=N
     res = runner.evaluate_sequence(seq, methods, variables=variables, model_cfg=model_cfg,
                                    config=config, out=out, devices=devices, flow_fn=flow_fn)
     results.append(res)
-    line = "  ".join(f"{runner.METHOD_NAMES[m]}: EPE {r['disp_epe_mean']:.3f} TEPE "
+    line = "  ".join(f"{eval_config.METHOD_NAMES[m]}: EPE {r['disp_epe_mean']:.3f} TEPE "
                      f"{r['disp_temp_epe_mean']:.3f}" for m, r in res.metrics.items())
     print(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  {line}")
   summary = build_summary(config, described, results, methods)
@@ -136,6 +142,7 @@ def evaluate(args, config, out, seqs, variables, model_cfg, described, devices=N
 
 def build_summary(config, described: str, results: list, methods: list[str]) -> dict:
   """Everything `report` writes: config, weights, per-sequence and aggregate metrics."""
+  from eval import runner  # pylint: disable=import-outside-toplevel
   frames = sum(r.frames for r in results)
   summary = {"dataset": config.dataset, "split": config.split, "config": config.to_dict(),
              "weights": described, "frames": frames,
@@ -143,7 +150,7 @@ def build_summary(config, described: str, results: list, methods: list[str]) -> 
              "created": time.strftime("%Y-%m-%d %H:%M:%S"), "methods": {}, "sequences": []}
   for m in methods:
     seconds = sum(r.seconds.get(m, 0.0) for r in results)
-    summary["methods"][m] = {"name": runner.METHOD_NAMES[m],
+    summary["methods"][m] = {"name": eval_config.METHOD_NAMES[m],
                              "aggregate": runner.aggregate(results, m),
                              "seconds": seconds,
                              "compile_seconds": sum(r.compile_seconds.get(m, 0.0)

@@ -21,12 +21,10 @@ import numpy as np
 
 from eval import data as eval_data
 from eval import plots
+from eval.config import BASELINES, METHOD_NAMES
 from sav_jax import inference, metrics
 
 log = logging.getLogger(__name__)
-
-METHOD_NAMES = {"sav": "Stereo Any Video", "sgbm": "StereoSGBM"}
-BASELINES = ("sgbm",)
 
 
 @dataclasses.dataclass

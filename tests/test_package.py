@@ -24,19 +24,19 @@ def test_names_and_submodules_load_on_use():
     sav_jax.nope  # pylint: disable=pointless-statement
 
 
-# Importing JAX takes ~2 s on a 2-core machine: `sav-jax --help`, an argument error and a
-# training config file that does not parse are reported without it.
+# Importing JAX takes ~2 s on a 2-core machine: `sav-jax --help`, `python -m eval --help`, an
+# argument error and a training config file that does not parse are reported without it.
 _NO_JAX = """
 import sys
-import sav_jax, sav_jax.cli
-sav_jax.cli.build_parser()
+import sav_jax, sav_jax.cli, eval.main
+sav_jax.cli.build_parser(); eval.main.build_parser()
 import configs.sceneflow, configs.synthetic, configs.mixed, configs.eval.sintel_final
 configs.sceneflow.get_config(); configs.synthetic.get_config()
 print(sorted(m for m in ("jax", "flax", "optax", "orbax") if m in sys.modules))
 """
 
 
-def test_cli_parser_and_configs_do_not_import_jax():
+def test_cli_parsers_and_configs_do_not_import_jax():
   result = subprocess.run([sys.executable, "-c", _NO_JAX], cwd=ROOT, capture_output=True,
                           text=True, timeout=120, check=False)
   assert result.returncode == 0, result.stderr
