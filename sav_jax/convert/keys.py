@@ -166,10 +166,27 @@ class KeyProblems:
       lines += items[:self.limit]
       rest = items[self.limit:]
       if rest:
-        modules = collections.Counter(re.search(r"'([^.']*)", item).group(1) for item in rest)
         lines.append(f"... and {_count(len(rest), 'more ' + noun, tail)} (by module: "
-                     + ", ".join(f"{m} {n}" for m, n in modules.most_common()) + ")")
+                     + ", ".join(f"{m} {n}" for m, n in _by_module(rest)) + ")")
     raise ValueError("\n  ".join(lines))
+
+
+def _by_module(items: list[str]) -> list[tuple[str, int]]:
+  """`[(module, count)]` of the keys quoted in `items`, most first, each module named by as
+  many leading names as keep the groups as few as by the first name alone (`update_block.gru`
+  when only it is concerned, not `update_block`); never by a key's last name."""
+  keys = [re.search(r"'([^']*)'", item).group(1).split(".") for item in items]
+
+  def grouped(depth):
+    return collections.Counter(".".join(k[:max(1, min(depth, len(k) - 1))]) for k in keys)
+
+  groups = grouped(1)
+  for depth in range(2, max(map(len, keys))):
+    finer = grouped(depth)
+    if len(finer) > len(groups):
+      break
+    groups = finer
+  return groups.most_common()
 
 
 def _count(n: int, noun: str, tail: str) -> str:

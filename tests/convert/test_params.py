@@ -88,6 +88,26 @@ def test_long_reports_are_bounded_and_name_full_keys(sav_state_dict):
   assert len(lines) == 1 + 1 + 10 + 1, lines  # header, unexpected, 10 missing, the rest counted
 
 
+def test_report_counts_the_rest_by_the_modules_concerned():
+  from sav_jax.convert.keys import KeyProblems  # pylint: disable=import-outside-toplevel
+  problems = KeyProblems(limit=2)
+  problems.add_absent([f"update_block.gru.conv{i}.weight" for i in range(5)], {})
+  with pytest.raises(ValueError) as e:
+    problems.raise_if_any("no match", keys_given=3)
+  assert str(e.value).splitlines() == [
+      "no match: 5 problem(s):", "  missing key 'update_block.gru.conv0.weight'",
+      "  missing key 'update_block.gru.conv1.weight'",
+      "  ... and 3 more missing keys (by module: update_block.gru 3)"]
+  problems.add_unexpected("fnet.extra.weight")
+  problems.add_missing("depthnet.depthanything.pretrained.norm.bias")
+  with pytest.raises(ValueError) as e:
+    problems.raise_if_any("no match", keys_given=3)
+  assert str(e.value).splitlines()[0] == ("no match: 7 problem(s) (1 unexpected key, "
+                                          "6 missing keys):")
+  assert str(e.value).splitlines()[-1] == ("  ... and 4 more missing keys (by module: "
+                                           "update_block.gru 3, depthnet.depthanything 1)")
+  KeyProblems().raise_if_any("nothing to report", keys_given=0)  # no problems: no error
+
 def test_a_state_dict_of_another_model_is_named_so():
   with pytest.raises(ValueError) as e:
     convert.params_from_state_dict({"encoder.conv.weight": np.zeros((2, 3), np.float32),
