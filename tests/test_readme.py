@@ -1,0 +1,109 @@
+"""The READMEs' references stay true: the files, the Python names and the command-line flags
+they name exist (a renamed flag or module would otherwise leave the documentation wrong)."""
+
+import glob
+import importlib
+import re
+
+import pytest
+
+from tests.conftest import ROOT
+
+DOCS = ("README.md", "benchmarks/README.md")
+
+
+def _code(doc: str) -> str:
+  """The text of the fenced blocks and inline code spans of `doc`."""
+  text = (ROOT / doc).read_text(encoding="utf-8")
+  blocks = re.findall(r"^```[^\n]*\n(.*?)^```", text, flags=re.S | re.M)
+  spans = re.findall(r"`([^`\n]+)`", re.sub(r"^```.*?^```", "", text, flags=re.S | re.M))
+  return "\n".join(blocks + spans)
+
+
+def _expand(pattern: str) -> list[str]:
+  """`a_{x,y}.json` -> [a_x.json, a_y.json] (one brace group)."""
+  m = re.search(r"\{([^{}]*)\}", pattern)
+  if not m:
+    return [pattern]
+  return [pattern[:m.start()] + alt + pattern[m.end():] for alt in m.group(1).split(",")]
+
+
+@pytest.mark.parametrize("doc", DOCS)
+def test_named_files_exist(doc):
+  text = (ROOT / doc).read_text(encoding="utf-8")
+  refs = set(re.findall(r"(?<![\w/.-])((?:benchmarks|configs|sav_jax|train|eval|tests|\.ci)/"
+                        r"[\w/.*{},-]*[\w*}])", text))
+  assert len(refs) > 10, refs  # the pattern still finds the references
+  missing = [ref for ref in sorted(refs) for path in _expand(ref)
+             if not glob.glob(str(ROOT / path)) and not glob.glob(str(ROOT / path) + "*")
+             and not ref.startswith("sav_jax/assets/")]  # optional: a bundled checkpoint
+  assert not missing, f"{doc} names files that do not exist: {missing}"
+
+
+@pytest.mark.parametrize("doc", DOCS)
+def test_named_python_objects_exist(doc):
+  names = set(re.findall(r"\bsav_jax(?:\.\w+)+", (ROOT / doc).read_text(encoding="utf-8")))
+  unresolved = []
+  for name in sorted(names):
+    parts = name.split(".")
+    for i in range(len(parts), 0, -1):
+      try:
+        obj = importlib.import_module(".".join(parts[:i]))
+        break
+      except ImportError:
+        continue
+    try:
+      for attr in parts[i:]:
+        obj = getattr(obj, attr)
+    except AttributeError:
+      unresolved.append(name)
+  assert not unresolved, f"{doc} names Python objects that do not exist: {unresolved}"
+
+
+def _options(parser) -> set[str]:
+  return {s for action in parser._actions for s in action.option_strings}  # pylint: disable=protected-access
+
+
+@pytest.mark.parametrize("doc", DOCS)
+def test_command_line_flags_exist(doc):
+  from eval import main as eval_main  # pylint: disable=import-outside-toplevel
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  sub = next(a for a in cli.build_parser()._actions if a.choices and "infer" in a.choices)  # pylint: disable=protected-access
+  commands = {f"sav-jax {name}": _options(p) for name, p in sub.choices.items()}
+  commands["python -m eval"] = _options(eval_main.build_parser())
+  code = _code(doc)
+  bad, seen = [], 0
+  for line in code.splitlines():
+    for m in re.finditer(r"(sav-jax \w+(?![\w-])|python -m eval)\b(.*?)"
+                         r"(?=sav-jax |python -m |$)", line):
+      command, rest = m.group(1), m.group(2)
+      if command not in commands:
+        bad.append(f"unknown command {command!r} in {line!r}")
+        continue
+      for flag in re.findall(r"(?<![\w.-])(--[a-z][\w-]*)", rest):
+        seen += 1
+        if flag not in commands[command]:
+          bad.append(f"{command} has no {flag} ({line.strip()!r})")
+  assert seen > 5, "the pattern still finds the commands' flags"
+  assert not bad, f"{doc}: " + "; ".join(bad)
+
+
+def _has_field(config, dotted: str) -> bool:
+  node = config
+  for name in dotted.split("."):
+    if not hasattr(node, "keys") or name not in node:
+      return False
+    node = node[name]
+  return True
+
+
+@pytest.mark.parametrize("doc", DOCS)
+def test_config_overrides_name_config_fields(doc):
+  """Every `--config.<field>` is a field of the training configs or of the eval configs."""
+  from configs import mixed, sceneflow, synthetic  # pylint: disable=import-outside-toplevel
+  from eval import config as eval_config  # pylint: disable=import-outside-toplevel
+  configs = [m.get_config() for m in (sceneflow, mixed, synthetic)]
+  configs.append(eval_config.load_config(str(ROOT / "configs" / "eval" / "sintel_final.py")))
+  fields = set(re.findall(r"--config\.([a-z_][\w.]*\w)", _code(doc)))
+  unknown = sorted(f for f in fields if not any(_has_field(c, f) for c in configs))
+  assert not unknown, f"{doc} overrides config fields that no config has: {unknown}"
