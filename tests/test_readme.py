@@ -3,7 +3,10 @@ they name exist (a renamed flag or module would otherwise leave the documentatio
 
 import glob
 import importlib
+import json
 import re
+import subprocess
+import sys
 
 import pytest
 
@@ -107,3 +110,47 @@ def test_config_overrides_name_config_fields(doc):
   fields = set(re.findall(r"--config\.([a-z_][\w.]*\w)", _code(doc)))
   unknown = sorted(f for f in fields if not any(_has_field(c, f) for c in configs))
   assert not unknown, f"{doc} overrides config fields that no config has: {unknown}"
+
+
+# Imports each script named on the command line and runs its `main` until it parses its
+# arguments, then prints the parser's options as JSON (the scripts build their parsers in
+# `main`, some from helpers in benchmarks/timing.py).
+_SCRIPT_OPTIONS = """
+import argparse, importlib.util, json, pathlib, sys
+sys.path.insert(0, "benchmarks")
+class Parsed(Exception):
+  pass
+def parse(self, *args, **kwargs):
+  raise Parsed(self)
+argparse.ArgumentParser.parse_args = argparse.ArgumentParser.parse_known_args = parse
+options = {}
+for path in sys.argv[1:]:
+  spec = importlib.util.spec_from_file_location("_script_" + pathlib.Path(path).stem, path)
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  try:
+    module.main()
+  except Parsed as e:
+    options[path] = sorted(s for a in e.args[0]._actions for s in a.option_strings)
+print(json.dumps(options))
+"""
+
+
+def test_benchmark_script_flags_exist():
+  """`python benchmarks/X.py --flag` in either README: X.py's parser has `--flag`."""
+  uses = []
+  for doc in DOCS:
+    for line in _code(doc).splitlines():
+      for m in re.finditer(r"python (benchmarks/\w+\.py)(.*?)(?=python |sav-jax |$)", line):
+        uses += [(doc, m.group(1), flag, line.strip())
+                 for flag in re.findall(r"(?<![\w.-])(--[a-z][\w-]*)", m.group(2))]
+  scripts = sorted({script for _, script, _, _ in uses})
+  assert len(scripts) > 5, "the pattern still finds the scripts' flags"
+  result = subprocess.run([sys.executable, "-c", _SCRIPT_OPTIONS, *scripts], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300, check=False)
+  assert result.returncode == 0, result.stderr[-3000:]
+  options = json.loads(result.stdout.strip().splitlines()[-1])
+  assert sorted(options) == scripts, "every script parses its arguments in main()"
+  bad = [f"{doc}: {script} has no {flag} ({line!r})" for doc, script, flag, line in uses
+         if flag not in options[script]]
+  assert not bad, "; ".join(bad)
