@@ -108,6 +108,7 @@ class KeyProblems:
     self.missing: list[str] = []
     self.unexpected: list[str] = []
     self.other: list[str] = []
+    self.notes: list[str] = []  # what the problems suggest, said before them
 
   def __len__(self) -> int:
     return len(self.missing) + len(self.unexpected) + len(self.other)
@@ -141,6 +142,7 @@ class KeyProblems:
       self.other.append(problem)
 
   def extend(self, other: KeyProblems) -> None:
+    self.notes += other.notes
     self.missing += other.missing
     self.unexpected += other.unexpected
     self.other += other.other
@@ -162,6 +164,7 @@ class KeyProblems:
     if keys_given and len(self.unexpected) == keys_given:
       lines.append(f"none of the state dict's {_count(keys_given, 'key', '')} is one of the "
                    "model's: is it a checkpoint of another model?")
+    lines += self.notes
     for items, noun, tail in kinds:
       lines += items[:self.limit]
       rest = items[self.limit:]

@@ -26,6 +26,7 @@ import numpy as np
 from flax.traverse_util import flatten_dict, unflatten_dict
 
 from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch
+from sav_jax.model.dinov2 import DINO_VARIANTS
 from sav_jax.model.dpt_temporal import MOTION_ATTENTION_BLOCKS, TEMPORAL_MAX_LEN, sinusoidal_table
 from sav_jax.model.vda import VideoDepthAnything
 
@@ -166,7 +167,19 @@ def convert_vda_state_dict(sd: dict[str, np.ndarray], model: VideoDepthAnything,
       flat[path] = arr
   problems.add_absent([*by_torch, *unused_shapes], sd)
   _check_pe(sd, pe, problems)
+  _note_other_encoder(sd, model, problems)
   return unflatten_dict(flat), unused
+
+
+def _note_other_encoder(sd, model: VideoDepthAnything, problems: KeyProblems) -> None:
+  """Says which DINOv2 variant the weights are when it is not the model's (a ViT-L depth
+  prior for a ViT-S model gives hundreds of shape problems that do not say so)."""
+  width = np.shape(sd.get("pretrained.cls_token", ()))[-1:]
+  found = [name for name, v in DINO_VARIANTS.items() if (v["embed_dim"],) == width]
+  if found and found[0] != model.encoder:
+    problems.notes.append(
+        f"the depth prior's weights are {found[0]} (DINOv2 width {width[0]}); the model is "
+        f"configured for {model.encoder} (SAVConfig.vda_encoder)")
 
 
 def vda_state_dict_from_params(params: dict, unused: dict[str, np.ndarray] | None = None,

@@ -7,6 +7,7 @@ compile it run in subprocesses (test_sharding, test_multihost, test_resume_and_l
 import functools
 import json
 import pathlib
+import re
 import sys
 
 import flax.linen as nn
@@ -293,10 +294,14 @@ def test_vda_weights_load_into_the_real_model(tmp_path, vda_state_dict):
   assert jax.tree.structure(vda) == jax.tree.structure(abstract)
   jax.tree.map(lambda a, b: np.testing.assert_equal(np.shape(a), b.shape), vda, abstract)
   # Converted for the run's depth prior: VDA-S weights are not a ViT-L prior.
-  with pytest.raises(CheckpointError, match=r"(?s)config\.vda_weights=.*vda\.npz: .*key "
-                     r"'pretrained\.cls_token': shape \(1, 1, 384\) does not match Video Depth "
-                     r"Anything \(expects \(1, 1, 1024\)\)"):
+  with pytest.raises(CheckpointError) as e:
     ckpt_lib.load_vda_params(tmp_path / "vda.npz", sav_jax.SAVConfig(vda_encoder="vitl"))
+  assert str(e.value).splitlines()[1] == (
+      "  the depth prior's weights are vits (DINOv2 width 384); the model is configured for vitl "
+      "(SAVConfig.vda_encoder)"), e.value
+  assert re.search(r"config\.vda_weights=.*vda\.npz: .*key 'pretrained\.cls_token': shape "
+                   r"\(1, 1, 384\) does not match Video Depth Anything \(expects \(1, 1, 1024\)\)",
+                   str(e.value).replace("\n", " ")), e.value
 
 
 def test_init_files_of_the_wrong_kind_name_the_file_and_the_field(tmp_path, vda_state_dict,
