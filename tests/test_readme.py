@@ -74,10 +74,13 @@ def test_command_line_flags_exist(doc):
   sub = next(a for a in cli.build_parser()._actions if a.choices and "infer" in a.choices)  # pylint: disable=protected-access
   commands = {f"sav-jax {name}": _options(p) for name, p in sub.choices.items()}
   commands["python -m eval"] = _options(eval_main.build_parser())
+  # absl flags, defined in train/__main__.py (importing it would define them in this process)
+  commands["python -m train"] = {"--" + name for name in re.findall(
+      r"DEFINE_\w+\(\s*\"(\w+)\"", (ROOT / "train" / "__main__.py").read_text(encoding="utf-8"))}
   code = _code(doc)
   bad, seen = [], 0
   for line in code.splitlines():
-    for m in re.finditer(r"(sav-jax \w+(?![\w-])|python -m eval)\b(.*?)"
+    for m in re.finditer(r"(sav-jax \w+(?![\w-])|python -m eval|python -m train)\b(.*?)"
                          r"(?=sav-jax |python -m |$)", line):
       command, rest = m.group(1), m.group(2)
       if command not in commands:
