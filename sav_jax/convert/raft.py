@@ -66,7 +66,7 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
         problems.add_unexpected(key)
       elif twin in sd and not np.array_equal(np.asarray(sd[twin]), np.asarray(value)):
         problems.add(f"key {key!r} differs from {twin!r} (one BatchNorm in RAFT, "
-                        "stored under both names)")
+                     "stored under both names)")
       continue
     col, path = by_torch.get(key, (None, None))
     arr = problems.convert(key, value, path, path and target[col, path].shape, "RAFT")
