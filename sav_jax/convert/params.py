@@ -22,6 +22,7 @@ from flax import traverse_util
 
 from sav_jax.config import SAVConfig
 from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch
+from sav_jax.convert.torch_io import unwrap_state_dict
 from sav_jax.model.init import abstract_variables
 from sav_jax.convert.vda import convert_vda_state_dict, vda_state_dict_from_params
 from sav_jax.model.vda import VideoDepthAnything
@@ -32,17 +33,17 @@ UNUSED_COLLECTION = "torch_unused"
 SAV_UNUSED_KEYS = ("update_block.time_attn.temporal_attn.qkv.weight",)
 
 
-def strip_module_prefix(sd: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-  """Removes a leading `module.` (DataParallel) from every key that has it."""
-  return {k[len("module."):] if k.startswith("module.") else k: v for k, v in sd.items()}
 
 
 def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig | None = None) -> dict:
   """Official Stereo Any Video state dict -> Flax variables.
 
   Args:
-    state_dict: `{torch_name: array}` with the official key names (a leading
-      `module.` is accepted); use `sav_jax.convert.load_state_dict` to read files.
+    state_dict: `{torch_name: array}` with the official key names, as numpy arrays or
+      tensors that convert to them (torch's, JAX's); a leading `module.` and the wrappers
+      of `unwrap_state_dict` (`{"model": ...}`, `{"state_dict": ...}`) are accepted, so
+      `torch.load(path)`'s result can be passed as it is. Use
+      `sav_jax.convert.load_state_dict` to read files without torch.
     cfg: model config (default: the paper's model).
 
   Returns:
@@ -50,10 +51,11 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
 
   Raises:
     ValueError: listing every missing, unexpected and mis-shaped key, and every tensor that
-      is not floating point or holds NaN/inf, at once.
+      is not floating point or holds NaN/inf, at once; a `CheckpointError` (a ValueError)
+      when `state_dict` is not a state dict at all.
   """
   cfg = cfg or SAVConfig()
-  sd = strip_module_prefix(state_dict)
+  sd = unwrap_state_dict(state_dict, "state_dict")
   target = traverse_util.flatten_dict(abstract_variables(cfg)["params"])
   problems = KeyProblems()
   flat: dict[tuple[str, ...], np.ndarray] = {}

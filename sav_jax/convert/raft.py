@@ -19,8 +19,7 @@ import numpy as np
 from flax import traverse_util
 
 from sav_jax.convert.keys import KeyProblems, path_to_torch
-from sav_jax.convert.params import strip_module_prefix
-from sav_jax.convert.torch_io import load_state_dict_of_kind
+from sav_jax.convert.torch_io import load_state_dict_of_kind, unwrap_state_dict
 
 @functools.cache
 def abstract_raft_variables() -> dict:
@@ -40,7 +39,8 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
   """Official RAFT state dict (large model, as `raft-things.pth`) -> Flax variables.
 
   Args:
-    state_dict: `{torch_name: array}` (a leading `module.` is accepted); read files with
+    state_dict: `{torch_name: array}` (a leading `module.` and the wrappers of
+      `unwrap_state_dict` are accepted; torch and JAX tensors too); read files with
       `sav_jax.convert.load_state_dict` or use `load_raft`.
 
   Returns:
@@ -51,7 +51,7 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
       not floating point or holds NaN/inf, and every `norm3` that differs from its
       `downsample.1`, at once.
   """
-  sd = strip_module_prefix(state_dict)
+  sd = unwrap_state_dict(state_dict, "state_dict")
   target = {(col, path): leaf for col, tree in abstract_raft_variables().items()
             for path, leaf in traverse_util.flatten_dict(tree).items()}
   by_torch = {_torch_name(col, path): (col, path) for col, path in target}

@@ -153,12 +153,17 @@ def load_state_dict(path, *, opaque_unknown: bool = False) -> dict:
   return unwrap_state_dict(obj, source=str(path))
 
 
+def _is_tensor(v) -> bool:
+  """A numpy array, or an array-like with a shape (a torch or JAX tensor, ...)."""
+  return isinstance(v, np.ndarray) or (hasattr(v, "__array__") and hasattr(v, "shape"))
+
+
 def _is_array_dict(obj):
-  return bool(obj) and all(isinstance(v, np.ndarray) for v in obj.values())
+  return bool(obj) and all(_is_tensor(v) for v in obj.values())
 
 
 def _describe(obj):
-  if isinstance(obj, dict):
+  if isinstance(obj, Mapping):
     keys = list(obj)
     return f"a dict with {len(keys)} keys, starting {keys[:5]!r}"
   return f"a {type(obj).__name__}"
@@ -167,7 +172,8 @@ def _describe(obj):
 def unwrap_state_dict(obj, source: str = "<checkpoint>") -> dict:
   """Finds the flat state dict in a loaded checkpoint object.
 
-  Accepted forms: a raw `{name: array}` dict; `{"model": sd, ...}` (training checkpoints
+  Accepted forms: a raw `{name: array}` mapping (numpy arrays, or tensors that convert to
+  them: torch's, JAX's); `{"model": sd, ...}` (training checkpoints
   also hold `optimizer`, `scheduler`, `total_steps`: ignored); `{"state_dict": sd, ...}`;
   these wrappers may nest. A leading `module.` (from `DataParallel`) is then stripped from
   each key that has one. Unlike the official `demo.py`, which applies
@@ -187,14 +193,15 @@ def unwrap_state_dict(obj, source: str = "<checkpoint>") -> dict:
   """
   sd = obj
   for _ in range(4):
-    if not isinstance(sd, dict) or _is_array_dict(sd):
+    if not isinstance(sd, Mapping) or _is_array_dict(sd):
       break
-    wrapper = next((k for k in _WRAPPER_KEYS if isinstance(sd.get(k), dict)), None)
+    wrapper = next((k for k in _WRAPPER_KEYS if isinstance(sd.get(k), Mapping)), None)
     if wrapper is None:
       break
     sd = sd[wrapper]
-  if not isinstance(sd, dict) or not sd:
+  if not isinstance(sd, Mapping) or not sd:
     raise CheckpointError(f"{source}: no state dict found; the checkpoint is {_describe(obj)}")
+  sd = {k: _to_numpy(k, v, source) if _is_tensor(v) else v for k, v in sd.items()}
   bad = [(k, v) for k, v in sd.items() if not isinstance(k, str) or not isinstance(v, np.ndarray)]
   if bad:
     k, v = bad[0]
@@ -204,6 +211,17 @@ def unwrap_state_dict(obj, source: str = "<checkpoint>") -> dict:
         f"{_describe(obj)} (expected a raw state dict or one wrapped under 'model' or "
         "'state_dict')")
   return _strip_module_prefix(sd, source)
+
+
+def _to_numpy(key, v, source) -> np.ndarray:
+  if isinstance(v, np.ndarray):
+    return v
+  try:
+    return np.asarray(v)
+  except (TypeError, RuntimeError) as e:  # torch: a bfloat16 tensor, one that requires grad
+    raise CheckpointError(f"{source}: {key!r} ({type(v).__name__} of dtype "
+                          f"{getattr(v, 'dtype', '?')}) does not convert to a numpy array: {e}; "
+                          "convert it first (for torch: .detach().float())") from e
 
 
 def _strip_module_prefix(sd, source):

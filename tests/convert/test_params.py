@@ -38,6 +38,31 @@ def test_module_prefix_accepted(sav_state_dict, variables):
   jax.tree_util.tree_map(np.testing.assert_array_equal, got["params"], variables["params"])
 
 
+def test_loaded_checkpoint_objects_accepted_as_they_are(sav_state_dict, variables):
+  # What torch.load gives for a training checkpoint: the state dict under "model", with
+  # tensors that are not numpy arrays (JAX arrays here, torch's alike: both have __array__).
+  checkpoint = {"model": {"module." + k: jnp.asarray(v) for k, v in sav_state_dict.items()},
+                "optimizer": {"state": {}}, "total_steps": 7}
+  got = convert.params_from_state_dict(checkpoint)
+  jax.tree_util.tree_map(np.testing.assert_array_equal, got["params"], variables["params"])
+  with pytest.raises(convert.CheckpointError, match="state_dict: no state dict found; the "
+                     "checkpoint is a list"):
+    convert.params_from_state_dict([1, 2])
+  with pytest.raises(convert.CheckpointError, match=r"not a state dict of tensors: 1 of 2 "
+                     r"entries are not \(str, tensor\) pairs, e.g. 'step': int"):
+    convert.params_from_state_dict({"fnet.conv1.weight": np.zeros(3, np.float32), "step": 7})
+
+  class BFloat16Tensor:  # as torch's: an array-like that numpy cannot take
+    shape, dtype = (2,), "torch.bfloat16"
+
+    def __array__(self, *args, **kwargs):
+      raise TypeError("Got unsupported ScalarType BFloat16")
+
+  with pytest.raises(convert.CheckpointError, match=r"'fnet.conv1.weight' \(BFloat16Tensor of "
+                     r"dtype torch.bfloat16\) does not convert to a numpy array: .*\.float\(\)"):
+    convert.params_from_state_dict({"fnet.conv1.weight": BFloat16Tensor()})
+
+
 def test_strict_errors_list_every_problem(sav_state_dict):
   sd = dict(sav_state_dict)
   del sd["fnet.conv1.weight"]
