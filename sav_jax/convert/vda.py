@@ -26,6 +26,7 @@ import numpy as np
 from flax.traverse_util import flatten_dict, unflatten_dict
 
 from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch
+from sav_jax.convert.torch_io import unwrap_state_dict
 from sav_jax.model.dinov2 import DINO_VARIANTS
 from sav_jax.model.dpt_temporal import MOTION_ATTENTION_BLOCKS, TEMPORAL_MAX_LEN, sinusoidal_table
 from sav_jax.model.vda import VideoDepthAnything
@@ -127,13 +128,15 @@ def vda_params_from_state_dict(sd: dict[str, np.ndarray],
   `ValueError`.
 
   Args:
-    sd: `{torch_key: array}` without prefix (strip `depthnet.depthanything.` first).
+    sd: `{torch_key: array}` without prefix (strip `depthnet.depthanything.` first); the
+      wrappers of `unwrap_state_dict` and torch or JAX tensors are accepted.
     model: the target configuration (default: ViT-S, features 64).
 
   Returns:
     `(params, unused)`: the `params` collection of `VideoDepthAnything` (float32
     numpy leaves) and `{key: array}` for exactly the `VDA_UNUSED_KEYS`.
   """
+  sd = unwrap_state_dict(sd, "state_dict")
   problems = KeyProblems()
   params, unused = convert_vda_state_dict(sd, model or VideoDepthAnything(), problems)
   problems.raise_if_any("state dict does not match Video Depth Anything", len(sd))

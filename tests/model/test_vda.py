@@ -137,6 +137,13 @@ def test_round_trip_is_exact(converted, vda_state_dict):
       np.testing.assert_array_equal(back[k], v, err_msg=k)
 
 
+def test_wrapped_checkpoint_with_jax_tensors_gives_same_params(converted, vda_state_dict):
+  params, unused = vda_params_from_state_dict(
+      {"state_dict": {"module." + k: jnp.asarray(v) for k, v in vda_state_dict.items()}})
+  jax.tree.map(np.testing.assert_array_equal, params, converted[0])
+  assert sorted(unused) == sorted(converted[1])
+
+
 def test_sav_prefixed_subset_gives_same_params(converted, sav_state_dict):
   sub = {k[len(SAV_PREFIX):]: v for k, v in sav_state_dict.items() if k.startswith(SAV_PREFIX)}
   params, unused = vda_params_from_state_dict(sub)
