@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from sav_jax import cli, runtime
+from sav_jax import cli
 from tests.conftest import XLA_OLDER_EMITTERS
 
 pytestmark = pytest.mark.usefixtures("fast_compile")

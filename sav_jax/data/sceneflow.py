@@ -17,8 +17,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, check_matching, find_root, is_hidden,
                                list_files, require_dir)
