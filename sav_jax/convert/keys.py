@@ -9,6 +9,7 @@ ndim >= 2 -> `kernel` (Linear transposed, ConvNd `O, I, *k -> *k, I, O`), 1-D
 from __future__ import annotations
 
 import collections
+import copy
 import re
 
 import numpy as np
@@ -141,11 +142,13 @@ class KeyProblems:
     if problem:
       self.other.append(problem)
 
-  def extend(self, other: KeyProblems) -> None:
-    self.notes += other.notes
-    self.missing += other.missing
-    self.unexpected += other.unexpected
-    self.other += other.other
+  def scoped(self, prefix: str) -> KeyProblems:
+    """A view of this collector that names each key with `prefix` before it (the part of a
+    larger file that a sub-converter reads without its prefix); it collects into the same
+    lists."""
+    view = copy.copy(self)  # shallow: the lists are shared
+    view.prefix = self.prefix + prefix
+    return view
 
   def raise_if_any(self, what: str, keys_given: int) -> None:
     """Raises `ValueError("<what>: N problem(s) ...")` unless nothing was collected.

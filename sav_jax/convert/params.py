@@ -60,10 +60,8 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
   flat: dict[tuple[str, ...], np.ndarray] = {}
   unused = {k: np.asarray(sd[k]) for k in SAV_UNUSED_KEYS if k in sd}
   vda_sd = {k[len(VDA_PREFIX):]: v for k, v in sd.items() if k.startswith(VDA_PREFIX)}
-  vda_problems = KeyProblems(prefix=VDA_PREFIX)
   vda_params, vda_unused = convert_vda_state_dict(vda_sd, VideoDepthAnything(**cfg.vda),
-                                                  vda_problems)
-  problems.extend(vda_problems)
+                                                  problems.scoped(VDA_PREFIX))
   flat.update({("depthnet", "depthanything", *p): v
                for p, v in traverse_util.flatten_dict(vda_params).items()})
   unused.update({VDA_PREFIX + k: v for k, v in vda_unused.items()})
