@@ -44,12 +44,36 @@ def require_file(path: PathLike, what: str = "file") -> Path:
   return path
 
 
-def _imread(path: PathLike) -> np.ndarray:
-  path = require_file(path, "image")
-  # cv2.imread returns None (no exception) for unreadable or truncated files.
-  img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+def is_truncated_jpeg(data: bytes) -> bool:
+  """Whether `data` is a JPEG stream cut before its end-of-image marker.
+
+  `cv2.imread` decodes such a file without an error (it warns "Premature end of JPEG file"
+  on stderr and fills the missing rows with grey), so a partly downloaded frame would pass
+  as a real one (`cv2.imdecode` of OpenCV 4.x returns None for it; this check does not
+  depend on that). Inside the compressed data a 0xFF byte is always followed by 0x00 or a
+  restart marker, so the end marker `FF D9` can only be a marker: a complete file has one
+  after its last start-of-scan `FF DA` (an embedded thumbnail's end marker comes before).
+  """
+  return data[:3] == b"\xff\xd8\xff" and data.rfind(b"\xff\xd9") < data.rfind(b"\xff\xda")
+
+
+def decode_image_file(path: PathLike, what: str = "image") -> np.ndarray:
+  """Decodes an image file as OpenCV does (`IMREAD_UNCHANGED`: BGR, grey or BGRA; 8 or 16
+  bit), refusing what `cv2.imread` would pass silently.
+
+  Raises:
+    FileNotFoundError: no such file (named).
+    ValueError: the file cannot be decoded, or is a JPEG cut short (named).
+  """
+  path = require_file(path, what)
+  data = path.read_bytes()
+  if is_truncated_jpeg(data):
+    raise ValueError(f"{path}: truncated JPEG (no end-of-image marker after its last scan: "
+                     "a partial download or copy?)")
+  # cv2.imdecode returns None (no exception) for unreadable or truncated PNG files.
+  img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
   if img is None:
-    raise ValueError(f"cannot decode image file {path}")
+    raise ValueError(f"{path}: cannot decode the {what} file")
   return img
 
 
@@ -65,7 +89,7 @@ def read_image(path: PathLike) -> np.ndarray:
   Returns:
     [H, W, 3] uint8 RGB.
   """
-  img = _imread(path)
+  img = decode_image_file(path)
   if img.dtype == np.uint16:
     img = (img >> 8).astype(np.uint8)
   elif img.dtype != np.uint8:
@@ -85,7 +109,7 @@ def read_png_uint16(path: PathLike) -> np.ndarray:
   Returns:
     [H, W] uint16.
   """
-  img = _imread(path)
+  img = decode_image_file(path)
   if img.dtype != np.uint16 or img.ndim != 2:
     raise ValueError(f"expected a 1-channel 16-bit PNG, got {img.dtype} with shape "
                      f"{img.shape} in {path}")
@@ -177,13 +201,13 @@ def read_sintel_disparity(disp_path: PathLike, occ_path: PathLike):
   Returns:
     (disparity [H, W] float32, valid [H, W] bool).
   """
-  rgb = _imread(disp_path)
+  rgb = decode_image_file(disp_path)
   if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] < 3:
     raise ValueError(f"expected an 8-bit RGB Sintel disparity PNG, got {rgb.dtype} "
                      f"{rgb.shape}: {disp_path}")
   b, g, r = (rgb[..., c].astype(np.float64) for c in range(3))  # OpenCV order is BGR
   disp = r * 4 + g / 2**6 + b / 2**14
-  occ = _imread(occ_path)
+  occ = decode_image_file(occ_path)
   if occ.ndim == 3:
     occ = occ[..., 0]
   if occ.shape != disp.shape:
@@ -301,7 +325,7 @@ def read_hdf5(path: PathLike, key: str) -> np.ndarray:
   path = require_file(path, "HDF5 file")
   try:
     with h5py.File(path, "r") as f:
-      if key not in f:
+      if not isinstance(f.get(key), h5py.Dataset):
         raise ValueError(f"HDF5 file {path} has no dataset {key!r} (has {sorted(f.keys())})")
       return np.asarray(f[key])
   except OSError as e:
@@ -314,7 +338,11 @@ def read_dsp5(path: PathLike) -> np.ndarray:
   Returns:
     [2H, 2W] float32 as stored (subsampling is the Spring reader's job).
   """
-  return read_hdf5(path, "disparity").astype(np.float32)
+  disp = read_hdf5(path, "disparity")
+  if disp.ndim != 2:
+    raise ValueError(f"Spring disparity {path}: dataset 'disparity' has shape {disp.shape}, "
+                     "not [2H, 2W]")
+  return disp.astype(np.float32)
 
 
 def depth_to_disparity(depth: np.ndarray, scale: float,

@@ -40,14 +40,22 @@ def view_key(path: Path) -> str:
   return parts[2] if len(parts) == 4 else "_".join(parts)
 
 
-def depth2disp_scale(left_cam: dict, right_cam: dict, where: str) -> float:
+def _camview(path: Path) -> tuple[np.ndarray, np.ndarray]:
+  """K ([3, 3]) and T ([4, 4] or [3, 4] camera-to-world) of a camview archive."""
+  cam = frame_io.read_npz(path)
+  if "K" not in cam or "T" not in cam:
+    raise ValueError(f"{path}: camview npz lacks K or T (has {sorted(cam)})")
+  k, t = np.asarray(cam["K"], np.float64), np.asarray(cam["T"], np.float64)
+  if k.shape != (3, 3) or t.shape not in ((4, 4), (3, 4)):
+    raise ValueError(f"{path}: camview npz has K of shape {k.shape} and T of shape {t.shape} "
+                     "(expected a 3x3 K and a 4x4 or 3x4 T)")
+  return k, t
+
+
+def depth2disp_scale(left_path: Path, right_path: Path) -> float:
   """K_left[0, 0] * ||T_left[:3, 3] - T_right[:3, 3]|| from two camview archives."""
-  for cam in (left_cam, right_cam):
-    if "K" not in cam or "T" not in cam:
-      raise ValueError(f"{where}: camview npz lacks K or T (has {sorted(cam)})")
-  baseline = np.linalg.norm(np.asarray(left_cam["T"], np.float64)[:3, 3]
-                            - np.asarray(right_cam["T"], np.float64)[:3, 3])
-  return float(np.asarray(left_cam["K"], np.float64)[0, 0] * baseline)
+  (k, t_left), (_, t_right) = _camview(left_path), _camview(right_path)
+  return float(k[0, 0] * np.linalg.norm(t_left[:3, 3] - t_right[:3, 3]))
 
 
 def _scene(scene: Path, dataset: str) -> DepthSequence:
@@ -61,8 +69,7 @@ def _scene(scene: Path, dataset: str) -> DepthSequence:
     files.update(lists)
     cams[side] = lists[side + "_cam"]
   check_matching(where, {"left": files["left"], "right": files["right"]}, view_key)
-  scale = depth2disp_scale(frame_io.read_npz(cams["left"][0]),
-                           frame_io.read_npz(cams["right"][0]), where)
+  scale = depth2disp_scale(cams["left"][0], cams["right"][0])
   return DepthSequence(scene.name, files, dataset=dataset, depth2disp_scale=scale,
                        depth_reader=frame_io.read_npy)
 

@@ -51,8 +51,13 @@ def depth2disp_scale(calib_path: Path) -> float:
   """P_rect_02[0, 0] * ||T_02 - T_03|| (about 721 * 0.54)."""
   calib = read_calib(calib_path)
   missing = [k for k in ("P_rect_02", "T_02", "T_03") if k not in calib]
-  if missing or calib["P_rect_02"].size != 12:
-    raise ValueError(f"KITTI calibration {calib_path} lacks {missing or ['a 3x4 P_rect_02']}")
+  if missing:
+    raise ValueError(f"KITTI calibration {calib_path} lacks {missing}")
+  sizes = {"P_rect_02": 12, "T_02": 3, "T_03": 3}
+  wrong = [f"{k} has {calib[k].size} values, not {n}" for k, n in sizes.items()
+           if calib[k].size != n]
+  if wrong:
+    raise ValueError(f"KITTI calibration {calib_path}: {'; '.join(wrong)}")
   return float(calib["P_rect_02"][0] * np.linalg.norm(calib["T_02"] - calib["T_03"]))
 
 

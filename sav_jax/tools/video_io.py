@@ -70,9 +70,11 @@ def to_rgb8(img: np.ndarray, source: str, notes: set[str]) -> np.ndarray:
 
 def read_frame(path, notes: set[str]) -> np.ndarray:
   """Decodes one image file to `[H, W, 3]` uint8 RGB (see `to_rgb8`)."""
-  img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-  if img is None:
-    raise ValueError(f"{path}: unreadable frame (not a decodable image)")
+  from sav_jax.data import frame_io  # pylint: disable=import-outside-toplevel
+  try:
+    img = frame_io.decode_image_file(path)
+  except ValueError as e:
+    raise ValueError(f"unreadable frame: {e}") from None
   return to_rgb8(img, str(path), notes)
 
 

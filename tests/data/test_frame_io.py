@@ -106,6 +106,32 @@ def test_read_image_jpeg_and_errors(tmp_path):
     frame_io.read_image(tmp_path / "corrupt.png")
 
 
+@pytest.mark.parametrize("progressive", [False, True])
+def test_read_image_refuses_a_jpeg_cut_short(tmp_path, progressive):
+  """`cv2.imread` decodes a truncated JPEG without an error (grey rows, a warning on stderr);
+  the reader refuses it by its missing end marker, even when an embedded thumbnail's end
+  marker comes earlier in the file, and takes bytes after a complete file's end."""
+  rgb = RNG.integers(0, 256, (64, 96, 3), dtype=np.uint8)
+  flags = [cv2.IMWRITE_JPEG_QUALITY, 95, cv2.IMWRITE_JPEG_PROGRESSIVE, int(progressive)]
+  data = cv2.imencode(".jpg", rgb[..., ::-1], flags)[1].tobytes()
+  thumb = cv2.imencode(".jpg", rgb[::8, ::8, ::-1])[1].tobytes()
+  app1 = b"Exif\x00\x00" + thumb  # an APP1 segment holding a whole JPEG, as EXIF does
+  with_thumb = data[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + data[2:]
+  for name, blob in (("plain", data), ("thumb", with_thumb)):
+    (tmp_path / f"{name}.jpg").write_bytes(blob)
+    whole = frame_io.read_image(tmp_path / f"{name}.jpg")
+    np.testing.assert_array_equal(
+        whole, cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)[..., ::-1])
+    (tmp_path / f"{name}_padded.jpg").write_bytes(blob + b"\x00" * 16)
+    np.testing.assert_array_equal(frame_io.read_image(tmp_path / f"{name}_padded.jpg"), whole)
+    (tmp_path / f"{name}_cut.jpg").write_bytes(blob[:len(blob) * 2 // 3])
+    assert cv2.imread(str(tmp_path / f"{name}_cut.jpg")) is not None  # what the check is for
+    with pytest.raises(ValueError, match=f"{name}_cut.jpg: truncated JPEG"):
+      frame_io.read_image(tmp_path / f"{name}_cut.jpg")
+  (tmp_path / "empty.jpg").write_bytes(b"")
+  with pytest.raises(ValueError, match="empty.jpg: cannot decode"):
+    frame_io.read_image(tmp_path / "empty.jpg")
+
 def test_sintel_disparity_png_and_occlusion_mask(tmp_path):
   r, g, b = (RNG.integers(0, 256, (4, 5), dtype=np.uint8) for _ in range(3))
   r[0, 0] = g[0, 0] = b[0, 0] = 0  # d = 0: invalid even where not occluded
@@ -206,6 +232,14 @@ def test_hdf5_dsp5(tmp_path, monkeypatch):
   (tmp_path / "bad.dsp5").write_bytes(b"garbage")
   with pytest.raises(ValueError, match="bad.dsp5"):
     frame_io.read_dsp5(tmp_path / "bad.dsp5")
+  with h5py.File(tmp_path / "group.dsp5", "w") as f:
+    f.create_group("disparity")  # a group of that name is not the dataset
+  with pytest.raises(ValueError, match="group.dsp5 has no dataset 'disparity'"):
+    frame_io.read_dsp5(tmp_path / "group.dsp5")
+  with h5py.File(tmp_path / "rgb.dsp5", "w") as f:
+    f.create_dataset("disparity", data=np.stack([disp] * 3, axis=-1))
+  with pytest.raises(ValueError, match=r"rgb.dsp5: dataset 'disparity' has shape \(4, 6, 3\)"):
+    frame_io.read_dsp5(tmp_path / "rgb.dsp5")
   monkeypatch.setitem(sys.modules, "h5py", None)  # import now fails as if absent
   with pytest.raises(ImportError, match="needs h5py"):
     frame_io.read_dsp5(tmp_path / "d.dsp5")

@@ -305,6 +305,15 @@ def test_infinigen_scale_values_clips_and_eval_cut(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="stem mismatch") as err:
       registry.get_sequences("infinigen_sv", tmp_path, "test")
     assert ("camera_0" in str(err.value)) == (kind == "camview"), err.value
+  for kind, ext in (("Depth", "npy"), ("Image", "png"), ("camview", "npz")):
+    d = frames / kind / "camera_1"
+    (d / f"{kind}_0_0_0005_1.{ext}").rename(d / f"{kind}_0_0_0002_1.{ext}")
+  cam = frames / "camview/camera_1/camview_0_0_0001_1.npz"
+  for k, t in ((np.array([400.0, 400.0, 6.0]), np.eye(4)), (np.eye(3), np.zeros(3))):
+    np.savez(cam, K=k, T=t)
+    with pytest.raises(ValueError, match=f"camview_0_0_0001_1.npz: camview npz has K of shape "
+                       rf"\({k.shape[0]},.*T of shape \({t.shape[0]},"):
+      registry.get_sequences("infinigen_sv", tmp_path, "test")
 
 
 def _vkitti2(root, rng, names, n=2):
@@ -391,6 +400,14 @@ def test_kitti_splits_sparse_depth_and_scale(tmp_path):
   shutil.rmtree(tmp_path / "kitti_depth/gt_depth/2011_09_28_drive_0037_sync")
   with pytest.raises(FileNotFoundError, match="2011_09_28_drive_0037_sync"):
     registry.get_sequences("kitti_depth", tmp_path, "test")
+  calib = tmp_path / "kitti_depth/input/2011_09_26/calib_cam_to_cam.txt"
+  calib.write_text(calib.read_text().replace("T_03: -4.731050e-01 5.551470e-03 -5.250882e-03",
+                                             "T_03: -4.731050e-01 5.551470e-03"))
+  with pytest.raises(ValueError, match="calib_cam_to_cam.txt: T_03 has 2 values, not 3"):
+    kitti_depth.depth2disp_scale(calib)
+  calib.write_text("P_rect_02: 1 2 3\n")
+  with pytest.raises(ValueError, match=r"calib_cam_to_cam.txt lacks \['T_02', 'T_03'\]"):
+    kitti_depth.depth2disp_scale(calib)
 
 
 @pytest.mark.parametrize("layout", ["sav", "spring"])
