@@ -4,9 +4,10 @@ A checkpoint `workdir/checkpoints/<step>/` holds three items:
   state:  `{"params", "opt_state", "step", "rng", "num_skipped"}` (`StandardSave`),
   data:   the grain iterator state of every process (`grain.checkpoint.CheckpointSave`,
           one JSON file per process),
-  config: `{"model": SAVConfig dict, "step": step}` (`JsonSave`), so that
-          `sav-jax infer`/`convert`, `python -m eval` and `init_from` can use the step
-          folder (or the workdir: its latest step) as model weights.
+  config: `{"model": SAVConfig dict, "step": step, "run": the training config}` (`JsonSave`),
+          so that `sav-jax infer`/`convert`, `python -m eval` and `init_from` can use the
+          step folder (or the workdir: its latest step) as model weights, and a resumed run
+          can name the fields changed since (`changed_fields`).
 Orbax writes into a temporary directory and renames it when complete, so a run killed
 mid-save leaves no checkpoint under a final name; such leftovers (`<step>.orbax-checkpoint-tmp*`,
 nothing else) are deleted at start.
@@ -20,6 +21,7 @@ Video Depth Anything file for the frozen prior), else random initialisation.
 
 from __future__ import annotations
 
+import json
 import logging
 import pathlib
 import re
@@ -80,9 +82,49 @@ def _state_dict(state: TrainState) -> dict:
           "rng": state.rng, "num_skipped": state.num_skipped}
 
 
+# Fields that say where and how a run executes, not what it computes: changing them on
+# resume is expected (prefixes).
+_OPERATIONAL = ("checkpoint.", "eval.", "compile_cache", "init_from", "vda_weights",
+                "random_depth_prior", "data.root", "data.num_threads", "data.prefetch",
+                "data.worker_count", "train.progress_bar", "train.log_every",
+                "train.max_skipped_steps", "model.remat")
+
+
+def run_fields(config) -> dict:
+  """A training config as `{"a.b.c": JSON value}` (tuples become lists)."""
+  flat = {}
+
+  def walk(block, prefix):
+    for key, value in block.items():
+      if hasattr(value, "items"):
+        walk(value, f"{prefix}{key}.")
+      else:
+        flat[prefix + key] = json.loads(json.dumps(value, default=repr))
+
+  walk(config, "")
+  return flat
+
+
+def changed_fields(manager: ocp.CheckpointManager, step: int, config) -> list[str]:
+  """`field: saved -> now` for every field of `config` that a resumed run changes, but
+  those that only say where and how it runs (`_OPERATIONAL`); [] for checkpoints written
+  before the config was saved with them."""
+  try:
+    saved = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+    saved = saved["config"].get("run")
+  except Exception:  # pylint: disable=broad-except  # the state's restore names problems
+    return []
+  if not isinstance(saved, dict):
+    return []
+  now = run_fields(config)
+  return [f"{k}: {saved.get(k, '(absent)')!r} -> {now.get(k, '(absent)')!r}"
+          for k in sorted(set(saved) | set(now))
+          if saved.get(k) != now.get(k) and not k.startswith(_OPERATIONAL)]
+
+
 def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step: int,
          params_finite: bool = True, force: bool = False,
-         model_config: sav_jax.SAVConfig | None = None) -> bool:
+         model_config: sav_jax.SAVConfig | None = None, run_config=None) -> bool:
   """Saves state, data-iterator state and the model config at `step`.
 
   Args:
@@ -94,6 +136,7 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
       only applies finite updates and reports `l2_params`); False refuses to save.
     force: save even if `step` is not on the manager's save interval.
     model_config: the model's config (default: `SAVConfig()`), for readers of the weights.
+    run_config: the training config, saved for `changed_fields` (None: not saved).
 
   Returns:
     Whether a save was started.
@@ -102,6 +145,8 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
     log.error("step %d: non-finite parameters; NOT saving a checkpoint", step)
     return False
   config = {"model": (model_config or sav_jax.SAVConfig()).to_dict(), "step": int(step)}
+  if run_config is not None:
+    config["run"] = run_fields(run_config)
   args = ocp.args.Composite(state=ocp.args.StandardSave(_state_dict(state)),
                             data=grain.checkpoint.CheckpointSave(data_iterator),
                             config=ocp.args.JsonSave(config))

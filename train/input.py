@@ -36,8 +36,12 @@ def _source(config, spec, split: str, seed: int):
     return pipeline.synthetic_source(cfg, data.synthetic.num_clips), None
   src = pipeline.registry_source(spec.dataset, data.root, data.frames, split=split,
                                  seed=config.seed)
-  augment = pipeline.Augment(tuple(data.crop), tuple(sorted(dict(data.augment).items())))
-  return src, augment
+  return src, pipeline.Augment(tuple(data.crop), augment_overrides(config))
+
+
+def augment_overrides(config) -> tuple[tuple[str, object], ...]:
+  """`config.data.augment` as `pipeline.Augment.overrides`."""
+  return tuple(sorted(dict(config.data.augment).items()))
 
 
 def train_dataset(config, process_index=None, process_count=None):
@@ -69,8 +73,9 @@ def eval_clips(config) -> list[dict]:
     cfg = synthetic_config(config.data, config.data.synthetic, seed=ev.synthetic_seed)
     ds = pipeline.synthetic_source(cfg, ev.num_clips)
     return pipeline.fixed_clips(ds, ev.num_clips)
+  # Consecutive frames, as the evaluation's (TEPE measures the change between frames).
   src = pipeline.registry_source(ev.dataset, config.data.root, config.data.frames,
-                                 split=ev.split, seed=config.seed)
+                                 split=ev.split, consecutive=True)
   stride = max(1, len(src) // ev.num_clips)  # spread over the split, deterministically
   picked = src[::stride][:ev.num_clips]
   crop = tuple(config.data.crop)

@@ -21,7 +21,8 @@ class MetricWriter:
 
   A run resumed at `start_step` re-runs the steps that a killed run logged after its last
   checkpoint: those JSONL records move to `metrics.superseded.jsonl` and TensorBoard
-  purges its events after `start_step`, so each step is logged once.
+  purges its events after `start_step`, so each step is logged once (a run restarted
+  before its first checkpoint moves every record: it validates at step 0 again).
 
   Args:
     workdir: run directory.
@@ -41,7 +42,9 @@ class MetricWriter:
     self._jsonl = open(workdir / "metrics.jsonl", "a", encoding="utf-8")
     try:
       from tensorboardX import SummaryWriter  # pylint: disable=g-import-not-at-top
-      self._tb = SummaryWriter(str(workdir / "tb"), purge_step=start_step + 1)
+      # TensorBoard drops the events at and after purge_step (all of them from step 0).
+      self._tb = SummaryWriter(str(workdir / "tb"),
+                               purge_step=start_step + 1 if start_step > 0 else 0)
     except ImportError:
       log.warning("tensorboardX is not installed: TensorBoard events are not written")
 
@@ -69,16 +72,18 @@ class MetricWriter:
 
 def _supersede(path: pathlib.Path, aside: pathlib.Path, start_step: int) -> None:
   """Moves the records of `path` with a step after `start_step`, and broken lines, to the
-  end of `aside`."""
+  end of `aside`; from step 0, every record (a run restarted before its first checkpoint
+  writes its at-start validation at step 0 again)."""
   if not path.is_file():
     return
+  last_kept = start_step if start_step > 0 else -1
   keep, later = [], []
   for line in path.read_text(encoding="utf-8").splitlines(keepends=True):
     try:
       step = int(json.loads(line)["step"])
     except (ValueError, KeyError, TypeError):
       step = None  # a line cut by the kill: moved aside too
-    (keep if step is not None and step <= start_step and line.endswith("\n")
+    (keep if step is not None and step <= last_kept and line.endswith("\n")
      else later).append(line)
   if not later:
     return

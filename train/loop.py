@@ -19,6 +19,7 @@ import pathlib
 import re
 
 import flax
+import ml_collections
 import jax
 import numpy as np
 
@@ -45,6 +46,7 @@ def initial_weights(config, abstract_params):
 
   Raises:
     CheckpointError or FileNotFoundError: naming the field and the file.
+    ValueError: naming the field and the file, when its params do not fit the model.
   """
   cfg = state_lib.model_config(config)
   # Conversion is host work that may touch the default device (e.g. eager shape probes).
@@ -52,6 +54,16 @@ def initial_weights(config, abstract_params):
     vda = ckpt_lib.load_vda_params(config.vda_weights, cfg) if config.vda_weights else None
     host = (ckpt_lib.load_model_params(config.init_from, cfg, abstract_params)
             if config.init_from else None)
+  # Checked here, before the workdir is created.
+  if host is not None:
+    state_lib.check_params(host, abstract_params, f"config.init_from={config.init_from}: its "
+                           "params")
+  if vda is not None:
+    vda_abstract = abstract_params
+    for k in ckpt_lib.VDA_PATH:
+      vda_abstract = vda_abstract[k]
+    state_lib.check_params(vda, vda_abstract, f"config.vda_weights={config.vda_weights}: its "
+                           "params")
   return host, vda
 
 
@@ -78,8 +90,14 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
   abstract = state_lib.abstract_state(model, tx, config, abstract_params)
   shardings = state_lib.state_shardings(abstract, mesh)
   if manager.latest_step() is not None:
-    log.info("resuming from checkpoint %d", manager.latest_step())
-    return ckpt_lib.restore(manager, abstract, shardings, data_iterator), shardings, "checkpoint"
+    step = manager.latest_step()
+    log.info("resuming from checkpoint %d", step)
+    state = ckpt_lib.restore(manager, abstract, shardings, data_iterator)
+    changed = ckpt_lib.changed_fields(manager, step, config)
+    if changed:  # allowed (e.g. to extend a run), but never unnoticed
+      log.warning("resuming with %d config fields changed since checkpoint %d: %s",
+                  len(changed), step, "; ".join(changed))
+    return state, shardings, "checkpoint"
   cfg = state_lib.model_config(config)
   host, vda = weights if weights is not None else initial_weights(config, abstract.params)
   source = "weights"
@@ -173,6 +191,11 @@ _CHECKS = (
      ", ".join(map(repr, runtime.MATMUL_PRECISIONS[:-1]))
      + f" or {runtime.MATMUL_PRECISIONS[-1]!r}"),
     ("data.frames", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
+    ("data.mixing", lambda x: x in ("concat", "ratio"), "'concat' or 'ratio'"),
+    ("data.num_threads", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
+    ("data.prefetch", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
+    ("data.worker_count", lambda x: _is_int(x) and x >= 0, "an integer >= 0 (0: threads only)"),
+    ("data.synthetic.num_clips", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("data.crop", _is_crop, "(height, width): two positive multiples of 16 (the model's "
      "coarsest scale is 1/16)"),
     ("train.batch_size", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
@@ -204,6 +227,33 @@ _EVAL_CHECKS = (
 )
 
 
+# Blocks whose fields the user names.
+_FREE_BLOCKS = ("data.sources",)
+
+
+def missing_fields(config, base, prefix: str = "") -> list[str]:
+  """The fields of `base` (`configs.sceneflow.base_config()`) that `config` lacks."""
+  missing = []
+  for key, value in base.items():
+    path = prefix + key
+    if key not in config:
+      missing.append(path)
+    elif isinstance(value, ml_collections.ConfigDict) and path not in _FREE_BLOCKS:
+      missing += missing_fields(config[key], value, path + ".")
+  return missing
+
+
+def check_fields(config) -> None:
+  """Raises a ValueError naming the fields a training config lacks (a config file written
+  from scratch instead of on `configs.sceneflow.base_config()`), before any is read."""
+  from configs import sceneflow  # pylint: disable=import-outside-toplevel
+  missing = missing_fields(config, sceneflow.base_config())
+  if missing:
+    raise ValueError(f"the config lacks {len(missing)} fields ({', '.join(missing[:8])}"
+                     f"{', ...' if len(missing) > 8 else ''}): build its get_config() on "
+                     "configs.sceneflow.base_config(), as configs/synthetic.py does")
+
+
 def validate_config(config, workdir, num_devices: int | None = None) -> None:
   """Checks the values of a training config and the workdir before a run creates anything.
 
@@ -226,14 +276,50 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
     value = _value(config, field)
     if not ok(value):
       raise ValueError(f"config.{field}={value!r}: expected {want}")
-  try:
-    state_lib.model_config(config)
-  except ValueError as e:  # SAVConfig names the field as `SAVConfig.<name>`
-    raise ValueError(str(e).replace("SAVConfig.", "config.model.")) from e
+  _check_blocks(config)
   for field in ("train.batch_size", "eval.batch_size")[:2 if evaluating else 1]:
     if num_devices and _value(config, field) % num_devices:
       raise ValueError(f"config.{field}={_value(config, field)} is not divisible by the "
                        f"{num_devices} devices")
+
+
+def _check_blocks(config) -> None:
+  """The checks of the model, the sources, the generator, the augmentation and the
+  schedule, with their errors naming the config's fields."""
+  try:
+    state_lib.model_config(config)
+  except ValueError as e:  # SAVConfig names the field as `SAVConfig.<name>`
+    raise ValueError(str(e).replace("SAVConfig.", "config.model.")) from e
+  if not config.data.sources:
+    raise ValueError("config.data.sources is empty: name at least one training source, e.g. "
+                     "--config.data.sources.NAME=... in the config file (configs/sceneflow.py)")
+  for name, spec in config.data.sources.items():
+    weight = spec.get("weight") if isinstance(spec, ml_collections.ConfigDict) else None
+    if not (_is_real(weight) and weight > 0):
+      raise ValueError(f"config.data.sources.{name}.weight={weight!r}: expected a number > 0 "
+                       "(leave the source out instead of giving it 0)")
+  datasets = {spec.get("dataset") for spec in config.data.sources.values()}
+  if "synthetic" in datasets or (config.eval.every_steps > 0
+                                 and config.eval.dataset == "synthetic"):
+    try:
+      input_lib.synthetic_config(config.data, config.data.synthetic, config.data.synthetic.seed)
+    except ValueError as e:  # SyntheticConfig names the field as `SyntheticConfig.<name>`
+      raise ValueError(str(e).replace("SyntheticConfig.", "config.data.synthetic.")) from e
+  if datasets - {"synthetic"}:  # real data is augmented (in the grain reader, per clip)
+    try:
+      pipeline.Augment(tuple(config.data.crop), input_lib.augment_overrides(config))._config()
+    except ValueError as e:  # AugmentConfig names the field as `AugmentConfig.<name>`
+      raise ValueError(str(e).replace("AugmentConfig.", "config.data.augment.")) from e
+    except TypeError as e:  # a field AugmentConfig does not have
+      raise ValueError(f"config.data.augment: {e}") from e
+  opt = config.optimizer
+  try:
+    optim.make_schedule(opt, config.train.num_steps)
+  except ValueError as e:
+    cycle = (f"config.optimizer.schedule_steps={opt.schedule_steps}" if opt.schedule_steps > 0
+             else f"config.train.num_steps + 100 = {config.train.num_steps + 100} steps")
+    raise ValueError(f"config.optimizer.pct_start={opt.pct_start} with a one-cycle length of "
+                     f"{cycle}: {e}") from e
 
 
 def _value(config, field: str):
@@ -270,6 +356,7 @@ def setup(config, workdir):
   """Steps 2-8 of the module docstring (every check of the config, the workdir and the
   weights happens here, before the first step). Returns a dict of the run's parts for `run`."""
   workdir = pathlib.Path(workdir)
+  check_fields(config)
   for field in ("init_from", "vda_weights"):  # before anything is created in the workdir
     if config[field] and not pathlib.Path(config[field]).exists():
       raise FileNotFoundError(f"config.{field}={config[field]}: no such file or directory")
@@ -351,7 +438,7 @@ def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
     if save_now:
       ckpt_lib.save(manager, state, parts["grain_it"], step, force=True,
                     params_finite=bool(np.isfinite(host.last["l2_params"])),
-                    model_config=parts["model"].cfg)
+                    model_config=parts["model"].cfg, run_config=config)
     if eval_now:
       writer.write(step, evaluator(state.params), split="val")
   if pending is not None:

@@ -44,8 +44,8 @@ def one_cycle_linear(max_lr: float, total_steps: int, pct_start: float = 0.01,
   warm_end = float(pct_start * total_steps) - 1.0
   last = float(total_steps - 1)
   if warm_end <= 0 or last <= warm_end:
-    raise ValueError(f"degenerate one-cycle schedule: total_steps={total_steps}, "
-                     f"pct_start={pct_start}")
+    raise ValueError(f"degenerate one-cycle schedule: its warm-up ends at pct_start * "
+                     f"total_steps - 1 = {warm_end:g}, which must be in (0, {last:g})")
 
   def schedule(count):
     s = jnp.asarray(count, jnp.float32)

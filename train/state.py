@@ -140,6 +140,22 @@ def create_train_state(model, tx, config, mesh: Mesh, params=None, shardings=Non
   return jax.jit(init, out_shardings=shardings, donate_argnums=(0,))(params), shardings
 
 
+def check_params(host_params, abstract, what: str = "initial params") -> None:
+  """Raises a ValueError naming (the first 20 of) every missing, unexpected or mis-shaped
+  leaf of `host_params` against `abstract` (shapes only), with how many there are."""
+  flat_target = flax.traverse_util.flatten_dict(abstract, sep="/")
+  flat_src = flax.traverse_util.flatten_dict(host_params, sep="/")
+  problems = [f"missing {k}" for k in flat_target if k not in flat_src]
+  problems += [f"unexpected {k}" for k in flat_src if k not in flat_target]
+  problems += [f"shape of {k}: {np.shape(flat_src[k])} != {flat_target[k].shape}"
+               for k in flat_target if k in flat_src
+               and tuple(np.shape(flat_src[k])) != tuple(flat_target[k].shape)]
+  if problems:
+    more = f" (and {len(problems) - 20} more)" if len(problems) > 20 else ""
+    raise ValueError(f"{what} do not match the model ({len(problems)} problems): "
+                     + "; ".join(problems[:20]) + more)
+
+
 def place_params(host_params, abstract, mesh: Mesh):
   """Host (numpy) params -> replicated global arrays, checked against `abstract`.
 
@@ -149,15 +165,9 @@ def place_params(host_params, abstract, mesh: Mesh):
   Raises:
     ValueError: naming every missing, unexpected or mis-shaped leaf.
   """
+  check_params(host_params, abstract)
   flat_target = flax.traverse_util.flatten_dict(abstract, sep="/")
   flat_src = flax.traverse_util.flatten_dict(host_params, sep="/")
-  problems = [f"missing {k}" for k in flat_target if k not in flat_src]
-  problems += [f"unexpected {k}" for k in flat_src if k not in flat_target]
-  problems += [f"shape of {k}: {np.shape(flat_src[k])} != {flat_target[k].shape}"
-               for k in flat_target if k in flat_src
-               and tuple(np.shape(flat_src[k])) != tuple(flat_target[k].shape)]
-  if problems:
-    raise ValueError("initial params do not match the model: " + "; ".join(problems[:20]))
   sharding = replicated(mesh)
   out = {}
   # An intended host-to-device copy (make_array_from_callback counts as implicit).

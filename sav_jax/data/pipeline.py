@@ -106,7 +106,7 @@ class _LoadClip:
 
 
 def registry_source(dataset: str, root: str, frames: int, split: str = "train",
-                    seed: int = 0) -> grain.MapDataset:
+                    seed: int = 0, consecutive: bool = False) -> grain.MapDataset:
   """Clips of a real dataset (`registry.get_training_clips`), loaded lazily, not augmented.
 
   Args:
@@ -115,9 +115,12 @@ def registry_source(dataset: str, root: str, frames: int, split: str = "train",
     frames: clip length T.
     split: dataset split.
     seed: seed of the official per-start stride draws.
+    consecutive: clips of consecutive frames instead (`registry.get_consecutive_clips`,
+      any dataset with ground truth; for validation).
   """
   from sav_jax.data import registry  # pylint: disable=g-import-not-at-top
-  items = registry.get_training_clips(dataset, root, frames, split=split, seed=seed)
+  items = (registry.get_consecutive_clips(dataset, root, frames, split) if consecutive else
+           registry.get_training_clips(dataset, root, frames, split=split, seed=seed))
   if len(items) == 0:
     raise ValueError(f"dataset {dataset!r} under {root!r} (split {split!r}) has no clips of "
                      f"{frames} frames")

@@ -137,6 +137,26 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
   return eval_chunk(seqs, length, drop_short=dataset == "dynamic_replica")
 
 
+def get_consecutive_clips(dataset: str, root: str | Path, frames: int, split: str, *,
+                          max_frames=OFFICIAL, **options) -> list[TrainingClip]:
+  """Clips of `frames` consecutive frames of every sequence, without overlap: starts 0, T,
+  2T, ... while the clip fits (the frame spacing of the evaluation, for validation during
+  training: training clips skip 1-5 frames, which TEPE would measure instead).
+
+  Args:
+    dataset, root, split, max_frames, **options: as in `get_sequences` (any dataset).
+    frames: clip length T >= 1.
+
+  Returns:
+    list of `TrainingClip(sequence, indices)`, in sequence order.
+  """
+  if not isinstance(frames, (int, np.integer)) or frames < 1:
+    raise ValueError(f"frames must be an int >= 1, got {frames!r}")
+  seqs = get_sequences(dataset, root, split, max_frames=max_frames, **options)
+  return [TrainingClip(seq, list(range(start, start + frames)))
+          for seq in seqs for start in range(0, len(seq) - frames + 1, frames)]
+
+
 def get_training_clips(dataset: str, root: str | Path, frames: int, split: str = "train", *,
                        seed: int = 0, **options) -> list[TrainingClip]:
   """The official training samples of a dataset: frame-index lists of whole sequences.

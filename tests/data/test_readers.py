@@ -293,6 +293,12 @@ def test_infinigen_scale_values_clips_and_eval_cut(tmp_path, monkeypatch):
   assert [c.indices for c in other] != [c.indices for c in clips]
   one = registry.get_training_clips("infinigen_sv", tmp_path, frames=1)
   assert [c.indices for c in one][:4] == [[0], [3], [6], [9]]
+  # Validation during training: consecutive frames, no overlap, only whole clips.
+  consecutive = registry.get_consecutive_clips("infinigen_sv", tmp_path, 5, "train")
+  assert [(c.sequence.name, c.indices) for c in consecutive] == [
+      ("scene031", [0, 1, 2, 3, 4]), ("scene031", [5, 6, 7, 8, 9])]
+  assert [c.indices for c in registry.get_consecutive_clips(
+      "infinigen_sv", tmp_path, 2, "train")][-2:] == [[0, 1], [2, 3]]  # scene032's
   sample = clips[0].sequence.gather(clips[0].indices)
   assert sample["disparity"].shape == (2, H, W)
   _infinigen(tmp_path, np.random.default_rng(8), "test", [("scene001", 3), ("scene002", 2)])

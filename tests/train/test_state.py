@@ -280,8 +280,21 @@ def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path):
   loaded, _, source = loop.initial_state(c, model, tx, mesh, manager, it)
   assert source == "weights" and int(loaded.step) == 0
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(loaded.params), weights)
-  ckpt_lib.save(manager, scratch.replace(step=jnp.asarray(7, jnp.int32)), it, 7, force=True)
+  other = dict(weights, extra={"w": np.zeros(3, np.float32)})  # another model's weights
+  save_variables(tmp_path / "w2", {"params": other}, {})
+  c.init_from = str(tmp_path / "w2")
+  with pytest.raises(ValueError, match=f"config.init_from={tmp_path / 'w2'}: its params do not "
+                     r"match the model \(1 problems\): unexpected extra/w"):
+    loop.initial_weights(c, params)  # (before the manager: `setup` calls it first)
+  c.init_from = str(tmp_path / "w")
+  ckpt_lib.save(manager, scratch.replace(step=jnp.asarray(7, jnp.int32)), it, 7, force=True,
+                run_config=c)
   manager.wait_until_finished()
+  assert ckpt_lib.changed_fields(manager, 7, c) == []
+  c.optimizer.lr, c.train.num_steps, c.checkpoint.keep = 0.5, c.train.num_steps + 1, 9
+  assert ckpt_lib.changed_fields(manager, 7, c) == [  # keep: where and how, not what
+      f"optimizer.lr: {_config().optimizer.lr!r} -> 0.5",
+      f"train.num_steps: {_config().train.num_steps} -> {_config().train.num_steps + 1}"]
   resumed, _, source = loop.initial_state(c, model, tx, mesh, manager, it)
   assert source == "checkpoint" and int(resumed.step) == 7  # the checkpoint wins
 
@@ -339,6 +352,17 @@ def test_resumed_run_logs_each_step_once(tmp_path):
   assert records[-1]["loss"] == 0.5
   aside = (tmp_path / "metrics.superseded.jsonl").read_text().splitlines()
   assert json.loads(aside[0])["loss"] == 1.0 and aside[1] == '{"step": 40, "spl'
+  fresh = tmp_path / "fresh"  # killed before its first checkpoint: restarts at step 0
+  first = MetricWriter(fresh)
+  first.write(0, {"epe": 2.0}, split="val")  # eval.at_start
+  first.write(1, {"loss": 1.0})
+  first.close()
+  again = MetricWriter(fresh, start_step=0)
+  again.write(0, {"epe": 2.0}, split="val")
+  again.close()
+  records = [json.loads(l) for l in (fresh / "metrics.jsonl").read_text().splitlines()]
+  assert [(r["step"], r["split"]) for r in records] == [(0, "val")]
+  assert len((fresh / "metrics.superseded.jsonl").read_text().splitlines()) == 2
 
 
 def test_scratch_runs_start_from_the_official_initialisation(tmp_path):
@@ -572,6 +596,15 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
     ("model.remat_policy", "bogus", r"config\.model\.remat_policy='bogus'"),
     ("matmul_precision", "tf32", r"config\.matmul_precision='tf32': expected 'default', "),
     ("compile_cache", None, r"config\.compile_cache=None: expected a folder, 'default' or ''"),
+    ("data.mixing", "mix", r"config\.data\.mixing='mix': expected 'concat' or 'ratio'"),
+    ("data.prefetch", -1, r"config\.data\.prefetch=-1: expected an integer >= 0"),
+    ("data.synthetic.num_clips", 0, r"config\.data\.synthetic\.num_clips=0: expected an "),
+    ("data.synthetic.max_disparity", -1.0,
+     r"config\.data\.synthetic\.max_disparity must be >= min_disparity"),
+    ("data.sources.synthetic.weight", 0.0,
+     r"config\.data\.sources\.synthetic\.weight=0\.0: expected a number > 0"),
+    ("optimizer.pct_start", 0.001, r"config\.optimizer\.pct_start=0\.001 with a one-cycle "
+     r"length of config\.train\.num_steps \+ 100 = 300 steps: degenerate .* = -0\.7"),
 ])
 def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match):
   from train import loop  # pylint: disable=g-import-not-at-top
@@ -584,6 +617,32 @@ def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match)
   with pytest.raises(ValueError, match=match):
     loop.validate_config(c, tmp_path / "w", num_devices=2)
   loop.validate_config(synthetic.get_config(), tmp_path / "w", num_devices=2)
+  assert not (tmp_path / "w").exists()
+
+
+def test_config_blocks_a_run_cannot_use_are_named(tmp_path):
+  """The augmentation (for real data only: it runs per clip inside the grain reader, where
+  its error would come after the workdir is created), the sources, and a config file
+  written without the base fields."""
+  import ml_collections  # pylint: disable=g-import-not-at-top
+  from configs import mixed, sceneflow  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  for module in (sceneflow, synthetic, mixed):
+    assert loop.missing_fields(module.get_config(), sceneflow.base_config()) == []
+  c = sceneflow.get_config()
+  c.data.augment.scale_range = (1.0, 0.0)
+  with pytest.raises(ValueError, match=r"config\.data\.augment\.scale_range must be \(min, "):
+    loop.validate_config(c, tmp_path / "w")
+  c = synthetic.get_config()
+  c.data.augment.scale_range = (1.0, 0.0)  # not used on the generator's clips
+  loop.validate_config(c, tmp_path / "w")
+  c.data.sources = ml_collections.ConfigDict()
+  with pytest.raises(ValueError, match=r"config\.data\.sources is empty"):
+    loop.validate_config(c, tmp_path / "w")
+  c = ml_collections.ConfigDict(dict(seed=0, model=dict(dtype="float32")))
+  with pytest.raises(ValueError, match=r"the config lacks \d+ fields \(checkpoint, compile_cache"
+                     r".*model\.remat.*base_config\(\)"):
+    loop.check_fields(c)
   assert not (tmp_path / "w").exists()
 
 
