@@ -99,6 +99,12 @@ def run(args, overrides) -> int:
                      f"{config.dataset} sequence {unscaled[0]} has no depth-to-disparity scale "
                      f"(no camera data; {len(unscaled)} of {len(seqs)} sequences): drop "
                      f"{' and '.join(depth_metrics)}")
+  short = [s for s in seqs if len(s) < 2]
+  if depth_metrics and short:
+    raise ValueError(f"config.{' and config.'.join(depth_metrics)}: temporal consistency needs "
+                     f"sequences of 2 frames or more, but {config.dataset} sequence "
+                     f"{short[0].name} has {len(short[0])} ({len(short)} of {len(seqs)} "
+                     "sequences)")
   flow_fn = runner.raft_flow_fn(config)
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)

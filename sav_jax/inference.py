@@ -30,7 +30,9 @@ fnet, cnet) is computed once per frame, in chunks of `stride` frames, and kept w
 the windows that contain the frame run (`FrameFeatureCache`); only the temporal rest
 (VDA's DPT head, the depth conv and the refinement) runs per window. With the official
 20/10 windows this halves the per-frame work. The result is bit-identical to running
-each window on its own (`run_window` uses the same chunks).
+each window on its own with chunks of the same length (`run_window`'s default cache has
+chunks of `STRIDE` = 10 frames; for another stride pass it `FrameFeatureCache(stride)`:
+other chunks batch the per-frame convolutions differently, ~1e-5 px apart).
 
 Several devices (`devices=`): consecutive windows run at once, one per device, with the
 weights copied to each; a frame's per-frame features are computed on the device of the first
@@ -545,20 +547,22 @@ def _check_video_shapes(left_shape: tuple, right_shape: tuple) -> None:
     raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {left_shape}")
 
 
-def _as_video_pair(left, right) -> tuple[np.ndarray, np.ndarray]:
+def _as_video_pair(left, right, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
+  """`first`: the index of the first frame in the video, for messages."""
   left, right = _as_video(left, "left"), _as_video(right, "right")
   _check_video_shapes(left.shape, right.shape)
   for name, video in (("left", left), ("right", right)):
-    check_video_values(video, name)
+    check_video_values(video, name, first)
   return left, right  # cast to float32 per window, so long uint8 videos stay small
 
 
-def check_video_values(video: np.ndarray, name: str = "video") -> None:
+def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -> None:
   """Raises ValueError unless `video` holds finite RGB values in 0..255.
 
   uint8 passes as is; other integers must not exceed 255 (convert 16-bit frames first);
   floats must be finite, and a float video no brighter than 1.0 gets a warning (the
-  model expects 0..255, not 0..1).
+  model expects 0..255, not 0..1). `first`: the index of `video[0]` in the whole video
+  (frames are named by their index there).
   """
   kind = video.dtype.kind
   if kind == "u" and video.dtype.itemsize == 1:
@@ -569,7 +573,8 @@ def check_video_values(video: np.ndarray, name: str = "video") -> None:
     bad = ~np.isfinite(video).reshape(len(video), -1).all(axis=1)
     if bad.any():
       raise ValueError(f"{name}: non-finite values (NaN/inf) in frame(s) "
-                       f"{np.flatnonzero(bad)[:10].tolist()}; the model would return NaN")
+                       f"{(np.flatnonzero(bad)[:10] + first).tolist()}; the model would "
+                       "return NaN")
   lo, hi = float(video.min()), float(video.max())
   if kind in "ui" and (lo < 0 or hi > 255):
     raise ValueError(f"{name}: {video.dtype} values {lo:g}..{hi:g} are outside 0..255 (convert "
@@ -700,7 +705,7 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
   def frames(win):
     sl = slice(win.start, win.start + win.length)
     lw, rw = left[sl], right[sl]
-    return _as_video_pair(lw, rw) if check_frames else (lw, rw)
+    return _as_video_pair(lw, rw, win.start) if check_frames else (lw, rw)
 
   def kept(win, raw):
     if raw_windows is not None:

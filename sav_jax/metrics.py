@@ -307,9 +307,18 @@ def tcm_flow_inputs(pred_depth, gt_depth, mask, t: int, mask_thr: float = 0.5):
     `(pred_t, pred_t1, gt_t, gt_t1)`, each `[3, H, W]` float32; flows are taken
     from `pred_t -> pred_t1` and `gt_t -> gt_t1`.
   """
+  return _tcm_images(*_tcm_depths(pred_depth, gt_depth, mask, mask_thr)[:2], t)
+
+
+def _tcm_depths(pred_depth, gt_depth, mask, mask_thr: float):
+  """`(x, y, m)`: the masked predicted and GT depths TCM normalises, and the raw mask."""
   x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_mask("mask", mask)
   _check_same(("pred_depth", "gt_depth", "mask"), (x, y, m))
-  x, y = _mask_pair(x, y, m, mask_thr)
+  return (*_mask_pair(x, y, m, mask_thr), m)
+
+
+def _tcm_images(x: np.ndarray, y: np.ndarray, t: int):
+  """`tcm_flow_inputs` of masked depths (`_tcm_depths`)."""
   dmax, dmin = y[t].max(), y[t].min()
   with np.errstate(divide="ignore", invalid="ignore"):
     imgs = [(a - dmin) / (dmax - dmin) * _F32(255.0) for a in (x[t], x[t + 1], y[t], y[t + 1])]
@@ -489,11 +498,28 @@ def video_flows_from_fn(left_video, flow_fn: FlowFn) -> np.ndarray:
 
 
 def depth_flows_from_fn(pred_depth, gt_depth, mask, flow_fn: FlowFn, mask_thr: float = 0.5):
-  """`(pred_flows, gt_flows)`, each `[T-1, 2, H, W]`, as the official TCM computes them."""
-  t = _as_seq("pred_depth", pred_depth).shape[0]
+  """`(pred_flows, gt_flows)`, each `[T-1, 2, H, W]`, as the official TCM computes them.
+
+  A pair of frames without a valid pixel in common, which TCM skips, gets zero flows
+  without running `flow_fn` (the official code runs RAFT on its 0/0 inputs and drops the
+  NaN flows).
+
+  Raises:
+    ValueError: a pair TCM uses whose GT frame t has one depth over the whole frame, so
+      that the normalisation divides by zero (the official TCM would be NaN).
+  """
+  x, y, m = _tcm_depths(pred_depth, gt_depth, mask, mask_thr)
   fx, fy = [], []
-  for i in range(t - 1):
-    x0, x1, y0, y1 = tcm_flow_inputs(pred_depth, gt_depth, mask, i, mask_thr)
+  for i in range(x.shape[0] - 1):
+    if not (m[i] * m[i + 1]).sum(dtype=np.float64) > 0:  # skipped by eval_tcm_sequence
+      fx.append(np.zeros((2, *x.shape[1:]), _F32))
+      fy.append(fx[-1])
+      continue
+    if y[i].max() == y[i].min():
+      raise ValueError(f"TCM: the GT depth of frame {i} is {y[i].max()} at every pixel (masked "
+                       "pixels count as 0), so its min-max normalisation divides by zero (the "
+                       "official TCM would be NaN)")
+    x0, x1, y0, y1 = _tcm_images(x, y, i)
     fx.append(np.asarray(flow_fn(x0, x1), _F32))
     fy.append(np.asarray(flow_fn(y0, y1), _F32))
   return np.stack(fx), np.stack(fy)

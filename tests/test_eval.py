@@ -242,6 +242,14 @@ def test_tcc_without_camera_data_is_refused_before_predicting(tmp_path, ckpt, ca
   err = capsys.readouterr().err
   assert rc == 2 and "config.metrics.tcc needs depth" in err and "synthetic_000" in err, err
   assert not (tmp_path / "o").exists()
+  monkeypatch.setattr(eval_data, "load_sequences", load)
+  one_frame = [a.replace(f"frames={T}", "frames=1") for a in SMALL]  # no temporal metric
+  rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *one_frame,
+             "--out", str(tmp_path / "o"), "--config.metrics.tcc=true"])
+  err = capsys.readouterr().err
+  assert rc == 2 and "config.metrics.tcc: temporal consistency needs sequences of 2 frames or " \
+      "more, but synthetic sequence synthetic_000 has 1" in err, err
+  assert not (tmp_path / "o").exists()
 
 
 def test_compile_cache_options(tmp_path, ckpt, capsys, monkeypatch, restore_cache_config):

@@ -247,6 +247,8 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   nan[2, 5, 5, 0] = np.nan
   with pytest.raises(ValueError, match=r"right: non-finite values \(NaN/inf\) in frame\(s\) \[2\]"):
     inference.predict_video(variables, video, nan, iters=ITERS)
+  with pytest.raises(ValueError, match=r"non-finite values \(NaN/inf\) in frame\(s\) \[22\]"):
+    inference.check_video_values(nan, "left", first=20)  # a lazy source's window at frame 20
   deep = video.astype(np.uint16) * 257  # 16-bit frames
   with pytest.raises(ValueError, match=r"left: uint16 values 25700\.\.25700 are outside 0\.\.255"):
     inference.predict_video(variables, deep, deep, iters=ITERS)

@@ -256,6 +256,34 @@ def test_tcm_skips_frames_without_valid_pixels():
   assert M.eval_tcm_sequence(f, f, mask) == pytest.approx(0.5, rel=1e-9)
 
 
+
+def test_tcm_flows_from_a_flow_fn_skip_frames_without_valid_pixels():
+  """The official TCM runs RAFT on a frame without valid GT (0/0 inputs) and drops the NaN
+  flows with the pair; the flow_fn path skips the pair before, instead of failing on them."""
+  rng = np.random.default_rng(5)
+  depth = rng.uniform(1.0, 9.0, (3, 16, 20)).astype(np.float32)
+  mask = np.ones_like(depth)
+  calls = []
+
+  def flow_fn(a, b):  # a stand-in that passes NaN through, as RAFT does
+    calls.append(1)
+    return np.stack([b[0] - a[0], a[1] * 0]) / 255.0
+
+  mask[2] = 0.0
+  fx, fy = M.depth_flows_from_fn(depth * 1.1, depth, mask, flow_fn)
+  assert len(calls) == 2 and np.all(np.isfinite(fx)) and not fx[1].any()
+  tcm = M.eval_tcm_sequence(fx, fy, mask)
+  assert 0 < tcm < 0.5  # pair (0, 1) only, divided by 2
+  res, _ = M.eval_batch(depth, depth, mask, scale=1.0, flow_fn=flow_fn)
+  assert 0 < res["disp_TCM"] <= 0.5
+  mask[:] = 0.0
+  assert M.eval_tcm_sequence(*M.depth_flows_from_fn(depth, depth, mask, flow_fn), mask) == 0.0
+  mask[:] = 1.0
+  depth[1] = 4.0  # one depth over the whole GT frame: 0/0 in a pair TCM uses
+  with pytest.raises(ValueError, match="GT depth of frame 1 is 4.0 at every pixel"):
+    M.depth_flows_from_fn(depth, depth, mask, flow_fn)
+
+
 def test_aggregate_is_frame_weighted():
   out = M.aggregate([({"a": 1.0, "b": 2.0}, 1), ({"a": 4.0}, 3)])
   assert out["a"] == pytest.approx(13.0 / 4.0)
