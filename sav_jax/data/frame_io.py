@@ -50,11 +50,28 @@ def is_truncated_jpeg(data: bytes) -> bool:
   `cv2.imread` decodes such a file without an error (it warns "Premature end of JPEG file"
   on stderr and fills the missing rows with grey), so a partly downloaded frame would pass
   as a real one (`cv2.imdecode` of OpenCV 4.x returns None for it; this check does not
-  depend on that). Inside the compressed data a 0xFF byte is always followed by 0x00 or a
-  restart marker, so the end marker `FF D9` can only be a marker: a complete file has one
-  after its last start-of-scan `FF DA` (an embedded thumbnail's end marker comes before).
+  depend on that). The markers are followed from the start: segments are skipped by their
+  length (an EXIF thumbnail's own end marker inside APP1 is not seen), and in the
+  compressed data a 0xFF byte is followed by 0x00 (a stuffed byte) or a restart marker
+  unless a marker starts there. Bytes after the end marker (e.g. the video of a "motion
+  photo") are not looked at. Data that does not start like a JPEG is not one: False.
   """
-  return data[:3] == b"\xff\xd8\xff" and data.rfind(b"\xff\xd9") < data.rfind(b"\xff\xda")
+  if data[:3] != b"\xff\xd8\xff":
+    return False
+  pos, n = 2, len(data)
+  while True:
+    pos = data.find(b"\xff", pos)
+    if pos < 0 or pos + 1 >= n:
+      return True
+    marker = data[pos + 1]
+    if marker == 0xD9:  # end of image
+      return False
+    if marker in (0x00, 0x01, 0xFF) or 0xD0 <= marker <= 0xD7:  # no length follows
+      pos += 1 if marker == 0xFF else 2
+      continue
+    if pos + 4 > n:
+      return True
+    pos += 2 + int.from_bytes(data[pos + 2:pos + 4], "big")
 
 
 def decode_image_file(path: PathLike, what: str = "image") -> np.ndarray:
@@ -68,8 +85,8 @@ def decode_image_file(path: PathLike, what: str = "image") -> np.ndarray:
   path = require_file(path, what)
   data = path.read_bytes()
   if is_truncated_jpeg(data):
-    raise ValueError(f"{path}: truncated JPEG (no end-of-image marker after its last scan: "
-                     "a partial download or copy?)")
+    raise ValueError(f"{path}: truncated JPEG (its data ends before the end-of-image "
+                     "marker: a partial download or copy?)")
   # cv2.imdecode returns None (no exception) for unreadable or truncated PNG files.
   img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
   if img is None:

@@ -110,7 +110,8 @@ def test_read_image_jpeg_and_errors(tmp_path):
 def test_read_image_refuses_a_jpeg_cut_short(tmp_path, progressive):
   """`cv2.imread` decodes a truncated JPEG without an error (grey rows, a warning on stderr);
   the reader refuses it by its missing end marker, even when an embedded thumbnail's end
-  marker comes earlier in the file, and takes bytes after a complete file's end."""
+  marker comes earlier in the file, and takes bytes after a complete file's end, markers
+  among them (a "motion photo": a video appended to the JPEG)."""
   rgb = RNG.integers(0, 256, (64, 96, 3), dtype=np.uint8)
   flags = [cv2.IMWRITE_JPEG_QUALITY, 95, cv2.IMWRITE_JPEG_PROGRESSIVE, int(progressive)]
   data = cv2.imencode(".jpg", rgb[..., ::-1], flags)[1].tobytes()
@@ -122,12 +123,15 @@ def test_read_image_refuses_a_jpeg_cut_short(tmp_path, progressive):
     whole = frame_io.read_image(tmp_path / f"{name}.jpg")
     np.testing.assert_array_equal(
         whole, cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)[..., ::-1])
-    (tmp_path / f"{name}_padded.jpg").write_bytes(blob + b"\x00" * 16)
-    np.testing.assert_array_equal(frame_io.read_image(tmp_path / f"{name}_padded.jpg"), whole)
+    for tail in (b"\x00" * 16, b"ftypmp42\xff\xda\x00\x08" + bytes(range(256)) * 8):
+      (tmp_path / f"{name}_tail.jpg").write_bytes(blob + tail)
+      np.testing.assert_array_equal(frame_io.read_image(tmp_path / f"{name}_tail.jpg"), whole)
     (tmp_path / f"{name}_cut.jpg").write_bytes(blob[:len(blob) * 2 // 3])
     assert cv2.imread(str(tmp_path / f"{name}_cut.jpg")) is not None  # what the check is for
     with pytest.raises(ValueError, match=f"{name}_cut.jpg: truncated JPEG"):
       frame_io.read_image(tmp_path / f"{name}_cut.jpg")
+    for cut in (3, 5, len(blob) - 1):  # in the first segment's length, in its data, the end
+      assert frame_io.is_truncated_jpeg(blob[:cut]), cut
   (tmp_path / "empty.jpg").write_bytes(b"")
   with pytest.raises(ValueError, match="empty.jpg: cannot decode"):
     frame_io.read_image(tmp_path / "empty.jpg")
