@@ -114,9 +114,17 @@ def test_outputs_never_replace_the_inputs(tmp_path, clip, npz_ckpt, capsys):
   before = (left / "0000.png").read_bytes()
   assert _infer(left, right, npz_ckpt, out, "--overwrite") == 2
   err = capsys.readouterr().err
-  assert "would replace the input" in err and str(left) in err
+  assert "would replace a file of the input" in err and str(left) in err
   assert (left / "0000.png").read_bytes() == before
   assert not (out / "summary.json").exists()
+  jpegs = out / "jpg" / "disparity"  # other names: the outputs would go beside them
+  jpegs.mkdir(parents=True)
+  for t, frame in enumerate(clip["left"]):
+    cv2.imwrite(str(jpegs / f"{t:04d}.jpg"), frame[..., ::-1])
+  assert _infer(jpegs, right, npz_ckpt, out / "jpg", "--overwrite") == 2
+  err = capsys.readouterr().err
+  assert "would be written into the input frame folder" in err and str(jpegs) in err, err
+  assert sorted(p.suffix for p in jpegs.iterdir()) == [".jpg"] * len(clip["left"])
   video = tmp_path / "v" / "side_by_side.mp4"
   video.parent.mkdir()
   viz.write_video(video, clip["left"])
@@ -482,6 +490,13 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   assert cli.main(args) == 0
   assert sorted(p.name for p in (out / "disparity").glob("*.png")) == [
       f"frame_{t:06d}.png" for t in range(T)] + [f"frame_{T + 2:06d}.png", "mine.png"]
+  # A shorter earlier demo (1 frame): frame 1 is not its, so it is the user's to keep.
+  summary["synthetic"]["frames"] = 1
+  (out / "metrics.json").write_text(json.dumps(summary))
+  (out / "disparity" / "frame_000001.png").write_bytes(b"mine")
+  assert cli.main(args) == 2
+  assert "frame_000001.png" in capsys.readouterr().err
+  assert (out / "disparity" / "frame_000001.png").read_bytes() == b"mine"
 
 
 def test_compile_cache_folder_option(tmp_path, folders, npz_ckpt, restore_cache_config):

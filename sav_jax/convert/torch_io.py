@@ -11,7 +11,7 @@ Video state dict from a standalone Video Depth Anything one. `save_state_dict` w
 import logging
 import os
 import pathlib
-import tempfile
+import uuid
 import zipfile
 from typing import Mapping
 
@@ -322,18 +322,17 @@ def save_state_dict(sd: dict, path, *, overwrite: bool = False) -> pathlib.Path:
     CheckpointError: unknown suffix, `.pth` without torch, or non-string keys.
   """
   path = pathlib.Path(path)
-  suffix = path.suffix.lower()
-  if suffix not in _WRITERS:
-    raise CheckpointError(f"{path}: cannot write {suffix!r}; use .safetensors, .npz or .pth")
-  if suffix in (".pth", ".pt"):
-    _require_torch(path)
+  suffix = check_writer(path)
   if not all(isinstance(k, str) for k in sd):
     raise CheckpointError(f"{path}: state dict keys must be strings")
   if path.exists() and not overwrite:
     raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
   arrays = {k: np.asarray(v, order="C") for k, v in sd.items()}  # keeps 0-d arrays 0-d
   path.parent.mkdir(parents=True, exist_ok=True)
-  fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+  # Created as open() creates files (mode 0o666 less the umask, where mkstemp's are 0o600),
+  # under a name no other writer uses.
+  tmp = str(path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp")
+  fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
   try:
     with os.fdopen(fd, "wb") as fh:
       _WRITERS[suffix](arrays, fh)
@@ -348,12 +347,24 @@ def save_state_dict(sd: dict, path, *, overwrite: bool = False) -> pathlib.Path:
   return path
 
 
-def _require_torch(path):
-  try:
-    import torch  # pylint: disable=import-outside-toplevel,unused-import
-  except ImportError:
-    raise CheckpointError(f"{path}: writing .pth needs torch, which is not installed; write "
-                          ".safetensors or .npz instead, or install torch") from None
+def check_writer(path) -> str:
+  """The (lower-case) suffix of a state-dict file `save_state_dict` can write at `path`.
+
+  Raises:
+    CheckpointError: an unknown suffix, or one written with torch (`.pth`, `.pt`, `.bin`)
+      where torch is not installed.
+  """
+  path = pathlib.Path(path)
+  suffix = path.suffix.lower()
+  if suffix not in _WRITERS:
+    raise CheckpointError(f"{path}: cannot write {suffix!r}; use .safetensors, .npz or .pth")
+  if _WRITERS[suffix] is _write_torch:
+    try:
+      import torch  # pylint: disable=import-outside-toplevel,unused-import
+    except ImportError:
+      raise CheckpointError(f"{path}: writing {suffix} needs torch, which is not installed; "
+                            "write .safetensors or .npz instead, or install torch") from None
+  return suffix
 
 
 def _write_safetensors(arrays, fh):

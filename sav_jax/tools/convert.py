@@ -70,7 +70,15 @@ def run(args: argparse.Namespace) -> int:
                      f"{'/'.join(convert.torch_io.WRITE_SUFFIXES)} file, or a folder name "
                      "without a checkpoint suffix for an orbax directory")
   check_destination(args.src, args.dst, to_file, args.overwrite)
+  if to_file:  # e.g. a .pth without torch: before the conversion's work
+    convert.torch_io.check_writer(args.dst)
   if os.path.isdir(args.src):  # restore_variables says what a folder must hold
+    if args.vda:
+      raise UsageError(f"--vda takes a Video Depth Anything file, not a folder ({args.src})")
+    if convert.is_variables_checkpoint(args.src) and not to_file:
+      raise UsageError(f"{args.src} is already an orbax variables checkpoint: name a "
+                       f"{'/'.join(convert.torch_io.WRITE_SUFFIXES)} DST to export it (or copy "
+                       "the folder)")
     variables, config = convert.restore_variables(args.src)
     if convert.is_variables_checkpoint(args.src) or to_file:
       path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite)
@@ -84,10 +92,13 @@ def run(args: argparse.Namespace) -> int:
   cfg = sav_jax.SAVConfig()
   kind = "vda" if args.vda else "sav"
   sd = convert.load_state_dict_of_kind(args.src, kind, {"vda": "add --vda", "sav": "drop --vda"})
-  if kind == "vda":
-    variables = init_with_vda(sd, cfg, args.seed)
-  else:
-    variables = convert.params_from_state_dict(sd, cfg)
+  try:
+    if kind == "vda":
+      variables = init_with_vda(sd, cfg, args.seed)
+    else:
+      variables = convert.params_from_state_dict(sd, cfg)
+  except ValueError as e:  # the report names the keys; say which file they are of
+    raise convert.CheckpointError(f"{args.src}: {e}") from e
   if to_file:  # checked by the conversion, written back with the official names
     path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite)
     print(f"converted {args.src} ({kind}, {len(sd)} tensors) -> {path} (official Stereo Any "

@@ -147,8 +147,11 @@ def check_demo_output(out: pathlib.Path, frames: int, overwrite: bool) -> list[p
   from sav_jax.tools.infer import check_overwrite  # pylint: disable=import-outside-toplevel
   earlier = _earlier_demo_frames(out)
   stale = [p for t in range(frames, earlier or 0) if (p := _frame_path(out, t)).is_file()]
-  paths = [out / n for n in OUTPUT_NAMES] + [_frame_path(out, t) for t in range(frames)]
-  check_overwrite(paths + stale, overwrite or earlier is not None)
+  if earlier is None:
+    check_overwrite([out / n for n in OUTPUT_NAMES]
+                    + [_frame_path(out, t) for t in range(frames)], overwrite)
+  else:  # what the earlier demo wrote is replaced; frames beyond its count it did not write
+    check_overwrite([_frame_path(out, t) for t in range(earlier, frames)], overwrite)
   return stale
 
 

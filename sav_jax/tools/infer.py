@@ -128,24 +128,25 @@ def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
 
 
 def check_not_inputs(paths: list[pathlib.Path], inputs) -> None:
-  """Raises FileExistsError if an output would replace an input: a file of an input frame
-  folder (any file directly in it, not only the frames read) or an input video file.
+  """Raises FileExistsError if an output would replace an input video file, or go into an
+  input frame folder (even beside its frames: the next run would read it as a frame).
   Holds with --overwrite too: a user's input data is never written over."""
-  taken = {}
+  files, folders = {}, {}
   for source in inputs:
     source = pathlib.Path(source)
-    if source.is_dir():
-      taken.update({f.resolve(): source for f in source.iterdir() if f.is_file()})
-      taken[source.resolve()] = source
-    else:
-      taken[source.resolve()] = source
+    (folders if source.is_dir() else files)[source.resolve()] = source
   for p in paths:
-    source = taken.get(p.resolve())
-    if source is not None:
-      raise FileExistsError(f"output {p} would replace the input {source}"
-                            f"{'' if source.resolve() == p.resolve() else ' (a file of it)'}; "
-                            "choose another --out (inputs are never overwritten, even with "
-                            "--overwrite)")
+    p_abs = p.resolve()
+    if p_abs in files or p_abs in folders:
+      source, how = files.get(p_abs) or folders[p_abs], "replace the input"
+    elif p_abs.parent in folders:
+      source = folders[p_abs.parent]
+      how = ("replace a file of the input" if p_abs.exists()
+             else "be written into the input frame folder")
+    else:
+      continue
+    raise FileExistsError(f"output {p} would {how} {source}; choose another --out (inputs are "
+                          "never written over or into, even with --overwrite)")
 
 
 def check_model_args(iters: int, window: int, stride: int) -> None:

@@ -219,6 +219,15 @@ def test_cli_convert_then_model_matches(tmp_path, sav_state_dict, variables, cap
   # Never overwrite silently.
   assert cli.main(["convert", str(src), str(dst)]) == 2
   assert "exists" in capsys.readouterr().err
+  # An orbax checkpoint is exported to a file, not copied to another folder; --vda takes a file.
+  for flags, message in (([str(dst), str(tmp_path / "copy")], "is already an orbax variables "
+                          "checkpoint: name a .safetensors/.npz/.pth"),
+                         (["--vda", str(dst), str(tmp_path / "v.npz")], "--vda takes a Video "
+                          "Depth Anything file, not a folder")):
+    assert cli.main(["convert", *flags]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+  assert not (tmp_path / "copy").exists() and not (tmp_path / "v.npz").exists()
 
 
 def test_cli_convert_vda_only(tmp_path, vda_state_dict, capsys):
@@ -265,6 +274,16 @@ def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dic
   assert cli.main(["convert", str(tmp_path / "folder"), str(tmp_path / "x.npz")]) == 2
   err = capsys.readouterr().err
   assert "folder" in err and "not a regular file" not in err and err.count("\n") == 1, err
+  bad = dict(sav_state_dict, **{"fnet.conv1.weight": np.zeros((2, 2), np.float32)})
+  np.savez(tmp_path / "bad.npz", **bad)
+  assert cli.main(["convert", str(tmp_path / "bad.npz"), str(tmp_path / "y.npz")]) == 2
+  err = capsys.readouterr().err  # the report says which file its keys are of
+  assert f"{tmp_path / 'bad.npz'}: state dict does not match" in err and "fnet.conv1" in err, err
+  try:
+    import torch  # pylint: disable=import-outside-toplevel,unused-import
+  except ImportError:  # refused before the conversion
+    assert cli.main(["convert", str(src), str(tmp_path / "w.bin")]) == 2
+    assert "writing .bin needs torch" in capsys.readouterr().err
 
 
 def test_cli_convert_rejects_garbage(tmp_path, capsys):

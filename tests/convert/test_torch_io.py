@@ -697,6 +697,12 @@ def test_save_load_round_trip(tmp_path, suffix):
     assert out[k].dtype == v.dtype and out[k].shape == v.shape, k
     np.testing.assert_array_equal(out[k], v)
   assert sorted(os.listdir(path.parent)) == [path.name]  # no temporary files left
+  umask = os.umask(0o027)
+  try:  # created as open() creates files (0o666 less the umask), not 0o600 as mkstemp's
+    torch_io.save_state_dict(_SAVE_SD, tmp_path / f"m{suffix}")
+  finally:
+    os.umask(umask)
+  assert os.stat(tmp_path / f"m{suffix}").st_mode & 0o777 == 0o640
   with pytest.raises(FileExistsError, match="overwrite=True"):
     torch_io.save_state_dict({"x": np.zeros(1)}, path)
   torch_io.save_state_dict({"x": np.ones(2)}, path, overwrite=True)
@@ -742,6 +748,8 @@ def test_save_pth_without_torch(tmp_path):
     pytest.skip("torch is installed")
   except ImportError:
     pass
-  with pytest.raises(CheckpointError, match=r"\.safetensors or \.npz.*install torch"):
-    torch_io.save_state_dict({"x": np.zeros(1)}, tmp_path / "w.pth")
+  for suffix in (".pth", ".pt", ".bin"):  # each is written with torch.save
+    with pytest.raises(CheckpointError, match=rf"writing \{suffix} needs torch.*\.safetensors or "
+                       r"\.npz.*install torch"):
+      torch_io.save_state_dict({"x": np.zeros(1)}, tmp_path / f"w{suffix}")
   assert os.listdir(tmp_path) == []
