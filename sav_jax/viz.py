@@ -273,7 +273,8 @@ def depth_from_disparity(disp, fx: float, baseline: float, doffs: float = 0.0) -
       `cx_right - cx_left`); 0 for cameras rectified to one principal point (KITTI).
 
   Returns:
-    `[..., H, W]` float32 depth.
+    `[..., H, W]` float32 depth; 0 where there is none (d + doffs <= 0 or not finite, or a
+    depth beyond float32's range).
 
   Raises:
     ValueError: unless fx and baseline are finite and positive and doffs finite.
@@ -282,7 +283,9 @@ def depth_from_disparity(disp, fx: float, baseline: float, doffs: float = 0.0) -
   d = np.asarray(disp, np.float32) + np.float32(doffs)
   ok = np.isfinite(d) & (d > 0)
   z = np.zeros(d.shape, np.float32)
-  z[ok] = np.float32(fx * baseline) / d[ok]
+  with np.errstate(over="ignore"):
+    z[ok] = np.float32(fx * baseline) / d[ok]
+  z[np.isinf(z)] = 0  # a disparity so small that float32 depth overflows: no depth either
   return z
 
 
@@ -328,8 +331,10 @@ def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float
     keep &= np.asarray(valid) > 0.5  # bool masks as they are (True > 0.5)
   v, u = np.nonzero(keep)
   zk = z[v, u]
-  xyz = np.stack([(u - cx) * zk / fx, (v - cy) * zk / fy, zk], axis=-1).astype(np.float32)
-  return xyz, rgb[v, u]
+  with np.errstate(over="ignore", invalid="ignore"):
+    xyz = np.stack([(u - cx) * zk / fx, (v - cy) * zk / fy, zk], axis=-1).astype(np.float32)
+  finite = np.isfinite(xyz).all(axis=1)  # x or y beyond float32 at depths near its limit
+  return xyz[finite], rgb[v[finite], u[finite]]
 
 
 def write_ply(path, xyz, colors) -> int:

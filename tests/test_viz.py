@@ -92,6 +92,15 @@ def test_depth_and_points(tmp_path):
   for bad in (0.0, -1.0, np.inf, np.nan):
     with pytest.raises(ValueError, match="max_depth must be a finite positive number"):
       viz.disparity_to_points(d, rgb, **calib, max_depth=bad)
+  # Disparities so small that float32 depth (or x, y) overflows: no depth, no point.
+  tiny = np.array([[1e-40, 1e-36, 10.0]], np.float32)
+  with np.errstate(all="raise"):  # and no overflow warning on the way
+    z = viz.depth_from_disparity(tiny, fx=100.0, baseline=0.5)
+    assert z[0, 0] == 0 and np.isfinite(z).all() and z[0, 1] > 1e37
+    xyz, _ = viz.disparity_to_points(tiny, rgb[:1], **calib)
+    assert len(xyz) == 2 and np.isfinite(xyz).all()
+    xyz, _ = viz.disparity_to_points(tiny, rgb[:1], **dict(calib, cx=-1000.0))  # x = 10 z: inf
+  np.testing.assert_allclose(xyz, [[(2 + 1000.0) * 5 / 100, (0 - 0.5) * 5 / 50, 5.0]], rtol=1e-6)
 
 
 def test_ply_header_count_and_values(tmp_path):
