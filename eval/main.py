@@ -73,6 +73,10 @@ def run(args, overrides) -> int:
   if config.matmul_precision not in runtime.MATMUL_PRECISIONS:
     raise ValueError(f"config.matmul_precision must be one of {runtime.MATMUL_PRECISIONS}, got "
                      f"{config.matmul_precision!r}")
+  for field, low in (("strip_frames", 1), ("tile_size", 16)):
+    value = config.plots[field]
+    if not (isinstance(value, int) and not isinstance(value, bool) and value >= low):
+      raise ValueError(f"config.plots.{field} must be an integer >= {low}, got {value!r}")
   from eval import data as eval_data  # pylint: disable=import-outside-toplevel
   from eval import runner  # pylint: disable=import-outside-toplevel
   from sav_jax import inference  # pylint: disable=import-outside-toplevel

@@ -217,7 +217,9 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
     ("--config.iters=3", "even"), ("--config.plots.enabled=maybe", "true/false"),
     ("--config.split=train", "only the split 'test'"),
     ("--config.devices=4", "config.devices: devices=4, but 1 local cpu device is available"),
-    ("--config.devices=-1", "config.devices: devices must be a number of local devices")])
+    ("--config.devices=-1", "config.devices: devices must be a number of local devices"),
+    ("--config.plots.tile_size=0", "config.plots.tile_size must be an integer >= 16, got 0"),
+    ("--config.plots.strip_frames=0", "config.plots.strip_frames must be an integer >= 1")])
 def test_bad_overrides(tmp_path, ckpt, capsys, override, message):
   rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt),
              "--out", str(tmp_path / "o"), override])
