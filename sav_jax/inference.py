@@ -560,8 +560,8 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
   """Raises ValueError unless `video` holds finite RGB values in 0..255.
 
   uint8 passes as is; other integers must not exceed 255 (convert 16-bit frames first);
-  floats must be finite, and a float video no brighter than 1.0 gets a warning (the
-  model expects 0..255, not 0..1). `first`: the index of `video[0]` in the whole video
+  floats must be finite, and a float video no brighter than 1.0 or well outside 0..255
+  gets a warning (the model expects 0..255, not 0..1 or 0..65535). `first`: the index of `video[0]` in the whole video
   (frames are named by their index there).
   """
   kind = video.dtype.kind
@@ -582,6 +582,9 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
   if kind == "f" and 0 < hi <= 1.0:
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}: the model expects 0..255 "
                   "(multiply 0..1 images by 255)", stacklevel=3)
+  elif kind == "f" and (lo < -1.0 or hi > 256.0):  # a little over: resampling's overshoot
+    warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}, outside 0..255, which the "
+                  "model expects (divide 16-bit frames by 257)", stacklevel=3)
 
 
 def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig, iters: int,

@@ -11,6 +11,7 @@ import os
 import re
 import subprocess
 import sys
+import warnings
 
 import jax
 import numpy as np
@@ -256,6 +257,11 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
     inference.check_video_values(video > 0, "left")
   with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
     inference.check_video_values(video / 255.0, "left")
+  with pytest.warns(UserWarning, match="25700..25700, outside 0..255.*divide 16-bit frames by 257"):
+    inference.check_video_values(deep.astype(np.float32), "left")
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    inference.check_video_values(np.float32([[[[-0.4, 255.6, 9]]]]), "left")  # overshoot
   with pytest.raises(ValueError, match="iters must be an even integer"):
     inference.predict_video(variables, video, video, iters=3)
   iters = inference.check_iters(np.int64(4))
