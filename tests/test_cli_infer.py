@@ -105,6 +105,22 @@ def test_overwrite_protection(tmp_path, folders, npz_ckpt, capsys):
   assert np.load(target).shape == (H, W)
 
 
+def test_a_window_that_cannot_run_leaves_no_output_folders(tmp_path, folders, npz_ckpt,
+                                                            capsys, monkeypatch):
+  """The memory check of the first window runs as it compiles, after the outputs were
+  checked: nothing is created in OUT before that window is done."""
+
+  def too_big(*args, **kwargs):
+    raise inference.InsufficientMemoryError("this window needs 99 GB, 8 GB available")
+    yield  # pylint: disable=unreachable
+
+  monkeypatch.setattr(inference, "iter_predict_video", too_big)
+  out = tmp_path / "new" / "out"
+  assert _infer(*folders, npz_ckpt, out, "--fx", "40", "--baseline", "0.1") == 2
+  assert "needs 99 GB" in capsys.readouterr().err
+  assert not (tmp_path / "new").exists()
+
+
 def test_outputs_never_replace_the_inputs(tmp_path, clip, npz_ckpt, capsys):
   # Input frames in OUT/disparity (the folder the PNG disparities go to) and an input video
   # at OUT/side_by_side.mp4: refused even with --overwrite, and the inputs stay as they were.

@@ -15,6 +15,7 @@ before anything is computed; on an error nothing is written.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 import pathlib
@@ -221,9 +222,9 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) 
   """Disparity files, the side-by-side video and, with calibration, depth and PLY files.
 
   `chunks` yields `(first frame, disparities [k, H, W])` in order
-  (`inference.iter_predict_video`). Each chunk's files are written as it comes; the
-  disparities wait in a temporary file in `out` (not in memory) for the video, whose one
-  colour range needs them all.
+  (`inference.iter_predict_video`; at least one, computed before any folder is made).
+  Each chunk's files are written as it comes; the disparities wait in a temporary file in
+  `out` (not in memory) for the video, whose one colour range needs them all.
 
   Returns:
     For the summary: `video_disparity_range` (the video's colour range, px) and
@@ -234,6 +235,10 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) 
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
 
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
+  # The first window runs before anything is created: a run that cannot (e.g. too little
+  # memory, found as it compiles) leaves no empty output folders behind.
+  chunks = iter(chunks)
+  chunks = itertools.chain([next(chunks)], chunks)
   (out / "disparity").mkdir(parents=True, exist_ok=True)
   if calib is not None:
     (out / "depth").mkdir(exist_ok=True)
