@@ -19,8 +19,8 @@ import pathlib
 import re
 
 import flax
-import ml_collections
 import jax
+import ml_collections
 import numpy as np
 
 import sav_jax
@@ -33,6 +33,13 @@ from train import evaluation, input as input_lib, optim, state as state_lib, ste
 from train.logging_utils import MetricWriter, Progress
 
 log = logging.getLogger(__name__)
+
+
+def _vda_part(params):
+  """The frozen depth prior's subtree of a model's params (or of their abstract shapes)."""
+  for k in ckpt_lib.VDA_PATH:
+    params = params[k]
+  return params
 
 
 def _merge_vda(params, vda):
@@ -59,11 +66,8 @@ def initial_weights(config, abstract_params):
     state_lib.check_params(host, abstract_params, f"config.init_from={config.init_from}: its "
                            "params")
   if vda is not None:
-    vda_abstract = abstract_params
-    for k in ckpt_lib.VDA_PATH:
-      vda_abstract = vda_abstract[k]
-    state_lib.check_params(vda, vda_abstract, f"config.vda_weights={config.vda_weights}: its "
-                           "params")
+    state_lib.check_params(vda, _vda_part(abstract_params),
+                           f"config.vda_weights={config.vda_weights}: its params")
   return host, vda
 
 
@@ -111,10 +115,7 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     return state, shardings, source if vda is None else "weights"
   state, _ = state_lib.create_train_state(model, tx, config, mesh, shardings=shardings)
   if vda is not None:
-    vda_abstract = abstract.params
-    for k in ckpt_lib.VDA_PATH:
-      vda_abstract = vda_abstract[k]
-    placed = state_lib.place_params(vda, vda_abstract, mesh)
+    placed = state_lib.place_params(vda, _vda_part(abstract.params), mesh)
     state = state.replace(params=_merge_vda(state.params, placed))
     return state, shardings, "weights"
   return state, shardings, "scratch"
@@ -307,7 +308,8 @@ def _check_blocks(config) -> None:
       raise ValueError(str(e).replace("SyntheticConfig.", "config.data.synthetic.")) from e
   if datasets - {"synthetic"}:  # real data is augmented (in the grain reader, per clip)
     try:
-      pipeline.Augment(tuple(config.data.crop), input_lib.augment_overrides(config))._config()
+      augment = pipeline.Augment(tuple(config.data.crop), input_lib.augment_overrides(config))
+      augment.augment_config()
     except ValueError as e:  # AugmentConfig names the field as `AugmentConfig.<name>`
       raise ValueError(str(e).replace("AugmentConfig.", "config.data.augment.")) from e
     except TypeError as e:  # a field AugmentConfig does not have

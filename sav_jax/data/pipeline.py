@@ -140,7 +140,8 @@ class Augment:
   crop: tuple[int, int]
   overrides: tuple[tuple[str, Any], ...] = ()
 
-  def _config(self):
+  def augment_config(self):
+    """The `AugmentConfig` applied (its checks raise ValueError naming the field)."""
     from sav_jax.data import augment  # pylint: disable=g-import-not-at-top
     kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in self.overrides}
     kwargs.setdefault("crop_size", tuple(self.crop))
@@ -148,7 +149,7 @@ class Augment:
 
   def __call__(self, clip, rng: np.random.Generator) -> dict[str, np.ndarray]:
     from sav_jax.data import augment  # pylint: disable=g-import-not-at-top
-    out = as_example(augment.augment_clip(clip, self._config(), rng))
+    out = as_example(augment.augment_clip(clip, self.augment_config(), rng))
     if out["left"].shape[1:3] != tuple(self.crop):
       raise ValueError(f"augmentation produced {out['left'].shape[1:3]}, expected the crop "
                        f"{tuple(self.crop)}")

@@ -105,14 +105,14 @@ def test_augmentation_and_generator_fields_are_overridable(name):
   c = importlib.import_module(f"configs.{name}").get_config()
   c.lock()  # as `python -m train` loads it: unknown fields are refused
   crop = tuple(c.data.crop)
-  default = pipeline.Augment(crop, tuple(sorted(dict(c.data.augment).items())))._config()
+  default = pipeline.Augment(crop, tuple(sorted(dict(c.data.augment).items()))).augment_config()
   assert default == AugmentConfig(crop_size=crop)  # the official defaults, unchanged
   assert set(c.data.augment) == {f.name for f in dataclasses.fields(AugmentConfig)} - {"crop_size"}
   c.data.augment.spatial_prob = 0.0
   c.data.augment.scale_range = (-0.1, 0.1)
   c.data.synthetic.focal = 300.0
   c.data.synthetic.max_speed = 1.5
-  aug = pipeline.Augment(crop, tuple(sorted(dict(c.data.augment).items())))._config()
+  aug = pipeline.Augment(crop, tuple(sorted(dict(c.data.augment).items()))).augment_config()
   assert (aug.spatial_prob, aug.scale_range) == (0.0, (-0.1, 0.1))
   gen = input_lib.synthetic_config(c.data, c.data.synthetic, seed=3)
   assert (gen.focal, gen.max_speed, gen.seed, gen.frames) == (300.0, 1.5, 3, c.data.frames)
