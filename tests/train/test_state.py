@@ -306,6 +306,11 @@ def test_vda_weights_load_into_the_real_model(tmp_path, vda_state_dict):
   abstract = _real_abstract_params()["depthnet"]["depthanything"]
   assert jax.tree.structure(vda) == jax.tree.structure(abstract)
   jax.tree.map(lambda a, b: np.testing.assert_equal(np.shape(a), b.shape), vda, abstract)
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = synthetic.get_config()
+  c.vda_weights = str(tmp_path / "vda.npz")
+  host, got = loop.initial_weights(c, _real_abstract_params())  # checked against its subtree
+  assert host is None and jax.tree.structure(got) == jax.tree.structure(abstract)
   # Converted for the run's depth prior: VDA-S weights are not a ViT-L prior.
   with pytest.raises(CheckpointError) as e:
     ckpt_lib.load_vda_params(tmp_path / "vda.npz", sav_jax.SAVConfig(vda_encoder="vitl"))
