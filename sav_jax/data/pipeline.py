@@ -167,13 +167,18 @@ def center_crop(clip: Mapping[str, np.ndarray], crop: tuple[int, int]) -> dict[s
   return {k: v[:, y0:y0 + ch, x0:x0 + cw] for k, v in ex.items()}
 
 
-def shard(ds: grain.MapDataset, process_index: int | None = None,
-          process_count: int | None = None) -> grain.MapDataset:
-  """This process's elements `ds[process_index::process_count]` (default: JAX's)."""
+def _process(process_index: int | None, process_count: int | None) -> tuple[int, int]:
   pi = jax.process_index() if process_index is None else process_index
   pc = jax.process_count() if process_count is None else process_count
   if not 0 <= pi < pc:
     raise ValueError(f"process_index {pi} not in [0, {pc})")
+  return pi, pc
+
+
+def shard(ds: grain.MapDataset, process_index: int | None = None,
+          process_count: int | None = None) -> grain.MapDataset:
+  """This process's elements `ds[process_index::process_count]` (default: JAX's)."""
+  pi, pc = _process(process_index, process_count)
   if len(ds) < pc:
     raise ValueError(f"{len(ds)} elements cannot be sharded over {pc} processes")
   return ds[pi::pc]
@@ -219,7 +224,8 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
       `registry_source`), each over all clips (sharding happens here).
     weights: mixture weights (see `mixture_weights`).
     batch_size: clips per batch *of this process* (global batch / process count).
-    seed: shuffling and augmentation seed (the same on every process).
+    seed: shuffling and augmentation seed (the same on every process: the processes
+      split one global shuffled, augmented stream, element `k` going to process `k % P`).
     mode: `"ratio"` or `"concat"` weighting.
     transforms: per source, `None` or a random map `(clip, np.random.Generator) -> example`
       (e.g. `Augment`); without one, `as_example` is applied.
@@ -236,12 +242,18 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
     raise ValueError(f"need one transform (or None) per source, got {len(transforms)} for "
                      f"{len(sources)} sources")
   props = mixture_weights([len(s) for s in sources], weights, mode)
+  pi, pc = _process(process_index, process_count)
   streams = []
   for i, (src, tf) in enumerate(zip(sources, transforms)):
-    ds = shard(src, process_index, process_count).shuffle(seed=seed + 7919 * i).repeat()
+    ds = src.shuffle(seed=seed + 7919 * i).repeat()
     ds = ds.random_map(tf, seed=seed + 104729 * (i + 1)) if tf is not None else ds.map(as_example)
     streams.append(ds)
   ds = streams[0] if len(streams) == 1 else grain.MapDataset.mix(streams, props)
+  # One global stream, the same on every process; each process takes every P-th element.
+  # Shuffling and augmenting each process's slice instead gives every process the same
+  # permutation and the same random draws, so a global batch would hold P neighbouring
+  # clips (often overlapping frames of one sequence) cropped and jittered alike.
+  ds = ds[pi::pc]
   read = grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch)
   it = ds.to_iter_dataset(read).batch(batch_size, drop_remainder=True, batch_fn=stack_examples)
   if worker_count > 0:

@@ -57,15 +57,37 @@ def test_same_seed_same_stream_other_seed_other_stream():
   assert a == b and a != c
 
 
-def test_process_shards_are_disjoint_and_cover_the_data():
-  seen = []
-  for p in range(3):
-    ds = pipeline.make_train_dataset([_tagged(0, 12)], [1.0], batch_size=4, seed=0,
-                                     process_index=p, process_count=3, num_threads=1)
-    ids = _ids(next(iter(ds)))
-    assert all(i % 3 == p for i in ids)  # only this process's slice is ever read
-    seen += ids
-  assert sorted(seen) == list(range(12))
+def test_processes_split_one_global_stream():
+  # Each process takes every third element of the one stream a single process would read:
+  # together they read each epoch once, in the single-process order.
+  def stream(p, count, n):
+    ds = pipeline.make_train_dataset([_tagged(0, 12)], [1.0], batch_size=1, seed=0,
+                                     process_index=p, process_count=count, num_threads=1)
+    return [_ids(b)[0] for b in _take(iter(ds), n)]
+
+  single = stream(0, 1, 24)
+  parts = [stream(p, 3, 8) for p in range(3)]
+  assert [parts[k % 3][k // 3] for k in range(24)] == single
+  assert sorted(single[:12]) == sorted(single[12:]) == list(range(12))
+  with pytest.raises(ValueError, match="process_index 3 not in"):
+    stream(3, 3, 1)
+
+
+def test_processes_draw_independent_augmentations():
+  # The random transform's draws at one step differ between processes (they used to be the
+  # same on every process: each shuffled and augmented its own slice with the same seeds).
+  def draw(clip, rng):
+    ex = pipeline.as_example(clip)
+    ex["disparity"] = np.full_like(ex["disparity"], rng.uniform())
+    return ex
+
+  first = []
+  for p in range(4):
+    ds = pipeline.make_train_dataset([_tagged(0, 16)], [1.0], batch_size=2, seed=0,
+                                     transforms=[draw], process_index=p, process_count=4,
+                                     num_threads=1)
+    first.append(tuple(next(iter(ds))["disparity"][:, 0, 0, 0]))
+  assert len(set(first)) == 4
 
 
 @pytest.mark.parametrize("mode,expected", [("ratio", (0.75, 0.25)), ("concat", (0.5, 0.5))])
