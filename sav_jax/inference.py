@@ -54,6 +54,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 import os
 import time
 import warnings
@@ -197,8 +198,13 @@ def resolve_config(cfg: SAVConfig | None = None, dtype: str | None = None) -> SA
   if not isinstance(cfg, SAVConfig):
     raise TypeError(f"cfg must be a sav_jax.SAVConfig (SAVConfig.from_dict(d) for a dict), "
                     f"got {type(cfg).__name__}")
+  if dtype is not None and not isinstance(dtype, str):
+    try:  # jnp.bfloat16, np.float32, ...
+      dtype = jnp.dtype(dtype).name
+    except TypeError:
+      raise ValueError(f"dtype must be 'float32' or 'bfloat16', got {dtype!r}") from None
   if dtype is not None and dtype != cfg.dtype:
-    cfg = dataclasses.replace(cfg, dtype=str(dtype))
+    cfg = dataclasses.replace(cfg, dtype=dtype)
   return cfg
 
 
@@ -447,12 +453,26 @@ def compiled_window(variables, frames: int, height: int, width: int, *, cfg: SAV
   return _compile(key, build, check_memory)
 
 
+def feature_chunk(window: int = WINDOW, stride: int = STRIDE) -> int:
+  """The per-frame chunk length of windows of `window` frames `stride` apart:
+  `gcd(window, stride)`, so every window starts and ends (except at the video's end) on a
+  chunk boundary and no chunk is cut short where a later window needs the rest of it."""
+  check_window(window, stride)
+  return math.gcd(window, stride)
+
+
 class FrameFeatureCache:
   """`frame_features` of single frames by frame index, for windows that overlap.
 
   The per-frame part of the model (DINOv2 tokens, fnet, cnet) is computed in chunks of
   `chunk` frames aligned to multiples of `chunk` from the start of the video, so a frame
-  gets the same values whichever window asks for it first.
+  gets the same values whichever window asks for it first, provided the windows start
+  and end on multiples of `chunk` (`feature_chunk(window, stride)`; the default suits
+  the default windows).
+
+  A cache belongs to one video, one frame size and one model config, and its windows
+  move forward: `run_window` refuses another frame size or config, or a window starting
+  before the previous one (a new video needs a new cache; frame contents are not checked).
   """
 
   def __init__(self, chunk: int = STRIDE):
@@ -460,6 +480,25 @@ class FrameFeatureCache:
       raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
     self.chunk = int(chunk)
     self.frames: dict[int, dict] = {}
+    self._use = None  # (frame size, pads, cfg) of the first window
+    self._start = 0  # the latest window's start
+
+  def check_use(self, shape: tuple, pads: tuple, cfg: SAVConfig, start: int) -> None:
+    """Raises ValueError unless a window of frames `shape` [T, H, W, 3] padded by `pads`,
+    for `cfg`, starting at frame `start`, can reuse this cache; then records it."""
+    use = (tuple(shape[1:3]), tuple(pads), cfg)
+    if self._use is not None and use != self._use:
+      raise ValueError(
+          f"this FrameFeatureCache holds features of {self._use[0][0]}x{self._use[0][1]} "
+          f"frames padded by {self._use[1]} for {self._use[2]}, not {use[0][0]}x{use[0][1]} "
+          f"frames padded by {use[1]} for {use[2]}: use a new cache for another video, size "
+          "or config")
+    if start < self._start:
+      raise ValueError(
+          f"window start {start} is before the previous window's ({self._start}): a "
+          "FrameFeatureCache serves one video's windows in order (use a new cache for "
+          "another video)")
+    self._use, self._start = use, start
 
   def evict_before(self, index: int) -> None:
     """Forgets the frames before `index` (windows only move forward)."""
@@ -544,7 +583,10 @@ def _check_video_shapes(left_shape: tuple, right_shape: tuple) -> None:
   if left_shape != right_shape:
     raise ValueError(f"left and right videos differ in shape: {left_shape} vs {right_shape}")
   if len(left_shape) != 4 or left_shape[-1] != 3 or min(left_shape[:3]) < 1:
-    raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {left_shape}")
+    batch = (" (one video per call: for a batch [B, T, H, W, 3], pass video[b])"
+             if len(left_shape) == 5 else "")
+    raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {left_shape}"
+                     + batch)
 
 
 def _as_video_pair(left, right, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -609,14 +651,17 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
     `[T, Hp, Wp]` float32 raw test-mode output on the padded frames (signed, not unpadded).
 
   Raises:
-    ValueError: for the inputs `predict_video` refuses, and pads that are not 4 integers
-      >= 0 giving a padded size of multiples of 16.
+    ValueError: for the inputs `predict_video` refuses, pads that are not 4 integers
+      >= 0 giving a padded size of multiples of 16, and a `cache` of another frame size,
+      padding or config, or of a later window (`FrameFeatureCache`).
+    CheckpointError: variables that do not fit `cfg`'s model.
   """
   cfg = resolve_config(cfg)
   iters = check_iters(iters)
   left, right = _as_video_pair(left, right)
   if not (_is_int(start) and start >= 0):
     raise ValueError(f"start must be an integer >= 0, got {start!r}")
+  check_variables(variables, cfg)
   if pads is None:
     pads = pad_amounts(*left.shape[1:3])
   elif not (len(tuple(pads)) == 4 and all(_is_int(p) and p >= 0 for p in pads)
@@ -624,8 +669,12 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
             and (left.shape[2] + pads[2] + pads[3]) % 16 == 0):
     raise ValueError(f"pads must be 4 integers (top, bottom, left, right) >= 0 that pad "
                      f"{left.shape[1]}x{left.shape[2]} frames to multiples of 16, got {pads!r}")
-  return _run_window(variables, left, right, cfg=cfg, iters=iters, pads=tuple(pads),
-                     check_memory=check_memory, cache=cache, start=start)
+  pads = tuple(int(p) for p in pads)
+  if cache is not None:
+    cache.check_use(left.shape, pads, cfg, start)
+  # a writeable copy (a device array's numpy view is read-only)
+  return np.array(_run_window(variables, left, right, cfg=cfg, iters=iters, pads=pads,
+                              check_memory=check_memory, cache=cache, start=start))
 
 
 def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache, start):
@@ -708,7 +757,16 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
   def frames(win):
     sl = slice(win.start, win.start + win.length)
     lw, rw = left[sl], right[sl]
-    return _as_video_pair(lw, rw, win.start) if check_frames else (lw, rw)
+    if not check_frames:
+      return lw, rw
+    want = (win.length, *left.shape[1:])
+    for name, source, got in (("left", left, lw), ("right", right, rw)):
+      if tuple(np.shape(got)) != want:
+        raise ValueError(
+            f"{name} video source {type(source).__name__} declares shape "
+            f"{tuple(source.shape)}, but its frames {win.start}..{win.start + win.length - 1} "
+            f"came back with shape {tuple(np.shape(got))}, not {want}")
+    return _as_video_pair(lw, rw, win.start)
 
   def kept(win, raw):
     if raw_windows is not None:
@@ -749,14 +807,15 @@ def resolve_devices(devices=None) -> list:
 
   Args:
     devices: None (the default device), a number n >= 1 (the first n local devices of the
-      default backend), "all" (every local device of it), or a sequence of `jax.Device`.
+      default backend), 0 or "all" (every local device of it), or a sequence of
+      `jax.Device`.
 
   Returns:
     A list of distinct devices.
 
   Raises:
-    ValueError: a number above the local device count, an empty or repeated list, or
-      something else.
+    ValueError: a negative number or one above the local device count, an empty or
+      repeated list, or something else.
   """
   if devices is None:
     return [_default_device()]
@@ -767,6 +826,8 @@ def resolve_devices(devices=None) -> list:
                        f"{devices!r}")
     return list(local)
   if _is_int(devices):
+    if devices == 0:
+      return list(local)
     if not 1 <= devices <= len(local):
       raise ValueError(f"devices={devices}, but {len(local)} local {local[0].platform} "
                        f"device{'s are' if len(local) > 1 else ' is'} available")
@@ -800,7 +861,7 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
     check_memory: refuse sizes that cannot fit (InsufficientMemoryError).
     devices: where the windows run: None where the variables are (the default device for
       numpy ones), or as `resolve_devices` takes them: a number n for the first n local
-      devices, "all", or a list of devices. With n
+      devices, 0 or "all", or a list of devices. With n
       devices, n consecutive windows run at once, one per device; every frame's features
       are still computed once (on the device of the first window that needs them, and
       copied to the next), and the result is the same as on one device.
@@ -848,7 +909,8 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
   devices = None if devices is None else resolve_devices(devices)
   plan = window_plan(int(left.shape[0]), window, stride)
   return _iter_plan(variables, left, right, plan, cfg=cfg, iters=iters,
-                    check_memory=check_memory, chunk=stride, progress=progress,
+                    check_memory=check_memory, chunk=feature_chunk(window, stride),
+                    progress=progress,
                     check_frames=lazy, devices=devices)
 
 
@@ -873,5 +935,5 @@ def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None
   raws = [] if return_windows else None
   plan = official_window_plan(left.shape[0], window, stride)
   disp = _run_plan(variables, left, right, plan, cfg=cfg, iters=iters, check_memory=True,
-                   chunk=stride, raw_windows=raws)
+                   chunk=feature_chunk(window, stride), raw_windows=raws)
   return (disp, raws) if return_windows else disp

@@ -7,6 +7,8 @@ and a sweep) runs with a stand-in for the model that labels each output frame wi
 window and position it came from.
 """
 
+import collections
+import math
 import os
 import re
 import subprocess
@@ -14,6 +16,7 @@ import sys
 import warnings
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -183,6 +186,114 @@ def test_stitching_sweep(monkeypatch, window, stride):
       np.testing.assert_array_equal(off, disp)
 
 
+class _CountingPrograms:
+  """Stand-ins for the compiled programs: the per-frame one records which frames it
+  computes and tags each frame's feature with its chunk length; the window records the
+  tags it sees (frame -> set of chunk lengths)."""
+
+  def __init__(self):
+    self.computed = collections.Counter()
+    self.seen = collections.defaultdict(set)
+    self.chunk_lengths = set()
+
+  def frames(self, variables, n, hp, wp, *, cfg, check_memory=True):
+    self.chunk_lengths.add(n)
+
+    def run(v, left, right):
+      self.computed.update(int(i) for i in left[:, 0, 0, 0])
+      return {"f": np.stack([left[:, 0, 0, 0], np.full(n, n, np.float32)], -1)[None]}
+
+    return run
+
+  def window(self, variables, n, hp, wp, *, cfg, iters, check_memory=True):
+    def run(v, feats):
+      for i, length in np.asarray(feats["f"][0]):
+        self.seen[int(i)].add(int(length))
+      return np.zeros((n, hp, wp), np.float32)
+
+    return run
+
+
+@pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.parametrize("window,stride,n", [(20, 10, 45), (20, 7, 45), (8, 3, 20), (9, 6, 31)])
+def test_each_frame_features_computed_once_in_one_chunk(monkeypatch, window, stride, n):
+  # A stride that does not divide the window used to cut chunks at window ends, so the next
+  # window recomputed them (24 of 45 frames twice at 20/7) from chunks of other lengths.
+  fake = _CountingPrograms()
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "compiled_frame_features", fake.frames)
+  monkeypatch.setattr(inference, "compiled_window", fake.window)
+  video = _labelled_video(n)
+  inference.predict_video({}, video, video, window=window, stride=stride, iters=2,
+                          check_memory=False)
+  assert fake.computed == collections.Counter(range(n))
+  assert all(len(lengths) == 1 for lengths in fake.seen.values()) and len(fake.seen) == n
+  chunk = inference.feature_chunk(window, stride)
+  assert chunk == math.gcd(window, stride)
+  assert fake.chunk_lengths <= {chunk, n % chunk or chunk}
+
+
+class _ShortSource:
+  """A lazy video source that declares more frames (or another size) than it gives."""
+
+  def __init__(self, video, shape):
+    self.video, self.shape = video, shape
+
+  def __getitem__(self, sl):
+    return self.video[sl]
+
+
+@pytest.mark.filterwarnings("ignore:.*float frames with values")
+def test_lazy_source_frames_must_match_its_shape(monkeypatch):
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window", _LabelModel())
+  video = _labelled_video(22)
+  for shape, match in (((25, 5, 7, 3), r"declares shape \(25, 5, 7, 3\), but its frames "
+                                       r"10..24 came back with shape \(12, 5, 7, 3\)"),
+                       ((22, 4, 7, 3), r"declares shape \(22, 4, 7, 3\), but its frames 0..19 came back with shape \(20, 5, 7, 3\)")):
+    source = _ShortSource(video, shape)
+    with pytest.raises(ValueError, match="left video source _ShortSource " + match):
+      inference.predict_video({}, source, _ShortSource(video, shape))
+
+
+@pytest.mark.filterwarnings("ignore:.*float frames with values")
+def test_run_window_cache_belongs_to_one_video(monkeypatch):
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  calls = []
+
+  def stand_in(variables, left, right, **kw):
+    calls.append(kw["start"])
+    out = np.zeros((len(left), 16, 16), np.float32)
+    out.flags.writeable = False  # as a device array's numpy view
+    return out
+
+  monkeypatch.setattr(inference, "_run_window", stand_in)
+  video = _labelled_video(20)
+  cache = inference.FrameFeatureCache()
+  run = lambda v, **kw: inference.run_window({}, v, v, cfg=sav_jax.SAVConfig(), iters=2,
+                                             cache=cache, **kw)
+  out = run(video, start=0)
+  out[out < 0] = 0  # the result is the caller's to change
+  run(video[10:], start=10)
+  with pytest.raises(ValueError, match="window start 0 is before the previous window's"):
+    run(video, start=0)
+  with pytest.raises(ValueError, match="holds features of 5x7 frames padded by"):
+    run(np.zeros((4, 9, 7, 3), np.uint8), start=20)
+  with pytest.raises(ValueError, match="use a new cache"):
+    inference.run_window({}, video, video, cfg=sav_jax.SAVConfig(dtype="bfloat16"), iters=2,
+                         cache=cache, start=20)
+  assert calls == [0, 10]
+
+
+def test_dtype_override_takes_dtype_objects():
+  assert inference.resolve_config(None, jnp.bfloat16).dtype == "bfloat16"
+  assert inference.resolve_config(None, np.float32).dtype == "float32"
+  with pytest.raises(ValueError, match="dtype must be 'float32' or 'bfloat16'"):
+    inference.resolve_config(None, object())
+  with pytest.raises(ValueError, match="SAVConfig.dtype='float16'"):
+    inference.resolve_config(None, np.float16)
+
+
 def test_padding_matches_input_padder():
   assert inference.pad_amounts(436, 1024) == (6, 6, 0, 0)
   assert inference.pad_amounts(375, 1242) == (4, 5, 3, 3)
@@ -199,6 +310,8 @@ def test_bad_inputs():
     inference.predict_video({}, np.zeros((2, 8, 8, 3)), np.zeros((3, 8, 8, 3)))
   with pytest.raises(ValueError, match=r"\[T, H, W, 3\]"):
     inference.predict_video({}, np.zeros((2, 8, 8)), np.zeros((2, 8, 8)))
+  with pytest.raises(ValueError, match=r"for a batch \[B, T, H, W, 3\], pass video\[b\]"):
+    inference.predict_video({}, np.zeros((1, 2, 8, 8, 3)), np.zeros((1, 2, 8, 8, 3)))
   with pytest.raises(ValueError, match="stride"):
     inference.window_plan(10, window=4, stride=5)
   for n in (0, 25.5):
@@ -238,6 +351,9 @@ def test_run_window_checks_its_inputs_before_compiling(variables):
   for args, kw, match in cases:
     with pytest.raises(ValueError, match=match):
       run(*args, **kw)
+  # variables that do not fit the model (a deep Flax scope error before)
+  with pytest.raises(sav_jax.convert.CheckpointError, match="expected Flax variables"):
+    inference.run_window(variables["params"], video, video, cfg=cfg, iters=ITERS)
   assert inference.cache_size() == before  # nothing compiled
 
 

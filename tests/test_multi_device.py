@@ -78,11 +78,11 @@ def test_device_choices_are_checked():
   assert inference.resolve_devices(None) == [jax.devices()[0]]
   assert inference.resolve_devices(1) == jax.local_devices()[:1]
   assert inference.resolve_devices(np.int64(1)) == jax.local_devices()[:1]
-  assert inference.resolve_devices("all") == jax.local_devices()
+  assert inference.resolve_devices("all") == inference.resolve_devices(0) == jax.local_devices()
   assert inference.resolve_devices(jax.local_devices()) == jax.local_devices()
   with pytest.raises(ValueError, match=f"devices={n + 1}, but {n} local cpu device"):
     inference.resolve_devices(n + 1)
-  for bad in (0, -1, True, 1.5, "gpu", [], [jax.devices()[0]] * 2, ["cpu:0"], object()):
+  for bad in (-1, True, 1.5, "gpu", [], [jax.devices()[0]] * 2, ["cpu:0"], object()):
     with pytest.raises(ValueError, match="devices"):
       inference.resolve_devices(bad)
 
