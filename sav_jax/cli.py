@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
   try:
     with command_logging(args.verbose), runtime.preserved_settings():
       return int(args._run(args) or 0)
-  except (UsageError, ValueError, FileNotFoundError, FileExistsError) as e:
+  except (UsageError, ValueError, OSError) as e:  # OSError: a disk full, a folder not writable
     print(f"sav-jax {args.command}: error: {e}", file=sys.stderr)
     return 2
 

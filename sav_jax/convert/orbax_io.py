@@ -107,9 +107,17 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
       config is not JSON-serialisable, or `variables` holds zero-size arrays.
   """
   directory = pathlib.Path(directory).absolute()
+  if directory.is_symlink():
+    if not directory.exists():
+      raise CheckpointError(f"{directory} is a broken symbolic link (to {os.readlink(directory)})")
+    # replace what the link points to, and keep the link (the swap below renames folders)
+    directory = directory.resolve()
   if directory.exists():
     if not overwrite:
       raise FileExistsError(f"{directory} exists; pass overwrite=True to replace it")
+    if not directory.is_dir():
+      raise CheckpointError(f"{directory} is a file, not a checkpoint folder; it is not "
+                            "replaced")
     if not is_variables_checkpoint(directory) and any(directory.iterdir()):
       raise CheckpointError(f"{directory}: refusing to overwrite a non-empty directory that "
                             "is not a sav-jax variables checkpoint")

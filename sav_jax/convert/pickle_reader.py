@@ -355,7 +355,8 @@ class RestrictedUnpickler(pickle.Unpickler):
     raise CheckpointError(
         f"{self._source}: refusing to load the pickled global '{module}.{name}' (only tensor "
         "rebuild helpers and containers are allowed; the file may be malicious or hold "
-        "pickled Python objects)")
+        "pickled Python objects: load_state_dict(path, opaque_unknown=True) reads the "
+        "weights beside such objects, replacing them by inert placeholders)")
 
   def persistent_load(self, pid):
     if self._storage_loader is None:
@@ -438,16 +439,23 @@ def load_zip(path, source, opaque_unknown=False):
 
 
 def _zip_prefix(zf, source):
-  """The record prefix (`archive/`, `<stem>/`, ...) of the zip's single `data.pkl`."""
-  if any("/code/" in n or n.startswith("code/") for n in zf.namelist()):
+  """The record prefix (`archive/`, `<stem>/`, ...) of the zip's single `data.pkl`.
+
+  torch.save names the prefix after the file's stem, so `code.pth` holds `code/data.pkl`:
+  a TorchScript archive is told by its `<prefix>code/` folder or `constants.pkl`.
+  """
+  all_names = zf.namelist()
+  names = [n for n in all_names if n == "data.pkl" or n.endswith("/data.pkl")]
+  names = [n for n in names if n.count("/") <= 1]
+  prefix = names[0][:-len("data.pkl")] if len(names) == 1 else None
+  if (any(n.startswith(prefix + "code/") or n == prefix + "constants.pkl" for n in all_names)
+      if prefix is not None else any("/code/" in n or n.startswith("code/") for n in all_names)):
     raise CheckpointError(f"{source}: a TorchScript archive (torch.jit.save), not a "
                           "checkpoint; save the model's state_dict() instead")
-  names = [n for n in zf.namelist() if n == "data.pkl" or n.endswith("/data.pkl")]
-  names = [n for n in names if n.count("/") <= 1]
-  if len(names) != 1:
+  if prefix is None:
     raise CheckpointError(f"{source}: zip file without a single '<dir>/data.pkl' record; "
                           "not a torch checkpoint")
-  return names[0][:-len("data.pkl")]
+  return prefix
 
 
 def _zip_record(zf, prefix, key, dtype, numel, order, source):

@@ -17,7 +17,7 @@ from typing import Mapping
 
 import numpy as np
 
-from sav_jax.convert.pickle_reader import CheckpointError
+from sav_jax.convert.pickle_reader import LEGACY_MAGIC, CheckpointError
 from sav_jax.convert.pickle_reader import load_legacy
 from sav_jax.convert.pickle_reader import load_zip
 from sav_jax.convert.pickle_reader import resolve_tensors
@@ -93,7 +93,7 @@ def _load_torch(path, opaque_unknown):
     elif len(head) >= 262 and head[257:262] == b"ustar":
       raise CheckpointError(f"{source}: the pre-0.4 tar checkpoint format is not supported; "
                             "re-save it with a recent torch")
-    elif head[:1] == b"\x80":
+    elif head[:1] == b"\x80" or head.startswith(b"L%d" % LEGACY_MAGIC):  # protocol 2+ / 0-1
       obj = load_legacy(fh, source, opaque_unknown)
     elif not head:
       raise CheckpointError(f"{source}: empty file")
@@ -285,7 +285,9 @@ KIND_NAMES = {"sav": "a Stereo Any Video", "vda": "a Video Depth Anything (depth
 
 def load_state_dict_of_kind(path, want: str, hints: Mapping[str, str] | None = None,
                             label: str | None = None) -> dict:
-  """`load_state_dict(path)`, refused unless `checkpoint_kind` of it is `want`.
+  """`load_state_dict(path, opaque_unknown=True)`, refused unless `checkpoint_kind` of it
+  is `want`: the weights of a training checkpoint whose optimizer or scheduler state holds
+  pickled Python objects are read (the objects are replaced by inert placeholders).
 
   Args:
     path: the checkpoint file.
@@ -297,7 +299,9 @@ def load_state_dict_of_kind(path, want: str, hints: Mapping[str, str] | None = N
     CheckpointError: unreadable, unrecognised, or of the other kind ("<label> is a Video
       Depth Anything (depth prior only) checkpoint, not a Stereo Any Video one; <hint>").
   """
-  sd = load_state_dict(path)
+  # Weights only: pickled objects beside them (an old OneCycleLR's function, a Lightning
+  # callback) become inert placeholders, logged, never imported or run.
+  sd = load_state_dict(path, opaque_unknown=True)
   kind = checkpoint_kind(sd, source=str(path))
   if kind != want:
     hint = (hints or {}).get(kind)
@@ -372,13 +376,31 @@ def _write_safetensors(arrays, fh):
   fh.write(safetensors.numpy.save(arrays))
 
 
+def _is_ml_dtype(a: np.ndarray) -> bool:
+  """bfloat16, float8, ... (ml_dtypes' types, which numpy stores as opaque void)."""
+  return a.dtype.kind == "V" and a.dtype.names is None
+
+
 def _write_npz(arrays, fh):
-  np.savez(fh, **arrays)
+  # numpy has no bfloat16/float8: np.savez would write opaque bytes that read back as void
+  np.savez(fh, **{k: v.astype(np.float32) if _is_ml_dtype(v) else v
+                  for k, v in arrays.items()})
 
 
 def _write_torch(arrays, fh):
   import torch  # pylint: disable=import-outside-toplevel
-  torch.save({k: torch.from_numpy(v.copy()) for k, v in arrays.items()}, fh)
+
+  def tensor(v):
+    if not _is_ml_dtype(v):
+      return torch.from_numpy(v.copy())
+    same = getattr(torch, v.dtype.name, None)  # torch.bfloat16, torch.float8_e4m3fn, ...
+    if (v.dtype.name.startswith(("bfloat16", "float8")) and isinstance(same, torch.dtype)
+        and same.itemsize == v.dtype.itemsize):
+      raw = {1: np.uint8, 2: np.uint16}[v.dtype.itemsize]
+      return torch.from_numpy(v.view(raw).copy()).view(same)
+    return torch.from_numpy(v.astype(np.float32))
+
+  torch.save({k: tensor(v) for k, v in arrays.items()}, fh)
 
 
 # The state-dict files `save_state_dict` writes, by suffix.

@@ -49,6 +49,17 @@ PE_SUFFIX = ".pos_encoder.pe"
 # the stored buffers differ from `sinusoidal_table` by up to ~1e-6 (9.5e-7 on the
 # fixtures); any other table (other width, length or formula) differs by O(0.1).
 PE_ATOL = 1e-5
+# A checkpoint saved in float16 or bfloat16 holds the table rounded to that type: within
+# half a step of values in [-1, 1], 2**-9 for bfloat16 (read back as float32 whose low 16
+# bits are zero), 2**-12 for float16.
+PE_ATOL_HALF = 2.0 ** -9 + PE_ATOL
+
+
+def _pe_atol(a: np.ndarray) -> float:
+  """`PE_ATOL`, or `PE_ATOL_HALF` for a float16 buffer or a bfloat16 one widened to float32."""
+  half = a.dtype == np.float16 or (a.dtype == np.float32 and a.size > 0 and
+                                   not np.any(np.ascontiguousarray(a).view(np.uint32) & 0xFFFF))
+  return PE_ATOL_HALF if half else PE_ATOL
 
 
 def _abstract_params(model: VideoDepthAnything) -> dict:
@@ -111,10 +122,10 @@ def _check_pe(sd: dict[str, np.ndarray], expected: dict[str, np.ndarray],
     if a.shape != table.shape:
       problems.add(f"key {name}: shape {a.shape} does not match Video Depth Anything (expects "
                    f"{table.shape}, a sinusoidal buffer)")
-    elif not np.allclose(a, table, rtol=0.0, atol=PE_ATOL):
+    elif not np.allclose(a, table, rtol=0.0, atol=_pe_atol(a)):
       err = float(np.max(np.abs(a.astype(np.float64) - table)))
       problems.add(f"key {name} is not the sinusoidal table (max abs diff {err:.3g} > "
-                   f"{PE_ATOL})")
+                   f"{_pe_atol(a):.3g})")
 
 
 def vda_params_from_state_dict(sd: dict[str, np.ndarray],

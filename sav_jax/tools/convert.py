@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from sav_jax.tools import UsageError
+from sav_jax.tools import UsageError, check_output_dir
 
 HELP = ("convert an official .pth/.pt/.safetensors/.npz checkpoint into an orbax directory "
         "(or another state-dict file), or export an orbax directory or a training run's "
@@ -43,8 +43,9 @@ def check_destination(src: str, dst: str, to_file: bool, overwrite: bool) -> Non
   import os  # pylint: disable=import-outside-toplevel
 
   from sav_jax import convert  # pylint: disable=import-outside-toplevel
-  if os.path.abspath(src) == os.path.abspath(dst):
+  if os.path.realpath(src) == os.path.realpath(dst):
     raise UsageError(f"SRC and DST are the same path ({dst}); write to another one")
+  check_output_dir(os.path.dirname(os.path.abspath(dst)), flag=f"DST {dst}: folder")
   if not os.path.lexists(dst):
     return
   if not overwrite:

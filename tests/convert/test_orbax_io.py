@@ -82,6 +82,28 @@ def test_overwrite(tmp_path):
   np.testing.assert_array_equal(orbax_io.restore_variables(path)[0]["params"]["w"], np.ones(3))
 
 
+def test_overwrite_through_a_symlink_keeps_the_link(tmp_path):
+  # Overwriting used to rename the link itself, then fail in rmtree on the moved link.
+  target, link = tmp_path / "run5", tmp_path / "latest"
+  orbax_io.save_variables(target, {"params": {"w": jnp.zeros(2)}}, {"v": 1})
+  link.symlink_to(target, target_is_directory=True)
+  orbax_io.save_variables(link, {"params": {"w": jnp.ones(2)}}, {"v": 2}, overwrite=True)
+  assert link.is_symlink() and link.resolve() == target.resolve()
+  np.testing.assert_array_equal(orbax_io.restore_variables(target)[0]["params"]["w"], [1, 1])
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["latest", "run5"]
+  (tmp_path / "gone").symlink_to(tmp_path / "nowhere")
+  with pytest.raises(CheckpointError, match="broken symbolic link"):
+    orbax_io.save_variables(tmp_path / "gone", {"params": {"w": jnp.ones(2)}}, {})
+
+
+def test_refuses_to_overwrite_a_file(tmp_path):
+  path = tmp_path / "notes.txt"
+  path.write_text("keep me")
+  with pytest.raises(CheckpointError, match="is a file, not a checkpoint folder"):
+    orbax_io.save_variables(path, {"params": {"w": jnp.ones(2)}}, {}, overwrite=True)
+  assert path.read_text() == "keep me"
+
+
 def test_refuses_to_overwrite_foreign_directory(tmp_path):
   (tmp_path / "data").mkdir()
   (tmp_path / "data" / "precious.txt").write_text("keep me")

@@ -176,6 +176,29 @@ def test_non_float_and_non_finite_tensors_are_refused(sav_state_dict):
   assert convert.params_from_state_dict(sd)["params"]["cnet"]["conv1"]["kernel"].dtype == np.float32
 
 
+def _to_bfloat16(a):
+  """float32 rounded to bfloat16 (nearest even) and widened back, as a bf16 file reads."""
+  bits = np.asarray(a, np.float32).view(np.uint32).astype(np.uint64)
+  bits = (bits + 0x7FFF + ((bits >> 16) & 1)) & 0xFFFF0000
+  return bits.astype(np.uint32).view(np.float32)
+
+
+def test_half_precision_checkpoints_convert(sav_state_dict):
+  # A float16 or bfloat16 file holds the motion modules' sinusoidal tables rounded to
+  # that type (up to 2.4e-4 / 2.0e-3 from the float32 table, against 1e-5 allowed before).
+  for cast in (lambda a: a.astype(np.float16), _to_bfloat16):
+    sd = {k: cast(v) if v.dtype == np.float32 else v for k, v in sav_state_dict.items()}
+    params = convert.params_from_state_dict(sd)["params"]
+    np.testing.assert_allclose(params["cnet"]["conv1"]["kernel"].transpose(3, 2, 0, 1),
+                               sav_state_dict["cnet.conv1.weight"], rtol=1e-2, atol=1e-3)
+  # a float32 table off by 1e-3 is still another table
+  key = next(k for k in sav_state_dict if k.endswith(".pos_encoder.pe"))
+  sd = dict(sav_state_dict)
+  sd[key] = sd[key] + np.float32(1e-3)
+  with pytest.raises(ValueError, match="is not the sinusoidal table"):
+    convert.params_from_state_dict(sd)
+
+
 def test_export_of_trained_params_is_complete(sav_state_dict, variables):
   exported = convert.state_dict_from_params({"params": variables["params"]})  # no torch_unused
   assert sorted(exported) == sorted(sav_state_dict)
@@ -264,7 +287,11 @@ def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dic
                        (tmp_path / "folder.npz", "is not a file; it is not replaced"),
                        (tmp_path / "notes.txt", "is not a `sav-jax convert` variables folder"),
                        (tmp_path / "folder", "is not a `sav-jax convert` variables folder"),
-                       (tmp_path / "sav.ckpt", "cannot write a .ckpt file")):
+                       (tmp_path / "sav.ckpt", "cannot write a .ckpt file"),
+                       # a traceback after the whole conversion before
+                       (tmp_path / "notes.txt" / "odir", "notes.txt is a file, not a folder"),
+                       (tmp_path / "notes.txt" / "a" / "x.npz",
+                        "notes.txt is a file, not a folder")):
     assert cli.main(["convert", str(src), str(dst), "--overwrite"]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err

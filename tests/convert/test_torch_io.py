@@ -3,6 +3,7 @@
 import collections
 import io
 import json
+import logging
 import os
 import pickle
 import struct
@@ -223,21 +224,21 @@ class _Builder:
       zf.writestr(f"{prefix}/version", "3\n")
     return path
 
-  def write_legacy(self, path, obj, header=None):
+  def write_legacy(self, path, obj, header=None, protocol=2):
     with open(path, "wb") as f:
-      f.write(header if header is not None else _legacy_header())
-      f.write(self.pickle(obj, legacy=True))
-      pickle.dump(list(self.storages), f, protocol=2)
+      f.write(header if header is not None else _legacy_header(protocol=protocol))
+      f.write(self.pickle(obj, legacy=True, protocol=protocol))
+      pickle.dump(list(self.storages), f, protocol=protocol)
       for st in self.storages.values():
         f.write(struct.pack("<q", st.numel))
         f.write(st.raw)
     return path
 
 
-def _legacy_header(magic=pickle_reader.LEGACY_MAGIC):
+def _legacy_header(magic=pickle_reader.LEGACY_MAGIC, protocol=2):
   sys_info = {"protocol_version": 1001, "little_endian": True,
               "type_sizes": {"short": 2, "int": 4, "long": 8}}
-  return b"".join(pickle.dumps(x, protocol=2) for x in (magic, 1001, sys_info))
+  return b"".join(pickle.dumps(x, protocol=protocol) for x in (magic, 1001, sys_info))
 
 
 _DTYPE_VALUES = {
@@ -459,6 +460,22 @@ def test_opaque_unknown_extracts_weights_next_to_junk(tmp_path, fake_torch):
   assert sched["sched"].name.endswith("_Scheduler")
 
 
+def test_tools_read_the_weights_of_training_checkpoints_with_pickled_objects(tmp_path,
+                                                                            fake_torch, caplog):
+  # An official training checkpoint saved with torch 2.1 holds OneCycleLR's anneal function
+  # in "scheduler": `sav-jax convert`, `infer --vda`, training's init_from read its weights.
+  b = _Builder(fake_torch)
+  ckpt = {"model": {"fnet.w": b.array(np.ones(2, np.float32), "float32")},
+          "scheduler": {"anneal_func": _Scheduler().anneal}, "total_steps": 3000}
+  path = b.write_zip(tmp_path / "model_sav_003000.pth", ckpt)
+  with caplog.at_level(logging.WARNING):
+    sd = torch_io.load_state_dict_of_kind(path, "sav")
+  np.testing.assert_array_equal(sd["fnet.w"], [1, 1])
+  assert "inert placeholders" in caplog.text and "_Scheduler" in caplog.text
+  with pytest.raises(CheckpointError, match=r"opaque_unknown=True\) reads the weights"):
+    torch_io.load_state_dict(path)
+
+
 def test_build_cannot_mutate_allow_listed_objects(tmp_path, torch_dir):
   # GLOBAL torch.FloatStorage, then BUILD with slot state {'raw': 1}.
   payload = b"\x80\x02ctorch\nFloatStorage\nN}X\x03\x00\x00\x00rawK\x01s\x86b."
@@ -515,10 +532,31 @@ def test_deeply_nested_structure(tmp_path):
     torch_io.load_checkpoint_object(_zip_with_pickle(tmp_path / "deep.pth", data))
 
 
-def test_torchscript_archive(tmp_path):
+def test_torchscript_archive(tmp_path, fake_torch):
   path = _zip_with_pickle(tmp_path / "ts.pt", pickle.dumps({}), extra=["archive/code/m.py"])
   with pytest.raises(CheckpointError, match="TorchScript"):
     torch_io.load_checkpoint_object(path)
+  path = _zip_with_pickle(tmp_path / "ts2.pt", pickle.dumps({}), extra=["archive/constants.pkl"])
+  with pytest.raises(CheckpointError, match="TorchScript"):
+    torch_io.load_checkpoint_object(path)
+  # torch.save names the records after the file's stem: code.pth holds code/data.pkl,
+  # which is a checkpoint, not TorchScript's code/ folder.
+  b = _Builder(fake_torch)
+  path = b.write_zip(tmp_path / "code.pth", {"w": b.array(np.ones(2, np.float32), "float32")},
+                     prefix="code")
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["w"], [1, 1])
+
+
+def test_legacy_file_of_pickle_protocol_1(tmp_path, fake_torch):
+  # torch.save(..., pickle_protocol=1, _use_new_zipfile_serialization=False) starts with
+  # the magic number as a protocol-1 long (b"L1195...L\n"), not with a protocol opcode.
+  # (Protocol 0 cannot hold torch's tuple storage ids: torch cannot load those either.)
+  protocol = 1
+  b = _Builder(fake_torch)
+  path = b.write_legacy(tmp_path / "old.pth", {"w": b.array(np.arange(3, dtype=np.float32),
+                                                            "float32")}, protocol=protocol)
+  assert path.read_bytes().startswith(b"L%d" % pickle_reader.LEGACY_MAGIC)
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["w"], [0, 1, 2])
 
 
 # --------------------------------------------------------------------------------------------
@@ -740,6 +778,17 @@ def test_save_errors(tmp_path):
     torch_io.save_state_dict({"x": np.zeros(1)}, tmp_path / "w.h5")
   with pytest.raises(CheckpointError, match="keys must be strings"):
     torch_io.save_state_dict({1: np.zeros(1)}, tmp_path / "w.npz")
+
+
+def test_save_npz_widens_bfloat16(tmp_path):
+  # np.savez wrote bfloat16 as opaque 2-byte records, which read back as void arrays.
+  import ml_dtypes  # pylint: disable=import-outside-toplevel
+  values = np.array([1.5, -2.0, 3.25], np.float32)
+  path = torch_io.save_state_dict({"w": values.astype(ml_dtypes.bfloat16), "i": np.arange(2)},
+                                  tmp_path / "w.npz")
+  back = torch_io.load_state_dict(path)
+  assert back["w"].dtype == np.float32 and back["i"].dtype == np.arange(2).dtype
+  np.testing.assert_array_equal(back["w"], values)
 
 
 def test_save_pth_without_torch(tmp_path):
