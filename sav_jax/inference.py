@@ -238,7 +238,11 @@ def estimate_memory_bytes(frames: int, height: int, width: int, iters: int = 20,
 
 
 def available_memory_bytes(device=None) -> int | None:
-  """Free memory of `device` (default: the first device); host RAM for CPU; None if unknown."""
+  """Free memory of `device` (default: the first device); None if unknown.
+
+  For CPU, the host's available RAM, or less under a container's memory limit
+  (`runtime.cgroup_free_bytes`).
+  """
   device = jax.devices()[0] if device is None else device
   stats = None
   try:
@@ -247,6 +251,12 @@ def available_memory_bytes(device=None) -> int | None:
     stats = None
   if stats and "bytes_limit" in stats:
     return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+  limits = [runtime.cgroup_free_bytes(), _host_available_bytes()]
+  limits = [x for x in limits if x is not None]
+  return min(limits) if limits else None
+
+
+def _host_available_bytes() -> int | None:
   try:
     with open("/proc/meminfo", encoding="ascii") as fh:
       for line in fh:

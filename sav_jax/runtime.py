@@ -249,3 +249,72 @@ def inference_compiler_options(platform: str | None = None,
     wanted += [*older_emitters, (_DISABLED_PASSES_FLAG, _DISABLED_PASSES)]
   return {k: v for k, v in wanted
           if k not in user_flags and _accepts_options(platform, ((k, v),))}
+
+
+# A cgroup memory limit at or above this is "no limit" (v1 writes 2**63 rounded to pages).
+_CGROUP_NO_LIMIT = 1 << 60
+
+
+def cgroup_free_bytes(proc_cgroup: str = "/proc/self/cgroup",
+                      root: str = "/sys/fs/cgroup") -> int | None:
+  """Memory left under the tightest cgroup memory limit above this process, or None.
+
+  A container's limit (docker `--memory`, Kubernetes, SLURM) is not in `/proc/meminfo`,
+  whose MemAvailable is the host's. Each group on this process's path, up to the mount,
+  that sets a limit (v2 `memory.max`, v1 `memory.limit_in_bytes`) leaves `limit - (usage -
+  inactive page cache)`; the least of them is returned. None where no group sets a limit
+  or the files cannot be read.
+
+  Args:
+    proc_cgroup, root: where to read the process's groups and the cgroup mounts.
+  """
+  try:
+    lines = pathlib.Path(proc_cgroup).read_text(encoding="ascii").splitlines()
+  except (OSError, UnicodeDecodeError):
+    return None
+  root_dir = pathlib.Path(root)
+  free = []
+  for line in lines:
+    parts = line.split(":", 2)
+    if len(parts) != 3:
+      continue
+    hierarchy, controllers, path = parts
+    if hierarchy == "0" and not controllers:  # v2 (unified), alone or beside v1
+      base = root_dir if (root_dir / "cgroup.controllers").exists() else root_dir / "unified"
+      files = ("memory.max", "memory.current", "inactive_file")
+    elif "memory" in controllers.split(","):
+      base = root_dir / "memory"
+      files = ("memory.limit_in_bytes", "memory.usage_in_bytes", "total_inactive_file")
+    else:
+      continue
+    group = base / path.lstrip("/")
+    if not group.is_dir():  # in a cgroup namespace the mount is the process's own group
+      group = base
+    while True:
+      left = _cgroup_group_free(group, *files)
+      if left is not None:
+        free.append(left)
+      if group == base or base not in group.parents:
+        break
+      group = group.parent
+  return min(free) if free else None
+
+
+def _cgroup_group_free(group: pathlib.Path, limit_file: str, usage_file: str,
+                       inactive_key: str) -> int | None:
+  try:
+    limit = (group / limit_file).read_text(encoding="ascii").strip()
+    if limit == "max" or int(limit) >= _CGROUP_NO_LIMIT:
+      return None
+    usage = int((group / usage_file).read_text(encoding="ascii"))
+  except (OSError, ValueError):
+    return None
+  inactive = 0
+  try:
+    for line in (group / "memory.stat").read_text(encoding="ascii").splitlines():
+      key, _, value = line.partition(" ")
+      if key == inactive_key:
+        inactive = int(value)
+  except (OSError, ValueError):
+    pass
+  return max(0, int(limit) - max(0, usage - inactive))

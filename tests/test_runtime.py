@@ -155,3 +155,44 @@ def test_inference_forward_keeps_its_temporary_memory_small_with_the_same_values
   assert temp(lean) <= temp(default) and temp(lean) < 80 * 2**20, (temp(lean), temp(default))
   np.testing.assert_allclose(np.asarray(lean(variables, left, right)),
                              np.asarray(default(variables, left, right)), atol=1e-4)
+
+
+def _group(path, **files):
+  path.mkdir(parents=True, exist_ok=True)
+  for name, text in files.items():
+    (path / name.replace("_", ".", 1)).write_text(text)
+
+
+def test_cgroup_memory_limits_v1_and_v2(tmp_path):
+  # v1 (beside an empty v2 hierarchy): the container's group limits to 8 GiB, its parent to
+  # 6 GiB; 5 GiB used of which 1 GiB inactive page cache -> 6 - (5 - 1) = 2 GiB left.
+  gib = 1 << 30
+  proc = tmp_path / "cgroup"
+  proc.write_text("5:cpu:/\n4:memory:/docker/abc\n0::/\n")
+  v1 = tmp_path / "fs" / "memory"
+  _group(v1, memory_limit_in_bytes=str(9223372036854771712), memory_usage_in_bytes=str(9 * gib))
+  _group(v1 / "docker", memory_limit_in_bytes=str(6 * gib),
+         memory_usage_in_bytes=str(5 * gib), memory_stat=f"total_inactive_file {gib}\n")
+  _group(v1 / "docker" / "abc", memory_limit_in_bytes=str(8 * gib),
+         memory_usage_in_bytes=str(5 * gib), memory_stat=f"total_inactive_file {gib}\n")
+  assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) == 2 * gib
+  # v2 in a cgroup namespace: the process's path is "/" and the mount is its group.
+  proc.write_text("0::/\n")
+  v2 = tmp_path / "v2"
+  _group(v2, cgroup_controllers="memory", memory_max=str(4 * gib),
+         memory_current=str(3 * gib), memory_stat=f"anon {gib}\ninactive_file {gib // 2}\n")
+  assert runtime.cgroup_free_bytes(str(proc), str(v2)) == 4 * gib - 3 * gib + gib // 2
+  # no limit anywhere, or nothing readable
+  (v2 / "memory.max").write_text("max\n")
+  assert runtime.cgroup_free_bytes(str(proc), str(v2)) is None
+  assert runtime.cgroup_free_bytes(str(tmp_path / "none"), str(v2)) is None
+
+
+def test_cpu_memory_check_follows_a_container_limit(monkeypatch):
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
+  cpu = jax.devices("cpu")[0]
+  host = inference.available_memory_bytes(cpu)
+  monkeypatch.setattr(runtime, "cgroup_free_bytes", lambda: 1 << 20)
+  assert host > 1 << 20 and inference.available_memory_bytes(cpu) == 1 << 20
+  monkeypatch.setattr(runtime, "cgroup_free_bytes", lambda: None)
+  assert abs(inference.available_memory_bytes(cpu) - host) < 1 << 30
