@@ -20,14 +20,17 @@ Order and draws (`docs/datasets.md`, section 3; official `datasets/augmentor.py`
    `y0 + randint[-2, 2]`. Sparse (or y-jitter off): a plain crop.
 5. Valid: dense datasets recompute `|d| < 512 and d != 0`; sparse ones carry theirs.
 
-The photometric operations are written with numpy/OpenCV and mimic PIL's ImageEnhance
-(uint8 rounding after each operation, truncation) and torchvision's hue shift in 1/255
-turns; values can differ from torchvision's by a grey level.
+The photometric operations are written with numpy/OpenCV and reproduce what the official
+torchvision ColorJitter does to PIL images: ImageEnhance's blends in float32, truncated to
+uint8 after each operation, and the hue shift through PIL's 8-bit HSV conversion (hue in
+1/255 turns, truncated), which OpenCV's HSV and greyscale do not match (up to 6 grey
+levels apart). Tested against Pillow: identical on every 8-bit colour.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import cv2
@@ -136,19 +139,25 @@ class _Jitter:
     self.gamma = rng.uniform(*cfg.gamma)
     self.gain = rng.uniform(*cfg.gain)
 
+    # torchvision leaves out an operation whose range is its identity (e.g. hue=0); a
+    # drawn factor of exactly 1 (or a hue shift under 1/255) still runs, lossy HSV included
+    ranges = (cfg.brightness, cfg.contrast, cfg.saturation, cfg.hue)
+    identity = ((1.0, 1.0),) * 3 + ((0.0, 0.0),)
+    self.order = [op for op in self.order
+                  if tuple(float(v) for v in ranges[op]) != identity[op]]
+
   def __call__(self, images: np.ndarray) -> np.ndarray:
     """Applies the draw to [N, H, W, 3] uint8 RGB as one image (stats over all N)."""
     n, h, w, _ = images.shape
     x = np.ascontiguousarray(images).reshape(n * h, w, 3)  # one 2-D image for OpenCV
     for op in self.order:
       if op == 0:  # brightness: blend with black
-        x = _lut(x, np.arange(256) * self.brightness)
+        x = _lut(x, _blend(0, self.brightness))
       elif op == 1:  # contrast: blend with the rounded mean grey level of the image
-        mean = int(cv2.mean(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY))[0] + 0.5)
-        x = _lut(x, mean + self.contrast * (np.arange(256) - mean))
-      elif op == 2:  # saturation: blend with the grey image (rounds where PIL truncates)
-        grey = cv2.cvtColor(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB)
-        x = cv2.addWeighted(x, self.saturation, grey, 1.0 - self.saturation, 0.0)
+        mean = int(_grey(x).mean(dtype=np.float64) + 0.5)
+        x = _lut(x, _blend(mean, self.contrast))
+      elif op == 2:  # saturation: blend with the grey image
+        x = _saturate(x, self.saturation)
       else:
         x = _shift_hue(x, int(self.hue * 255))  # int(): truncation, as np.int8(h*255)
     if self.gamma != 1.0 or self.gain != 1.0:
@@ -162,13 +171,116 @@ def _lut(x: np.ndarray, table: np.ndarray) -> np.ndarray:
   return cv2.LUT(x, np.clip(table, 0, 255).astype(np.uint8))
 
 
+def _blend(level: int, factor: float) -> np.ndarray:
+  """PIL's `Image.blend(degenerate, x, factor)` for a constant degenerate image `level`, as
+  a table over x = 0..255: float32 `level + factor * (x - level)` (clipped by `_lut`)."""
+  level = np.float32(level)
+  return level + np.float32(factor) * (np.arange(256, dtype=np.float32) - level)
+
+
+def _grey(x: np.ndarray) -> np.ndarray:
+  """PIL's `convert("L")` of uint8 RGB `[..., 3]`: ITU-R 601 luma in 16-bit fixed point,
+  rounded (OpenCV's 14-bit weights differ by a grey level on ~0.1% of colours)."""
+  x = x.astype(np.int32)
+  return ((x[..., 0] * 19595 + x[..., 1] * 38470 + x[..., 2] * 7471 + 0x8000) >> 16
+          ).astype(np.uint8)
+
+
+def _saturate(x: np.ndarray, factor: float) -> np.ndarray:
+  """PIL's `ImageEnhance.Color`: `Image.blend(grey, x, factor)`, in float32, truncated to
+  [0, 255]."""
+  grey = np.arange(256, dtype=np.float32)[:, None]
+  table = grey + np.float32(factor) * (np.arange(256, dtype=np.float32) - grey)
+  table = np.clip(table, 0, 255).astype(np.uint8).reshape(-1)  # [grey * 256 + value]
+  return table[(_grey(x).astype(np.uint16)[..., None] << 8) | x]
+
+
 def _shift_hue(x: np.ndarray, shift: int) -> np.ndarray:
-  """Rotates the hue of a [H, W, 3] uint8 RGB image by `shift`/256 turns (8-bit HSV)."""
-  if shift % 256 == 0:
-    return x
-  hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV_FULL)
+  """torchvision's `adjust_hue` of a PIL image: `x` ([H, W, 3] uint8 RGB) to PIL's 8-bit
+  HSV, hue plus `shift` (mod 256), back to RGB; the round trip alone changes values."""
+  hsv = _rgb_to_hsv_pil(x)
   hsv[..., 0] += np.uint8(shift % 256)  # uint8 arithmetic wraps, as the hue circle does
-  return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB_FULL)
+  return _hsv_to_rgb_pil(hsv)
+
+
+def _pil_hue(rgb: np.ndarray) -> np.ndarray:
+  """PIL's 8-bit hue of `[..., 3]` int RGB (its `rgb2hsv` in Convert.c: float32 ratios,
+  the wrap in double precision, truncated); 0 for grey."""
+  r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+  maxc, minc = rgb.max(-1), rgb.min(-1)
+  span = np.where(maxc == minc, 1, maxc - minc).astype(np.float32)
+  rc, gc, bc = ((maxc - c).astype(np.float32) / span for c in (r, g, b))
+  h = np.where(r == maxc, (bc - gc).astype(np.float64),
+               np.where(g == maxc, 2.0 + rc.astype(np.float64) - bc,
+                        4.0 + gc.astype(np.float64) - rc)).astype(np.float32)
+  h = np.fmod(h.astype(np.float64) / 6.0 + 1.0, 1.0).astype(np.float32)
+  return np.where(maxc == minc, 0, np.clip((h.astype(np.float64) * 255.0).astype(np.int32),
+                                           0, 255)).astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=1)
+def _hsv_tables():
+  """Lookup tables of PIL's HSV conversions, exact for every 8-bit colour (64 MB, built
+  in ~3 s on first use).
+
+  `hue[(r << 16) | (g << 8) | b]`: hue depends only on the colour less its minimum
+  (equalities between channels decide PIL's branch), which has a zero channel, so it is
+  computed on 3 x 256 x 256 colours and spread. `sat[max - min, max]`. Back to RGB,
+  `rgb[(h << 16) | (s << 8) | v]`: the hue's sixth orders v, `p = round(v (1 - s))`,
+  `q = round(v (1 - s f))` and `t = round(v (1 - s (1 - f)))` (double, from float32 `s`
+  and `f`, rounded half up); grey (s = 0) is (v, v, v).
+  """
+  a, b = (c.ravel() for c in np.meshgrid(np.arange(256), np.arange(256), indexing="ij"))
+  zero = np.zeros_like(a)
+  small = np.stack([_pil_hue(np.stack(c, -1)) for c in ((zero, a, b), (a, zero, b),
+                                                        (a, b, zero))]).reshape(3, 256, 256)
+  hue = np.empty((256, 256, 256), np.uint8)
+  for r in range(256):
+    rgb = np.stack(np.broadcast_arrays(np.int32(r), a.reshape(256, 256), b.reshape(256, 256)),
+                   -1)
+    d = rgb - rgb.min(-1, keepdims=True)
+    hue[r] = np.where(d[..., 0] == 0, small[0][d[..., 1], d[..., 2]],
+                      np.where(d[..., 1] == 0, small[1][d[..., 0], d[..., 2]],
+                               small[2][d[..., 0], d[..., 1]]))
+  span, maxc = np.meshgrid(np.arange(256), np.arange(256), indexing="ij")
+  sat = (span.astype(np.float32) / np.maximum(maxc, 1).astype(np.float32)).astype(np.float64)
+  sat = np.where(span <= maxc, np.clip((sat * 255.0).astype(np.int32), 0, 255), 0)
+  h = np.arange(256, dtype=np.float64)
+  sector = np.floor(h * 6.0 / 255.0)
+  f = (h * 6.0 / 255.0 - sector).astype(np.float32)[:, None, None]
+  fs = (np.arange(256) / 255.0).astype(np.float32)[None, :, None]
+  v = np.arange(256, dtype=np.float64)[None, None, :]
+  rounded = lambda k: np.floor(v * k.astype(np.float64) + 0.5).astype(np.uint8)
+  p = np.broadcast_to(rounded(1.0 - fs.astype(np.float64)), (256, 256, 256))
+  q = rounded(1.0 - (fs * f).astype(np.float64))
+  t = rounded(1.0 - (fs * (np.float32(1.0) - f)).astype(np.float64))
+  v = np.broadcast_to(v.astype(np.uint8), (256, 256, 256))
+  # channel order by sector: (v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)
+  orders = ((v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q))
+  rgb = np.empty((256, 256, 256, 3), np.uint8)
+  for hh, i in enumerate(sector.astype(np.int64) % 6):
+    rgb[hh] = np.stack([c[hh] for c in orders[i]], -1)
+  rgb[:, 0] = v[0, 0][:, None]  # s = 0: grey
+  return hue.reshape(-1), sat.astype(np.uint8), rgb.reshape(-1, 3)
+
+
+def _code(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+  """The 24-bit index `(a << 16) | (b << 8) | c` of uint8 planes."""
+  return (a.astype(np.int32) << 16) | (b.astype(np.int32) << 8) | c
+
+
+def _rgb_to_hsv_pil(x: np.ndarray) -> np.ndarray:
+  """PIL's RGB -> HSV (`Image.convert("HSV")`) of `[..., 3]` uint8 RGB, by table."""
+  hue, sat, _ = _hsv_tables()
+  r, g, b = x[..., 0], x[..., 1], x[..., 2]
+  maxc, minc = np.maximum(np.maximum(r, g), b), np.minimum(np.minimum(r, g), b)
+  return np.stack([hue[_code(r, g, b)], sat[maxc - minc, maxc], maxc], -1)
+
+
+def _hsv_to_rgb_pil(hsv: np.ndarray) -> np.ndarray:
+  """PIL's HSV -> RGB (`Image.convert("RGB")` of an HSV image) of `[..., 3]` uint8, by
+  table."""
+  return np.take(_hsv_tables()[2], _code(hsv[..., 0], hsv[..., 1], hsv[..., 2]), axis=0)
 
 
 def _photometric(left, right, cfg: AugmentConfig, rng, sparse: bool):

@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from sav_jax.data import augment
 from sav_jax.data.augment import AugmentConfig, _resize_sparse, augment_clip
 
 T, H, W = 3, 48, 96
@@ -172,10 +173,11 @@ def test_photometric_symmetric_vs_asymmetric_brightness():
     out = augment_clip(clip, cfg, np.random.default_rng(11))
     got = np.concatenate([out["left"][:, 0, 0], out["right"][:, 0, 0]]).astype(np.float64)
     assert (out["left"] == out["left"][:, :1, :1]).all()  # still flat
-    # One shared factor f reproduces every image as trunc(f * colour); got[0, 0]
-    # pins f down to +-0.005.
+    # One shared factor f reproduces every image as trunc(f * colour) (in float32, as PIL);
+    # got[0, 0] pins f down to +-0.005.
     f = got[0, 0] / src[0, 0]
-    shared = any(np.array_equal(np.floor(np.clip(f2 * src, 0, 255)), got)
+    src32 = src.astype(np.float32)
+    shared = any(np.array_equal(np.floor(np.clip(np.float32(f2) * src32, 0, 255)), got)
                  for f2 in np.linspace(f - 0.01, f + 0.01, 401))
     assert shared == expect_shared
 
@@ -203,6 +205,39 @@ def test_hue_shift_keeps_grey_and_rotates_colour():
   assert (out["left"] == 128).all()
   r, g, b = (int(v) for v in out["right"][0, 0, 0])
   assert g > 150 and r < 60 and b < 60  # red turned a third of a turn: green
+
+
+def _torchvision_jitter(image, jitter):
+  """What the official augmentor's torchvision ColorJitter does to a PIL image with the
+  draw of `jitter` (`F.adjust_*` for PIL images are ImageEnhance and PIL's 8-bit HSV)."""
+  from PIL import Image, ImageEnhance  # pylint: disable=import-outside-toplevel
+  img = Image.fromarray(image)
+  for op in jitter.order:
+    if op == 0:
+      img = ImageEnhance.Brightness(img).enhance(jitter.brightness)
+    elif op == 1:
+      img = ImageEnhance.Contrast(img).enhance(jitter.contrast)
+    elif op == 2:
+      img = ImageEnhance.Color(img).enhance(jitter.saturation)
+    else:
+      h, s, v = img.convert("HSV").split()
+      h = np.array(h, np.uint8)
+      with np.errstate(over="ignore"):
+        h += np.array(jitter.hue * 255).astype(np.int8).astype(np.uint8)
+      img = Image.merge("HSV", (Image.fromarray(h, "L"), s, v)).convert("RGB")
+  return np.array(img)
+
+
+def test_colour_jitter_equals_torchvision_on_pil_images():
+  # OpenCV's HSV and greyscale, used before, were up to 6 grey levels from PIL's.
+  cfg = AugmentConfig(saturation=(0.0, 1.4))  # the official training script's ranges
+  colours = np.stack(np.meshgrid(np.arange(0, 256, 3), np.arange(0, 256, 5),
+                                 np.arange(0, 256, 7), indexing="ij"), -1)
+  image = colours.reshape(-1, 86 * 4, 3).astype(np.uint8)  # 86 * 52 * 37 colours
+  rng = np.random.default_rng(0)
+  for _ in range(12):
+    jitter = augment._Jitter(cfg, rng)  # pylint: disable=protected-access
+    np.testing.assert_array_equal(jitter(image[None])[0], _torchvision_jitter(image, jitter))
 
 
 def test_eraser_fills_with_frame0_left_mean():
