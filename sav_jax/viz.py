@@ -140,6 +140,10 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
   """
   if cmap not in COLORMAPS:
     raise ValueError(f"unknown colour map {cmap!r}; choose one of {sorted(COLORMAPS)}")
+  colour = np.asarray(invalid_color)
+  if (colour.shape != (3,) or colour.dtype.kind not in "uif" or not np.isfinite(colour).all()
+      or colour.min() < 0 or colour.max() > 255):
+    raise ValueError(f"invalid_color must be 3 values (R, G, B) in 0..255, got {invalid_color!r}")
   d = np.asarray(disp, np.float32)
   if valid is not None and np.shape(valid) != d.shape:
     raise ValueError(f"valid mask shape {np.shape(valid)} differs from disparity {d.shape}")

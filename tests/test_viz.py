@@ -316,3 +316,11 @@ def test_colorize_names_the_end_taken_from_the_data():
   with pytest.raises(ValueError, match=r"vmin=3.0, vmax=2.0 \(vmin taken from the data's range "
                                        r"3..5, which lies beyond the given end; give both"):
     viz.colorize(np.array([[3.0, 4.0, 5.0]]), vmax=2.0)
+
+
+def test_colorize_checks_the_invalid_colour():
+  disp = np.array([[0.0, 1.0]], np.float32)
+  assert tuple(viz.colorize(disp, 0.5, 2.0, invalid_color=(1, 2, 3))[0, 0]) == (1, 2, 3)
+  for bad in ((300, 0, 0), (0, 0), (-1, 0, 0), "red", (np.nan, 0, 0)):
+    with pytest.raises(ValueError, match="invalid_color must be 3 values"):
+      viz.colorize(disp, 0.5, 2.0, invalid_color=bad)
