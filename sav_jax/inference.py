@@ -648,7 +648,8 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
   temporal rest of the model runs on the whole window.
 
   Args:
-    variables: model variables.
+    variables: model variables (numpy ones are copied to the device on every call:
+      `jax.device_put(variables)` once for windows run one by one).
     left, right: `[T, H, W, 3]` frames, uint8 or float (0..255).
     cfg: model config.
     iters: refinement iterations.
