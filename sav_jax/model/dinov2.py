@@ -100,9 +100,10 @@ def softmax_attention(q: jax.Array, k: jax.Array, v: jax.Array,
   n, length, heads, d = q.shape
 
   def plain(q, k, v):
-    logits = jnp.einsum("nqhd,nkhd->nhqk", q, k)
-    # Softmax in float32 whatever the compute dtype: DINO logits get large.
-    probs = jax.nn.softmax(logits.astype(jnp.float32), axis=-1).astype(v.dtype)
+    # Logits and softmax in float32 whatever the compute dtype: DINO logits get large
+    # (bfloat16 logits would keep 8 bits of them).
+    logits = jnp.einsum("nqhd,nkhd->nhqk", q, k, preferred_element_type=jnp.float32)
+    probs = jax.nn.softmax(logits, axis=-1).astype(v.dtype)
     return jnp.einsum("nhqk,nkhd->nqhd", probs, v)
 
   frames, rows = attention_blocks(n, heads, length, budget_mb)

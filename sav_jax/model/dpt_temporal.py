@@ -82,8 +82,10 @@ class TemporalAttention(nn.Module):
     q = split(dense(c, use_bias=False, dtype=self.dtype, name="to_q")(x))
     k = split(dense(c, use_bias=False, dtype=self.dtype, name="to_k")(x))
     v = split(dense(c, use_bias=False, dtype=self.dtype, name="to_v")(x))
-    logits = jnp.einsum("btshd,bushd->bshtu", q, k) * head_dim**-0.5
-    probs = jax.nn.softmax(logits.astype(jnp.float32), axis=-1).astype(v.dtype)
+    # logits accumulated and kept in float32 (bfloat16 logits would round before the softmax)
+    logits = jnp.einsum("btshd,bushd->bshtu", q, k,
+                        preferred_element_type=jnp.float32) * head_dim**-0.5
+    probs = jax.nn.softmax(logits, axis=-1).astype(v.dtype)
     out = jnp.einsum("bshtu,bushd->btshd", probs, v).reshape(b, t, s, c)
     return dense(c, dtype=self.dtype, name="to_out_0")(out)
 

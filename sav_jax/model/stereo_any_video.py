@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import functools
+from typing import Mapping
 
 import flax
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from sav_jax._checks import is_int
 from sav_jax.config import SAVConfig
@@ -43,6 +45,13 @@ class SAVOutput:
 
 def check_inputs(left, right, iters: int) -> int:
   """Raises a ValueError naming the problem with the inputs; returns `iters` as an int."""
+  check_videos(left, right)
+  return check_iters(iters)
+
+
+def check_videos(left, right) -> None:
+  """Raises a ValueError naming the problem unless `left` and `right` are RGB videos
+  `[B, T, H, W, 3]` of one shape, H and W multiples of 16."""
   for name, x in (("left", left), ("right", right)):
     if not hasattr(x, "shape") or not hasattr(x, "dtype"):
       raise ValueError(f"{name} must be an array [B, T, H, W, 3] (numpy or jax), got a "
@@ -56,12 +65,42 @@ def check_inputs(left, right, iters: int) -> int:
     raise ValueError(
         f"expected RGB videos [B, T, H, W, 3] with values 0..255 (B, T, H, W >= 1), got shape "
         f"{left.shape}")
-  h, w = left.shape[2:4]
-  if h % 16 or w % 16:
+  _check_size(left.shape[2:4])
+
+
+def _check_size(size) -> tuple[int, int]:
+  h, w = size
+  if h % 16 or w % 16 or min(h, w) < 16:
     raise ValueError(
         f"height and width must be multiples of 16, got {h}x{w}; pad the frames "
         "(sav_jax.inference.predict_video pads to multiples of 32 for you)")
-  return check_iters(iters)
+  return int(h), int(w)
+
+
+def check_frame_features(frame_feats, size) -> tuple[int, int]:
+  """Raises a ValueError naming the problem unless `frame_feats` are `frame_features` of
+  frames of `size` (H, W); returns the size as ints."""
+  try:
+    h, w = (int(v) for v in size)
+  except (TypeError, ValueError):
+    raise ValueError(f"size must be the frames' (height, width), got {size!r}") from None
+  if (h, w) != tuple(size):
+    raise ValueError(f"size must be two integers (height, width), got {size!r}")
+  _check_size((h, w))
+  if not isinstance(frame_feats, Mapping) or not {"tokens", "fnet", "cnet"} <= set(frame_feats):
+    found = sorted(frame_feats) if isinstance(frame_feats, Mapping) else type(frame_feats).__name__
+    raise ValueError(f"frame_feats must be frame_features' dict (tokens, fnet, cnet), got {found}")
+  fnet, cnet = (tuple(np.shape(frame_feats[k])) for k in ("fnet", "cnet"))
+  tokens = [tuple(np.shape(x)) for x in frame_feats["tokens"]]
+  want = (h // 4, w // 4)
+  if (len(fnet) != 5 or len(cnet) != 5 or fnet[0] != 2 * cnet[0] or fnet[1] != cnet[1]
+      or fnet[2:4] != want or cnet[2:4] != want
+      or any(len(t) != 4 or t[:2] != fnet[:2] for t in tokens)):
+    raise ValueError(
+        f"frame features do not fit {h}x{w} frames: fnet {fnet} (expected [2B, T, {want[0]}, "
+        f"{want[1]}, C]), cnet {cnet} (expected [B, T, {want[0]}, {want[1]}, C]), tokens "
+        f"{tokens} (expected [2B, T, N, D] each)")
+  return h, w
 
 
 def check_iters(iters) -> int:
@@ -106,6 +145,7 @@ class StereoAnyVideo(nn.Module):
       then right clips), "fnet": `[2B, T, H/4, W/4, 96]`, "cnet": `[B, T, H/4, W/4, 96]`
       (left view), float32 apart from the tokens (compute dtype).
     """
+    check_videos(left, right)
     b, t, h, w, _ = left.shape
     both = normalize(jnp.concatenate([left, right], axis=0)).reshape(2 * b * t, h, w, 3)
     tokens = [x.reshape(2 * b, t, *x.shape[1:]) for x in self.depthnet.tokens(both)]
@@ -257,6 +297,7 @@ class StereoAnyVideo(nn.Module):
   def from_frame_features(self, frame_feats: dict, size: tuple[int, int], iters: int = 20,
                           final_only: bool = True) -> SAVOutput:
     """`__call__` from precomputed `frame_features` (frames of size `size` = (H, W))."""
+    size = check_frame_features(frame_feats, size)
     iters = check_iters(iters)
     return self.cascade(*self.window_features(frame_feats, *size), size, iters, final_only)
 

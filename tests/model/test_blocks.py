@@ -1,11 +1,13 @@
 """Memory blocking of per-frame stages: same values as the single computation."""
 
 import jax
+import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import sav_jax
+from sav_jax.model import dinov2, dpt_temporal
 from sav_jax.model.dinov2 import (DinoVisionTransformer, attention_blocks, fused_attention,
                                   softmax_attention)
 from sav_jax.model.layers import frames_per_block
@@ -136,3 +138,32 @@ def test_linear_attention_keeps_the_heads_apart(dtype, tol):
   got = linear_attention(*(jnp.asarray(a, dtype) for a in (q, k, v)))
   assert got.shape == want.shape and got.dtype == dtype
   np.testing.assert_allclose(np.asarray(got, np.float64), want, rtol=tol, atol=tol)
+
+
+def _bf16_dots_into_float32(jaxpr) -> int:
+  """dot_generals of bfloat16 operands whose result is float32, anywhere in `jaxpr`."""
+  count = 0
+  for eqn in jaxpr.eqns:
+    for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+      count += _bf16_dots_into_float32(sub)
+    if (eqn.primitive.name == "dot_general"
+        and all(v.aval.dtype == jnp.bfloat16 for v in eqn.invars)
+        and eqn.outvars[0].aval.dtype == jnp.float32):
+      count += 1
+  return count
+
+
+def test_bfloat16_attention_logits_stay_float32():
+  # Logits 300 and 301 (bfloat16 has 8 bits: 301 would round to 300 or 302 before the
+  # float32 softmax): the weights must be softmax([300, 301]) = (0.269, 0.731).
+  q = jnp.asarray([[[[1.0, 1.0]]]], jnp.bfloat16)  # [N=1, L=1, heads=1, d=2]
+  k = jnp.asarray([[[[150.0, 150.0]]], [[[150.0, 151.0]]]], jnp.bfloat16).reshape(1, 2, 1, 2)
+  v = jnp.asarray([[0.0, 0.0], [1.0, 1.0]], jnp.bfloat16).reshape(1, 2, 1, 2)
+  out = dinov2.softmax_attention(q, k, v)
+  np.testing.assert_allclose(np.asarray(out, np.float32)[0, 0, 0], [0.731] * 2, atol=4e-3)
+  # the motion modules' attention across frames too
+  module = dpt_temporal.TemporalAttention(heads=1, dtype=jnp.bfloat16)
+  x = jnp.zeros((1, 3, 2, 8), jnp.bfloat16)
+  variables = jax.eval_shape(module.init, jax.random.PRNGKey(0), x)
+  jaxpr = jax.make_jaxpr(module.apply)(variables, x).jaxpr
+  assert _bf16_dots_into_float32(jaxpr) >= 1

@@ -79,6 +79,31 @@ def test_bad_inputs_raise_clear_errors(model, left_shape, right_shape, iters, ma
     jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=iters), left, right)
 
 
+def test_frame_feature_entry_points_check_sizes(model):
+  # from_frame_features ran 20x40 frames (the 1/8 -> 1/4 hand-over scale then 5/8), and a
+  # wrong size failed deep inside a concatenation or a reshape.
+  params = abstract_variables(sav_jax.SAVConfig())
+  frames = jax.ShapeDtypeStruct((1, 2, 32, 48, 3), jnp.float32)
+  method = sav_jax.StereoAnyVideo.frame_features
+  feats = jax.eval_shape(lambda v, l, r: model.apply(v, l, r, method=method), params, frames,
+                         frames)
+  run = lambda size, f=feats: jax.eval_shape(  # noqa: E731
+      lambda v, f: model.apply(v, f, size, 2, method=sav_jax.StereoAnyVideo.from_frame_features),
+      params, f)
+  assert run((32, 48)).disparities.shape == (1, 1, 2, 32, 48)
+  for size, match in (((20, 40), "multiples of 16"),
+                      ((48, 32), r"do not fit 48x32 frames: fnet \(2, 2, 8, 12, 96\)"),
+                      ((32, 64), "do not fit 32x64 frames"), ((32,), "height, width"),
+                      ((32.5, 48), "two integers")):
+    with pytest.raises(ValueError, match=match):
+      run(size)
+  with pytest.raises(ValueError, match=r"frame_features' dict \(tokens, fnet, cnet\)"):
+    run((32, 48), {"fnet": feats["fnet"]})
+  odd = jax.ShapeDtypeStruct((1, 2, 20, 40, 3), jnp.float32)
+  with pytest.raises(ValueError, match="multiples of 16, got 20x40"):
+    jax.eval_shape(lambda v, l, r: model.apply(v, l, r, method=method), params, odd, odd)
+
+
 @pytest.mark.parametrize("dtype", [jnp.bool_, jnp.complex64])
 def test_frames_of_a_non_numeric_dtype_are_refused(model, dtype):
   left = jnp.zeros((1, 2, 32, 48, 3), dtype)
