@@ -42,7 +42,10 @@ class SAVConfig:
   """Stereo Any Video hyper-parameters.
 
   Attributes:
-    vda_encoder: Video Depth Anything variant of the frozen depth prior.
+    vda_encoder: Video Depth Anything variant of the frozen depth prior: "vits" (the
+      paper's and the official code's) or "vitl", an extension with no official Stereo
+      Any Video weights or counterpart (its head's map has 128 channels, which the 4x4
+      stride-4 conv takes in where the official conv takes 32).
     hidden_dim: GRU hidden channels (128 only).
     context_dim: context channels (depth 32 + cnet 96; 128 only).
     fnet_dim: channels of the fnet/cnet encoders' output.
@@ -50,8 +53,8 @@ class SAVConfig:
     corr_groups: channel groups of the all-pairs correlation (a divisor of context_dim).
     upsample_rate: convex upsampling factor (1/4 -> 1; 4 only).
     dtype: compute dtype of convolutions, attention and the GRU ("float32" or
-      "bfloat16"); parameters, correlation, softmaxes, convex upsampling and the
-      disparity accumulator stay float32.
+      "bfloat16"); parameters, correlation, attention logits and softmaxes, convex
+      upsampling and the disparity accumulator stay float32.
     remat: rematerialise in the backward pass: each refinement step on its own, and the
       fnet/cnet encoders over blocks of frames sized for their backward (per frame,
       `model.stereo_any_video.ENCODER_BACKWARD_MAPS` times their largest map, under
