@@ -30,7 +30,9 @@
 # A lease of 15 device minutes holds about 13 minutes of steps (a start took ~30 s): pick
 # the steps. Each step has its own time limit; everything is logged to OUTDIR/suite.log and
 # the figures go to OUTDIR/*.json. A failure of the first step within 90 s (an import or API
-# error) stops the run, so that the rest of a short lease is not spent.
+# error) stops the run, so that the rest of a short lease is not spent; the exit status is 1
+# when any step failed, 2 for an unknown step name (before anything runs). Rerunning a step
+# into the same OUTDIR replaces its JSON.
 set -u
 out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]}
 shift
@@ -60,19 +62,19 @@ step() {  # step NAME LIMIT_S COMMAND...
 run_step() {
   case $1 in
     bench_bf16) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype bfloat16 \
-                  --repeats 3 --json "$out/gpu_t20_720x1280_it20_bf16.json" ;;
+                  --repeats 3 --json "$out/gpu_t20_720x1280_it20_bf16.json" --overwrite ;;
     bench_fp32) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype float32 \
                   --repeats 2 --compile-cache "$out/xla_cache" \
-                  --json "$out/gpu_t20_720x1280_it20_fp32.json" ;;
+                  --json "$out/gpu_t20_720x1280_it20_fp32.json" --overwrite ;;
     bench_fp32_warm) step "$1" 120 "$py" -m sav_jax.cli bench "${window[@]}" --dtype float32 \
                   --repeats 2 --compile-cache "$out/xla_cache" \
-                  --json "$out/gpu_t20_720x1280_it20_fp32_warm.json" ;;
+                  --json "$out/gpu_t20_720x1280_it20_fp32_warm.json" --overwrite ;;
     bench_blocked) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype bfloat16 \
                   --vit-attention blocked --repeats 3 \
-                  --json "$out/gpu_t20_720x1280_it20_bf16_blocked.json" ;;
+                  --json "$out/gpu_t20_720x1280_it20_bf16_blocked.json" --overwrite ;;
     train) step "$1" 260 "$py" benchmarks/train_step.py --repeats 2 \
-             --json "$out/gpu_train_t5_256x512_it10_remat_fp32.json" ;;
-    precision) step "$1" 200 "$py" benchmarks/precision_check.py --json "$out/gpu_precision.json" ;;
+             --json "$out/gpu_train_t5_256x512_it10_remat_fp32.json" --overwrite ;;
+    precision) step "$1" 200 "$py" benchmarks/precision_check.py --json "$out/gpu_precision.json" --overwrite ;;
     parity) step "$1" 300 "$py" -m pytest -x -q -p no:cacheprovider \
               tests/model/test_model_parity.py ;;
     stages) step "$1" 300 "$py" benchmarks/stage_times.py "${window[@]}" --dtype bfloat16 ;;
@@ -87,7 +89,7 @@ run_step() {
              name=${set%%=*}
              XLA_FLAGS="${XLA_FLAGS:-} ${set#*=}" step "flags_$name" 130 "$py" -m sav_jax.cli \
                bench "${window[@]}" --dtype bfloat16 --repeats 2 \
-               --json "$out/gpu_t20_720x1280_it20_bf16_flags_$name.json" || rc=$?
+               --json "$out/gpu_t20_720x1280_it20_bf16_flags_$name.json" --overwrite || rc=$?
            done
            return "$rc" ;;
     *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train precision parity" \
@@ -102,12 +104,25 @@ run_step() {
 'optax', optax.__version__, jax.devices())"
 } 2>&1 | tee -a "$log"
 
+known=" bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train precision parity stages profile variants raft flags "
+for s in "${steps[@]}"; do  # a mistyped step fails before the lease is spent on the others
+  if [[ "$known" != *" $s "* ]]; then
+    echo "unknown step '$s' (${known# })" >&2
+    exit 2
+  fi
+done
+
 first=1
+status=0
 for s in "${steps[@]}"; do
-  if ! run_step "$s" && [ "$first" = 1 ] && [ "$SECONDS" -lt 90 ]; then
-    echo "early failure: stopping" | tee -a "$log"
-    exit 1
+  if ! run_step "$s"; then
+    status=1
+    if [ "$first" = 1 ] && [ "$SECONDS" -lt 90 ]; then
+      echo "early failure: stopping" | tee -a "$log"
+      exit 1
+    fi
   fi
   first=0
 done
-echo "=== done after $SECONDS s" | tee -a "$log"
+echo "=== done after $SECONDS s$([ "$status" = 0 ] || echo ', some steps failed')" | tee -a "$log"
+exit "$status"

@@ -7,13 +7,12 @@ Run it on two checkouts to compare them (e.g. before and after the streaming `in
     python benchmarks/infer_memory.py DATA_DIR --frames 300 --height 480 --width 640
 
 The first run writes the frames (PNG folders `left/`, `right/`) and a random-weight
-checkpoint into DATA_DIR; later runs reuse them. Outputs go to DATA_DIR/out_<pid>.
+checkpoint into DATA_DIR; later runs reuse them (and refuse other --frames/--height/--width). Outputs go to DATA_DIR/out_<pid>.
 """
 
 import argparse
 import os
 import pathlib
-import resource
 import sys
 import time
 
@@ -25,6 +24,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax import cli, inference  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools.bench import peak_rss_gb  # noqa: E402  pylint: disable=wrong-import-position
 
 
 def write_data(root: pathlib.Path, frames: int, height: int, width: int) -> None:
@@ -53,13 +53,19 @@ def main() -> None:
   args = p.parse_args()
   if not (args.data / "sav.npz").exists():
     write_data(args.data, args.frames, args.height, args.width)
+  else:  # reused: it must hold the video asked for
+    pngs = sorted((args.data / "left").glob("*.png"))
+    size = cv2.imread(str(pngs[0])).shape[:2] if pngs else None
+    if (len(pngs), size) != (args.frames, (args.height, args.width)):
+      p.error(f"{args.data} holds {len(pngs)} frames of {size} from an earlier run, not "
+              f"{args.frames} of {(args.height, args.width)}; name another DATA folder")
   name = "_run_window" if hasattr(inference, "_run_window") else "run_window"  # older code
   setattr(inference, name, stand_in)
   start = time.perf_counter()
   rc = cli.main(["infer", "--left", str(args.data / "left"), "--right", str(args.data / "right"),
                  "--checkpoint", str(args.data / "sav.npz"), "--out",
                  str(args.data / f"out_{os.getpid()}"), "--iters", "2", "--format", "npy"])
-  peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+  peak = peak_rss_gb()
   print(f"exit {rc}; {time.perf_counter() - start:.1f} s; peak RSS {peak:.2f} GB")
 
 

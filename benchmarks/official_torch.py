@@ -68,7 +68,9 @@ def parse_args(argv=None):
   a.repo = repo
   if a.iters < 2 or a.iters % 2:
     p.error(f"--iters must be even and >= 2 (got {a.iters})")
-  if a.json:  # checked before the long run, as `sav-jax bench` does
+  # checked before the long run, as `sav-jax bench` does (its json_output_problem is not
+  # imported: it would import JAX into the process whose memory is measured)
+  if a.json:
     if os.path.isdir(a.json):
       p.error(f"--json {a.json} is a folder; give a file name")
     if os.path.exists(a.json) and not a.overwrite:

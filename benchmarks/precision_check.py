@@ -27,6 +27,7 @@ import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
 import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools.bench import json_output_problem  # noqa: E402  pylint: disable=wrong-import-position
 from timing import fixtures_folder, make_weights_module  # noqa: E402  benchmarks/timing.py
 
 MODES = (("float32", "highest", "blocked"), ("float32", "default", "blocked"),
@@ -71,8 +72,12 @@ def measure(fixtures: pathlib.Path, iters: int = 4) -> list[dict]:
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   p.add_argument("--fixtures", default=str(fixtures_folder()), help="the oracle fixtures folder")
-  p.add_argument("--json", help="write the rows to this JSON file")
+  p.add_argument("--json", help="write the rows to this JSON file (a new file, or --overwrite)")
+  p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
   a = p.parse_args(argv)
+  problem = json_output_problem(a.json, a.overwrite) if a.json else None
+  if problem:  # before the long run
+    p.error(problem)
   rows = measure(pathlib.Path(a.fixtures))
   device = jax.devices()[0]
   print(f"device {device.platform}:{device.device_kind} (jax {jax.__version__}); "
@@ -82,7 +87,7 @@ def main(argv=None) -> int:
     print(f"{r['dtype']:<10}{r['precision']:<10}{r['vit_attention']:<10}{r['mean_px']:>12.2e}"
           f"{r['max_px']:>12.2e}")
   if a.json:
-    with open(a.json, "w") as f:
+    with open(a.json, "w", encoding="utf-8") as f:
       json.dump(dict(device=f"{device.platform}:{device.device_kind}", jax=jax.__version__,
                      rows=rows), f, indent=1)
   return 0

@@ -15,7 +15,6 @@ process, after ours.
 import argparse
 import importlib
 import pathlib
-import resource
 import sys
 import time
 from types import SimpleNamespace
@@ -25,6 +24,7 @@ import numpy as np
 
 from sav_jax.convert.raft import raft_variables_from_state_dict
 from sav_jax.model.raft import raft_flow
+from sav_jax.tools.bench import peak_rss_gb
 
 from timing import fixtures_folder, make_weights_module, timed  # benchmarks/timing.py
 
@@ -69,7 +69,7 @@ def main():
   jax.block_until_ready(raft_flow(variables, a, b, args.iters))
   first = time.perf_counter() - start
   run = timed(lambda: raft_flow(variables, a, b, args.iters), repeats=args.repeats)
-  rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+  rss = peak_rss_gb()
   print(f"sav-jax RAFT {args.height}x{args.width} iters={args.iters} ({jax.default_backend()}): "
         f"first call {first:.2f} s, then {run:.2f} s median; peak RSS {rss:.2f} GB")
   if args.official:

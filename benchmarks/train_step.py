@@ -30,7 +30,8 @@ import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 from configs import sceneflow  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax import runtime  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.tools.bench import device_peak_gb, memory_lines, peak_rss_gb, xla_buffers_gb  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools.bench import (device_peak_gb, json_output_problem, memory_lines,  # noqa: E402  pylint: disable=wrong-import-position
+                                 peak_rss_gb, xla_buffers_gb)
 from train import optim, state as state_lib, step as step_lib  # noqa: E402  pylint: disable=wrong-import-position
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 
@@ -111,8 +112,15 @@ def main():
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
   p.add_argument("--no-remat", dest="remat", action="store_false")
   p.add_argument("--repeats", type=int, default=3)
-  p.add_argument("--json", help="write the results to this JSON file")
+  p.add_argument("--json", help="write the results to this JSON file (a new file, or "
+                 "--overwrite)")
+  p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
   a = p.parse_args()
+  problem = json_output_problem(a.json, a.overwrite) if a.json else None
+  if problem:  # before the long compile
+    p.error(problem)
+  if a.repeats < 1:
+    p.error(f"--repeats must be >= 1, got {a.repeats}")
   res = measure(build_config(a), a.repeats)
   print(f"device        {res['device']} x{res['devices']}  (jax {res['jax']})")
   print(f"step          B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "

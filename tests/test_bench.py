@@ -81,14 +81,34 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
   assert bench.compare_line({"median_s": 1.0, "compile_s": 4.0, "peak_rss_gb": 0.5}, eager) == (
       "forward x3.00 faster (1 s vs 3 s), compile 4 s (the baseline compiles nothing), "
       "peak RSS x2.00 lower (0.5 GB vs 1 GB)")
-  (tmp_path / "eager.json").write_text(json.dumps({**eager, "median_s": None}))
-  (tmp_path / "shape.json").write_text(json.dumps({**eager, "iters": 8}))
-  (tmp_path / "bad.json").write_text('{"median_s": 1}')
-  (tmp_path / "text.json").write_text('{"median_s": "x", "compile_s": 1, "peak_rss_gb": 1}')
-  for path, message in ((tmp_path / "none.json", "cannot read"), (tmp_path / "bad.json", "lacks"),
-                        (tmp_path / "text.json", "expected non-negative numbers"),
-                        (tmp_path / "eager.json", "expected non-negative numbers"),
-                        (tmp_path / "shape.json", "another shape (iters: 2 here, 8 there)")):
+  # on a GPU the device's peak counts; a cache load is not a compile
+  gpu = bench.compare_line(
+      {"median_s": 1.0, "compile_s": 5.0, "peak_rss_gb": 6.0, "device_peak_gb": 6.67,
+       "cache_hit": True},
+      {"median_s": 1.0, "compile_s": 50.0, "peak_rss_gb": 6.0, "device_peak_gb": 29.86})
+  assert gpu.endswith("device peak x4.48 lower (6.67 GB vs 29.9 GB)"), gpu
+  assert "(this run loaded it from the compilation cache)" in gpu
+  shape = dict(frames=2, height=32, width=64, iters=2, batch=1)  # ARGS's
+  eager = {**eager, **shape}
+  baselines = {"eager": {**eager, "median_s": None}, "shape": {**eager, "iters": 8},
+               "bad": {"median_s": 1}, "text": {**eager, "median_s": "x"},
+               "zero": {**eager, "median_s": 0}, "no_shape": {**eager, "frames": None},
+               "bf16": {**eager, "dtype": "bfloat16"}, "all": {**eager, "final_only": False},
+               # benchmarks/train_step.py's JSON has the same keys, and more
+               "train": {**eager, "samples_per_s": 0.5, "remat": True, "loss": 1.0}}
+  del baselines["no_shape"]["frames"]
+  for name, base in baselines.items():
+    (tmp_path / f"{name}.json").write_text(json.dumps(base))
+  for name, message in (("none", "cannot read"), ("bad", "lacks"),
+                        ("no_shape", "lacks ['frames']"),
+                        ("text", "expected positive numbers"),
+                        ("eager", "expected positive numbers"),
+                        ("zero", "expected positive numbers"),
+                        ("shape", "another shape or setting (iters: 2 here, 8 there)"),
+                        ("bf16", "(dtype: float32 here, bfloat16 there)"),
+                        ("all", "(final_only: True here, False there)"),
+                        ("train", "a training step's JSON")):
+    path = tmp_path / f"{name}.json"
     assert cli.main([*ARGS, "--compare", str(path)]) == 2  # refused before measuring
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1

@@ -240,6 +240,12 @@ def test_infer_memory_script_runs_the_streaming_infer(tmp_path, monkeypatch, cap
   # Window [0, 20) keeps frames 0-14 (local 0-14), window [10, 23) frames 15-22 (local 5-12).
   expected = list(range(1, 16)) + list(range(6, 14))
   assert [float(np.load(out / "disparity" / f"{i:05d}.npy")[0, 0]) for i in range(23)] == expected
+  # DATA holds that video: another size is refused, not measured on the old frames
+  monkeypatch.setattr(sys, "argv", ["infer_memory.py", str(tmp_path), "--frames", "25",
+                                    "--height", "16", "--width", "24"])
+  with pytest.raises(SystemExit):
+    infer_memory.main()
+  assert "holds 23 frames of (16, 24) from an earlier run, not 25" in capsys.readouterr().err
 
 
 def test_compile_times_script_compiles_what_predict_video_runs(capsys):
@@ -274,3 +280,23 @@ def test_raft_flow_script_times_the_evaluators_flow(monkeypatch, capsys):
   raft_flow.main()
   out = capsys.readouterr().out
   assert "sav-jax RAFT 130x129 iters=1 (cpu): first call " in out and "peak RSS" in out, out
+
+
+def test_scripts_refuse_to_overwrite_a_results_json_before_running(tmp_path, monkeypatch,
+                                                                   capsys):
+  import precision_check  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  import train_step  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  mine = tmp_path / "mine.json"
+  mine.write_text("precious")
+  monkeypatch.setattr(train_step, "measure", lambda *a: pytest.fail("measured"))
+  monkeypatch.setattr(precision_check, "measure", lambda *a: pytest.fail("measured"))
+  for run in (lambda args: precision_check.main(args),
+              lambda args: (monkeypatch.setattr(sys, "argv", ["train_step.py", *args]),
+                            train_step.main())):
+    for args, message in ((["--json", str(mine)], "exists; pass --overwrite"),
+                          (["--json", str(tmp_path)], "is a folder"),
+                          (["--json", str(tmp_path / "no" / "r.json")], "does not exist")):
+      with pytest.raises(SystemExit) as e:
+        run(args)
+      assert e.value.code == 2 and message in capsys.readouterr().err
+  assert mine.read_text() == "precious"

@@ -13,12 +13,14 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 SUITE = ROOT / "benchmarks" / "gpu_suite.sh"
 
 
-def _run_steps(tmp_path, steps, flag_sets=None):
-  """Runs suite steps with a stand-in Python that records its XLA_FLAGS and arguments;
-  returns the recorded `(XLA_FLAGS, argv)` of every benchmark call."""
+def _run_steps(tmp_path, steps, flag_sets=None, rc=0, fail_on=None):
+  """Runs suite steps with a stand-in Python that records its XLA_FLAGS and arguments
+  (and fails where its arguments contain `fail_on`); returns the recorded
+  `(XLA_FLAGS, argv)` of every benchmark call."""
   fake = tmp_path / "python"
+  fail = f'[[ "$*" == *"{fail_on}"* ]] && exit 1\nexit 0\n' if fail_on else ""
   fake.write_text('#!/bin/bash\n[ "$1" = -c ] && exit 0\n'
-                  'printf "%s\\t%s\\n" "$XLA_FLAGS" "$*" >> "$RECORD"\n')
+                  'printf "%s\\t%s\\n" "$XLA_FLAGS" "$*" >> "$RECORD"\n' + fail)
   fake.chmod(0o755)
   env = dict(os.environ, PYTHON=str(fake), RECORD=str(tmp_path / "calls.tsv"), XLA_FLAGS="")
   env.pop("FLAG_SETS", None)
@@ -26,14 +28,21 @@ def _run_steps(tmp_path, steps, flag_sets=None):
     env["FLAG_SETS"] = flag_sets
   proc = subprocess.run(["bash", str(SUITE), str(tmp_path / "out"), *steps], env=env,
                         capture_output=True, text=True, timeout=60, check=False)
-  assert proc.returncode == 0, proc.stdout + proc.stderr
-  rows = (tmp_path / "calls.tsv").read_text().splitlines()
+  assert proc.returncode == rc, proc.stdout + proc.stderr
+  record = tmp_path / "calls.tsv"
+  rows = record.read_text().splitlines() if record.exists() else []
   return [tuple(r.split("\t")) for r in rows]
+
+
+def _json(argv: str) -> str:
+  """The --json file of a recorded call."""
+  args = argv.split()
+  return args[args.index("--json") + 1]
 
 
 def test_every_flag_set_runs_the_window_benchmark_with_its_own_flags(tmp_path):
   calls = _run_steps(tmp_path, ["flags"])
-  names = [argv.split("_flags_")[-1].removesuffix(".json") for _, argv in calls]
+  names = [_json(argv).split("_flags_")[-1].removesuffix(".json") for _, argv in calls]
   assert names == ["default", "cmdbuf_off", "cmdbuf_loop", "cublas", "exhaustive"]
   for (flags, argv), name in zip(calls, names):
     assert "-m sav_jax.cli bench --frames 20 --height 720 --width 1280 --iters 20" in argv
@@ -47,7 +56,7 @@ def test_every_flag_set_runs_the_window_benchmark_with_its_own_flags(tmp_path):
 
 def test_flag_sets_can_be_replaced(tmp_path):
   calls = _run_steps(tmp_path, ["flags"], "a=--xla_gpu_autotune_level=0;b=")
-  assert [(f.strip(), a.split("_flags_")[-1]) for f, a in calls] == [
+  assert [(f.strip(), _json(a).split("_flags_")[-1]) for f, a in calls] == [
       ("--xla_gpu_autotune_level=0", "a.json"), ("", "b.json")]
 
 
@@ -71,3 +80,23 @@ def test_the_warm_float32_benchmark_reads_the_cold_ones_compilation_cache(tmp_pa
     jsons.append(pathlib.Path(args[args.index("--json") + 1]).name)
   assert caches[0] == caches[1] == str(tmp_path / "out" / "xla_cache")
   assert jsons == ["gpu_t20_720x1280_it20_fp32.json", "gpu_t20_720x1280_it20_fp32_warm.json"]
+
+
+def test_a_mistyped_step_fails_before_any_step_runs(tmp_path):
+  assert _run_steps(tmp_path, ["bench_bf16", "bench_fb32"], rc=2) == []
+
+
+def test_a_failed_step_fails_the_suite_after_the_others_ran(tmp_path):
+  # (a first step failing within 90 s stops the suite at once: the lease is not spent)
+  calls = _run_steps(tmp_path, ["bench_bf16", "bench_fp32", "bench_blocked"], rc=1,
+                     fail_on="--dtype float32")
+  assert len(calls) == 3
+  assert "some steps failed" in (tmp_path / "out" / "suite.log").read_text()
+
+
+def test_rerunning_a_step_into_the_same_folder_replaces_its_json(tmp_path):
+  calls = _run_steps(tmp_path, ["bench_bf16", "bench_fp32", "bench_fp32_warm", "bench_blocked",
+                                "train", "precision"])
+  assert len(calls) == 6
+  for _, argv in calls:
+    assert "--json" in argv and argv.split().count("--overwrite") == 1, argv

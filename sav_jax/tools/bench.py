@@ -42,6 +42,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   add_compile_cache_arguments(p, default_on=False)
 
 
+def json_output_problem(path: str, overwrite: bool, flag: str = "--json") -> str | None:
+  """What is wrong with writing a results JSON at `path` (checked before a long run), or
+  None: a folder, an existing file without `overwrite`, a missing parent folder."""
+  if os.path.isdir(path):
+    return f"{flag} {path} is a folder; give a file name"
+  if os.path.exists(path) and not overwrite:
+    return f"{flag} {path} exists; pass --overwrite to replace it"
+  parent = os.path.dirname(os.path.abspath(path))
+  if not os.path.isdir(parent):
+    return f"{flag} {path}: folder {parent} does not exist"
+  return None
+
+
 def peak_rss_gb() -> float:
   """Peak resident set size of this process so far, in GB."""
   rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -151,6 +164,8 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
 
 _COMPARED = ("median_s", "compile_s", "peak_rss_gb")
 _SHAPE = ("frames", "height", "width", "iters", "batch")  # a ratio needs the same work
+# Keys only benchmarks/train_step.py's JSON has (a training step is not a forward).
+_TRAIN_STEP_KEYS = ("samples_per_s", "remat", "loss")
 
 
 def _read_baseline(path) -> dict:
@@ -160,16 +175,31 @@ def _read_baseline(path) -> dict:
       base = json.load(f)
   except (OSError, ValueError) as e:
     raise UsageError(f"--compare {path}: cannot read a bench JSON ({e})") from e
-  missing = [k for k in _COMPARED if not isinstance(base, dict) or k not in base]
+  missing = [k for k in _COMPARED + _SHAPE if not isinstance(base, dict) or k not in base]
   if missing:
     raise UsageError(f"--compare {path}: not a `sav-jax bench --json` file (lacks {missing})")
+  train = [k for k in _TRAIN_STEP_KEYS if k in base]
+  if train:
+    raise UsageError(f"--compare {path}: a training step's JSON (benchmarks/train_step.py: "
+                     f"{train}), not a forward's")
   bad = {k: base[k] for k in _COMPARED
          if not (k == "compile_s" and base[k] is None)  # an eager baseline compiles nothing
          and (isinstance(base[k], bool) or not isinstance(base[k], (int, float))
-              or not math.isfinite(base[k]) or base[k] < 0)}
+              or not math.isfinite(base[k]) or base[k] < 0
+              or (base[k] == 0 and k != "compile_s"))}
   if bad:
-    raise UsageError(f"--compare {path}: expected non-negative numbers, got {bad}")
+    raise UsageError(f"--compare {path}: expected positive numbers (compile_s: >= 0 or null), "
+                     f"got {bad}")
   return base
+
+
+def baseline_differences(args: argparse.Namespace, base: dict) -> dict:
+  """`{key: (this run's, the baseline's)}` of the shape and settings that make a ratio
+  meaningless (the compute dtype, all predictions or the last); settings a baseline does
+  not record are not compared."""
+  mine = {k: getattr(args, k) for k in _SHAPE}
+  mine.update(dtype=args.dtype, final_only=not args.all_predictions)
+  return {k: (v, base[k]) for k, v in mine.items() if k in base and base[k] != v}
 
 
 def compare_line(res: dict, base: dict) -> str:
@@ -181,9 +211,15 @@ def compare_line(res: dict, base: dict) -> str:
   compile_part = (f"compile {res['compile_s']:.3g} s (the baseline compiles nothing)"
                   if base["compile_s"] is None
                   else ratio("compile", res["compile_s"], base["compile_s"], "s"))
-  return ", ".join([
-      ratio("forward", res["median_s"], base["median_s"], "s"), compile_part,
-      ratio("peak RSS", res["peak_rss_gb"], base["peak_rss_gb"], "GB", ("lower", "higher"))])
+  loads = [who for who, r in (("this run", res), ("the baseline", base)) if r.get("cache_hit")]
+  if loads and len(loads) == 1:  # a cache load set against a compile
+    compile_part += f" ({loads[0]} loaded it from the compilation cache)"
+  parts = [ratio("forward", res["median_s"], base["median_s"], "s"), compile_part,
+           ratio("peak RSS", res["peak_rss_gb"], base["peak_rss_gb"], "GB", ("lower", "higher"))]
+  if res.get("device_peak_gb") and base.get("device_peak_gb"):  # a GPU's memory
+    parts.append(ratio("device peak", res["device_peak_gb"], base["device_peak_gb"], "GB",
+                       ("lower", "higher")))
+  return ", ".join(parts)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -198,20 +234,14 @@ def run(args: argparse.Namespace) -> int:
   for name in ("frames", "batch", "repeats"):
     if getattr(args, name) < 1:
       raise UsageError(f"--{name} must be >= 1, got {getattr(args, name)}")
-  if args.json:  # checked before the long run
-    if os.path.isdir(args.json):
-      raise UsageError(f"--json {args.json} is a folder; give a file name")
-    if os.path.exists(args.json) and not args.overwrite:
-      raise UsageError(f"--json {args.json} exists; pass --overwrite to replace it")
-    parent = os.path.dirname(os.path.abspath(args.json))
-    if not os.path.isdir(parent):
-      raise UsageError(f"--json {args.json}: folder {parent} does not exist")
+  problem = json_output_problem(args.json, args.overwrite) if args.json else None
+  if problem:  # checked before the long run
+    raise UsageError(problem)
   base = _read_baseline(args.compare) if args.compare else None  # before the long run
   if base is not None:
-    differ = {k: (getattr(args, k), base[k]) for k in _SHAPE
-              if k in base and base[k] != getattr(args, k)}
+    differ = baseline_differences(args, base)
     if differ:
-      raise UsageError(f"--compare {args.compare} was measured at another shape "
+      raise UsageError(f"--compare {args.compare} was measured at another shape or setting "
                        + ", ".join(f"({k}: {mine} here, {theirs} there)"
                                    for k, (mine, theirs) in differ.items()))
   cache = setup_compile_cache(args, default_on=False)
