@@ -15,6 +15,8 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
+from sav_jax._lazy import submodule_getattr
+
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time `__getattr__` loads these
   from sav_jax import convert, data, inference, metrics, model, runtime, viz
   from sav_jax.config import SAVConfig
@@ -23,20 +25,21 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time `__getattr__` loads
 __version__ = "0.1.0"
 __all__ = ["SAVConfig", "SAVOutput", "StereoAnyVideo", "convert", "inference", "data",
            "metrics", "model", "runtime", "viz"]
-_SUBMODULES = ("convert", "inference", "data", "metrics", "model", "runtime", "viz")
 _NAMES = {"SAVConfig": "sav_jax.config", "SAVOutput": "sav_jax.model.stereo_any_video",
           "StereoAnyVideo": "sav_jax.model.stereo_any_video"}
 
 
+_submodule = submodule_getattr(__name__)
+
+
 def __getattr__(name):
-  """`sav_jax.StereoAnyVideo`, `sav_jax.metrics`, ...: each is imported on first use."""
-  if name in _SUBMODULES:
-    return importlib.import_module(f"sav_jax.{name}")
+  """`sav_jax.StereoAnyVideo`, `sav_jax.metrics`, `sav_jax.tools.video_io`, ...: each is
+  imported on first use."""
   if name in _NAMES:
     value = getattr(importlib.import_module(_NAMES[name]), name)
     globals()[name] = value  # later lookups skip this function
     return value
-  raise AttributeError(f"module 'sav_jax' has no attribute {name!r}")
+  return _submodule(name)
 
 
 def __dir__():

@@ -63,6 +63,19 @@ def test_named_python_objects_exist(doc):
   assert not unresolved, f"{doc} names Python objects that do not exist: {unresolved}"
 
 
+def test_named_python_objects_resolve_after_import_sav_jax():
+  """`sav_jax.model.init.init_variables` as the README writes it works after `import sav_jax`
+  alone (each package imports its submodules on first use), in a fresh interpreter."""
+  names = sorted({n for doc in DOCS for n in re.findall(
+      r"\bsav_jax(?:\.\w+)+", (ROOT / doc).read_text(encoding="utf-8"))})
+  script = ("import sav_jax, sys\nbad = []\nfor name in sys.argv[1:]:\n  obj = sav_jax\n"
+            "  try:\n    for attr in name.split('.')[1:]:\n      obj = getattr(obj, attr)\n"
+            "  except AttributeError:\n    bad.append(name)\nprint(bad)\n")
+  proc = subprocess.run([sys.executable, "-c", script, *names], capture_output=True, text=True,
+                        cwd=ROOT, timeout=300, check=True)
+  assert len(names) > 20 and proc.stdout.strip() == "[]", proc.stdout + proc.stderr
+
+
 def _options(parser) -> set[str]:
   return {s for action in parser._actions for s in action.option_strings}  # pylint: disable=protected-access
 

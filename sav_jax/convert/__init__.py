@@ -21,3 +21,7 @@ __all__ = [
     "save_state_dict", "save_variables", "state_dict_from_params", "unwrap_state_dict",
     "vda_params_from_state_dict", "vda_state_dict_from_params",
 ]
+
+from sav_jax._lazy import submodule_getattr
+
+__getattr__ = submodule_getattr(__name__)  # its other modules, on first use

@@ -22,3 +22,7 @@ __all__ = [
     "get_sequences",
     "get_training_clips",
 ]
+
+from sav_jax._lazy import submodule_getattr
+
+__getattr__ = submodule_getattr(__name__)  # its other modules, on first use

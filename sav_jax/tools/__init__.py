@@ -115,3 +115,7 @@ def command_logging(verbose: bool):
     root.setLevel(saved[1])
     for q, level in zip(quiet, saved[2]):
       q.setLevel(level)
+
+from sav_jax._lazy import submodule_getattr
+
+__getattr__ = submodule_getattr(__name__)  # its other modules, on first use
