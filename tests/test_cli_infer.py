@@ -90,6 +90,9 @@ def test_folder_all_formats_and_calibration(tmp_path, folders, npz_ckpt, variabl
   assert len(video_io.read_video_file(out / "side_by_side.mp4")) == T
   summary = json.loads((out / "summary.json").read_text())
   assert summary["frames"] == T and summary["calibration"]["cx"] == (W - 1) / 2
+  run_s = summary["seconds"] - summary["compile_seconds"]  # no compile if another test did it
+  assert summary["frames_per_second_without_compile"] == pytest.approx(T / run_s, rel=1e-2)
+  assert summary["frames_per_second_without_compile"] >= summary["frames_per_second"] > 0
 
 
 def test_overwrite_protection(tmp_path, folders, npz_ckpt, capsys):

@@ -21,8 +21,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("src", help="Stereo Any Video checkpoint (or, with --vda, a VDA-only file); "
                  "an orbax directory, or a training run's WORKDIR (latest checkpoint) or "
                  "WORKDIR/checkpoints/STEP, to export")
-  p.add_argument("dst", help="orbax checkpoint directory to create, or a .safetensors/.npz/.pth "
-                 "file to write the (checked) weights to under the official key names; for a "
+  p.add_argument("dst", help="orbax checkpoint directory to create, or a .safetensors/.npz/"
+                 ".pth/.pt/.bin file (the last three need torch) to write the (checked) weights to under the official key names; for a "
                  "training checkpoint SRC, a path without suffix makes a variables directory "
                  "(params only)")
   p.add_argument("--vda", action="store_true",

@@ -36,7 +36,7 @@ TABLE = (("EPE", "disp_epe_mean"), ("bad-1px %", "disp_epe_bad_1px"),
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--checkpoint", help="orbax directory, a training run's WORKDIR, or a "
-                                      ".pth/.safetensors/.npz state dict (default: "
+                                      ".pth/.pt/.safetensors/.npz state dict (default: "
                                       f"{BUNDLED} if present, else random weights)")
   p.add_argument("--out", default="outputs/demo", help="output folder (default outputs/demo)")
   p.add_argument("--frames", type=int, default=8, help="frames of the synthetic video (8)")

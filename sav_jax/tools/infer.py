@@ -58,7 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames")
   p.add_argument("--window", type=int, default=20, help="frames per sliding window (20)")
   p.add_argument("--stride", type=int, default=10, help="sliding window stride (10)")
-  p.add_argument("--fps", type=float, default=10.0, help="frame rate of the output video")
+  p.add_argument("--fps", type=float, default=10.0, help="frame rate of the output video (default 10)")
   add_devices_argument(p)
   add_compile_cache_arguments(p)
 
@@ -199,6 +199,7 @@ def run(args: argparse.Namespace) -> int:
              "left": str(args.left), "right": str(args.right), "formats": formats,
              "seconds": round(seconds, 3), "frames_per_second": round(t / seconds, 3),
              "compile_seconds": round(compiling, 3),
+             "frames_per_second_without_compile": round(t / max(seconds - compiling, 1e-9), 3),
              "calibration": None if calib is None else calib._asdict(),
              "max_depth": args.max_depth, **written}
   (out / "summary.json").write_text(json.dumps(summary, indent=1))
