@@ -68,6 +68,8 @@ def parse_args(argv=None):
   a.repo = repo
   if a.iters < 2 or a.iters % 2:
     p.error(f"--iters must be even and >= 2 (got {a.iters})")
+  if a.repeats < 1:
+    p.error(f"--repeats must be >= 1 (got {a.repeats})")
   # checked before the long run, as `sav-jax bench` does (its json_output_problem is not
   # imported: it would import JAX into the process whose memory is measured)
   if a.json:

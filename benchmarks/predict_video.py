@@ -66,7 +66,7 @@ def main():
     seconds[name] = time.perf_counter() - t0
     sec = seconds[name]
     print(f"{name:28s} {sec:7.2f} s  ({a.frames / sec:.2f} frames/s, "
-          f"{seconds['predict_video (reuse)'] / sec:.2f}x predict_video)", flush=True)
+          f"{seconds['predict_video (reuse)'] / sec:.2f}x predict_video's speed)", flush=True)
   first = results.pop("predict_video (reuse)")
   for name, other in results.items():
     print(f"max |difference| from predict_video, {name}: {np.max(np.abs(first - other)):.2e} px")
