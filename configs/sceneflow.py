@@ -90,7 +90,8 @@ def base_config() -> ml_collections.ConfigDict:
   c.data.worker_count = 0
 
   c.train = ml_collections.ConfigDict()
-  # Global batch (clips per step over all devices and hosts); the paper's 8 (official: 1 per GPU).
+  # Global batch (clips per step over all devices and hosts): 8, this config's reading of the
+  # paper (not confirmed; the official script: 1 per GPU).
   c.train.batch_size = 8
   # Training steps (optimizer updates). The official script runs 80,000 (datasets.md,
   # section 3); 120k with batch 8 is this config's reading of the paper (not confirmed):
