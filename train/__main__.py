@@ -91,7 +91,7 @@ def main(argv):
   # Bad input: config values, the workdir, weights or data the config names (CheckpointError
   # is a ValueError), all checked in `setup`. With absl's -v 1 (--verbosity=1) the traceback
   # is shown instead. Errors of the training itself keep their traceback.
-  except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError) as e:
+  except (ValueError, OSError) as e:  # OSError: FileNotFoundError, PermissionError, ...
     if flags.FLAGS.verbosity >= 1:
       raise
     print(f"train: error: {e} (-v 1 for the traceback)", file=sys.stderr)

@@ -84,10 +84,12 @@ def _state_dict(state: TrainState) -> dict:
 
 # Fields that say where and how a run executes, not what it computes: changing them on
 # resume is expected (prefixes).
+# (`data.worker_count` is not one: grain's iterator state, and what each batch holds, differ
+# with it; `check_data_state` refuses a change.)
 _OPERATIONAL = ("checkpoint.", "eval.", "compile_cache", "init_from", "vda_weights",
                 "random_depth_prior", "data.root", "data.num_threads", "data.prefetch",
-                "data.worker_count", "train.progress_bar", "train.log_every",
-                "train.max_skipped_steps", "model.remat")
+                "train.progress_bar", "train.log_every", "train.max_skipped_steps",
+                "model.remat")
 
 
 def run_fields(config) -> dict:
@@ -105,16 +107,22 @@ def run_fields(config) -> dict:
   return flat
 
 
-def changed_fields(manager: ocp.CheckpointManager, step: int, config) -> list[str]:
-  """`field: saved -> now` for every field of `config` that a resumed run changes, but
-  those that only say where and how it runs (`_OPERATIONAL`); [] for checkpoints written
-  before the config was saved with them."""
+def _saved_run(manager: ocp.CheckpointManager, step: int) -> dict:
+  """The run config saved with checkpoint `step` (`run_fields`), {} where there is none."""
   try:
     saved = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
     saved = saved["config"].get("run")
   except Exception:  # pylint: disable=broad-except  # the state's restore names problems
-    return []
-  if not isinstance(saved, dict):
+    return {}
+  return saved if isinstance(saved, dict) else {}
+
+
+def changed_fields(manager: ocp.CheckpointManager, step: int, config) -> list[str]:
+  """`field: saved -> now` for every field of `config` that a resumed run changes, but
+  those that only say where and how it runs (`_OPERATIONAL`); [] for checkpoints written
+  before the config was saved with them."""
+  saved = _saved_run(manager, step)
+  if not saved:
     return []
   now = run_fields(config)
   return [f"{k}: {saved.get(k, '(absent)')!r} -> {now.get(k, '(absent)')!r}"
@@ -151,6 +159,38 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
                             data=grain.checkpoint.CheckpointSave(data_iterator),
                             config=ocp.args.JsonSave(config))
   return manager.save(step, args=args, force=force)
+
+
+def check_data_state(manager: ocp.CheckpointManager, step: int, config) -> None:
+  """Raises CheckpointError unless this run can restore the data-iterator state of
+  checkpoint `step`: grain saves one position per process (`process_<i>-of-<P>.json`),
+  whose form depends on `data.worker_count`, so both must be those of the saving run."""
+  directory = pathlib.Path(manager.directory) / str(step)
+  files = sorted((directory / "data").glob("process_*-of-*.json"))
+  counts = {int(m.group(1)) for f in files
+            if (m := re.fullmatch(r"process_\d+-of-(\d+)\.json", f.name))}
+  hint = ("; or start a new WORKDIR with --config.init_from=<this workdir> to keep only its "
+          "weights")
+  if counts and counts != {jax.process_count()}:
+    raise sav_jax.convert.CheckpointError(
+        f"{directory}: its data iterator was saved by {sorted(counts)[0]} process(es), this "
+        f"run has {jax.process_count()}: resume with that many (each process's position in "
+        f"the data is its own){hint}")
+  now = config.data.worker_count
+  saved = _saved_run(manager, step).get("data.worker_count")
+  if saved is None and files:  # from before the run config was saved: the state's form
+    try:
+      state = json.loads(files[0].read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+      state = None
+    threads_only = isinstance(state, dict) and "next_index" in state
+    if isinstance(state, dict) and threads_only != (now == 0):
+      saved = 0 if threads_only else "a number > 0"
+  if saved is not None and saved != now:
+    raise sav_jax.convert.CheckpointError(
+        f"{directory}: its data iterator was saved with data.worker_count={saved}, this run "
+        f"has {now}: resume with the saving run's data.worker_count (grain's iterator state "
+        f"and the clips of each batch differ with the worker count){hint}")
 
 
 def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, shardings: TrainState,

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import pathlib
 import re
 
@@ -96,6 +97,7 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
   if manager.latest_step() is not None:
     step = manager.latest_step()
     log.info("resuming from checkpoint %d", step)
+    ckpt_lib.check_data_state(manager, step, config)
     state = ckpt_lib.restore(manager, abstract, shardings, data_iterator)
     changed = ckpt_lib.changed_fields(manager, step, config)
     if changed:  # allowed (e.g. to extend a run), but never unnoticed
@@ -272,6 +274,9 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
   for path in (existing, workdir / "checkpoints"):
     if path.exists() and not path.is_dir():
       raise NotADirectoryError(f"--workdir {workdir}: {path} exists and is not a directory")
+  writable = workdir / "checkpoints" if (workdir / "checkpoints").exists() else existing
+  if not os.access(writable, os.W_OK | os.X_OK):
+    raise PermissionError(f"--workdir {workdir}: no permission to write in {writable}")
   evaluating = config.eval.every_steps > 0
   for field, ok, want in _CHECKS + (_EVAL_CHECKS if evaluating else ()):
     value = _value(config, field)

@@ -203,7 +203,7 @@ def checked_restore(restore, directory, mismatch, corrupt_hint: str = ""):
   Args:
     restore: the orbax call.
     directory: the checkpoint, named in the messages.
-    mismatch: `error -> exception` for a ValueError/KeyError/TypeError that is not a
+    mismatch: `error -> exception` for a ValueError/KeyError/TypeError/IndexError that is not a
       failed read (the checkpoint does not fit the target); raised from the error.
     corrupt_hint: appended to the corrupt-checkpoint message (`corrupt_checkpoint_error`).
 
@@ -217,7 +217,7 @@ def checked_restore(restore, directory, mismatch, corrupt_hint: str = ""):
   except Exception as e:  # pylint: disable=broad-except  # orbax: a bare Exception if unreadable
     corrupt = corrupt_checkpoint_error(directory, e)
     if corrupt is None:
-      if not isinstance(e, (ValueError, KeyError, TypeError)):
+      if not isinstance(e, (ValueError, KeyError, TypeError, IndexError)):
         raise
       raise mismatch(e) from e
   else:

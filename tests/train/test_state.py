@@ -13,6 +13,7 @@ import sys
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import ml_collections
 import numpy as np
 import pytest
 
@@ -411,9 +412,9 @@ class _BigToy(ToyStereo):
     return ToyStereo.__call__(self, left, right, iters, final_only)
 
 
-def _toy_run(workdir, frozen=None):
+def _toy_run(workdir, frozen=None, run_config=False):
   """A toy training run's config, model, optimizer and mesh, and its checkpoint at step 1 in
-  `workdir` (with `optimizer.frozen=frozen` if given)."""
+  `workdir` (with `optimizer.frozen=frozen` if given; with the run config if `run_config`)."""
   c = _config()
   c.checkpoint.async_save = False
   if frozen is not None:
@@ -422,7 +423,8 @@ def _toy_run(workdir, frozen=None):
   tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
   state, _ = state_lib.create_train_state(model, tx, c, mesh)
   manager = ckpt_lib.make_manager(workdir, c)
-  assert ckpt_lib.save(manager, state, _toy_iterator(), 1, force=True)
+  assert ckpt_lib.save(manager, state, _toy_iterator(), 1, force=True,
+                       run_config=c if run_config else None)
   manager.wait_until_finished()
   manager.close()
   return c, model, tx, mesh
@@ -506,6 +508,43 @@ def test_training_checkpoint_without_an_item_is_named_incomplete(toy_run, tmp_pa
     _toy_restore(copy, c, model, tx, mesh)
   assert str(e.value).startswith(f"{step}: the checkpoint is incomplete: it has no data folder")
   assert "does not match" not in str(e.value) and "Move this step folder" in str(e.value)
+
+
+def _check_data_state(workdir, config):
+  manager = ckpt_lib.make_manager(workdir, config)
+  try:
+    ckpt_lib.check_data_state(manager, 1, config)
+  finally:
+    manager.close()
+
+
+def test_resume_needs_the_saving_runs_process_and_worker_counts(toy_run, tmp_path):
+  # grain's iterator state is per process and its form depends on data.worker_count: other
+  # counts failed as "does not match this run's model or optimizer config" (KeyError
+  # 'exhausted') or with an IndexError traceback.
+  import shutil  # pylint: disable=g-import-not-at-top
+  workdir, c = toy_run[:2]
+  _check_data_state(workdir, c)  # its own settings
+  workers = ml_collections.ConfigDict(c.to_dict())
+  workers.data.worker_count = 2
+  # a checkpoint without the run config: told from the saved state's form
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"checkpoints/1: its data iterator was saved with "
+                     r"data.worker_count=0, this run has 2: resume with the saving run's"):
+    _check_data_state(workdir, workers)
+  saved = tmp_path / "with_config"
+  _toy_run(saved, run_config=True)
+  _check_data_state(saved, c)
+  with pytest.raises(sav_jax.convert.CheckpointError, match="data.worker_count=0, this run has 2"):
+    _check_data_state(saved, workers)
+  copy = tmp_path / "two_processes"
+  shutil.copytree(workdir, copy)
+  data = copy / "checkpoints" / "1" / "data"
+  (data / "process_0-of-1.json").rename(data / "process_0-of-2.json")
+  shutil.copy(data / "process_0-of-2.json", data / "process_1-of-2.json")
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"saved by 2 process\(es\), this run has 1: resume with that many"):
+    _check_data_state(copy, c)
 
 
 def test_resume_with_another_frozen_pattern_is_refused(toy_run, tmp_path):
@@ -741,3 +780,10 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
     assert f"train: error: {message}" in proc.stderr
     assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr
     assert not (tmp_path / "w").exists()
+  # a workdir that cannot be created (sysfs refuses even root): a traceback before
+  proc = subprocess.run(
+      [sys.executable, "-m", "train", "--config", config, "--workdir", "/sys/sav_jax_test/w",
+       "--config.train.progress_bar=False"], cwd=ROOT, env=child_env(tmp_path / "cache"),
+      capture_output=True, text=True, timeout=300, check=False)
+  assert proc.returncode == 2 and "train: error: " in proc.stderr, proc.stderr[-2000:]
+  assert "/sys/sav_jax_test" in proc.stderr and "Traceback" not in proc.stderr
