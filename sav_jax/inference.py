@@ -613,8 +613,8 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
 
   uint8 passes as is; other integers must not exceed 255 (convert 16-bit frames first);
   floats must be finite, and a float video no brighter than 1.0 or well outside 0..255
-  gets a warning (the model expects 0..255, not 0..1 or 0..65535). `first`: the index of `video[0]` in the whole video
-  (frames are named by their index there).
+  gets a warning (the model expects 0..255, not 0..1 or 0..65535). `first`: the index of
+  `video[0]` in the whole video (frames are named by their index there).
   """
   kind = video.dtype.kind
   if kind == "u" and video.dtype.itemsize == 1:

@@ -171,10 +171,10 @@ def _lut(x: np.ndarray, table: np.ndarray) -> np.ndarray:
   return cv2.LUT(x, np.clip(table, 0, 255).astype(np.uint8))
 
 
-def _blend(level: int, factor: float) -> np.ndarray:
+def _blend(level, factor: float) -> np.ndarray:
   """PIL's `Image.blend(degenerate, x, factor)` for a constant degenerate image `level`, as
   a table over x = 0..255: float32 `level + factor * (x - level)` (clipped by `_lut`)."""
-  level = np.float32(level)
+  level = np.asarray(level, np.float32)  # one level, or a column of them
   return level + np.float32(factor) * (np.arange(256, dtype=np.float32) - level)
 
 
@@ -189,8 +189,7 @@ def _grey(x: np.ndarray) -> np.ndarray:
 def _saturate(x: np.ndarray, factor: float) -> np.ndarray:
   """PIL's `ImageEnhance.Color`: `Image.blend(grey, x, factor)`, in float32, truncated to
   [0, 255]."""
-  grey = np.arange(256, dtype=np.float32)[:, None]
-  table = grey + np.float32(factor) * (np.arange(256, dtype=np.float32) - grey)
+  table = _blend(np.arange(256)[:, None], factor)  # [grey, value]
   table = np.clip(table, 0, 255).astype(np.uint8).reshape(-1)  # [grey * 256 + value]
   return table[(_grey(x).astype(np.uint16)[..., None] << 8) | x]
 

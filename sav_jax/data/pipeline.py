@@ -1,4 +1,4 @@
-"""grain input pipelines: sources, mixtures, per-process shards, global device batches.
+"""grain input pipelines: sources, mixtures, per-process shares, global device batches.
 
 A training example is a dict of numpy arrays with static shapes:
 
@@ -6,12 +6,12 @@ A training example is a dict of numpy arrays with static shapes:
   disparity:   [T, H, W] float32, positive left-view disparity (px)
   valid:       [T, H, W] bool
 
-The pipeline (per source, then mixed):
+The pipeline (per source, then mixed; the same on every process up to the slice):
 
-  source[process_index::process_count]      each process reads only its shard
-    .shuffle(seed).repeat()                 a new permutation every epoch
+  source.shuffle(seed).repeat()             a new permutation every epoch
     .map(load).random_map(augment)          augmentation seeded by (seed, index)
   MapDataset.mix(sources, weights)          deterministic interleaving by weight
+    [process_index::process_count]          each process reads and augments its share
     .to_iter_dataset(ReadOptions(threads))  prefetching threads
     .batch(per_process_batch, drop_remainder=True)  -> [B_local, T, H, W, ...]
     [.mp_prefetch(workers)]
@@ -167,28 +167,11 @@ def center_crop(clip: Mapping[str, np.ndarray], crop: tuple[int, int]) -> dict[s
   return {k: v[:, y0:y0 + ch, x0:x0 + cw] for k, v in ex.items()}
 
 
-def _process(process_index: int | None, process_count: int | None) -> tuple[int, int]:
-  pi = jax.process_index() if process_index is None else process_index
-  pc = jax.process_count() if process_count is None else process_count
-  if not 0 <= pi < pc:
-    raise ValueError(f"process_index {pi} not in [0, {pc})")
-  return pi, pc
-
-
-def shard(ds: grain.MapDataset, process_index: int | None = None,
-          process_count: int | None = None) -> grain.MapDataset:
-  """This process's elements `ds[process_index::process_count]` (default: JAX's)."""
-  pi, pc = _process(process_index, process_count)
-  if len(ds) < pc:
-    raise ValueError(f"{len(ds)} elements cannot be sharded over {pc} processes")
-  return ds[pi::pc]
-
-
 def mixture_weights(lengths: Sequence[int], weights: Sequence[float], mode: str) -> list[float]:
   """Sampling proportions of the mixed sources.
 
   Args:
-    lengths: number of clips of each source (before sharding).
+    lengths: number of clips of each source (all of them: the processes split the mix).
     weights: per-source weights.
     mode: `"ratio"`: the weights are the sampling proportions; `"concat"`: the weights
       are repeat counts of each dataset in a concatenation (the official
@@ -229,7 +212,7 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
     mode: `"ratio"` or `"concat"` weighting.
     transforms: per source, `None` or a random map `(clip, np.random.Generator) -> example`
       (e.g. `Augment`); without one, `as_example` is applied.
-    process_index, process_count: this process's shard (default: JAX's).
+    process_index, process_count: this process's share (default: JAX's).
     num_threads: reader threads; prefetch: elements buffered per thread pool.
     worker_count: > 0 adds `mp_prefetch` with that many worker processes.
 
@@ -242,7 +225,10 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
     raise ValueError(f"need one transform (or None) per source, got {len(transforms)} for "
                      f"{len(sources)} sources")
   props = mixture_weights([len(s) for s in sources], weights, mode)
-  pi, pc = _process(process_index, process_count)
+  pi = jax.process_index() if process_index is None else process_index
+  pc = jax.process_count() if process_count is None else process_count
+  if not 0 <= pi < pc:
+    raise ValueError(f"process_index {pi} not in [0, {pc})")
   streams = []
   for i, (src, tf) in enumerate(zip(sources, transforms)):
     ds = src.shuffle(seed=seed + 7919 * i).repeat()

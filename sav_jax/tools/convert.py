@@ -22,7 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  "an orbax directory, or a training run's WORKDIR (latest checkpoint) or "
                  "WORKDIR/checkpoints/STEP, to export")
   p.add_argument("dst", help="orbax checkpoint directory to create, or a .safetensors/.npz/"
-                 ".pth/.pt/.bin file (the last three need torch) to write the (checked) weights to under the official key names; for a "
+                 ".pth/.pt/.bin file (the last three need torch) to write the (checked) "
+                 "weights to under the official key names; for a "
                  "training checkpoint SRC, a path without suffix makes a variables directory "
                  "(params only)")
   p.add_argument("--vda", action="store_true",

@@ -58,7 +58,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames")
   p.add_argument("--window", type=int, default=20, help="frames per sliding window (20)")
   p.add_argument("--stride", type=int, default=10, help="sliding window stride (10)")
-  p.add_argument("--fps", type=float, default=10.0, help="frame rate of the output video (default 10)")
+  p.add_argument("--fps", type=float, default=10.0,
+                 help="frame rate of the output video (default 10)")
   add_devices_argument(p)
   add_compile_cache_arguments(p)
 
