@@ -6,7 +6,8 @@ sharded over all devices. Several hosts: start one process per host with
 `--distributed=auto` on TPU pods / SLURM, where JAX finds them itself).
 Config fields are overridable: `--config.train.batch_size=16`. Bad input (a config value,
 the workdir, weights or data that cannot be used) exits with status 2 and one line on
-stderr; `-v 1` shows its traceback.
+stderr; `-v 1` shows its traceback. On SIGTERM (a scheduler's preemption notice) the run
+saves a checkpoint of the step it is on and exits with status 143; the same command resumes.
 """
 
 import logging
@@ -96,7 +97,11 @@ def main(argv):
       raise
     print(f"train: error: {e} (-v 1 for the traceback)", file=sys.stderr)
     sys.exit(2)
-  loop.run(config, _WORKDIR.value, parts)
+  try:
+    loop.run(config, _WORKDIR.value, parts)
+  except loop.Preempted as e:  # SIGTERM: a checkpoint was saved; 143 = 128 + SIGTERM
+    print(f"train: {e}", file=sys.stderr)
+    sys.exit(143)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ dataset's share is weight x number of clips; "ratio": weights are the shares).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 
@@ -26,6 +27,19 @@ def synthetic_config(data_cfg, gen_cfg, seed: int) -> SyntheticConfig:
             if k in names}
   return SyntheticConfig(frames=data_cfg.frames, height=data_cfg.crop[0],
                          width=data_cfg.crop[1], **dict(kwargs, seed=seed))
+
+
+@contextlib.contextmanager
+def _naming(where: str):
+  """Prefixes `where` (the config fields behind the data) to a ValueError or
+  FileNotFoundError that does not name a config field itself."""
+  try:
+    yield
+  except (ValueError, FileNotFoundError) as e:
+    if str(e).startswith("config."):
+      raise
+    cls = FileNotFoundError if isinstance(e, FileNotFoundError) else ValueError
+    raise cls(f"{where}: {e}") from e
 
 
 def _source(config, spec, split: str, seed: int):
@@ -52,7 +66,12 @@ def train_dataset(config, process_index=None, process_count=None):
     raise ValueError(f"config.train.batch_size={batch} is not divisible by {count} processes")
   sources, transforms, weights = [], [], []
   for name, spec in sorted(config.data.sources.items()):
-    src, tf = _source(config, spec, "train", seed=config.data.synthetic.seed)
+    where = (f"config.data.sources.{name}.dataset={spec.dataset!r} (config.data.synthetic)"
+             if spec.dataset == "synthetic" else
+             f"config.data.sources.{name}.dataset={spec.dataset!r}, "
+             f"config.data.root={config.data.root!r}")
+    with _naming(where):
+      src, tf = _source(config, spec, "train", seed=config.data.synthetic.seed)
     log.info("training source %s: %s, %d clips, weight %g", name, spec.dataset, len(src),
              spec.weight)
     sources.append(src)
@@ -70,12 +89,16 @@ def eval_clips(config) -> list[dict]:
   ev = config.eval
   if ev.dataset == "synthetic":
     # A seed the training stream never uses: clips are disjoint from training.
-    cfg = synthetic_config(config.data, config.data.synthetic, seed=ev.synthetic_seed)
-    ds = pipeline.synthetic_source(cfg, ev.num_clips)
+    with _naming(f"config.eval.dataset='synthetic' (config.eval.synthetic_seed="
+                 f"{ev.synthetic_seed!r}, config.data.synthetic)"):
+      cfg = synthetic_config(config.data, config.data.synthetic, seed=ev.synthetic_seed)
+      ds = pipeline.synthetic_source(cfg, ev.num_clips)
     return pipeline.fixed_clips(ds, ev.num_clips)
   # Consecutive frames, as the evaluation's (TEPE measures the change between frames).
-  src = pipeline.registry_source(ev.dataset, config.data.root, config.data.frames,
-                                 split=ev.split, consecutive=True)
+  with _naming(f"config.eval.dataset={ev.dataset!r}, config.eval.split={ev.split!r}, "
+               f"config.data.root={config.data.root!r}"):
+    src = pipeline.registry_source(ev.dataset, config.data.root, config.data.frames,
+                                   split=ev.split, consecutive=True)
   stride = max(1, len(src) // ev.num_clips)  # spread over the split, deterministically
   picked = src[::stride][:ev.num_clips]
   crop = tuple(config.data.crop)

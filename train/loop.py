@@ -8,7 +8,8 @@
   6. state created directly sharded with `jax.jit(init, out_shardings=...)`,
   7. the jitted update with `donate_argnums=(0,)`,
   8. resume: checkpoint in the workdir > converted init weights > scratch,
-  9. the loop: log, validate, checkpoint; `wait_until_finished()` at exit.
+  9. the loop: log, validate, checkpoint; on SIGTERM (or a multi-host preemption notice)
+     a checkpoint of the current step, then stop; `wait_until_finished()` at any exit.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import math
 import os
 import pathlib
 import re
+import signal
+import threading
 
 import flax
 import jax
@@ -129,13 +132,19 @@ class _HostMetrics:
   def __init__(self, config, writer: MetricWriter, progress: Progress, skipped: int):
     self.config, self.writer, self.progress = config, writer, progress
     self.skipped = skipped
-    self.sums, self.n, self.last = {}, 0, None
+    self.sums, self.n, self.n_finite, self.last = {}, 0, 0, None
 
   def __call__(self, step: int, metrics) -> None:
     last = self.last = jax.device_get(metrics)
+    # A skipped step's loss, EPE and norms are NaN or inf: the window's means are over its
+    # finite steps only (a window of skipped steps only logs NaN), its rate and the
+    # counter over all of them.
+    finite = bool(last["finite"]) if "finite" in last else bool(np.isfinite(last["loss"]))
     for k, v in last.items():
-      self.sums[k] = self.sums.get(k, 0.0) + float(v)
+      if finite or k in _OVER_ALL_STEPS:
+        self.sums[k] = self.sums.get(k, 0.0) + float(v)
     self.n += 1
+    self.n_finite += finite
     self.progress.update(1, loss=last["loss"], epe=last["epe"])
     if int(last["num_skipped"]) > self.skipped:
       self.skipped = int(last["num_skipped"])
@@ -144,10 +153,16 @@ class _HostMetrics:
       if self.skipped > self.config.train.max_skipped_steps:
         raise FloatingPointError(f"{self.skipped} skipped updates > train.max_skipped_steps")
     if _every(step, self.config.train.log_every) or step == self.config.train.num_steps:
-      means = {k: v / self.n for k, v in self.sums.items()}
+      means = {k: (v / self.n if k in _OVER_ALL_STEPS else v / max(self.n_finite, 1))
+               for k, v in self.sums.items()}
+      means.update({k: float("nan") for k in last if k not in means})  # no finite step
       means["num_skipped"] = float(last["num_skipped"])  # a counter, not a mean
       self.writer.write(step, means)
-      self.sums, self.n = {}, 0
+      self.sums, self.n, self.n_finite = {}, 0, 0
+
+
+# Step metrics averaged over every step of a logging window (the others: over its finite steps).
+_OVER_ALL_STEPS = ("finite", "lr", "num_skipped")
 
 
 def _every(step: int, period: int) -> bool:
@@ -364,11 +379,18 @@ def setup(config, workdir):
   weights happens here, before the first step). Returns a dict of the run's parts for `run`."""
   workdir = pathlib.Path(workdir)
   check_fields(config)
+  resume_from = sav_jax.convert.find_training_checkpoint(workdir / "checkpoints")
+  if resume_from is not None and int(resume_from.name) > config.train.num_steps:
+    raise ValueError(
+        f"config.train.num_steps={config.train.num_steps} is below the step of the checkpoint "
+        f"this run would resume from ({resume_from}): pass a train.num_steps of at least "
+        f"{int(resume_from.name)}, or another --workdir")
   for field in ("init_from", "vda_weights"):  # before anything is created in the workdir
-    if config[field] and not pathlib.Path(config[field]).exists():
+    # (a resumed run never reads them: the files may have moved since its first start)
+    if resume_from is None and config[field] and not pathlib.Path(config[field]).exists():
       raise FileNotFoundError(f"config.{field}={config[field]}: no such file or directory")
-  if (not (config.init_from or config.vda_weights or config.random_depth_prior)
-      and sav_jax.convert.find_training_checkpoint(workdir / "checkpoints") is None):
+  if not (config.init_from or config.vda_weights or config.random_depth_prior) and (
+      resume_from is None):
     raise ValueError(
         "config.vda_weights and config.init_from are both empty: the frozen depth prior would "
         "stay random for the whole run (the official model always loads Video Depth "
@@ -390,8 +412,7 @@ def setup(config, workdir):
   log.info("parameters: %s", state_lib.param_count(abstract_params, labels))
   tx = optim.make_optimizer(config.optimizer, config.train.num_steps)
   weights = None
-  if ((config.init_from or config.vda_weights)
-      and sav_jax.convert.find_training_checkpoint(workdir / "checkpoints") is None):
+  if (config.init_from or config.vda_weights) and resume_from is None:
     # Not resuming: weights that cannot be read fail before the workdir is created.
     weights = initial_weights(config, abstract_params)
   manager = ckpt_lib.make_manager(workdir, config)
@@ -426,32 +447,91 @@ def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
   writer = MetricWriter(workdir, enabled=jax.process_index() == 0, start_step=start)
   progress = Progress(start, total, enabled=config.train.progress_bar)
   host = _HostMetrics(config, writer, progress, int(jax.device_get(state.num_skipped)))
-  if evaluator is not None and start == 0 and config.eval.at_start:
-    writer.write(0, evaluator(state.params), split="val")
-  pending = None
-  for step in range(start + 1, total + 1):
-    with jax.profiler.StepTraceAnnotation("train", step_num=step):
-      state, metrics = parts["train_step"](state, next(parts["batches"]))
-    if step == start + 1:  # the step was compiled by this call: free the compiler's memory
-      runtime.release_host_memory()
-    if pending is not None:
-      host(*pending)  # one step late, so that host work overlaps the device
-    pending = (step, metrics)
-    save_now = _every(step, config.checkpoint.every_steps) or step == total
-    eval_now = evaluator is not None and (_every(step, config.eval.every_steps) or step == total)
-    if save_now or eval_now:
-      host(*pending)
+  stop = None
+  # Whatever ends the loop (the last step, a preemption, an error, Ctrl-C), a checkpoint
+  # already started is finished before the process goes: orbax writes it in a background
+  # thread, and a save cut short is deleted at the next start.
+  try:
+    with Preemption(manager) as preemption:
+      if evaluator is not None and start == 0 and config.eval.at_start:
+        writer.write(0, evaluator(state.params), split="val")
       pending = None
-    if save_now:
-      ckpt_lib.save(manager, state, parts["grain_it"], step, force=True,
-                    params_finite=bool(np.isfinite(host.last["l2_params"])),
-                    model_config=parts["model"].cfg, run_config=config)
-    if eval_now:
-      writer.write(step, evaluator(state.params), split="val")
-  if pending is not None:
-    host(*pending)
-  manager.wait_until_finished()
-  manager.close()
-  progress.close()
-  writer.close()
+      for step in range(start + 1, total + 1):
+        with jax.profiler.StepTraceAnnotation("train", step_num=step):
+          state, metrics = parts["train_step"](state, next(parts["batches"]))
+        if step == start + 1:  # the step was compiled by this call: free the compiler's memory
+          runtime.release_host_memory()
+        if pending is not None:
+          host(*pending)  # one step late, so that host work overlaps the device
+        pending = (step, metrics)
+        stop = preemption(step)
+        save_now = _every(step, config.checkpoint.every_steps) or step == total or bool(stop)
+        eval_now = evaluator is not None and not stop and (
+            _every(step, config.eval.every_steps) or step == total)
+        if save_now or eval_now:
+          host(*pending)
+          pending = None
+        if save_now:
+          ckpt_lib.save(manager, state, parts["grain_it"], step, force=True,
+                        params_finite=bool(np.isfinite(host.last["l2_params"])),
+                        model_config=parts["model"].cfg, run_config=config)
+        if eval_now:
+          writer.write(step, evaluator(state.params), split="val")
+        if stop:
+          break
+      if pending is not None:
+        host(*pending)
+  finally:
+    manager.wait_until_finished()
+    manager.close()
+    progress.close()
+    writer.close()
+  if stop and step < total:
+    raise Preempted(f"stopped at step {step} of {total} ({stop}), with a checkpoint of that "
+                    "step: run the same command again to resume")
   return state
+
+
+class Preempted(RuntimeError):
+  """The run stopped early on a preemption notice, after saving a checkpoint of its step."""
+
+
+class Preemption:
+  """Whether the run must stop at a step, with a checkpoint: a context manager, called with
+  each step after it ran.
+
+  One process: SIGTERM (the notice that SLURM, Kubernetes, cloud spot/preemptible VMs and
+  `kill` send before they kill a job) is caught while the context is open, and the step
+  running at that moment is the last. Several processes (`jax.distributed`): JAX's
+  preemption service catches the signal on any host and every process stops at the same
+  step (`CheckpointManager.reached_preemption`: the checkpoint is a collective write).
+  """
+
+  def __init__(self, manager):
+    self.manager = manager
+    self.reason = None
+    self._previous = None
+
+  def __enter__(self) -> "Preemption":
+    if (jax.process_count() == 1
+        and threading.current_thread() is threading.main_thread()):  # Python's rule
+      self._previous = signal.signal(signal.SIGTERM, self._on_signal)
+    return self
+
+  def __exit__(self, *exc) -> None:
+    if self._previous is not None:
+      signal.signal(signal.SIGTERM, self._previous)
+      self._previous = None
+
+  def _on_signal(self, signum, frame) -> None:
+    del frame
+    if self.reason is None:
+      log.warning("%s: saving a checkpoint after this step, then stopping",
+                  signal.Signals(signum).name)
+    self.reason = signal.Signals(signum).name
+
+  def __call__(self, step: int) -> str | None:
+    """The reason to stop after `step` (None: go on)."""
+    if self.reason is None and jax.process_count() > 1 and self.manager.reached_preemption(step):
+      self.reason = "preemption notice"
+    return self.reason

@@ -770,7 +770,11 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
       ([config, "--config.train.batch_size=abc"], "flag --config.train.batch_size=abc: "
        "invalid literal for int()"),
       ([config, "--config.eval.every_steps=1", "--config.eval.dataset=foo"],
-       "unknown dataset 'foo'; known datasets: sceneflow")]:
+       "config.eval.dataset='foo', config.eval.split='test', config.data.root='data/datasets': "
+       "unknown dataset 'foo'; known datasets: sceneflow"),
+      ([config, "--config.eval.every_steps=1", "--config.eval.synthetic_seed=-1"],
+       "config.eval.dataset='synthetic' (config.eval.synthetic_seed=-1, config.data.synthetic): "
+       "SyntheticConfig.seed must be")]:
     proc = subprocess.run(
         [sys.executable, "-m", "train", "--config", *flags, "--workdir", str(tmp_path / "w"),
          "--config.train.progress_bar=False"],
@@ -787,3 +791,145 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
       capture_output=True, text=True, timeout=300, check=False)
   assert proc.returncode == 2 and "train: error: " in proc.stderr, proc.stderr[-2000:]
   assert "/sys/sav_jax_test" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_logged_means_leave_out_skipped_steps():
+  from train import loop  # pylint: disable=import-outside-toplevel
+
+  class Writer:
+    def __init__(self):
+      self.records = []
+
+    def write(self, step, scalars, split="train"):
+      self.records.append((step, scalars))
+
+  class Bar:
+    def update(self, *args, **kwargs):
+      pass
+
+  c = synthetic.get_config()
+  c.train.log_every, c.train.num_steps, c.train.max_skipped_steps = 3, 6, 5
+  writer = Writer()
+  host = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
+  nan = float("nan")
+  steps = [(1.0, 2.0, 1.0, 0), (nan, nan, 0.0, 1), (3.0, 4.0, 1.0, 1),  # one skipped step
+           (nan, nan, 0.0, 2), (nan, nan, 0.0, 3), (nan, nan, 0.0, 4)]  # only skipped steps
+  for step, (loss, epe, finite, skipped) in enumerate(steps, 1):
+    host(step, {"loss": loss, "epe": epe, "finite": finite, "lr": 0.1 * step,
+                "num_skipped": skipped})
+  (s1, first), (s2, second) = writer.records
+  assert (s1, s2) == (3, 6)
+  assert first["loss"] == 2.0 and first["epe"] == 3.0  # the finite steps' means
+  np.testing.assert_allclose([first["finite"], first["lr"]], [2 / 3, 0.2])  # over all steps
+  assert first["num_skipped"] == 1.0
+  assert np.isnan(second["loss"]) and np.isnan(second["epe"]) and second["finite"] == 0.0
+  assert second["num_skipped"] == 4.0
+
+
+def _loop_parts(c, workdir, step_hook=None, evaluator=None):
+  """`loop.run`'s parts for the toy model; `step_hook(k)` runs after its k-th step."""
+  _, mesh, _, state, _, step = _setup(c)
+  calls = [0]
+
+  def train_step(state, batch):
+    out = step(state, batch)
+    calls[0] += 1
+    if step_hook is not None:
+      step_hook(calls[0])
+    return out
+
+  it = _toy_iterator()
+  return dict(grain_it=it, manager=ckpt_lib.make_manager(workdir, c), state=state,
+              train_step=train_step, evaluator=evaluator,
+              model=type("M", (), {"cfg": sav_jax.SAVConfig()})(),
+              batches=pipeline.GlobalBatchIterator(it, state_lib.data_sharding(mesh)))
+
+
+def _steps_logged(workdir):
+  return [json.loads(l)["step"] for l in (workdir / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_sigterm_saves_the_current_step_and_stops(tmp_path):
+  import os  # pylint: disable=g-import-not-at-top
+  import signal  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.num_steps, c.train.log_every, c.train.progress_bar = 6, 1, False
+  c.checkpoint.every_steps, c.eval.every_steps = 100, 0
+
+  def preempt(k):
+    if k == 2:
+      os.kill(os.getpid(), signal.SIGTERM)  # a scheduler's notice, during step 2
+
+  handler = signal.getsignal(signal.SIGTERM)
+  with pytest.raises(loop.Preempted, match=r"stopped at step 2 of 6 \(SIGTERM\)"):
+    loop.run(c, tmp_path, _loop_parts(c, tmp_path, preempt))
+  assert signal.getsignal(signal.SIGTERM) is handler  # restored
+  assert sav_jax.convert.find_training_checkpoint(tmp_path) == tmp_path / "checkpoints" / "2"
+  assert _steps_logged(tmp_path) == [1, 2]
+  # The same command resumes from it and finishes.
+  state = loop.run(c, tmp_path, _resumed_parts(c, tmp_path))
+  assert int(state.step) == 6 and _steps_logged(tmp_path) == [1, 2, 3, 4, 5, 6]
+
+
+def _resumed_parts(c, workdir):
+  from train import loop  # pylint: disable=g-import-not-at-top
+  parts = _loop_parts(c, workdir)
+  model, mesh, tx = ToyStereo(), state_lib.make_mesh(), optim.make_optimizer(c.optimizer,
+                                                                            c.train.num_steps)
+  parts["state"], _, source = loop.initial_state(c, model, tx, mesh, parts["manager"],
+                                                 parts["grain_it"])
+  assert source == "checkpoint"
+  return parts
+
+
+def test_an_error_after_a_save_still_finishes_that_save(tmp_path):
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.num_steps, c.train.progress_bar = 6, False
+  c.checkpoint.every_steps, c.checkpoint.async_save = 2, True
+  c.eval.every_steps, c.eval.at_start = 2, False
+
+  def evaluator(params):  # validation runs right after the checkpoint of its step
+    raise RuntimeError("validation out of memory")
+
+  parts = _loop_parts(c, tmp_path, evaluator=evaluator)
+  manager, calls = parts["manager"], []
+  for name in ("wait_until_finished", "close"):
+    method = getattr(manager, name)
+    setattr(manager, name, lambda m=method, n=name: (calls.append(n), m())[1])
+  with pytest.raises(RuntimeError, match="validation out of memory"):
+    loop.run(c, tmp_path, parts)
+  assert calls[:2] == ["wait_until_finished", "close"]  # before the error left `run`
+  assert sav_jax.convert.find_training_checkpoint(tmp_path) == tmp_path / "checkpoints" / "2"
+
+
+def test_resume_checks_num_steps_and_never_needs_the_init_files(toy_run, tmp_path, monkeypatch):
+  import shutil  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  workdir = tmp_path / "run"
+  shutil.copytree(toy_run[0], workdir)
+  (workdir / "checkpoints" / "1").rename(workdir / "checkpoints" / "5")
+  c = _config()
+  c.train.num_steps = 3
+  with pytest.raises(ValueError, match=r"config.train.num_steps=3 is below the step of the "
+                     r"checkpoint .*checkpoints/5\): pass a train.num_steps of at least 5"):
+    loop.setup(c, workdir)
+
+  class Reached(Exception):
+    pass
+
+  def past_the_checks():
+    raise Reached
+
+  # The files a run started from may be gone when it resumes (moved, a scratch disk
+  # cleaned, another node): the checkpoint in the workdir is all a resume reads.
+  monkeypatch.setattr(loop.state_lib, "make_mesh", past_the_checks)
+  c.train.num_steps, c.init_from, c.vda_weights = 10, str(tmp_path / "moved.pth"), ""
+  with pytest.raises(Reached):
+    loop.setup(c, workdir)
+  c.init_from, c.vda_weights = "", str(tmp_path / "moved_vda.pth")
+  with pytest.raises(Reached):
+    loop.setup(c, workdir)
+  with pytest.raises(FileNotFoundError, match="config.vda_weights=.*moved_vda.pth: no such"):
+    loop.setup(c, tmp_path / "fresh")  # not resuming: read, so checked
