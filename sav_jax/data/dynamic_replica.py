@@ -111,6 +111,13 @@ def _sequences(split_dir: Path, split: str, dataset: str) -> list[DepthSequence]
     if len(cams["left"]) != len(cams["right"]) or not cams["left"]:
       raise ValueError(f"{where}: {len(cams['left'])} left and {len(cams['right'])} "
                        "right frames")
+    for i, (l, r) in enumerate(zip(cams["left"], cams["right"])):
+      # Paired by position, as the official loader does; a record order that pairs
+      # different frames would give wrong disparities silently.
+      if "frame_number" in l and "frame_number" in r and l["frame_number"] != r["frame_number"]:
+        raise ValueError(f"{where}: the {i}-th left and right records are frames "
+                         f"{l['frame_number']} and {r['frame_number']} (left and right "
+                         "records must come in the same frame order)")
     files = {}
     for side in ("left", "right"):
       paths = [_frame_paths(split_dir, rec, where) for rec in cams[side]]

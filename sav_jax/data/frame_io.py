@@ -18,6 +18,9 @@ from __future__ import annotations
 
 import math
 import os
+import tokenize
+import zipfile
+import zlib
 from pathlib import Path
 
 import cv2
@@ -88,7 +91,10 @@ def decode_image_file(path: PathLike, what: str = "image") -> np.ndarray:
     raise ValueError(f"{path}: truncated JPEG (its data ends before the end-of-image "
                      "marker: a partial download or copy?)")
   # cv2.imdecode returns None (no exception) for unreadable or truncated PNG files.
-  img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+  try:
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+  except cv2.error as e:  # e.g. a header declaring more than OpenCV's 2^30 pixels
+    raise ValueError(f"{path}: cannot decode the {what} file ({str(e).strip()})") from e
   if img is None:
     raise ValueError(f"{path}: cannot decode the {what} file")
   return img
@@ -284,8 +290,8 @@ def read_npy(path: PathLike) -> np.ndarray:
   path = require_file(path, "npy file")
   try:
     return np.load(path, allow_pickle=False)
-  except (ValueError, OSError, EOFError) as e:
-    raise ValueError(f"cannot read npy file {path}: {e}") from e
+  except _CORRUPT_ARCHIVE as e:
+    raise ValueError(f"cannot read npy file {path}: {type(e).__name__}: {e}") from e
 
 
 def read_npz(path: PathLike) -> dict[str, np.ndarray]:
@@ -294,8 +300,14 @@ def read_npz(path: PathLike) -> dict[str, np.ndarray]:
   try:
     with np.load(path, allow_pickle=False) as z:
       return {k: z[k] for k in z.files}
-  except (ValueError, OSError, EOFError) as e:
-    raise ValueError(f"cannot read npz file {path}: {e}") from e
+  except _CORRUPT_ARCHIVE as e:
+    raise ValueError(f"cannot read npz file {path}: {type(e).__name__}: {e}") from e
+
+
+# What numpy's readers raise for a damaged `.npy`/`.npz` (a partial download, a flipped
+# byte): its own ValueErrors, zipfile's and zlib's, a header that does not tokenize or parse.
+_CORRUPT_ARCHIVE = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error,
+                    NotImplementedError, tokenize.TokenError, SyntaxError)
 
 
 def read_exr(path: PathLike, channel: str | None = None) -> np.ndarray:
@@ -315,7 +327,7 @@ def read_exr(path: PathLike, channel: str | None = None) -> np.ndarray:
   try:
     with OpenEXR.File(str(path), separate_channels=True) as f:
       chans = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
-  except RuntimeError as e:
+  except (RuntimeError, ValueError) as e:  # ValueError: a file cut short ("0 parts")
     raise ValueError(f"cannot read EXR file {path}: {e}") from e
   if channel is not None:
     if channel not in chans:

@@ -211,6 +211,9 @@ def test_exr(tmp_path):
   (tmp_path / "bad.exr").write_bytes(b"not an exr")
   with pytest.raises(ValueError, match="bad.exr"):
     frame_io.read_exr(tmp_path / "bad.exr")
+  (tmp_path / "cut.exr").write_bytes((tmp_path / "z.exr").read_bytes()[:-100])  # pixels cut
+  with pytest.raises(ValueError, match="cannot read EXR file .*cut.exr"):
+    frame_io.read_exr(tmp_path / "cut.exr")
 
 
 def test_npy_and_npz(tmp_path):
@@ -222,6 +225,25 @@ def test_npy_and_npz(tmp_path):
   (tmp_path / "bad.npy").write_bytes(b"\x93NUMPY garbage")
   with pytest.raises(ValueError, match="bad.npy"):
     frame_io.read_npy(tmp_path / "bad.npy")
+  # Damaged archives (a partial download, a flipped byte) are named whatever numpy, zipfile
+  # or zlib raise for them (BadZipFile, zlib.error, TokenError went through unnamed).
+  np.savez_compressed(tmp_path / "z.npz", K=RNG.random((3, 3)), T=RNG.random((4, 4)))
+  data = (tmp_path / "z.npz").read_bytes()
+  for i in range(0, len(data), 3):
+    cut, flipped = data[:i], data[:i] + bytes([data[i] ^ 0xFF]) + data[i + 1:]
+    for damaged in (cut, flipped):
+      (tmp_path / "damaged.npz").write_bytes(damaged)
+      try:
+        frame_io.read_npz(tmp_path / "damaged.npz")  # a byte zip does not check may pass
+      except ValueError as e:
+        assert "damaged.npz" in str(e)
+  header = (tmp_path / "d.npy").read_bytes()
+  for i in range(8, 64):
+    (tmp_path / "damaged.npy").write_bytes(header[:i] + b"(" + header[i + 1:])
+    try:
+      frame_io.read_npy(tmp_path / "damaged.npy")
+    except ValueError as e:
+      assert "damaged.npy" in str(e)
 
 
 def test_hdf5_dsp5(tmp_path, monkeypatch):
@@ -261,3 +283,16 @@ def test_depth_to_disparity_rules():
   for bad in (0.0, -1.0, np.nan, np.inf):
     with pytest.raises(ValueError, match="scale .* must be a finite positive number"):
       frame_io.depth_to_disparity(depth, bad)
+
+
+def test_image_header_beyond_opencvs_pixel_limit_is_named(tmp_path):
+  import struct  # pylint: disable=g-import-not-at-top
+  import zlib  # pylint: disable=g-import-not-at-top
+  ihdr = b"IHDR" + struct.pack(">IIBBBBB", 60000, 60000, 8, 2, 0, 0, 0)
+  idat, iend = b"IDAT" + zlib.compress(b""), b"IEND"
+  png = b"\x89PNG\r\n\x1a\n" + b"".join(
+      struct.pack(">I", len(c) - 4) + c + struct.pack(">I", zlib.crc32(c))
+      for c in (ihdr, idat, iend))
+  (tmp_path / "huge.png").write_bytes(png)  # 65 bytes declaring 3.6e9 pixels
+  with pytest.raises(ValueError, match="huge.png: cannot decode the image file"):
+    frame_io.decode_image_file(tmp_path / "huge.png")

@@ -244,6 +244,17 @@ def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch, caplog)
     json.dump(records, f)
   with pytest.raises(ValueError, match=r"frame_annotations_train.jgz: malformed .*'viewpoint'"):
     registry.get_sequences("dynamic_replica", tmp_path, "train")
+  # Left and right records are paired by position: an order that pairs different frames
+  # is refused (it paired left_000000 with right_000001 silently).
+  _dynamic_replica(tmp_path, np.random.default_rng(5), "train", [("s", 2, "ndc_isotropic")])
+  with gzip.open(index, "rt", encoding="utf8") as f:
+    records = json.load(f)  # l0 r0 l1 r1
+  records[1], records[3] = records[3], records[1]
+  with gzip.open(index, "wt", encoding="utf8") as f:
+    json.dump(records, f)
+  with pytest.raises(ValueError, match=r"Dynamic Replica train/s: the 0-th left and right "
+                     r"records are frames 0 and 1"):
+    registry.get_sequences("dynamic_replica", tmp_path, "train")
 
 
 def _infinigen(root, rng, split, scenes):
