@@ -195,6 +195,10 @@ def side_by_side(*images) -> np.ndarray:
   return np.concatenate(parts, axis=-2)
 
 
+# The largest frame side `write_video` writes (MPEG-4 part 2 codes sizes in 13 bits: FFmpeg's
+# mp4v encoder refuses 8192 and more; even, as the codec needs).
+MP4V_MAX_SIDE = 8190
+
 # File names `write_video` accepts: containers that hold mp4v video.
 VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".avi", ".mkv")
 
@@ -203,7 +207,9 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
   """Writes RGB frames as an MPEG-4 (mp4v) video with OpenCV (replacing a file at `path`).
 
   Odd heights or widths are padded by one replicated row/column (the codec needs
-  even sizes and would otherwise crop).
+  even sizes and would otherwise crop). Frames wider or taller than MPEG-4's limit
+  (`MP4V_MAX_SIDE`: e.g. a side-by-side of 4096-wide frames) are scaled down to fit, keeping
+  their aspect ratio, with a warning (OpenCV cannot open the writer for them).
 
   Args:
     path: output file (`.mp4`, or another of `VIDEO_SUFFIXES`; other names are refused).
@@ -234,12 +240,19 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
       if writer is None:
         size = f.shape
         h, w = size[:2]
+        scale = min(1.0, MP4V_MAX_SIDE / w, MP4V_MAX_SIDE / h)
+        if scale < 1.0:
+          h, w = max(1, int(h * scale)), max(1, int(w * scale))
+          warnings.warn(f"{path}: frames of {size[0]}x{size[1]} are scaled to {h}x{w} (MPEG-4 "
+                        f"video has at most {MP4V_MAX_SIDE} pixels a side)", stacklevel=2)
         he, we = h + h % 2, w + w % 2
         writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
                                  (we, he))
         if not writer.isOpened():
           writer = None
           raise OSError(f"{path}: OpenCV cannot open an mp4v video writer")
+      if f.shape[:2] != (h, w):
+        f = cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA)
       f = np.pad(f, ((0, he - h), (0, we - w), (0, 0)), mode="edge")
       writer.write(np.ascontiguousarray(f[..., ::-1]))
     if writer is None:

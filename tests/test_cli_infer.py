@@ -225,6 +225,18 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   printed = capsys.readouterr().out
   assert f"side-by-side video colours: {lo:.2f} px (dark) to {hi:.2f} px (bright)" in printed
   assert f"warning: {saturated} disparities above 255.996 px were stored as 255.996" in printed
+  # Again with --overwrite, 10 frames, .npy only, no calibration: the earlier run's files that
+  # this run does not replace (png16, frames 10-24, depth, point clouds) are deleted, so that
+  # the folder holds one run's outputs; a file the earlier summary does not list is kept.
+  assert set(summary["outputs"]) >= {"disparity/0024.png", "depth/0024.npy",
+                                     "pointclouds/0024.ply", "side_by_side.mp4"}
+  (out / "disparity" / "notes.txt").write_text("mine")
+  assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy", "--max-frames",
+                "10", "--overwrite") == 0
+  kept = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+  assert kept == [*(f"disparity/{i:04d}.npy" for i in range(10)), "disparity/notes.txt",
+                  "side_by_side.mp4", "summary.json"]
+  assert "deleting 90 files of the earlier run" in capsys.readouterr().out  # 100 - 10 .npy
 
 
 def test_frame_sources_check_every_frame_when_opened(tmp_path, clip):
@@ -247,6 +259,30 @@ def test_frame_sources_check_every_frame_when_opened(tmp_path, clip):
   (tmp_path / "cut.jpg").write_bytes(jpeg[:len(jpeg) // 2])
   with pytest.raises(ValueError, match="unreadable frame: .*cut.jpg: truncated JPEG"):
     video_io.read_frame(tmp_path / "cut.jpg", set())
+
+
+def test_video_source_reads_long_windows_without_decoding_again(tmp_path, monkeypatch):
+  """Windows of 80 frames at stride 10 (and the outputs' reads behind them on N devices)
+  go back further than 64 frames: the source keeps as many frames as it is told to, so
+  the video is decoded once (it restarted from frame 0 for every window before)."""
+  n = 120
+  frames = np.broadcast_to((np.arange(n, dtype=np.uint8) * 2)[:, None, None, None],
+                           (n, 8, 8, 3)).copy()
+  viz.write_video(tmp_path / "v.mp4", frames)
+  whole = video_io.read_video_file(tmp_path / "v.mp4")
+  decodes = []
+  real_decode = video_io._decode  # pylint: disable=protected-access
+
+  def counting_decode(*args):
+    decodes.append(args)
+    return real_decode(*args)
+
+  monkeypatch.setattr(video_io, "_decode", counting_decode)
+  for keep, restarts in ((81, 1), (64, 5)):  # 64: once per window
+    video, decodes[:] = video_io.FrameSource(tmp_path / "v.mp4", keep=keep), []
+    for a in range(0, n - 80 + 1, 10):
+      np.testing.assert_array_equal(video[a:a + 80], whole[a:a + 80])
+    assert len(decodes) == restarts
 
 
 def test_read_video_file_checks_the_name_and_every_frame(tmp_path, clip, monkeypatch):

@@ -239,6 +239,16 @@ def test_side_by_side_and_video(tmp_path):
     assert frame.shape == (10, 14, 3)  # odd height padded to even
     count += 1
   assert count == 3
+  # Wider than MPEG-4 allows (a side-by-side of 4096-wide frames, 8200 here): scaled to fit
+  # (OpenCV could not open the writer: an OSError after a whole `sav-jax infer` run).
+  wide = np.zeros((2, 20, 8200, 3), np.uint8)
+  wide[:, :, 4100:] = 255
+  with pytest.warns(UserWarning, match=r"frames of 20x8200 are scaled to 19x8190"):
+    viz.write_video(tmp_path / "wide.mp4", iter(wide), fps=5)
+  cap = cv2.VideoCapture(str(tmp_path / "wide.mp4"))
+  ok, frame = cap.read()
+  assert ok and frame.shape == (20, 8190, 3)
+  assert frame[5, :4000].max() < 40 and frame[5, 4200:8000].min() > 215  # the content, scaled
 
 
 def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):

@@ -129,6 +129,29 @@ def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
     raise FileExistsError(f"output files exist ({shown}{more}); pass --overwrite to replace them")
 
 
+def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[pathlib.Path]:
+  """The files an earlier run in `out` wrote (its `summary.json` lists them) that this run
+  will not replace: other formats, frames beyond a shorter video, depth and point clouds
+  of a run with calibration. `--overwrite` deletes them as this run begins to write, so
+  that the folder holds one run's outputs; files the summary does not list (a user's own,
+  or those of a run that failed before its summary) are never deleted."""
+  try:
+    listed = json.loads((out / "summary.json").read_text()).get("outputs")
+  except (OSError, ValueError, AttributeError):  # none, unreadable, or not an earlier run's
+    return []
+  if not isinstance(listed, list):
+    return []
+  keep = {p.absolute() for p in outputs}
+  stale = []
+  for rel in listed:
+    if not isinstance(rel, str) or pathlib.PurePosixPath(rel).is_absolute() or ".." in rel:
+      continue
+    path = (out / rel).absolute()
+    if path not in keep and path.is_file() and not path.is_symlink():
+      stale.append(path)
+  return stale
+
+
 def check_not_inputs(paths: list[pathlib.Path], inputs) -> None:
   """Raises FileExistsError if an output would replace an input video file, or go into an
   input frame folder (even beside its frames: the next run would read it as a frame).
@@ -179,10 +202,14 @@ def run(args: argparse.Namespace) -> int:
   outputs = output_paths(out, names, formats, calib, args.depth_format)
   check_not_inputs(outputs, (args.left, args.right))
   check_overwrite(outputs, args.overwrite)
+  stale = earlier_outputs(out, outputs) if args.overwrite else []
+  check_not_inputs(stale, (args.left, args.right))
 
   setup_compile_cache(args)
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
   devices = resolve_devices_option(args.devices)
+  for source in (left, right):  # the reach of the windows' and the outputs' reads
+    source.keep = args.window + (len(devices) - 1) * args.stride + 1
   variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
   print(f"weights: {described}")
   on = f"; {len(devices)} devices ({devices[0].platform})" if len(devices) > 1 else ""
@@ -191,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
   chunks = inference.iter_predict_video(variables, left, right, cfg=cfg, iters=args.iters,
                                         window=args.window, stride=args.stride, progress=True,
                                         devices=devices)
-  written = write_outputs(out, names, left, chunks, formats, calib, args)
+  written = write_outputs(out, names, left, chunks, formats, calib, args, stale=stale)
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
   summary = {"frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
@@ -202,7 +229,9 @@ def run(args: argparse.Namespace) -> int:
              "compile_seconds": round(compiling, 3),
              "frames_per_second_without_compile": round(t / max(seconds - compiling, 1e-9), 3),
              "calibration": None if calib is None else calib._asdict(),
-             "max_depth": args.max_depth, **written}
+             "max_depth": args.max_depth, **written,
+             # what this run wrote, for a later run with --overwrite into this folder
+             "outputs": [p.relative_to(out).as_posix() for p in outputs]}
   (out / "summary.json").write_text(json.dumps(summary, indent=1))
   vmin, vmax = written["video_disparity_range"]
   print(f"side-by-side video colours: {vmin:.2f} px (dark) to {vmax:.2f} px (bright)")
@@ -220,8 +249,12 @@ def run(args: argparse.Namespace) -> int:
 RANGE_SAMPLE = 1 << 24
 
 
-def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) -> dict:
+def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
+                  stale=()) -> dict:
   """Disparity files, the side-by-side video and, with calibration, depth and PLY files.
+
+  `stale`: an earlier run's files to delete (`earlier_outputs`), with its summary, once the
+  first window has been computed.
 
   `chunks` yields `(first frame, disparities [k, H, W])` in order
   (`inference.iter_predict_video`; at least one, computed before any folder is made).
@@ -241,6 +274,11 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args) 
   # memory, found as it compiles) leaves no empty output folders behind.
   chunks = iter(chunks)
   chunks = itertools.chain([next(chunks)], chunks)
+  if stale:
+    print(f"deleting {len(stale)} files of the earlier run in {out} that this run does not "
+          "replace (--overwrite)")
+    for path in [*stale, out / "summary.json"]:  # its summary would describe this run's files
+      path.unlink(missing_ok=True)
   (out / "disparity").mkdir(parents=True, exist_ok=True)
   if calib is not None:
     (out / "depth").mkdir(exist_ok=True)

@@ -144,11 +144,16 @@ class FrameSource:
 
   Opening it decodes every frame once to check it (readable, one size, 8 or 16 bit) and
   keeps none, so that a bad frame is found before anything is computed or written. A video
-  file is then read forward once more: reading the windows in order re-decodes nothing.
+  file is then read forward once more, keeping the last `keep` decoded frames: reads that
+  go back at most that far re-decode nothing (set it to the reader's reach: for
+  `iter_predict_video` on N devices, window + (N - 1) * stride frames and one more); a
+  read further back decodes the video again from its start.
   """
 
-  def __init__(self, path, max_frames: int | None = None, notes: set[str] | None = None):
+  def __init__(self, path, max_frames: int | None = None, notes: set[str] | None = None,
+               keep: int = 64):
     self.path = pathlib.Path(path)
+    self.keep = keep
     self.notes = set() if notes is None else notes
     self._files = _frame_files(self.path, max_frames)
     count = 0
@@ -184,8 +189,8 @@ class FrameSource:
         raise ValueError(f"{self.path}: frame {self._next} cannot be decoded any more")
       self._buffer[self._next] = frame
       self._next += 1
-    # Keep the last window's worth of frames: the next window starts inside it.
-    for old in [k for k in self._buffer if k < i - 64]:
+    # Keep the last `keep` frames: the next window starts inside them.
+    for old in [k for k in self._buffer if k <= i - max(1, self.keep)]:
       del self._buffer[old]
     return self._buffer[i]
 
