@@ -34,6 +34,8 @@ def load_config(spec: str) -> ml_collections.ConfigDict:
     module_spec.loader.exec_module(module)
   except SyntaxError as e:
     raise ValueError(f"{file} does not parse: line {e.lineno}: {e.msg}") from e
+  except Exception as e:  # pylint: disable=broad-except  # the user's code: name the file
+    raise ValueError(f"{file}: importing it raised {type(e).__name__}: {e}") from e
   if not hasattr(module, "get_config"):
     raise ValueError(f"{file}: defines no get_config()")
   signature = inspect.signature(module.get_config)
@@ -42,7 +44,10 @@ def load_config(spec: str) -> ml_collections.ConfigDict:
   except TypeError as e:
     how = f"with the argument {arg!r} (from {spec})" if arg else "without an argument"
     raise ValueError(f"{file}: get_config{signature} cannot be called {how}") from e
-  config = module.get_config(arg) if arg else module.get_config()
+  try:
+    config = module.get_config(arg) if arg else module.get_config()
+  except Exception as e:  # pylint: disable=broad-except  # the user's code: name the file
+    raise ValueError(f"{file}: get_config() raised {type(e).__name__}: {e}") from e
   if not isinstance(config, ml_collections.ConfigDict):
     raise ValueError(f"{file}: get_config() returned {type(config).__name__}, not a ConfigDict")
   return config

@@ -60,6 +60,10 @@ class SyntheticSequence:
 
 def synthetic_sequences(config: ml_collections.ConfigDict) -> list[SyntheticSequence]:
   """The synthetic evaluation set described by `config.synthetic`."""
+  if "synthetic" not in config:
+    raise ValueError("config.dataset='synthetic' needs a config.synthetic block (frames, "
+                     "height, width, num_objects, max_disparity, seed, num_sequences): see "
+                     "configs/eval/synthetic.py")
   s = config.synthetic
   cfg = synthetic.SyntheticConfig(frames=s.frames, height=s.height, width=s.width,
                                   num_objects=s.num_objects, max_disparity=s.max_disparity,

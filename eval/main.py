@@ -77,6 +77,10 @@ def run(args, overrides) -> int:
     value = config.plots[field]
     if not (isinstance(value, int) and not isinstance(value, bool) and value >= low):
       raise ValueError(f"config.plots.{field} must be an integer >= {low}, got {value!r}")
+  if args.baseline:  # checked before any prediction (OpenCV accepts any block size)
+    from sav_jax.tools.demo import check_sgbm_args  # pylint: disable=import-outside-toplevel
+    check_sgbm_args(config.baseline.max_disparity, config.baseline.block_size,
+                    "config.baseline.")
   from eval import data as eval_data  # pylint: disable=import-outside-toplevel
   from eval import runner  # pylint: disable=import-outside-toplevel
   from sav_jax import inference  # pylint: disable=import-outside-toplevel

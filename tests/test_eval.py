@@ -298,6 +298,34 @@ def test_config_files_that_cannot_be_used(tmp_path):
   needs_arg.write_text("def get_config(variant):\n  raise AssertionError\n")
   with pytest.raises(ValueError, match=r"get_config\(variant\) cannot be called without"):
     eval_config.load_config(str(needs_arg))
+  # The config file's own errors name it (they were tracebacks, exit status 1).
+  failing = tmp_path / "failing.py"
+  failing.write_text("import no_such_module_here\n")
+  with pytest.raises(ValueError, match=r"failing.py: importing it raised ModuleNotFoundError: "
+                     "No module named 'no_such_module_here'"):
+    eval_config.load_config(str(failing))
+  failing.write_text("from configs.eval.common import eval_config\n"
+                     "def get_config():\n  return eval_config('sintel_final', iter=4)\n")
+  with pytest.raises(ValueError, match=r"failing.py: get_config\(\) raised TypeError: .*'iter'"):
+    eval_config.load_config(str(failing))
+  from eval import data as eval_data  # pylint: disable=import-outside-toplevel
+  bare = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+  del bare.synthetic
+  with pytest.raises(ValueError, match="config.dataset='synthetic' needs a config.synthetic"):
+    eval_data.load_sequences(bare, tmp_path)
+
+
+def test_sgbm_baseline_settings_are_checked_before_predicting(tmp_path, ckpt, capsys):
+  for value, message in (("4", "block_size must be an odd integer >= 1, got 4"),
+                         ("0", "block_size must be an odd integer >= 1, got 0")):
+    rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), "--out",
+               str(tmp_path / "o"), "--baseline", "sgbm", f"--config.baseline.block_size={value}"])
+    assert rc == 2 and f"config.baseline.{message}" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+  from sav_jax.tools.demo import stereo_sgbm  # pylint: disable=import-outside-toplevel
+  frames = np.zeros((1, 8, 40, 3), np.uint8)
+  with pytest.raises(ValueError, match="max_disparity must be a finite number >= 1"):
+    stereo_sgbm(frames, frames, max_disparity=float("nan"))
 
 
 def test_config_overrides_and_head():

@@ -51,6 +51,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   add_compile_cache_arguments(p)
 
 
+def check_sgbm_args(max_disparity, block_size, prefix: str = "") -> None:
+  """Raises ValueError unless `block_size` is an odd integer >= 1 and `max_disparity` a
+  finite number >= 1 (OpenCV runs other block sizes without a word)."""
+  if isinstance(block_size, bool) or not isinstance(block_size, (int, np.integer)) or (
+      block_size < 1 or block_size % 2 == 0):
+    raise ValueError(f"{prefix}block_size must be an odd integer >= 1, got {block_size!r}")
+  if isinstance(max_disparity, bool) or not isinstance(max_disparity, (int, float, np.number)) \
+      or not (np.isfinite(max_disparity) and max_disparity >= 1):
+    raise ValueError(f"{prefix}max_disparity must be a finite number >= 1, got {max_disparity!r}")
+
+
 def stereo_sgbm(left: np.ndarray, right: np.ndarray, max_disparity: float = 128.0,
                 block_size: int = 5) -> np.ndarray:
   """OpenCV semi-global matching per frame, holes filled from the background.
@@ -65,6 +76,7 @@ def stereo_sgbm(left: np.ndarray, right: np.ndarray, max_disparity: float = 128.
     `[T, H, W]` float32 disparity; pixels SGBM leaves invalid get the smaller of the
     nearest valid values on their row (KITTI's background interpolation).
   """
+  check_sgbm_args(max_disparity, block_size)
   num = int(np.ceil(max(16.0, float(max_disparity)) / 16.0)) * 16
   width = left.shape[2]
   if num >= width:
