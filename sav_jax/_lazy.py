@@ -15,7 +15,10 @@ def submodule_getattr(package: str):
   """A module `__getattr__` for `package` that imports `package.<name>` when it exists."""
 
   def __getattr__(name: str):
-    if not name.startswith("__") and importlib.util.find_spec(f"{package}.{name}") is not None:
+    # (a dotted or otherwise non-identifier name is no submodule: find_spec would import
+    # its first part and fail, where hasattr() must get an AttributeError)
+    if (name.isidentifier() and not name.startswith("__")
+        and importlib.util.find_spec(f"{package}.{name}") is not None):
       return importlib.import_module(f"{package}.{name}")
     raise AttributeError(f"module {package!r} has no attribute {name!r}")
 

@@ -219,8 +219,8 @@ def inference_compiler_options(platform: str | None = None,
   (the older emitters unroll the rewriter's 32x32 reduce-windows: ~0.35 s of compile
   per instance norm; plain reductions sum in a different order, ~1e-5 max error for
   an instance norm over 360x640 maps, 1.8e-6 px on the output at T=2 368x640). Nothing
-  on other backends; an option the user sets in `XLA_FLAGS` is left to them, and one
-  this jaxlib does not know is dropped. jaxlib 0.11 and later have only the newer
+  on other backends; an option the user sets in `XLA_FLAGS` is left to them (either
+  low-memory option: both), and one this jaxlib does not know is dropped. jaxlib 0.11 and later have only the newer
   emitters: there the low-memory compile asks for neither option (the rewriter's
   reduce-windows cost compile time only with the older emitters, so its more precise
   sums stay).
@@ -245,8 +245,12 @@ def inference_compiler_options(platform: str | None = None,
   user_flags = os.environ.get("XLA_FLAGS", "")
   wanted = [(_YNN_FUSION_FLAG, _LEAN_YNN_FUSIONS)]
   older_emitters = ((_FUSION_EMITTERS_FLAG, False),)
-  if _low_memory_compile and not per_frame and _accepts_options(platform, older_emitters):
-    wanted += [*older_emitters, (_DISABLED_PASSES_FLAG, _DISABLED_PASSES)]
+  low_memory = [*older_emitters, (_DISABLED_PASSES_FLAG, _DISABLED_PASSES)]
+  # The two low-memory options go together (either alone is slower to compile or less
+  # precise for nothing): a user's XLA_FLAGS naming either leaves both to the user.
+  if (_low_memory_compile and not per_frame and _accepts_options(platform, older_emitters)
+      and not any(k in user_flags for k, _ in low_memory)):
+    wanted += low_memory
   return {k: v for k, v in wanted
           if k not in user_flags and _accepts_options(platform, ((k, v),))}
 

@@ -22,6 +22,9 @@ def test_names_and_submodules_load_on_use():
   assert set(sav_jax.__all__) <= set(dir(sav_jax))
   with pytest.raises(AttributeError, match="no attribute 'nope'"):
     sav_jax.nope  # pylint: disable=pointless-statement
+  # hasattr/getattr with a name that is no identifier: False, not a ModuleNotFoundError
+  assert not hasattr(sav_jax, "config.x") and not hasattr(sav_jax.model, "init.x")
+  assert getattr(sav_jax, "metrics.eval_sequence", None) is None
 
 
 # Importing JAX takes ~2 s on a 2-core machine: `sav-jax --help`, `python -m eval --help`, an

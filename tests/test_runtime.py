@@ -71,10 +71,17 @@ def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch
   # the per-frame program keeps the newer emitters (8x faster to compile there)
   assert set(runtime.inference_compiler_options("cpu", per_frame=True)) == {
       "xla_cpu_experimental_ynn_fusion_type"}
-  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT"
-                     " --xla_disable_hlo_passes=algsimp")
-  assert runtime.inference_compiler_options("cpu") == (
-      {"xla_cpu_use_fusion_emitters": False} if XLA_OLDER_EMITTERS else {})
+  # the two low-memory options go together: a user's flag naming either leaves both out
+  # (the older emitters with the rewriter on compile slowly; the rewriter off alone loses
+  # precision for nothing)
+  for flags in ("--xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT"
+                " --xla_disable_hlo_passes=algsimp", "--xla_cpu_use_fusion_emitters=true"):
+    monkeypatch.setenv("XLA_FLAGS", flags)
+    assert set(runtime.inference_compiler_options("cpu")) <= {
+        "xla_cpu_experimental_ynn_fusion_type"}, flags
+  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT")
+  assert set(runtime.inference_compiler_options("cpu")) == (
+      low_memory if XLA_OLDER_EMITTERS else set())
   runtime.set_low_memory_compile(False)
   assert runtime.inference_compiler_options("cpu") == {}
   with pytest.raises(TypeError, match="takes True or False, got 'no'"):

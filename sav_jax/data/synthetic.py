@@ -394,8 +394,9 @@ class SyntheticStereoVideo:
   """
 
   def __init__(self, cfg: SyntheticConfig | None = None, num_clips: int = 1000):
-    if not isinstance(num_clips, int) or num_clips < 1:
+    if not is_int(num_clips) or num_clips < 1:
       raise ValueError(f"num_clips must be an int >= 1, got {num_clips!r}")
+    num_clips = int(num_clips)  # a numpy integer too
     self.cfg = SyntheticConfig() if cfg is None else cfg
     self.num_clips = num_clips
 

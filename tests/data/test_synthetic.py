@@ -326,3 +326,5 @@ def test_config_takes_numpy_scalars_as_python_values():
 def test_source_rejects_bad_length():
   with pytest.raises(ValueError, match="num_clips"):
     SyntheticStereoVideo(SyntheticConfig(), num_clips=0)
+  numpy_count = SyntheticStereoVideo(SyntheticConfig(), num_clips=np.int64(5))  # as elsewhere
+  assert len(numpy_count) == 5 and type(numpy_count.num_clips) is int
