@@ -17,6 +17,8 @@ def avg_pool(x: jax.Array, k: int) -> jax.Array:
     `[..., H // k, W // k, C]`.
   """
   h, w, c = x.shape[-3:]
+  if h < k or w < k:  # torch: "Output size is too small"
+    raise ValueError(f"avg_pool: a {h}x{w} map is smaller than the {k}x{k} window")
   ho, wo = h // k, w // k
   x = x[..., : ho * k, : wo * k, :]
   x = x.reshape(*x.shape[:-3], ho, k, wo, k, c)

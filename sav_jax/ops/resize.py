@@ -151,7 +151,7 @@ def resize(
     y = _blend_axis(x.astype(jnp.float32), x.ndim - 3,
                     bilinear_taps(in_h, out_h, align_corners, sy))
     y = _blend_axis(y, x.ndim - 2, bilinear_taps(in_w, out_w, align_corners, sx))
-    return y.astype(x.dtype)
+    return _cast_like(y, x.dtype)
   my = interp_matrix(in_h, out_h, mode, align_corners, sy)
   mx = interp_matrix(in_w, out_w, mode, align_corners, sx)
   if (in_h, in_w) == (out_h, out_w) and np.array_equal(my, np.eye(in_h)) and np.array_equal(
@@ -161,4 +161,14 @@ def resize(
   mx = jnp.asarray(mx, dtype=jnp.float32)
   y = jnp.einsum("oh,...hwc->...owc", my, x.astype(jnp.float32))
   y = jnp.einsum("pw,...owc->...opc", mx, y)
-  return y.astype(x.dtype)
+  return _cast_like(y, x.dtype)
+
+
+def _cast_like(y: jax.Array, dtype) -> jax.Array:
+  """float32 `y` in `dtype`: integers rounded to the nearest and clipped to the type's
+  range, as torch's integer resizes do (a plain cast truncates: ~half of a uint8 image's
+  values one lower)."""
+  if jnp.issubdtype(dtype, jnp.integer):
+    info = jnp.iinfo(dtype)
+    return jnp.clip(jnp.round(y), info.min, info.max).astype(dtype)
+  return y.astype(dtype)

@@ -68,6 +68,14 @@ def test_bilinear_resize_matches_opencv():
     want = cv2.resize(img, (out_w, out_h), interpolation=cv2.INTER_LINEAR)
     got = np.asarray(resize(jnp.asarray(img)[None], (out_h, out_w), "bilinear", False))[0]
     np.testing.assert_allclose(got, want, atol=2e-5)
+  # Integer images are rounded to the nearest value (a cast truncated: about half of the
+  # values came out one lower than torch's), and stay in the type's range.
+  img8 = RNG.integers(0, 256, (11, 17, 3), dtype=np.uint8)
+  for mode in ("bilinear", "bicubic"):
+    exact = np.asarray(resize(jnp.asarray(img8, jnp.float32)[None], (23, 40), mode, False))[0]
+    got = np.asarray(resize(jnp.asarray(img8)[None], (23, 40), mode, False))[0]
+    assert got.dtype == np.uint8
+    np.testing.assert_array_equal(got, np.clip(np.round(exact), 0, 255))
 
 
 def test_bicubic_scale_factor_source_coordinates():
@@ -113,6 +121,8 @@ def test_avg_pool_drops_remainder_like_torch():
   out = np.asarray(avg_pool(jnp.asarray(x), 4))
   assert out.shape == (1, 2, 2, 2)
   np.testing.assert_allclose(out[0, 1, 0], x[0, 4:8, 0:4].mean(axis=(0, 1)), atol=1e-6)
+  with pytest.raises(ValueError, match="a 3x10 map is smaller than the 4x4 window"):
+    avg_pool(jnp.asarray(x[:, :3]), 4)  # torch refuses it too; an empty map before
 
 
 # ---------------------------------------------------------------- correlation
