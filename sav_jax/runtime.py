@@ -36,6 +36,7 @@ import gc
 import logging
 import os
 import pathlib
+import re
 
 import numpy as np
 
@@ -219,8 +220,9 @@ def inference_compiler_options(platform: str | None = None,
   (the older emitters unroll the rewriter's 32x32 reduce-windows: ~0.35 s of compile
   per instance norm; plain reductions sum in a different order, ~1e-5 max error for
   an instance norm over 360x640 maps, 1.8e-6 px on the output at T=2 368x640). Nothing
-  on other backends; an option the user sets in `XLA_FLAGS` is left to them (either
-  low-memory option: both), and one this jaxlib does not know is dropped. jaxlib 0.11 and later have only the newer
+  on other backends; an option the user sets in `XLA_FLAGS` is left to them (their choice of
+  emitters decides both low-memory options; passes they disable stay disabled), and one
+  this jaxlib does not know is dropped. jaxlib 0.11 and later have only the newer
   emitters: there the low-memory compile asks for neither option (the rewriter's
   reduce-windows cost compile time only with the older emitters, so its more precise
   sums stay).
@@ -242,17 +244,21 @@ def inference_compiler_options(platform: str | None = None,
   platform = platform or jax.default_backend()
   if platform != "cpu":
     return {}
-  user_flags = os.environ.get("XLA_FLAGS", "")
-  wanted = [(_YNN_FUSION_FLAG, _LEAN_YNN_FUSIONS)]
+  user = dict(re.findall(r"--(\w+)=(\S*)", os.environ.get("XLA_FLAGS", "")))
+  wanted = [] if _YNN_FUSION_FLAG in user else [(_YNN_FUSION_FLAG, _LEAN_YNN_FUSIONS)]
   older_emitters = ((_FUSION_EMITTERS_FLAG, False),)
-  low_memory = [*older_emitters, (_DISABLED_PASSES_FLAG, _DISABLED_PASSES)]
-  # The two low-memory options go together (either alone is slower to compile or less
-  # precise for nothing): a user's XLA_FLAGS naming either leaves both to the user.
-  if (_low_memory_compile and not per_frame and _accepts_options(platform, older_emitters)
-      and not any(k in user_flags for k, _ in low_memory)):
-    wanted += low_memory
-  return {k: v for k, v in wanted
-          if k not in user_flags and _accepts_options(platform, ((k, v),))}
+  # The two low-memory options go together (the older emitters with the rewriter compile
+  # slowly; the rewriter off with the newer ones loses precision for nothing): the user's
+  # choice of emitters in XLA_FLAGS decides, and passes they disable stay disabled.
+  older = user.get(_FUSION_EMITTERS_FLAG, "false").lower() in ("false", "0")
+  if (_low_memory_compile and not per_frame and older
+      and _accepts_options(platform, older_emitters)):
+    if _FUSION_EMITTERS_FLAG not in user:
+      wanted += older_emitters
+    passes = [q for q in user.get(_DISABLED_PASSES_FLAG, "").split(",") if q]
+    if _DISABLED_PASSES not in passes:  # a compile option replaces the XLA_FLAGS list
+      wanted.append((_DISABLED_PASSES_FLAG, ",".join([*passes, _DISABLED_PASSES])))
+  return {k: v for k, v in wanted if _accepts_options(platform, ((k, v),))}
 
 
 # A cgroup memory limit at or above this is "no limit" (v1 writes 2**63 rounded to pages).

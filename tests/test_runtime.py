@@ -71,17 +71,21 @@ def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch
   # the per-frame program keeps the newer emitters (8x faster to compile there)
   assert set(runtime.inference_compiler_options("cpu", per_frame=True)) == {
       "xla_cpu_experimental_ynn_fusion_type"}
-  # the two low-memory options go together: a user's flag naming either leaves both out
-  # (the older emitters with the rewriter on compile slowly; the rewriter off alone loses
-  # precision for nothing)
-  for flags in ("--xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT"
-                " --xla_disable_hlo_passes=algsimp", "--xla_cpu_use_fusion_emitters=true"):
-    monkeypatch.setenv("XLA_FLAGS", flags)
-    assert set(runtime.inference_compiler_options("cpu")) <= {
-        "xla_cpu_experimental_ynn_fusion_type"}, flags
-  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT")
+  # the two low-memory options go together: the user's choice of emitters decides both (the
+  # older emitters with the rewriter on compile slowly; the rewriter off alone loses
+  # precision for nothing), and passes the user disables stay disabled
+  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+  assert set(runtime.inference_compiler_options("cpu")) == {
+      "xla_cpu_experimental_ynn_fusion_type"}
+  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
   assert set(runtime.inference_compiler_options("cpu")) == (
-      low_memory if XLA_OLDER_EMITTERS else set())
+      {"xla_cpu_experimental_ynn_fusion_type", "xla_disable_hlo_passes"} if XLA_OLDER_EMITTERS
+      else {"xla_cpu_experimental_ynn_fusion_type"})
+  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT"
+                     " --xla_disable_hlo_passes=algsimp")
+  assert runtime.inference_compiler_options("cpu") == ({
+      "xla_cpu_use_fusion_emitters": False,
+      "xla_disable_hlo_passes": "algsimp,tree_reduction_rewriter"} if XLA_OLDER_EMITTERS else {})
   runtime.set_low_memory_compile(False)
   assert runtime.inference_compiler_options("cpu") == {}
   with pytest.raises(TypeError, match="takes True or False, got 'no'"):
