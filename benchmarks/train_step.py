@@ -42,6 +42,7 @@ def build_config(a):
   config.data.crop = (a.height, a.width)
   config.train.iters = a.iters
   config.train.batch_size = a.batch
+  config.train.microbatches = a.microbatches
   config.model.remat = a.remat
   config.model.dtype = a.dtype
   return config
@@ -92,7 +93,8 @@ def measure(config, repeats: int) -> dict:
   rss, dev = peak_rss_gb(), device_peak_gb(device)
   return dict(
       frames=config.data.frames, height=config.data.crop[0], width=config.data.crop[1],
-      iters=config.train.iters, batch=b, remat=config.model.remat, dtype=config.model.dtype,
+      iters=config.train.iters, batch=b, microbatches=config.train.microbatches,
+      remat=config.model.remat, dtype=config.model.dtype,
       devices=mesh.size, compile_s=compile_s, trace_s=c1 - c0, lower_s=c2 - c1,
       xla_compile_s=c3 - c2, median_s=median, min_s=min(times),
       samples_per_s=b / median, peak_rss_gb=rss, peak_rss_gb_per_sample=rss / b,
@@ -109,6 +111,8 @@ def main():
   p.add_argument("--width", type=int, default=512)
   p.add_argument("--iters", type=int, default=10)
   p.add_argument("--batch", type=int, default=1, help="global batch (divisible by devices)")
+  p.add_argument("--microbatches", type=int, default=1,
+                 help="train.microbatches: the batch as this many parts (gradient accumulation)")
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
   p.add_argument("--no-remat", dest="remat", action="store_false")
   p.add_argument("--repeats", type=int, default=3)

@@ -93,6 +93,11 @@ def base_config() -> ml_collections.ConfigDict:
   # Global batch (clips per step over all devices and hosts): 8, this config's reading of the
   # paper (not confirmed; the official script: 1 per GPU).
   c.train.batch_size = 8
+  # Gradient accumulation: each step runs the batch as this many equal parts, one after the
+  # other, and applies one update with their mean gradient (the same step, for the
+  # activation memory of batch_size / microbatches clips; each part is sharded over the
+  # devices). E.g. batch 8 on 2 GPUs: --config.train.microbatches=4.
+  c.train.microbatches = 1
   # Training steps (optimizer updates). The official script runs 80,000 (datasets.md,
   # section 3); 120k with batch 8 is this config's reading of the paper (not confirmed):
   # --config.train.num_steps=80000 for the script's length (the one-cycle schedule follows).

@@ -302,6 +302,11 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
     if num_devices and _value(config, field) % num_devices:
       raise ValueError(f"config.{field}={_value(config, field)} is not divisible by the "
                        f"{num_devices} devices")
+  microbatches = step_lib.check_microbatches(config)
+  if num_devices and (config.train.batch_size // microbatches) % num_devices:
+    raise ValueError(f"config.train.microbatches={microbatches}: parts of "
+                     f"{config.train.batch_size // microbatches} clips (config.train.batch_size="
+                     f"{config.train.batch_size}) are not divisible by the {num_devices} devices")
 
 
 def _check_blocks(config) -> None:

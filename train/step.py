@@ -36,24 +36,51 @@ def make_train_step(model, tx: optax.GradientTransformation, config, labels):
   schedule = optim.make_schedule(config.optimizer, config.train.num_steps)
   iters = config.train.iters
   vector = optim.TrainableVector(labels)
+  microbatches = check_microbatches(config)
 
-  def train_step(state: TrainState, batch):
-    step_rng = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)
+  def loss_and_grads(state, trainable, batch, rng):
+    """`((loss, metrics), grads of the trainable leaves)` of one (micro-)batch."""
     left = batch["left"].astype(jnp.float32)
     right = batch["right"].astype(jnp.float32)
-    trainable = vector.leaves(state.params)
 
     def loss_fn(trainable):
       out = model.apply({"params": vector.replace(state.params, trainable)}, left, right,
-                        iters=iters, rngs={"dropout": step_rng})
+                        iters=iters, rngs={"dropout": rng})
       return loss_lib.sequence_loss(out.disparities, batch["disparity"], batch["valid"],
                                     gamma=config.loss.gamma,
                                     max_disparity=config.loss.max_disparity,
                                     per_sample=config.loss.per_sample)
 
+    return jax.value_and_grad(loss_fn, has_aux=True)(trainable)
+
+  def accumulated(state, trainable, batch, rng):
+    """`loss_and_grads` of the batch as the mean over `microbatches` equal parts, run one
+    after the other (`lax.scan`): the activations of one part at a time. Per-clip losses
+    and metrics make the mean of the parts' means the batch's mean. Part j takes clips j,
+    j + k, j + 2k... (k = microbatches), so that every device holds its share of it."""
+    parts = jax.tree.map(lambda x: jnp.swapaxes(
+        x.reshape(x.shape[0] // microbatches, microbatches, *x.shape[1:]), 0, 1), batch)
+
+    def body(total, part):
+      j, clips = part
+      out = loss_and_grads(state, trainable, clips, jax.random.fold_in(rng, j))
+      return jax.tree.map(jnp.add, total, out), None
+
+    first = jax.tree.map(lambda x: x[0], parts)
+    zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype),
+                         jax.eval_shape(loss_and_grads, state, trainable, first, rng))
+    total, _ = jax.lax.scan(body, zeros, (jnp.arange(microbatches), parts))
+    return jax.tree.map(lambda x: x / microbatches, total)
+
+  def train_step(state: TrainState, batch):
+    step_rng = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)
+    trainable = vector.leaves(state.params)
     # The gradient of the leaves, then one concatenation: differentiating through slices
     # of the vector would sum one vector-sized padded gradient per leaf.
-    (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(trainable)
+    if microbatches == 1:
+      (loss, metrics), grads = loss_and_grads(state, trainable, batch, step_rng)
+    else:
+      (loss, metrics), grads = accumulated(state, trainable, batch, step_rng)
     grads, theta = vector.concat(grads), vector.concat(trainable)
     updates, new_opt_state = tx.update(grads, state.opt_state, theta)
     l2_grads = jnp.linalg.norm(grads)
@@ -74,6 +101,26 @@ def make_train_step(model, tx: optax.GradientTransformation, config, labels):
     return new_state, metrics
 
   return train_step
+
+
+def check_microbatches(config) -> int:
+  """`config.train.microbatches` (1 where a config has no such field), checked.
+
+  Raises:
+    ValueError: naming the field, unless it is an integer >= 1 that divides the batch, and
+      the loss is per clip (`loss.per_sample`) when it is more than 1.
+  """
+  k = config.train.get("microbatches", 1)
+  batch = config.train.batch_size
+  if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+    raise ValueError(f"config.train.microbatches={k!r}: expected an integer >= 1")
+  if batch % k:
+    raise ValueError(f"config.train.microbatches={k} does not divide "
+                     f"config.train.batch_size={batch}")
+  if k > 1 and not config.loss.per_sample:
+    raise ValueError(f"config.train.microbatches={k} needs config.loss.per_sample=True (a loss "
+                     "pooled over the batch's pixels is not the mean of the parts' losses)")
+  return k
 
 
 def jit_train_step(train_step, state_shardings, mesh):

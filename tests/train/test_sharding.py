@@ -45,6 +45,14 @@ def test_eight_devices_match_one_device(jobs):
 
 
 @pytest.mark.train_job("sharding")
+def test_microbatches_on_eight_devices_give_the_whole_batchs_step(jobs):
+  result = json.loads(jobs.get("sharding").read_text())
+  for k, (whole, parts) in result["toy_micro_metrics"].items():
+    np.testing.assert_allclose(parts, whole, rtol=1e-5, err_msg=k)
+  assert result["toy_micro_param_diff"] <= 1e-3 * result["toy_step_size"]
+
+
+@pytest.mark.train_job("sharding")
 def test_nan_batch_is_skipped_and_counted_on_eight_devices(jobs):
   result = json.loads(jobs.get("sharding").read_text())
   assert result["nan_loss_finite"] is False
@@ -88,6 +96,28 @@ def _initial_params(cfg):
   return sav_jax.convert.params_from_state_dict(sd, cfg)["params"]
 
 
+def _toy_microbatches() -> dict:
+  """A step of the toy model of test_state on the 8 devices: batch 16 as 2 parts of 8 clips
+  (`train.microbatches`, each part sharded over the devices) against the whole batch."""
+  import jax  # pylint: disable=g-import-not-at-top
+  from tests.train import test_state as ts  # pylint: disable=g-import-not-at-top
+  got = {}
+  for k in (1, 2):
+    c = ts._config()  # pylint: disable=protected-access
+    c.train.batch_size, c.train.microbatches = 16, k
+    _, mesh, _, state, _, step = ts._setup(c)  # pylint: disable=protected-access
+    batch = ts._put(ts._batch(np.random.default_rng(0), c), mesh)  # pylint: disable=protected-access
+    before = jax.device_get(state.params)  # (the step donates the state)
+    got[k] = jax.device_get(step(state, batch))
+  diff = max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
+             for a, b in zip(jax.tree.leaves(got[1][0].params), jax.tree.leaves(got[2][0].params)))
+  moved = max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
+              for a, b in zip(jax.tree.leaves(got[1][0].params), jax.tree.leaves(before)))
+  return {"toy_micro_param_diff": diff, "toy_step_size": moved,
+          "toy_micro_metrics": {k: [float(got[1][1][k]), float(got[2][1][k])]
+                                for k in ("loss", "epe", "l2_grads")}}
+
+
 def _child(out_path):
   """Runs in a fresh process with 8 CPU devices."""
   import jax  # pylint: disable=g-import-not-at-top
@@ -96,6 +126,7 @@ def _child(out_path):
   from sav_jax.data import pipeline  # pylint: disable=g-import-not-at-top
   from train import input as input_lib  # pylint: disable=g-import-not-at-top
   from train import optim, state as S, step as st  # pylint: disable=g-import-not-at-top
+  out = _toy_microbatches()
   c = _config()
   model = sav_jax.StereoAnyVideo(S.model_config(c))
   params = S.abstract_params(model, c)
@@ -123,9 +154,9 @@ def _child(out_path):
                            pipeline.to_global(batch, S.data_sharding(mesh1))))
   new1, m1 = jax.tree.unflatten(traced.out_tree, step1(*flat1))
   host1, m1 = jax.device_get((new1, m1))
-  out = {"devices": jax.device_count(), "mesh8": dict(mesh8.shape), "loss8": float(m8["loss"]),
+  out.update({"devices": jax.device_count(), "mesh8": dict(mesh8.shape), "loss8": float(m8["loss"]),
          "loss1": float(m1["loss"]), "metrics8": {k: float(v) for k, v in m8.items()},
-         "metrics1": {k: float(v) for k, v in m1.items()}}
+         "metrics1": {k: float(v) for k, v in m1.items()}})
   out.update(_compare(host8.params, host1.params, host0.params,
                       host0.params["depthnet"]["depthanything"]))
   nan_batch = dict(batch, left=batch["left"].copy())

@@ -932,3 +932,31 @@ def test_resume_checks_num_steps_and_never_needs_the_init_files(toy_run, tmp_pat
     loop.setup(c, workdir)
   with pytest.raises(FileNotFoundError, match="config.vda_weights=.*moved_vda.pth: no such"):
     loop.setup(c, tmp_path / "fresh")  # not resuming: read, so checked
+
+
+def test_microbatches_give_the_whole_batchs_step():
+  """`train.microbatches`: the batch as equal parts run one after the other, one update with
+  the mean gradient: the same step as the whole batch at once (float32 summation order)."""
+  rng = np.random.default_rng(0)
+  c = _config()
+  c.train.batch_size = 4
+  batch = _batch(rng, c)
+  got = {}
+  for k in (1, 2, 4):
+    c.train.microbatches = k
+    _, mesh, _, state, _, step = _setup(c)
+    before = jax.device_get(state.params)
+    got[k] = jax.device_get(step(state, _put(batch, mesh)))
+  for k in (2, 4):
+    for key in ("loss", "epe", "1px", "l2_grads", "valid_fraction"):
+      np.testing.assert_allclose(got[k][1][key], got[1][1][key], rtol=1e-5, err_msg=key)
+    for a, b, p0 in zip(jax.tree.leaves(got[k][0].params), jax.tree.leaves(got[1][0].params),
+                        jax.tree.leaves(before)):
+      np.testing.assert_allclose(a, b, atol=1e-3 * max(float(np.abs(b - p0).max()), 1e-12))
+  assert not np.allclose(got[1][0].params["head"]["kernel"], before["head"]["kernel"])
+  for k, per_sample, match in ((3, True, "microbatches=3 does not divide config.train.batch_size=4"),
+                               (0, True, "microbatches=0: expected an integer >= 1"),
+                               (2, False, "needs config.loss.per_sample=True")):
+    c.train.microbatches, c.loss.per_sample = k, per_sample
+    with pytest.raises(ValueError, match=match):
+      step_lib.check_microbatches(c)
