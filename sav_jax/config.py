@@ -22,13 +22,22 @@ VIT_ATTENTION = ("auto", "blocked", "cudnn")
 
 def resolve_vit_attention(choice: str, dtype) -> str:
   """The implementation `SAVConfig.vit_attention` stands for on JAX's default backend:
-  "auto" is "cudnn" on a GPU backend with bfloat16 compute, else "blocked"."""
+  "auto" is "cudnn" on an NVIDIA (CUDA) GPU backend with bfloat16 compute, else "blocked"
+  (also on AMD GPUs, whose backend JAX calls "gpu" too)."""
   if choice != "auto":
     return choice
   import jax  # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
-  return ("cudnn" if jax.default_backend() == "gpu" and jnp.dtype(dtype) == jnp.bfloat16
-          else "blocked")
+  return ("cudnn" if jax.default_backend() == "gpu" and _cuda(jax.devices()[0])
+          and jnp.dtype(dtype) == jnp.bfloat16 else "blocked")
+
+
+def _cuda(device) -> bool:
+  """Whether a "gpu" device is an NVIDIA one (its client says "cuda ...", ROCm "rocm ...")."""
+  try:
+    return "rocm" not in str(device.client.platform_version).lower()
+  except AttributeError:  # a client without the field: NVIDIA, JAX's usual GPU backend
+    return True
 
 # Video Depth Anything encoder variants (DPT head width and per-level channels).
 VDA_VARIANTS = {

@@ -66,9 +66,13 @@ def make_train_step(model, tx: optax.GradientTransformation, config, labels):
       out = loss_and_grads(state, trainable, clips, jax.random.fold_in(rng, j))
       return jax.tree.map(jnp.add, total, out), None
 
+    # The sums start at zero: the loss's scalars (its shapes from the loss alone: tracing
+    # the model for them cost as much as the step's own trace) and the gradient's leaves.
     first = jax.tree.map(lambda x: x[0], parts)
-    zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype),
-                         jax.eval_shape(loss_and_grads, state, trainable, first, rng))
+    scalars = jax.eval_shape(lambda d, v: loss_lib.sequence_loss(
+        d[None], d, v, per_sample=config.loss.per_sample), first["disparity"], first["valid"])
+    zeros = (jax.tree.map(lambda s: jnp.zeros(s.shape, jnp.float32), scalars),
+             jax.tree.map(jnp.zeros_like, trainable))
     total, _ = jax.lax.scan(body, zeros, (jnp.arange(microbatches), parts))
     return jax.tree.map(lambda x: x / microbatches, total)
 

@@ -80,6 +80,12 @@ def test_auto_vit_attention_picks_cudnn_only_on_a_gpu_in_bfloat16(monkeypatch):
   assert resolve_vit_attention("auto", jnp.bfloat16) == "cudnn"
   assert resolve_vit_attention("auto", "bfloat16") == "cudnn"
   assert resolve_vit_attention("auto", jnp.float32) == "blocked"
+  # JAX calls AMD's backend "gpu" too: cuDNN only where the client is CUDA's.
+  for version, want in (("rocm 60200", "blocked"), ("cuda 12040", "cudnn")):
+    fake = type("Device", (), {"client": type("Client", (), {"platform_version": version})()})()
+    monkeypatch.setattr(jax, "devices", lambda *a, d=fake: [d])
+    assert resolve_vit_attention("auto", jnp.bfloat16) == want, version
+  monkeypatch.undo()
   monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
   assert resolve_vit_attention("auto", jnp.bfloat16) == "blocked"
   # The default model traces the blocked path here (no dot_product_attention call).
