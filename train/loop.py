@@ -302,6 +302,14 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
     if num_devices and _value(config, field) % num_devices:
       raise ValueError(f"config.{field}={_value(config, field)} is not divisible by the "
                        f"{num_devices} devices")
+  synthetic_sources = [n for n, spec in config.data.sources.items()
+                       if isinstance(spec, ml_collections.ConfigDict)
+                       and spec.get("dataset") == "synthetic"]
+  if (evaluating and config.eval.dataset == "synthetic" and synthetic_sources
+      and config.eval.synthetic_seed == config.data.synthetic.seed):
+    raise ValueError(f"config.eval.synthetic_seed={config.eval.synthetic_seed} equals "
+                     "config.data.synthetic.seed: validation would score clips the run trains "
+                     f"on (source {synthetic_sources[0]}); choose another seed")
   microbatches = step_lib.check_microbatches(config)
   if num_devices and (config.train.batch_size // microbatches) % num_devices:
     raise ValueError(f"config.train.microbatches={microbatches}: parts of "

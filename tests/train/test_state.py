@@ -649,6 +649,11 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
      r"config\.data\.sources\.synthetic\.weight=0\.0: expected a number > 0"),
     ("optimizer.pct_start", 0.001, r"config\.optimizer\.pct_start=0\.001 with a one-cycle "
      r"length of config\.train\.num_steps \+ 100 = 300 steps: degenerate .* = -0\.7"),
+    ("eval.synthetic_seed", synthetic.get_config().data.synthetic.seed,
+     r"config\.eval\.synthetic_seed=\d+ equals config\.data\.synthetic\.seed: validation "
+     r"would score clips the run trains on"),
+    ("train.microbatches", 2, r"config\.train\.microbatches=2: parts of 1 clips .* not "
+     r"divisible by the 2 devices"),
 ])
 def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match):
   from train import loop  # pylint: disable=g-import-not-at-top
