@@ -36,7 +36,7 @@ import gc
 import logging
 import os
 import pathlib
-import re
+import shlex
 
 import numpy as np
 
@@ -207,6 +207,21 @@ def _accepts_options(platform: str, options: tuple) -> bool:
   return True
 
 
+def _xla_flags() -> dict[str, str]:
+  """The options `XLA_FLAGS` sets, as XLA reads them: `--name=value` (quotes removed) or a
+  bare `--name` ("true")."""
+  try:
+    tokens = shlex.split(os.environ.get("XLA_FLAGS", ""))
+  except ValueError:  # an unbalanced quote: XLA's own parser decides; take the plain words
+    tokens = os.environ.get("XLA_FLAGS", "").split()
+  flags = {}
+  for token in tokens:
+    if token.startswith("--"):
+      name, _, value = token[2:].partition("=")
+      flags[name] = value if _ else "true"
+  return flags
+
+
 def inference_compiler_options(platform: str | None = None,
                                per_frame: bool = False) -> dict[str, str | bool]:
   """XLA compiler options for the model's inference executables.
@@ -244,7 +259,7 @@ def inference_compiler_options(platform: str | None = None,
   platform = platform or jax.default_backend()
   if platform != "cpu":
     return {}
-  user = dict(re.findall(r"--(\w+)=(\S*)", os.environ.get("XLA_FLAGS", "")))
+  user = _xla_flags()
   wanted = [] if _YNN_FUSION_FLAG in user else [(_YNN_FUSION_FLAG, _LEAN_YNN_FUSIONS)]
   older_emitters = ((_FUSION_EMITTERS_FLAG, False),)
   # The two low-memory options go together (the older emitters with the rewriter compile

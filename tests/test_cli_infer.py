@@ -237,6 +237,24 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   assert kept == [*(f"disparity/{i:04d}.npy" for i in range(10)), "disparity/notes.txt",
                   "side_by_side.mp4", "summary.json"]
   assert "deleting 90 files of the earlier run" in capsys.readouterr().out  # 100 - 10 .npy
+  # A run that fails midway leaves a provisional summary listing its files: the next
+  # --overwrite run finds them (frames 10-19 of the failed run here).
+  def failing_model(variables, lw, rw, *, start, **kwargs):
+    if start > 0:
+      raise ValueError("a frame that no longer decodes")
+    return label_model(variables, lw, rw, start=start, **kwargs)
+
+  monkeypatch.setattr(inference, "_run_window", failing_model)
+  assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy", "--overwrite") == 2
+  partial = json.loads((out / "summary.json").read_text())
+  assert partial["complete"] is False and "disparity/0024.npy" in partial["outputs"]
+  assert (out / "disparity" / "0012.npy").is_file()  # the first chunk (frames 0-14) was written
+  monkeypatch.setattr(inference, "_run_window", label_model)
+  assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy", "--max-frames",
+                "5", "--overwrite") == 0
+  assert sorted(p.name for p in (out / "disparity").iterdir()) == [
+      *(f"{i:04d}.npy" for i in range(5)), "notes.txt"]
+  assert json.loads((out / "summary.json").read_text())["complete"] is True
 
 
 def test_frame_sources_check_every_frame_when_opened(tmp_path, clip):

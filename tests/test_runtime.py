@@ -74,15 +74,16 @@ def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch
   # the two low-memory options go together: the user's choice of emitters decides both (the
   # older emitters with the rewriter on compile slowly; the rewriter off alone loses
   # precision for nothing), and passes the user disables stay disabled
-  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
-  assert set(runtime.inference_compiler_options("cpu")) == {
-      "xla_cpu_experimental_ynn_fusion_type"}
+  for flags in ("--xla_cpu_use_fusion_emitters=true", "--xla_cpu_use_fusion_emitters"):
+    monkeypatch.setenv("XLA_FLAGS", flags)  # (a bare boolean flag is true, as XLA reads it)
+    assert set(runtime.inference_compiler_options("cpu")) == {
+        "xla_cpu_experimental_ynn_fusion_type"}, flags
   monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
   assert set(runtime.inference_compiler_options("cpu")) == (
       {"xla_cpu_experimental_ynn_fusion_type", "xla_disable_hlo_passes"} if XLA_OLDER_EMITTERS
       else {"xla_cpu_experimental_ynn_fusion_type"})
   monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT"
-                     " --xla_disable_hlo_passes=algsimp")
+                     ' --xla_disable_hlo_passes="algsimp"')  # XLA removes the quotes
   assert runtime.inference_compiler_options("cpu") == ({
       "xla_cpu_use_fusion_emitters": False,
       "xla_disable_hlo_passes": "algsimp,tree_reduction_rewriter"} if XLA_OLDER_EMITTERS else {})

@@ -463,9 +463,10 @@ def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
   stop = None
   # Whatever ends the loop (the last step, a preemption, an error, Ctrl-C), a checkpoint
   # already started is finished before the process goes: orbax writes it in a background
-  # thread, and a save cut short is deleted at the next start.
-  try:
-    with Preemption(manager) as preemption:
+  # thread, and a save cut short is deleted at the next start. The SIGTERM handler stays
+  # until then (a second notice while the last save is written must not kill it).
+  with Preemption(manager) as preemption:
+    try:
       if evaluator is not None and start == 0 and config.eval.at_start:
         writer.write(0, evaluator(state.params), split="val")
       pending = None
@@ -479,8 +480,8 @@ def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
         pending = (step, metrics)
         stop = preemption(step)
         save_now = _every(step, config.checkpoint.every_steps) or step == total or bool(stop)
-        eval_now = evaluator is not None and not stop and (
-            _every(step, config.eval.every_steps) or step == total)
+        eval_now = evaluator is not None and (_every(step, config.eval.every_steps)
+                                              or step == total)
         if save_now or eval_now:
           host(*pending)
           pending = None
@@ -488,17 +489,19 @@ def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
           ckpt_lib.save(manager, state, parts["grain_it"], step, force=True,
                         params_finite=bool(np.isfinite(host.last["l2_params"])),
                         model_config=parts["model"].cfg, run_config=config)
-        if eval_now:
+          if stop:  # written before anything else: the scheduler's grace period is short
+            manager.wait_until_finished()
+        if eval_now:  # (after a notice too: a resumed run starts after this step)
           writer.write(step, evaluator(state.params), split="val")
         if stop:
           break
       if pending is not None:
         host(*pending)
-  finally:
-    manager.wait_until_finished()
-    manager.close()
-    progress.close()
-    writer.close()
+    finally:
+      manager.wait_until_finished()
+      manager.close()
+      progress.close()
+      writer.close()
   if stop and step < total:
     raise Preempted(f"stopped at step {step} of {total} ({stop}), with a checkpoint of that "
                     "step: run the same command again to resume")

@@ -165,10 +165,10 @@ def resize(
 
 
 def _cast_like(y: jax.Array, dtype) -> jax.Array:
-  """float32 `y` in `dtype`: integers rounded to the nearest and clipped to the type's
-  range, as torch's integer resizes do (a plain cast truncates: ~half of a uint8 image's
-  values one lower)."""
+  """float32 `y` in `dtype`: integers rounded to the nearest (halves up, as OpenCV's
+  integer resizes do) and clipped to the type's range (a plain cast truncates: ~half of a
+  uint8 image's values came out one lower)."""
   if jnp.issubdtype(dtype, jnp.integer):
     info = jnp.iinfo(dtype)
-    return jnp.clip(jnp.round(y), info.min, info.max).astype(dtype)
+    return jnp.clip(jnp.floor(y + 0.5), info.min, info.max).astype(dtype)
   return y.astype(dtype)

@@ -9,7 +9,8 @@ x256 convention), `side_by_side.mp4` (left | colourized disparity, one colour ra
 the whole video, recorded in the summary), `summary.json`; with calibration also
 `depth/<frame>.<npy|exr>` (in the baseline's unit, 0 where disparity + doffs is not positive)
 and `pointclouds/<frame>.ply` (OpenCV camera axes: x right, y down, z forward). Inputs, checkpoint and existing outputs are all checked
-before anything is computed; on an error nothing is written.
+before anything is computed; an error found then writes nothing. Once the first window is
+computed, a provisional `summary.json` (`"complete": false`) lists the run's files.
 """
 
 from __future__ import annotations
@@ -218,7 +219,8 @@ def run(args: argparse.Namespace) -> int:
   chunks = inference.iter_predict_video(variables, left, right, cfg=cfg, iters=args.iters,
                                         window=args.window, stride=args.stride, progress=True,
                                         devices=devices)
-  written = write_outputs(out, names, left, chunks, formats, calib, args, stale=stale)
+  written = write_outputs(out, names, left, chunks, formats, calib, args, stale=stale,
+                          outputs=outputs)
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
   summary = {"frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
@@ -229,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
              "compile_seconds": round(compiling, 3),
              "frames_per_second_without_compile": round(t / max(seconds - compiling, 1e-9), 3),
              "calibration": None if calib is None else calib._asdict(),
-             "max_depth": args.max_depth, **written,
+             "max_depth": args.max_depth, **written, "complete": True,
              # what this run wrote, for a later run with --overwrite into this folder
              "outputs": [p.relative_to(out).as_posix() for p in outputs]}
   (out / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -250,11 +252,13 @@ RANGE_SAMPLE = 1 << 24
 
 
 def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
-                  stale=()) -> dict:
+                  stale=(), outputs=None) -> dict:
   """Disparity files, the side-by-side video and, with calibration, depth and PLY files.
 
   `stale`: an earlier run's files to delete (`earlier_outputs`), with its summary, once the
-  first window has been computed.
+  first window has been computed. `outputs`: every file of this run (`output_paths`): then a
+  provisional `summary.json` lists them (`"complete": false`) until the caller writes the
+  final one, so that a later `--overwrite` run finds the files of a run that failed midway.
 
   `chunks` yields `(first frame, disparities [k, H, W])` in order
   (`inference.iter_predict_video`; at least one, computed before any folder is made).
@@ -280,6 +284,10 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
     for path in [*stale, out / "summary.json"]:  # its summary would describe this run's files
       path.unlink(missing_ok=True)
   (out / "disparity").mkdir(parents=True, exist_ok=True)
+  if outputs is not None:
+    (out / "summary.json").write_text(json.dumps(
+        {"complete": False, "outputs": [p.relative_to(out).as_posix() for p in outputs]},
+        indent=1))
   if calib is not None:
     (out / "depth").mkdir(exist_ok=True)
     (out / "pointclouds").mkdir(exist_ok=True)

@@ -75,7 +75,10 @@ def test_bilinear_resize_matches_opencv():
     exact = np.asarray(resize(jnp.asarray(img8, jnp.float32)[None], (23, 40), mode, False))[0]
     got = np.asarray(resize(jnp.asarray(img8)[None], (23, 40), mode, False))[0]
     assert got.dtype == np.uint8
-    np.testing.assert_array_equal(got, np.clip(np.round(exact), 0, 255))
+    np.testing.assert_array_equal(got, np.clip(np.floor(exact + 0.5), 0, 255))
+  # halves round up, as OpenCV's uint8 resize does (a 2x downsample averages pairs)
+  row = jnp.asarray([[0, 1, 0, 3, 10, 11]], jnp.uint8)[None, :, :, None]
+  np.testing.assert_array_equal(resize(row, (1, 3), "bilinear", False)[0, 0, :, 0], [1, 2, 11])
 
 
 def test_bicubic_scale_factor_source_coordinates():

@@ -867,14 +867,47 @@ def test_sigterm_saves_the_current_step_and_stops(tmp_path):
       os.kill(os.getpid(), signal.SIGTERM)  # a scheduler's notice, during step 2
 
   handler = signal.getsignal(signal.SIGTERM)
+  parts = _loop_parts(c, tmp_path, preempt)
+  manager, handlers = parts["manager"], []
+  close = manager.close  # the last save is finished under the run's handler (a second
+  manager.close = lambda: (handlers.append(signal.getsignal(signal.SIGTERM)), close())[1]
   with pytest.raises(loop.Preempted, match=r"stopped at step 2 of 6 \(SIGTERM\)"):
-    loop.run(c, tmp_path, _loop_parts(c, tmp_path, preempt))
+    loop.run(c, tmp_path, parts)  # notice then must not kill the process mid-write)
+  assert len(handlers) == 1 and handlers[0] is not handler
   assert signal.getsignal(signal.SIGTERM) is handler  # restored
   assert sav_jax.convert.find_training_checkpoint(tmp_path) == tmp_path / "checkpoints" / "2"
   assert _steps_logged(tmp_path) == [1, 2]
   # The same command resumes from it and finishes.
   state = loop.run(c, tmp_path, _resumed_parts(c, tmp_path))
   assert int(state.step) == 6 and _steps_logged(tmp_path) == [1, 2, 3, 4, 5, 6]
+
+
+def test_sigterm_on_a_validation_step_still_validates(tmp_path):
+  import os  # pylint: disable=g-import-not-at-top
+  import signal  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.num_steps, c.train.log_every, c.train.progress_bar = 4, 1, False
+  c.checkpoint.every_steps, c.eval.every_steps, c.eval.at_start = 100, 2, False
+  validated = []
+
+  def evaluator(params):
+    validated.append(len(validated))
+    return {"epe": 1.0}
+
+  for notice_at, steps in ((2, [2]), (4, [2, 4])):  # a periodic validation step; the last
+    workdir = tmp_path / str(notice_at)
+    parts = _loop_parts(c, workdir, lambda k, n=notice_at: k == n and os.kill(
+        os.getpid(), signal.SIGTERM), evaluator=evaluator)
+    validated.clear()
+    if notice_at < c.train.num_steps:
+      with pytest.raises(loop.Preempted, match=f"stopped at step {notice_at} of 4"):
+        loop.run(c, workdir, parts)
+    else:  # a notice during the last step: the run is complete, nothing to resume
+      assert int(loop.run(c, workdir, parts).step) == 4
+    records = [json.loads(l) for l in (workdir / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records if r["split"] == "val"] == steps, notice_at
+    assert sav_jax.convert.find_training_checkpoint(workdir).name == str(notice_at)
 
 
 def _resumed_parts(c, workdir):
