@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import signal
 import warnings
 from typing import Any, Callable, Mapping, Sequence
 
@@ -243,8 +244,17 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
   read = grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch)
   it = ds.to_iter_dataset(read).batch(batch_size, drop_remainder=True, batch_fn=stack_examples)
   if worker_count > 0:
-    it = it.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count))
+    it = it.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count),
+                        worker_init_fn=_ignore_sigterm)
   return it
+
+
+def _ignore_sigterm(worker_index: int, worker_count: int) -> None:
+  """A grain worker process ignores SIGTERM: schedulers send it to the whole process group,
+  and the training process, which then finishes its step and saves a checkpoint, needs its
+  workers until it is done (grain stops them itself: an event, then SIGKILL)."""
+  del worker_index, worker_count
+  signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def stack_examples(examples: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:

@@ -225,3 +225,35 @@ def test_registry_source_and_official_augmentation(monkeypatch):
   jax.tree.map(np.testing.assert_array_equal, batch, again)
   crop = pipeline.center_crop(src[0], (16, 16))
   assert crop["left"].shape == (3, 16, 16, 3)
+
+
+def test_grain_workers_outlive_a_sigterm_to_the_process_group():
+  """Schedulers send SIGTERM to every process of a job: the training process then finishes
+  its step and saves a checkpoint, for which it still reads from its grain workers (they
+  died on the signal before: the read failed and no checkpoint was saved)."""
+  import os  # pylint: disable=import-outside-toplevel
+  import signal  # pylint: disable=import-outside-toplevel
+  import subprocess  # pylint: disable=import-outside-toplevel
+  import time  # pylint: disable=import-outside-toplevel
+  from absl import flags  # pylint: disable=import-outside-toplevel
+  if not flags.FLAGS.is_parsed():  # grain's workers read absl flags (`python -m train` parses)
+    flags.FLAGS.mark_as_parsed()
+  src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
+                                                  max_disparity=8.0), 20)
+  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1,
+                                        worker_count=1))
+  def spawned():  # this process's multiprocessing children (not the suite's other jobs)
+    ps = subprocess.run(["ps", "-ww", "-o", "pid=,args=", "--ppid", str(os.getpid())],
+                        capture_output=True, text=True, check=False).stdout
+    return {int(line.split()[0]) for line in ps.splitlines() if "spawn_main" in line}
+
+  before = spawned()
+  next(it)
+  workers = sorted(spawned() - before)
+  assert workers
+  for pid in workers:
+    os.kill(pid, signal.SIGTERM)
+  time.sleep(1.0)
+  for _ in range(12):  # more batches than the workers had buffered
+    assert next(it)["left"].shape == (2, 2, 16, 16, 3)
+  it.close() if hasattr(it, "close") else None  # pylint: disable=expression-not-assigned
