@@ -236,6 +236,7 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   kept = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
   assert kept == [*(f"disparity/{i:04d}.npy" for i in range(10)), "disparity/notes.txt",
                   "side_by_side.mp4", "summary.json"]
+  assert not (out / "depth").exists() and not (out / "pointclouds").exists()  # emptied: gone
   assert "deleting 90 files of the earlier run" in capsys.readouterr().out  # 100 - 10 .npy
   # A run that fails midway leaves a provisional summary listing its files: the next
   # --overwrite run finds them (frames 10-19 of the failed run here).
@@ -413,7 +414,8 @@ def _bad_case(name, root, clip, npz_ckpt):
     return left, right, npz_ckpt, ["--calib", str(root)], "is a folder; give the calibration file"
   if name == "principal_point":  # full-resolution intrinsics for small frames
     return left, right, npz_ckpt, ["--fx", "700", "--cx", "600", "--baseline", "0.5"], \
-        f"principal point (cx 600, cy {(H - 1) / 2:g}) is outside the {W}x{H} frames"
+        f"principal point (cx 600, cy {(H - 1) / 2:g}) is outside the {H}x{W} (height x " \
+        "width) frames"
   if name == "max_depth_without_calibration":
     return left, right, npz_ckpt, ["--max-depth", "5"], "--max-depth applies to point clouds"
   if name == "max_depth_negative":

@@ -283,6 +283,9 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
           "replace (--overwrite)")
     for path in [*stale, out / "summary.json"]:  # its summary would describe this run's files
       path.unlink(missing_ok=True)
+    for folder in {p.parent for p in stale} - {out}:  # e.g. depth/ of a run with calibration
+      if folder.is_dir() and not any(folder.iterdir()):
+        folder.rmdir()
   (out / "disparity").mkdir(parents=True, exist_ok=True)
   if outputs is not None:
     (out / "summary.json").write_text(json.dumps(
@@ -372,8 +375,8 @@ class CalibrationSpec(NamedTuple):
     # (width - 1) / 2, is its middle)
     if not (-0.5 <= calib.cx <= width - 0.5 and -0.5 <= calib.cy <= height - 0.5):
       raise UsageError(f"the calibration's principal point (cx {calib.cx:g}, cy {calib.cy:g}) "
-                       f"is outside the {width}x{height} frames: is it for another image "
-                       f"size? {rescale[0].upper()}{rescale[1:]}")
+                       f"is outside the {height}x{width} (height x width) frames: is it for "
+                       f"another image size? {rescale[0].upper()}{rescale[1:]}")
     return calib
 
 
