@@ -24,6 +24,7 @@ import time
 import cv2
 import numpy as np
 
+from sav_jax._checks import is_int
 from sav_jax.tools import add_compile_cache_arguments, check_output_dir, setup_compile_cache
 
 log = logging.getLogger(__name__)
@@ -54,8 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def check_sgbm_args(max_disparity, block_size, prefix: str = "") -> None:
   """Raises ValueError unless `block_size` is an odd integer >= 1 and `max_disparity` a
   finite number >= 1 (OpenCV runs other block sizes without a word)."""
-  if isinstance(block_size, bool) or not isinstance(block_size, (int, np.integer)) or (
-      block_size < 1 or block_size % 2 == 0):
+  if not is_int(block_size) or block_size < 1 or block_size % 2 == 0:
     raise ValueError(f"{prefix}block_size must be an odd integer >= 1, got {block_size!r}")
   if isinstance(max_disparity, bool) or not isinstance(max_disparity, (int, float, np.number)) \
       or not (np.isfinite(max_disparity) and max_disparity >= 1):

@@ -219,8 +219,8 @@ def run(args: argparse.Namespace) -> int:
   chunks = inference.iter_predict_video(variables, left, right, cfg=cfg, iters=args.iters,
                                         window=args.window, stride=args.stride, progress=True,
                                         devices=devices)
-  written = write_outputs(out, names, left, chunks, formats, calib, args, stale=stale,
-                          outputs=outputs)
+  listed = [p.relative_to(out).as_posix() for p in outputs]
+  written = write_outputs(out, names, left, chunks, formats, calib, args, listed, stale=stale)
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
   summary = {"frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
@@ -232,8 +232,7 @@ def run(args: argparse.Namespace) -> int:
              "frames_per_second_without_compile": round(t / max(seconds - compiling, 1e-9), 3),
              "calibration": None if calib is None else calib._asdict(),
              "max_depth": args.max_depth, **written, "complete": True,
-             # what this run wrote, for a later run with --overwrite into this folder
-             "outputs": [p.relative_to(out).as_posix() for p in outputs]}
+             "outputs": listed}  # for a later run with --overwrite into this folder
   (out / "summary.json").write_text(json.dumps(summary, indent=1))
   vmin, vmax = written["video_disparity_range"]
   print(f"side-by-side video colours: {vmin:.2f} px (dark) to {vmax:.2f} px (bright)")
@@ -252,13 +251,13 @@ RANGE_SAMPLE = 1 << 24
 
 
 def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
-                  stale=(), outputs=None) -> dict:
+                  listed: list[str], stale=()) -> dict:
   """Disparity files, the side-by-side video and, with calibration, depth and PLY files.
 
-  `stale`: an earlier run's files to delete (`earlier_outputs`), with its summary, once the
-  first window has been computed. `outputs`: every file of this run (`output_paths`): then a
-  provisional `summary.json` lists them (`"complete": false`) until the caller writes the
-  final one, so that a later `--overwrite` run finds the files of a run that failed midway.
+  Once the first window has been computed: `stale`, an earlier run's files
+  (`earlier_outputs`), are deleted, and a provisional `summary.json` lists this run's files
+  (`listed`, relative to `out`; `"complete": false`) until the caller writes the final one,
+  so that a later `--overwrite` run finds the files of a run that failed midway.
 
   `chunks` yields `(first frame, disparities [k, H, W])` in order
   (`inference.iter_predict_video`; at least one, computed before any folder is made).
@@ -281,16 +280,14 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
   if stale:
     print(f"deleting {len(stale)} files of the earlier run in {out} that this run does not "
           "replace (--overwrite)")
-    for path in [*stale, out / "summary.json"]:  # its summary would describe this run's files
+    for path in stale:
       path.unlink(missing_ok=True)
     for folder in {p.parent for p in stale} - {out}:  # e.g. depth/ of a run with calibration
       if folder.is_dir() and not any(folder.iterdir()):
         folder.rmdir()
   (out / "disparity").mkdir(parents=True, exist_ok=True)
-  if outputs is not None:
-    (out / "summary.json").write_text(json.dumps(
-        {"complete": False, "outputs": [p.relative_to(out).as_posix() for p in outputs]},
-        indent=1))
+  # (replaces an earlier run's summary, which would describe this run's files)
+  (out / "summary.json").write_text(json.dumps({"complete": False, "outputs": listed}, indent=1))
   if calib is not None:
     (out / "depth").mkdir(exist_ok=True)
     (out / "pointclouds").mkdir(exist_ok=True)
