@@ -417,8 +417,10 @@ def _warp_pairs(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float):
 
   def pairs():
     for t in range(x.shape[0] - 1):
-      warped = flow_warp(x[t + 1:t + 2], f[t:t + 1])[0]
-      warped_img = flow_warp(video[t + 1:t + 2], f[t:t + 1])[0]
+      # The depth and the image share one warp (same coordinates; per channel the same values).
+      both = flow_warp(np.concatenate([x[t + 1:t + 2, None], video[t + 1:t + 2]], 1),
+                       f[t:t + 1])[0]
+      warped, warped_img = both[0], both[1:]
       diff = warped_img / _F32(255.0) - video[t] / _F32(255.0)
       sq = diff ** 2
       photo = np.sqrt(sq[0] + sq[1] + sq[2])
@@ -461,13 +463,7 @@ def eval_opw_sequence(left_video, pred_depth, gt_depth, mask, flows, mask_thr: f
   Returns:
     `(opw, opw_30, opw_50, opw_100)`.
   """
-  n, pairs = _warp_pairs(left_video, pred_depth, gt_depth, mask, flows, mask_thr)
-  total = [0.0] * 4
-  for x, warped, valid, depth_ok in pairs:
-    err = np.abs(warped - x)
-    for j, sel in enumerate((valid, *(valid & depth_ok[k] for k in (30, 50, 100)))):
-      total[j] += _frame_ratio(err, sel)
-  return tuple(v / n for v in total)
+  return _opw_rtc(left_video, pred_depth, gt_depth, mask, flows, mask_thr)[0]
 
 
 def eval_rtc_sequence(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float = 0.5,
@@ -486,18 +482,28 @@ def eval_rtc_sequence(left_video, pred_depth, gt_depth, mask, flows, mask_thr: f
   Returns:
     `(rtc, rtc_30)`.
   """
+  return _opw_rtc(left_video, pred_depth, gt_depth, mask, flows, mask_thr, tau)[1]
+
+
+def _opw_rtc(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float = 0.5,
+             tau: float = 1.01):
+  """`((opw, opw_30, opw_50, opw_100), (rtc, rtc_30))` from one pass of warps (each pair of
+  frames is warped once for both metrics)."""
   n, pairs = _warp_pairs(left_video, pred_depth, gt_depth, mask, flows, mask_thr)
-  total = [0.0, 0.0]
+  opw, rtc = [0.0] * 4, [0.0] * 2
   for x, warped, valid, depth_ok in pairs:
+    err = np.abs(warped - x)
+    for j, sel in enumerate((valid, *(valid & depth_ok[k] for k in (30, 50, 100)))):
+      opw[j] += _frame_ratio(err, sel)
     with np.errstate(divide="ignore", invalid="ignore"):
       r1 = x / warped
       r2 = warped / x
     r1[np.isinf(r1)] = _F32(-1e10)
     r2[np.isinf(r2)] = _F32(-1e10)
     good = (np.maximum(r1, r2) < _F32(tau)).astype(np.float64)
-    total[0] += _frame_ratio(good, valid)
-    total[1] += _frame_ratio(good, valid & depth_ok[30])
-  return total[0] / n, total[1] / n
+    rtc[0] += _frame_ratio(good, valid)
+    rtc[1] += _frame_ratio(good, valid & depth_ok[30])
+  return tuple(v / n for v in opw), tuple(v / n for v in rtc)
 
 
 def video_flows_from_fn(left_video, flow_fn: FlowFn) -> np.ndarray:
@@ -575,9 +581,8 @@ def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
   if left_video is not None and video_flows is None and flow_fn is not None:
     video_flows = video_flows_from_fn(left_video, flow_fn)
   if left_video is not None and video_flows is not None:
-    opw = eval_opw_sequence(left_video, zx, zy, m, video_flows)
+    opw, rtc = _opw_rtc(left_video, zx, zy, m, video_flows)
     res.update(zip(("disp_OPW", "disp_OPW_30", "disp_OPW_50", "disp_OPW_100"), opw))
-    rtc = eval_rtc_sequence(left_video, zx, zy, m, video_flows)
     res.update(zip(("disp_RTC", "disp_RTC_30"), rtc))
   return res, x.shape[0]
 
