@@ -72,7 +72,7 @@ class SAVConfig:
       memory is 4.2 GiB instead of 11.7 GiB before this covered the encoders and single
       steps (a step keeps one refinement step's activations, ~3.7 GiB, at its peak).
     remat_policy: name of a `jax.checkpoint_policies` policy for the refinement steps,
-      or None for "save nothing".
+      or None for "save nothing"; only with `remat=True`.
     frame_block_mb: memory budget (MiB) of the per-frame stages' largest intermediate:
       the encoders, the depth prior's ViT attention logits and its full-resolution map
       run over blocks of frames (very large frames: of query rows) that fit it. Same
@@ -105,6 +105,9 @@ class SAVConfig:
     if self.remat_policy is not None and self.remat_policy not in remat_policies():
       raise ValueError(f"SAVConfig.remat_policy={self.remat_policy!r}; expected None or one of "
                        f"{remat_policies()} (jax.checkpoint_policies)")
+    if self.remat_policy is not None and not self.remat:
+      raise ValueError(f"SAVConfig.remat_policy={self.remat_policy!r} has no effect with "
+                       "remat=False: set remat=True too, or leave the policy None")
     if self.vda_encoder not in VDA_VARIANTS:
       raise ValueError(
           f"SAVConfig.vda_encoder={self.vda_encoder!r}; expected one of {sorted(VDA_VARIANTS)}")

@@ -142,6 +142,7 @@ def test_bad_config_raises():
     ({"dtype": None}, r"SAVConfig\.dtype=None \(builtins\.NoneType\); expected str"),
     ({"remat_policy": "bogus"}, r"remat_policy='bogus'; expected None or one of .*dots_saveable"),
     ({"remat_policy": "save_only_these_names"}, r"remat_policy='save_only_these_names'"),
+    ({"remat_policy": "dots_saveable"}, r"remat_policy='dots_saveable' has no effect with remat=False"),
     ({"hidden_dim": 64}, r"SAVConfig\.hidden_dim=64: the model supports only 128"),
     ({"context_dim": 160, "fnet_dim": 128}, r"context_dim=160: the model supports only 128"),
     ({"upsample_rate": 2}, r"upsample_rate=2: the model supports only 4"),
