@@ -30,12 +30,13 @@ levels apart). Tested against Pillow: identical on every 8-bit colour.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
+import threading
 
 import cv2
 import numpy as np
 
+from sav_jax._checks import is_int
 from sav_jax.data import frame_io
 
 # (disparity key, valid key, image key it belongs to).
@@ -97,6 +98,18 @@ class AugmentConfig:
         raise ValueError(f"AugmentConfig.{name} must be a pair of finite numbers, got {value!r}")
       return lo, hi
 
+    def ints(value):
+      try:
+        return all(is_int(v) for v in value)
+      except TypeError:
+        return False
+
+    for name in ("crop_size", "eraser_count", "eraser_size", "yjitter_range"):
+      value = getattr(self, name)
+      if not (is_int(value) if name == "yjitter_range" else ints(value)):
+        raise ValueError(f"AugmentConfig.{name} must be "
+                         f"{'an integer' if name == 'yjitter_range' else 'a pair of integers'}, "
+                         f"got {value!r}")
     ch, cw = pair("crop_size")
     if ch < 1 or cw < 1:
       raise ValueError(f"AugmentConfig.crop_size must be positive, got {self.crop_size}")
@@ -217,10 +230,23 @@ def _pil_hue(rgb: np.ndarray) -> np.ndarray:
                                            0, 255)).astype(np.uint8)
 
 
-@functools.lru_cache(maxsize=1)
+_HSV_LOCK = threading.Lock()
+_HSV_TABLES = []
+
+
 def _hsv_tables():
+  """`_build_hsv_tables()`, built once per process: a lock makes grain's reader threads,
+  which reach their first hue jitter together, wait for one build (each build peaks at
+  ~300 MB; 8 threads built their own copies at once)."""
+  with _HSV_LOCK:
+    if not _HSV_TABLES:
+      _HSV_TABLES.append(_build_hsv_tables())
+    return _HSV_TABLES[0]
+
+
+def _build_hsv_tables():
   """Lookup tables of PIL's HSV conversions, exact for every 8-bit colour (64 MB, built
-  in ~3 s on first use).
+  in ~3 s).
 
   `hue[(r << 16) | (g << 8) | b]`: hue depends only on the colour less its minimum
   (equalities between channels decide PIL's branch), which has a zero channel, so it is

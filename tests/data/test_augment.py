@@ -276,7 +276,11 @@ def test_bad_inputs():
                     (dict(gamma=(0.0, 1.0)), "gamma must be > 0"),
                     (dict(eraser_size=(-5, 10)), "eraser_size must be"),
                     (dict(yjitter_range=-3), "yjitter_range"),
-                    (dict(scale_range=(0.0, 100.0)), "log2 scales")):
+                    (dict(scale_range=(0.0, 100.0)), "log2 scales"),
+                    (dict(crop_size=(24.0, 48.0)), r"crop_size must be a pair of integers"),
+                    (dict(eraser_size=(10.5, 20)), r"eraser_size must be a pair of integers"),
+                    (dict(eraser_count=(1, 1.5)), r"eraser_count must be a pair of integers"),
+                    (dict(yjitter_range=1.5), r"yjitter_range must be an integer")):
     with pytest.raises(ValueError, match=match):
       AugmentConfig(**kw)
   with pytest.raises(ValueError, match=r"\[T, H, W, 3\] uint8, got \(2, 3, 4, 1\)"):
@@ -295,3 +299,26 @@ def test_crop_within_two_pixels_of_the_frame_keeps_its_size(margin):
     out = augment_clip(clip, cfg, np.random.default_rng(seed))
     for k in ("left", "right", "disparity", "valid"):
       assert out[k].shape[1:3] == (H - margin, W - margin), (k, out[k].shape)
+
+
+def test_hsv_tables_are_built_once_by_concurrent_threads(monkeypatch):
+  # grain's reader threads reach their first hue jitter together; each build peaks at
+  # ~300 MB, so they must wait for one build rather than make their own.
+  import threading
+  import time
+  builds = []
+
+  def slow_build():
+    builds.append(1)
+    time.sleep(0.2)
+    return ("tables",)
+
+  monkeypatch.setattr(augment, "_HSV_TABLES", [])
+  monkeypatch.setattr(augment, "_build_hsv_tables", slow_build)
+  got = []
+  threads = [threading.Thread(target=lambda: got.append(augment._hsv_tables())) for _ in range(4)]
+  for t in threads:
+    t.start()
+  for t in threads:
+    t.join()
+  assert len(builds) == 1 and got == [("tables",)] * 4
