@@ -203,7 +203,7 @@ def _is_regex(x) -> bool:
 # (field, test, what it must be): the values a run cannot use, found before anything is
 # created in the workdir or compiled (later they fail deep inside grain, optax or a trace).
 _CHECKS = (
-    ("seed", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
+    ("seed", lambda x: _is_int(x) and 0 <= x < 2**32, "an integer in [0, 2**32)"),
     ("compile_cache", lambda x: isinstance(x, str), "a folder, 'default' or '' (off)"),
     ("matmul_precision", lambda x: x in runtime.MATMUL_PRECISIONS,
      ", ".join(map(repr, runtime.MATMUL_PRECISIONS[:-1]))

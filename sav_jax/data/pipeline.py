@@ -42,6 +42,7 @@ import grain
 import jax
 import numpy as np
 
+from sav_jax._checks import is_int
 from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo
 
 log = logging.getLogger(__name__)
@@ -225,6 +226,8 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
   if len(transforms) != len(sources):
     raise ValueError(f"need one transform (or None) per source, got {len(transforms)} for "
                      f"{len(sources)} sources")
+  if not (is_int(seed) and 0 <= seed < 2**32):
+    raise ValueError(f"seed must be an integer in [0, 2**32), got {seed!r}")
   props = mixture_weights([len(s) for s in sources], weights, mode)
   pi = jax.process_index() if process_index is None else process_index
   pc = jax.process_count() if process_count is None else process_count
@@ -232,8 +235,10 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
     raise ValueError(f"process_index {pi} not in [0, {pc})")
   streams = []
   for i, (src, tf) in enumerate(zip(sources, transforms)):
-    ds = src.shuffle(seed=seed + 7919 * i).repeat()
-    ds = ds.random_map(tf, seed=seed + 104729 * (i + 1)) if tf is not None else ds.map(as_example)
+    # grain takes seeds in [0, 2**32): the per-source offsets wrap around.
+    ds = src.shuffle(seed=(seed + 7919 * i) % 2**32).repeat()
+    ds = (ds.random_map(tf, seed=(seed + 104729 * (i + 1)) % 2**32) if tf is not None
+          else ds.map(as_example))
     streams.append(ds)
   ds = streams[0] if len(streams) == 1 else grain.MapDataset.mix(streams, props)
   # One global stream, the same on every process; each process takes every P-th element.

@@ -57,6 +57,18 @@ def test_same_seed_same_stream_other_seed_other_stream():
   assert a == b and a != c
 
 
+def test_seeds_up_to_two_to_the_32_with_several_augmented_sources():
+  # The per-source seeds wrap into grain's [0, 2**32): the largest seed works with a
+  # transform on each of two sources (grain refused a derived seed the user never gave).
+  tf = lambda clip, rng: pipeline.as_example(clip)
+  it = iter(pipeline.make_train_dataset([_tagged(1, 4), _tagged(2, 4)], [1.0, 1.0], batch_size=2,
+                                        seed=2**32 - 1, transforms=[tf, tf], num_threads=1))
+  assert len(_ids(next(it))) == 2
+  for seed in (2**32, -1, 1.5):
+    with pytest.raises(ValueError, match=r"seed must be an integer in \[0, 2\*\*32\)"):
+      pipeline.make_train_dataset([_tagged(1, 4)], [1.0], batch_size=2, seed=seed)
+
+
 def test_processes_split_one_global_stream():
   # Each process takes every third element of the one stream a single process would read:
   # together they read each epoch once, in the single-process order.

@@ -642,6 +642,7 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
     ("compile_cache", None, r"config\.compile_cache=None: expected a folder, 'default' or ''"),
     ("data.mixing", "mix", r"config\.data\.mixing='mix': expected 'concat' or 'ratio'"),
     ("data.prefetch", -1, r"config\.data\.prefetch=-1: expected an integer >= 0"),
+    ("seed", 2**32, r"config\.seed=4294967296: expected an integer in \[0, 2\*\*32\)"),
     ("data.synthetic.num_clips", 0, r"config\.data\.synthetic\.num_clips=0: expected an "),
     ("data.synthetic.max_disparity", -1.0,
      r"config\.data\.synthetic\.max_disparity must be >= min_disparity"),
