@@ -52,7 +52,7 @@ def default_cache_dir() -> pathlib.Path:
 
 
 def enable_compilation_cache(path: str | os.PathLike | None = None,
-                             min_compile_time_s: float = 1.0) -> pathlib.Path:
+                             min_compile_time_s: float = 1.0) -> pathlib.Path | None:
   """Turns on JAX's persistent compilation cache for this process.
 
   Args:
@@ -64,12 +64,18 @@ def enable_compilation_cache(path: str | os.PathLike | None = None,
       (not applied when an existing setup is kept).
 
   Returns:
-    The folder in use.
+    The folder in use; None when JAX's cache is switched off
+    (`JAX_ENABLE_COMPILATION_CACHE=false`): that choice is kept, with a warning.
 
   Raises:
     ValueError: `path` exists and is not a folder, or cannot be created.
   """
   import jax  # pylint: disable=import-outside-toplevel
+  if not jax.config.jax_enable_compilation_cache:
+    log.warning("JAX's persistent compilation cache is switched off "
+                "(JAX_ENABLE_COMPILATION_CACHE / jax_enable_compilation_cache): not using %s",
+                path if path is not None else "it")
+    return None
   current = jax.config.jax_compilation_cache_dir
   if path is None and current:
     return pathlib.Path(current)  # the user's own setup, left as it is

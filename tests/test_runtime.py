@@ -34,6 +34,16 @@ def test_without_any_configuration_the_default_folder_is_used(tmp_path, monkeypa
   assert folder.is_dir()
 
 
+def test_jax_cache_switched_off_is_respected(tmp_path, restore_cache_config, caplog):
+  jax.config.update("jax_enable_compilation_cache", False)
+  try:
+    assert runtime.enable_compilation_cache(tmp_path / "xla") is None
+  finally:
+    jax.config.update("jax_enable_compilation_cache", True)
+  assert not (tmp_path / "xla").exists()
+  assert "switched off" in caplog.text
+
+
 def test_a_file_in_the_way_is_refused(tmp_path, restore_cache_config):
   blocker = tmp_path / "cache"
   blocker.write_text("user data")
