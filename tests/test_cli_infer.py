@@ -108,6 +108,20 @@ def test_overwrite_protection(tmp_path, folders, npz_ckpt, capsys):
   assert np.load(target).shape == (H, W)
 
 
+def test_a_symlinked_output_is_not_written_through(tmp_path):
+  # A link in OUT to a file elsewhere: writing the output would replace that file.
+  from sav_jax.tools import infer as infer_tool  # pylint: disable=import-outside-toplevel
+  mine = tmp_path / "elsewhere.npy"
+  mine.write_bytes(b"user data")
+  out = tmp_path / "out" / "disparity"
+  out.mkdir(parents=True)
+  (out / "0000.npy").symlink_to(mine)
+  for overwrite in (False, True):
+    with pytest.raises(FileExistsError, match=r"0000\.npy is a symbolic link \(to .*elsewhere"):
+      infer_tool.check_overwrite([out / "0000.npy"], overwrite)
+  assert mine.read_bytes() == b"user data"
+
+
 def test_a_window_that_cannot_run_leaves_no_output_folders(tmp_path, folders, npz_ckpt,
                                                             capsys, monkeypatch):
   """The memory check of the first window runs as it compiles, after the outputs were

@@ -19,6 +19,7 @@ import argparse
 import itertools
 import json
 import logging
+import os
 import pathlib
 import re
 import time
@@ -109,10 +110,14 @@ def output_paths(out: pathlib.Path, names: list[str], formats: list[str],
 
 def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
   """Raises FileExistsError if any output exists and `overwrite` is off, or if an output
-  (or a folder it goes in) is something other than a file (folder) even with `overwrite`."""
+  (or a folder it goes in) is something other than a file (folder), or a symbolic link,
+  even with `overwrite`."""
   checked = set()  # folders looked at already, with every folder above them
   existing = []
   for p in paths:
+    if p.is_symlink():  # writing would go through it, into a file elsewhere
+      raise FileExistsError(f"{p} is a symbolic link (to {os.readlink(p)}); move it away (its "
+                            "target is not written through, even with --overwrite)")
     if p.is_file():
       existing.append(p)
     elif p.exists():
