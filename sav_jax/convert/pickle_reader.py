@@ -41,6 +41,11 @@ LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 LEGACY_PROTOCOL = 1001
 # Tensors with more elements than their storage (stride-0 expansions) are refused above this.
 _MAX_EXPANDED_NUMEL = 1 << 24
+# All tensors together may take at most this many times their storages' bytes, plus
+# `_EXTRA_TENSOR_BYTES` (tied weights and views copy a storage's elements; a small file of
+# many full views of one storage, or of many expansions, would otherwise take any memory).
+_MAX_TENSOR_TO_STORAGE = 4
+_EXTRA_TENSOR_BYTES = 1 << 30
 
 
 class CheckpointError(ValueError):
@@ -537,8 +542,9 @@ def _read_legacy_storages(fh, keys, storages, source):
     storage.set_data(np.frombuffer(raw, dtype=storage.dtype.raw, count=numel))
 
 
-def _materialize(ref, source):
-  """Builds a contiguous numpy array (a copy) from a `_TensorRef`."""
+def _materialize(ref, source, charge=lambda ref: None):
+  """Builds a contiguous numpy array (a copy) from a `_TensorRef`; `charge(ref)` is called
+  (and may raise) before the copy is made."""
   data = ref.storage.array(source)
   dtype = ref.dtype or ref.storage.dtype
   if dtype.raw != data.dtype.newbyteorder("<"):  # _rebuild_tensor_v3 on another storage type
@@ -550,6 +556,7 @@ def _materialize(ref, source):
   if numel > max(data.size, _MAX_EXPANDED_NUMEL) or len(ref.size) > 32:
     raise CheckpointError(f"{source}: refused a tensor of size {ref.size} built from a storage "
                           f"of {data.size} elements")
+  charge(ref)
   if numel == 0:
     arr = np.zeros(ref.size, dtype=data.dtype)
   else:
@@ -590,6 +597,23 @@ def resolve_tensors(obj, source):
     The structure with arrays.
   """
   memo = {}
+  storages = set()
+  budget = [_EXTRA_TENSOR_BYTES, 0]  # bytes allowed, bytes built
+
+  def charge(ref):
+    root = ref.storage
+    while root.base is not None:
+      root = root.base
+    if id(root) not in storages and root.data is not None:
+      storages.add(id(root))
+      budget[0] += _MAX_TENSOR_TO_STORAGE * root.data.nbytes
+    itemsize = max((ref.dtype or ref.storage.dtype).raw.itemsize, 4)  # bf16/float8 -> float32
+    budget[1] += math.prod(ref.size) * itemsize
+    if budget[1] > budget[0]:
+      raise CheckpointError(
+          f"{source}: refused: its tensors would take over {budget[1] / 2**20:.1f} MiB, more "
+          f"than {_MAX_TENSOR_TO_STORAGE}x the data the file holds (+"
+          f"{_EXTRA_TENSOR_BYTES / 2**20:.0f} MiB); not a plain state dict")
 
   def walk(x):
     if id(x) in memo:
@@ -597,7 +621,7 @@ def resolve_tensors(obj, source):
         raise CheckpointError(f"{source}: self-referencing tuple in the checkpoint")
       return memo[id(x)]
     if isinstance(x, _TensorRef):
-      memo[id(x)] = _materialize(x, source)
+      memo[id(x)] = _materialize(x, source, charge)
     elif isinstance(x, dict):
       memo[id(x)] = out = {}
       for k, v in x.items():

@@ -354,6 +354,22 @@ def test_tensor_overrunning_storage_is_refused(tmp_path, fake_torch):
     torch_io.load_state_dict(tmp_path / "huge.pth")
 
 
+def test_many_views_of_one_storage_are_refused_beyond_a_memory_budget(tmp_path, fake_torch,
+                                                                       monkeypatch):
+  # Each tensor is a copy: a small file of many full views (or expansions) of one storage
+  # would take any amount of memory. Allowed: 4x the storages' bytes + the extra budget.
+  monkeypatch.setattr(pickle_reader, "_EXTRA_TENSOR_BYTES", 1000)
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(100, dtype=np.float32), "float32")  # 400 bytes
+  tied = {f"w{i}": b.tensor(st, 0, (100,), (1,)) for i in range(6)}  # 2400 <= 1000 + 1600
+  b.write_zip(tmp_path / "tied.pth", tied)
+  assert len(torch_io.load_state_dict(tmp_path / "tied.pth")) == 6
+  b.write_zip(tmp_path / "many.pth", {f"w{i}": b.tensor(st, 0, (100,), (1,)) for i in range(7)})
+  with pytest.raises(CheckpointError, match=r"many\.pth: refused: its tensors would take .* "
+                     r"more than 4x the data the file holds"):
+    torch_io.load_state_dict(tmp_path / "many.pth")
+
+
 def test_zip_with_missing_storage_record(tmp_path, fake_torch):
   b = _Builder(fake_torch)
   obj = {"x": b.array(np.ones(3, np.float32), "float32")}
