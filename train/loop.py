@@ -422,6 +422,7 @@ def setup(config, workdir):
   model = sav_jax.StereoAnyVideo(state_lib.model_config(config))
   abstract_params = state_lib.abstract_params(model, config)
   labels = optim.param_labels(abstract_params, config.optimizer.frozen)
+  optim.check_depth_prior_frozen(labels, config.optimizer.frozen)
   log.info("parameters: %s", state_lib.param_count(abstract_params, labels))
   tx = optim.make_optimizer(config.optimizer, config.train.num_steps)
   weights = None

@@ -85,6 +85,20 @@ def param_labels(params, frozen_pattern: str):
   return jax.tree_util.tree_map_with_path(label, params)
 
 
+def check_depth_prior_frozen(labels, frozen_pattern: str) -> None:
+  """Raises ValueError if `frozen_pattern` leaves a depth-prior leaf (`depthanything` in its
+  path) trainable: the model stops the gradient at the prior's output (as the official
+  model runs it without gradients), so such a leaf would get Adam moments and weight decay
+  but never a gradient."""
+  loose = [path_name(path) for path, label in jax.tree_util.tree_leaves_with_path(labels)
+           if label == TRAINABLE and "depthanything" in path_name(path)]
+  if loose:
+    raise ValueError(
+        f"config.optimizer.frozen={frozen_pattern!r} leaves {len(loose)} parameters of the "
+        f"frozen depth prior trainable (e.g. {loose[0]}): the model stops its gradient, so "
+        "they would only decay; use a pattern that matches 'depthanything' (the default)")
+
+
 def make_schedule(opt_cfg, num_steps: int) -> Callable[[Any], jax.Array]:
   """The learning-rate schedule of an optimizer config (see `configs/sceneflow.py`)."""
   if opt_cfg.schedule == "constant":

@@ -176,6 +176,17 @@ def test_trainable_vector_gathers_and_scatters_the_trainable_leaves_only():
     vector.scatter(params, jnp.zeros(9))
 
 
+def test_a_frozen_pattern_that_misses_the_depth_prior_is_refused():
+  params = {"depthnet": {"depthanything": {"blocks_0": {"w": np.zeros(2)}, "head": {"w": np.zeros(2)}},
+                         "conv": {"w": np.zeros(2)}}, "fnet": {"w": np.zeros(2)}}
+  optim.check_depth_prior_frozen(optim.param_labels(params, "depthanything"), "depthanything")
+  for pattern, n in (("", 2), ("blocks_", 1), ("^depthnet/depth_anything/", 2)):
+    with pytest.raises(ValueError, match=rf"config\.optimizer\.frozen='{re.escape(pattern)}' "
+                       rf"leaves {n} parameters of the frozen depth prior trainable "
+                       r"\(e\.g\. depthnet/depthanything/"):
+      optim.check_depth_prior_frozen(optim.param_labels(params, pattern), pattern)
+
+
 def test_real_model_optimizer_state_has_no_frozen_entries():
   c = synthetic.get_config()
   params = _real_abstract_params()
