@@ -298,7 +298,7 @@ def _check_restored_tree(directory, restored: dict, target: dict, saved: dict | 
     raise _mismatch(directory, problem)
 
 
-def load_model_params(path, cfg: sav_jax.SAVConfig, abstract_params) -> dict:
+def load_model_params(path, cfg: sav_jax.SAVConfig) -> dict:
   """Host params (the `params` collection only) from full-model weights.
 
   Args:
@@ -306,22 +306,14 @@ def load_model_params(path, cfg: sav_jax.SAVConfig, abstract_params) -> dict:
       `sav_jax.convert.save_variables`, or another run's checkpoint (its step folder, or its
       workdir for the latest step; only the params are read).
     cfg: the model config.
-    abstract_params: `jax.eval_shape` of the params; on several hosts an orbax directory
-      (then holding exactly `{"params": ...}`) is restored into it on each process's
-      first local device.
 
   Returns:
     Nested dict of numpy arrays; `torch_unused` and other collections are dropped.
   """
   path = pathlib.Path(path)
   if path.is_dir():
-    target = None  # any collections (e.g. torch_unused)
-    if jax.process_count() > 1:  # the default target would name another host's device
-      local = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-      target = {"params": jax.tree.map(
-          lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=local), abstract_params)}
-    try:
-      variables, _ = sav_jax.convert.restore_variables(path, target)
+    try:  # any collections (e.g. torch_unused), on this process's first device
+      variables, _ = sav_jax.convert.restore_variables(path)
     except sav_jax.convert.CheckpointError as e:  # it names the folder; say which field
       raise sav_jax.convert.CheckpointError(f"config.init_from: {e}") from e
     variables = jax.device_get(variables)

@@ -63,7 +63,7 @@ def initial_weights(config, abstract_params):
   # Conversion is host work that may touch the default device (e.g. eager shape probes).
   with jax.transfer_guard("allow"):
     vda = ckpt_lib.load_vda_params(config.vda_weights, cfg) if config.vda_weights else None
-    host = (ckpt_lib.load_model_params(config.init_from, cfg, abstract_params)
+    host = (ckpt_lib.load_model_params(config.init_from, cfg)
             if config.init_from else None)
   # Checked here, before the workdir is created.
   if host is not None:

@@ -163,8 +163,8 @@ def restore_variables(directory, target=None):
     target: optional abstract pytree (e.g. `jax.eval_shape(model.init, ...)`, leaves
       `jax.ShapeDtypeStruct`, with or without shardings) or concrete arrays to restore into.
       Without it, the structure, shapes and dtypes come from the saved metadata and arrays
-      are placed on the default device (so a checkpoint written on another device or
-      topology restores too).
+      are placed on this process's first device (so a checkpoint written on another device
+      or topology, or read by each of several processes, restores too).
 
   Returns:
     `(variables, config_dict)`.
@@ -335,7 +335,7 @@ def _restore_training_params(step: pathlib.Path, target=None):
 
 
 def _target_from_metadata(reader, directory, item, key=None):
-  """Abstract arrays on the default device, from the saved tree metadata of `item` (its
+  """Abstract arrays on this process's first device, from the saved tree metadata of `item` (its
   `key` subtree when given); with `item=None`, `reader` is the item's own handler and
   `directory` the item's folder."""
   try:
@@ -349,7 +349,8 @@ def _target_from_metadata(reader, directory, item, key=None):
     if corrupt is not None:
       raise corrupt from e
     raise CheckpointError(f"{directory}: unreadable checkpoint metadata ({e})") from e
-  sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+  # This process's first device (`jax.devices()[0]` is process 0's on several hosts).
+  sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
 
   def leaf(meta):
     if hasattr(meta, "shape") and hasattr(meta, "dtype"):

@@ -44,6 +44,10 @@ def launch(jobs, workdir):
   from tests.conftest import FIXTURES, _load_make_weights  # pylint: disable=g-import-not-at-top
   sd = _load_make_weights().make_state_dict(str(FIXTURES / "sav_manifest.json"), 0)
   save_state_dict(sd, workdir / "init.safetensors")
+  # The same weights as `sav-jax convert` writes them (with their `torch_unused` tensors),
+  # which each process also reads, into its own device.
+  from sav_jax import cli  # pylint: disable=g-import-not-at-top
+  assert cli.main(["convert", str(workdir / "init.safetensors"), str(workdir / "converted")]) == 0
   port = _free_port()
   env = conftest.child_env(jobs.cache, llvm_o0=True)  # both compile; they run 2 steps
   procs = []
@@ -51,6 +55,7 @@ def launch(jobs, workdir):
     cmd = [sys.executable, "-m", "tests.train.test_multihost", "--child",
            f"--coordinator=127.0.0.1:{port}", f"--process_id={pid}",
            f"--workdir={workdir / 'run'}", f"--init_from={workdir / 'init.safetensors'}",
+           f"--converted={workdir / 'converted'}",
            f"--out={workdir / f'report_{pid}.json'}"]
     procs.append((conftest.start(cmd, env, workdir / f"log_{pid}.txt"), workdir / f"log_{pid}.txt"))
   for proc, log in procs:
@@ -73,6 +78,9 @@ def test_two_processes_train_in_lock_step(jobs):
   assert r0["process_count"] == r1["process_count"] == 2 and r0["device_count"] == 2
   assert r0["step"] == r1["step"] == STEPS
   assert r0["digest"] == r1["digest"]  # identical parameters everywhere
+  # A converted folder as init_from reads on each process, the same params as the file's.
+  assert r0["converted_digest"] == r0["init_digest"] == r1["converted_digest"]
+  assert r0["converted_leaves"] > 400
   ckpt = out["workdir"] / "checkpoints" / str(STEPS)
   for i in range(2):  # each process saved its own data-iterator state
     assert (ckpt / "data" / f"process_{i}-of-2.json").is_file()
@@ -86,12 +94,13 @@ def test_two_processes_train_in_lock_step(jobs):
 
 def _child(argv):
   parser = argparse.ArgumentParser()
-  for name in ("coordinator", "workdir", "init_from", "out"):
+  for name in ("coordinator", "workdir", "init_from", "converted", "out"):
     parser.add_argument(f"--{name}")
   parser.add_argument("--process_id", type=int)
   parser.add_argument("--child", action="store_true")
   args = parser.parse_args(argv)
   import jax  # pylint: disable=g-import-not-at-top
+  import sav_jax  # pylint: disable=g-import-not-at-top
   jax.distributed.initialize(args.coordinator, 2, args.process_id)
   jax.config.update("jax_transfer_guard", "disallow")
   from train import loop  # pylint: disable=g-import-not-at-top
@@ -101,10 +110,16 @@ def _child(argv):
       "--config.eval.num_clips=2",
       "--config.eval.batch_size=2", f"--config.init_from={args.init_from}")
   state = loop.run(config, args.workdir)
+  from train import checkpoint as ckpt_lib  # pylint: disable=g-import-not-at-top
+  with jax.transfer_guard("allow"):
+    cfg = sav_jax.SAVConfig()
+    init, converted = (ckpt_lib.load_model_params(p, cfg) for p in (args.init_from, args.converted))
   local = jax.tree.map(lambda x: x.addressable_data(0), state.params)
   report = {"process_index": jax.process_index(), "process_count": jax.process_count(),
             "device_count": jax.device_count(), "step": int(jax.device_get(state.step)),
-            "digest": _digest(jax.device_get(local))}
+            "digest": _digest(jax.device_get(local)), "init_digest": _digest(init),
+            "converted_digest": _digest(converted),
+            "converted_leaves": len(jax.tree.leaves(converted))}
   with open(args.out, "w", encoding="utf-8") as f:
     json.dump(report, f)
 

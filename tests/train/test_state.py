@@ -344,12 +344,12 @@ def test_init_files_of_the_wrong_kind_name_the_file_and_the_field(tmp_path, vda_
   assert "config.vda_weights=" in str(e.value) and "sav.npz is a Stereo Any Video" in str(e.value)
   assert "give it as config.init_from" in str(e.value) and len(str(e.value)) < 400
   with pytest.raises(CheckpointError, match=r"vda\.npz is a Video Depth Anything .*vda_weights"):
-    ckpt_lib.load_model_params(tmp_path / "vda.npz", sav_jax.SAVConfig(), None)
+    ckpt_lib.load_model_params(tmp_path / "vda.npz", sav_jax.SAVConfig())
   broken = dict(sav_state_dict)
   del broken["fnet.conv1.weight"]
   save_state_dict(broken, tmp_path / "broken.npz")
   with pytest.raises(CheckpointError, match=r"(?s)config.init_from=.*broken.npz: .*fnet.conv1.weight"):
-    ckpt_lib.load_model_params(tmp_path / "broken.npz", sav_jax.SAVConfig(), None)
+    ckpt_lib.load_model_params(tmp_path / "broken.npz", sav_jax.SAVConfig())
 
 
 def test_resumed_run_logs_each_step_once(tmp_path):

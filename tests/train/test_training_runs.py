@@ -76,7 +76,7 @@ def test_trained_weights_serve_infer_convert_and_init(jobs, tmp_path, capsys):
   assert compact_config["model"] == config["model"]
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(compact["params"]), want)
   from train import checkpoint as ckpt_lib  # pylint: disable=import-outside-toplevel
-  init = ckpt_lib.load_model_params(workdir, model_cfg, None)  # --config.init_from=WORKDIR
+  init = ckpt_lib.load_model_params(workdir, model_cfg)  # --config.init_from=WORKDIR
   jax.tree.map(np.testing.assert_array_equal, init, want)
 
 
