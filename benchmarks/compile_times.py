@@ -57,7 +57,7 @@ def main(argv=None):
     p.error(f"frames >= 1 and a size in multiples of 16, got {args.frames} frames of "
             f"{args.height}x{args.width}")
   with runtime.preserved_settings():
-    jax.config.update("jax_compilation_cache_dir", None)
+    runtime.disable_compilation_cache()
     runtime.set_low_memory_compile(args.low_memory_compile)
     result = measure(args.frames, args.height, args.width, args.iters, args.whole)
   result["low_memory_compile"] = args.low_memory_compile

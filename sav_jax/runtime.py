@@ -96,6 +96,16 @@ def enable_compilation_cache(path: str | os.PathLike | None = None,
   return folder
 
 
+def disable_compilation_cache() -> None:
+  """Turns JAX's persistent compilation cache off for this process, including one set by
+  `JAX_COMPILATION_CACHE_DIR` (`preserved_settings` puts it back)."""
+  import jax  # pylint: disable=import-outside-toplevel
+  if jax.config.jax_compilation_cache_dir:
+    jax.config.update("jax_compilation_cache_dir", None)
+    from jax.experimental.compilation_cache import compilation_cache  # pylint: disable=import-outside-toplevel
+    compilation_cache.reset_cache()
+
+
 @functools.cache
 def _malloc_trim():
   if os.name != "posix":

@@ -52,6 +52,22 @@ def test_a_file_in_the_way_is_refused(tmp_path, restore_cache_config):
   assert blocker.read_text() == "user data"
 
 
+@pytest.mark.parametrize("flags,default_on", [({"no_compile_cache": True}, True), ({}, False)])
+def test_cache_off_means_off_even_when_the_environment_sets_one(tmp_path, restore_cache_config,
+                                                                flags, default_on):
+  # `--no-compile-cache`, and `sav-jax bench` without `--compile-cache` (it measures
+  # compiling): a JAX_COMPILATION_CACHE_DIR cache is neither read nor written.
+  import argparse  # pylint: disable=import-outside-toplevel
+  from sav_jax import tools  # pylint: disable=import-outside-toplevel
+  env_cache = tmp_path / "env"
+  runtime.enable_compilation_cache(env_cache, min_compile_time_s=0)  # as the variable does
+  args = argparse.Namespace(compile_cache=None, **flags)
+  assert tools.setup_compile_cache(args, default_on=default_on) is None
+  assert not jax.config.jax_compilation_cache_dir
+  jax.jit(lambda x: jnp.cos(x) * 5.0 - 2.0)(jnp.arange(5.0)).block_until_ready()
+  assert not any(env_cache.iterdir())
+
+
 def test_release_host_memory_works_on_glibc():
   junk = [bytearray(1 << 20) for _ in range(64)]  # 64 MB allocated and freed
   del junk

@@ -60,7 +60,9 @@ def add_compile_cache_arguments(p, default_on: bool = True) -> None:
 
 
 def setup_compile_cache(args, default_on: bool = True):
-  """Turns the cache on and sets the low-memory compile as the arguments say.
+  """Turns the cache on or off and sets the low-memory compile as the arguments say; off
+  means off, a cache set by `JAX_COMPILATION_CACHE_DIR` included (`--no-compile-cache`;
+  `sav-jax bench` without `--compile-cache`, which measures compiling).
 
   Returns:
     The cache folder, or None.
@@ -72,6 +74,7 @@ def setup_compile_cache(args, default_on: bool = True):
     return runtime.enable_compilation_cache(args.compile_cache)
   if default_on and not getattr(args, "no_compile_cache", False):
     return runtime.enable_compilation_cache()
+  runtime.disable_compilation_cache()
   return None
 
 
