@@ -28,6 +28,7 @@ import jax  # noqa: E402  pylint: disable=wrong-import-position
 import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax import runtime  # noqa: E402  pylint: disable=wrong-import-position
 from timing import add_clip_arguments, random_forward  # noqa: E402  pylint: disable=wrong-import-position
 
 _YNN = "xla_cpu_experimental_ynn_fusion_type"
@@ -60,6 +61,15 @@ def main():
     chosen = {names[int(i)]: OPTION_SETS[names[int(i)]] for i in a.sets.split(",")}
   except (ValueError, IndexError):
     p.error(f"--sets: comma-separated indices below {len(names)}, got {a.sets!r}")
+
+  # Options this jaxlib lacks (0.11+ has only the newer emitters) would stop the run.
+  platform = jax.default_backend()
+  for name in [n for n, o in chosen.items()
+               if not runtime._accepts_options(platform, tuple(sorted(o.items())))]:  # pylint: disable=protected-access
+    print(f"skipped (this jaxlib does not take its options): {name}")
+    del chosen[name]
+  if not chosen:
+    p.error("none of the chosen option sets compiles with this jaxlib")
 
   forward, variables, left, right = random_forward(sav_jax.SAVConfig(), a.frames, a.height,
                                                    a.width, a.iters)

@@ -14,21 +14,23 @@
 #               autotuner's scratch; the program's buffers are 9.4 GB)
 #   bench_blocked  bench_bf16 with the blocked softmax ViT attention (--vit-attention blocked)
 #   train       the training step at the paper's shape (T=5 256x512 iters=10, remat)  (190 s)
-#   precision   distance from the official output per compute mode (precision_check.py) (143 s)
+#   precision   distance from the official output per compute mode (precision_check.py;
+#               needs SAV_FIXTURES)                                                    (143 s)
 #   parity      the end-to-end parity tests on this backend (needs SAV_FIXTURES)        (> 150 s)
 #   stages      per-stage wall times at the paper's window, bfloat16 (stage_times.py)  (106 s)
 #   profile     per-module GPU time, multiply-adds and rate, bfloat16 (op_profile.py)  (75 s)
 #   variants    candidate rewrites of the update block's parts and the ViT attention, timed
 #               against the model's modules at the paper's window (update_variants.py)
 #   raft        the evaluator's RAFT flow for one 720x1280 pair, 20 iterations (raft_flow.py)
-#               and its parity tests (tests/model/test_raft.py); not in the default list
+#               and its parity tests (tests/model/test_raft.py; needs SAV_FIXTURES); not in
+#               the default list
 #   flags       bench_bf16 (2 calls) under XLA:GPU flag sets that may speed up the refinement
 #               loop (~75 s each, compile included): command buffers off / over the whole
 #               loop and its conditional, cuBLAS instead of Triton for the products, the
 #               exhaustive Triton tiling search; one JSON per set. Not in the default list
 #               (5 sets: ~7 minutes); `FLAG_SETS="name=flags;..."` replaces the sets
-# A lease of 15 device minutes holds about 13 minutes of steps (a start took ~30 s): pick
-# the steps. Each step has its own time limit; everything is logged to OUTDIR/suite.log and
+# A lease of 15 device minutes holds about 13 minutes of steps (a start took ~30 s); the
+# default list took ~19-20 minutes on 2026-11-30, so pick the steps. Each step has its own time limit; everything is logged to OUTDIR/suite.log and
 # the figures go to OUTDIR/*.json. A failure of the first step within 90 s (an import or API
 # error) stops the run, so that the rest of a short lease is not spent; the exit status is 1
 # when any step failed, 2 for an unknown step name (before anything runs). Rerunning a step

@@ -4,8 +4,8 @@
         opencv-python-headless tqdm
     git clone https://github.com/TomTomTommi/stereoanyvideo /path/to/stereoanyvideo
     python benchmarks/official_torch.py --repo /path/to/stereoanyvideo \
-        --json results/cpu_official_torch_t5_128x256_it8.json
-    sav-jax bench --compare results/cpu_official_torch_t5_128x256_it8.json
+        --json benchmarks/results/cpu_official_torch_t5_128x256_it8.json
+    sav-jax bench --compare benchmarks/results/cpu_official_torch_t5_128x256_it8.json
 
 Issue 7's targets are ratios against the official release *on the same hardware*, and the
 machines of one kind differ by up to ~1.6x in speed from day to day, so both sides of a ratio

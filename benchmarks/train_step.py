@@ -3,7 +3,7 @@
     python benchmarks/train_step.py                                   # the paper's shape
     python benchmarks/train_step.py --frames 3 --height 32 --width 64 --iters 2 --batch 2 \
         --no-remat                                                    # configs/synthetic.py
-    python benchmarks/train_step.py --json results/train_cpu.json
+    python benchmarks/train_step.py --json benchmarks/results/train_cpu.json
 
 Builds the same state, optimizer and step as `train/` (`configs/sceneflow.py` with the
 shape overridden; official initialisation), feeds a random batch (the step's cost does

@@ -88,6 +88,18 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
       {"median_s": 1.0, "compile_s": 50.0, "peak_rss_gb": 6.0, "device_peak_gb": 29.86})
   assert gpu.endswith("device peak x4.48 lower (6.67 GB vs 29.9 GB)"), gpu
   assert "(this run loaded it from the compilation cache)" in gpu
+  # a baseline from another machine is named (the official torch JSON says only "cpu")
+  here = {"device": "cpu:cpu", "host": "vm", "vit_attention": "blocked"}
+  assert bench.machine_note(here, {"device": "cpu", "host": "vm"}) == ""
+  assert bench.machine_note({**here, "device": "gpu:NVIDIA H200"},
+                            {"device": "gpu:NVIDIA H200", "host": "vm"}) == ""
+  note = bench.machine_note(here, {"device": "gpu:NVIDIA H200", "host": "gpu-box",
+                                   "vit_attention": "cudnn"})
+  assert note.startswith("warning: the baseline was measured elsewhere (device cpu:cpu here, "
+                         "gpu:NVIDIA H200 there; host vm here, gpu-box there; vit_attention "
+                         "blocked here, cudnn there)"), note
+  assert "H100" in bench.machine_note({**here, "device": "gpu:NVIDIA H200"},
+                                      {"device": "gpu:NVIDIA H100"})
   shape = dict(frames=2, height=32, width=64, iters=2, batch=1)  # ARGS's
   eager = {**eager, **shape}
   baselines = {"eager": {**eager, "median_s": None}, "shape": {**eager, "iters": 8},

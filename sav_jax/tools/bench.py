@@ -202,6 +202,27 @@ def baseline_differences(args: argparse.Namespace, base: dict) -> dict:
   return {k: (v, base[k]) for k, v in mine.items() if k in base and base[k] != v}
 
 
+def machine_note(res: dict, base: dict) -> str:
+  """A warning when the baseline was measured on another device (platform, or GPU model),
+  another host or with another ViT attention: a ratio needs both on the same machine in the
+  same session. `""` when both agree or the baseline does not record them."""
+  def device(d):
+    platform_, _, kind = str(d).partition(":")
+    return platform_, (kind if platform_ != "cpu" else "")  # CPU kinds name nothing useful
+  differ = []
+  if "device" in base:
+    (p1, k1), (p2, k2) = device(res["device"]), device(base["device"])
+    if p1 != p2 or (k1 and k2 and k1 != k2):
+      differ.append(f"device {res['device']} here, {base['device']} there")
+  for key in ("host", "vit_attention"):
+    if base.get(key) is not None and base[key] != res.get(key):
+      differ.append(f"{key} {res.get(key)} here, {base[key]} there")
+  if not differ:
+    return ""
+  return ("warning: the baseline was measured elsewhere (" + "; ".join(differ)
+          + "): the ratios compare machines, not code")
+
+
 def compare_line(res: dict, base: dict) -> str:
   """This run against a baseline: `forward x1.32 faster (0.75 s vs 0.99 s), ...`."""
   def ratio(name, now, before, unit, lower_is=("faster", "slower")):
@@ -262,6 +283,9 @@ def run(args: argparse.Namespace) -> int:
   print(f"throughput    {res['fps']:.2f} frames/s")
   print("\n".join(memory_lines(res)))
   if base is not None:
+    note = machine_note(res, base)
+    if note:
+      print(note)
     print(f"vs {args.compare}: " + compare_line(res, base))
   if args.json:
     with open(args.json, "w", encoding="utf-8") as f:
