@@ -19,11 +19,12 @@ import jax
 import numpy as np
 from flax import traverse_util
 
-from sav_jax.config import SAVConfig
+from sav_jax.config import VDA_VARIANTS, SAVConfig
 from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch
 from sav_jax.convert.torch_io import unwrap_state_dict
 from sav_jax.model.init import abstract_variables
 from sav_jax.convert.vda import convert_vda_state_dict, vda_state_dict_from_params
+from sav_jax.model.dinov2 import DINO_VARIANTS
 from sav_jax.model.vda import VideoDepthAnything
 
 VDA_PREFIX = "depthnet.depthanything."
@@ -32,6 +33,17 @@ UNUSED_COLLECTION = "torch_unused"
 SAV_UNUSED_KEYS = ("update_block.time_attn.temporal_attn.qkv.weight",)
 
 
+
+
+def vda_encoder_of(state_dict: Mapping, prefix: str = VDA_PREFIX) -> str | None:
+  """The `SAVConfig.vda_encoder` whose depth prior the weights hold ("vits", "vitl"), from the
+  width of the DINOv2 class token `{prefix}pretrained.cls_token` (`prefix=""` for a Video
+  Depth Anything checkpoint); None when the file does not say or names no supported one."""
+  width = np.shape(state_dict.get(prefix + "pretrained.cls_token", ()))[-1:]
+  for name in VDA_VARIANTS:
+    if (DINO_VARIANTS[name]["embed_dim"],) == width:
+      return name
+  return None
 
 
 def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig | None = None) -> dict:

@@ -91,9 +91,11 @@ def run(args: argparse.Namespace) -> int:
                              overwrite=args.overwrite)
       print(f"saved the params of {step} -> {args.dst}")
     return 0
-  cfg = sav_jax.SAVConfig()
   kind = "vda" if args.vda else "sav"
   sd = convert.load_state_dict_of_kind(args.src, kind, {"vda": "add --vda", "sav": "drop --vda"})
+  # The depth prior's size as the file has it (the paper's model: ViT-S).
+  encoder = convert.params.vda_encoder_of(sd, "" if kind == "vda" else convert.params.VDA_PREFIX)
+  cfg = sav_jax.SAVConfig(vda_encoder=encoder or "vits")
   try:
     if kind == "vda":
       variables = init_with_vda(sd, cfg, args.seed)

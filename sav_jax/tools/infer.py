@@ -515,7 +515,7 @@ def load_checkpoint(path, dtype: str | None = None):
     sd = convert.load_state_dict_of_kind(
         path, "sav", {"vda": "`sav-jax convert --vda` turns it into an initialisation for "
                              "training"})
-    cfg = sav_jax.SAVConfig()
+    cfg = sav_jax.SAVConfig(vda_encoder=convert.params.vda_encoder_of(sd) or "vits")
     try:
       variables = convert.params_from_state_dict(sd, cfg)
     except ValueError as e:  # one line for the command line; the full list in the debug log

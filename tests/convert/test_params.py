@@ -155,6 +155,29 @@ def test_depth_prior_is_converted_for_the_configured_encoder():
   assert "(vitl)" in msg and "missing key" in msg
   assert "wrong shape" not in msg and "cls_token'" not in msg, msg
 
+
+def test_the_depth_prior_size_is_read_from_the_file(tmp_path, capsys):
+  vitl = {"depthnet.depthanything.pretrained.cls_token": np.zeros((1, 1, 1024), np.float32),
+          "cnet.conv1.weight": np.zeros((64, 3, 7, 7), np.float32)}
+  assert convert.params.vda_encoder_of(vitl) == "vitl"
+  assert convert.params.vda_encoder_of({"pretrained.cls_token": np.zeros((1, 1, 384))}, "") == "vits"
+  assert convert.params.vda_encoder_of({"pretrained.cls_token": np.zeros((1, 1, 768))}, "") is None
+  assert convert.params.vda_encoder_of({}) is None
+  # `sav-jax convert` and `sav-jax infer` build the model the file's depth prior needs: the
+  # report is against the ViT-L model (its other keys missing), not 500 ViT-S shape errors.
+  np.savez(tmp_path / "vitl.npz", **vitl)
+  assert cli.main(["convert", str(tmp_path / "vitl.npz"), str(tmp_path / "out")]) == 2
+  err = capsys.readouterr().err
+  assert "does not match Stereo Any Video (vitl)" in err and "wrong shape" not in err, err
+  import cv2  # pylint: disable=import-outside-toplevel
+  for view in ("left", "right"):
+    (tmp_path / view).mkdir()
+    cv2.imwrite(str(tmp_path / view / "0000.png"), np.zeros((32, 32, 3), np.uint8))
+  assert cli.main(["infer", "--left", str(tmp_path / "left"), "--right", str(tmp_path / "right"),
+                   "--checkpoint", str(tmp_path / "vitl.npz"), "--out", str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err
+  assert "does not match Stereo Any Video (vitl)" in err, err
+
 def test_non_float_and_non_finite_tensors_are_refused(sav_state_dict):
   sd = dict(sav_state_dict)
   w = sd["cnet.conv1.weight"].copy()
