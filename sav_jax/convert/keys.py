@@ -63,6 +63,13 @@ def flax_to_torch_array(x: np.ndarray, leaf: str = "kernel") -> np.ndarray:
   return np.asarray(x, order="C")
 
 
+def unused_array(value) -> np.ndarray:
+  """A tensor kept beside the params (`torch_unused`): floating point as float32, like the
+  params, so that an export from a float16 file is float32 throughout."""
+  a = np.asarray(value)
+  return a.astype(np.float32) if np.issubdtype(a.dtype, np.floating) else a
+
+
 def converted(key: str, value, leaf: str, shape: tuple[int, ...], model: str = "the model"):
   """`(float32 Flax array, None)` for the torch tensor `key`, or `(None, problem)`.
 

@@ -66,7 +66,8 @@ def load_checkpoint_object(path, *, opaque_unknown: bool = False):
 
   Returns:
     The checkpoint object: dicts (OrderedDicts become dicts), lists, tuples, scalars and
-    numpy arrays. bfloat16/float8 tensors come back as float32, other dtypes unchanged.
+    numpy arrays. bfloat16 (and, in torch files, float8) tensors come back as float32, other
+    dtypes unchanged; safetensors' reader cannot load float8 (F8) tensors at all.
 
   Raises:
     CheckpointError: missing, unreadable, truncated or malicious file, or unknown suffix.
@@ -126,7 +127,7 @@ def _load_safetensors(path):
   out = {}
   for k, v in data.items():
     v = np.array(v)
-    if v.dtype.kind == "V" or v.dtype.name.startswith(("bfloat16", "float8")):
+    if v.dtype.kind == "V" or v.dtype.name.startswith("bfloat16"):
       v = v.astype(np.float32)
     out[k] = v
   return out
@@ -373,7 +374,10 @@ def check_writer(path) -> str:
 
 def _write_safetensors(arrays, fh):
   import safetensors.numpy  # pylint: disable=import-outside-toplevel
-  fh.write(safetensors.numpy.save(arrays))
+  # safetensors' numpy reader has no float8 (it wrote F8 that no reader here could load):
+  # float8 is widened to float32, as in .npz; bfloat16 stays bfloat16.
+  fh.write(safetensors.numpy.save({k: v.astype(np.float32) if v.dtype.name.startswith("float8")
+                                   else v for k, v in arrays.items()}))
 
 
 def _is_ml_dtype(a: np.ndarray) -> bool:

@@ -211,9 +211,13 @@ def test_half_precision_checkpoints_convert(sav_state_dict):
   # that type (up to 2.4e-4 / 2.0e-3 from the float32 table, against 1e-5 allowed before).
   for cast in (lambda a: a.astype(np.float16), _to_bfloat16):
     sd = {k: cast(v) if v.dtype == np.float32 else v for k, v in sav_state_dict.items()}
-    params = convert.params_from_state_dict(sd)["params"]
+    variables = convert.params_from_state_dict(sd)
+    params = variables["params"]
     np.testing.assert_allclose(params["cnet"]["conv1"]["kernel"].transpose(3, 2, 0, 1),
                                sav_state_dict["cnet.conv1.weight"], rtol=1e-2, atol=1e-3)
+    # the tensors kept for export are float32 too: an export is float32 throughout
+    unused = variables[convert.params.UNUSED_COLLECTION]
+    assert len(unused) >= 2 and {v.dtype for v in unused.values()} == {np.dtype(np.float32)}
   # a float32 table off by 1e-3 is still another table
   key = next(k for k in sav_state_dict if k.endswith(".pos_encoder.pe"))
   sd = dict(sav_state_dict)

@@ -779,6 +779,16 @@ def test_safetensors_bfloat16_loads_as_float32(tmp_path):
   np.testing.assert_array_equal(out["x"], [1.5, -2])
 
 
+def test_safetensors_written_here_read_back_with_float8_widened(tmp_path):
+  # safetensors' numpy reader cannot load F8 tensors: they are written as float32.
+  ml_dtypes = pytest.importorskip("ml_dtypes")
+  sd = {"f8": np.array([1.5, -2], ml_dtypes.float8_e4m3fn),
+        "bf": np.array([1.5, -2], ml_dtypes.bfloat16)}
+  out = torch_io.load_state_dict(torch_io.save_state_dict(sd, tmp_path / "f8.safetensors"))
+  assert out["f8"].dtype == out["bf"].dtype == np.float32
+  np.testing.assert_array_equal(out["f8"], [1.5, -2])
+
+
 def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
   def boom(*args, **kwargs):
     raise RuntimeError("disk full")
