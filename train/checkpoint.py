@@ -107,7 +107,7 @@ def run_fields(config) -> dict:
   return flat
 
 
-def _saved_run(manager: ocp.CheckpointManager, step: int) -> dict:
+def saved_run(manager: ocp.CheckpointManager, step: int) -> dict:
   """The run config saved with checkpoint `step` (`run_fields`), {} where there is none."""
   try:
     saved = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
@@ -121,7 +121,7 @@ def changed_fields(manager: ocp.CheckpointManager, step: int, config) -> list[st
   """`field: saved -> now` for every field of `config` that a resumed run changes, but
   those that only say where and how it runs (`_OPERATIONAL`); [] for checkpoints written
   before the config was saved with them."""
-  saved = _saved_run(manager, step)
+  saved = saved_run(manager, step)
   if not saved:
     return []
   now = run_fields(config)
@@ -177,7 +177,7 @@ def check_data_state(manager: ocp.CheckpointManager, step: int, config) -> None:
         f"run has {jax.process_count()}: resume with that many (each process's position in "
         f"the data is its own){hint}")
   now = config.data.worker_count
-  saved = _saved_run(manager, step).get("data.worker_count")
+  saved = saved_run(manager, step).get("data.worker_count")
   if saved is None and files:  # from before the run config was saved: the state's form
     try:
       state = json.loads(files[0].read_text(encoding="utf-8"))

@@ -99,6 +99,21 @@ def check_depth_prior_frozen(labels, frozen_pattern: str) -> None:
         "they would only decay; use a pattern that matches 'depthanything' (the default)")
 
 
+def schedule_change_note(opt_cfg, saved_steps, num_steps: int, step: int) -> str | None:
+  """A warning for a resume at `step` whose `train.num_steps` changed from `saved_steps`:
+  the one-cycle schedule (length `num_steps + 100` unless `schedule_steps` is set) is
+  rebuilt, so the learning rate jumps. None when nothing changes."""
+  if (opt_cfg.schedule != "one_cycle" or opt_cfg.schedule_steps > 0
+      or not isinstance(saved_steps, int) or saved_steps == num_steps):
+    return None
+  before = float(make_schedule(opt_cfg, saved_steps)(step))
+  after = float(make_schedule(opt_cfg, num_steps)(step))
+  return (f"train.num_steps {saved_steps} -> {num_steps} rebuilds the one-cycle schedule: the "
+          f"learning rate at step {step} goes from {before:.3g} to {after:.3g}; to keep the "
+          f"earlier cycle (and then its final rate), pass "
+          f"--config.optimizer.schedule_steps={saved_steps + 100}")
+
+
 def make_schedule(opt_cfg, num_steps: int) -> Callable[[Any], jax.Array]:
   """The learning-rate schedule of an optimizer config (see `configs/sceneflow.py`)."""
   if opt_cfg.schedule == "constant":

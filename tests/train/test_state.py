@@ -154,6 +154,26 @@ def test_schedule_shorter_than_the_run_holds_its_final_lr():
   np.testing.assert_allclose(lrs[1:], final, rtol=1e-5)
 
 
+def test_extending_a_one_cycle_run_names_the_learning_rate_jump():
+  c = synthetic.get_config()
+  c.optimizer.schedule, c.optimizer.schedule_steps = "one_cycle", 0
+  c.optimizer.lr, c.optimizer.pct_start = 1e-4, 0.01
+  note = optim.schedule_change_note(c.optimizer, 800, 1000, 800)  # a finished run, extended
+  before = float(optim.make_schedule(c.optimizer, 800)(800))
+  after = float(optim.make_schedule(c.optimizer, 1000)(800))
+  assert after > 2 * before
+  assert note == (f"train.num_steps 800 -> 1000 rebuilds the one-cycle schedule: the learning "
+                  f"rate at step 800 goes from {before:.3g} to {after:.3g}; to keep the earlier "
+                  "cycle (and then its final rate), pass --config.optimizer.schedule_steps=900")
+  # the advice holds: that cycle is the saved run's
+  c.optimizer.schedule_steps = 900
+  assert float(optim.make_schedule(c.optimizer, 1000)(800)) == before
+  assert optim.schedule_change_note(c.optimizer, 800, 1000, 800) is None  # a set cycle
+  c.optimizer.schedule_steps = 0
+  assert optim.schedule_change_note(c.optimizer, 1000, 1000, 800) is None
+  assert optim.schedule_change_note(c.optimizer, None, 1000, 800) is None  # older checkpoint
+
+
 @functools.lru_cache(maxsize=1)
 def _real_abstract_params():
   c = synthetic.get_config()
