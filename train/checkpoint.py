@@ -327,6 +327,11 @@ def load_model_params(path, cfg: sav_jax.SAVConfig) -> dict:
 def load_vda_params(path, cfg: sav_jax.SAVConfig | None = None) -> dict:
   """Host params of the frozen prior (to go under `params/depthnet/depthanything`), for the
   depth prior of `cfg.vda_encoder` (default: the paper's model)."""
+  if pathlib.Path(path).is_dir():
+    raise sav_jax.convert.CheckpointError(
+        f"config.vda_weights={path} is a folder: it takes a Video Depth Anything weights file "
+        "(.pth/.safetensors/.npz); a whole model's folder (a `sav-jax convert` output, a "
+        "training run) goes in config.init_from")
   model = VideoDepthAnything(**(cfg or sav_jax.SAVConfig()).vda)
   params, unused = _convert(path, "vda", "vda_weights",
                             lambda sd: sav_jax.convert.vda_params_from_state_dict(sd, model))
