@@ -22,6 +22,7 @@ import time
 from eval import config as eval_config
 from eval import report
 from sav_jax import runtime
+from sav_jax._checks import is_int
 # The evaluation's own modules (`eval.runner`, `sav_jax.inference`) import JAX: they are
 # imported once the arguments and the config are checked, so `--help` and a bad config or
 # override are answered at once.
@@ -68,8 +69,8 @@ def main(argv: list[str] | None = None) -> int:
 def run(args, overrides) -> int:
   """Loads config, data and weights, evaluates every sequence, writes the reports."""
   config = eval_config.apply_overrides(eval_config.load_config(args.config), overrides)
-  if config.iters < 2 or config.iters % 2:
-    raise ValueError(f"config.iters must be an even number >= 2, got {config.iters}")
+  if not (is_int(config.iters) and config.iters >= 2):
+    raise ValueError(f"config.iters must be an integer >= 2, got {config.iters!r}")
   if config.matmul_precision not in runtime.MATMUL_PRECISIONS:
     raise ValueError(f"config.matmul_precision must be one of {runtime.MATMUL_PRECISIONS}, got "
                      f"{config.matmul_precision!r}")

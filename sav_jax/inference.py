@@ -410,7 +410,7 @@ def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SA
     variables: model variables (as passed to the executable, see `model_variables`).
     frames, height, width: padded window shape (height, width multiples of 16).
     cfg: model config.
-    iters: refinement iterations (even).
+    iters: refinement iterations (>= 2).
     check_memory: refuse (InsufficientMemoryError) shapes that cannot fit.
 
   Returns:
@@ -865,7 +865,7 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
     left, right: `[T, H, W, 3]` RGB frames, uint8 or float in 0..255, or lazy video
       sources (see `iter_predict_video`).
     cfg: model config (default `SAVConfig()`).
-    iters: refinement iterations at 1/4 resolution (even; the official evaluation uses 20).
+    iters: refinement iterations at 1/4 resolution (>= 2; the official evaluation uses 20).
     window, stride: sliding window (official: 20, 10).
     dtype: compute dtype override ("float32" or "bfloat16").
     progress: show a tqdm progress bar (frames, frames per second).

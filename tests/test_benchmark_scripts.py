@@ -171,7 +171,7 @@ def test_official_torch_script_checks_its_arguments_and_times_parts_per_scale(tm
       official_torch.parse_args(argv)
     assert message in capsys.readouterr().err
   (repo / "models" / "core" / "stereoanyvideo.py").write_text("")
-  for extra, message in ((["--iters", "3"], "--iters must be even"),
+  for extra, message in ((["--iters", "1"], "--iters must be >= 2"),
                          (["--json", str(mine)], "exists; pass --overwrite"),
                          (["--json", str(tmp_path)], "is a folder"),
                          (["--json", str(tmp_path / "no" / "x.json")], "does not exist")):

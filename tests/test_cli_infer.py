@@ -407,7 +407,7 @@ def _bad_case(name, root, clip, npz_ckpt):
     (root / "l.txt").write_text("hello")
     return root / "l.txt", right, npz_ckpt, [], "expected a frame folder or a video file"
   if name == "odd_iters":
-    return left, right, npz_ckpt, ["--iters", "3"], "even"
+    return left, right, npz_ckpt, ["--iters", "1"], "--iters must be an integer >= 2"
   if name == "calibration":
     return left, right, npz_ckpt, ["--fx", "100"], "--baseline"
   if name == "fy_zero":

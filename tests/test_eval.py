@@ -214,7 +214,7 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
 
 @pytest.mark.parametrize("override,message", [
     ("--config.nope=1", "no such config field"), ("--config.iters=abc", "expected int"),
-    ("--config.iters=3", "even"), ("--config.plots.enabled=maybe", "true/false"),
+    ("--config.iters=1", "config.iters must be an integer >= 2, got 1"), ("--config.plots.enabled=maybe", "true/false"),
     ("--config.split=train", "only the split 'test'"),
     ("--config.devices=4", "config.devices: devices=4, but 1 local cpu device is available"),
     ("--config.devices=-1", "config.devices: devices must be a number of local devices"),

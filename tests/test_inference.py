@@ -344,7 +344,7 @@ def test_run_window_checks_its_inputs_before_compiling(variables):
            ((video[..., 0], video[..., 0]), {}, r"\[T, H, W, 3\]"),
            ((video, np.full(video.shape, np.nan, np.float32)), {}, "right: non-finite"),
            ((video[:0], video[:0]), {}, r"\[T, H, W, 3\]"),
-           ((video, video), {"iters": 3}, "even integer"),
+           ((video, video), {"iters": 1}, "iters must be an integer >= 2"),
            ((video, video), {"pads": (1, 1, 0, 0)}, "pads must be 4 integers"),
            ((video, video), {"pads": (0, 0, -1, 1)}, "pads must be 4 integers"),
            ((video, video), {"start": -1}, "start must be an integer >= 0")]
@@ -378,8 +378,8 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   with warnings.catch_warnings():
     warnings.simplefilter("error")
     inference.check_video_values(np.float32([[[[-0.4, 255.6, 9]]]]), "left")  # overshoot
-  with pytest.raises(ValueError, match="iters must be an even integer"):
-    inference.predict_video(variables, video, video, iters=3)
+  with pytest.raises(ValueError, match="iters must be an integer >= 2"):
+    inference.predict_video(variables, video, video, iters=1)
   iters = inference.check_iters(np.int64(4))
   assert iters == 4 and type(iters) is int
   with pytest.raises(ValueError, match=r"expected Flax variables \{'params': \.\.\.\}"):

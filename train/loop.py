@@ -224,7 +224,7 @@ _CHECKS = (
     ("train.batch_size", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("train.num_steps", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("train.iters", _is_iters,
-     "an even integer >= 2 (the 1/16 and 1/8 stages run iters//2 steps each)"),
+     "an integer >= 2 (the 1/16 and 1/8 stages run iters//2 >= 1 steps each)"),
     ("train.max_skipped_steps", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
     ("optimizer.lr", lambda x: _is_real(x) and x > 0, "a number > 0"),
     ("optimizer.weight_decay", lambda x: _is_real(x) and x >= 0, "a number >= 0"),
@@ -244,7 +244,7 @@ _CHECKS = (
     ("checkpoint.keep", lambda x: _is_int(x) and x >= 0, "an integer >= 0 (0 keeps all)"),
 )
 _EVAL_CHECKS = (
-    ("eval.iters", _is_iters, "an even integer >= 2"),
+    ("eval.iters", _is_iters, "an integer >= 2"),
     ("eval.batch_size", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("eval.num_clips", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
 )

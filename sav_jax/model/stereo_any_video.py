@@ -104,15 +104,17 @@ def check_frame_features(frame_feats, size) -> tuple[int, int]:
 
 
 def check_iters(iters) -> int:
-  """`iters` as a Python int; a ValueError unless it is an even integer >= 2.
+  """`iters` as a Python int; a ValueError unless it is an integer >= 2 (odd counts run as
+  the official model runs them: `iters // 2` steps at 1/16 and at 1/8, `iters` at 1/4, the
+  windows alternating from 1x9 at each scale; below 2 the official model has no 1/16 step).
 
   Any integer type is accepted (numpy's too, not bool), so `iters=np.int64(4)` and
   `iters=4` run, and cache, the same computation.
   """
-  if not is_int(iters) or iters < 2 or iters % 2:
+  if not is_int(iters) or iters < 2:
     raise ValueError(
-        f"iters must be an even integer >= 2 (the 1/16 and 1/8 stages run iters//2 "
-        f"steps each, and steps alternate 1x9 / 3x3 windows), got {iters!r}")
+        f"iters must be an integer >= 2 (the 1/16 and 1/8 stages run iters//2 >= 1 steps "
+        f"each), got {iters!r}")
   return int(iters)
 
 
@@ -285,7 +287,7 @@ class StereoAnyVideo(nn.Module):
     Args:
       left: `[B, T, H, W, 3]` RGB in 0..255 (H, W multiples of 16).
       right: `[B, T, H, W, 3]`.
-      iters: refinement steps at 1/4 (even); 1/16 and 1/8 get `iters // 2` each.
+      iters: refinement steps at 1/4 (>= 2); 1/16 and 1/8 get `iters // 2` each.
       final_only: return only the last prediction (`P = 1`), as test mode does.
 
     Returns:

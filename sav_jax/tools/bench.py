@@ -23,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--height", type=int, default=128, help="frame height (default 128)")
   p.add_argument("--width", type=int, default=256, help="frame width (default 256)")
   p.add_argument("--iters", type=int, default=8,
-                 help="refinement iterations at 1/4 (even; default 8)")
+                 help="refinement iterations at 1/4 (>= 2; default 8)")
   p.add_argument("--batch", type=int, default=1, help="clips per call (default 1)")
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
   p.add_argument("--vit-attention", choices=VIT_ATTENTION, default="auto",
@@ -247,8 +247,8 @@ def run(args: argparse.Namespace) -> int:
   from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
   if args.height % 16 or args.width % 16:
     raise UsageError(f"--height/--width must be multiples of 16 (got {args.height}x{args.width})")
-  if args.iters < 2 or args.iters % 2:
-    raise UsageError(f"--iters must be even and >= 2 (got {args.iters})")
+  if args.iters < 2:
+    raise UsageError(f"--iters must be >= 2 (got {args.iters})")
   if args.vit_attention == "cudnn" and args.dtype != "bfloat16":
     raise UsageError("--vit-attention cudnn needs --dtype bfloat16 (cuDNN's fused attention "
                      "has no float32 kernels)")

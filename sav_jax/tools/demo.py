@@ -43,7 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--frames", type=int, default=8, help="frames of the synthetic video (8)")
   p.add_argument("--height", type=int, default=128, help="frame height (128)")
   p.add_argument("--width", type=int, default=256, help="frame width (256)")
-  p.add_argument("--iters", type=int, default=4, help="refinement iterations (even; 4)")
+  p.add_argument("--iters", type=int, default=4, help="refinement iterations (>= 2; 4)")
   p.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene (0)")
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None, help="compute dtype")
   p.add_argument("--overwrite", action="store_true",

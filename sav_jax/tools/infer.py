@@ -44,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                       "checkpoint) or WORKDIR/checkpoints/STEP, or a .pth/.pt/.safetensors/.npz "
                       "state dict (converted on the fly)")
   p.add_argument("--out", required=True, help="output folder")
-  p.add_argument("--iters", type=int, default=20, help="refinement iterations (even; default 20)")
+  p.add_argument("--iters", type=int, default=20, help="refinement iterations (>= 2; default 20)")
   p.add_argument("--format", action="append", dest="formats", metavar="FMT",
                  help="disparity file format, repeatable or comma-separated: "
                       f"{', '.join(video_io.DISPARITY_FORMATS)} (default png16)")
@@ -181,8 +181,8 @@ def check_not_inputs(paths: list[pathlib.Path], inputs) -> None:
 
 
 def check_model_args(iters: int, window: int, stride: int) -> None:
-  if iters < 2 or iters % 2:
-    raise UsageError(f"--iters must be an even number >= 2, got {iters}")
+  if iters < 2:
+    raise UsageError(f"--iters must be an integer >= 2, got {iters}")
   if not 1 <= stride <= window:
     raise UsageError(f"need 1 <= --stride <= --window, got stride {stride}, window {window}")
 

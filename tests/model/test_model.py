@@ -126,6 +126,16 @@ def test_numpy_integer_iters_accepted(model):
   assert shapes.disparities.shape == (4, 1, 2, 32, 48)  # 1 at 1/16, 1 at 1/8, 2 at 1/4
 
 
+def test_odd_iters_run_as_the_official_cascade(model):
+  """iters=3: 1 + 1 + 3 predictions, as the official model gives; 1 has no 1/16 step."""
+  left = jnp.zeros((1, 2, 32, 48, 3))
+  shapes = jax.eval_shape(
+      lambda l, r: model.init_with_output(jax.random.PRNGKey(0), l, r, iters=3)[0], left, left)
+  assert shapes.disparities.shape == (5, 1, 2, 32, 48)
+  with pytest.raises(ValueError, match=r"iters must be an integer >= 2 .* got 1"):
+    jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=1), left, left)
+
+
 def test_bad_config_raises():
   with pytest.raises(ValueError, match="vda_encoder"):
     sav_jax.SAVConfig(vda_encoder="vitx")

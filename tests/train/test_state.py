@@ -660,13 +660,13 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
     ("train.batch_size", 0, r"config\.train\.batch_size=0: expected an integer >= 1"),
     ("train.batch_size", 3, r"config\.train\.batch_size=3 is not divisible by the 2 devices"),
     ("train.num_steps", 0, r"config\.train\.num_steps=0"),
-    ("train.iters", 3, r"config\.train\.iters=3: expected an even integer >= 2"),
+    ("train.iters", 1, r"config\.train\.iters=1: expected an integer >= 2"),
     ("data.crop", (32,), r"config\.data\.crop=\(32,\): expected \(height, width\)"),
     ("data.crop", (32, 40), r"config\.data\.crop=\(32, 40\).*multiples of 16"),
     ("optimizer.lr", -1.0, r"config\.optimizer\.lr=-1\.0: expected a number > 0"),
     ("optimizer.schedule", "cosine", r"config\.optimizer\.schedule='cosine'"),
     ("optimizer.frozen", "(", r"config\.optimizer\.frozen='\(': expected a regular expression"),
-    ("eval.iters", 5, r"config\.eval\.iters=5"),
+    ("eval.iters", 1, r"config\.eval\.iters=1: expected an integer >= 2"),
     ("model.dtype", "float16", r"config\.model\.dtype='float16'; expected 'float32' or"),
     ("model.remat_policy", "bogus", r"config\.model\.remat_policy='bogus'"),
     ("matmul_precision", "tf32", r"config\.matmul_precision='tf32': expected 'default', "),
@@ -794,7 +794,7 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
   broken = tmp_path / "broken.py"
   broken.write_text("def get_config(:\n")
   for flags, message in [
-      ([config, "--config.train.iters=3"], "config.train.iters=3: expected an even"),
+      ([config, "--config.train.iters=1"], "config.train.iters=1: expected an integer >= 2"),
       ([config, f"--config.init_from={weights}"], f"config.init_from: {weights}: the "
        "checkpoint is corrupt or incomplete"),
       ([config, "--config.train.batchsize=1"], "no such config field 'batchsize'; Did you mean "
