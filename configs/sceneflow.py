@@ -102,7 +102,8 @@ def base_config() -> ml_collections.ConfigDict:
   # section 3); 120k with batch 8 is this config's reading of the paper (not confirmed):
   # --config.train.num_steps=80000 for the script's length (the one-cycle schedule follows).
   c.train.num_steps = 120_000
-  # Refinement iterations at 1/4 (1/16 and 1/8 get iters//2): N = 2*iters predictions in the loss.
+  # Refinement iterations at 1/4 (1/16 and 1/8 get iters//2): N = iters + 2*(iters//2) predictions
+  # in the loss (2*iters for even iters).
   c.train.iters = 10
   # Log train scalars (means over the window) every this many steps (0: the last step only).
   c.train.log_every = 50

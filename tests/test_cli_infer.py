@@ -188,6 +188,10 @@ def test_unusable_checkpoints_are_refused_before_the_run(tmp_path, folders, vari
     sav_jax.convert.save_variables(tmp_path / "cfg", variables, stored, overwrite=True)
     with pytest.raises(sav_jax.convert.CheckpointError, match="invalid model config"):
       load_checkpoint(tmp_path / "cfg")
+  # A config stored before SAVConfig refused a remat_policy without remat still loads.
+  old = {**sav_jax.SAVConfig().to_dict(), "remat": False, "remat_policy": "dots_saveable"}
+  sav_jax.convert.save_variables(tmp_path / "cfg", variables, {"model": old}, overwrite=True)
+  assert load_checkpoint(tmp_path / "cfg")[1].remat_policy is None
 
 
 def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsys):

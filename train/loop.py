@@ -372,7 +372,7 @@ def setup_compile_cache(config) -> pathlib.Path | None:
   """Turns on JAX's persistent compilation cache as `config.compile_cache` says.
 
   "default": the folder the user configured for JAX (`JAX_COMPILATION_CACHE_DIR`), else
-  `sav_jax.runtime.default_cache_dir()`; "": off (JAX's own setting is left as it is); any
+  `sav_jax.runtime.default_cache_dir()`; "": off (a cache `JAX_COMPILATION_CACHE_DIR` sets too); any
   other value: that folder, created if missing. A resumed run then loads the train and
   validation steps its first run compiled. Returns the folder in use, or None (also when
   the default folder cannot be created: the run goes on without the cache, with a warning).
@@ -382,6 +382,7 @@ def setup_compile_cache(config) -> pathlib.Path | None:
   """
   value = config.compile_cache
   if not value:
+    runtime.disable_compilation_cache()
     return None
   try:
     return runtime.enable_compilation_cache(None if value == "default" else value)

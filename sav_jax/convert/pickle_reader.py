@@ -607,7 +607,9 @@ def resolve_tensors(obj, source):
     if id(root) not in storages and root.data is not None:
       storages.add(id(root))
       budget[0] += _MAX_TENSOR_TO_STORAGE * root.data.nbytes
-    itemsize = max((ref.dtype or ref.storage.dtype).raw.itemsize, 4)  # bf16/float8 -> float32
+    dtype = ref.dtype or ref.storage.dtype
+    widened = dtype.name == "bfloat16" or dtype.name.startswith("float8")  # -> float32
+    itemsize = 4 if widened else dtype.raw.itemsize
     budget[1] += math.prod(ref.size) * itemsize
     if budget[1] > budget[0]:
       raise CheckpointError(

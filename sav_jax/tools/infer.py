@@ -557,6 +557,9 @@ def _config_from_dict(cfg_dict, path):
         "not a mapping of SAVConfig fields")
   names = {f.name for f in dataclasses.fields(sav_jax.SAVConfig)}
   known = {k: v for k, v in d.items() if k in names}
+  if known.get("remat_policy") is not None and not known.get("remat"):
+    # Stored before SAVConfig refused the pair; without remat the policy never did anything.
+    known.pop("remat_policy")
   if not known:
     log.warning("%s: no model config stored; using the default SAVConfig", path)
   try:

@@ -739,16 +739,16 @@ def test_run_traces_under_the_configured_matmul_precision(monkeypatch):
 
 def test_compile_cache_setting(tmp_path, restore_cache_config, monkeypatch, caplog):
   """"default" keeps the folder the user gave JAX (here: the test session's), else takes
-  sav-jax's default folder; a folder is created and used; "" changes nothing; a folder that
+  sav-jax's default folder; a folder is created and used; "" turns any cache off; a folder that
   cannot be one is named (the default folder falls back to no cache, with a warning)."""
   from train import loop  # pylint: disable=g-import-not-at-top
   c = synthetic.get_config()
   session = jax.config.jax_compilation_cache_dir
   assert session and c.compile_cache == "default"
   assert loop.setup_compile_cache(c) == pathlib.Path(session)
-  c.compile_cache = ""
+  c.compile_cache = ""  # off: the folder JAX was given (the variable's) is not used either
   assert loop.setup_compile_cache(c) is None
-  assert jax.config.jax_compilation_cache_dir == session
+  assert not jax.config.jax_compilation_cache_dir
   c.compile_cache = str(tmp_path / "xla")
   assert loop.setup_compile_cache(c) == tmp_path / "xla" and (tmp_path / "xla").is_dir()
   assert jax.config.jax_compilation_cache_dir == str(tmp_path / "xla")
