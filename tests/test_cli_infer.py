@@ -122,6 +122,20 @@ def test_a_symlinked_output_is_not_written_through(tmp_path):
   assert mine.read_bytes() == b"user data"
 
 
+def test_a_symlink_among_an_earlier_demos_files_is_not_written_through(tmp_path):
+  from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
+  out = tmp_path / "demo"
+  (out / "disparity").mkdir(parents=True)
+  (out / "metrics.json").write_text(json.dumps({"weights": "random", "synthetic": {"frames": 2},
+                                                "metrics": {}}))
+  mine = tmp_path / "mine.png"
+  mine.write_bytes(b"user data")
+  (out / "disparity" / "frame_000001.png").symlink_to(mine)
+  with pytest.raises(FileExistsError, match=r"frame_000001\.png is a symbolic link"):
+    demo.check_demo_output(out, 2, False)
+  assert mine.read_bytes() == b"user data"
+
+
 def test_a_window_that_cannot_run_leaves_no_output_folders(tmp_path, folders, npz_ckpt,
                                                             capsys, monkeypatch):
   """The memory check of the first window runs as it compiles, after the outputs were

@@ -163,6 +163,9 @@ def check_demo_output(out: pathlib.Path, frames: int, overwrite: bool) -> list[p
     check_overwrite([out / n for n in OUTPUT_NAMES]
                     + [_frame_path(out, t) for t in range(frames)], overwrite)
   else:  # what the earlier demo wrote is replaced; frames beyond its count it did not write
+    # (a symbolic link among the replaced files is refused all the same)
+    check_overwrite([out / n for n in OUTPUT_NAMES]
+                    + [_frame_path(out, t) for t in range(min(earlier, frames))], True)
     check_overwrite([_frame_path(out, t) for t in range(earlier, frames)], overwrite)
   return stale
 
