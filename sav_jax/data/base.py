@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import decimal
+import os
 import re
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, Sequence
@@ -232,9 +233,12 @@ def list_files(directory: Path, *suffixes: str) -> list[Path]:
   """Files of `directory` with one of `suffixes` (e.g. ".png"), in natural name order
   (`natural_key`), hidden ones left out."""
   require_dir(directory)
-  return sorted((p for p in Path(directory).iterdir()
-                 if p.suffix.lower() in suffixes and not is_hidden(p) and p.is_file()),
-                key=natural_key)
+  files = [p for p in Path(directory).iterdir() if p.suffix.lower() in suffixes and not is_hidden(p)]
+  broken = [p for p in files if p.is_symlink() and not p.exists()]
+  if broken:  # left out, it would show only as a frame count that differs
+    raise FileNotFoundError(f"{broken[0]}: a symbolic link to a missing file "
+                            f"({os.readlink(broken[0])})")
+  return sorted((p for p in files if p.is_file()), key=natural_key)
 
 
 def list_dirs(directory: Path) -> list[Path]:
@@ -261,7 +265,7 @@ def check_matching(where: str, lists: Mapping[str, Sequence[Path]],
   """
   counts = {k: len(v) for k, v in lists.items()}
   if len(set(counts.values())) != 1:
-    raise ValueError(f"{where}: frame counts differ: {counts}")
+    raise ValueError(f"{where}: frame counts differ: {counts}" + _missing_frame(lists, key))
   names = list(lists)
   if counts[names[0]] == 0:
     raise FileNotFoundError(f"{where}: no frames found")
@@ -269,6 +273,18 @@ def check_matching(where: str, lists: Mapping[str, Sequence[Path]],
     for a, b in zip(lists[names[0]], lists[other]):
       if key(a) != key(b):
         raise ValueError(f"{where}: stem mismatch between {a} and {b}")
+
+
+def _missing_frame(lists: Mapping[str, Sequence[Path]], key: Callable[[Path], object]) -> str:
+  """`"; e.g. 'right_gt' lacks frame 2 (left_gt has .../depth_00002.png)"`: the first frame
+  key one list lacks that another has (the files are matched by key)."""
+  keyed = {kind: {key(p): p for p in files} for kind, files in lists.items()}
+  for kind, have in keyed.items():
+    for other, theirs in keyed.items():
+      missing = [k for k in theirs if k not in have]
+      if other != kind and missing:
+        return f"; e.g. {kind!r} lacks frame {missing[0]!r} ({other} has {theirs[missing[0]]})"
+  return ""
 
 
 def sceneflow_clips(n: int, frames: int) -> list[list[int]]:

@@ -367,6 +367,15 @@ def test_vkitti2_splits_depth_and_sky(tmp_path, caplog):
   assert "skipping 45 missing training sequences under" in warning and "Scene01/clone" in warning
   clips = registry.get_training_clips("vkitti2", tmp_path, frames=1)
   assert [c.indices for c in clips] == [[0]] * 5
+  # A missing frame file is named (with its key), not only counted; a dangling link too.
+  depth = tmp_path / "vkitti2/Scene06/fog/frames/depth/Camera_1"
+  (depth / "depth_00001.png").unlink()
+  with pytest.raises(ValueError, match=r"VKITTI2 Scene06_fog: frame counts differ: .*; e\.g\. "
+                     r"'right_gt' lacks frame 1 \(left has .*Camera_0/rgb_00001\.jpg\)"):
+    registry.get_sequences("vkitti2", tmp_path, "test")
+  (depth / "depth_00001.png").symlink_to(tmp_path / "gone.png")
+  with pytest.raises(FileNotFoundError, match=r"depth_00001\.png: a symbolic link to a missing"):
+    registry.get_sequences("vkitti2", tmp_path, "test")
   shutil.rmtree(tmp_path / "vkitti2/Scene06/fog")
   with pytest.raises(FileNotFoundError, match="Scene06/fog"):
     registry.get_sequences("vkitti2", tmp_path, "test")
