@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
   try:
     with command_logging(args.verbose):
       return run(args, overrides)
-  except (ValueError, FileNotFoundError, FileExistsError, UsageError) as e:
+  except (ValueError, OSError, UsageError) as e:  # OSError: a file that cannot be read or written
     print(f"eval: error: {e}", file=sys.stderr)
     return 2
 
@@ -82,10 +82,17 @@ def run(args, overrides) -> int:
     from sav_jax.tools.demo import check_sgbm_args  # pylint: disable=import-outside-toplevel
     check_sgbm_args(config.baseline.max_disparity, config.baseline.block_size,
                     "config.baseline.")
+  from eval import runner  # pylint: disable=import-outside-toplevel
+  out = check_output_dir(args.out or f"outputs/eval/{config.dataset}")
+  with runner.output_lock(out):
+    return _run_into(args, config, out)
+
+
+def _run_into(args, config, out) -> int:
+  """`run` once it holds `out`'s lock."""
   from eval import data as eval_data  # pylint: disable=import-outside-toplevel
   from eval import runner  # pylint: disable=import-outside-toplevel
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
-  out = check_output_dir(args.out or f"outputs/eval/{config.dataset}")
   restored = runner.restore_set_aside(out)
   if restored:
     print(f"restored {len(restored)} prediction and plot files that an interrupted "
@@ -121,8 +128,8 @@ def run(args, overrides) -> int:
     return evaluate(args, config, out, seqs, variables, model_cfg, described, devices, flow_fn)
   # The earlier run's predictions and plots go aside, and come back if this run fails
   # (a frame that cannot be read, an interrupt): a failed run loses nothing.
-  moved = runner.set_aside_written(out)
   try:
+    moved = runner.set_aside_written(out)
     rc = evaluate(args, config, out, seqs, variables, model_cfg, described, devices, flow_fn)
   except BaseException:
     runner.restore_set_aside(out)

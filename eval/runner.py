@@ -9,11 +9,14 @@ Aggregation over sequences is frame-weighted (`sav_jax.metrics.aggregate`).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
+import os
 import pathlib
 import re
 import shutil
+import socket
 import time
 
 import jax
@@ -238,6 +241,57 @@ def remove_written(out: pathlib.Path) -> list[pathlib.Path]:
 
 
 SET_ASIDE = ".earlier_run"
+LOCK = ".eval.lock"
+
+
+@contextlib.contextmanager
+def output_lock(out: pathlib.Path):
+  """Holds `out/.eval.lock` (host and PID) while an evaluation writes into `out`.
+
+  A second evaluation into the same folder is refused before it touches anything (its
+  start would otherwise take the running one's set-aside files for an interrupted run's).
+  A lock left by a process that no longer runs on this host is taken over. `out` is
+  created if needed, and removed again if the run leaves it empty.
+
+  Raises:
+    FileExistsError: another evaluation holds the lock.
+  """
+  created = not out.exists()
+  out.mkdir(parents=True, exist_ok=True)
+  lock = out / LOCK
+  me = f"{socket.gethostname()} {os.getpid()}"
+  for _ in range(2):
+    try:
+      fd = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+      break
+    except FileExistsError:
+      holder = lock.read_text(encoding="utf-8", errors="replace").split()
+      if not (len(holder) == 2 and holder[0] == socket.gethostname() and holder[1].isdigit()
+              and not _running(int(holder[1]))):
+        raise FileExistsError(
+            f"another evaluation ({' '.join(holder) or 'unknown'}) is writing into {out}: wait "
+            f"for it or choose another --out (if none is running, delete {lock})") from None
+      lock.unlink(missing_ok=True)  # its process has ended
+  else:
+    raise FileExistsError(f"cannot take the lock {lock}")
+  with os.fdopen(fd, "w", encoding="utf-8") as f:
+    f.write(me)
+  try:
+    yield
+  finally:
+    lock.unlink(missing_ok=True)
+    if created and not any(out.iterdir()):  # a run refused before writing leaves no folder
+      out.rmdir()
+
+
+def _running(pid: int) -> bool:
+  try:
+    os.kill(pid, 0)
+  except ProcessLookupError:
+    return False
+  except PermissionError:  # another user's process
+    return True
+  return True
 
 
 def set_aside_written(out: pathlib.Path) -> list[pathlib.Path]:
@@ -245,11 +299,13 @@ def set_aside_written(out: pathlib.Path) -> list[pathlib.Path]:
 
   `--overwrite` sets the earlier run's files aside instead of deleting them:
   `drop_set_aside` deletes them once the new run has finished, `restore_set_aside` puts
-  them back if it fails. Returns the moved paths (their places before the move).
+  them back if it fails. The list goes first, so that a stop midway leaves no list in
+  `out` naming the earlier files not yet moved (the restore would delete them as the failed
+  run's). Returns the moved paths (their places before the move).
   """
   aside = out / SET_ASIDE
   moved = _listed_files(out)
-  for path in [*moved, out / WRITTEN_LIST]:
+  for path in [out / WRITTEN_LIST, *moved]:
     if path.is_file():
       target = aside / path.relative_to(out)
       target.parent.mkdir(parents=True, exist_ok=True)

@@ -6,6 +6,7 @@ reported numbers are checked against `sav_jax.metrics` applied to the saved pred
 
 import csv
 import json
+import os
 import pathlib
 import time
 
@@ -193,6 +194,36 @@ def test_failed_overwrite_run_loses_nothing(tmp_path, ckpt, capsys, monkeypatch)
   assert main(args) == 2  # no --overwrite: refused, after the restore
   assert "restored 6 prediction and plot files" in capsys.readouterr().out
   assert _snapshot(out) == before
+  # Stopped while setting the files aside (after the first move): the restore loses nothing.
+  real_replace, moves = pathlib.Path.replace, []
+
+  def stop_at_second(self, target):
+    moves.append(self)
+    if len(moves) == 2:
+      raise KeyboardInterrupt
+    return real_replace(self, target)
+
+  with monkeypatch.context() as m:
+    m.setattr(pathlib.Path, "replace", stop_at_second)
+    with pytest.raises(KeyboardInterrupt):
+      eval_runner.set_aside_written(out)
+  eval_runner.restore_set_aside(out)
+  assert _snapshot(out) == before
+  # Another evaluation writing into the folder: refused before anything changes; a lock
+  # whose process has ended is taken over.
+  import socket  # pylint: disable=import-outside-toplevel
+  import subprocess  # pylint: disable=import-outside-toplevel
+  lock = out / eval_runner.LOCK
+  lock.write_text(f"{socket.gethostname()} {os.getpid()}")
+  assert main([*args, "--overwrite"]) == 2
+  assert f"another evaluation ({socket.gethostname()} {os.getpid()}) is writing into" in (
+      capsys.readouterr().err)
+  assert {k: v for k, v in _snapshot(out).items() if k != eval_runner.LOCK} == before
+  dead = subprocess.Popen(["true"])  # noqa: S607
+  dead.wait()
+  lock.write_text(f"{socket.gethostname()} {dead.pid}")
+  assert main(args) == 2  # refused for the earlier results, not for the lock
+  assert "pass --overwrite" in capsys.readouterr().err and not lock.exists()
 
 
 def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch):
