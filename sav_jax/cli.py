@@ -16,6 +16,11 @@ COMMANDS = {
 }
 
 
+# Arguments that name files or folders, of any command: an empty one is refused.
+_PATH_ARGS = ("left", "right", "checkpoint", "calib", "out", "src", "dst", "json", "compare",
+              "compile_cache")
+
+
 def build_parser() -> argparse.ArgumentParser:
   parser = argparse.ArgumentParser(
       prog="sav-jax", description="Stereo Any Video in JAX: temporally consistent video stereo.")
@@ -39,6 +44,11 @@ def main(argv: list[str] | None = None) -> int:
   them (`sav_jax.runtime.preserved_settings`)."""
   parser = build_parser()
   args = parser.parse_args(argv)
+  empty = [k for k in _PATH_ARGS if getattr(args, k, None) == ""]
+  if empty:  # "" would mean the current folder (an unset shell variable, e.g. --out "$OUT")
+    print(f"sav-jax {args.command}: error: --{empty[0].replace('_', '-')} is empty; give a path",
+          file=sys.stderr)
+    return 2
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel  # jax: after --help
   try:
     with command_logging(args.verbose), runtime.preserved_settings():

@@ -96,9 +96,10 @@ def _shown(value) -> str:
 
 
 def check_fps(fps, what: str = "fps") -> None:
-  """Raises ValueError unless `fps` is a finite positive frame rate."""
-  if not (isinstance(fps, numbers.Real) and math.isfinite(fps) and fps > 0):
-    raise ValueError(f"{what} must be a positive number, got {_shown(fps)}")
+  """Raises ValueError unless `fps` is a frame rate OpenCV's MPEG-4 writer takes (0.01 to
+  65535; beyond, it fails to open, after the whole run)."""
+  if not (isinstance(fps, numbers.Real) and math.isfinite(fps) and 0.01 <= fps <= 65535):
+    raise ValueError(f"{what} must be a number from 0.01 to 65535, got {_shown(fps)}")
 
 
 def check_intrinsics(what: str = "", **values) -> None:

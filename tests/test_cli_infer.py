@@ -108,6 +108,20 @@ def test_overwrite_protection(tmp_path, folders, npz_ckpt, capsys):
   assert np.load(target).shape == (H, W)
 
 
+def test_empty_paths_are_refused(tmp_path, capsys, monkeypatch):
+  # "" is the current folder: an unset shell variable (--out "$OUT") wrote there.
+  monkeypatch.chdir(tmp_path)
+  for argv, flag in ((["infer", "--left", "l", "--right", "r", "--checkpoint", "c", "--out", ""],
+                      "--out"),
+                     (["infer", "--left", "l", "--right", "r", "--checkpoint", "", "--out", "o"],
+                      "--checkpoint"),
+                     (["convert", "a.npz", ""], "--dst"),
+                     (["bench", "--json", ""], "--json")):
+    assert cli.main(argv) == 2
+    assert f"error: {flag} is empty; give a path" in capsys.readouterr().err
+  assert not any(tmp_path.iterdir())
+
+
 def test_a_symlinked_output_is_not_written_through(tmp_path):
   # A link in OUT to a file elsewhere: writing the output would replace that file.
   from sav_jax.tools import infer as infer_tool  # pylint: disable=import-outside-toplevel

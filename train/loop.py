@@ -289,6 +289,8 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
     ValueError: naming `config.<field>`, its value and what it must be.
     NotADirectoryError: `workdir` (or a folder above it, or its `checkpoints`) is a file.
   """
+  if not str(workdir):  # Path("") is the current folder (an unset $WORKDIR)
+    raise ValueError("--workdir is empty; give the run's folder")
   workdir = pathlib.Path(workdir)
   existing = next(p for p in (workdir, *workdir.absolute().parents) if p.exists())
   for path in (existing, workdir / "checkpoints"):

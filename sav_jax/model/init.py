@@ -58,10 +58,35 @@ def _is_norm(path: tuple[str, ...]) -> bool:
   return any(n in path[-2].lower() for n in _NORM_NAMES)
 
 
+def _init_depth_prior(path: tuple[str, ...], shape: tuple[int, ...], rng: np.random.Generator):
+  """The official constructors' own initialisation of the depth prior (used where no VDA
+  weights are loaded): DINOv2's `init_weights` (Linear layers N(0, 0.02) with zero biases,
+  the class token N(0, 1e-6)) and the motion modules' zeroed `proj_out` (each starts as an
+  identity residual); None for the PyTorch defaults (convolutions, the head)."""
+  leaf = path[-1]
+  if "motion_modules" in path[3] and path[-2] == "proj_out":
+    return np.zeros(shape, np.float32)
+  if path[2] != "pretrained" or _is_norm(path):
+    return None
+  if leaf == "cls_token":
+    return (1e-6 * rng.standard_normal(shape)).astype(np.float32)
+  if path[-3:-1] == ("patch_embed", "proj"):  # a convolution
+    return None
+  if leaf == "kernel" and len(shape) == 2:  # trunc_normal_(std=0.02): +-2 is 100 std away
+    return (0.02 * rng.standard_normal(shape)).astype(np.float32)
+  if leaf == "bias":
+    return np.zeros(shape, np.float32)
+  return None
+
+
 def _init_leaf(path: tuple[str, ...], shape: tuple[int, ...], rng: np.random.Generator):
   leaf = path[-1]
   if path[:3] == ("update_block", "time_attn", "temporal_fc"):
     return np.zeros(shape, np.float32)
+  if path[:2] == ("depthnet", "depthanything") and len(path) > 3:
+    value = _init_depth_prior(path, shape, rng)
+    if value is not None:
+      return value
   if leaf == "scale" or leaf == "gamma":
     return np.ones(shape, np.float32)
   if leaf == "bias" and _is_norm(path):

@@ -185,6 +185,22 @@ def test_config_accepts_ints_for_floats_and_named_remat_policies():
     assert sav_jax.SAVConfig.from_dict(mapping) == sav_jax.SAVConfig(remat=True)
 
 
+def test_fresh_depth_prior_is_initialised_as_the_official_constructors_do(variables):
+  # DINOv2's init_weights (Linear N(0, 0.02), zero biases, class token N(0, 1e-6)), the
+  # motion modules' zeroed proj_out (identity residuals), PyTorch defaults elsewhere.
+  vda = variables["params"]["depthnet"]["depthanything"]
+  block = vda["pretrained"]["blocks_0"]
+  assert 0.018 < float(jnp.std(block["attn"]["qkv"]["kernel"])) < 0.022
+  assert not jnp.any(block["attn"]["qkv"]["bias"]) and not jnp.any(block["mlp"]["fc2"]["bias"])
+  assert float(jnp.abs(vda["pretrained"]["cls_token"]).max()) < 1e-5
+  for i in range(4):
+    out = vda["head"][f"motion_modules_{i}"]["temporal_transformer"]["proj_out"]
+    assert not jnp.any(out["kernel"]) and not jnp.any(out["bias"])
+  patch = vda["pretrained"]["patch_embed"]["proj"]  # a convolution: bound 1/sqrt(fan_in)
+  bound = 1 / np.sqrt(14 * 14 * 3)
+  assert float(jnp.abs(patch["bias"]).max()) <= bound and float(jnp.std(patch["bias"])) > 0.5 * bound / np.sqrt(3)
+
+
 def test_gradients_are_finite_and_the_depth_prior_is_frozen(variables, clip):
   """jax.grad w.r.t. variables and images, under jit, with remat on (training's setting),
   in the bfloat16 mode. The float32 mode's gradients are those of the train step, which

@@ -699,6 +699,8 @@ def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match)
     loop.validate_config(c, tmp_path / "w", num_devices=2)
   loop.validate_config(synthetic.get_config(), tmp_path / "w", num_devices=2)
   assert not (tmp_path / "w").exists()
+  with pytest.raises(ValueError, match="--workdir is empty"):  # an unset $WORKDIR
+    loop.validate_config(synthetic.get_config(), "")
 
 
 def test_config_blocks_a_run_cannot_use_are_named(tmp_path):
