@@ -52,8 +52,9 @@ def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
 
 
 def test_bench_rejects_bad_sizes(capsys):
-  assert cli.main(["bench", "--height", "30"]) == 2
-  assert "multiples of 16" in capsys.readouterr().err
+  for height in ("30", "0", "-16"):
+    assert cli.main(["bench", "--height", height]) == 2
+    assert "--height/--width must be positive multiples of 16" in capsys.readouterr().err
   assert cli.main(["bench", "--vit-attention", "cudnn"]) == 2
   assert "--vit-attention cudnn needs --dtype bfloat16" in capsys.readouterr().err
 

@@ -79,7 +79,13 @@ def main(argv):
   config = load_config()
   import jax  # pylint: disable=g-import-not-at-top
   if _COORD.value is not None:
-    jax.distributed.initialize(_COORD.value, _NUM_PROC.value, _PROC_ID.value)
+    n, i = _NUM_PROC.value, _PROC_ID.value
+    if n is None or i is None or not (n >= 1 and 0 <= i < n):
+      _fail(f"--coordinator_address needs --num_processes >= 1 and 0 <= --process_id < "
+            f"--num_processes, got --num_processes={n} --process_id={i}")
+    jax.distributed.initialize(_COORD.value, n, i)
+  elif _NUM_PROC.value is not None or _PROC_ID.value is not None:
+    _fail("--num_processes and --process_id need --coordinator_address (host:port of process 0)")
   elif _DISTRIBUTED.value == "auto":
     jax.distributed.initialize()
   # Implicit host<->device copies are bugs in a training loop: make them errors.

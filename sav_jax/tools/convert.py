@@ -71,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
     raise UsageError(f"{args.dst}: cannot write a {suffix} file; name a "
                      f"{'/'.join(convert.torch_io.WRITE_SUFFIXES)} file, or a folder name "
                      "without a checkpoint suffix for an orbax directory")
+  if args.seed < 0:
+    raise UsageError(f"--seed must be >= 0, got {args.seed}")
   check_destination(args.src, args.dst, to_file, args.overwrite)
   if to_file:  # e.g. a .pth without torch: before the conversion's work
     convert.torch_io.check_writer(args.dst)

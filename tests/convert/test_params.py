@@ -291,6 +291,8 @@ def test_cli_convert_vda_only(tmp_path, vda_state_dict, capsys):
   assert cli.main(["convert", "--vda", str(sav), str(tmp_path / "c")]) == 2
   assert "sav.npz is a Stereo Any Video checkpoint, not a Video Depth" in capsys.readouterr().err
   assert not (tmp_path / "a").exists() and not (tmp_path / "c").exists()
+  assert cli.main(["convert", "--vda", str(src), str(tmp_path / "b"), "--seed", "-1"]) == 2
+  assert "--seed must be >= 0, got -1" in capsys.readouterr().err
   assert cli.main(["convert", "--vda", str(src), str(tmp_path / "b")]) == 0
   restored, _ = convert.restore_variables(tmp_path / "b")
   vda, _ = convert.vda_params_from_state_dict(vda_state_dict)
