@@ -137,6 +137,9 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
     old = directory.with_name(f"{directory.name}.old-{os.getpid()}")
     with _checkpointer() as ckptr:
       ckptr.save(new, args=args, force=True)
+    own = {p.name for p in new.iterdir()}
+    for extra in [p for p in directory.iterdir() if p.name not in own]:
+      extra.rename(new / extra.name)  # a user's file in the folder is kept, not deleted
     directory.rename(old)
     new.rename(directory)
     shutil.rmtree(old)

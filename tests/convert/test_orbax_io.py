@@ -71,10 +71,11 @@ def test_overwrite(tmp_path):
   orbax_io.save_variables(path, {"params": {"w": jnp.zeros(2)}}, {"v": 1})
   with pytest.raises(FileExistsError, match="overwrite=True"):
     orbax_io.save_variables(path, {"params": {"w": jnp.ones(2)}}, {"v": 2})
+  (path / "NOTES.txt").write_text("my notes")  # a user's file in the folder is kept
   orbax_io.save_variables(path, {"params": {"w": jnp.ones(3)}}, {"v": 2}, overwrite=True)
   restored, config = orbax_io.restore_variables(path)
   np.testing.assert_array_equal(restored["params"]["w"], np.ones(3))
-  assert config == {"v": 2}
+  assert config == {"v": 2} and (path / "NOTES.txt").read_text() == "my notes"
   assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt"]  # no leftovers of the swap
   # The old checkpoint stays whole until the new one is complete.
   with pytest.raises(CheckpointError, match="zero-size"):
