@@ -26,13 +26,15 @@ reproduces the official behaviour exactly, for parity):
     `(window - stride) // 2` frames in, which is the official rule for 20/10.
 
 Reuse across windows: the per-frame part of the model (DINOv2 tokens of both views,
-fnet, cnet) is computed once per frame, in chunks of `stride` frames, and kept while
+fnet, cnet) is computed once per frame, in chunks of `feature_chunk(window, stride)` =
+gcd(window, stride) frames (10 for the official 20/10), and kept while
 the windows that contain the frame run (`FrameFeatureCache`); only the temporal rest
 (VDA's DPT head, the depth conv and the refinement) runs per window. With the official
 20/10 windows this halves the per-frame work. The result is bit-identical to running
 each window on its own with chunks of the same length (`run_window`'s default cache has
-chunks of `STRIDE` = 10 frames; for another stride pass it `FrameFeatureCache(stride)`:
-other chunks batch the per-frame convolutions differently, ~1e-5 px apart).
+chunks of `STRIDE` = 10 frames; for other windows pass it
+`FrameFeatureCache(feature_chunk(window, stride))`: other chunks batch the per-frame
+convolutions differently, ~1e-5 px apart).
 
 Several devices (`devices=`): consecutive windows run at once, one per device, with the
 weights copied to each; a frame's per-frame features are computed on the device of the first
@@ -839,6 +841,8 @@ def resolve_devices(devices=None) -> list:
   if _is_int(devices):
     if devices == 0:
       return list(local)
+    if devices < 0:
+      raise ValueError(f"devices must be a number of local devices >= 0 (0: all), got {devices}")
     if not 1 <= devices <= len(local):
       raise ValueError(f"devices={devices}, but {len(local)} local {local[0].platform} "
                        f"device{'s are' if len(local) > 1 else ' is'} available")

@@ -82,6 +82,9 @@ def test_device_choices_are_checked():
   assert inference.resolve_devices(jax.local_devices()) == jax.local_devices()
   with pytest.raises(ValueError, match=f"devices={n + 1}, but {n} local cpu device"):
     inference.resolve_devices(n + 1)
+  with pytest.raises(ValueError, match=r"devices must be a number of local devices >= 0 "
+                     r"\(0: all\), got -1"):
+    inference.resolve_devices(-1)
   for bad in (-1, True, 1.5, "gpu", [], [jax.devices()[0]] * 2, ["cpu:0"], object()):
     with pytest.raises(ValueError, match="devices"):
       inference.resolve_devices(bad)

@@ -362,7 +362,8 @@ def check_writer(path) -> str:
   path = pathlib.Path(path)
   suffix = path.suffix.lower()
   if suffix not in _WRITERS:
-    raise CheckpointError(f"{path}: cannot write {suffix!r}; use .safetensors, .npz or .pth")
+    raise CheckpointError(f"{path}: cannot write {suffix or 'a file without a suffix'!r}; use "
+                          ".safetensors, .npz or .pth")
   if _WRITERS[suffix] is _write_torch:
     try:
       import torch  # pylint: disable=import-outside-toplevel,unused-import

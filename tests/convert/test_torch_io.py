@@ -802,6 +802,8 @@ def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
 def test_save_errors(tmp_path):
   with pytest.raises(CheckpointError, match="use .safetensors, .npz"):
     torch_io.save_state_dict({"x": np.zeros(1)}, tmp_path / "w.h5")
+  with pytest.raises(CheckpointError, match="cannot write 'a file without a suffix'"):
+    torch_io.save_state_dict({"x": np.zeros(1)}, tmp_path / "weights")
   with pytest.raises(CheckpointError, match="keys must be strings"):
     torch_io.save_state_dict({1: np.zeros(1)}, tmp_path / "w.npz")
 
