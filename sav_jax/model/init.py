@@ -83,10 +83,6 @@ def _init_leaf(path: tuple[str, ...], shape: tuple[int, ...], rng: np.random.Gen
   leaf = path[-1]
   if path[:3] == ("update_block", "time_attn", "temporal_fc"):
     return np.zeros(shape, np.float32)
-  if path[:2] == ("depthnet", "depthanything") and len(path) > 3:
-    value = _init_depth_prior(path, shape, rng)
-    if value is not None:
-      return value
   if leaf == "scale" or leaf == "gamma":
     return np.ones(shape, np.float32)
   if leaf == "bias" and _is_norm(path):
@@ -104,6 +100,10 @@ def _init_leaf(path: tuple[str, ...], shape: tuple[int, ...], rng: np.random.Gen
   return (0.02 * rng.standard_normal(shape)).astype(np.float32)
 
 
+def _fallback(value, default):
+  return default if value is None else value
+
+
 def init_variables(cfg: SAVConfig | None = None, seed: int = 0) -> dict:
   """`{"params": ...}` for `StereoAnyVideo(cfg)`, initialised as the official model.
 
@@ -117,6 +117,9 @@ def init_variables(cfg: SAVConfig | None = None, seed: int = 0) -> dict:
   cfg = cfg or SAVConfig()
   flat = traverse_util.flatten_dict(abstract_variables(cfg)["params"])
   rng = np.random.default_rng(seed)
+  # The depth prior's own initialisation draws from a stream of its own, so that the other
+  # parameters get the same values as with PyTorch's defaults throughout.
+  prior_rng = np.random.default_rng([seed, 1])
   out = {}
   for path in sorted(flat):
     value = _init_leaf(path, tuple(flat[path].shape), rng)
@@ -125,5 +128,7 @@ def init_variables(cfg: SAVConfig | None = None, seed: int = 0) -> dict:
       fan_in = int(np.prod(kernel.shape[:-1])) if kernel is not None else flat[path].shape[0]
       bound = 1.0 / math.sqrt(fan_in)
       value = rng.uniform(-bound, bound, flat[path].shape).astype(np.float32)
+    if path[:2] == ("depthnet", "depthanything") and len(path) > 3:
+      value = _fallback(_init_depth_prior(path, tuple(flat[path].shape), prior_rng), value)
     out[path] = value
   return {"params": traverse_util.unflatten_dict(out)}
