@@ -136,6 +136,18 @@ def test_a_symlinked_output_is_not_written_through(tmp_path):
   assert mine.read_bytes() == b"user data"
 
 
+def test_demo_checks_its_checkpoint_before_building_the_clip(tmp_path, capsys, monkeypatch):
+  from sav_jax.data import synthetic as synthetic_data  # pylint: disable=import-outside-toplevel
+
+  def too_early(*args, **kwargs):
+    raise AssertionError("the synthetic clip was built before the checkpoint was read")
+
+  monkeypatch.setattr(synthetic_data, "generate_clip", too_early)
+  assert cli.main(["demo", "--out", str(tmp_path / "d"), "--checkpoint",
+                   str(tmp_path / "missing.npz"), "--no-compile-cache"]) == 2
+  assert "missing.npz" in capsys.readouterr().err
+
+
 def test_a_symlink_among_an_earlier_demos_files_is_not_written_through(tmp_path):
   from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
   out = tmp_path / "demo"
@@ -469,8 +481,9 @@ def _bad_case(name, root, clip, npz_ckpt):
         "--max-depth must be a finite positive number"
   if name == "devices_word":
     return left, right, npz_ckpt, ["--devices", "two"], "devices must be a number of local devices"
-  if name == "devices_too_many":  # this process has one CPU device
-    return left, right, npz_ckpt, ["--devices", "3"], "--devices: devices=3, but 1 local cpu device"
+  if name == "devices_too_many":  # this process has one CPU device; the cache folder not made
+    return (left, right, npz_ckpt, ["--devices", "3", "--compile-cache", str(root / "new_cache")],
+            "--devices: devices=3, but 1 local cpu device")
   calib = {"calib_no_keys": ('{"left": {"fx": 720}, "baseline_m": 0.1}', "no calibration found"),
            "calib_null": ('{"fx": null, "baseline": 0.1}', "fx must be a number, got None"),
            "calib_units": ("fx: 720\nbaseline: 0.54 m\n", "line 2: baseline must be one number"),
@@ -516,6 +529,7 @@ def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, n
     assert (out / "side_by_side.mp4").is_dir() or (out / "disparity").read_text() == "keep"
   else:
     assert not out.exists()
+  assert not (tmp_path / "new_cache").exists()
 
 
 def test_frame_folder_names_the_frame_of_another_size(tmp_path):

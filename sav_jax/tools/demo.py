@@ -184,11 +184,11 @@ def run(args: argparse.Namespace) -> int:
     raise UsageError("need --frames >= 1, --height >= 16 and --width >= 32")
   out = check_output_dir(args.out)
   stale = check_demo_output(out, args.frames, args.overwrite)
+  setup_compile_cache(args)
+  variables, cfg, described = _weights(args, args.dtype)  # a bad checkpoint fails first
   scfg = synthetic.SyntheticConfig(frames=args.frames, height=args.height, width=args.width,
                                    max_disparity=min(64.0, args.width / 8), seed=args.seed)
   clip = synthetic.generate_clip(scfg, 0)
-  setup_compile_cache(args)
-  variables, cfg, described = _weights(args, args.dtype)
   print(f"weights: {described}")
   print(f"synthetic video: {args.frames} frames of {args.height}x{args.width} (seed {args.seed}), "
         f"iters {args.iters}, {cfg.dtype}")

@@ -211,9 +211,9 @@ def run(args: argparse.Namespace) -> int:
   stale = earlier_outputs(out, outputs) if args.overwrite else []
   check_not_inputs(stale, (args.left, args.right))
 
-  setup_compile_cache(args)
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
   devices = resolve_devices_option(args.devices)
+  setup_compile_cache(args)  # (after the devices are checked: it may create the folder)
   for source in (left, right):  # the reach of the windows' and the outputs' reads
     source.keep = args.window + (len(devices) - 1) * args.stride + 1
   variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
