@@ -88,10 +88,7 @@ def enable_compilation_cache(path: str | os.PathLike | None = None,
     raise ValueError(f"cannot create the compilation cache folder {folder}: {e}") from e
   jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
   if str(folder) != current:
-    jax.config.update("jax_compilation_cache_dir", str(folder))
-    # JAX decides once per process whether the cache is used; make it look again.
-    from jax.experimental.compilation_cache import compilation_cache  # pylint: disable=import-outside-toplevel
-    compilation_cache.reset_cache()
+    _set_cache_dir(str(folder))
   log.debug("persistent compilation cache: %s", folder)
   return folder
 
@@ -101,9 +98,16 @@ def disable_compilation_cache() -> None:
   `JAX_COMPILATION_CACHE_DIR` (`preserved_settings` puts it back)."""
   import jax  # pylint: disable=import-outside-toplevel
   if jax.config.jax_compilation_cache_dir:
-    jax.config.update("jax_compilation_cache_dir", None)
-    from jax.experimental.compilation_cache import compilation_cache  # pylint: disable=import-outside-toplevel
-    compilation_cache.reset_cache()
+    _set_cache_dir(None)
+
+
+def _set_cache_dir(folder: str | None) -> None:
+  """Sets `jax_compilation_cache_dir` (None: off) so that it takes effect: JAX decides once
+  per process whether the cache is used, so it is made to look again."""
+  import jax  # pylint: disable=import-outside-toplevel
+  from jax.experimental.compilation_cache import compilation_cache  # pylint: disable=import-outside-toplevel
+  jax.config.update("jax_compilation_cache_dir", folder)
+  compilation_cache.reset_cache()
 
 
 @functools.cache
@@ -194,19 +198,17 @@ def preserved_settings():
   (a notebook, a test) leaves the caller's JAX configuration as it was.
   """
   import jax  # pylint: disable=import-outside-toplevel
-  keys = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
-  before = {k: getattr(jax.config, k) for k in keys}
+  folder = jax.config.jax_compilation_cache_dir
+  min_time = jax.config.jax_persistent_cache_min_compile_time_secs
   low_memory = _low_memory_compile
   try:
     yield
   finally:
     set_low_memory_compile(low_memory)
-    changed = {k: v for k, v in before.items() if getattr(jax.config, k) != v}
-    for k, v in changed.items():
-      jax.config.update(k, v)
-    if "jax_compilation_cache_dir" in changed:
-      from jax.experimental.compilation_cache import compilation_cache  # pylint: disable=import-outside-toplevel
-      compilation_cache.reset_cache()
+    if jax.config.jax_persistent_cache_min_compile_time_secs != min_time:
+      jax.config.update("jax_persistent_cache_min_compile_time_secs", min_time)
+    if jax.config.jax_compilation_cache_dir != folder:
+      _set_cache_dir(folder)
 
 
 @functools.cache

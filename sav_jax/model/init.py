@@ -100,10 +100,6 @@ def _init_leaf(path: tuple[str, ...], shape: tuple[int, ...], rng: np.random.Gen
   return (0.02 * rng.standard_normal(shape)).astype(np.float32)
 
 
-def _fallback(value, default):
-  return default if value is None else value
-
-
 def init_variables(cfg: SAVConfig | None = None, seed: int = 0) -> dict:
   """`{"params": ...}` for `StereoAnyVideo(cfg)`, initialised as the official model.
 
@@ -129,6 +125,7 @@ def init_variables(cfg: SAVConfig | None = None, seed: int = 0) -> dict:
       bound = 1.0 / math.sqrt(fan_in)
       value = rng.uniform(-bound, bound, flat[path].shape).astype(np.float32)
     if path[:2] == ("depthnet", "depthanything") and len(path) > 3:
-      value = _fallback(_init_depth_prior(path, tuple(flat[path].shape), prior_rng), value)
+      prior = _init_depth_prior(path, tuple(flat[path].shape), prior_rng)
+      value = value if prior is None else prior
     out[path] = value
   return {"params": traverse_util.unflatten_dict(out)}
