@@ -1,7 +1,7 @@
 """Command line of the evaluation program (`python -m eval`).
 
     python -m eval --config configs/eval/<dataset>.py --checkpoint CKPT \\
-        --data-root data/datasets [--out DIR] [--baseline sgbm] [--overwrite] \\
+        --data-root data/datasets [--out DIR] [--baseline sgbm] [--overwrite | --resume] \\
         [--compile-cache DIR | --no-compile-cache] [--config.iters=20 --config.max_sequences=2 ...]
 
 Writes to --out (default `outputs/eval/<dataset>`): `results.md` (the paper's columns),
@@ -9,8 +9,10 @@ Writes to --out (default `outputs/eval/<dataset>`): `results.md` (the paper's co
 `plots/<sequence>_curves.png` (per-frame EPE and TEPE) and `plots/<sequence>_strip.png`
 (colourized disparity), and with `--config.save_predictions=true`
 `predictions/<sequence>.npy`; `written_files.txt` lists the prediction and plot files written,
-which `--overwrite` deletes before the next run (nothing else in the folder is touched). Bad
-input exits with status 2 and one line on stderr.
+which `--overwrite` deletes before the next run (nothing else in the folder is touched).
+While it runs, `progress.jsonl` records each finished sequence: `--resume` continues an
+interrupted run (a frame that could not be read, a stop) without evaluating those again, if
+its settings are the same. Bad input exits with status 2 and one line on stderr.
 """
 
 from __future__ import annotations
@@ -44,7 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--out", help="output folder (default outputs/eval/<dataset>)")
   p.add_argument("--baseline", action="append", choices=eval_config.BASELINES, default=[],
                  help="add a baseline row computed on the same frames (repeatable)")
-  p.add_argument("--overwrite", action="store_true", help="replace existing results")
+  again = p.add_mutually_exclusive_group()
+  again.add_argument("--overwrite", action="store_true", help="replace existing results")
+  again.add_argument("--resume", action="store_true",
+                     help="continue an interrupted run in --out with the same settings: its "
+                          "finished sequences are not evaluated again")
   add_compile_cache_arguments(p)
   p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
   return p
@@ -98,11 +104,18 @@ def _run_into(args, config, out) -> int:
     print(f"restored {len(restored)} prediction and plot files that an interrupted "
           f"--overwrite run had set aside in {out / runner.SET_ASIDE}")
   earlier = [p for p in (*(out / f"results.{x}" for x in ("json", "csv", "md")),
-                         out / runner.WRITTEN_LIST, out / "predictions", out / "plots")
+                         out / runner.WRITTEN_LIST, out / runner.PROGRESS, out / "predictions",
+                         out / "plots")
              if p.is_file() or (p.is_dir() and any(p.iterdir()))]
-  if earlier and not args.overwrite:  # also the predictions of an interrupted run
-    raise FileExistsError(f"{', '.join(map(str, earlier))} exist; pass --overwrite to replace "
-                          "them")
+  if args.resume:
+    if not (out / runner.PROGRESS).is_file() and (out / "results.json").is_file():
+      raise FileExistsError(f"nothing to resume: {out} holds a finished evaluation "
+                            "(results.json); pass --overwrite to replace it")
+  elif earlier and not args.overwrite:  # also the predictions of an interrupted run
+    interrupted = (out / runner.PROGRESS).is_file()
+    raise FileExistsError(f"{', '.join(map(str, earlier))} exist; pass "
+                          + ("--resume to continue that interrupted run, or " if interrupted
+                             else "") + "--overwrite to replace them")
   inference.check_window(config.window, config.stride)
   devices = resolve_devices_option(config.devices, "config.devices")
   setup_compile_cache(args)
@@ -124,13 +137,23 @@ def _run_into(args, config, out) -> int:
   flow_fn = runner.raft_flow_fn(config)
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)
+  methods = ["sav"] + [b for b in dict.fromkeys(args.baseline)]
+  settings = runner.run_settings(config, described, methods)
+  done = (runner.read_progress(out, settings) or {}) if args.resume else {}
+  for seq in seqs:
+    if str(seq.name) in done and done[str(seq.name)].frames != len(seq):
+      raise ValueError(f"cannot resume: sequence {seq.name} has {len(seq)} frames, the "
+                       f"interrupted run evaluated {done[str(seq.name)].frames}; pass "
+                       "--overwrite to start again")
+  run_args = (config, out, seqs, variables, model_cfg, described, methods, settings, done,
+              devices, flow_fn)
   if not args.overwrite:
-    return evaluate(args, config, out, seqs, variables, model_cfg, described, devices, flow_fn)
+    return evaluate(*run_args)
   # The earlier run's predictions and plots go aside, and come back if this run fails
   # (a frame that cannot be read, an interrupt): a failed run loses nothing.
   try:
     moved = runner.set_aside_written(out)
-    rc = evaluate(args, config, out, seqs, variables, model_cfg, described, devices, flow_fn)
+    rc = evaluate(*run_args)
   except BaseException:
     runner.restore_set_aside(out)
     raise
@@ -140,23 +163,31 @@ def _run_into(args, config, out) -> int:
   return rc
 
 
-def evaluate(args, config, out, seqs, variables, model_cfg, described, devices=None,
-             flow_fn=None) -> int:
-  """Evaluates every sequence and writes the reports."""
+def evaluate(config, out, seqs, variables, model_cfg, described, methods, settings, done,
+             devices=None, flow_fn=None) -> int:
+  """Evaluates every sequence (but those in `done`, a resumed run's finished ones), records
+  each in the progress file, and writes the reports."""
   from eval import runner  # pylint: disable=import-outside-toplevel
-  methods = ["sav"] + [b for b in dict.fromkeys(args.baseline)]
   on = f"; {len(devices)} {devices[0].platform} devices" if devices and len(devices) > 1 else ""
   print(f"{config.dataset}/{config.split}: {len(seqs)} sequences; weights: {described}{on}")
+  if done:
+    print(f"--resume: {len(done)} sequences finished by the interrupted run are not evaluated "
+          "again")
   results = []
   for i, seq in enumerate(seqs):
-    res = runner.evaluate_sequence(seq, methods, variables=variables, model_cfg=model_cfg,
-                                   config=config, out=out, devices=devices, flow_fn=flow_fn)
+    res = done.get(str(seq.name))
+    if res is None:
+      res = runner.evaluate_sequence(seq, methods, variables=variables, model_cfg=model_cfg,
+                                     config=config, out=out, devices=devices, flow_fn=flow_fn)
+      runner.append_progress(out, settings, res)
     results.append(res)
     line = "  ".join(f"{eval_config.METHOD_NAMES[m]}: EPE {r['disp_epe_mean']:.3f} TEPE "
                      f"{r['disp_temp_epe_mean']:.3f}" for m, r in res.metrics.items())
-    print(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  {line}")
+    again = "  (from the interrupted run)" if str(seq.name) in done else ""
+    print(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  {line}{again}")
   summary = build_summary(config, described, results, methods)
   paths = report.write_all(out, summary)
+  (out / runner.PROGRESS).unlink(missing_ok=True)  # finished: nothing left to resume
   print(report.markdown(summary).split("## Per sequence")[0].rstrip())
   print("wrote " + ", ".join(str(p) for p in paths))
   return 0

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import logging
 import os
 import pathlib
@@ -224,7 +225,7 @@ def _listed_files(out: pathlib.Path) -> list[pathlib.Path]:
     path = out / parts[0] / parts[1]
     if path.is_file() and not path.is_symlink():
       files.append(path)
-  return files
+  return list(dict.fromkeys(files))  # a resumed run lists a redone sequence's files again
 
 
 def remove_written(out: pathlib.Path) -> list[pathlib.Path]:
@@ -238,6 +239,87 @@ def remove_written(out: pathlib.Path) -> list[pathlib.Path]:
     path.unlink()
   (out / WRITTEN_LIST).unlink(missing_ok=True)
   return removed
+
+
+# One JSON line per finished sequence (after a header line naming the run's settings),
+# appended and flushed as each sequence ends: `--resume` reuses them after a crash or a stop,
+# and a run that finishes deletes the file once its reports are written.
+PROGRESS = "progress.jsonl"
+_PROGRESS_VERSION = 1
+# Config fields that do not change any written number or file: a resumed run may differ in them.
+_RESUME_FREE = ("devices", "max_sequences")
+
+
+def run_settings(config, described: str, methods) -> dict:
+  """What a resumed run must share with the interrupted one: the config (but `devices` and
+  `max_sequences`), the weights' description and the methods, as JSON would store them."""
+  settings = {k: v for k, v in config.to_dict().items() if k not in _RESUME_FREE}
+  return json.loads(json.dumps({"config": settings, "weights": described,
+                                "methods": list(methods)}))
+
+
+def _differences(old, new, prefix="") -> list[str]:
+  if isinstance(old, dict) and isinstance(new, dict):
+    return [d for k in sorted(set(old) | set(new), key=str)
+            for d in _differences(old.get(k), new.get(k), f"{prefix}{k}.")]
+  return [] if old == new else [f"{prefix[:-1]}: {old!r} then, {new!r} now"]
+
+
+def read_progress(out: pathlib.Path, settings: dict) -> dict[str, SequenceResult] | None:
+  """The finished sequences that `out/progress.jsonl` records, by name; None without the file.
+
+  A last line cut short (the run was killed while writing it) is dropped from the file.
+
+  Raises:
+    ValueError: the file was written with other settings (the differences are named), or
+      a line of it is not what `append_progress` writes.
+  """
+  path = out / PROGRESS
+  if not path.is_file():
+    return None
+  text = path.read_text(encoding="utf-8")
+  if text and not text.endswith("\n"):  # killed mid-line: that sequence is done again
+    text = text[:text.rfind("\n") + 1]
+    path.write_text(text, encoding="utf-8")
+  lines = text.splitlines()
+  try:
+    header = json.loads(lines[0]) if lines else {}
+  except json.JSONDecodeError:
+    header = {}
+  if header.get("sav_jax_eval_progress") != _PROGRESS_VERSION:
+    raise ValueError(f"{path} is not an evaluation progress file of this version; pass "
+                     "--overwrite to start again")
+  differences = _differences({k: header.get(k) for k in settings}, settings)
+  if differences:
+    raise ValueError(f"cannot resume: the interrupted run in {out} used other settings ("
+                     f"{'; '.join(differences[:3])}{'; ...' if len(differences) > 3 else ''})"
+                     "; run with those, or pass --overwrite to start again")
+  done = {}
+  for number, line in enumerate(lines[1:], 2):
+    try:
+      rec = json.loads(line)
+      res = SequenceResult(name=rec["name"], frames=rec["frames"], metrics=rec["metrics"],
+                           seconds=rec["seconds"], compile_seconds=rec["compile_seconds"],
+                           metrics_seconds=rec["metrics_seconds"])
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+      raise ValueError(f"{path}: line {number} is not a finished sequence's record ("
+                       f"{type(e).__name__}: {e}); pass --overwrite to start again") from None
+    done[res.name] = res
+  return done
+
+
+def append_progress(out: pathlib.Path, settings: dict, res: SequenceResult) -> None:
+  """Records a finished sequence in `out/progress.jsonl` (the header first if the file is
+  new), flushed to disk before returning."""
+  path = out / PROGRESS
+  lines = [] if path.is_file() else [{"sav_jax_eval_progress": _PROGRESS_VERSION, **settings}]
+  lines.append({"name": res.name, "frames": res.frames, "metrics": res.metrics,
+                "seconds": res.seconds, "compile_seconds": res.compile_seconds,
+                "metrics_seconds": res.metrics_seconds})
+  with open(path, "a", encoding="utf-8") as f:
+    f.writelines(json.dumps(line) + "\n" for line in lines)
+    f.flush()
+    os.fsync(f.fileno())
 
 
 SET_ASIDE = ".earlier_run"
@@ -295,7 +377,8 @@ def _running(pid: int) -> bool:
 
 
 def set_aside_written(out: pathlib.Path) -> list[pathlib.Path]:
-  """Moves the files an earlier run listed (and the list) into `out/.earlier_run/`.
+  """Moves the files an earlier run listed (the list and its progress file too) into
+  `out/.earlier_run/`.
 
   `--overwrite` sets the earlier run's files aside instead of deleting them:
   `drop_set_aside` deletes them once the new run has finished, `restore_set_aside` puts
@@ -305,7 +388,7 @@ def set_aside_written(out: pathlib.Path) -> list[pathlib.Path]:
   """
   aside = out / SET_ASIDE
   moved = _listed_files(out)
-  for path in [out / WRITTEN_LIST, *moved]:
+  for path in [out / WRITTEN_LIST, out / PROGRESS, *moved]:
     if path.is_file():
       target = aside / path.relative_to(out)
       target.parent.mkdir(parents=True, exist_ok=True)
@@ -315,11 +398,13 @@ def set_aside_written(out: pathlib.Path) -> list[pathlib.Path]:
 
 def restore_set_aside(out: pathlib.Path) -> list[pathlib.Path]:
   """Undoes `set_aside_written` after a failed (or killed) run: deletes the files the
-  failed run listed, then moves the earlier run's files and list back. Returns them."""
+  failed run listed and its progress file, then moves the earlier run's files, list and
+  progress file back. Returns the prediction and plot files."""
   aside = out / SET_ASIDE
   if not aside.is_dir():
     return []
   remove_written(out)
+  (out / PROGRESS).unlink(missing_ok=True)  # the failed run's
   restored = []
   for path in sorted(p for p in aside.rglob("*") if p.is_file()):
     target = out / path.relative_to(aside)
@@ -327,7 +412,7 @@ def restore_set_aside(out: pathlib.Path) -> list[pathlib.Path]:
     path.replace(target)
     restored.append(target)
   drop_set_aside(out)
-  return [p for p in restored if p.name != WRITTEN_LIST]
+  return [p for p in restored if p.name not in (WRITTEN_LIST, PROGRESS)]
 
 
 def drop_set_aside(out: pathlib.Path) -> None:

@@ -226,6 +226,65 @@ def test_failed_overwrite_run_loses_nothing(tmp_path, ckpt, capsys, monkeypatch)
   assert "pass --overwrite" in capsys.readouterr().err and not lock.exists()
 
 
+def test_resume_after_a_failed_run(tmp_path, ckpt, capsys, monkeypatch):
+  # A run that fails at its second sequence keeps the first one's record; --resume evaluates
+  # only the second, with the same settings, and reports both as an uninterrupted run would.
+  out = tmp_path / "run"
+  args = ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), "--out", str(out),
+          "--config.metrics.tcc=true", *SMALL]
+  real_append, real_evaluate = eval_runner.append_progress, eval_runner.evaluate_sequence
+  evaluated = []
+
+  def second_fails(out_, settings, res):  # after the second sequence's files are written
+    if len(evaluated) == 2:
+      raise OSError(f"{res.name}: disk full")
+    return real_append(out_, settings, res)
+
+  def counting(seq, *a, **kw):
+    evaluated.append(seq.name)
+    return real_evaluate(seq, *a, **kw)
+
+  monkeypatch.setattr(eval_runner, "evaluate_sequence", counting)
+  with monkeypatch.context() as m:
+    m.setattr(eval_runner, "append_progress", second_fails)
+    assert main(args) == 2
+  assert "synthetic_001: disk full" in capsys.readouterr().err
+  records = (out / eval_runner.PROGRESS).read_text().splitlines()
+  assert len(records) == 2 and json.loads(records[1])["name"] == "synthetic_000"
+  assert main(args) == 2  # without --resume: refused, and told about it
+  assert "pass --resume to continue that interrupted run, or --overwrite" in (
+      capsys.readouterr().err)
+  assert main([*args, "--resume", "--config.iters=4"]) == 2  # other settings: refused, named
+  assert "cannot resume: the interrupted run in" in (err := capsys.readouterr().err)
+  assert "iters: 2 then, 4 now" in err
+  with pytest.raises(SystemExit):  # argparse: not both
+    main([*args, "--resume", "--overwrite"])
+  assert "--overwrite: not allowed with argument --resume" in capsys.readouterr().err
+  # A record cut short by a kill is dropped (that sequence is done again).
+  with open(out / eval_runner.PROGRESS, "a", encoding="utf-8") as f:
+    f.write('{"name": "synthetic_001", "fra')
+  evaluated.clear()
+  assert main([*args, "--resume", "--config.devices=1"]) == 0  # devices may differ
+  assert evaluated == ["synthetic_001"]
+  printed = capsys.readouterr().out
+  assert "--resume: 1 sequences finished by the interrupted run" in printed
+  assert "synthetic_000 (4 frames)" in printed and "(from the interrupted run)" in printed
+  assert not (out / eval_runner.PROGRESS).exists()  # finished: nothing left to resume
+  config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")),
+                                       eval_config.split_overrides(SMALL)[1])
+  summary = _check_against_metrics(out, eval_data.load_sequences(config, None), ["sav"],
+                                   with_scale=True)
+  assert "disp_TCC" in summary["methods"]["sav"]["aggregate"]
+  assert main([*args, "--resume"]) == 2  # a finished run: nothing to resume
+  assert "nothing to resume" in capsys.readouterr().err
+  # The second sequence's files are listed twice (the failed run's and the resumed one's):
+  # --overwrite removes each once.
+  listed = (out / eval_runner.WRITTEN_LIST).read_text().splitlines()
+  assert len(listed) == 3 * 3 and len(set(listed)) == 6
+  assert main([*args, "--overwrite", "--config.synthetic.num_sequences=1"]) == 0
+  assert sorted(p.name for p in (out / "predictions").iterdir()) == ["synthetic_000.npy"]
+
+
 def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch):
   seen = []
 
