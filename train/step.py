@@ -135,7 +135,11 @@ def jit_train_step(train_step, state_shardings, mesh):
 
 
 def make_eval_fn(model, iters: int, params_sharding, mesh):
-  """Jitted `predict(params, left, right) -> [B, T, H, W]` final disparity (batch on `data`)."""
+  """Jitted `predict(params, left, right) -> [B, T, H, W]` final disparity (batch on `data`).
+
+  The absolute value, as the official evaluator (`forward_batch_test`) and `python -m eval`
+  score it: a pixel predicted with the wrong sign is not a large error there.
+  """
   dsh = data_sharding(mesh)
 
   @functools.partial(jax.jit, in_shardings=(params_sharding, dsh, dsh), out_shardings=dsh,
@@ -143,6 +147,6 @@ def make_eval_fn(model, iters: int, params_sharding, mesh):
   def predict(params, left, right):
     out = model.apply({"params": params}, left.astype(jnp.float32),
                       right.astype(jnp.float32), iters=iters, final_only=True)
-    return out.disparities[0]
+    return jnp.abs(out.disparities[0])
 
   return predict
