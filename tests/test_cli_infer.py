@@ -554,6 +554,15 @@ def test_calibration_file(tmp_path):
                    "P_rect_03: 7.2e+02 0 6.0e+02 -3.4e+02 0 7.2e+02 1.8e+02 0 0 0 1 0\n")
   c = read_calibration(kitti)
   assert c["fx"] == 720 and c["cy"] == 180 and c["baseline"] == pytest.approx(385 / 720)
+  assert "width" not in c  # no S_rect_02: any frame size with the principal point inside
+  with open(kitti, "a", encoding="utf-8") as f:  # raw KITTI: the rectified image size
+    f.write("S_rect_02: 1.242000e+03 3.750000e+02\nS_rect_03: 1.242000e+03 3.750000e+02\n")
+  c = read_calibration(kitti)
+  assert (c["width"], c["height"]) == (1242, 375)
+  from sav_jax.tools.infer import CalibrationSpec  # pylint: disable=import-outside-toplevel
+  assert CalibrationSpec(**c).resolve(1242, 375).cx == 600
+  with pytest.raises(UsageError, match="for images of width 1242, the frames' width is 621"):
+    CalibrationSpec(**c).resolve(621, 188)  # half-size frames: cx 600 lies inside them
   js = tmp_path / "c.json"
   js.write_text(json.dumps({"fx": 500, "baseline": 0.12}))
   assert read_calibration(js) == {"fx": 500.0, "baseline": 0.12}

@@ -415,7 +415,8 @@ def read_calibration(path) -> dict[str, float]:
   """Reads fx, fy, cx, cy, baseline (doffs) from JSON, `key value` text, a KITTI calib file
   or a Middlebury `calib.txt`.
 
-  KITTI: `P_rect_02`/`P_rect_03` (raw data) or `P2`/`P3` (odometry, stereo benchmarks);
+  KITTI: `P_rect_02`/`P_rect_03` (raw data; `S_rect_02`, the rectified image size, gives
+  `width` and `height`) or `P2`/`P3` (odometry, stereo benchmarks);
   baseline = (P2[0,3] - P3[0,3]) / fx. Middlebury: `cam0=[fx 0 cx; 0 fy cy; 0 0 1]`,
   `baseline` (mm), `doffs` (else cam1's cx - cam0's cx). Any format may give `width` and
   `height`, the image size it is for, which the frames must then have.
@@ -464,6 +465,9 @@ def read_calibration(path) -> dict[str, float]:
   size = {k: entries[k][0] for k in _SIZE_KEYS if k in entries}
   for p2, p3 in (("P_rect_02", "P_rect_03"), ("P2", "P3")):
     if len(entries.get(p2) or ()) == 12 and len(entries.get(p3) or ()) == 12:
+      rect_size = entries.get(p2.replace("P_", "S_")) or ()  # KITTI raw: S_rect_02 = W H
+      if not size and len(rect_size) == 2:
+        size = {"width": rect_size[0], "height": rect_size[1]}
       m2, m3 = np.reshape(entries[p2], (3, 4)), np.reshape(entries[p3], (3, 4))
       return {"fx": m2[0, 0], "fy": m2[1, 1], "cx": m2[0, 2], "cy": m2[1, 2],
               "baseline": abs(m2[0, 3] - m3[0, 3]) / m2[0, 0], **size}
