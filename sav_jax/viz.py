@@ -227,6 +227,8 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
     raise ValueError(f"{path}: write_video writes mp4v video files; name one "
                      f"{'/'.join(VIDEO_SUFFIXES)}")
   check_fps(fps, f"{path}: fps")
+  if not path.parent.is_dir():  # OpenCV would only say it cannot open the writer
+    raise FileNotFoundError(f"{path}: the folder {path.parent} does not exist")
   streamed = not isinstance(frames, (np.ndarray, list, tuple))
   if not streamed:  # all checked before the file is created
     checked = []
@@ -367,8 +369,8 @@ def write_ply(path, xyz, colors) -> int:
     The number of points N.
 
   Raises:
-    ValueError: `xyz` is not `[..., 3]` numbers, `colors` has another shape or values
-      outside 0..255 (checked before the file is created).
+    ValueError: `xyz` is not `[..., 3]` numbers or not finite in float32, `colors` has
+      another shape or values outside 0..255 (checked before the file is created).
   """
   xyz, colors = np.asarray(xyz), np.asarray(colors)
   if xyz.ndim < 1 or xyz.shape[-1] != 3 or xyz.dtype.kind not in "uif":
@@ -377,7 +379,13 @@ def write_ply(path, xyz, colors) -> int:
   if colors.shape != xyz.shape:
     raise ValueError(f"write_ply: colors of shape {colors.shape} do not match xyz {xyz.shape}")
   colors = as_uint8_image(colors, "write_ply colors").reshape(-1, 3)
-  xyz = xyz.astype(np.float32).reshape(-1, 3)
+  with np.errstate(over="ignore"):
+    xyz = xyz.astype(np.float32).reshape(-1, 3)
+  bad = ~np.isfinite(xyz).all(axis=1)
+  if bad.any():  # viewers reject or mis-scale such clouds (disparity_to_points drops them)
+    raise ValueError(f"write_ply: {int(bad.sum())} of {len(xyz)} points are not finite in "
+                     f"float32 (NaN, inf or beyond 3.4e38), the first at index "
+                     f"{int(np.argmax(bad))}: drop them first")
   verts = np.empty(len(xyz), _PLY_DTYPE)
   for i, name in enumerate("xyz"):
     verts[name] = xyz[:, i]

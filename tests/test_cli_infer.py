@@ -606,6 +606,8 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
     (out / "disparity" / name).write_bytes(b"old")
   args = ["demo", "--out", str(out), "--frames", str(T), "--height", str(H), "--width", str(W),
           "--iters", str(ITERS)]
+  assert cli.main([*args, "--frames", "1"]) == 2  # TEPE and δt would be an empty 0.000
+  assert "need --frames >= 2 (the temporal metrics" in capsys.readouterr().err
   assert cli.main(args) == 2  # not an earlier demo's folder: nothing replaced or deleted
   err = capsys.readouterr().err
   assert "frame_000000.png" in err and "--overwrite" in err and err.count("\n") == 1, err

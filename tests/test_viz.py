@@ -202,7 +202,9 @@ def test_write_ply_refuses_bad_shapes_and_colours(tmp_path):
       (np.array([["a", "b", "c"]]), np.zeros((1, 3)), "dtype <U1"),
       (np.zeros((2, 3)), np.zeros((3, 3)), r"colors of shape \(3, 3\) do not match xyz \(2, 3\)"),
       (np.zeros((1, 3)), np.full((1, 3), 300.0), r"values 300\.\.300 outside 0\.\.255"),
-      (np.zeros((1, 3)), np.full((1, 3), -1), r"values -1\.\.-1 outside 0\.\.255")):
+      (np.zeros((1, 3)), np.full((1, 3), -1), r"values -1\.\.-1 outside 0\.\.255"),
+      (np.array([[0, 0, 1], [np.nan, 0, 1], [1e39, 0, 1]]), np.zeros((3, 3)),
+       r"2 of 3 points are not finite in float32 .*, the first at index 1")):
     with pytest.raises(ValueError, match=match):
       viz.write_ply(path, bad_xyz, bad_rgb)
   assert not path.exists()  # refused before the file is created
@@ -266,6 +268,8 @@ def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
   video = tmp_path / "v.mp4"
   with pytest.raises(ValueError, match=r"frame 0 has shape \(8, 8\); expected RGB"):
     viz.write_video(video, np.zeros((2, 8, 8), np.uint8))
+  with pytest.raises(FileNotFoundError, match=r"v.mp4: the folder .*missing does not exist"):
+    viz.write_video(tmp_path / "missing" / "v.mp4", np.zeros((2, 8, 8, 3), np.uint8))
   for fps in (0, 100000, 0.001):  # outside what the MPEG-4 writer opens with
     with pytest.raises(ValueError, match=r"fps must be a number from 0\.01 to 65535"):
       viz.write_video(video, np.zeros((2, 8, 8, 3), np.uint8), fps=fps)

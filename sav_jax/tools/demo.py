@@ -180,8 +180,9 @@ def run(args: argparse.Namespace) -> int:
   from sav_jax.data import synthetic  # pylint: disable=import-outside-toplevel
   from sav_jax.tools import UsageError, infer, video_io  # pylint: disable=import-outside-toplevel
   infer.check_model_args(args.iters, 20, 10)
-  if args.frames < 1 or args.height < 16 or args.width < 32:
-    raise UsageError("need --frames >= 1, --height >= 16 and --width >= 32")
+  if args.frames < 2 or args.height < 16 or args.width < 32:  # TEPE needs two frames
+    raise UsageError("need --frames >= 2 (the temporal metrics compare consecutive frames), "
+                     "--height >= 16 and --width >= 32")
   out = check_output_dir(args.out)
   stale = check_demo_output(out, args.frames, args.overwrite)
   setup_compile_cache(args)
