@@ -65,6 +65,9 @@ def synthetic_sequences(config: ml_collections.ConfigDict) -> list[SyntheticSequ
                      "height, width, num_objects, max_disparity, seed, num_sequences): see "
                      "configs/eval/synthetic.py")
   s = config.synthetic
+  if not (isinstance(s.num_sequences, int) and s.num_sequences >= 1):
+    raise ValueError(f"config.synthetic.num_sequences must be an integer >= 1, got "
+                     f"{s.num_sequences!r}")
   cfg = synthetic.SyntheticConfig(frames=s.frames, height=s.height, width=s.width,
                                   num_objects=s.num_objects, max_disparity=s.max_disparity,
                                   seed=s.seed)

@@ -25,6 +25,7 @@ from eval import config as eval_config
 from eval import report
 from sav_jax import runtime
 from sav_jax._checks import is_int
+from sav_jax.config import DTYPES
 # The evaluation's own modules (`eval.runner`, `sav_jax.inference`) import JAX: they are
 # imported once the arguments and the config are checked, so `--help` and a bad config or
 # override are answered at once.
@@ -77,6 +78,8 @@ def run(args, overrides) -> int:
   config = eval_config.apply_overrides(eval_config.load_config(args.config), overrides)
   if not (is_int(config.iters) and config.iters >= 2):
     raise ValueError(f"config.iters must be an integer >= 2, got {config.iters!r}")
+  if config.dtype not in DTYPES:  # before the checkpoint is read
+    raise ValueError(f"config.dtype must be one of {DTYPES}, got {config.dtype!r}")
   if config.matmul_precision not in runtime.MATMUL_PRECISIONS:
     raise ValueError(f"config.matmul_precision must be one of {runtime.MATMUL_PRECISIONS}, got "
                      f"{config.matmul_precision!r}")

@@ -16,6 +16,8 @@ import numpy as np
 # (`SAVConfig.frame_block_mb`).
 FRAME_BLOCK_MB = 1024.0
 
+# Compute dtypes of the model (parameters stay float32).
+DTYPES = ("float32", "bfloat16")
 # Implementations of the depth prior's ViT attention (`SAVConfig.vit_attention`).
 VIT_ATTENTION = ("auto", "blocked", "cudnn")
 
@@ -111,7 +113,7 @@ class SAVConfig:
     if self.vda_encoder not in VDA_VARIANTS:
       raise ValueError(
           f"SAVConfig.vda_encoder={self.vda_encoder!r}; expected one of {sorted(VDA_VARIANTS)}")
-    if self.dtype not in ("float32", "bfloat16"):
+    if self.dtype not in DTYPES:
       raise ValueError(f"SAVConfig.dtype={self.dtype!r}; expected 'float32' or 'bfloat16'")
     if not 0 < self.frame_block_mb < float("inf"):
       raise ValueError(f"SAVConfig.frame_block_mb must be a finite number > 0, got "

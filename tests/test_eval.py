@@ -309,7 +309,10 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
     ("--config.devices=4", "config.devices: devices=4, but 1 local cpu device is available"),
     ("--config.devices=-1", "config.devices: devices must be a number of local devices"),
     ("--config.plots.tile_size=0", "config.plots.tile_size must be an integer >= 16, got 0"),
-    ("--config.plots.strip_frames=0", "config.plots.strip_frames must be an integer >= 1")])
+    ("--config.plots.strip_frames=0", "config.plots.strip_frames must be an integer >= 1"),
+    ("--config.dtype=float64", "config.dtype must be one of ('float32', 'bfloat16'), got 'f"),
+    ("--config.synthetic.num_sequences=0",
+     "config.synthetic.num_sequences must be an integer >= 1, got 0")])
 def test_bad_overrides(tmp_path, ckpt, capsys, override, message):
   rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt),
              "--out", str(tmp_path / "o"), override])

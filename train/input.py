@@ -31,14 +31,14 @@ def synthetic_config(data_cfg, gen_cfg, seed: int) -> SyntheticConfig:
 
 @contextlib.contextmanager
 def _naming(where: str):
-  """Prefixes `where` (the config fields behind the data) to a ValueError or
-  FileNotFoundError that does not name a config field itself."""
+  """Prefixes `where` (the config fields behind the data) to a ValueError,
+  FileNotFoundError or NotADirectoryError that does not name a config field itself."""
   try:
     yield
-  except (ValueError, FileNotFoundError) as e:
+  except (ValueError, FileNotFoundError, NotADirectoryError) as e:
     if str(e).startswith("config."):
       raise
-    cls = FileNotFoundError if isinstance(e, FileNotFoundError) else ValueError
+    cls = ValueError if isinstance(e, ValueError) else type(e)
     raise cls(f"{where}: {e}") from e
 
 

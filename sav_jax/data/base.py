@@ -199,6 +199,8 @@ def find_root(root, *names: str) -> Path:
   folder. Raises FileNotFoundError when `root` does not exist.
   """
   root = Path(root).expanduser()
+  if root.exists() and not root.is_dir():
+    raise NotADirectoryError(f"dataset root {root} is a file, not a folder")
   if not root.is_dir():
     raise FileNotFoundError(f"dataset root not found: {root}")
   for name in names:

@@ -104,6 +104,9 @@ def test_sceneflow_train_test_values_and_clips(tmp_path):
     registry.get_sequences("driving", tmp_path, "train", pass_name="frames_cleanpass")
   with pytest.raises(FileNotFoundError, match="dataset root not found"):
     registry.get_sequences("sceneflow", tmp_path / "nowhere", "train")
+  (tmp_path / "a_file").write_text("")
+  with pytest.raises(NotADirectoryError, match="dataset root .*a_file is a file, not a folder"):
+    registry.get_sequences("sceneflow", tmp_path / "a_file", "train")
 
 
 def _sintel(root, rng, seqs=(("alley_1", 3), ("cave_2", 2))):
