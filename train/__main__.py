@@ -34,13 +34,21 @@ def _fail(message: str) -> None:
   sys.exit(2)
 
 
+_HELP_FLAGS = {"--help", "-help", "-h", "-?", "--helpfull", "-helpfull", "--helpshort",
+               "-helpshort"}
+
+
 def parse_flags(argv):
   """absl's flag parsing, with every error as one line and exit status 2: a flag value of the
   wrong type, a config file that does not parse, an override of a field that does not exist
   (ml_collections raises the last two from inside the parser, and absl would print their
-  traceback)."""
+  traceback); `--help` exits with status 0."""
   try:
     return flags.FLAGS(argv)
+  except SystemExit as e:  # absl's --help/--helpfull print the flags and exit with status 1
+    if e.code == 1 and _HELP_FLAGS & set(argv[1:]):
+      sys.exit(0)
+    raise
   except flags.Error as e:  # a value of the wrong type, a missing --workdir, an unknown flag
     _fail(f"{e} (--helpfull lists the flags)")
   except SyntaxError as e:  # the --config file is loaded while the flags are parsed

@@ -835,6 +835,10 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
       capture_output=True, text=True, timeout=300, check=False)
   assert proc.returncode == 2 and "train: error: " in proc.stderr, proc.stderr[-2000:]
   assert "/sys/sav_jax_test" in proc.stderr and "Traceback" not in proc.stderr
+  proc = subprocess.run([sys.executable, "-m", "train", "--help"], cwd=ROOT,
+                        env=child_env(tmp_path / "cache"), capture_output=True, text=True,
+                        timeout=300, check=False)
+  assert proc.returncode == 0 and "--workdir: Run directory" in proc.stdout  # absl's status: 1
 
 
 def test_logged_means_leave_out_skipped_steps():
