@@ -526,9 +526,28 @@ class FrameFeatureCache:
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *items)
 
 
+@jax.jit
+def _finite_flags(leaves):
+  return [jnp.all(jnp.isfinite(x)) for x in leaves]
+
+
+def nonfinite_parameters(params) -> list[str]:
+  """The names (`keystr`) of the parameters holding NaN or inf. Host arrays are scanned
+  with NumPy, device arrays by one compiled reduction where they are (no copy to the host)."""
+  named = jax.tree_util.tree_leaves_with_path(params)
+  bad = [jax.tree_util.keystr(k) for k, v in named if not isinstance(v, jax.Array)
+         and not np.isfinite(np.asarray(v)).all()]
+  on_device = [(jax.tree_util.keystr(k), v) for k, v in named if isinstance(v, jax.Array)]
+  if on_device:
+    flags = jax.device_get(_finite_flags([v for _, v in on_device]))
+    bad += [k for (k, _), ok in zip(on_device, flags) if not ok]
+  return bad
+
+
 def check_variables(variables, cfg: SAVConfig | None = None, source: str = "variables") -> None:
   """Raises ValueError unless `variables["params"]` has the model's tree and shapes, and
-  every parameter is a floating-point array.
+  every parameter is a floating-point array without NaN or inf (such a parameter, e.g. from
+  a diverged training run, turns every prediction into NaN).
 
   Args:
     variables: `{"params": ...}` (other collections are ignored).
@@ -559,6 +578,10 @@ def check_variables(variables, cfg: SAVConfig | None = None, source: str = "vari
     if not jnp.issubdtype(dtype, jnp.floating):
       raise CheckpointError(f"{source}: parameter {jax.tree_util.keystr(path)} has dtype "
                             f"{dtype}; expected floating-point arrays (float32, bfloat16, ...)")
+  bad = nonfinite_parameters(got)
+  if bad:
+    raise CheckpointError(f"{source}: {len(bad)} parameter(s) hold NaN or inf values, e.g. "
+                          f"{bad[0]}; they are not usable (a diverged training run?)")
 
 
 def clear_cache() -> None:

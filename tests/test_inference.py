@@ -410,6 +410,19 @@ def test_non_float_parameters_are_refused_before_compiling(variables):
       inference.predict_video(broken, video, video, iters=ITERS)
   inference.check_variables(jax.tree_util.tree_map(lambda x: x.astype(jax.numpy.bfloat16),
                                                    variables))
+  # NaN or inf weights (a diverged run) would give all-NaN disparities: refused, named, on
+  # the host (NumPy) and on the device (one compiled reduction, no copy back).
+  for place in (np.asarray, jax.device_put):
+    broken = jax.tree_util.tree_unflatten(
+        treedef, [place(np.full(np.shape(leaf), np.inf if place is np.asarray else np.nan,
+                                np.float32)) if i == k else place(leaf)
+                  for i, (_, leaf) in enumerate(leaves)])
+    with pytest.raises(ValueError, match=rf"source: 1 parameter\(s\) hold NaN or inf values, "
+                                         rf"e\.g\. {re.escape(path)}"):
+      inference.check_variables(broken, source="source")
+    video = np.zeros((2, 32, 32, 3), np.uint8)
+    with pytest.raises(ValueError, match=re.escape(path)):
+      inference.predict_video(broken, video, video, iters=ITERS)
   assert inference.cache_size() == before  # nothing compiled
 
 

@@ -39,11 +39,13 @@ def vda_encoder_of(state_dict: Mapping, prefix: str = VDA_PREFIX) -> str | None:
   """The `SAVConfig.vda_encoder` whose depth prior the weights hold ("vits", "vitl"), from the
   width of the DINOv2 class token `{prefix}pretrained.cls_token` (`prefix=""` for a Video
   Depth Anything checkpoint); None when the file does not say or names no supported one."""
-  width = np.shape(state_dict.get(prefix + "pretrained.cls_token", ()))[-1:]
-  for name in VDA_VARIANTS:
-    if (DINO_VARIANTS[name]["embed_dim"],) == width:
-      return name
-  return None
+  return _encoder_of_width(np.shape(state_dict.get(prefix + "pretrained.cls_token", ()))[-1:])
+
+
+def _encoder_of_width(width: tuple) -> str | None:
+  """The `vda_encoder` whose DINOv2 class token has the width `(C,)`, else None."""
+  return next((name for name in VDA_VARIANTS if width == (DINO_VARIANTS[name]["embed_dim"],)),
+              None)
 
 
 def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig | None = None) -> dict:
@@ -93,13 +95,33 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
   return {"params": traverse_util.unflatten_dict(flat), UNUSED_COLLECTION: unused}
 
 
-def state_dict_from_params(variables: Mapping) -> dict[str, np.ndarray]:
+def state_dict_from_params(variables: Mapping, cfg: SAVConfig | None = None
+                           ) -> dict[str, np.ndarray]:
   """Flax variables -> official state dict (inverse of `params_from_state_dict`).
 
   Unused-in-forward keys come from the `"torch_unused"` collection when present
   (exact round trip), else are filled with zeros of the official shape (trained params
   have none), so the file always has every official key.
+
+  Args:
+    variables: `{"params": ...}` (plus `"torch_unused"`).
+    cfg: the model config they are for (default: the paper's model with the depth prior
+      the parameters hold, ViT-S or ViT-L).
+
+  Raises:
+    CheckpointError: the variables are not the model's (missing, unexpected or mis-shaped
+      parameters, non-float dtypes, NaN or inf values: `inference.check_variables`), so a
+      broken tree never becomes a file that only fails when it is read back.
   """
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
+  if cfg is None:
+    try:
+      width = np.shape(variables["params"]["depthnet"]["depthanything"]["pretrained"][
+          "cls_token"])[-1:]
+    except (KeyError, TypeError, IndexError):
+      width = ()
+    cfg = SAVConfig(vda_encoder=_encoder_of_width(width) or "vits")
+  inference.check_variables(variables, cfg, "state_dict_from_params")
   params = traverse_util.flatten_dict(jax.device_get(variables["params"]))
   unused = dict(variables.get(UNUSED_COLLECTION, {}))
   sd: dict[str, np.ndarray] = {}
@@ -116,16 +138,21 @@ def state_dict_from_params(variables: Mapping) -> dict[str, np.ndarray]:
   return sd
 
 
-def export_state_dict(variables: Mapping, path, overwrite: bool = False):
+def export_state_dict(variables: Mapping, path, overwrite: bool = False,
+                      cfg: SAVConfig | None = None):
   """Writes Flax variables as an official-format state dict file.
 
   Args:
     variables: `{"params": ...}` (plus `"torch_unused"` for an exact export).
     path: `.safetensors` or `.npz` (`.pth` when torch is installed).
     overwrite: replace an existing file.
+    cfg: as `state_dict_from_params`.
 
   Returns:
     The written path. The official code loads it with `load_state_dict(strict=True)`.
+
+  Raises:
+    CheckpointError: variables that are not the model's, before anything is written.
   """
   from sav_jax.convert.torch_io import save_state_dict  # pylint: disable=import-outside-toplevel
-  return save_state_dict(state_dict_from_params(variables), path, overwrite=overwrite)
+  return save_state_dict(state_dict_from_params(variables, cfg), path, overwrite=overwrite)

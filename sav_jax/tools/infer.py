@@ -510,8 +510,7 @@ def load_checkpoint(path, dtype: str | None = None):
   if path.is_dir():
     variables, cfg_dict = convert.restore_variables(path)
     cfg = _config_from_dict(cfg_dict, path)
-    inference.check_variables(variables, cfg, path)
-    _check_finite(variables["params"], path)
+    inference.check_variables(variables, cfg, path)  # NaN or inf weights too
     step = None if convert.is_variables_checkpoint(path) else convert.find_training_checkpoint(path)
     described = (f"orbax checkpoint {path}" if step is None
                  else f"training checkpoint {step} (params)")
@@ -531,21 +530,6 @@ def load_checkpoint(path, dtype: str | None = None):
     described = f"state dict {path} (converted on the fly)"
   runtime.release_host_memory()  # the reader's and converter's temporaries
   return variables, inference.resolve_config(cfg, dtype), described
-
-
-def _check_finite(params, path) -> None:
-  """Raises CheckpointError naming the parameters with NaN or inf values (a diverged run's
-  weights would turn every prediction into NaN, written as invalid everywhere)."""
-  import jax  # pylint: disable=import-outside-toplevel
-
-  from sav_jax import convert  # pylint: disable=import-outside-toplevel
-  from sav_jax.convert.keys import value_problem  # pylint: disable=import-outside-toplevel
-  bad = [p for k, v in jax.tree_util.tree_leaves_with_path(params)
-         if (p := value_problem(jax.tree_util.keystr(k), v))]
-  if bad:
-    raise convert.CheckpointError(
-        f"{path}: {len(bad)} parameter(s) hold NaN or inf values, e.g. {bad[0]}; the "
-        "checkpoint is not usable (a diverged training run?)")
 
 
 def _config_from_dict(cfg_dict, path):

@@ -234,6 +234,30 @@ def test_export_of_trained_params_is_complete(sav_state_dict, variables):
   assert not np.any(exported["depthnet.depthanything.head.scratch.output_conv2.0.weight"])
 
 
+def test_export_refuses_variables_that_are_not_the_models(tmp_path, variables):
+  # A broken tree was written as it was: the file failed only when read back, and with
+  # overwrite=True it replaced a good file.
+  good = tmp_path / "good.npz"
+  convert.export_state_dict(variables, good)
+  before = good.read_bytes()
+  params = jax.tree_util.tree_map(np.asarray, variables["params"])
+  missing = {"params": {k: v for k, v in params.items() if k != "corr_mlp"}}
+  nan = {"params": {**params, "cnet": {**params["cnet"], "conv1": {
+      **params["cnet"]["conv1"], "bias": np.full_like(params["cnet"]["conv1"]["bias"], np.nan)}}}}
+  wrong = {"params": {**params, "corr_mlp": {**params["corr_mlp"], "fc1": {
+      **params["corr_mlp"]["fc1"], "kernel": np.zeros((3, 3), np.float32)}}}}
+  for bad, match in ((missing, r"4 missing, e\.g\. \[\"\['corr_mlp'\]"),
+                     (nan, r"hold NaN or inf values, e\.g\. \['cnet'\]\['conv1'\]\['bias'\]"),
+                     (wrong, r"1 with other shapes.*corr_mlp.*\(3, 3\)"),
+                     (params, r"expected Flax variables \{'params': \.\.\.\}")):
+    with pytest.raises(convert.CheckpointError, match=match):
+      convert.export_state_dict(bad, good, overwrite=True)
+  assert good.read_bytes() == before
+  vitl = convert.state_dict_from_params  # the depth prior's width picks the config
+  with pytest.raises(convert.CheckpointError, match="vda_encoder='vitl'"):
+    vitl(variables, sav_jax.SAVConfig(vda_encoder="vitl"))
+
+
 def test_unused_parameters_are_kept_outside_params(variables):
   unused = variables[UNUSED_COLLECTION]
   assert "update_block.time_attn.temporal_attn.qkv.weight" in unused
