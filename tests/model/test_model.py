@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import flax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -199,6 +200,50 @@ def test_fresh_depth_prior_is_initialised_as_the_official_constructors_do(variab
   patch = vda["pretrained"]["patch_embed"]["proj"]  # a convolution: bound 1/sqrt(fan_in)
   bound = 1 / np.sqrt(14 * 14 * 3)
   assert float(jnp.abs(patch["bias"]).max()) <= bound and float(jnp.std(patch["bias"])) > 0.5 * bound / np.sqrt(3)
+
+
+def test_fresh_weights_outside_the_depth_prior_follow_the_official_initialisation(variables):
+  # The official model: fnet/cnet (BasicEncoder) conv weights kaiming_normal_(fan_out, relu),
+  # i.e. N(0, 2 / fan_out) with fan_out = out * kh * kw; temporal_fc zeroed (update.py); norms
+  # 1 and 0; every other Conv/Linear PyTorch's default: weight and bias U(+-1/sqrt(fan_in)),
+  # fan_in = in * kh * kw (of the weight, for the bias too), whose std is bound / sqrt(3).
+  # Bounds are exact; the spreads of tensors of >= 500 values are checked within 12 %
+  # (sampling error of a std from 500 draws: ~3 %).
+  flat = {k: np.asarray(v) for k, v in
+          flax.traverse_util.flatten_dict(variables["params"]).items()
+          if k[:2] != ("depthnet", "depthanything")}
+  seen = {"kaiming": 0, "default": 0, "bias": 0, "zero": 0, "norm": 0}
+  for path, w in flat.items():
+    name = "/".join(path)
+    if path[:3] == ("update_block", "time_attn", "temporal_fc"):
+      assert not w.any(), name
+      seen["zero"] += 1
+    elif any(n in path[-2].lower() for n in ("norm", "ln")):
+      assert np.all(w == (1.0 if path[-1] == "scale" else 0.0)), name
+      seen["norm"] += 1
+    elif path[-1] == "kernel":
+      fan_in = int(np.prod(w.shape[:-1]))  # HWIO / (in, out)
+      if path[0] in ("fnet", "cnet"):
+        fan_out = w.shape[-1] * int(np.prod(w.shape[:-2]))
+        if w.size >= 500:
+          assert abs(w.std() / np.sqrt(2.0 / fan_out) - 1) < 0.12, (name, w.std())
+          assert abs(w.mean()) < 0.2 * w.std(), name
+        seen["kaiming"] += 1
+      else:
+        bound = 1 / np.sqrt(fan_in)
+        assert np.abs(w).max() <= bound, name
+        if w.size >= 500:
+          assert abs(w.std() / (bound / np.sqrt(3)) - 1) < 0.12, (name, w.std(), bound)
+        seen["default"] += 1
+    elif path[-1] == "bias":
+      kernel = flat[(*path[:-1], "kernel")]
+      bound = 1 / np.sqrt(int(np.prod(kernel.shape[:-1])))
+      assert np.abs(w).max() <= bound, name
+      if w.size >= 64:
+        assert np.abs(w).max() > 0.5 * bound, name  # drawn, not zero
+      seen["bias"] += 1
+  assert seen["kaiming"] >= 20 and seen["default"] >= 20 and seen["zero"] == 2, seen
+  assert seen["norm"] >= 2 and seen["bias"] >= 40, seen
 
 
 def test_gradients_are_finite_and_the_depth_prior_is_frozen(variables, clip):
