@@ -194,3 +194,17 @@ def remat_policies() -> list[str]:
     return any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
   return sorted(k for k, v in vars(jax.checkpoint_policies).items()
                 if not k.startswith("_") and callable(v) and is_policy(v))
+
+
+def as_config(cfg, where: str = "cfg") -> "SAVConfig":
+  """`cfg`, or the paper's model for None.
+
+  Raises:
+    TypeError: `cfg` is not a `SAVConfig` (a dict of its fields: `SAVConfig.from_dict(d)`).
+  """
+  if cfg is None:
+    return SAVConfig()
+  if not isinstance(cfg, SAVConfig):
+    raise TypeError(f"{where} must be a sav_jax.SAVConfig (SAVConfig.from_dict(d) for a dict), "
+                    f"got {type(cfg).__name__}")
+  return cfg

@@ -68,7 +68,7 @@ import numpy as np
 
 from sav_jax import runtime
 from sav_jax._checks import is_int as _is_int
-from sav_jax.config import SAVConfig, resolve_vit_attention
+from sav_jax.config import SAVConfig, as_config, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 from sav_jax.model.init import abstract_variables
 from sav_jax.model.stereo_any_video import check_iters
@@ -196,10 +196,7 @@ def unpad(x: np.ndarray, pads: tuple[int, int, int, int]) -> np.ndarray:
 
 def resolve_config(cfg: SAVConfig | None = None, dtype: str | None = None) -> SAVConfig:
   """`cfg` (default `SAVConfig()`) with its compute dtype replaced by `dtype` if given."""
-  cfg = SAVConfig() if cfg is None else cfg
-  if not isinstance(cfg, SAVConfig):
-    raise TypeError(f"cfg must be a sav_jax.SAVConfig (SAVConfig.from_dict(d) for a dict), "
-                    f"got {type(cfg).__name__}")
+  cfg = as_config(cfg)
   if dtype is not None and not isinstance(dtype, str):
     try:  # jnp.bfloat16, np.float32, ...
       dtype = jnp.dtype(dtype).name
@@ -225,7 +222,7 @@ def estimate_memory_bytes(frames: int, height: int, width: int, iters: int = 20,
     block of the DINOv2 attention logits (`dinov2.attention_blocks` under
     `cfg.frame_block_mb`; none where the ViT attention resolves to cuDNN's fused kernel).
   """
-  cfg = SAVConfig() if cfg is None else cfg
+  cfg = as_config(cfg)
   pixels = frames * height * width
   heads = DINO_VARIANTS[cfg.vda_encoder]["num_heads"]
   tokens = (height // 14) * (width // 14) + 1  # patches and the class token
@@ -610,8 +607,11 @@ def _as_video(video, name: str) -> np.ndarray:
       if frame.shape != frames[0].shape:
         raise ValueError(f"{name}: frame {i} has shape {frame.shape} but frame 0 has "
                          f"{frames[0].shape}; all frames need one size [H, W, 3]")
-    return np.stack(frames) if frames else np.asarray(video)
-  return np.asarray(video)
+    video = np.stack(frames) if frames else np.asarray(video)
+  video = np.asarray(video)
+  if video.dtype.kind == "V" and jnp.issubdtype(video.dtype, jnp.floating):
+    video = video.astype(np.float32)  # bfloat16 / float8 frames (ml_dtypes: kind "V")
+  return video
 
 
 def _check_video_shapes(left_shape: tuple, right_shape: tuple) -> None:

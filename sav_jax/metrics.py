@@ -51,6 +51,7 @@ of frames of sequence s (T_s, not T_s - 1, also for the temporal metrics).
 
 from __future__ import annotations
 
+import numbers
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -119,8 +120,18 @@ def _check_same(names: Sequence[str], arrays: Sequence[np.ndarray]) -> None:
           f"shape mismatch: {names[0]} has shape {arrays[0].shape}, {name} has shape {a.shape}")
 
 
+def check_mask_thr(mask_thr) -> None:
+  """Raises ValueError unless `mask_thr` is a number in [0, 1) (outside it every pixel or none
+  would count, a silently perfect or meaningless score)."""
+  if isinstance(mask_thr, bool) or not isinstance(mask_thr, numbers.Real) or not (
+      0 <= mask_thr < 1):
+    raise ValueError(f"mask_thr must be a number in [0, 1) (mask values are in [0, 1]), got "
+                     f"{mask_thr!r}")
+
+
 def _mask_pair(x: np.ndarray, y: np.ndarray, mask: np.ndarray, mask_thr: float):
   """`x*b`, `y*b` with `b = mask > mask_thr`; NaN in y set to 0 afterwards."""
+  check_mask_thr(mask_thr)
   keep = (mask > _F32(mask_thr)).astype(_F32)
   x = x * keep
   y = y * keep
@@ -154,8 +165,7 @@ def endpoint_error_maps(pred, gt, mask, crop: int = 0, mask_thr: float = 0.5):
   _check_same(("pred", "gt", "mask"), (x, y, m))
   if not (is_int(crop) and crop >= 0):
     raise ValueError(f"crop must be an integer >= 0 (border pixels), got {crop!r}")
-  if not 0 <= mask_thr < 1:
-    raise ValueError(f"mask_thr must be in [0, 1) (mask values are in [0, 1]), got {mask_thr!r}")
+  check_mask_thr(mask_thr)
   if crop > 0:
     if crop >= min(x.shape[1:]) - crop:  # the official check is `>`: it let an empty crop by
       raise ValueError(f"Incorrect crop size {crop} for spatial shape {x.shape[1:]} (nothing "

@@ -170,6 +170,23 @@ def test_every_frame_returned(monkeypatch, n):
   np.testing.assert_array_equal(off, disp[:len(off)])
 
 
+def test_bfloat16_frames_are_read_as_float32(monkeypatch):
+  # ml_dtypes' bfloat16 has NumPy kind "V": it was refused as "dtype bfloat16; expected uint8
+  # or float", though model.apply takes it.
+  seen = []
+
+  def record(variables, left, right, **kw):
+    seen.append((left.dtype, np.asarray(left, np.float32)))
+    return np.zeros((left.shape[0], 32, 32), np.float32)  # padded to multiples of 32
+
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window", record)
+  video = np.random.default_rng(0).integers(0, 256, (3, 16, 16, 3)).astype(np.float32)
+  out = inference.predict_video({}, video.astype(jnp.bfloat16), video.astype(jnp.bfloat16))
+  assert out.shape == (3, 16, 16) and seen[0][0] == np.float32
+  np.testing.assert_array_equal(seen[0][1], video)  # integers 0..255 are exact in bfloat16
+
+
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
 @pytest.mark.parametrize("window,stride", [(20, 10), (8, 4), (6, 3), (5, 5)])
 def test_stitching_sweep(monkeypatch, window, stride):

@@ -199,9 +199,15 @@ def test_crop_and_channel_axis():
   for crop in (-2, 1.5):
     with pytest.raises(ValueError, match="crop must be an integer >= 0"):
       M.eval_endpoint_error_sequence(pred, gt, mask, crop=crop)
-  for thr in (float("nan"), 2.0):
-    with pytest.raises(ValueError, match=r"mask_thr must be in \[0, 1\)"):
+  for thr in (float("nan"), 2.0, "0.5", True):
+    with pytest.raises(ValueError, match=r"mask_thr must be a number in \[0, 1\)"):
       M.eval_endpoint_error_sequence(pred, gt, mask, mask_thr=thr)
+  # The depth metrics too: with 2 every pixel was masked out and TCC scored a perfect 1.0.
+  depth = np.abs(pred) + 1
+  with pytest.raises(ValueError, match=r"mask_thr must be a number in \[0, 1\) .*got 2$"):
+    M.eval_tcc_sequence(depth, depth + 1, mask, mask_thr=2)
+  with pytest.raises(ValueError, match=r"mask_thr must be a number in \[0, 1\) .*got -1$"):
+    M.tcm_flow_inputs(depth, depth + 1, mask, 0, mask_thr=-1)
 
 
 def test_shape_mismatch_names_both_shapes():

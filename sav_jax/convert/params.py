@@ -19,7 +19,7 @@ import jax
 import numpy as np
 from flax import traverse_util
 
-from sav_jax.config import VDA_VARIANTS, SAVConfig
+from sav_jax.config import VDA_VARIANTS, SAVConfig, as_config
 from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch, unused_array
 from sav_jax.convert.torch_io import unwrap_state_dict
 from sav_jax.model.init import abstract_variables
@@ -67,7 +67,7 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
       is not floating point or holds NaN/inf, at once; a `CheckpointError` (a ValueError)
       when `state_dict` is not a state dict at all.
   """
-  cfg = cfg or SAVConfig()
+  cfg = as_config(cfg)
   sd = unwrap_state_dict(state_dict, "state_dict")
   target = traverse_util.flatten_dict(abstract_variables(cfg)["params"])
   problems = KeyProblems()

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from sav_jax.config import SAVConfig
+from sav_jax.config import SAVConfig, as_config
 
 _NORM_NAMES = ("norm", "ln")
 
@@ -41,7 +41,7 @@ def abstract_variables(cfg: SAVConfig):
   Traced once per architecture (~7 s on CPU): configs that differ only in
   `COMPUTE_FIELDS` (a bfloat16 or rematerialised model of the same weights) share it.
   """
-  defaults = SAVConfig()
+  cfg, defaults = as_config(cfg), SAVConfig()
   return _abstract_variables(
       dataclasses.replace(cfg, **{f: getattr(defaults, f) for f in COMPUTE_FIELDS}))
 
@@ -110,7 +110,7 @@ def init_variables(cfg: SAVConfig | None = None, seed: int = 0) -> dict:
   Returns:
     Flax variables with float32 NumPy leaves (put them on devices as needed).
   """
-  cfg = cfg or SAVConfig()
+  cfg = as_config(cfg)
   flat = traverse_util.flatten_dict(abstract_variables(cfg)["params"])
   rng = np.random.default_rng(seed)
   # The depth prior's own initialisation draws from a stream of its own, so that the other

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sav_jax._checks import is_int
-from sav_jax.config import SAVConfig
+from sav_jax.config import SAVConfig, as_config
 from sav_jax.model.depth import DepthExtractor
 from sav_jax.model.encoder import BasicEncoder
 from sav_jax.model.layers import CorrMLP, in_frame_blocks, normalize
@@ -124,6 +124,7 @@ class StereoAnyVideo(nn.Module):
   cfg: SAVConfig = SAVConfig()
 
   def setup(self):
+    as_config(self.cfg, "StereoAnyVideo(cfg)")  # a dict would fail deep inside, unnamed
     dt = self.cfg.compute_dtype
     self.cnet = BasicEncoder(self.cfg.fnet_dim, dt)
     self.fnet = BasicEncoder(self.cfg.fnet_dim, dt)

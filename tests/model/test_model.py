@@ -186,6 +186,22 @@ def test_config_accepts_ints_for_floats_and_named_remat_policies():
     assert sav_jax.SAVConfig.from_dict(mapping) == sav_jax.SAVConfig(remat=True)
 
 
+def test_a_dict_for_the_config_is_named_everywhere():
+  # A dict where a SAVConfig belongs failed deep inside (dataclasses.replace, a FrozenDict
+  # without compute_dtype); every entry point now names it.
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
+  fields = {"vda_encoder": "vits"}
+  x = jax.ShapeDtypeStruct((1, 2, 32, 32, 3), jnp.float32)
+  for call in (lambda: init_variables(fields), lambda: init_variables("vitl"),
+               lambda: abstract_variables(fields),
+               lambda: sav_jax.convert.params_from_state_dict({}, fields),
+               lambda: inference.estimate_memory_bytes(2, 32, 32, cfg=fields),
+               lambda: jax.eval_shape(lambda l, r: sav_jax.StereoAnyVideo(fields).init(
+                   jax.random.PRNGKey(0), l, r, iters=2), x, x)):
+    with pytest.raises(TypeError, match=r"must be a sav_jax\.SAVConfig \(SAVConfig\.from_dict"):
+      call()
+
+
 def test_fresh_depth_prior_is_initialised_as_the_official_constructors_do(variables):
   # DINOv2's init_weights (Linear N(0, 0.02), zero biases, class token N(0, 1e-6)), the
   # motion modules' zeroed proj_out (identity residuals), PyTorch defaults elsewhere.
