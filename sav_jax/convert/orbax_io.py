@@ -20,6 +20,7 @@ import re
 import shutil
 import sys
 import traceback
+from collections.abc import Mapping
 
 import jax
 import numpy as np
@@ -104,7 +105,8 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
   Raises:
     FileExistsError: `directory` exists and `overwrite` is False.
     CheckpointError: `directory` exists but is not a checkpoint (with `overwrite`), the
-      config is not JSON-serialisable, or `variables` holds zero-size arrays.
+      config is not JSON-serialisable, `variables` has no `"params"` mapping or holds
+      zero-size arrays.
   """
   directory = pathlib.Path(directory).absolute()
   if directory.is_symlink():
@@ -121,6 +123,10 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
     if not is_variables_checkpoint(directory) and any(directory.iterdir()):
       raise CheckpointError(f"{directory}: refusing to overwrite a non-empty directory that "
                             "is not a sav-jax variables checkpoint")
+  if not (isinstance(variables, Mapping) and isinstance(variables.get("params"), Mapping)):
+    found = sorted(variables)[:5] if isinstance(variables, Mapping) else type(variables).__name__
+    raise CheckpointError(f"{directory}: expected Flax variables {{'params': ...}}, found "
+                          f"{found} (pass the whole variables, not variables['params'])")
   _check_config(config_dict, directory)
   empty = [jax.tree_util.keystr(p) for p, x in jax.tree_util.tree_leaves_with_path(variables)
            if np.size(x) == 0]

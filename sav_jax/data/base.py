@@ -45,6 +45,10 @@ class StereoSequence:
     self.depth2disp_scale = None if depth2disp_scale is None else float(depth2disp_scale)
     self.sparse = bool(sparse)
     self.with_right_disparity = False
+    for key, value in files.items():  # a str is a sequence too: of one-letter "paths"
+      if isinstance(value, (str, bytes, Path)):
+        raise ValueError(f"{dataset}/{name}: files[{key!r}] must be a list of paths, one per "
+                         f"frame, got the single path {str(value)!r}")
     self.files = {k: tuple(Path(p) for p in v) for k, v in files.items()}
     for key in ("left", "right"):
       if key not in self.files:

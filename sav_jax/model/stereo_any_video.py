@@ -111,6 +111,9 @@ def check_iters(iters) -> int:
   Any integer type is accepted (numpy's too, not bool), so `iters=np.int64(4)` and
   `iters=4` run, and cache, the same computation.
   """
+  if isinstance(iters, jax.core.Tracer):
+    raise ValueError(f"iters must be a Python integer, got the traced {iters!r}: under jax.jit "
+                     "pass it as a static argument (static_argnames='iters', or close over it)")
   if not is_int(iters) or iters < 2:
     raise ValueError(
         f"iters must be an integer >= 2 (the 1/16 and 1/8 stages run iters//2 >= 1 steps "

@@ -133,6 +133,10 @@ def test_bad_inputs(tmp_path):
     orbax_io.save_variables(tmp_path / "b", {"params": {"w": jnp.ones(2)}}, [1])
   with pytest.raises(CheckpointError, match="zero-size"):
     orbax_io.save_variables(tmp_path / "c", {"params": {"w": jnp.ones((0, 2))}}, {})
+  for bad, found in (({"w": jnp.ones(2)}, r"\['w'\]"), ([jnp.ones(2)], "list")):  # params only
+    with pytest.raises(CheckpointError, match=rf"expected Flax variables \{{'params': \.\.\.\}}, "
+                                              rf"found {found} \(pass the whole variables"):
+      orbax_io.save_variables(tmp_path / "d", bad, {})
   assert not os.listdir(tmp_path)
 
 

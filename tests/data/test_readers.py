@@ -532,6 +532,10 @@ def test_gather_names_the_frame_of_another_size(tmp_path):
       files[side].append(tmp_path / side / f"frame_{i:04d}.png")
   seq = base.StereoSequence("market_2", files, dataset="sintel_final")
   assert seq.clip(0, 3)["left"].shape == (3, H, W, 3)
+  for one in (str(files["left"][0]), files["left"][0]):  # a str made one frame per letter
+    with pytest.raises(ValueError, match=r"sintel_final/market_2: files\['left'\] must be a "
+                                         r"list of paths, one per frame, got the single path"):
+      base.StereoSequence("market_2", {**files, "left": one}, dataset="sintel_final")
   odd = tmp_path / "left" / "frame_0003.png"
   with pytest.raises(ValueError, match=rf"sintel_final/market_2: frame 3 {odd} is {H - 2}x{W} "
                                        rf"but frame 1 .*frame_0001.png is {H}x{W}"):

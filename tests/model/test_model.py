@@ -135,6 +135,10 @@ def test_odd_iters_run_as_the_official_cascade(model):
   assert shapes.disparities.shape == (5, 1, 2, 32, 48)
   with pytest.raises(ValueError, match=r"iters must be an integer >= 2 .* got 1"):
     jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=1), left, left)
+  with pytest.raises(ValueError, match=r"iters must be a Python integer, got the traced .*"
+                                       r"static_argnames='iters'"):  # jax.jit(model.apply)
+    jax.eval_shape(lambda l, r, i: model.init(jax.random.PRNGKey(0), l, r, iters=i), left,
+                   left, 4)
 
 
 def test_bad_config_raises():
