@@ -280,6 +280,27 @@ def test_checkpoint_roundtrip_with_data_iterator(tmp_path):
     ckpt_lib.restore(ckpt_lib.make_manager(tmp_path, c), abstract2, shardings2, fresh)
 
 
+def test_only_the_last_k_checkpoints_are_kept(tmp_path):
+  c = _config()
+  c.checkpoint.async_save, c.checkpoint.keep = False, 2
+  _, _, _, state, _, _ = _setup(c)
+  src = pipeline.synthetic_source(
+      SyntheticConfig(frames=2, height=16, width=16, max_disparity=8.0), 50)
+  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
+  manager = ckpt_lib.make_manager(tmp_path, c)
+  for step in (1, 2, 3):
+    assert ckpt_lib.save(manager, state, it, step, force=True)
+  manager.wait_until_finished()
+  folder = tmp_path / "checkpoints"
+  assert sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) == [2, 3]
+  c.checkpoint.keep = 0  # 0: all of them
+  manager = ckpt_lib.make_manager(tmp_path, c)
+  for step in (4, 5, 6):
+    assert ckpt_lib.save(manager, state, it, step, force=True)
+  manager.wait_until_finished()
+  assert sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) == [2, 3, 4, 5, 6]
+
+
 def test_place_params_rejects_mismatches():
   c = _config()
   model = ToyStereo()
