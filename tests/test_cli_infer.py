@@ -412,6 +412,7 @@ def test_bfloat16(tmp_path, folders, orbax_ckpt, variables, clip):
   ref = inference.predict_video(variables, clip["left"], clip["right"], iters=ITERS)
   cos = np.sum(got * ref) / (np.linalg.norm(got) * np.linalg.norm(ref))
   assert cos > 0.999, cos  # bfloat16 compute, float32 softmax/upsampling/accumulator
+  assert np.abs(got - ref).max() > 1e-4  # and bfloat16 did run (float32 would be equal)
   assert json.loads((tmp_path / "out" / "summary.json").read_text())["dtype"] == "bfloat16"
 
 
