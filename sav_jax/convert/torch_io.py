@@ -382,8 +382,9 @@ def _write_safetensors(arrays, fh):
 
 
 def _is_ml_dtype(a: np.ndarray) -> bool:
-  """bfloat16, float8, ... (ml_dtypes' types, which numpy stores as opaque void)."""
-  return a.dtype.kind == "V" and a.dtype.names is None
+  """bfloat16, float8, ... (ml_dtypes' types: numpy sees most as opaque void, but some, such
+  as float8_e5m2, as kind "f", which np.savez writes as an unreadable '<f1')."""
+  return (a.dtype.kind == "V" and a.dtype.names is None) or a.dtype.type.__module__ == "ml_dtypes"
 
 
 def _write_npz(arrays, fh):

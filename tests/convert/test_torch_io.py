@@ -817,16 +817,61 @@ def test_save_npz_widens_bfloat16(tmp_path):
   back = torch_io.load_state_dict(path)
   assert back["w"].dtype == np.float32 and back["i"].dtype == np.arange(2).dtype
   np.testing.assert_array_equal(back["w"], values)
+  # float8_e5m2, which numpy sees as kind "f", was written as an unreadable '<f1'.
+  for name in ("float8_e5m2", "float8_e4m3fn"):
+    path = torch_io.save_state_dict({"w": values.astype(getattr(ml_dtypes, name))},
+                                    tmp_path / f"{name}.npz")
+    back = torch_io.load_state_dict(path)["w"]
+    assert back.dtype == np.float32, name
+    np.testing.assert_array_equal(back, values.astype(getattr(ml_dtypes, name)).astype(np.float32))
 
 
-def test_save_pth_without_torch(tmp_path):
-  try:
-    import torch  # pylint: disable=import-outside-toplevel,unused-import
-    pytest.skip("torch is installed")
-  except ImportError:
-    pass
+def test_save_pth_without_torch(tmp_path, monkeypatch):
+  monkeypatch.setitem(sys.modules, "torch", None)  # `import torch` fails, installed or not
   for suffix in (".pth", ".pt", ".bin"):  # each is written with torch.save
     with pytest.raises(CheckpointError, match=rf"writing \{suffix} needs torch.*\.safetensors or "
                        r"\.npz.*install torch"):
       torch_io.save_state_dict({"x": np.zeros(1)}, tmp_path / f"w{suffix}")
   assert os.listdir(tmp_path) == []
+
+
+def test_save_pth_hands_torch_save_the_arrays_in_their_dtypes(tmp_path, monkeypatch):
+  # The .pth writer runs without torch here: a stand-in `torch` records what torch.save gets.
+  # bfloat16 and float8 arrays become tensors of the same torch dtype and bits; an ml_dtypes
+  # type torch lacks is widened to float32; float32 arrays are copied, not shared.
+  import ml_dtypes  # pylint: disable=import-outside-toplevel
+  saved = []
+
+  class Dtype:
+    def __init__(self, name, itemsize):
+      self.name, self.itemsize = name, itemsize
+
+  class Tensor:
+    def __init__(self, array, dtype=None):
+      self.array, self.dtype = array, dtype
+
+    def view(self, dtype):
+      return Tensor(self.array, dtype)
+
+  torch = types.ModuleType("torch")
+  torch.dtype, torch.bfloat16, torch.float8_e5m2 = Dtype, Dtype("bfloat16", 2), Dtype(
+      "float8_e5m2", 1)
+  torch.from_numpy = Tensor
+  torch.save = lambda obj, fh: saved.append(obj)
+  monkeypatch.setitem(sys.modules, "torch", torch)
+  values = np.array([[0.5, -1.25], [3.0, 448.0]], np.float32)
+  sd = {"f32": values, "bf16": values.astype(ml_dtypes.bfloat16),
+        "f8": values.astype(ml_dtypes.float8_e5m2),  # numpy kind "f", unlike the others
+        "e4m3": values.astype(ml_dtypes.float8_e4m3fn)}
+  torch_io.save_state_dict(sd, tmp_path / "w.pth")
+  (got,) = saved
+  assert sorted(got) == sorted(sd) and (tmp_path / "w.pth").is_file()
+  assert got["f32"].dtype is None and got["f32"].array.dtype == np.float32
+  np.testing.assert_array_equal(got["f32"].array, values)
+  assert not np.shares_memory(got["f32"].array, values)
+  for key, dtype in (("bf16", torch.bfloat16), ("f8", torch.float8_e5m2)):
+    assert got[key].dtype is dtype, key
+    np.testing.assert_array_equal(got[key].array.view(sd[key].dtype), sd[key])  # same bits
+  assert got["e4m3"].dtype is None and got["e4m3"].array.dtype == np.float32  # torch lacks it
+  np.testing.assert_array_equal(got["e4m3"].array, sd["e4m3"].astype(np.float32))
+
