@@ -106,8 +106,9 @@ def schedule_change_note(opt_cfg, saved_steps, num_steps: int, step: int) -> str
   if (opt_cfg.schedule != "one_cycle" or opt_cfg.schedule_steps > 0
       or not isinstance(saved_steps, int) or saved_steps == num_steps):
     return None
-  before = float(make_schedule(opt_cfg, saved_steps)(step))
-  after = float(make_schedule(opt_cfg, num_steps)(step))
+  with jax.transfer_guard("allow"):  # host arithmetic; the training program disallows transfers
+    before = float(make_schedule(opt_cfg, saved_steps)(step))
+    after = float(make_schedule(opt_cfg, num_steps)(step))
   return (f"train.num_steps {saved_steps} -> {num_steps} rebuilds the one-cycle schedule: the "
           f"learning rate at step {step} goes from {before:.3g} to {after:.3g}; to keep the "
           f"earlier cycle (and then its final rate), pass "
