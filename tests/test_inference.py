@@ -415,31 +415,28 @@ def test_non_float_parameters_are_refused_before_compiling(variables):
   in_params = [i for i, (p, _) in enumerate(leaves) if p[0].key == "params"]
   k = min(in_params, key=lambda i: np.size(leaves[i][1]))  # a small parameter
   path = jax.tree_util.keystr(leaves[k][0][1:])  # the path inside "params"
-  for bad in (np.full(np.shape(leaves[k][1]), "0.5"), np.zeros(np.shape(leaves[k][1]), object),
-              np.zeros(np.shape(leaves[k][1]), np.int32)):
+  video = np.zeros((2, 32, 32, 3), np.uint8)
+
+  def refused(bad, message, place=lambda x: x):
+    """Parameter k replaced by `bad` (every leaf put by `place`): refused, named."""
     broken = jax.tree_util.tree_unflatten(
-        treedef, [bad if i == k else leaf for i, (_, leaf) in enumerate(leaves)])
-    with pytest.raises(ValueError, match=rf"source\.npz: parameter {re.escape(path)} has dtype "
-                                         rf"{bad.dtype}; expected floating-point arrays"):
+        treedef, [place(bad) if i == k else place(leaf) for i, (_, leaf) in enumerate(leaves)])
+    with pytest.raises(ValueError, match=message):
       inference.check_variables(broken, source="source.npz")
-    video = np.zeros((2, 32, 32, 3), np.uint8)
     with pytest.raises(ValueError, match=re.escape(path)):
       inference.predict_video(broken, video, video, iters=ITERS)
+
+  shape = np.shape(leaves[k][1])
+  for bad in (np.full(shape, "0.5"), np.zeros(shape, object), np.zeros(shape, np.int32)):
+    refused(bad, rf"source\.npz: parameter {re.escape(path)} has dtype {bad.dtype}; expected "
+                 r"floating-point arrays")
   inference.check_variables(jax.tree_util.tree_map(lambda x: x.astype(jax.numpy.bfloat16),
                                                    variables))
   # NaN or inf weights (a diverged run) would give all-NaN disparities: refused, named, on
   # the host (NumPy) and on the device (one compiled reduction, no copy back).
-  for place in (np.asarray, jax.device_put):
-    broken = jax.tree_util.tree_unflatten(
-        treedef, [place(np.full(np.shape(leaf), np.inf if place is np.asarray else np.nan,
-                                np.float32)) if i == k else place(leaf)
-                  for i, (_, leaf) in enumerate(leaves)])
-    with pytest.raises(ValueError, match=rf"source: 1 parameter\(s\) hold NaN or inf values, "
-                                         rf"e\.g\. {re.escape(path)}"):
-      inference.check_variables(broken, source="source")
-    video = np.zeros((2, 32, 32, 3), np.uint8)
-    with pytest.raises(ValueError, match=re.escape(path)):
-      inference.predict_video(broken, video, video, iters=ITERS)
+  for value, place in ((np.inf, np.asarray), (np.nan, jax.device_put)):
+    refused(np.full(shape, value, np.float32), rf"source\.npz: 1 parameter\(s\) hold NaN or inf "
+                                               rf"values, e\.g\. {re.escape(path)}", place)
   assert inference.cache_size() == before  # nothing compiled
 
 
