@@ -60,6 +60,7 @@ import math
 import os
 import time
 import warnings
+import weakref
 from typing import Mapping
 
 import jax
@@ -523,21 +524,38 @@ class FrameFeatureCache:
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *items)
 
 
-@jax.jit
-def _finite_flags(leaves):
-  return [jnp.all(jnp.isfinite(x)) for x in leaves]
+# Device arrays found finite: id -> weak reference (they are immutable, and an array that
+# is gone frees its entry; jax arrays cannot be hashed). Host arrays, which can change in
+# place, are scanned each time.
+_FINITE_ARRAYS: dict[int, weakref.ref] = {}
+
+
+def _known_finite(v) -> bool:
+  ref = _FINITE_ARRAYS.get(id(v))
+  return ref is not None and ref() is v
+
+
+def _remember_finite(v) -> None:
+  key = id(v)
+  _FINITE_ARRAYS[key] = weakref.ref(v, lambda _, key=key: _FINITE_ARRAYS.pop(key, None))
 
 
 def nonfinite_parameters(params) -> list[str]:
-  """The names (`keystr`) of the parameters holding NaN or inf. Host arrays are scanned
-  with NumPy, device arrays by one compiled reduction where they are (no copy to the host)."""
+  """The names (`keystr`) of the parameters holding NaN or inf, scanned with NumPy: device
+  arrays are fetched once (free on a CPU; remembered as finite afterwards, so a model run
+  window by window, or video by video, pays this once), host arrays every time."""
   named = jax.tree_util.tree_leaves_with_path(params)
-  bad = [jax.tree_util.keystr(k) for k, v in named if not isinstance(v, jax.Array)
-         and not np.isfinite(np.asarray(v)).all()]
-  on_device = [(jax.tree_util.keystr(k), v) for k, v in named if isinstance(v, jax.Array)]
-  if on_device:
-    flags = jax.device_get(_finite_flags([v for _, v in on_device]))
-    bad += [k for (k, _), ok in zip(on_device, flags) if not ok]
+  fetch = [v for _, v in named if isinstance(v, jax.Array) and not _known_finite(v)]
+  fetched = dict(zip(map(id, fetch), jax.device_get(fetch)))
+  bad = []
+  for k, v in named:
+    if isinstance(v, jax.Array) and id(v) not in fetched:
+      continue  # found finite before
+    if not np.isfinite(fetched.get(id(v), v) if isinstance(v, jax.Array)
+                       else np.asarray(v)).all():
+      bad.append(jax.tree_util.keystr(k))
+    elif isinstance(v, jax.Array):
+      _remember_finite(v)
   return bad
 
 

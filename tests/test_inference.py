@@ -433,7 +433,7 @@ def test_non_float_parameters_are_refused_before_compiling(variables):
   inference.check_variables(jax.tree_util.tree_map(lambda x: x.astype(jax.numpy.bfloat16),
                                                    variables))
   # NaN or inf weights (a diverged run) would give all-NaN disparities: refused, named, on
-  # the host (NumPy) and on the device (one compiled reduction, no copy back).
+  # the host and on the device (fetched once, then remembered as finite).
   for value, place in ((np.inf, np.asarray), (np.nan, jax.device_put)):
     refused(np.full(shape, value, np.float32), rf"source\.npz: 1 parameter\(s\) hold NaN or inf "
                                                rf"values, e\.g\. {re.escape(path)}", place)

@@ -121,7 +121,11 @@ def state_dict_from_params(variables: Mapping, cfg: SAVConfig | None = None
     except (KeyError, TypeError, IndexError):
       width = ()
     cfg = SAVConfig(vda_encoder=_encoder_of_width(width) or "vits")
-  inference.check_variables(variables, cfg, "state_dict_from_params")
+    source = ("state_dict_from_params (cfg=None: the paper's architecture with the depth "
+              "prior the parameters hold; pass the model's SAVConfig for another)")
+  else:
+    source = "state_dict_from_params"
+  inference.check_variables(variables, cfg, source)
   params = traverse_util.flatten_dict(jax.device_get(variables["params"]))
   unused = dict(variables.get(UNUSED_COLLECTION, {}))
   sd: dict[str, np.ndarray] = {}

@@ -85,7 +85,9 @@ def run(args: argparse.Namespace) -> int:
                        "the folder)")
     variables, config = convert.restore_variables(args.src)
     if convert.is_variables_checkpoint(args.src) or to_file:
-      path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite)
+      from sav_jax.tools.infer import config_from_dict  # pylint: disable=import-outside-toplevel
+      path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite,
+                                       cfg=config_from_dict(config, args.src))
       print(f"exported {args.src} -> {path} (official Stereo Any Video key names)")
     else:  # a training checkpoint -> a compact variables directory (no optimizer state)
       step = convert.find_training_checkpoint(args.src)
@@ -106,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
   except ValueError as e:  # the report names the keys; say which file they are of
     raise convert.CheckpointError(f"{args.src}: {e}") from e
   if to_file:  # checked by the conversion, written back with the official names
-    path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite)
+    path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite, cfg=cfg)
     print(f"converted {args.src} ({kind}, {len(sd)} tensors) -> {path} (official Stereo Any "
           "Video key names)")
     return 0

@@ -509,7 +509,7 @@ def load_checkpoint(path, dtype: str | None = None):
     raise FileNotFoundError(f"checkpoint not found: {path}")
   if path.is_dir():
     variables, cfg_dict = convert.restore_variables(path)
-    cfg = _config_from_dict(cfg_dict, path)
+    cfg = config_from_dict(cfg_dict, path)
     inference.check_variables(variables, cfg, path)  # NaN or inf weights too
     step = None if convert.is_variables_checkpoint(path) else convert.find_training_checkpoint(path)
     described = (f"orbax checkpoint {path}" if step is None
@@ -532,7 +532,13 @@ def load_checkpoint(path, dtype: str | None = None):
   return variables, inference.resolve_config(cfg, dtype), described
 
 
-def _config_from_dict(cfg_dict, path):
+def config_from_dict(cfg_dict, path):
+  """The `SAVConfig` a checkpoint at `path` stores (`{"model": {...}}` or the fields
+  themselves; unknown fields ignored, none: the default with a warning).
+
+  Raises:
+    CheckpointError: the stored config is not a mapping of valid SAVConfig fields.
+  """
   import dataclasses  # pylint: disable=import-outside-toplevel
 
   import sav_jax  # pylint: disable=import-outside-toplevel

@@ -258,6 +258,24 @@ def test_export_refuses_variables_that_are_not_the_models(tmp_path, variables):
     vitl(variables, sav_jax.SAVConfig(vda_encoder="vitl"))
 
 
+def test_export_of_another_architecture_uses_its_stored_config(tmp_path, capsys):
+  # A model trained with other sizes (--config.model.depth_dim=16 ...): `sav-jax convert`
+  # checks it against the config its checkpoint stores, not the paper's architecture.
+  from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
+  cfg = sav_jax.SAVConfig(depth_dim=16, fnet_dim=112)
+  other = init_variables(cfg, seed=2)
+  with pytest.raises(convert.CheckpointError, match=r"cfg=None: the paper's architecture .*pass "
+                                                    r"the model's SAVConfig"):
+    convert.state_dict_from_params(other)
+  sd = convert.state_dict_from_params(other, cfg)
+  convert.save_variables(tmp_path / "ckpt", other, {"model": cfg.to_dict()})
+  assert cli.main(["convert", str(tmp_path / "ckpt"), str(tmp_path / "out.npz")]) == 0
+  back = convert.load_state_dict(tmp_path / "out.npz")
+  assert sorted(back) == sorted(sd)
+  for k in sd:
+    np.testing.assert_array_equal(back[k], sd[k], err_msg=k)
+
+
 def test_unused_parameters_are_kept_outside_params(variables):
   unused = variables[UNUSED_COLLECTION]
   assert "update_block.time_attn.temporal_attn.qkv.weight" in unused
