@@ -141,7 +141,7 @@ def _run_into(args, config, out) -> int:
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)
   methods = ["sav"] + [b for b in dict.fromkeys(args.baseline)]
-  settings = runner.run_settings(config, described, methods)
+  settings = runner.run_settings(config, variables, methods)
   done = (runner.read_progress(out, settings) or {}) if args.resume else {}
   for seq in seqs:
     if str(seq.name) in done and done[str(seq.name)].frames != len(seq):
@@ -190,7 +190,8 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
     print(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  {line}{again}")
   summary = build_summary(config, described, results, methods)
   paths = report.write_all(out, summary)
-  (out / runner.PROGRESS).unlink(missing_ok=True)  # finished: nothing left to resume
+  if not set(done) - {str(seq.name) for seq in seqs}:  # else kept: a later --resume over
+    (out / runner.PROGRESS).unlink(missing_ok=True)   # more sequences reads those again
   print(report.markdown(summary).split("## Per sequence")[0].rstrip())
   print("wrote " + ", ".join(str(p) for p in paths))
   return 0

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import json
 import logging
 import os
@@ -250,11 +251,24 @@ _PROGRESS_VERSION = 1
 _RESUME_FREE = ("devices", "max_sequences")
 
 
-def run_settings(config, described: str, methods) -> dict:
+def weights_digest(variables) -> str:
+  """A digest of the parameters (names, shapes, dtypes, values): the same weights give the
+  same digest from any path or format, other weights at the same path another one."""
+  digest = hashlib.blake2b(digest_size=16)
+  named = jax.tree_util.tree_leaves_with_path(variables["params"])
+  for (path, _), value in zip(named, jax.device_get([v for _, v in named])):
+    value = np.ascontiguousarray(value)
+    digest.update(f"{jax.tree_util.keystr(path)} {value.shape} {value.dtype}\n".encode())
+    digest.update(value.view(np.uint8).reshape(-1))
+  return digest.hexdigest()
+
+
+def run_settings(config, variables, methods) -> dict:
   """What a resumed run must share with the interrupted one: the config (but `devices` and
-  `max_sequences`), the weights' description and the methods, as JSON would store them."""
+  `max_sequences`), the weights (`weights_digest`) and the methods, as JSON would store
+  them."""
   settings = {k: v for k, v in config.to_dict().items() if k not in _RESUME_FREE}
-  return json.loads(json.dumps({"config": settings, "weights": described,
+  return json.loads(json.dumps({"config": settings, "weights": weights_digest(variables),
                                 "methods": list(methods)}))
 
 
@@ -262,7 +276,11 @@ def _differences(old, new, prefix="") -> list[str]:
   if isinstance(old, dict) and isinstance(new, dict):
     return [d for k in sorted(set(old) | set(new), key=str)
             for d in _differences(old.get(k), new.get(k), f"{prefix}{k}.")]
-  return [] if old == new else [f"{prefix[:-1]}: {old!r} then, {new!r} now"]
+  if old == new:
+    return []
+  if prefix == "weights.":  # digests: say what they mean
+    return ["the weights: other parameter values than the interrupted run's"]
+  return [f"{prefix[:-1]}: {old!r} then, {new!r} now"]
 
 
 def read_progress(out: pathlib.Path, settings: dict) -> dict[str, SequenceResult] | None:

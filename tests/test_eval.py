@@ -226,7 +226,7 @@ def test_failed_overwrite_run_loses_nothing(tmp_path, ckpt, capsys, monkeypatch)
   assert "pass --overwrite" in capsys.readouterr().err and not lock.exists()
 
 
-def test_resume_after_a_failed_run(tmp_path, ckpt, capsys, monkeypatch):
+def test_resume_after_a_failed_run(tmp_path, ckpt, variables, capsys, monkeypatch):
   # A run that fails at its second sequence keeps the first one's record; --resume evaluates
   # only the second, with the same settings, and reports both as an uninterrupted run would.
   out = tmp_path / "run"
@@ -249,7 +249,8 @@ def test_resume_after_a_failed_run(tmp_path, ckpt, capsys, monkeypatch):
     m.setattr(eval_runner, "append_progress", second_fails)
     assert main(args) == 2
   assert "synthetic_001: disk full" in capsys.readouterr().err
-  records = (out / eval_runner.PROGRESS).read_text().splitlines()
+  progress_lines = (out / eval_runner.PROGRESS).read_text()
+  records = progress_lines.splitlines()
   assert len(records) == 2 and json.loads(records[1])["name"] == "synthetic_000"
   assert main(args) == 2  # without --resume: refused, and told about it
   assert "pass --resume to continue that interrupted run, or --overwrite" in (
@@ -257,6 +258,13 @@ def test_resume_after_a_failed_run(tmp_path, ckpt, capsys, monkeypatch):
   assert main([*args, "--resume", "--config.iters=4"]) == 2  # other settings: refused, named
   assert "cannot resume: the interrupted run in" in (err := capsys.readouterr().err)
   assert "iters: 2 then, 4 now" in err
+  # Other weights at the same path: refused; the same weights by another path: resumed below.
+  other = tmp_path / "other"
+  sav_jax.convert.save_variables(other, jax.tree_util.tree_map(
+      lambda x: np.asarray(x) * np.float32(1.0001), variables), {"model": {}})
+  assert main([*args, "--checkpoint", str(other), "--resume"]) == 2
+  assert "the weights: other parameter values than the interrupted run's" in (
+      capsys.readouterr().err)
   with pytest.raises(SystemExit):  # argparse: not both
     main([*args, "--resume", "--overwrite"])
   assert "--overwrite: not allowed with argument --resume" in capsys.readouterr().err
@@ -264,7 +272,9 @@ def test_resume_after_a_failed_run(tmp_path, ckpt, capsys, monkeypatch):
   with open(out / eval_runner.PROGRESS, "a", encoding="utf-8") as f:
     f.write('{"name": "synthetic_001", "fra')
   evaluated.clear()
-  assert main([*args, "--resume", "--config.devices=1"]) == 0  # devices may differ
+  same = tmp_path / "same.npz"  # the same weights in another format and place
+  sav_jax.convert.export_state_dict(variables, same)
+  assert main([*args, "--checkpoint", str(same), "--resume", "--config.devices=1"]) == 0
   assert evaluated == ["synthetic_001"]
   printed = capsys.readouterr().out
   assert "--resume: 1 sequences finished by the interrupted run" in printed
@@ -277,6 +287,15 @@ def test_resume_after_a_failed_run(tmp_path, ckpt, capsys, monkeypatch):
   assert "disp_TCC" in summary["methods"]["sav"]["aggregate"]
   assert main([*args, "--resume"]) == 2  # a finished run: nothing to resume
   assert "nothing to resume" in capsys.readouterr().err
+  # A resumed run over fewer sequences keeps the records of the others for a later one.
+  second = json.loads(records[1]) | {"name": "synthetic_001"}  # as if it had finished too
+  both = progress_lines + json.dumps(second) + "\n"
+  (out / eval_runner.PROGRESS).write_text(both, encoding="utf-8")
+  evaluated.clear()
+  assert main([*args, "--resume", "--config.max_sequences=1"]) == 0
+  assert evaluated == [] and (out / eval_runner.PROGRESS).read_text() == both
+  assert main([*args, "--resume"]) == 0 and evaluated == []  # both read back
+  assert not (out / eval_runner.PROGRESS).exists()
   # The second sequence's files are listed twice (the failed run's and the resumed one's):
   # --overwrite removes each once.
   listed = (out / eval_runner.WRITTEN_LIST).read_text().splitlines()
