@@ -11,6 +11,7 @@ import functools
 import ml_collections
 import numpy as np
 
+from sav_jax._checks import is_int
 from sav_jax.data import synthetic
 
 SYNTHETIC = "synthetic"
@@ -65,7 +66,7 @@ def synthetic_sequences(config: ml_collections.ConfigDict) -> list[SyntheticSequ
                      "height, width, num_objects, max_disparity, seed, num_sequences): see "
                      "configs/eval/synthetic.py")
   s = config.synthetic
-  if not (isinstance(s.num_sequences, int) and s.num_sequences >= 1):
+  if not (is_int(s.num_sequences) and s.num_sequences >= 1):
     raise ValueError(f"config.synthetic.num_sequences must be an integer >= 1, got "
                      f"{s.num_sequences!r}")
   cfg = synthetic.SyntheticConfig(frames=s.frames, height=s.height, width=s.width,

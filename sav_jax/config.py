@@ -196,13 +196,13 @@ def remat_policies() -> list[str]:
                 if not k.startswith("_") and callable(v) and is_policy(v))
 
 
-def as_config(cfg, where: str = "cfg") -> "SAVConfig":
-  """`cfg`, or the paper's model for None.
+def as_config(cfg, where: str = "cfg", allow_none: bool = True) -> "SAVConfig":
+  """`cfg`, or the paper's model for None (where `allow_none`).
 
   Raises:
     TypeError: `cfg` is not a `SAVConfig` (a dict of its fields: `SAVConfig.from_dict(d)`).
   """
-  if cfg is None:
+  if cfg is None and allow_none:
     return SAVConfig()
   if not isinstance(cfg, SAVConfig):
     raise TypeError(f"{where} must be a sav_jax.SAVConfig (SAVConfig.from_dict(d) for a dict), "

@@ -200,7 +200,8 @@ def find_root(root, *names: str) -> Path:
   """The dataset directory: `root/<name>` for the first existing name, else `root`.
 
   Lets callers pass either the common parent (`data/datasets`) or the dataset's own
-  folder. Raises FileNotFoundError when `root` does not exist.
+  folder. Raises FileNotFoundError when `root` does not exist, NotADirectoryError when it
+  is a file.
   """
   root = Path(root).expanduser()
   if root.exists() and not root.is_dir():

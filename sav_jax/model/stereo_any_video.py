@@ -127,7 +127,8 @@ class StereoAnyVideo(nn.Module):
   cfg: SAVConfig = SAVConfig()
 
   def setup(self):
-    as_config(self.cfg, "StereoAnyVideo(cfg)")  # a dict would fail deep inside, unnamed
+    # A dict (a FrozenDict once Flax has it) or None would fail deep inside, unnamed.
+    as_config(self.cfg, "StereoAnyVideo(cfg)", allow_none=False)
     dt = self.cfg.compute_dtype
     self.cnet = BasicEncoder(self.cfg.fnet_dim, dt)
     self.fnet = BasicEncoder(self.cfg.fnet_dim, dt)

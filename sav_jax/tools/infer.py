@@ -463,9 +463,9 @@ def read_calibration(path) -> dict[str, float]:
       raise UsageError(f"{path}, line {number}: {key} must be one number (pixels, or metres "
                        f"for the baseline), got {rest!r}")
   size = {k: entries[k][0] for k in _SIZE_KEYS if k in entries}
-  for p2, p3 in (("P_rect_02", "P_rect_03"), ("P2", "P3")):
+  for p2, p3, s2 in (("P_rect_02", "P_rect_03", "S_rect_02"), ("P2", "P3", None)):
     if len(entries.get(p2) or ()) == 12 and len(entries.get(p3) or ()) == 12:
-      rect_size = entries.get(p2.replace("P_", "S_")) or ()  # KITTI raw: S_rect_02 = W H
+      rect_size = entries.get(s2) or ()  # KITTI raw: S_rect_02 = W H
       if not size and len(rect_size) == 2:
         size = {"width": rect_size[0], "height": rect_size[1]}
       m2, m3 = np.reshape(entries[p2], (3, 4)), np.reshape(entries[p3], (3, 4))

@@ -201,6 +201,8 @@ def test_a_dict_for_the_config_is_named_everywhere():
                lambda: sav_jax.convert.params_from_state_dict({}, fields),
                lambda: inference.estimate_memory_bytes(2, 32, 32, cfg=fields),
                lambda: jax.eval_shape(lambda l, r: sav_jax.StereoAnyVideo(fields).init(
+                   jax.random.PRNGKey(0), l, r, iters=2), x, x),
+               lambda: jax.eval_shape(lambda l, r: sav_jax.StereoAnyVideo(None).init(
                    jax.random.PRNGKey(0), l, r, iters=2), x, x)):
     with pytest.raises(TypeError, match=r"must be a sav_jax\.SAVConfig \(SAVConfig\.from_dict"):
       call()
