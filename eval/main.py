@@ -106,14 +106,16 @@ def _run_into(args, config, out) -> int:
   if restored:
     print(f"restored {len(restored)} prediction and plot files that an interrupted "
           f"--overwrite run had set aside in {out / runner.SET_ASIDE}")
-  earlier = [p for p in (*(out / f"results.{x}" for x in ("json", "csv", "md")),
+  earlier = [p for p in (*(out / r for r in runner.REPORTS),
                          out / runner.WRITTEN_LIST, out / runner.PROGRESS, out / "predictions",
                          out / "plots")
              if p.is_file() or (p.is_dir() and any(p.iterdir()))]
-  if args.resume:
-    if not (out / runner.PROGRESS).is_file() and (out / "results.json").is_file():
-      raise FileExistsError(f"nothing to resume: {out} holds a finished evaluation "
-                            "(results.json); pass --overwrite to replace it")
+  if args.resume:  # without a progress file, only an empty folder starts afresh
+    if not (out / runner.PROGRESS).is_file() and earlier:
+      finished = " holds a finished evaluation" if (out / "results.json").is_file() else ""
+      raise FileExistsError(f"nothing to resume: {out}{finished} has no {runner.PROGRESS} "
+                            f"(found {', '.join(p.name for p in earlier)}); pass --overwrite "
+                            "to replace it")
   elif earlier and not args.overwrite:  # also the predictions of an interrupted run
     interrupted = (out / runner.PROGRESS).is_file()
     raise FileExistsError(f"{', '.join(map(str, earlier))} exist; pass "
@@ -190,6 +192,7 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
     print(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  {line}{again}")
   summary = build_summary(config, described, results, methods)
   paths = report.write_all(out, summary)
+  runner.drop_set_aside(out)  # the commit point of an --overwrite run: nothing is undone after
   if not set(done) - {str(seq.name) for seq in seqs}:  # else kept: a later --resume over
     (out / runner.PROGRESS).unlink(missing_ok=True)   # more sequences reads those again
   print(report.markdown(summary).split("## Per sequence")[0].rstrip())

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import fcntl
 import hashlib
 import json
 import logging
@@ -176,25 +177,26 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
 
 def _write_sequence_outputs(out: pathlib.Path, res: SequenceResult, clip: dict, preds: dict,
                             config) -> None:
+  """Writes a sequence's predictions and plots, each listed in `written_files.txt` before it
+  is written (a run killed while writing one leaves no file that --overwrite would miss)."""
   name = safe_name(res.name)
-  written = []
+
+  def listed(path: pathlib.Path) -> pathlib.Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    record_written(out, [path])
+    return path
+
   if config.save_predictions:
-    (out / "predictions").mkdir(parents=True, exist_ok=True)
     for method, pred in preds.items():
       suffix = "" if method == "sav" else f"_{method}"
-      written.append(out / "predictions" / f"{name}{suffix}.npy")
-      np.save(written[-1], pred.astype(np.float32))
+      np.save(listed(out / "predictions" / f"{name}{suffix}.npy"), pred.astype(np.float32))
   if config.plots.enabled:
-    (out / "plots").mkdir(parents=True, exist_ok=True)
     labelled = {METHOD_NAMES[m]: p for m, p in preds.items()}
-    written.append(out / "plots" / f"{name}_strip.png")
-    plots.write_strip(written[-1], clip, labelled, frames=config.plots.strip_frames,
-                      tile=config.plots.tile_size)
+    plots.write_strip(listed(out / "plots" / f"{name}_strip.png"), clip, labelled,
+                      frames=config.plots.strip_frames, tile=config.plots.tile_size)
     if res.curves:
       curves = {METHOD_NAMES[m]: c for m, c in res.curves.items()}
-      written.append(out / "plots" / f"{name}_curves.png")
-      plots.write_curves(written[-1], curves, title=res.name)
-  record_written(out, written)
+      plots.write_curves(listed(out / "plots" / f"{name}_curves.png"), curves, title=res.name)
 
 
 # The prediction and plot files an evaluation wrote into its --out folder, one relative path
@@ -208,8 +210,15 @@ _OUTPUT_FOLDERS = ("predictions", "plots")
 def record_written(out: pathlib.Path, paths) -> None:
   """Appends `paths` (files under `out`) to `out/written_files.txt`."""
   if paths:
-    with open(out / WRITTEN_LIST, "a", encoding="utf-8") as f:
-      f.writelines(f"{p.relative_to(out).as_posix()}\n" for p in paths)
+    listing = out / WRITTEN_LIST
+    # a line cut short by a kill is ended first, so that the next path is a line of its own
+    cut = False
+    if listing.is_file() and listing.stat().st_size:
+      with open(listing, "rb") as f:
+        f.seek(-1, os.SEEK_END)
+        cut = f.read(1) != b"\n"
+    with open(listing, "a", encoding="utf-8") as f:
+      f.writelines(["\n"] * bool(cut) + [f"{p.relative_to(out).as_posix()}\n" for p in paths])
 
 
 def _listed_files(out: pathlib.Path) -> list[pathlib.Path]:
@@ -284,9 +293,11 @@ def _differences(old, new, prefix="") -> list[str]:
 
 
 def read_progress(out: pathlib.Path, settings: dict) -> dict[str, SequenceResult] | None:
-  """The finished sequences that `out/progress.jsonl` records, by name; None without the file.
+  """The finished sequences that `out/progress.jsonl` records, by name; None without the file
+  (or with no complete line in it: the run was killed before its first record).
 
-  A last line cut short (the run was killed while writing it) is dropped from the file.
+  A last line cut short (the run was killed while writing it) is dropped from the file
+  (rewritten whole, then renamed over it); blank lines are skipped.
 
   Raises:
     ValueError: the file was written with other settings (the differences are named), or
@@ -298,30 +309,39 @@ def read_progress(out: pathlib.Path, settings: dict) -> dict[str, SequenceResult
   text = path.read_text(encoding="utf-8")
   if text and not text.endswith("\n"):  # killed mid-line: that sequence is done again
     text = text[:text.rfind("\n") + 1]
-    path.write_text(text, encoding="utf-8")
-  lines = text.splitlines()
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(path)
+  lines = [(number, line) for number, line in enumerate(text.splitlines(), 1) if line.strip()]
+  if not lines:
+    path.unlink()
+    return None
+  restart = "; pass --overwrite to start again"
   try:
-    header = json.loads(lines[0]) if lines else {}
+    header = json.loads(lines[0][1])
   except json.JSONDecodeError:
-    header = {}
-  if header.get("sav_jax_eval_progress") != _PROGRESS_VERSION:
-    raise ValueError(f"{path} is not an evaluation progress file of this version; pass "
-                     "--overwrite to start again")
+    header = None
+  if not (isinstance(header, dict) and header.get("sav_jax_eval_progress") == _PROGRESS_VERSION):
+    raise ValueError(f"{path} is not an evaluation progress file of this version{restart}")
   differences = _differences({k: header.get(k) for k in settings}, settings)
   if differences:
     raise ValueError(f"cannot resume: the interrupted run in {out} used other settings ("
                      f"{'; '.join(differences[:3])}{'; ...' if len(differences) > 3 else ''})"
                      "; run with those, or pass --overwrite to start again")
   done = {}
-  for number, line in enumerate(lines[1:], 2):
+  for number, line in lines[1:]:
     try:
       rec = json.loads(line)
       res = SequenceResult(name=rec["name"], frames=rec["frames"], metrics=rec["metrics"],
                            seconds=rec["seconds"], compile_seconds=rec["compile_seconds"],
                            metrics_seconds=rec["metrics_seconds"])
+      kinds = ((res.name, str), (res.frames, int), (res.metrics, dict), (res.seconds, dict),
+               (res.compile_seconds, dict), (res.metrics_seconds, (int, float)))
+      if not all(isinstance(v, t) and not isinstance(v, bool) for v, t in kinds):
+        raise TypeError("a field of another type")
     except (json.JSONDecodeError, KeyError, TypeError) as e:
       raise ValueError(f"{path}: line {number} is not a finished sequence's record ("
-                       f"{type(e).__name__}: {e}); pass --overwrite to start again") from None
+                       f"{type(e).__name__}: {e}){restart}") from None
     done[res.name] = res
   return done
 
@@ -346,12 +366,14 @@ LOCK = ".eval.lock"
 
 @contextlib.contextmanager
 def output_lock(out: pathlib.Path):
-  """Holds `out/.eval.lock` (host and PID) while an evaluation writes into `out`.
+  """Holds `out/.eval.lock` while an evaluation writes into `out`: an exclusive `flock` on it,
+  which the system releases when the process ends however it ends (the file names the host
+  and PID for the message).
 
   A second evaluation into the same folder is refused before it touches anything (its
   start would otherwise take the running one's set-aside files for an interrupted run's).
-  A lock left by a process that no longer runs on this host is taken over. `out` is
-  created if needed, and removed again if the run leaves it empty.
+  A lock file that no process holds (its run was killed) is taken over. `out` is created if
+  needed, and removed again if the run leaves it empty.
 
   Raises:
     FileExistsError: another evaluation holds the lock.
@@ -359,54 +381,58 @@ def output_lock(out: pathlib.Path):
   created = not out.exists()
   out.mkdir(parents=True, exist_ok=True)
   lock = out / LOCK
-  me = f"{socket.gethostname()} {os.getpid()}"
-  for _ in range(2):
+  while True:
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-      fd = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+      fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+      holder = os.read(fd, 256).decode("utf-8", "replace").strip()
+      os.close(fd)
+      raise FileExistsError(
+          f"another evaluation ({holder or 'unknown'}) is writing into {out}: wait for it or "
+          f"choose another --out") from None
+    try:  # the path may name a newer file by now (the holder removed it as it ended)
+      same = os.stat(lock).st_ino == os.fstat(fd).st_ino
+    except FileNotFoundError:
+      same = False
+    if same:
       break
-    except FileExistsError:
-      holder = lock.read_text(encoding="utf-8", errors="replace").split()
-      if not (len(holder) == 2 and holder[0] == socket.gethostname() and holder[1].isdigit()
-              and not _running(int(holder[1]))):
-        raise FileExistsError(
-            f"another evaluation ({' '.join(holder) or 'unknown'}) is writing into {out}: wait "
-            f"for it or choose another --out (if none is running, delete {lock})") from None
-      lock.unlink(missing_ok=True)  # its process has ended
-  else:
-    raise FileExistsError(f"cannot take the lock {lock}")
-  with os.fdopen(fd, "w", encoding="utf-8") as f:
-    f.write(me)
+    os.close(fd)
+  os.ftruncate(fd, 0)
+  os.write(fd, f"{socket.gethostname()} {os.getpid()}".encode())
   try:
     yield
   finally:
     lock.unlink(missing_ok=True)
+    os.close(fd)  # releases the flock
     if created and not any(out.iterdir()):  # a run refused before writing leaves no folder
       out.rmdir()
 
 
-def _running(pid: int) -> bool:
-  try:
-    os.kill(pid, 0)
-  except ProcessLookupError:
-    return False
-  except PermissionError:  # another user's process
-    return True
-  return True
+REPORTS = ("results.json", "results.csv", "results.md")
+_COMMITTED = ".earlier_run.done"
+_REPORTS_NOTE = ".reports"
 
 
 def set_aside_written(out: pathlib.Path) -> list[pathlib.Path]:
-  """Moves the files an earlier run listed (the list and its progress file too) into
-  `out/.earlier_run/`.
+  """Moves the files an earlier run listed (the list, its progress file and its reports
+  too) into `out/.earlier_run/`.
 
   `--overwrite` sets the earlier run's files aside instead of deleting them:
-  `drop_set_aside` deletes them once the new run has finished, `restore_set_aside` puts
-  them back if it fails. The list goes first, so that a stop midway leaves no list in
-  `out` naming the earlier files not yet moved (the restore would delete them as the failed
-  run's). Returns the moved paths (their places before the move).
+  `drop_set_aside` deletes them once the new run has written its reports, and
+  `restore_set_aside` puts them back if it fails before. The list goes first, so that a stop
+  midway leaves no list in `out` naming the earlier files not yet moved (the restore would
+  delete them as the failed run's). Returns the moved prediction and plot files (their
+  places before the move).
   """
   aside = out / SET_ASIDE
   moved = _listed_files(out)
-  for path in [out / WRITTEN_LIST, out / PROGRESS, *moved]:
+  # Which reports the earlier run has, noted before any move: a restore after a stop midway
+  # tells an earlier report not moved yet (kept) from the failed run's (deleted).
+  aside.mkdir(exist_ok=True)
+  (aside / _REPORTS_NOTE).write_text(
+      "".join(f"{r}\n" for r in REPORTS if (out / r).is_file()), encoding="utf-8")
+  for path in [out / WRITTEN_LIST, out / PROGRESS, *(out / r for r in REPORTS), *moved]:
     if path.is_file():
       target = aside / path.relative_to(out)
       target.parent.mkdir(parents=True, exist_ok=True)
@@ -416,27 +442,41 @@ def set_aside_written(out: pathlib.Path) -> list[pathlib.Path]:
 
 def restore_set_aside(out: pathlib.Path) -> list[pathlib.Path]:
   """Undoes `set_aside_written` after a failed (or killed) run: deletes the files the
-  failed run listed and its progress file, then moves the earlier run's files, list and
-  progress file back. Returns the prediction and plot files."""
+  failed run listed, its progress file and any reports of it, then moves the earlier run's
+  files back. Returns the prediction and plot files. A run that had written its reports
+  (`drop_set_aside` begun) is not undone: what it left aside is deleted."""
+  if (out / _COMMITTED).is_dir():
+    shutil.rmtree(out / _COMMITTED)
   aside = out / SET_ASIDE
   if not aside.is_dir():
     return []
   remove_written(out)
   (out / PROGRESS).unlink(missing_ok=True)  # the failed run's
+  note = aside / _REPORTS_NOTE
+  if note.is_file():  # without it nothing was moved, and the run never started
+    earlier = note.read_text(encoding="utf-8").split()
+    for name in REPORTS:  # the failed run's: a moved earlier one's place, or one it never had
+      if (aside / name).is_file() or name not in earlier:
+        (out / name).unlink(missing_ok=True)
+    note.unlink()
   restored = []
   for path in sorted(p for p in aside.rglob("*") if p.is_file()):
     target = out / path.relative_to(aside)
     target.parent.mkdir(parents=True, exist_ok=True)
     path.replace(target)
     restored.append(target)
-  drop_set_aside(out)
-  return [p for p in restored if p.name not in (WRITTEN_LIST, PROGRESS)]
+  shutil.rmtree(aside)
+  return [p for p in restored if p.name not in (WRITTEN_LIST, PROGRESS, *REPORTS)]
 
 
 def drop_set_aside(out: pathlib.Path) -> None:
-  """Deletes `out/.earlier_run/` (made by `set_aside_written`), if there is one."""
+  """Deletes `out/.earlier_run/` (made by `set_aside_written`), if there is one: the new run
+  has written its reports. Renamed first (one atomic step: from then on a stop cannot bring
+  the earlier run back), then deleted."""
   if (out / SET_ASIDE).is_dir():
-    shutil.rmtree(out / SET_ASIDE)
+    (out / SET_ASIDE).replace(out / _COMMITTED)
+  if (out / _COMMITTED).is_dir():
+    shutil.rmtree(out / _COMMITTED)
 
 
 def aggregate(results: list[SequenceResult], method: str) -> dict[str, float]:

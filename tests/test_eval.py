@@ -183,10 +183,39 @@ def test_failed_overwrite_run_loses_nothing(tmp_path, ckpt, capsys, monkeypatch)
       raise ValueError(f"{seq.name}: frame 1 cannot be read")
     return real(seq, *a, **kw)
 
-  monkeypatch.setattr(eval_runner, "evaluate_sequence", second_fails)
-  assert main([*args, "--overwrite", "--config.synthetic.max_disparity=5"]) == 2
+  with monkeypatch.context() as m:
+    m.setattr(eval_runner, "evaluate_sequence", second_fails)
+    assert main([*args, "--overwrite", "--config.synthetic.max_disparity=5"]) == 2
   assert "cannot be read" in capsys.readouterr().err
   assert _snapshot(out) == before  # the first sequence's new prediction is gone again
+  # The disk full while the reports are written: the earlier reports come back too (the new
+  # results.json next to the earlier predictions before).
+  real_write_csv = eval_report.write_csv
+
+  def disk_full(path, summary):
+    real_write_csv(path, summary)
+    raise OSError(28, "No space left on device")
+
+  with monkeypatch.context() as m:
+    m.setattr(eval_report, "write_csv", disk_full)
+    assert main([*args, "--overwrite", "--config.synthetic.max_disparity=5"]) == 2
+  assert "No space left on device" in capsys.readouterr().err
+  assert _snapshot(out) == before
+  # Stopped once the reports are written: that run is done, nothing comes back.
+  with monkeypatch.context() as m:
+    m.setattr(eval_report, "markdown", lambda summary: (_ for _ in ()).throw(KeyboardInterrupt)
+              if summary.get("stop") else "x")
+    real_write_all = eval_report.write_all
+    m.setattr(eval_report, "write_all",
+              lambda out_, summary: [real_write_all(out_, summary), summary.update(stop=1)][0])
+    with pytest.raises(KeyboardInterrupt):
+      main([*args, "--overwrite", "--config.synthetic.max_disparity=5"])
+  after = _snapshot(out)
+  assert after["results.json"] != before["results.json"] and not (out / ".earlier_run").exists()
+  assert json.loads(after["results.json"])["config"]["synthetic"]["max_disparity"] == 5
+  assert main([*args, "--overwrite"]) == 0  # back to the first run's settings
+  capsys.readouterr()
+  before = _snapshot(out)
   # A run killed after setting the files aside: the next run puts them back first.
   eval_runner.set_aside_written(out)
   (out / "predictions" / "partial.npy").write_bytes(b"new")
@@ -209,19 +238,19 @@ def test_failed_overwrite_run_loses_nothing(tmp_path, ckpt, capsys, monkeypatch)
       eval_runner.set_aside_written(out)
   eval_runner.restore_set_aside(out)
   assert _snapshot(out) == before
-  # Another evaluation writing into the folder: refused before anything changes; a lock
-  # whose process has ended is taken over.
+  # Another evaluation writing into the folder (it holds the lock file's flock): refused
+  # before anything changes. A lock file that no process holds is taken over, even one that
+  # names this very process (a restarted container gets the same host name and PID).
+  import fcntl  # pylint: disable=import-outside-toplevel
   import socket  # pylint: disable=import-outside-toplevel
-  import subprocess  # pylint: disable=import-outside-toplevel
   lock = out / eval_runner.LOCK
+  lock.write_text("otherhost 4242")
+  with open(lock, "rb") as held:
+    fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    assert main([*args, "--overwrite"]) == 2
+    assert "another evaluation (otherhost 4242) is writing into" in capsys.readouterr().err
+    assert {k: v for k, v in _snapshot(out).items() if k != eval_runner.LOCK} == before
   lock.write_text(f"{socket.gethostname()} {os.getpid()}")
-  assert main([*args, "--overwrite"]) == 2
-  assert f"another evaluation ({socket.gethostname()} {os.getpid()}) is writing into" in (
-      capsys.readouterr().err)
-  assert {k: v for k, v in _snapshot(out).items() if k != eval_runner.LOCK} == before
-  dead = subprocess.Popen(["true"])  # noqa: S607
-  dead.wait()
-  lock.write_text(f"{socket.gethostname()} {dead.pid}")
   assert main(args) == 2  # refused for the earlier results, not for the lock
   assert "pass --overwrite" in capsys.readouterr().err and not lock.exists()
 
@@ -302,6 +331,49 @@ def test_resume_after_a_failed_run(tmp_path, ckpt, variables, capsys, monkeypatc
   assert len(listed) == 3 * 3 and len(set(listed)) == 6
   assert main([*args, "--overwrite", "--config.synthetic.num_sequences=1"]) == 0
   assert sorted(p.name for p in (out / "predictions").iterdir()) == ["synthetic_000.npy"]
+
+
+def test_progress_files_and_listing_survive_kills_and_hand_edits(tmp_path, ckpt, capsys,
+                                                                 monkeypatch):
+  out = tmp_path / "run"
+  args = ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), "--out", str(out),
+          *SMALL]
+  # Killed while a sequence's plot is written: its files are listed before they are written,
+  # so a later --overwrite removes them too.
+  with monkeypatch.context() as m:
+    m.setattr(eval_plots, "write_curves", lambda *a, **k: (_ for _ in ()).throw(
+        KeyboardInterrupt))
+    with pytest.raises(KeyboardInterrupt):
+      main(args)
+  assert (out / eval_runner.WRITTEN_LIST).read_text().splitlines() == [
+      "predictions/synthetic_000.npy", "plots/synthetic_000_strip.png",
+      "plots/synthetic_000_curves.png"]
+  # No progress file (killed in its first sequence), but its files: --resume is refused, not
+  # a run over them.
+  assert main([*args, "--resume"]) == 2
+  assert "nothing to resume" in capsys.readouterr().err
+  # Hand-edited or cut-short progress files.
+  settings = {"x": 1}
+  progress = out / eval_runner.PROGRESS
+  for text, message in (("[1]\n", "is not an evaluation progress file"),
+                        ('{"sav_jax_eval_progress": 1, "x": 1}\n{"name": "a", "frames": "4", '
+                         '"metrics": {}, "seconds": {}, "compile_seconds": {}, '
+                         '"metrics_seconds": 0}\n', "line 2 is not a finished sequence's")):
+    progress.write_text(text)
+    with pytest.raises(ValueError, match=message):
+      eval_runner.read_progress(out, settings)
+  record = {"name": "a", "frames": 4, "metrics": {}, "seconds": {}, "compile_seconds": {},
+            "metrics_seconds": 0.5}
+  progress.write_text('{"sav_jax_eval_progress": 1, "x": 1}\n\n' + json.dumps(record) + "\n\n")
+  assert list(eval_runner.read_progress(out, settings)) == ["a"]  # blank lines skipped
+  progress.write_text('{"sav_jax_eval_prog')  # killed writing the header: nothing done
+  assert eval_runner.read_progress(out, settings) is None and not progress.exists()
+  # A listing line cut short by a kill: the next path starts a line of its own.
+  listing = out / eval_runner.WRITTEN_LIST
+  listing.write_text("predictions/synthetic_000.npy\nplots/synth")
+  eval_runner.record_written(out, [out / "plots" / "x.png"])
+  assert listing.read_text().splitlines() == ["predictions/synthetic_000.npy", "plots/synth",
+                                              "plots/x.png"]
 
 
 def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch):
