@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -495,9 +496,10 @@ def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
           host(*pending)
           pending = None
         if save_now:
-          ckpt_lib.save(manager, state, parts["grain_it"], step, force=True,
-                        params_finite=bool(np.isfinite(host.last["l2_params"])),
-                        model_config=parts["model"].cfg, run_config=config)
+          with interrupt_after():  # a Ctrl-C inside orbax's start of a save would drop it
+            ckpt_lib.save(manager, state, parts["grain_it"], step, force=True,
+                          params_finite=bool(np.isfinite(host.last["l2_params"])),
+                          model_config=parts["model"].cfg, run_config=config)
           if stop:  # written before anything else: the scheduler's grace period is short
             manager.wait_until_finished()
         if eval_now:  # (after a notice too: a resumed run starts after this step)
@@ -519,6 +521,29 @@ def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
 
 class Preempted(RuntimeError):
   """The run stopped early on a preemption notice, after saving a checkpoint of its step."""
+
+
+@contextlib.contextmanager
+def interrupt_after():
+  """Holds Ctrl-C (SIGINT) back while the block runs, and raises it (KeyboardInterrupt, or
+  what the handler before does) once the block is done: a checkpoint save cut inside
+  orbax's synchronous part is dropped, not finished. Only in the main thread (Python's
+  rule for signal handlers); elsewhere the block runs as it is."""
+  if threading.current_thread() is not threading.main_thread():
+    yield
+    return
+  caught = []
+  previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(frame))
+  try:
+    yield
+  finally:
+    signal.signal(signal.SIGINT, previous)
+  if caught:
+    log.warning("Ctrl-C: the checkpoint save it met is started; stopping")
+    if callable(previous):
+      previous(signal.SIGINT, caught[0])
+    elif previous != signal.SIG_IGN:
+      raise KeyboardInterrupt
 
 
 class Preemption:
