@@ -107,9 +107,8 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     if changed:  # allowed (e.g. to extend a run), but never unnoticed
       log.warning("resuming with %d config fields changed since checkpoint %d: %s",
                   len(changed), step, "; ".join(changed))
-      note = optim.schedule_change_note(
-          config.optimizer, ckpt_lib.saved_run(manager, step).get("train.num_steps"),
-          config.train.num_steps, step)
+      note = optim.schedule_change_note(config.optimizer, config.train.num_steps, step,
+                                        ckpt_lib.saved_run(manager, step))
       if note:
         log.warning("%s", note)
     return state, shardings, "checkpoint"

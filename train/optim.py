@@ -16,6 +16,7 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import ml_collections
 import optax
 
 FROZEN = "frozen"
@@ -99,20 +100,44 @@ def check_depth_prior_frozen(labels, frozen_pattern: str) -> None:
         "they would only decay; use a pattern that matches 'depthanything' (the default)")
 
 
-def schedule_change_note(opt_cfg, saved_steps, num_steps: int, step: int) -> str | None:
-  """A warning for a resume at `step` whose `train.num_steps` changed from `saved_steps`:
-  the one-cycle schedule (length `num_steps + 100` unless `schedule_steps` is set) is
-  rebuilt, so the learning rate jumps. None when nothing changes."""
-  if (opt_cfg.schedule != "one_cycle" or opt_cfg.schedule_steps > 0
-      or not isinstance(saved_steps, int) or saved_steps == num_steps):
+# The optimizer fields the learning-rate schedule depends on.
+SCHEDULE_FIELDS = ("schedule", "schedule_steps", "lr", "pct_start", "div_factor",
+                   "final_div_factor")
+
+
+def schedule_change_note(opt_cfg, num_steps: int, step: int, saved: dict) -> str | None:
+  """A warning for a resume at `step` whose schedule changed: `train.num_steps` or one of
+  `SCHEDULE_FIELDS` differs from the saved run's (`saved`: its `"a.b": value` fields), so
+  the learning rate changes from what the saved run would have used. It gives the rate at
+  `step` before and after and, where only `train.num_steps` changed a one-cycle schedule,
+  the `schedule_steps` that keeps the earlier cycle. None when nothing changes, or for a
+  checkpoint that saved no run config."""
+  if not saved or "train.num_steps" not in saved:
+    return None
+  saved_steps = saved["train.num_steps"]
+  old = ml_collections.ConfigDict(opt_cfg.to_dict())
+  for field in SCHEDULE_FIELDS:
+    if f"optimizer.{field}" in saved:
+      old[field] = saved[f"optimizer.{field}"]
+  changed = [f"train.num_steps {saved_steps} -> {num_steps}"] if saved_steps != num_steps else []
+  changed += [f"optimizer.{f} {old[f]!r} -> {opt_cfg[f]!r}" for f in SCHEDULE_FIELDS
+              if old[f] != opt_cfg[f]]
+  if not changed:
     return None
   with jax.transfer_guard("allow"):  # host arithmetic; the training program disallows transfers
-    before = float(make_schedule(opt_cfg, saved_steps)(step))
+    try:
+      before = float(make_schedule(old, saved_steps)(step))
+    except ValueError:  # a saved schedule this version does not build
+      before = float("nan")
     after = float(make_schedule(opt_cfg, num_steps)(step))
-  return (f"train.num_steps {saved_steps} -> {num_steps} rebuilds the one-cycle schedule: the "
-          f"learning rate at step {step} goes from {before:.3g} to {after:.3g}; to keep the "
-          f"earlier cycle (and then its final rate), pass "
-          f"--config.optimizer.schedule_steps={saved_steps + 100}")
+  if before == after:
+    return None
+  keep = (len(changed) == 1 and saved_steps != num_steps and old.schedule == "one_cycle"
+          and old.schedule_steps <= 0)
+  return (f"{', '.join(changed)}: the learning-rate schedule changes, the rate at step {step} "
+          f"goes from {before:.3g} to {after:.3g}"
+          + (f"; to keep the earlier cycle (and then its final rate), pass "
+             f"--config.optimizer.schedule_steps={saved_steps + 100}" if keep else ""))
 
 
 def make_schedule(opt_cfg, num_steps: int) -> Callable[[Any], jax.Array]:

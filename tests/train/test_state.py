@@ -158,24 +158,31 @@ def test_extending_a_one_cycle_run_names_the_learning_rate_jump():
   c = synthetic.get_config()
   c.optimizer.schedule, c.optimizer.schedule_steps = "one_cycle", 0
   c.optimizer.lr, c.optimizer.pct_start = 1e-4, 0.01
+  saved = {**ckpt_lib.run_fields(c), "train.num_steps": 800}  # a finished run, extended
   with jax.transfer_guard("disallow"):  # as `python -m train` runs (it crashed there)
-    note = optim.schedule_change_note(c.optimizer, 800, 1000, 800)  # a finished run, extended
+    note = optim.schedule_change_note(c.optimizer, 1000, 800, saved)
   before = float(optim.make_schedule(c.optimizer, 800)(800))
   after = float(optim.make_schedule(c.optimizer, 1000)(800))
   assert after > 2 * before
-  assert note == (f"train.num_steps 800 -> 1000 rebuilds the one-cycle schedule: the learning "
-                  f"rate at step 800 goes from {before:.3g} to {after:.3g}; to keep the earlier "
+  assert note == (f"train.num_steps 800 -> 1000: the learning-rate schedule changes, the rate "
+                  f"at step 800 goes from {before:.3g} to {after:.3g}; to keep the earlier "
                   "cycle (and then its final rate), pass --config.optimizer.schedule_steps=900")
   # the advice holds: that cycle is the saved run's
   c.optimizer.schedule_steps = 900
   assert float(optim.make_schedule(c.optimizer, 1000)(800)) == before
-  assert optim.schedule_change_note(c.optimizer, 800, 1000, 800) is None  # a set cycle
+  saved_set = {**ckpt_lib.run_fields(c), "train.num_steps": 800}
+  assert optim.schedule_change_note(c.optimizer, 1000, 800, saved_set) is None  # a set cycle
   c.optimizer.schedule_steps = 0
-  assert optim.schedule_change_note(c.optimizer, 1000, 1000, 800) is None
-  assert optim.schedule_change_note(c.optimizer, None, 1000, 800) is None  # older checkpoint
+  assert optim.schedule_change_note(c.optimizer, 800, 800, saved) is None  # nothing changed
+  assert optim.schedule_change_note(c.optimizer, 1000, 800, {}) is None  # older checkpoint
+  # Another optimizer.lr too: "before" is the saved run's rate, not the new lr's.
+  c.optimizer.lr = 1e-3
+  note = optim.schedule_change_note(c.optimizer, 1000, 800, saved)
+  after = float(optim.make_schedule(c.optimizer, 1000)(800))
+  assert note == (f"train.num_steps 800 -> 1000, optimizer.lr 0.0001 -> 0.001: the learning-rate "
+                  f"schedule changes, the rate at step 800 goes from {before:.3g} to "
+                  f"{after:.3g}")
 
-
-@functools.lru_cache(maxsize=1)
 def _real_abstract_params():
   c = synthetic.get_config()
   return state_lib.abstract_params(sav_jax.StereoAnyVideo(state_lib.model_config(c)), c)
