@@ -971,10 +971,14 @@ def test_ctrl_c_during_a_checkpoint_save_lets_the_save_finish(tmp_path, monkeypa
     return saved[-1]
 
   monkeypatch.setattr(ckpt_lib, "save", interrupted_save)
-  handler = signal.getsignal(signal.SIGINT)
-  with pytest.raises(KeyboardInterrupt):
-    loop.run(c, tmp_path, _loop_parts(c, tmp_path))
-  assert saved == [True] and signal.getsignal(signal.SIGINT) is handler
+  # Python's own Ctrl-C handler (pytest-xdist's workers ignore SIGINT, which is kept too).
+  handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+  try:
+    with pytest.raises(KeyboardInterrupt):
+      loop.run(c, tmp_path, _loop_parts(c, tmp_path))
+    assert saved == [True] and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+  finally:
+    signal.signal(signal.SIGINT, handler)
   assert sav_jax.convert.find_training_checkpoint(tmp_path) == tmp_path / "checkpoints" / "2"
   with loop.interrupt_after():  # nothing held back: the block runs, nothing raised
     pass
