@@ -154,15 +154,15 @@ def _run_into(args, config, out) -> int:
               devices, flow_fn)
   if not args.overwrite:
     return evaluate(*run_args)
-  # The earlier run's predictions and plots go aside, and come back if this run fails
-  # (a frame that cannot be read, an interrupt): a failed run loses nothing.
+  # The earlier run's files go aside, and come back if this run fails before its reports are
+  # written (a frame that cannot be read, an interrupt): a failed run loses nothing. Once
+  # they are, `evaluate` deletes them (`drop_set_aside`).
   try:
     moved = runner.set_aside_written(out)
     rc = evaluate(*run_args)
   except BaseException:
-    runner.restore_set_aside(out)
+    runner.restore_set_aside(out)  # undoes nothing once `evaluate` has written the reports
     raise
-  runner.drop_set_aside(out)
   if moved:
     print(f"--overwrite: removed the earlier run's {len(moved)} prediction and plot files")
   return rc

@@ -549,12 +549,12 @@ def nonfinite_parameters(params) -> list[str]:
   fetched = dict(zip(map(id, fetch), jax.device_get(fetch)))
   bad = []
   for k, v in named:
-    if isinstance(v, jax.Array) and id(v) not in fetched:
+    on_device = isinstance(v, jax.Array)
+    if on_device and id(v) not in fetched:
       continue  # found finite before
-    if not np.isfinite(fetched.get(id(v), v) if isinstance(v, jax.Array)
-                       else np.asarray(v)).all():
+    if not np.isfinite(fetched[id(v)] if on_device else np.asarray(v)).all():
       bad.append(jax.tree_util.keystr(k))
-    elif isinstance(v, jax.Array):
+    elif on_device:
       _remember_finite(v)
   return bad
 

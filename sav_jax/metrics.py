@@ -165,7 +165,6 @@ def endpoint_error_maps(pred, gt, mask, crop: int = 0, mask_thr: float = 0.5):
   _check_same(("pred", "gt", "mask"), (x, y, m))
   if not (is_int(crop) and crop >= 0):
     raise ValueError(f"crop must be an integer >= 0 (border pixels), got {crop!r}")
-  check_mask_thr(mask_thr)
   if crop > 0:
     if crop >= min(x.shape[1:]) - crop:  # the official check is `>`: it let an empty crop by
       raise ValueError(f"Incorrect crop size {crop} for spatial shape {x.shape[1:]} (nothing "
