@@ -17,6 +17,14 @@ the same arithmetic regrouped, so it is rounding only). The parts are the ones
   one 256 -> 768 product); the linear attention's per-head products batched over the heads
   (the model's form before it took them as two plain products, see `update.linear_attention`);
 - time attention: `jax.nn.dot_product_attention` (cuDNN on a GPU in bfloat16, else XLA's);
+  the T x T products as broadcast multiply-and-sum in float32 over `[B, T, h*w, heads, d]`
+  (no transposes, no batched matrix products: reductions XLA can fuse);
+- GRU: the convolutions of `[h, x]` split into one of h and one of x (no concatenated
+  input), the x parts of a pass that share a kernel size as one convolution;
+- motion encoder: the 7x7 flow convolution on the x channel only (the y channel is zero),
+  and as one product of the 49 shifted taps;
+- warp, correlation and correlation MLP: the maps (and/or the MLP) in the compute dtype
+  instead of float32 (changes the bfloat16 mode's numbers: see `precision_check.py`).
 - depth prior: the ViT attention blocked (default) or cuDNN's fused kernel (GPU, bfloat16).
 """
 
@@ -34,8 +42,10 @@ import sav_jax
 from sav_jax.config import resolve_vit_attention
 from sav_jax.model import update as U
 from sav_jax.model.init import init_variables
-from sav_jax.model.layers import Conv3D, conv2d, gelu, layer_norm
+from sav_jax.model.layers import Conv3D, CorrMLP, conv2d, gelu, layer_norm
 from sav_jax.model.stereo_any_video import StereoAnyVideo
+from sav_jax.ops.correlation import WIDE_WINDOW, window_correlation
+from sav_jax.ops.sample import warp_x
 
 from timing import add_clip_arguments, timed  # benchmarks/timing.py
 
@@ -151,6 +161,91 @@ def time_attn_dpa(p, x, dtype, implementation):
   return x + out
 
 
+def time_attn_fused(p, x, dtype):
+  """`TimeAttnBlock` with the T x T products as float32 broadcast multiply-and-sum over
+  `[B, T, h*w, heads, d]` (reductions, no transposes or batched matrix products)."""
+  b, t, h, w, c = x.shape
+  y = layer_norm(dtype=dtype).apply({"params": p["temporal_norm1"]}, x)
+  f = y.reshape(b, t, h * w, 8, c // 8).astype(jnp.float32)
+  logits = jnp.sum(f[:, :, None] * f[:, None], axis=-1) * (c // 8) ** -0.5  # [b,t,s,P,n]
+  attn = jax.nn.softmax(logits, axis=2)
+  out = jnp.sum(attn[..., None] * f[:, None], axis=2).astype(dtype).reshape(b, t, h, w, c)
+  out = out @ p["temporal_attn"]["proj"]["kernel"].astype(dtype) + \
+      p["temporal_attn"]["proj"]["bias"].astype(dtype)
+  out = out @ p["temporal_fc"]["kernel"].astype(dtype) + p["temporal_fc"]["bias"].astype(dtype)
+  return x + out
+
+
+def gru_split(p, h, x, dtype):
+  """`SKSepConvGRU3D` with every convolution of `[h, x]` as one of h plus one of x (no
+  concatenated input); a pass's x parts with the same kernel size run as one convolution."""
+  h, x = h.astype(dtype), x.astype(dtype)
+  hd = h.shape[-1]
+  k_ = lambda n, part: (p[n]["kernel"][..., :hd, :] if part == "h"  # noqa: E731
+                        else p[n]["kernel"][..., hd:, :]).astype(dtype)
+  b_ = lambda n: p[n]["bias"].astype(dtype)  # noqa: E731
+  cat = lambda *a: jnp.concatenate(a, axis=-1)  # noqa: E731
+  # W pass: z/r super kernels (15 taps, GELU, 5 taps), q (5 taps).
+  pre = (_conv_axis(h, cat(k_("convz1_0", "h"), k_("convr1_0", "h")), 0.0, 2)
+         + _conv_axis(x, cat(k_("convz1_0", "x"), k_("convr1_0", "x")),
+                      cat(b_("convz1_0"), b_("convr1_0")), 2))
+  pre = gelu(pre)
+  z = jax.nn.sigmoid(_conv_axis(pre[..., :hd], p["convz1_2"]["kernel"].astype(dtype),
+                                b_("convz1_2"), 2))
+  r = jax.nn.sigmoid(_conv_axis(pre[..., hd:], p["convr1_2"]["kernel"].astype(dtype),
+                                b_("convr1_2"), 2))
+  q = jnp.tanh(_conv_axis(r * h, k_("convq1", "h"), 0.0, 2)
+               + _conv_axis(x, k_("convq1", "x"), b_("convq1"), 2))
+  h = (1 - z) * h + z * q
+  for stage, axis in (("2", 1), ("3", 0)):
+    zn, rn, qn = (f"conv{g}{stage}" for g in "zrq")
+    xs = _conv_axis(x, cat(k_(zn, "x"), k_(rn, "x"), k_(qn, "x")), cat(b_(zn), b_(rn), b_(qn)),
+                    axis)
+    hzr = _conv_axis(h, cat(k_(zn, "h"), k_(rn, "h")), 0.0, axis)
+    z = jax.nn.sigmoid(hzr[..., :hd] + xs[..., :hd])
+    r = jax.nn.sigmoid(hzr[..., hd:] + xs[..., hd:2 * hd])
+    q = jnp.tanh(_conv_axis(r * h, k_(qn, "h"), 0.0, axis) + xs[..., 2 * hd:])
+    h = (1 - z) * h + z * q
+  return h
+
+
+def motion_encoder_rewrite(p, flow, corr, dtype, convf1):
+  """`BasicMotionEncoder` with the 7x7 flow convolution on the x channel only
+  (`convf1="x"`; the y channel is zero) or as one product of its 49 shifted taps
+  (`convf1="taps"`)."""
+  *lead, h, w, _ = corr.shape
+  frames = lambda y: y.reshape(-1, h, w, y.shape[-1])  # noqa: E731
+
+  def c(y, name, pad, kernel=None):
+    k = (p[name]["kernel"] if kernel is None else kernel).astype(dtype)
+    return conv2d(y, k, ((pad, pad), (pad, pad))) + p[name]["bias"].astype(dtype)
+
+  flow = frames(flow)
+  cor = jax.nn.relu(c(frames(corr).astype(dtype), "convc1", 0))
+  cor = jax.nn.relu(c(cor, "convc2", 1))
+  if convf1 == "x":
+    flo = c(flow[..., :1].astype(dtype), "convf1", 3, p["convf1"]["kernel"][:, :, :1])
+  else:
+    fx = jnp.pad(flow[..., 0], ((0, 0), (3, 3), (3, 3))).astype(dtype)
+    taps = jnp.stack([fx[:, i:i + h, j:j + w] for i in range(7) for j in range(7)], axis=-1)
+    flo = (taps @ p["convf1"]["kernel"][:, :, 0].reshape(49, -1).astype(dtype)
+           + p["convf1"]["bias"].astype(dtype))
+  flo = jax.nn.relu(c(jax.nn.relu(flo), "convf2", 1))
+  out = jax.nn.relu(c(jnp.concatenate([cor, flo], axis=-1), "conv", 1))
+  return jnp.concatenate([out, flow.astype(dtype)], axis=-1).reshape(*lead, h, w, -1)
+
+
+def corr_path(pm, f1, f2, disp, maps_dtype, mlp_dtype):
+  """Warp, 1x9 window correlation and correlation MLP with the maps and the MLP in the
+  given dtypes (the model: both float32)."""
+  warped = warp_x(f2.astype(maps_dtype), disp).astype(maps_dtype)
+  corr = window_correlation(f1.astype(maps_dtype), warped, WIDE_WINDOW, 4)
+  if mlp_dtype == jnp.float32:
+    return CorrMLP().apply({"params": pm}, corr)
+  fc = lambda y, n: y @ pm[n]["kernel"].astype(mlp_dtype) + pm[n]["bias"].astype(mlp_dtype)  # noqa: E731
+  return fc(gelu(fc(corr.astype(mlp_dtype), "fc1")), "fc2").astype(jnp.float32)
+
+
 def main():
   ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   add_clip_arguments(ap)
@@ -167,6 +262,12 @@ def main():
   h128, x256, n128 = r(128), r(256), r(128)
   gpu_bf16 = resolve_vit_attention("auto", dtype) == "cudnn"  # cuDNN's kernels apply
   rows = variant_rows(ub, h128, x256, n128, dtype, gpu_bf16)
+  flow = jnp.concatenate([r(1).astype(jnp.float32), jnp.zeros((*lead, 1), jnp.float32)], -1)
+  rows += motion_rows(ub["encoder"], flow, r(128), dtype)
+  n = lead[0] * lead[1]
+  f1, f2 = (jnp.asarray(rng.standard_normal((n, *lead[2:], 128)), jnp.float32) for _ in "12")
+  disp = jnp.asarray(rng.uniform(0, 8, (n, *lead[2:])), jnp.float32)
+  rows += corr_rows(params["corr_mlp"], f1, f2, disp, dtype)
   if not a.skip_depth:
     frames = jnp.asarray(rng.uniform(0, 255, (2, a.frames, a.height, a.width, 3)), jnp.float32)
     for attention in ("blocked", "cudnn") if gpu_bf16 else ("blocked",):
@@ -215,7 +316,30 @@ def variant_rows(ub, h128, x256, n128, dtype, gpu_bf16=False):
       ("time attention dot_product_attention",
        lambda p, x: time_attn_dpa(p, x, dtype, "cudnn" if gpu_bf16 else "xla"),
        (ub["time_attn"], x256), "time"),
+      ("time attention fused reductions", lambda p, x: time_attn_fused(p, x, dtype),
+       (ub["time_attn"], x256), "time"),
+      ("GRU split h/x convolutions", lambda p, h, x: gru_split(p, h, x, dtype),
+       (ub["gru"], h128, x256), "gru"),
   ]
+
+
+def motion_rows(p, flow, corr, dtype):
+  """Rows of the motion encoder: the model's, then the 7x7 flow convolution's rewrites."""
+  return [("motion encoder (model)", lambda p, f, c: U.BasicMotionEncoder(dtype).apply(
+      {"params": p}, f, c), (p, flow, corr), "motion")] + [
+          (f"motion encoder convf1 {mode}",
+           lambda p, f, c, m=mode: motion_encoder_rewrite(p, f, c, dtype, m),
+           (p, flow, corr), "motion") for mode in ("x", "taps")]
+
+
+def corr_rows(pm, f1, f2, disp, dtype):
+  """Rows of warp + correlation + MLP: float32 (the model), then the compute dtype."""
+  f32 = jnp.float32
+  return [(f"warp+corr+MLP maps {jnp.dtype(md).name} MLP {jnp.dtype(ld).name}"
+           + (" (model)" if md == f32 and ld == f32 else ""),
+           lambda pm, a, b, d, md=md, ld=ld: corr_path(pm, a, b, d, md, ld),
+           (pm, f1, f2, disp), "corr")
+          for md, ld in ((f32, f32), (f32, dtype), (dtype, dtype)) if dtype != f32 or md == ld]
 
 
 if __name__ == "__main__":
