@@ -78,7 +78,7 @@ def main():
   net = args[0]
   ub = jax.jit(lambda v, n, i, c, fl: model.apply(
       v, n, i, c, fl, method=lambda m, *xs: m.update_block(*xs)))
-  print(f"update block alone 1/4    {timed(ub, v, net, args[2], args[2], jnp.zeros(net.shape[:-1] + (2,))):.3f} s")
+  print(f"update block alone 1/4    {timed(ub, v, net, args[2], args[2], jnp.zeros(net.shape[:-1] + (1,))):.3f} s")
   update_block_parts(v["params"], net.shape[:-1], dtype)
 
 
@@ -97,7 +97,7 @@ def update_block_parts(params, lead, dtype=jnp.float32):
       ("corr MLP", lambda p, c: CorrMLP().apply({"params": p}, c),
        (r(324).astype(jnp.float32),)),
       ("motion encoder", lambda p, f, c: U.BasicMotionEncoder(dtype=dtype).apply(
-          {"params": p}, f, c), (r(2), r(128))),
+          {"params": p}, f, c), (r(1), r(128))),
       ("time attention", lambda p, x: U.TimeAttnBlock(dtype=dtype).apply({"params": p}, x),
        (r(256),)),
       ("space attention (linear)", lambda p, x: U.SpaceAttnBlock(dtype=dtype).apply(

@@ -13,16 +13,19 @@ the same arithmetic regrouped, so it is rounding only). The parts are the ones
 - flow head: XLA's native 3-D convolution instead of per-frame 2-D taps; the narrowing
   256 -> 2 conv as three convolutions, one per temporal tap (the model's form before it
   took them as one 256 -> 6 convolution);
-- space attention: q, k and v as three products (the model's form before it took them as
-  one 256 -> 768 product); the linear attention's per-head products batched over the heads
+- space attention: all frames at once (the model runs them in blocks of frames under
+  `SAVConfig.frame_block_mb`: at the paper's window in bfloat16, two blocks of 10); q, k
+  and v as one 256 -> 768 product (the model's form from 2026-11-30 to 2026-12-04, adopted
+  from a comparison that this row's blocking confounded); the linear attention's per-head
+  products batched over the heads
   (the model's form before it took them as two plain products, see `update.linear_attention`);
 - time attention: `jax.nn.dot_product_attention` (cuDNN on a GPU in bfloat16, else XLA's);
   the T x T products as broadcast multiply-and-sum in float32 over `[B, T, h*w, heads, d]`
   (no transposes, no batched matrix products: reductions XLA can fuse);
 - GRU: the convolutions of `[h, x]` split into one of h and one of x (no concatenated
   input), the x parts of a pass that share a kernel size as one convolution;
-- motion encoder: the 7x7 flow convolution on the x channel only (the y channel is zero),
-  and as one product of the 49 shifted taps;
+- motion encoder: the 7x7 flow convolution over both flow channels (the y one zero; the
+  model reads the x channel only since 2026-12-04), and as one product of the 49 taps;
 - warp, correlation and correlation MLP: the maps (and/or the MLP) in the compute dtype
   instead of float32 (changes the bfloat16 mode's numbers: see `precision_check.py`).
 - depth prior: the ViT attention blocked (default) or cuDNN's fused kernel (GPU, bfloat16).
@@ -128,15 +131,15 @@ def linear_attention_per_head(q, k, v, eps=1e-6):
   return jnp.einsum("nlhd,nhdv,nlh->nlhv", q, kv, z) * length
 
 
-def space_attn_rewrite(p, x, dtype, separate_qkv=False, attention=U.linear_attention):
-  """`SpaceAttnBlock` (all frames at once) with q, k and v as three products
-  (`separate_qkv`) and/or another linear attention."""
+def space_attn_rewrite(p, x, dtype, fused_qkv=False, attention=U.linear_attention):
+  """`SpaceAttnBlock` with all frames at once, with q, k and v as one product
+  (`fused_qkv`) and/or another linear attention."""
   p = p["encoder_layer"]
   b, t, h, w, c = x.shape
   x = x.reshape(b * t, h * w, c).astype(dtype)
   dense = lambda y, n: y @ p[n]["kernel"].astype(dtype)  # noqa: E731
   split = lambda y: y.reshape(b * t, h * w, 8, c // 8)  # noqa: E731
-  if separate_qkv:
+  if not fused_qkv:
     q, k, v = (dense(x, f"{n}_proj") for n in "qkv")
   else:
     q, k, v = jnp.split(x @ jnp.concatenate([p[f"{n}_proj"]["kernel"] for n in "qkv"],
@@ -210,9 +213,9 @@ def gru_split(p, h, x, dtype):
 
 
 def motion_encoder_rewrite(p, flow, corr, dtype, convf1):
-  """`BasicMotionEncoder` with the 7x7 flow convolution on the x channel only
-  (`convf1="x"`; the y channel is zero) or as one product of its 49 shifted taps
-  (`convf1="taps"`)."""
+  """`BasicMotionEncoder` (the model passes the x-flow `[..., 1]`) with the 7x7 flow
+  convolution over both flow channels, the y one zero (`convf1="xy"`: the model's form
+  before 2026-12-04) or as one product of its 49 shifted taps (`convf1="taps"`)."""
   *lead, h, w, _ = corr.shape
   frames = lambda y: y.reshape(-1, h, w, y.shape[-1])  # noqa: E731
 
@@ -220,11 +223,11 @@ def motion_encoder_rewrite(p, flow, corr, dtype, convf1):
     k = (p[name]["kernel"] if kernel is None else kernel).astype(dtype)
     return conv2d(y, k, ((pad, pad), (pad, pad))) + p[name]["bias"].astype(dtype)
 
-  flow = frames(flow)
+  flow = jnp.concatenate([frames(flow), jnp.zeros_like(frames(flow))], axis=-1)
   cor = jax.nn.relu(c(frames(corr).astype(dtype), "convc1", 0))
   cor = jax.nn.relu(c(cor, "convc2", 1))
-  if convf1 == "x":
-    flo = c(flow[..., :1].astype(dtype), "convf1", 3, p["convf1"]["kernel"][:, :, :1])
+  if convf1 == "xy":
+    flo = c(flow.astype(dtype), "convf1", 3)
   else:
     fx = jnp.pad(flow[..., 0], ((0, 0), (3, 3), (3, 3))).astype(dtype)
     taps = jnp.stack([fx[:, i:i + h, j:j + w] for i in range(7) for j in range(7)], axis=-1)
@@ -262,8 +265,7 @@ def main():
   h128, x256, n128 = r(128), r(256), r(128)
   gpu_bf16 = resolve_vit_attention("auto", dtype) == "cudnn"  # cuDNN's kernels apply
   rows = variant_rows(ub, h128, x256, n128, dtype, gpu_bf16)
-  flow = jnp.concatenate([r(1).astype(jnp.float32), jnp.zeros((*lead, 1), jnp.float32)], -1)
-  rows += motion_rows(ub["encoder"], flow, r(128), dtype)
+  rows += motion_rows(ub["encoder"], r(1).astype(jnp.float32), r(128), dtype)
   n = lead[0] * lead[1]
   f1, f2 = (jnp.asarray(rng.standard_normal((n, *lead[2:], 128)), jnp.float32) for _ in "12")
   disp = jnp.asarray(rng.uniform(0, 8, (n, *lead[2:])), jnp.float32)
@@ -305,8 +307,10 @@ def variant_rows(ub, h128, x256, n128, dtype, gpu_bf16=False):
        (ub["flow_head"], n128), "flow"),
       ("space attention (model)", lambda p, x: U.SpaceAttnBlock(dtype=dtype).apply(
           {"params": p}, x), (ub["space_attn"], x256), "space"),
-      ("space attention q, k, v separate",
-       lambda p, x: space_attn_rewrite(p, x, dtype, separate_qkv=True),
+      ("space attention all frames at once", lambda p, x: space_attn_rewrite(p, x, dtype),
+       (ub["space_attn"], x256), "space"),
+      ("space attention q, k, v one product",
+       lambda p, x: space_attn_rewrite(p, x, dtype, fused_qkv=True),
        (ub["space_attn"], x256), "space"),
       ("space attention per-head products",
        lambda p, x: space_attn_rewrite(p, x, dtype, attention=linear_attention_per_head),
@@ -329,7 +333,7 @@ def motion_rows(p, flow, corr, dtype):
       {"params": p}, f, c), (p, flow, corr), "motion")] + [
           (f"motion encoder convf1 {mode}",
            lambda p, f, c, m=mode: motion_encoder_rewrite(p, f, c, dtype, m),
-           (p, flow, corr), "motion") for mode in ("x", "taps")]
+           (p, flow, corr), "motion") for mode in ("xy", "taps")]
 
 
 def corr_rows(pm, f1, f2, disp, dtype):
@@ -339,7 +343,7 @@ def corr_rows(pm, f1, f2, disp, dtype):
            + (" (model)" if md == f32 and ld == f32 else ""),
            lambda pm, a, b, d, md=md, ld=ld: corr_path(pm, a, b, d, md, ld),
            (pm, f1, f2, disp), "corr")
-          for md, ld in ((f32, f32), (f32, dtype), (dtype, dtype)) if dtype != f32 or md == ld]
+          for md, ld in dict.fromkeys(((f32, f32), (f32, dtype), (dtype, dtype)))]
 
 
 if __name__ == "__main__":

@@ -112,13 +112,20 @@ class Conv2D(nn.Module):
   padding: tuple[int, int]
   use_bias: bool = True
   dtype: Any = jnp.float32
+  # Input channels of the kernel when it has more than the input: the input is then its
+  # first channels, the others being zero (their kernel slices are never read).
+  kernel_in: int | None = None
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x `[..., H, W, C]`. Returns `[..., H', W', features]` (zero padding)."""
     *lead, h, w, c = x.shape
+    k_in = c if self.kernel_in is None else self.kernel_in
+    if k_in < c:
+      raise ValueError(f"{self.name}: input has {c} channels, kernel_in is {k_in}")
     kernel = self.param("kernel", nn.initializers.lecun_normal(),
-                        (*self.kernel_size, c, self.features), jnp.float32).astype(self.dtype)
+                        (*self.kernel_size, k_in, self.features), jnp.float32)
+    kernel = kernel[..., :c, :].astype(self.dtype)
     (ph, pw) = self.padding
     y = conv2d(x.astype(self.dtype).reshape(-1, h, w, c), kernel, ((ph, ph), (pw, pw)))
     y = y.reshape(*lead, *y.shape[1:])

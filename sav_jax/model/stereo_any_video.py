@@ -234,8 +234,7 @@ class StereoAnyVideo(nn.Module):
                      for win in (WIDE_WINDOW, SMALL_WINDOW))
       corr = jax.lax.cond(window % 2 == 0, wide, small, *args)
     corr = self.corr_mlp(corr).reshape(b, t, h, w, -1)
-    flow2 = jnp.concatenate([flow, jnp.zeros_like(flow)], axis=-1)
-    net, mask, delta = self.update_block(net, inp, corr, flow2, with_mask=with_up)
+    net, mask, delta = self.update_block(net, inp, corr, flow, with_mask=with_up)
     flow = flow + delta[..., :1]
     up = convex_upsample_3d(flow, mask, self.cfg.upsample_rate) if with_up else None
     return net, flow, up

@@ -14,24 +14,35 @@ import jax.numpy as jnp
 import numpy as np
 
 from sav_jax.config import FRAME_BLOCK_MB
-from sav_jax.model.layers import conv, dense, gelu, in_frame_blocks, layer_norm
+from sav_jax.model.layers import Conv2D, conv, dense, gelu, in_frame_blocks, layer_norm
 
 
 class BasicMotionEncoder(nn.Module):
-  """Per-frame 2-D motion encoder: correlation and flow features + the flow."""
+  """Per-frame 2-D motion encoder: correlation and flow features + the flow.
+
+  Stereo Any Video's flow has a y channel that is always zero (the official code zeroes
+  it before every use), so its update block passes the x-flow alone: the 7x7 flow
+  convolution then reads its kernel's x slice (the y slice only ever met zeros; the
+  parameter keeps the official shape) and the output's last channel is that zero. RAFT
+  passes both channels.
+  """
 
   dtype: Any = jnp.float32
 
   @nn.compact
   def __call__(self, flow: jax.Array, corr: jax.Array) -> jax.Array:
-    """Args: flow `[..., h, w, 2]`, corr `[..., h, w, 128]`. Returns `[..., h, w, 128]`."""
+    """Args: flow `[..., h, w, 2]`, or `[..., h, w, 1]` (x; y zero), corr `[..., h, w, C]`.
+    Returns `[..., h, w, 128]` (126 features, then the flow's x and y)."""
     c = lambda f, k, p, n: conv(f, (k, k), 1, p, dtype=self.dtype, name=n)
     cor = nn.relu(c(256, 1, 0, "convc1")(corr))
     cor = nn.relu(c(192, 3, 1, "convc2")(cor))
-    flo = nn.relu(c(128, 7, 3, "convf1")(flow.astype(self.dtype)))
+    flow = flow.astype(self.dtype)
+    flo = nn.relu(Conv2D(128, (7, 7), (3, 3), dtype=self.dtype, kernel_in=2, name="convf1")(flow))
     flo = nn.relu(c(64, 3, 1, "convf2")(flo))
     out = nn.relu(c(126, 3, 1, "conv")(jnp.concatenate([cor, flo], axis=-1)))
-    return jnp.concatenate([out, flow.astype(out.dtype)], axis=-1)
+    if flow.shape[-1] == 1:
+      flow = jnp.concatenate([flow, jnp.zeros_like(flow)], axis=-1)
+    return jnp.concatenate([out, flow], axis=-1)
 
 
 class TemporalAttention(nn.Module):
@@ -112,17 +123,6 @@ def linear_attention(q: jax.Array, k: jax.Array, v: jax.Array, eps: float = 1e-6
   return out[..., :heads * dv].reshape(n, length_q, heads, dv) * z[..., None] * length
 
 
-class DenseKernel(nn.Module):
-  """The kernel of a bias-free `nn.Dense` (same name, shape and initialiser), for callers
-  that multiply several such kernels at once."""
-
-  features: int
-
-  @nn.compact
-  def __call__(self, in_features: int) -> jax.Array:
-    return self.param("kernel", nn.Dense.kernel_init, (in_features, self.features), jnp.float32)
-
-
 class LoFTREncoderLayer(nn.Module):
   """LoFTR encoder layer with linear attention (self-attention within a frame)."""
 
@@ -134,10 +134,11 @@ class LoFTREncoderLayer(nn.Module):
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x `[N, L, d_model]`. Returns the same shape."""
     n, length, c = x.shape
-    # q, k and v as one product with the three kernels side by side (one read of x).
-    wqkv = jnp.concatenate([DenseKernel(c, name=f"{p}_proj")(c) for p in "qkv"], axis=-1)
-    qkv = (x.astype(self.dtype) @ wqkv.astype(self.dtype)).reshape(n, length, 3, self.nhead, -1)
-    msg = linear_attention(qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]).reshape(n, length, c)
+    # q, k and v as three products: one product with the kernels side by side and its
+    # output sliced was slower on both backends measured (benchmarks/README.md, "GPU").
+    q, k, v = (dense(c, False, self.dtype, f"{p}_proj")(x).reshape(n, length, self.nhead, -1)
+               for p in "qkv")
+    msg = linear_attention(q, k, v).reshape(n, length, c)
     msg = dense(c, False, self.dtype, "merge")(msg)
     msg = layer_norm(dtype=self.dtype, name="norm1")(msg)
     msg = dense(2 * c, False, self.dtype, "mlp_0")(jnp.concatenate([x, msg], axis=-1))
@@ -243,7 +244,8 @@ class SequenceUpdateBlock3D(nn.Module):
       net: `[B, T, h, w, hidden]` GRU state.
       inp: `[B, T, h, w, 128]` context input.
       corr: `[B, T, h, w, 128]` correlation features (after `corr_mlp`).
-      flow: `[B, T, h, w, 2]` current flow (y channel zero, as in the official code).
+      flow: `[B, T, h, w, 1]` current x-flow (the official block's input has a y channel,
+        always zero: see `BasicMotionEncoder`).
       with_mask: compute the upsampling mask (else `mask` is None).
 
     Returns:
@@ -252,6 +254,8 @@ class SequenceUpdateBlock3D(nn.Module):
       `[B, T, h, w, 2]`.
     """
     dt = self.dtype
+    if flow.shape[-1] != 1:
+      raise ValueError(f"update block: flow must be the x-flow [..., 1], got shape {flow.shape}")
     motion = self.encoder(flow, corr.astype(dt))
     x = jnp.concatenate([inp.astype(dt), motion], axis=-1)
     x = self.time_attn(x)

@@ -13,7 +13,7 @@ import pytest
 
 from sav_jax.model.encoder import BasicEncoder
 from sav_jax.model.layers import CorrMLP, conv, normalize
-from sav_jax.model.update import SequenceUpdateBlock3D
+from sav_jax.model.update import BasicMotionEncoder, SequenceUpdateBlock3D
 from sav_jax.ops.correlation import SMALL_WINDOW, WIDE_WINDOW, aapc
 from sav_jax.ops.pool import avg_pool
 from sav_jax.ops.resize import resize
@@ -107,10 +107,49 @@ def test_update_block(golden_small, sav_state_dict):
   flow = _bt(g["ub_in_flow"])
   assert np.all(np.asarray(flow[..., 1]) == 0)
   net, mask, delta = SequenceUpdateBlock3D().apply(
-      {"params": params}, _bt(g["ub_in_net"]), _bt(g["ub_in_inp"]), _bt(g["ub_in_corr"]), flow)
+      {"params": params}, _bt(g["ub_in_net"]), _bt(g["ub_in_inp"]), _bt(g["ub_in_corr"]),
+      flow[..., :1])
   feature_close(net, _bt(g["ub_out_net"]))
   feature_close(mask, _bt(g["ub_out_mask"]))
   feature_close(delta, _bt(g["ub_out_delta_flow"]))
+
+
+def test_motion_encoder_x_flow_equals_two_channel_flow_with_zero_y(golden_small, sav_state_dict):
+  """The update block passes the x-flow alone: the encoder reads its 7x7 kernel's x slice
+  and appends the zero y channel, which must equal the official two-channel form (RAFT's
+  path, with both channels) on a y that is zero; a y that is not zero must matter there."""
+  params = subtree(sav_state_dict, "update_block.")["encoder"]
+  assert params["convf1"]["kernel"].shape == (7, 7, 2, 128)
+  flow, corr = _bt(jnp.asarray(golden_small["ub_in_flow"])), _bt(golden_small["ub_in_corr"])
+  enc = BasicMotionEncoder()
+  x_only = enc.apply({"params": params}, flow[..., :1], corr)
+  both = enc.apply({"params": params}, flow, corr)
+  np.testing.assert_allclose(np.asarray(x_only), np.asarray(both), rtol=0, atol=1e-6)
+  y_flow = flow.at[..., 1].set(1.0)
+  assert not np.allclose(np.asarray(enc.apply({"params": params}, y_flow, corr)), np.asarray(both))
+
+
+def test_update_block_refuses_a_two_channel_flow(golden_small, sav_state_dict):
+  params = subtree(sav_state_dict, "update_block.")
+  del params["time_attn"]["temporal_attn"]["qkv"]
+  g = golden_small
+  with pytest.raises(ValueError, match=r"x-flow \[\.\.\., 1\].*\(1, 3, 4, 8, 2\)"):
+    SequenceUpdateBlock3D().apply({"params": params}, _bt(g["ub_in_net"]), _bt(g["ub_in_inp"]),
+                                  _bt(g["ub_in_corr"]), _bt(g["ub_in_flow"]))
+
+
+def test_conv_with_a_wider_kernel_reads_its_first_input_channels():
+  from sav_jax.model.layers import Conv2D  # pylint: disable=import-outside-toplevel
+  x = jnp.asarray(np.random.default_rng(0).standard_normal((1, 6, 6, 1)), jnp.float32)
+  conv2 = Conv2D(4, (3, 3), (1, 1), kernel_in=2)
+  variables = conv2.init(jax.random.PRNGKey(0), x)
+  assert variables["params"]["kernel"].shape == (3, 3, 2, 4)
+  padded = jnp.concatenate([x, jnp.zeros_like(x)], axis=-1)
+  np.testing.assert_allclose(np.asarray(conv2.apply(variables, x)),
+                             np.asarray(Conv2D(4, (3, 3), (1, 1)).apply(variables, padded)),
+                             rtol=0, atol=1e-6)
+  with pytest.raises(ValueError, match="input has 3 channels, kernel_in is 2"):
+    conv2.apply(variables, jnp.zeros((1, 6, 6, 3)))
 
 
 def test_convex_upsample(golden_small):
