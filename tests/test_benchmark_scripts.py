@@ -143,16 +143,28 @@ def test_update_block_rewrites_compute_the_modules_values():
   lead = (1, 3, 4, 5)
   h, x, n = (jax.random.normal(k, (*lead, c)) for k, c in zip(keys, (128, 256, 128)))
   rows = update_variants.variant_rows(ub, h, x, n, jnp.float32)
+  rows += update_variants.motion_rows(ub["encoder"], h[..., :1], h, jnp.float32)
   ref, checked = {}, 0
   for label, fn, args, group in rows:
     out = np.asarray(fn(*args))
-    channels = {"gru": 128, "flow": 2, "space": 256, "time": 256}[group]
+    channels = {"gru": 128, "flow": 2, "space": 256, "time": 256, "motion": 128}[group]
     assert out.shape == (*lead, channels), label
     if group in ref:
       np.testing.assert_allclose(out, ref[group], rtol=1e-4, atol=1e-4, err_msg=label)
       checked += 1
     ref.setdefault(group, out)
-  assert checked == 6 and set(ref) == {"gru", "flow", "space", "time"}
+  assert checked == 11 and set(ref) == {"gru", "flow", "space", "time", "motion"}
+  # The correlation rows in bfloat16 (the maps, the MLP) against the float32 model.
+  f1, f2 = (jax.random.normal(k, (3, 4, 5, 128)) for k in keys[:2])
+  disp = jax.random.uniform(keys[2], (3, 4, 5), maxval=3.0)
+  corr = update_variants.corr_rows(
+      init_variables(sav_jax.SAVConfig(), seed=0)["params"]["corr_mlp"], f1, f2, disp,
+      jnp.bfloat16)
+  assert [label for label, *_ in corr][0].endswith("(model)") and len(corr) == 3
+  outs = [np.asarray(fn(*args)) for _, fn, args, _ in corr]
+  for out in outs[1:]:
+    assert out.shape == outs[0].shape == (3, 4, 5, 128)
+    np.testing.assert_allclose(out, outs[0], atol=0.1 * float(np.abs(outs[0]).max()))
 
 
 def test_official_torch_script_checks_its_arguments_and_times_parts_per_scale(tmp_path, capsys):
