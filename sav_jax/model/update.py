@@ -134,8 +134,9 @@ class LoFTREncoderLayer(nn.Module):
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x `[N, L, d_model]`. Returns the same shape."""
     n, length, c = x.shape
-    # q, k and v as three products: one product with the kernels side by side and its
-    # output sliced was slower on both backends measured (benchmarks/README.md, "GPU").
+    # q, k and v as three products (LoFTR's form): one product with the kernels side by
+    # side, its output sliced, was slower on the CPU, and the GPU comparison that had
+    # adopted it was confounded (benchmarks/README.md, "Third lease").
     q, k, v = (dense(c, False, self.dtype, f"{p}_proj")(x).reshape(n, length, self.nhead, -1)
                for p in "qkv")
     msg = linear_attention(q, k, v).reshape(n, length, c)
