@@ -13,7 +13,11 @@
 #               second `sav-jax infer` run (bench_fp32's 29.9 GB peak on 2026-11-30 was the
 #               autotuner's scratch; the program's buffers are 9.4 GB)
 #   bench_blocked  bench_bf16 with the blocked softmax ViT attention (--vit-attention blocked)
-#   train       the training step at the paper's shape (T=5 256x512 iters=10, remat)  (190 s)
+#   train       the training step at the paper's shape (T=5 256x512 iters=10, remat)  (118 s on
+#               2026-12-04); its program goes to the compilation cache OUTDIR/xla_cache
+#   train_warm  train again, loaded from OUTDIR/xla_cache (run it after train): the step's own
+#               device peak, without the autotuner's (4.14 GB against 25.6 GB on 2026-12-04)
+#               (~25 s)
 #   precision   distance from the official output per compute mode (precision_check.py;
 #               needs SAV_FIXTURES)                                                    (143 s)
 #   parity      the end-to-end parity tests on this backend (needs SAV_FIXTURES)        (> 150 s)
@@ -39,7 +43,7 @@ set -u
 out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]}
 shift
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 bench_fp32_warm train precision parity stages variants profile bench_blocked)
+[ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 bench_fp32_warm train train_warm precision parity stages variants profile bench_blocked)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
@@ -74,8 +78,11 @@ run_step() {
     bench_blocked) step "$1" 150 "$py" -m sav_jax.cli bench "${window[@]}" --dtype bfloat16 \
                   --vit-attention blocked --repeats 3 \
                   --json "$out/gpu_t20_720x1280_it20_bf16_blocked.json" --overwrite ;;
-    train) step "$1" 260 "$py" benchmarks/train_step.py --repeats 2 \
+    train) step "$1" 260 "$py" benchmarks/train_step.py --repeats 2 --compile-cache "$out/xla_cache" \
              --json "$out/gpu_train_t5_256x512_it10_remat_fp32.json" --overwrite ;;
+    train_warm) step "$1" 120 "$py" benchmarks/train_step.py --repeats 2 \
+                  --compile-cache "$out/xla_cache" \
+                  --json "$out/gpu_train_t5_256x512_it10_remat_fp32_warm.json" --overwrite ;;
     precision) step "$1" 200 "$py" benchmarks/precision_check.py --json "$out/gpu_precision.json" --overwrite ;;
     parity) step "$1" 300 "$py" -m pytest -x -q -p no:cacheprovider \
               tests/model/test_model_parity.py ;;
@@ -94,7 +101,7 @@ run_step() {
                --json "$out/gpu_t20_720x1280_it20_bf16_flags_$name.json" --overwrite || rc=$?
            done
            return "$rc" ;;
-    *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train precision parity" \
+    *) echo "unknown step '$1' (bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train train_warm precision parity" \
             "stages profile variants raft flags)" >&2
        return 2 ;;
   esac
@@ -106,7 +113,7 @@ run_step() {
 'optax', optax.__version__, jax.devices())"
 } 2>&1 | tee -a "$log"
 
-known=" bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train precision parity stages profile variants raft flags "
+known=" bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train train_warm precision parity stages profile variants raft flags "
 for s in "${steps[@]}"; do  # a mistyped step fails before the lease is spent on the others
   if [[ "$known" != *" $s "* ]]; then
     echo "unknown step '$s' (${known# })" >&2

@@ -119,12 +119,22 @@ def main():
   p.add_argument("--json", help="write the results to this JSON file (a new file, or "
                  "--overwrite)")
   p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
+  p.add_argument("--compile-cache", metavar="DIR",
+                 help="keep the compiled step in DIR (JAX's persistent compilation cache); "
+                      "a second run loads it instead of compiling, so on a GPU its device "
+                      "peak is the step's own, without the autotuner's scratch (default: "
+                      "JAX_COMPILATION_CACHE_DIR if set, else none)")
   a = p.parse_args()
   problem = json_output_problem(a.json, a.overwrite) if a.json else None
   if problem:  # before the long compile
     p.error(problem)
   if a.repeats < 1:
     p.error(f"--repeats must be >= 1, got {a.repeats}")
+  if a.compile_cache:
+    try:
+      runtime.enable_compilation_cache(a.compile_cache)
+    except ValueError as e:
+      p.error(str(e))
   res = measure(build_config(a), a.repeats)
   print(f"device        {res['device']} x{res['devices']}  (jax {res['jax']})")
   print(f"step          B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "

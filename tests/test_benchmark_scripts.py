@@ -312,3 +312,22 @@ def test_scripts_refuse_to_overwrite_a_results_json_before_running(tmp_path, mon
         run(args)
       assert e.value.code == 2 and message in capsys.readouterr().err
   assert mine.read_text() == "precious"
+
+
+def test_train_step_script_keeps_its_program_in_the_named_compilation_cache(
+    tmp_path, monkeypatch, capsys, restore_cache_config):
+  """`benchmarks/train_step.py --compile-cache DIR` (gpu_suite.sh's train and train_warm
+  steps) turns the cache on in DIR before measuring; a file there is refused first."""
+  import train_step  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  seen = []
+  monkeypatch.setattr(train_step, "measure", lambda *a: seen.append(
+      jax.config.jax_compilation_cache_dir) or pytest.fail("measured"))
+  afile = tmp_path / "cache_file"
+  afile.write_text("x")
+  for args, code in (([str(afile)], 2), ([str(tmp_path / "cache")], None)):
+    monkeypatch.setattr(sys, "argv", ["train_step.py", "--compile-cache", *args])
+    with pytest.raises((SystemExit, pytest.fail.Exception)) as e:
+      train_step.main()
+    if code is not None:
+      assert e.value.code == 2 and "exists and is not a folder" in capsys.readouterr().err
+  assert seen == [str(tmp_path / "cache")] and (tmp_path / "cache").is_dir()

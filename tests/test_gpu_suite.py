@@ -82,6 +82,15 @@ def test_the_warm_float32_benchmark_reads_the_cold_ones_compilation_cache(tmp_pa
   assert jsons == ["gpu_t20_720x1280_it20_fp32.json", "gpu_t20_720x1280_it20_fp32_warm.json"]
 
 
+def test_the_warm_train_step_reads_the_cold_ones_compilation_cache(tmp_path):
+  calls = _run_steps(tmp_path, ["train", "train_warm"])
+  assert [argv.split()[0] for _, argv in calls] == ["benchmarks/train_step.py"] * 2
+  caches = [argv.split()[argv.split().index("--compile-cache") + 1] for _, argv in calls]
+  assert caches[0] == caches[1] == str(tmp_path / "out" / "xla_cache")
+  assert [pathlib.Path(_json(argv)).name for _, argv in calls] == [
+      "gpu_train_t5_256x512_it10_remat_fp32.json", "gpu_train_t5_256x512_it10_remat_fp32_warm.json"]
+
+
 def test_a_mistyped_step_fails_before_any_step_runs(tmp_path):
   assert _run_steps(tmp_path, ["bench_bf16", "bench_fb32"], rc=2) == []
 
@@ -96,7 +105,7 @@ def test_a_failed_step_fails_the_suite_after_the_others_ran(tmp_path):
 
 def test_rerunning_a_step_into_the_same_folder_replaces_its_json(tmp_path):
   calls = _run_steps(tmp_path, ["bench_bf16", "bench_fp32", "bench_fp32_warm", "bench_blocked",
-                                "train", "precision"])
-  assert len(calls) == 6
+                                "train", "train_warm", "precision"])
+  assert len(calls) == 7
   for _, argv in calls:
     assert "--json" in argv and argv.split().count("--overwrite") == 1, argv
