@@ -27,6 +27,7 @@ def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
   assert rec["median_s"] > 0 and rec["compile_s"] > 0 and rec["peak_rss_gb"] > 0.1
   assert rec["cache_hit"] is False and any(cache.iterdir())
   assert rec["vit_attention"] == "blocked"  # the default "auto", as resolved on the CPU
+  assert rec["matmul_precision"] == "default"  # JAX's setting: none in the tests
   assert "XLA buffers" in out and 0 < rec["xla_temp_gb"] < 1 and rec["xla_args_gb"] > 0.05
 
   assert cli.main([*ARGS, "--json", str(second), "--compile-cache", str(cache),
@@ -135,3 +136,24 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
   assert mine.read_text() == "precious"
+
+
+def test_bench_measures_under_the_matmul_precision_asked_and_notes_a_baseline_with_another(
+    monkeypatch):
+  import jax  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  seen = []
+
+  def stop(*args, **kwargs):
+    seen.append(str(jax.config.jax_default_matmul_precision))
+    raise KeyboardInterrupt
+
+  monkeypatch.setattr(bench, "measure", stop)
+  for extra, want in ((["--matmul-precision", "highest"], "highest"), ([], "None")):
+    with pytest.raises(KeyboardInterrupt):
+      cli.main([*ARGS, *extra])
+  assert seen == ["highest", "None"]
+  res = {"device": "gpu:NVIDIA H200", "matmul_precision": "highest"}
+  note = bench.machine_note(res, {**res, "matmul_precision": "default"})
+  assert "matmul_precision highest here, default there" in note
+  assert bench.machine_note(res, dict(res)) == ""

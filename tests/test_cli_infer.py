@@ -709,3 +709,29 @@ def test_frame_folders_in_number_order_without_hidden_files(tmp_path):
   lazy, _, lazy_names = video_io.open_stereo(tmp_path / "l", tmp_path / "r")
   assert lazy_names == names
   np.testing.assert_array_equal(lazy[0:4], lv)
+
+
+def test_matmul_precision_covers_every_window_and_is_recorded(tmp_path, folders, npz_ckpt,
+                                                             monkeypatch):
+  """`--matmul-precision highest` (full float32 on GPUs, where XLA's default is TF32) is in
+  effect while the windows are computed, which happens as the outputs draw them; without
+  the flag JAX's own setting stays; summary.json records the precision in effect."""
+  import jax  # pylint: disable=import-outside-toplevel
+  seen = []
+
+  def recording_model(variables, lw, rw, *, cfg, iters, pads, check_memory, cache, start):
+    seen.append(str(jax.config.jax_default_matmul_precision))
+    hp, wp = lw.shape[1] + pads[0] + pads[1], lw.shape[2] + pads[2] + pads[3]
+    return np.ones((len(lw), hp, wp), np.float32)
+
+  monkeypatch.setattr(inference, "_run_window", recording_model)
+  for precision, want in (("highest", "highest"), (None, "None"), ("default", "default")):
+    extra = ["--matmul-precision", precision] if precision else []
+    out = tmp_path / f"out_{precision}"
+    assert _infer(*folders, npz_ckpt, out, "--format", "npy", "--window", "2", "--stride", "1",
+                  *extra) == 0
+    assert len(seen) >= 2 and set(seen) == {want}, (precision, seen)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["matmul_precision"] == (precision or "default")  # None: JAX's default
+    seen.clear()
+  assert str(jax.config.jax_default_matmul_precision) == "None"  # put back after the run

@@ -31,6 +31,26 @@ def resolve_devices_option(value, name: str = "--devices") -> list:
     raise UsageError(f"{name}: {e}") from None
 
 
+def add_matmul_precision_argument(p) -> None:
+  """--matmul-precision default|high|highest (`jax.default_matmul_precision`)."""
+  from sav_jax.runtime import MATMUL_PRECISIONS  # pylint: disable=import-outside-toplevel
+  p.add_argument("--matmul-precision", choices=MATMUL_PRECISIONS, default=None,
+                 help="precision of float32 matrix products and convolutions: 'default' is "
+                      "XLA's choice (TF32 on recent NVIDIA GPUs, ~1e-3 px from the official "
+                      "float32 output), 'highest' full float32 (slower there); no effect on "
+                      "CPUs, which compute float32 fully (default: JAX's setting, e.g. "
+                      "JAX_DEFAULT_MATMUL_PRECISION, else 'default')")
+
+
+def matmul_precision(args):
+  """`(context, name)`: the context that applies `--matmul-precision` (none when it is not
+  given: JAX's own setting stays), and the name of the precision in effect."""
+  import jax  # pylint: disable=import-outside-toplevel
+  if args.matmul_precision is None:
+    return contextlib.nullcontext(), str(jax.config.jax_default_matmul_precision or "default")
+  return jax.default_matmul_precision(args.matmul_precision), args.matmul_precision
+
+
 def add_devices_argument(p) -> None:
   """--devices N|all: how many local devices run windows at once."""
   p.add_argument("--devices", default="1", metavar="N",

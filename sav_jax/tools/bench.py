@@ -13,7 +13,8 @@ import sys
 import time
 
 from sav_jax.config import VIT_ATTENTION
-from sav_jax.tools import add_compile_cache_arguments, setup_compile_cache
+from sav_jax.tools import (add_compile_cache_arguments, add_matmul_precision_argument,
+                           matmul_precision, setup_compile_cache)
 
 HELP = "benchmark the compiled forward pass (compile time, median time, fps, peak memory)"
 
@@ -39,6 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
   p.add_argument("--compare", help="a JSON written by --json (or by benchmarks/official_torch.py, "
                                     "the official PyTorch forward): print the ratios against it")
+  add_matmul_precision_argument(p)
   add_compile_cache_arguments(p, default_on=False)
 
 
@@ -214,7 +216,7 @@ def machine_note(res: dict, base: dict) -> str:
     (p1, k1), (p2, k2) = device(res["device"]), device(base["device"])
     if p1 != p2 or (k1 and k2 and k1 != k2):
       differ.append(f"device {res['device']} here, {base['device']} there")
-  for key in ("host", "vit_attention"):
+  for key in ("host", "vit_attention", "matmul_precision"):
     if base.get(key) is not None and base[key] != res.get(key):
       differ.append(f"{key} {res.get(key)} here, {base[key]} there")
   if not differ:
@@ -267,9 +269,12 @@ def run(args: argparse.Namespace) -> int:
                        + ", ".join(f"({k}: {mine} here, {theirs} there)"
                                    for k, (mine, theirs) in differ.items()))
   cache = setup_compile_cache(args, default_on=False)
-  res = measure(args.frames, args.height, args.width, args.iters, args.batch, args.dtype,
-                args.repeats, final_only=not args.all_predictions, compile_cache=cache,
-                vit_attention=args.vit_attention)
+  precision, precision_name = matmul_precision(args)
+  with precision:
+    res = measure(args.frames, args.height, args.width, args.iters, args.batch, args.dtype,
+                  args.repeats, final_only=not args.all_predictions, compile_cache=cache,
+                  vit_attention=args.vit_attention)
+  res["matmul_precision"] = precision_name
   print(f"device        {res['device']}  (jax {res['jax']})")
   print(f"input         B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
         f"iters={res['iters']} {res['dtype']}"

@@ -29,8 +29,8 @@ from typing import NamedTuple
 import numpy as np
 
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, add_devices_argument,
-                           check_output_dir, resolve_devices_option, setup_compile_cache,
-                           video_io)
+                           add_matmul_precision_argument, check_output_dir, matmul_precision,
+                           resolve_devices_option, setup_compile_cache, video_io)
 
 HELP = "estimate disparity for a stereo video (frame folders or video files)"
 log = logging.getLogger(__name__)
@@ -62,6 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--stride", type=int, default=10, help="sliding window stride (10)")
   p.add_argument("--fps", type=float, default=10.0,
                  help="frame rate of the output video (default 10)")
+  add_matmul_precision_argument(p)
   add_devices_argument(p)
   add_compile_cache_arguments(p)
 
@@ -221,14 +222,18 @@ def run(args: argparse.Namespace) -> int:
   on = f"; {len(devices)} devices ({devices[0].platform})" if len(devices) > 1 else ""
   print(f"input: {t} frames of {h}x{w} (height x width); iters {args.iters}, {cfg.dtype}{on}")
   start, compiled = time.perf_counter(), inference.compile_seconds()
-  chunks = inference.iter_predict_video(variables, left, right, cfg=cfg, iters=args.iters,
-                                        window=args.window, stride=args.stride, progress=True,
-                                        devices=devices)
   listed = [p.relative_to(out).as_posix() for p in outputs]
-  written = write_outputs(out, names, left, chunks, formats, calib, args, listed, stale=stale)
+  # The windows are computed as write_outputs draws them, so the precision covers both.
+  precision, precision_name = matmul_precision(args)
+  with precision:
+    chunks = inference.iter_predict_video(variables, left, right, cfg=cfg, iters=args.iters,
+                                          window=args.window, stride=args.stride, progress=True,
+                                          devices=devices)
+    written = write_outputs(out, names, left, chunks, formats, calib, args, listed, stale=stale)
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
   summary = {"frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
+             "matmul_precision": precision_name,
              "window": args.window, "stride": args.stride, "weights": described,
              "devices": [str(d) for d in devices],
              "left": str(args.left), "right": str(args.right), "formats": formats,
