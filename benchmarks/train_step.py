@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import statistics
 import sys
@@ -130,17 +131,24 @@ def main():
     p.error(problem)
   if a.repeats < 1:
     p.error(f"--repeats must be >= 1, got {a.repeats}")
+  cache = None
   if a.compile_cache:
     try:
-      runtime.enable_compilation_cache(a.compile_cache)
+      cache = runtime.enable_compilation_cache(a.compile_cache)
     except ValueError as e:
       p.error(str(e))
+  entries = lambda: set(os.listdir(cache)) if cache else set()  # noqa: E731
+  before = entries()
   res = measure(build_config(a), a.repeats)
+  # Loaded, not compiled, when the cache gained no entry (as `sav-jax bench` records it).
+  res["cache_hit"] = bool(cache) and entries() == before
   print(f"device        {res['device']} x{res['devices']}  (jax {res['jax']})")
   print(f"step          B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
         f"iters={res['iters']} {res['dtype']} remat={res['remat']}")
+  how = "" if cache is None else (" loaded from the compilation cache" if res["cache_hit"]
+                                   else f" stored in {cache}")
   print(f"compile       {res['compile_s']:.1f} s (trace {res['trace_s']:.1f} s, lower "
-        f"{res['lower_s']:.1f} s, XLA {res['xla_compile_s']:.1f} s)")
+        f"{res['lower_s']:.1f} s, XLA {res['xla_compile_s']:.1f} s{how})")
   print(f"step time     median {res['median_s']:.2f} s (min {res['min_s']:.2f} s), "
         f"{res['samples_per_s']:.3f} samples/s")
   print("\n".join(memory_lines(res, batch=res["batch"])))

@@ -1,5 +1,6 @@
 """The profiling helpers behind the figures in benchmarks/README.md."""
 
+import json
 import pathlib
 import sys
 
@@ -331,3 +332,27 @@ def test_train_step_script_keeps_its_program_in_the_named_compilation_cache(
     if code is not None:
       assert e.value.code == 2 and "exists and is not a folder" in capsys.readouterr().err
   assert seen == [str(tmp_path / "cache")] and (tmp_path / "cache").is_dir()
+  # The JSON says whether the step was compiled into the cache or loaded from it (a rerun
+  # into the same folder loads: its figures are then a warm run's).
+  runs = iter([{"stored": 1}, {}])
+
+  def fake_measure(cfg, repeats):
+    for name in next(runs):
+      (tmp_path / "cache" / f"entry{name}").write_text("program")
+    return {k: 1.0 for k in ("compile_s", "trace_s", "lower_s", "xla_compile_s", "median_s",
+                             "min_s", "samples_per_s")} | {
+        "device": "cpu", "devices": 1, "jax": "x", "batch": 1, "frames": 5, "height": 8,
+        "width": 8, "iters": 2, "dtype": "float32", "remat": True}
+
+  monkeypatch.setattr(train_step, "measure", fake_measure)
+  monkeypatch.setattr(train_step, "memory_lines", lambda res, batch: [])
+  hits = []
+  for name in ("cold", "warm"):
+    out = tmp_path / f"{name}.json"
+    monkeypatch.setattr(sys, "argv", ["train_step.py", "--compile-cache", str(tmp_path / "cache"),
+                                      "--json", str(out)])
+    train_step.main()
+    hits.append(json.loads(out.read_text())["cache_hit"])
+  assert hits == [False, True]
+  printed = capsys.readouterr().out
+  assert f"stored in {tmp_path / 'cache'}" in printed and "loaded from the compilation cache" in printed
