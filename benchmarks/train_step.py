@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pathlib
 import statistics
 import sys
@@ -31,8 +30,8 @@ import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 from configs import sceneflow  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax import runtime  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.tools.bench import (device_peak_gb, json_output_problem, memory_lines,  # noqa: E402  pylint: disable=wrong-import-position
-                                 peak_rss_gb, xla_buffers_gb)
+from sav_jax.tools.bench import (compile_cache_note, compile_cache_probe, device_peak_gb,  # noqa: E402  pylint: disable=wrong-import-position
+                                 json_output_problem, memory_lines, peak_rss_gb, xla_buffers_gb)
 from train import optim, state as state_lib, step as step_lib  # noqa: E402  pylint: disable=wrong-import-position
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 
@@ -137,18 +136,15 @@ def main():
       cache = runtime.enable_compilation_cache(a.compile_cache)
     except ValueError as e:
       p.error(str(e))
-  entries = lambda: set(os.listdir(cache)) if cache else set()  # noqa: E731
-  before = entries()
+  loaded = compile_cache_probe(cache)
   res = measure(build_config(a), a.repeats)
-  # Loaded, not compiled, when the cache gained no entry (as `sav-jax bench` records it).
-  res["cache_hit"] = bool(cache) and entries() == before
+  res["cache_hit"] = loaded()  # as `sav-jax bench` records it
   print(f"device        {res['device']} x{res['devices']}  (jax {res['jax']})")
   print(f"step          B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
         f"iters={res['iters']} {res['dtype']} remat={res['remat']}")
-  how = "" if cache is None else (" loaded from the compilation cache" if res["cache_hit"]
-                                   else f" stored in {cache}")
   print(f"compile       {res['compile_s']:.1f} s (trace {res['trace_s']:.1f} s, lower "
-        f"{res['lower_s']:.1f} s, XLA {res['xla_compile_s']:.1f} s{how})")
+        f"{res['lower_s']:.1f} s, XLA {res['xla_compile_s']:.1f} s)"
+        f"{compile_cache_note(cache, res['cache_hit'])}")
   print(f"step time     median {res['median_s']:.2f} s (min {res['min_s']:.2f} s), "
         f"{res['samples_per_s']:.3f} samples/s")
   print("\n".join(memory_lines(res, batch=res["batch"])))

@@ -152,6 +152,7 @@ def test_bench_measures_under_the_matmul_precision_asked_and_notes_a_baseline_wi
   for extra, want in ((["--matmul-precision", "highest"], "highest"), ([], "None")):
     with pytest.raises(KeyboardInterrupt):
       cli.main([*ARGS, *extra])
+    assert seen[-1] == want
   assert seen == ["highest", "None"]
   res = {"device": "gpu:NVIDIA H200", "matmul_precision": "highest"}
   note = bench.machine_note(res, {**res, "matmul_precision": "default"})

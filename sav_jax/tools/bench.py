@@ -57,6 +57,22 @@ def json_output_problem(path: str, overwrite: bool, flag: str = "--json") -> str
   return None
 
 
+def compile_cache_probe(folder):
+  """Called before a compile: a function that says afterwards whether that compile was a
+  load from the persistent compilation cache `folder` (the folder gained no entry);
+  always False without a folder."""
+  entries = lambda: set(os.listdir(folder)) if folder else set()  # noqa: E731
+  before = entries()
+  return lambda: bool(folder) and entries() == before
+
+
+def compile_cache_note(folder, cache_hit: bool) -> str:
+  """`" (loaded from the compilation cache)"`, `" (stored in FOLDER)"`, or `""` without one."""
+  if folder is None:
+    return ""
+  return " (loaded from the compilation cache)" if cache_hit else f" (stored in {folder})"
+
+
 def peak_rss_gb() -> float:
   """Peak resident set size of this process so far, in GB."""
   rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -137,13 +153,12 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   left = jnp.asarray(rng.uniform(0, 255, (batch, frames, height, width, 3)), jnp.float32)
   right = jnp.roll(left, -4, axis=3)
   fwd = jax.jit(lambda v, l, r: model.apply(v, l, r, iters=iters, final_only=final_only).disparities)
-  entries = lambda: set(os.listdir(compile_cache)) if compile_cache else set()  # noqa: E731
-  before = entries()
+  loaded = compile_cache_probe(compile_cache)
   t0 = time.perf_counter()
   options = runtime.inference_compiler_options()  # those of sav_jax.inference's executables
   compiled = fwd.lower(variables, left, right).compile(compiler_options=options)
   compile_s = time.perf_counter() - t0
-  cache_hit = bool(compile_cache) and entries() == before
+  cache_hit = loaded()
   device = jax.devices()[0]
   compile_peak = device_peak_gb(device)
   runtime.release_host_memory()
@@ -281,9 +296,7 @@ def run(args: argparse.Namespace) -> int:
         + ("" if res["vit_attention"] == "blocked" else f", ViT attention {res['vit_attention']}"))
   if res["compiler_options"]:
     print("XLA options   " + ", ".join(f"{k}={v}" for k, v in res["compiler_options"].items()))
-  how = "" if cache is None else (" (loaded from the compilation cache)" if res["cache_hit"]
-                                   else f" (stored in {cache})")
-  print(f"compile       {res['compile_s']:.2f} s{how}")
+  print(f"compile       {res['compile_s']:.2f} s{compile_cache_note(cache, res['cache_hit'])}")
   print(f"forward       median {res['median_s']:.3f} s  (min {res['min_s']:.3f} s, "
         f"{args.repeats} runs)")
   print(f"throughput    {res['fps']:.2f} frames/s")
