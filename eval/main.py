@@ -146,10 +146,18 @@ def _run_into(args, config, out) -> int:
   settings = runner.run_settings(config, variables, methods)
   done = (runner.read_progress(out, settings) or {}) if args.resume else {}
   for seq in seqs:
-    if str(seq.name) in done and done[str(seq.name)].frames != len(seq):
+    earlier = done.get(str(seq.name))
+    if earlier is None:
+      continue
+    if earlier.frames != len(seq):
       raise ValueError(f"cannot resume: sequence {seq.name} has {len(seq)} frames, the "
-                       f"interrupted run evaluated {done[str(seq.name)].frames}; pass "
-                       "--overwrite to start again")
+                       f"interrupted run evaluated {earlier.frames}; pass --overwrite to start "
+                       "again")
+    source = runner.sequence_source(seq)  # the same dataset, not another copy of it
+    if earlier.source is not None and source != earlier.source:
+      raise ValueError(f"cannot resume: sequence {seq.name} is read from {source}, the "
+                       f"interrupted run read it from {earlier.source}; run with the --data-root "
+                       "it had, or pass --overwrite to start again")
   run_args = (config, out, seqs, variables, model_cfg, described, methods, settings, done,
               devices, flow_fn)
   if not args.overwrite:
@@ -217,7 +225,8 @@ def build_summary(config, described: str, results: list, methods: list[str]) -> 
                                                     for r in results),
                              "frames_per_second": frames / seconds if seconds > 0 else 0.0}
   for r in results:
-    summary["sequences"].append({"name": r.name, "frames": r.frames, "metrics": r.metrics,
-                                 "seconds": r.seconds, "compile_seconds": r.compile_seconds,
+    summary["sequences"].append({"name": r.name, "frames": r.frames, "source": r.source,
+                                 "metrics": r.metrics, "seconds": r.seconds,
+                                 "compile_seconds": r.compile_seconds,
                                  "metrics_seconds": r.metrics_seconds})
   return summary

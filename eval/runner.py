@@ -48,6 +48,8 @@ class SequenceResult:
       executables of this sequence's shapes exist).
     metrics_seconds: time spent computing every method's metrics (with RAFT's flows
       when the flow-based metrics are on).
+    source: the folder its left frames were read from (`sequence_source`); None for the
+      synthetic set.
   """
 
   name: str
@@ -57,6 +59,7 @@ class SequenceResult:
   seconds: dict = dataclasses.field(default_factory=dict)
   compile_seconds: dict = dataclasses.field(default_factory=dict)
   metrics_seconds: float = 0.0
+  source: str | None = None
 
 
 def safe_name(name: str) -> str:
@@ -136,6 +139,17 @@ def raft_flow_fn(config):
   return flow_fn
 
 
+def sequence_source(seq) -> str | None:
+  """The folder `seq`'s left frames are read from, resolved: the same files reached through
+  another `--data-root` (the common parent or the dataset's own folder, a link) give the same
+  folder, another copy of the dataset another one. None for a sequence without files (the
+  synthetic set)."""
+  files = getattr(seq, "files", None)
+  if not files or not files.get("left"):
+    return None
+  return str(pathlib.Path(files["left"][0]).resolve().parent)
+
+
 def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
                       out: pathlib.Path | None = None, devices=None,
                       flow_fn=None) -> SequenceResult:
@@ -145,7 +159,8 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
   the left video's flows are computed once and shared by the methods.
   """
   clip = eval_data.read_sequence(seq)
-  res = SequenceResult(name=str(seq.name), frames=len(clip["left"]))
+  res = SequenceResult(name=str(seq.name), frames=len(clip["left"]),
+                       source=sequence_source(seq))
   has_gt = clip["disparity"] is not None
   depth = config.metrics.tcc or flow_fn is not None
   scale = seq.depth2disp_scale if depth else None
@@ -334,9 +349,11 @@ def read_progress(out: pathlib.Path, settings: dict) -> dict[str, SequenceResult
       rec = json.loads(line)
       res = SequenceResult(name=rec["name"], frames=rec["frames"], metrics=rec["metrics"],
                            seconds=rec["seconds"], compile_seconds=rec["compile_seconds"],
-                           metrics_seconds=rec["metrics_seconds"])
+                           metrics_seconds=rec["metrics_seconds"],
+                           source=rec.get("source"))  # (absent from older records)
       kinds = ((res.name, str), (res.frames, int), (res.metrics, dict), (res.seconds, dict),
-               (res.compile_seconds, dict), (res.metrics_seconds, (int, float)))
+               (res.compile_seconds, dict), (res.metrics_seconds, (int, float)),
+               (res.source, (str, type(None))))
       if not all(isinstance(v, t) and not isinstance(v, bool) for v, t in kinds):
         raise TypeError("a field of another type")
     except (json.JSONDecodeError, KeyError, TypeError) as e:
@@ -353,7 +370,7 @@ def append_progress(out: pathlib.Path, settings: dict, res: SequenceResult) -> N
   lines = [] if path.is_file() else [{"sav_jax_eval_progress": _PROGRESS_VERSION, **settings}]
   lines.append({"name": res.name, "frames": res.frames, "metrics": res.metrics,
                 "seconds": res.seconds, "compile_seconds": res.compile_seconds,
-                "metrics_seconds": res.metrics_seconds})
+                "metrics_seconds": res.metrics_seconds, "source": res.source})
   with open(path, "a", encoding="utf-8") as f:
     f.writelines(json.dumps(line) + "\n" for line in lines)
     f.flush()

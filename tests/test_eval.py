@@ -8,6 +8,7 @@ import csv
 import json
 import os
 import pathlib
+import shutil
 import types
 
 import cv2
@@ -560,6 +561,50 @@ def test_vkitti2_on_disk(tmp_path, ckpt):
   seqs = registry.get_sequences("vkitti2", tmp_path / "data", "test", max_frames=300)
   summary = _check_against_metrics(out, seqs, ["sav"], with_scale=False)
   assert summary["frames"] == 5 * T and not (out / "plots").exists()
+  assert [s["source"] for s in summary["sequences"]] == [
+      str(seq.files["left"][0].resolve().parent) for seq in seqs]
+
+
+def test_resume_reads_the_sequences_from_the_same_folder(tmp_path, ckpt, capsys, monkeypatch):
+  # An interrupted run over one copy of the dataset is not resumed over another copy (its
+  # finished sequences' metrics would be those of other files), but is over the same files
+  # reached through the dataset's own folder.
+  from sav_jax.data import vkitti2
+  scfg = synthetic.SyntheticConfig(frames=T, height=H, width=W, focal=725.0087,
+                                   baseline=vkitti2.BASELINE_M, max_disparity=6.0, num_objects=2)
+  for i, name in enumerate(vkitti2.TEST):
+    _write_vkitti2(tmp_path / "data", synthetic.generate_clip(scfg, i), name)
+  shutil.copytree(tmp_path / "data", tmp_path / "copy")
+  out = tmp_path / "out"
+  args = ["--config", str(CONFIGS / "vkitti2.py"), "--checkpoint", str(ckpt), "--out", str(out),
+          "--config.iters=2", "--config.plots.enabled=false", "--config.max_sequences=2"]
+  real_append = eval_runner.append_progress
+
+  def second_fails(out_, settings, res):
+    if res.name != vkitti2.TEST[0]:
+      raise OSError(f"{res.name}: disk full")
+    return real_append(out_, settings, res)
+
+  with monkeypatch.context() as m:
+    m.setattr(eval_runner, "append_progress", second_fails)
+    assert main([*args, "--data-root", str(tmp_path / "data")]) == 2
+  assert "disk full" in capsys.readouterr().err
+  record = json.loads((out / eval_runner.PROGRESS).read_text().splitlines()[1])
+  first = (tmp_path / "data" / "vkitti2" / vkitti2.TEST[0].replace("_", "/", 1) / "frames"
+           / "rgb" / "Camera_0")
+  assert record["source"] == str(first.resolve())
+  assert main([*args, "--data-root", str(tmp_path / "copy"), "--resume"]) == 2
+  err = capsys.readouterr().err
+  assert f"cannot resume: sequence {vkitti2.TEST[0]} is read from " in err
+  assert str(tmp_path / "copy") in err and f"read it from {first.resolve()}" in err
+  evaluated = []
+  real_evaluate = eval_runner.evaluate_sequence
+  monkeypatch.setattr(eval_runner, "evaluate_sequence",
+                      lambda seq, *a, **k: evaluated.append(seq.name) or real_evaluate(seq, *a,
+                                                                                       **k))
+  assert main([*args, "--data-root", str(tmp_path / "data" / "vkitti2"), "--resume"]) == 0
+  assert evaluated == [vkitti2.TEST[1]]
+  assert "(from the interrupted run)" in capsys.readouterr().out
 
 
 def test_speed_excludes_compilation_and_curves_leave_frames_without_gt_out(tmp_path,
