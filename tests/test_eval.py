@@ -404,7 +404,10 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
     ("--config.plots.strip_frames=0", "config.plots.strip_frames must be an integer >= 1"),
     ("--config.dtype=float64", "config.dtype must be one of ('float32', 'bfloat16'), got 'f"),
     ("--config.synthetic.num_sequences=0",
-     "config.synthetic.num_sequences must be an integer >= 1, got 0")])
+     "config.synthetic.num_sequences must be an integer >= 1, got 0"),
+    ("--config.synthetic.min_disparity=0", "config.synthetic.min_disparity must be > 0, got 0"),
+    ("--config.synthetic.max_disparity=300",
+     "config.synthetic.max_disparity must be < width, got 300.0")])
 def test_bad_overrides(tmp_path, ckpt, capsys, override, message):
   rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt),
              "--out", str(tmp_path / "o"), override])
@@ -498,6 +501,25 @@ def test_config_files_that_cannot_be_used(tmp_path):
   del bare.synthetic
   with pytest.raises(ValueError, match="config.dataset='synthetic' needs a config.synthetic"):
     eval_data.load_sequences(bare, tmp_path)
+
+
+def test_synthetic_set_takes_every_generator_field():
+  config = eval_config.apply_overrides(
+      eval_config.load_config(str(CONFIGS / "synthetic.py")),
+      eval_config.split_overrides([*SMALL, "--config.synthetic.min_disparity=4",
+                                   "--config.synthetic.noise_std=3"])[1])
+  with config.unlocked():  # a field the file does not list, as a config file of one's own adds
+    config.synthetic.textures = ["checker"]
+  seqs = eval_data.load_sequences(config, None)
+  cfg = seqs[0].cfg
+  assert (cfg.min_disparity, cfg.noise_std, cfg.textures) == (4.0, 3.0, ("checker",))
+  clip = eval_data.read_sequence(seqs[0])
+  assert clip["disparity"][clip["valid"] > 0].min() >= 4.0 - 1e-4
+  with config.unlocked():
+    config.synthetic.max_disparty = 5.0
+  with pytest.raises(ValueError, match="config.synthetic.max_disparty is not a field of the "
+                     "synthetic generator; its fields: num_sequences, background_fraction"):
+    eval_data.load_sequences(config, None)
 
 
 def test_sgbm_baseline_settings_are_checked_before_predicting(tmp_path, ckpt, capsys):
