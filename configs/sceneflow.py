@@ -161,7 +161,7 @@ def base_config() -> ml_collections.ConfigDict:
   c.eval.at_start = False
   # Held-out set: "synthetic" (fixed generated clips) or a registry dataset name.
   c.eval.dataset = "synthetic"
-  # Split of a registry dataset used for validation.
+  # Split of a registry dataset used for validation ("test" for the synthetic set).
   c.eval.split = "test"
   # Number of held-out clips.
   c.eval.num_clips = 16

@@ -317,6 +317,9 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
     raise ValueError(f"config.eval.synthetic_seed={config.eval.synthetic_seed} equals "
                      "config.data.synthetic.seed: validation would score clips the run trains "
                      f"on (source {synthetic_sources[0]}); choose another seed")
+  if evaluating and config.eval.dataset == "synthetic" and config.eval.split != "test":
+    raise ValueError(f"config.eval.split={config.eval.split!r}: the synthetic held-out set has "
+                     "only the split 'test' (its clips come from config.eval.synthetic_seed)")
   microbatches = step_lib.check_microbatches(config)
   if num_devices and (config.train.batch_size // microbatches) % num_devices:
     raise ValueError(f"config.train.microbatches={microbatches}: parts of "

@@ -715,6 +715,8 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
      r"would score clips the run trains on"),
     ("train.microbatches", 2, r"config\.train\.microbatches=2: parts of 1 clips .* not "
      r"divisible by the 2 devices"),
+    ("eval.split", "valid", r"config\.eval\.split='valid': the synthetic held-out set has only "
+     r"the split 'test'"),
 ])
 def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match):
   from train import loop  # pylint: disable=g-import-not-at-top
