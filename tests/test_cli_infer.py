@@ -313,7 +313,21 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
                 "5", "--overwrite") == 0
   assert sorted(p.name for p in (out / "disparity").iterdir()) == [
       *(f"{i:04d}.npy" for i in range(5)), "notes.txt"]
-  assert json.loads((out / "summary.json").read_text())["complete"] is True
+  summary = json.loads((out / "summary.json").read_text())
+  assert summary["complete"] is True and summary["tool"] == "sav-jax infer"
+  # Only this command's summary is trusted, and of its list only names this command writes:
+  # another tool's summary.json (or one edited by hand) deletes nothing.
+  (out / "mine.txt").write_text("mine")
+  for listing in ({"outputs": ["mine.txt", "disparity/0004.npy"], "complete": True},
+                  {"tool": "sav-jax infer", "complete": True,
+                   "outputs": ["mine.txt", "disparity/notes.txt", "disparity/../mine.txt"]}):
+    (out / "summary.json").write_text(json.dumps(listing))
+    assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy",
+                  "--max-frames", "4", "--overwrite") == 0
+    assert (out / "mine.txt").read_text() == "mine"
+    assert sorted(p.name for p in (out / "disparity").iterdir()) == [
+        *(f"{i:04d}.npy" for i in range(5)), "notes.txt"]
+    (out / "disparity" / "0004.npy").touch()  # (kept: its summary was not this command's)
 
 
 def test_frame_sources_check_every_frame_when_opened(tmp_path, clip):
@@ -709,6 +723,13 @@ def test_frame_folders_in_number_order_without_hidden_files(tmp_path):
   lazy, _, lazy_names = video_io.open_stereo(tmp_path / "l", tmp_path / "r")
   assert lazy_names == names
   np.testing.assert_array_equal(lazy[0:4], lv)
+  # A link to a missing frame in both views (a link farm into a moved dataset) is named, not
+  # a video one frame short.
+  for side in ("l", "r"):
+    (tmp_path / side / "frame_3.png").symlink_to(tmp_path / "moved" / "frame_3.png")
+  with pytest.raises(FileNotFoundError, match=r"frame_3\.png: a symbolic link to a missing "
+                     r"file \(.*moved/frame_3\.png\)"):
+    video_io.open_stereo(tmp_path / "l", tmp_path / "r")
 
 
 def test_matmul_precision_covers_every_window_and_is_recorded(tmp_path, folders, npz_ckpt,

@@ -136,6 +136,22 @@ def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
     raise FileExistsError(f"output files exist ({shown}{more}); pass --overwrite to replace them")
 
 
+# Marks the `summary.json` this command writes: `--overwrite` trusts no other one's list.
+SUMMARY_TOOL = "sav-jax infer"
+
+
+def _is_output_name(rel: str) -> bool:
+  """Whether `rel` (relative to --out) has the name of a file `infer` writes."""
+  parts = pathlib.PurePosixPath(rel).parts
+  if parts == ("side_by_side.mp4",):
+    return True
+  if len(parts) != 2 or parts[1].startswith(".") or ".." in parts:
+    return False
+  suffix = pathlib.PurePosixPath(parts[1]).suffix
+  maps = set(video_io.DISPARITY_SUFFIXES)
+  return suffix in {"disparity": maps, "depth": maps, "pointclouds": {".ply"}}.get(parts[0], ())
+
+
 def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[pathlib.Path]:
   """The files an earlier run in `out` wrote (its `summary.json` lists them) that this run
   will not replace: other formats, frames beyond a shorter video, depth and point clouds
@@ -143,15 +159,18 @@ def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[path
   that the folder holds one run's outputs; files the summary does not list (a user's own,
   or those of a run that failed before its summary) are never deleted."""
   try:
-    listed = json.loads((out / "summary.json").read_text()).get("outputs")
-  except (OSError, ValueError, AttributeError):  # none, unreadable, or not an earlier run's
+    summary = json.loads((out / "summary.json").read_text())
+  except (OSError, ValueError):  # none, or unreadable
     return []
-  if not isinstance(listed, list):
+  # Only a summary this command wrote (another tool's `summary.json` may list anything), and
+  # of what it lists only the files this command writes.
+  if not (isinstance(summary, dict) and summary.get("tool") == SUMMARY_TOOL
+          and isinstance(summary.get("outputs"), list)):
     return []
   keep = {p.absolute() for p in outputs}
   stale = []
-  for rel in listed:
-    if not isinstance(rel, str) or pathlib.PurePosixPath(rel).is_absolute() or ".." in rel:
+  for rel in summary["outputs"]:
+    if not (isinstance(rel, str) and _is_output_name(rel)):
       continue
     path = (out / rel).absolute()
     if path not in keep and path.is_file() and not path.is_symlink():
@@ -232,7 +251,7 @@ def run(args: argparse.Namespace) -> int:
     written = write_outputs(out, names, left, chunks, formats, calib, args, listed, stale=stale)
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
-  summary = {"frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
+  summary = {"tool": SUMMARY_TOOL, "frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
              "matmul_precision": precision_name,
              "window": args.window, "stride": args.stride, "weights": described,
              "devices": [str(d) for d in devices],
@@ -297,7 +316,8 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
         folder.rmdir()
   (out / "disparity").mkdir(parents=True, exist_ok=True)
   # (replaces an earlier run's summary, which would describe this run's files)
-  (out / "summary.json").write_text(json.dumps({"complete": False, "outputs": listed}, indent=1))
+  (out / "summary.json").write_text(json.dumps({"tool": SUMMARY_TOOL, "complete": False,
+                                                    "outputs": listed}, indent=1))
   if calib is not None:
     (out / "depth").mkdir(exist_ok=True)
     (out / "pointclouds").mkdir(exist_ok=True)

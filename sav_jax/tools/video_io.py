@@ -22,18 +22,19 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 DISPARITY_FORMATS = ("png16", "npy", "pfm", "exr")
 _FORMAT_SUFFIX = {"png16": ".png", "npy": ".npy", "pfm": ".pfm", "exr": ".exr"}
+DISPARITY_SUFFIXES = tuple(_FORMAT_SUFFIX.values())
 
 
 def list_frames(folder) -> list[pathlib.Path]:
   """Image files of a frame folder in natural name order (`frame_2` before `frame_10`;
   for zero-padded names the official demo's sorted order); hidden files (`._0001.png`
-  copies of macOS archives) are left out."""
+  copies of macOS archives) are left out. A symbolic link to a missing file is an error that
+  names it (left out, the video would lose a frame without a word)."""
   from sav_jax.data import base  # pylint: disable=import-outside-toplevel
   folder = pathlib.Path(folder)
   if not folder.is_dir():
     raise FileNotFoundError(f"{folder}: not a folder")
-  files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS
-                  and not base.is_hidden(p) and p.is_file()), key=base.natural_key)
+  files = base.list_files(folder, *IMAGE_EXTENSIONS)
   if not files:
     raise ValueError(f"{folder}: empty folder (no {'/'.join(IMAGE_EXTENSIONS)} images)")
   return files
