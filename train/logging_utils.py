@@ -39,6 +39,7 @@ class MetricWriter:
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     _supersede(workdir / "metrics.jsonl", workdir / "metrics.superseded.jsonl", start_step)
+    self._logged = _logged_steps(workdir / "metrics.jsonl")
     self._jsonl = open(workdir / "metrics.jsonl", "a", encoding="utf-8")
     try:
       from tensorboardX import SummaryWriter  # pylint: disable=g-import-not-at-top
@@ -48,9 +49,14 @@ class MetricWriter:
     except ImportError:
       log.warning("tensorboardX is not installed: TensorBoard events are not written")
 
+  def logged(self, step: int, split: str) -> bool:
+    """Whether the log holds a `split` record of `step` (False off process 0)."""
+    return self.enabled and (int(step), split) in self._logged
+
   def write(self, step: int, scalars: dict, split: str = "train") -> None:
     if not self.enabled:
       return
+    self._logged.add((int(step), split))
     clean = {k: float(v) for k, v in scalars.items()}
     record = {"step": int(step), "split": split, "time": time.time()}
     record.update({k: (v if math.isfinite(v) else str(v)) for k, v in clean.items()})
@@ -68,6 +74,20 @@ class MetricWriter:
     if self._tb is not None:
       self._tb.close()
       self._tb = None
+
+
+def _logged_steps(path: pathlib.Path) -> set[tuple[int, str]]:
+  """The `(step, split)` pairs of the records of `path` (none without the file)."""
+  if not path.is_file():
+    return set()
+  pairs = set()
+  for line in path.read_text(encoding="utf-8").splitlines():
+    try:
+      record = json.loads(line)
+      pairs.add((int(record["step"]), str(record["split"])))
+    except (ValueError, KeyError, TypeError):
+      continue
+  return pairs
 
 
 def _supersede(path: pathlib.Path, aside: pathlib.Path, start_step: int) -> None:

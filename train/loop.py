@@ -25,6 +25,7 @@ import threading
 
 import flax
 import jax
+from jax.experimental import multihost_utils
 import ml_collections
 import numpy as np
 
@@ -481,6 +482,10 @@ def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
     try:
       if evaluator is not None and start == 0 and config.eval.at_start:
         writer.write(0, evaluator(state.params), split="val")
+      elif evaluator is not None and _validation_missing(config, writer, start):
+        log.info("validating step %d first: the run that saved its checkpoint ended before its "
+                 "validation was logged", start)
+        writer.write(start, evaluator(state.params), split="val")
       pending = None
       for step in range(start + 1, total + 1):
         with jax.profiler.StepTraceAnnotation("train", step_num=step):
@@ -519,6 +524,18 @@ def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
     raise Preempted(f"stopped at step {step} of {total} ({stop}), with a checkpoint of that "
                     "step: run the same command again to resume")
   return state
+
+
+def _validation_missing(config, writer: MetricWriter, start: int) -> bool:
+  """Whether the restored step `start` is a validation step (a period of
+  `config.eval.every_steps`, or the last) whose validation the log lacks: the run that saved
+  its checkpoint was killed while validating (the checkpoint is written first). The same
+  answer on every process (process 0 holds the log; validation is collective)."""
+  due = start > 0 and (_every(start, config.eval.every_steps) or start == config.train.num_steps)
+  if not due:
+    return False
+  missing = np.asarray(not writer.logged(start, "val"))
+  return bool(multihost_utils.broadcast_one_to_all(missing))
 
 
 class Preempted(RuntimeError):

@@ -1014,6 +1014,51 @@ def test_sigterm_on_a_validation_step_still_validates(tmp_path):
     assert sav_jax.convert.find_training_checkpoint(workdir).name == str(notice_at)
 
 
+def test_a_validation_lost_with_the_process_is_run_on_resume(tmp_path):
+  # The checkpoint of a validation step is saved before the validation runs: a run killed
+  # while validating (SIGKILL, out of memory) resumes after that step, and the validation
+  # was never logged. The resumed run validates the restored step first; the last step's
+  # too, where a rerun of the finished run has nothing else to do.
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.num_steps, c.train.log_every, c.train.progress_bar = 4, 1, False
+  c.checkpoint.every_steps, c.checkpoint.async_save = 2, False
+  c.eval.every_steps, c.eval.at_start = 2, False
+  validated = []
+
+  def killed(params):
+    raise KeyboardInterrupt  # (what a kill looks like to the log: nothing written)
+
+  def evaluator(params):
+    validated.append(True)
+    return {"epe": float(len(validated))}
+
+  def val_steps():
+    return [json.loads(l)["step"] for l in (tmp_path / "metrics.jsonl").read_text().splitlines()
+            if json.loads(l)["split"] == "val"]
+
+  with pytest.raises(KeyboardInterrupt):
+    loop.run(c, tmp_path, _loop_parts(c, tmp_path, evaluator=killed))
+  assert sav_jax.convert.find_training_checkpoint(tmp_path).name == "2" and val_steps() == []
+  parts = _resumed_parts(c, tmp_path)
+  parts["evaluator"] = evaluator
+  assert int(loop.run(c, tmp_path, parts).step) == 4
+  assert val_steps() == [2, 4] and _steps_logged(tmp_path) == [1, 2, 2, 3, 4, 4]
+  # Nothing is validated twice: a rerun of the finished run does nothing ...
+  parts = _resumed_parts(c, tmp_path)
+  parts["evaluator"] = evaluator
+  validated.clear()
+  loop.run(c, tmp_path, parts)
+  assert validated == [] and val_steps() == [2, 4]
+  # ... but runs the last validation if the log lacks it.
+  lines = (tmp_path / "metrics.jsonl").read_text().splitlines(keepends=True)
+  (tmp_path / "metrics.jsonl").write_text("".join(lines[:-1]))
+  parts = _resumed_parts(c, tmp_path)
+  parts["evaluator"] = evaluator
+  loop.run(c, tmp_path, parts)
+  assert validated == [True] and val_steps() == [2, 4]
+
+
 def _resumed_parts(c, workdir):
   from train import loop  # pylint: disable=g-import-not-at-top
   parts = _loop_parts(c, workdir)
