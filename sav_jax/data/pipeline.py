@@ -34,7 +34,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import signal
+import threading
+import time
 import warnings
 from typing import Any, Callable, Mapping, Sequence
 
@@ -250,16 +253,28 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
   it = ds.to_iter_dataset(read).batch(batch_size, drop_remainder=True, batch_fn=stack_examples)
   if worker_count > 0:
     it = it.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count),
-                        worker_init_fn=_ignore_sigterm)
+                        worker_init_fn=_init_worker)
   return it
 
 
-def _ignore_sigterm(worker_index: int, worker_count: int) -> None:
+def _init_worker(worker_index: int, worker_count: int) -> None:
   """A grain worker process ignores SIGTERM: schedulers send it to the whole process group,
   and the training process, which then finishes its step and saves a checkpoint, needs its
-  workers until it is done (grain stops them itself: an event, then SIGKILL)."""
+  workers until it is done (grain stops them itself: an event, then SIGKILL).
+
+  So that a worker never outlives the training process (SIGKILLed, or taken by the
+  out-of-memory killer: grain's own stop never comes, and the orphan would ignore `kill`),
+  a thread ends the worker within a second of its parent's death."""
   del worker_index, worker_count
   signal.signal(signal.SIGTERM, signal.SIG_IGN)
+  parent = os.getppid()
+
+  def watch_parent():
+    while os.getppid() == parent:  # (an orphan is adopted by init or a subreaper)
+      time.sleep(0.5)
+    os._exit(1)  # pylint: disable=protected-access
+
+  threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()
 
 
 def stack_examples(examples: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:

@@ -1,5 +1,6 @@
 """grain pipelines: shapes, determinism, mixtures, per-process shards, resumable state."""
 
+import pathlib
 import sys
 import types
 
@@ -269,3 +270,60 @@ def test_grain_workers_outlive_a_sigterm_to_the_process_group():
   for _ in range(12):  # more batches than the workers had buffered
     assert next(it)["left"].shape == (2, 2, 16, 16, 3)
   it.close() if hasattr(it, "close") else None  # pylint: disable=expression-not-assigned
+
+
+_ORPHAN_SCRIPT = """
+import sys
+from absl import flags
+flags.FLAGS.mark_as_parsed()
+from sav_jax.data import pipeline
+from sav_jax.data.synthetic import SyntheticConfig
+src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
+                                                max_disparity=8.0), 20)
+it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1,
+                                      worker_count=1))
+next(it)
+print("ready", flush=True)
+sys.stdin.read()
+"""
+
+
+def test_grain_workers_end_with_a_killed_training_process(tmp_path):
+  """A training process that is SIGKILLed (or taken by the out-of-memory killer) never stops
+  its grain workers; they ignore SIGTERM (above), so orphans would outlive `kill` too: each
+  ends itself once its parent is gone."""
+  import os  # pylint: disable=import-outside-toplevel
+  import subprocess  # pylint: disable=import-outside-toplevel
+  import sys  # pylint: disable=import-outside-toplevel
+  import time  # pylint: disable=import-outside-toplevel
+  root = pathlib.Path(__file__).resolve().parents[2]
+  env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]),
+             JAX_PLATFORMS="cpu")
+  proc = subprocess.Popen([sys.executable, "-c", _ORPHAN_SCRIPT], stdin=subprocess.PIPE,
+                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env, text=True,
+                          cwd=tmp_path)
+  try:
+    assert proc.stdout.readline().strip() == "ready"
+    ps = subprocess.run(["ps", "-ww", "-o", "pid=,args=", "--ppid", str(proc.pid)],
+                        capture_output=True, text=True, check=False).stdout
+    workers = [int(line.split()[0]) for line in ps.splitlines() if "spawn_main" in line]
+    assert workers
+  finally:
+    proc.kill()  # SIGKILL: grain's stop never runs
+    proc.wait()
+  deadline = time.time() + 20
+  alive = list(workers)
+  while alive and time.time() < deadline:
+    time.sleep(0.2)
+    alive = [pid for pid in alive if pathlib.Path(f"/proc/{pid}").exists()
+             and "zombie" not in _proc_state(pid)]
+  for pid in alive:  # (a failure leaves no orphan behind)
+    os.kill(pid, 9)
+  assert not alive, f"grain workers {alive} outlived their killed parent"
+
+
+def _proc_state(pid: int) -> str:
+  try:
+    return pathlib.Path(f"/proc/{pid}/status").read_text().split("State:")[1].split("\n")[0]
+  except (OSError, IndexError):
+    return "zombie"  # gone meanwhile
