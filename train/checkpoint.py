@@ -222,6 +222,12 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
     raise sav_jax.convert.CheckpointError(
         f"{directory}: the checkpoint is incomplete: it has no {' and no '.join(missing)} "
         f"folder (the {'training state' if 'state' in missing else 'data iterator'}){hint}")
+  position = (directory / "data" /
+              f"process_{jax.process_index()}-of-{jax.process_count()}.json")
+  if not position.is_file():
+    raise sav_jax.convert.CheckpointError(
+        f"{directory}: the checkpoint is incomplete: it has no {position.relative_to(directory)} "
+        f"(this process's position in the data){hint}")
   saved = _saved_shapes(directory / "state")
   _check_saved_shapes(directory, saved, target)
   restored = orbax_io.checked_restore(

@@ -103,8 +103,15 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     step = manager.latest_step()
     log.info("resuming from checkpoint %d", step)
     ckpt_lib.check_data_state(manager, step, config)
-    state = ckpt_lib.restore(manager, abstract, shardings, data_iterator)
     changed = ckpt_lib.changed_fields(manager, step, config)
+    try:
+      state = ckpt_lib.restore(manager, abstract, shardings, data_iterator)
+    except sav_jax.convert.CheckpointError as e:
+      if not changed or "does not match this run's" not in str(e):
+        raise
+      raise sav_jax.convert.CheckpointError(
+          f"{e}. The config fields this run changes since that checkpoint: "
+          f"{'; '.join(changed)}") from None
     if changed:  # allowed (e.g. to extend a run), but never unnoticed
       log.warning("resuming with %d config fields changed since checkpoint %d: %s",
                   len(changed), step, "; ".join(changed))

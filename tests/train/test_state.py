@@ -568,6 +568,30 @@ def test_training_checkpoint_without_an_item_is_named_incomplete(toy_run, tmp_pa
     _toy_restore(copy, c, model, tx, mesh)
   assert str(e.value).startswith(f"{step}: the checkpoint is incomplete: it has no data folder")
   assert "does not match" not in str(e.value) and "Move this step folder" in str(e.value)
+  shutil.copytree(toy_run[0] / "checkpoints" / "1" / "data", step / "data")
+  (step / "data" / "process_0-of-1.json").unlink()  # the folder, without this process's file
+  with pytest.raises(sav_jax.convert.CheckpointError) as e:
+    _toy_restore(copy, c, model, tx, mesh)
+  assert str(e.value).startswith(f"{step}: the checkpoint is incomplete: it has no "
+                                 "data/process_0-of-1.json (this process's position in the data)")
+  assert "does not match" not in str(e.value)
+
+
+def test_a_refused_resume_names_the_config_fields_it_changes(tmp_path):
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c, model, _, mesh = _toy_run(tmp_path, run_config=True)
+  c2 = _config()
+  c2.optimizer.clip_norm = 0.0  # no clipping stage: another optimizer state tree
+  tx2 = optim.make_optimizer(c2.optimizer, c2.train.num_steps)
+  manager = ckpt_lib.make_manager(tmp_path, c2)
+  try:
+    with pytest.raises(sav_jax.convert.CheckpointError,
+                       match=r"does not match this run's model or optimizer config .*The config "
+                       rf"fields this run changes since that checkpoint: optimizer.clip_norm: "
+                       rf"{c.optimizer.clip_norm!r} -> 0.0$"):
+      loop.initial_state(c2, model, tx2, mesh, manager, _toy_iterator())
+  finally:
+    manager.close()
 
 
 def _check_data_state(workdir, config):
