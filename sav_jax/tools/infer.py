@@ -251,8 +251,8 @@ def run(args: argparse.Namespace) -> int:
     written = write_outputs(out, names, left, chunks, formats, calib, args, listed, stale=stale)
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
-  summary = {"tool": SUMMARY_TOOL, "frames": t, "height": h, "width": w, "iters": args.iters, "dtype": cfg.dtype,
-             "matmul_precision": precision_name,
+  summary = {"tool": SUMMARY_TOOL, "frames": t, "height": h, "width": w, "iters": args.iters,
+             "dtype": cfg.dtype, "matmul_precision": precision_name,
              "window": args.window, "stride": args.stride, "weights": described,
              "devices": [str(d) for d in devices],
              "left": str(args.left), "right": str(args.right), "formats": formats,
