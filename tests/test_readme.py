@@ -122,7 +122,8 @@ def test_config_overrides_name_config_fields(doc):
   from configs import mixed, sceneflow, synthetic  # pylint: disable=import-outside-toplevel
   from eval import config as eval_config  # pylint: disable=import-outside-toplevel
   configs = [m.get_config() for m in (sceneflow, mixed, synthetic)]
-  configs.append(eval_config.load_config(str(ROOT / "configs" / "eval" / "sintel_final.py")))
+  configs += [eval_config.load_config(str(ROOT / "configs" / "eval" / name))
+              for name in ("sintel_final.py", "synthetic.py")]
   fields = set(re.findall(r"--config\.([a-z_][\w.]*\w)", _code(doc)))
   unknown = sorted(f for f in fields if not any(_has_field(c, f) for c in configs))
   assert not unknown, f"{doc} overrides config fields that no config has: {unknown}"
