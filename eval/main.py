@@ -112,10 +112,11 @@ def _run_into(args, config, out) -> int:
              if p.is_file() or (p.is_dir() and any(p.iterdir()))]
   if args.resume:  # without a progress file, only an empty folder starts afresh
     if not (out / runner.PROGRESS).is_file() and earlier:
-      finished = " holds a finished evaluation" if (out / "results.json").is_file() else ""
-      raise FileExistsError(f"nothing to resume: {out}{finished} has no {runner.PROGRESS} "
-                            f"(found {', '.join(p.name for p in earlier)}); pass --overwrite "
-                            "to replace it")
+      what = ("holds a finished evaluation" if (out / "results.json").is_file()
+              else f"has no {runner.PROGRESS}")
+      raise FileExistsError(f"nothing to resume: {out} {what} (found "
+                            f"{', '.join(p.name for p in earlier)}); pass --overwrite to "
+                            "replace it")
   elif earlier and not args.overwrite:  # also the predictions of an interrupted run
     interrupted = (out / runner.PROGRESS).is_file()
     raise FileExistsError(f"{', '.join(map(str, earlier))} exist; pass "

@@ -316,7 +316,8 @@ def test_resume_after_a_failed_run(tmp_path, ckpt, variables, capsys, monkeypatc
                                    with_scale=True)
   assert "disp_TCC" in summary["methods"]["sav"]["aggregate"]
   assert main([*args, "--resume"]) == 2  # a finished run: nothing to resume
-  assert "nothing to resume" in capsys.readouterr().err
+  assert f"nothing to resume: {out} holds a finished evaluation (found results.json" in (
+      capsys.readouterr().err)
   # A resumed run over fewer sequences keeps the records of the others for a later one.
   second = json.loads(records[1]) | {"name": "synthetic_001"}  # as if it had finished too
   both = progress_lines + json.dumps(second) + "\n"
@@ -352,7 +353,7 @@ def test_progress_files_and_listing_survive_kills_and_hand_edits(tmp_path, ckpt,
   # No progress file (killed in its first sequence), but its files: --resume is refused, not
   # a run over them.
   assert main([*args, "--resume"]) == 2
-  assert "nothing to resume" in capsys.readouterr().err
+  assert f"nothing to resume: {out} has no progress.jsonl (found " in capsys.readouterr().err
   # Hand-edited or cut-short progress files.
   settings = {"x": 1}
   progress = out / eval_runner.PROGRESS

@@ -384,8 +384,14 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   with pytest.raises(ValueError, match=r"non-finite values \(NaN/inf\) in frame\(s\) \[22\]"):
     inference.check_video_values(nan, "left", first=20)  # a lazy source's window at frame 20
   deep = video.astype(np.uint16) * 257  # 16-bit frames
-  with pytest.raises(ValueError, match=r"left: uint16 values 25700\.\.25700 are outside 0\.\.255"):
+  with pytest.raises(ValueError, match=r"left: uint16 values 25700\.\.25700 are outside 0\.\.255 "
+                     r"in frame\(s\) \[0, 1, 2\]"):
     inference.predict_video(variables, deep, deep, iters=ITERS)
+  one = video.astype(np.int32)
+  one[1, 0, 0, 2] = 300  # one frame of a window starting at frame 20
+  with pytest.raises(ValueError, match=r"right: int32 values 100\.\.300 are outside 0\.\.255 in "
+                     r"frame\(s\) \[21\]"):
+    inference.check_video_values(one, "right", first=20)
   with pytest.raises(ValueError, match="dtype bool"):
     inference.check_video_values(video > 0, "left")
   with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
