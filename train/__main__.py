@@ -12,6 +12,7 @@ saves a checkpoint of the step it is on and exits with status 143; the same comm
 
 import logging
 import sys
+import traceback
 
 from absl import app, flags
 from ml_collections import config_flags
@@ -108,8 +109,10 @@ def main(argv):
   # is shown instead. Errors of the training itself keep their traceback.
   except (ValueError, OSError) as e:  # OSError: FileNotFoundError, PermissionError, ...
     if flags.FLAGS.verbosity >= 1:
-      raise
-    print(f"train: error: {e} (-v 1 for the traceback)", file=sys.stderr)
+      traceback.print_exc()
+      print(f"train: error: {e}", file=sys.stderr)
+    else:
+      print(f"train: error: {e} (-v 1 for the traceback)", file=sys.stderr)
     sys.exit(2)
   try:
     loop.run(config, _WORKDIR.value, parts)

@@ -214,12 +214,23 @@ def unwrap_state_dict(obj, source: str = "<checkpoint>") -> dict:
   return _strip_module_prefix(sd, source)
 
 
+# torch dtypes numpy has no type for; their values are exact in float32.
+_TORCH_WIDENED = ("bfloat16", "float8_e4m3fn", "float8_e5m2", "float8_e4m3fnuz", "float8_e5m2fnuz")
+
+
 def _to_numpy(key, v, source) -> np.ndarray:
   if isinstance(v, np.ndarray):
     return v
   try:
+    if type(v).__module__.split(".")[0] == "torch" and hasattr(v, "detach"):
+      # What torch.load gives: tensors that may require grad, live on a GPU or be bfloat16
+      # (numpy takes none of them as they are).
+      v = v.detach().cpu()
+      if str(v.dtype).removeprefix("torch.") in _TORCH_WIDENED:
+        v = v.float()
+      return v.numpy()
     return np.asarray(v)
-  except (TypeError, RuntimeError) as e:  # torch: a bfloat16 tensor, one that requires grad
+  except (TypeError, RuntimeError) as e:
     raise CheckpointError(f"{source}: {key!r} ({type(v).__name__} of dtype "
                           f"{getattr(v, 'dtype', '?')}) does not convert to a numpy array: {e}; "
                           "convert it first (for torch: .detach().float())") from e

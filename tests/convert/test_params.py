@@ -63,6 +63,63 @@ def test_loaded_checkpoint_objects_accepted_as_they_are(sav_state_dict, variable
     convert.params_from_state_dict({"fnet.conv1.weight": BFloat16Tensor()})
 
 
+class _TorchLikeTensor:
+  """Stands in for a torch.Tensor (torch is not a test dependency): numpy refuses it as it is,
+  as it refuses a tensor that requires grad or is bfloat16; detach/cpu/float/numpy as torch's."""
+  __module__ = "torch"
+
+  def __init__(self, value, dtype, requires_grad=False):
+    self.value, self.dtype, self.requires_grad = value, dtype, requires_grad
+    self.shape = value.shape
+
+  def __array__(self, *args, **kwargs):
+    raise RuntimeError("Can't call numpy() on Tensor that requires grad" if self.requires_grad
+                       else "Got unsupported ScalarType BFloat16")
+
+  def detach(self):
+    return _TorchLikeTensor(self.value, self.dtype)
+
+  def cpu(self):
+    return self
+
+  def float(self):
+    return _TorchLikeTensor(self.value.astype(np.float32), "torch.float32")
+
+  def numpy(self):
+    if self.dtype == "torch.bfloat16":
+      raise TypeError("Got unsupported ScalarType BFloat16")
+    if self.requires_grad:
+      raise RuntimeError("Can't call numpy() on Tensor that requires grad")
+    return self.value
+
+
+def _torch_tensors(sd, dtype):
+  """The state dict as torch.load gives it: real torch tensors where torch is installed."""
+  try:
+    import torch  # pylint: disable=import-outside-toplevel
+  except ImportError:
+    return {k: _TorchLikeTensor(_to_bfloat16(v), "torch.bfloat16", requires_grad=True)
+            if dtype == "bfloat16" and v.dtype == np.float32
+            else _TorchLikeTensor(v, f"torch.{v.dtype}", requires_grad=True)
+            for k, v in sd.items()}
+  out = {k: torch.from_numpy(np.array(v)) for k, v in sd.items()}
+  return {k: (t.to(getattr(torch, dtype)) if t.dtype == torch.float32 else t).requires_grad_(
+      t.is_floating_point()) for k, t in out.items()}
+
+
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+def test_torch_tensors_accepted_as_torch_load_gives_them(sav_state_dict, variables, dtype):
+  # Parameters that require grad (a model's state_dict(keep_vars=True)) and bfloat16 ones
+  # convert without a manual .detach().float(); bfloat16 values are exact in float32.
+  got = convert.params_from_state_dict({"model": _torch_tensors(sav_state_dict, dtype)})
+  if dtype == "float32":
+    jax.tree_util.tree_map(np.testing.assert_array_equal, got["params"], variables["params"])
+  else:
+    want = convert.params_from_state_dict({k: _to_bfloat16(v) if v.dtype == np.float32 else v
+                                           for k, v in sav_state_dict.items()})
+    jax.tree_util.tree_map(np.testing.assert_array_equal, got["params"], want["params"])
+
+
 def test_strict_errors_list_every_problem(sav_state_dict):
   sd = dict(sav_state_dict)
   del sd["fnet.conv1.weight"]

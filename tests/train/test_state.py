@@ -890,6 +890,13 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
       capture_output=True, text=True, timeout=300, check=False)
   assert proc.returncode == 2 and "train: error: " in proc.stderr, proc.stderr[-2000:]
   assert "/sys/sav_jax_test" in proc.stderr and "Traceback" not in proc.stderr
+  # -v 1: the traceback too, and the same exit status
+  proc = subprocess.run(
+      [sys.executable, "-m", "train", "--config", config, "--workdir", "/sys/sav_jax_test/w",
+       "--config.train.progress_bar=False", "-v", "1"], cwd=ROOT,
+      env=child_env(tmp_path / "cache"), capture_output=True, text=True, timeout=300, check=False)
+  assert proc.returncode == 2 and "Traceback" in proc.stderr, proc.stderr[-2000:]
+  assert proc.stderr.rstrip().splitlines()[-1].startswith("train: error: "), proc.stderr[-2000:]
   proc = subprocess.run([sys.executable, "-m", "train", "--help"], cwd=ROOT,
                         env=child_env(tmp_path / "cache"), capture_output=True, text=True,
                         timeout=300, check=False)
