@@ -39,13 +39,14 @@ _DEPENDS = {"kill_resume": ("learn",)}
 # the very same train step.
 TINY = [
     "--config.data.frames=2", "--config.data.crop=(32, 32)", "--config.train.iters=2",
-    "--config.train.batch_size=2", "--config.optimizer.lr=1e-3",
+    "--config.train.batch_size=2", "--config.optimizer.lr=1e-4",
     "--config.optimizer.schedule_steps=400", "--config.optimizer.pct_start=0.02",
     "--config.data.synthetic.max_disparity=10.0", "--config.data.synthetic.num_objects=2",
     "--config.eval.iters=2", "--config.eval.num_clips=8", "--config.eval.batch_size=8",
     "--config.train.progress_bar=False", "--config.data.num_threads=1",
 ]
 LEARN_STEPS = 20
+LEARN_EVAL_EVERY = 5  # learn validates at 0, 5, ..., LEARN_STEPS
 CHECK_STEP = 10    # kill_resume compares parameters at this step (a checkpoint of learn)
 KILL_AFTER = 2     # ... with those of a run killed after this step's checkpoint
 
@@ -183,9 +184,9 @@ class Jobs:
 
 
 def _learn(jobs: Jobs, workdir):
-  """python -m train: validation at step 0 and LEARN_STEPS, checkpoints at CHECK_STEP."""
+  """python -m train: validation every LEARN_EVAL_EVERY steps, checkpoints at CHECK_STEP."""
   run(train_cmd(jobs, workdir, f"--config.train.num_steps={LEARN_STEPS}",
-                f"--config.eval.every_steps={LEARN_STEPS}",
+                f"--config.eval.every_steps={LEARN_EVAL_EVERY}",
                 f"--config.checkpoint.every_steps={CHECK_STEP}", "--config.checkpoint.keep=0"),
       child_env(None, fast_compile=True), workdir / "log.txt")
   return workdir

@@ -14,7 +14,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from tests.train.conftest import CHECK_STEP, KILL_AFTER, LEARN_STEPS
+from tests.train.conftest import CHECK_STEP, KILL_AFTER, LEARN_EVAL_EVERY, LEARN_STEPS
 
 
 def _records(workdir):
@@ -32,11 +32,15 @@ def test_synthetic_training_lowers_validation_epe(jobs):
   workdir = jobs.get("learn")
   records = _records(workdir)
   val = {r["step"]: r for r in records if r["split"] == "val"}
-  assert sorted(val) == [0, LEARN_STEPS]
-  before, after = val[0]["epe"], val[LEARN_STEPS]["epe"]
-  # From the official initialisation: 2.13 -> 1.38 px after 20 steps (2026-11-30); 2.13 -> 0.88
-  # px (2026-12-03) with the depth prior initialised as its official constructors do.
-  assert after < 0.7 * before, (before, after)
+  assert sorted(val) == list(range(0, LEARN_STEPS + 1, LEARN_EVAL_EVERY))
+  # One validation of a run this short is noisy (batch 1): at lr 1e-3 the EPE went 2.13 -> 0.95
+  # -> 2.80 -> 1.34 px at steps 0, 15, 20, 25, and which step landed low depended on the CPU
+  # (0.88 px at step 20 on an AVX2 machine, 2.80 on an AVX-512 one, same code). So lr is 1e-4
+  # and the test takes the median of the second half's validations. With seeds 0-3 (this
+  # machine, 2026-12-04) the medians were 0.42-0.62 of the step-0 EPE.
+  before = val[0]["epe"]
+  late = [val[s]["epe"] for s in sorted(val) if s >= LEARN_STEPS // 2]
+  assert np.median(late) < 0.75 * before, (before, late)
   assert np.isfinite(val[LEARN_STEPS]["tepe"])
   train = [r for r in records if r["split"] == "train"]
   assert [r["step"] for r in train] == list(range(10, LEARN_STEPS + 1, 10))
