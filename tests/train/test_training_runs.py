@@ -34,8 +34,8 @@ def test_synthetic_training_lowers_validation_epe(jobs):
   val = {r["step"]: r for r in records if r["split"] == "val"}
   assert sorted(val) == list(range(0, LEARN_STEPS + 1, LEARN_EVAL_EVERY))
   # One validation of a run this short is noisy (batch 1): at lr 1e-3 the EPE went 2.13 -> 0.95
-  # -> 2.80 -> 1.34 px at steps 0, 15, 20, 25, and which step landed low depended on the CPU
-  # (0.88 px at step 20 on an AVX2 machine, 2.80 on an AVX-512 one, same code). So lr is 1e-4
+  # -> 2.80 -> 1.34 px at steps 0, 15, 20, 25, and which step landed low depended on the machine
+  # (0.88 px at step 20 on an earlier, AVX2 one; 2.80 on an AVX-512 one; same code). So lr is 1e-4
   # and the test takes the median of the second half's validations. With seeds 0-3 (this
   # machine, 2026-12-04) the medians were 0.42-0.62 of the step-0 EPE.
   before = val[0]["epe"]
