@@ -43,6 +43,9 @@ class StereoSequence:
     self.name = name
     self.dataset = dataset
     self.depth2disp_scale = None if depth2disp_scale is None else float(depth2disp_scale)
+    if self.depth2disp_scale is not None and not 0 < self.depth2disp_scale < np.inf:
+      raise ValueError(f"{dataset}/{name}: depth2disp scale must be positive and finite, "
+                       f"got {depth2disp_scale}")
     self.sparse = bool(sparse)
     self.with_right_disparity = False
     for key, value in files.items():  # a str is a sequence too: of one-letter "paths"
@@ -196,6 +199,14 @@ class DepthSequence(StereoSequence):
 # ----------------------------------------------------------------------------- helpers
 
 
+def camera_scale(fx: float, baseline: float, source: Path) -> float:
+  """The depth-to-disparity scale fx * baseline of camera data read from `source`, refused
+  (naming the file) unless positive and finite: TCC and the depth metrics would be NaN."""
+  if not (0 < fx < np.inf):
+    raise ValueError(f"{source}: the focal length fx is {fx:g}; it must be positive and finite")
+  return float(fx) * baseline
+
+
 def find_root(root, *names: str) -> Path:
   """The dataset directory: `root/<name>` for the first existing name, else `root`.
 
@@ -241,17 +252,23 @@ def list_files(directory: Path, *suffixes: str) -> list[Path]:
   (`natural_key`), hidden ones left out."""
   require_dir(directory)
   files = [p for p in Path(directory).iterdir() if p.suffix.lower() in suffixes and not is_hidden(p)]
-  broken = [p for p in files if p.is_symlink() and not p.exists()]
-  if broken:  # left out, it would show only as a frame count that differs
-    raise FileNotFoundError(f"{broken[0]}: a symbolic link to a missing file "
-                            f"({os.readlink(broken[0])})")
+  _refuse_broken_links(files)  # left out, it would show only as a frame count that differs
   return sorted((p for p in files if p.is_file()), key=natural_key)
 
 
 def list_dirs(directory: Path) -> list[Path]:
   """Sub-directories of `directory`, sorted by name, hidden ones left out."""
   require_dir(directory)
-  return sorted(p for p in Path(directory).iterdir() if p.is_dir() and not is_hidden(p))
+  entries = [p for p in Path(directory).iterdir() if not is_hidden(p)]
+  _refuse_broken_links(entries)  # left out, a sequence would vanish from an evaluation
+  return sorted(p for p in entries if p.is_dir())
+
+
+def _refuse_broken_links(paths: Sequence[Path]) -> None:
+  broken = [p for p in paths if p.is_symlink() and not p.exists()]
+  if broken:  # a missing target, or a loop of links
+    raise FileNotFoundError(f"{broken[0]}: a symbolic link to a missing file or folder, or a "
+                            f"loop of links ({os.readlink(broken[0])})")
 
 
 def digits_key(path: Path) -> int | str:

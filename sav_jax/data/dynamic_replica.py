@@ -49,7 +49,7 @@ def focal_px(viewpoint: dict, size_hw) -> float:
     viewpoint: the record's `viewpoint` dict.
     size_hw: image size [H, W].
   """
-  h, w = (float(s) for s in size_hw)
+  h, w = (_number(s, "image.size") for s in size_hw)
   fmt = str(viewpoint.get("intrinsics_format", "ndc_norm_image_bounds")).lower()
   if fmt == "ndc_norm_image_bounds":
     r = w / 2.0
@@ -57,13 +57,21 @@ def focal_px(viewpoint: dict, size_hw) -> float:
     r = min(h, w) / 2.0
   else:
     raise ValueError(f"unknown Dynamic Replica intrinsics format {fmt!r}")
-  return float(viewpoint["focal_length"][0]) * r
+  return _number(viewpoint["focal_length"][0], "viewpoint.focal_length") * r
 
 
 def depth2disp_scale(left: dict, right: dict) -> float:
   """fx_px(left) * (T_x(right) - T_x(left)) from two frame records."""
   fx = focal_px(left["viewpoint"], left["image"]["size"])
-  return fx * (float(right["viewpoint"]["T"][0]) - float(left["viewpoint"]["T"][0]))
+  return fx * (_number(right["viewpoint"]["T"][0], "viewpoint.T")
+               - _number(left["viewpoint"]["T"][0], "viewpoint.T"))
+
+
+def _number(value, field: str) -> float:
+  """`float(value)` for a record field; TypeError (a malformed record) naming the field."""
+  if isinstance(value, bool) or not isinstance(value, (int, float)):
+    raise TypeError(f"field {field} holds {value!r}, not a number")
+  return float(value)
 
 
 def _frame_paths(split_dir: Path, rec: dict, where: str) -> tuple[Path, Path]:

@@ -164,9 +164,10 @@ def read_pfm(path: PathLike) -> np.ndarray:
       scale = float(tokens[2]) if len(tokens) == 3 else 0.0
     except ValueError:
       scale = 0.0
-    if len(tokens) != 3 or not (tokens[0].isdigit() and tokens[1].isdigit()) or scale == 0.0:
-      raise ValueError(f"malformed PFM header (expected 'width height' and a non-zero scale, "
-                       f"got {b' '.join(tokens)[:40]!r}): {path}")
+    if (len(tokens) != 3 or not (tokens[0].isdigit() and tokens[1].isdigit())
+        or not np.isfinite(scale) or scale == 0.0 or int(tokens[0]) * int(tokens[1]) == 0):
+      raise ValueError(f"malformed PFM header (expected a non-zero 'width height' and a finite "
+                       f"non-zero scale, got {b' '.join(tokens)[:40]!r}): {path}")
     data = f.read()
   width, height = int(tokens[0]), int(tokens[1])
   channels = 3 if kind == b"PF" else 1
@@ -174,6 +175,10 @@ def read_pfm(path: PathLike) -> np.ndarray:
   if len(data) < 4 * count:
     raise ValueError(f"truncated PFM file ({len(data)} bytes of data, {4 * count} "
                      f"expected): {path}")
+  if len(data) >= 4 * count + 4:  # a header smaller than the image (a few stray bytes pass)
+    raise ValueError(f"PFM file holds more data than its header's {width}x{height}"
+                     f"{'x3' if channels == 3 else ''} float32 values ({len(data)} bytes, "
+                     f"{4 * count} expected): {path}")
   dtype = np.dtype("<f4" if scale < 0 else ">f4")
   arr = np.frombuffer(data, dtype, count).reshape((height, width, channels))
   arr = np.flipud(arr).astype(np.float32)  # native byte order, top row first
@@ -289,9 +294,19 @@ def read_npy(path: PathLike) -> np.ndarray:
   """`np.load` without pickles (Infinigen depth, TartanAir depth)."""
   path = require_file(path, "npy file")
   try:
-    return np.load(path, allow_pickle=False)
+    arr = np.load(path, allow_pickle=False)
   except _CORRUPT_ARCHIVE as e:
     raise ValueError(f"cannot read npy file {path}: {type(e).__name__}: {e}") from e
+  return _real_numbers(arr, path)
+
+
+def _real_numbers(arr: np.ndarray, path, key: str | None = None) -> np.ndarray:
+  """`arr` if it holds real numbers (bool, integer or float), else an error naming the file
+  (strings or complex values would fail later in numpy with no file named, or lose data)."""
+  if arr.dtype.kind not in "biuf":
+    where = f"{path}" if key is None else f"{path}, array {key!r}"
+    raise ValueError(f"{where}: holds {arr.dtype} values, not real numbers")
+  return arr
 
 
 def read_npz(path: PathLike) -> dict[str, np.ndarray]:
@@ -299,9 +314,10 @@ def read_npz(path: PathLike) -> dict[str, np.ndarray]:
   path = require_file(path, "npz file")
   try:
     with np.load(path, allow_pickle=False) as z:
-      return {k: z[k] for k in z.files}
+      arrays = {k: z[k] for k in z.files}
   except _CORRUPT_ARCHIVE as e:
     raise ValueError(f"cannot read npz file {path}: {type(e).__name__}: {e}") from e
+  return {k: _real_numbers(v, path, k) for k, v in arrays.items()}
 
 
 # What numpy's readers raise for a damaged `.npy`/`.npz` (a partial download, a flipped
@@ -356,9 +372,10 @@ def read_hdf5(path: PathLike, key: str) -> np.ndarray:
     with h5py.File(path, "r") as f:
       if not isinstance(f.get(key), h5py.Dataset):
         raise ValueError(f"HDF5 file {path} has no dataset {key!r} (has {sorted(f.keys())})")
-      return np.asarray(f[key])
+      arr = np.asarray(f[key])
   except OSError as e:
     raise ValueError(f"cannot read HDF5 file {path}: {e}") from e
+  return _real_numbers(arr, path, key)
 
 
 def read_dsp5(path: PathLike) -> np.ndarray:

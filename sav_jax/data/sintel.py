@@ -15,7 +15,8 @@ occlusion and camera stems must match. There is no right-view GT.
 from __future__ import annotations
 
 from sav_jax.data import frame_io
-from sav_jax.data.base import StereoSequence, check_matching, find_root, list_dirs, list_files
+from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, find_root, list_dirs,
+                               list_files)
 
 PASSES = ("clean", "final")
 SPLITS = ("test", "train")
@@ -58,8 +59,9 @@ def load_sequences(root, split: str, dstype: str = "final", dataset: str | None 
              "camera": list_files(train / "camdata_left" / name, ".cam")}
     check_matching(f"Sintel {dstype}/{name}", files)
     k, _ = frame_io.read_sintel_cam(files["camera"][0])
-    seqs.append(SintelSequence(name, files, dataset=dataset,
-                               depth2disp_scale=k[0, 0] * BASELINE_M, sparse=True))
+    scale = camera_scale(k[0, 0], BASELINE_M, files["camera"][0])
+    seqs.append(SintelSequence(name, files, dataset=dataset, depth2disp_scale=scale,
+                               sparse=True))
   if not seqs:
     raise FileNotFoundError(f"no Sintel sequences in {train / (dstype + '_left')}")
   return seqs

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from sav_jax.data import frame_io
-from sav_jax.data.base import (StereoSequence, check_matching, digits_key, find_root, is_hidden,
-                               list_dirs, list_files)
+from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key, find_root,
+                               is_hidden, list_dirs, list_files)
 
 SPLITS = ("test",)
 BASELINE_M = 0.12
@@ -64,7 +64,7 @@ def load_sequences(root, split: str = "test", dataset: str = "south_kensington")
     files = {"left": list_files(seq_dir / "images" / "left", ".png"),
              "right": list_files(seq_dir / "images" / "right", ".png")}
     check_matching(f"South Kensington {seq_dir.name}", files, digits_key)
-    scale = read_intrinsics(txts[0])[0, 0] * BASELINE_M
+    scale = camera_scale(read_intrinsics(txts[0])[0, 0], BASELINE_M, txts[0])
     seqs.append(StereoSequence(seq_dir.name, files, dataset=dataset, depth2disp_scale=scale))
   if not seqs:
     raise FileNotFoundError(f"no South Kensington sequences with a camera txt under {root}")

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from sav_jax.data import frame_io
-from sav_jax.data.base import (StereoSequence, check_matching, digits_key, find_root,
+from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key, find_root,
                                list_dirs, list_files)
 
 SPLITS = ("test", "train")
@@ -92,7 +92,7 @@ def load_sequences(root, split: str, dataset: str = "spring"):
     files = {"left": list_files(left, ".png"), "right": list_files(right, ".png"),
              "left_gt": list_files(disp, ".dsp5")}
     check_matching(f"Spring {name}", files, digits_key)
-    scale = read_fx(cam / "intrinsics.txt") * BASELINE_M
+    scale = camera_scale(read_fx(cam / "intrinsics.txt"), BASELINE_M, cam / "intrinsics.txt")
     seqs.append(SpringSequence(name, files, dataset=dataset, depth2disp_scale=scale))
   if not seqs:
     raise FileNotFoundError(f"no Spring sequences under {root}")

@@ -70,12 +70,34 @@ def test_pfm_errors(tmp_path):
   (tmp_path / "short.pfm").write_bytes(b"Pf\n4 3\n-1\n" + bytes(40))
   with pytest.raises(ValueError, match="truncated.*short.pfm"):
     frame_io.read_pfm(tmp_path / "short.pfm")
+  # A NaN scale (it would pick the byte order), an empty image, a header smaller than the data
+  for name, header in (("nan", b"Pf\n4 3\nnan\n"), ("empty", b"Pf\n0 0\n-1\n")):
+    (tmp_path / f"{name}.pfm").write_bytes(header + bytes(48))
+    with pytest.raises(ValueError, match=f"malformed PFM header.*{name}.pfm"):
+      frame_io.read_pfm(tmp_path / f"{name}.pfm")
+  (tmp_path / "long.pfm").write_bytes(b"Pf\n2 3\n-1\n" + bytes(48))
+  with pytest.raises(ValueError, match=r"more data than its header's 2x3 float32 values "
+                     r"\(48 bytes, 24 expected\): .*long.pfm"):
+    frame_io.read_pfm(tmp_path / "long.pfm")
   # Blank lines inside the header, and width, height and scale on one line, are read.
   values = np.arange(6, dtype="<f4")
   for header in (b"Pf\n\n3 2\n\n-1.0\n", b"Pf\n3 2 -1.0\n"):
     (tmp_path / "ok.pfm").write_bytes(header + values.tobytes())
     np.testing.assert_array_equal(frame_io.read_pfm(tmp_path / "ok.pfm"),
                                   values.reshape(2, 3)[::-1])
+
+
+def test_npy_and_npz_hold_real_numbers(tmp_path):
+  np.save(tmp_path / "s.npy", np.array([["a"] * 3] * 2))
+  np.save(tmp_path / "c.npy", np.ones((2, 3), np.complex64))  # numpy would drop the imaginary
+  for name in ("s", "c"):
+    with pytest.raises(ValueError, match=fr"{name}\.npy: holds .* values, not real numbers"):
+      frame_io.read_npy(tmp_path / f"{name}.npy")
+  np.savez(tmp_path / "cam.npz", K=np.array([["x"] * 3] * 3), T=np.eye(4))
+  with pytest.raises(ValueError, match=r"cam\.npz, array 'K': holds <U1 values"):
+    frame_io.read_npz(tmp_path / "cam.npz")
+  np.save(tmp_path / "ok.npy", np.arange(6, dtype=np.uint16).reshape(2, 3))
+  assert frame_io.read_npy(tmp_path / "ok.npy").dtype == np.uint16
 
 
 def test_read_image_colour_grey_alpha_and_16_bit(tmp_path):

@@ -167,6 +167,27 @@ def test_sintel_values_mask_and_scale(tmp_path):
   (cam / "frame_0002.cam").rename(cam / "frame_0003.cam")
   with pytest.raises(ValueError, match="stem mismatch"):
     registry.get_sequences("sintel_clean", tmp_path / "b", "test")
+  (cam / "frame_0003.cam").rename(cam / "frame_0002.cam")
+  # A focal length of NaN or 0 is refused at once, naming the file (TCC would fail only
+  # after the whole prediction, the depth metrics would be NaN).
+  good = (cam / "frame_0001.cam").read_bytes()
+  for fx in (float("nan"), 0.0):
+    raw = struct.pack("<f9d12d", 202021.25, *np.diag([fx, 1.0, 1.0]).ravel(), *np.zeros(12))
+    (cam / "frame_0001.cam").write_bytes(raw)
+    with pytest.raises(ValueError, match=r"frame_0001\.cam: the focal length fx is (nan|0); it "
+                       "must be positive and finite"):
+      registry.get_sequences("sintel_clean", tmp_path / "b", "test")
+  (cam / "frame_0001.cam").write_bytes(good)
+  # A sequence folder that is a dangling link, or a loop of links, is refused: left out,
+  # the evaluation would report on the other sequences as if it were the whole set.
+  assert len(registry.get_sequences("sintel_clean", tmp_path / "b", "test")) == 1
+  for target in (tmp_path / "gone", "cave_2"):  # "cave_2" -> itself: a loop
+    link = train / "clean_left" / "cave_2"
+    link.symlink_to(target)
+    with pytest.raises(FileNotFoundError, match=r"clean_left/cave_2: a symbolic link to a "
+                       r"missing file or folder, or a loop of links"):
+      registry.get_sequences("sintel_clean", tmp_path / "b", "test")
+    link.unlink()
 
 
 def _dynamic_replica(root, rng, split, seqs):
@@ -246,6 +267,12 @@ def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch, caplog)
   with gzip.open(index, "wt", encoding="utf8") as f:
     json.dump(records, f)
   with pytest.raises(ValueError, match=r"frame_annotations_train.jgz: malformed .*'viewpoint'"):
+    registry.get_sequences("dynamic_replica", tmp_path, "train")
+  records[1]["viewpoint"] = dict(records[0]["viewpoint"], T=["abc", 0, 0])  # a string
+  with gzip.open(index, "wt", encoding="utf8") as f:
+    json.dump(records, f)
+  with pytest.raises(ValueError, match=r"frame_annotations_train.jgz: malformed frame record "
+                     r"\(TypeError: field viewpoint.T holds 'abc', not a number\)"):
     registry.get_sequences("dynamic_replica", tmp_path, "train")
   # Left and right records are paired by position: an order that pairs different frames
   # is refused (it paired left_000000 with right_000001 silently).
@@ -471,6 +498,16 @@ def test_spring_dsp5(tmp_path, layout):
   assert not f["valid"][2, 3] and not f["valid"][3, 4] and f["valid"][1, 1]
   with pytest.raises(ValueError, match="disp1_left_0002.dsp5"):  # stored at image size
     seq[1]
+  # Strings or records instead of numbers are named with the file, not left to numpy.
+  for bad in (np.array([[b"ab"] * W] * H), np.zeros((H, W), [("a", "<f4"), ("b", "<f4")])):
+    with h5py.File(dirs[2] / "disp1_left_0002.dsp5", "w") as f:
+      f.create_dataset("disparity", data=bad)
+    with pytest.raises(ValueError, match=r"disp1_left_0002\.dsp5, array 'disparity': holds .* "
+                       "values, not real numbers"):
+      seq[1]
+  (dirs[3] / "intrinsics.txt").write_text("0 0 0 0\n")  # fx = 0: the scale would be 0
+  with pytest.raises(ValueError, match=r"intrinsics\.txt: the focal length fx is 0"):
+    registry.get_sequences("spring", tmp_path, "test")
 
 
 def test_south_kensington_images_only(tmp_path, monkeypatch):
