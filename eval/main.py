@@ -159,6 +159,9 @@ def _run_into(args, config, out) -> int:
       raise ValueError(f"cannot resume: sequence {seq.name} is read from {source}, the "
                        f"interrupted run read it from {earlier.source}; run with the --data-root "
                        "it had, or pass --overwrite to start again")
+  runner.refuse_unlisted_outputs(out, [
+      p for s in seqs if str(s.name) not in done
+      for p in runner.output_paths(out, s.name, methods, config).values()])
   run_args = (config, out, seqs, variables, model_cfg, described, methods, settings, done,
               devices, flow_fn)
   if not args.overwrite:

@@ -194,7 +194,7 @@ def _write_sequence_outputs(out: pathlib.Path, res: SequenceResult, clip: dict, 
                             config) -> None:
   """Writes a sequence's predictions and plots, each listed in `written_files.txt` before it
   is written (a run killed while writing one leaves no file that --overwrite would miss)."""
-  name = safe_name(res.name)
+  paths = output_paths(out, res.name, list(preds), config)
 
   def listed(path: pathlib.Path) -> pathlib.Path:
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -203,15 +203,41 @@ def _write_sequence_outputs(out: pathlib.Path, res: SequenceResult, clip: dict, 
 
   if config.save_predictions:
     for method, pred in preds.items():
-      suffix = "" if method == "sav" else f"_{method}"
-      np.save(listed(out / "predictions" / f"{name}{suffix}.npy"), pred.astype(np.float32))
+      np.save(listed(paths[method]), pred.astype(np.float32))
   if config.plots.enabled:
     labelled = {METHOD_NAMES[m]: p for m, p in preds.items()}
-    plots.write_strip(listed(out / "plots" / f"{name}_strip.png"), clip, labelled,
+    plots.write_strip(listed(paths["strip"]), clip, labelled,
                       frames=config.plots.strip_frames, tile=config.plots.tile_size)
     if res.curves:
       curves = {METHOD_NAMES[m]: c for m, c in res.curves.items()}
-      plots.write_curves(listed(out / "plots" / f"{name}_curves.png"), curves, title=res.name)
+      plots.write_curves(listed(paths["curves"]), curves, title=res.name)
+
+
+def output_paths(out: pathlib.Path, sequence: str, methods, config) -> dict[str, pathlib.Path]:
+  """The files `_write_sequence_outputs` may write for a sequence: each method's prediction
+  (by method name) and the plots ("strip", "curves"), as the config asks for them."""
+  name, paths = safe_name(sequence), {}
+  if config.save_predictions:
+    for method in methods:
+      suffix = "" if method == "sav" else f"_{method}"
+      paths[method] = out / "predictions" / f"{name}{suffix}.npy"
+  if config.plots.enabled:
+    paths["strip"] = out / "plots" / f"{name}_strip.png"
+    paths["curves"] = out / "plots" / f"{name}_curves.png"
+  return paths
+
+
+def refuse_unlisted_outputs(out: pathlib.Path, paths) -> None:
+  """Raises FileExistsError if a file this run would write exists and no evaluation listed it
+  in `written_files.txt` (a user's file, or a link): --overwrite and --resume replace only
+  files an evaluation wrote."""
+  ours = set(_listed_files(out))
+  theirs = [p for p in paths if (p.exists() or p.is_symlink()) and p not in ours]
+  if theirs:
+    raise FileExistsError(
+        f"{theirs[0]} exists, and no earlier evaluation wrote it (it is not in "
+        f"{out / WRITTEN_LIST}); this run would write over it: move it away or choose another "
+        f"--out ({len(theirs)} such file(s))")
 
 
 # The prediction and plot files an evaluation wrote into its --out folder, one relative path

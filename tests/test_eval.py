@@ -155,6 +155,15 @@ def test_overwrite_removes_only_the_earlier_runs_files(tmp_path, ckpt, capsys):
   assert (out / "written_files.txt").read_text().splitlines() == [
       f"predictions/{first[0]}", f"plots/{first[0][:-4]}_strip.png",
       f"plots/{first[0][:-4]}_curves.png"]
+  # A file of the user's where this run would write (no evaluation listed it) is refused
+  # before anything runs, with --overwrite and --resume alike, and kept.
+  (out / "predictions" / first[1]).write_bytes(b"mine")
+  capsys.readouterr()
+  assert main([*args, "--overwrite"]) == 2
+  err = capsys.readouterr().err
+  assert f"{out / 'predictions' / first[1]} exists, and no earlier evaluation wrote it" in err, err
+  assert (out / "predictions" / first[1]).read_bytes() == b"mine"
+  assert (out / "predictions" / first[0]).is_file()  # nothing set aside or removed
 
 
 def _snapshot(out):
