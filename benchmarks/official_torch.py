@@ -73,6 +73,8 @@ def parse_args(argv=None):
   # checked before the long run, as `sav-jax bench` does (its json_output_problem is not
   # imported: it would import JAX into the process whose memory is measured)
   if a.json:
+    if os.path.islink(a.json):
+      p.error(f"--json {a.json} is a symbolic link; give the path of a regular file")
     if os.path.isdir(a.json):
       p.error(f"--json {a.json} is a folder; give a file name")
     if os.path.exists(a.json) and not a.overwrite:

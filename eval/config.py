@@ -9,6 +9,7 @@ true/false/1/0/yes/no; tuples and lists are Python literals).
 from __future__ import annotations
 
 import ast
+import importlib.machinery
 import importlib.util
 import inspect
 import pathlib
@@ -28,12 +29,15 @@ def load_config(spec: str) -> ml_collections.ConfigDict:
   file = pathlib.Path(path)
   if not file.is_file():
     raise FileNotFoundError(f"config file not found: {file}")
-  module_spec = importlib.util.spec_from_file_location(f"_eval_config_{file.stem}", file)
+  name = f"_eval_config_{file.stem}"  # any file name: Python code, whatever its suffix
+  module_spec = importlib.util.spec_from_file_location(
+      name, file, loader=importlib.machinery.SourceFileLoader(name, str(file)))
   module = importlib.util.module_from_spec(module_spec)
   try:
     module_spec.loader.exec_module(module)
   except SyntaxError as e:
-    raise ValueError(f"{file} does not parse: line {e.lineno}: {e.msg}") from e
+    where = f": line {e.lineno}" if e.lineno else ""
+    raise ValueError(f"{file} does not parse{where}: {e.msg}") from e
   except Exception as e:  # pylint: disable=broad-except  # the user's code: name the file
     raise ValueError(f"{file}: importing it raised {type(e).__name__}: {e}") from e
   if not hasattr(module, "get_config"):

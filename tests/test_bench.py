@@ -128,7 +128,10 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
     assert message in err and err.count("\n") == 1
   mine = tmp_path / "mine.json"
   mine.write_text("precious")
+  (tmp_path / "link.json").symlink_to(mine)  # --overwrite would have written into mine.json
   for extra, message in ((["--json", str(mine)], "exists; pass --overwrite"),
+                         (["--json", str(tmp_path / "link.json"), "--overwrite"],
+                          "link.json is a symbolic link; give the path of a regular file"),
                          (["--json", str(tmp_path)], "is a folder"),
                          (["--json", str(tmp_path / "no" / "r.json")], "does not exist"),
                          (["--repeats", "0"], "--repeats must be >= 1")):

@@ -134,6 +134,22 @@ def test_a_symlinked_output_is_not_written_through(tmp_path):
     with pytest.raises(FileExistsError, match=r"0000\.npy is a symbolic link \(to .*elsewhere"):
       infer_tool.check_overwrite([out / "0000.npy"], overwrite)
   assert mine.read_bytes() == b"user data"
+  # A linked subfolder: the run would write into (and --overwrite delete in) its target.
+  theirs = tmp_path / "their_images"
+  theirs.mkdir()
+  (theirs / "0000.png").write_bytes(b"user image")
+  linked = tmp_path / "out2"
+  linked.mkdir()
+  (linked / "disparity").symlink_to(theirs)
+  for overwrite in (False, True):
+    with pytest.raises(FileExistsError, match=r"out2/disparity is a symbolic link \(to "
+                       r".*their_images\); move it away"):
+      infer_tool.check_overwrite([linked / "disparity" / "0000.png"], overwrite, linked)
+  # OUT itself may be a link: its subfolders are checked below it
+  (tmp_path / "out3").symlink_to(tmp_path / "out", target_is_directory=True)
+  infer_tool.check_overwrite([tmp_path / "out3" / "disparity" / "0001.npy"], False,
+                             tmp_path / "out3")
+  assert (theirs / "0000.png").read_bytes() == b"user image"
 
 
 def test_demo_checks_its_checkpoint_before_building_the_clip(tmp_path, capsys, monkeypatch):

@@ -489,6 +489,13 @@ def test_config_files_that_cannot_be_used(tmp_path):
   broken.write_text("def get_config(:\n")
   with pytest.raises(ValueError, match=f"{broken} does not parse: line 1"):
     eval_config.load_config(str(broken))
+  # Any file name is read as Python (it was a traceback for a name without .py)
+  binary = tmp_path / "frame.png"
+  binary.write_bytes(b"\x89PNG\x00\x00")
+  with pytest.raises(ValueError, match=f"{binary} does not parse: source code .*null bytes"):
+    eval_config.load_config(str(binary))
+  (tmp_path / "config.txt").write_text((CONFIGS / "synthetic.py").read_text())
+  assert eval_config.load_config(str(tmp_path / "config.txt")).dataset == "synthetic"
   with pytest.raises(ValueError, match=r"synthetic.py: get_config\(\) cannot be called with the "
                      r"argument 'foo' \(from .*synthetic.py:foo\)"):
     eval_config.load_config(f"{CONFIGS / 'synthetic.py'}:foo")

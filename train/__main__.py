@@ -53,17 +53,35 @@ def parse_flags(argv):
   except flags.Error as e:  # a value of the wrong type, a missing --workdir, an unknown flag
     _fail(f"{e} (--helpfull lists the flags)")
   except SyntaxError as e:  # the --config file is loaded while the flags are parsed
-    _fail(f"the config file {e.filename} does not parse: line {e.lineno}: {e.msg}")
+    where = f": line {e.lineno}" if e.lineno else ""
+    _fail(f"the config file {e.filename or _config_arg(argv)} does not parse{where}: {e.msg}")
   except OSError as e:  # a missing --config file, met by an override
     _config_file_error(e)
   except (AttributeError, KeyError) as e:
     key_error = e if isinstance(e, KeyError) else e.__context__
     if not isinstance(key_error, KeyError) or not key_error.args:
-      raise
+      _config_code_error(argv, e)  # e.g. a file without get_config()
     detail = str(key_error.args[0]).strip().replace("\n", "; ")
     overrides = [a.split("=", 1)[0] for a in argv if a.startswith("--config.")]
     _fail(f"no such config field {detail} (overrides: {', '.join(overrides)}); the fields "
           "are those of the --config file's get_config()")
+  except Exception as e:  # pylint: disable=broad-except  # the config file's own code raised
+    _config_code_error(argv, e)
+
+
+def _config_arg(argv) -> str:
+  """The --config file named in `argv` (for messages)."""
+  for i, a in enumerate(argv):
+    if a in ("--config", "-config") and i + 1 < len(argv):
+      return argv[i + 1]
+    if a.startswith(("--config=", "-config=")):
+      return a.split("=", 1)[1]
+  return "(--config)"
+
+
+def _config_code_error(argv, e: BaseException) -> None:
+  _fail(f"the config file {_config_arg(argv)} cannot be used: loading it raised "
+        f"{type(e).__name__}: {e} (it must define get_config() returning a ConfigDict)")
 
 
 def load_config():
@@ -74,6 +92,8 @@ def load_config():
     config.keys()
   except OSError as e:
     _config_file_error(e)
+  except Exception as e:  # pylint: disable=broad-except  # get_config() returned a non-config
+    _config_code_error(sys.argv, e)
   return config
 
 

@@ -46,7 +46,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def json_output_problem(path: str, overwrite: bool, flag: str = "--json") -> str | None:
   """What is wrong with writing a results JSON at `path` (checked before a long run), or
-  None: a folder, an existing file without `overwrite`, a missing parent folder."""
+  None: a symbolic link, a folder, an existing file without `overwrite`, a missing parent
+  folder."""
+  if os.path.islink(path):  # open() would write into the link's target, whatever it is
+    return f"{flag} {path} is a symbolic link; give the path of a regular file"
   if os.path.isdir(path):
     return f"{flag} {path} is a folder; give a file name"
   if os.path.exists(path) and not overwrite:

@@ -161,12 +161,12 @@ def check_demo_output(out: pathlib.Path, frames: int, overwrite: bool) -> list[p
   stale = [p for t in range(frames, earlier or 0) if (p := _frame_path(out, t)).is_file()]
   if earlier is None:
     check_overwrite([out / n for n in OUTPUT_NAMES]
-                    + [_frame_path(out, t) for t in range(frames)], overwrite)
+                    + [_frame_path(out, t) for t in range(frames)], overwrite, out)
   else:  # what the earlier demo wrote is replaced; frames beyond its count it did not write
     # (a symbolic link among the replaced files is refused all the same)
     check_overwrite([out / n for n in OUTPUT_NAMES]
-                    + [_frame_path(out, t) for t in range(min(earlier, frames))], True)
-    check_overwrite([_frame_path(out, t) for t in range(earlier, frames)], overwrite)
+                    + [_frame_path(out, t) for t in range(min(earlier, frames))], True, out)
+    check_overwrite([_frame_path(out, t) for t in range(earlier, frames)], overwrite, out)
   return stale
 
 

@@ -109,13 +109,16 @@ def output_paths(out: pathlib.Path, names: list[str], formats: list[str],
   return paths
 
 
-def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
+def check_overwrite(paths: list[pathlib.Path], overwrite: bool,
+                    out: pathlib.Path | None = None) -> None:
   """Raises FileExistsError if any output exists and `overwrite` is off, or if an output
   (or a folder it goes in) is something other than a file (folder), or a symbolic link,
-  even with `overwrite`."""
+  even with `overwrite`; so is a folder below `out` (`disparity/`, ...) that is a link."""
   checked = set()  # folders looked at already, with every folder above them
   existing = []
   for p in paths:
+    if out is not None:
+      _refuse_linked_subfolder(p, out)
     if p.is_symlink():  # writing would go through it, into a file elsewhere
       raise FileExistsError(f"{p} is a symbolic link (to {os.readlink(p)}); move it away (its "
                             "target is not written through, even with --overwrite)")
@@ -134,6 +137,18 @@ def check_overwrite(paths: list[pathlib.Path], overwrite: bool) -> None:
     shown = ", ".join(str(p) for p in existing[:3])
     more = f" and {len(existing) - 3} more" if len(existing) > 3 else ""
     raise FileExistsError(f"output files exist ({shown}{more}); pass --overwrite to replace them")
+
+
+def _refuse_linked_subfolder(path: pathlib.Path, out: pathlib.Path) -> None:
+  """FileExistsError if a folder between `out` and `path` is a symbolic link: the run would
+  write (and --overwrite delete) files in the folder it points to."""
+  for parent in path.parents:
+    if parent == out or out not in parent.parents:
+      return
+    if parent.is_symlink():
+      raise FileExistsError(f"{parent} is a symbolic link (to {os.readlink(parent)}); move it "
+                            "away (files are not written into its target, even with "
+                            "--overwrite)")
 
 
 # Marks the `summary.json` this command writes: `--overwrite` trusts no other one's list.
@@ -173,7 +188,8 @@ def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[path
     if not (isinstance(rel, str) and _is_output_name(rel)):
       continue
     path = (out / rel).absolute()
-    if path not in keep and path.is_file() and not path.is_symlink():
+    if (path not in keep and path.is_file() and not path.is_symlink()
+        and not path.parent.is_symlink()):  # never deleted through a linked subfolder
       stale.append(path)
   return stale
 
@@ -227,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
   out = check_output_dir(args.out)
   outputs = output_paths(out, names, formats, calib, args.depth_format)
   check_not_inputs(outputs, (args.left, args.right))
-  check_overwrite(outputs, args.overwrite)
+  check_overwrite(outputs, args.overwrite, out)
   stale = earlier_outputs(out, outputs) if args.overwrite else []
   check_not_inputs(stale, (args.left, args.right))
 

@@ -850,7 +850,20 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
   config = str(ROOT / "configs/synthetic.py")
   broken = tmp_path / "broken.py"
   broken.write_text("def get_config(:\n")
+  (tmp_path / "raises.py").write_text("raise RuntimeError('boom')\n")
+  (tmp_path / "no_get.py").write_text("x = 1\n")
+  (tmp_path / "returns_5.py").write_text("def get_config():\n  return 5\n")
+  (tmp_path / "frame.png").write_bytes(b"\x89PNG\x00\x00")
   for flags, message in [
+      ([str(tmp_path / "raises.py")], f"the config file {tmp_path / 'raises.py'} cannot be used: "
+       "loading it raised RuntimeError: boom"),
+      ([str(tmp_path / "no_get.py")], f"the config file {tmp_path / 'no_get.py'} cannot be "
+       "used: loading it raised AttributeError: "),
+      # (an override is given, so ml_collections meets the int first)
+      ([str(tmp_path / "returns_5.py")], "no such config field Attribute <class 'int'>.train "
+       "does not exist"),
+      ([str(tmp_path / "frame.png")], f"the config file {tmp_path / 'frame.png'} does not "
+       "parse: source code string cannot contain null bytes"),
       ([config, "--config.train.iters=1"], "config.train.iters=1: expected an integer >= 2"),
       ([config, f"--config.init_from={weights}"], f"config.init_from: {weights}: the "
        "checkpoint is corrupt or incomplete"),
