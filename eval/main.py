@@ -71,6 +71,12 @@ def main(argv: list[str] | None = None) -> int:
   except (ValueError, OSError, UsageError) as e:  # OSError: a file that cannot be read or written
     print(f"eval: error: {e}", file=sys.stderr)
     return 2
+  except MemoryError as e:  # numpy's: sizes far beyond this machine's memory
+    print(f"eval: error: out of host memory: {e}", file=sys.stderr)
+    return 2
+  except KeyboardInterrupt:  # Ctrl-C: one line (an interrupted run can be resumed)
+    print("eval: interrupted", file=sys.stderr)
+    return 130
 
 
 def run(args, overrides) -> int:

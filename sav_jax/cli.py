@@ -56,6 +56,13 @@ def main(argv: list[str] | None = None) -> int:
   except (UsageError, ValueError, OSError) as e:  # OSError: a disk full, a folder not writable
     print(f"sav-jax {args.command}: error: {e}", file=sys.stderr)
     return 2
+  except MemoryError as e:  # numpy's: sizes far beyond this machine's memory
+    print(f"sav-jax {args.command}: error: out of host memory: {e} (use smaller frames, fewer "
+          "frames or a smaller batch)", file=sys.stderr)
+    return 2
+  except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback
+    print(f"sav-jax {args.command}: interrupted", file=sys.stderr)
+    return 130
 
 
 if __name__ == "__main__":

@@ -492,6 +492,9 @@ def _bad_case(name, root, clip, npz_ckpt):
   if name == "out_is_file":
     (root / "out").write_text("keep")
     return left, right, npz_ckpt, [], "is a file, not a folder"
+  if name == "out_is_dangling_link":  # refused at once (mkdir failed after the whole run)
+    (root / "out").symlink_to(root / "gone")
+    return left, right, npz_ckpt, [], "is a symbolic link to a missing folder"
   if name == "output_is_folder":  # even --overwrite does not replace a folder
     (root / "out" / "side_by_side.mp4").mkdir(parents=True)
     return left, right, npz_ckpt, ["--iters", str(ITERS), "--overwrite"], "is not a file"
@@ -537,7 +540,8 @@ def _bad_case(name, root, clip, npz_ckpt):
 @pytest.mark.parametrize("name", [
     "counts", "sizes", "empty", "unreadable", "mixed_sizes", "no_checkpoint",
     "incompatible_checkpoint", "vda_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
-    "calibration", "calib_folder", "fy_zero", "fps", "out_is_file", "output_is_folder",
+    "calibration", "calib_folder", "fy_zero", "fps", "out_is_file", "out_is_dangling_link",
+    "output_is_folder",
     "output_folder_is_file",
     "calib_no_keys", "calib_null",
     "calib_units", "calib_no_baseline", "middlebury_no_doffs", "middlebury_size", "json_size",
@@ -554,6 +558,8 @@ def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, n
   assert err.count("\n") == 1  # one clean line, no traceback
   if name == "out_is_file":
     assert out.read_text() == "keep"
+  elif name == "out_is_dangling_link":
+    assert out.is_symlink() and not out.exists()
   elif name.startswith("output_"):
     assert sorted(p.name for p in out.iterdir()) == [
         "side_by_side.mp4" if name == "output_is_folder" else "disparity"]
@@ -772,3 +778,21 @@ def test_matmul_precision_covers_every_window_and_is_recorded(tmp_path, folders,
     assert summary["matmul_precision"] == (precision or "default")  # None: JAX's default
     seen.clear()
   assert str(jax.config.jax_default_matmul_precision) == "None"  # put back after the run
+
+
+@pytest.mark.parametrize("raised, rc, message", [
+    (MemoryError("Unable to allocate 1.09 TiB for an array"), 2,
+     "sav-jax bench: error: out of host memory: Unable to allocate 1.09 TiB"),
+    (KeyboardInterrupt(), 130, "sav-jax bench: interrupted")])
+def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, rc, message):
+  # Frames far beyond the machine's memory (numpy's MemoryError while building the inputs)
+  # and Ctrl-C gave tracebacks.
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+
+  def run(args):
+    raise raised
+
+  monkeypatch.setattr(bench, "run", run)
+  assert cli.main(["bench", "--height", "100000", "--width", "100000"]) == rc
+  err = capsys.readouterr().err
+  assert err.startswith(message) and err.count("\n") == 1, err

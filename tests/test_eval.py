@@ -793,3 +793,18 @@ def test_bad_raft_settings_are_refused_before_predicting(tmp_path, ckpt, sav_sta
   err = capsys.readouterr().err
   assert rc == 2 and message in err and err.count("\n") == 1, err
   assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("raised, rc, message", [
+    (MemoryError("Unable to allocate 64.0 GiB"), 2, "eval: error: out of host memory: Unable"),
+    (KeyboardInterrupt(), 130, "eval: interrupted")])
+def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, rc, message):
+  from eval import main as eval_main  # pylint: disable=import-outside-toplevel
+
+  def run(args, overrides):
+    raise raised
+
+  monkeypatch.setattr(eval_main, "run", run)
+  assert eval_main.main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", "x"]) == rc
+  err = capsys.readouterr().err
+  assert err.startswith(message) and err.count("\n") == 1, err

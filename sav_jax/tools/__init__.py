@@ -109,6 +109,9 @@ def check_output_dir(out, flag: str = "--out") -> pathlib.Path:
     raise UsageError(f"{flag} {out} is a file, not a folder")
   existing = out
   while not existing.exists():  # the nearest folder that exists: where mkdir will write
+    if existing.is_symlink():  # mkdir would fail only after the run, with "File exists"
+      raise UsageError(f"{flag} {out}: {existing} is a symbolic link to a missing folder "
+                       f"({os.readlink(existing)}), or a loop of links")
     existing = existing.parent
   if not existing.is_dir():
     raise UsageError(f"{flag} {out}: {existing} is a file, not a folder")
