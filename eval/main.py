@@ -58,6 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+  """`python -m eval` (argv None: sys.argv); from Python with `argv`, Ctrl-C propagates."""
+  command_line = argv is None
   argv = sys.argv[1:] if argv is None else list(argv)
   try:
     rest, overrides = eval_config.split_overrides(argv)
@@ -74,7 +76,9 @@ def main(argv: list[str] | None = None) -> int:
   except MemoryError as e:  # numpy's: sizes far beyond this machine's memory
     print(f"eval: error: out of host memory: {e}", file=sys.stderr)
     return 2
-  except KeyboardInterrupt:  # Ctrl-C: one line (an interrupted run can be resumed)
+  except KeyboardInterrupt:  # Ctrl-C at the command line: one line (the run can be resumed)
+    if not command_line:
+      raise
     print("eval: interrupted", file=sys.stderr)
     return 130
 

@@ -60,7 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"sav-jax {args.command}: error: out of host memory: {e} (use smaller frames, fewer "
           "frames or a smaller batch)", file=sys.stderr)
     return 2
-  except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback
+  except KeyboardInterrupt:  # Ctrl-C at the command line: one line, not a traceback (called
+    if argv is not None:     # from Python with arguments, the caller gets the interrupt)
+      raise
     print(f"sav-jax {args.command}: interrupted", file=sys.stderr)
     return 130
 

@@ -508,6 +508,8 @@ def _bad_case(name, root, clip, npz_ckpt):
     return left, right, npz_ckpt, ["--fx", "700", "--cx", "600", "--baseline", "0.5"], \
         f"principal point (cx 600, cy {(H - 1) / 2:g}) is outside the {H}x{W} (height x " \
         "width) frames"
+  if name == "depth_format_without_calibration":  # it was ignored silently
+    return left, right, npz_ckpt, ["--depth-format", "exr"], "--depth-format applies to metric"
   if name == "max_depth_without_calibration":
     return left, right, npz_ckpt, ["--max-depth", "5"], "--max-depth applies to point clouds"
   if name == "max_depth_negative":
@@ -546,7 +548,8 @@ def _bad_case(name, root, clip, npz_ckpt):
     "calib_no_keys", "calib_null",
     "calib_units", "calib_no_baseline", "middlebury_no_doffs", "middlebury_size", "json_size",
     "principal_point",
-    "max_depth_without_calibration", "max_depth_negative", "devices_word", "devices_too_many"])
+    "depth_format_without_calibration", "max_depth_without_calibration", "max_depth_negative",
+    "devices_word", "devices_too_many"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):
   left, right, ckpt, extra, message = _bad_case(name, tmp_path, clip, npz_ckpt)
   out = tmp_path / "out"
@@ -750,7 +753,7 @@ def test_frame_folders_in_number_order_without_hidden_files(tmp_path):
   for side in ("l", "r"):
     (tmp_path / side / "frame_3.png").symlink_to(tmp_path / "moved" / "frame_3.png")
   with pytest.raises(FileNotFoundError, match=r"frame_3\.png: a symbolic link to a missing "
-                     r"file \(.*moved/frame_3\.png\)"):
+                     r"file or folder, or a loop of links \(.*moved/frame_3\.png\)"):
     video_io.open_stereo(tmp_path / "l", tmp_path / "r")
 
 
@@ -793,6 +796,11 @@ def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, 
     raise raised
 
   monkeypatch.setattr(bench, "run", run)
-  assert cli.main(["bench", "--height", "100000", "--width", "100000"]) == rc
+  argv = ["bench", "--height", "100000", "--width", "100000"]
+  monkeypatch.setattr("sys.argv", ["sav-jax", *argv])
+  assert cli.main() == rc  # as the sav-jax command calls it
   err = capsys.readouterr().err
   assert err.startswith(message) and err.count("\n") == 1, err
+  if rc == 130:  # called from Python with arguments, the caller gets the interrupt
+    with pytest.raises(KeyboardInterrupt):
+      cli.main(argv)

@@ -805,6 +805,11 @@ def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, 
     raise raised
 
   monkeypatch.setattr(eval_main, "run", run)
-  assert eval_main.main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", "x"]) == rc
+  argv = ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", "x"]
+  monkeypatch.setattr("sys.argv", ["eval", *argv])
+  assert eval_main.main() == rc  # as `python -m eval` calls it
   err = capsys.readouterr().err
   assert err.startswith(message) and err.count("\n") == 1, err
+  if rc == 130:  # called from Python with arguments, the caller gets the interrupt
+    with pytest.raises(KeyboardInterrupt):
+      eval_main.main(argv)

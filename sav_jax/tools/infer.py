@@ -49,8 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  help="disparity file format, repeatable or comma-separated: "
                       f"{', '.join(video_io.DISPARITY_FORMATS)} (default png16)")
   add_calibration_arguments(p)
-  p.add_argument("--depth-format", choices=("npy", "exr"), default="npy",
-                 help="file format of metric depth (with calibration)")
+  p.add_argument("--depth-format", choices=("npy", "exr"), default=None,
+                 help="file format of metric depth (with calibration; default npy)")
   p.add_argument("--max-depth", type=float, default=None,
                  help="leave points farther than this (baseline's unit) out of the point "
                       "clouds (near-zero disparities of sky and far background give huge depths)")
@@ -235,6 +235,9 @@ def run(args: argparse.Namespace) -> int:
   left, right, names = video_io.open_stereo(args.left, args.right, args.max_frames)
   t, h, w = left.shape[:3]
   calib = None if calib_spec is None else calib_spec.resolve(w, h)
+  if args.depth_format is not None and calib is None:
+    raise UsageError("--depth-format applies to metric depth: give a calibration too")
+  args.depth_format = args.depth_format or "npy"
   if args.max_depth is not None:
     if calib is None:
       raise UsageError("--max-depth applies to point clouds: give a calibration too")
