@@ -186,7 +186,7 @@ class DepthSequence(StereoSequence):
                sparse: bool = False):
     super().__init__(name, files, dataset=dataset, depth2disp_scale=depth2disp_scale,
                      sparse=sparse)
-    if not (self.depth2disp_scale is not None and 0 < self.depth2disp_scale < np.inf):
+    if self.depth2disp_scale is None:  # (a value is checked by StereoSequence)
       raise ValueError(f"{dataset}/{name}: depth2disp scale must be positive and finite, "
                        f"got {depth2disp_scale}")
     self.depth_reader = depth_reader

@@ -117,8 +117,17 @@ def check_overwrite(paths: list[pathlib.Path], overwrite: bool,
   checked = set()  # folders looked at already, with every folder above them
   existing = []
   for p in paths:
-    if out is not None:
-      _refuse_linked_subfolder(p, out)
+    for parent in p.parents:
+      if parent in checked:
+        break
+      checked.add(parent)
+      if out is not None and parent.is_symlink() and out in parent.parents:
+        # the run would write (and --overwrite delete) files in the folder it points to
+        raise FileExistsError(f"{parent} is a symbolic link (to {os.readlink(parent)}); move "
+                              "it away (files are not written into its target, even with "
+                              "--overwrite)")
+      if parent.exists() and not parent.is_dir():
+        raise FileExistsError(f"{parent} is a file, not a folder; move it away to write {p}")
     if p.is_symlink():  # writing would go through it, into a file elsewhere
       raise FileExistsError(f"{p} is a symbolic link (to {os.readlink(p)}); move it away (its "
                             "target is not written through, even with --overwrite)")
@@ -127,28 +136,10 @@ def check_overwrite(paths: list[pathlib.Path], overwrite: bool,
     elif p.exists():
       raise FileExistsError(f"{p} exists and is not a file; move it away (it is not replaced, "
                             "even with --overwrite)")
-    for parent in p.parents:
-      if parent in checked:
-        break
-      checked.add(parent)
-      if parent.exists() and not parent.is_dir():
-        raise FileExistsError(f"{parent} is a file, not a folder; move it away to write {p}")
   if existing and not overwrite:
     shown = ", ".join(str(p) for p in existing[:3])
     more = f" and {len(existing) - 3} more" if len(existing) > 3 else ""
     raise FileExistsError(f"output files exist ({shown}{more}); pass --overwrite to replace them")
-
-
-def _refuse_linked_subfolder(path: pathlib.Path, out: pathlib.Path) -> None:
-  """FileExistsError if a folder between `out` and `path` is a symbolic link: the run would
-  write (and --overwrite delete) files in the folder it points to."""
-  for parent in path.parents:
-    if parent == out or out not in parent.parents:
-      return
-    if parent.is_symlink():
-      raise FileExistsError(f"{parent} is a symbolic link (to {os.readlink(parent)}); move it "
-                            "away (files are not written into its target, even with "
-                            "--overwrite)")
 
 
 # Marks the `summary.json` this command writes: `--overwrite` trusts no other one's list.
