@@ -19,6 +19,8 @@ import pathlib
 import re
 import shutil
 import sys
+import threading
+import time
 import traceback
 from collections.abc import Mapping
 
@@ -136,13 +138,11 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
   args = ocp.args.Composite(variables=ocp.args.StandardSave(variables),
                             config=ocp.args.JsonSave(config_dict))
   if not directory.exists():
-    with _checkpointer() as ckptr:
-      ckptr.save(directory, args=args)
+    _save_or_clean_up(directory, args, directory)
   else:  # write the new one beside the old one, then swap: a kill never leaves neither
     new = directory.with_name(f"{directory.name}.new-{os.getpid()}")
     old = directory.with_name(f"{directory.name}.old-{os.getpid()}")
-    with _checkpointer() as ckptr:
-      ckptr.save(new, args=args, force=True)
+    _save_or_clean_up(new, args, directory)
     own = {p.name for p in new.iterdir()}
     for extra in [p for p in directory.iterdir() if p.name not in own]:
       extra.rename(new / extra.name)  # a user's file in the folder is kept, not deleted
@@ -151,6 +151,41 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
     shutil.rmtree(old)
   log.info("saved variables and config to %s", directory)
   return directory
+
+
+def _save_or_clean_up(target: pathlib.Path, args, directory: pathlib.Path) -> None:
+  """Orbax's save of `args` to `target`; a failed or interrupted one leaves nothing behind.
+
+  Orbax writes into `<target>.orbax-checkpoint-tmp...` and renames it when done: an
+  exception or Ctrl-C on the way left that folder beside the user's destination. It is
+  removed (with `target`, which is this call's own) and the error re-raised; an OSError
+  is reported as a CheckpointError naming `directory`, not orbax's temporary path.
+  """
+  def ours():
+    prefix = f"{target.name}.orbax-checkpoint-tmp"
+    return {p for p in target.parent.iterdir() if p.name.startswith(prefix)}
+
+  before, threads = ours(), set(threading.enumerate())
+  try:
+    with _checkpointer() as ckptr:
+      ckptr.save(target, args=args, force=target != directory)
+  except BaseException as e:
+    # Orbax's writer threads may still be filling the folder: let them end (<= 60 s, they
+    # fail noisily if it vanishes under them), then remove it until it is gone (<= 5 s).
+    deadline = time.monotonic() + 60
+    for thread in set(threading.enumerate()) - threads:
+      thread.join(max(0.0, deadline - time.monotonic()))
+    leftovers = ours() - before | ({target} if target != directory else set())
+    deadline = time.monotonic() + 5
+    while leftovers and time.monotonic() < deadline:
+      for leftover in leftovers:
+        shutil.rmtree(leftover, ignore_errors=True)
+      leftovers = {p for p in leftovers if os.path.lexists(p)}
+      time.sleep(0.02 if leftovers else 0)
+    if isinstance(e, OSError):
+      reason = e.strerror or str(e)
+      raise CheckpointError(f"{directory}: could not write the checkpoint ({reason})") from e
+    raise
 
 
 def _check_config(config_dict, directory):

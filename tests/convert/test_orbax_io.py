@@ -200,3 +200,30 @@ def test_only_the_reports_of_failed_reads_are_dropped(monkeypatch):
             report(closed), *mine]:
     sys.unraisablehook(r)
   assert seen == mine
+
+
+@pytest.mark.parametrize("error", [KeyboardInterrupt, OSError])
+def test_a_failed_save_leaves_no_temporary_folder(tmp_path, monkeypatch, error):
+  # Ctrl-C during orbax's write left `ckpt.orbax-checkpoint-tmp-...` beside the destination
+  # (and an OSError named that temporary path).
+  import orbax.checkpoint as ocp  # pylint: disable=import-outside-toplevel
+  path = tmp_path / "ckpt"
+  orbax_io.save_variables(path, {"params": {"w": jnp.zeros(2)}}, {"v": 1})
+
+  def fail(self, directory, *args, **kwargs):
+    assert ".orbax-checkpoint-tmp" in str(directory)  # the write has begun
+    raise error(28, "No space left on device")
+
+  for name in ("save", "async_save"):
+    monkeypatch.setattr(ocp.JsonCheckpointHandler, name, fail)
+  for target, overwrite in ((tmp_path / "fresh", False), (path, True)):
+    with (pytest.raises(KeyboardInterrupt) if error is KeyboardInterrupt
+          else pytest.raises(CheckpointError, match=f"{target}: could not write the "
+                             r"checkpoint \(No space left on device\)")):
+      orbax_io.save_variables(target, {"params": {"w": jnp.ones(2)}}, {"v": 2},
+                              overwrite=overwrite)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt"]
+  monkeypatch.undo()
+  restored, config = orbax_io.restore_variables(path)  # the old checkpoint is whole
+  np.testing.assert_array_equal(restored["params"]["w"], np.zeros(2))
+  assert config == {"v": 1}
