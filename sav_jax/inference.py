@@ -68,6 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sav_jax import runtime
+from sav_jax._checks import caller_stacklevel
 from sav_jax._checks import is_int as _is_int
 from sav_jax.config import SAVConfig, as_config, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
@@ -679,10 +680,11 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
                      "first, e.g. frames >> 8)")
   if kind == "f" and 0 < hi <= 1.0:
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}: the model expects 0..255 "
-                  "(multiply 0..1 images by 255)", stacklevel=3)
+                  "(multiply 0..1 images by 255)", stacklevel=caller_stacklevel())
   elif kind == "f" and (lo < -1.0 or hi > 256.0):  # a little over: resampling's overshoot
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}, outside 0..255, which the "
-                  "model expects (divide 16-bit frames by 257)", stacklevel=3)
+                  "model expects (divide 16-bit frames by 257)",
+                  stacklevel=caller_stacklevel())
 
 
 def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig, iters: int,

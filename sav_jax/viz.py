@@ -29,6 +29,8 @@ import warnings
 import cv2
 import numpy as np
 
+from sav_jax._checks import caller_stacklevel
+
 COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO, "turbo": cv2.COLORMAP_TURBO,
              "magma": cv2.COLORMAP_MAGMA, "viridis": cv2.COLORMAP_VIRIDIS}
 INVALID_COLOR = (255, 255, 255)
@@ -86,7 +88,7 @@ def as_uint8_image(image, what: str = "image") -> np.ndarray:
     raise ValueError(f"{what}: values {lo:g}..{hi:g} outside 0..255 (16-bit images: >> 8)")
   if a.dtype.kind == "f" and 0 < hi <= 1.0:
     warnings.warn(f"{what}: float values {lo:g}..{hi:g}: expected 0..255 (multiply 0..1 "
-                  "images by 255)", stacklevel=3)
+                  "images by 255)", stacklevel=caller_stacklevel())
   return np.rint(a).astype(np.uint8)
 
 
@@ -247,7 +249,8 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
         if scale < 1.0:
           h, w = max(1, int(h * scale)), max(1, int(w * scale))
           warnings.warn(f"{path}: frames of {size[0]}x{size[1]} are scaled to {h}x{w} (MPEG-4 "
-                        f"video has at most {MP4V_MAX_SIDE} pixels a side)", stacklevel=2)
+                        f"video has at most {MP4V_MAX_SIDE} pixels a side)",
+                        stacklevel=caller_stacklevel())
         he, we = h + h % 2, w + w % 2
         writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
                                  (we, he))

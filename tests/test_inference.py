@@ -394,8 +394,12 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
     inference.check_video_values(one, "right", first=20)
   with pytest.raises(ValueError, match="dtype bool"):
     inference.check_video_values(video > 0, "left")
-  with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
+  with pytest.warns(UserWarning, match="multiply 0..1 images by 255") as record:
     inference.check_video_values(video / 255.0, "left")
+  with (pytest.warns(UserWarning, match="multiply 0..1 images by 255") as record,
+        pytest.raises(sav_jax.convert.CheckpointError)):  # the values are checked first
+    inference.predict_video({"params": {}}, video / 255.0, video / 255.0, iters=ITERS)
+  assert {w.filename for w in record} == {__file__}  # the caller's line (was inference.py's)
   with pytest.warns(UserWarning, match="25700..25700, outside 0..255.*divide 16-bit frames by 257"):
     inference.check_video_values(deep.astype(np.float32), "left")
   with warnings.catch_warnings():

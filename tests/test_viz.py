@@ -261,8 +261,9 @@ def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
                      (np.full((2, 2, 3), 1000, np.uint16), "16-bit")):
     with pytest.raises(ValueError, match=match):
       viz.side_by_side(bad)
-  with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
+  with pytest.warns(UserWarning, match="multiply 0..1 images by 255") as record:
     viz.side_by_side(np.full((2, 2, 3), 0.8, np.float32))
+  assert {w.filename for w in record} == {__file__}
   with pytest.raises(ValueError, match="does not match the first"):
     viz.side_by_side(np.zeros((4, 5, 3), np.uint8), np.zeros((3, 5, 3), np.uint8))
   video = tmp_path / "v.mp4"

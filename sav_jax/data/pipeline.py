@@ -45,7 +45,7 @@ import grain
 import jax
 import numpy as np
 
-from sav_jax._checks import is_int
+from sav_jax._checks import caller_stacklevel, is_int
 from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo
 
 log = logging.getLogger(__name__)
@@ -80,7 +80,7 @@ def as_example(clip: Mapping[str, Any]) -> dict[str, np.ndarray]:
                      f"images {left.shape[:3]}")
   if left.dtype.kind == "f" and left.size and 0 < float(left.max()) <= 1.0:
     warnings.warn(f"float frames with values up to {float(left.max()):g}: the pipeline expects "
-                  "0..255 (multiply 0..1 images by 255)", stacklevel=2)
+                  "0..255 (multiply 0..1 images by 255)", stacklevel=caller_stacklevel())
   as_u8 = lambda a: a if a.dtype == np.uint8 else np.clip(np.rint(a), 0, 255).astype(np.uint8)
   return {"left": as_u8(left), "right": as_u8(right), "disparity": disp, "valid": valid}
 

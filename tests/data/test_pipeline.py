@@ -148,8 +148,9 @@ def test_bad_pipeline_arguments_are_named():
                      match=r"differ in 'left': \(2, 16, 16, 3\) uint8 \(example 0\) and \(3, "):
     pipeline.eval_batches([clip, _tagged(2, 1, t=3)[0]], 2)
   unit = {**clip, "left": clip["left"] / 255.0, "right": clip["right"] / 255.0}
-  with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
+  with pytest.warns(UserWarning, match="multiply 0..1 images by 255") as record:
     pipeline.as_example(unit)
+  assert {w.filename for w in record} == {__file__}
 
 
 def test_interrupt_and_restore_iterator_state():
