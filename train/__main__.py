@@ -11,6 +11,7 @@ saves a checkpoint of the step it is on and exits with status 143; the same comm
 """
 
 import logging
+import re
 import sys
 import traceback
 
@@ -62,6 +63,14 @@ def parse_flags(argv):
     if not isinstance(key_error, KeyError) or not key_error.args:
       _config_code_error(argv, e)  # e.g. a file without get_config()
     detail = str(key_error.args[0]).strip().replace("\n", "; ")
+    step = re.match(r"Attribute <class '([\w.]+)'>\.(\w+) .*Attempting to lookup: ([\w.]+)",
+                    detail)
+    if step and step[3].split(".")[0] == step[2]:  # the first step: the config is not one
+      _not_a_config(argv, step[1])
+    if step:  # a step through a value, e.g. --config.train.iters.x (iters is an int)
+      path = step[3].split(".")
+      parent = ".".join(path[:path.index(step[2])]) if step[2] in path else step[3]
+      detail = f"{step[3]}: config.{parent} is {step[1]}, not a config block"
     overrides = [a.split("=", 1)[0] for a in argv if a.startswith("--config.")]
     _fail(f"no such config field {detail} (overrides: {', '.join(overrides)}); the fields "
           "are those of the --config file's get_config()")
@@ -84,6 +93,11 @@ def _config_code_error(argv, e: BaseException) -> None:
         f"{type(e).__name__}: {e} (it must define get_config() returning a ConfigDict)")
 
 
+def _not_a_config(argv, kind: str) -> None:
+  _fail(f"the config file {_config_arg(argv)} cannot be used: its get_config() returned "
+        f"{kind}, not a ConfigDict")
+
+
 def load_config():
   """The --config file's ConfigDict; a file that cannot be found is one line naming it
   (ml_collections defers that error to the first use of the config)."""
@@ -92,7 +106,9 @@ def load_config():
     config.keys()
   except OSError as e:
     _config_file_error(e)
-  except Exception as e:  # pylint: disable=broad-except  # get_config() returned a non-config
+  except AttributeError:  # get_config() returned a non-config
+    _not_a_config(sys.argv, type(config).__name__)
+  except Exception as e:  # pylint: disable=broad-except  # a config whose keys() raises
     _config_code_error(sys.argv, e)
   return config
 

@@ -859,9 +859,15 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
        "loading it raised RuntimeError: boom"),
       ([str(tmp_path / "no_get.py")], f"the config file {tmp_path / 'no_get.py'} cannot be "
        "used: loading it raised AttributeError: "),
-      # (an override is given, so ml_collections meets the int first)
-      ([str(tmp_path / "returns_5.py")], "no such config field Attribute <class 'int'>.train "
-       "does not exist"),
+      # (an override is given, so ml_collections meets the int first; it was reported as
+      # "no such config field Attribute <class 'int'>.train")
+      ([str(tmp_path / "returns_5.py")], f"the config file {tmp_path / 'returns_5.py'} cannot "
+       "be used: its get_config() returned int, not a ConfigDict"),
+      ([str(tmp_path / "returns_5.py"), "--config.train.steps=3"], "the config file "
+       f"{tmp_path / 'returns_5.py'} cannot be used: its get_config() returned int, not a "
+       "ConfigDict"),
+      ([config, "--config.train.iters.deeper=1"], "no such config field train.iters.deeper: "
+       "config.train.iters is int, not a config block (overrides: --config.train.iters.deeper"),
       ([str(tmp_path / "frame.png")], f"the config file {tmp_path / 'frame.png'} does not "
        "parse: source code string cannot contain null bytes"),
       ([config, "--config.train.iters=1"], "config.train.iters=1: expected an integer >= 2"),
