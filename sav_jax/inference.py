@@ -272,15 +272,19 @@ def _host_available_bytes() -> int | None:
 
 
 def _raise_if_too_big(needed: float, shape: tuple[int, int, int], what: str,
-                      margin: float = 1.0, device=None) -> None:
+                      margin: float = 1.0, device=None, iters: int | None = None) -> None:
+  """`iters`: given where they take most of `needed` (the estimate's per-iteration part),
+  so the message names them first among the remedies."""
   device = _default_device() if device is None else device
   free = available_memory_bytes(device)
   if free is not None and needed > margin * free:
     t, h, w = shape
+    its = "" if iters is None else f" with iters={iters}"
+    fewer = "" if iters is None else "fewer refinement iterations (iters), "
     raise InsufficientMemoryError(
-        f"a {t}-frame window of {h}x{w} (padded) needs about {needed / 2**30:.1f} GB "
+        f"a {t}-frame window of {h}x{w} (padded){its} needs about {needed / 2**30:.1f} GB "
         f"({what}), but only {free / 2**30:.1f} GB is free on {device.platform}:{device.id}; "
-        "use fewer frames per window (window/stride), smaller frames, bfloat16 "
+        f"use {fewer}fewer frames per window (window/stride), smaller frames, bfloat16 "
         "(dtype='bfloat16') or a device with more memory")
 
 
@@ -395,9 +399,11 @@ def _device_of(tree):
 def _precheck(frames, height, width, cfg, iters, check_memory, device=None) -> None:
   # Cheap check first, so that hopeless sizes fail before a long compile.
   if check_memory:
+    # iters named where their part of the estimate exceeds the rest's per-pixel part
+    many = iters is not None and _BYTES_PER_PIXEL_ITER * iters > _BYTES_PER_PIXEL
     _raise_if_too_big(estimate_memory_bytes(frames, height, width, iters, cfg),
                       (frames, height, width), "estimated", margin=_PRECHECK_MARGIN,
-                      device=device)
+                      device=device, iters=iters if many else None)
 
 
 def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SAVConfig,

@@ -457,7 +457,12 @@ def test_memory_error_before_compiling(variables, monkeypatch):
   with pytest.raises(inference.InsufficientMemoryError, match=r"needs about \d+\.\d GB") as e:
     inference.predict_video(variables, video, video)
   assert isinstance(e.value, MemoryError) and isinstance(e.value, ValueError)
-  assert "736x1280" in str(e.value)
+  assert "736x1280" in str(e.value) and "iters" not in str(e.value)
+  small = video[:2, :64, :64]
+  with pytest.raises(inference.InsufficientMemoryError,  # iters take it: they are named
+                     match=r"2-frame window of 64x64 \(padded\) with iters=10000000 needs "
+                     r"about .*use fewer refinement iterations \(iters\), fewer frames"):
+    inference.predict_video(variables, small, small, iters=10**7)
   assert inference.cache_size() == before
 
 
