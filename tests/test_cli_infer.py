@@ -346,13 +346,19 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
     (out / "disparity" / "0004.npy").touch()  # (kept: its summary was not this command's)
 
 
-def test_frame_sources_check_every_frame_when_opened(tmp_path, clip):
+def test_frame_sources_check_every_frame_when_opened(tmp_path, clip, caplog):
   left = _write_frames(tmp_path / "left", clip["left"])
   right = _write_frames(tmp_path / "right", clip["right"])
   viz.write_video(tmp_path / "v.mp4", clip["left"])
   lv, rv, names = video_io.open_stereo(left, right)
   arrays = video_io.load_stereo(left, right)
   assert names == arrays[2] and lv.shape == arrays[0].shape
+  (tmp_path / "same").symlink_to(left)
+  for read in (video_io.open_stereo, video_io.load_stereo):  # a slip in the command line
+    with caplog.at_level(logging.WARNING):
+      read(left, tmp_path / "same")
+    assert f"--left and --right are the same source ({left}): identical views" in caplog.text
+    caplog.clear()
   np.testing.assert_array_equal(lv[1:3], arrays[0][1:3])
   np.testing.assert_array_equal(rv[-1], arrays[1][-1])
   video = video_io.FrameSource(tmp_path / "v.mp4")

@@ -9,6 +9,7 @@ each with a logged note; an alpha channel is dropped. Float images are refused.
 from __future__ import annotations
 
 import logging
+import os
 import pathlib
 
 import cv2
@@ -225,10 +226,19 @@ def open_stereo(left, right, max_frames: int | None = None):
   """`load_stereo` without loading: `(FrameSource, FrameSource, names)`, checked alike."""
   if max_frames is not None and max_frames < 1:
     raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
-  notes: set[str] = set()
+  notes = _same_source_note(left, right)
   lv, rv = FrameSource(left, max_frames, notes), FrameSource(right, max_frames, notes)
   _check_pair(lv, rv, notes)
   return lv, rv, lv.names
+
+
+def _same_source_note(left, right) -> set[str]:
+  """A note when --left and --right name the same folder or file (a slip: the model sees
+  two identical views and returns a disparity of about 0 everywhere)."""
+  if os.path.realpath(left) != os.path.realpath(right):
+    return set()
+  return {f"--left and --right are the same source ({os.path.realpath(left)}): identical "
+          "views give a disparity of about 0 everywhere"}
 
 
 def _check_pair(lv, rv, notes: set[str]) -> None:
@@ -258,7 +268,7 @@ def load_stereo(left, right, max_frames: int | None = None):
   """
   if max_frames is not None and max_frames < 1:
     raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
-  notes: set[str] = set()
+  notes = _same_source_note(left, right)
   lv, names = _read_source(left, max_frames, notes)
   rv, _ = _read_source(right, max_frames, notes)
   _check_pair(lv, rv, notes)
