@@ -5,6 +5,7 @@ One compiled shape is shared by all runs: 3 frames of 32x48 (padded to 32x64), i
 
 import json
 import logging
+import os
 
 import cv2
 import jax
@@ -120,6 +121,22 @@ def test_empty_paths_are_refused(tmp_path, capsys, monkeypatch):
     assert cli.main(argv) == 2
     assert f"error: {flag} is empty; give a path" in capsys.readouterr().err
   assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.skipif(not os.path.isdir("/sys/kernel"), reason="needs Linux's sysfs")
+def test_an_out_where_nothing_can_be_created_is_refused_before_the_run(tmp_path, capsys,
+                                                                       folders, npz_ckpt):
+  # sysfs refuses new folders even to root, whom os.access lets write anywhere: the run
+  # failed after the model had run. (Also a read-only mount.)
+  from sav_jax.tools import UsageError, check_output_dir
+  with pytest.raises(UsageError, match=r"--out /sys/sav_jax_test/out: (cannot create anything "
+                     r"in /sys|no permission to write in /sys)"):
+    check_output_dir("/sys/sav_jax_test/out")
+  before = sorted(tmp_path.iterdir())
+  check_output_dir(tmp_path / "a" / "b")
+  assert sorted(tmp_path.iterdir()) == before  # the write test leaves nothing behind
+  assert _infer(*folders, npz_ckpt, "/sys/sav_jax_test/out") == 2
+  assert "error: --out /sys/sav_jax_test/out: " in capsys.readouterr().err
 
 
 def test_a_symlinked_output_is_not_written_through(tmp_path):

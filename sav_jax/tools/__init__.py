@@ -11,6 +11,7 @@ import contextlib
 import logging
 import os
 import pathlib
+import tempfile
 
 
 class UsageError(Exception):
@@ -117,6 +118,11 @@ def check_output_dir(out, flag: str = "--out") -> pathlib.Path:
     raise UsageError(f"{flag} {out}: {existing} is a file, not a folder")
   if not os.access(existing, os.W_OK | os.X_OK):
     raise UsageError(f"{flag} {out}: no permission to write in {existing}")
+  try:  # os.access says yes to root everywhere: /proc, /sys and read-only mounts refuse later
+    os.rmdir(tempfile.mkdtemp(prefix=".sav-jax-write-test-", dir=existing))
+  except OSError as e:
+    raise UsageError(f"{flag} {out}: cannot create anything in {existing} "
+                     f"({e.strerror or e})") from e
   return out
 
 
