@@ -335,7 +335,8 @@ def save_state_dict(sd: dict, path, *, overwrite: bool = False) -> pathlib.Path:
 
   Raises:
     FileExistsError: `path` exists and `overwrite` is False.
-    CheckpointError: unknown suffix, `.pth` without torch, or non-string keys.
+    CheckpointError: unknown suffix, `.pth` without torch, non-string keys, or the file
+      could not be written (e.g. the disk is full).
   """
   path = pathlib.Path(path)
   suffix = check_writer(path)
@@ -348,16 +349,18 @@ def save_state_dict(sd: dict, path, *, overwrite: bool = False) -> pathlib.Path:
   # Created as open() creates files (mode 0o666 less the umask, where mkstemp's are 0o600),
   # under a name no other writer uses.
   tmp = str(path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp")
-  fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
   try:
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     with os.fdopen(fd, "wb") as fh:
       _WRITERS[suffix](arrays, fh)
       fh.flush()
       os.fsync(fh.fileno())
     os.replace(tmp, path)
-  except BaseException:
+  except BaseException as e:
     if os.path.exists(tmp):
       os.unlink(tmp)
+    if isinstance(e, OSError):  # named by the destination, not the temporary file
+      raise CheckpointError(f"{path}: could not write the file ({e.strerror or e})") from e
     raise
   log.info("wrote %d arrays to %s", len(arrays), path)
   return path

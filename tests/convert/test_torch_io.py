@@ -798,6 +798,15 @@ def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
     torch_io.save_state_dict(_SAVE_SD, tmp_path / "w.npz")
   assert os.listdir(tmp_path) == []
 
+  def full(*args, **kwargs):
+    raise OSError(28, "No space left on device", "/the/temporary/file")
+
+  monkeypatch.setattr(np, "savez", full)  # named by the destination, not the temporary file
+  with pytest.raises(CheckpointError, match=r"w\.npz: could not write the file \(No space left "
+                     r"on device\)$"):
+    torch_io.save_state_dict(_SAVE_SD, tmp_path / "w.npz")
+  assert os.listdir(tmp_path) == []
+
 
 def test_save_errors(tmp_path):
   with pytest.raises(CheckpointError, match="use .safetensors, .npz"):
