@@ -174,7 +174,10 @@ def _save_or_clean_up(target: pathlib.Path, args, directory: pathlib.Path) -> No
     # fail noisily if it vanishes under them), then remove it until it is gone (<= 5 s).
     deadline = time.monotonic() + 60
     for thread in set(threading.enumerate()) - threads:
-      thread.join(max(0.0, deadline - time.monotonic()))
+      try:
+        thread.join(max(0.0, deadline - time.monotonic()))
+      except RuntimeError:  # listed while it was starting: not joinable yet
+        pass
     leftovers = ours() - before | ({target} if target != directory else set())
     deadline = time.monotonic() + 5
     while leftovers and time.monotonic() < deadline:
