@@ -252,7 +252,7 @@ def list_files(directory: Path, *suffixes: str) -> list[Path]:
   (`natural_key`), hidden ones left out."""
   require_dir(directory)
   files = [p for p in Path(directory).iterdir() if p.suffix.lower() in suffixes and not is_hidden(p)]
-  _refuse_broken_links(files)  # left out, it would show only as a frame count that differs
+  refuse_broken_links(files)  # left out, it would show only as a frame count that differs
   return sorted((p for p in files if p.is_file()), key=natural_key)
 
 
@@ -260,11 +260,12 @@ def list_dirs(directory: Path) -> list[Path]:
   """Sub-directories of `directory`, sorted by name, hidden ones left out."""
   require_dir(directory)
   entries = [p for p in Path(directory).iterdir() if not is_hidden(p)]
-  _refuse_broken_links(entries)  # left out, a sequence would vanish from an evaluation
+  refuse_broken_links(entries)  # left out, a sequence would vanish from an evaluation
   return sorted(p for p in entries if p.is_dir())
 
 
-def _refuse_broken_links(paths: Sequence[Path]) -> None:
+def refuse_broken_links(paths: Sequence[Path]) -> None:
+  """Raises FileNotFoundError naming the first of `paths` that is a link to nothing."""
   broken = [p for p in paths if p.is_symlink() and not p.exists()]
   if broken:  # a missing target, or a loop of links
     raise FileNotFoundError(f"{broken[0]}: a symbolic link to a missing file or folder, or a "

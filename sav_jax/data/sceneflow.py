@@ -17,15 +17,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from sav_jax.data import frame_io
-from sav_jax.data.base import (StereoSequence, check_matching, find_root, is_hidden,
-                               list_files, require_dir)
+from sav_jax.data.base import (StereoSequence, check_matching, find_root, list_dirs, list_files,
+                               refuse_broken_links, require_dir)
 
 SUBSETS = ("FlyingThings3D", "Monkaa", "Driving")
 SPLITS = ("train", "test")
 DEFAULT_PASS = "frames_finalpass"
 # Directory depth of the sequence folders below <pass> (Things adds the split level).
-_SEQ_GLOB = {"FlyingThings3D": "*/*", "Monkaa": "*", "Driving": "*/*/*"}
+_SEQ_DEPTH = {"FlyingThings3D": 2, "Monkaa": 1, "Driving": 3}
 
 
 class SceneFlowSequence(StereoSequence):
@@ -33,7 +35,8 @@ class SceneFlowSequence(StereoSequence):
 
   def _read_gt(self, i: int, side: str):
     disp = frame_io.read_pfm_disparity(self.files[side + "_gt"][i])
-    return disp, frame_io.dense_valid(disp)
+    valid = frame_io.dense_valid(disp)  # NaN/inf are invalid, and 0 as every reader has them
+    return np.where(np.isfinite(disp), disp, np.float32(0)), valid
 
 
 def _sequence(subset: str, seq_dir: Path, pass_dir: Path, dataset: str) -> SceneFlowSequence:
@@ -55,9 +58,13 @@ def _subset_sequences(root: Path, subset: str, split: str, pass_name: str,
   pass_dir = require_dir(sub_root / pass_name, f"{subset} {pass_name} folder")
   base = pass_dir / ("TEST" if split == "test" else "TRAIN") if subset == "FlyingThings3D" \
       else pass_dir
-  # A sequence folder is any folder at the subset's depth that holds `left/`.
-  seq_dirs = sorted(p.parent for p in require_dir(base).glob(_SEQ_GLOB[subset] + "/left")
-                    if p.is_dir() and not any(map(is_hidden, p.relative_to(base).parts)))
+  # A sequence folder is any folder at the subset's depth that holds `left/`; list_dirs
+  # refuses a link to a missing folder on the way (a glob left that sequence out silently).
+  level = [require_dir(base)]
+  for _ in range(_SEQ_DEPTH[subset]):
+    level = [d for parent in level for d in list_dirs(parent)]
+  refuse_broken_links([d / "left" for d in level])
+  seq_dirs = sorted(d for d in level if (d / "left").is_dir())
   if not seq_dirs:
     raise FileNotFoundError(f"no {subset} sequences (<seq>/left/) under {base}")
   return [_sequence(subset, d, pass_dir, dataset) for d in seq_dirs]

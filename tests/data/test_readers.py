@@ -109,6 +109,34 @@ def test_sceneflow_train_test_values_and_clips(tmp_path):
     registry.get_sequences("sceneflow", tmp_path / "a_file", "train")
 
 
+def test_sceneflow_nan_disparity_and_broken_links(tmp_path):
+  truth = _sceneflow(tmp_path, np.random.default_rng(1), frames=2)
+  gt = tmp_path / "Monkaa/disparity/a_rain_of_stones_x2/left/0006.pfm"
+  d = truth["Monkaa/a_rain_of_stones_x2"]["left_d"][0].copy()
+  d[2, 3], d[4, 5] = np.nan, np.inf
+  frame_io.write_pfm(gt, d)
+  frame = registry.get_sequences("monkaa", tmp_path, "train")[0][0]
+  assert frame["disparity"][2, 3] == 0 and frame["disparity"][4, 5] == 0  # was NaN / inf
+  assert not frame["valid"][2, 3] and not frame["valid"][4, 5] and frame["valid"][3, 3]
+  # A sequence behind a link to nothing was left out by the glob that found sequences.
+  monkaa = tmp_path / "Monkaa/frames_finalpass"
+  for link, target in ((monkaa / "s2", tmp_path / "gone"),
+                       (monkaa / "a_rain_of_stones_x2" / "right2", tmp_path / "gone"),
+                       (tmp_path / "Driving/frames_finalpass/35mm_focallength", tmp_path / "x")):
+    link.symlink_to(target)
+    if link.name == "right2":  # not a level where sequences are: no error
+      assert len(registry.get_sequences("monkaa", tmp_path, "train")) == 1
+    else:
+      with pytest.raises(FileNotFoundError, match=f"{link}: a symbolic link to a missing"):
+        registry.get_sequences("sceneflow", tmp_path, "train")
+    link.unlink()
+  left = monkaa / "a_rain_of_stones_x2" / "left"
+  left.rename(tmp_path / "moved")
+  left.symlink_to(tmp_path / "nowhere")
+  with pytest.raises(FileNotFoundError, match=f"{left}: a symbolic link to a missing"):
+    registry.get_sequences("monkaa", tmp_path, "train")
+
+
 def _sintel(root, rng, seqs=(("alley_1", 3), ("cave_2", 2))):
   train, truth = root / "sintel_stereo" / "training", {}
   for name, n in seqs:
