@@ -192,19 +192,26 @@ class DepthSequence(StereoSequence):
     self.depth_reader = depth_reader
 
   def _read_gt(self, i: int, side: str):
-    depth = self.depth_reader(self.files[side + "_gt"][i])
+    path = self.files[side + "_gt"][i]
+    depth = np.asarray(self.depth_reader(path))
+    if depth.ndim != 2:  # e.g. a 0-d array: depth_to_disparity failed deep in numpy
+      raise ValueError(f"depth {path} has shape {depth.shape}; expected [H, W]")
     return frame_io.depth_to_disparity(depth, self.depth2disp_scale)
 
 
 # ----------------------------------------------------------------------------- helpers
 
 
-def camera_scale(fx: float, baseline: float, source: Path) -> float:
-  """The depth-to-disparity scale fx * baseline of camera data read from `source`, refused
-  (naming the file) unless positive and finite: TCC and the depth metrics would be NaN."""
+def camera_scale(fx: float, baseline: float, source) -> float:
+  """The depth-to-disparity scale fx * baseline of camera data read from `source` (a file,
+  or a file and where in it), refused naming it unless both are positive and finite: TCC
+  and the depth metrics would be NaN, and disparities negative or 0."""
   if not (0 < fx < np.inf):
     raise ValueError(f"{source}: the focal length fx is {fx:g}; it must be positive and finite")
-  return float(fx) * baseline
+  if not (0 < baseline < np.inf):
+    raise ValueError(f"{source}: the stereo baseline is {baseline:g}; it must be positive and "
+                     "finite (a right camera left of the left one gives a negative one)")
+  return float(fx) * float(baseline)
 
 
 def find_root(root, *names: str) -> Path:

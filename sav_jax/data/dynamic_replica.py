@@ -24,7 +24,7 @@ import json
 from pathlib import Path
 
 from sav_jax.data import frame_io
-from sav_jax.data.base import DepthSequence, find_root
+from sav_jax.data.base import DepthSequence, camera_scale, find_root
 
 SPLITS = ("train", "valid", "test")
 
@@ -42,6 +42,25 @@ def _records(split_dir: Path, split: str) -> list[dict]:
   return records
 
 
+class DynamicReplicaSequence(DepthSequence):
+  """A `DepthSequence` whose frames must have the size the annotation gives (`image.size`
+  of frame 0, which the focal length in pixels, so the depth-to-disparity scale, is
+  computed from): resized images under the original annotation file would give disparities
+  off by the resize factor, silently."""
+
+  def __init__(self, *args, annotated_size: tuple[int, int], annotation: Path, **kwargs):
+    super().__init__(*args, **kwargs)
+    self.annotated_size, self.annotation = annotated_size, annotation
+
+  def _checked_gt(self, i: int, side: str, size: tuple[int, int]):
+    if tuple(size) != self.annotated_size:
+      h, w = self.annotated_size
+      raise ValueError(f"{self.files[side][i]} is {size[0]}x{size[1]} but {self.annotation} "
+                       f"gives image.size {h}x{w} for {self.dataset}/{self.name} (height x "
+                       "width); the depth-to-disparity scale comes from that size")
+    return super()._checked_gt(i, side, size)
+
+
 def focal_px(viewpoint: dict, size_hw) -> float:
   """Horizontal focal length in pixels of a PyTorch3D NDC viewpoint.
 
@@ -56,15 +75,21 @@ def focal_px(viewpoint: dict, size_hw) -> float:
   elif fmt == "ndc_isotropic":
     r = min(h, w) / 2.0
   else:
-    raise ValueError(f"unknown Dynamic Replica intrinsics format {fmt!r}")
+    raise ValueError(f"unknown Dynamic Replica intrinsics format {fmt!r} (known: "
+                     "ndc_norm_image_bounds, ndc_isotropic)")
   return _number(viewpoint["focal_length"][0], "viewpoint.focal_length") * r
 
 
-def depth2disp_scale(left: dict, right: dict) -> float:
-  """fx_px(left) * (T_x(right) - T_x(left)) from two frame records."""
-  fx = focal_px(left["viewpoint"], left["image"]["size"])
-  return fx * (_number(right["viewpoint"]["T"][0], "viewpoint.T")
-               - _number(left["viewpoint"]["T"][0], "viewpoint.T"))
+def depth2disp_scale(left: dict, right: dict, source="Dynamic Replica frame records") -> float:
+  """fx_px(left) * (T_x(right) - T_x(left)) from two frame records; refused naming `source`
+  unless both factors are positive and finite (`base.camera_scale`)."""
+  try:
+    fx = focal_px(left["viewpoint"], left["image"]["size"])
+  except ValueError as e:
+    raise ValueError(f"{source}: {e}") from e
+  baseline = (_number(right["viewpoint"]["T"][0], "viewpoint.T")
+              - _number(left["viewpoint"]["T"][0], "viewpoint.T"))
+  return camera_scale(fx, baseline, source)
 
 
 def _number(value, field: str) -> float:
@@ -131,7 +156,10 @@ def _sequences(split_dir: Path, split: str, dataset: str) -> list[DepthSequence]
       paths = [_frame_paths(split_dir, rec, where) for rec in cams[side]]
       files[side] = [p[0] for p in paths]
       files[side + "_gt"] = [p[1] for p in paths]
-    scale = depth2disp_scale(cams["left"][0], cams["right"][0])
-    seqs.append(DepthSequence(name, files, dataset=dataset, depth2disp_scale=scale,
-                              depth_reader=frame_io.read_float16_png))
+    annotation = split_dir / f"frame_annotations_{split}.jgz"
+    scale = depth2disp_scale(cams["left"][0], cams["right"][0], f"{annotation} ({where})")
+    size = tuple(int(_number(v, "image.size")) for v in cams["left"][0]["image"]["size"])
+    seqs.append(DynamicReplicaSequence(name, files, dataset=dataset, depth2disp_scale=scale,
+                                       depth_reader=frame_io.read_float16_png,
+                                       annotated_size=size, annotation=annotation))
   return seqs

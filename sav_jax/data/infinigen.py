@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from sav_jax.data import frame_io
-from sav_jax.data.base import DepthSequence, check_matching, find_root, list_dirs, list_files
+from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, find_root, list_dirs,
+                               list_files)
 
 SPLITS = ("train", "test", "val")
 _CAMERAS = {"left": "camera_0", "right": "camera_1"}
@@ -55,7 +56,8 @@ def _camview(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def depth2disp_scale(left_path: Path, right_path: Path) -> float:
   """K_left[0, 0] * ||T_left[:3, 3] - T_right[:3, 3]|| from two camview archives."""
   (k, t_left), (_, t_right) = _camview(left_path), _camview(right_path)
-  return float(k[0, 0] * np.linalg.norm(t_left[:3, 3] - t_right[:3, 3]))
+  return camera_scale(float(k[0, 0]), float(np.linalg.norm(t_left[:3, 3] - t_right[:3, 3])),
+                      f"{left_path} and {right_path}")
 
 
 def _scene(scene: Path, dataset: str) -> DepthSequence:

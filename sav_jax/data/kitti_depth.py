@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from sav_jax.data import frame_io
-from sav_jax.data.base import (DepthSequence, check_matching, find_root, list_dirs,
-                               list_files, require_dir)
+from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, find_root,
+                               list_dirs, list_files, require_dir)
 
 SPLITS = ("train", "val", "test")
 TEST = tuple(f"{d}_sync" for d in (
@@ -34,9 +34,8 @@ VAL = ("2011_10_03_drive_0042_sync",)
 
 def read_calib(path: Path) -> dict[str, np.ndarray]:
   """The numeric entries of a KITTI `calib_cam_to_cam.txt` (`key: v1 v2 ...`)."""
-  path = frame_io.require_file(path, "KITTI calibration")
   calib = {}
-  for line in path.read_text().splitlines():
+  for line in frame_io.read_text(path, "KITTI calibration").splitlines():
     key, sep, value = line.partition(":")
     if not sep:
       continue
@@ -58,7 +57,8 @@ def depth2disp_scale(calib_path: Path) -> float:
            if calib[k].size != n]
   if wrong:
     raise ValueError(f"KITTI calibration {calib_path}: {'; '.join(wrong)}")
-  return float(calib["P_rect_02"][0] * np.linalg.norm(calib["T_02"] - calib["T_03"]))
+  return camera_scale(float(calib["P_rect_02"][0]),
+                      float(np.linalg.norm(calib["T_02"] - calib["T_03"])), calib_path)
 
 
 def _drive(root: Path, drive: str, dataset: str) -> DepthSequence:

@@ -31,7 +31,7 @@ _FLOAT = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 
 def read_intrinsics(path: Path) -> np.ndarray:
   """K [3, 3] from the `Intrinsic: [[...] [...] [...]]` entry of a camera txt."""
-  text = frame_io.require_file(path, "South Kensington camera file").read_text()
+  text = frame_io.read_text(path, "South Kensington camera file")
   match = re.search(r"Intrinsic:\s*\[(.*?)\]\s*\]", text, re.S)
   values = re.findall(_FLOAT, match.group(1)) if match else []
   if len(values) != 9:

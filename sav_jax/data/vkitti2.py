@@ -19,7 +19,8 @@ import logging
 from pathlib import Path
 
 from sav_jax.data import frame_io
-from sav_jax.data.base import DepthSequence, check_matching, digits_key, find_root, list_files
+from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, digits_key, find_root,
+                               list_files)
 
 SPLITS = ("train", "test")
 BASELINE_M = 0.532725
@@ -32,8 +33,8 @@ TEST = ("Scene01_15-deg-left", "Scene02_30-deg-right", "Scene06_fog", "Scene18_m
 
 def read_fx(path: Path) -> float:
   """fx (K[0,0]) of the first data row of a VKITTI2 `intrinsic.txt`."""
-  path = frame_io.require_file(path, "VKITTI2 intrinsics")
-  lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+  text = frame_io.read_text(path, "VKITTI2 intrinsics")
+  lines = [ln.split() for ln in text.splitlines() if ln.strip()]
   try:
     return float(lines[1][2])  # line 0 is the header `frame cameraID K[0,0] ...`
   except (IndexError, ValueError) as e:
@@ -48,7 +49,7 @@ def _sequence(root: Path, name: str, dataset: str) -> DepthSequence:
     files[side] = list_files(seq_dir / "frames" / "rgb" / cam, ".jpg")
     files[side + "_gt"] = list_files(seq_dir / "frames" / "depth" / cam, ".png")
   check_matching(f"VKITTI2 {name}", files, digits_key)
-  scale = read_fx(seq_dir / "intrinsic.txt") * BASELINE_M
+  scale = camera_scale(read_fx(seq_dir / "intrinsic.txt"), BASELINE_M, seq_dir / "intrinsic.txt")
   return DepthSequence(name, files, dataset=dataset, depth2disp_scale=scale,
                        depth_reader=frame_io.read_vkitti2_depth)
 

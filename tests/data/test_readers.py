@@ -648,3 +648,89 @@ def test_natural_order_of_frame_names():
       "1403636579.063555584.png", "1403636579.763555584.png", "f1.png", "f2.png", "f10.png"]
   padded = [f"frame_{i:04d}_left.png" for i in (3, 12, 0, 100)]
   assert sorted(padded, key=base.natural_key) == sorted(padded)  # the official sorted() order
+
+
+def test_camera_data_errors_name_the_file(tmp_path):
+  """A focal length or baseline that is 0, negative or NaN, a camera file that is not UTF-8
+  text and a depth array that is not [H, W] are named by their file (they named only the
+  sequence, or nothing: a UnicodeDecodeError, numpy's item assignment of a 0-d array)."""
+  rng = np.random.default_rng(11)
+  _vkitti2(tmp_path, rng, registry.vkitti2.TEST, n=1)
+  intrinsic = tmp_path / "vkitti2/Scene01/15-deg-left/intrinsic.txt"
+  good = intrinsic.read_bytes()
+  intrinsic.write_text("frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n0 0 0 725 620 187\n")
+  with pytest.raises(ValueError, match=f"{intrinsic}: the focal length fx is 0"):
+    registry.get_sequences("vkitti2", tmp_path, "test")
+  intrinsic.write_bytes(good.decode().encode("utf-16"))
+  with pytest.raises(ValueError, match=f"VKITTI2 intrinsics {intrinsic} is not UTF-8 text"):
+    registry.get_sequences("vkitti2", tmp_path, "test")
+
+  drives = kitti_depth.TEST
+  _kitti(tmp_path, rng, drives, n=1)
+  calib = tmp_path / "kitti_depth/input" / drives[0][:10] / "calib_cam_to_cam.txt"
+  good = calib.read_text()
+  calib.write_text(good.replace("P_rect_02: 7.215377e+02", "P_rect_02: nan"))
+  with pytest.raises(ValueError, match=f"{calib}: the focal length fx is nan"):
+    registry.get_sequences("kitti_depth", tmp_path, "test")
+  calib.write_text(good.replace("T_03: -4.731050e-01 5.551470e-03 -5.250882e-03",
+                                "T_03: 5.956621e-02 2.900141e-04 2.577209e-03"))
+  with pytest.raises(ValueError, match=f"{calib}: the stereo baseline is 0"):
+    registry.get_sequences("kitti_depth", tmp_path, "test")
+  calib.write_bytes(b"\xff\xfe" + good.encode())
+  with pytest.raises(ValueError, match=f"KITTI calibration {calib} is not UTF-8 text"):
+    registry.get_sequences("kitti_depth", tmp_path, "test")
+
+  _infinigen(tmp_path, rng, "test", [("scene040", 2)])
+  frames = tmp_path / "InfinigenStereo/test/scene040/frames"
+  np.save(frames / "Depth/camera_0/Depth_0_0_0001_0.npy", np.array(5.0, np.float32))
+  seq = registry.get_sequences("infinigen_sv", tmp_path / "InfinigenStereo", "test")[0]
+  with pytest.raises(ValueError, match=r"Depth_0_0_0001_0\.npy has shape \(\); expected \[H, W\]"):
+    seq[0]
+  right = frames / "camview/camera_1/camview_0_0_0001_1.npz"
+  left = frames / "camview/camera_0/camview_0_0_0001_0.npz"
+  with np.load(left) as z:
+    np.savez(right, K=z["K"], T=z["T"])  # the right camera where the left one is
+  with pytest.raises(ValueError, match=f"{left} and {right}: the stereo baseline is 0"):
+    registry.get_sequences("infinigen_sv", tmp_path / "InfinigenStereo", "test")
+
+  sk = tmp_path / "SouthKensington/data/indoor_1"
+  _png(sk / "images/left/left000000.png", _rgb(rng))
+  _png(sk / "images/right/right000000.png", _rgb(rng))
+  (sk / "tracking_data.txt").write_bytes("Intrinsic: [[910.5 0. 640.]\n".encode("utf-16"))
+  with pytest.raises(ValueError, match="South Kensington camera file .*tracking_data.txt is not "
+                     "UTF-8 text"):
+    registry.get_sequences("south_kensington", tmp_path, "test")
+
+
+def test_dynamic_replica_camera_errors_name_the_annotation(tmp_path, monkeypatch):
+  monkeypatch.setitem(registry.EVAL_FRAMES, "dynamic_replica", 2)
+  _dynamic_replica(tmp_path, np.random.default_rng(12), "test", [("s", 2, "ndc_isotropic")])
+  index = tmp_path / "dynamic_replica_data/test/frame_annotations_test.jgz"
+  with gzip.open(index, "rt", encoding="utf8") as f:
+    records = json.load(f)
+
+  def load(edit):
+    changed = json.loads(json.dumps(records))
+    edit(changed)
+    with gzip.open(index, "wt", encoding="utf8") as f:
+      json.dump(changed, f)
+    return registry.get_sequences("dynamic_replica", tmp_path, "test")
+
+  lefts = lambda recs: [r for r in recs if r["camera_name"] == "left"]  # noqa: E731
+  swap = lambda recs: [r.update(camera_name={"left": "right", "right": "left"}[r["camera_name"]])
+                       for r in recs]  # noqa: E731
+  with pytest.raises(ValueError, match=rf"{index} \(Dynamic Replica test/s\): the stereo "
+                     r"baseline is -[\d.]+; it must be positive"):
+    load(swap)  # a reversed rig gave negative disparities named by the sequence only
+  with pytest.raises(ValueError, match=rf"{index} \(Dynamic Replica test/s\): unknown Dynamic "
+                     "Replica intrinsics format 'pixels'"):
+    load(lambda recs: lefts(recs)[0]["viewpoint"].update(intrinsics_format="pixels"))
+  with pytest.raises(ValueError, match=rf"{index} \(Dynamic Replica test/s\): the focal length "
+                     "fx is 0"):
+    load(lambda recs: lefts(recs)[0]["viewpoint"].update(focal_length=[0.0, 0.0]))
+  # Images resized under the original annotation: the scale would be off by the factor.
+  seq = load(lambda recs: [r["image"].update(size=[2 * H, 2 * W]) for r in recs])[0]
+  with pytest.raises(ValueError, match=rf"is {H}x{W} but {index} gives image.size "
+                     rf"{2 * H}x{2 * W} for dynamic_replica/s"):
+    seq[0]
+  assert load(lambda recs: None)[0][1]["disparity"].shape == (H, W)
