@@ -63,8 +63,14 @@ class SequenceResult:
 
 
 def safe_name(name: str) -> str:
-  """A file-name-safe version of a sequence name."""
-  return re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("_") or "sequence"
+  """A file-name-safe version of a sequence name, one per name: a name that had to change
+  (characters other than letters, digits and `._-`, or leading/trailing `_`) gets 8 hex
+  digits of its hash, so that "alley 1" and "alley_1" do not write the same files."""
+  name = str(name)
+  safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_") or "sequence"
+  if safe == name:
+    return safe
+  return f"{safe}-{hashlib.sha256(name.encode('utf-8', 'surrogatepass')).hexdigest()[:8]}"
 
 
 def per_frame_errors(pred, gt, valid) -> tuple[np.ndarray, np.ndarray]:

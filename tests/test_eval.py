@@ -8,6 +8,7 @@ import csv
 import json
 import os
 import pathlib
+import re
 import shutil
 import types
 
@@ -813,3 +814,17 @@ def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, 
   if rc == 130:  # called from Python with arguments, the caller gets the interrupt
     with pytest.raises(KeyboardInterrupt):
       eval_main.main(argv)
+
+
+def test_sequence_names_that_differ_write_different_files():
+  # "alley 1" and "alley_1" both wrote predictions/alley_1.npy: the second overwrote the first.
+  runner = eval_runner
+  config = types.SimpleNamespace(save_predictions=True,
+                                 plots=types.SimpleNamespace(enabled=True))
+  names = ["alley_1", "alley 1", "alley/1", "alley_1_", "FlyingThings3D/TEST/A/0000", "été"]
+  paths = [p for n in names
+           for p in runner.output_paths(pathlib.Path("out"), n, ["sav", "sgbm"], config).values()]
+  assert len(set(paths)) == len(paths) == 4 * len(names)
+  assert runner.safe_name("alley_1") == "alley_1"  # names that are safe keep their files
+  assert runner.safe_name("alley 1") == runner.safe_name("alley 1")  # stable (resume)
+  assert re.fullmatch(r"alley_1-[0-9a-f]{8}", runner.safe_name("alley 1"))
