@@ -61,6 +61,7 @@ import os
 import time
 import warnings
 import weakref
+import zlib
 from typing import Mapping
 
 import jax
@@ -488,8 +489,10 @@ class FrameFeatureCache:
   the default windows).
 
   A cache belongs to one video, one frame size and one model config, and its windows
-  move forward: `run_window` refuses another frame size or config, or a window starting
-  before the previous one (a new video needs a new cache; frame contents are not checked).
+  move forward: `run_window` refuses another frame size or config, a window starting
+  before the previous one, and a window whose frames differ from those the cached features
+  were computed from (a CRC-32 of each frame pair: another video started again at frame 0,
+  or frames changed in place; a new video needs a new cache).
   """
 
   def __init__(self, chunk: int = STRIDE):
@@ -499,6 +502,21 @@ class FrameFeatureCache:
     self.frames: dict[int, dict] = {}
     self._use = None  # (frame size, pads, cfg) of the first window
     self._start = 0  # the latest window's start
+    self._prints: dict[int, tuple[int, int]] = {}  # frame index -> CRC-32 of (left, right)
+
+  def check_frames(self, left: np.ndarray, right: np.ndarray, start: int) -> None:
+    """Raises ValueError if a frame of the window `left`/`right` from `start` differs from
+    the one this cache computed features of; records the frames it has not seen."""
+    crc = lambda frame: zlib.crc32(np.ascontiguousarray(frame).data)  # noqa: E731
+    for k in range(len(left)):
+      i, seen = start + k, self._prints.get(start + k)
+      if seen is None and i not in self.frames:
+        self._prints[i] = (crc(left[k]), crc(right[k]))
+      elif seen is not None and seen != (crc(left[k]), crc(right[k])):
+        raise ValueError(
+            f"frame {i} differs from the frame whose features this FrameFeatureCache holds: "
+            "a cache serves one video (use a new cache for another video, or after changing "
+            "frames)")
 
   def check_use(self, shape: tuple, pads: tuple, cfg: SAVConfig, start: int) -> None:
     """Raises ValueError unless a window of frames `shape` [T, H, W, 3] padded by `pads`,
@@ -521,6 +539,8 @@ class FrameFeatureCache:
     """Forgets the frames before `index` (windows only move forward)."""
     for i in [i for i in self.frames if i < index]:
       del self.frames[i]
+    for i in [i for i in self._prints if i < index]:
+      del self._prints[i]
 
   def gather(self, start: int, stop: int, device=None):
     """The cached features of frames `[start, stop)` stacked on the T axis (copied to
@@ -735,8 +755,9 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
     raise ValueError(f"pads must be 4 integers (top, bottom, left, right) >= 0 that pad "
                      f"{left.shape[1]}x{left.shape[2]} frames to multiples of 16, got {pads!r}")
   pads = tuple(int(p) for p in pads)
-  if cache is not None:
+  if cache is not None:  # (predict_video's own caches see one video: no frame check there)
     cache.check_use(left.shape, pads, cfg, start)
+    cache.check_frames(left, right, start)
   # a writeable copy (a device array's numpy view is read-only)
   return np.array(_run_window(variables, left, right, cfg=cfg, iters=iters, pads=pads,
                               check_memory=check_memory, cache=cache, start=start))

@@ -294,12 +294,20 @@ def test_run_window_cache_belongs_to_one_video(monkeypatch):
   run(video[10:], start=10)
   with pytest.raises(ValueError, match="window start 0 is before the previous window's"):
     run(video, start=0)
+  # Frames other than those the cached features are of (another video from the same
+  # start, frames changed in place) were served the cached features: a stale result.
+  other = video.copy()
+  other[12, 0, 0, 0] += 1
+  with pytest.raises(ValueError, match="frame 12 differs from the frame whose features this "
+                     "FrameFeatureCache holds"):
+    run(other[10:], start=10)
+  run(video[10:], start=10)  # the same frames again: served
   with pytest.raises(ValueError, match="holds features of 5x7 frames padded by"):
     run(np.zeros((4, 9, 7, 3), np.uint8), start=20)
   with pytest.raises(ValueError, match="use a new cache"):
     inference.run_window({}, video, video, cfg=sav_jax.SAVConfig(dtype="bfloat16"), iters=2,
                          cache=cache, start=20)
-  assert calls == [0, 10]
+  assert calls == [0, 10, 10]
 
 
 def test_dtype_override_takes_dtype_objects():
