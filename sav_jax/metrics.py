@@ -163,6 +163,7 @@ def endpoint_error_maps(pred, gt, mask, crop: int = 0, mask_thr: float = 0.5):
   """
   x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("mask", mask)
   _check_same(("pred", "gt", "mask"), (x, y, m))
+  _check_finite("pred", x)  # a NaN pixel counted in the rates' denominator, never as bad
   if not (is_int(crop) and crop >= 0):
     raise ValueError(f"crop must be an integer >= 0 (border pixels), got {crop!r}")
   if crop > 0:

@@ -311,6 +311,9 @@ def test_non_finite_predictions_and_flows_are_refused():
   pred[1, 2, 3] = np.nan
   with pytest.raises(ValueError, match=r"pred has NaN or inf values in frame\(s\) \[1\]"):
     M.eval_sequence(pred, gt, valid)
+  for fn in (M.eval_endpoint_error_sequence, M.endpoint_error_maps):  # the functions below it
+    with pytest.raises(ValueError, match=r"pred has NaN or inf values in frame\(s\) \[1\]"):
+      fn(pred, gt, valid)
   gt_nan = gt.copy()
   gt_nan[0, 0, 0] = np.nan
   assert np.isfinite(M.eval_sequence(gt, gt_nan, valid)["disp_epe_mean"])
