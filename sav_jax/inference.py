@@ -226,6 +226,7 @@ def estimate_memory_bytes(frames: int, height: int, width: int, iters: int = 20,
     `cfg.frame_block_mb`; none where the ViT attention resolves to cuDNN's fused kernel).
   """
   cfg = as_config(cfg)
+  frames, height, width = _check_shape(frames, height, width)
   pixels = frames * height * width
   heads = DINO_VARIANTS[cfg.vda_encoder]["num_heads"]
   tokens = (height // 14) * (width // 14) + 1  # patches and the class token
@@ -310,7 +311,17 @@ def model_variables(variables) -> dict:
   return {k: v for k, v in variables.items() if k not in _SKIP_COLLECTIONS}
 
 
+def _check_shape(frames, height, width) -> tuple[int, int, int]:
+  """`(frames, height, width)` as Python ints; a ValueError naming the first that is not a
+  positive integer (0 frames failed deep in the model, a float height inside JAX)."""
+  for name, value in (("frames", frames), ("height", height), ("width", width)):
+    if not (_is_int(value) and value >= 1):
+      raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+  return int(frames), int(height), int(width)
+
+
 def _cache_key(kind, variables, cfg, iters, shape):
+  shape = _check_shape(*shape)
   leaves = jax.tree_util.tree_leaves(variables)
   sig = tuple((tuple(x.shape), str(x.dtype)) for x in leaves)
   options = tuple(sorted(runtime.inference_compiler_options(per_frame=kind == "frames").items()))

@@ -598,3 +598,18 @@ def test_cache_key_follows_the_default_device():
   with jax.default_device(jax.devices()[0]):
     pinned = inference._cache_key("window", {}, cfg, 2, (1, 32, 32))  # pylint: disable=protected-access
   assert plain != pinned and plain[:5] == pinned[:5]
+
+
+def test_window_shapes_that_are_not_positive_integers_are_named(variables):
+  # 0 frames failed with "max() arg is an empty sequence" in the model, a float height with
+  # JAX's "Error interpreting argument".
+  cfg = sav_jax.SAVConfig()
+  for shape, name in (((0, 32, 64), "frames"), ((2, 32.0, 64), "height"),
+                      ((2, 32, True), "width")):
+    for fn in (inference.compiled_forward, inference.compiled_frame_features,
+               inference.compiled_window):
+      kw = {} if fn is inference.compiled_frame_features else {"iters": 2}
+      with pytest.raises(ValueError, match=f"{name} must be an integer >= 1, got "):
+        fn(variables, *shape, cfg=cfg, **kw)
+    with pytest.raises(ValueError, match=f"{name} must be an integer >= 1"):
+      inference.estimate_memory_bytes(*shape)
