@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import pathlib
+import uuid
 import warnings
 
 import cv2
@@ -207,7 +209,8 @@ VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".avi", ".mkv")
 
 
 def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
-  """Writes RGB frames as an MPEG-4 (mp4v) video with OpenCV (replacing a file at `path`).
+  """Writes RGB frames as an MPEG-4 (mp4v) video with OpenCV (replacing a file at `path`
+  once the video is complete: until then it is written under a temporary name beside it).
 
   Odd heights or widths are padded by one replicated row/column (the codec needs
   even sizes and would otherwise crop). Frames wider or taller than MPEG-4's limit
@@ -218,7 +221,8 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
     path: output file (`.mp4`, or another of `VIDEO_SUFFIXES`; other names are refused).
     frames: `[T, H, W, 3]` uint8 RGB, a list of `[H, W, 3]` frames (all checked before the
       file is created), or an iterator of them (written as they come, so a long video need
-      not be in memory; a bad frame stops the writing and removes the partial file).
+      not be in memory; a bad frame stops the writing, removes the partial file and leaves
+      a file at `path` as it was).
     fps: frame rate.
 
   Returns:
@@ -232,16 +236,21 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
   if not path.parent.is_dir():  # OpenCV would only say it cannot open the writer
     raise FileNotFoundError(f"{path}: the folder {path.parent} does not exist")
   streamed = not isinstance(frames, (np.ndarray, list, tuple))
+  warned: list[int] = []  # the 0..1 warning is given once per video, not once per frame
   if not streamed:  # all checked before the file is created
     checked = []
     for i, f in enumerate(frames):
-      checked.append(_video_frame(path, i, f, checked[0].shape if checked else None))
+      checked.append(_video_frame(path, i, f, checked[0].shape if checked else None, warned))
     frames = checked
+  # Written under a temporary name beside `path` and renamed when complete: a bad frame of
+  # an iterator, a full disk or Ctrl-C leave an existing file at `path` as it was (a link
+  # at `path` is replaced, not written through).
+  tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex}.tmp{path.suffix}")
   writer, size = None, None
   try:
     for i, f in enumerate(frames):
       if streamed:
-        f = _video_frame(path, i, f, size)
+        f = _video_frame(path, i, f, size, warned)
       if writer is None:
         size = f.shape
         h, w = size[:2]
@@ -252,7 +261,7 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
                         f"video has at most {MP4V_MAX_SIDE} pixels a side)",
                         stacklevel=caller_stacklevel())
         he, we = h + h % 2, w + w % 2
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
+        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
                                  (we, he))
         if not writer.isOpened():
           writer = None
@@ -263,21 +272,26 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
       writer.write(np.ascontiguousarray(f[..., ::-1]))
     if writer is None:
       raise ValueError(f"{path}: no frames to write")
-  except BaseException:
-    if writer is not None and streamed:  # a frame of an iterator was bad: no half video
-      writer.release()
-      writer = None
-      path.unlink(missing_ok=True)
-    raise
+    writer.release()
+    writer = None
+    os.replace(tmp, path)
   finally:
     if writer is not None:
       writer.release()
+    tmp.unlink(missing_ok=True)
   return path
 
 
-def _video_frame(path, i: int, frame, size) -> np.ndarray:
-  """Frame `i` as uint8 `[H, W, 3]`; a ValueError unless it is that (and `size`, if given)."""
-  f = as_uint8_image(frame, f"{path} frame {i}")
+def _video_frame(path, i: int, frame, size, warned: list) -> np.ndarray:
+  """Frame `i` as uint8 `[H, W, 3]`; a ValueError unless it is that (and `size`, if given).
+  `as_uint8_image`'s warning is given for the first such frame only (noted in `warned`)."""
+  with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    f = as_uint8_image(frame, f"{path} frame {i}")
+  if caught and not warned:
+    warned.append(i)
+    warnings.warn(f"{caught[0].message} (said for the first such frame only)",
+                  caught[0].category, stacklevel=caller_stacklevel())
   if f.ndim != 3 or f.shape[2] != 3 or min(f.shape[:2]) < 1 or (size and f.shape != size):
     raise ValueError(f"{path}: frame {i} has shape {f.shape}; expected RGB [H, W, 3] "
                      f"frames of one size{f' {size}' if size else ''}")

@@ -253,6 +253,23 @@ def test_side_by_side_and_video(tmp_path):
   assert frame[5, :4000].max() < 40 and frame[5, 4200:8000].min() > 215  # the content, scaled
 
 
+def test_a_failed_video_leaves_the_file_it_would_replace(tmp_path):
+  # An iterator's bad frame truncated the existing file, then deleted it: neither was left.
+  keep = tmp_path / "keep.mp4"
+  keep.write_text("precious")
+  frames = iter([np.zeros((8, 8, 3), np.uint8), np.zeros((5, 5, 3), np.uint8)])
+  with pytest.raises(ValueError, match="frame 1 has shape"):
+    viz.write_video(keep, frames)
+  assert keep.read_text() == "precious" and sorted(tmp_path.iterdir()) == [keep]
+  viz.write_video(keep, np.zeros((2, 8, 8, 3), np.uint8))  # a complete one replaces it
+  assert cv2.VideoCapture(str(keep)).read()[0] and sorted(tmp_path.iterdir()) == [keep]
+  # Float 0..1 frames: one warning per video, not one per frame (a 300-frame run's flood).
+  with pytest.warns(UserWarning) as record:
+    viz.write_video(tmp_path / "w.mp4", iter(np.full((6, 8, 8, 3), 0.5, np.float32)))
+  assert len(record) == 1 and "multiply 0..1 images by 255" in str(record[0].message)
+  assert record[0].filename == __file__
+
+
 def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
   # Floats in 0..255 are rounded; anything outside, NaN, or a wrong layout is an error.
   np.testing.assert_array_equal(viz.side_by_side(np.full((2, 2, 3), 9.6, np.float32)), 10)
