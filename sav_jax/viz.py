@@ -147,8 +147,13 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
     raise ValueError(f"unknown colour map {cmap!r}; choose one of {sorted(COLORMAPS)}")
   colour = np.asarray(invalid_color)
   if (colour.shape != (3,) or colour.dtype.kind not in "uif" or not np.isfinite(colour).all()
-      or colour.min() < 0 or colour.max() > 255):
-    raise ValueError(f"invalid_color must be 3 values (R, G, B) in 0..255, got {invalid_color!r}")
+      or colour.min() < 0 or colour.max() > 255 or (colour != np.round(colour)).any()):
+    # (fractions were truncated: matplotlib's white (1.0, 1.0, 1.0) came out near black)
+    raise ValueError(f"invalid_color must be 3 integers (R, G, B) in 0..255, got "
+                     f"{invalid_color!r}")
+  if colour.dtype.kind == "f" and 0 < colour.max() <= 1:
+    warnings.warn(f"invalid_color {invalid_color!r} is nearly black in 0..255 (for a 0..1 "
+                  "colour multiply it by 255)", stacklevel=caller_stacklevel())
   d = np.asarray(disp, np.float32)
   if valid is not None and np.shape(valid) != d.shape:
     raise ValueError(f"valid mask shape {np.shape(valid)} differs from disparity {d.shape}")

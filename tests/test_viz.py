@@ -354,6 +354,11 @@ def test_colorize_names_the_end_taken_from_the_data():
 def test_colorize_checks_the_invalid_colour():
   disp = np.array([[0.0, 1.0]], np.float32)
   assert tuple(viz.colorize(disp, 0.5, 2.0, invalid_color=(1, 2, 3))[0, 0]) == (1, 2, 3)
-  for bad in ((300, 0, 0), (0, 0), (-1, 0, 0), "red", (np.nan, 0, 0)):
-    with pytest.raises(ValueError, match="invalid_color must be 3 values"):
+  assert tuple(viz.colorize(disp, 0.5, 2.0, invalid_color=(255.0, 0, 0))[0, 0]) == (255, 0, 0)
+  # 0..1 colours (matplotlib's) were truncated: (0.5, 0.5, 0.5) to black; (1.0, 1.0, 1.0) is
+  # a valid near-black, with a warning
+  with pytest.warns(UserWarning, match=r"invalid_color \(1\.0, 1\.0, 1\.0\) is nearly black"):
+    viz.colorize(disp, 0.5, 2.0, invalid_color=(1.0, 1.0, 1.0))
+  for bad in ((300, 0, 0), (0, 0), (-1, 0, 0), "red", (np.nan, 0, 0), (0.5, 0.5, 0.5)):
+    with pytest.raises(ValueError, match=r"invalid_color must be 3 integers \(R, G, B\)"):
       viz.colorize(disp, 0.5, 2.0, invalid_color=bad)
