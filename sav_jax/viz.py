@@ -59,10 +59,13 @@ def disparity_range(disp, valid=None, percentiles=(0.0, 100.0)) -> tuple[float, 
     if mask.shape != d.shape:
       raise ValueError(f"valid has shape {mask.shape}; expected the disparity's {d.shape}")
     use &= mask > 0.5  # as colorize and the metrics: a fractional weight counts above 0.5
-  lo_p, hi_p = percentiles
+  try:
+    lo_p, hi_p = (float(p) for p in percentiles)
+  except (TypeError, ValueError):  # not two numbers: one, three, a string
+    lo_p = hi_p = math.nan
   if not 0 <= lo_p <= hi_p <= 100:
     raise ValueError(f"percentiles must be (low, high) with 0 <= low <= high <= 100, got "
-                     f"{percentiles}")
+                     f"{percentiles!r}")
   vals = d[use]
   if vals.size == 0:
     return 0.0, 1.0
@@ -540,6 +543,10 @@ def write_exr(path, data, channel: str = "Y") -> None:
   """OpenEXR file of float32 values (`[H, W]` -> one channel, `[H, W, 3]` -> R, G, B); a file
   at `path` is replaced."""
   import OpenEXR  # pylint: disable=import-outside-toplevel
+  if pathlib.Path(path).suffix.lower() != ".exr":  # (EXR bytes went into x.png)
+    raise ValueError(f"{path}: write_exr writes OpenEXR files; name one .exr")
+  if not (isinstance(channel, str) and channel):
+    raise ValueError(f"channel must be a non-empty channel name such as 'Y', got {channel!r}")
   a = _map_to_write(path, data, "EXR", rgb=True)
   if a.ndim == 2:
     channels = {channel: np.ascontiguousarray(a)}

@@ -299,8 +299,15 @@ def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
   assert viz.disparity_range(ramp, np.array([[0.2, 0.9, 1], [0, 0, 0.6]])) == (2.0, 6.0)
   with pytest.raises(ValueError, match=r"valid has shape \(3, 2\); expected the disparity's"):
     viz.disparity_range(ramp, np.ones((3, 2), bool))
-  with pytest.raises(ValueError, match="percentiles must be"):
-    viz.disparity_range(ramp, percentiles=(100, 0))
+  for bad in ((100, 0), (50,), "ab", (1, 2, 3), (0, "x")):  # (tracebacks from unpacking)
+    with pytest.raises(ValueError, match="percentiles must be"):
+      viz.disparity_range(ramp, percentiles=bad)
+  for name, kw, match in (("x.png", {}, "write_exr writes OpenEXR files"),
+                          ("x.exr", {"channel": ""}, "channel must be a non-empty"),
+                          ("x.exr", {"channel": 5}, "channel must be a non-empty")):
+    with pytest.raises(ValueError, match=match):  # (EXR bytes written into x.png before)
+      viz.write_exr(tmp_path / name, ramp, **kw)
+  assert not (tmp_path / "x.png").exists() and not (tmp_path / "x.exr").exists()
   with pytest.raises(ValueError, match="fps must be a number from 0.01 to 65535, got '10'"):
     viz.check_fps("10")
   with pytest.raises(ValueError, match="fx must be a finite positive number, got '10'"):
