@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import fcntl
 import hashlib
 import json
 import logging
@@ -19,7 +18,6 @@ import os
 import pathlib
 import re
 import shutil
-import socket
 import time
 
 import jax
@@ -29,6 +27,7 @@ from eval import data as eval_data
 from eval import plots
 from eval.config import BASELINES, METHOD_NAMES
 from sav_jax import inference, metrics
+from sav_jax._locks import FolderBusyError, FolderLock
 
 log = logging.getLogger(__name__)
 
@@ -415,9 +414,7 @@ LOCK = ".eval.lock"
 
 @contextlib.contextmanager
 def output_lock(out: pathlib.Path):
-  """Holds `out/.eval.lock` while an evaluation writes into `out`: an exclusive `flock` on it,
-  which the system releases when the process ends however it ends (the file names the host
-  and PID for the message).
+  """Holds `out/.eval.lock` while an evaluation writes into `out` (`sav_jax._locks`).
 
   A second evaluation into the same folder is refused before it touches anything (its
   start would otherwise take the running one's set-aside files for an interrupted run's).
@@ -429,31 +426,15 @@ def output_lock(out: pathlib.Path):
   """
   created = not out.exists()
   out.mkdir(parents=True, exist_ok=True)
-  lock = out / LOCK
-  while True:
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-      fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-      holder = os.read(fd, 256).decode("utf-8", "replace").strip()
-      os.close(fd)
-      raise FileExistsError(
-          f"another evaluation ({holder or 'unknown'}) is writing into {out}: wait for it or "
-          f"choose another --out") from None
-    try:  # the path may name a newer file by now (the holder removed it as it ended)
-      same = os.stat(lock).st_ino == os.fstat(fd).st_ino
-    except FileNotFoundError:
-      same = False
-    if same:
-      break
-    os.close(fd)
-  os.ftruncate(fd, 0)
-  os.write(fd, f"{socket.gethostname()} {os.getpid()}".encode())
+  try:
+    lock = FolderLock(out, LOCK)
+  except FolderBusyError as e:
+    raise FileExistsError(f"another evaluation ({e.holder}) is writing into {out}: wait for it "
+                          "or choose another --out") from None
   try:
     yield
   finally:
-    lock.unlink(missing_ok=True)
-    os.close(fd)  # releases the flock
+    lock.release()
     if created and not any(out.iterdir()):  # a run refused before writing leaves no folder
       out.rmdir()
 

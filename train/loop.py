@@ -31,6 +31,7 @@ import numpy as np
 
 import sav_jax
 from sav_jax import runtime
+from sav_jax._locks import FolderBusyError, FolderLock
 from sav_jax.data import pipeline
 from sav_jax.model.init import init_variables
 from sav_jax.model.stereo_any_video import check_iters
@@ -409,6 +410,8 @@ def setup_compile_cache(config) -> pathlib.Path | None:
 def setup(config, workdir):
   """Steps 2-8 of the module docstring (every check of the config, the workdir and the
   weights happens here, before the first step). Returns a dict of the run's parts for `run`."""
+  if isinstance(workdir, str) and not workdir:  # Path("") is "." (an unset, quoted $WORKDIR)
+    raise ValueError("--workdir is empty; give the run's folder")
   workdir = pathlib.Path(workdir)
   check_fields(config)
   resume_from = sav_jax.convert.find_training_checkpoint(workdir / "checkpoints")
@@ -448,9 +451,14 @@ def setup(config, workdir):
   if (config.init_from or config.vda_weights) and resume_from is None:
     # Not resuming: weights that cannot be read fail before the workdir is created.
     weights = initial_weights(config, abstract_params)
-  manager = ckpt_lib.make_manager(workdir, config)
-  state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it,
-                                           abstract_params, weights)
+  lock = lock_workdir(workdir)
+  try:
+    manager = ckpt_lib.make_manager(workdir, config)
+    state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it,
+                                             abstract_params, weights)
+  except BaseException:
+    lock.release()
+    raise
   train_step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels),
                                        shardings, mesh)
   evaluator = (evaluation.Evaluator(config, model, shardings.params, mesh, eval_clips)
@@ -458,8 +466,35 @@ def setup(config, workdir):
   log.info("start at step %d of %d (state from %s)", int(jax.device_get(state.step)),
            config.train.num_steps, source)
   return dict(grain_it=grain_it, manager=manager, state=state, train_step=train_step, model=model,
-              evaluator=evaluator,
+              evaluator=evaluator, lock=lock,
               batches=pipeline.GlobalBatchIterator(grain_it, state_lib.data_sharding(mesh)))
+
+
+LOCK = ".train.lock"
+
+
+class _NoLock:
+  def release(self) -> None:
+    pass
+
+
+def lock_workdir(workdir: pathlib.Path):
+  """Process 0's lock on `workdir` (`WORKDIR/.train.lock`, `sav_jax._locks`), held until
+  `run` ends: a second run in the same workdir (a requeued job while the first still runs,
+  the command started twice) deleted the first one's save in progress, replaced its log and
+  crashed it with an orbax traceback. The other processes of a run share process 0's.
+
+  Raises:
+    FileExistsError: another run holds the lock.
+  """
+  if jax.process_index() != 0:
+    return _NoLock()
+  workdir.mkdir(parents=True, exist_ok=True)
+  try:
+    return FolderLock(workdir, LOCK)
+  except FolderBusyError as e:
+    raise FileExistsError(f"--workdir {workdir} is in use by another training run ({e.holder}): "
+                          "wait for it to end, or choose another --workdir") from None
 
 
 def run(config, workdir, parts: dict | None = None) -> state_lib.TrainState:
@@ -473,8 +508,14 @@ def run(config, workdir, parts: dict | None = None) -> state_lib.TrainState:
 
 
 def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
-  workdir = pathlib.Path(workdir)
   parts = setup(config, workdir) if parts is None else parts
+  try:
+    return _train(config, pathlib.Path(workdir), parts)
+  finally:  # the workdir's lock, however the run ends (exit, preemption, error, Ctrl-C)
+    parts.get("lock", _NoLock()).release()
+
+
+def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
   state, manager, evaluator = parts["state"], parts["manager"], parts["evaluator"]
   start, total = int(jax.device_get(state.step)), config.train.num_steps
   writer = MetricWriter(workdir, enabled=jax.process_index() == 0, start_step=start)

@@ -6,6 +6,7 @@ compile it run in subprocesses (test_sharding, test_multihost, test_resume_and_l
 
 import functools
 import json
+import os
 import pathlib
 import re
 import sys
@@ -756,6 +757,35 @@ def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match)
   assert not (tmp_path / "w").exists()
   with pytest.raises(ValueError, match="--workdir is empty"):  # an unset $WORKDIR
     loop.validate_config(synthetic.get_config(), "")
+
+
+def test_an_empty_workdir_is_refused_by_setup(tmp_path, monkeypatch):
+  # setup made Path("") of it first, which is ".": the run trained in the current folder.
+  from train import loop  # pylint: disable=g-import-not-at-top
+  monkeypatch.chdir(tmp_path)
+  with pytest.raises(ValueError, match="--workdir is empty"):
+    loop.setup(synthetic.get_config(), "")
+  with pytest.raises(ValueError, match="--workdir is empty"):
+    loop.run(synthetic.get_config(), "")
+  assert not any(tmp_path.iterdir())
+
+
+def test_one_run_at_a_time_in_a_workdir(tmp_path):
+  # A second run in the same workdir deleted the first one's save in progress, replaced its
+  # log and crashed it with an orbax traceback.
+  from train import loop  # pylint: disable=g-import-not-at-top
+  workdir = tmp_path / "w"
+  first = loop.lock_workdir(workdir)
+  assert (workdir / loop.LOCK).read_text().endswith(f" {os.getpid()}")
+  with pytest.raises(FileExistsError, match=rf"--workdir {workdir} is in use by another "
+                     rf"training run \(\S+ {os.getpid()}\): wait for it to end"):
+    loop.lock_workdir(workdir)
+  first.release()
+  assert not (workdir / loop.LOCK).exists()
+  loop.lock_workdir(workdir).release()  # free again
+  (workdir / loop.LOCK).write_text("host 1")  # a killed run's file, held by no process
+  loop.lock_workdir(workdir).release()
+  assert not any(workdir.iterdir())
 
 
 def test_config_blocks_a_run_cannot_use_are_named(tmp_path):
