@@ -162,8 +162,13 @@ class _HostMetrics:
     self.progress.update(1, loss=last["loss"], epe=last["epe"])
     if int(last["num_skipped"]) > self.skipped:
       self.skipped = int(last["num_skipped"])
-      log.warning("step %d: non-finite loss or gradient, update skipped (%d so far)", step,
-                  self.skipped)
+      bad = [name for k, name in (("loss", "loss"), ("l2_grads", "gradient norm"),
+                                  ("l2_updates", "update norm"))
+             if k in last and not np.isfinite(last[k])]
+      if bad == ["update norm"]:  # finite loss and gradients: the step itself overflowed
+        bad = ["update norm (finite loss and gradients: is the learning rate too large?)"]
+      log.warning("step %d: non-finite %s, update skipped (%d so far)", step,
+                  " and ".join(bad) or "loss or gradient", self.skipped)
       if self.skipped > self.config.train.max_skipped_steps:
         raise FloatingPointError(f"{self.skipped} skipped updates > train.max_skipped_steps")
     if _every(step, self.config.train.log_every) or step == self.config.train.num_steps:

@@ -6,6 +6,7 @@ compile it run in subprocesses (test_sharding, test_multihost, test_resume_and_l
 
 import functools
 import json
+import logging
 import os
 import pathlib
 import re
@@ -952,7 +953,7 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
   assert proc.returncode == 0 and "--workdir: Run directory" in proc.stdout  # absl's status: 1
 
 
-def test_logged_means_leave_out_skipped_steps():
+def test_logged_means_leave_out_skipped_steps(caplog):
   from train import loop  # pylint: disable=import-outside-toplevel
 
   class Writer:
@@ -983,6 +984,14 @@ def test_logged_means_leave_out_skipped_steps():
   assert first["num_skipped"] == 1.0
   assert np.isnan(second["loss"]) and np.isnan(second["epe"]) and second["finite"] == 0.0
   assert second["num_skipped"] == 4.0
+  # The warning names what was not finite (an absurd learning rate overflows the update's
+  # norm alone: it said "non-finite loss or gradient").
+  inf = float("inf")
+  with caplog.at_level(logging.WARNING):
+    host(7, {"loss": 1.0, "epe": 1.0, "finite": 0.0, "lr": 1e30, "num_skipped": 5,
+             "l2_grads": 2.0, "l2_updates": inf})
+  assert ("step 7: non-finite update norm (finite loss and gradients: is the learning rate "
+          "too large?), update skipped (5 so far)") in caplog.text
 
 
 def _loop_parts(c, workdir, step_hook=None, evaluator=None):
