@@ -22,7 +22,7 @@ import numpy as np
 
 from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key, find_root,
-                               is_hidden, list_dirs, list_files)
+                               is_hidden, list_dirs, list_files, refuse_broken_links)
 
 SPLITS = ("test",)
 BASELINE_M = 0.12
@@ -57,7 +57,9 @@ def load_sequences(root, split: str = "test", dataset: str = "south_kensington")
     root = root / "data"
   seqs = []
   for seq_dir in list_dirs(root):
-    txts = sorted(p for p in seq_dir.glob("*.txt") if p.is_file() and not is_hidden(p))
+    candidates = [p for p in seq_dir.glob("*.txt") if not is_hidden(p)]
+    refuse_broken_links(candidates)  # a camera txt behind a dead link: the sequence vanished
+    txts = sorted(p for p in candidates if p.is_file())
     if not txts:
       logging.info("South Kensington: skipping %s (no camera txt)", seq_dir)
       continue

@@ -561,6 +561,11 @@ def test_south_kensington_images_only(tmp_path, monkeypatch):
   np.testing.assert_array_equal(f["right"], written["right"][1])
   clip = seqs[0].clip(0, 2)
   assert clip["left"].shape == (2, H, W, 3) and clip["disparity"] is None
+  # A camera txt behind a dead link left its sequence out silently (as having no txt).
+  (data / "outdoor_1/tracking_data.txt").symlink_to(tmp_path / "gone.txt")
+  with pytest.raises(FileNotFoundError, match=r"outdoor_1/tracking_data\.txt: a symbolic link "
+                     "to a missing file"):
+    registry.get_sequences("south_kensington", tmp_path, "test")
 
 
 def test_registry_names_errors_and_pickling(tmp_path):
