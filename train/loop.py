@@ -291,6 +291,14 @@ def check_fields(config) -> None:
                      "configs.sceneflow.base_config(), as configs/synthetic.py does")
 
 
+def _given_workdir(workdir) -> pathlib.Path:
+  """`workdir` as a Path; "" (an unset, quoted $WORKDIR) is refused: Path("") is the
+  current folder, where the run would write."""
+  if not str(workdir):
+    raise ValueError("--workdir is empty; give the run's folder")
+  return pathlib.Path(workdir)
+
+
 def validate_config(config, workdir, num_devices: int | None = None) -> None:
   """Checks the values of a training config and the workdir before a run creates anything.
 
@@ -303,9 +311,7 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
     ValueError: naming `config.<field>`, its value and what it must be.
     NotADirectoryError: `workdir` (or a folder above it, or its `checkpoints`) is a file.
   """
-  if not str(workdir):  # Path("") is the current folder (an unset $WORKDIR)
-    raise ValueError("--workdir is empty; give the run's folder")
-  workdir = pathlib.Path(workdir)
+  workdir = _given_workdir(workdir)
   existing = next(p for p in (workdir, *workdir.absolute().parents) if p.exists())
   for path in (existing, workdir / "checkpoints"):
     if path.exists() and not path.is_dir():
@@ -415,9 +421,7 @@ def setup_compile_cache(config) -> pathlib.Path | None:
 def setup(config, workdir):
   """Steps 2-8 of the module docstring (every check of the config, the workdir and the
   weights happens here, before the first step). Returns a dict of the run's parts for `run`."""
-  if isinstance(workdir, str) and not workdir:  # Path("") is "." (an unset, quoted $WORKDIR)
-    raise ValueError("--workdir is empty; give the run's folder")
-  workdir = pathlib.Path(workdir)
+  workdir = _given_workdir(workdir)  # (before Path(): Path("") is ".")
   check_fields(config)
   resume_from = sav_jax.convert.find_training_checkpoint(workdir / "checkpoints")
   if resume_from is not None and int(resume_from.name) > config.train.num_steps:
