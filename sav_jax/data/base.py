@@ -191,6 +191,25 @@ class DepthSequence(StereoSequence):
                        f"got {depth2disp_scale}")
     self.depth_reader = depth_reader
 
+  def clip_scale(self, start: int) -> float:
+    """The depth-to-disparity scale of a clip that starts at frame `start`: the official
+    loader converts a clip's depth with its first frame's camera. This reader has one
+    camera per sequence (`depth2disp_scale`); readers with per-frame cameras override it."""
+    del start
+    return self.depth2disp_scale
+
+  def gather(self, indices: Iterable[int]) -> dict:
+    """As `StereoSequence.gather`, with every frame's depth converted by the scale of the
+    first index's camera (`clip_scale`), as the official loader converts a clip;
+    `seq[i]` and `seq.clip(0, n)` (evaluation: whole sequences) use frame 0's."""
+    indices = list(indices)
+    scale = self.clip_scale(self._index(indices[0])) if indices else self.depth2disp_scale
+    if scale == self.depth2disp_scale:
+      return super().gather(indices)
+    clip = copy.copy(self)  # not an attribute set on self: grain threads share sequences
+    clip.depth2disp_scale = scale
+    return StereoSequence.gather(clip, indices)
+
   def _read_gt(self, i: int, side: str):
     path = self.files[side + "_gt"][i]
     depth = np.asarray(self.depth_reader(path))

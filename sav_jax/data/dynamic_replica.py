@@ -11,7 +11,8 @@ principal_point, intrinsics_format}; paths are relative to `<root>/<split>/`. Fr
 are grouped by sequence and camera in file order (not re-sorted).
 
 Depth: the PNG's uint16 bits reinterpreted as float16. The depth2disp scale is
-`fx_px(left) * (T_x(right) - T_x(left))` from frame 0, with `fx_px = f_ndc * r` and
+`fx_px(left) * (T_x(right) - T_x(left))` from frame 0 (a training clip's from its first
+frame, as the official loader: `DepthSequence.gather`), with `fx_px = f_ndc * r` and
 `r = W/2` (`ndc_norm_image_bounds`) or `min(H, W)/2` (`ndc_isotropic`): the official
 PyTorch3D -> OpenCV conversion (`t_cv = (-T_x, -T_y, T_z)`) written out. Foreground
 masks do not enter the metrics and are not read. Splits: train, valid, test.
@@ -48,9 +49,15 @@ class DynamicReplicaSequence(DepthSequence):
   computed from): resized images under the original annotation file would give disparities
   off by the resize factor, silently."""
 
-  def __init__(self, *args, annotated_size: tuple[int, int], annotation: Path, **kwargs):
+  def __init__(self, *args, annotated_size: tuple[int, int], annotation: Path,
+               frame_scales: tuple[float, ...], **kwargs):
     super().__init__(*args, **kwargs)
     self.annotated_size, self.annotation = annotated_size, annotation
+    self.frame_scales = tuple(frame_scales)
+
+  def clip_scale(self, start: int) -> float:
+    """fx * baseline of the clip's first frame's records (the official clip's camera)."""
+    return self.frame_scales[start]
 
   def _checked_gt(self, i: int, side: str, size: tuple[int, int]):
     if tuple(size) != self.annotated_size:
@@ -157,9 +164,14 @@ def _sequences(split_dir: Path, split: str, dataset: str) -> list[DepthSequence]
       files[side] = [p[0] for p in paths]
       files[side + "_gt"] = [p[1] for p in paths]
     annotation = split_dir / f"frame_annotations_{split}.jgz"
-    scale = depth2disp_scale(cams["left"][0], cams["right"][0], f"{annotation} ({where})")
+    # Every frame's, for training clips (the official loader converts a clip with its first
+    # frame's camera); frame 0's for the sequence (evaluation).
+    scales = tuple(depth2disp_scale(l, r, f"{annotation} ({where}, frame {i})")
+                   for i, (l, r) in enumerate(zip(cams["left"], cams["right"])))
+    scale = scales[0]
     size = tuple(int(_number(v, "image.size")) for v in cams["left"][0]["image"]["size"])
     seqs.append(DynamicReplicaSequence(name, files, dataset=dataset, depth2disp_scale=scale,
                                        depth_reader=frame_io.read_float16_png,
-                                       annotated_size=size, annotation=annotation))
+                                       annotated_size=size, annotation=annotation,
+                                       frame_scales=scales))
   return seqs

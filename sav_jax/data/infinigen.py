@@ -10,7 +10,8 @@ camera_0 is the left view. The three sorted lists are matched by index (stems mu
 agree after the type prefix; left and right files must have the same frame number,
 Infinigen's suffix order being cam_rig, resample, frame, subcam). Depth is used as
 stored (units not confirmed; depth below 1e-5, NaN or inf is invalid). Scale:
-`K_left[0, 0] * ||t_left - t_right||` from frame 0's camview files. Splits (download script): test = scene001-030,
+`K_left[0, 0] * ||t_left - t_right||` from frame 0's camview files (a training clip's
+from its first frame's, as the official loader). Splits (download script): test = scene001-030,
 train = scene031-216, val = scene217-226, as folders.
 """
 
@@ -60,6 +61,16 @@ def depth2disp_scale(left_path: Path, right_path: Path) -> float:
                       f"{left_path} and {right_path}")
 
 
+class InfinigenSequence(DepthSequence):
+  """A `DepthSequence` whose training clips take the scale of their first frame's camview
+  archives, as the official loader does (the sequence's own, for evaluation, is frame 0's)."""
+
+  def clip_scale(self, start: int) -> float:
+    if start == 0:
+      return self.depth2disp_scale
+    return depth2disp_scale(self.files["left_cam"][start], self.files["right_cam"][start])
+
+
 def _scene(scene: Path, dataset: str) -> DepthSequence:
   where = f"Infinigen {scene.parent.name}/{scene.name}"
   files, cams = {}, {}
@@ -72,8 +83,8 @@ def _scene(scene: Path, dataset: str) -> DepthSequence:
     cams[side] = lists[side + "_cam"]
   check_matching(where, {"left": files["left"], "right": files["right"]}, view_key)
   scale = depth2disp_scale(cams["left"][0], cams["right"][0])
-  return DepthSequence(scene.name, files, dataset=dataset, depth2disp_scale=scale,
-                       depth_reader=frame_io.read_npy)
+  return InfinigenSequence(scene.name, files, dataset=dataset, depth2disp_scale=scale,
+                           depth_reader=frame_io.read_npy)
 
 
 def load_sequences(root, split: str, dataset: str = "infinigen_sv"):

@@ -724,13 +724,13 @@ def test_dynamic_replica_camera_errors_name_the_annotation(tmp_path, monkeypatch
   lefts = lambda recs: [r for r in recs if r["camera_name"] == "left"]  # noqa: E731
   swap = lambda recs: [r.update(camera_name={"left": "right", "right": "left"}[r["camera_name"]])
                        for r in recs]  # noqa: E731
-  with pytest.raises(ValueError, match=rf"{index} \(Dynamic Replica test/s\): the stereo "
+  with pytest.raises(ValueError, match=rf"{index} \(Dynamic Replica test/s, frame 0\): the stereo "
                      r"baseline is -[\d.]+; it must be positive"):
     load(swap)  # a reversed rig gave negative disparities named by the sequence only
-  with pytest.raises(ValueError, match=rf"{index} \(Dynamic Replica test/s\): unknown Dynamic "
+  with pytest.raises(ValueError, match=rf"{index} \(Dynamic Replica test/s, frame 0\): unknown Dynamic "
                      "Replica intrinsics format 'pixels'"):
     load(lambda recs: lefts(recs)[0]["viewpoint"].update(intrinsics_format="pixels"))
-  with pytest.raises(ValueError, match=rf"{index} \(Dynamic Replica test/s\): the focal length "
+  with pytest.raises(ValueError, match=rf"{index} \(Dynamic Replica test/s, frame 0\): the focal length "
                      "fx is 0"):
     load(lambda recs: lefts(recs)[0]["viewpoint"].update(focal_length=[0.0, 0.0]))
   # Images resized under the original annotation: the scale would be off by the factor.
@@ -739,3 +739,38 @@ def test_dynamic_replica_camera_errors_name_the_annotation(tmp_path, monkeypatch
                      rf"{2 * H}x{2 * W} for dynamic_replica/s"):
     seq[0]
   assert load(lambda recs: None)[0][1]["disparity"].shape == (H, W)
+
+
+def test_training_clips_take_their_first_frames_camera(tmp_path):
+  """The official loader converts a clip's depth with the camera of the clip's first frame;
+  evaluation (whole sequences, `seq[i]`, `clip(0, n)`) with frame 0's."""
+  _dynamic_replica(tmp_path, np.random.default_rng(13), "train", [("s", 4, "ndc_isotropic")])
+  index = tmp_path / "dynamic_replica_data/train/frame_annotations_train.jgz"
+  with gzip.open(index, "rt", encoding="utf8") as f:
+    records = json.load(f)
+  for r in records:  # frames 2 and 3 are taken with twice the focal length
+    if r["frame_number"] >= 2:
+      r["viewpoint"]["focal_length"] = [3.0, 3.0]
+  with gzip.open(index, "wt", encoding="utf8") as f:
+    json.dump(records, f)
+  seq, = registry.get_sequences("dynamic_replica", tmp_path, "train")
+  s0 = 1.5 * min(H, W) / 2 * 0.05
+  assert seq.depth2disp_scale == pytest.approx(s0)
+  assert seq.clip_scale(2) == pytest.approx(2 * s0) and seq.clip_scale(1) == pytest.approx(s0)
+  whole = seq.clip(0, 4)["disparity"]
+  np.testing.assert_array_equal(whole[2], seq[2]["disparity"])  # the sequence: frame 0's
+  for indices, factor in (([2, 3], 2.0), ([1, 2], 1.0), ([3, 1], 2.0)):
+    got = pickle.loads(pickle.dumps(seq)).gather(indices)["disparity"]
+    np.testing.assert_allclose(got, whole[indices] * factor, rtol=1e-6)
+  assert seq.depth2disp_scale == pytest.approx(s0)  # gather left the sequence as it was
+
+  _infinigen(tmp_path, np.random.default_rng(14), "train", [("scene031", 3)])
+  cams = tmp_path / "InfinigenStereo/train/scene031/frames/camview/camera_1"
+  pose = np.eye(4)
+  pose[:3, 3] = [1.0 + 0.24, 2.0 + 0.32, 3.0]  # frame 2's baseline doubled: 0.4 m
+  np.savez(cams / "camview_0_0_0003_1.npz", K=np.diag([401.0, 400.0, 1.0]), T=pose)
+  seq, = registry.get_sequences("infinigen_sv", tmp_path, "train")
+  assert seq.depth2disp_scale == pytest.approx(80.0) and seq.clip_scale(2) == pytest.approx(160.0)
+  whole = seq.clip(0, 3)["disparity"]
+  np.testing.assert_allclose(seq.gather([2, 1])["disparity"], whole[[2, 1]] * 2, rtol=1e-6)
+  np.testing.assert_array_equal(seq.gather([1, 2])["disparity"], whole[[1, 2]])
