@@ -566,7 +566,7 @@ def test_config_overrides_and_head():
   (seq,) = eval_data.load_sequences(config, None)
   assert len(seq) == 4 and eval_data.read_sequence(seq)["left"].shape == (4, 16, 32, 3)
   for name in ("sintel_clean", "sintel_final", "dynamic_replica", "infinigen_sv", "vkitti2",
-               "kitti_depth", "spring", "south_kensington"):
+               "kitti_depth", "spring", "south_kensington", "tartanair"):
     c = eval_config.load_config(str(CONFIGS / f"{name}.py"))
     assert c.dataset == name and c.split == "test" and c.iters == 20 and c.window == 20
 

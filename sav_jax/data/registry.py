@@ -22,7 +22,7 @@ import numpy as np
 
 from sav_jax._checks import is_int
 from sav_jax.data import (dynamic_replica, infinigen, kitti_depth, sceneflow, sintel,
-                          south_kensington, spring, vkitti2)
+                          south_kensington, spring, tartanair, vkitti2)
 from sav_jax.data.base import StereoSequence, sceneflow_clips, strided_clips
 
 log = logging.getLogger(__name__)
@@ -44,6 +44,7 @@ _LOADERS = {
     "kitti_depth": kitti_depth.load_sequences,
     "spring": spring.load_sequences,
     "south_kensington": south_kensington.load_sequences,
+    "tartanair": tartanair.load_sequences,
 }
 DATASETS = tuple(_LOADERS)
 
@@ -54,14 +55,15 @@ SPLITS = {
     "dynamic_replica": dynamic_replica.SPLITS, "infinigen_sv": infinigen.SPLITS,
     "vkitti2": vkitti2.SPLITS, "kitti_depth": kitti_depth.SPLITS,
     "spring": spring.SPLITS, "south_kensington": south_kensington.SPLITS,
+    "tartanair": tartanair.SPLITS,
 }
 # Official evaluation: frames 0..L-1 of each sequence of the "test" split
 # (`sample_len` with `only_first_n_samples=1`). Sintel evaluates every frame; Spring's
-# SAV protocol is unknown, so it is left whole.
+# SAV protocol is unknown, and no official script evaluates TartanAir, so they are left whole.
 EVAL_FRAMES = {"dynamic_replica": 150, "infinigen_sv": 150, "vkitti2": 300,
                "kitti_depth": 300, "south_kensington": 300}
 # SceneFlow samples forward + time-reversed clips; these sample strided clips.
-_STRIDED = ("dynamic_replica", "infinigen_sv", "kitti_depth", "vkitti2")
+_STRIDED = ("dynamic_replica", "infinigen_sv", "kitti_depth", "vkitti2", "tartanair")
 _SCENEFLOW = ("sceneflow", "flyingthings3d", "monkaa", "driving")
 OFFICIAL = "official"
 
@@ -162,14 +164,14 @@ def get_training_clips(dataset: str, root: str | Path, frames: int, split: str =
   """The official training samples of a dataset: frame-index lists of whole sequences.
 
   SceneFlow (and its subsets): for ref in 0..N-T-1, the clip [ref, ref+T) and the
-  time-reversed clip N-1-ref, ..., N-ref-T. Dynamic Replica, Infinigen SV, KITTI Depth
-  and VKITTI2: starts 0, 3, 6, ...; each start draws a stride k in 1..5 (k = 1 for
+  time-reversed clip N-1-ref, ..., N-ref-T. Dynamic Replica, Infinigen SV, KITTI Depth,
+  VKITTI2 and TartanAir: starts 0, 3, 6, ...; each start draws a stride k in 1..5 (k = 1 for
   T = 1) once, from `np.random.default_rng(seed)` in sequence order, and the clip
   start, start+k, ..., start+(T-1)k is kept when start + k*T < N.
 
   Args:
     dataset: a dataset with official training clips (SceneFlow family, DR,
-      Infinigen SV, KITTI Depth, VKITTI2).
+      Infinigen SV, KITTI Depth, VKITTI2, TartanAir).
     root: as in `get_sequences`.
     frames: clip length T >= 1.
     split: the split to sample (default "train").

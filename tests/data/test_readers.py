@@ -571,7 +571,8 @@ def test_south_kensington_images_only(tmp_path, monkeypatch):
 def test_registry_names_errors_and_pickling(tmp_path):
   assert set(registry.DATASETS) == {
       "sceneflow", "flyingthings3d", "monkaa", "driving", "sintel_clean", "sintel_final",
-      "dynamic_replica", "infinigen_sv", "vkitti2", "kitti_depth", "spring", "south_kensington"}
+      "dynamic_replica", "infinigen_sv", "vkitti2", "kitti_depth", "spring", "south_kensington",
+      "tartanair"}
   with pytest.raises(ValueError, match="unknown dataset 'kitti'.*kitti_depth"):
     registry.get_sequences("kitti", tmp_path, "test")
   with pytest.raises(ValueError, match="frames must be"):
@@ -774,3 +775,59 @@ def test_training_clips_take_their_first_frames_camera(tmp_path):
   whole = seq.clip(0, 3)["disparity"]
   np.testing.assert_allclose(seq.gather([2, 1])["disparity"], whole[[2, 1]] * 2, rtol=1e-6)
   np.testing.assert_array_equal(seq.gather([1, 2])["disparity"], whole[[1, 2]])
+
+
+def _tartanair(root, rng, entries, n=3):
+  truth = {}
+  for scene, difficulty, part in entries:
+    seq = root / "TartanAir" / scene / difficulty / part
+    for i in range(n):
+      left, right = _rgb(rng), _rgb(rng)
+      depth = rng.uniform(0.5, 200.0, (H, W)).astype(np.float32)
+      depth[0, 0] = 0.0  # no depth
+      _png(seq / "image_left" / f"{i:06d}_left.png", left)
+      _png(seq / "image_right" / f"{i:06d}_right.png", right)
+      _mkfile(seq / "depth_left" / f"{i:06d}_left_depth.npy", np.save, depth)
+      truth.setdefault("_".join((scene, difficulty, part)), []).append((left, right, depth))
+    (seq / "pose_left.txt").write_text("0 0 0 0 0 0 1\n" * n)
+  return truth
+
+
+def test_tartanair_splits_depth_and_clips(tmp_path, caplog):
+  entries = [("amusement", "Easy", "P000"), ("abandonedfactory", "Hard", "P002"),
+             ("abandonedfactory", "Easy", "P002"), ("abandonedfactory", "Easy", "P001")]
+  truth = _tartanair(tmp_path, np.random.default_rng(15), entries, n=7)
+  test = registry.get_sequences("tartanair", tmp_path, "test")
+  # the official order: scenes by name, Easy before Hard, parts by name
+  assert [s.name for s in test] == ["abandonedfactory_Easy_P002", "abandonedfactory_Hard_P002"]
+  assert "15 of the 17 test sequences are missing" in caplog.text and "amusement/Easy/P007" \
+      in caplog.text
+  train = registry.get_sequences("tartanair", tmp_path / "TartanAir", "train")
+  assert [s.name for s in train] == ["abandonedfactory_Easy_P001", "amusement_Easy_P000"]
+  seq = test[0]
+  assert seq.depth2disp_scale == pytest.approx(80.0) and not seq.has_right_disparity
+  for i in (0, 6):
+    f = pickle.loads(pickle.dumps(seq))[i]
+    left, right, depth = truth[seq.name][i]
+    np.testing.assert_array_equal(f["left"], left)
+    np.testing.assert_array_equal(f["right"], right)
+    np.testing.assert_allclose(f["disparity"].ravel()[1:], 80.0 / depth.ravel()[1:], rtol=1e-6)
+    assert f["disparity"][0, 0] == 0 and not f["valid"][0, 0] and f["valid"].sum() == H * W - 1
+  clips = registry.get_training_clips("tartanair", tmp_path, frames=2, seed=3)
+  rng, expect = np.random.default_rng(3), []
+  for s in train:  # the official strided clips, as for Dynamic Replica and the others
+    for ref in range(0, len(s), 3):
+      k = int(rng.integers(1, 6))
+      if ref + 2 * k < len(s):
+        expect.append((s.name, [ref, ref + k]))
+  assert [(c.sequence.name, c.indices) for c in clips] == expect and expect
+  # A frame missing from one folder is named; so is a split without sequences.
+  (tmp_path / "TartanAir/amusement/Easy/P000/depth_left/000003_left_depth.npy").unlink()
+  with pytest.raises(ValueError, match=r"TartanAir amusement_Easy_P000: frame counts differ.*"
+                                       r"'left_gt' lacks frame 3"):
+    registry.get_sequences("tartanair", tmp_path, "train")
+  shutil.rmtree(tmp_path / "TartanAir/abandonedfactory")
+  with pytest.raises(FileNotFoundError, match="no TartanAir test sequences under"):
+    registry.get_sequences("tartanair", tmp_path, "test")
+  with pytest.raises(ValueError, match="tartanair has no split 'val'"):
+    registry.get_sequences("tartanair", tmp_path, "val")
