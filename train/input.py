@@ -23,6 +23,14 @@ log = logging.getLogger(__name__)
 def synthetic_config(data_cfg, gen_cfg, seed: int) -> SyntheticConfig:
   """`SyntheticConfig` at the data block's clip shape, with generator overrides."""
   names = {f.name for f in dataclasses.fields(SyntheticConfig)}
+  given = {"frames": "config.data.frames", "height": "config.data.crop",
+           "width": "config.data.crop"}
+  for k in gen_cfg:
+    if k in given:
+      raise ValueError(f"config.data.synthetic.{k}: the clips' {k} is {given[k]}'s")
+    if k not in names and k != "num_clips":  # a typo would train with the default
+      raise ValueError(f"config.data.synthetic.{k}: SyntheticConfig has no field {k!r} (its "
+                       f"fields: {', '.join(sorted(names - set(given)))}, and num_clips)")
   kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in gen_cfg.items()
             if k in names}
   return SyntheticConfig(frames=data_cfg.frames, height=data_cfg.crop[0],
@@ -96,11 +104,13 @@ def eval_clips(config) -> list[dict]:
     return pipeline.fixed_clips(ds, ev.num_clips)
   # Consecutive frames, as the evaluation's (TEPE measures the change between frames).
   with _naming(f"config.eval.dataset={ev.dataset!r}, config.eval.split={ev.split!r}, "
-               f"config.data.root={config.data.root!r}"):
+               f"config.data.root={config.data.root!r}, config.data.crop="
+               f"{tuple(config.data.crop)!r}"):
     src = pipeline.registry_source(ev.dataset, config.data.root, config.data.frames,
                                    split=ev.split, consecutive=True)
-  stride = max(1, len(src) // ev.num_clips)  # spread over the split, deterministically
-  picked = src[::stride][:ev.num_clips]
-  crop = tuple(config.data.crop)
-  return pipeline.fixed_clips(picked, min(ev.num_clips, len(picked)),
-                              transform=lambda c: pipeline.center_crop(c, crop))
+    stride = max(1, len(src) // ev.num_clips)  # spread over the split, deterministically
+    picked = src[::stride][:ev.num_clips]
+    crop = tuple(config.data.crop)
+    # (reading and cropping the clips here: a size or ground-truth problem names the fields)
+    return pipeline.fixed_clips(picked, min(ev.num_clips, len(picked)),
+                                transform=lambda c: pipeline.center_crop(c, crop))

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -176,6 +177,9 @@ class _HostMetrics:
                for k, v in self.sums.items()}
       means.update({k: float("nan") for k in last if k not in means})  # no finite step
       means["num_skipped"] = float(last["num_skipped"])  # a counter, not a mean
+      # The steps the means are over: log_every, but fewer in the first window after a
+      # resume from a step off the logging period (a SIGTERM save).
+      means["window_steps"] = float(self.n)
       self.writer.write(step, means)
       self.sums, self.n, self.n_finite = {}, 0, 0
 
@@ -362,6 +366,9 @@ def _check_blocks(config) -> None:
     if not (_is_real(weight) and weight > 0):
       raise ValueError(f"config.data.sources.{name}.weight={weight!r}: expected a number > 0 "
                        "(leave the source out instead of giving it 0)")
+    if not isinstance(spec.get("dataset"), str):  # (a name that is no dataset: named later)
+      raise ValueError(f"config.data.sources.{name}.dataset={spec.get('dataset')!r}: expected "
+                       "'synthetic' or a dataset name (sav_jax.data.registry.DATASETS)")
   datasets = {spec.get("dataset") for spec in config.data.sources.values()}
   if "synthetic" in datasets or (config.eval.every_steps > 0
                                  and config.eval.dataset == "synthetic"):
@@ -369,14 +376,23 @@ def _check_blocks(config) -> None:
       input_lib.synthetic_config(config.data, config.data.synthetic, config.data.synthetic.seed)
     except ValueError as e:  # SyntheticConfig names the field as `SyntheticConfig.<name>`
       raise ValueError(str(e).replace("SyntheticConfig.", "config.data.synthetic.")) from e
-  if datasets - {"synthetic"}:  # real data is augmented (in the grain reader, per clip)
-    try:
-      augment = pipeline.Augment(tuple(config.data.crop), input_lib.augment_overrides(config))
-      augment.augment_config()
-    except ValueError as e:  # AugmentConfig names the field as `AugmentConfig.<name>`
-      raise ValueError(str(e).replace("AugmentConfig.", "config.data.augment.")) from e
-    except TypeError as e:  # a field AugmentConfig does not have
-      raise ValueError(f"config.data.augment: {e}") from e
+  # Real data is augmented (in the grain reader, per clip); synthetic clips are not. The
+  # block is checked either way, and changes to it that no source uses are named.
+  try:
+    augment = pipeline.Augment(tuple(config.data.crop), input_lib.augment_overrides(config))
+    applied = augment.augment_config()
+  except ValueError as e:  # AugmentConfig names the field as `AugmentConfig.<name>`
+    raise ValueError(str(e).replace("AugmentConfig.", "config.data.augment.")) from e
+  except TypeError as e:  # a field AugmentConfig does not have
+    raise ValueError(f"config.data.augment: {e}") from e
+  if not datasets - {"synthetic"}:
+    default = dataclasses.replace(type(applied)(), crop_size=applied.crop_size)
+    changed = [f.name for f in dataclasses.fields(applied)
+               if getattr(applied, f.name) != getattr(default, f.name)]
+    if changed:
+      log.warning("config.data.augment.%s changed, but no training source is augmented: "
+                  "synthetic clips are used as generated (augmentation applies to dataset "
+                  "sources)", ", config.data.augment.".join(changed))
   opt = config.optimizer
   try:
     optim.make_schedule(opt, config.train.num_steps)

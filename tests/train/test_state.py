@@ -789,7 +789,7 @@ def test_one_run_at_a_time_in_a_workdir(tmp_path):
   assert not any(workdir.iterdir())
 
 
-def test_config_blocks_a_run_cannot_use_are_named(tmp_path):
+def test_config_blocks_a_run_cannot_use_are_named(tmp_path, caplog):
   """The augmentation (for real data only: it runs per clip inside the grain reader, where
   its error would come after the workdir is created), the sources, and a config file
   written without the base fields."""
@@ -803,8 +803,33 @@ def test_config_blocks_a_run_cannot_use_are_named(tmp_path):
   with pytest.raises(ValueError, match=r"config\.data\.augment\.scale_range must be \(min, "):
     loop.validate_config(c, tmp_path / "w")
   c = synthetic.get_config()
-  c.data.augment.scale_range = (1.0, 0.0)  # not used on the generator's clips
-  loop.validate_config(c, tmp_path / "w")
+  c.data.augment.scale_range = (1.0, 0.0)  # checked though the generator's clips skip it
+  with pytest.raises(ValueError, match=r"config\.data\.augment\.scale_range must be \(min, "):
+    loop.validate_config(c, tmp_path / "w")
+  c.data.augment.scale_range, c.data.augment.eraser_prob = (0.0, 0.1), 1.0
+  with caplog.at_level(logging.WARNING):  # it was silently without effect
+    loop.validate_config(c, tmp_path / "w")
+  assert ("config.data.augment.scale_range, config.data.augment.eraser_prob changed, but no "
+          "training source is augmented") in caplog.text
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):
+    loop.validate_config(synthetic.get_config(), tmp_path / "w")
+  assert "no training source is augmented" not in caplog.text
+  c = synthetic.get_config()
+  c.data.sources.extra = ml_collections.ConfigDict(dict(weight=1.0))  # no dataset: a traceback
+  with pytest.raises(ValueError, match=r"config\.data\.sources\.extra\.dataset=None: expected "
+                     "'synthetic' or a dataset name"):
+    loop.validate_config(c, tmp_path / "w")
+  c = synthetic.get_config()
+  c.data.synthetic.max_disparty = 4.0  # a typo in a config file trained with the default
+  with pytest.raises(ValueError, match=r"config\.data\.synthetic\.max_disparty: SyntheticConfig "
+                     r"has no field 'max_disparty' \(its fields: .*max_disparity"):
+    loop.validate_config(c, tmp_path / "w")
+  c = synthetic.get_config()
+  c.data.synthetic.height = 64
+  with pytest.raises(ValueError, match=r"config\.data\.synthetic\.height: the clips' height is "
+                     r"config\.data\.crop's"):
+    loop.validate_config(c, tmp_path / "w")
   c.data.sources = ml_collections.ConfigDict()
   with pytest.raises(ValueError, match=r"config\.data\.sources is empty"):
     loop.validate_config(c, tmp_path / "w")
@@ -981,7 +1006,7 @@ def test_logged_means_leave_out_skipped_steps(caplog):
   assert (s1, s2) == (3, 6)
   assert first["loss"] == 2.0 and first["epe"] == 3.0  # the finite steps' means
   np.testing.assert_allclose([first["finite"], first["lr"]], [2 / 3, 0.2])  # over all steps
-  assert first["num_skipped"] == 1.0
+  assert first["num_skipped"] == 1.0 and first["window_steps"] == 3
   assert np.isnan(second["loss"]) and np.isnan(second["epe"]) and second["finite"] == 0.0
   assert second["num_skipped"] == 4.0
   # The warning names what was not finite (an absurd learning rate overflows the update's
@@ -992,6 +1017,11 @@ def test_logged_means_leave_out_skipped_steps(caplog):
              "l2_grads": 2.0, "l2_updates": inf})
   assert ("step 7: non-finite update norm (finite loss and gradients: is the learning rate "
           "too large?), update skipped (5 so far)") in caplog.text
+  # Resumed from step 2 (a SIGTERM save off the logging period): the record at step 3 is the
+  # mean of one step, and says so.
+  resumed = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
+  resumed(3, {"loss": 5.0, "epe": 1.0, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
+  assert writer.records[-1][0] == 3 and writer.records[-1][1]["window_steps"] == 1
 
 
 def _loop_parts(c, workdir, step_hook=None, evaluator=None):
@@ -1236,3 +1266,23 @@ def test_microbatches_give_the_whole_batchs_step():
     c.train.microbatches, c.loss.per_sample = k, per_sample
     with pytest.raises(ValueError, match=match):
       step_lib.check_microbatches(c)
+
+
+def test_validation_clips_that_cannot_be_used_name_the_config_fields(monkeypatch):
+  """Reading and cropping the held-out clips came after the block naming the fields: a crop
+  larger than the frames, or a split without ground truth, named no config field."""
+  import grain  # pylint: disable=g-import-not-at-top
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  c = synthetic.get_config()
+  c.eval.dataset, c.eval.split, c.data.root, c.data.crop = "sintel_final", "test", "d", (32, 64)
+  clip = {"left": np.zeros((c.data.frames, 24, 40, 3), np.uint8),
+          "right": np.zeros((c.data.frames, 24, 40, 3), np.uint8),
+          "disparity": np.zeros((c.data.frames, 24, 40), np.float32),
+          "valid": np.ones((c.data.frames, 24, 40), bool)}
+  monkeypatch.setattr(pipeline, "registry_source",
+                      lambda *a, **k: grain.MapDataset.source([clip] * 3))
+  with pytest.raises(ValueError, match=r"config\.eval\.dataset='sintel_final', config\.eval\.split="
+                     r"'test', config\.data\.root='d', config\.data\.crop=\(32, 64\): crop "):
+    input_lib.eval_clips(c)
+  c.data.crop = (16, 32)
+  assert [x["left"].shape[1:3] for x in input_lib.eval_clips(c)] == [(16, 32)] * 3
