@@ -645,6 +645,15 @@ def test_calibration_file(tmp_path):
   mb.write_text("cam0=[3997.684 0 1176.728; 0 3997.684 1011.728; 0 0 1]\n"
                 "cam1=[3997.684 0 1307.839; 0 3997.684 1011.728; 0 0 1]\nbaseline=193.001\n")
   assert read_calibration(mb)["doffs"] == pytest.approx(1307.839 - 1176.728)  # from cam1
+  # A byte-order mark (Windows editors) glued itself to the first key, which was dropped
+  # (cx: the image centre instead), and a JSON file was refused.
+  txt.write_text("cx 10.5\nfx 40\nbaseline 0.1\n", encoding="utf-8-sig")
+  assert read_calibration(txt) == {"cx": 10.5, "fx": 40.0, "baseline": 0.1}
+  js.write_text(json.dumps({"fx": 500, "baseline": 0.12}), encoding="utf-8-sig")
+  assert read_calibration(js) == {"fx": 500.0, "baseline": 0.12}
+  txt.write_text("fx 40\nbaseline 0.1\n", encoding="utf-16")  # was read as "no calibration"
+  with pytest.raises(ValueError, match=r"calibration file .*c\.txt is not UTF-8 text"):
+    read_calibration(txt)
   txt.write_text("fx 400\nbaseline 0.2\nwidth 64\nheight: 32\n")  # any format may say its size
   assert read_calibration(txt) == {"fx": 400.0, "baseline": 0.2, "width": 64.0, "height": 32.0}
   # the principal point may lie anywhere on the frame, [-0.5, size - 0.5] (pixel centres)

@@ -94,7 +94,7 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
   """Saves Flax variables and a config dict atomically.
 
   Args:
-    directory: checkpoint directory to create.
+    directory: checkpoint directory to create (missing parent folders are created).
     variables: nested dicts of arrays (jax or numpy), e.g. `{"params": {...}}`. Zero-size
       arrays are not supported by orbax.
     config_dict: JSON-serialisable dict (tuples come back as lists).
@@ -138,6 +138,11 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
   args = ocp.args.Composite(variables=ocp.args.StandardSave(variables),
                             config=ocp.args.JsonSave(config_dict))
   if not directory.exists():
+    try:  # (as file outputs: `sav-jax convert x.pth ckpt/sav` with no ckpt/ yet)
+      directory.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+      raise CheckpointError(f"{directory}: cannot create its folder {directory.parent} "
+                            f"({e.strerror or e})") from e
     _save_or_clean_up(directory, args, directory)
   else:  # write the new one beside the old one, then swap: a kill never leaves neither
     new = directory.with_name(f"{directory.name}.new-{os.getpid()}")

@@ -48,11 +48,12 @@ def require_file(path: PathLike, what: str = "file") -> Path:
 
 
 def read_text(path: PathLike, what: str = "file") -> str:
-  """The text of a camera/calibration file (UTF-8, as the datasets ship them); a missing
-  file or one that is not UTF-8 text (UTF-16, binary) is an error naming it."""
+  """The text of a camera/calibration file (UTF-8, as the datasets ship them, without the
+  byte-order mark Windows editors put first, which would glue itself to the first key); a
+  missing file or one that is not UTF-8 text (UTF-16, binary) is an error naming it."""
   path = require_file(path, what)
   try:
-    return path.read_text(encoding="utf-8")
+    return path.read_text(encoding="utf-8-sig")
   except UnicodeDecodeError as e:
     raise ValueError(f"{what} {path} is not UTF-8 text ({e.reason} at byte {e.start})") from e
 

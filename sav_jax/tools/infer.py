@@ -461,7 +461,8 @@ def read_calibration(path) -> dict[str, float]:
     raise ValueError(f"--calib {path} is a folder; give the calibration file")
   if not path.is_file():
     raise FileNotFoundError(f"calibration file not found: {path}")
-  text = path.read_text(errors="replace")
+  from sav_jax.data import frame_io  # pylint: disable=import-outside-toplevel
+  text = frame_io.read_text(path, "calibration file")  # (a byte-order mark dropped a key)
   if text.lstrip().startswith("{"):
     try:
       data = json.loads(text)

@@ -61,6 +61,18 @@ def test_round_trip_with_abstract_target(tmp_path):
   assert config["scales"] == [4, 8, 16]
 
 
+def test_missing_parent_folders_are_created(tmp_path):
+  # `sav-jax convert x.pth ckpt/sav` with no ckpt/ yet (the README's first example) failed
+  # after converting every weight: the clean-up listed the missing parent.
+  out = orbax_io.save_variables(tmp_path / "ckpt" / "runs" / "sav", _variables(), _CONFIG)
+  _assert_same(orbax_io.restore_variables(out)[0], _variables())
+  assert os.listdir(tmp_path / "ckpt" / "runs") == ["sav"]
+  (tmp_path / "file").write_text("x")
+  with pytest.raises(CheckpointError, match=r"file/sav: cannot create its folder .*file"):
+    orbax_io.save_variables(tmp_path / "file" / "sav", _variables(), _CONFIG)
+  assert (tmp_path / "file").read_text() == "x"
+
+
 def test_tuples_in_config_come_back_as_lists(tmp_path):
   orbax_io.save_variables(tmp_path / "c", {"params": {"w": jnp.ones(2)}}, {"shape": (2, 3)})
   assert orbax_io.restore_variables(tmp_path / "c")[1] == {"shape": [2, 3]}
