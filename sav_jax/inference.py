@@ -227,6 +227,7 @@ def estimate_memory_bytes(frames: int, height: int, width: int, iters: int = 20,
   """
   cfg = as_config(cfg)
   frames, height, width = _check_shape(frames, height, width)
+  iters = check_iters(iters)
   pixels = frames * height * width
   heads = DINO_VARIANTS[cfg.vda_encoder]["num_heads"]
   tokens = (height // 14) * (width // 14) + 1  # patches and the class token
@@ -408,6 +409,19 @@ def _device_of(tree):
   return _default_device()
 
 
+def _on_one_device(variables):
+  """`variables`, copied to one device (the default one, else the first of theirs) when
+  their arrays span several: the programs run on one device, and parameters replicated
+  over a mesh (a training run's) failed there with JAX's sharding mismatch."""
+  devices = {d for x in jax.tree_util.tree_leaves(variables)
+             for d in getattr(getattr(x, "sharding", None), "device_set", ())}
+  if len(devices) <= 1:
+    return variables
+  default = _default_device()
+  return jax.device_put(variables, default if default in devices else
+                        min(devices, key=lambda d: d.id))
+
+
 def _precheck(frames, height, width, cfg, iters, check_memory, device=None) -> None:
   # Cheap check first, so that hopeless sizes fail before a long compile.
   if check_memory:
@@ -435,7 +449,7 @@ def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SA
   Returns:
     A compiled function taking float32 `[T, Hp, Wp, 3]` left/right frames.
   """
-  shape = (frames, height, width)
+  cfg, shape = resolve_config(cfg), (frames, height, width)
   key = _cache_key("forward", variables, cfg, iters, shape)
   if key not in _COMPILED:
     _precheck(*shape, cfg, iters, check_memory, _device_of(variables))
@@ -455,7 +469,7 @@ def _frames_fn(cfg: SAVConfig):
 def compiled_frame_features(variables, frames: int, height: int, width: int, *,
                             cfg: SAVConfig, check_memory: bool = True):
   """Cached executable `(variables, left, right) -> frame_features` of `[n, Hp, Wp, 3]` frames."""
-  shape = (frames, height, width)
+  cfg, shape = resolve_config(cfg), (frames, height, width)
   key = _cache_key("frames", variables, cfg, 0, shape)
   spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
   return _compile(key, lambda: (_frames_fn(cfg), (variables, spec, spec)), check_memory)
@@ -464,7 +478,7 @@ def compiled_frame_features(variables, frames: int, height: int, width: int, *,
 def compiled_window(variables, frames: int, height: int, width: int, *, cfg: SAVConfig,
                     iters: int, check_memory: bool = True):
   """Cached executable `(variables, frame_features) -> raw disparity [T, Hp, Wp]`."""
-  shape = (frames, height, width)
+  cfg, shape = resolve_config(cfg), (frames, height, width)
   key = _cache_key("window", variables, cfg, iters, shape)
 
   def build():  # only on a cache miss: tracing the per-frame part for its shapes costs
@@ -499,11 +513,13 @@ class FrameFeatureCache:
   and end on multiples of `chunk` (`feature_chunk(window, stride)`; the default suits
   the default windows).
 
-  A cache belongs to one video, one frame size and one model config, and its windows
-  move forward: `run_window` refuses another frame size or config, a window starting
-  before the previous one, and a window whose frames differ from those the cached features
-  were computed from (a CRC-32 of each frame pair: another video started again at frame 0,
-  or frames changed in place; a new video needs a new cache).
+  A cache belongs to one video, one frame size, one model config and one set of weights,
+  and its windows move forward: `run_window` refuses another frame size or config, other
+  weights (other parameter arrays than the first window's: pass the same `variables` to
+  every window), a window starting before the previous one, and a window whose frames differ
+  from those the cached features were computed from (a CRC-32 of each frame pair's float32
+  values: another video started again at frame 0, or frames changed in place; a new video
+  needs a new cache).
   """
 
   def __init__(self, chunk: int = STRIDE):
@@ -514,11 +530,13 @@ class FrameFeatureCache:
     self._use = None  # (frame size, pads, cfg) of the first window
     self._start = 0  # the latest window's start
     self._prints: dict[int, tuple[int, int]] = {}  # frame index -> CRC-32 of (left, right)
+    self._weights = None  # weak references to the first window's parameter arrays
 
   def check_frames(self, left: np.ndarray, right: np.ndarray, start: int) -> None:
     """Raises ValueError if a frame of the window `left`/`right` from `start` differs from
     the one this cache computed features of; records the frames it has not seen."""
-    crc = lambda frame: zlib.crc32(np.ascontiguousarray(frame).data)  # noqa: E731
+    # of the values the model sees (float32): the same frames as uint8 or float32 match
+    crc = lambda frame: zlib.crc32(np.ascontiguousarray(frame, np.float32).data)  # noqa: E731
     for k in range(len(left)):
       i, seen = start + k, self._prints.get(start + k)
       if seen is None and i not in self.frames:
@@ -529,9 +547,21 @@ class FrameFeatureCache:
             "a cache serves one video (use a new cache for another video, or after changing "
             "frames)")
 
-  def check_use(self, shape: tuple, pads: tuple, cfg: SAVConfig, start: int) -> None:
+  def check_use(self, shape: tuple, pads: tuple, cfg: SAVConfig, start: int,
+                variables=None) -> None:
     """Raises ValueError unless a window of frames `shape` [T, H, W, 3] padded by `pads`,
-    for `cfg`, starting at frame `start`, can reuse this cache; then records it."""
+    for `cfg` and the weights `variables`, starting at frame `start`, can reuse this cache;
+    then records it."""
+    if variables is not None:
+      leaves = jax.tree_util.tree_leaves(variables)
+      if self._weights is None:
+        self._weights = [_reference(x) for x in leaves]
+      elif len(leaves) != len(self._weights) or not all(
+          _refers_to(r, x) for r, x in zip(self._weights, leaves)):
+        raise ValueError(
+            "this FrameFeatureCache holds features computed with other weights (other "
+            "parameter arrays than its first window's): pass the same variables to every "
+            "window, or use a new cache for other weights")
     use = (tuple(shape[1:3]), tuple(pads), cfg)
     if self._use is not None and use != self._use:
       raise ValueError(
@@ -560,6 +590,20 @@ class FrameFeatureCache:
     if device is not None:
       items = jax.device_put(items, device)
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *items)
+
+
+def _reference(x):
+  """A weak reference to array `x` (a Python number, which has none, is kept as is)."""
+  try:
+    return weakref.ref(x)
+  except TypeError:
+    return x
+
+
+def _refers_to(ref, x) -> bool:
+  if isinstance(ref, weakref.ref):
+    return ref() is x
+  return type(ref) is type(x) and ref == x
 
 
 # Device arrays found finite: id -> weak reference (they are immutable, and an array that
@@ -657,6 +701,7 @@ def cache_size() -> int:
 def _as_video(video, name: str) -> np.ndarray:
   """`video` as one array; a list of frames must hold frames of one shape (ValueError
   naming `name` and the first frame whose shape differs otherwise)."""
+  _refuse_iterator(video, name)
   if isinstance(video, (list, tuple)):
     frames = [np.asarray(f) for f in video]
     for i, frame in enumerate(frames):
@@ -668,6 +713,25 @@ def _as_video(video, name: str) -> np.ndarray:
   if video.dtype.kind == "V" and jnp.issubdtype(video.dtype, jnp.floating):
     video = video.astype(np.float32)  # bfloat16 / float8 frames (ml_dtypes: kind "V")
   return video
+
+
+def _refuse_iterator(video, name: str) -> None:
+  if not hasattr(video, "shape") and not isinstance(video, (list, tuple)) and (
+      hasattr(video, "__next__") or not hasattr(video, "__getitem__")):
+    raise ValueError(
+        f"{name}: got a {type(video).__name__}, which has neither a shape nor frames by index: "
+        "pass an array [T, H, W, 3], a list of frames, or a lazy source with a shape and "
+        "slicing (see iter_predict_video); an iterator or generator of frames can be "
+        "collected with list(...) first")
+
+
+def _video_shape(video, name: str = "video") -> tuple:
+  """The `[T, H, W, C]` shape of an array, a lazy source or a list of frames (from its
+  length and first frame: the list is not stacked)."""
+  _refuse_iterator(video, name)
+  if hasattr(video, "shape"):
+    return tuple(video.shape)
+  return (len(video), *np.shape(video[0])) if len(video) else (0,)
 
 
 def _check_video_shapes(left_shape: tuple, right_shape: tuple) -> None:
@@ -767,7 +831,7 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
                      f"{left.shape[1]}x{left.shape[2]} frames to multiples of 16, got {pads!r}")
   pads = tuple(int(p) for p in pads)
   if cache is not None:  # (predict_video's own caches see one video: no frame check there)
-    cache.check_use(left.shape, pads, cfg, start)
+    cache.check_use(left.shape, pads, cfg, start, variables)
     cache.check_frames(left, right, start)
   # a writeable copy (a device array's numpy view is read-only)
   return np.array(_run_window(variables, left, right, cfg=cfg, iters=iters, pads=pads,
@@ -777,7 +841,7 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
 def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache, start):
   """`run_window` on inputs already checked (by `predict_video`)."""
   cache = FrameFeatureCache() if cache is None else cache
-  variables = model_variables(variables)
+  variables = _on_one_device(model_variables(variables))
   cache.evict_before(start)
   todo = _feature_todo(cache.frames, cache.chunk, start, left.shape[0])
   programs = _window_programs(variables, left.shape, pads, todo, cfg=cfg, iters=iters,
@@ -845,9 +909,10 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
   them where the variables are (the default device for host arrays).
   """
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
-  pads = pad_amounts(*left.shape[1:3])
+  shape = _video_shape(left)  # (a list of frames beside a lazy source has none)
+  pads = pad_amounts(*shape[1:3])
   variables = model_variables(variables)
-  placed = ([jax.device_put(variables)] if devices is None else
+  placed = ([jax.device_put(_on_one_device(variables))] if devices is None else
             [jax.device_put(variables, d) for d in devices])
   total = sum(w.keep_stop - w.keep_start for w in plan)
 
@@ -856,12 +921,12 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
     lw, rw = left[sl], right[sl]
     if not check_frames:
       return lw, rw
-    want = (win.length, *left.shape[1:])
+    want = (win.length, *shape[1:])
     for name, source, got in (("left", left, lw), ("right", right, rw)):
       if tuple(np.shape(got)) != want:
         raise ValueError(
             f"{name} video source {type(source).__name__} declares shape "
-            f"{tuple(source.shape)}, but its frames {win.start}..{win.start + win.length - 1} "
+            f"{_video_shape(source)}, but its frames {win.start}..{win.start + win.length - 1} "
             f"came back with shape {tuple(np.shape(got))}, not {want}")
     return _as_video_pair(lw, rw, win.start)
 
@@ -886,7 +951,7 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
       for win, v in zip(group, placed):  # every executable first, then the work
         todo = _feature_todo(have, cache.chunk, win.start, win.length)
         have.update(win.start + i for a, b in todo for i in range(a, b))
-        programs = _window_programs(v, (win.length, *left.shape[1:3]), pads, todo, cfg=cfg,
+        programs = _window_programs(v, (win.length, *shape[1:3]), pads, todo, cfg=cfg,
                                     iters=iters, check_memory=check_memory)
         work.append((win, v, todo, programs))
       raws = []  # dispatched in order, run at once on their devices
@@ -968,9 +1033,15 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
   Returns:
     `[T, H, W]` float32 positive disparity (px) of the left view, every frame.
   """
-  return np.concatenate([d for _, d in iter_predict_video(
-      variables, left, right, cfg=cfg, iters=iters, window=window, stride=stride, dtype=dtype,
-      progress=progress, check_memory=check_memory, devices=devices)], axis=0)
+  chunks = iter_predict_video(variables, left, right, cfg=cfg, iters=iters, window=window,
+                              stride=stride, dtype=dtype, progress=progress,
+                              check_memory=check_memory, devices=devices)
+  out = None  # filled window by window (a list of pieces and a concatenation held it twice)
+  for t, d in chunks:
+    if out is None:
+      out = np.empty((_video_shape(left)[0], *d.shape[1:]), np.float32)
+    out[t:t + len(d)] = d
+  return out
 
 
 def _is_lazy_video(x) -> bool:
@@ -1001,12 +1072,12 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
   iters = check_iters(iters)
   lazy = _is_lazy_video(left) or _is_lazy_video(right)
   if lazy:  # the frames themselves are checked window by window, as they are read
-    _check_video_shapes(*(tuple(getattr(x, "shape", ())) for x in (left, right)))
+    _check_video_shapes(_video_shape(left, "left"), _video_shape(right, "right"))
   else:
     left, right = _as_video_pair(left, right)
   check_variables(variables, cfg)
   devices = None if devices is None else resolve_devices(devices)
-  plan = window_plan(int(left.shape[0]), window, stride)
+  plan = window_plan(int(_video_shape(left)[0]), window, stride)
   return _iter_plan(variables, left, right, plan, cfg=cfg, iters=iters,
                     check_memory=check_memory, chunk=feature_chunk(window, stride),
                     progress=progress,

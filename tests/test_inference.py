@@ -308,6 +308,48 @@ def test_run_window_cache_belongs_to_one_video(monkeypatch):
     inference.run_window({}, video, video, cfg=sav_jax.SAVConfig(dtype="bfloat16"), iters=2,
                          cache=cache, start=20)
   assert calls == [0, 10, 10]
+  # Other weights were served the first ones' features silently (two checkpoints compared on
+  # one video); the same frames as uint8 instead of float32 were "frame 0 differs".
+  weights = {"params": {"w": np.ones(3, np.float32)}}
+  cache = inference.FrameFeatureCache()
+  run = lambda v, w, **kw: inference.run_window(w, v, v, cfg=sav_jax.SAVConfig(), iters=2,
+                                                cache=cache, **kw)
+  run(video, weights, start=0)
+  run(video[10:].astype(np.uint8), dict(weights), start=10)  # the same arrays, same values
+  with pytest.raises(ValueError, match="holds features computed with other weights"):
+    run(video[10:], {"params": {"w": np.ones(3, np.float32)}}, start=10)
+  assert calls[-2:] == [0, 10]
+
+
+@pytest.mark.filterwarnings("ignore:.*float frames with values")
+def test_iterators_and_lists_beside_lazy_sources(monkeypatch):
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window", _LabelModel())
+  video = _labelled_video(12)
+  with pytest.raises(ValueError, match="left: got a generator, which has neither a shape nor "
+                     r"frames by index: .* list\(\.\.\.\) first"):
+    inference.predict_video({}, (f for f in video), video)
+  with pytest.raises(ValueError, match="right: got a list_iterator"):
+    inference.predict_video({}, video, iter(list(video)))
+  lazy = _ShortSource(video, video.shape)  # "differ in shape: (12, 5, 7, 3) vs ()"
+  for left, right in ((lazy, list(video)), (list(video), lazy)):
+    out = inference.predict_video({}, left, right, window=8, stride=4)
+    label = out[:, 0, 0]
+    np.testing.assert_array_equal(label // 1000 - 1 + label % 1000, np.arange(12))
+
+
+def test_predict_video_fills_one_output_array(monkeypatch):
+  """The windows' pieces went to a list, then np.concatenate: the output held twice."""
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window", _LabelModel())
+  concatenated = []
+  real = np.concatenate
+  monkeypatch.setattr(np, "concatenate", lambda *a, **k: concatenated.append(1) or real(*a, **k))
+  video = _labelled_video(23).astype(np.uint8)
+  out = inference.predict_video({}, video, video)
+  assert out.shape == (23, 5, 7) and out.dtype == np.float32 and not concatenated
+  label = out[:, 0, 0]
+  np.testing.assert_array_equal(label // 1000 - 1 + label % 1000, np.arange(23))
 
 
 def test_dtype_override_takes_dtype_objects():
@@ -613,3 +655,12 @@ def test_window_shapes_that_are_not_positive_integers_are_named(variables):
         fn(variables, *shape, cfg=cfg, **kw)
     with pytest.raises(ValueError, match=f"{name} must be an integer >= 1"):
       inference.estimate_memory_bytes(*shape)
+  for iters in (None, -5, 2.5):  # a TypeError deep in the formula, or a number silently
+    with pytest.raises(ValueError, match="iters"):
+      inference.estimate_memory_bytes(2, 32, 64, iters)
+
+
+def test_compiled_programs_take_the_default_config(variables):
+  # cfg=None raised "'NoneType' object has no attribute 'dtype'" inside _compile.
+  assert (inference.compiled_frame_features(variables, 1, 32, 32, cfg=None) is
+          inference.compiled_frame_features(variables, 1, 32, 32, cfg=sav_jax.SAVConfig()))

@@ -72,6 +72,11 @@ def test_same_values_as_one_device(child):
   np.testing.assert_array_equal(child["long2"], child["long1"])
 
 
+def test_weights_replicated_over_devices_run_on_one(child):
+  np.testing.assert_array_equal(child["golden_replicated"], child["golden2"])
+  np.testing.assert_array_equal(child["window_replicated"], child["window_one"])
+
+
 def test_device_choices_are_checked():
   import jax  # pylint: disable=import-outside-toplevel
   n = len(jax.local_devices())
@@ -139,6 +144,16 @@ def _child(out_path):
   inference._window_programs, inference._dispatch_window = real_programs, real_dispatch
   golden2 = predict(left, right, 2)
   long1 = predict(long_left, long_right, jax.devices()[1:2])  # one device
+  # Weights replicated over a mesh (a training run's) with devices=None: they failed with
+  # JAX's sharding mismatch after the per-frame program had run.
+  from jax.sharding import Mesh, NamedSharding, PartitionSpec  # pylint: disable=import-outside-toplevel
+  replicated = jax.device_put(variables, NamedSharding(Mesh(np.array(jax.devices()), ("x",)),
+                                                       PartitionSpec()))
+  golden_replicated = inference.predict_video(replicated, left, right, iters=2)
+  window_replicated = inference.run_window(replicated, left[:20], right[:20],
+                                           cfg=sav_jax.SAVConfig(), iters=2)
+  window_one = inference.run_window(variables, left[:20], right[:20], cfg=sav_jax.SAVConfig(),
+                                    iters=2)
   # `sav-jax infer --devices 2` on the golden frames as PNG folders (the same executables).
   import cv2  # pylint: disable=import-outside-toplevel
   from sav_jax import cli  # pylint: disable=import-outside-toplevel
@@ -155,7 +170,8 @@ def _child(out_path):
   cli2 = np.stack([np.load(root / "infer" / "disparity" / f"{i:06d}.npy") for i in range(21)])
   log["infer_devices"] = json.loads((root / "infer" / "summary.json").read_text())["devices"]
   np.savez(out_path, golden2=golden2, long2=long2, long1=long1, cli2=cli2,
-           log=json.dumps(log))
+           golden_replicated=golden_replicated, window_replicated=window_replicated,
+           window_one=window_one, log=json.dumps(log))
 
 
 if __name__ == "__main__":
