@@ -443,6 +443,35 @@ def test_video_files_and_orbax_checkpoint(tmp_path, clip, orbax_ckpt, variables)
     np.testing.assert_array_equal(np.load(out / "disparity" / f"frame_{i:06d}.npy"), expected[i])
 
 
+def test_resize_runs_the_model_at_the_given_size(tmp_path, clip, npz_ckpt, variables, capsys):
+  """--resize HxW (the official demo resizes to 720x1280): the model runs on the resized
+  frames; the disparities come back at the input size, in its pixels."""
+  big = {k: video_io.resize_frames(clip[k], 2 * H - 1, 2 * W - 1).round().astype(np.uint8)
+         for k in ("left", "right")}
+  left, right = (_write_frames(tmp_path / k, big[k]) for k in ("left", "right"))
+  out = tmp_path / "out"
+  assert _infer(left, right, npz_ckpt, out, "--format", "npy", "--resize", f"{H}x{W}",
+                "--fx", "40", "--baseline", "0.1") == 0
+  assert f"input: {T} frames of {2 * H - 1}x{2 * W - 1} (height x width), run at {H}x{W}" in \
+      capsys.readouterr().out
+  small = [video_io.resize_frames(big[k].astype(np.float32), H, W) for k in ("left", "right")]
+  expected = video_io.resize_frames(inference.predict_video(variables, *small, iters=ITERS),
+                                    2 * H - 1, 2 * W - 1) * np.float32((2 * W - 1) / W)
+  got = np.stack([np.load(out / "disparity" / f"{i:04d}.npy") for i in range(T)])
+  assert got.shape == (T, 2 * H - 1, 2 * W - 1)
+  np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6)
+  summary = json.loads((out / "summary.json").read_text())
+  assert summary["model_size"] == [H, W] and summary["width"] == 2 * W - 1
+  # torch's align_corners=True bilinear, by hand on one row: ends kept, the middle blended
+  row = np.array([[[0.0, 10.0, 30.0]]], np.float32)
+  np.testing.assert_allclose(video_io.resize_frames(row, 1, 5), [[[0, 5, 10, 20, 30]]])
+  for bad in ("0x64", "32", "axb", "32x64x3"):
+    with pytest.raises(SystemExit):
+      _infer(left, right, npz_ckpt, tmp_path / "bad", "--resize", bad)
+    assert "expected HEIGHTxWIDTH" in capsys.readouterr().err
+  assert not (tmp_path / "bad").exists()
+
+
 def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
   grey = [(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257) for f in clip["left"]]
   left = _write_frames(tmp_path / "l", grey)

@@ -58,6 +58,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
                  help="compute dtype (default: the checkpoint's, float32)")
   p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames")
+  p.add_argument("--resize", type=parse_size, default=None, metavar="HxW",
+                 help="run the model on the frames resized to HxW (bilinear, align_corners as "
+                      "the official demo.py, which uses 720x1280): less memory and time for "
+                      "large frames; the disparities are resized back to the input size and "
+                      "scaled by its width ratio (input pixels); default: the input size")
   p.add_argument("--window", type=int, default=20, help="frames per sliding window (20)")
   p.add_argument("--stride", type=int, default=10, help="sliding window stride (10)")
   p.add_argument("--fps", type=float, default=10.0,
@@ -83,6 +88,18 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
                                   "cx, cy, baseline, doffs; a KITTI calib file (P_rect_02/"
                                   "P_rect_03 or P2/P3); or a Middlebury calib.txt (cam0, cam1, "
                                   "doffs, baseline in mm: depth in mm)")
+
+
+def parse_size(text: str) -> tuple[int, int]:
+  """`"720x1280"` (or `720,1280`) -> (720, 1280): height and width, positive integers."""
+  parts = re.split(r"[x,]", str(text).strip().lower())
+  try:
+    size = tuple(int(v) for v in parts)
+  except ValueError:
+    size = ()
+  if len(size) != 2 or min(size) < 1:
+    raise argparse.ArgumentTypeError(f"expected HEIGHTxWIDTH, e.g. 720x1280, got {text!r}")
+  return size
 
 
 def parse_formats(values: list[str] | None) -> list[str]:
@@ -249,19 +266,31 @@ def run(args: argparse.Namespace) -> int:
   variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
   print(f"weights: {described}")
   on = f"; {len(devices)} devices ({devices[0].platform})" if len(devices) > 1 else ""
-  print(f"input: {t} frames of {h}x{w} (height x width); iters {args.iters}, {cfg.dtype}{on}")
+  resize = getattr(args, "resize", None)
+  if resize == (h, w):
+    resize = None
+  at = f", run at {resize[0]}x{resize[1]}" if resize else ""
+  print(f"input: {t} frames of {h}x{w} (height x width){at}; iters {args.iters}, "
+        f"{cfg.dtype}{on}")
   start, compiled = time.perf_counter(), inference.compile_seconds()
   listed = [p.relative_to(out).as_posix() for p in outputs]
   # The windows are computed as write_outputs draws them, so the precision covers both.
   precision, precision_name = matmul_precision(args)
   with precision:
-    chunks = inference.iter_predict_video(variables, left, right, cfg=cfg, iters=args.iters,
-                                          window=args.window, stride=args.stride, progress=True,
-                                          devices=devices)
+    model_left, model_right = ((left, right) if resize is None else
+                               (video_io.ResizedSource(left, *resize),
+                                video_io.ResizedSource(right, *resize)))
+    chunks = inference.iter_predict_video(variables, model_left, model_right, cfg=cfg,
+                                          iters=args.iters, window=args.window,
+                                          stride=args.stride, progress=True, devices=devices)
+    if resize is not None:  # back to the input size, in its pixels
+      chunks = ((t0, video_io.resize_frames(d, h, w) * np.float32(w / resize[1]))
+                for t0, d in chunks)
     written = write_outputs(out, names, left, chunks, formats, calib, args, listed, stale=stale)
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
-  summary = {"tool": SUMMARY_TOOL, "frames": t, "height": h, "width": w, "iters": args.iters,
+  summary = {"tool": SUMMARY_TOOL, "frames": t, "height": h, "width": w,
+             "model_size": list(resize or (h, w)), "iters": args.iters,
              "dtype": cfg.dtype, "matmul_precision": precision_name,
              "window": args.window, "stride": args.stride, "weights": described,
              "devices": [str(d) for d in devices],

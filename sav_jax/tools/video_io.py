@@ -197,6 +197,40 @@ class FrameSource:
     return self._buffer[i]
 
 
+def resize_frames(frames, height: int, width: int) -> np.ndarray:
+  """`[N, H, W(, C)]` frames (or disparity maps) bilinearly resized to `height x width`, as
+  float32, with torch's `align_corners=True` coordinates: the official `demo.py`'s
+  `F.interpolate(..., mode="bilinear", align_corners=True)`. The same size: a float32 copy."""
+  from sav_jax.ops.resize import bilinear_taps  # pylint: disable=import-outside-toplevel
+  x = np.asarray(frames, np.float32)
+  for axis, size in ((1, int(height)), (2, int(width))):
+    if x.shape[axis] == size:
+      continue
+    i0, i1, w1 = bilinear_taps(x.shape[axis], size, True)
+    shape = [1] * x.ndim
+    shape[axis] = size
+    w = w1.reshape(shape).astype(np.float32)
+    x = (1 - w) * np.take(x, i0, axis=axis) + w * np.take(x, i1, axis=axis)
+  return np.array(x, np.float32)  # (a copy when nothing was resized)
+
+
+class ResizedSource:
+  """A lazy video source (or an array) whose frames come resized to `height x width` as
+  float32 (`resize_frames`) when read: `sav-jax infer --resize`."""
+
+  def __init__(self, source, height: int, width: int):
+    self.source = source
+    self.shape = (len(source), int(height), int(width), 3)
+
+  def __len__(self) -> int:
+    return self.shape[0]
+
+  def __getitem__(self, index) -> np.ndarray:
+    if not isinstance(index, slice):
+      return self[index:index + 1][0] if index >= 0 else self[len(self) + index]
+    return resize_frames(self.source[index], *self.shape[1:3])
+
+
 def _check_video_path(path: pathlib.Path) -> None:
   if not path.exists():
     raise FileNotFoundError(f"{path}: no such file or folder")
