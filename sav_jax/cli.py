@@ -54,7 +54,11 @@ def main(argv: list[str] | None = None) -> int:
     with command_logging(args.verbose), runtime.preserved_settings():
       return int(args._run(args) or 0)
   except (UsageError, ValueError, OSError) as e:  # OSError: a disk full, a folder not writable
-    print(f"sav-jax {args.command}: error: {e}", file=sys.stderr)
+    hint = ""
+    if (isinstance(e, MemoryError) and args.command == "infer"  # inference's memory check
+        and getattr(args, "resize", None) is None):
+      hint = "; or --resize HxW to run the model on smaller frames"
+    print(f"sav-jax {args.command}: error: {e}{hint}", file=sys.stderr)
     return 2
   except MemoryError as e:  # numpy's: sizes far beyond this machine's memory
     print(f"sav-jax {args.command}: error: out of host memory: {e} (use smaller frames, fewer "

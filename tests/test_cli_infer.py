@@ -443,7 +443,8 @@ def test_video_files_and_orbax_checkpoint(tmp_path, clip, orbax_ckpt, variables)
     np.testing.assert_array_equal(np.load(out / "disparity" / f"frame_{i:06d}.npy"), expected[i])
 
 
-def test_resize_runs_the_model_at_the_given_size(tmp_path, clip, npz_ckpt, variables, capsys):
+def test_resize_runs_the_model_at_the_given_size(tmp_path, clip, npz_ckpt, variables, capsys,
+                                                 monkeypatch):
   """--resize HxW (the official demo resizes to 720x1280): the model runs on the resized
   frames; the disparities come back at the input size, in its pixels."""
   big = {k: video_io.resize_frames(clip[k], 2 * H - 1, 2 * W - 1).round().astype(np.uint8)
@@ -470,6 +471,16 @@ def test_resize_runs_the_model_at_the_given_size(tmp_path, clip, npz_ckpt, varia
       _infer(left, right, npz_ckpt, tmp_path / "bad", "--resize", bad)
     assert "expected HEIGHTxWIDTH" in capsys.readouterr().err
   assert not (tmp_path / "bad").exists()
+  # A window too large for the memory: the line names --resize among the remedies.
+  from sav_jax.tools import infer as infer_tool  # pylint: disable=import-outside-toplevel
+
+  def too_big(args):
+    raise inference.InsufficientMemoryError("a 20-frame window of 2176x3840 (padded) needs ...")
+
+  monkeypatch.setattr(infer_tool, "run", too_big)
+  assert _infer(left, right, npz_ckpt, tmp_path / "big") == 2
+  assert capsys.readouterr().err.endswith(
+      "needs ...; or --resize HxW to run the model on smaller frames\n")
 
 
 def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
