@@ -132,6 +132,7 @@ class _Head:
     self._seq, self._n = seq, n
     self.name, self.dataset = seq.name, seq.dataset
     self.depth2disp_scale, self.sparse = seq.depth2disp_scale, seq.sparse
+    self.has_gt = getattr(seq, "has_gt", True)
 
   def __len__(self) -> int:
     return self._n

@@ -144,6 +144,10 @@ def _run_into(args, config, out) -> int:
                      f"{config.dataset} sequence {unscaled[0]} has no depth-to-disparity scale "
                      f"(no camera data; {len(unscaled)} of {len(seqs)} sequences): drop "
                      f"{' and '.join(depth_metrics)}")
+  if depth_metrics and not any(getattr(s, "has_gt", True) for s in seqs):
+    raise ValueError(f"config.{' and config.'.join(depth_metrics)}: {config.dataset} has no "
+                     "ground truth (a qualitative run: predictions and plots only), so there is "
+                     f"nothing to measure: drop {' and '.join(depth_metrics)}")
   short = [s for s in seqs if len(s) < 2]
   if depth_metrics and short:
     raise ValueError(f"config.{' and config.'.join(depth_metrics)}: temporal consistency needs "

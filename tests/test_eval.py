@@ -701,7 +701,8 @@ def test_speed_excludes_compilation_and_curves_leave_frames_without_gt_out(tmp_p
   assert epe1.shape == (1,) and tepe1.shape == (0,)
 
 
-def test_south_kensington_has_no_metrics_but_predictions_and_strips(tmp_path, ckpt, variables):
+def test_south_kensington_has_no_metrics_but_predictions_and_strips(tmp_path, ckpt, variables,
+                                                                     capsys):
   # Real stereo videos without ground truth (the official script's qualitative run).
   rng = np.random.default_rng(3)
   seq = tmp_path / "data" / "SouthKensington" / "data" / "indoor_1"
@@ -727,6 +728,12 @@ def test_south_kensington_has_no_metrics_but_predictions_and_strips(tmp_path, ck
   md = (out / "results.md").read_text()
   assert "| Stereo Any Video | " in md and "No ground truth in this dataset: no metrics" in md
   assert f"| indoor_1 | {T} | Stereo Any Video |\n" in md  # the sequence is listed
+  # TCC asked for on it ran and measured nothing, silently; refused before the run now.
+  rc = main(["--config", str(CONFIGS / "south_kensington.py"), "--checkpoint", str(ckpt),
+             "--data-root", str(tmp_path / "data"), "--out", str(tmp_path / "tcc"),
+             "--config.iters=2", "--config.metrics.tcc=true"])
+  assert rc == 2 and not (tmp_path / "tcc").exists()
+  assert "config.metrics.tcc: south_kensington has no ground truth" in capsys.readouterr().err
 
 
 def _stand_in_flow(img1, img2):
