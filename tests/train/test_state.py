@@ -939,8 +939,8 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
       ([config, "--config.train.batch_size=abc"], "flag --config.train.batch_size=abc: "
        "invalid literal for int()"),
       ([config, "--config.eval.every_steps=1", "--config.eval.dataset=foo"],
-       "config.eval.dataset='foo', config.eval.split='test', config.data.root='data/datasets': "
-       "unknown dataset 'foo'; known datasets: sceneflow"),
+       "config.eval.dataset='foo', config.eval.split='test', config.data.root='data/datasets', "
+       "config.data.crop=(32, 64): unknown dataset 'foo'; known datasets: sceneflow"),
       ([config, "--coordinator_address=localhost:1", "--num_processes=2", "--process_id=5"],
        "--coordinator_address needs --num_processes >= 1 and 0 <= --process_id < "
        "--num_processes, got --num_processes=2 --process_id=5"),
