@@ -20,8 +20,12 @@ class DepthExtractor(nn.Module):
 
   The frames are resized to the largest multiple of 14 below (bilinear,
   align_corners=False), run through VDA, resized back, and a trainable 4x4
-  stride-4 conv brings them to 1/4. VDA is frozen: its output passes through
-  `stop_gradient`, so no backward pass ever runs through the ViT.
+  stride-4 conv brings them to 1/4. VDA is frozen as in the official model (its
+  parameters `requires_grad=False`): its parameters pass through `stop_gradient` (their
+  gradient is 0), while gradients with respect to the frames flow through it as in PyTorch,
+  for pipelines that differentiate the disparity with respect to the images. A training
+  step, which differentiates with respect to the trainable parameters only, runs no backward
+  pass through the ViT (nothing trainable is behind it).
 
   `tokens` (per frame) and `from_tokens` (per clip: VDA's head is temporal) split
   the computation so that long-video inference can reuse the per-frame part.
@@ -41,7 +45,12 @@ class DepthExtractor(nn.Module):
     if h < PATCH or w < PATCH:
       raise ValueError(f"frames of {h}x{w} are too small for the depth prior (min 14x14)")
     xr = resize(x, ((h // PATCH) * PATCH, (w // PATCH) * PATCH), "bilinear", False)
-    return self.depthanything.tokens(xr)
+    return self._frozen(lambda mdl, xr: mdl.depthanything.tokens(xr))(self, xr)
+
+  def _frozen(self, fn):
+    """`fn(module, ...)` with the depth prior's parameters behind `stop_gradient`."""
+    return nn.map_variables(fn, "params", trans_in_fn=_stop_prior_gradient,
+                            init=self.is_initializing())
 
   def from_tokens(self, tokens: list[jax.Array], b: int, t: int, h: int, w: int) -> jax.Array:
     """Args: `tokens` of `b*t` frames (clip-major) of size `h x w`. Returns `[b, t, h/4, w/4, 32]`.
@@ -51,8 +60,9 @@ class DepthExtractor(nn.Module):
     `cfg.frame_block_mb` (`in_frame_blocks`; at 720x1280, 118 MB per frame).
     """
     grid = (h // PATCH, w // PATCH)
-    feats = self.depthanything.head_from_tokens(tokens, grid, b, t, resize_output=False)
-    feats = jax.lax.stop_gradient(feats.reshape(b * t, *feats.shape[2:]))
+    feats = self._frozen(lambda mdl, tokens: mdl.depthanything.head_from_tokens(
+        tokens, grid, b, t, resize_output=False))(self, tokens)
+    feats = feats.reshape(b * t, *feats.shape[2:])
 
     def tail(mdl, x):
       x = resize_head_output(x, grid).astype(jnp.float32)
@@ -66,3 +76,14 @@ class DepthExtractor(nn.Module):
     """Args: x `[B, T, H, W, 3]` normalised. Returns `[B, T, H/4, W/4, 32]`."""
     b, t, h, w, c = x.shape
     return self.from_tokens(self.tokens(x.reshape(b * t, h, w, c)), b, t, h, w)
+
+
+def _stop_prior_gradient(variables):
+  """The `depthanything` parameters of `variables` (a module's collections) behind
+  `stop_gradient`; the rest as they are."""
+  params = variables.get("params")
+  if not params or "depthanything" not in params:
+    return variables
+  params = dict(params, depthanything=jax.tree_util.tree_map(jax.lax.stop_gradient,
+                                                             params["depthanything"]))
+  return dict(variables, params=params)

@@ -293,6 +293,27 @@ def test_gradients_are_finite_and_the_depth_prior_is_frozen(variables, clip):
   assert np.abs(g_vars["params"]["depthnet"]["conv"]["kernel"]).max() > 0
 
 
+def test_gradients_reach_the_frames_through_the_frozen_depth_prior(variables):
+  """As in PyTorch, where the prior's parameters have requires_grad=False but nothing detaches
+  its output: the depth features depend on the frames in the gradient too (a stop_gradient
+  on the prior's output made that part of d disparity / d frames 0), while the prior's
+  parameters get none."""
+  from sav_jax.model.depth import DepthExtractor  # pylint: disable=import-outside-toplevel
+  depth = DepthExtractor(sav_jax.SAVConfig())
+  dv = {"params": variables["params"]["depthnet"]}
+  x = jnp.asarray(np.random.default_rng(4).normal(size=(1, 2, 28, 56, 3)), jnp.float32)
+
+  @jax.jit
+  def grads(dv, x):
+    return jax.grad(lambda dv, x: depth.apply(dv, x).sum(), argnums=(0, 1))(dv, x)
+
+  g_vars, g_x = grads(dv, x)
+  assert np.abs(np.asarray(g_x)).mean() > 0 and np.isfinite(np.asarray(g_x)).all()
+  assert all(np.abs(np.asarray(v)).max() == 0
+             for v in jax.tree_util.tree_leaves(g_vars["params"]["depthanything"]))
+  assert np.abs(np.asarray(g_vars["params"]["conv"]["kernel"])).max() > 0
+
+
 def _primitive_counts(jaxpr, counts=None) -> dict:
   """How often each primitive occurs in `jaxpr` and in every jaxpr nested in it."""
   counts = {} if counts is None else counts
