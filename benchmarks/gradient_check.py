@@ -8,7 +8,11 @@ this script compares the backward pass. Both models get the fixtures' determinis
 `SAV_FIXTURES`) and the same frames (`--frames` x `--height` x `--width`, uniform 0..255,
 the right view the left shifted by 3 px), and differentiate
 `loss = mean |disparity_final - 3|` (the test-mode output, `iters=--iters`) with respect to
-the left and right frames and to every parameter. The official side runs in a separate
+the left and right frames and to every parameter; with `--training-loss`, the training loss
+instead: every prediction of the three scales (`test_mode=False` there) against a
+ground truth of `3 + 2 sin(x / 5)` px (invalid in one corner), weighted as the official
+sequence loss (`train/loss.py`'s `sequence_loss` here; the same formula written in torch for
+the official side, whose repository does not ship its loss file). The official side runs in a separate
 Python with torch (`--torch-interpreter`; `pip install torch==2.13.0 easydict einops opt_einsum
 unfoldNd scipy opencv-python-headless tqdm`), importing the official code from `--repo` as
 `benchmarks/official_torch.py` does (nothing of it is copied here); sav-jax runs here, in
@@ -45,6 +49,8 @@ def parse_args(argv=None):
   p.add_argument("--height", type=int, default=32)
   p.add_argument("--width", type=int, default=64)
   p.add_argument("--iters", type=int, default=2)
+  p.add_argument("--training-loss", action="store_true",
+                 help="differentiate the training loss over all predictions instead")
   p.add_argument("--torch-out", help=argparse.SUPPRESS)  # the official side's own run
   return p.parse_args(argv)
 
@@ -54,6 +60,15 @@ def frames(a) -> tuple[np.ndarray, np.ndarray]:
   rng = np.random.default_rng(0)
   left = rng.uniform(0, 255, (1, a.frames, a.height, a.width, 3)).astype(np.float32)
   return left, np.roll(left, -3, axis=3)
+
+
+def ground_truth(a) -> tuple[np.ndarray, np.ndarray]:
+  """`[1, T, H, W]` disparity and validity for `--training-loss`."""
+  x = np.arange(a.width, dtype=np.float32)
+  disparity = np.broadcast_to(3 + 2 * np.sin(x / 5), (1, a.frames, a.height, a.width))
+  valid = np.ones(disparity.shape, bool)
+  valid[..., :a.height // 4, :a.width // 4] = False
+  return np.ascontiguousarray(disparity, np.float32), valid
 
 
 def weights(a) -> dict:
@@ -72,8 +87,19 @@ def torch_side(a) -> None:
     param.requires_grad_("depthanything" not in name)
   left, right = (torch.from_numpy(np.ascontiguousarray(x.transpose(0, 1, 4, 2, 3))
                                   ).requires_grad_(True) for x in frames(a))
-  out = model(left, right, iters=a.iters, test_mode=True)
-  loss = (out - 3).abs().mean()
+  if a.training_loss:  # [N, T, B, 1, H, W]: positive = disparity (the training target)
+    preds = torch.stack(list(model(left, right, iters=a.iters, test_mode=False)))[:, :, :, 0]
+    gt, valid = (torch.from_numpy(z.transpose(1, 0, 2, 3)) for z in ground_truth(a))
+    n = preds.shape[0]
+    gamma = 0.9 ** (15 / (n - 1)) if n > 1 else 1.0
+    loss = 0
+    for i in range(n):  # per frame: the mean over its valid pixels, then over the frames
+      err = (preds[i] - gt).abs()
+      per_frame = torch.stack([err[t][valid[t]].mean() for t in range(gt.shape[0])])
+      loss = loss + gamma ** (n - 1 - i) * per_frame.mean()
+  else:
+    out = model(left, right, iters=a.iters, test_mode=True)
+    loss = (out - 3).abs().mean()
   loss.backward()
   grads = {f"param/{n}": p.grad.numpy() for n, p in model.named_parameters()
            if p.grad is not None}
@@ -94,6 +120,11 @@ def jax_side(a) -> dict:
   model = sav_jax.StereoAnyVideo(cfg)
 
   def loss(v, left, right):
+    if a.training_loss:
+      sys.path.insert(0, str(HERE.parent))  # the repository: `train` is not installed
+      from train.loss import sequence_loss  # pylint: disable=import-outside-toplevel
+      out = model.apply(v, left, right, iters=a.iters).disparities
+      return sequence_loss(out, *(jnp.asarray(z) for z in ground_truth(a)))[0]
     out = model.apply(v, left, right, iters=a.iters, final_only=True).disparities
     return jnp.abs(out - 3).mean()
 
