@@ -833,6 +833,7 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
   if cache is not None:  # (predict_video's own caches see one video: no frame check there)
     cache.check_use(left.shape, pads, cfg, start, variables)
     cache.check_frames(left, right, start)
+  variables = _on_one_device(variables)  # (after the cache's check of the caller's arrays)
   # a writeable copy (a device array's numpy view is read-only)
   return np.array(_run_window(variables, left, right, cfg=cfg, iters=iters, pads=pads,
                               check_memory=check_memory, cache=cache, start=start))
@@ -841,7 +842,7 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
 def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache, start):
   """`run_window` on inputs already checked (by `predict_video`)."""
   cache = FrameFeatureCache() if cache is None else cache
-  variables = _on_one_device(model_variables(variables))
+  variables = model_variables(variables)
   cache.evict_before(start)
   todo = _feature_todo(cache.frames, cache.chunk, start, left.shape[0])
   programs = _window_programs(variables, left.shape, pads, todo, cfg=cfg, iters=iters,
