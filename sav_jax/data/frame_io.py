@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import os
 import tokenize
+import warnings
 import zipfile
 import zlib
 from pathlib import Path
@@ -115,7 +116,8 @@ def read_image(path: PathLike) -> np.ndarray:
   """Reads an 8-bit PNG/JPEG image as RGB.
 
   16-bit images are reduced to their high byte (no dataset here ships them; the
-  official `astype(uint8)` would wrap instead).
+  official `astype(uint8)` would wrap instead). A 16-bit image whose values all fit in
+  0..255 (8-bit content in a 16-bit file) then turns black: that is warned, once per folder.
 
   Args:
     path: image file.
@@ -125,6 +127,7 @@ def read_image(path: PathLike) -> np.ndarray:
   """
   img = decode_image_file(path)
   if img.dtype == np.uint16:
+    _warn_low_range_16bit(path, img)
     img = (img >> 8).astype(np.uint8)
   elif img.dtype != np.uint8:
     raise ValueError(f"unsupported image dtype {img.dtype} in {path}")
@@ -135,6 +138,21 @@ def read_image(path: PathLike) -> np.ndarray:
   if img.shape[2] == 4:
     return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
   return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+_LOW_RANGE_WARNED: set[str] = set()
+
+
+def _warn_low_range_16bit(path: PathLike, img: np.ndarray) -> None:
+  """Warns (once per folder) that a 16-bit frame holding only 0..255 reads as black."""
+  folder = str(Path(path).parent)
+  if folder in _LOW_RANGE_WARNED or int(img.max()) > 255:
+    return
+  _LOW_RANGE_WARNED.add(folder)
+  warnings.warn(f"{path} is a 16-bit image whose values all fit in 0..255 (max "
+                f"{int(img.max())}): 16-bit frames are read by their high byte, so it reads as "
+                "black; save 8-bit content as 8-bit images (this is said once per folder)",
+                stacklevel=3)
 
 
 def read_png_uint16(path: PathLike) -> np.ndarray:

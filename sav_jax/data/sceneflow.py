@@ -65,6 +65,12 @@ def _subset_sequences(root: Path, subset: str, split: str, pass_name: str,
     level = [d for parent in level for d in list_dirs(parent)]
   refuse_broken_links([d / "left" for d in level])
   seq_dirs = sorted(d for d in level if (d / "left").is_dir())
+  # A sequence with its right views but no left/ (a half-extracted archive) would be left out
+  # silently by the official glob over left/; here it is named.
+  no_left = sorted(str(d) for d in level if (d / "right").is_dir() and not (d / "left").is_dir())
+  if no_left:
+    raise FileNotFoundError(f"{subset} sequence folder(s) with right/ but no left/ (an "
+                            f"incomplete extraction?): {', '.join(no_left)}")
   if not seq_dirs:
     raise FileNotFoundError(f"no {subset} sequences (<seq>/left/) under {base}")
   return [_sequence(subset, d, pass_dir, dataset) for d in seq_dirs]

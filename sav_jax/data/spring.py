@@ -20,6 +20,7 @@ Scale: fx of the first intrinsics row times 0.065 m. Only the train half has GT:
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -43,9 +44,9 @@ class SpringSequence(StereoSequence):
 
 def read_fx(path: Path) -> float:
   """fx of the first row of a Spring `intrinsics.txt`."""
-  path = frame_io.require_file(path, "Spring intrinsics")
+  text = frame_io.read_text(path, "Spring intrinsics")
   try:
-    return float(np.loadtxt(path, ndmin=2)[0, 0])
+    return float(np.loadtxt(io.StringIO(text), ndmin=2)[0, 0])
   except (ValueError, IndexError) as e:
     raise ValueError(f"malformed Spring intrinsics: {path}") from e
 

@@ -7,6 +7,7 @@ PNG/JPEG, OpenEXR, h5py, numpy) or byte by byte from the format's specification
 
 import struct
 import sys
+import warnings
 
 import cv2
 import numpy as np
@@ -113,6 +114,24 @@ def test_read_image_colour_grey_alpha_and_16_bit(tmp_path):
   np.testing.assert_array_equal(frame_io.read_image(tmp_path / "a.png"), rgb)
   cv2.imwrite(str(tmp_path / "w.png"), rgb[..., ::-1].astype(np.uint16) * 257)
   np.testing.assert_array_equal(frame_io.read_image(tmp_path / "w.png"), rgb)
+
+
+def test_read_image_warns_on_8bit_content_in_16bit_files(tmp_path):
+  # 0..255 values in a 16-bit file read as black (high byte): said, once per folder.
+  for folder in ("a", "b"):
+    (tmp_path / folder).mkdir()
+    for i in range(2):
+      cv2.imwrite(str(tmp_path / folder / f"{i}.png"), np.full((4, 5), 200, np.uint16))
+  with pytest.warns(UserWarning, match=r"a/0\.png is a 16-bit image whose values all fit in "
+                    r"0\.\.255 \(max 200\)"):
+    assert frame_io.read_image(tmp_path / "a" / "0.png").max() == 0
+  with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    frame_io.read_image(tmp_path / "a" / "1.png")
+    frame_io.read_image(tmp_path / "b" / "0.png")
+    cv2.imwrite(str(tmp_path / "full.png"), np.full((4, 5), 40000, np.uint16))
+    assert frame_io.read_image(tmp_path / "full.png").max() == 40000 >> 8
+  assert [str(w.message).split(" is ")[0] for w in caught] == [str(tmp_path / "b" / "0.png")]
 
 
 def test_read_image_jpeg_and_errors(tmp_path):

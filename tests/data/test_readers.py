@@ -130,6 +130,13 @@ def test_sceneflow_nan_disparity_and_broken_links(tmp_path):
       with pytest.raises(FileNotFoundError, match=f"{link}: a symbolic link to a missing"):
         registry.get_sequences("sceneflow", tmp_path, "train")
     link.unlink()
+  # A sequence folder with its right views and GT but no left/ (a half-extracted archive)
+  # was left out silently.
+  half = monkaa / "eating_x2"
+  shutil.copytree(monkaa / "a_rain_of_stones_x2" / "right", half / "right")
+  with pytest.raises(FileNotFoundError, match=f"right/ but no left/.*{half}"):
+    registry.get_sequences("monkaa", tmp_path, "train")
+  shutil.rmtree(half)
   left = monkaa / "a_rain_of_stones_x2" / "left"
   left.rename(tmp_path / "moved")
   left.symlink_to(tmp_path / "nowhere")
@@ -533,6 +540,10 @@ def test_spring_dsp5(tmp_path, layout):
     with pytest.raises(ValueError, match=r"disp1_left_0002\.dsp5, array 'disparity': holds .* "
                        "values, not real numbers"):
       seq[1]
+  # A byte-order mark (a file saved by a Windows editor) was glued to fx and refused.
+  (dirs[3] / "intrinsics.txt").write_bytes(b"\xef\xbb\xbf1400.5 1400.5 960 540\n")
+  assert registry.get_sequences("spring", tmp_path, "test")[0].depth2disp_scale == \
+      pytest.approx(1400.5 * 0.065)
   (dirs[3] / "intrinsics.txt").write_text("0 0 0 0\n")  # fx = 0: the scale would be 0
   with pytest.raises(ValueError, match=r"intrinsics\.txt: the focal length fx is 0"):
     registry.get_sequences("spring", tmp_path, "test")
