@@ -431,11 +431,14 @@ def test_read_video_file_checks_the_name_and_every_frame(tmp_path, clip, monkeyp
 
 
 def test_video_files_and_orbax_checkpoint(tmp_path, clip, orbax_ckpt, variables):
-  viz.write_video(tmp_path / "left.mp4", clip["left"])
-  viz.write_video(tmp_path / "right.mp4", clip["right"])
+  viz.write_video(tmp_path / "left.mp4", clip["left"], fps=5)
+  viz.write_video(tmp_path / "right.mp4", clip["right"], fps=5)
   out = tmp_path / "out"
   assert _infer(tmp_path / "left.mp4", tmp_path / "right.mp4", orbax_ckpt, out,
                 "--format", "npy") == 0
+  # The output video plays at the input video's rate (it was always 10 fps).
+  assert video_io.video_fps(out / "side_by_side.mp4") == 5.0
+  assert json.loads((out / "summary.json").read_text())["video_fps"] == 5.0
   left = video_io.read_video_file(tmp_path / "left.mp4")
   right = video_io.read_video_file(tmp_path / "right.mp4")
   expected = inference.predict_video(variables, left, right, iters=ITERS)
@@ -456,13 +459,21 @@ def test_resize_runs_the_model_at_the_given_size(tmp_path, clip, npz_ckpt, varia
   assert f"input: {T} frames of {2 * H - 1}x{2 * W - 1} (height x width), run at {H}x{W}" in \
       capsys.readouterr().out
   small = [video_io.resize_frames(big[k].astype(np.float32), H, W) for k in ("left", "right")]
+  # A disparity of 1 resized pixel is the distance between neighbouring resized columns in
+  # input pixels: (2W - 2) / (W - 1) = 2 with align_corners (the width ratio (2W - 1) / W was
+  # 2-3% short at these sizes).
+  ramp = video_io.resize_frames(np.broadcast_to(np.arange(2 * W - 1, dtype=np.float32),
+                                                (1, 2, 2 * W - 1)), 2, W)
+  np.testing.assert_allclose(np.diff(ramp[0, 0]), 2.0, rtol=1e-6)
+  assert video_io.align_corners_scale(2 * W - 1, W) == 2.0
   expected = video_io.resize_frames(inference.predict_video(variables, *small, iters=ITERS),
-                                    2 * H - 1, 2 * W - 1) * np.float32((2 * W - 1) / W)
+                                    2 * H - 1, 2 * W - 1) * np.float32(2.0)
   got = np.stack([np.load(out / "disparity" / f"{i:04d}.npy") for i in range(T)])
   assert got.shape == (T, 2 * H - 1, 2 * W - 1)
   np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6)
   summary = json.loads((out / "summary.json").read_text())
   assert summary["model_size"] == [H, W] and summary["width"] == 2 * W - 1
+  assert summary["video_fps"] == 10.0  # frame folders: no rate of their own
   # torch's align_corners=True bilinear, by hand on one row: ends kept, the middle blended
   row = np.array([[[0.0, 10.0, 30.0]]], np.float32)
   np.testing.assert_allclose(video_io.resize_frames(row, 1, 5), [[[0, 5, 10, 20, 30]]])
@@ -496,6 +507,12 @@ def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
   lv, rv, names = video_io.load_stereo(left, right, max_frames=2)
   assert lv.shape == rv.shape == (2, H, W, 3) and names == ["0000", "0001"]
   np.testing.assert_array_equal(lv[0, ..., 0], np.round(grey[0] / 257))
+  assert "below 4096" not in caplog.text  # these use the 16-bit range
+  # 12-bit data in 16-bit files comes out nearly black: said (it was not).
+  notes = set()
+  frame = video_io.to_rgb8((grey[0] // 16).astype(np.uint16), "twelve.png", notes)
+  assert frame.max() <= 16
+  assert any("only values below 4096 (10- or 12-bit data?)" in n for n in notes)
 
 
 def test_bfloat16(tmp_path, folders, orbax_ckpt, variables, clip):

@@ -62,11 +62,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  help="run the model on the frames resized to HxW (bilinear, align_corners as "
                       "the official demo.py, which uses 720x1280): less memory and time for "
                       "large frames; the disparities are resized back to the input size and "
-                      "scaled by its width ratio (input pixels); default: the input size")
+                      "scaled to its pixels ((W-1)/(w-1) for align_corners); default: the "
+                      "input size")
   p.add_argument("--window", type=int, default=20, help="frames per sliding window (20)")
   p.add_argument("--stride", type=int, default=10, help="sliding window stride (10)")
-  p.add_argument("--fps", type=float, default=10.0,
-                 help="frame rate of the output video (default 10)")
+  p.add_argument("--fps", type=float, default=None,
+                 help="frame rate of the output video (default: the left input video's, "
+                      "10 for frame folders)")
   add_matmul_precision_argument(p)
   add_devices_argument(p)
   add_compile_cache_arguments(p)
@@ -235,13 +237,16 @@ def run(args: argparse.Namespace) -> int:
   formats = parse_formats(args.formats)
   check_model_args(args.iters, args.window, args.stride)
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
-  viz.check_fps(args.fps, "--fps")
+  if args.fps is not None:
+    viz.check_fps(args.fps, "--fps")
   calib_spec = calibration_from_args(args)
   ckpt = pathlib.Path(args.checkpoint)
   if not ckpt.exists():
     raise FileNotFoundError(f"checkpoint not found: {ckpt}")
   left, right, names = video_io.open_stereo(args.left, args.right, args.max_frames)
   t, h, w = left.shape[:3]
+  if args.fps is None:  # the input video's rate, so that the output plays at its speed
+    args.fps = getattr(left, "fps", None) or 10.0
   calib = None if calib_spec is None else calib_spec.resolve(w, h)
   if args.depth_format is not None and calib is None:
     raise UsageError("--depth-format applies to metric depth: give a calibration too")
@@ -284,15 +289,15 @@ def run(args: argparse.Namespace) -> int:
                                           iters=args.iters, window=args.window,
                                           stride=args.stride, progress=True, devices=devices)
     if resize is not None:  # back to the input size, in its pixels
-      chunks = ((t0, video_io.resize_frames(d, h, w) * np.float32(w / resize[1]))
-                for t0, d in chunks)
+      chunks = ((t0, video_io.disparities_to_input_size(d, h, w)) for t0, d in chunks)
     written = write_outputs(out, names, left, chunks, formats, calib, args, listed, stale=stale)
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
   summary = {"tool": SUMMARY_TOOL, "frames": t, "height": h, "width": w,
              "model_size": list(resize or (h, w)), "iters": args.iters,
              "dtype": cfg.dtype, "matmul_precision": precision_name,
-             "window": args.window, "stride": args.stride, "weights": described,
+             "window": args.window, "stride": args.stride, "video_fps": args.fps,
+             "weights": described,
              "devices": [str(d) for d in devices],
              "left": str(args.left), "right": str(args.right), "formats": formats,
              "seconds": round(seconds, 3), "frames_per_second": round(t / seconds, 3),

@@ -54,6 +54,9 @@ def to_rgb8(img: np.ndarray, source: str, notes: set[str]) -> np.ndarray:
   """
   if img.dtype == np.uint16:
     notes.add("16-bit frames converted to 8 bits (round(v / 257))")
+    if int(img.max()) < 4096:  # 10- or 12-bit sensor data: 0..16 after the conversion
+      notes.add("some 16-bit frames use only values below 4096 (10- or 12-bit data?): they "
+                "come out nearly black; scale them to the 16-bit range or save 8-bit frames")
     img = np.round(img.astype(np.float32) / 257.0).astype(np.uint8)
   elif img.dtype != np.uint8:
     raise ValueError(f"{source}: unsupported pixel type {img.dtype} (expected 8- or 16-bit "
@@ -163,6 +166,7 @@ class FrameSource:
       count, (h, w) = count + 1, frame.shape[:2]
     self.names = _frame_names(self._files, count)
     self.shape = (count, h, w, 3)
+    self.fps = None if self._files is not None else video_fps(self.path)
     self._reader, self._next, self._buffer = None, 0, {}
 
   def __len__(self) -> int:
@@ -214,6 +218,23 @@ def resize_frames(frames, height: int, width: int) -> np.ndarray:
   return np.array(x, np.float32)  # (a copy when nothing was resized)
 
 
+def align_corners_scale(size: int, resized: int) -> float:
+  """Input pixels per resized pixel along an axis of `size` resized to `resized` with
+  `align_corners=True` (resized position x maps to x * (size - 1) / (resized - 1)): the
+  factor that takes a disparity measured on the resized frames to the input's pixels. (The
+  plain ratio size / resized is off by up to a few percent for small sizes.)"""
+  return (size - 1) / (resized - 1) if resized > 1 and size > 1 else size / resized
+
+
+def disparities_to_input_size(disparities, height: int, width: int) -> np.ndarray:
+  """`[N, h, w]` disparities computed on frames resized to `h x w` (`resize_frames`), back
+  at the input's `height x width`, in its pixels: resized the same way and scaled by
+  `align_corners_scale(width, w)`."""
+  d = np.asarray(disparities, np.float32)
+  scale = np.float32(align_corners_scale(int(width), d.shape[2]))
+  return resize_frames(d, height, width) * scale
+
+
 class ResizedSource:
   """A lazy video source (or an array) whose frames come resized to `height x width` as
   float32 (`resize_frames`) when read: `sav-jax infer --resize`."""
@@ -237,6 +258,16 @@ def _check_video_path(path: pathlib.Path) -> None:
   if path.suffix.lower() not in VIDEO_EXTENSIONS:
     raise ValueError(f"{path}: expected a frame folder or a video file "
                      f"({'/'.join(VIDEO_EXTENSIONS)})")
+
+
+def video_fps(path) -> float | None:
+  """The frame rate a video file declares, or None where it declares none usable."""
+  cap = cv2.VideoCapture(str(path))
+  try:
+    fps = float(cap.get(cv2.CAP_PROP_FPS)) if cap.isOpened() else 0.0
+  finally:
+    cap.release()
+  return fps if np.isfinite(fps) and 0.01 <= fps <= 65535 else None
 
 
 def _decode(path, max_frames: int | None, notes: set[str]):
