@@ -11,6 +11,7 @@ saves a checkpoint of the step it is on and exits with status 143; the same comm
 """
 
 import logging
+import pathlib
 import re
 import sys
 import traceback
@@ -150,11 +151,30 @@ def main(argv):
     else:
       print(f"train: error: {e} (-v 1 for the traceback)", file=sys.stderr)
     sys.exit(2)
+  except KeyboardInterrupt:
+    _interrupted()
   try:
     loop.run(config, _WORKDIR.value, parts)
   except loop.Preempted as e:  # SIGTERM: a checkpoint was saved; 143 = 128 + SIGTERM
     print(f"train: {e}", file=sys.stderr)
     sys.exit(143)
+  except KeyboardInterrupt:
+    _interrupted()
+
+
+def _interrupted() -> None:
+  """Ctrl-C: one line that says where the run can resume from (not the traceback of where
+  the interrupt landed), status 130 = 128 + SIGINT. A save in progress was finished first
+  (`loop.interrupt_after`)."""
+  from sav_jax.convert import orbax_io  # pylint: disable=g-import-not-at-top
+  try:
+    latest = orbax_io.find_training_checkpoint(pathlib.Path(_WORKDIR.value) / "checkpoints")
+  except OSError:
+    latest = None
+  where = (f"the last checkpoint is {latest}: the same command resumes from it" if latest
+           else "no checkpoint was saved: the same command starts the run anew")
+  print(f"train: interrupted (Ctrl-C); {where}", file=sys.stderr)
+  sys.exit(130)
 
 
 if __name__ == "__main__":

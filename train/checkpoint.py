@@ -161,6 +161,29 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
   return manager.save(step, args=args, force=force)
 
 
+def check_keep(manager: ocp.CheckpointManager, step: int, config) -> None:
+  """Raises CheckpointError where this run's `checkpoint.keep` would delete checkpoints an
+  earlier keep policy kept: orbax prunes every step of the folder beyond the last `keep` at
+  the first save, so a run resumed without its `--config.checkpoint.keep=0` (the default is
+  3) deleted the older checkpoints, a finished run's included, without a word. The same keep
+  as the saving run's (the latest checkpoint's config) prunes as that run would have."""
+  keep = int(config.checkpoint.keep)
+  steps = sorted(manager.all_steps())
+  if keep <= 0 or len(steps) <= keep:
+    return
+  saved = saved_run(manager, step).get("checkpoint.keep")
+  if saved == keep:
+    return
+  earlier = (f"saved with config.checkpoint.keep={saved}" if saved is not None
+             else "saved before the keep policy was recorded")
+  doomed = steps[:len(steps) - keep]
+  raise sav_jax.convert.CheckpointError(
+      f"{manager.directory} holds {len(steps)} checkpoints ({earlier}); this run's "
+      f"config.checkpoint.keep={keep} would delete {doomed} at its first save. Pass "
+      f"--config.checkpoint.keep={saved if saved is not None else 0} to keep them (0 keeps "
+      f"all), or move the ones you do not need out of that folder first")
+
+
 def check_data_state(manager: ocp.CheckpointManager, step: int, config) -> None:
   """Raises CheckpointError unless this run can restore the data-iterator state of
   checkpoint `step`: grain saves one position per process (`process_<i>-of-<P>.json`),

@@ -105,7 +105,14 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     step = manager.latest_step()
     log.info("resuming from checkpoint %d", step)
     ckpt_lib.check_data_state(manager, step, config)
+    ckpt_lib.check_keep(manager, step, config)
     changed = ckpt_lib.changed_fields(manager, step, config)
+    saved = ckpt_lib.saved_run(manager, step)
+    for field in ("init_from", "vda_weights"):  # never read on resume: say so if new
+      if config[field] and saved and config[field] != saved.get(field):
+        log.warning("config.%s=%s is not used: this run resumes from checkpoint %d in %s "
+                    "(a workdir's own checkpoints come first); to start from %s, use a new "
+                    "--workdir", field, config[field], step, manager.directory, config[field])
     try:
       state = ckpt_lib.restore(manager, abstract, shardings, data_iterator)
     except sav_jax.convert.CheckpointError as e:
@@ -118,7 +125,7 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
       log.warning("resuming with %d config fields changed since checkpoint %d: %s",
                   len(changed), step, "; ".join(changed))
       note = optim.schedule_change_note(config.optimizer, config.train.num_steps, step,
-                                        ckpt_lib.saved_run(manager, step))
+                                        saved)
       if note:
         log.warning("%s", note)
     return state, shardings, "checkpoint"

@@ -323,7 +323,7 @@ def test_place_params_rejects_mismatches():
     state_lib.place_params(host, abstract, state_lib.make_mesh())
 
 
-def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path):
+def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path, caplog):
   from sav_jax.convert import save_variables  # pylint: disable=g-import-not-at-top
   from train import loop  # pylint: disable=g-import-not-at-top
   c = _config()
@@ -358,8 +358,48 @@ def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path):
   assert ckpt_lib.changed_fields(manager, 7, c) == [  # keep: where and how, not what
       f"optimizer.lr: {_config().optimizer.lr!r} -> 0.5",
       f"train.num_steps: {_config().train.num_steps} -> {_config().train.num_steps + 1}"]
-  resumed, _, source = loop.initial_state(c, model, tx, mesh, manager, it)
+  with caplog.at_level(logging.WARNING):
+    resumed, _, source = loop.initial_state(c, model, tx, mesh, manager, it)
   assert source == "checkpoint" and int(resumed.step) == 7  # the checkpoint wins
+  assert "is not used" not in caplog.text  # the saving run's own init_from: no news
+  # Another init_from than the saving run's is not read either: said (it was silent).
+  c.init_from = str(tmp_path / "w2")
+  with caplog.at_level(logging.WARNING):
+    loop.initial_state(c, model, tx, mesh, manager, it)
+  assert (f"config.init_from={tmp_path / 'w2'} is not used: this run resumes from checkpoint "
+          "7 in ") in caplog.text
+
+
+def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(tmp_path):
+  # A run saved with keep=0 (all), resumed without repeating it (the default keeps 3): orbax
+  # deleted the older checkpoints at the first save, the finished run's last one included.
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.checkpoint.async_save, c.checkpoint.keep = False, 0
+  model, mesh = ToyStereo(), state_lib.make_mesh()
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
+  src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
+                                                  max_disparity=8.0), 10)
+  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1))
+  manager = ckpt_lib.make_manager(tmp_path, c)
+  state, _, _ = loop.initial_state(c, model, tx, mesh, manager, it)
+  for step in (1, 2, 3, 4):
+    ckpt_lib.save(manager, state.replace(step=jnp.asarray(step, jnp.int32)), it, step,
+                  force=True, run_config=c)
+  manager.wait_until_finished()
+  c.checkpoint.keep = 2
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"holds 4 checkpoints \(saved with config.checkpoint.keep=0\); this "
+                     r"run's config.checkpoint.keep=2 would delete \[1, 2\] at its first save. "
+                     r"Pass --config.checkpoint.keep=0 to keep them"):
+    loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c), it)
+  folder = tmp_path / "checkpoints"
+  assert sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) == [1, 2, 3, 4]
+  for keep in (0, 4, 9):  # the same policy, or one that deletes nothing: resumed
+    c.checkpoint.keep = keep
+    _, _, source = loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c),
+                                      it)
+    assert source == "checkpoint"
 
 
 def test_vda_weights_load_into_the_real_model(tmp_path, vda_state_dict):
@@ -1286,3 +1326,26 @@ def test_validation_clips_that_cannot_be_used_name_the_config_fields(monkeypatch
     input_lib.eval_clips(c)
   c.data.crop = (16, 32)
   assert [x["left"].shape[1:3] for x in input_lib.eval_clips(c)] == [(16, 32)] * 3
+
+
+@pytest.mark.parametrize("during", ["setup", "run"])
+def test_ctrl_c_ends_the_train_command_with_one_line(toy_run, tmp_path, during):
+  # Ctrl-C printed a ~40-line KeyboardInterrupt traceback of wherever it landed; now one line
+  # that says where the run resumes from, status 130 (128 + SIGINT).
+  import subprocess  # pylint: disable=g-import-not-at-top
+  from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
+  code = ("import runpy, sys\nfrom train import loop\n"
+          "def interrupt(*a, **k):\n  raise KeyboardInterrupt\n"
+          f"loop.setup = {'interrupt' if during == 'setup' else 'lambda *a, **k: {}'}\n"
+          "loop.run = interrupt\n"
+          "sys.argv = ['train', '--config', 'configs/synthetic.py', '--workdir', sys.argv[1]]\n"
+          "runpy.run_module('train', run_name='__main__')\n")
+  for workdir, says in ((toy_run[0], f"the last checkpoint is {toy_run[0] / 'checkpoints' / '1'}:"
+                         " the same command resumes from it"),
+                        (tmp_path / "new", "no checkpoint was saved: the same command starts "
+                         "the run anew")):
+    proc = subprocess.run([sys.executable, "-c", code, str(workdir)], cwd=ROOT,
+                          env=child_env(tmp_path / "cache"), capture_output=True, text=True,
+                          timeout=300, check=False)
+    assert proc.returncode == 130, proc.stderr[-2000:]
+    assert proc.stderr.strip() == f"train: interrupted (Ctrl-C); {says}", proc.stderr[-2000:]
