@@ -160,6 +160,14 @@ def main(argv):
     sys.exit(143)
   except KeyboardInterrupt:
     _interrupted()
+  except loop.ckpt_lib.CheckpointSaveError as e:  # a full disk: one line, not orbax's chains
+    if flags.FLAGS.verbosity >= 1:
+      traceback.print_exc()
+    print(f"train: error: {e}", file=sys.stderr)
+    # orbax's write coroutines still pending are collected as Python shuts down, each printing
+    # "Exception ignored in ..." (hundreds): the error above says it all.
+    sys.unraisablehook = lambda _: None
+    sys.exit(1)
 
 
 def _interrupted() -> None:

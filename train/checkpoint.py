@@ -21,6 +21,7 @@ Video Depth Anything file for the frozen prior), else random initialisation.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import pathlib
@@ -158,7 +159,47 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
   args = ocp.args.Composite(state=ocp.args.StandardSave(_state_dict(state)),
                             data=grain.checkpoint.CheckpointSave(data_iterator),
                             config=ocp.args.JsonSave(config))
-  return manager.save(step, args=args, force=force)
+  with _naming_save_errors(manager):
+    return manager.save(step, args=args, force=force)
+
+
+class CheckpointSaveError(RuntimeError):
+  """Writing a checkpoint failed (a full disk, a quota, a storage error): the run cannot go on
+  without losing its progress. The checkpoints written before are intact, and the unfinished
+  save is removed at the next start."""
+
+
+_TMP_STEP = re.compile(r"/(\d+)\.orbax-checkpoint-tmp")
+
+
+@contextlib.contextmanager
+def _naming_save_errors(manager: ocp.CheckpointManager):
+  """Turns orbax's error from a checkpoint write (raised from its background thread, at the
+  next save or wait, as a long chain through its futures) into a CheckpointSaveError that
+  names the step, the folder and the cause in one line."""
+  try:
+    yield
+  except Exception as e:  # pylint: disable=broad-except  # orbax wraps the cause variously
+    text = str(e)
+    step = _TMP_STEP.search(text)
+    what = f"checkpoint {step.group(1)}" if step else "a checkpoint"
+    if "No space left on device" in text or "os_error_code='28'" in text:
+      cause = "no space left on device"
+    elif "Disk quota exceeded" in text or "os_error_code='122'" in text:
+      cause = "disk quota exceeded"
+    else:
+      first = text.strip().splitlines()[0] if text.strip() else type(e).__name__
+      cause = f"{type(e).__name__}: {first[:400]}"
+    raise CheckpointSaveError(
+        f"saving {what} in {manager.directory} failed: {cause}. The checkpoints saved before "
+        "are intact (the unfinished one is removed at the next start): free space or give "
+        "another --workdir, then run the same command again to resume") from e
+
+
+def wait_until_saved(manager: ocp.CheckpointManager) -> None:
+  """`manager.wait_until_finished()`, a failed write raised as a CheckpointSaveError."""
+  with _naming_save_errors(manager):
+    manager.wait_until_finished()
 
 
 def check_keep(manager: ocp.CheckpointManager, step: int, config) -> None:

@@ -588,7 +588,7 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
                           params_finite=bool(np.isfinite(host.last["l2_params"])),
                           model_config=parts["model"].cfg, run_config=config)
           if stop:  # written before anything else: the scheduler's grace period is short
-            manager.wait_until_finished()
+            ckpt_lib.wait_until_saved(manager)
         if eval_now:  # (after a notice too: a resumed run starts after this step)
           writer.write(step, evaluator(state.params), split="val")
         if stop:
@@ -596,7 +596,7 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
       if pending is not None:
         host(*pending)
     finally:
-      manager.wait_until_finished()
+      ckpt_lib.wait_until_saved(manager)
       manager.close()
       progress.close()
       writer.close()

@@ -1349,3 +1349,44 @@ def test_ctrl_c_ends_the_train_command_with_one_line(toy_run, tmp_path, during):
                           timeout=300, check=False)
     assert proc.returncode == 130, proc.stderr[-2000:]
     assert proc.stderr.strip() == f"train: interrupted (Ctrl-C); {says}", proc.stderr[-2000:]
+
+
+def test_a_failed_checkpoint_write_is_one_line_naming_step_folder_and_cause(tmp_path):
+  # A full disk during an async save surfaced as orbax's chained traceback at the next save,
+  # then thousands of lines of its pending writes failing as Python shut down.
+  import subprocess  # pylint: disable=g-import-not-at-top
+  from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
+
+  class Manager:
+    directory = tmp_path / "checkpoints"
+
+    def __init__(self, error):
+      self.error = error
+
+    def wait_until_finished(self):
+      raise self.error
+
+  orbax_text = ('RESOURCE_EXHAUSTED: Error writing "params.x/0" in OCDBT database at local file '
+                f'"{tmp_path}/checkpoints/2.orbax-checkpoint-tmp/state.orbax-checkpoint-tmp/": '
+                "Failed to write 9244672 bytes to file 9: No space left on device "
+                "[os_error_code='28']")
+  with pytest.raises(ckpt_lib.CheckpointSaveError) as info:
+    ckpt_lib.wait_until_saved(Manager(ValueError(orbax_text)))
+  assert str(info.value).startswith(f"saving checkpoint 2 in {tmp_path / 'checkpoints'} failed: "
+                                    "no space left on device. The checkpoints saved before are "
+                                    "intact")
+  assert isinstance(info.value.__cause__, ValueError)
+  with pytest.raises(ckpt_lib.CheckpointSaveError,
+                     match=r"saving a checkpoint in .* failed: OSError: \[Errno 5\] I/O error"):
+    ckpt_lib.wait_until_saved(Manager(OSError(5, "I/O error")))
+  code = ("import runpy, sys\nfrom train import checkpoint, loop\n"
+          "def fail(*a, **k):\n"
+          "  raise checkpoint.CheckpointSaveError('saving checkpoint 2 in W failed: no space')\n"
+          "loop.setup = lambda *a, **k: {}\nloop.run = fail\n"
+          "sys.argv = ['train', '--config', 'configs/synthetic.py', '--workdir', sys.argv[1]]\n"
+          "runpy.run_module('train', run_name='__main__')\n")
+  proc = subprocess.run([sys.executable, "-c", code, str(tmp_path / "w")], cwd=ROOT,
+                        env=child_env(tmp_path / "cache"), capture_output=True, text=True,
+                        timeout=300, check=False)
+  assert proc.returncode == 1, proc.stderr[-2000:]
+  assert proc.stderr.strip() == "train: error: saving checkpoint 2 in W failed: no space"
