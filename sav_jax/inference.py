@@ -74,7 +74,7 @@ from sav_jax._checks import is_int as _is_int
 from sav_jax.config import SAVConfig, as_config, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 from sav_jax.model.init import abstract_variables
-from sav_jax.model.stereo_any_video import check_iters
+from sav_jax.model.stereo_any_video import channels_first_hint, check_iters
 
 log = logging.getLogger(__name__)
 
@@ -741,7 +741,7 @@ def _check_video_shapes(left_shape: tuple, right_shape: tuple) -> None:
     batch = (" (one video per call: for a batch [B, T, H, W, 3], pass video[b])"
              if len(left_shape) == 5 else "")
     raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {left_shape}"
-                     + batch)
+                     + (channels_first_hint(left_shape) or batch))
 
 
 def _as_video_pair(left, right, first: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -379,6 +379,14 @@ def test_bad_inputs():
     inference.predict_video({}, np.zeros((2, 8, 8)), np.zeros((2, 8, 8)))
   with pytest.raises(ValueError, match=r"for a batch \[B, T, H, W, 3\], pass video\[b\]"):
     inference.predict_video({}, np.zeros((1, 2, 8, 8, 3)), np.zeros((1, 2, 8, 8, 3)))
+  # PyTorch's channels-first layout gets the way out, at both entries.
+  hint = r"channels first, as in PyTorch\? the channel axis goes last: np.moveaxis\(video, -3, -1\)"
+  for shape in ((2, 3, 8, 10), (1, 2, 3, 8, 10)):
+    with pytest.raises(ValueError, match=hint):
+      inference.predict_video({}, np.zeros(shape), np.zeros(shape))
+  with pytest.raises(ValueError, match=hint):
+    sav_jax.StereoAnyVideo(sav_jax.SAVConfig()).init(
+        jax.random.PRNGKey(0), np.zeros((1, 2, 3, 8, 10)), np.zeros((1, 2, 3, 8, 10)), iters=2)
   with pytest.raises(ValueError, match="stride"):
     inference.window_plan(10, window=4, stride=5)
   for n in (0, 25.5):

@@ -64,8 +64,16 @@ def check_videos(left, right) -> None:
   if left.ndim != 5 or left.shape[-1] != 3 or min(left.shape[:4]) < 1:
     raise ValueError(
         f"expected RGB videos [B, T, H, W, 3] with values 0..255 (B, T, H, W >= 1), got shape "
-        f"{left.shape}")
+        f"{left.shape}{channels_first_hint(left.shape)}")
   _check_size(left.shape[2:4])
+
+
+def channels_first_hint(shape) -> str:
+  """A hint for a video in PyTorch's channels-first layout (`[..., 3, H, W]`), else ""."""
+  if len(shape) >= 3 and shape[-3] == 3 and shape[-1] != 3:
+    return (" (channels first, as in PyTorch? the channel axis goes last: "
+            "np.moveaxis(video, -3, -1))")
+  return ""
 
 
 def _check_size(size) -> tuple[int, int]:
