@@ -356,3 +356,32 @@ def test_train_step_script_keeps_its_program_in_the_named_compilation_cache(
   assert hits == [False, True]
   printed = capsys.readouterr().out
   assert f"stored in {tmp_path / 'cache'}" in printed and "loaded from the compilation cache" in printed
+
+
+def test_parity_sweep_script_checks_its_cases_and_builds_shifted_views(tmp_path, capsys):
+  """benchmarks/parity_sweep.py (run where torch and an official checkout exist): its case
+  list, its argument checks and its clips need neither."""
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  import parity_sweep  # pylint: disable=import-outside-toplevel,import-error
+  cases = parity_sweep.parse_cases(parity_sweep.DEFAULT_CASES)
+  assert ("uneven", "window", (1, 3, 71, 135), "smooth") in cases
+  assert {kind for _, kind, _, _ in cases} == {"window", "fbt", "direct"}
+  for bad in ("a=window:1x3x8", "a=fast:1x3x8x8:noise", "a=window:2x3x8x8:noise",
+              "a=window:1x3x8x8:stripes", "a:window:1x3x8x8:noise"):
+    with pytest.raises(SystemExit, match="--cases"):
+      parity_sweep.parse_cases(bad)
+  mine = tmp_path / "mine.json"
+  mine.write_text("precious")
+  for extra, message in ((["--iters", "1"], "--iters must be >= 2"),
+                         (["--json", str(mine)], "exists; pass --overwrite")):
+    with pytest.raises(SystemExit):
+      parity_sweep.parse_args(["--repo", str(tmp_path), *extra])
+    assert message in capsys.readouterr().err
+  assert mine.read_text() == "precious"
+  for kind, shift in (("noise", 3), ("smooth", 5)):  # right(x) = left(x + shift)
+    left, right = parity_sweep.clip(2, 8, 20, kind)
+    assert left.shape == right.shape == (2, 8, 20, 3) and left.dtype == np.float32
+    np.testing.assert_array_equal(right[:, :, :20 - shift], left[:, :, shift:])
+    assert 0 <= left.min() and left.max() <= 255
+  left, _ = parity_sweep.batch((2, 1, 8, 20), "noise")
+  assert left.shape == (2, 1, 8, 20, 3) and not np.array_equal(left[0], left[1])
