@@ -216,6 +216,21 @@ class TrainableVector:
     return sum(math.prod(leaves[i].shape) for i in self.index)
 
 
+def clip_grad_norm_like_torch(max_norm: float) -> optax.GradientTransformation:
+  """`torch.nn.utils.clip_grad_norm_(params, max_norm)` as an optax transformation: the
+  gradients times `min(1, max_norm / (norm + 1e-6))` (optax's `clip_by_global_norm` divides
+  by the norm alone). Its state is empty, as `clip_by_global_norm`'s: checkpoints of either
+  restore with the other."""
+
+  def update(updates, state, params=None):
+    del params
+    norm = jnp.sqrt(sum(jnp.sum(jnp.square(g)) for g in jax.tree.leaves(updates)))
+    scale = jnp.minimum(1.0, max_norm / (norm + 1e-6))
+    return jax.tree.map(lambda g: (g * scale).astype(g.dtype), updates), state
+
+  return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
+
+
 def make_optimizer(opt_cfg, num_steps: int) -> optax.GradientTransformation:
   """Clip + AdamW, on the `TrainableVector` of the parameters.
 
@@ -231,7 +246,7 @@ def make_optimizer(opt_cfg, num_steps: int) -> optax.GradientTransformation:
   schedule = make_schedule(opt_cfg, num_steps)
   parts = []
   if opt_cfg.clip_norm > 0:
-    parts.append(optax.clip_by_global_norm(opt_cfg.clip_norm))
+    parts.append(clip_grad_norm_like_torch(opt_cfg.clip_norm))
   parts.append(optax.adamw(schedule, b1=opt_cfg.b1, b2=opt_cfg.b2, eps=opt_cfg.eps,
                            weight_decay=opt_cfg.weight_decay))
   return optax.chain(*parts)

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
+import optax
 import pytest
 
 import sav_jax
@@ -95,6 +96,23 @@ def test_one_cycle_matches_pytorch_formula():
     else:
       ref = (final - max_lr) * ((s - end1) / (end2 - end1)) + max_lr
     np.testing.assert_allclose(float(sched(s)), ref, rtol=2e-5, err_msg=str(s))
+
+
+def test_clipping_is_torchs_clip_grad_norm():
+  # torch: g * min(1, max_norm / (norm + 1e-6)); optax's clip_by_global_norm divides by the
+  # norm alone (a 1e-6 / norm relative difference in every clipped step).
+  clip = optim.clip_grad_norm_like_torch(1.0)
+  assert clip.init({"a": jnp.zeros(3)}) == optax.clip_by_global_norm(1.0).init({"a": jnp.zeros(3)})
+  for norm in (0.5, 1.0, 1.0 + 1e-7, 3.0, 1e4):
+    with jax.enable_x64(True):
+      g = {"a": jnp.asarray([0.6, 0.0], jnp.float64) * norm,
+           "b": jnp.asarray([[0.8]], jnp.float64) * norm}
+      out, _ = clip.update(g, clip.init(g))
+      coef = min(1.0, 1.0 / (norm + 1e-6))  # clip_grad_norm_'s clip_coef, clamped at 1
+      for k in g:
+        np.testing.assert_allclose(np.asarray(out[k]), np.asarray(g[k]) * coef, rtol=1e-12)
+    if norm == 1.0:  # at max_norm exactly torch scales by 1 / (1 + 1e-6); optax does not
+      assert float(coef) != 1.0
 
 
 @pytest.mark.parametrize("name", ["sceneflow", "mixed", "synthetic"])
