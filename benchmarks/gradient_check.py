@@ -85,6 +85,10 @@ def torch_side(a) -> None:
   model.load_state_dict({k: torch.from_numpy(np.asarray(v)) for k, v in weights(a).items()})
   for name, param in model.named_parameters():  # as the official training script
     param.requires_grad_("depthanything" not in name)
+  if a.training_loss:  # the training script's modes: train(), then freeze_bn() (the model has
+    model.train()      # no BatchNorm and its dropouts have p=0: the same values as eval())
+    if hasattr(model, "freeze_bn"):
+      model.freeze_bn()
   left, right = (torch.from_numpy(np.ascontiguousarray(x.transpose(0, 1, 4, 2, 3))
                                   ).requires_grad_(True) for x in frames(a))
   if a.training_loss:  # [N, T, B, 1, H, W]: positive = disparity (the training target)
