@@ -86,6 +86,12 @@ class SAVConfig:
       GPUs and `dtype="bfloat16"` only (on an H200 it halves the depth prior's time at
       720x1280). "auto" (default): "cudnn" when JAX's default backend is a GPU and
       `dtype="bfloat16"`, else "blocked" (`resolve_vit_attention`). Not a weight setting.
+    detach_flow: stop the gradient of the flow entering each refinement step, as the
+      official model (`flow.detach()`, RAFT's truncated backpropagation; training uses it).
+      Values are the same either way; False gives the true derivative of the predictions
+      with respect to the frames and the parameters (with True, d(final disparity)/d(frames)
+      leaves out every path through the earlier steps' flows, and can have the other sign),
+      for pipelines that differentiate the output itself, e.g. a photometric loss.
   """
 
   vda_encoder: str = "vits"
@@ -100,6 +106,7 @@ class SAVConfig:
   remat_policy: Optional[str] = None
   frame_block_mb: float = FRAME_BLOCK_MB
   vit_attention: str = "auto"
+  detach_flow: bool = True
 
   def __post_init__(self):
     for f in dataclasses.fields(self):  # numpy scalars become Python values (hash, JSON)

@@ -111,6 +111,18 @@ def check_frame_features(frame_feats, size) -> tuple[int, int]:
   return h, w
 
 
+def check_final_only(final_only) -> bool:
+  """`final_only` as a Python bool; a ValueError for a traced value (it sets the program's
+  output shape) or a non-boolean."""
+  if isinstance(final_only, jax.core.Tracer):
+    raise ValueError(f"final_only must be a Python bool, got the traced {final_only!r}: under "
+                     "jax.jit pass it as a static argument (static_argnames='final_only', or "
+                     "close over it)")
+  if not isinstance(final_only, (bool, np.bool_)):
+    raise ValueError(f"final_only must be True or False, got {final_only!r}")
+  return bool(final_only)
+
+
 def check_iters(iters) -> int:
   """`iters` as a Python int; a ValueError unless it is an integer >= 2 (odd counts run as
   the official model runs them: `iters // 2` steps at 1/16 and at 1/8, `iters` at 1/4, the
@@ -232,7 +244,8 @@ class StereoAnyVideo(nn.Module):
       `(net, flow, flow_up)` with `flow_up` `[B, T, 4h, 4w, 1]` (None without `with_up`).
     """
     b, t, h, w, c = fmap1.shape
-    flow = jax.lax.stop_gradient(flow)
+    if self.cfg.detach_flow:  # the official flow.detach(): truncated backpropagation
+      flow = jax.lax.stop_gradient(flow)
     args = (fmap1.reshape(b * t, h, w, c), fmap2.reshape(b * t, h, w, c),
             flow.reshape(b * t, h, w))
     if isinstance(window, tuple):
@@ -306,6 +319,7 @@ class StereoAnyVideo(nn.Module):
       `SAVOutput` with `disparities` `[P, B, T, H, W]`.
     """
     iters = check_inputs(left, right, iters)
+    final_only = check_final_only(final_only)
     return self.cascade(*self.features(left, right), left.shape[2:4], iters, final_only)
 
   def from_frame_features(self, frame_feats: dict, size: tuple[int, int], iters: int = 20,

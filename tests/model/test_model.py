@@ -395,3 +395,44 @@ def test_final_only_equals_the_last_of_all_predictions(model, variables, clip):
   full, last = both(variables, *clip)
   assert full.shape == (12, *SHAPE[:4]) and last.shape == (1, *SHAPE[:4])
   np.testing.assert_allclose(last[0], full[-1], atol=1e-5)
+
+
+def test_detach_flow_false_differentiates_through_every_refinement_step(variables, clip,
+                                                                          monkeypatch):
+  """The official model detaches the flow entering each refinement step (RAFT's truncated
+  backpropagation), so with the default the gradient of the final disparity leaves out the
+  paths through the earlier steps' flows; `detach_flow=False` gives the true derivative:
+  the same as the model with that stop_gradient removed by hand, and not the truncated one.
+  The values are the same either way."""
+  weights = jnp.asarray(np.random.default_rng(0).normal(size=clip[0].shape[:-1]), jnp.float32)
+
+  def run(cfg):
+    m = sav_jax.StereoAnyVideo(cfg)
+    f = lambda r: (weights * m.apply(variables, clip[0], r, iters=2,  # noqa: E731
+                                     final_only=True).disparities[0]).sum()
+    value, grad = jax.jit(jax.value_and_grad(f))(clip[1])
+    return float(value), np.asarray(grad)
+
+  value, truncated = run(sav_jax.SAVConfig())
+  value_full, full = run(sav_jax.SAVConfig(detach_flow=False))
+  assert value_full == value
+  # The hand-made reference: every jax.lax.stop_gradient the identity (the model's other one
+  # holds the frozen depth prior's parameters, which d/d frames does not involve).
+  monkeypatch.setattr(jax.lax, "stop_gradient", lambda x: x)
+  _, reference = run(sav_jax.SAVConfig())
+  scale = np.abs(reference).max()
+  np.testing.assert_allclose(full, reference, rtol=0, atol=1e-5 * scale)
+  assert np.linalg.norm(full - truncated) > 0.05 * np.linalg.norm(full)
+
+
+def test_final_only_must_be_a_static_bool(model):
+  # A traced final_only (it sets the output's shape) raised JAX's TracerBoolConversionError
+  # from inside the cascade; like iters, it is named with the way out.
+  left = jnp.zeros(SHAPE)
+  init = lambda l, r, fo: model.init(jax.random.PRNGKey(0), l, r, iters=2,  # noqa: E731
+                                     final_only=fo)
+  with pytest.raises(ValueError, match="final_only must be a Python bool, got the traced .*"
+                     "static_argnames='final_only'"):
+    jax.eval_shape(init, left, left, True)
+  with pytest.raises(ValueError, match="final_only must be True or False, got 'yes'"):
+    jax.eval_shape(lambda l, r: init(l, r, "yes"), left, left)
