@@ -146,19 +146,24 @@ def relative_l2(ours: np.ndarray, ref: np.ndarray) -> float:
   return float(np.linalg.norm(ours - ref)) / scale if scale > 0 else float(np.linalg.norm(ours))
 
 
+def official_outputs(a, argv, script: str) -> dict:
+  """The arrays the official side writes: `script` run again with the same arguments in
+  `--torch-interpreter`, with `--torch-out` (a temporary file)."""
+  if not a.torch_interpreter:
+    raise SystemExit("--torch-interpreter is required (a Python with torch for the official side)")
+  with tempfile.TemporaryDirectory() as tmp:
+    out = pathlib.Path(tmp) / "official.npz"
+    subprocess.run([a.torch_interpreter, script, *(argv if argv is not None else sys.argv[1:]),
+                    "--torch-out", str(out)], check=True)
+    return dict(np.load(out))
+
+
 def main(argv=None) -> int:
   a = parse_args(argv)
   if a.torch_out:
     torch_side(a)
     return 0
-  if not a.torch_interpreter:
-    raise SystemExit("--torch-interpreter is required (a Python with torch for the official side)")
-  with tempfile.TemporaryDirectory() as tmp:
-    out = pathlib.Path(tmp) / "official.npz"
-    cmd = [a.torch_interpreter, __file__, *(argv if argv is not None else sys.argv[1:]),
-           "--torch-out", str(out)]
-    subprocess.run(cmd, check=True)
-    ref = dict(np.load(out))
+  ref = official_outputs(a, argv, __file__)
   ours = jax_side(a)
   print(f"loss: official {float(ref['loss']):.7f}, sav-jax {ours['loss']:.7f}")
   for name in ("left", "right"):

@@ -27,16 +27,14 @@ import argparse
 import json
 import os
 import pathlib
-import subprocess
 import sys
-import tempfile
 
 import numpy as np
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from gradient_check import weights  # noqa: E402  pylint: disable=wrong-import-position
+from gradient_check import official_outputs, weights  # noqa: E402  pylint: disable=wrong-import-position
 
 DEFAULT_CASES = ("odd=window:1x3x72x136:smooth,uneven=window:1x3x71x135:smooth,"
                  "tall=window:1x2x130x70:smooth,single=window:1x1x64x128:noise,"
@@ -185,14 +183,7 @@ def main(argv=None) -> int:
   if a.torch_out:
     torch_side(a)
     return 0
-  if not a.torch_interpreter:
-    raise SystemExit("--torch-interpreter is required (a Python with torch for the official side)")
-  with tempfile.TemporaryDirectory() as tmp:
-    out = pathlib.Path(tmp) / "official.npz"
-    subprocess.run([a.torch_interpreter, __file__, *(argv if argv is not None else sys.argv[1:]),
-                    "--torch-out", str(out)], check=True)
-    ref = dict(np.load(out))
-  rows = jax_side(a, ref)
+  rows = jax_side(a, official_outputs(a, argv, __file__))
   print(f"iters={a.iters}; differences from the official model, px")
   for r in rows:
     print(f"{r['case']:10} {r['shape']:>14}  {r['what']:30} max {r['max_px']:.1e}  "
