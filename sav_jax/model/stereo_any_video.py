@@ -305,6 +305,18 @@ class StereoAnyVideo(nn.Module):
     """The flow entering every iteration, for inspection (no-op unless mutable)."""
     self.sow("intermediates", f"flow_in_{fmap1.shape[2]}x{fmap1.shape[3]}", flows_in)
 
+  def _check_variables(self) -> None:
+    """A ValueError when `apply` was given the parameter tree itself instead of the Flax
+    variables `{"params": params}` (Flax would fail deep inside the depth prior, naming its
+    first parameter)."""
+    if self.is_initializing():
+      return
+    collections = set(self.variables)
+    if "params" not in collections and collections & {"depthnet", "fnet", "cnet", "update_block"}:
+      raise ValueError("StereoAnyVideo.apply takes the Flax variables {'params': params}; it "
+                       f"got the parameter tree itself (keys {sorted(collections)[:4]}...): "
+                       "call model.apply({'params': params}, left, right, ...)")
+
   def __call__(self, left: jax.Array, right: jax.Array, iters: int = 20,
                final_only: bool = False) -> SAVOutput:
     """Disparity of the left video for every refinement step.
@@ -320,6 +332,7 @@ class StereoAnyVideo(nn.Module):
     """
     iters = check_inputs(left, right, iters)
     final_only = check_final_only(final_only)
+    self._check_variables()
     return self.cascade(*self.features(left, right), left.shape[2:4], iters, final_only)
 
   def from_frame_features(self, frame_feats: dict, size: tuple[int, int], iters: int = 20,

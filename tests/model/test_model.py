@@ -436,3 +436,14 @@ def test_final_only_must_be_a_static_bool(model):
     jax.eval_shape(init, left, left, True)
   with pytest.raises(ValueError, match="final_only must be True or False, got 'yes'"):
     jax.eval_shape(lambda l, r: init(l, r, "yes"), left, left)
+
+
+def test_apply_with_the_parameter_tree_itself_is_named(model, variables):
+  # model.apply(params, ...) (not {"params": params}) failed deep inside the depth prior with
+  # Flax's ScopeCollectionNotFound about "cls_token".
+  x = jnp.zeros(SHAPE)
+  with pytest.raises(ValueError, match=r"takes the Flax variables \{'params': params\}; it got "
+                     r"the parameter tree itself \(keys \['cnet', 'corr_mlp', 'depthnet'"):
+    jax.eval_shape(lambda p: model.apply(p, x, x, iters=2), variables["params"])
+  out = jax.eval_shape(lambda v: model.apply(v, x, x, iters=2, final_only=True), variables)
+  assert out.disparities.shape == (1, *SHAPE[:4])
