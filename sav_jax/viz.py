@@ -102,10 +102,15 @@ def _shown(value) -> str:
   return str(float(value)) if isinstance(value, numbers.Real) else repr(value)
 
 
+def is_fps(fps) -> bool:
+  """Whether `fps` is a frame rate OpenCV's MPEG-4 writer takes (0.01 to 65535; beyond, it
+  fails to open, after the whole run)."""
+  return isinstance(fps, numbers.Real) and math.isfinite(fps) and 0.01 <= fps <= 65535
+
+
 def check_fps(fps, what: str = "fps") -> None:
-  """Raises ValueError unless `fps` is a frame rate OpenCV's MPEG-4 writer takes (0.01 to
-  65535; beyond, it fails to open, after the whole run)."""
-  if not (isinstance(fps, numbers.Real) and math.isfinite(fps) and 0.01 <= fps <= 65535):
+  """Raises ValueError unless `fps` is a frame rate OpenCV's MPEG-4 writer takes (`is_fps`)."""
+  if not is_fps(fps):
     raise ValueError(f"{what} must be a number from 0.01 to 65535, got {_shown(fps)}")
 
 

@@ -118,11 +118,13 @@ def saved_run(manager: ocp.CheckpointManager, step: int) -> dict:
   return saved if isinstance(saved, dict) else {}
 
 
-def changed_fields(manager: ocp.CheckpointManager, step: int, config) -> list[str]:
+def changed_fields(manager: ocp.CheckpointManager, step: int, config,
+                   saved: dict | None = None) -> list[str]:
   """`field: saved -> now` for every field of `config` that a resumed run changes, but
   those that only say where and how it runs (`_OPERATIONAL`); [] for checkpoints written
-  before the config was saved with them."""
-  saved = saved_run(manager, step)
+  before the config was saved with them. `saved`: `saved_run(manager, step)` if the caller
+  has read it already."""
+  saved = saved_run(manager, step) if saved is None else saved
   if not saved:
     return []
   now = run_fields(config)
@@ -202,17 +204,18 @@ def wait_until_saved(manager: ocp.CheckpointManager) -> None:
     manager.wait_until_finished()
 
 
-def check_keep(manager: ocp.CheckpointManager, step: int, config) -> None:
+def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
   """Raises CheckpointError where this run's `checkpoint.keep` would delete checkpoints an
   earlier keep policy kept: orbax prunes every step of the folder beyond the last `keep` at
   the first save, so a run resumed without its `--config.checkpoint.keep=0` (the default is
   3) deleted the older checkpoints, a finished run's included, without a word. The same keep
-  as the saving run's (the latest checkpoint's config) prunes as that run would have."""
+  as the saving run's (`saved`: `saved_run` of the latest checkpoint) prunes as that run
+  would have."""
   keep = int(config.checkpoint.keep)
   steps = sorted(manager.all_steps())
   if keep <= 0 or len(steps) <= keep:
     return
-  saved = saved_run(manager, step).get("checkpoint.keep")
+  saved = saved.get("checkpoint.keep")
   if saved == keep:
     return
   earlier = (f"saved with config.checkpoint.keep={saved}" if saved is not None

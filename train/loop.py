@@ -105,9 +105,9 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     step = manager.latest_step()
     log.info("resuming from checkpoint %d", step)
     ckpt_lib.check_data_state(manager, step, config)
-    ckpt_lib.check_keep(manager, step, config)
-    changed = ckpt_lib.changed_fields(manager, step, config)
-    saved = ckpt_lib.saved_run(manager, step)
+    saved = ckpt_lib.saved_run(manager, step)  # ({} for checkpoints saved without it)
+    ckpt_lib.check_keep(manager, config, saved)
+    changed = ckpt_lib.changed_fields(manager, step, config, saved)
     for field in ("init_from", "vda_weights"):  # never read on resume: say so if new
       if config[field] and saved and config[field] != saved.get(field):
         log.warning("config.%s=%s is not used: this run resumes from checkpoint %d in %s "

@@ -146,11 +146,14 @@ _LOW_RANGE_WARNED: set[str] = set()
 def _warn_low_range_16bit(path: PathLike, img: np.ndarray) -> None:
   """Warns (once per folder) that a 16-bit frame holding only 0..255 reads as black."""
   folder = str(Path(path).parent)
-  if folder in _LOW_RANGE_WARNED or int(img.max()) > 255:
+  if folder in _LOW_RANGE_WARNED:
+    return
+  top = int(img.max())
+  if top > 255:
     return
   _LOW_RANGE_WARNED.add(folder)
   warnings.warn(f"{path} is a 16-bit image whose values all fit in 0..255 (max "
-                f"{int(img.max())}): 16-bit frames are read by their high byte, so it reads as "
+                f"{top}): 16-bit frames are read by their high byte, so it reads as "
                 "black; save 8-bit content as 8-bit images (this is said once per folder)",
                 stacklevel=3)
 

@@ -261,13 +261,14 @@ def _check_video_path(path: pathlib.Path) -> None:
 
 
 def video_fps(path) -> float | None:
-  """The frame rate a video file declares, or None where it declares none usable."""
+  """The frame rate a video file declares, or None where it declares none a video can be
+  written at (`viz.is_fps`)."""
   cap = cv2.VideoCapture(str(path))
   try:
     fps = float(cap.get(cv2.CAP_PROP_FPS)) if cap.isOpened() else 0.0
   finally:
     cap.release()
-  return fps if np.isfinite(fps) and 0.01 <= fps <= 65535 else None
+  return fps if viz.is_fps(fps) else None
 
 
 def _decode(path, max_frames: int | None, notes: set[str]):
