@@ -181,19 +181,63 @@ def official_window_plan(num_frames: int, window: int = WINDOW,
 def pad_amounts(height: int, width: int, multiple: int = PAD_MULTIPLE
                 ) -> tuple[int, int, int, int]:
   """InputPadder 'sintel' padding `(top, bottom, left, right)` to multiples of `multiple`."""
+  if not (_is_int(multiple) and multiple >= 1):
+    raise ValueError(f"multiple must be an integer >= 1, got {multiple!r}")
   ph, pw = -height % multiple, -width % multiple
   return ph // 2, ph - ph // 2, pw // 2, pw - pw // 2
 
 
-def pad_frames(frames: np.ndarray, pads: tuple[int, int, int, int]) -> np.ndarray:
-  """Replicate-pads `[T, H, W, C]` frames spatially by `(top, bottom, left, right)`."""
-  top, bottom, left, right = pads
-  return np.pad(frames, ((0, 0), (top, bottom), (left, right), (0, 0)), mode="edge")
+def _check_pads(pads) -> tuple[int, int, int, int]:
+  try:
+    pads = tuple(pads)
+  except TypeError:
+    pads = None
+  if pads is None or len(pads) != 4 or not all(_is_int(p) and p >= 0 for p in pads):
+    raise ValueError(f"pads must be 4 integers (top, bottom, left, right) >= 0, got {pads!r}")
+  return tuple(int(p) for p in pads)
 
 
-def unpad(x: np.ndarray, pads: tuple[int, int, int, int]) -> np.ndarray:
-  """Removes `pad_frames` padding from `[..., Hp, Wp]`."""
+def pad_frames(frames, pads: tuple[int, int, int, int]):
+  """Replicate-pads frames `[..., H, W, C]` spatially by `(top, bottom, left, right)`.
+
+  Any leading axes (`[T, H, W, C]`, a batch `[B, T, H, W, C]`). A NumPy array (or list)
+  gives a NumPy array; a JAX array, traced ones included (inside `jit`, `grad`, `vmap`),
+  gives a JAX array, so padding is part of a differentiable pipeline (the gradient of a
+  replicated edge pixel is the sum over its copies, as PyTorch's replicate padding).
+  """
+  pads = _check_pads(pads)
+  if not isinstance(frames, jax.Array):
+    frames = np.asarray(frames)
+  if frames.ndim < 3:
+    raise ValueError(f"frames must be [..., H, W, C], got shape {tuple(frames.shape)}")
   top, bottom, left, right = pads
+  width = ((0, 0),) * (frames.ndim - 3) + ((top, bottom), (left, right), (0, 0))
+  if isinstance(frames, jax.Array):
+    return jnp.pad(frames, width, mode="edge")
+  return np.pad(frames, width, mode="edge")
+
+
+def pad_to_multiple(frames, multiple: int = PAD_MULTIPLE):
+  """`(padded, pads)`: frames `[..., H, W, C]` replicate-padded to multiples of `multiple`.
+
+  The official evaluation's padding (`InputPadder(divis_by=32)`, "sintel" mode: split
+  between both sides, top/left get the smaller half); the model needs multiples of 16.
+  NumPy or JAX arrays as `pad_frames`; undo on the output with `unpad(disparities, pads)`.
+  """
+  if not isinstance(frames, jax.Array):
+    frames = np.asarray(frames)
+  if frames.ndim < 3:
+    raise ValueError(f"frames must be [..., H, W, C], got shape {tuple(frames.shape)}")
+  pads = pad_amounts(*frames.shape[-3:-1], multiple)
+  return pad_frames(frames, pads), pads
+
+
+def unpad(x, pads: tuple[int, int, int, int]):
+  """Removes `pad_frames` padding from `[..., Hp, Wp]` (disparities; NumPy or JAX)."""
+  top, bottom, left, right = _check_pads(pads)
+  if x.ndim < 2 or top + bottom > x.shape[-2] or left + right > x.shape[-1]:
+    raise ValueError(f"cannot remove pads {pads} from an array of shape {tuple(x.shape)}: "
+                     "expected [..., Hp, Wp] (for frames [..., Hp, Wp, C], unpad x[..., c])")
   return x[..., top:x.shape[-2] - bottom, left:x.shape[-1] - right]
 
 

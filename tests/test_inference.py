@@ -372,6 +372,45 @@ def test_padding_matches_input_padder():
   np.testing.assert_array_equal(inference.unpad(p[..., 0], pads), x[..., 0])
 
 
+def test_padding_in_jax_pipelines():
+  """pad_to_multiple on batches, NumPy and JAX alike, inside jit and grad: the JAX result
+  equals the NumPy one, and the gradient of a replicated edge pixel sums its copies."""
+  rng = np.random.default_rng(0)
+  x = rng.uniform(0, 255, (2, 3, 20, 27, 3)).astype(np.float32)  # [B, T, H, W, 3]
+  p_np, pads = inference.pad_to_multiple(x, 16)
+  assert pads == (6, 6, 2, 3) and p_np.shape == (2, 3, 32, 32, 3)
+  assert isinstance(p_np, np.ndarray)
+  p_jax, pads_jax = jax.jit(lambda v: inference.pad_to_multiple(v, 16)[0])(x), pads
+  assert isinstance(p_jax, jax.Array)
+  np.testing.assert_array_equal(np.asarray(p_jax), p_np)
+  back = inference.unpad(jnp.moveaxis(p_jax, -1, 0), pads_jax)  # [3, B, T, H, W]
+  np.testing.assert_array_equal(np.asarray(jnp.moveaxis(back, 0, -1)), x)
+
+  def loss(v):
+    padded, pd = inference.pad_to_multiple(v, 16)
+    return jnp.sum(padded[..., 0] * 1.0)
+
+  g = np.asarray(jax.grad(loss)(jnp.asarray(x)))
+  # A corner pixel is copied into a (6+1) x (2+1) block; an interior pixel once.
+  assert g[0, 0, 0, 0, 0] == 7 * 3 and g[0, 0, -1, -1, 0] == 7 * 4
+  assert g[0, 0, 5, 5, 0] == 1 and g[0, 0, 0, 5, 0] == 7 and np.all(g[..., 1:] == 0)
+  assert g.sum() == 2 * 3 * 32 * 32
+
+
+def test_padding_bad_input_is_named():
+  with pytest.raises(ValueError, match=r"pads must be 4 integers .* got \(1, 2, 3\)"):
+    inference.pad_frames(np.zeros((2, 4, 4, 3)), (1, 2, 3))
+  with pytest.raises(ValueError, match="pads must be 4 integers"):
+    inference.pad_frames(np.zeros((2, 4, 4, 3)), (1, 2, -3, 0))
+  with pytest.raises(ValueError, match=r"frames must be \[\.\.\., H, W, C\], got shape \(4, 4\)"):
+    inference.pad_to_multiple(np.zeros((4, 4)))
+  with pytest.raises(ValueError, match="multiple must be an integer >= 1, got 0"):
+    inference.pad_to_multiple(np.zeros((1, 4, 4, 3)), 0)
+  with pytest.raises(ValueError, match=r"cannot remove pads \(4, 4, 0, 0\) from an array of "
+                     r"shape \(2, 6, 8\)"):
+    inference.unpad(np.zeros((2, 6, 8)), (4, 4, 0, 0))
+
+
 def test_bad_inputs():
   with pytest.raises(ValueError, match="differ in shape"):
     inference.predict_video({}, np.zeros((2, 8, 8, 3)), np.zeros((3, 8, 8, 3)))

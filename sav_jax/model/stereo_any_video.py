@@ -80,8 +80,11 @@ def _check_size(size) -> tuple[int, int]:
   h, w = size
   if h % 16 or w % 16 or min(h, w) < 16:
     raise ValueError(
-        f"height and width must be multiples of 16, got {h}x{w}; pad the frames "
-        "(sav_jax.inference.predict_video pads to multiples of 32 for you)")
+        f"height and width must be multiples of 16, got {h}x{w}; pad the frames as the "
+        "official evaluation does with `padded, pads = sav_jax.inference.pad_to_multiple("
+        "frames)` (NumPy or JAX, differentiable) and crop the output with "
+        "`inference.unpad(disparities, pads)`, or use inference.predict_video, which pads "
+        "for you")
   return int(h), int(w)
 
 
