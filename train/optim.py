@@ -11,7 +11,6 @@ step, and every parameter whose name contains `depthanything` frozen
 from __future__ import annotations
 
 import math
-import re
 from typing import Any, Callable
 
 import jax
@@ -19,8 +18,7 @@ import jax.numpy as jnp
 import ml_collections
 import optax
 
-FROZEN = "frozen"
-TRAINABLE = "trainable"
+from sav_jax.model.init import FROZEN, TRAINABLE, param_labels, path_name  # noqa: F401
 
 
 def one_cycle_linear(max_lr: float, total_steps: int, pct_start: float = 0.01,
@@ -59,31 +57,6 @@ def one_cycle_linear(max_lr: float, total_steps: int, pct_start: float = 0.01,
     return jnp.where(s <= warm_end, up, down).astype(jnp.float32)
 
   return schedule
-
-
-def path_name(path) -> str:
-  """`depthnet/depthanything/.../kernel` or `opt_state/1/0/mu` for a pytree key path (dict
-  keys, sequence indices and attribute names joined by `/`)."""
-  return "/".join(str(getattr(k, "key", getattr(k, "idx", getattr(k, "name", k)))) for k in path)
-
-
-def param_labels(params, frozen_pattern: str):
-  """`"frozen"` for leaves whose `/`-joined path matches `frozen_pattern`, else `"trainable"`.
-
-  Args:
-    params: parameter pytree (nested dicts).
-    frozen_pattern: regular expression searched in paths like
-      `depthnet/depthanything/pretrained/blocks_0/attn/qkv/kernel`; empty = nothing frozen.
-
-  Returns:
-    A pytree of labels with the structure of `params`.
-  """
-  regex = re.compile(frozen_pattern) if frozen_pattern else None
-
-  def label(path, _):
-    return FROZEN if regex is not None and regex.search(path_name(path)) else TRAINABLE
-
-  return jax.tree_util.tree_map_with_path(label, params)
 
 
 def check_depth_prior_frozen(labels, frozen_pattern: str) -> None:

@@ -35,6 +35,61 @@ _NORM_NAMES = ("norm", "ln")
 COMPUTE_FIELDS = ("dtype", "remat", "remat_policy", "frame_block_mb", "vit_attention")
 
 
+# Optimizer labels: the depth prior is frozen, as the official trainer's
+# `requires_grad_(False)` on every parameter whose name contains `depthanything`.
+FROZEN = "frozen"
+TRAINABLE = "trainable"
+DEPTH_PRIOR_PATTERN = "depthanything"
+
+
+def path_name(path) -> str:
+  """`depthnet/depthanything/.../kernel` or `opt_state/1/0/mu` for a pytree key path (dict
+  keys, sequence indices and attribute names joined by `/`)."""
+  return "/".join(str(getattr(k, "key", getattr(k, "idx", getattr(k, "name", k)))) for k in path)
+
+
+def param_labels(params, frozen_pattern: str = DEPTH_PRIOR_PATTERN):
+  """`"frozen"` for leaves whose `/`-joined path matches `frozen_pattern`, else `"trainable"`.
+
+  Args:
+    params: parameter pytree (nested dicts).
+    frozen_pattern: regular expression searched in paths like
+      `depthnet/depthanything/pretrained/blocks_0/attn/qkv/kernel`; empty = nothing frozen.
+
+  Returns:
+    A pytree of labels with the structure of `params`.
+  """
+  import re  # pylint: disable=g-import-not-at-top
+  regex = re.compile(frozen_pattern) if frozen_pattern else None
+
+  def label(path, _):
+    return FROZEN if regex is not None and regex.search(path_name(path)) else TRAINABLE
+
+  return jax.tree_util.tree_map_with_path(label, params)
+
+
+def freeze_depth_prior(tx, params, frozen_pattern: str = DEPTH_PRIOR_PATTERN):
+  """`tx` (an optax transformation) on the trainable parameters only, for your own loop.
+
+  The official trainer freezes the Video Depth Anything prior (`requires_grad_(False)`):
+  no update, no optimizer state, no weight decay. The model stops its gradient, but a
+  plain `optax.adamw(...)` over all parameters would still decay its weights and hold
+  moments for its ~25 M values; this gives those leaves zero updates and no state.
+
+  Args:
+    tx: the optimizer, e.g. `optax.adamw(1e-4, weight_decay=1e-5)`.
+    params: the parameter tree the optimizer will see (`variables["params"]`), or one of
+      the same structure (shapes only are fine).
+    frozen_pattern: as `param_labels`.
+
+  Returns:
+    An `optax.multi_transform` to `init(params)` and `update(grads, state, params)`.
+  """
+  import optax  # pylint: disable=g-import-not-at-top
+  return optax.multi_transform({TRAINABLE: tx, FROZEN: optax.set_to_zero()},
+                               param_labels(params, frozen_pattern))
+
+
 def abstract_variables(cfg: SAVConfig):
   """Shapes of the model's variables (nothing allocated).
 

@@ -447,3 +447,32 @@ def test_apply_with_the_parameter_tree_itself_is_named(model, variables):
     jax.eval_shape(lambda p: model.apply(p, x, x, iters=2), variables["params"])
   out = jax.eval_shape(lambda v: model.apply(v, x, x, iters=2, final_only=True), variables)
   assert out.disparities.shape == (1, *SHAPE[:4])
+
+
+def test_freeze_depth_prior_leaves_the_prior_out_of_a_users_optimizer(variables):
+  """A plain AdamW over all parameters decays the frozen prior's weights (its gradient is
+  zero, its weight decay is not) and holds moments for it; `freeze_depth_prior` gives those
+  leaves zero updates and no state, as the official `requires_grad_(False)`."""
+  import optax  # pylint: disable=g-import-not-at-top
+  params = variables["params"]
+  grads = jax.tree.map(jnp.ones_like, params)
+  grads["depthnet"]["depthanything"] = jax.tree.map(jnp.zeros_like,
+                                                    params["depthnet"]["depthanything"])
+  adamw = optax.adamw(1e-3, weight_decay=0.1)
+  n_prior = sum(x.size for x in jax.tree.leaves(params["depthnet"]["depthanything"]))
+  n_all = sum(x.size for x in jax.tree.leaves(params))
+  assert n_prior > 20e6 and n_all - n_prior > 9e6
+
+  plain = adamw.update(grads, adamw.init(params), params)[0]
+  assert max(np.abs(x).max() for x in jax.tree.leaves(plain["depthnet"]["depthanything"])) > 0
+
+  tx = init_lib.freeze_depth_prior(adamw, params)
+  state = tx.init(params)
+  n_state = sum(x.size for x in jax.tree.leaves(state) if x.ndim)
+  assert n_state == 2 * (n_all - n_prior)  # the two moments of the trainable leaves only
+  updates = tx.update(grads, state, params)[0]
+  assert all(np.abs(x).max() == 0 for x in jax.tree.leaves(updates["depthnet"]["depthanything"]))
+  for name in ("fnet", "update_block"):
+    assert all(np.abs(x).min() > 0 for x in jax.tree.leaves(updates[name]))
+  np.testing.assert_array_equal(updates["depthnet"]["conv"]["kernel"],
+                                plain["depthnet"]["conv"]["kernel"])
