@@ -6,7 +6,6 @@ Every sequence follows the `sav_jax.data.base.StereoSequence` interface: `name`,
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import ml_collections
@@ -71,17 +70,7 @@ def synthetic_sequences(config: ml_collections.ConfigDict) -> list[SyntheticSequ
   if not (is_int(s.num_sequences) and s.num_sequences >= 1):
     raise ValueError(f"config.synthetic.num_sequences must be an integer >= 1, got "
                      f"{s.num_sequences!r}")
-  fields = {f.name for f in dataclasses.fields(synthetic.SyntheticConfig)}
-  unknown = sorted(set(s.keys()) - fields - {"num_sequences"})
-  if unknown:
-    raise ValueError(f"config.synthetic.{unknown[0]} is not a field of the synthetic generator; "
-                     f"its fields: num_sequences, {', '.join(sorted(fields))}")
-  kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in s.items()
-            if k != "num_sequences"}
-  try:
-    cfg = synthetic.SyntheticConfig(**kwargs)
-  except ValueError as e:  # it names the field as `SyntheticConfig.<name>`
-    raise ValueError(str(e).replace("SyntheticConfig.", "config.synthetic.")) from None
+  cfg = synthetic.config_from_block(s, "config.synthetic", own=("num_sequences",))
   return [SyntheticSequence(cfg, i) for i in range(s.num_sequences)]
 
 

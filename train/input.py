@@ -9,32 +9,23 @@ dataset's share is weight x number of clips; "ratio": weights are the shares).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import logging
 
 import jax
 
 from sav_jax.data import pipeline
-from sav_jax.data.synthetic import SyntheticConfig
+from sav_jax.data.synthetic import SyntheticConfig, config_from_block
 
 log = logging.getLogger(__name__)
 
 
 def synthetic_config(data_cfg, gen_cfg, seed: int) -> SyntheticConfig:
   """`SyntheticConfig` at the data block's clip shape, with generator overrides."""
-  names = {f.name for f in dataclasses.fields(SyntheticConfig)}
-  given = {"frames": "config.data.frames", "height": "config.data.crop",
-           "width": "config.data.crop"}
-  for k in gen_cfg:
-    if k in given:
-      raise ValueError(f"config.data.synthetic.{k}: the clips' {k} is {given[k]}'s")
-    if k not in names and k != "num_clips":  # a typo would train with the default
-      raise ValueError(f"config.data.synthetic.{k}: SyntheticConfig has no field {k!r} (its "
-                       f"fields: {', '.join(sorted(names - set(given)))}, and num_clips)")
-  kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in gen_cfg.items()
-            if k in names}
-  return SyntheticConfig(frames=data_cfg.frames, height=data_cfg.crop[0],
-                         width=data_cfg.crop[1], **dict(kwargs, seed=seed))
+  return config_from_block(
+      gen_cfg, "config.data.synthetic", own=("num_clips",),
+      set_by={"frames": "config.data.frames", "height": "config.data.crop",
+              "width": "config.data.crop"},
+      frames=data_cfg.frames, height=data_cfg.crop[0], width=data_cfg.crop[1], seed=seed)
 
 
 @contextlib.contextmanager

@@ -176,6 +176,40 @@ def _validate(c: SyntheticConfig) -> None:
   _check(isinstance(c.seed, int) and c.seed >= 0, "seed", "must be an int >= 0", c.seed)
 
 
+def config_from_block(block, where: str, *, own=(), set_by=None, **fields) -> SyntheticConfig:
+  """`SyntheticConfig` from a config file's block of generator fields (lists become tuples).
+
+  A key that is no field (a typo would silently generate with the default) or a bad value
+  is named as `{where}.{key}`.
+
+  Args:
+    block: mapping of field names to values (an `ml_collections.ConfigDict` block).
+    where: the block's name in messages, e.g. `config.synthetic`.
+    own: keys of the block that are the caller's, not the generator's (left out).
+    set_by: fields the caller sets itself, each with the config field it comes from; the
+      block may not give them.
+    **fields: values of the fields the caller sets (override the block).
+  """
+  set_by = dict(set_by or {})
+  names = {f.name for f in dataclasses.fields(SyntheticConfig)}
+  for k in block:
+    if k in set_by:
+      raise ValueError(f"{where}.{k}: the clips' {k} is {set_by[k]}'s")
+  unknown = sorted(set(block) - names - set(own))
+  if unknown:
+    allowed = sorted((names - set(set_by)) | set(own))
+    raise ValueError(f"{where}.{unknown[0]} is not a field of the synthetic generator; its "
+                     f"fields: {', '.join(allowed)}")
+  kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in block.items() if k in names}
+  try:
+    return SyntheticConfig(**dict(kwargs, **fields))
+  except ValueError as e:  # `SyntheticConfig.<field> ...`: name the block's field instead
+    field = str(e).partition(" ")[0].removeprefix("SyntheticConfig.")
+    if field in kwargs and field not in fields:
+      raise ValueError(str(e).replace("SyntheticConfig.", f"{where}.", 1)) from None
+    raise
+
+
 class _Track(NamedTuple):
   """Static parameters of one object's motion (image-space centre, geometric depth)."""
 

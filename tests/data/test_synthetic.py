@@ -14,7 +14,7 @@ import sys
 import numpy as np
 import pytest
 
-from sav_jax.data import textures
+from sav_jax.data import synthetic, textures
 from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo, generate_clip
 
 SMALL = SyntheticConfig(frames=4, height=96, width=192, num_objects=5, max_disparity=32.0,
@@ -328,3 +328,27 @@ def test_source_rejects_bad_length():
     SyntheticStereoVideo(SyntheticConfig(), num_clips=0)
   numpy_count = SyntheticStereoVideo(SyntheticConfig(), num_clips=np.int64(5))  # as elsewhere
   assert len(numpy_count) == 5 and type(numpy_count.num_clips) is int
+
+
+def test_config_from_block_names_the_config_fields():
+  """A config file's generator block: a typo is refused (it would generate with the
+  default), bad values are named by the block's field, the caller's fields are its own."""
+  block = {"frames": 3, "height": 32, "width": 48, "max_disparity": 6.0,
+           "num_sequences": 2, "object_size": [0.2, 0.4]}
+  cfg = synthetic.config_from_block(block, "config.synthetic", own=("num_sequences",))
+  assert (cfg.frames, cfg.height, cfg.max_disparity, cfg.object_size) == (3, 32, 6.0, (0.2, 0.4))
+  with pytest.raises(ValueError, match=r"config\.synthetic\.max_disparty is not a field of the "
+                     r"synthetic generator; its fields: .*max_disparity.*num_sequences"):
+    synthetic.config_from_block({"max_disparty": 4.0}, "config.synthetic",
+                                own=("num_sequences",))
+  with pytest.raises(ValueError, match=r"config\.synthetic\.min_disparity must be > 0, got 0"):
+    synthetic.config_from_block(dict(block, min_disparity=0), "config.synthetic",
+                                own=("num_sequences",))
+  fixed = {"frames": "config.data.frames"}
+  with pytest.raises(ValueError, match=r"config\.d\.frames: the clips' frames is "
+                     r"config\.data\.frames's"):
+    synthetic.config_from_block({"frames": 2}, "config.d", set_by=fixed, frames=3)
+  # a bad value the caller set itself keeps the dataclass's name (the block did not give it)
+  with pytest.raises(ValueError, match=r"^SyntheticConfig\.seed "):
+    synthetic.config_from_block({"seed": 1}, "config.d", seed=-1)
+  assert synthetic.config_from_block({"seed": 1}, "config.d", seed=5).seed == 5

@@ -880,8 +880,12 @@ def test_config_blocks_a_run_cannot_use_are_named(tmp_path, caplog):
     loop.validate_config(c, tmp_path / "w")
   c = synthetic.get_config()
   c.data.synthetic.max_disparty = 4.0  # a typo in a config file trained with the default
-  with pytest.raises(ValueError, match=r"config\.data\.synthetic\.max_disparty: SyntheticConfig "
-                     r"has no field 'max_disparty' \(its fields: .*max_disparity"):
+  with pytest.raises(ValueError, match=r"config\.data\.synthetic\.max_disparty is not a field of "
+                     r"the synthetic generator; its fields: .*max_disparity.*num_clips"):
+    loop.validate_config(c, tmp_path / "w")
+  c = synthetic.get_config()
+  c.data.synthetic.max_disparity = -4.0  # named by the config field, not the dataclass's
+  with pytest.raises(ValueError, match=r"config\.data\.synthetic\.max_disparity "):
     loop.validate_config(c, tmp_path / "w")
   c = synthetic.get_config()
   c.data.synthetic.height = 64
