@@ -883,8 +883,10 @@ def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig
                               check_memory=check_memory, cache=cache, start=start))
 
 
-def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache, start):
-  """`run_window` on inputs already checked (by `predict_video`)."""
+def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache, start,
+                keep_from=None):
+  """`run_window` on inputs already checked (by `predict_video`); `keep_from`: as
+  `_dispatch_window`'s."""
   cache = FrameFeatureCache() if cache is None else cache
   variables = model_variables(variables)
   cache.evict_before(start)
@@ -892,7 +894,8 @@ def _run_window(variables, left, right, *, cfg, iters, pads, check_memory, cache
   programs = _window_programs(variables, left.shape, pads, todo, cfg=cfg, iters=iters,
                               check_memory=check_memory)
   return np.asarray(jax.device_get(_dispatch_window(
-      variables, left, right, todo, programs, pads=pads, cache=cache, start=start)))
+      variables, left, right, todo, programs, pads=pads, cache=cache, start=start,
+      keep_from=keep_from)))
 
 
 def _feature_todo(have, chunk: int, start: int, n: int) -> list[tuple[int, int]]:
@@ -922,10 +925,13 @@ def _window_programs(variables, shape, pads, todo, *, cfg, iters, check_memory):
                               check_memory=check_memory)
 
 
-def _dispatch_window(variables, left, right, todo, programs, *, pads, cache, start):
+def _dispatch_window(variables, left, right, todo, programs, *, pads, cache, start,
+                     keep_from=None):
   """Starts a window's work (its missing per-frame features, then the window) on the
   device of `variables`, where the features of frames computed elsewhere are copied;
-  returns the raw disparity `[T, Hp, Wp]` as a device array."""
+  returns the raw disparity `[T, Hp, Wp]` as a device array. `keep_from`: the first frame a
+  later window needs; the cache forgets the frames before it once the window's features
+  are gathered, so they are not held twice while the window runs."""
   fns, window = programs
   for a, b in todo:
     lp = pad_frames(np.asarray(left[a:b], np.float32), pads)
@@ -933,7 +939,10 @@ def _dispatch_window(variables, left, right, todo, programs, *, pads, cache, sta
     feats = fns[b - a](variables, lp, rp)
     for k in range(b - a):
       cache.frames[start + a + k] = jax.tree_util.tree_map(lambda x, k=k: x[:, k:k + 1], feats)
-  return window(variables, cache.gather(start, start + left.shape[0], _device_of(variables)))
+  feats = cache.gather(start, start + left.shape[0], _device_of(variables))
+  if keep_from is not None:
+    cache.evict_before(keep_from)
+  return window(variables, feats)
 
 
 def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk, progress=False,
@@ -983,10 +992,12 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
   with tqdm(total=total, unit="frame", desc="disparity", disable=not progress) as bar:
     cache = FrameFeatureCache(chunk)
     if len(placed) == 1:
-      for win in plan:
+      for i, win in enumerate(plan):
         lw, rw = frames(win)
+        keep_from = plan[i + 1].start if i + 1 < len(plan) else win.start + win.length
         yield kept(win, _run_window(placed[0], lw, rw, cfg=cfg, iters=iters, pads=pads,
-                                    check_memory=check_memory, cache=cache, start=win.start))
+                                    check_memory=check_memory, cache=cache, start=win.start,
+                                    keep_from=keep_from))
         bar.update(win.keep_stop - win.keep_start)
       return
     for g in range(0, len(plan), len(placed)):
@@ -1004,6 +1015,10 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
         lw, rw = frames(win)
         raws.append(_dispatch_window(v, lw, rw, todo, programs, pads=pads, cache=cache,
                                      start=win.start))
+      # the group's features are gathered: keep only what the next group needs
+      following = plan[g + len(placed):]
+      last = group[-1]
+      cache.evict_before(following[0].start if following else last.start + last.length)
       for win, raw in zip(group, raws):
         yield kept(win, np.asarray(jax.device_get(raw)))
         bar.update(win.keep_stop - win.keep_start)

@@ -286,7 +286,8 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
     read.append(len(out))
     return out
 
-  def label_model(variables, lw, rw, *, cfg, iters, pads, check_memory, cache, start):
+  def label_model(variables, lw, rw, *, cfg, iters, pads, check_memory, cache, start,
+                  keep_from=None):
     value = (np.round(lw[:, 0, 0, 0] / 9).astype(np.float32) + 1) * 12  # 12 (index + 1)
     hp, wp = lw.shape[1] + pads[0] + pads[1], lw.shape[2] + pads[2] + pads[3]
     return -np.broadcast_to(value[:, None, None], (len(lw), hp, wp)).copy()
@@ -854,7 +855,8 @@ def test_matmul_precision_covers_every_window_and_is_recorded(tmp_path, folders,
   import jax  # pylint: disable=import-outside-toplevel
   seen = []
 
-  def recording_model(variables, lw, rw, *, cfg, iters, pads, check_memory, cache, start):
+  def recording_model(variables, lw, rw, *, cfg, iters, pads, check_memory, cache, start,
+                      keep_from=None):
     seen.append(str(jax.config.jax_default_matmul_precision))
     hp, wp = lw.shape[1] + pads[0] + pads[1], lw.shape[2] + pads[2] + pads[3]
     return np.ones((len(lw), hp, wp), np.float32)
