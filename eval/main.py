@@ -79,7 +79,10 @@ def main(argv: list[str] | None = None) -> int:
   except KeyboardInterrupt:  # Ctrl-C at the command line: one line (the run can be resumed)
     if not command_line:
       raise
-    print("eval: interrupted", file=sys.stderr)
+    print("eval: interrupted; " + (
+        "the earlier results in the output folder were put back" if args.overwrite else
+        "the sequences it finished are recorded: run the same command with --resume to "
+        "continue"), file=sys.stderr)
     return 130
 
 
@@ -116,25 +119,8 @@ def _run_into(args, config, out) -> int:
   if restored:
     print(f"restored {len(restored)} prediction and plot files that an interrupted "
           f"--overwrite run had set aside in {out / runner.SET_ASIDE}")
-  earlier = [p for p in (*(out / r for r in runner.REPORTS),
-                         out / runner.WRITTEN_LIST, out / runner.PROGRESS, out / "predictions",
-                         out / "plots")
-             if p.is_file() or (p.is_dir() and any(p.iterdir()))]
-  if args.resume:  # without a progress file, only an empty folder starts afresh
-    if not (out / runner.PROGRESS).is_file() and earlier:
-      what = ("holds a finished evaluation" if (out / "results.json").is_file()
-              else f"has no {runner.PROGRESS}")
-      raise FileExistsError(f"nothing to resume: {out} {what} (found "
-                            f"{', '.join(p.name for p in earlier)}); pass --overwrite to "
-                            "replace it")
-  elif earlier and not args.overwrite:  # also the predictions of an interrupted run
-    interrupted = (out / runner.PROGRESS).is_file()
-    raise FileExistsError(f"{', '.join(map(str, earlier))} exist; pass "
-                          + ("--resume to continue that interrupted run, or " if interrupted
-                             else "") + "--overwrite to replace them")
   inference.check_window(config.window, config.stride)
   devices = resolve_devices_option(config.devices, "config.devices")
-  setup_compile_cache(args)
   seqs = eval_data.load_sequences(config, args.data_root)
   unscaled = [str(s.name) for s in seqs if s.depth2disp_scale is None]
   depth_metrics = [f"metrics.{k}" for k in ("tcc", "raft") if config.metrics[k]]
@@ -154,6 +140,23 @@ def _run_into(args, config, out) -> int:
                      f"sequences of 2 frames or more, but {config.dataset} sequence "
                      f"{short[0].name} has {len(short[0])} ({len(short)} of {len(seqs)} "
                      "sequences)")
+  earlier = [p for p in (*(out / r for r in runner.REPORTS),
+                         out / runner.WRITTEN_LIST, out / runner.PROGRESS, out / "predictions",
+                         out / "plots")
+             if p.is_file() or (p.is_dir() and any(p.iterdir()))]
+  if args.resume:  # without a progress file, only an empty folder starts afresh
+    if not (out / runner.PROGRESS).is_file() and earlier:
+      what = ("holds a finished evaluation" if (out / "results.json").is_file()
+              else f"has no {runner.PROGRESS}")
+      raise FileExistsError(f"nothing to resume: {out} {what} (found "
+                            f"{', '.join(p.name for p in earlier)}); pass --overwrite to "
+                            "replace it")
+  elif earlier and not args.overwrite:  # also the predictions of an interrupted run
+    interrupted = (out / runner.PROGRESS).is_file()
+    raise FileExistsError(f"{', '.join(map(str, earlier))} exist; pass "
+                          + ("--resume to continue that interrupted run, or " if interrupted
+                             else "") + "--overwrite to replace them")
+  setup_compile_cache(args)
   flow_fn = runner.raft_flow_fn(config)
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
   variables, model_cfg, described = load_checkpoint(args.checkpoint, dtype=config.dtype)
@@ -216,7 +219,7 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
                      f"{r['disp_temp_epe_mean']:.3f}" for m, r in res.metrics.items())
     again = "  (from the interrupted run)" if str(seq.name) in done else ""
     print(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  {line}{again}")
-  summary = build_summary(config, described, results, methods)
+  summary = build_summary(config, described, results, methods, settings.get("weights"))
   paths = report.write_all(out, summary)
   runner.drop_set_aside(out)  # the commit point of an --overwrite run: nothing is undone after
   if not set(done) - {str(seq.name) for seq in seqs}:  # else kept: a later --resume over
@@ -226,12 +229,17 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
   return 0
 
 
-def build_summary(config, described: str, results: list, methods: list[str]) -> dict:
-  """Everything `report` writes: config, weights, per-sequence and aggregate metrics."""
+def build_summary(config, described: str, results: list, methods: list[str],
+                  weights_digest: str | None = None) -> dict:
+  """Everything `report` writes: config, weights (`described`, and `runner.weights_digest`
+  of the parameters: the same weights from any path or format), sav-jax's version,
+  per-sequence and aggregate metrics."""
+  import sav_jax  # pylint: disable=import-outside-toplevel
   from eval import runner  # pylint: disable=import-outside-toplevel
   frames = sum(r.frames for r in results)
   summary = {"dataset": config.dataset, "split": config.split, "config": config.to_dict(),
-             "weights": described, "frames": frames,
+             "weights": described, "weights_digest": weights_digest,
+             "sav_jax_version": sav_jax.__version__, "frames": frames,
              "metrics_seconds": sum(r.metrics_seconds for r in results),
              "created": time.strftime("%Y-%m-%d %H:%M:%S"), "methods": {}, "sequences": []}
   for m in methods:
@@ -246,5 +254,5 @@ def build_summary(config, described: str, results: list, methods: list[str]) -> 
     summary["sequences"].append({"name": r.name, "frames": r.frames, "source": r.source,
                                  "metrics": r.metrics, "seconds": r.seconds,
                                  "compile_seconds": r.compile_seconds,
-                                 "metrics_seconds": r.metrics_seconds})
+                                 "metrics_seconds": r.metrics_seconds, "notes": r.notes})
   return summary

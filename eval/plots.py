@@ -125,8 +125,11 @@ def write_strip(path, clip: dict, preds: dict[str, np.ndarray], frames: int = 6,
   t = len(clip["left"])
   idx = np.unique(np.linspace(0, t - 1, max(1, min(frames, t))).round().astype(int))
   gt, valid = clip.get("disparity"), clip.get("valid")
-  if gt is not None:
-    vmin, vmax = viz.disparity_range(np.abs(gt[idx]), valid[idx], percentiles=(1.0, 99.0))
+  # the ground truth's range, or the first prediction's where the shown frames have no
+  # usable ground-truth pixel (fully occluded / invalid frames; no ground truth at all)
+  shown = np.abs(gt[idx]) if gt is not None else None
+  if shown is not None and np.any(np.isfinite(shown) & (shown > 0) & (valid[idx] > 0.5)):
+    vmin, vmax = viz.disparity_range(shown, valid[idx], percentiles=(1.0, 99.0))
   else:
     vmin, vmax = viz.disparity_range(next(iter(preds.values()))[idx], percentiles=(1.0, 99.0))
   rows = [("left", [clip["left"][i] for i in idx])]

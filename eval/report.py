@@ -61,6 +61,9 @@ def markdown(summary: dict) -> str:
       vals = [_fmt(res.get(k)) for _, k in cols]
       lines.append("| " + " | ".join([seq["name"], str(seq["frames"]), methods[key]["name"],
                                       *vals]) + " |")
+  notes = [n for seq in summary["sequences"] for n in seq.get("notes", [])]
+  if notes:
+    lines += ["", "Notes:", *(f"- {n}" for n in notes)]
   compiled = ", ".join(f"{m['name']} {m['compile_seconds']:.1f} s"
                        for m in methods.values() if m.get("compile_seconds"))
   lines += ["", "EPE/TEPE in px with the official denominators (non-zero errors); bad-N and "

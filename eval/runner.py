@@ -49,6 +49,8 @@ class SequenceResult:
       when the flow-based metrics are on).
     source: the folder its left frames were read from (`sequence_source`); None for the
       synthetic set.
+    notes: what the reader of its numbers should know (`gt_notes`: no valid ground-truth
+      pixel, one frame), also logged as warnings.
   """
 
   name: str
@@ -59,6 +61,7 @@ class SequenceResult:
   compile_seconds: dict = dataclasses.field(default_factory=dict)
   metrics_seconds: float = 0.0
   source: str | None = None
+  notes: list = dataclasses.field(default_factory=list)
 
 
 def safe_name(name: str) -> str:
@@ -91,6 +94,22 @@ def per_frame_errors(pred, gt, valid) -> tuple[np.ndarray, np.ndarray]:
 
   has = m > 0.5  # the metrics' mask threshold
   return reduce(epe, has), reduce(tepe, has[:-1] & has[1:])
+
+
+def gt_notes(name: str, valid) -> list[str]:
+  """Notes on a sequence whose official scores are not measurements: without any valid
+  ground-truth pixel, every metric is 0 (perfect) by the official rule, and with one frame
+  TEPE and δt are (no frame pair); its frames still count in the frame-weighted aggregate,
+  as in the official evaluator."""
+  valid = np.asarray(valid)
+  if not np.any(valid > 0.5):  # the metrics' mask threshold
+    return [f"sequence {name}: no valid ground-truth pixel in its {len(valid)} frames: the "
+            "official rule scores every metric 0 (perfect), and its frames count in the "
+            "aggregate"]
+  if len(valid) == 1:
+    return [f"sequence {name} has one frame: TEPE and δt are 0 (no frame pair) by the "
+            "official rule, and its frame counts in the aggregate"]
+  return []
 
 
 def predict(method: str, clip: dict, *, variables, model_cfg, config,
@@ -167,6 +186,10 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
   res = SequenceResult(name=str(seq.name), frames=len(clip["left"]),
                        source=sequence_source(seq))
   has_gt = clip["disparity"] is not None
+  if has_gt:
+    res.notes = gt_notes(res.name, clip["valid"])
+    for note in res.notes:
+      log.warning(note)
   depth = config.metrics.tcc or flow_fn is not None
   scale = seq.depth2disp_scale if depth else None
   video = flows = None
@@ -185,9 +208,12 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
     preds[method] = pred
     if has_gt:
       start = time.perf_counter()
-      res.metrics[method] = metrics.eval_sequence(
-          pred, clip["disparity"], clip["valid"].astype(np.float32), flows, scale=scale,
-          video=video, flow_fn=flow_fn)
+      try:
+        res.metrics[method] = metrics.eval_sequence(
+            pred, clip["disparity"], clip["valid"].astype(np.float32), flows, scale=scale,
+            video=video, flow_fn=flow_fn)
+      except ValueError as e:  # e.g. a NaN prediction: name the sequence and the method
+        raise ValueError(f"sequence {res.name}, {METHOD_NAMES[method]}: {e}") from None
       res.metrics_seconds += time.perf_counter() - start
       res.curves[method] = per_frame_errors(pred, clip["disparity"], clip["valid"])
   if out is not None:
@@ -381,10 +407,11 @@ def read_progress(out: pathlib.Path, settings: dict) -> dict[str, SequenceResult
       res = SequenceResult(name=rec["name"], frames=rec["frames"], metrics=rec["metrics"],
                            seconds=rec["seconds"], compile_seconds=rec["compile_seconds"],
                            metrics_seconds=rec["metrics_seconds"],
-                           source=rec.get("source"))  # (absent from older records)
+                           source=rec.get("source"),  # (absent from older records)
+                           notes=rec.get("notes", []))
       kinds = ((res.name, str), (res.frames, int), (res.metrics, dict), (res.seconds, dict),
                (res.compile_seconds, dict), (res.metrics_seconds, (int, float)),
-               (res.source, (str, type(None))))
+               (res.source, (str, type(None))), (res.notes, list))
       if not all(isinstance(v, t) and not isinstance(v, bool) for v, t in kinds):
         raise TypeError("a field of another type")
     except (json.JSONDecodeError, KeyError, TypeError) as e:
@@ -401,7 +428,8 @@ def append_progress(out: pathlib.Path, settings: dict, res: SequenceResult) -> N
   lines = [] if path.is_file() else [{"sav_jax_eval_progress": _PROGRESS_VERSION, **settings}]
   lines.append({"name": res.name, "frames": res.frames, "metrics": res.metrics,
                 "seconds": res.seconds, "compile_seconds": res.compile_seconds,
-                "metrics_seconds": res.metrics_seconds, "source": res.source})
+                "metrics_seconds": res.metrics_seconds, "source": res.source,
+                "notes": res.notes})
   with open(path, "a", encoding="utf-8") as f:
     f.writelines(json.dumps(line) + "\n" for line in lines)
     f.flush()

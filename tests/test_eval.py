@@ -94,6 +94,9 @@ def test_synthetic_outputs_and_metrics(synthetic_run, variables):
   seqs = eval_data.load_sequences(config, None)
   summary = _check_against_metrics(out, seqs, ["sav", "sgbm"], with_scale=True)
   assert "disp_TCC" in summary["methods"]["sav"]["aggregate"]
+  # provenance: the parameters' digest (the same weights from any path or format)
+  assert summary["weights_digest"] == eval_runner.weights_digest(variables)
+  assert summary["sav_jax_version"] == sav_jax.__version__
   for seq in seqs:  # predictions are predict_video's, frame for frame
     clip = eval_data.read_sequence(seq)
     expected = inference.predict_video(variables, clip["left"], clip["right"], iters=2)
@@ -536,7 +539,7 @@ def test_synthetic_set_takes_every_generator_field():
   with config.unlocked():
     config.synthetic.max_disparty = 5.0
   with pytest.raises(ValueError, match="config.synthetic.max_disparty is not a field of the "
-                     "synthetic generator; its fields: num_sequences, background_fraction"):
+                     "synthetic generator; its fields: background_fraction, .*num_sequences"):
     eval_data.load_sequences(config, None)
 
 
@@ -835,3 +838,68 @@ def test_sequence_names_that_differ_write_different_files():
   assert runner.safe_name("alley_1") == "alley_1"  # names that are safe keep their files
   assert runner.safe_name("alley 1") == runner.safe_name("alley 1")  # stable (resume)
   assert re.fullmatch(r"alley_1-[0-9a-f]{8}", runner.safe_name("alley 1"))
+
+
+def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt(
+    tmp_path, monkeypatch):
+  """Fully occluded frames: the ground truth's range was (0, 1) px, and a 10..50 px
+  prediction one saturated colour."""
+  ranges = []
+  real = sav_jax.viz.colorize
+
+  def recording(d, vmin=None, vmax=None, **kw):
+    ranges.append((vmin, vmax))
+    return real(d, vmin, vmax, **kw)
+
+  monkeypatch.setattr(sav_jax.viz, "colorize", recording)
+  t, h, w = 3, 16, 24
+  pred = np.broadcast_to(np.linspace(10, 50, w, dtype=np.float32), (t, h, w))
+  clip = {"left": np.zeros((t, h, w, 3), np.uint8), "disparity": np.full((t, h, w), 5.0),
+          "valid": np.zeros((t, h, w), bool)}
+  eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": pred}, frames=3, tile=32)
+  assert all(10 <= lo < 12 and 48 < hi <= 50 for lo, hi in ranges), ranges
+  ranges.clear()
+  clip["valid"][:] = True  # with valid pixels: the ground truth's range (5 px everywhere)
+  eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": pred}, frames=3, tile=32)
+  assert ranges and all((lo, hi) == (5, 6) for lo, hi in ranges), ranges  # a constant: +1 px
+
+
+def test_sequences_whose_scores_are_not_measurements_are_noted(tmp_path, monkeypatch, caplog):
+  """No valid ground-truth pixel (every metric 0 by the official rule) or one frame (TEPE 0):
+  the numbers stay the official ones, and a warning, results.json and results.md say so; a
+  NaN prediction is named with its sequence and method."""
+  config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")),
+                                       eval_config.split_overrides(SMALL)[1])
+  config.plots.enabled, config.save_predictions = False, False
+  seq = eval_data.load_sequences(config, None)[0]
+  clip = eval_data.read_sequence(seq)
+  fake = {"pred": clip["disparity"] + 2.0}
+  monkeypatch.setattr(eval_runner, "predict", lambda method, clip, **_: fake["pred"])
+  occluded = dict(clip, valid=np.zeros_like(clip["valid"]))
+  monkeypatch.setattr(eval_runner.eval_data, "read_sequence", lambda s: occluded)
+  with caplog.at_level("WARNING"):
+    res = eval_runner.evaluate_sequence(seq, ["sav"], variables=None, model_cfg=None,
+                                        config=config)
+  assert res.metrics["sav"]["disp_epe_mean"] == 0  # the official rule
+  assert res.notes == [f"sequence {seq.name}: no valid ground-truth pixel in its {T} frames: "
+                       "the official rule scores every metric 0 (perfect), and its frames "
+                       "count in the aggregate"]
+  assert res.notes[0] in caplog.text
+  eval_runner.append_progress(tmp_path, {"s": 1}, res)  # kept for --resume
+  assert eval_runner.read_progress(tmp_path, {"s": 1})[res.name].notes == res.notes
+  from eval.main import build_summary  # pylint: disable=import-outside-toplevel
+  summary = build_summary(config, "test", [res], ["sav"])
+  assert summary["sequences"][0]["notes"] == res.notes
+  assert f"Notes:\n- {res.notes[0]}" in eval_report.markdown(summary)
+  one = dict(clip, **{k: clip[k][:1] for k in ("left", "right", "disparity", "valid")})
+  monkeypatch.setattr(eval_runner.eval_data, "read_sequence", lambda s: one)
+  fake["pred"] = one["disparity"] + 2.0
+  res = eval_runner.evaluate_sequence(seq, ["sav"], variables=None, model_cfg=None,
+                                      config=config)
+  assert res.metrics["sav"]["disp_temp_epe_mean"] == 0 and len(res.notes) == 1
+  assert "has one frame: TEPE and δt are 0" in res.notes[0]
+  monkeypatch.setattr(eval_runner.eval_data, "read_sequence", lambda s: clip)
+  fake["pred"] = clip["disparity"].copy()
+  fake["pred"][1, 0, 0] = np.nan
+  with pytest.raises(ValueError, match=rf"^sequence {seq.name}, Stereo Any Video: pred has NaN"):
+    eval_runner.evaluate_sequence(seq, ["sav"], variables=None, model_cfg=None, config=config)
