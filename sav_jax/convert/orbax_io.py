@@ -99,13 +99,13 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
       arrays are not supported by orbax.
     config_dict: JSON-serialisable dict (tuples come back as lists).
     overwrite: replace an existing checkpoint written by this function. A directory that is
-      not such a checkpoint is never deleted.
+      not such a checkpoint is never deleted; an empty one is written into without it.
 
   Returns:
     The absolute checkpoint path.
 
   Raises:
-    FileExistsError: `directory` exists and `overwrite` is False.
+    FileExistsError: `directory` exists (but as an empty folder) and `overwrite` is False.
     CheckpointError: `directory` exists but is not a checkpoint (with `overwrite`), the
       config is not JSON-serialisable, `variables` has no `"params"` mapping or holds
       zero-size arrays.
@@ -117,7 +117,7 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
     # replace what the link points to, and keep the link (the swap below renames folders)
     directory = directory.resolve()
   if directory.exists():
-    if not overwrite:
+    if not overwrite and not (directory.is_dir() and not any(directory.iterdir())):
       raise FileExistsError(f"{directory} exists; pass overwrite=True to replace it")
     if not directory.is_dir():
       raise CheckpointError(f"{directory} is a file, not a checkpoint folder; it is not "

@@ -427,7 +427,7 @@ def load_zip(path, source, opaque_unknown=False):
     prefix = _zip_prefix(zf, source)
     order = "little"
     if prefix + "byteorder" in zf.namelist():
-      order = zf.read(prefix + "byteorder").decode("ascii", "replace").strip()
+      order = _read_member(zf, prefix + "byteorder", 64, source).decode("ascii", "replace").strip()
     if order not in ("little", "big"):
       raise CheckpointError(f"{source}: unknown byteorder record {order!r}")
     storages = {}
@@ -439,7 +439,7 @@ def load_zip(path, source, opaque_unknown=False):
         storage.set_data(_zip_record(zf, prefix, key, dtype, numel, order, source))
       return storages[key]
 
-    pickled = io.BytesIO(zf.read(prefix + "data.pkl"))
+    pickled = io.BytesIO(_read_member(zf, prefix + "data.pkl", MAX_PICKLE_BYTES, source))
     return _unpickle(pickled, source, load_storage, opaque_unknown)
 
 
@@ -463,6 +463,21 @@ def _zip_prefix(zf, source):
   return prefix
 
 
+# The object pickle of a checkpoint is small (names, shapes, a scheduler's state): a larger
+# one is no model checkpoint, and a compressed record must not inflate without bound.
+MAX_PICKLE_BYTES = 1 << 30
+
+
+def _read_member(zf, name: str, limit: int, source) -> bytes:
+  """Zip member `name`, refused when it inflates to more than `limit` bytes."""
+  with zf.open(name) as fh:
+    data = fh.read(limit + 1)
+  if len(data) > limit:
+    raise CheckpointError(f"{source}: zip record {name!r} is larger than {limit} bytes: not "
+                          "a model checkpoint's")
+  return data
+
+
 def _zip_record(zf, prefix, key, dtype, numel, order, source):
   name = f"{prefix}data/{key}"
   try:
@@ -473,7 +488,11 @@ def _zip_record(zf, prefix, key, dtype, numel, order, source):
   if info.file_size < nbytes:
     raise CheckpointError(f"{source}: storage {name!r} has {info.file_size} bytes, "
                           f"needs {nbytes}")
-  raw = zf.read(name)
+  # only the bytes the tensor needs: a compressed record may inflate far beyond them
+  with zf.open(info) as fh:
+    raw = fh.read(nbytes)
+  if len(raw) < nbytes:
+    raise CheckpointError(f"{source}: storage {name!r} has {len(raw)} bytes, needs {nbytes}")
   raw_dtype = dtype.raw.newbyteorder("<" if order == "little" else ">")
   return np.frombuffer(raw, dtype=raw_dtype, count=numel)
 

@@ -105,16 +105,27 @@ def _load_torch(path, opaque_unknown):
 
 
 def _load_npz(path):
+  member = None
   try:
-    data = np.load(path, allow_pickle=False)
-    if not isinstance(data, np.lib.npyio.NpzFile):
+    with open(path, "rb") as fh:
+      magic = fh.read(6)
+    if magic == b"\x93NUMPY":
       raise CheckpointError(f"{path}: not an .npz archive (a single .npy array)")
-    with data:
-      return {k: np.array(data[k]) for k in data.files}
-  except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+    if not magic.startswith(b"PK"):  # NumPy would call it pickled data
+      raise CheckpointError(f"{path}: not an .npz archive (an .npz file is a zip archive; "
+                            f"this one starts with {magic!r})")
+    with np.load(path, allow_pickle=False) as data:
+      out = {}
+      for member in data.files:
+        out[member] = np.array(data[member])
+      return out
+  except (OSError, ValueError, EOFError, zipfile.BadZipFile, MemoryError) as e:
     if isinstance(e, CheckpointError):
       raise
-    raise CheckpointError(f"{path}: cannot read .npz file ({type(e).__name__}: {e})") from e
+    where = f" (array {member!r})" if member is not None else ""
+    what = ("declares an array too large to read: corrupt?" if isinstance(e, MemoryError)
+            else "cannot read .npz file")
+    raise CheckpointError(f"{path}: {what}{where} ({type(e).__name__}: {e})") from e
 
 
 def _load_safetensors(path):
@@ -176,10 +187,11 @@ def unwrap_state_dict(obj, source: str = "<checkpoint>") -> dict:
   Accepted forms: a raw `{name: array}` mapping (numpy arrays, or tensors that convert to
   them: torch's, JAX's); `{"model": sd, ...}` (training checkpoints
   also hold `optimizer`, `scheduler`, `total_steps`: ignored); `{"state_dict": sd, ...}`;
-  these wrappers may nest. A leading `module.` (from `DataParallel`) is then stripped from
-  each key that has one. Unlike the official `demo.py`, which applies
-  `k.replace("module.", "")` and so removes *every* occurrence, only the leading prefix is
-  removed, so a submodule whose name contains `module.` keeps it.
+  these wrappers may nest. A leading `module.` (from `DataParallel`; `module.module.` from a
+  wrapped wrapper) is then stripped from each key that has one. Unlike the official
+  `demo.py`, which applies `k.replace("module.", "")` and so removes *every* occurrence,
+  only the leading prefixes are removed, so a submodule whose name contains `module.` keeps
+  it.
 
   Args:
     obj: what `load_checkpoint_object` returned.
@@ -239,7 +251,9 @@ def _to_numpy(key, v, source) -> np.ndarray:
 def _strip_module_prefix(sd, source):
   out = {}
   for k, v in sd.items():
-    name = k[len(_MODULE_PREFIX):] if k.startswith(_MODULE_PREFIX) else k
+    name = k
+    while name.startswith(_MODULE_PREFIX):
+      name = name[len(_MODULE_PREFIX):]
     if name in out:
       raise CheckpointError(f"{source}: key {k!r} collides with {name!r} once the leading "
                             "'module.' is stripped")

@@ -56,10 +56,18 @@ PE_ATOL_HALF = 2.0 ** -9 + PE_ATOL
 
 
 def _pe_atol(a: np.ndarray) -> float:
-  """`PE_ATOL`, or `PE_ATOL_HALF` for a float16 buffer or a bfloat16 one widened to float32."""
-  half = a.dtype == np.float16 or (a.dtype == np.float32 and a.size > 0 and
-                                   not np.any(np.ascontiguousarray(a).view(np.uint32) & 0xFFFF))
-  return PE_ATOL_HALF if half else PE_ATOL
+  """`PE_ATOL`, or `PE_ATOL_HALF` for a float16 buffer, or a float32 one holding float16 or
+  bfloat16 values (a half-precision release loaded into a float32 model and saved again,
+  `model.half().float()`)."""
+  if a.dtype == np.float16:
+    return PE_ATOL_HALF
+  if a.dtype != np.float32 or a.size == 0:
+    return PE_ATOL
+  a = np.ascontiguousarray(a)
+  bfloat16 = not np.any(a.view(np.uint32) & 0xFFFF)
+  with np.errstate(over="ignore"):
+    float16 = bool(np.array_equal(a.astype(np.float16).astype(np.float32), a))
+  return PE_ATOL_HALF if bfloat16 or float16 else PE_ATOL
 
 
 def _abstract_params(model: VideoDepthAnything) -> dict:

@@ -39,6 +39,11 @@ def count_params(tree) -> int:
   return int(sum(x.size for x in jax.tree_util.tree_leaves(tree)))
 
 
+# File formats a DST may be mistaken for (`.npy` for `.npz`): refused, not made orbax folders.
+OTHER_FILE_SUFFIXES = (".npy", ".h5", ".hdf5", ".pkl", ".pickle", ".json", ".msgpack", ".onnx",
+                       ".zip", ".gz", ".mat")
+
+
 def check_destination(src: str, dst: str, to_file: bool, overwrite: bool) -> None:
   """Raises UsageError before anything is read if DST cannot or must not be written."""
   import os  # pylint: disable=import-outside-toplevel
@@ -49,6 +54,8 @@ def check_destination(src: str, dst: str, to_file: bool, overwrite: bool) -> Non
   check_output_dir(os.path.dirname(os.path.abspath(dst)), flag=f"DST {dst}: folder")
   if not os.path.lexists(dst):
     return
+  if not to_file and os.path.isdir(dst) and not os.path.islink(dst) and not os.listdir(dst):
+    return  # an empty folder made for it: nothing to replace
   if not overwrite:
     raise UsageError(f"{dst} exists; pass --overwrite to replace it")
   if to_file and not os.path.isfile(dst):
@@ -67,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
   suffix = os.path.splitext(args.dst)[1].lower()
   to_file = suffix in convert.torch_io.WRITE_SUFFIXES
-  if not to_file and suffix in convert.torch_io.TORCH_SUFFIXES:
+  if not to_file and suffix in (*convert.torch_io.TORCH_SUFFIXES, *OTHER_FILE_SUFFIXES):
     raise UsageError(f"{args.dst}: cannot write a {suffix} file; name a "
                      f"{'/'.join(convert.torch_io.WRITE_SUFFIXES)} file, or a folder name "
                      "without a checkpoint suffix for an orbax directory")

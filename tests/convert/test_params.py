@@ -265,8 +265,10 @@ def _to_bfloat16(a):
 
 def test_half_precision_checkpoints_convert(sav_state_dict):
   # A float16 or bfloat16 file holds the motion modules' sinusoidal tables rounded to
-  # that type (up to 2.4e-4 / 2.0e-3 from the float32 table, against 1e-5 allowed before).
-  for cast in (lambda a: a.astype(np.float16), _to_bfloat16):
+  # that type (up to 2.4e-4 / 2.0e-3 from the float32 table, against 1e-5 allowed before),
+  # also saved again as float32 (the fp16 release loaded into a float32 model and saved).
+  for cast in (lambda a: a.astype(np.float16), _to_bfloat16,
+               lambda a: a.astype(np.float16).astype(np.float32)):
     sd = {k: cast(v) if v.dtype == np.float32 else v for k, v in sav_state_dict.items()}
     variables = convert.params_from_state_dict(sd)
     params = variables["params"]
@@ -416,6 +418,8 @@ def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dic
                        (tmp_path / "notes.txt", "is not a `sav-jax convert` variables folder"),
                        (tmp_path / "folder", "is not a `sav-jax convert` variables folder"),
                        (tmp_path / "sav.ckpt", "cannot write a .ckpt file"),
+                       # a typo for .npz made an orbax folder named weights.npy
+                       (tmp_path / "weights.npy", "cannot write a .npy file"),
                        # a traceback after the whole conversion before
                        (tmp_path / "notes.txt" / "odir", "notes.txt is a file, not a folder"),
                        (tmp_path / "notes.txt" / "a" / "x.npz",
@@ -425,7 +429,10 @@ def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dic
     assert message in err and err.count("\n") == 1, err
   assert (tmp_path / "notes.txt").read_text() == "mine"
   assert (tmp_path / "folder" / "a.txt").read_text() == "mine"
-  assert not (tmp_path / "sav.ckpt").exists()
+  assert not (tmp_path / "sav.ckpt").exists() and not (tmp_path / "weights.npy").exists()
+  (tmp_path / "empty").mkdir()  # an empty folder made for the checkpoint: nothing to replace
+  assert cli.main(["convert", str(src), str(tmp_path / "empty")]) == 0
+  assert convert.is_variables_checkpoint(tmp_path / "empty")
   assert cli.main(["convert", str(tmp_path / "folder"), str(tmp_path / "x.npz")]) == 2
   err = capsys.readouterr().err
   assert "folder" in err and "not a regular file" not in err and err.count("\n") == 1, err

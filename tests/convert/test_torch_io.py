@@ -380,6 +380,33 @@ def test_zip_with_missing_storage_record(tmp_path, fake_torch):
     torch_io.load_state_dict(path)
 
 
+def test_compressed_records_are_read_no_further_than_needed(tmp_path, fake_torch, monkeypatch):
+  """A storage record that inflates far beyond its tensor (a zip bomb: 64 MiB of zeros
+  behind 12 bytes) is read only as far as the tensor needs; an object pickle beyond
+  `MAX_PICKLE_BYTES` is refused."""
+  import tracemalloc  # pylint: disable=import-outside-toplevel
+  b = _Builder(fake_torch)
+  obj = {"x": b.array(np.arange(3, dtype=np.float32), "float32")}
+  path = tmp_path / "bomb.pth"
+  with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+    zf.writestr("archive/data.pkl", b.pickle(obj, legacy=False))
+    key = next(iter(b.storages))
+    zf.writestr(f"archive/data/{key}", b.storages[key].raw + bytes(64 << 20))
+  assert path.stat().st_size < 1 << 20
+  tracemalloc.start()
+  try:
+    sd = torch_io.load_state_dict(path)
+    peak = tracemalloc.get_traced_memory()[1]
+  finally:
+    tracemalloc.stop()
+  np.testing.assert_array_equal(sd["x"], [0, 1, 2])
+  assert peak < 8 << 20, peak  # the whole record: 64 MiB
+  monkeypatch.setattr(pickle_reader, "MAX_PICKLE_BYTES", 16)
+  with pytest.raises(CheckpointError, match=r"bomb\.pth.*zip record 'archive/data\.pkl' is "
+                     r"larger than 16 bytes: not a model checkpoint's"):
+    torch_io.load_state_dict(path)
+
+
 # --------------------------------------------------------------------------------------------
 # Malicious pickles: nothing may run.
 
@@ -622,6 +649,27 @@ def test_random_bytes(tmp_path, prefix, suffix):
       torch_io.load_state_dict(path)
 
 
+def test_npz_files_that_are_not_archives_or_declare_huge_arrays_are_named(tmp_path):
+  """Not a zip: NumPy called it pickled data (allow_pickle); a member whose header declares
+  2**36 values escaped as a MemoryError that named nothing."""
+  (tmp_path / "text.npz").write_bytes(b"version https://git-lfs.github.com/spec/v1\n")
+  with pytest.raises(CheckpointError, match=r"text\.npz: not an \.npz archive \(an \.npz "
+                     r"file is a zip archive; this one starts with b'versio'\)"):
+    torch_io.load_state_dict(tmp_path / "text.npz")
+  np.save(tmp_path / "one.npy", np.zeros(3))
+  (tmp_path / "one.npz").write_bytes((tmp_path / "one.npy").read_bytes())
+  with pytest.raises(CheckpointError, match=r"one\.npz: not an \.npz archive \(a single"):
+    torch_io.load_state_dict(tmp_path / "one.npz")
+  header = {"descr": "<f4", "fortran_order": False, "shape": (1 << 36,)}
+  buf = io.BytesIO()
+  np.lib.format.write_array_header_1_0(buf, header)
+  with zipfile.ZipFile(tmp_path / "huge.npz", "w") as zf:
+    zf.writestr("w.npy", buf.getvalue() + bytes(16))
+  with pytest.raises(CheckpointError, match=r"huge\.npz: (declares an array too large to read: "
+                     r"corrupt\?|cannot read \.npz file) \(array 'w'\)"):
+    torch_io.load_state_dict(tmp_path / "huge.npz")
+
+
 def test_empty_and_tar_files(tmp_path):
   (tmp_path / "e.pth").write_bytes(b"")
   with pytest.raises(CheckpointError, match="empty file"):
@@ -676,9 +724,10 @@ def test_unwrap_forms():
   assert list(torch_io.unwrap_state_dict(wrapped)) == ["a.w", "b.module.w"]
   assert list(torch_io.unwrap_state_dict({"state_dict": sd, "epoch": 1})) == list(sd)
   assert list(torch_io.unwrap_state_dict({"state_dict": {"model": sd}})) == list(sd)
-  # Only the leading module. goes (the official demo.py would remove both).
+  # Only the leading module. goes (the official demo.py would remove both), and the leading
+  # ones of a wrapped wrapper (the official loaders read those files too).
   assert list(torch_io.unwrap_state_dict(_tiny(["module.x.module.y"]))) == ["x.module.y"]
-  assert list(torch_io.unwrap_state_dict(_tiny(["module.module.y"]))) == ["module.y"]
+  assert list(torch_io.unwrap_state_dict(_tiny(["module.module.y"]))) == ["y"]
 
 
 def test_unwrap_errors():
