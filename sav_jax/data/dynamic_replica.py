@@ -27,6 +27,9 @@ from pathlib import Path
 from sav_jax.data import frame_io
 from sav_jax.data.base import DepthSequence, camera_scale, find_root
 
+# The dataset's folder under a datasets root (the root may also be that folder itself).
+FOLDERS = ("dynamic_replica_data",)
+
 SPLITS = ("train", "valid", "test")
 
 
@@ -127,7 +130,7 @@ def load_sequences(root, split: str, dataset: str = "dynamic_replica"):
   """
   if split not in SPLITS:
     raise ValueError(f"Dynamic Replica split must be one of {SPLITS}, got {split!r}")
-  split_dir = find_root(root, "dynamic_replica_data") / split
+  split_dir = find_root(root, *FOLDERS) / split
   try:
     seqs = _sequences(split_dir, split, dataset)
   except (KeyError, IndexError, TypeError) as e:  # a record lacking a field, or of the wrong type

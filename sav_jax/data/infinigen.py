@@ -25,6 +25,9 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, find_root, list_dirs,
                                list_files)
 
+# The dataset's folder under a datasets root (the root may also be that folder itself).
+FOLDERS = ("InfinigenStereo",)
+
 SPLITS = ("train", "test", "val")
 _CAMERAS = {"left": "camera_0", "right": "camera_1"}
 
@@ -100,7 +103,7 @@ def load_sequences(root, split: str, dataset: str = "infinigen_sv"):
   """
   if split not in SPLITS:
     raise ValueError(f"Infinigen SV split must be one of {SPLITS}, got {split!r}")
-  split_dir = find_root(root, "InfinigenStereo") / split
+  split_dir = find_root(root, *FOLDERS) / split
   seqs = [_scene(scene, dataset) for scene in list_dirs(split_dir)]
   if not seqs:
     raise FileNotFoundError(f"no Infinigen SV scenes in {split_dir}")

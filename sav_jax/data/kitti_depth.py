@@ -22,6 +22,9 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, find_root,
                                list_dirs, list_files, require_dir)
 
+# The dataset's folder under a datasets root (the root may also be that folder itself).
+FOLDERS = ("kitti_depth",)
+
 SPLITS = ("train", "val", "test")
 TEST = tuple(f"{d}_sync" for d in (
     "2011_09_26_drive_0002", "2011_09_26_drive_0005", "2011_09_26_drive_0013",
@@ -101,7 +104,7 @@ def load_sequences(root, split: str, dataset: str = "kitti_depth"):
   """
   if split not in SPLITS:
     raise ValueError(f"KITTI Depth split must be one of {SPLITS}, got {split!r}")
-  root = find_root(root, "kitti_depth")
+  root = find_root(root, *FOLDERS)
   gt_root = require_dir(root / "gt_depth", "KITTI gt_depth folder")
   drives = split_drives([d.name for d in list_dirs(gt_root)], split)
   expected = {"test": TEST, "val": VAL}.get(split, ())

@@ -47,6 +47,14 @@ _LOADERS = {
     "tartanair": tartanair.load_sequences,
 }
 DATASETS = tuple(_LOADERS)
+# The folders a datasets root holds each dataset in (`find_root`).
+_FOLDERS = {
+    "sceneflow": sceneflow.SUBSETS, "flyingthings3d": ("FlyingThings3D",), "monkaa": ("Monkaa",),
+    "driving": ("Driving",), "sintel_clean": sintel.FOLDERS, "sintel_final": sintel.FOLDERS,
+    "dynamic_replica": dynamic_replica.FOLDERS, "infinigen_sv": infinigen.FOLDERS,
+    "vkitti2": vkitti2.FOLDERS, "kitti_depth": kitti_depth.FOLDERS, "spring": spring.FOLDERS,
+    "south_kensington": south_kensington.FOLDERS, "tartanair": tartanair.FOLDERS,
+}
 
 SPLITS = {
     "sceneflow": sceneflow.SPLITS, "flyingthings3d": sceneflow.SPLITS,
@@ -131,7 +139,16 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
   if not (max_frames is None or max_frames == OFFICIAL or (
       is_int(max_frames))):
     raise ValueError(f"max_frames must be {OFFICIAL!r}, an integer or None, got {max_frames!r}")
-  seqs = _LOADERS[dataset](root, split, **options)
+  try:
+    seqs = _LOADERS[dataset](root, split, **options)
+  except FileNotFoundError as e:  # where the root was taken for the dataset's own folder
+    folders, base = _FOLDERS[dataset], Path(root).expanduser()
+    if not base.is_dir() or any((base / f).is_dir() for f in folders):
+      raise
+    names = " or ".join(f"{f}/" for f in folders)
+    raise FileNotFoundError(
+        f"{e} ({base} holds no {names} folder and is not one either: pass the datasets "
+        f"folder that holds {folders[0]}/, or that folder itself)") from None
   if max_frames == OFFICIAL:
     length = EVAL_FRAMES.get(dataset) if split == "test" else None
   else:

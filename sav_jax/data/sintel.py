@@ -18,6 +18,9 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, find_root, list_dirs,
                                list_files)
 
+# The dataset's folder under a datasets root (the root may also be that folder itself).
+FOLDERS = ("sintel_stereo",)
+
 PASSES = ("clean", "final")
 SPLITS = ("test", "train")
 # Sintel's stereo rig: 10 cm baseline (dataset website; hard-coded in the official code).
@@ -48,7 +51,7 @@ def load_sequences(root, split: str, dstype: str = "final", dataset: str | None 
   if dstype not in PASSES:
     raise ValueError(f"Sintel pass must be one of {PASSES}, got {dstype!r}")
   dataset = dataset or f"sintel_{dstype}"
-  train = find_root(root, "sintel_stereo") / "training"
+  train = find_root(root, *FOLDERS) / "training"
   seqs = []
   for seq_dir in list_dirs(train / f"{dstype}_left"):
     name = seq_dir.name

@@ -24,6 +24,9 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key, find_root,
                                is_hidden, list_dirs, list_files, refuse_broken_links)
 
+# The dataset's folder under a datasets root (the root may also be that folder itself).
+FOLDERS = ("SouthKensington",)
+
 SPLITS = ("test",)
 BASELINE_M = 0.12
 _FLOAT = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
@@ -52,7 +55,7 @@ def load_sequences(root, split: str = "test", dataset: str = "south_kensington")
   """
   if split not in SPLITS:
     raise ValueError(f"South Kensington split must be one of {SPLITS}, got {split!r}")
-  root = find_root(root, "SouthKensington")
+  root = find_root(root, *FOLDERS)
   if (root / "data").is_dir():
     root = root / "data"
   seqs = []

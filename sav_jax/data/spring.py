@@ -29,6 +29,9 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key, find_root,
                                list_dirs, list_files)
 
+# The dataset's folder under a datasets root (the root may also be that folder itself).
+FOLDERS = ("Spring", "spring")
+
 SPLITS = ("test", "train")
 BASELINE_M = 0.065
 
@@ -85,7 +88,7 @@ def load_sequences(root, split: str, dataset: str = "spring"):
   """
   if split not in SPLITS:
     raise ValueError(f"Spring split must be one of {SPLITS}, got {split!r}")
-  root = find_root(root, "Spring", "spring")
+  root = find_root(root, *FOLDERS)
   names, dirs = _layout(root)
   seqs = []
   for name in names:

@@ -25,6 +25,9 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, digits_key, find_root,
                                list_dirs, list_files)
 
+# The dataset's folder under a datasets root (the root may also be that folder itself).
+FOLDERS = ("TartanAir", "tartanair")
+
 SPLITS = ("train", "test")
 FX_PX = 320.0
 BASELINE_M = 0.25
@@ -81,7 +84,7 @@ def load_sequences(root, split: str, dataset: str = "tartanair"):
   """
   if split not in SPLITS:
     raise ValueError(f"TartanAir split must be one of {SPLITS}, got {split!r}")
-  root = find_root(root, "TartanAir", "tartanair")
+  root = find_root(root, *FOLDERS)
   found = _sequence_dirs(root)
   test = set(TEST)
   chosen = [(key, d) for key, d in found if (key in test) == (split == "test")]

@@ -22,6 +22,9 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, digits_key, find_root,
                                list_files)
 
+# The dataset's folder under a datasets root (the root may also be that folder itself).
+FOLDERS = ("vkitti2",)
+
 SPLITS = ("train", "test")
 BASELINE_M = 0.532725
 SCENES = ("Scene01", "Scene02", "Scene06", "Scene18", "Scene20")
@@ -70,7 +73,7 @@ def load_sequences(root, split: str, dataset: str = "vkitti2"):
   """
   if split not in SPLITS:
     raise ValueError(f"VKITTI2 split must be one of {SPLITS}, got {split!r}")
-  root = find_root(root, "vkitti2")
+  root = find_root(root, *FOLDERS)
   names = TEST if split == "test" else [f"{s}_{v}" for s in SCENES for v in VARIATIONS]
   seqs, missing = [], []
   for name in names:

@@ -10,6 +10,7 @@ import json
 import logging
 import pathlib
 import pickle
+import re
 import shutil
 import struct
 
@@ -108,6 +109,18 @@ def test_sceneflow_train_test_values_and_clips(tmp_path):
   with pytest.raises(NotADirectoryError, match="dataset root .*a_file is a file, not a folder"):
     registry.get_sequences("sceneflow", tmp_path / "a_file", "train")
 
+
+
+@pytest.mark.parametrize("dataset", registry.DATASETS)
+def test_a_root_without_the_dataset_folder_is_named(tmp_path, dataset):
+  """A root that neither holds the dataset's folder nor is it (a typo, the wrong level) was
+  reported as some file missing under it, e.g. `ROOT/training/final_left` for Sintel."""
+  (tmp_path / "other").mkdir()
+  folders = " or ".join(f"{f}/" for f in registry._FOLDERS[dataset])  # pylint: disable=protected-access
+  with pytest.raises(FileNotFoundError, match=rf"\({re.escape(str(tmp_path))} holds no "
+                     rf"{re.escape(folders)} folder and is not one either: pass the datasets "
+                     "folder that holds"):
+    registry.get_sequences(dataset, tmp_path, registry.SPLITS[dataset][0])
 
 def test_sceneflow_nan_disparity_and_broken_links(tmp_path):
   truth = _sceneflow(tmp_path, np.random.default_rng(1), frames=2)
