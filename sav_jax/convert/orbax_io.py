@@ -105,7 +105,7 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
     The absolute checkpoint path.
 
   Raises:
-    FileExistsError: `directory` exists (but as an empty folder) and `overwrite` is False.
+    FileExistsError: `directory` exists, and is not an empty folder, and `overwrite` is False.
     CheckpointError: `directory` exists but is not a checkpoint (with `overwrite`), the
       config is not JSON-serialisable, `variables` has no `"params"` mapping or holds
       zero-size arrays.
