@@ -158,6 +158,11 @@ def main(argv):
   except loop.Preempted as e:  # SIGTERM: a checkpoint was saved; 143 = 128 + SIGTERM
     print(f"train: {e}", file=sys.stderr)
     sys.exit(143)
+  except loop.DataError as e:  # bad data met by the pipeline: one line, as bad input
+    if flags.FLAGS.verbosity >= 1:
+      traceback.print_exc()
+    print(f"train: error: {e}", file=sys.stderr)
+    sys.exit(2)
   except KeyboardInterrupt:
     _interrupted()
   except loop.ckpt_lib.CheckpointSaveError as e:  # a full disk: one line, not orbax's chains

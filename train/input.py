@@ -1,7 +1,7 @@
 """Config -> grain training stream and held-out validation clips.
 
 `config.data.sources` names the training sources, each with a `dataset` ("synthetic" or
-a `sav_jax.data.registry` name such as "things", "dynamic_replica") and a `weight`;
+a `sav_jax.data.registry` name such as "flyingthings3d", "dynamic_replica") and a `weight`;
 `config.data.mixing` says how weights combine ("concat": official concatenation, so a
 dataset's share is weight x number of clips; "ratio": weights are the shares).
 """

@@ -569,7 +569,8 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
       pending = None
       for step in range(start + 1, total + 1):
         with jax.profiler.StepTraceAnnotation("train", step_num=step):
-          state, metrics = parts["train_step"](state, next(parts["batches"]))
+          state, metrics = parts["train_step"](state, _next_batch(parts["batches"], step,
+                                                                  manager))
         if step == start + 1:  # the step was compiled by this call: free the compiler's memory
           runtime.release_host_memory()
         if pending is not None:
@@ -620,6 +621,24 @@ def _validation_missing(config, writer: MetricWriter, start: int) -> bool:
 
 class Preempted(RuntimeError):
   """The run stopped early on a preemption notice, after saving a checkpoint of its step."""
+
+
+class DataError(RuntimeError):
+  """A training batch could not be made (a file that does not read, a crop the frames
+  cannot give): the run stops, its checkpoints kept."""
+
+
+def _next_batch(batches, step: int, manager):
+  """The batch of `step`; a failure of the input pipeline (grain re-raises it from its
+  threads or workers) becomes one `DataError` naming the step and where to resume from."""
+  try:
+    return next(batches)
+  except Exception as e:  # pylint: disable=broad-except  # any reader or augmentation error
+    latest = manager.latest_step()
+    resume = (f"the checkpoint of step {latest} is kept: fix the data or the config and run "
+              "the same command to resume" if latest is not None else "no checkpoint yet")
+    raise DataError(f"the training batch of step {step} could not be made: "
+                    f"{type(e).__name__}: {e} ({resume})") from e
 
 
 @contextlib.contextmanager

@@ -390,7 +390,11 @@ def _crop(out: dict, cfg: AugmentConfig, rng, jitter: bool) -> None:
   ch, cw = cfg.crop_size
   t, h, w = out["left"].shape[:3]
   if h < ch or w < cw:
-    raise ValueError(f"cannot crop {cfg.crop_size} from {(h, w)} frames (resize disabled?)")
+    raise ValueError(
+        f"cannot crop {cfg.crop_size} from {(h, w)} frames: the crop is larger than the "
+        f"frames, and the clip was not resized (spatial_prob={cfg.spatial_prob:g}: clips drawn "
+        "without the spatial transform keep their size; the official training resizes every "
+        "clip, spatial_prob=1)")
   m = 2 if jitter else 0  # the official y-jitter crop keeps a 2 px margin
   # Frames within 2 px of the crop (where the official randint fails): the margin shrinks.
   y0 = min(int(rng.integers(m, max(h - ch - m, m + 1))), h - ch)

@@ -127,8 +127,13 @@ def registry_source(dataset: str, root: str, frames: int, split: str = "train",
   items = (registry.get_consecutive_clips(dataset, root, frames, split) if consecutive else
            registry.get_training_clips(dataset, root, frames, split=split, seed=seed))
   if len(items) == 0:
-    raise ValueError(f"dataset {dataset!r} under {root!r} (split {split!r}) has no clips of "
-                     f"{frames} frames")
+    strided = not consecutive and dataset in registry.STRIDED
+    raise ValueError(
+        f"dataset {dataset!r} under {root!r} (split {split!r}) has no clips of {frames} "
+        "frames: its sequences are too short for them" + (
+            " (its training clips take every 1st to 5th frame, a stride drawn per clip from "
+            "the seed: a clip spans up to 5x its frames)" if strided else "")
+        + "; use fewer frames per clip")
   return grain.MapDataset.source(items).map(_LoadClip())
 
 
@@ -219,7 +224,9 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
       (e.g. `Augment`); without one, `as_example` is applied.
     process_index, process_count: this process's share (default: JAX's).
     num_threads: reader threads; prefetch: elements buffered per thread pool.
-    worker_count: > 0 adds `mp_prefetch` with that many worker processes.
+    worker_count: > 0 adds `mp_prefetch` with that many worker processes. They are
+      started by Python's `spawn`, which imports the calling script again in each: a script
+      (not a notebook) that builds the stream needs the `if __name__ == "__main__":` guard.
 
   Returns:
     A `grain.IterDataset` of dicts `left/right [B, T, H, W, 3] uint8`, `disparity
@@ -252,6 +259,9 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
   read = grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch)
   it = ds.to_iter_dataset(read).batch(batch_size, drop_remainder=True, batch_fn=stack_examples)
   if worker_count > 0:
+    from absl import flags  # pylint: disable=g-import-not-at-top
+    if not flags.FLAGS.is_parsed():  # grain reads its absl flags (their defaults here) when it
+      flags.FLAGS.mark_as_parsed()   # starts workers: a notebook or script parses none
     it = it.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count),
                         worker_init_fn=_init_worker)
   return it

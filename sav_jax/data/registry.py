@@ -71,7 +71,7 @@ SPLITS = {
 EVAL_FRAMES = {"dynamic_replica": 150, "infinigen_sv": 150, "vkitti2": 300,
                "kitti_depth": 300, "south_kensington": 300}
 # SceneFlow samples forward + time-reversed clips; these sample strided clips.
-_STRIDED = ("dynamic_replica", "infinigen_sv", "kitti_depth", "vkitti2", "tartanair")
+STRIDED = ("dynamic_replica", "infinigen_sv", "kitti_depth", "vkitti2", "tartanair")
 _SCENEFLOW = ("sceneflow", "flyingthings3d", "monkaa", "driving")
 OFFICIAL = "official"
 
@@ -199,9 +199,9 @@ def get_training_clips(dataset: str, root: str | Path, frames: int, split: str =
     list of `TrainingClip(sequence, indices)`.
   """
   _check_name(dataset)
-  if dataset not in _SCENEFLOW + _STRIDED:
+  if dataset not in _SCENEFLOW + STRIDED:
     raise ValueError(f"{dataset} has no official training clips; datasets with them: "
-                     f"{', '.join(_SCENEFLOW + _STRIDED)}")
+                     f"{', '.join(_SCENEFLOW + STRIDED)}")
   if not isinstance(frames, (int, np.integer)) or frames < 1:
     raise ValueError(f"frames must be an int >= 1, got {frames!r}")
   seqs = get_sequences(dataset, root, split, max_frames=None, **options)

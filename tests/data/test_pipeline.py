@@ -123,6 +123,17 @@ def test_mixture_weights_validation():
       pipeline.mixture_weights([1, 2], weights, "ratio")
 
 
+def test_a_source_without_clips_says_why(monkeypatch):
+  from sav_jax.data import registry  # pylint: disable=import-outside-toplevel
+  monkeypatch.setattr(registry, "get_training_clips", lambda *a, **kw: [])
+  with pytest.raises(ValueError, match=r"'vkitti2' under 'root' \(split 'train'\) has no clips "
+                     r"of 8 frames: its sequences are too short for them \(its training clips "
+                     r"take every 1st to 5th frame.*; use fewer frames per clip$"):
+    pipeline.registry_source("vkitti2", "root", 8)
+  with pytest.raises(ValueError, match=r"too short for them; use fewer frames per clip$"):
+    pipeline.registry_source("sceneflow", "root", 8)
+
+
 def test_bad_pipeline_arguments_are_named():
   a, b = _tagged(1, 4), _tagged(2, 4)
   with pytest.raises(ValueError, match="one transform .* per source, got 1 for 2 sources"):
@@ -273,10 +284,9 @@ def test_grain_workers_outlive_a_sigterm_to_the_process_group():
   it.close() if hasattr(it, "close") else None  # pylint: disable=expression-not-assigned
 
 
+# (no absl flag parsing: the pipeline starts grain's workers from a plain script too)
 _ORPHAN_SCRIPT = """
 import sys
-from absl import flags
-flags.FLAGS.mark_as_parsed()
 from sav_jax.data import pipeline
 from sav_jax.data.synthetic import SyntheticConfig
 src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,

@@ -1412,3 +1412,29 @@ def test_a_failed_checkpoint_write_is_one_line_naming_step_folder_and_cause(tmp_
                         timeout=300, check=False)
   assert proc.returncode == 1, proc.stderr[-2000:]
   assert proc.stderr.strip() == "train: error: saving checkpoint 2 in W failed: no space"
+
+
+def test_a_batch_the_pipeline_cannot_make_is_one_error_naming_the_step():
+  """A file that does not read or a crop the frames cannot give, met at step 7, ended the
+  run with grain's traceback (status 1), naming no step and no checkpoint."""
+  from train import loop  # pylint: disable=import-outside-toplevel
+
+  class Failing:
+    def __next__(self):
+      raise ValueError("cannot crop (48, 96) from (40, 72) frames")
+
+  class Manager:
+    def __init__(self, latest):
+      self.latest = latest
+
+    def latest_step(self):
+      return self.latest
+
+  with pytest.raises(loop.DataError, match=r"^the training batch of step 7 could not be made: "
+                     r"ValueError: cannot crop \(48, 96\) from \(40, 72\) frames \(the "
+                     r"checkpoint of step 5 is kept: fix the data or the config and run the "
+                     r"same command to resume\)$"):
+    loop._next_batch(Failing(), 7, Manager(5))  # pylint: disable=protected-access
+  with pytest.raises(loop.DataError, match=r"\(no checkpoint yet\)$"):
+    loop._next_batch(Failing(), 1, Manager(None))  # pylint: disable=protected-access
+  assert loop._next_batch(iter([{"x": 1}]), 1, Manager(None)) == {"x": 1}  # pylint: disable=protected-access
