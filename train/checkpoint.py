@@ -108,14 +108,25 @@ def run_fields(config) -> dict:
   return flat
 
 
-def saved_run(manager: ocp.CheckpointManager, step: int) -> dict:
-  """The run config saved with checkpoint `step` (`run_fields`), {} where there is none."""
+def _saved_config(manager: ocp.CheckpointManager, step: int, key: str) -> dict:
+  """Entry `key` of the JSON config saved with checkpoint `step`, {} where there is none."""
   try:
     saved = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
-    saved = saved["config"].get("run")
+    saved = saved["config"].get(key)
   except Exception:  # pylint: disable=broad-except  # the state's restore names problems
     return {}
   return saved if isinstance(saved, dict) else {}
+
+
+def saved_run(manager: ocp.CheckpointManager, step: int) -> dict:
+  """The run config saved with checkpoint `step` (`run_fields`), {} where there is none."""
+  return _saved_config(manager, step, "run")
+
+
+def saved_clips(manager: ocp.CheckpointManager, step: int) -> dict:
+  """The training clips' record saved with checkpoint `step` (`train.input.train_dataset`'s
+  `clips`), {} for checkpoints saved without one."""
+  return _saved_config(manager, step, "data_clips")
 
 
 def changed_fields(manager: ocp.CheckpointManager, step: int, config,
@@ -135,7 +146,8 @@ def changed_fields(manager: ocp.CheckpointManager, step: int, config,
 
 def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step: int,
          params_finite: bool = True, force: bool = False,
-         model_config: sav_jax.SAVConfig | None = None, run_config=None) -> bool:
+         model_config: sav_jax.SAVConfig | None = None, run_config=None,
+         data_clips: dict | None = None) -> bool:
   """Saves state, data-iterator state and the model config at `step`.
 
   Args:
@@ -148,6 +160,8 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
     force: save even if `step` is not on the manager's save interval.
     model_config: the model's config (default: `SAVConfig()`), for readers of the weights.
     run_config: the training config, saved for `changed_fields` (None: not saved).
+    data_clips: each training source's clip count and digest (`train.input.train_dataset`'s
+      `clips`), saved for a resumed run to compare (None: not saved).
 
   Returns:
     Whether a save was started.
@@ -158,6 +172,8 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
   config = {"model": (model_config or sav_jax.SAVConfig()).to_dict(), "step": int(step)}
   if run_config is not None:
     config["run"] = run_fields(run_config)
+  if data_clips is not None:
+    config["data_clips"] = data_clips
   args = ocp.args.Composite(state=ocp.args.StandardSave(_state_dict(state)),
                             data=grain.checkpoint.CheckpointSave(data_iterator),
                             config=ocp.args.JsonSave(config))

@@ -9,6 +9,7 @@ dataset's share is weight x number of clips; "ratio": weights are the shares).
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 
 import jax
@@ -42,14 +43,17 @@ def _naming(where: str):
 
 
 def _source(config, spec, split: str, seed: int):
-  """`(MapDataset, random map or None)` of one source."""
+  """`(MapDataset, random map or None, digest of its clips)` of one source."""
   data = config.data
   if spec.dataset == "synthetic":
     cfg = synthetic_config(data, data.synthetic, seed)
-    return pipeline.synthetic_source(cfg, data.synthetic.num_clips), None
-  src = pipeline.registry_source(spec.dataset, data.root, data.frames, split=split,
-                                 seed=config.seed)
-  return src, pipeline.Augment(tuple(data.crop), augment_overrides(config))
+    digest = hashlib.sha256(f"{cfg!r} {data.synthetic.num_clips}".encode()).hexdigest()[:16]
+    return pipeline.synthetic_source(cfg, data.synthetic.num_clips), None, digest
+  items = pipeline.registry_clips(spec.dataset, data.root, data.frames, split=split,
+                                  seed=config.seed)
+  return (pipeline.clips_source(items),
+          pipeline.Augment(tuple(data.crop), augment_overrides(config)),
+          pipeline.clips_digest(items))
 
 
 def augment_overrides(config) -> tuple[tuple[str, object], ...]:
@@ -57,8 +61,12 @@ def augment_overrides(config) -> tuple[tuple[str, object], ...]:
   return tuple(sorted(dict(config.data.augment).items()))
 
 
-def train_dataset(config, process_index=None, process_count=None):
-  """The per-process batched training `grain.IterDataset` of a config."""
+def train_dataset(config, process_index=None, process_count=None, clips: dict | None = None):
+  """The per-process batched training `grain.IterDataset` of a config.
+
+  `clips`: a dict to fill with each source's `{"dataset", "clips", "digest"}` (how many clips,
+  and which: `pipeline.clips_digest`), saved with the checkpoints so that a resumed run can
+  tell whether its data changed (`changed_clips`)."""
   count = jax.process_count() if process_count is None else process_count
   batch = config.train.batch_size
   if batch % count:
@@ -70,7 +78,9 @@ def train_dataset(config, process_index=None, process_count=None):
              f"config.data.sources.{name}.dataset={spec.dataset!r}, "
              f"config.data.root={config.data.root!r}")
     with _naming(where):
-      src, tf = _source(config, spec, "train", seed=config.data.synthetic.seed)
+      src, tf, digest = _source(config, spec, "train", seed=config.data.synthetic.seed)
+    if clips is not None:
+      clips[name] = {"dataset": spec.dataset, "clips": len(src), "digest": digest}
     log.info("training source %s: %s, %d clips, weight %g", name, spec.dataset, len(src),
              spec.weight)
     sources.append(src)
@@ -81,6 +91,26 @@ def train_dataset(config, process_index=None, process_count=None):
       transforms=transforms, process_index=process_index, process_count=process_count,
       num_threads=config.data.num_threads, prefetch=config.data.prefetch,
       worker_count=config.data.worker_count)
+
+
+def changed_clips(saved: dict, now: dict) -> list[str]:
+  """The sources whose clips differ between `train_dataset(clips=...)` records (a resumed
+  run's and its checkpoint's), as `name: what changed`; [] where nothing did or the
+  checkpoint has no record."""
+  if not isinstance(saved, dict) or not saved:
+    return []
+  out = []
+  for name in sorted(set(saved) | set(now)):
+    old, new = saved.get(name), now.get(name)
+    if old == new:
+      continue
+    if old is None or new is None:
+      out.append(f"{name}: {'added' if old is None else 'removed'}")
+    elif old.get("clips") != new.get("clips"):
+      out.append(f"{name}: {old.get('clips')} -> {new.get('clips')} clips")
+    else:
+      out.append(f"{name}: other clips ({new.get('clips')})")
+  return out
 
 
 def eval_clips(config) -> list[dict]:

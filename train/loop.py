@@ -80,7 +80,7 @@ def initial_weights(config, abstract_params):
 
 
 def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_params=None,
-                  weights=None):
+                  weights=None, data_clips=None):
   """Resume order: latest checkpoint > `init_from`/`vda_weights` > the official init.
 
   From scratch, a `StereoAnyVideo` starts from `init_variables(cfg, config.seed)` (PyTorch's
@@ -93,6 +93,8 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     data_iterator: grain iterator, restored in place from a checkpoint.
     abstract_params: `state.abstract_params(model, config)` if already computed.
     weights: `initial_weights(config, ...)` if already loaded (not used on resume).
+    data_clips: this run's training clips (`input.train_dataset`'s `clips`): a resume whose
+      clips differ from the checkpoint's is warned about.
 
   Returns:
     `(state, shardings, source)` with source "checkpoint", "weights" or "scratch".
@@ -121,6 +123,12 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
       raise sav_jax.convert.CheckpointError(
           f"{e}. The config fields this run changes since that checkpoint: "
           f"{'; '.join(changed)}") from None
+    clips = input_lib.changed_clips(ckpt_lib.saved_clips(manager, step), data_clips or {})
+    if data_clips is not None and clips:
+      log.warning("the training clips changed since checkpoint %d (%s): the restored position "
+                  "in the data applies to another list of clips, so the rest of this epoch is "
+                  "not what the interrupted run would have read (some clips come twice, some "
+                  "not at all)", step, "; ".join(clips))
     if changed:  # allowed (e.g. to extend a run), but never unnoticed
       log.warning("resuming with %d config fields changed since checkpoint %d: %s",
                   len(changed), step, "; ".join(changed))
@@ -468,7 +476,8 @@ def setup(config, workdir):
   log.info("compilation cache: %s", setup_compile_cache(config) or "off")
   log.info("mesh %s over %d devices, %d processes", dict(mesh.shape), mesh.size,
            jax.process_count())
-  grain_it = iter(input_lib.train_dataset(config))
+  data_clips = {}
+  grain_it = iter(input_lib.train_dataset(config, clips=data_clips))
   # The validation clips, read before the model is traced: data that cannot be used fails
   # within seconds, and before the workdir is created.
   evaluating = config.eval.every_steps > 0
@@ -487,7 +496,7 @@ def setup(config, workdir):
   try:
     manager = ckpt_lib.make_manager(workdir, config)
     state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it,
-                                             abstract_params, weights)
+                                             abstract_params, weights, data_clips)
   except BaseException:
     lock.release()
     raise
@@ -498,7 +507,7 @@ def setup(config, workdir):
   log.info("start at step %d of %d (state from %s)", int(jax.device_get(state.step)),
            config.train.num_steps, source)
   return dict(grain_it=grain_it, manager=manager, state=state, train_step=train_step, model=model,
-              evaluator=evaluator, lock=lock,
+              evaluator=evaluator, lock=lock, data_clips=data_clips,
               batches=pipeline.GlobalBatchIterator(grain_it, state_lib.data_sharding(mesh)))
 
 
@@ -587,7 +596,8 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
           with interrupt_after():  # a Ctrl-C inside orbax's start of a save would drop it
             ckpt_lib.save(manager, state, parts["grain_it"], step, force=True,
                           params_finite=bool(np.isfinite(host.last["l2_params"])),
-                          model_config=parts["model"].cfg, run_config=config)
+                          model_config=parts["model"].cfg, run_config=config,
+                          data_clips=parts.get("data_clips"))
           if stop:  # written before anything else: the scheduler's grace period is short
             ckpt_lib.wait_until_saved(manager)
         if eval_now:  # (after a notice too: a resumed run starts after this step)

@@ -33,6 +33,7 @@ Usage:
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 import os
 import signal
@@ -110,6 +111,33 @@ class _LoadClip:
     return clip
 
 
+def registry_clips(dataset: str, root: str, frames: int, split: str = "train",
+                   seed: int = 0, consecutive: bool = False) -> list:
+  """The clips `registry_source` loads: `registry.TrainingClip(sequence, indices)` items
+  (same arguments); raises ValueError, saying why, when there are none."""
+  from sav_jax.data import registry  # pylint: disable=g-import-not-at-top
+  items = (registry.get_consecutive_clips(dataset, root, frames, split) if consecutive else
+           registry.get_training_clips(dataset, root, frames, split=split, seed=seed))
+  if len(items) == 0:
+    strided = not consecutive and dataset in registry.STRIDED
+    raise ValueError(
+        f"dataset {dataset!r} under {root!r} (split {split!r}) has no clips of {frames} "
+        "frames: its sequences are too short for them" + (
+            " (its training clips take every 1st to 5th frame, a stride drawn per clip from "
+            "the seed: a clip spans up to 5x its frames)" if strided else "")
+        + "; use fewer frames per clip")
+  return items
+
+
+def clips_digest(items) -> str:
+  """A digest of which clips `items` are, in order (sequence names and frame indices): a
+  resumed run compares it with the saving run's to tell whether its data changed."""
+  digest = hashlib.sha256()
+  for sequence, indices in items:
+    digest.update(f"{getattr(sequence, 'name', sequence)}|{list(indices)}\n".encode())
+  return digest.hexdigest()[:16]
+
+
 def registry_source(dataset: str, root: str, frames: int, split: str = "train",
                     seed: int = 0, consecutive: bool = False) -> grain.MapDataset:
   """Clips of a real dataset (`registry.get_training_clips`), loaded lazily, not augmented.
@@ -123,18 +151,12 @@ def registry_source(dataset: str, root: str, frames: int, split: str = "train",
     consecutive: clips of consecutive frames instead (`registry.get_consecutive_clips`,
       any dataset with ground truth; for validation).
   """
-  from sav_jax.data import registry  # pylint: disable=g-import-not-at-top
-  items = (registry.get_consecutive_clips(dataset, root, frames, split) if consecutive else
-           registry.get_training_clips(dataset, root, frames, split=split, seed=seed))
-  if len(items) == 0:
-    strided = not consecutive and dataset in registry.STRIDED
-    raise ValueError(
-        f"dataset {dataset!r} under {root!r} (split {split!r}) has no clips of {frames} "
-        "frames: its sequences are too short for them" + (
-            " (its training clips take every 1st to 5th frame, a stride drawn per clip from "
-            "the seed: a clip spans up to 5x its frames)" if strided else "")
-        + "; use fewer frames per clip")
-  return grain.MapDataset.source(items).map(_LoadClip())
+  return clips_source(registry_clips(dataset, root, frames, split, seed, consecutive))
+
+
+def clips_source(items) -> grain.MapDataset:
+  """`registry_clips` items as a lazily loading `grain.MapDataset`."""
+  return grain.MapDataset.source(list(items)).map(_LoadClip())
 
 
 @dataclasses.dataclass(frozen=True)

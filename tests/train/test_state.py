@@ -11,6 +11,7 @@ import os
 import pathlib
 import re
 import sys
+import types
 
 import flax.linen as nn
 import jax
@@ -418,6 +419,43 @@ def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(
     _, _, source = loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c),
                                       it)
     assert source == "checkpoint"
+
+
+def test_a_resume_whose_training_clips_changed_is_warned_about(tmp_path, caplog):
+  """Data added to a dataset between a stop and its resume: the saved position in the data
+  was applied to another shuffle, silently (some clips twice, some never)."""
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.checkpoint.async_save = False
+  model, mesh = ToyStereo(), state_lib.make_mesh()
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
+  clips = {}
+  it = iter(input_lib.train_dataset(c, process_index=0, process_count=1, clips=clips))
+  assert list(clips) == list(c.data.sources) and all(v["clips"] > 0 for v in clips.values())
+  manager = ckpt_lib.make_manager(tmp_path, c)
+  state, _, _ = loop.initial_state(c, model, tx, mesh, manager, it, data_clips=clips)
+  ckpt_lib.save(manager, state.replace(step=jnp.asarray(3, jnp.int32)), it, 3, force=True,
+                run_config=c, data_clips=clips)
+  manager.wait_until_finished()
+  assert ckpt_lib.saved_clips(manager, 3) == clips
+  with caplog.at_level(logging.WARNING):
+    loop.initial_state(c, model, tx, mesh, manager, it, data_clips=clips)
+  assert "training clips changed" not in caplog.text
+  name = next(iter(clips))
+  more = {name: dict(clips[name], clips=clips[name]["clips"] + 10, digest="0" * 16)}
+  with caplog.at_level(logging.WARNING):
+    loop.initial_state(c, model, tx, mesh, manager, it, data_clips=more)
+  assert (f"the training clips changed since checkpoint 3 ({name}: {clips[name]['clips']} -> "
+          f"{clips[name]['clips'] + 10} clips): the restored position") in caplog.text
+  other = {name: dict(clips[name], digest="1" * 16), "b": clips[name]}
+  assert input_lib.changed_clips(clips, other) == [
+      "b: added", f"{name}: other clips ({clips[name]['clips']})"]
+  assert input_lib.changed_clips({}, more) == []  # a checkpoint without the record
+  # the digest tells which clips, in order
+  seq = types.SimpleNamespace(name="s")
+  assert pipeline.clips_digest([(seq, [0, 1])]) == pipeline.clips_digest([(seq, (0, 1))])
+  assert pipeline.clips_digest([(seq, [0, 1])]) != pipeline.clips_digest([(seq, [1, 2])])
 
 
 def test_vda_weights_load_into_the_real_model(tmp_path, vda_state_dict):
