@@ -79,11 +79,11 @@ def main(argv: list[str] | None = None) -> int:
   except KeyboardInterrupt:  # Ctrl-C at the command line: one line (the run can be resumed)
     if not command_line:
       raise
-    print("eval: interrupted; " + (
+    from sav_jax._signals import exit_interrupted  # pylint: disable=import-outside-toplevel
+    exit_interrupted("eval: interrupted; " + (
         "the earlier results in the output folder were put back" if args.overwrite else
         "the sequences it finished are recorded: run the same command with --resume to "
-        "continue"), file=sys.stderr)
-    return 130
+        "continue"))
 
 
 def run(args, overrides) -> int:

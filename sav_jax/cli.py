@@ -67,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
   except KeyboardInterrupt:  # Ctrl-C at the command line: one line, not a traceback (called
     if argv is not None:     # from Python with arguments, the caller gets the interrupt)
       raise
-    print(f"sav-jax {args.command}: interrupted", file=sys.stderr)
-    return 130
+    from sav_jax._signals import exit_interrupted  # pylint: disable=import-outside-toplevel
+    exit_interrupted(f"sav-jax {args.command}: interrupted")
 
 
 if __name__ == "__main__":

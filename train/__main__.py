@@ -186,8 +186,8 @@ def _interrupted() -> None:
     latest = None
   where = (f"the last checkpoint is {latest}: the same command resumes from it" if latest
            else "no checkpoint was saved: the same command starts the run anew")
-  print(f"train: interrupted (Ctrl-C); {where}", file=sys.stderr)
-  sys.exit(130)
+  from sav_jax._signals import exit_interrupted  # pylint: disable=g-import-not-at-top
+  exit_interrupted(f"train: interrupted (Ctrl-C); {where}")
 
 
 if __name__ == "__main__":

@@ -14,7 +14,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import math
@@ -31,7 +30,7 @@ import ml_collections
 import numpy as np
 
 import sav_jax
-from sav_jax import runtime
+from sav_jax import _signals, runtime
 from sav_jax._locks import FolderBusyError, FolderLock
 from sav_jax.data import pipeline
 from sav_jax.model.init import init_variables
@@ -651,27 +650,10 @@ def _next_batch(batches, step: int, manager):
                     f"{type(e).__name__}: {e} ({resume})") from e
 
 
-@contextlib.contextmanager
 def interrupt_after():
-  """Holds Ctrl-C (SIGINT) back while the block runs, and raises it (KeyboardInterrupt, or
-  what the handler before does) once the block is done: a checkpoint save cut inside
-  orbax's synchronous part is dropped, not finished. Only in the main thread (Python's
-  rule for signal handlers); elsewhere the block runs as it is."""
-  if threading.current_thread() is not threading.main_thread():
-    yield
-    return
-  caught = []
-  previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(frame))
-  try:
-    yield
-  finally:
-    signal.signal(signal.SIGINT, previous)
-  if caught:
-    log.warning("Ctrl-C: the checkpoint save it met is started; stopping")
-    if callable(previous):
-      previous(signal.SIGINT, caught[0])
-    elif previous != signal.SIG_IGN:
-      raise KeyboardInterrupt
+  """`sav_jax._signals.interrupt_after` for a checkpoint save: a Ctrl-C inside orbax's start
+  of a save would drop it."""
+  return _signals.interrupt_after("Ctrl-C: the checkpoint save it met is started; stopping")
 
 
 class Preemption:

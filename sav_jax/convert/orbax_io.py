@@ -27,6 +27,7 @@ from collections.abc import Mapping
 import jax
 import numpy as np
 
+from sav_jax import _signals
 from sav_jax.convert.pickle_reader import CheckpointError
 
 __all__ = ["save_variables", "restore_variables", "is_variables_checkpoint",
@@ -265,7 +266,10 @@ def checked_restore(restore, directory, mismatch, corrupt_hint: str = ""):
   previous = sys.unraisablehook
   quiet_failed_reads()
   try:
-    restored = restore()
+    # A Ctrl-C is held until the restore is done: met inside it, orbax reported the reads it
+    # cancelled as a corrupt checkpoint, or its reader threads lost the interrupt.
+    with _signals.interrupt_after():
+      restored = restore()
   except Exception as e:  # pylint: disable=broad-except  # orbax: a bare Exception if unreadable
     corrupt = corrupt_checkpoint_error(directory, e)
     if corrupt is None:

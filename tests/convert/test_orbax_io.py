@@ -239,3 +239,39 @@ def test_a_failed_save_leaves_no_temporary_folder(tmp_path, monkeypatch, error):
   restored, config = orbax_io.restore_variables(path)  # the old checkpoint is whole
   np.testing.assert_array_equal(restored["params"]["w"], np.zeros(2))
   assert config == {"v": 1}
+
+
+def test_a_ctrl_c_during_a_restore_is_an_interrupt_after_it_not_a_corrupt_checkpoint():
+  """Ctrl-C while orbax reads a good checkpoint was reported as a corrupt one (its cancelled
+  reads), or lost in its reader threads; it is held until the restore is done, then raised."""
+  import os  # pylint: disable=import-outside-toplevel
+  import signal  # pylint: disable=import-outside-toplevel
+  done = []
+
+  def restore():
+    os.kill(os.getpid(), signal.SIGINT)  # lands while the checkpoint is read
+    done.append(True)
+    return {"params": {}}
+
+  handler = signal.signal(signal.SIGINT, signal.default_int_handler)  # Python's own
+  try:
+    with pytest.raises(KeyboardInterrupt):
+      orbax_io.checked_restore(restore, "ckpt", mismatch=ValueError)
+    assert done == [True] and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+  finally:
+    signal.signal(signal.SIGINT, handler)
+
+
+def test_the_command_line_exit_after_ctrl_c_skips_pythons_shutdown(tmp_path):
+  """After a Ctrl-C during a compilation, Python's shutdown met XLA's threads mid-work and
+  `sav-jax infer` died of a segmentation fault after its message: the exit is immediate."""
+  import subprocess  # pylint: disable=import-outside-toplevel
+  code = ("import atexit, sys\n"
+          "atexit.register(lambda: print('python shutdown ran', file=sys.stderr))\n"
+          "print('buffered', end='')\n"
+          "from sav_jax._signals import exit_interrupted\n"
+          "exit_interrupted('tool: interrupted')\n")
+  proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                        timeout=120, check=False)
+  assert proc.returncode == 130 and proc.stdout == "buffered", proc
+  assert proc.stderr == "tool: interrupted\n", proc.stderr
