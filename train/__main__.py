@@ -41,11 +41,37 @@ _HELP_FLAGS = {"--help", "-help", "-h", "-?", "--helpfull", "-helpfull", "--help
                "-helpshort"}
 
 
+def last_overrides(argv: list[str]) -> list[str]:
+  """`argv` with each `--config.<field>` override only at its last occurrence: the last one
+  wins, as for any flag (ml_collections' tuple fields joined repeated values instead:
+  `--config.data.crop=(32, 32) --config.data.crop=(48, 64)` became `(32, 32, 48, 64)`, as a
+  script that appends a user's overrides to its own gives)."""
+  items, i = [], 0  # (field or None, the arguments)
+  while i < len(argv):
+    arg = argv[i]
+    if arg == "--":
+      items.append((None, argv[i:]))
+      break
+    if arg.startswith("--config.") and "=" in arg:
+      items.append((arg.split("=", 1)[0], [arg]))
+    elif (arg.startswith("--config.") and i + 1 < len(argv)
+          and not argv[i + 1].startswith("--")):  # `--config.a.b value`
+      items.append((arg, argv[i:i + 2]))
+      i += 1
+    else:
+      items.append((None, [arg]))
+    i += 1
+  last = {field: k for k, (field, _) in enumerate(items) if field is not None}
+  return [a for k, (field, args) in enumerate(items) if field is None or last[field] == k
+          for a in args]
+
+
 def parse_flags(argv):
   """absl's flag parsing, with every error as one line and exit status 2: a flag value of the
   wrong type, a config file that does not parse, an override of a field that does not exist
   (ml_collections raises the last two from inside the parser, and absl would print their
   traceback); `--help` exits with status 0."""
+  argv = last_overrides(argv)
   try:
     return flags.FLAGS(argv)
   except SystemExit as e:  # absl's --help/--helpfull print the flags and exit with status 1

@@ -1027,6 +1027,9 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
       ([str(tmp_path / "frame.png")], f"the config file {tmp_path / 'frame.png'} does not "
        "parse: source code string cannot contain null bytes"),
       ([config, "--config.train.iters=1"], "config.train.iters=1: expected an integer >= 2"),
+      # a repeated override: the last wins (a tuple's values were joined: (32, 32, 48, 56))
+      ([config, "--config.data.crop=(32, 32)", "--config.data.crop", "(48, 56)"],
+       "config.data.crop=(48, 56): expected (height, width): two positive multiples of 16"),
       ([config, f"--config.init_from={weights}"], f"config.init_from: {weights}: the "
        "checkpoint is corrupt or incomplete"),
       ([config, "--config.train.batchsize=1"], "no such config field 'batchsize'; Did you mean "
