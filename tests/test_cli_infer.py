@@ -267,6 +267,27 @@ def test_unusable_checkpoints_are_refused_before_the_run(tmp_path, folders, vari
   assert load_checkpoint(tmp_path / "cfg")[1].remat_policy is None
 
 
+def test_unknown_stored_config_fields_are_named(caplog):
+  """A typo in a stored config (`dtpye`) was reported as "no model config stored" and the
+  run went on in float32; unknown fields beside known ones were dropped without a word."""
+  from sav_jax.tools.infer import config_from_dict  # pylint: disable=import-outside-toplevel
+  with caplog.at_level(logging.WARNING):
+    cfg = config_from_dict({"model": {"dtpye": "bfloat16"}}, "ckpt")
+  assert cfg == sav_jax.SAVConfig()
+  assert ("ckpt: the stored model config has fields SAVConfig does not know, ignored: dtpye"
+          in caplog.text)
+  assert "ckpt: no model config stored (no SAVConfig field in it)" in caplog.text
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):
+    cfg = config_from_dict({"model": {"dtype": "bfloat16", "frame_blok_mb": 4}}, "ckpt")
+  assert cfg.dtype == "bfloat16" and "ignored: frame_blok_mb" in caplog.text
+  assert "no model config stored" not in caplog.text
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):
+    config_from_dict({"model": sav_jax.SAVConfig().to_dict()}, "ckpt")
+  assert not caplog.text
+
+
 def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsys):
   # 25 frames in sliding windows, the model replaced by a stand-in whose output labels
   # each frame with its index (disparity 12 (i + 1)): every file lands at the right name,

@@ -604,7 +604,8 @@ def load_checkpoint(path, dtype: str | None = None):
 
 def config_from_dict(cfg_dict, path):
   """The `SAVConfig` a checkpoint at `path` stores (`{"model": {...}}` or the fields
-  themselves; unknown fields ignored, none: the default with a warning).
+  themselves; unknown fields ignored with a warning naming them, none: the default with a
+  warning).
 
   Raises:
     CheckpointError: the stored config is not a mapping of valid SAVConfig fields.
@@ -624,8 +625,13 @@ def config_from_dict(cfg_dict, path):
   if known.get("remat_policy") is not None and not known.get("remat"):
     # Stored before SAVConfig refused the pair; without remat the policy never did anything.
     known.pop("remat_policy")
+  unknown = sorted(str(k) for k in d if k not in names)
+  if unknown:  # a typo (dtpye) or another version's field: never silently
+    log.warning("%s: the stored model config has fields SAVConfig does not know, ignored: %s",
+                path, ", ".join(unknown[:10]) + (" ..." if len(unknown) > 10 else ""))
   if not known:
-    log.warning("%s: no model config stored; using the default SAVConfig", path)
+    log.warning("%s: no model config stored%s; using the default SAVConfig", path,
+                " (no SAVConfig field in it)" if unknown else "")
   try:
     return sav_jax.SAVConfig.from_dict(known)
   except (TypeError, ValueError) as e:
