@@ -203,7 +203,8 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
   each in the progress file, and writes the reports."""
   from eval import runner  # pylint: disable=import-outside-toplevel
   on = f"; {len(devices)} {devices[0].platform} devices" if devices and len(devices) > 1 else ""
-  print(f"{config.dataset}/{config.split}: {len(seqs)} sequences; weights: {described}{on}")
+  print(f"{config.dataset}/{config.split}: {len(seqs)} sequence{'s' if len(seqs) != 1 else ''}; "
+        f"weights: {described}{on}")
   if done:
     print(f"--resume: {len(done)} sequences finished by the interrupted run are not evaluated "
           "again")

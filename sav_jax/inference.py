@@ -821,8 +821,10 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
     flat = video.reshape(len(video), -1)
     bad = np.flatnonzero((flat.min(axis=1) < 0) | (flat.max(axis=1) > 255))
     raise ValueError(f"{name}: {video.dtype} values {lo:g}..{hi:g} are outside 0..255 in "
-                     f"frame(s) {(bad[:10] + first).tolist()} (convert 16-bit frames to 8-bit "
-                     "first, e.g. frames >> 8)")
+                     f"frame(s) {(bad[:10] + first).tolist()} ("
+                     + ("convert 16-bit frames to 8-bit first, e.g. frames >> 8)" if lo >= 0 else
+                        "RGB frames are 0..255: negative values are no image's; normalised "
+                        "frames need their mean and scale put back)"))
   if kind == "f" and 0 < hi <= 1.0:
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}: the model expects 0..255 "
                   "(multiply 0..1 images by 255)", stacklevel=caller_stacklevel())

@@ -534,7 +534,13 @@ def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
   notes = set()
   frame = video_io.to_rgb8((grey[0] // 16).astype(np.uint16), "twelve.png", notes)
   assert frame.max() <= 16
-  assert any("only values below 4096 (10- or 12-bit data?)" in n for n in notes)
+  assert any("only values below 4096 (10- or 12-bit data?), e.g. twelve.png" in n for n in notes)
+  video_io.to_rgb8((grey[1] // 16).astype(np.uint16), "other.png", notes)  # one note a kind
+  assert len([n for n in notes if "below 4096" in n]) == 1
+  # 8-bit values in 16-bit files come out black: named as such, with a file.
+  video_io.to_rgb8((grey[0] // 257).astype(np.uint16), "eight.png", notes)
+  assert any("hold only values 0..255 (8-bit data saved as 16-bit?), e.g. eight.png" in n
+             for n in notes)
 
 
 def test_bfloat16(tmp_path, folders, orbax_ckpt, variables, clip):

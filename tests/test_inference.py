@@ -489,6 +489,10 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   with pytest.raises(ValueError, match=r"right: int32 values 100\.\.300 are outside 0\.\.255 in "
                      r"frame\(s\) \[21\]"):
     inference.check_video_values(one, "right", first=20)
+  one[1, 0, 0, 2] = -10  # negative values: no 16-bit hint (it said "frames >> 8")
+  with pytest.raises(ValueError, match=r"int32 values -10\.\.100 are outside 0\.\.255 in frame\(s\) "
+                     r"\[21\] \(RGB frames are 0\.\.255: negative values are no image's"):
+    inference.check_video_values(one, "right", first=20)
   with pytest.raises(ValueError, match="dtype bool"):
     inference.check_video_values(video > 0, "left")
   with pytest.warns(UserWarning, match="multiply 0..1 images by 255") as record:

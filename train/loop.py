@@ -558,6 +558,10 @@ def _run(config, workdir, parts: dict | None) -> state_lib.TrainState:
 def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
   state, manager, evaluator = parts["state"], parts["manager"], parts["evaluator"]
   start, total = int(jax.device_get(state.step)), config.train.num_steps
+  if start >= total:
+    log.warning("the run in %s is complete: its checkpoint is of step %d, "
+                "config.train.num_steps=%d; nothing to train (a larger "
+                "--config.train.num_steps extends it)", workdir, start, total)
   writer = MetricWriter(workdir, enabled=jax.process_index() == 0, start_step=start)
   progress = Progress(start, total, enabled=config.train.progress_bar)
   host = _HostMetrics(config, writer, progress, int(jax.device_get(state.num_skipped)))

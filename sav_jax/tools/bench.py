@@ -293,7 +293,9 @@ def run(args: argparse.Namespace) -> int:
                   args.repeats, final_only=not args.all_predictions, compile_cache=cache,
                   vit_attention=args.vit_attention)
   res["matmul_precision"] = precision_name
-  print(f"device        {res['device']}  (jax {res['jax']})")
+  platform, _, kind = res["device"].partition(":")
+  print(f"device        {kind if kind and kind.lower() != platform else platform}"
+        f"{f' ({platform})' if kind and kind.lower() != platform else ''}  (jax {res['jax']})")
   print(f"input         B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
         f"iters={res['iters']} {res['dtype']}"
         + ("" if res["vit_attention"] == "blocked" else f", ViT attention {res['vit_attention']}"))

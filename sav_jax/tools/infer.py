@@ -275,8 +275,8 @@ def run(args: argparse.Namespace) -> int:
   if resize == (h, w):
     resize = None
   at = f", run at {resize[0]}x{resize[1]}" if resize else ""
-  print(f"input: {t} frames of {h}x{w} (height x width){at}; iters {args.iters}, "
-        f"{cfg.dtype}{on}")
+  frames = f"{t} frame{'s' if t != 1 else ''}"
+  print(f"input: {frames} of {h}x{w} (height x width){at}; iters {args.iters}, {cfg.dtype}{on}")
   start, compiled = time.perf_counter(), inference.compile_seconds()
   listed = [p.relative_to(out).as_posix() for p in outputs]
   # The windows are computed as write_outputs draws them, so the precision covers both.
@@ -313,7 +313,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"warning: {written['png16_saturated_pixels']} disparities above "
           f"{viz.PNG16_MAX_DISPARITY:.3f} px were stored as {viz.PNG16_MAX_DISPARITY:.3f} in the "
           "16-bit PNGs (the format's largest value); use --format npy, pfm or exr for them")
-  print(f"{t} frames in {seconds:.1f} s ({t / seconds:.2f} frames/s, writing included; "
+  print(f"{frames} in {seconds:.1f} s ({t / seconds:.2f} frames/s, writing included; "
         f"{compiling:.1f} s of it compiling); outputs in {out}")
   return 0
 

@@ -41,6 +41,13 @@ def list_frames(folder) -> list[pathlib.Path]:
   return files
 
 
+def _note_once(notes: set[str], note: str) -> None:
+  """Adds `note` unless a note of its kind (the same words up to ", e.g.") is there."""
+  kind = note.split(", e.g. ")[0]
+  if not any(n.split(", e.g. ")[0] == kind for n in notes):
+    notes.add(note)
+
+
 def to_rgb8(img: np.ndarray, source: str, notes: set[str]) -> np.ndarray:
   """Converts a decoded OpenCV image (BGR, grey or BGRA; 8 or 16 bit) to RGB uint8.
 
@@ -54,9 +61,14 @@ def to_rgb8(img: np.ndarray, source: str, notes: set[str]) -> np.ndarray:
   """
   if img.dtype == np.uint16:
     notes.add("16-bit frames converted to 8 bits (round(v / 257))")
-    if int(img.max()) < 4096:  # 10- or 12-bit sensor data: 0..16 after the conversion
-      notes.add("some 16-bit frames use only values below 4096 (10- or 12-bit data?): they "
-                "come out nearly black; scale them to the 16-bit range or save 8-bit frames")
+    top = int(img.max())
+    if top < 256:  # 8-bit values in a 16-bit file: 0..1 after the conversion
+      _note_once(notes, "some 16-bit frames hold only values 0..255 (8-bit data saved as "
+                 f"16-bit?), e.g. {source}: they come out black; save them as 8-bit frames")
+    elif top < 4096:  # 10- or 12-bit sensor data: 0..16 after the conversion
+      _note_once(notes, "some 16-bit frames use only values below 4096 (10- or 12-bit data?), "
+                 f"e.g. {source}: they come out nearly black; scale them to the 16-bit range "
+                 "or save 8-bit frames")
     img = np.round(img.astype(np.float32) / 257.0).astype(np.uint8)
   elif img.dtype != np.uint8:
     raise ValueError(f"{source}: unsupported pixel type {img.dtype} (expected 8- or 16-bit "

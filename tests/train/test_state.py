@@ -1178,6 +1178,20 @@ def test_sigterm_saves_the_current_step_and_stops(tmp_path):
   assert int(state.step) == 6 and _steps_logged(tmp_path) == [1, 2, 3, 4, 5, 6]
 
 
+def test_a_finished_run_run_again_says_it_is_complete(tmp_path, caplog):
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.num_steps, c.train.log_every, c.train.progress_bar = 2, 1, False
+  c.checkpoint.every_steps, c.eval.every_steps = 100, 0
+  loop.run(c, tmp_path, _loop_parts(c, tmp_path))
+  assert "is complete" not in caplog.text
+  with caplog.at_level(logging.WARNING):
+    state = loop.run(c, tmp_path, _resumed_parts(c, tmp_path))
+  assert int(state.step) == 2 and _steps_logged(tmp_path) == [1, 2]
+  assert (f"the run in {tmp_path} is complete: its checkpoint is of step 2, "
+          "config.train.num_steps=2; nothing to train") in caplog.text
+
+
 def test_ctrl_c_during_a_checkpoint_save_lets_the_save_finish(tmp_path, monkeypatch):
   # A KeyboardInterrupt inside orbax's synchronous part of a save dropped the checkpoint:
   # Ctrl-C is held back while the save starts, and raised once it has.
