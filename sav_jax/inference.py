@@ -71,7 +71,7 @@ import numpy as np
 from sav_jax import runtime
 from sav_jax._checks import caller_stacklevel
 from sav_jax._checks import is_int as _is_int
-from sav_jax.config import SAVConfig, as_config, resolve_vit_attention
+from sav_jax.config import VDA_VARIANTS, SAVConfig, as_config, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 from sav_jax.model.init import abstract_variables
 from sav_jax.model.stereo_any_video import channels_first_hint, check_iters
@@ -708,11 +708,22 @@ def check_variables(variables, cfg: SAVConfig | None = None, source: str = "vari
   missing, extra = sorted(want.keys() - have.keys()), sorted(have.keys() - want.keys())
   wrong = sorted(k for k in want.keys() & have.keys() if want[k] != have[k])
   if missing or extra or wrong:
+    token = have.get("['depthnet']['depthanything']['pretrained']['cls_token']", ())
+    held = next((name for name in VDA_VARIANTS
+                 if token[-1:] == (DINO_VARIANTS[name]["embed_dim"],)), None)
+    if held is not None and held != cfg.vda_encoder:  # the whole depth prior is another size
+      raise CheckpointError(
+          f"{source}: the parameters hold a {held} depth prior (DINOv2 width {token[-1]}), "
+          f"the config says vda_encoder={cfg.vda_encoder!r}: use "
+          f"SAVConfig(vda_encoder={held!r}) (the model config stored with the weights, if any, "
+          "says otherwise)")
+    parts = [f"{len(missing)} missing, e.g. {', '.join(missing[:2])}" if missing else "",
+             f"{len(extra)} unexpected, e.g. {', '.join(extra[:2])}" if extra else "",
+             f"{len(wrong)} with other shapes, e.g. " + ", ".join(
+                 f"{k} {have[k]} (expected {want[k]})" for k in wrong[:2]) if wrong else ""]
     raise CheckpointError(
         f"{source}: parameters do not match the Stereo Any Video model of this config "
-        f"(vda_encoder={cfg.vda_encoder!r}): {len(missing)} missing, e.g. {missing[:2]}; "
-        f"{len(extra)} unexpected, e.g. {extra[:2]}; {len(wrong)} with other shapes, e.g. "
-        f"{[(k, have[k], want[k]) for k in wrong[:2]]}")
+        f"(vda_encoder={cfg.vda_encoder!r}): {'; '.join(p for p in parts if p)}")
   for path, leaf in jax.tree_util.tree_leaves_with_path(got):
     dtype = getattr(leaf, "dtype", None)
     dtype = np.asarray(leaf).dtype if dtype is None else dtype

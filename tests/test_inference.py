@@ -512,7 +512,9 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   assert iters == 4 and type(iters) is int
   with pytest.raises(ValueError, match=r"expected Flax variables \{'params': \.\.\.\}"):
     inference.predict_video(variables["params"], video, video, iters=ITERS)
-  with pytest.raises(ValueError, match="vda_encoder='vitl'.*with other shapes"):
+  with pytest.raises(ValueError, match=r"variables: the parameters hold a vits depth prior \(DINOv2 "
+                     r"width 384\), the config says vda_encoder='vitl': use "
+                     r"SAVConfig\(vda_encoder='vits'\)"):
     inference.predict_video(variables, video, video, iters=ITERS,
                             cfg=sav_jax.SAVConfig(vda_encoder="vitl"))
   with pytest.raises(TypeError, match="SAVConfig.from_dict"):
