@@ -155,3 +155,24 @@ def pytest_configure(config):
   cache = ROOT / ".jax_cache"
   jax.config.update("jax_compilation_cache_dir", str(cache))
   jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
+
+
+@pytest.fixture
+def run_command(monkeypatch):
+  """`run_command(main)`: a command's exit status, where its immediate exit after a Ctrl-C
+  (`sav_jax._signals.exit_interrupted`, `os._exit` at the command line) is caught as the
+  status instead of ending pytest."""
+  from sav_jax import _signals  # pylint: disable=import-outside-toplevel
+
+  def exit_now(code):
+    raise SystemExit(code)
+
+  monkeypatch.setattr(_signals, "_exit", exit_now)
+
+  def run(main):
+    try:
+      return main()
+    except SystemExit as e:
+      return e.code
+
+  return run
