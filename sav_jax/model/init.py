@@ -74,7 +74,7 @@ def freeze_depth_prior(tx, params, frozen_pattern: str = DEPTH_PRIOR_PATTERN):
   The official trainer freezes the Video Depth Anything prior (`requires_grad_(False)`):
   no update, no optimizer state, no weight decay. The model stops its gradient, but a
   plain `optax.adamw(...)` over all parameters would still decay its weights and hold
-  moments for its ~25 M values; this gives those leaves zero updates and no state.
+  moments for its ~29 M values; this gives those leaves zero updates and no state.
 
   Args:
     tx: the optimizer, e.g. `optax.adamw(1e-4, weight_decay=1e-5)`.
