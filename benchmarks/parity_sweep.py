@@ -116,6 +116,21 @@ def torch_side(a) -> None:
   np.savez(a.torch_out, **out)
 
 
+def compare_row(name: str, shape, what: str, ours, official) -> dict:
+  """One row of the sweep's table: the largest and mean |difference| in px."""
+  ours, official = np.asarray(ours, np.float64), np.asarray(official, np.float64)
+  if ours.shape != official.shape:
+    raise ValueError(f"{name} ({what}): sav-jax gives shape {ours.shape}, the official side "
+                     f"{official.shape}")
+  row = dict(case=name, shape="x".join(map(str, shape)), what=what)
+  if ours.size == 0:  # e.g. the official [:-5] trimming of a clip of <= 5 frames
+    return dict(row, what=what + " (no frames, as the official)", max_px=0.0, mean_px=0.0,
+                official_max_px=0.0)
+  diff = np.abs(ours - official)
+  return dict(row, max_px=float(diff.max()), mean_px=float(diff.mean()),
+              official_max_px=float(np.abs(official).max()))
+
+
 def jax_side(a, ref: dict) -> list[dict]:
   import jax  # pylint: disable=import-outside-toplevel
 
@@ -130,10 +145,7 @@ def jax_side(a, ref: dict) -> list[dict]:
   rows = []
 
   def compare(name, shape, what, ours, official):
-    diff = np.abs(np.asarray(ours, np.float64) - official)
-    rows.append(dict(case=name, shape="x".join(map(str, shape)), what=what,
-                     max_px=float(diff.max()), mean_px=float(diff.mean()),
-                     official_max_px=float(np.abs(official).max())))
+    rows.append(compare_row(name, shape, what, ours, official))
 
   for name, kind, shape, frames in parse_cases(a.cases):
     if kind == "direct":

@@ -385,3 +385,12 @@ def test_parity_sweep_script_checks_its_cases_and_builds_shifted_views(tmp_path,
     assert 0 <= left.min() and left.max() <= 255
   left, _ = parity_sweep.batch((2, 1, 8, 20), "noise")
   assert left.shape == (2, 1, 8, 20, 3) and not np.array_equal(left[0], left[1])
+  # rows: a clip of <= 5 frames has none after the official [:-5] trimming, on both sides
+  # (the table's reduction failed on the empty arrays)
+  row = parity_sweep.compare_row("t3", (1, 3, 8, 20), "fbt", np.zeros((0, 8, 20)),
+                                 np.zeros((0, 8, 20)))
+  assert row["max_px"] == 0 and "no frames" in row["what"]
+  row = parity_sweep.compare_row("a", (1, 1, 2, 2), "x", np.ones((1, 2, 2)), np.full((1, 2, 2), 3))
+  assert (row["max_px"], row["mean_px"], row["official_max_px"]) == (2, 2, 3)
+  with pytest.raises(ValueError, match=r"a \(x\): sav-jax gives shape \(1, 2\), the official"):
+    parity_sweep.compare_row("a", (1,), "x", np.ones((1, 2)), np.ones((2, 2)))

@@ -226,7 +226,7 @@ def _is_real(x) -> bool:
 
 def _is_crop(x) -> bool:
   return (isinstance(x, (tuple, list)) and len(x) == 2
-          and all(_is_int(v) and v > 0 and v % 16 == 0 for v in x))
+          and all(_is_int(v) and v > 0 and v % 16 == 0 for v in x) and x[1] >= 32)
 
 
 def _is_regex(x) -> bool:
@@ -252,7 +252,8 @@ _CHECKS = (
     ("data.worker_count", lambda x: _is_int(x) and x >= 0, "an integer >= 0 (0: threads only)"),
     ("data.synthetic.num_clips", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("data.crop", _is_crop, "(height, width): two positive multiples of 16 (the model's "
-     "coarsest scale is 1/16)"),
+     "coarsest scale is 1/16), the width at least 32 (a 1-pixel-wide 1/16 map has no "
+     "official reference)"),
     ("train.batch_size", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("train.num_steps", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("train.iters", _is_iters,

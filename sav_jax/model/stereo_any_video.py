@@ -85,6 +85,12 @@ def _check_size(size) -> tuple[int, int]:
         "frames)` (NumPy or JAX, differentiable) and crop the output with "
         "`inference.unpad(disparities, pads)`, or use inference.predict_video, which pads "
         "for you")
+  if w < 32:
+    raise ValueError(
+        f"width {w} is refused: at 1/16 the feature map is 1 pixel wide, where the official "
+        "model's sampler divides by zero (its output is all NaN), so no result could be "
+        "checked against it; use frames at least 32 wide (inference.pad_to_multiple and "
+        "predict_video pad to multiples of 32)")
   return int(h), int(w)
 
 

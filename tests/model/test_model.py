@@ -103,6 +103,15 @@ def test_frame_feature_entry_points_check_sizes(model):
   odd = jax.ShapeDtypeStruct((1, 2, 20, 40, 3), jnp.float32)
   with pytest.raises(ValueError, match="multiples of 16, got 20x40"):
     jax.eval_shape(lambda v, l, r: model.apply(v, l, r, method=method), params, odd, odd)
+  # Width 16: a 1-pixel-wide map at 1/16, where the official sampler gives NaN everywhere
+  # (sav-jax returned numbers no reference checks); height 16 has the official guard.
+  narrow = jax.ShapeDtypeStruct((1, 2, 32, 16, 3), jnp.float32)
+  with pytest.raises(ValueError, match=r"width 16 is refused: at 1/16 the feature map is 1 "
+                     r"pixel wide, where the official model's sampler divides by zero"):
+    jax.eval_shape(lambda v, l, r: model.apply(v, l, r, iters=2), params, narrow, narrow)
+  low = jax.ShapeDtypeStruct((1, 2, 16, 32, 3), jnp.float32)
+  out = jax.eval_shape(lambda v, l, r: model.apply(v, l, r, iters=2), params, low, low)
+  assert out.disparities.shape == (4, 1, 2, 16, 32)
 
 
 @pytest.mark.parametrize("dtype", [jnp.bool_, jnp.complex64])

@@ -922,6 +922,11 @@ def test_config_blocks_a_run_cannot_use_are_named(tmp_path, caplog):
                      r"the synthetic generator; its fields: .*max_disparity.*num_clips"):
     loop.validate_config(c, tmp_path / "w")
   c = synthetic.get_config()
+  c.data.crop = (32, 16)  # the model refuses width 16 (no official reference)
+  with pytest.raises(ValueError, match=r"config\.data\.crop=\(32, 16\): expected .* the width "
+                     "at least 32"):
+    loop.validate_config(c, tmp_path / "w")
+  c = synthetic.get_config()
   c.data.synthetic.max_disparity = -4.0  # named by the config field, not the dataclass's
   with pytest.raises(ValueError, match=r"config\.data\.synthetic\.max_disparity "):
     loop.validate_config(c, tmp_path / "w")
