@@ -53,9 +53,10 @@ def main(argv=None):
   p.add_argument("--low-memory-compile", action=argparse.BooleanOptionalAction, default=True)
   p.add_argument("--json", action="store_true", help="print the result as JSON")
   args = p.parse_args(argv)
-  if args.height % 16 or args.width % 16 or min(args.frames, args.height, args.width) < 1:
-    p.error(f"frames >= 1 and a size in multiples of 16, got {args.frames} frames of "
-            f"{args.height}x{args.width}")
+  if (args.height % 16 or args.width % 16 or min(args.frames, args.height, args.width) < 1
+      or args.width < 32):
+    p.error(f"frames >= 1 and a size in multiples of 16 (the width at least 32), got "
+            f"{args.frames} frames of {args.height}x{args.width}")
   with runtime.preserved_settings():
     runtime.disable_compilation_cache()
     runtime.set_low_memory_compile(args.low_memory_compile)

@@ -56,6 +56,8 @@ def test_bench_rejects_bad_sizes(capsys):
   for height in ("30", "0", "-16"):
     assert cli.main(["bench", "--height", height]) == 2
     assert "--height/--width must be positive multiples of 16" in capsys.readouterr().err
+  assert cli.main(["bench", "--width", "16"]) == 2  # the model refuses it (no reference)
+  assert "the width at least 32 (got 128x16)" in capsys.readouterr().err
   assert cli.main(["bench", "--vit-attention", "cudnn"]) == 2
   assert "--vit-attention cudnn needs --dtype bfloat16" in capsys.readouterr().err
 

@@ -268,13 +268,13 @@ def test_compile_times_script_compiles_what_predict_video_runs(capsys):
   from sav_jax import inference, runtime  # pylint: disable=import-outside-toplevel
 
   before = (jax.config.jax_compilation_cache_dir, runtime._low_memory_compile)  # pylint: disable=protected-access
-  result = compile_times.main(["--frames", "1", "--height", "16", "--width", "16",
+  result = compile_times.main(["--frames", "1", "--height", "16", "--width", "32",
                                "--iters", "2"])
   assert (jax.config.jax_compilation_cache_dir, runtime._low_memory_compile) == before  # pylint: disable=protected-access
   assert list(result["compile_s"]) == ["frames", "window"]
   assert all(s > 0 for s in result["compile_s"].values()) and result["peak_rss_gb"] > 0
   assert "total" in capsys.readouterr().out
-  options = {k[0]: dict(k[4]) for k in inference._COMPILED if k[3] == (1, 16, 16)}  # pylint: disable=protected-access
+  options = {k[0]: dict(k[4]) for k in inference._COMPILED if k[3] == (1, 16, 32)}  # pylint: disable=protected-access
   assert options["frames"] == runtime.inference_compiler_options(per_frame=True)
   assert options["window"] == runtime.inference_compiler_options()
   # the same options where this jaxlib has only the newer emitters (jaxlib 0.11+)
@@ -282,6 +282,9 @@ def test_compile_times_script_compiles_what_predict_video_runs(capsys):
   with pytest.raises(SystemExit):
     compile_times.main(["--height", "30"])
   assert "multiples of 16" in capsys.readouterr().err
+  with pytest.raises(SystemExit):
+    compile_times.main(["--height", "32", "--width", "16"])
+  assert "the width at least 32" in capsys.readouterr().err
 
 
 def test_raft_flow_script_times_the_evaluators_flow(monkeypatch, capsys):

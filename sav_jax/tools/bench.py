@@ -265,9 +265,9 @@ def compare_line(res: dict, base: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
   from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
-  if min(args.height, args.width) < 16 or args.height % 16 or args.width % 16:
-    raise UsageError(f"--height/--width must be positive multiples of 16 (got "
-                     f"{args.height}x{args.width})")
+  if min(args.height, args.width) < 16 or args.height % 16 or args.width % 16 or args.width < 32:
+    raise UsageError(f"--height/--width must be positive multiples of 16, the width at least 32 "
+                     f"(got {args.height}x{args.width})")
   if args.iters < 2:
     raise UsageError(f"--iters must be >= 2 (got {args.iters})")
   if args.vit_attention == "cudnn" and args.dtype != "bfloat16":
