@@ -71,7 +71,7 @@ import numpy as np
 from sav_jax import runtime
 from sav_jax._checks import caller_stacklevel
 from sav_jax._checks import is_int as _is_int
-from sav_jax.config import VDA_VARIANTS, SAVConfig, as_config, resolve_vit_attention
+from sav_jax.config import SAVConfig, as_config, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 from sav_jax.model.init import abstract_variables
 from sav_jax.model.stereo_any_video import channels_first_hint, check_iters
@@ -197,6 +197,15 @@ def _check_pads(pads) -> tuple[int, int, int, int]:
   return tuple(int(p) for p in pads)
 
 
+def _as_frames(frames):
+  """`frames` as a JAX array (kept, traced ones too) or a NumPy array, `[..., H, W, C]`."""
+  if not isinstance(frames, jax.Array):
+    frames = np.asarray(frames)
+  if frames.ndim < 3:
+    raise ValueError(f"frames must be [..., H, W, C], got shape {tuple(frames.shape)}")
+  return frames
+
+
 def pad_frames(frames, pads: tuple[int, int, int, int]):
   """Replicate-pads frames `[..., H, W, C]` spatially by `(top, bottom, left, right)`.
 
@@ -206,10 +215,7 @@ def pad_frames(frames, pads: tuple[int, int, int, int]):
   replicated edge pixel is the sum over its copies, as PyTorch's replicate padding).
   """
   pads = _check_pads(pads)
-  if not isinstance(frames, jax.Array):
-    frames = np.asarray(frames)
-  if frames.ndim < 3:
-    raise ValueError(f"frames must be [..., H, W, C], got shape {tuple(frames.shape)}")
+  frames = _as_frames(frames)
   top, bottom, left, right = pads
   width = ((0, 0),) * (frames.ndim - 3) + ((top, bottom), (left, right), (0, 0))
   if isinstance(frames, jax.Array):
@@ -224,10 +230,7 @@ def pad_to_multiple(frames, multiple: int = PAD_MULTIPLE):
   between both sides, top/left get the smaller half); the model needs multiples of 16.
   NumPy or JAX arrays as `pad_frames`; undo on the output with `unpad(disparities, pads)`.
   """
-  if not isinstance(frames, jax.Array):
-    frames = np.asarray(frames)
-  if frames.ndim < 3:
-    raise ValueError(f"frames must be [..., H, W, C], got shape {tuple(frames.shape)}")
+  frames = _as_frames(frames)
   pads = pad_amounts(*frames.shape[-3:-1], multiple)
   return pad_frames(frames, pads), pads
 
@@ -708,9 +711,9 @@ def check_variables(variables, cfg: SAVConfig | None = None, source: str = "vari
   missing, extra = sorted(want.keys() - have.keys()), sorted(have.keys() - want.keys())
   wrong = sorted(k for k in want.keys() & have.keys() if want[k] != have[k])
   if missing or extra or wrong:
+    from sav_jax.convert.params import encoder_of_width  # pylint: disable=import-outside-toplevel
     token = have.get("['depthnet']['depthanything']['pretrained']['cls_token']", ())
-    held = next((name for name in VDA_VARIANTS
-                 if token[-1:] == (DINO_VARIANTS[name]["embed_dim"],)), None)
+    held = encoder_of_width(token[-1:])
     if held is not None and held != cfg.vda_encoder:  # the whole depth prior is another size
       raise CheckpointError(
           f"{source}: the parameters hold a {held} depth prior (DINOv2 width {token[-1]}), "

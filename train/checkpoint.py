@@ -108,25 +108,33 @@ def run_fields(config) -> dict:
   return flat
 
 
-def _saved_config(manager: ocp.CheckpointManager, step: int, key: str) -> dict:
-  """Entry `key` of the JSON config saved with checkpoint `step`, {} where there is none."""
+def saved_config(manager: ocp.CheckpointManager, step: int) -> dict:
+  """The JSON config `save` wrote with checkpoint `step` (`model`, `step`, `run`,
+  `data_clips`), {} where there is none; read once by a resume, its entries taken with
+  `saved_entry`."""
   try:
     saved = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
-    saved = saved["config"].get(key)
+    saved = saved["config"]
   except Exception:  # pylint: disable=broad-except  # the state's restore names problems
     return {}
   return saved if isinstance(saved, dict) else {}
 
 
+def saved_entry(saved: dict, key: str) -> dict:
+  """Entry `key` of a `saved_config`, {} where it is missing or not a mapping."""
+  entry = saved.get(key)
+  return entry if isinstance(entry, dict) else {}
+
+
 def saved_run(manager: ocp.CheckpointManager, step: int) -> dict:
   """The run config saved with checkpoint `step` (`run_fields`), {} where there is none."""
-  return _saved_config(manager, step, "run")
+  return saved_entry(saved_config(manager, step), "run")
 
 
 def saved_clips(manager: ocp.CheckpointManager, step: int) -> dict:
   """The training clips' record saved with checkpoint `step` (`train.input.train_dataset`'s
   `clips`), {} for checkpoints saved without one."""
-  return _saved_config(manager, step, "data_clips")
+  return saved_entry(saved_config(manager, step), "data_clips")
 
 
 def changed_fields(manager: ocp.CheckpointManager, step: int, config,
@@ -244,10 +252,12 @@ def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
       f"all), or move the ones you do not need out of that folder first")
 
 
-def check_data_state(manager: ocp.CheckpointManager, step: int, config) -> None:
+def check_data_state(manager: ocp.CheckpointManager, step: int, config,
+                     saved: dict | None = None) -> None:
   """Raises CheckpointError unless this run can restore the data-iterator state of
   checkpoint `step`: grain saves one position per process (`process_<i>-of-<P>.json`),
-  whose form depends on `data.worker_count`, so both must be those of the saving run."""
+  whose form depends on `data.worker_count`, so both must be those of the saving run.
+  `saved`: `saved_run(manager, step)` if the caller has read it already."""
   directory = pathlib.Path(manager.directory) / str(step)
   files = sorted((directory / "data").glob("process_*-of-*.json"))
   counts = {int(m.group(1)) for f in files
@@ -260,7 +270,7 @@ def check_data_state(manager: ocp.CheckpointManager, step: int, config) -> None:
         f"run has {jax.process_count()}: resume with that many (each process's position in "
         f"the data is its own){hint}")
   now = config.data.worker_count
-  saved = saved_run(manager, step).get("data.worker_count")
+  saved = (saved_run(manager, step) if saved is None else saved).get("data.worker_count")
   if saved is None and files:  # from before the run config was saved: the state's form
     try:
       state = json.loads(files[0].read_text(encoding="utf-8"))

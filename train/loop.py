@@ -105,8 +105,9 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
   if manager.latest_step() is not None:
     step = manager.latest_step()
     log.info("resuming from checkpoint %d", step)
-    ckpt_lib.check_data_state(manager, step, config)
-    saved = ckpt_lib.saved_run(manager, step)  # ({} for checkpoints saved without it)
+    stored = ckpt_lib.saved_config(manager, step)  # read once ({} for older checkpoints)
+    saved = ckpt_lib.saved_entry(stored, "run")
+    ckpt_lib.check_data_state(manager, step, config, saved)
     ckpt_lib.check_keep(manager, config, saved)
     changed = ckpt_lib.changed_fields(manager, step, config, saved)
     for field in ("init_from", "vda_weights"):  # never read on resume: say so if new
@@ -122,7 +123,8 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
       raise sav_jax.convert.CheckpointError(
           f"{e}. The config fields this run changes since that checkpoint: "
           f"{'; '.join(changed)}") from None
-    clips = input_lib.changed_clips(ckpt_lib.saved_clips(manager, step), data_clips or {})
+    clips = input_lib.changed_clips(ckpt_lib.saved_entry(stored, "data_clips"),
+                                    data_clips or {})
     if data_clips is not None and clips:
       log.warning("the training clips changed since checkpoint %d (%s): the restored position "
                   "in the data applies to another list of clips, so the rest of this epoch is "

@@ -39,11 +39,12 @@ def vda_encoder_of(state_dict: Mapping, prefix: str = VDA_PREFIX) -> str | None:
   """The `SAVConfig.vda_encoder` whose depth prior the weights hold ("vits", "vitl"), from the
   width of the DINOv2 class token `{prefix}pretrained.cls_token` (`prefix=""` for a Video
   Depth Anything checkpoint); None when the file does not say or names no supported one."""
-  return _encoder_of_width(np.shape(state_dict.get(prefix + "pretrained.cls_token", ()))[-1:])
+  return encoder_of_width(np.shape(state_dict.get(prefix + "pretrained.cls_token", ()))[-1:])
 
 
-def _encoder_of_width(width: tuple) -> str | None:
-  """The `vda_encoder` whose DINOv2 class token has the width `(C,)`, else None."""
+def encoder_of_width(width: tuple) -> str | None:
+  """The `vda_encoder` whose DINOv2 class token has the width `(C,)` (a shape's last axis),
+  else None."""
   return next((name for name in VDA_VARIANTS if width == (DINO_VARIANTS[name]["embed_dim"],)),
               None)
 
@@ -120,7 +121,7 @@ def state_dict_from_params(variables: Mapping, cfg: SAVConfig | None = None
           "cls_token"])[-1:]
     except (KeyError, TypeError, IndexError):
       width = ()
-    cfg = SAVConfig(vda_encoder=_encoder_of_width(width) or "vits")
+    cfg = SAVConfig(vda_encoder=encoder_of_width(width) or "vits")
     source = ("state_dict_from_params (cfg=None: the paper's architecture with the depth "
               "prior the parameters hold; pass the model's SAVConfig for another)")
   else:

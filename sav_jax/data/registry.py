@@ -143,7 +143,8 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
     seqs = _LOADERS[dataset](root, split, **options)
   except FileNotFoundError as e:  # where the root was taken for the dataset's own folder
     folders, base = _FOLDERS[dataset], Path(root).expanduser()
-    if not base.is_dir() or any((base / f).is_dir() for f in folders):
+    if (not base.is_dir() or base.name in folders  # (the dataset's own folder, incomplete)
+        or any((base / f).is_dir() for f in folders)):
       raise
     names = " or ".join(f"{f}/" for f in folders)
     raise FileNotFoundError(

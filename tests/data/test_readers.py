@@ -121,6 +121,12 @@ def test_a_root_without_the_dataset_folder_is_named(tmp_path, dataset):
                      rf"{re.escape(folders)} folder and is not one either: pass the datasets "
                      "folder that holds"):
     registry.get_sequences(dataset, tmp_path, registry.SPLITS[dataset][0])
+  # the dataset's own folder, incomplete: what is missing in it, without that hint
+  own = tmp_path / registry._FOLDERS[dataset][0]  # pylint: disable=protected-access
+  own.mkdir()
+  with pytest.raises(FileNotFoundError) as e:
+    registry.get_sequences(dataset, own, registry.SPLITS[dataset][0])
+  assert "is not one either" not in str(e.value) and str(own) in str(e.value)
 
 def test_sceneflow_nan_disparity_and_broken_links(tmp_path):
   truth = _sceneflow(tmp_path, np.random.default_rng(1), frames=2)
