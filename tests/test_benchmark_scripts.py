@@ -6,6 +6,7 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -397,3 +398,44 @@ def test_parity_sweep_script_checks_its_cases_and_builds_shifted_views(tmp_path,
   assert (row["max_px"], row["mean_px"], row["official_max_px"]) == (2, 2, 3)
   with pytest.raises(ValueError, match=r"a \(x\): sav-jax gives shape \(1, 2\), the official"):
     parity_sweep.compare_row("a", (1,), "x", np.ones((1, 2)), np.ones((2, 2)))
+
+
+def test_input_pipeline_script_writes_flyingthings_and_times_the_training_stream(
+    tmp_path, monkeypatch, capsys):
+  """`benchmarks/input_pipeline.py`: the set it writes is read back by the FlyingThings3D
+  reader as written (PNG frames, PFM disparities, invalid pixels 0), and the training stream
+  it times yields batches of the asked shape."""
+  import cv2  # pylint: disable=import-outside-toplevel
+  import input_pipeline  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  from sav_jax.data import registry  # pylint: disable=import-outside-toplevel
+  from sav_jax.data.synthetic import SyntheticConfig, generate_clip  # pylint: disable=import-outside-toplevel
+  nbytes = input_pipeline.write_flyingthings(tmp_path / "set", 2, 3, size=(40, 72))
+  seqs = registry.get_sequences("flyingthings3d", tmp_path / "set", "train")
+  assert [len(s) for s in seqs] == [3, 3]
+  seq = seqs[0]
+  clip = generate_clip(SyntheticConfig(frames=3, height=40, width=72, seed=0), index=0)
+  for t in range(3):
+    frame = seq[t]
+    np.testing.assert_array_equal(frame["left"], clip["left"][t])
+    np.testing.assert_array_equal(frame["right"], clip["right"][t])
+    np.testing.assert_array_equal(frame["disparity"],
+                                  np.where(clip["valid"][t], clip["disparity"][t], 0))
+  assert nbytes > 0 and cv2.imread(str(next((tmp_path / "set").rglob("*.png")))) is not None
+
+  out = tmp_path / "r.json"
+  monkeypatch.setattr(input_pipeline, "SCENEFLOW_SIZE", (48, 80))
+  monkeypatch.setattr(sys, "argv", [
+      "input_pipeline.py", "--sequences", "1", "--sequence-frames", "3", "--frames", "2",
+      "--crop", "32", "64", "--batch", "2", "--warmup", "1", "--batches", "1", "--clips", "1",
+      "--num-threads", "1", "--json", str(out)])
+  input_pipeline.main()
+  res = json.loads(out.read_text())
+  # 3 frames, clips of 2: one start, forward and time-reversed (the official sampling).
+  assert res["training_clips"] == 2 and res["written"] == "1 x 3 frames at 48x80"
+  assert res["clips_per_s"] > 0 and res["read_s"] > 0 and res["augment_s"] > 0
+  assert res["cores_per_accelerator"] == pytest.approx(3.0 * (res["read_s"] + res["augment_s"]))
+  assert "clips/s over 1 batches after 1" in capsys.readouterr().out
+  monkeypatch.setattr(sys, "argv", ["input_pipeline.py", "--frames", "11"])
+  with pytest.raises(SystemExit) as e:
+    input_pipeline.main()
+  assert e.value.code == 2 and "more than --sequence-frames 10" in capsys.readouterr().err

@@ -277,29 +277,58 @@ def test_fresh_weights_outside_the_depth_prior_follow_the_official_initialisatio
   assert seen["norm"] >= 2 and seen["bias"] >= 40, seen
 
 
-def test_gradients_are_finite_and_the_depth_prior_is_frozen(variables, clip):
-  """jax.grad w.r.t. variables and images, under jit, with remat on (training's setting),
-  in the bfloat16 mode. The float32 mode's gradients are those of the train step, which
-  tests/train checks more strictly (finite norms, frozen depth prior unchanged, the other
-  parameters updated, the same on 8 devices as on one, the validation EPE lowered)."""
-  remat_model = sav_jax.StereoAnyVideo(sav_jax.SAVConfig(remat=True, dtype="bfloat16"))
+def _grads_of_every_prediction(cfg, variables, clip):
+  """d/d(variables, left) of a loss over every prediction (as training's, each prediction's
+  error weighted differently), under jit, on the host."""
+  m = sav_jax.StereoAnyVideo(cfg)
 
-  @jax.jit
-  def grads(v, left, right):
-    loss = lambda v, l, r: jnp.abs(remat_model.apply(v, l, r, iters=2).disparities[-1] - 3).mean()
-    return jax.grad(loss, argnums=(0, 1, 2))(v, left, right)
+  def loss(v, left, right):
+    d = m.apply(v, left, right, iters=2).disparities
+    w = jnp.linspace(0.5, 1.0, d.shape[0]).reshape(-1, *[1] * (d.ndim - 1))
+    return (w * jnp.abs(d.astype(jnp.float32) - 3)).mean()
 
-  # checked on the host: ~500 leaves of different shapes, one small compile each on device
-  g_vars, g_left, g_right = jax.device_get(grads(variables, *clip))
-  leaves = jax.tree_util.tree_leaves(g_vars)
-  assert all(np.isfinite(x).all() for x in leaves)
-  assert np.isfinite(g_left).all() and np.isfinite(g_right).all()
+  return jax.device_get(jax.jit(jax.grad(loss, argnums=(0, 1)))(variables, *clip))
+
+
+def test_rematerialised_gradients_equal_the_plain_ones_and_the_depth_prior_is_frozen(
+    variables, clip):
+  """remat (training's setting: single refinement steps and the encoders' frame blocks
+  recomputed in the backward pass; one frame per block at this budget, see
+  test_training_rematerializes_single_steps_and_encoder_blocks) changes what the backward
+  pass keeps, not the gradient: float32 gradients of a loss over every prediction, with
+  respect to the weights and the frames, equal those without remat."""
+  g_remat, g_left = _grads_of_every_prediction(
+      sav_jax.SAVConfig(remat=True, frame_block_mb=4), variables, clip)
+  g_plain, g_left_plain = _grads_of_every_prediction(sav_jax.SAVConfig(), variables, clip)
+  np.testing.assert_allclose(g_left, g_left_plain, rtol=0,
+                             atol=1e-5 * np.abs(g_left_plain).max())
   assert np.abs(g_left).sum() > 0
-  vda = jax.tree_util.tree_leaves(g_vars["params"]["depthnet"]["depthanything"])
+  flat_remat = flax.traverse_util.flatten_dict(g_remat["params"], sep="/")
+  flat_plain = flax.traverse_util.flatten_dict(g_plain["params"], sep="/")
+  assert flat_remat.keys() == flat_plain.keys()
+  # Each leaf to 1e-5 of its own largest value; leaves whose true gradient is 0 (a bias
+  # before an instance norm) hold only rounding noise, bounded by the whole gradient's scale.
+  scale = max(np.abs(x).max() for x in flat_plain.values())
+  off = {path: float(np.abs(flat_remat[path] - plain).max() / max(np.abs(plain).max(), 1e-30))
+         for path, plain in flat_plain.items()
+         if np.abs(flat_remat[path] - plain).max() > max(1e-5 * np.abs(plain).max(), 1e-7 * scale)}
+  assert not off, off
+  vda = jax.tree_util.tree_leaves(g_remat["params"]["depthnet"]["depthanything"])
   assert all(np.abs(x).max() == 0 for x in vda)
   for name in ("fnet", "cnet", "update_block", "corr_mlp"):
-    assert any(np.abs(x).max() > 0 for x in jax.tree_util.tree_leaves(g_vars["params"][name]))
-  assert np.abs(g_vars["params"]["depthnet"]["conv"]["kernel"]).max() > 0
+    assert any(np.abs(x).max() > 0 for x in jax.tree_util.tree_leaves(g_remat["params"][name]))
+  assert np.abs(g_remat["params"]["depthnet"]["conv"]["kernel"]).max() > 0
+
+
+def test_bfloat16_gradients_are_finite_and_the_depth_prior_is_frozen(variables, clip):
+  """The bfloat16 mode with remat: finite gradients, the frozen prior's zero."""
+  g_vars, g_left = _grads_of_every_prediction(sav_jax.SAVConfig(remat=True, dtype="bfloat16"),
+                                              variables, clip)
+  assert all(np.isfinite(x).all() for x in jax.tree_util.tree_leaves(g_vars))
+  assert np.isfinite(g_left).all() and np.abs(g_left).sum() > 0
+  vda = jax.tree_util.tree_leaves(g_vars["params"]["depthnet"]["depthanything"])
+  assert all(np.abs(x).max() == 0 for x in vda)
+  assert any(np.abs(x).max() > 0 for x in jax.tree_util.tree_leaves(g_vars["params"]["update_block"]))
 
 
 def test_gradients_reach_the_frames_through_the_frozen_depth_prior(variables):
