@@ -19,6 +19,7 @@ import pathlib
 import re
 import shutil
 import time
+import warnings
 
 import jax
 import numpy as np
@@ -209,9 +210,11 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
     if has_gt:
       start = time.perf_counter()
       try:
-        res.metrics[method] = metrics.eval_sequence(
-            pred, clip["disparity"], clip["valid"].astype(np.float32), flows, scale=scale,
-            video=video, flow_fn=flow_fn)
+        with warnings.catch_warnings():  # res.notes (gt_notes) say it once per sequence
+          warnings.simplefilter("ignore", metrics.NotMeasuredWarning)
+          res.metrics[method] = metrics.eval_sequence(
+              pred, clip["disparity"], clip["valid"].astype(np.float32), flows, scale=scale,
+              video=video, flow_fn=flow_fn)
       except ValueError as e:  # e.g. a NaN prediction: name the sequence and the method
         raise ValueError(f"sequence {res.name}, {METHOD_NAMES[method]}: {e}") from None
       res.metrics_seconds += time.perf_counter() - start

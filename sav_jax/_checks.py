@@ -5,6 +5,9 @@ from __future__ import annotations
 import numbers
 import os
 import sys
+import warnings
+
+import numpy as np
 
 
 def is_int(x) -> bool:
@@ -12,14 +15,93 @@ def is_int(x) -> bool:
   return isinstance(x, numbers.Integral) and not isinstance(x, bool)
 
 
+def _package_dirs() -> tuple[str, ...]:
+  """sav_jax's folder, and Flax's and JAX's where they are imported (a model call goes
+  through them: `model.apply` -> Flax -> the module's checks)."""
+  dirs = [os.path.dirname(os.path.abspath(__file__))]
+  for name in ("flax", "jax"):
+    module = sys.modules.get(name)
+    if getattr(module, "__file__", None):
+      dirs.append(os.path.dirname(os.path.abspath(module.__file__)))
+  return tuple(d + os.sep for d in dirs)
+
+
 def caller_stacklevel() -> int:
-  """`warnings.warn`'s stacklevel that names the first caller outside sav_jax.
+  """`warnings.warn`'s stacklevel that names the first caller outside sav_jax (and the
+  Flax and JAX code a model call goes through).
 
   Called by the function that warns; a fixed stacklevel named a line inside the package
   when the warning came through another of its functions (e.g. `predict_video`).
   """
-  package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+  packages = _package_dirs()
   frame, level = sys._getframe(1), 1  # pylint: disable=protected-access
-  while frame is not None and frame.f_code.co_filename.startswith(package):
+  while frame is not None and frame.f_code.co_filename.startswith(packages):
     frame, level = frame.f_back, level + 1
   return level
+
+
+def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -> None:
+  """Raises ValueError unless `video` (`[T, ...]` frames) holds finite RGB values in 0..255.
+
+  uint8 passes as is; other integers must not exceed 255 (convert 16-bit frames first) nor
+  be negative; floats must be finite; float frames that look normalised (values below -1
+  and none above 3: a mean and scale taken off) are refused; float frames that look like
+  0..1 images (99.9% of a sample of their values at most 1.5, so a resize's overshoot or a
+  few hot pixels do not hide it) or lie well outside 0..255 get a warning (the model
+  expects 0..255, not 0..1 or 0..65535). `first`: the index of `video[0]` in the whole
+  video (frames are named by their index there).
+  """
+  kind = video.dtype.kind
+  if kind == "u" and video.dtype.itemsize == 1:
+    return
+  if kind not in "uif":
+    raise ValueError(f"{name}: frames of dtype {video.dtype}; expected uint8 or float (0..255)")
+  if kind == "f":
+    bad = ~np.isfinite(video).reshape(len(video), -1).all(axis=1)
+    if bad.any():
+      raise ValueError(f"{name}: non-finite values (NaN/inf) in frame(s) "
+                       f"{(np.flatnonzero(bad)[:10] + first).tolist()}; the model would "
+                       "return NaN")
+  lo, hi = float(video.min()), float(video.max())
+  normalised = ("RGB frames are 0..255: negative values are no image's; normalised "
+                "frames need their mean and scale put back")
+  if kind in "ui" and (lo < 0 or hi > 255):
+    flat = video.reshape(len(video), -1)
+    bad = np.flatnonzero((flat.min(axis=1) < 0) | (flat.max(axis=1) > 255))
+    raise ValueError(f"{name}: {video.dtype} values {lo:g}..{hi:g} are outside 0..255 in "
+                     f"frame(s) {(bad[:10] + first).tolist()} ("
+                     + ("convert 16-bit frames to 8-bit first, e.g. frames >> 8)" if lo >= 0 else
+                        normalised + ")"))
+  if kind != "f":
+    return
+  if lo < -1.0 and hi <= 3.0:
+    raise ValueError(f"{name}: float frames with values {lo:g}..{hi:g} look normalised ("
+                     f"{normalised}, e.g. (frames * std + mean) * 255)")
+  looks, spread = float_frames_range(video, lo, hi)
+  if looks == "0..1":
+    warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}{spread}: the model "
+                  "expects 0..255 (multiply 0..1 images by 255)", stacklevel=caller_stacklevel())
+  elif looks == "negative":
+    warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}, outside 0..255, which the "
+                  f"model expects ({normalised})", stacklevel=caller_stacklevel())
+  elif looks == "16-bit":
+    warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}, outside 0..255, which the "
+                  "model expects (divide 16-bit frames by 257)", stacklevel=caller_stacklevel())
+
+
+def float_frames_range(video: np.ndarray, lo: float, hi: float) -> tuple[str | None, str]:
+  """What float frames of values `lo..hi` look like, if not RGB 0..255: `("0..1", spread)`
+  where 99.9% of a sample of their values are at most 1.5 (so a resize's overshoot or a few
+  hot pixels do not hide 0..1 images; `spread` says so where the maximum is higher),
+  `("negative", "")` below -1 (a resize's overshoot stays above), `("16-bit", "")` above
+  256; `(None, "")` otherwise."""
+  flat = video.reshape(-1)
+  sample = flat[::max(1, flat.size // 200_000)]
+  bright = float(np.quantile(sample, 0.999)) if hi > 1.5 else hi
+  if 0 < bright <= 1.5:
+    return "0..1", "" if bright == hi else f", 99.9% of them at most {bright:.3g}"
+  if lo < -1.0:
+    return "negative", ""
+  if hi > 256.0:
+    return "16-bit", ""
+  return None, ""

@@ -69,12 +69,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from sav_jax import runtime
-from sav_jax._checks import caller_stacklevel
+from sav_jax._checks import caller_stacklevel, check_video_values  # noqa: F401  (public)
 from sav_jax._checks import is_int as _is_int
 from sav_jax.config import SAVConfig, as_config, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 from sav_jax.model.init import abstract_variables
-from sav_jax.model.stereo_any_video import channels_first_hint, check_iters
+from sav_jax.model.stereo_any_video import channels_first_hint, check_iters, layout_hint
 
 log = logging.getLogger(__name__)
 
@@ -202,7 +202,12 @@ def _as_frames(frames):
   if not isinstance(frames, jax.Array):
     frames = np.asarray(frames)
   if frames.ndim < 3:
-    raise ValueError(f"frames must be [..., H, W, C], got shape {tuple(frames.shape)}")
+    raise ValueError(f"frames must be [..., H, W, C], got shape {tuple(frames.shape)}"
+                     + layout_hint(frames.shape, batched=False))
+  hint = channels_first_hint(frames.shape)
+  if hint and frames.shape[-1] > 4:  # [..., 3, H, W]: it would pad the channel and height axes
+    raise ValueError(f"frames must be [..., H, W, C], channels last; got shape "
+                     f"{tuple(frames.shape)}{hint}")
   return frames
 
 
@@ -774,6 +779,11 @@ def _as_video(video, name: str) -> np.ndarray:
 
 
 def _refuse_iterator(video, name: str) -> None:
+  if isinstance(video, (str, bytes, os.PathLike)):
+    raise ValueError(
+        f"{name}: got a path ({os.fspath(video)!r}), not frames; read them first: "
+        "sav_jax.tools.video_io.load_stereo(left, right) gives both views' frames of two "
+        "folders or video files (video_io.FrameSource(path) reads them lazily)")
   if not hasattr(video, "shape") and not isinstance(video, (list, tuple)) and (
       hasattr(video, "__next__") or not hasattr(video, "__getitem__")):
     raise ValueError(
@@ -796,10 +806,8 @@ def _check_video_shapes(left_shape: tuple, right_shape: tuple) -> None:
   if left_shape != right_shape:
     raise ValueError(f"left and right videos differ in shape: {left_shape} vs {right_shape}")
   if len(left_shape) != 4 or left_shape[-1] != 3 or min(left_shape[:3]) < 1:
-    batch = (" (one video per call: for a batch [B, T, H, W, 3], pass video[b])"
-             if len(left_shape) == 5 else "")
     raise ValueError(f"expected RGB videos [T, H, W, 3] (0..255), got shape {left_shape}"
-                     + (channels_first_hint(left_shape) or batch))
+                     + layout_hint(left_shape, batched=False))
 
 
 def _as_video_pair(left, right, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -809,43 +817,6 @@ def _as_video_pair(left, right, first: int = 0) -> tuple[np.ndarray, np.ndarray]
   for name, video in (("left", left), ("right", right)):
     check_video_values(video, name, first)
   return left, right  # cast to float32 per window, so long uint8 videos stay small
-
-
-def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -> None:
-  """Raises ValueError unless `video` holds finite RGB values in 0..255.
-
-  uint8 passes as is; other integers must not exceed 255 (convert 16-bit frames first);
-  floats must be finite, and a float video no brighter than 1.0 or well outside 0..255
-  gets a warning (the model expects 0..255, not 0..1 or 0..65535). `first`: the index of
-  `video[0]` in the whole video (frames are named by their index there).
-  """
-  kind = video.dtype.kind
-  if kind == "u" and video.dtype.itemsize == 1:
-    return
-  if kind not in "uif":
-    raise ValueError(f"{name}: frames of dtype {video.dtype}; expected uint8 or float (0..255)")
-  if kind == "f":
-    bad = ~np.isfinite(video).reshape(len(video), -1).all(axis=1)
-    if bad.any():
-      raise ValueError(f"{name}: non-finite values (NaN/inf) in frame(s) "
-                       f"{(np.flatnonzero(bad)[:10] + first).tolist()}; the model would "
-                       "return NaN")
-  lo, hi = float(video.min()), float(video.max())
-  if kind in "ui" and (lo < 0 or hi > 255):
-    flat = video.reshape(len(video), -1)
-    bad = np.flatnonzero((flat.min(axis=1) < 0) | (flat.max(axis=1) > 255))
-    raise ValueError(f"{name}: {video.dtype} values {lo:g}..{hi:g} are outside 0..255 in "
-                     f"frame(s) {(bad[:10] + first).tolist()} ("
-                     + ("convert 16-bit frames to 8-bit first, e.g. frames >> 8)" if lo >= 0 else
-                        "RGB frames are 0..255: negative values are no image's; normalised "
-                        "frames need their mean and scale put back)"))
-  if kind == "f" and 0 < hi <= 1.0:
-    warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}: the model expects 0..255 "
-                  "(multiply 0..1 images by 255)", stacklevel=caller_stacklevel())
-  elif kind == "f" and (lo < -1.0 or hi > 256.0):  # a little over: resampling's overshoot
-    warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}, outside 0..255, which the "
-                  "model expects (divide 16-bit frames by 257)",
-                  stacklevel=caller_stacklevel())
 
 
 def run_window(variables, left: np.ndarray, right: np.ndarray, *, cfg: SAVConfig, iters: int,
@@ -1091,8 +1062,10 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
 
   Args:
     variables: model variables (`params_from_state_dict` or `restore_variables`).
-    left, right: `[T, H, W, 3]` RGB frames, uint8 or float in 0..255, or lazy video
-      sources (see `iter_predict_video`).
+    left, right: `[T, H, W, 3]` RGB frames (not BGR: frames from `cv2.imread` are
+      `frame[..., ::-1]`), uint8, other integers or floats in 0..255, as arrays, lists of
+      frames or lazy video sources (see `iter_predict_video`); checked first
+      (`check_video_values`).
     cfg: model config (default `SAVConfig()`).
     iters: refinement iterations at 1/4 resolution (>= 2; the official evaluation uses 20).
     window, stride: sliding window (official: 20, 10).
@@ -1107,7 +1080,8 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
       copied to the next), and the result is the same as on one device.
 
   Returns:
-    `[T, H, W]` float32 positive disparity (px) of the left view, every frame.
+    `[T, H, W]` float32 disparity (px, >= 0: the official evaluation's `abs()`) of the left
+    view, every frame.
   """
   chunks = iter_predict_video(variables, left, right, cfg=cfg, iters=iters, window=window,
                               stride=stride, dtype=dtype, progress=progress,

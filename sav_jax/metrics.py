@@ -47,21 +47,35 @@ disparity scale), then x <- Z_x*b, y <- Z_y*b, NaN(y) -> 0; dm_t = m_t m_{t+1}.
 
 Aggregation (`aggregate`): value = sum_s v_s T_s / sum_s T_s with T_s the number
 of frames of sequence s (T_s, not T_s - 1, also for the temporal metrics).
+
+Warnings of `eval_batch` / `eval_sequence` (the numbers stay the official ones):
+`NotMeasuredWarning` where the official rule scores what was not measured (no valid GT
+pixel: EPE/TEPE 0; one frame: TEPE 0), and a `UserWarning` for a given input that no
+metric used (e.g. a video without `scale` or without flows: OPW/RTC left out) and for a
+float video that looks 0..1 or 16-bit rather than RGB 0..255 (OPW/RTC change).
 """
 
 from __future__ import annotations
 
 import numbers
+import warnings
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from sav_jax._checks import is_int
+from sav_jax._checks import caller_stacklevel, float_frames_range, is_int
 
 _F32 = np.float32
 BAD_THRESHOLDS = (0.5, 1.0, 2.0, 3.0)
 _BAD_NAMES = ("0.5", "1", "2", "3")
 FlowFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+class NotMeasuredWarning(UserWarning):
+  """`eval_batch` / `eval_sequence` returned official numbers that measure nothing: no valid
+  ground-truth pixel (EPE, TEPE and their bad-pixel rates 0), or one frame (TEPE 0, no frame
+  pair). A caller that reports such sequences itself (`python -m eval`: `gt_notes`) can
+  silence this category: `warnings.simplefilter("ignore", NotMeasuredWarning)`."""
 
 
 def _as_seq(name: str, a) -> np.ndarray:
@@ -419,7 +433,7 @@ def _warp_pairs(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float):
   x, y, m = _as_seq("pred_depth", pred_depth), _as_seq("gt_depth", gt_depth), _as_mask("mask", mask)
   _check_same(("pred_depth", "gt_depth", "mask"), (x, y, m))
   _need_two_frames(x)
-  video = _as_left_video(left_video)
+  video = _as_left_video(left_video, "left_video")
   if video.shape[0] != x.shape[0] or video.shape[2:] != x.shape[1:]:
     raise ValueError(f"left_video shape {video.shape} does not match depth shape {x.shape}")
   f = _as_flows("flows", flows, x.shape[0] - 1, x.shape[1:])
@@ -443,14 +457,41 @@ def _warp_pairs(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float):
   return x.shape[0] - 1, pairs()
 
 
-def _as_left_video(video) -> np.ndarray:
-  """`[T, 3, H, W]` left video from `[T, 3, H, W]` or a stereo `[T, 2, 3, H, W]`."""
+def _as_left_video(video, name: str = "video") -> np.ndarray:
+  """`[T, 3, H, W]` left video from `[T, 3, H, W]` or a stereo `[T, 2, 3, H, W]`; a
+  channels-last video (`[T, H, W, 3]`, the layout `predict_video` takes) is refused with the
+  `np.moveaxis` that makes it channels first."""
   v = np.asarray(video, dtype=_F32)
-  if v.ndim == 5:
-    v = v[:, 0]
-  if v.ndim != 4 or v.shape[1] != 3:
-    raise ValueError(f"video must be [T, 3, H, W] or [T, 2, 3, H, W], got shape {v.shape}")
-  return v
+  left = v[:, 0] if v.ndim == 5 else v
+  if left.ndim != 4 or left.shape[1] != 3:
+    hint = ""
+    if left.ndim == 4 and left.shape[-1] == 3:
+      hint = (f"; channels last (the layout predict_video takes)? pass "
+              f"np.moveaxis({name}, -1, {v.ndim - 3})")
+    raise ValueError(f"{name} must be [T, 3, H, W] or [T, 2, 3, H, W], got shape "
+                     f"{v.shape}{hint}")
+  return left
+
+
+def _check_video_values(video, name: str) -> None:
+  """Warns if `video` does not look like RGB 0..255 (float frames no brighter than ~1, as
+  0..1 images, or values well outside 0..255): OPW/RTC's photometric weight
+  exp(-50 ||warp(I_{t+1}) - I_t|| / 255) assumes 0..255 (0..1 frames keep nearly every
+  pixel). As `sav_jax.inference.check_video_values` warns for the model's frames."""
+  v = np.asarray(video)
+  if v.dtype == np.uint8 or v.dtype.kind not in "uif" or v.size == 0:
+    return
+  lo, hi = float(v.min()), float(v.max())
+  if not (np.isfinite(lo) and np.isfinite(hi)):
+    return
+  looks, spread = float_frames_range(v, lo, hi)
+  if v.dtype.kind == "f" and looks == "0..1":
+    warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}{spread}: OPW and RTC expect "
+                  "RGB 0..255 (multiply 0..1 images by 255); their photometric weight would "
+                  "keep nearly every pixel", stacklevel=caller_stacklevel())
+  elif looks in ("negative", "16-bit"):  # a little outside: resampling's overshoot
+    warnings.warn(f"{name}: values {lo:g}..{hi:g}, outside 0..255, which OPW and RTC expect "
+                  "(RGB 0..255; divide 16-bit frames by 257)", stacklevel=caller_stacklevel())
 
 
 def _frame_ratio(num: np.ndarray, sel: np.ndarray) -> float:
@@ -472,7 +513,10 @@ def eval_opw_sequence(left_video, pred_depth, gt_depth, mask, flows, mask_thr: f
 
   Returns:
     `(opw, opw_30, opw_50, opw_100)`.
+
+  Warns (UserWarning): `left_video` does not look like RGB 0..255 (e.g. 0..1 floats).
   """
+  _check_video_values(left_video, "left_video")
   return _opw_rtc(left_video, pred_depth, gt_depth, mask, flows, mask_thr)[0]
 
 
@@ -491,7 +535,10 @@ def eval_rtc_sequence(left_video, pred_depth, gt_depth, mask, flows, mask_thr: f
 
   Returns:
     `(rtc, rtc_30)`.
+
+  Warns (UserWarning): `left_video` does not look like RGB 0..255 (e.g. 0..1 floats).
   """
+  _check_video_values(left_video, "left_video")
   return _opw_rtc(left_video, pred_depth, gt_depth, mask, flows, mask_thr, tau)[1]
 
 
@@ -516,10 +563,46 @@ def _opw_rtc(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float = 0.
   return tuple(v / n for v in opw), tuple(v / n for v in rtc)
 
 
+def _flow_from_fn(flow_fn: FlowFn, img1: np.ndarray, img2: np.ndarray, what: str) -> np.ndarray:
+  """`flow_fn(img1, img2)` as a `[2, H, W]` float32 flow (a `[1, 2, H, W]` batch axis is
+  dropped); ValueError naming `flow_fn` and `what` (the frames) for another shape (with the
+  `np.moveaxis` of a channels-last `[H, W, 2]` one) or NaN/inf values."""
+  f = np.asarray(flow_fn(img1, img2), _F32)
+  hw = img1.shape[1:]
+  if f.shape == (1, 2, *hw):
+    f = f[0]
+  if f.shape != (2, *hw):
+    hint = ""
+    if f.shape == (*hw, 2):
+      hint = ("; channels last, as sav_jax.model.raft.raft_flow returns it? return "
+              "np.moveaxis(flow, -1, 0) (sav_jax.model.raft.raft_flow_fn does)")
+    raise ValueError(f"flow_fn must return a [2, H, W] flow, here {(2, *hw)}, for two [3, H, W] "
+                     f"images; for {what} it returned shape {f.shape}{hint}")
+  if not np.isfinite(f).all():
+    raise ValueError(f"flow_fn returned NaN or inf values for {what}; the metrics would count "
+                     "them as perfect")
+  return f
+
+
+def _video_flows(v: np.ndarray, flow_fn: FlowFn) -> np.ndarray:
+  """`video_flows_from_fn` of a checked `[T, 3, H, W]` left video."""
+  return np.stack([_flow_from_fn(flow_fn, v[i], v[i + 1], f"the left video frames {i}, {i + 1}")
+                   for i in range(v.shape[0] - 1)])
+
+
 def video_flows_from_fn(left_video, flow_fn: FlowFn) -> np.ndarray:
-  """`[T-1, 2, H, W]` flows `flow_fn(I_t, I_{t+1})` of the left video (`compute_flow`)."""
-  v = _as_left_video(left_video)
-  return np.stack([np.asarray(flow_fn(v[i], v[i + 1]), _F32) for i in range(v.shape[0] - 1)])
+  """`[T-1, 2, H, W]` flows `flow_fn(I_t, I_{t+1})` of the left video (`compute_flow`).
+
+  Raises:
+    ValueError: `left_video` is not `[T, 3, H, W]` / `[T, 2, 3, H, W]` (channels last is
+      named, with its `np.moveaxis`), or `flow_fn` returned another shape than `[2, H, W]`
+      or NaN/inf.
+
+  Warns (UserWarning): `left_video` does not look like RGB 0..255 (e.g. 0..1 floats).
+  """
+  v = _as_left_video(left_video, "left_video")
+  _check_video_values(left_video, "left_video")
+  return _video_flows(v, flow_fn)
 
 
 def depth_flows_from_fn(pred_depth, gt_depth, mask, flow_fn: FlowFn, mask_thr: float = 0.5):
@@ -531,7 +614,8 @@ def depth_flows_from_fn(pred_depth, gt_depth, mask, flow_fn: FlowFn, mask_thr: f
 
   Raises:
     ValueError: a pair TCM uses whose GT frame t has one depth over the whole frame, so
-      that the normalisation divides by zero (the official TCM would be NaN).
+      that the normalisation divides by zero (the official TCM would be NaN); `flow_fn`
+      returned another shape than `[2, H, W]` (a channels-last one is named) or NaN/inf.
   """
   x, y, m = _tcm_depths(pred_depth, gt_depth, mask, mask_thr)
   fx, fy = [], []
@@ -545,8 +629,8 @@ def depth_flows_from_fn(pred_depth, gt_depth, mask, flow_fn: FlowFn, mask_thr: f
                        "pixels count as 0), so its min-max normalisation divides by zero (the "
                        "official TCM would be NaN)")
     x0, x1, y0, y1 = _tcm_images(x, y, i)
-    fx.append(np.asarray(flow_fn(x0, x1), _F32))
-    fy.append(np.asarray(flow_fn(y0, y1), _F32))
+    fx.append(_flow_from_fn(flow_fn, x0, x1, f"the predicted depth frames {i}, {i + 1}"))
+    fy.append(_flow_from_fn(flow_fn, y0, y1, f"the GT depth frames {i}, {i + 1}"))
   return np.stack(fx), np.stack(fy)
 
 
@@ -561,7 +645,8 @@ def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
     mask: same shape, validity mask (`disparity_mask`).
     scale: depth-to-disparity scale (a finite positive number); None skips every depth
       metric.
-    left_video: `[T, 3, H, W]` or `[T, 2, 3, H, W]`, needed for OPW/RTC.
+    left_video: `[T, 3, H, W]` or `[T, 2, 3, H, W]` (channels first), RGB 0..255, needed
+      for OPW/RTC.
     video_flows: `[T-1, 2, H, W]` left-video flows (else from `flow_fn`).
     depth_flows: `(pred_flows, gt_flows)` for TCM (else from `flow_fn`).
     flow_fn: optical flow `(img1 [3,H,W], img2 [3,H,W]) -> [2,H,W]` (RAFT:
@@ -571,29 +656,93 @@ def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
     `({"disp_epe_mean", ..., "disp_TCC", "disp_TCM", "disp_OPW", "disp_OPW_{100,50,30}",
     "disp_RTC", "disp_RTC_30"}, T)`. TCM is left out without flows for it, OPW/RTC
     without a video or flows.
+
+  Warns:
+    UserWarning: an input given but unused, naming what is missing (`left_video`,
+      `video_flows`, `depth_flows` or `flow_fn` without `scale`; `left_video` without
+      `video_flows` / `flow_fn`; `video_flows` without `left_video`), or a `left_video`
+      that does not look like RGB 0..255 (e.g. 0..1 floats).
+    NotMeasuredWarning: no pixel of `mask` above 0.5 (every EPE/TEPE value 0) or one frame
+      (TEPE 0): the official numbers, which measure nothing there, are returned.
   """
-  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("mask", mask)
-  _check_same(("pred", "gt", "mask"), (x, y, m))
+  return _eval_batch(pred, gt, mask, scale, left_video, video_flows, depth_flows, flow_fn,
+                     _BATCH_NAMES)
+
+
+# The argument names of `eval_batch` / `eval_sequence`, for their warnings and errors.
+_BATCH_NAMES = {"mask": "mask", "video": "left_video", "flows": "video_flows"}
+_SEQUENCE_NAMES = {"mask": "valid", "video": "video", "flows": "flows"}
+
+
+def _unused_inputs(scale, video, flows, depth_flows, flow_fn, names) -> str | None:
+  """The warning for given inputs that no metric uses (and what is missing), or None."""
+  given = [n for n, v in ((names["video"], video), (names["flows"], flows),
+                          ("depth_flows", depth_flows), ("flow_fn", flow_fn)) if v is not None]
+  if scale is None:
+    if not given:
+      return None
+    return (f"{', '.join(given)} given but no scale: TCC, TCM, OPW and RTC (depth metrics) not "
+            "computed, only EPE and TEPE; pass scale= (the depth-to-disparity scale, "
+            "fx * baseline)")
+  if video is not None and flows is None and flow_fn is None:
+    return (f"{names['video']} given but no {names['flows']}/flow_fn: OPW and RTC not computed "
+            f"(pass {names['flows']}= [T-1, 2, H, W] or flow_fn=)")
+  if flows is not None and video is None:
+    return (f"{names['flows']} given but no {names['video']}: OPW and RTC not computed (pass "
+            f"{names['video']}= [T, 3, H, W], RGB 0..255)")
+  return None
+
+
+def _not_measured(m: np.ndarray, mask_name: str, res: Mapping[str, float]) -> str | None:
+  """The `NotMeasuredWarning` for a mask without a valid pixel or one frame, or None; `res`:
+  the metrics computed (the depth metrics' values are named where present)."""
+  if not np.any(m > _F32(0.5)):  # the metrics' mask threshold
+    scores = ["EPE, TEPE and their bad-pixel rates 0 (perfect)"]
+    scores += [text for key, text in (("disp_TCC", "TCC 1 (perfect)"), ("disp_TCM", "TCM 0"),
+                                      ("disp_OPW", "OPW 0 (perfect), RTC 0")) if key in res]
+    return (f"{mask_name} has no pixel > 0.5 (no valid ground truth): the official rule scores "
+            f"{', '.join(scores)}, though nothing was measured; the official numbers are "
+            "returned")
+  if m.shape[0] == 1:
+    return ("one frame (T=1), no frame pair: the official rule scores TEPE and its bad-pixel "
+            "rates (δt) 0, though nothing was measured; the official numbers are returned")
+  return None
+
+
+def _eval_batch(pred, gt, mask, scale, video, flows, depth_flows, flow_fn,
+                names) -> tuple[dict[str, float], int]:
+  """`eval_batch`; `names` (`_BATCH_NAMES` / `_SEQUENCE_NAMES`): the caller's argument names."""
+  x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask(names["mask"], mask)
+  _check_same(("pred", "gt", names["mask"]), (x, y, m))
   _check_finite("pred", x)  # GT may hold NaN (masked out), a prediction may not
   if scale is not None:
     scale = _check_scale(scale)
   if depth_flows is not None:
     _check_depth_flows(depth_flows)
+  unused = _unused_inputs(scale, video, flows, depth_flows, flow_fn, names)
+  warp = scale is not None and video is not None and (flows is not None or flow_fn is not None)
+  if warp:  # checked before any flow is computed
+    left = _as_left_video(video, names["video"])
+    _check_video_values(video, names["video"])
   res = {f"disp_{k}": v for k, v in eval_endpoint_error_sequence(x, y, m).items()}
-  if scale is None:
-    return res, x.shape[0]
-  zx, zy = disparity_to_depth(x, scale), disparity_to_depth(y, scale)
-  res["disp_TCC"] = eval_tcc_sequence(zx, zy, m)
-  if depth_flows is None and flow_fn is not None:
-    depth_flows = depth_flows_from_fn(zx, zy, m, flow_fn)
-  if depth_flows is not None:
-    res["disp_TCM"] = eval_tcm_sequence(depth_flows[0], depth_flows[1], m)
-  if left_video is not None and video_flows is None and flow_fn is not None:
-    video_flows = video_flows_from_fn(left_video, flow_fn)
-  if left_video is not None and video_flows is not None:
-    opw, rtc = _opw_rtc(left_video, zx, zy, m, video_flows)
-    res.update(zip(("disp_OPW", "disp_OPW_30", "disp_OPW_50", "disp_OPW_100"), opw))
-    res.update(zip(("disp_RTC", "disp_RTC_30"), rtc))
+  if scale is not None:
+    zx, zy = disparity_to_depth(x, scale), disparity_to_depth(y, scale)
+    res["disp_TCC"] = eval_tcc_sequence(zx, zy, m)
+    if depth_flows is None and flow_fn is not None:
+      depth_flows = depth_flows_from_fn(zx, zy, m, flow_fn)
+    if depth_flows is not None:
+      res["disp_TCM"] = eval_tcm_sequence(depth_flows[0], depth_flows[1], m)
+    if warp:
+      if flows is None:
+        flows = _video_flows(left, flow_fn)
+      opw, rtc = _opw_rtc(left, zx, zy, m, flows)
+      res.update(zip(("disp_OPW", "disp_OPW_30", "disp_OPW_50", "disp_OPW_100"), opw))
+      res.update(zip(("disp_RTC", "disp_RTC_30"), rtc))
+  note = _not_measured(m, names["mask"], res)
+  if note:
+    warnings.warn(note, NotMeasuredWarning, stacklevel=caller_stacklevel())
+  if unused:
+    warnings.warn(unused, stacklevel=caller_stacklevel())
   return res, x.shape[0]
 
 
@@ -607,20 +756,29 @@ def eval_sequence(pred, gt, valid, flows=None, *, scale: float | None = None, vi
     pred: `[T, H, W]` (or `[T, 1, H, W]`) predicted disparity.
     gt: same shape, GT disparity (any sign; NaNs allowed).
     valid: same shape, validity mask.
-    flows: `[T-1, 2, H, W]` left-video flows for OPW/RTC.
+    flows: `[T-1, 2, H, W]` left-video flows for OPW/RTC (with `video` and `scale`).
     scale: depth-to-disparity scale (a finite positive number); None skips the depth
-      metrics.
-    video: `[T, 3, H, W]` left or `[T, 2, 3, H, W]` stereo video, RGB 0..255.
+      metrics (TCC, TCM, OPW, RTC).
+    video: `[T, 3, H, W]` left or `[T, 2, 3, H, W]` stereo video, channels first (for
+      `predict_video`'s `[T, H, W, 3]` frames: `np.moveaxis(frames, -1, 1)`), RGB 0..255.
     depth_flows: `(pred_flows, gt_flows)` for TCM.
-    flow_fn: optical flow function used for whatever flows are not given.
+    flow_fn: optical flow function used for whatever flows are not given,
+      `(img1 [3, H, W], img2 [3, H, W]) -> [2, H, W]` (`sav_jax.model.raft.raft_flow_fn`).
 
   Returns:
     The metric dict of `eval_batch` (its frame count is `len(pred)`).
+
+  Warns:
+    UserWarning: an input given but unused, naming what is missing (e.g. `video` or `flows`
+      without `scale`: only EPE/TEPE; `video` without `flows` / `flow_fn`: no OPW/RTC), or
+      a `video` that does not look like RGB 0..255 (e.g. 0..1 floats).
+    NotMeasuredWarning: no pixel of `valid` above 0.5 (every EPE/TEPE value 0) or one frame
+      (TEPE 0): the official numbers, which measure nothing there, are returned.
   """
   x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("valid", valid)
   _check_same(("pred", "gt", "valid"), (x, y, m))
-  res, _ = eval_batch(x * np.round(m), np.abs(y), m, scale=scale, left_video=video,
-                      video_flows=flows, depth_flows=depth_flows, flow_fn=flow_fn)
+  res, _ = _eval_batch(x * np.round(m), np.abs(y), m, scale, video, flows, depth_flows, flow_fn,
+                       _SEQUENCE_NAMES)
   return res
 
 

@@ -47,7 +47,8 @@ def disparity_range(disp, valid=None, percentiles=(0.0, 100.0)) -> tuple[float, 
     disp: `[H, W]` or `[T, H, W]` disparity (px).
     valid: optional mask of the same shape (bool, or weights: > 0.5 is valid); only
       pixels with a finite disparity > 0 are used either way.
-    percentiles: (low, high) percentiles of the used values; (0, 100) = min/max.
+    percentiles: (low, high) percentiles of the used values, in 0..100; (0, 100) =
+      min/max. Both at most 1 (e.g. (0.01, 0.99), fractions) gets a warning.
 
   Returns:
     `(vmin, vmax)` with `vmax > vmin` ((0, 1) when no pixel is usable).
@@ -66,6 +67,10 @@ def disparity_range(disp, valid=None, percentiles=(0.0, 100.0)) -> tuple[float, 
   if not 0 <= lo_p <= hi_p <= 100:
     raise ValueError(f"percentiles must be (low, high) with 0 <= low <= high <= 100, got "
                      f"{percentiles!r}")
+  if hi_p <= 1:  # (0.01, 0.99) meant the 1st and 99th percentiles: it is the 0.01th, 0.99th
+    warnings.warn(f"disparity_range: percentiles ({lo_p:g}, {hi_p:g}) are both at most 1: "
+                  f"percentiles are in 0..100, not fractions (the 1st and 99th are (1, 99))",
+                  stacklevel=caller_stacklevel())
   vals = d[use]
   if vals.size == 0:
     return 0.0, 1.0
@@ -75,11 +80,17 @@ def disparity_range(disp, valid=None, percentiles=(0.0, 100.0)) -> tuple[float, 
   return lo, hi
 
 
-def as_uint8_image(image, what: str = "image") -> np.ndarray:
+_COLORIZE_HINT = "a disparity or depth map? colour it with viz.colorize first"
+
+
+def as_uint8_image(image, what: str = "image", *, is_map: bool = False) -> np.ndarray:
   """`image` as uint8: uint8 passes; other numbers must be finite and within 0..255 (they
   are rounded). Raises ValueError naming `what` otherwise; a float image no brighter than
-  1.0 gets a warning (0..1 images come out black: multiply them by 255)."""
+  1.0 gets a warning (0..1 images come out black: multiply them by 255). `is_map`: `image`
+  is a one-channel map, so a float one is likely disparity or depth: the messages then
+  suggest `colorize`."""
   a = np.asarray(image)
+  hint = f" ({_COLORIZE_HINT})" if is_map and a.dtype.kind == "f" else ""
   if a.dtype == np.uint8:
     return a
   if a.dtype.kind not in "uif":
@@ -87,25 +98,62 @@ def as_uint8_image(image, what: str = "image") -> np.ndarray:
   if a.size == 0:
     return a.astype(np.uint8)
   if a.dtype.kind == "f" and not np.isfinite(a).all():
-    raise ValueError(f"{what}: NaN or inf values; expected 0..255")
+    raise ValueError(f"{what}: NaN or inf values; expected 0..255{hint}")
   lo, hi = float(a.min()), float(a.max())
   if lo < 0 or hi > 255:
-    raise ValueError(f"{what}: values {lo:g}..{hi:g} outside 0..255 (16-bit images: >> 8)")
+    advice = _COLORIZE_HINT if hint else "16-bit images: >> 8"
+    raise ValueError(f"{what}: values {lo:g}..{hi:g} outside 0..255 ({advice})")
   if a.dtype.kind == "f" and 0 < hi <= 1.0:
-    warnings.warn(f"{what}: float values {lo:g}..{hi:g}: expected 0..255 (multiply 0..1 "
-                  "images by 255)", stacklevel=caller_stacklevel())
+    advice = (f"{_COLORIZE_HINT}; a 0..1 grey image: multiply it by 255" if hint
+              else "multiply 0..1 images by 255")
+    warnings.warn(f"{what}: float values {lo:g}..{hi:g}: expected 0..255 ({advice})",
+                  stacklevel=caller_stacklevel())
   return np.rint(a).astype(np.uint8)
 
 
+def as_real(value) -> float | None:
+  """`value` as a float when it is one real number: a Python or NumPy number or a 0-d NumPy
+  or JAX array (`K[0, 0]` of an intrinsics matrix, `jnp.float32(100)`); None for anything
+  else (bools, strings, complex numbers, arrays of one or more dimensions). The scalar check
+  of every number parameter here (intrinsics, colour range, frame rate)."""
+  if isinstance(value, (bool, np.bool_, str, bytes)):
+    return None
+  if not isinstance(value, numbers.Real):
+    dtype = getattr(value, "dtype", None)  # 0-d NumPy / JAX arrays (bfloat16 included)
+    if dtype is None or np.ndim(value) != 0 or np.dtype(dtype).kind in "bcmMOSU":
+      return None
+  try:
+    return float(value)
+  except OverflowError:  # an int beyond float's range
+    return math.inf if value > 0 else -math.inf
+  except (TypeError, ValueError):
+    return None
+
+
 def _shown(value) -> str:
-  """A number as printed (`0.0`, not `np.float64(0.0)`); anything else as its repr."""
-  return str(float(value)) if isinstance(value, numbers.Real) else repr(value)
+  """A number as printed (`0.0`, not `np.float64(0.0)` or `Array(0., dtype=float32)`); an
+  array by its shape; anything else as its repr."""
+  real = as_real(value)
+  if real is not None:
+    return str(real)
+  if _is_array(value):
+    return f"an array of shape {np.shape(value)}"
+  return repr(value)
+
+
+def _is_array(value) -> bool:
+  """An array (or list) of one or more dimensions."""
+  try:
+    return not isinstance(value, (str, bytes)) and np.ndim(value) > 0
+  except ValueError:  # ragged lists
+    return True
 
 
 def is_fps(fps) -> bool:
   """Whether `fps` is a frame rate OpenCV's MPEG-4 writer takes (0.01 to 65535; beyond, it
   fails to open, after the whole run)."""
-  return isinstance(fps, numbers.Real) and math.isfinite(fps) and 0.01 <= fps <= 65535
+  fps = as_real(fps)
+  return fps is not None and math.isfinite(fps) and 0.01 <= fps <= 65535
 
 
 def check_fps(fps, what: str = "fps") -> None:
@@ -114,19 +162,37 @@ def check_fps(fps, what: str = "fps") -> None:
     raise ValueError(f"{what} must be a number from 0.01 to 65535, got {_shown(fps)}")
 
 
-def check_intrinsics(what: str = "", **values) -> None:
-  """Raises ValueError unless the given `fx`, `fy`, `baseline`, `max_depth` are finite and
-  positive and the others (`cx`, `cy`, `doffs`) finite; the message starts with `what`."""
+def check_intrinsics(what: str = "", **values) -> dict[str, float]:
+  """The given values as floats; raises ValueError unless each is one real number (`as_real`:
+  a Python or NumPy number or a 0-d NumPy / JAX array, not a bool, a string or an array of
+  one or more dimensions), `fx`, `fy`, `baseline`, `max_depth` finite and positive and the
+  others (`cx`, `cy`, `doffs`) finite; the message starts with `what`."""
+  out = {}
   for name, value in values.items():
     positive = name in ("fx", "fy", "baseline", "max_depth")
-    if (not isinstance(value, numbers.Real) or not math.isfinite(value)
-        or (positive and value <= 0)):
+    real = as_real(value)
+    if real is None or not math.isfinite(real) or (positive and real <= 0):
+      scalar = ": give one number (a scalar)" if real is None and _is_array(value) else ""
       raise ValueError(f"{what}{name} must be a finite{' positive' if positive else ''} number, "
-                       f"got {_shown(value)}")
+                       f"got {_shown(value)}{scalar}")
+    out[name] = real
+  return out
+
+
+def principal_point_inside(cx: float, cy: float, height: int, width: int) -> bool:
+  """Whether the principal point (cx, cy) lies in a height x width frame. Pixel centres are
+  at integers, so the frame spans [-0.5, width - 0.5] x [-0.5, height - 0.5] (the default
+  centre, (width - 1) / 2, is its middle). `sav-jax infer` refuses a calibration outside it
+  (intrinsics for another image size); `disparity_to_points` warns."""
+  return -0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5
 
 
 def _check_range(vmin, vmax) -> tuple[float, float]:
-  vmin, vmax = float(vmin), float(vmax)
+  lo, hi = as_real(vmin), as_real(vmax)
+  if lo is None or hi is None:
+    raise ValueError(f"colour range needs numbers (scalars) vmin < vmax, got vmin="
+                     f"{_shown(vmin)}, vmax={_shown(vmax)}")
+  vmin, vmax = lo, hi
   if not (math.isfinite(vmin) and math.isfinite(vmax) and vmax > vmin):
     raise ValueError(f"colour range needs finite vmin < vmax, got vmin={vmin}, vmax={vmax}")
   return vmin, vmax
@@ -138,14 +204,16 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
   """Colour-maps disparity (large disparity = near = bright).
 
   Args:
-    disp: `[..., H, W]` disparity (px).
+    disp: `[..., H, W]` disparity (px); a trailing channel axis of size 1 (`[..., H, W, 1]`
+      with at least 3 axes, as image readers give one-channel maps) is dropped, so a video
+      of 1-pixel-wide frames must come as `[T, H, 1, 1]`.
     vmin, vmax: colour range; a missing end comes from `disparity_range` over the
       whole array (so pass a video `[T, H, W]`, or a fixed range, for colours that
       are stable over time).
     cmap: one of `COLORMAPS`.
-    valid: optional mask `[..., H, W]` (bool, or weights: > 0.5 is valid, as in the
-      metrics); pixels outside it, and non-finite or non-positive disparities, get
-      `invalid_color`.
+    valid: optional mask `[..., H, W]` or of `disp`'s shape (bool, or weights: > 0.5 is
+      valid, as in the metrics); pixels outside it, and non-finite or non-positive
+      disparities, get `invalid_color`.
     invalid_color: RGB colour of invalid pixels.
 
   Returns:
@@ -163,8 +231,14 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
     warnings.warn(f"invalid_color {invalid_color!r} is nearly black in 0..255 (for a 0..1 "
                   "colour multiply it by 255)", stacklevel=caller_stacklevel())
   d = np.asarray(disp, np.float32)
-  if valid is not None and np.shape(valid) != d.shape:
-    raise ValueError(f"valid mask shape {np.shape(valid)} differs from disparity {d.shape}")
+  given = d.shape
+  if d.ndim >= 3 and d.shape[-1] == 1:  # [..., H, W, 1]: one channel, not width-1 frames
+    d = d[..., 0]
+  if valid is not None:
+    if np.shape(valid) == given != d.shape:
+      valid = np.asarray(valid)[..., 0]
+    if np.shape(valid) != d.shape:
+      raise ValueError(f"valid mask shape {np.shape(valid)} differs from disparity {given}")
   if vmin is None or vmax is None:
     lo, hi = disparity_range(d, valid)
     filled = "vmin" if vmin is None else "vmax"
@@ -196,21 +270,42 @@ def side_by_side(*images) -> np.ndarray:
   """Concatenates images (or videos) of equal height along the width.
 
   Args:
-    *images: `[..., H, W_i, 3]` uint8 (a `[..., H, W]` map is repeated to grey RGB).
+    *images: `[..., H, W_i, 3]` RGB, uint8 or numbers in 0..255. A grey map `[..., H, W]`
+      (or `[..., H, W, 1]`) is repeated to grey RGB (colour a disparity or depth map with
+      `colorize` first). With 3 or more axes a last axis of 2 or 4 is taken for channels
+      (grey + alpha, RGBA) and refused: drop the alpha first (`image[..., :3]`).
 
   Returns:
     `[..., H, sum W_i, 3]` uint8.
   """
   parts = []
   for i, im in enumerate(images):
-    im = as_uint8_image(im, f"side_by_side image {i}")
-    if im.ndim >= 2 and im.shape[-1] != 3:
+    what = f"side_by_side image {i}"
+    a = np.asarray(im)
+    if a.ndim >= 3 and a.shape[-1] in (1, 2, 4):
+      if a.shape[-1] != 1:
+        raise ValueError(f"{what} of shape {a.shape} has {a.shape[-1]} channels"
+                         f"{' (RGBA?)' if a.shape[-1] == 4 else ''}: side_by_side takes RGB "
+                         "[..., H, W, 3] or a grey map [..., H, W] or [..., H, W, 1] (drop "
+                         "the alpha channel: image[..., :3])")
+      a = a[..., 0]
+    is_map = a.ndim == 2 or (a.ndim >= 2 and a.shape[-1] != 3)
+    im = as_uint8_image(a, what, is_map=is_map)
+    if is_map:
       im = np.repeat(im[..., None], 3, axis=-1)
     if parts and (im.ndim != parts[0].ndim or im.shape[:-2] != parts[0].shape[:-2]):
       raise ValueError(f"side_by_side: image {i} of shape {im.shape} does not match the first "
                        f"{parts[0].shape} (same frames and height needed)")
     parts.append(im)
   return np.concatenate(parts, axis=-2)
+
+
+def _check_suffix(path, suffixes: tuple[str, ...], message: str) -> None:
+  """Raises ValueError `"{path}: {message}"` unless `path` ends in one of `suffixes` (any
+  case): the writers' check that a file's name says its format (PFM or EXR bytes went into
+  x.png; OpenCV picks the format from the name)."""
+  if pathlib.Path(path).suffix.lower() not in suffixes:
+    raise ValueError(f"{path}: {message}")
 
 
 # The largest frame side `write_video` writes (MPEG-4 part 2 codes sizes in 13 bits: FFmpeg's
@@ -242,9 +337,8 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
     The path written.
   """
   path = pathlib.Path(path)
-  if path.suffix.lower() not in VIDEO_SUFFIXES:
-    raise ValueError(f"{path}: write_video writes mp4v video files; name one "
-                     f"{'/'.join(VIDEO_SUFFIXES)}")
+  _check_suffix(path, VIDEO_SUFFIXES, "write_video writes mp4v video files; name one "
+                f"{'/'.join(VIDEO_SUFFIXES)}")
   check_fps(fps, f"{path}: fps")
   if not path.parent.is_dir():  # OpenCV would only say it cannot open the writer
     raise FileNotFoundError(f"{path}: the folder {path.parent} does not exist")
@@ -327,9 +421,11 @@ def depth_from_disparity(disp, fx: float, baseline: float, doffs: float = 0.0) -
     depth beyond float32's range).
 
   Raises:
-    ValueError: unless fx and baseline are finite and positive and doffs finite.
+    ValueError: unless fx and baseline are finite and positive and doffs finite, each one
+      number (a Python or NumPy number or a 0-d NumPy / JAX array: `K[0, 0]` will do).
   """
-  check_intrinsics(fx=fx, baseline=baseline, doffs=doffs)
+  k = check_intrinsics(fx=fx, baseline=baseline, doffs=doffs)
+  fx, baseline, doffs = k["fx"], k["baseline"], k["doffs"]
   d = np.asarray(disp, np.float32) + np.float32(doffs)
   ok = np.isfinite(d) & (d > 0)
   z = np.zeros(d.shape, np.float32)
@@ -351,7 +447,9 @@ def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float
   Args:
     disp: `[H, W]` disparity (px).
     rgb: `[H, W, 3]` uint8 colours of the left view.
-    fx, fy, cx, cy: intrinsics of the left camera (px).
+    fx, fy, cx, cy: intrinsics of the left camera (px); Python or NumPy numbers or 0-d
+      arrays. A principal point outside the frame (`principal_point_inside`, which
+      `sav-jax infer` enforces) gets a warning: intrinsics for another image size?
     baseline: stereo baseline.
     doffs: see `depth_from_disparity`.
     valid: optional extra `[H, W]` mask: bool, or weights (> 0.5 is valid, as in the
@@ -371,8 +469,15 @@ def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float
     raise ValueError(f"disparity_to_points: valid mask shape {np.shape(valid)} differs from "
                      f"disp {d.shape}")
   far = {} if max_depth is None else {"max_depth": max_depth}
-  check_intrinsics("disparity_to_points: ", fx=fx, fy=fy, baseline=baseline, cx=cx, cy=cy,
-                   doffs=doffs, **far)
+  k = check_intrinsics("disparity_to_points: ", fx=fx, fy=fy, baseline=baseline, cx=cx, cy=cy,
+                       doffs=doffs, **far)
+  fx, fy, cx, cy, baseline, doffs = (k[n] for n in ("fx", "fy", "cx", "cy", "baseline", "doffs"))
+  max_depth = k.get("max_depth")
+  if not principal_point_inside(cx, cy, *d.shape):
+    warnings.warn(f"disparity_to_points: the principal point (cx {cx:g}, cy {cy:g}) is "
+                  f"outside the {d.shape[0]}x{d.shape[1]} (height x width) map: intrinsics for "
+                  "another image size? (scale fx, fy, cx, cy and doffs by the resize factor; "
+                  "sav-jax infer refuses such a calibration)", stacklevel=caller_stacklevel())
   z = depth_from_disparity(d, fx, baseline, doffs)
   keep = z > 0
   if max_depth is not None:
@@ -502,8 +607,7 @@ def write_png16(path, disp) -> int:
   Returns:
     The number of saturated pixels.
   """
-  if pathlib.Path(path).suffix.lower() != ".png":
-    raise ValueError(f"{path}: a 16-bit PNG disparity file must be named *.png")
+  _check_suffix(path, (".png",), "a 16-bit PNG disparity file must be named *.png")
   d = _map_to_write(path, disp, "a 16-bit PNG disparity file", rgb=False)
   ok = np.isfinite(d) & (d > 0)
   v = np.zeros(d.shape, np.uint16)
@@ -526,7 +630,8 @@ def read_png16(path) -> tuple[np.ndarray, np.ndarray]:
 
 def write_pfm(path, data) -> None:
   """PFM file (`Pf` for `[H, W]`, `PF` for `[H, W, 3]`), little-endian, bottom row first;
-  a file at `path` is replaced."""
+  a file at `path` is replaced. `path` must end in `.pfm`."""
+  _check_suffix(path, (".pfm",), "write_pfm writes PFM files; name one .pfm")
   a = _map_to_write(path, data, "PFM", rgb=True)
   kind = "Pf" if a.ndim == 2 else "PF"
   with open(path, "wb") as fh:
@@ -548,8 +653,7 @@ def write_exr(path, data, channel: str = "Y") -> None:
   """OpenEXR file of float32 values (`[H, W]` -> one channel, `[H, W, 3]` -> R, G, B); a file
   at `path` is replaced."""
   import OpenEXR  # pylint: disable=import-outside-toplevel
-  if pathlib.Path(path).suffix.lower() != ".exr":  # (EXR bytes went into x.png)
-    raise ValueError(f"{path}: write_exr writes OpenEXR files; name one .exr")
+  _check_suffix(path, (".exr",), "write_exr writes OpenEXR files; name one .exr")
   if not (isinstance(channel, str) and channel):
     raise ValueError(f"channel must be a non-empty channel name such as 'Y', got {channel!r}")
   a = _map_to_write(path, data, "EXR", rgb=True)

@@ -414,8 +414,19 @@ def test_padding_bad_input_is_named():
 def test_bad_inputs():
   with pytest.raises(ValueError, match="differ in shape"):
     inference.predict_video({}, np.zeros((2, 8, 8, 3)), np.zeros((3, 8, 8, 3)))
-  with pytest.raises(ValueError, match=r"\[T, H, W, 3\]"):
-    inference.predict_video({}, np.zeros((2, 8, 8)), np.zeros((2, 8, 8)))
+  # Other layouts a user's frames come in are named with the way to [T, H, W, 3].
+  for shape, hint in (((2, 8, 8), r"grey frames\? give them 3 channels: np\.repeat\(video\[\.\.\., None\]"),
+                      ((2, 8, 8, 1), r"one channel\? repeat it"),
+                      ((2, 8, 8, 4), r"RGBA\? drop the alpha channel: video\[\.\.\., :3\]"),
+                      ((8, 8, 3), r"one frame\? a video of one frame is frame\[None\]")):
+    with pytest.raises(ValueError, match=r"\[T, H, W, 3\] \(0\.\.255\), got shape .*" + hint):
+      inference.predict_video({}, np.zeros(shape), np.zeros(shape))
+  with pytest.raises(ValueError, match=r"left: got a path \('left\.mp4'\), not frames; read them "
+                     r"first: sav_jax\.tools\.video_io\.load_stereo"):
+    inference.predict_video({}, "left.mp4", "right.mp4")
+  with pytest.raises(ValueError, match=r"frames must be \[\.\.\., H, W, C\], channels last; got "
+                     r"shape \(2, 3, 30, 50\) \(channels first"):
+    inference.pad_to_multiple(np.zeros((2, 3, 30, 50)))  # it padded the channel axis
   with pytest.raises(ValueError, match=r"for a batch \[B, T, H, W, 3\], pass video\[b\]"):
     inference.predict_video({}, np.zeros((1, 2, 8, 8, 3)), np.zeros((1, 2, 8, 8, 3)))
   # PyTorch's channels-first layout gets the way out, at both entries.
@@ -506,6 +517,21 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   with warnings.catch_warnings():
     warnings.simplefilter("error")
     inference.check_video_values(np.float32([[[[-0.4, 255.6, 9]]]]), "left")  # overshoot
+  # 0..1 frames behind a resize's overshoot or a few bright pixels are still found.
+  unit = np.random.default_rng(0).uniform(0, 1, (2, 16, 16, 3)).astype(np.float32)
+  with pytest.warns(UserWarning, match=r"values -0\.0\d+\.\.1\.0\d+: .*multiply 0\.\.1"):
+    inference.check_video_values(unit * 1.04 - 0.01, "left")
+  hot = unit.copy()
+  hot[0, 0, 0, 0] = 200.0  # one value in 1536
+  with pytest.warns(UserWarning, match=r"values 0\.\d+\.\.200, 99\.9% of them at most 0\.99\d*: "
+                     r".*multiply 0\.\.1 images by 255"):
+    inference.check_video_values(hot, "left")
+  # Normalised frames (mean and scale taken off) are refused; an offset gets that hint.
+  with pytest.raises(ValueError, match=r"left: float frames with values -1\.9\d+\.\.2\.\d+ look "
+                     r"normalised \(.*\(frames \* std \+ mean\) \* 255\)"):
+    inference.check_video_values((unit - 0.45) / 0.225, "left")
+  with pytest.warns(UserWarning, match=r"values -5\.\.235, outside 0\.\.255.*normalised frames"):
+    inference.check_video_values(np.float32([[[[-5, 235, 9]]]]), "left")
   with pytest.raises(ValueError, match="iters must be an integer >= 2"):
     inference.predict_video(variables, video, video, iters=1)
   iters = inference.check_iters(np.int64(4))

@@ -5,6 +5,7 @@ on TCC; the reference runs in float32, the reductions here in float64).
 """
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -495,3 +496,160 @@ def test_flow_fn_path_uses_the_official_order_and_tcm_normalisation(asym_case):
   for key in ("disp_TCM", "disp_OPW", "disp_RTC"):
     assert rev[key] != pytest.approx(want[key], rel=1e-3), key
   assert own["disp_TCM"] != pytest.approx(want["disp_TCM"], rel=1e-3)
+
+
+# --- warnings and layout hints of the Python API ----------------------------------------
+
+
+def _clip(t=3, h=32, w=64, seed=7):
+  """A random sequence (pred, gt, valid), a float 0..255 left video `[T, 3, H, W]` and zero
+  flows `[T-1, 2, H, W]`."""
+  rng = np.random.default_rng(seed)
+  gt = rng.uniform(5, 20, (t, h, w)).astype(np.float32)
+  pred = gt + rng.normal(0, 1, gt.shape).astype(np.float32)
+  video = rng.uniform(0, 255, (t, 3, h, w)).astype(np.float32)
+  return pred, gt, np.ones_like(gt), video, np.zeros((t - 1, 2, h, w), np.float32)
+
+
+def _no_warning(fn, *args, **kwargs):
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    return fn(*args, **kwargs)
+
+
+def test_inputs_left_unused_are_named():
+  """A given input that no metric uses (the metrics it was for were dropped silently) is
+  named with what is missing; fully specified calls warn nothing."""
+  pred, gt, valid, video, flows = _clip()
+  epe_keys = set(_no_warning(M.eval_sequence, pred, gt, valid))
+  with pytest.warns(UserWarning, match=r"^video, flows given but no scale: TCC, TCM, OPW and "
+                                       r"RTC \(depth metrics\) not computed, only EPE and TEPE; "
+                                       r"pass scale="):
+    res = M.eval_sequence(pred, gt, valid, flows, video=video)
+  assert set(res) == epe_keys  # the numbers are as before
+  with pytest.warns(UserWarning, match=r"^flow_fn given but no scale"):
+    M.eval_sequence(pred, gt, valid, flow_fn=lambda a, b: np.zeros((2, *a.shape[1:])))
+  with pytest.warns(UserWarning, match=r"^video given but no flows/flow_fn: OPW and RTC not "
+                                       r"computed \(pass flows= \[T-1, 2, H, W\] or flow_fn=\)"):
+    res = M.eval_sequence(pred, gt, valid, scale=100.0, video=video)
+  assert "disp_TCC" in res and "disp_OPW" not in res
+  with pytest.warns(UserWarning, match=r"^flows given but no video: OPW and RTC not computed"):
+    assert "disp_OPW" not in M.eval_sequence(pred, gt, valid, flows, scale=100.0)
+  # eval_batch names its own arguments
+  with pytest.warns(UserWarning, match=r"^left_video given but no video_flows/flow_fn"):
+    M.eval_batch(pred, gt, valid, scale=100.0, left_video=video)
+  with pytest.warns(UserWarning, match=r"^video_flows given but no left_video"):
+    M.eval_batch(pred, gt, valid, scale=100.0, video_flows=flows)
+  # fully specified (or nothing unused): no warning
+  full = _no_warning(M.eval_sequence, pred, gt, valid, flows, scale=100.0, video=video,
+                     depth_flows=(flows, flows))
+  assert {"disp_TCC", "disp_TCM", "disp_OPW", "disp_RTC"} <= set(full)
+  zero_flow = lambda a, b: np.zeros((2, *a.shape[1:]), np.float32)
+  assert _no_warning(M.eval_sequence, pred, gt, valid, scale=100.0, video=video,
+                     flow_fn=zero_flow) == full
+  assert _no_warning(M.eval_sequence, pred, gt, valid, flows, scale=100.0, video=video,
+                     flow_fn=zero_flow) == full  # as `python -m eval` calls it
+  assert "disp_TCM" in _no_warning(M.eval_batch, pred, gt, valid, scale=100.0,
+                                   flow_fn=zero_flow)[0]
+  assert "disp_OPW" not in _no_warning(M.eval_sequence, pred, gt, valid, scale=100.0)
+
+
+def test_scores_that_measure_nothing_warn_and_keep_the_official_numbers():
+  """No valid GT pixel, or one frame: the official numbers, with a NotMeasuredWarning (a
+  category of its own, which `python -m eval` can silence: it notes these itself)."""
+  pred, gt, valid, video, flows = _clip()
+  full = dict(scale=100.0, video=video, depth_flows=(flows, flows))
+  with pytest.warns(M.NotMeasuredWarning,
+                    match=r"^valid has no pixel > 0\.5 \(no valid ground truth\): the official "
+                          r"rule scores EPE, TEPE and their bad-pixel rates 0 \(perfect\), TCC 1 "
+                          r"\(perfect\), TCM 0, OPW 0 \(perfect\), RTC 0, though nothing was "
+                          r"measured; the official numbers are returned$") as record:
+    res = M.eval_sequence(pred, gt, np.zeros_like(valid), flows, **full)
+  assert len(record) == 1 and record[0].filename == __file__  # the caller's line
+  assert res["disp_TCC"] == 1.0 and all(v == 0.0 for k, v in res.items() if k != "disp_TCC")
+  with pytest.warns(M.NotMeasuredWarning, match=r"^mask has no pixel > 0\.5 .*rates 0 "
+                                                r"\(perfect\), though nothing"):
+    M.eval_batch(pred, gt, np.full_like(valid, 0.5))  # 0.5 is not above the threshold
+  with pytest.warns(M.NotMeasuredWarning, match=r"^one frame \(T=1\), no frame pair: the "
+                                                r"official rule scores TEPE and its bad-pixel "
+                                                r"rates \(δt\) 0"):
+    res = M.eval_sequence(pred[:1], gt[:1], valid[:1])
+  assert res["disp_temp_epe_mean"] == 0.0 and res["disp_epe_mean"] > 0
+  with warnings.catch_warnings():  # silenced by its category, nothing else given
+    warnings.simplefilter("error")
+    warnings.simplefilter("ignore", M.NotMeasuredWarning)
+    M.eval_sequence(pred, gt, np.zeros_like(valid), flows, **full)
+    M.eval_sequence(pred[:1], gt[:1], valid[:1])
+  valid[1:] = 0  # a valid pixel in one frame of several: measured, no warning
+  _no_warning(M.eval_sequence, pred, gt, valid, flows, **full)
+
+
+def test_channels_last_videos_and_flows_are_refused_with_the_moveaxis():
+  pred, gt, valid, video, flows = _clip()
+  last = np.moveaxis(video, 1, -1)  # [T, H, W, 3], as predict_video takes frames
+  with pytest.raises(ValueError, match=r"^video must be \[T, 3, H, W\] or \[T, 2, 3, H, W\], got "
+                                       r"shape \(3, 32, 64, 3\); channels last \(the layout "
+                                       r"predict_video takes\)\? pass np\.moveaxis\(video, -1, "
+                                       r"1\)$"):
+    M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=last)
+  stereo = np.stack([last, last], 1)  # [T, 2, H, W, 3]
+  with pytest.raises(ValueError, match=r"got shape \(3, 2, 32, 64, 3\); .*np\.moveaxis\(video, "
+                                       r"-1, 2\)$"):
+    M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=stereo)
+  with pytest.raises(ValueError, match=r"^left_video must be .*np\.moveaxis\(left_video, -1, 1\)"):
+    M.eval_batch(pred, gt, valid, scale=100.0, left_video=last, video_flows=flows)
+  with pytest.raises(ValueError, match=r"^left_video must be .*np\.moveaxis\(left_video, -1, 1\)"):
+    M.eval_opw_sequence(last, pred, gt, valid, flows)
+  with pytest.raises(ValueError, match=r"got shape \(3, 4, 32, 64\)$"):  # no channel axis: no hint
+    M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=np.zeros((3, 4, 32, 64)))
+  ok = M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=np.moveaxis(last, -1, 1))
+  assert "disp_OPW" in ok  # the hint's fix works
+
+  hw_2 = lambda a, b: np.zeros((*a.shape[1:], 2), np.float32)  # raft_flow's [H, W, 2]
+  hint = (r"it returned shape \(32, 64, 2\); channels last, as sav_jax\.model\.raft\.raft_flow "
+          r"returns it\? return np\.moveaxis\(flow, -1, 0\) \(sav_jax\.model\.raft\.raft_flow_fn "
+          r"does\)$")
+  with pytest.raises(ValueError, match=r"^flow_fn must return a \[2, H, W\] flow, here \(2, 32, "
+                                       r"64\), for two \[3, H, W\] images; for the predicted "
+                                       r"depth frames 0, 1 " + hint):
+    M.eval_sequence(pred, gt, valid, scale=100.0, video=video, flow_fn=hw_2)
+  with pytest.raises(ValueError, match=r"^flow_fn must .*for the left video frames 0, 1 " + hint):
+    M.eval_sequence(pred, gt, valid, scale=100.0, video=video, flow_fn=hw_2,
+                    depth_flows=(flows, flows))
+  with pytest.raises(ValueError, match=r"^flow_fn must .*left video frames 0, 1 " + hint):
+    M.video_flows_from_fn(video, hw_2)
+  with pytest.raises(ValueError, match=r"^flow_fn must .* it returned shape \(2, 16, 64\)$"):
+    M.video_flows_from_fn(video, lambda a, b: np.zeros((2, 16, 64)))
+  nan = lambda a, b: np.full((2, *a.shape[1:]), np.nan, np.float32)
+  with pytest.raises(ValueError, match=r"^flow_fn returned NaN or inf values for the left video "
+                                       r"frames 0, 1"):
+    M.video_flows_from_fn(video, nan)
+  batched = lambda a, b: np.zeros((1, 2, *a.shape[1:]), np.float32)  # accepted, as before
+  assert M.video_flows_from_fn(video, batched).shape == flows.shape
+
+
+def test_videos_that_are_not_rgb_0_255_warn():
+  """A 0..1 float video changes OPW/RTC (its photometric weight keeps nearly every pixel)."""
+  pred, gt, valid, video, flows = _clip()
+  want = _no_warning(M.eval_sequence, pred, gt, valid, flows, scale=100.0, video=video)
+  _no_warning(M.eval_sequence, pred, gt, valid, flows, scale=100.0,
+              video=np.round(video).astype(np.uint8))
+  unit = r"float frames with values [\d.e-]+\.\.0\.9\d+: OPW and RTC expect RGB 0\.\.255 " \
+         r"\(multiply 0\.\.1 images by 255\)"
+  with pytest.warns(UserWarning, match=r"^video: " + unit) as record:
+    res = M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=video / 255)
+  assert len(record) == 1 and record[0].filename == __file__
+  assert res["disp_OPW"] != pytest.approx(want["disp_OPW"], rel=1e-3)  # why it warns
+  zero_flow = lambda a, b: np.zeros((2, *a.shape[1:]), np.float32)
+  with pytest.warns(UserWarning, match=r"^left_video: " + unit) as record:  # once, with flow_fn
+    M.eval_batch(pred, gt, valid, scale=100.0, left_video=video / 255, flow_fn=zero_flow)
+  assert len(record) == 1
+  for fn in (M.eval_opw_sequence, M.eval_rtc_sequence):
+    with pytest.warns(UserWarning, match=r"^left_video: " + unit):
+      fn(video / 255, pred, gt, valid, flows)
+  with pytest.warns(UserWarning, match=r"^left_video: " + unit):
+    M.video_flows_from_fn(video / 255, zero_flow)
+  with pytest.warns(UserWarning, match=r"^video: values [\d.]+\.\.6\d+(\.\d+)?, outside "
+                                       r"0\.\.255, which OPW and RTC expect \(RGB 0\.\.255; "
+                                       r"divide 16-bit"):
+    M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=video * 257)

@@ -2,6 +2,7 @@
 
 import re
 import threading
+import warnings
 
 import cv2
 import numpy as np
@@ -99,7 +100,8 @@ def test_depth_and_points(tmp_path):
     assert z[0, 0] == 0 and np.isfinite(z).all() and z[0, 1] > 1e37
     xyz, _ = viz.disparity_to_points(tiny, rgb[:1], **calib)
     assert len(xyz) == 2 and np.isfinite(xyz).all()
-    xyz, _ = viz.disparity_to_points(tiny, rgb[:1], **dict(calib, cx=-1000.0))  # x = 10 z: inf
+    with pytest.warns(UserWarning, match="principal point"):  # (far outside the frame)
+      xyz, _ = viz.disparity_to_points(tiny, rgb[:1], **dict(calib, cx=-1000.0))  # x = 10 z: inf
   np.testing.assert_allclose(xyz, [[(2 + 1000.0) * 5 / 100, (0 - 0.5) * 5 / 50, 5.0]], rtol=1e-6)
 
 
@@ -369,3 +371,158 @@ def test_colorize_checks_the_invalid_colour():
   for bad in ((300, 0, 0), (0, 0), (-1, 0, 0), "red", (np.nan, 0, 0), (0.5, 0.5, 0.5)):
     with pytest.raises(ValueError, match=r"invalid_color must be 3 integers \(R, G, B\)"):
       viz.colorize(disp, 0.5, 2.0, invalid_color=bad)
+
+
+def test_intrinsics_and_ranges_take_0d_arrays_and_refuse_the_rest():
+  # fx = K[0, 0] of an intrinsics matrix, or a JAX scalar, was refused: "fx must be a finite
+  # positive number, got Array(100., dtype=float32)".
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  d = np.array([[1.0, 2.0], [4.0, 0.0]], np.float32)
+  rgb = np.zeros((2, 2, 3), np.uint8)
+  k = np.array([[100.0, 0, 0.5], [0, 50.0, 0.5], [0, 0, 1]])
+  want = viz.depth_from_disparity(d, 100.0, 0.1)
+  for fx in (jnp.float32(100.0), jnp.asarray(100.0), k[0, 0], np.array(100.0), np.float32(100),
+             np.array(100, np.int64)):
+    np.testing.assert_array_equal(viz.depth_from_disparity(d, fx=fx, baseline=0.1), want)
+    np.testing.assert_array_equal(
+        viz.depth_from_disparity(d, fx, np.array(0.1), doffs=jnp.zeros(())), want)
+  calib = dict(fx=100.0, fy=50.0, cx=0.5, cy=0.5, baseline=0.1)
+  xyz, col = viz.disparity_to_points(d, rgb, **calib, max_depth=5.0)
+  xyz0, col0 = viz.disparity_to_points(d, rgb, fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2],
+                                       baseline=jnp.float32(0.1), doffs=np.array(0.0),
+                                       max_depth=jnp.asarray(5.0))
+  assert type(xyz0) is np.ndarray and xyz0.dtype == np.float32  # (not a JAX array)
+  np.testing.assert_allclose(xyz0, xyz, rtol=1e-6)
+  np.testing.assert_array_equal(col0, col)
+  assert viz.check_intrinsics(fx=np.array(2.0), doffs=jnp.float32(-1.5)) == {"fx": 2.0,
+                                                                               "doffs": -1.5}
+  # Still refused: bools, strings, NaN, non-positive, and arrays of one or more dimensions.
+  for fx, got in ((True, "True"), ("10", "'10'"), (np.array(np.nan), "nan"),
+                  (jnp.float32(np.nan), "nan"), (np.array(-1.0), "-1.0"), (jnp.float32(0), "0.0"),
+                  (np.bool_(True), r"(np\.)?True"), (np.array(True), r"array\(True\)"),
+                  (jnp.asarray(True), r"Array\(True"), (1 + 2j, r"\(1\+2j\)")):
+    with pytest.raises(ValueError, match=f"fx must be a finite positive number, got {got}"):
+      viz.depth_from_disparity(d, fx=fx, baseline=0.1)
+  for fx, shape in ((np.array([100.0]), "(1,)"), (jnp.ones((2, 2)), "(2, 2)"),
+                    ([100.0], "(1,)"), (k, "(3, 3)")):
+    with pytest.raises(ValueError, match=re.escape(
+        f"fx must be a finite positive number, got an array of shape {shape}: give one number "
+        "(a scalar)")):
+      viz.depth_from_disparity(d, fx=fx, baseline=0.1)
+  with pytest.raises(ValueError, match=r"disparity_to_points: cx must be a finite number, got an "
+                                       r"array of shape \(3,\)"):
+    viz.disparity_to_points(d, rgb, **{**calib, "cx": k[:, 2]})
+  # The other scalars: the frame rate and the colour range.
+  assert viz.is_fps(np.array(10.0)) and viz.is_fps(jnp.float32(25)) and not viz.is_fps(True)
+  with pytest.raises(ValueError, match="fps must be a number from 0.01 to 65535, got an array"):
+    viz.check_fps(np.array([10.0]))
+  np.testing.assert_array_equal(viz.colorize(d, jnp.float32(0.5), np.array(4.0)),
+                                viz.colorize(d, 0.5, 4.0))
+  for lo in (np.array([0.5]), "0.5", True):
+    with pytest.raises(ValueError, match="colour range needs numbers"):
+      viz.colorize(d, lo, 4.0)
+
+
+def test_colorize_drops_a_trailing_channel_of_one():
+  # [T, H, W, 1] came out [T, H, W, 1, 3].
+  video = np.arange(1, 25, dtype=np.float32).reshape(2, 3, 4)
+  valid = video % 5 != 0
+  want = viz.colorize(video, valid=valid)
+  for shown in (viz.colorize(video[..., None], valid=valid),
+                viz.colorize(video[..., None], valid=valid[..., None]),
+                viz.colorize(video[..., None], 1.0, 24.0, valid=valid)):
+    assert shown.shape == (2, 3, 4, 3)
+    np.testing.assert_array_equal(shown, want)
+  assert viz.colorize(video[0, ..., None], 1.0, 24.0).shape == (3, 4, 3)  # [H, W, 1]
+  assert viz.colorize(video[0, :, :1], 1.0, 24.0).shape == (3, 1, 3)  # [H, 1]: a 1-wide map
+  with pytest.raises(ValueError, match=r"valid mask shape \(3, 4\) differs from disparity "
+                                       r"\(2, 3, 4, 1\)"):
+    viz.colorize(video[..., None], valid=valid[0])
+
+
+def test_side_by_side_names_an_image_with_other_channels():
+  rgb = np.zeros((4, 5, 3), np.uint8)
+  # an RGBA first image was blamed on the second: "image 1 of shape (4, 5, 3) does not match
+  # the first (4, 5, 4, 3)"
+  for first, second, bad, channels in ((np.zeros((4, 5, 4), np.uint8), rgb, 0, 4),
+                                       (rgb, np.zeros((4, 5, 2), np.uint8), 1, 2),
+                                       (np.zeros((2, 4, 5, 4)), np.zeros((2, 4, 5, 3)), 0, 4)):
+    with pytest.raises(ValueError, match=re.escape(
+        f"side_by_side image {bad} of shape {np.shape((first, second)[bad])} has {channels} "
+        "channels") + r".*RGB \[\.\.\., H, W, 3\] or a grey map"):
+      viz.side_by_side(first, second)
+  # [H, W, 1] is a grey map, as [H, W]
+  grey = np.full((4, 5, 1), 7, np.uint8)
+  out = viz.side_by_side(grey, rgb)
+  assert out.shape == (4, 10, 3)
+  np.testing.assert_array_equal(out[:, :5], 7)
+  np.testing.assert_array_equal(viz.side_by_side(grey[None], rgb[None]), out[None])
+  np.testing.assert_array_equal(viz.side_by_side(rgb, grey[..., 0]), viz.side_by_side(rgb, grey))
+
+
+def test_side_by_side_points_a_float_map_to_colorize():
+  rgb = np.zeros((4, 5, 3), np.uint8)
+  disp = np.linspace(0.0, 0.9, 20, dtype=np.float32).reshape(4, 5)
+  with pytest.warns(UserWarning, match=r"side_by_side image 1: .*viz\.colorize") as record:
+    viz.side_by_side(rgb, disp)
+  assert {w.filename for w in record} == {__file__}
+  with pytest.warns(UserWarning, match="viz.colorize"):  # [H, W, 1] and a video of maps too
+    viz.side_by_side(rgb[None], disp[None, ..., None])
+  for bad, match in ((disp * 500, r"values 0\.\.450 outside 0\.\.255 \(a disparity or depth "
+                                  r"map\? colour it with viz\.colorize first\)"),
+                     (np.where(disp > 0.5, np.nan, disp), "NaN or inf.*viz.colorize")):
+    with pytest.raises(ValueError, match=match):
+      viz.side_by_side(rgb, bad)
+  # RGB images keep their advice
+  with pytest.raises(ValueError, match=r"outside 0\.\.255 \(16-bit images: >> 8\)"):
+    viz.side_by_side(np.full((4, 5, 3), 300.0))
+
+
+def test_disparity_range_warns_about_fractions():
+  ramp = np.arange(1, 101, dtype=np.float32).reshape(10, 10)
+  with pytest.warns(UserWarning, match=r"percentiles \(0\.01, 0\.99\) are both at most 1: "
+                                       r"percentiles are in 0\.\.100") as record:
+    lo, hi = viz.disparity_range(ramp, percentiles=(0.01, 0.99))
+  assert record[0].filename == __file__ and hi < 3  # (as asked: the 0.99th percentile)
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    assert viz.disparity_range(ramp, percentiles=(1, 99)) == pytest.approx((1.99, 99.01))
+    viz.disparity_range(ramp, percentiles=(0.5, 99.5))
+    viz.disparity_range(ramp)
+
+
+def test_write_pfm_checks_the_suffix(tmp_path):
+  ramp = np.arange(1, 7, dtype=np.float32).reshape(2, 3)
+  for name in ("e.png", "e.exr", "e"):  # (PFM bytes went into e.png)
+    (tmp_path / name).write_bytes(b"mine")
+    with pytest.raises(ValueError, match=f"{name}: write_pfm writes PFM files; name one .pfm"):
+      viz.write_pfm(tmp_path / name, ramp)
+    assert (tmp_path / name).read_bytes() == b"mine"
+  viz.write_pfm(tmp_path / "E.PFM", ramp)
+  np.testing.assert_array_equal(viz.read_pfm(tmp_path / "E.PFM"), ramp)
+
+
+def test_disparity_to_points_warns_as_the_cli_refuses_a_principal_point_outside():
+  from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools.infer import CalibrationSpec  # pylint: disable=import-outside-toplevel
+  disp, rgb = np.full((32, 64), 2.0, np.float32), np.zeros((32, 64, 3), np.uint8)
+  for cx, cy in ((3200.0, 1600.0), (64.0, 10.0), (-0.6, 10.0), (10.0, 31.6), (63.5, 31.5),
+                 (-0.5, -0.5), (31.5, 15.5), (70.0, 15.5)):
+    outside = not viz.principal_point_inside(cx, cy, 32, 64)
+    try:
+      CalibrationSpec(fx=40.0, baseline=0.1, cx=cx, cy=cy).resolve(64, 32)
+      refused = False
+    except UsageError:
+      refused = True
+    assert refused == outside, (cx, cy)  # one rule with `sav-jax infer`
+    with warnings.catch_warnings(record=True) as caught:
+      warnings.simplefilter("always")
+      xyz, _ = viz.disparity_to_points(disp, rgb, fx=40.0, fy=40.0, cx=cx, cy=cy, baseline=0.1)
+    assert len(xyz) == 32 * 64  # a warning, not an error (cropped images may have one outside)
+    assert [str(w.message) for w in caught] == ([
+        f"disparity_to_points: the principal point (cx {cx:g}, cy {cy:g}) is outside the 32x64 "
+        "(height x width) map: intrinsics for another image size? (scale fx, fy, cx, cy and "
+        "doffs by the resize factor; sav-jax infer refuses such a calibration)"]
+        if outside else []), (cx, cy)
+    assert all(w.filename == __file__ for w in caught)
+  assert viz.principal_point_inside(3200, 1600, 32, 64) is False

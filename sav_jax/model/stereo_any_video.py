@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sav_jax._checks import is_int
+from sav_jax._checks import check_video_values, is_int
 from sav_jax.config import SAVConfig, as_config
 from sav_jax.model.depth import DepthExtractor
 from sav_jax.model.encoder import BasicEncoder
@@ -51,7 +51,11 @@ def check_inputs(left, right, iters: int) -> int:
 
 def check_videos(left, right) -> None:
   """Raises a ValueError naming the problem unless `left` and `right` are RGB videos
-  `[B, T, H, W, 3]` of one shape, H and W multiples of 16."""
+  `[B, T, H, W, 3]` of one shape, H and W multiples of 16, W >= 32.
+
+  Concrete values (a model call outside `jit`/`grad`) are checked as `predict_video` checks
+  them (`inference.check_video_values`: finite, 0..255, a warning for 0..1 frames); traced
+  ones cannot be."""
   for name, x in (("left", left), ("right", right)):
     if not hasattr(x, "shape") or not hasattr(x, "dtype"):
       raise ValueError(f"{name} must be an array [B, T, H, W, 3] (numpy or jax), got a "
@@ -64,8 +68,13 @@ def check_videos(left, right) -> None:
   if left.ndim != 5 or left.shape[-1] != 3 or min(left.shape[:4]) < 1:
     raise ValueError(
         f"expected RGB videos [B, T, H, W, 3] with values 0..255 (B, T, H, W >= 1), got shape "
-        f"{left.shape}{channels_first_hint(left.shape)}")
+        f"{left.shape}{layout_hint(left.shape, batched=True)}")
   _check_size(left.shape[2:4])
+  for name, x in (("left", left), ("right", right)):
+    if not isinstance(x, jax.core.Tracer):
+      x = np.asarray(x)
+      for b in range(x.shape[0]):
+        check_video_values(x[b], f"{name}[{b}]" if x.shape[0] > 1 else name)
 
 
 def channels_first_hint(shape) -> str:
@@ -73,6 +82,27 @@ def channels_first_hint(shape) -> str:
   if len(shape) >= 3 and shape[-3] == 3 and shape[-1] != 3:
     return (" (channels first, as in PyTorch? the channel axis goes last: "
             "np.moveaxis(video, -3, -1))")
+  return ""
+
+
+def layout_hint(shape, batched: bool) -> str:
+  """What a video of `shape` that is not `[B, T, H, W, 3]` (`batched`) or `[T, H, W, 3]`
+  probably is, and the way to the expected layout; "" where nothing fits."""
+  shape, want = tuple(shape), 5 if batched else 4
+  hint = channels_first_hint(shape)
+  if hint:
+    return hint
+  if len(shape) >= 3 and shape[-1] == 4:
+    return " (RGBA? drop the alpha channel: video[..., :3])"
+  if len(shape) >= 3 and shape[-1] == 1:
+    return " (one channel? repeat it: np.repeat(video, 3, axis=-1))"
+  if len(shape) == want - 1 and shape[-1] == 3:
+    return (" (a batch of one video is video[None])" if batched else
+            " (one frame? a video of one frame is frame[None])")
+  if len(shape) == want - 1:
+    return " (grey frames? give them 3 channels: np.repeat(video[..., None], 3, axis=-1))"
+  if len(shape) == want + 1 and not batched and shape[-1] == 3:
+    return " (one video per call: for a batch [B, T, H, W, 3], pass video[b])"
   return ""
 
 

@@ -442,9 +442,8 @@ class CalibrationSpec(NamedTuple):
                         (width - 1) / 2 if self.cx is None else self.cx,
                         (height - 1) / 2 if self.cy is None else self.cy, self.baseline,
                         self.doffs)
-    # pixel centres at integers: the frame spans [-0.5, width - 0.5] (the default centre,
-    # (width - 1) / 2, is its middle)
-    if not (-0.5 <= calib.cx <= width - 0.5 and -0.5 <= calib.cy <= height - 0.5):
+    from sav_jax import viz  # pylint: disable=import-outside-toplevel
+    if not viz.principal_point_inside(calib.cx, calib.cy, height, width):
       raise UsageError(f"the calibration's principal point (cx {calib.cx:g}, cy {calib.cy:g}) "
                        f"is outside the {height}x{width} (height x width) frames: is it for "
                        f"another image size? {rescale[0].upper()}{rescale[1:]}")

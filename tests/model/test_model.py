@@ -1,6 +1,7 @@
 """Model structure, input validation, gradients and shape generality."""
 
 import dataclasses
+import warnings
 
 import flax
 import jax
@@ -67,8 +68,9 @@ def test_compute_settings_share_the_parameter_shapes():
     ((1, 2, 32, 48, 3), (1, 2, 32, 48, 3), 0, "an integer >= 2"),
     ((1, 2, 32, 48, 3), (1, 2, 32, 48, 3), True, "an integer >= 2"),
     ((1, 2, 32, 48, 3), (1, 2, 32, 48, 3), 2.0, "an integer >= 2"),
-    ((1, 2, 32, 48, 1), (1, 2, 32, 48, 1), 2, "RGB"),
-    ((2, 32, 48, 3), (2, 32, 48, 3), 2, "RGB"),
+    ((1, 2, 32, 48, 1), (1, 2, 32, 48, 1), 2, r"RGB.*\(one channel\? repeat it: np\.repeat"),
+    ((2, 32, 48, 3), (2, 32, 48, 3), 2, r"RGB.*\(a batch of one video is video\[None\]\)"),
+    ((1, 2, 32, 48, 4), (1, 2, 32, 48, 4), 2, r"RGB.*\(RGBA\? drop the alpha channel"),
     ((1, 2, 32, 48, 3), (1, 3, 32, 48, 3), 2, "differ in shape"),
     ((1, 2, 40, 48, 3), (1, 2, 40, 48, 3), 2, "multiples of 16"),
     ((1, 0, 32, 48, 3), (1, 0, 32, 48, 3), 2, r"B, T, H, W >= 1"),
@@ -125,6 +127,31 @@ def test_frames_given_as_lists_are_refused(model):
   frames = np.zeros((1, 2, 32, 48, 3)).tolist()
   with pytest.raises(ValueError, match="left must be an array .* got a list"):
     model.init(jax.random.PRNGKey(0), frames, frames, iters=2)
+
+
+def test_concrete_frames_are_checked_for_values_as_predict_video_checks_them(model, variables):
+  """A model call outside jit/grad sees the frames' values: NaN frames (a NaN output
+  everywhere) and normalised ones are refused, 0..1 frames warned about, naming the view
+  (and the batch element) and the caller's line; traced frames cannot be checked."""
+  frames = np.full((2, *SHAPE[1:]), 100.0, np.float32)
+  nan = frames.copy()
+  nan[1, 0, 3, 5, 0] = np.nan
+  with (pytest.warns(UserWarning, match=r"left\[[01]\]: float frames with values 0\.392157"
+                     r"\.\.0\.392157: .*multiply 0\.\.1 images by 255") as record,
+        pytest.raises(ValueError, match=r"right\[1\]: non-finite values \(NaN/inf\) in "
+                      r"frame\(s\) \[0\]")):
+    model.apply(variables, frames / 255, nan, iters=2)
+  assert [str(w.message)[:7] for w in record] == ["left[0]", "left[1]"]
+  assert {w.filename for w in record} == {__file__}  # not Flax's or the package's line
+  with pytest.raises(ValueError, match=r"left: float frames with values -1\.7\.\.1\.3 look "
+                     "normalised"):
+    normalised = np.broadcast_to(np.float32([1.3, -1.7, -1.7]), SHAPE)  # (x / 255 - mean) / std
+    model.apply(variables, normalised, frames[:1], iters=2)
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    out = jax.eval_shape(lambda l, r: model.apply(variables, l, r, iters=2, final_only=True),
+                         frames / 255, frames / 255)
+  assert out.disparities.shape == (1, 2, *SHAPE[1:4])
 
 
 def test_numpy_integer_iters_accepted(model):
