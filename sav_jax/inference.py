@@ -71,7 +71,7 @@ import numpy as np
 from sav_jax import runtime
 from sav_jax._checks import caller_stacklevel, check_video_values  # noqa: F401  (public)
 from sav_jax._checks import is_int as _is_int
-from sav_jax.config import SAVConfig, as_config, resolve_vit_attention
+from sav_jax.config import DTYPES, SAVConfig, as_config, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 from sav_jax.model.init import abstract_variables
 from sav_jax.model.stereo_any_video import channels_first_hint, check_iters, layout_hint
@@ -257,6 +257,8 @@ def resolve_config(cfg: SAVConfig | None = None, dtype: str | None = None) -> SA
       dtype = jnp.dtype(dtype).name
     except TypeError:
       raise ValueError(f"dtype must be 'float32' or 'bfloat16', got {dtype!r}") from None
+  if dtype is not None and dtype not in DTYPES:  # not SAVConfig's message: the caller's dtype=
+    raise ValueError(f"dtype must be 'float32' or 'bfloat16', got {dtype!r}")
   if dtype is not None and dtype != cfg.dtype:
     cfg = dataclasses.replace(cfg, dtype=dtype)
   return cfg
@@ -1016,8 +1018,8 @@ def resolve_devices(devices=None) -> list:
 
   Args:
     devices: None (the default device), a number n >= 1 (the first n local devices of the
-      default backend), 0 or "all" (every local device of it), or a sequence of
-      `jax.Device`.
+      default backend), 0 or "all" (every local device of it), a `jax.Device`, or a
+      sequence of them.
 
   Returns:
     A list of distinct devices.
@@ -1034,6 +1036,8 @@ def resolve_devices(devices=None) -> list:
       raise ValueError(f"devices must be a number, 'all' or a list of jax devices, got "
                        f"{devices!r}")
     return list(local)
+  if isinstance(devices, jax.Device):
+    return [devices]
   if _is_int(devices):
     if devices == 0:
       return list(local)

@@ -357,8 +357,10 @@ def test_dtype_override_takes_dtype_objects():
   assert inference.resolve_config(None, np.float32).dtype == "float32"
   with pytest.raises(ValueError, match="dtype must be 'float32' or 'bfloat16'"):
     inference.resolve_config(None, object())
-  with pytest.raises(ValueError, match="SAVConfig.dtype='float16'"):
-    inference.resolve_config(None, np.float16)
+  # The caller's dtype= is named (it named SAVConfig.dtype, a config the caller never set).
+  for dtype in (np.float16, "float16"):
+    with pytest.raises(ValueError, match=r"^dtype must be 'float32' or 'bfloat16', got 'float16'$"):
+      inference.resolve_config(None, dtype)
 
 
 def test_padding_matches_input_padder():

@@ -84,6 +84,7 @@ def test_device_choices_are_checked():
   assert inference.resolve_devices(1) == jax.local_devices()[:1]
   assert inference.resolve_devices(np.int64(1)) == jax.local_devices()[:1]
   assert inference.resolve_devices("all") == inference.resolve_devices(0) == jax.local_devices()
+  assert inference.resolve_devices(jax.local_devices()[-1]) == [jax.local_devices()[-1]]  # one device
   assert inference.resolve_devices(jax.local_devices()) == jax.local_devices()
   with pytest.raises(ValueError, match=f"devices={n + 1}, but {n} local cpu device"):
     inference.resolve_devices(n + 1)
