@@ -11,7 +11,6 @@ import pytest
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
 import op_profile  # noqa: E402  pylint: disable=wrong-import-position,import-error
-from tests.conftest import XLA_OLDER_EMITTERS  # noqa: E402  pylint: disable=wrong-import-position
 
 pytestmark = pytest.mark.usefixtures("fast_compile")  # values and HLO shapes, not speed
 
@@ -263,8 +262,8 @@ def test_infer_memory_script_runs_the_streaming_infer(tmp_path, monkeypatch, cap
 
 
 def test_compile_times_script_compiles_what_predict_video_runs(capsys):
-  """benchmarks/compile_times.py compiles the per-frame program with the newer fusion
-  emitters and the window's with the older ones (low-memory mode), and refuses bad sizes."""
+  """benchmarks/compile_times.py compiles predict_video's per-frame and window programs,
+  leaves the cache and low-memory settings as they were, and refuses bad sizes."""
   import compile_times  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
   from sav_jax import inference, runtime  # pylint: disable=import-outside-toplevel
 
@@ -275,11 +274,10 @@ def test_compile_times_script_compiles_what_predict_video_runs(capsys):
   assert list(result["compile_s"]) == ["frames", "window"]
   assert all(s > 0 for s in result["compile_s"].values()) and result["peak_rss_gb"] > 0
   assert "total" in capsys.readouterr().out
-  options = {k[0]: dict(k[4]) for k in inference._COMPILED if k[3] == (1, 16, 32)}  # pylint: disable=protected-access
-  assert options["frames"] == runtime.inference_compiler_options(per_frame=True)
-  assert options["window"] == runtime.inference_compiler_options()
-  # the same options where this jaxlib has only the newer emitters (jaxlib 0.11+)
-  assert (options["window"] != options["frames"]) is XLA_OLDER_EMITTERS
+  # It compiled predict_video's two programs for this video (in inference's own cache, so
+  # with the options inference gives each: tests/test_inference.py checks those).
+  compiled = {(k[0], k[2]) for k in inference._COMPILED if k[3] == (1, 16, 32)}  # pylint: disable=protected-access
+  assert ("window", 2) in compiled and "frames" in {kind for kind, _ in compiled}
   with pytest.raises(SystemExit):
     compile_times.main(["--height", "30"])
   assert "multiples of 16" in capsys.readouterr().err

@@ -1,6 +1,8 @@
 """The persistent compilation cache switch and `release_host_memory`."""
 
+import ctypes
 import platform
+import types
 
 import jax
 import jax.numpy as jnp
@@ -72,6 +74,36 @@ def test_release_host_memory_works_on_glibc():
   junk = [bytearray(1 << 20) for _ in range(64)]  # 64 MB allocated and freed
   del junk
   assert runtime.release_host_memory() is (platform.libc_ver()[0] == "glibc")
+  trim = runtime._malloc_trim()  # pylint: disable=protected-access
+  if platform.libc_ver()[0] == "glibc":  # the real function, with its C signature declared
+    assert trim.__name__ == "malloc_trim"
+    assert trim.argtypes == [ctypes.c_size_t] and trim.restype is ctypes.c_int
+
+
+def test_release_host_memory_collects_cycles_then_trims_with_no_padding(monkeypatch):
+  calls = []
+  monkeypatch.setattr(runtime.gc, "collect", lambda *a: calls.append("collect") or 0)
+  monkeypatch.setattr(runtime, "_malloc_trim",
+                      lambda: lambda pad: calls.append(("malloc_trim", pad)) or 1)
+  assert runtime.release_host_memory() is True
+  # malloc_trim(0): keep no padding at the heap's top; cycles freed first, so theirs goes too
+  assert calls == ["collect", ("malloc_trim", 0)]
+  calls.clear()
+  monkeypatch.setattr(runtime, "_malloc_trim", lambda: None)  # a libc without it
+  assert runtime.release_host_memory() is False
+  assert not calls  # a no-op: not even the collection
+
+
+@pytest.mark.parametrize("libc", ["without malloc_trim", "not loadable"])
+def test_a_libc_without_malloc_trim_is_none(monkeypatch, libc):
+  def cdll(name):
+    if libc == "not loadable":
+      raise OSError(f"{name}: cannot open shared object file")
+    return types.SimpleNamespace(free=None)  # musl, macOS: no malloc_trim
+
+  monkeypatch.setattr(runtime.ctypes, "CDLL", cdll)
+  # (the lookup itself, past its cache)
+  assert runtime._malloc_trim.__wrapped__() is None  # pylint: disable=protected-access
 
 
 def test_cli_cache_flags_are_exclusive(capsys):

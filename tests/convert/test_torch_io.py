@@ -813,13 +813,13 @@ def test_save_load_round_trip(tmp_path, suffix):
 
 
 def test_save_accepts_jax_arrays(tmp_path):
-  jnp = pytest.importorskip("jax.numpy")
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
   path = torch_io.save_state_dict({"x": jnp.arange(3.0)}, tmp_path / "j.safetensors")
   np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], [0, 1, 2])
 
 
 def test_safetensors_bfloat16_loads_as_float32(tmp_path):
-  ml_dtypes = pytest.importorskip("ml_dtypes")
+  import ml_dtypes  # pylint: disable=import-outside-toplevel
   import safetensors.numpy  # pylint: disable=import-outside-toplevel
   path = tmp_path / "bf.safetensors"
   safetensors.numpy.save_file({"x": np.array([1.5, -2], ml_dtypes.bfloat16)}, str(path))
@@ -830,7 +830,7 @@ def test_safetensors_bfloat16_loads_as_float32(tmp_path):
 
 def test_safetensors_written_here_read_back_with_float8_widened(tmp_path):
   # safetensors' numpy reader cannot load F8 tensors: they are written as float32.
-  ml_dtypes = pytest.importorskip("ml_dtypes")
+  import ml_dtypes  # pylint: disable=import-outside-toplevel
   sd = {"f8": np.array([1.5, -2], ml_dtypes.float8_e4m3fn),
         "bf": np.array([1.5, -2], ml_dtypes.bfloat16)}
   out = torch_io.load_state_dict(torch_io.save_state_dict(sd, tmp_path / "f8.safetensors"))

@@ -236,7 +236,7 @@ def test_float16_png_depth(tmp_path):
 
 
 def test_exr(tmp_path):
-  openexr = pytest.importorskip("OpenEXR")
+  import OpenEXR as openexr  # pylint: disable=import-outside-toplevel
   z = RNG.random((5, 6)).astype(np.float32)
   rgb = RNG.random((5, 6, 3)).astype(np.float32)
   header = {"compression": openexr.ZIP_COMPRESSION, "type": openexr.scanlineimage}
@@ -288,7 +288,7 @@ def test_npy_and_npz(tmp_path):
 
 
 def test_hdf5_dsp5(tmp_path, monkeypatch):
-  h5py = pytest.importorskip("h5py")
+  import h5py  # pylint: disable=import-outside-toplevel
   disp = RNG.random((4, 6)).astype(np.float32)
   disp[1, 2] = np.nan
   with h5py.File(tmp_path / "d.dsp5", "w") as f:

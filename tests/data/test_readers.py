@@ -522,7 +522,7 @@ def test_kitti_splits_sparse_depth_and_scale(tmp_path):
 
 @pytest.mark.parametrize("layout", ["sav", "spring"])
 def test_spring_dsp5(tmp_path, layout):
-  h5py = pytest.importorskip("h5py")
+  import h5py  # pylint: disable=import-outside-toplevel
   rng = np.random.default_rng(11)
   root = tmp_path / "Spring"
   if layout == "sav":

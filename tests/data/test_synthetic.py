@@ -255,7 +255,7 @@ def test_source_is_random_access_and_process_independent():
 
 
 def test_grain_map_dataset():
-  grain = pytest.importorskip("grain")
+  import grain  # pylint: disable=import-outside-toplevel
   cfg = SyntheticConfig(frames=2, height=48, width=96, max_disparity=16.0)
   src = SyntheticStereoVideo(cfg, num_clips=3)
   ds = grain.MapDataset.source(src)

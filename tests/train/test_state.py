@@ -116,6 +116,115 @@ def test_clipping_is_torchs_clip_grad_norm():
       assert float(coef) != 1.0
 
 
+def _torch_clip_adamw_one_cycle(params, grads, opt, total_steps):
+  """The updates and the parameters after each step of the official update, in float64
+  NumPy, transcribed from PyTorch's documented algorithms: `clip_grad_norm_(params,
+  max_norm)`, then `AdamW.step()` (`lr` from the scheduler), then `OneCycleLR.step()`.
+
+  Args:
+    params: `[n]` initial trainable parameters.
+    grads: `[steps, n]` their gradients at each step.
+    opt: the optimizer config (`lr` is OneCycleLR's max_lr).
+    total_steps: OneCycleLR's `total_steps`.
+
+  Returns:
+    `(updates, params)`: lists of `[n]` per step (the updates summed as they are made, not
+    differences of parameters, which would lose digits: ~1e-8 steps of 1e3 values).
+  """
+  # OneCycleLR(anneal_strategy="linear", three_phase=False): phase 1 from initial_lr to
+  # max_lr ends at step pct_start * total_steps - 1, phase 2 to min_lr at total_steps - 1;
+  # lr = (end - start) * pct + start, pct the step's fraction of its phase.
+  initial_lr = opt.lr / opt.div_factor
+  min_lr = initial_lr / opt.final_div_factor
+  end1, end2 = float(opt.pct_start * total_steps) - 1, total_steps - 1
+  p = np.asarray(params, np.float64).copy()
+  exp_avg, exp_avg_sq = np.zeros_like(p), np.zeros_like(p)
+  updates, out = [], []
+  for step, g in enumerate(np.asarray(grads, np.float64), start=1):
+    last_epoch = step - 1  # the scheduler's count when this step runs
+    if last_epoch <= end1:
+      lr = (opt.lr - initial_lr) * (last_epoch / end1) + initial_lr
+    else:
+      lr = (min_lr - opt.lr) * ((last_epoch - end1) / (end2 - end1)) + opt.lr
+    # clip_grad_norm_: clip_coef = max_norm / (total_norm + 1e-6), clamped to 1
+    g = g * min(1.0, opt.clip_norm / (np.linalg.norm(g) + 1e-6))
+    # AdamW: decoupled weight decay with the step's lr (p *= 1 - lr * weight_decay), then
+    # the Adam update of the decayed p
+    exp_avg = opt.b1 * exp_avg + (1 - opt.b1) * g
+    exp_avg_sq = opt.b2 * exp_avg_sq + (1 - opt.b2) * g * g
+    bias_correction1 = 1 - opt.b1**step
+    bias_correction2 = 1 - opt.b2**step
+    denom = np.sqrt(exp_avg_sq) / np.sqrt(bias_correction2) + opt.eps
+    update = -lr * opt.weight_decay * p - (lr / bias_correction1) * exp_avg / denom
+    p = p + update
+    updates.append(update)
+    out.append(p)
+  return updates, out
+
+
+def _optimizer_case():
+  """A small parameter tree (a frozen depth-prior leaf among two trainable ones) and six
+  steps of gradients of global norms 1e-9 (eps dominates Adam's denominator), 0.5, 3 and
+  1e3 (clipped), 1 (clipped by 1 / (1 + 1e-6)) and 1e-3; head/bias[6] never gets a
+  gradient (its update is the weight decay alone) and sits at 1e3 (weight decay visible)."""
+  rng = np.random.default_rng(7)
+  params = {"depthnet": {"depthanything": {"w": np.full(4, 2.0, np.float32)}},
+            "fnet": {"kernel": rng.normal(size=(2, 3)).astype(np.float32)},
+            "head": {"bias": np.array([0.5, -1.5, 3.0, -0.25, 1e3, -2e3, 1e3], np.float32)}}
+  grads = []
+  for norm in (1e-9, 0.5, 3.0, 1e3, 1.0, 1e-3):
+    kernel, bias = rng.normal(size=(2, 3)), rng.normal(size=7)
+    bias[6] = 0.0
+    scale = norm / np.sqrt(np.sum(kernel**2) + np.sum(bias**2))
+    grads.append({"depthnet": {"depthanything": {"w": np.full(4, 1e6, np.float32)}},
+                  "fnet": {"kernel": (kernel * scale).astype(np.float32)},
+                  "head": {"bias": (bias * scale).astype(np.float32)}})
+  return params, grads
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_optimizer_steps_match_torchs_clip_then_adamw_with_one_cycle(dtype):
+  from configs import sceneflow  # pylint: disable=g-import-not-at-top
+  opt = sceneflow.get_config().optimizer
+  # The official recipe, train_stereoanyvideo.py: AdamW(lr=1e-4, weight_decay=1e-5,
+  # eps=1e-8) with PyTorch's default betas (0.9, 0.999); OneCycleLR(pct_start=0.01,
+  # anneal_strategy="linear", total_steps=num_steps + 100) with PyTorch's default
+  # div_factor=25 and final_div_factor=1e4; clip_grad_norm_(params, 1.0) every step.
+  assert (opt.lr, opt.weight_decay, opt.eps, opt.b1, opt.b2) == (1e-4, 1e-5, 1e-8, 0.9, 0.999)
+  assert (opt.schedule, opt.pct_start, opt.div_factor, opt.final_div_factor,
+          opt.schedule_steps, opt.clip_norm) == ("one_cycle", 0.01, 25.0, 1e4, -1, 1.0)
+  num_steps = 300  # total_steps 400: warm-up to step 3 (0.01 * 400 - 1), then annealing
+  # float64: the algorithm, to the float32 lr of the schedule (~1e-7). float32 (training):
+  # optax computes Adam's bias corrections 1 - b**t in float32, PyTorch (float32 too) in
+  # double; 0.999 rounds to 0.99900001 and 0.999**t to ~6e-8, so 1 - 0.999**t (~1e-3 * t)
+  # is 1-3e-5 off in the first steps and their updates ~1e-5 (up to ~2e-5): optax's
+  # rounding, ~1e-7 in torch.
+  rtol = {"float64": 1e-6, "float32": 3e-5}[dtype]
+  params, grads = jax.tree.map(lambda x: x.astype(dtype), _optimizer_case())
+  vector = optim.TrainableVector(optim.param_labels(params, opt.frozen))
+  assert vector.size(params) == 13  # fnet/kernel, head/bias: the frozen leaf is left out
+  with jax.enable_x64(dtype == "float64"):
+    ref_updates, ref = _torch_clip_adamw_one_cycle(
+        vector.gather(params), [np.asarray(vector.gather(g)) for g in grads], opt,
+        num_steps + 100)
+    tx = optim.make_optimizer(opt, num_steps)
+    flat = vector.gather(params)
+    assert flat.dtype == dtype
+    state = tx.init(flat)
+    update = jax.jit(tx.update)
+    for step, g in enumerate(grads):
+      updates, state = update(vector.gather(g), state, flat)
+      flat = optax.apply_updates(flat, updates)
+      # The update itself: the parameters (~1) move by ~1e-5 or less (float32 parameters
+      # of 1e3 not at all), so comparing them alone would hide most of the step.
+      np.testing.assert_allclose(np.asarray(updates), ref_updates[step], rtol=rtol, atol=0,
+                                 err_msg=f"update of step {step}")
+      np.testing.assert_allclose(np.asarray(flat), ref[step], rtol=rtol, atol=0,
+                                 err_msg=f"parameters after step {step}")
+    out = vector.scatter(params, flat)
+  assert out["depthnet"]["depthanything"]["w"] is params["depthnet"]["depthanything"]["w"]
+
+
 @pytest.mark.parametrize("name", ["sceneflow", "mixed", "synthetic"])
 def test_augmentation_and_generator_fields_are_overridable(name):
   import dataclasses  # pylint: disable=import-outside-toplevel
