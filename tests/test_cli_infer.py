@@ -15,7 +15,7 @@ import pytest
 import sav_jax
 from sav_jax import cli, inference, viz
 from sav_jax.data import synthetic
-from sav_jax.tools import video_io
+from sav_jax.tools import infer, video_io
 
 T, H, W, ITERS = 3, 32, 48, 2
 
@@ -70,8 +70,10 @@ def _infer(left, right, ckpt, out, *extra):
 def test_folder_all_formats_and_calibration(tmp_path, folders, npz_ckpt, variables, clip):
   out = tmp_path / "out"
   rc = _infer(*folders, npz_ckpt, out, "--format", "png16,npy", "--format", "pfm",
-              "--format", "exr", "--fx", "40", "--baseline", "0.1")
+              "--format", "exr", "--fx", "40", "--fy", "50", "--cx", "10", "--cy", "5",
+              "--baseline", "0.1", "--doffs", "2")
   assert rc == 0
+  v, u = np.mgrid[:H, :W]
   expected = inference.predict_video(variables, clip["left"], clip["right"], iters=ITERS)
   names = [f"{i:04d}" for i in range(T)]
   for i, name in enumerate(names):
@@ -82,15 +84,20 @@ def test_folder_all_formats_and_calibration(tmp_path, folders, npz_ckpt, variabl
     png = viz.read_png16(out / "disparity" / f"{name}.png")[0]
     stored = np.clip(np.round(d.astype(np.float64) * 256), 1, 65535)  # tiny d > 0 stays valid
     np.testing.assert_array_equal(png, np.where(d > 0, stored / 256, 0))
-    np.testing.assert_allclose(np.load(out / "depth" / f"{name}.npy"),
-                               viz.depth_from_disparity(d, 40.0, 0.1), rtol=1e-6)
+    z = 4.0 / (d.astype(np.float64) + 2.0)  # fx * baseline / (d + doffs): every pixel
+    np.testing.assert_allclose(np.load(out / "depth" / f"{name}.npy"), z, rtol=1e-6)
     xyz, rgb = viz.read_ply(out / "pointclouds" / f"{name}.ply")
-    assert len(xyz) == np.count_nonzero(d > 0)
-    np.testing.assert_allclose(xyz[:, 2], 4.0 / d[d > 0], rtol=1e-6)
-    np.testing.assert_array_equal(rgb, clip["left"][i][d > 0])
+    assert len(xyz) == H * W  # raster order; OpenCV axes with fy, cx, cy as given
+    np.testing.assert_allclose(xyz, np.stack([(u - 10) * z / 40, (v - 5) * z / 50, z],
+                                             -1).reshape(-1, 3), rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(rgb, clip["left"][i].reshape(-1, 3))
   assert len(video_io.read_video_file(out / "side_by_side.mp4")) == T
   summary = json.loads((out / "summary.json").read_text())
-  assert summary["frames"] == T and summary["calibration"]["cx"] == (W - 1) / 2
+  assert summary["frames"] == T and summary["calibration"] == dict(
+      fx=40.0, fy=50.0, cx=10.0, cy=5.0, baseline=0.1, doffs=2.0)
+  # Without fy, cx, cy: fy = fx and the principal point at the frame's centre.
+  assert infer.CalibrationSpec(fx=40.0, baseline=0.1).resolve(W, H) == infer.Calibration(
+      40.0, 40.0, (W - 1) / 2, (H - 1) / 2, 0.1, 0.0)
   run_s = summary["seconds"] - summary["compile_seconds"]  # no compile if another test did it
   assert summary["frames_per_second_without_compile"] == pytest.approx(T / run_s, rel=1e-2)
   assert summary["frames_per_second_without_compile"] >= summary["frames_per_second"] > 0
