@@ -163,3 +163,23 @@ def test_bench_measures_under_the_matmul_precision_asked_and_notes_a_baseline_wi
   note = bench.machine_note(res, {**res, "matmul_precision": "default"})
   assert "matmul_precision highest here, default there" in note
   assert bench.machine_note(res, dict(res)) == ""
+
+
+def test_bench_passes_the_batch_dtype_and_every_prediction_to_the_measurement(monkeypatch):
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  calls = []
+
+  def stop(*args, **kwargs):
+    calls.append((args, kwargs))
+    raise KeyboardInterrupt
+
+  monkeypatch.setattr(bench, "measure", stop)
+  with pytest.raises(KeyboardInterrupt):
+    cli.main([*ARGS, "--batch", "3", "--dtype", "bfloat16", "--all-predictions",
+              "--vit-attention", "blocked"])
+  (args, kwargs), = calls
+  assert args == (2, 32, 64, 2, 3, "bfloat16", 1)  # frames, H, W, iters, batch, dtype, repeats
+  assert kwargs["final_only"] is False and kwargs["vit_attention"] == "blocked"
+  with pytest.raises(KeyboardInterrupt):
+    cli.main(ARGS)
+  assert calls[-1][0][4:6] == (1, "float32") and calls[-1][1]["final_only"] is True
