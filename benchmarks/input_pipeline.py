@@ -15,7 +15,9 @@ generator's textured layers as content (PNG files of about the size of SceneFlow
 It reports, one thread: the time to read a clip (`sequence.gather`: decoding its 2T images and
 T disparities) and to augment it (`configs/sceneflow.py`'s augmentation at `--crop`); then the
 stream of `train.input.train_dataset` (the training config with these settings: shuffling,
-reading threads, `--worker-count` processes, batching) in clips/s after its first batch.
+reading threads, `--worker-count` processes, batching) in clips/s after `--warmup` batches,
+and (threads only) its CPU seconds per clip. The files were just written, so reading is
+decoding from the page cache: data on a cold disk or a network file system reads slower.
 """
 
 from __future__ import annotations
@@ -127,12 +129,15 @@ def stream(config, batches: int, warmup: int) -> dict:
   for _ in range(batches):
     batch = next(it)
   wall = time.perf_counter() - w1
+  cpu = cpu_s() - c1
+  if hasattr(it, "close"):  # stop the threads and workers before the data is deleted
+    it.close()
   clips = batches * config.train.batch_size
   if batch["left"].shape[:2] != (config.train.batch_size, config.data.frames):
     raise RuntimeError(f"the stream gave a batch of {batch['left'].shape}")
   # Worker processes' CPU time is not this process's (nor counted before they end).
   return dict(first_batch_s=first_s, clips_per_s=clips / wall, wall_s=wall,
-              cpu_s_per_clip=None if config.data.worker_count else (cpu_s() - c1) / clips)
+              cpu_s_per_clip=None if config.data.worker_count else cpu / clips)
 
 
 def main():
@@ -191,7 +196,12 @@ def main():
   res.update(data_root=a.root, dataset=data["dataset"],
              **{k: data[k] for k in ("written", "written_gb") if k in data})
   clip_s = res["read_s"] + res["augment_s"]
+  # Cores to feed one accelerator: from the one-thread cost, and from the stream's own
+  # (threads only: it adds shuffling, batching and the threads' contention).
+  stream_s = res["cpu_s_per_clip"]
   res.update(clip_cpu_s=clip_s, cores_per_accelerator=clip_s * a.step_samples_per_s,
+             cores_per_accelerator_stream=(None if stream_s is None
+                                           else stream_s * a.step_samples_per_s),
              step_samples_per_s=a.step_samples_per_s, peak_rss_gb=peak_rss_gb(),
              cpu_count=(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
                         else os.cpu_count()),
@@ -207,8 +217,11 @@ def main():
         f"batches after {a.warmup} (first batch {res['first_batch_s']:.1f} s)"
         + ("" if res["cpu_s_per_clip"] is None else
            f", {res['cpu_s_per_clip']:.3f} CPU s per clip"))
+  stream_cores = ("" if stream_s is None else
+                  f" ({res['cores_per_accelerator_stream']:.1f} at the stream's CPU per clip)")
   print(f"to feed {a.step_samples_per_s:g} clips/s per accelerator: ~"
-        f"{res['cores_per_accelerator']:.1f} cores each; peak RSS {res['peak_rss_gb']:.2f} GB")
+        f"{res['cores_per_accelerator']:.1f} cores each{stream_cores}; peak RSS "
+        f"{res['peak_rss_gb']:.2f} GB")
   if a.json:
     with open(a.json, "w") as f:
       json.dump(res, f, indent=2)

@@ -80,7 +80,8 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
   looks, spread = float_frames_range(video, lo, hi)
   if looks == "0..1":
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}{spread}: the model "
-                  "expects 0..255 (multiply 0..1 images by 255)", stacklevel=caller_stacklevel())
+                  "expects 0..255 (multiply 0..1 images by 255; 0..255 frames of a very dark "
+                  "scene can be left as they are)", stacklevel=caller_stacklevel())
   elif looks == "negative":
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}, outside 0..255, which the "
                   f"model expects ({normalised})", stacklevel=caller_stacklevel())
@@ -89,15 +90,27 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
                   "model expects (divide 16-bit frames by 257)", stacklevel=caller_stacklevel())
 
 
+def _sample(video: np.ndarray, size: int = 200_000) -> np.ndarray:
+  """About `size` values of `video`: its two largest axes (the frames' rows and columns, in
+  either channel layout) strided alike, every channel and frame kept (a flat stride that is
+  a multiple of the channel count would read one colour channel only); a strided view is
+  not copied whole."""
+  if video.size <= size or video.ndim < 2:
+    return np.asarray(video, np.float32).reshape(-1)
+  rows, cols = sorted(np.argsort(video.shape)[-2:])
+  step = max(1, int(np.sqrt(video.size / size)))
+  index = [slice(None)] * video.ndim
+  index[rows] = index[cols] = slice(None, None, step)
+  return np.asarray(video[tuple(index)], np.float32).reshape(-1)
+
+
 def float_frames_range(video: np.ndarray, lo: float, hi: float) -> tuple[str | None, str]:
   """What float frames of values `lo..hi` look like, if not RGB 0..255: `("0..1", spread)`
   where 99.9% of a sample of their values are at most 1.5 (so a resize's overshoot or a few
   hot pixels do not hide 0..1 images; `spread` says so where the maximum is higher),
   `("negative", "")` below -1 (a resize's overshoot stays above), `("16-bit", "")` above
   256; `(None, "")` otherwise."""
-  flat = video.reshape(-1)
-  sample = flat[::max(1, flat.size // 200_000)]
-  bright = float(np.quantile(sample, 0.999)) if hi > 1.5 else hi
+  bright = float(np.quantile(_sample(video), 0.999)) if hi > 1.5 else hi
   if 0 < bright <= 1.5:
     return "0..1", "" if bright == hi else f", 99.9% of them at most {bright:.3g}"
   if lo < -1.0:

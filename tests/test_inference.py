@@ -528,6 +528,14 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   with pytest.warns(UserWarning, match=r"values 0\.\d+\.\.200, 99\.9% of them at most 0\.99\d*: "
                      r".*multiply 0\.\.1 images by 255"):
     inference.check_video_values(hot, "left")
+  # A 0..255 video whose red channel is dark (a blue night scene) is not taken for 0..1
+  # frames: the sample keeps every channel (a flat stride of 9 read the red one only).
+  night = np.random.default_rng(1).uniform(0, 219, (5, 256, 512, 3)).astype(np.float32)
+  night[..., 0] = np.random.default_rng(2).integers(0, 2, night.shape[:3])
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    inference.check_video_values(night, "left")
+    inference.check_video_values(night[..., ::-1], "left")  # a strided view
   # Normalised frames (mean and scale taken off) are refused; an offset gets that hint.
   with pytest.raises(ValueError, match=r"left: float frames with values -1\.9\d+\.\.2\.\d+ look "
                      r"normalised \(.*\(frames \* std \+ mean\) \* 255\)"):

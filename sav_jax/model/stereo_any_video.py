@@ -44,18 +44,20 @@ class SAVOutput:
 
 
 def check_inputs(left, right, iters: int) -> int:
-  """Raises a ValueError naming the problem with the inputs; returns `iters` as an int."""
-  check_videos(left, right)
+  """Raises a ValueError naming the problem with the inputs' shapes (their values are
+  checked by `features`) or `iters`; returns `iters` as an int."""
+  check_videos(left, right, values=False)
   return check_iters(iters)
 
 
-def check_videos(left, right) -> None:
+def check_videos(left, right, values: bool = True) -> None:
   """Raises a ValueError naming the problem unless `left` and `right` are RGB videos
   `[B, T, H, W, 3]` of one shape, H and W multiples of 16, W >= 32.
 
-  Concrete values (a model call outside `jit`/`grad`) are checked as `predict_video` checks
-  them (`inference.check_video_values`: finite, 0..255, a warning for 0..1 frames); traced
-  ones cannot be."""
+  With `values`, frames that are not traced (a model call outside `jit`/`grad`, or arrays
+  closed over there) are checked as `predict_video` checks them
+  (`inference.check_video_values`: finite, 0..255, not normalised, a warning for 0..1
+  frames), each view as one video of its B*T frames."""
   for name, x in (("left", left), ("right", right)):
     if not hasattr(x, "shape") or not hasattr(x, "dtype"):
       raise ValueError(f"{name} must be an array [B, T, H, W, 3] (numpy or jax), got a "
@@ -70,11 +72,17 @@ def check_videos(left, right) -> None:
         f"expected RGB videos [B, T, H, W, 3] with values 0..255 (B, T, H, W >= 1), got shape "
         f"{left.shape}{layout_hint(left.shape, batched=True)}")
   _check_size(left.shape[2:4])
+  if not values:
+    return
   for name, x in (("left", left), ("right", right)):
-    if not isinstance(x, jax.core.Tracer):
-      x = np.asarray(x)
-      for b in range(x.shape[0]):
-        check_video_values(x[b], f"{name}[{b}]" if x.shape[0] > 1 else name)
+    if isinstance(x, jax.core.Tracer) or not getattr(x, "is_fully_addressable", True):
+      continue  # traced, or other processes' shards (a multi-host array)
+    x = np.asarray(x)
+    if x.dtype.kind == "V":  # bfloat16 / float8 (ml_dtypes), not a NumPy float kind
+      x = x.astype(np.float32)
+    b, t = x.shape[:2]
+    check_video_values(x.reshape(b * t, *x.shape[2:]),
+                       name if b == 1 else f"{name} (its {b} clips' frames in order, {t} each)")
 
 
 def channels_first_hint(shape) -> str:
