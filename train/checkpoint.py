@@ -4,7 +4,9 @@ A checkpoint `workdir/checkpoints/<step>/` holds three items:
   state:  `{"params", "opt_state", "step", "rng", "num_skipped"}` (`StandardSave`),
   data:   the grain iterator state of every process (`grain.checkpoint.CheckpointSave`,
           one JSON file per process),
-  config: `{"model": SAVConfig dict, "step": step, "run": the training config}` (`JsonSave`),
+  config: `{"model": SAVConfig dict, "step": step, "run": the training config,
+          "data_clips": the training clips' counts and digests, "depth_prior": where the
+          frozen depth prior's weights came from (`depth_prior_origin`)}` (`JsonSave`),
           so that `sav-jax infer`/`convert`, `python -m eval` and `init_from` can use the
           step folder (or the workdir: its latest step) as model weights, and a resumed run
           can name the fields changed since (`changed_fields`).
@@ -152,10 +154,30 @@ def changed_fields(manager: ocp.CheckpointManager, step: int, config,
           if saved.get(k) != now.get(k) and not k.startswith(_OPERATIONAL)]
 
 
+def depth_prior_origin(config, saved: dict | None = None) -> str:
+  """Where a run's frozen depth prior comes from, saved with its checkpoints (and carried by
+  `sav-jax convert` and by a later run's `init_from`), so that weights whose prior is random
+  (a toy run's) are named as such wherever they are used.
+
+  Args:
+    config: the training config.
+    saved: the config saved with `config.init_from`'s weights (`load_model_params`), if any.
+  """
+  if config.vda_weights:
+    return f"Video Depth Anything weights {config.vda_weights}"
+  if config.init_from:
+    inherited = (saved or {}).get("depth_prior")
+    return inherited if isinstance(inherited, str) and inherited else (
+        f"the weights of {config.init_from}")
+  if config.random_depth_prior:
+    return f"{sav_jax.convert.RANDOM_PRIOR} (config.random_depth_prior=true: a toy run)"
+  return f"{sav_jax.convert.RANDOM_PRIOR} (no config.vda_weights or config.init_from)"
+
+
 def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step: int,
          params_finite: bool = True, force: bool = False,
          model_config: sav_jax.SAVConfig | None = None, run_config=None,
-         data_clips: dict | None = None) -> bool:
+         data_clips: dict | None = None, depth_prior: str | None = None) -> bool:
   """Saves state, data-iterator state and the model config at `step`.
 
   Args:
@@ -170,6 +192,7 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
     run_config: the training config, saved for `changed_fields` (None: not saved).
     data_clips: each training source's clip count and digest (`train.input.train_dataset`'s
       `clips`), saved for a resumed run to compare (None: not saved).
+    depth_prior: `depth_prior_origin` (None: not saved).
 
   Returns:
     Whether a save was started.
@@ -182,6 +205,8 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
     config["run"] = run_fields(run_config)
   if data_clips is not None:
     config["data_clips"] = data_clips
+  if depth_prior is not None:
+    config["depth_prior"] = depth_prior
   args = ocp.args.Composite(state=ocp.args.StandardSave(_state_dict(state)),
                             data=grain.checkpoint.CheckpointSave(data_iterator),
                             config=ocp.args.JsonSave(config))
@@ -397,7 +422,7 @@ def _check_restored_tree(directory, restored: dict, target: dict, saved: dict | 
     raise _mismatch(directory, problem)
 
 
-def load_model_params(path, cfg: sav_jax.SAVConfig) -> dict:
+def load_model_params(path, cfg: sav_jax.SAVConfig, saved: dict | None = None) -> dict:
   """Host params (the `params` collection only) from full-model weights.
 
   Args:
@@ -405,6 +430,8 @@ def load_model_params(path, cfg: sav_jax.SAVConfig) -> dict:
       `sav_jax.convert.save_variables`, or another run's checkpoint (its step folder, or its
       workdir for the latest step; only the params are read).
     cfg: the model config.
+    saved: a dict to fill with the config saved beside a directory's weights (e.g. its
+      `depth_prior`).
 
   Returns:
     Nested dict of numpy arrays; `torch_unused` and other collections are dropped.
@@ -412,10 +439,12 @@ def load_model_params(path, cfg: sav_jax.SAVConfig) -> dict:
   path = pathlib.Path(path)
   if path.is_dir():
     try:  # any collections (e.g. torch_unused), on this process's first device
-      variables, _ = sav_jax.convert.restore_variables(path)
+      variables, stored = sav_jax.convert.restore_variables(path)
     except sav_jax.convert.CheckpointError as e:  # it names the folder; say which field
       raise sav_jax.convert.CheckpointError(f"config.init_from: {e}") from e
     variables = jax.device_get(variables)
+    if saved is not None and isinstance(stored, dict):
+      saved.update(stored)
   else:
     variables = _convert(path, "sav", "init_from",
                          lambda sd: sav_jax.convert.params_from_state_dict(sd, cfg))

@@ -45,7 +45,12 @@ class Evaluator:
     self.batches = pipeline.eval_batches(self.clips, batch_size)
     self.predict = step_lib.make_eval_fn(model, ev.iters, params_sharding, mesh)
     self.sharding = state_lib.data_sharding(mesh)
-    log.info("validation: %d clips of %s, %d iterations", len(self.clips), ev.dataset, ev.iters)
+    frames = sorted({len(c["left"]) for c in self.clips})
+    # Clips of `frames` frames (data.frames, centre-cropped to data.crop): their EPE is not
+    # `python -m eval`'s, which runs whole sequences at full size in 20-frame windows.
+    self.described = (f"{len(self.clips)} clips of {ev.dataset} ("
+                      f"{'/'.join(map(str, frames))} frames), {ev.iters} iterations")
+    log.info("validation: %s", self.described)
 
   def _local(self, array: np.ndarray) -> np.ndarray:
     per = array.shape[0] // jax.process_count()

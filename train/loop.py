@@ -55,8 +55,9 @@ def _merge_vda(params, vda):
   return flax.traverse_util.unflatten_dict(flat)
 
 
-def initial_weights(config, abstract_params):
-  """`(params, vda params)` on the host from `init_from` and `vda_weights` (None where unset).
+def initial_weights(config, abstract_params, saved: dict | None = None):
+  """`(params, vda params)` on the host from `init_from` and `vda_weights` (None where unset);
+  `saved`: a dict to fill with the config saved beside `init_from`'s weights.
 
   Raises:
     CheckpointError or FileNotFoundError: naming the field and the file.
@@ -66,7 +67,7 @@ def initial_weights(config, abstract_params):
   # Conversion is host work that may touch the default device (e.g. eager shape probes).
   with jax.transfer_guard("allow"):
     vda = ckpt_lib.load_vda_params(config.vda_weights, cfg) if config.vda_weights else None
-    host = (ckpt_lib.load_model_params(config.init_from, cfg)
+    host = (ckpt_lib.load_model_params(config.init_from, cfg, saved)
             if config.init_from else None)
   # Checked here, before the workdir is created.
   if host is not None:
@@ -490,15 +491,23 @@ def setup(config, workdir):
   optim.check_depth_prior_frozen(labels, config.optimizer.frozen)
   log.info("parameters: %s", state_lib.param_count(abstract_params, labels))
   tx = optim.make_optimizer(config.optimizer, config.train.num_steps)
-  weights = None
+  weights, saved = None, {}
   if (config.init_from or config.vda_weights) and resume_from is None:
     # Not resuming: weights that cannot be read fail before the workdir is created.
-    weights = initial_weights(config, abstract_params)
+    weights = initial_weights(config, abstract_params, saved)
+    if config.init_from and not config.vda_weights:
+      note = sav_jax.convert.random_prior_note(saved, f"config.init_from={config.init_from}")
+      if note:
+        log.warning("%s; this run keeps it (pass --config.vda_weights to replace it)", note)
+  depth_prior = ckpt_lib.depth_prior_origin(config, saved)
   lock = lock_workdir(workdir)
   try:
     manager = ckpt_lib.make_manager(workdir, config)
     state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it,
                                              abstract_params, weights, data_clips)
+    if source == "checkpoint":  # the prior the resumed weights hold, as their first run said
+      depth_prior = ckpt_lib.saved_config(manager, manager.latest_step()).get(
+          "depth_prior", depth_prior)
   except BaseException:
     lock.release()
     raise
@@ -509,7 +518,7 @@ def setup(config, workdir):
   log.info("start at step %d of %d (state from %s)", int(jax.device_get(state.step)),
            config.train.num_steps, source)
   return dict(grain_it=grain_it, manager=manager, state=state, train_step=train_step, model=model,
-              evaluator=evaluator, lock=lock, data_clips=data_clips,
+              evaluator=evaluator, lock=lock, data_clips=data_clips, depth_prior=depth_prior,
               batches=pipeline.GlobalBatchIterator(grain_it, state_lib.data_sharding(mesh)))
 
 
@@ -603,11 +612,16 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
             ckpt_lib.save(manager, state, parts["grain_it"], step, force=True,
                           params_finite=bool(np.isfinite(host.last["l2_params"])),
                           model_config=parts["model"].cfg, run_config=config,
-                          data_clips=parts.get("data_clips"))
+                          data_clips=parts.get("data_clips"),
+                          depth_prior=parts.get("depth_prior"))
           if stop:  # written before anything else: the scheduler's grace period is short
             ckpt_lib.wait_until_saved(manager)
         if eval_now:  # (after a notice too: a resumed run starts after this step)
-          writer.write(step, evaluator(state.params), split="val")
+          scores = evaluator(state.params)
+          writer.write(step, scores, split="val")
+          if jax.process_index() == 0:
+            log.info("step %d validation (%s): %s", step, evaluator.described,
+                     ", ".join(f"{k} {float(v):.4g}" for k, v in scores.items()))
         if stop:
           break
       if pending is not None:
@@ -620,6 +634,10 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
   if stop and step < total:
     raise Preempted(f"stopped at step {step} of {total} ({stop}), with a checkpoint of that "
                     "step: run the same command again to resume")
+  if start < total and jax.process_index() == 0:
+    log.info("done: step %d of %d; its checkpoint: %s (the weights for sav-jax infer, "
+             "python -m eval and config.init_from: %s)", total, total,
+             workdir / "checkpoints" / str(total), workdir)
   return state
 
 

@@ -5,8 +5,9 @@
     sd2 = state_dict_from_params(variables)          # and back (exact round trip)
 """
 
-from sav_jax.convert.orbax_io import (find_training_checkpoint, is_orbax_checkpoint,
-                                      is_variables_checkpoint, restore_variables, save_variables)
+from sav_jax.convert.orbax_io import (RANDOM_PRIOR, find_training_checkpoint,
+                                      is_orbax_checkpoint, is_variables_checkpoint,
+                                      random_prior_note, restore_variables, save_variables)
 from sav_jax.convert.params import (export_state_dict, params_from_state_dict,
                                     state_dict_from_params)
 from sav_jax.convert.torch_io import (CheckpointError, checkpoint_kind, load_checkpoint_object,
@@ -15,9 +16,10 @@ from sav_jax.convert.torch_io import (CheckpointError, checkpoint_kind, load_che
 from sav_jax.convert.vda import vda_params_from_state_dict, vda_state_dict_from_params
 
 __all__ = [
-    "CheckpointError", "checkpoint_kind", "export_state_dict", "find_training_checkpoint",
+    "CheckpointError", "RANDOM_PRIOR", "checkpoint_kind", "export_state_dict", "find_training_checkpoint",
     "is_orbax_checkpoint", "is_variables_checkpoint", "load_checkpoint_object",
-    "load_state_dict", "load_state_dict_of_kind", "params_from_state_dict", "restore_variables",
+    "load_state_dict", "load_state_dict_of_kind", "params_from_state_dict", "random_prior_note",
+    "restore_variables",
     "save_state_dict", "save_variables", "state_dict_from_params", "unwrap_state_dict",
     "vda_params_from_state_dict", "vda_state_dict_from_params",
 ]

@@ -206,6 +206,22 @@ def _check_config(config_dict, directory):
     raise CheckpointError(f"{directory}: config is not JSON-serialisable ({e})") from e
 
 
+# How the `depth_prior` entry a training run saves with its weights begins when the frozen
+# depth prior is random (`train.checkpoint.depth_prior_origin`).
+RANDOM_PRIOR = "random"
+
+
+def random_prior_note(saved: dict, what: str) -> str | None:
+  """A warning for weights whose saved config (`saved`) says their depth prior is random,
+  naming `what` (the weights); None otherwise."""
+  origin = saved.get("depth_prior") if isinstance(saved, dict) else None
+  if not (isinstance(origin, str) and origin.startswith(RANDOM_PRIOR)):
+    return None
+  return (f"{what}: its frozen depth prior is {origin}, not Video Depth Anything's weights, so "
+          "its disparities mean little; train with --config.vda_weights="
+          "video_depth_anything_vits.pth for a real one")
+
+
 def restore_variables(directory, target=None):
   """Restores what `save_variables` wrote.
 

@@ -8,6 +8,7 @@
 """
 
 import json
+import logging
 
 import jax
 import numpy as np
@@ -49,12 +50,18 @@ def test_synthetic_training_lowers_validation_epe(jobs):
   assert train[-1]["num_skipped"] == 0
   assert list((workdir / "tb").glob("events.out.tfevents.*"))
   # --config.compile_cache: the run keeps its compiled steps there for later runs.
-  assert f"compilation cache: {jobs.cache}" in (workdir / "log.txt").read_text()
+  log_text = (workdir / "log.txt").read_text()
+  assert f"compilation cache: {jobs.cache}" in log_text
+  # The console says each validation's scores and where the final weights are.
+  assert (f"step {LEARN_STEPS} validation (" in log_text
+          and f"epe {val[LEARN_STEPS]['epe']:.4g}, tepe {val[LEARN_STEPS]['tepe']:.4g}" in log_text)
+  assert (f"done: step {LEARN_STEPS} of {LEARN_STEPS}; its checkpoint: "
+          f"{workdir / 'checkpoints' / str(LEARN_STEPS)}") in log_text
   assert list(jobs.cache.glob("jit_train_step-*")) and list(jobs.cache.glob("jit_predict-*"))
 
 
 @pytest.mark.train_job("learn")
-def test_trained_weights_serve_infer_convert_and_init(jobs, tmp_path, capsys):
+def test_trained_weights_serve_infer_convert_and_init(jobs, tmp_path, capsys, caplog):
   import sav_jax  # pylint: disable=import-outside-toplevel
   from sav_jax import cli, convert  # pylint: disable=import-outside-toplevel
   from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
@@ -68,10 +75,19 @@ def test_trained_weights_serve_infer_convert_and_init(jobs, tmp_path, capsys):
   model_cfg = sav_jax.SAVConfig.from_dict(dict(tiny_config().model))
   assert config["model"] == model_cfg.to_dict()
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(variables["params"]), want)
-  _, cfg, described = load_checkpoint(step_dir / ".." / str(LEARN_STEPS))  # sav-jax infer, eval
+  # A toy run's frozen depth prior is random (configs/synthetic.py): said with its weights,
+  # and wherever they are used (a fine-tuning from them kept it silently).
+  assert config["depth_prior"] == "random (config.random_depth_prior=true: a toy run)"
+  with caplog.at_level(logging.WARNING):
+    _, cfg, described = load_checkpoint(step_dir / ".." / str(LEARN_STEPS))  # sav-jax infer, eval
   assert cfg.remat == model_cfg.remat and "training checkpoint" in described
+  assert (f"{step_dir / '..' / str(LEARN_STEPS)}: its frozen depth prior is random (config.random_depth_prior=true: a "
+          "toy run), not Video Depth Anything's weights") in caplog.text
   # Export to the official layout, and to a compact variables directory.
-  assert cli.main(["convert", str(workdir), str(tmp_path / "trained.npz")]) == 0
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):
+    assert cli.main(["convert", str(workdir), str(tmp_path / "trained.npz")]) == 0
+  assert f"{tmp_path / 'trained.npz'} will not record it" in caplog.text
   back = convert.params_from_state_dict(convert.load_state_dict(tmp_path / "trained.npz"))
   jax.tree.map(np.testing.assert_array_equal, back["params"], want)
   assert cli.main(["convert", str(step_dir), str(tmp_path / "trained")]) == 0
@@ -79,10 +95,21 @@ def test_trained_weights_serve_infer_convert_and_init(jobs, tmp_path, capsys):
   compact, compact_config = convert.restore_variables(tmp_path / "trained")
   assert convert.is_variables_checkpoint(tmp_path / "trained")
   assert compact_config["model"] == config["model"]
+  assert compact_config["depth_prior"] == config["depth_prior"]  # carried by convert
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(compact["params"]), want)
   from train import checkpoint as ckpt_lib  # pylint: disable=import-outside-toplevel
-  init = ckpt_lib.load_model_params(workdir, model_cfg)  # --config.init_from=WORKDIR
+  saved = {}
+  init = ckpt_lib.load_model_params(workdir, model_cfg, saved)  # --config.init_from=WORKDIR
   jax.tree.map(np.testing.assert_array_equal, init, want)
+  # A run from these weights inherits the prior's origin (and `setup` warns about it),
+  # unless it brings Video Depth Anything's weights.
+  tuned = tiny_config()
+  tuned.random_depth_prior, tuned.init_from = False, str(workdir)
+  assert ckpt_lib.depth_prior_origin(tuned, saved) == config["depth_prior"]
+  assert convert.random_prior_note(saved, "w").startswith("w: its frozen depth prior is random")
+  tuned.vda_weights = "vda.pth"
+  assert ckpt_lib.depth_prior_origin(tuned, saved) == "Video Depth Anything weights vda.pth"
+  assert convert.random_prior_note({"depth_prior": "the weights of sav.pth"}, "w") is None
 
 
 @pytest.mark.train_job("kill_resume")
