@@ -425,7 +425,7 @@ def _compile(key, build, check_memory: bool):
             if jax.config.jax_compilation_cache_dir else "")
   what = {"frames": "per-frame features", "window": "refinement of a window"}.get(kind, kind)
   its = "" if kind == "frames" else f"iters={iters}, "  # the per-frame part runs no iterations
-  log.info("compiling the model (%s) for %d frames of %dx%d (%s%s)%s", what, *shape, its,
+  log.info("compiling the model (%s) for %d frames padded to %dx%d (%s%s)%s", what, *shape, its,
            cfg.dtype, cached)
   global _compile_seconds
   start = time.perf_counter()

@@ -164,6 +164,9 @@ def main(argv):
   jax.config.update("jax_transfer_guard", "disallow")
   logging.getLogger().setLevel(logging.INFO)
   logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every save at INFO
+  # JAX's INFO lines ("Unable to initialize backend 'tpu'", the cache's "Resetting cache")
+  # are noise in a training log.
+  logging.getLogger("jax").setLevel(logging.WARNING)
   from train import loop  # pylint: disable=g-import-not-at-top
   try:
     parts = loop.setup(config, _WORKDIR.value)

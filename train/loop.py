@@ -620,7 +620,8 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
           scores = evaluator(state.params)
           writer.write(step, scores, split="val")
           if jax.process_index() == 0:
-            log.info("step %d validation (%s): %s", step, evaluator.described,
+            log.info("step %d validation (%s): %s", step,
+                     getattr(evaluator, "described", "held-out clips"),
                      ", ".join(f"{k} {float(v):.4g}" for k, v in scores.items()))
         if stop:
           break

@@ -78,6 +78,14 @@ SCHEDULE_FIELDS = ("schedule", "schedule_steps", "lr", "pct_start", "div_factor"
                    "final_div_factor")
 
 
+def _distinct(value: float, other: float) -> str:
+  """`value` with the fewest significant digits (3 at least) that tell it from `other`."""
+  for digits in range(3, 10):
+    if f"{value:.{digits}g}" != f"{other:.{digits}g}":
+      return f"{value:.{digits}g}"
+  return repr(value)
+
+
 def schedule_change_note(opt_cfg, num_steps: int, step: int, saved: dict) -> str | None:
   """A warning for a resume at `step` whose schedule changed: `train.num_steps` or one of
   `SCHEDULE_FIELDS` differs from the saved run's (`saved`: its `"a.b": value` fields), so
@@ -108,7 +116,7 @@ def schedule_change_note(opt_cfg, num_steps: int, step: int, saved: dict) -> str
   keep = (len(changed) == 1 and saved_steps != num_steps and old.schedule == "one_cycle"
           and old.schedule_steps <= 0)
   return (f"{', '.join(changed)}: the learning-rate schedule changes, the rate at step {step} "
-          f"goes from {before:.3g} to {after:.3g}"
+          f"goes from {_distinct(before, after)} to {_distinct(after, before)}"
           + (f"; to keep the earlier cycle (and then its final rate), pass "
              f"--config.optimizer.schedule_steps={saved_steps + 100}" if keep else ""))
 

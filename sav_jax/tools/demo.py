@@ -62,6 +62,9 @@ def check_sgbm_args(max_disparity, block_size, prefix: str = "") -> None:
     raise ValueError(f"{prefix}max_disparity must be a finite number >= 1, got {max_disparity!r}")
 
 
+_SGBM_CUTS: set = set()  # the (max disparity, width) pairs already warned about
+
+
 def stereo_sgbm(left: np.ndarray, right: np.ndarray, max_disparity: float = 128.0,
                 block_size: int = 5) -> np.ndarray:
   """OpenCV semi-global matching per frame, holes filled from the background.
@@ -83,8 +86,10 @@ def stereo_sgbm(left: np.ndarray, right: np.ndarray, max_disparity: float = 128.
     if width <= 16:
       raise ValueError(f"StereoSGBM needs frames wider than 16 px, got width {width}")
     num = (width - 1) // 16 * 16
-    log.warning("StereoSGBM: max disparity %s cut to %d for %d-px-wide frames", max_disparity,
-                num, width)
+    if (max_disparity, width) not in _SGBM_CUTS:  # once per size (eval: every sequence)
+      _SGBM_CUTS.add((max_disparity, width))
+      log.warning("StereoSGBM: max disparity %s cut to %d for %d-px-wide frames", max_disparity,
+                  num, width)
   sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num, blockSize=block_size,
                                P1=8 * 3 * block_size ** 2, P2=32 * 3 * block_size ** 2,
                                disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=100,

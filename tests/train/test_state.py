@@ -305,6 +305,9 @@ def test_extending_a_one_cycle_run_names_the_learning_rate_jump():
   c.optimizer.schedule_steps = 0
   assert optim.schedule_change_note(c.optimizer, 800, 800, saved) is None  # nothing changed
   assert optim.schedule_change_note(c.optimizer, 1000, 800, {}) is None  # older checkpoint
+  # Rates that agree to 3 digits get the digits that tell them apart ("9.62e-05 to 9.62e-05").
+  assert (optim._distinct(9.6201e-05, 9.6249e-05), optim._distinct(9.6249e-05, 9.6201e-05),  # pylint: disable=protected-access
+          optim._distinct(0.5, 0.25)) == ("9.62e-05", "9.625e-05", "0.5")  # pylint: disable=protected-access
   # Another optimizer.lr too: "before" is the saved run's rate, not the new lr's.
   c.optimizer.lr = 1e-3
   note = optim.schedule_change_note(c.optimizer, 1000, 800, saved)
