@@ -165,8 +165,9 @@ def main(argv):
   logging.getLogger().setLevel(logging.INFO)
   logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every save at INFO
   # JAX's INFO lines ("Unable to initialize backend 'tpu'", the cache's "Resetting cache")
-  # are noise in a training log.
-  logging.getLogger("jax").setLevel(logging.WARNING)
+  # are noise in a training log, unless JAX_LOGGING_LEVEL asks for them.
+  if jax.config.jax_logging_level in (None, "", "NOTSET"):
+    logging.getLogger("jax").setLevel(logging.WARNING)
   from train import loop  # pylint: disable=g-import-not-at-top
   try:
     parts = loop.setup(config, _WORKDIR.value)

@@ -163,15 +163,37 @@ def depth_prior_origin(config, saved: dict | None = None) -> str:
     config: the training config.
     saved: the config saved with `config.init_from`'s weights (`load_model_params`), if any.
   """
-  if config.vda_weights:
-    return f"Video Depth Anything weights {config.vda_weights}"
-  if config.init_from:
-    inherited = (saved or {}).get("depth_prior")
-    return inherited if isinstance(inherited, str) and inherited else (
-        f"the weights of {config.init_from}")
-  if config.random_depth_prior:
+  return _origin(config.vda_weights, config.init_from, config.random_depth_prior, saved)
+
+
+_UNKNOWN_PRIOR = "unknown (saved before depth_prior was recorded)"
+
+
+def _origin(vda_weights: str, init_from: str, random_prior: bool, saved: dict | None) -> str:
+  if vda_weights:
+    return f"Video Depth Anything weights {vda_weights}"
+  if init_from:
+    inherited = saved_depth_prior(saved) if saved else _UNKNOWN_PRIOR
+    if inherited == _UNKNOWN_PRIOR:  # an official file, or weights saved without the entry
+      return f"the weights of {init_from}"
+    return f"{inherited} (via config.init_from={init_from})"
+  if random_prior:
     return f"{sav_jax.convert.RANDOM_PRIOR} (config.random_depth_prior=true: a toy run)"
   return f"{sav_jax.convert.RANDOM_PRIOR} (no config.vda_weights or config.init_from)"
+
+
+def saved_depth_prior(saved: dict) -> str:
+  """The `depth_prior` a checkpoint's saved config records; for a checkpoint saved before
+  the entry existed, what its saved training config says (one `init_from` level), else
+  "unknown (...)" (never "random": resuming such a run needs neither weights field)."""
+  origin = saved.get("depth_prior") if isinstance(saved, dict) else None
+  if isinstance(origin, str) and origin:
+    return origin
+  run = saved.get("run") if isinstance(saved, dict) else None
+  if isinstance(run, dict) and {"vda_weights", "init_from", "random_depth_prior"} <= set(run):
+    return _origin(run["vda_weights"] or "", run["init_from"] or "",
+                   bool(run["random_depth_prior"]), None)
+  return _UNKNOWN_PRIOR
 
 
 def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step: int,

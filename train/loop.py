@@ -506,8 +506,8 @@ def setup(config, workdir):
     state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it,
                                              abstract_params, weights, data_clips)
     if source == "checkpoint":  # the prior the resumed weights hold, as their first run said
-      depth_prior = ckpt_lib.saved_config(manager, manager.latest_step()).get(
-          "depth_prior", depth_prior)
+      depth_prior = ckpt_lib.saved_depth_prior(
+          ckpt_lib.saved_config(manager, manager.latest_step()))
   except BaseException:
     lock.release()
     raise
@@ -585,11 +585,11 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
   with Preemption(manager) as preemption:
     try:
       if evaluator is not None and start == 0 and config.eval.at_start:
-        writer.write(0, evaluator(state.params), split="val")
+        _validate(evaluator, state.params, writer, 0)
       elif evaluator is not None and _validation_missing(config, writer, start):
         log.info("validating step %d first: the run that saved its checkpoint ended before its "
                  "validation was logged", start)
-        writer.write(start, evaluator(state.params), split="val")
+        _validate(evaluator, state.params, writer, start)
       pending = None
       for step in range(start + 1, total + 1):
         with jax.profiler.StepTraceAnnotation("train", step_num=step):
@@ -617,18 +617,14 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
           if stop:  # written before anything else: the scheduler's grace period is short
             ckpt_lib.wait_until_saved(manager)
         if eval_now:  # (after a notice too: a resumed run starts after this step)
-          scores = evaluator(state.params)
-          writer.write(step, scores, split="val")
-          if jax.process_index() == 0:
-            log.info("step %d validation (%s): %s", step,
-                     getattr(evaluator, "described", "held-out clips"),
-                     ", ".join(f"{k} {float(v):.4g}" for k, v in scores.items()))
+          _validate(evaluator, state.params, writer, step)
         if stop:
           break
       if pending is not None:
         host(*pending)
     finally:
       ckpt_lib.wait_until_saved(manager)
+      latest = manager.latest_step()  # the last step's, unless its save was refused (NaN)
       manager.close()
       progress.close()
       writer.close()
@@ -636,10 +632,20 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
     raise Preempted(f"stopped at step {step} of {total} ({stop}), with a checkpoint of that "
                     "step: run the same command again to resume")
   if start < total and jax.process_index() == 0:
-    log.info("done: step %d of %d; its checkpoint: %s (the weights for sav-jax infer, "
+    log.info("done: step %d of %d; the latest checkpoint: %s (the weights for sav-jax infer, "
              "python -m eval and config.init_from: %s)", total, total,
-             workdir / "checkpoints" / str(total), workdir)
+             workdir / "checkpoints" / str(latest), workdir)
   return state
+
+
+def _validate(evaluator, params, writer: MetricWriter, step: int) -> None:
+  """Validates `params` at `step`: the scores to the metric log, and a line to the log."""
+  scores = evaluator(params)
+  writer.write(step, scores, split="val")
+  if jax.process_index() == 0:
+    log.info("step %d validation (%s): %s", step,
+             getattr(evaluator, "described", "held-out clips"),
+             ", ".join(f"{k} {float(v):.4g}" for k, v in scores.items()))
 
 
 def _validation_missing(config, writer: MetricWriter, start: int) -> bool:

@@ -1610,3 +1610,25 @@ def test_a_batch_the_pipeline_cannot_make_is_one_error_naming_the_step():
   with pytest.raises(loop.DataError, match=r"\(no checkpoint yet\)$"):
     loop._next_batch(Failing(), 1, Manager(None))  # pylint: disable=protected-access
   assert loop._next_batch(iter([{"x": 1}]), 1, Manager(None)) == {"x": 1}  # pylint: disable=protected-access
+
+
+def test_the_depth_prior_of_checkpoints_saved_before_it_was_recorded():
+  """A checkpoint without `depth_prior` (older code): its saved training config tells where
+  the prior came from; without that either it is unknown, never called random (resuming such
+  a run needs neither weights field, so the current config cannot tell)."""
+  import sav_jax  # pylint: disable=g-import-not-at-top
+  run = {"vda_weights": "vda.pth", "init_from": "", "random_depth_prior": False}
+  assert ckpt_lib.saved_depth_prior({"run": run}) == "Video Depth Anything weights vda.pth"
+  toy = {"run": {**run, "vda_weights": "", "random_depth_prior": True}}
+  assert ckpt_lib.saved_depth_prior(toy).startswith("random (config.random_depth_prior=true")
+  for old in ({}, {"run": {}}, None, {"depth_prior": 3}):
+    origin = ckpt_lib.saved_depth_prior(old)
+    assert origin.startswith("unknown") and sav_jax.convert.random_prior_note(
+        {"depth_prior": origin}, "w") is None
+  # A run from such weights: an official file (nothing saved) or an old toy run.
+  c = synthetic.get_config()
+  c.random_depth_prior, c.init_from = False, "sav.pth"
+  assert ckpt_lib.depth_prior_origin(c, {}) == "the weights of sav.pth"
+  c.init_from = "runs/toy"
+  assert ckpt_lib.depth_prior_origin(c, toy) == (
+      "random (config.random_depth_prior=true: a toy run) (via config.init_from=runs/toy)")

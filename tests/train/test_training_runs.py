@@ -55,7 +55,7 @@ def test_synthetic_training_lowers_validation_epe(jobs):
   # The console says each validation's scores and where the final weights are.
   assert (f"step {LEARN_STEPS} validation (" in log_text
           and f"epe {val[LEARN_STEPS]['epe']:.4g}, tepe {val[LEARN_STEPS]['tepe']:.4g}" in log_text)
-  assert (f"done: step {LEARN_STEPS} of {LEARN_STEPS}; its checkpoint: "
+  assert (f"done: step {LEARN_STEPS} of {LEARN_STEPS}; the latest checkpoint: "
           f"{workdir / 'checkpoints' / str(LEARN_STEPS)}") in log_text
   assert list(jobs.cache.glob("jit_train_step-*")) and list(jobs.cache.glob("jit_predict-*"))
 
@@ -105,7 +105,8 @@ def test_trained_weights_serve_infer_convert_and_init(jobs, tmp_path, capsys, ca
   # unless it brings Video Depth Anything's weights.
   tuned = tiny_config()
   tuned.random_depth_prior, tuned.init_from = False, str(workdir)
-  assert ckpt_lib.depth_prior_origin(tuned, saved) == config["depth_prior"]
+  assert ckpt_lib.depth_prior_origin(tuned, saved) == (
+      f"{config['depth_prior']} (via config.init_from={workdir})")
   assert convert.random_prior_note(saved, "w").startswith("w: its frozen depth prior is random")
   tuned.vda_weights = "vda.pth"
   assert ckpt_lib.depth_prior_origin(tuned, saved) == "Video Depth Anything weights vda.pth"
