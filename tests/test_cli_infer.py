@@ -339,12 +339,16 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   assert summary["frames"] == n and summary["max_depth"] == 0.5
   saturated = 4 * 16 * 24  # frames 21..24: 264..300 px
   assert summary["png16_saturated_pixels"] == saturated
+  # 24 px and more on 24-px-wide frames (frames 1..24): no pixel can match that far.
+  assert summary["disparities_beyond_width"] == 24 * 16 * 24
   video = np.broadcast_to(12.0 * np.arange(1, n + 1)[:, None, None], (n, 16, 24))
   lo, hi = viz.disparity_range(video, percentiles=(1.0, 99.0))
   assert summary["video_disparity_range"] == [round(lo, 4), round(hi, 4)]
   printed = capsys.readouterr().out
   assert f"side-by-side video colours: {lo:.2f} px (dark) to {hi:.2f} px (bright)" in printed
   assert f"warning: {saturated} disparities above 255.996 px were stored as 255.996" in printed
+  assert (f"warning: {24 * 16 * 24} disparities (96.0% of the pixels) are at least the frame "
+          "width (24 px), where no pixel has a match") in printed
   # Again with --overwrite, 10 frames, .npy only, no calibration: the earlier run's files that
   # this run does not replace (png16, frames 10-24, depth, point clouds) are deleted, so that
   # the folder holds one run's outputs; a file the earlier summary does not list is kept.

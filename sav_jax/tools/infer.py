@@ -313,6 +313,12 @@ def run(args: argparse.Namespace) -> int:
     print(f"warning: {written['png16_saturated_pixels']} disparities above "
           f"{viz.PNG16_MAX_DISPARITY:.3f} px were stored as {viz.PNG16_MAX_DISPARITY:.3f} in the "
           "16-bit PNGs (the format's largest value); use --format npy, pfm or exr for them")
+  if written["disparities_beyond_width"]:
+    share = written["disparities_beyond_width"] / (t * h * w)
+    print(f"warning: {written['disparities_beyond_width']} disparities ({share:.1%} of the "
+          f"pixels) are at least the frame width ({w} px), where no pixel has a match: "
+          "weights that are not trained (or not for this data), swapped --left and --right, "
+          "or too few --iters?")
   print(f"{frames} in {seconds:.1f} s ({t / seconds:.2f} frames/s, writing included; "
         f"{compiling:.1f} s of it compiling); outputs in {out}")
   return 0
@@ -366,7 +372,7 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
     (out / "depth").mkdir(exist_ok=True)
     (out / "pointclouds").mkdir(exist_ok=True)
   h, w = left.shape[1:3]
-  saturated = 0
+  saturated = beyond = 0
   max_depth = getattr(args, "max_depth", None)
   with tempfile.TemporaryFile(dir=out, prefix=".disparity_", suffix=".tmp") as held:
     disp = np.memmap(held, np.float32, "w+", shape=(len(names), h, w))
@@ -375,6 +381,7 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
       for k, d in enumerate(chunk):
         i, name = t0 + k, names[t0 + k]
         disp[i] = d
+        beyond += int(np.count_nonzero(d >= w))  # no pixel of the frame can match that far
         for fmt in formats:
           saturated += video_io.write_map(video_io.disparity_path(out / "disparity", name, fmt),
                                           d, fmt)
@@ -397,7 +404,7 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
     viz.write_video(out / "side_by_side.mp4", video_frames(), fps=args.fps)
     del disp
   return {"video_disparity_range": [round(float(vmin), 4), round(float(vmax), 4)],
-          "png16_saturated_pixels": saturated}
+          "png16_saturated_pixels": saturated, "disparities_beyond_width": beyond}
 
 
 class Calibration(NamedTuple):
