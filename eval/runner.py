@@ -110,6 +110,9 @@ def gt_notes(name: str, valid) -> list[str]:
   if len(valid) == 1:
     return [f"sequence {name} has one frame: TEPE and δt are 0 (no frame pair) by the "
             "official rule, and its frame counts in the aggregate"]
+  if metrics.no_valid_pair(valid):
+    return [f"sequence {name}: no pixel is valid in two consecutive frames: TEPE and δt are 0 "
+            "(nothing measured) by the official rule"]
   return []
 
 

@@ -696,8 +696,9 @@ def _unused_inputs(scale, video, flows, depth_flows, flow_fn, names) -> str | No
 
 
 def _not_measured(m: np.ndarray, mask_name: str, res: Mapping[str, float]) -> str | None:
-  """The `NotMeasuredWarning` for a mask without a valid pixel or one frame, or None; `res`:
-  the metrics computed (the depth metrics' values are named where present)."""
+  """The `NotMeasuredWarning` for a mask without a valid pixel, one frame, or no pixel valid
+  in two consecutive frames (TEPE's pairs), or None; `res`: the metrics computed (the depth
+  metrics' values are named where present)."""
   if not np.any(m > _F32(0.5)):  # the metrics' mask threshold
     scores = ["EPE, TEPE and their bad-pixel rates 0 (perfect)"]
     scores += [text for key, text in (("disp_TCC", "TCC 1 (perfect)"), ("disp_TCM", "TCM 0"),
@@ -708,7 +709,18 @@ def _not_measured(m: np.ndarray, mask_name: str, res: Mapping[str, float]) -> st
   if m.shape[0] == 1:
     return ("one frame (T=1), no frame pair: the official rule scores TEPE and its bad-pixel "
             "rates (δt) 0, though nothing was measured; the official numbers are returned")
+  if no_valid_pair(m):
+    return (f"{mask_name} has no pixel valid in two consecutive frames (TEPE's pairs): the "
+            "official rule scores TEPE and its bad-pixel rates (δt) 0, though nothing was "
+            "measured; the official numbers are returned")
   return None
+
+
+def no_valid_pair(mask) -> bool:
+  """Whether no pixel of `[T, H, W]` `mask` is valid (> 0.5) in two consecutive frames, so
+  that TEPE (weighted by `mask_t * mask_{t+1}`) measures nothing (T >= 2)."""
+  m = np.asarray(mask) > 0.5
+  return m.shape[0] >= 2 and not np.any(m[:-1] & m[1:])
 
 
 def _eval_batch(pred, gt, mask, scale, video, flows, depth_flows, flow_fn,

@@ -911,6 +911,12 @@ def test_sequences_whose_scores_are_not_measurements_are_noted(tmp_path, monkeyp
                                       config=config)
   assert res.metrics["sav"]["disp_temp_epe_mean"] == 0 and len(res.notes) == 1
   assert "has one frame: TEPE and δt are 0" in res.notes[0]
+  alternate = dict(clip, valid=clip["valid"].copy())
+  alternate["valid"][1::2] = False  # valid pixels in every other frame: no TEPE pair
+  assert eval_runner.gt_notes("s", alternate["valid"]) == [
+      "sequence s: no pixel is valid in two consecutive frames: TEPE and δt are 0 (nothing "
+      "measured) by the official rule"]
+  assert eval_runner.gt_notes("s", clip["valid"]) == []
   monkeypatch.setattr(eval_runner.eval_data, "read_sequence", lambda s: clip)
   fake["pred"] = clip["disparity"].copy()
   fake["pred"][1, 0, 0] = np.nan

@@ -580,7 +580,15 @@ def test_scores_that_measure_nothing_warn_and_keep_the_official_numbers():
     warnings.simplefilter("ignore", M.NotMeasuredWarning)
     M.eval_sequence(pred, gt, np.zeros_like(valid), flows, **full)
     M.eval_sequence(pred[:1], gt[:1], valid[:1])
-  valid[1:] = 0  # a valid pixel in one frame of several: measured, no warning
+  # Valid pixels in no two consecutive frames: TEPE measures nothing.
+  alternate = valid.copy()
+  alternate[1::2] = 0
+  with pytest.warns(M.NotMeasuredWarning, match=r"^valid has no pixel valid in two consecutive "
+                                                r"frames \(TEPE's pairs\): the official rule "
+                                                r"scores TEPE and its bad-pixel rates \(δt\) 0"):
+    res = M.eval_sequence(pred, gt, alternate)
+  assert res["disp_temp_epe_mean"] == 0.0 and res["disp_epe_mean"] > 0
+  valid[2:] = 0  # frames 0 and 1 valid: measured, no warning
   _no_warning(M.eval_sequence, pred, gt, valid, flows, **full)
 
 
