@@ -52,20 +52,23 @@ class Evaluator:
                       f"{'/'.join(map(str, frames))} frames), {ev.iters} iterations")
     log.info("validation: %s", self.described)
 
-  def _local(self, array: np.ndarray) -> np.ndarray:
-    per = array.shape[0] // jax.process_count()
-    start = jax.process_index() * per
-    return array[start:start + per]
+  def _global(self, array: np.ndarray) -> jax.Array:
+    """The whole batch (every process holds it) as a global array: each device gets its
+    rows by its place in the sharding, whatever the processes' device order (a TPU pod's
+    hosts hold non-contiguous device ids; taking rows by process index placed other clips
+    than those scored against, silently)."""
+    with jax.transfer_guard_host_to_device("allow"):  # the intended copy, as to_global's
+      return jax.make_array_from_callback(array.shape, self.sharding, lambda i: array[i])
 
   def predictions(self, params) -> list[np.ndarray]:
     """Final disparities `[T, H, W]` of every held-out clip."""
     out = []
     for batch, n in self.batches:
-      left, right = (pipeline.to_global({"x": self._local(batch[k])}, self.sharding)["x"]
-                     for k in ("left", "right"))
+      left, right = self._global(batch["left"]), self._global(batch["right"])
       pred = self.predict(params, left, right)
       if jax.process_count() > 1:
-        pred = multihost_utils.process_allgather(pred, tiled=True)
+        with jax.transfer_guard("allow"):  # its copies are the point (implicit in it)
+          pred = multihost_utils.process_allgather(pred, tiled=True)
       pred = np.asarray(jax.device_get(pred))
       out.extend(pred[:n])
     return out

@@ -657,7 +657,8 @@ def _validation_missing(config, writer: MetricWriter, start: int) -> bool:
   if not due:
     return False
   missing = np.asarray(not writer.logged(start, "val"))
-  return bool(multihost_utils.broadcast_one_to_all(missing))
+  with jax.transfer_guard("allow"):  # several processes: it places `missing` on a device
+    return bool(multihost_utils.broadcast_one_to_all(missing))
 
 
 class Preempted(RuntimeError):

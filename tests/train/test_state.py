@@ -1632,3 +1632,29 @@ def test_the_depth_prior_of_checkpoints_saved_before_it_was_recorded():
   c.init_from = "runs/toy"
   assert ckpt_lib.depth_prior_origin(c, toy) == (
       "random (config.random_depth_prior=true: a toy run) (via config.init_from=runs/toy)")
+
+
+def test_the_catch_up_validation_check_places_its_flag_under_the_transfer_guard(monkeypatch):
+  """On several processes `broadcast_one_to_all` puts the flag on a device: an implicit
+  host-to-device copy, which `python -m train`'s transfer guard refused (a resumed
+  multi-host run at a validation step crashed)."""
+  from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+
+  def broadcast(x):  # what it does with several processes: a device copy of `x`
+    return np.asarray(jax.device_get(jnp.asarray(x) | False))
+
+  monkeypatch.setattr(multihost_utils, "broadcast_one_to_all", broadcast)
+  c = synthetic.get_config()
+  c.eval.every_steps, c.train.num_steps = 5, 20
+  logged = types.SimpleNamespace(logged=lambda step, split: step == 5)
+  before = jax.config.jax_transfer_guard_host_to_device
+  jax.config.update("jax_transfer_guard_host_to_device", "disallow")
+  try:
+    with pytest.raises(Exception, match="Disallowed host-to-device transfer"):
+      broadcast(np.asarray(True))  # the guard is on
+    assert loop._validation_missing(c, logged, 10) is True  # pylint: disable=protected-access
+    assert loop._validation_missing(c, logged, 5) is False  # pylint: disable=protected-access
+    assert loop._validation_missing(c, logged, 7) is False  # pylint: disable=protected-access
+  finally:
+    jax.config.update("jax_transfer_guard_host_to_device", before)
