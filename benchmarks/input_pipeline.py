@@ -39,8 +39,7 @@ import cv2  # noqa: E402  pylint: disable=wrong-import-position
 import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 
 from configs import sceneflow  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.data import frame_io, registry  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.data.pipeline import Augment  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.data import frame_io, pipeline  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.data.synthetic import SyntheticConfig, generate_clip  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.tools.bench import json_output_problem, peak_rss_gb  # noqa: E402  pylint: disable=wrong-import-position
 from train import input as input_lib  # noqa: E402  pylint: disable=wrong-import-position
@@ -89,9 +88,9 @@ def training_config(a, root: str, dataset: str):
 
 def per_clip(config, clips: int) -> dict:
   """Median read and augment seconds per clip, one thread, over `clips` training clips."""
-  items = registry.get_training_clips(config.data.sources.sceneflow.dataset, config.data.root,
-                                      config.data.frames, seed=config.seed)
-  augment = Augment(tuple(config.data.crop), input_lib.augment_overrides(config))
+  items = pipeline.registry_clips(config.data.sources.sceneflow.dataset, config.data.root,
+                                  config.data.frames, seed=config.seed)
+  augment = pipeline.Augment(tuple(config.data.crop), input_lib.augment_overrides(config))
   rng = np.random.default_rng(0)
   augment(items[0].sequence.gather(list(items[0].indices)), rng)  # PIL's HSV tables: once
   read_s, augment_s = [], []

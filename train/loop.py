@@ -80,7 +80,7 @@ def initial_weights(config, abstract_params, saved: dict | None = None):
 
 
 def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_params=None,
-                  weights=None, data_clips=None):
+                  weights=None, data_clips=None, resumed: dict | None = None):
   """Resume order: latest checkpoint > `init_from`/`vda_weights` > the official init.
 
   From scratch, a `StereoAnyVideo` starts from `init_variables(cfg, config.seed)` (PyTorch's
@@ -95,6 +95,8 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     weights: `initial_weights(config, ...)` if already loaded (not used on resume).
     data_clips: this run's training clips (`input.train_dataset`'s `clips`): a resume whose
       clips differ from the checkpoint's is warned about.
+    resumed: a dict to fill with the config saved with the checkpoint a resume restores
+      (`ckpt_lib.saved_config`: read once).
 
   Returns:
     `(state, shardings, source)` with source "checkpoint", "weights" or "scratch".
@@ -107,6 +109,8 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     step = manager.latest_step()
     log.info("resuming from checkpoint %d", step)
     stored = ckpt_lib.saved_config(manager, step)  # read once ({} for older checkpoints)
+    if resumed is not None:
+      resumed.update(stored)
     saved = ckpt_lib.saved_entry(stored, "run")
     ckpt_lib.check_data_state(manager, step, config, saved)
     ckpt_lib.check_keep(manager, config, saved)
@@ -503,11 +507,11 @@ def setup(config, workdir):
   lock = lock_workdir(workdir)
   try:
     manager = ckpt_lib.make_manager(workdir, config)
+    resumed = {}
     state, shardings, source = initial_state(config, model, tx, mesh, manager, grain_it,
-                                             abstract_params, weights, data_clips)
+                                             abstract_params, weights, data_clips, resumed)
     if source == "checkpoint":  # the prior the resumed weights hold, as their first run said
-      depth_prior = ckpt_lib.saved_depth_prior(
-          ckpt_lib.saved_config(manager, manager.latest_step()))
+      depth_prior = ckpt_lib.saved_depth_prior(resumed)
   except BaseException:
     lock.release()
     raise
