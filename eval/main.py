@@ -76,6 +76,15 @@ def main(argv: list[str] | None = None) -> int:
   except MemoryError as e:  # numpy's: sizes far beyond this machine's memory
     print(f"eval: error: out of host memory: {e}", file=sys.stderr)
     return 2
+  except Exception as e:  # pylint: disable=broad-except  # XLA's, compiling or running
+    oom = runtime.out_of_memory(e)
+    if oom is None:
+      raise
+    print(f"eval: error: out of memory on the device: {oom}; use fewer frames per window "
+          "(--config.window, --config.stride), fewer --config.iters or --config.dtype=bfloat16; "
+          + ("the earlier results in the output folder were put back" if args.overwrite else
+             "the sequences it finished are recorded: --resume continues"), file=sys.stderr)
+    return 2
   except KeyboardInterrupt:  # Ctrl-C at the command line: one line (the run can be resumed)
     if not command_line:
       raise

@@ -20,6 +20,15 @@ COMMANDS = {
 _PATH_ARGS = ("left", "right", "checkpoint", "calib", "out", "src", "dst", "json", "compare",
               "compile_cache")
 
+# What to change when a device runs out of memory (`runtime.out_of_memory`), per command.
+_OUT_OF_MEMORY_HINTS = {
+    "infer": "use fewer frames per window (--window, --stride), --resize HxW, fewer --iters, "
+             "--dtype bfloat16 or a device with more memory",
+    "demo": "use fewer --frames, smaller --height/--width, fewer --iters or --dtype bfloat16",
+    "bench": "use a smaller --batch, fewer --frames, smaller --height/--width, fewer --iters "
+             "or --dtype bfloat16",
+}
+
 
 def build_parser() -> argparse.ArgumentParser:
   parser = argparse.ArgumentParser(
@@ -63,6 +72,14 @@ def main(argv: list[str] | None = None) -> int:
   except MemoryError as e:  # numpy's: sizes far beyond this machine's memory
     print(f"sav-jax {args.command}: error: out of host memory: {e} (use smaller frames, fewer "
           "frames or a smaller batch)", file=sys.stderr)
+    return 2
+  except Exception as e:  # pylint: disable=broad-except  # XLA's, compiling or running
+    oom = runtime.out_of_memory(e)
+    if oom is None:
+      raise
+    hint = _OUT_OF_MEMORY_HINTS.get(args.command, "use smaller inputs")
+    print(f"sav-jax {args.command}: error: out of memory on the device: {oom}; {hint}",
+          file=sys.stderr)
     return 2
   except KeyboardInterrupt:  # Ctrl-C at the command line: one line, not a traceback (called
     if argv is not None:     # from Python with arguments, the caller gets the interrupt)

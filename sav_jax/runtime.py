@@ -211,6 +211,24 @@ def preserved_settings():
       _set_cache_dir(folder)
 
 
+def out_of_memory(error: BaseException) -> str | None:
+  """XLA's report that a device ran out of memory while compiling or running (an
+  accelerator's, or the host's on CPU: `RESOURCE_EXHAUSTED`), as one line; None for any
+  other error.
+
+  The commands print it with what to change instead of the runtime's traceback and its
+  buffer tables (hundreds of lines on a GPU). The line is cut at 300 characters.
+  """
+  import jax  # pylint: disable=import-outside-toplevel
+  if not isinstance(error, jax.errors.JaxRuntimeError):
+    return None
+  lines = [line.strip() for line in str(error).splitlines() if "RESOURCE_EXHAUSTED" in line]
+  if not lines:
+    return None
+  line = lines[0]
+  return line if len(line) <= 300 else line[:297] + "..."
+
+
 @functools.cache
 def _accepts_options(platform: str, options: tuple) -> bool:
   """Whether this jaxlib compiles a trivial program with `options` on `platform`."""

@@ -918,14 +918,33 @@ def test_matmul_precision_covers_every_window_and_is_recorded(tmp_path, folders,
   assert str(jax.config.jax_default_matmul_precision) == "None"  # put back after the run
 
 
+# XLA's report of a device out of memory, as a GPU prints it (shortened).
+XLA_OUT_OF_MEMORY = """RESOURCE_EXHAUSTED: Out of memory while trying to allocate 41.27GiB.
+BufferAssignment OOM Debugging.
+BufferAssignment stats:
+             parameter allocation:    1.25GiB
+              constant allocation:         0B
+        maybe_live_out allocation:   70.31MiB
+     preallocated temp allocation:   41.27GiB
+                 total allocation:   42.59GiB
+Peak buffers:
+\tBuffer 1:
+\t\tSize: 5.27GiB
+\t\tOperator: op_name="jit(forward)/update_block/gru/conv"
+"""
+
+
 @pytest.mark.parametrize("raised, rc, message", [
     (MemoryError("Unable to allocate 1.09 TiB for an array"), 2,
      "sav-jax bench: error: out of host memory: Unable to allocate 1.09 TiB"),
-    (KeyboardInterrupt(), 130, "sav-jax bench: interrupted")])
+    (KeyboardInterrupt(), 130, "sav-jax bench: interrupted"),
+    (jax.errors.JaxRuntimeError(XLA_OUT_OF_MEMORY), 2,
+     "sav-jax bench: error: out of memory on the device: RESOURCE_EXHAUSTED: Out of memory "
+     "while trying to allocate 41.27GiB.; use a smaller --batch")])
 def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, rc, message,
                                                    run_command):
-  # Frames far beyond the machine's memory (numpy's MemoryError while building the inputs)
-  # and Ctrl-C gave tracebacks.
+  # Frames far beyond the machine's memory (numpy's MemoryError while building the inputs),
+  # a device out of memory (XLA's error and its buffer tables) and Ctrl-C gave tracebacks.
   from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
 
   def run(args):
@@ -940,3 +959,19 @@ def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, 
   if rc == 130:  # called from Python with arguments, the caller gets the interrupt
     with pytest.raises(KeyboardInterrupt):
       cli.main(argv)
+
+
+def test_other_runtime_errors_keep_their_traceback(monkeypatch):
+  # Only running out of memory is the user's to fix by a smaller input: XLA's other errors are
+  # bugs to report, with their traceback.
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+
+  def run(args):
+    raise jax.errors.JaxRuntimeError("INTERNAL: Failed to launch kernel")
+
+  monkeypatch.setattr(bench, "run", run)
+  with pytest.raises(jax.errors.JaxRuntimeError, match="INTERNAL"):
+    cli.main(["bench"])
+  assert sav_jax.runtime.out_of_memory(RuntimeError("RESOURCE_EXHAUSTED")) is None  # not XLA's
+  long = jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: " + "x" * 400)
+  assert len(sav_jax.runtime.out_of_memory(long)) == 300

@@ -811,7 +811,11 @@ def test_bad_raft_settings_are_refused_before_predicting(tmp_path, ckpt, sav_sta
 
 @pytest.mark.parametrize("raised, rc, message", [
     (MemoryError("Unable to allocate 64.0 GiB"), 2, "eval: error: out of host memory: Unable"),
-    (KeyboardInterrupt(), 130, "eval: interrupted")])
+    (KeyboardInterrupt(), 130, "eval: interrupted"),
+    (jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate "
+                                "9.1GiB.\nBufferAssignment OOM Debugging.\n"), 2,
+     "eval: error: out of memory on the device: RESOURCE_EXHAUSTED: Out of memory while trying "
+     "to allocate 9.1GiB.; use fewer frames per window")])
 def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, rc, message,
                                                    run_command):
   from eval import main as eval_main  # pylint: disable=import-outside-toplevel

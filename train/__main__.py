@@ -206,21 +206,38 @@ def main(argv):
     # "Exception ignored in ..." (hundreds): the error above says it all.
     sys.unraisablehook = lambda _: None
     sys.exit(1)
+  except Exception as e:  # pylint: disable=broad-except  # XLA's, compiling or running a step
+    from sav_jax import runtime  # pylint: disable=g-import-not-at-top
+    oom = runtime.out_of_memory(e)
+    if oom is None:
+      raise
+    if flags.FLAGS.verbosity >= 1:
+      traceback.print_exc()
+    print(f"train: error: out of memory on the device: {oom}; use "
+          "--config.train.microbatches=K (the same batch as K parts), --config.model.remat=true, "
+          "--config.model.dtype=bfloat16, a smaller --config.train.batch_size or "
+          f"--config.data.crop, or fewer --config.train.iters; {_resume_point()}",
+          file=sys.stderr)
+    sys.exit(1)
 
 
 def _interrupted() -> None:
   """Ctrl-C: one line that says where the run can resume from (not the traceback of where
   the interrupt landed), status 130 = 128 + SIGINT. A save in progress was finished first
   (`loop.interrupt_after`)."""
+  from sav_jax._signals import exit_interrupted  # pylint: disable=g-import-not-at-top
+  exit_interrupted(f"train: interrupted (Ctrl-C); {_resume_point()}")
+
+
+def _resume_point() -> str:
+  """Where the same command would resume the run: the workdir's last checkpoint."""
   from sav_jax.convert import orbax_io  # pylint: disable=g-import-not-at-top
   try:
     latest = orbax_io.find_training_checkpoint(pathlib.Path(_WORKDIR.value) / "checkpoints")
   except OSError:
     latest = None
-  where = (f"the last checkpoint is {latest}: the same command resumes from it" if latest
-           else "no checkpoint was saved: the same command starts the run anew")
-  from sav_jax._signals import exit_interrupted  # pylint: disable=g-import-not-at-top
-  exit_interrupted(f"train: interrupted (Ctrl-C); {where}")
+  return (f"the last checkpoint is {latest}: the same command resumes from it" if latest
+          else "no checkpoint was saved: the same command starts the run anew")
 
 
 if __name__ == "__main__":
