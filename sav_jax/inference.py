@@ -299,7 +299,8 @@ def available_memory_bytes(device=None) -> int | None:
   """Free memory of `device` (default: the first device); None if unknown.
 
   For CPU, the host's available RAM, or less under a container's memory limit
-  (`runtime.cgroup_free_bytes`).
+  (`runtime.cgroup_free_bytes`). An accelerator whose runtime reports no memory
+  statistics: None (its memory is not the host's).
   """
   device = jax.devices()[0] if device is None else device
   stats = None
@@ -309,6 +310,8 @@ def available_memory_bytes(device=None) -> int | None:
     stats = None
   if stats and "bytes_limit" in stats:
     return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+  if device.platform != "cpu":
+    return None
   limits = [runtime.cgroup_free_bytes(), _host_available_bytes()]
   limits = [x for x in limits if x is not None]
   return min(limits) if limits else None

@@ -266,3 +266,24 @@ def test_cpu_memory_check_follows_a_container_limit(monkeypatch):
   assert host > 1 << 20 and inference.available_memory_bytes(cpu) == 1 << 20
   monkeypatch.setattr(runtime, "cgroup_free_bytes", lambda: None)
   assert abs(inference.available_memory_bytes(cpu) - host) < 1 << 30
+
+
+def test_memory_of_an_accelerator_without_statistics_is_unknown_not_the_hosts():
+  # A GPU or TPU whose runtime gives no memory statistics was checked against the host's RAM:
+  # a window refused for the host's 8 GB on a 80 GB device, or let through past 16 GB.
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
+
+  class Device:
+    def __init__(self, platform, stats):
+      self.platform, self.stats = platform, stats
+
+    def memory_stats(self):
+      if isinstance(self.stats, Exception):
+        raise self.stats
+      return self.stats
+
+  for stats in (None, {}, NotImplementedError("memory_stats")):
+    assert inference.available_memory_bytes(Device("gpu", stats)) is None
+    assert inference.available_memory_bytes(Device("cpu", stats)) > 1 << 20  # the host's
+  assert inference.available_memory_bytes(
+      Device("tpu", {"bytes_limit": 16 << 30, "bytes_in_use": 1 << 30})) == 15 << 30
