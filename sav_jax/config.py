@@ -24,14 +24,17 @@ VIT_ATTENTION = ("auto", "blocked", "cudnn")
 
 def resolve_vit_attention(choice: str, dtype) -> str:
   """The implementation `SAVConfig.vit_attention` stands for on JAX's default backend:
-  "auto" is "cudnn" on an NVIDIA (CUDA) GPU backend with bfloat16 compute, else "blocked"
-  (also on AMD GPUs, whose backend JAX calls "gpu" too)."""
+  "auto" is "cudnn" on an NVIDIA (CUDA) GPU backend of compute capability 8.0 or later
+  (Ampere: cuDNN's fused attention kernels need it) with bfloat16 compute, else "blocked"
+  (also on AMD GPUs, whose backend JAX calls "gpu" too, and on a V100 or T4)."""
   if choice != "auto":
     return choice
   import jax  # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
-  return ("cudnn" if jax.default_backend() == "gpu" and _cuda(jax.devices()[0])
-          and jnp.dtype(dtype) == jnp.bfloat16 else "blocked")
+  if jax.default_backend() != "gpu" or jnp.dtype(dtype) != jnp.bfloat16:
+    return "blocked"
+  device = jax.devices()[0]
+  return "cudnn" if _cuda(device) and _ampere_or_later(device) else "blocked"
 
 
 def _cuda(device) -> bool:
@@ -39,6 +42,18 @@ def _cuda(device) -> bool:
   try:
     return "rocm" not in str(device.client.platform_version).lower()
   except AttributeError:  # a client without the field: NVIDIA, JAX's usual GPU backend
+    return True
+
+
+def _ampere_or_later(device) -> bool:
+  """Whether a CUDA device's compute capability (e.g. "9.0") is 8.0 or later; a device
+  without the field (an older jaxlib) is taken to be."""
+  capability = getattr(device, "compute_capability", None)
+  if capability is None:
+    return True
+  try:
+    return int(str(capability).split(".")[0]) >= 8
+  except ValueError:
     return True
 
 # Video Depth Anything encoder variants (DPT head width and per-level channels).
