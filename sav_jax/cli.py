@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import sys
+import warnings
 
 from sav_jax.tools import UsageError, command_logging
 
@@ -48,6 +50,18 @@ def build_parser() -> argparse.ArgumentParser:
   return parser
 
 
+@contextlib.contextmanager
+def one_line_warnings(args):
+  """Python warnings met by the command (e.g. `inference.SwappedViewsWarning`) as one line
+  each, `sav-jax COMMAND: warning: ...`, not as a source file, line and its code."""
+  def show(message, category, filename, lineno, file=None, line=None):
+    print(f"sav-jax {args.command}: warning: {message}", file=sys.stderr if file is None else file)
+
+  with warnings.catch_warnings():
+    warnings.showwarning = show
+    yield
+
+
 def main(argv: list[str] | None = None) -> int:
   """Runs one command; called from Python, it leaves logging and JAX's settings as it found
   them (`sav_jax.runtime.preserved_settings`)."""
@@ -60,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel  # jax: after --help
   try:
-    with command_logging(args.verbose), runtime.preserved_settings():
+    with command_logging(args.verbose), runtime.preserved_settings(), one_line_warnings(args):
       return int(args._run(args) or 0)
   except (UsageError, ValueError, OSError) as e:  # OSError: a disk full, a folder not writable
     hint = ""

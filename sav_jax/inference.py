@@ -937,6 +937,40 @@ def _dispatch_window(variables, left, right, todo, programs, *, pads, cache, sta
   return window(variables, feats)
 
 
+# Swapped views: the model's disparities of a left view are positive (the match lies to the
+# left in the right view); with the views swapped most come out negative, which the official
+# `abs()` hides: the output then looks like a disparity map of the right view, with the left
+# view's occlusions wrong. A window whose kept frames have more than `SWAPPED_SHARE` of their
+# pixels below `-SWAPPED_PX` is warned about, once per call.
+SWAPPED_PX = 1.0
+SWAPPED_SHARE = 0.5
+
+
+class SwappedViewsWarning(UserWarning):
+  """Most disparities came out negative before `abs()`: left and right swapped?"""
+
+
+def negative_share(raw: np.ndarray, px: float = SWAPPED_PX) -> float:
+  """The share of `raw` disparities (before `abs()`) below `-px`."""
+  raw = np.asarray(raw)
+  return float(np.count_nonzero(raw < -px)) / max(raw.size, 1)
+
+
+def _warn_if_swapped(raw: np.ndarray, first: int) -> bool:
+  """Warns (`SwappedViewsWarning`) when frames `first ..` of `raw` look swapped; whether it
+  did."""
+  share = negative_share(raw)
+  if share <= SWAPPED_SHARE:
+    return False
+  warnings.warn(
+      f"frames {first}..{first + len(raw) - 1}: {share:.0%} of the disparities are below "
+      f"-{SWAPPED_PX:g} px before the official abs() (the model's disparities of a left view "
+      "are positive): are the left and right views swapped? (Or the weights not trained for "
+      "this data.) The output is abs() of these values, which hides it",
+      SwappedViewsWarning, stacklevel=caller_stacklevel())
+  return True
+
+
 def _run_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk, progress=False,
               raw_windows=None):
   """Runs the windows of `plan` and stitches `abs()` of their kept frames, `[N', H, W]`."""
@@ -976,10 +1010,16 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
             f"came back with shape {tuple(np.shape(got))}, not {want}")
     return _as_video_pair(lw, rw, win.start)
 
+  warned = False
+
   def kept(win, raw):
+    nonlocal warned
     if raw_windows is not None:
       raw_windows.append(raw)
-    return win.start + win.keep_start, np.abs(unpad(raw, pads)[win.keep_start:win.keep_stop])
+    first = win.start + win.keep_start
+    raw = np.asarray(unpad(raw, pads)[win.keep_start:win.keep_stop])
+    warned = warned or _warn_if_swapped(raw, first)
+    return first, np.abs(raw)
 
   with tqdm(total=total, unit="frame", desc="disparity", disable=not progress) as bar:
     cache = FrameFeatureCache(chunk)
@@ -1089,6 +1129,10 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
   Returns:
     `[T, H, W]` float32 disparity (px, >= 0: the official evaluation's `abs()`) of the left
     view, every frame.
+
+  Warns:
+    SwappedViewsWarning: once, at the first window where most disparities came out below
+      -1 px before `abs()` (`negative_share`): left and right swapped, most likely.
   """
   chunks = iter_predict_video(variables, left, right, cfg=cfg, iters=iters, window=window,
                               stride=stride, dtype=dtype, progress=progress,

@@ -344,8 +344,16 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   video = np.broadcast_to(12.0 * np.arange(1, n + 1)[:, None, None], (n, 16, 24))
   lo, hi = viz.disparity_range(video, percentiles=(1.0, 99.0))
   assert summary["video_disparity_range"] == [round(lo, 4), round(hi, 4)]
-  printed = capsys.readouterr().out
+  captured = capsys.readouterr()
+  printed = captured.out
   assert f"side-by-side video colours: {lo:.2f} px (dark) to {hi:.2f} px (bright)" in printed
+  # The stand-in's raw values are negative, as swapped views give them: one line, once.
+  swapped = [line for line in captured.err.splitlines() if "swapped" in line]
+  assert swapped == [
+      "sav-jax infer: warning: frames 0..14: 100% of the disparities are below -1 px before "
+      "the official abs() (the model's disparities of a left view are positive): are the left "
+      "and right views swapped? (Or the weights not trained for this data.) The output is abs() "
+      "of these values, which hides it"], captured.err
   assert f"warning: {saturated} disparities above 255.996 px were stored as 255.996" in printed
   assert (f"warning: {24 * 16 * 24} disparities (96.0% of the pixels) are at least the frame "
           "width (24 px), where no pixel has a match") in printed

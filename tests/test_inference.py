@@ -149,7 +149,8 @@ def _labelled_video(n):
   return np.broadcast_to(np.arange(n, dtype=np.float32)[:, None, None, None], (n, 5, 7, 3))
 
 
-@pytest.mark.filterwarnings("ignore:.*float frames with values")  # labels 0..1 for short clips
+@pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0  # labels 0..1 for short clips
 @pytest.mark.parametrize("n", [7, 23])
 def test_every_frame_returned(monkeypatch, n):
   fake = _LabelModel()
@@ -170,6 +171,36 @@ def test_every_frame_returned(monkeypatch, n):
   np.testing.assert_array_equal(off, disp[:len(off)])
 
 
+def test_swapped_views_are_warned_about_once(monkeypatch):
+  # The model's disparities of a left view are positive; with the views swapped they come
+  # out negative and the official abs() hid it: a plausible-looking map of the wrong view.
+  share = {"negative": 1.0}
+
+  def stand_in(variables, left, right, *, pads, **kw):
+    t, h, w = len(left), left.shape[1] + pads[0] + pads[1], left.shape[2] + pads[2] + pads[3]
+    out = np.full((t, h, w), 5.0, np.float32)
+    out.reshape(t, -1)[:, :int(round(share["negative"] * h * w))] *= -1
+    return out
+
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window", stand_in)
+  video = np.zeros((35, 32, 32, 3), np.uint8)
+  for negative, warned in ((1.0, True), (0.0, False), (0.45, False), (0.55, True)):
+    share["negative"] = negative
+    with warnings.catch_warnings(record=True) as seen:
+      warnings.simplefilter("always")
+      disp = inference.predict_video({}, video, video)  # three windows
+    assert (disp == 5).all()  # abs() as before
+    swapped = [w for w in seen if issubclass(w.category, inference.SwappedViewsWarning)]
+    assert len(swapped) == int(warned), (negative, [str(w.message) for w in seen])
+    if warned:
+      assert str(swapped[0].message).startswith(
+          f"frames 0..14: {negative:.0%} of the disparities are below -1 px before the official "
+          "abs()")
+      assert swapped[0].filename == __file__  # the caller's line
+  assert inference.negative_share(np.array([-2.0, -0.5, 0.0, 3.0])) == 0.25
+
+
 def test_bfloat16_frames_are_read_as_float32(monkeypatch):
   # ml_dtypes' bfloat16 has NumPy kind "V": it was refused as "dtype bfloat16; expected uint8
   # or float", though model.apply takes it.
@@ -188,6 +219,7 @@ def test_bfloat16_frames_are_read_as_float32(monkeypatch):
 
 
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 @pytest.mark.parametrize("window,stride", [(20, 10), (8, 4), (6, 3), (5, 5)])
 def test_stitching_sweep(monkeypatch, window, stride):
   monkeypatch.setattr(inference, "_run_window", _LabelModel())
@@ -232,6 +264,7 @@ class _CountingPrograms:
 
 
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 @pytest.mark.parametrize("window,stride,n", [(20, 10, 45), (20, 7, 45), (8, 3, 20), (9, 6, 31)])
 def test_each_frame_features_computed_once_in_one_chunk(monkeypatch, window, stride, n):
   # A stride that does not divide the window used to cut chunks at window ends, so the next
@@ -261,6 +294,7 @@ class _ShortSource:
 
 
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 def test_lazy_source_frames_must_match_its_shape(monkeypatch):
   monkeypatch.setattr(inference, "check_variables", lambda *a: None)
   monkeypatch.setattr(inference, "_run_window", _LabelModel())
@@ -274,6 +308,7 @@ def test_lazy_source_frames_must_match_its_shape(monkeypatch):
 
 
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 def test_run_window_cache_belongs_to_one_video(monkeypatch):
   monkeypatch.setattr(inference, "check_variables", lambda *a: None)
   calls = []
@@ -322,6 +357,7 @@ def test_run_window_cache_belongs_to_one_video(monkeypatch):
 
 
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 def test_iterators_and_lists_beside_lazy_sources(monkeypatch):
   monkeypatch.setattr(inference, "check_variables", lambda *a: None)
   monkeypatch.setattr(inference, "_run_window", _LabelModel())
@@ -756,6 +792,7 @@ def test_compiled_programs_take_the_default_config(variables):
 
 
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 @pytest.mark.parametrize("devices", [None, 2])
 def test_window_features_are_not_held_twice_while_a_window_runs(monkeypatch, devices):
   """When a window's program runs, the cache holds only frames a later window needs: the
