@@ -54,8 +54,12 @@ def build_parser() -> argparse.ArgumentParser:
 def one_line_warnings(args):
   """Python warnings met by the command (e.g. `inference.SwappedViewsWarning`) as one line
   each, `sav-jax COMMAND: warning: ...`, not as a source file, line and its code."""
+  from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+
   def show(message, category, filename, lineno, file=None, line=None):
-    print(f"sav-jax {args.command}: warning: {message}", file=sys.stderr if file is None else file)
+    # (above a progress bar, not on its line)
+    tqdm.write(f"sav-jax {args.command}: warning: {message}",
+               file=sys.stderr if file is None else file)
 
   with warnings.catch_warnings():
     warnings.showwarning = show

@@ -25,6 +25,7 @@ import math
 import numbers
 import os
 import pathlib
+import shutil
 import uuid
 import warnings
 
@@ -381,12 +382,32 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
       raise ValueError(f"{path}: no frames to write")
     writer.release()
     writer = None
+    # OpenCV's writer reports no error: a disk that filled up left a file without its index
+    # ("moov atom not found") under the final name, the run reported as a success.
+    _check_written_video(path, tmp, i + 1)
     os.replace(tmp, path)
   finally:
     if writer is not None:
       writer.release()
     tmp.unlink(missing_ok=True)
   return path
+
+
+def _check_written_video(path, tmp, frames: int) -> None:
+  """An OSError unless the video just written to `tmp` opens with `frames` frames."""
+  cap = cv2.VideoCapture(str(tmp))
+  try:
+    count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else None
+  finally:
+    cap.release()
+  if count != frames:
+    try:
+      free = f"; {shutil.disk_usage(tmp.parent).free / 2**20:.1f} MB free on its disk"
+    except OSError:
+      free = ""
+    got = "does not open" if count is None else f"holds {count} frames"
+    raise OSError(f"{path}: the video was not written completely: {frames} frames written, "
+                  f"the file {got} (a full disk?){free}")
 
 
 def _video_frame(path, i: int, frame, size, warned: list) -> np.ndarray:
@@ -614,7 +635,8 @@ def write_png16(path, disp) -> int:
   scaled = np.round(d[ok].astype(np.float64) * 256.0)
   v[ok] = np.clip(scaled, 1, 65535).astype(np.uint16)
   if not cv2.imwrite(str(path), v):
-    raise OSError(f"{path}: cannot write PNG")
+    raise OSError(f"{path}: OpenCV could not write the PNG (a full disk, or a folder not "
+                  "writable?)")
   return int(np.count_nonzero(scaled > 65535))
 
 

@@ -6,6 +6,8 @@ One compiled shape is shared by all runs: 3 frames of 32x48 (padded to 32x64), i
 import json
 import logging
 import os
+import pathlib
+import re
 
 import cv2
 import jax
@@ -357,6 +359,9 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   assert f"warning: {saturated} disparities above 255.996 px were stored as 255.996" in printed
   assert (f"warning: {24 * 16 * 24} disparities (96.0% of the pixels) are at least the frame "
           "width (24 px), where no pixel has a match") in printed
+  assert summary["empty_point_clouds"] == 1  # frame 0, at 0.83 > --max-depth
+  assert ("warning: 1 of the 25 point clouds have no point: every pixel's disparity + doffs was "
+          "not positive or deeper than --max-depth 0.5 (check the calibration)") in printed
   # Again with --overwrite, 10 frames, .npy only, no calibration: the earlier run's files that
   # this run does not replace (png16, frames 10-24, depth, point clouds) are deleted, so that
   # the folder holds one run's outputs; a file the earlier summary does not list is kept.
@@ -369,22 +374,42 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   assert kept == [*(f"disparity/{i:04d}.npy" for i in range(10)), "disparity/notes.txt",
                   "side_by_side.mp4", "summary.json"]
   assert not (out / "depth").exists() and not (out / "pointclouds").exists()  # emptied: gone
-  assert "deleting 90 files of the earlier run" in capsys.readouterr().out  # 100 - 10 .npy
-  # A run that fails midway leaves a provisional summary listing its files: the next
-  # --overwrite run finds them (frames 10-19 of the failed run here).
+  # (set aside as it began to write: 50 maps, 25 depth maps, 25 point clouds and the video)
+  assert f"setting aside 101 files of the earlier run in {out / '.earlier_run'}" in (
+      capsys.readouterr().out)
+  assert not (out / ".earlier_run").exists()  # deleted once this run's summary was written
+  # A --overwrite run that fails midway puts the earlier run's files back and deletes its
+  # own (it left two runs' files mixed, the earlier summary replaced by its provisional one).
+  before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+
   def failing_model(variables, lw, rw, *, start, **kwargs):
     if start > 0:
       raise ValueError("a frame that no longer decodes")
     return label_model(variables, lw, rw, start=start, **kwargs)
 
   monkeypatch.setattr(inference, "_run_window", failing_model)
-  assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy", "--overwrite") == 2
-  partial = json.loads((out / "summary.json").read_text())
-  assert partial["complete"] is False and "disparity/0024.npy" in partial["outputs"]
-  assert (out / "disparity" / "0012.npy").is_file()  # the first chunk (frames 0-14) was written
+  assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy", "--format",
+                "pfm", "--overwrite") == 2
+  assert f"the earlier run's files in {out} were put back" in capsys.readouterr().err
+  after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+  assert after == before  # frames 0-14 of the failed run (npy and pfm) are gone
+  # A run killed after setting files aside (no `except` ran): the next run puts them back
+  # before it looks at the folder, deleting what the killed run's provisional summary lists.
+  written = infer.set_aside(out, [out / "disparity" / "0003.npy", out / "side_by_side.mp4"])
+  assert written == 2 and not (out / "disparity" / "0003.npy").exists()
+  (out / "summary.json").write_text(json.dumps({"tool": "sav-jax infer", "complete": False,
+                                                "outputs": ["disparity/0003.npy",
+                                                            "disparity/0000.pfm"]}))
+  (out / "disparity" / "0003.npy").write_bytes(b"the killed run's")
+  (out / "disparity" / "0000.pfm").write_bytes(b"the killed run's")
+  assert infer.put_back(out) == 2
+  assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+  infer.set_aside(out, [out / "disparity" / "0003.npy"])  # killed again: the command says so
   monkeypatch.setattr(inference, "_run_window", label_model)
   assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy", "--max-frames",
                 "5", "--overwrite") == 0
+  assert (f"put back 1 files of an earlier run in {out} that an interrupted --overwrite run had "
+          "set aside") in capsys.readouterr().out
   assert sorted(p.name for p in (out / "disparity").iterdir()) == [
       *(f"{i:04d}.npy" for i in range(5)), "notes.txt"]
   summary = json.loads((out / "summary.json").read_text())
@@ -983,3 +1008,86 @@ def test_other_runtime_errors_keep_their_traceback(monkeypatch):
   assert sav_jax.runtime.out_of_memory(RuntimeError("RESOURCE_EXHAUSTED")) is None  # not XLA's
   long = jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: " + "x" * 400)
   assert len(sav_jax.runtime.out_of_memory(long)) == 300
+
+
+def _positive_model(variables, lw, rw, *, pads, **kwargs):
+  """Stand-in for the compiled model: disparity 5 everywhere."""
+  return np.full((len(lw), lw.shape[1] + pads[0] + pads[1], lw.shape[2] + pads[2] + pads[3]),
+                 5.0, np.float32)
+
+
+def _error_line(capsys):
+  """The command's one error line (beside its progress bars)."""
+  lines = [l for l in capsys.readouterr().err.splitlines() if "error:" in l]
+  assert len(lines) == 1, lines
+  return lines[0]
+
+
+def test_a_full_disk_is_one_error_naming_the_file_and_leaves_no_partial_file(
+    tmp_path, npz_ckpt, monkeypatch, capsys):
+  # A disk that filled up while the maps were written: numpy's "2048 requested and 992
+  # written", naming no file, and a truncated .npy left behind; filling up under the memory
+  # map of the disparities killed the process with "Bus error" and no message.
+  import errno  # pylint: disable=import-outside-toplevel
+  frames = np.random.default_rng(0).integers(0, 255, (3, 16, 24, 3)).astype(np.uint8)
+  left, right = _write_frames(tmp_path / "l", frames), _write_frames(tmp_path / "r", frames)
+  monkeypatch.setattr(inference, "_run_window", _positive_model)
+  real_save = np.save
+
+  def full_disk_save(path, arr, *a, **k):
+    if pathlib.Path(path).stem == "0001":
+      pathlib.Path(path).write_bytes(b"\x93NUMPY truncated")
+      raise OSError("2048 requested and 992 written")
+    return real_save(path, arr, *a, **k)
+
+  monkeypatch.setattr(np, "save", full_disk_save)
+  out = tmp_path / "out"
+  assert _infer(left, right, npz_ckpt, out, "--format", "npy") == 2
+  err = _error_line(capsys)
+  assert re.fullmatch(rf"sav-jax infer: error: cannot write {re.escape(str(out))}/disparity/"
+                      r"0001\.npy: 2048 requested and 992 written; \d+\.\d MB free on its disk",
+                      err), err
+  assert sorted(p.name for p in (out / "disparity").iterdir()) == ["0000.npy"]  # no 0001
+  assert json.loads((out / "summary.json").read_text())["complete"] is False
+  monkeypatch.setattr(np, "save", real_save)
+  # No room for the disparities' temporary file: said before any map is written.
+  def no_room(fd, offset, size):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+  monkeypatch.setattr(infer.os, "posix_fallocate", no_room)
+  assert _infer(left, right, npz_ckpt, tmp_path / "out2", "--format", "npy") == 2
+  err = _error_line(capsys)
+  assert err.startswith(f"sav-jax infer: error: cannot write the disparities' temporary file in "
+                        f"{tmp_path / 'out2'} (0.0 MB): No space left on device; "), err
+  assert not list((tmp_path / "out2" / "disparity").iterdir())
+  monkeypatch.undo()
+  monkeypatch.setattr(inference, "_run_window", _positive_model)
+  # The video: OpenCV's writer reports no error, and a file without its index ("moov atom
+  # not found") was left under the final name, the run reported as a success.
+  real_writer = cv2.VideoWriter
+
+  class FillingDisk:  # the first frame reaches the disk, the others do not
+    def __init__(self, *args):
+      self.writer, self.frames = real_writer(*args), 0
+
+    def isOpened(self):  # pylint: disable=invalid-name
+      return self.writer.isOpened()
+
+    def write(self, frame):
+      self.frames += 1
+      if self.frames == 1:
+        self.writer.write(frame)
+
+    def release(self):
+      self.writer.release()
+
+  monkeypatch.setattr(viz.cv2, "VideoWriter", FillingDisk)
+  assert _infer(left, right, npz_ckpt, tmp_path / "out3", "--format", "npy") == 2
+  err = _error_line(capsys)
+  assert re.fullmatch(rf"sav-jax infer: error: cannot write {re.escape(str(tmp_path))}/out3/"
+                      r"side_by_side\.mp4: the video was not written completely: 3 frames "
+                      r"written, the file holds 1 frames \(a full disk\?\); \d+\.\d MB free on "
+                      r"its disk", err), err
+  assert not (tmp_path / "out3" / "side_by_side.mp4").exists()
+  assert not list((tmp_path / "out3").glob(".side_by_side*"))  # nor its temporary file
+  assert json.loads((tmp_path / "out3" / "summary.json").read_text())["complete"] is False

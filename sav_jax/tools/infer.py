@@ -16,12 +16,15 @@ computed, a provisional `summary.json` (`"complete": false`) lists the run's fil
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import logging
 import os
 import pathlib
 import re
+import shutil
+import sys
 import time
 
 from typing import NamedTuple
@@ -204,6 +207,72 @@ def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[path
   return stale
 
 
+# Where `--overwrite` keeps the earlier run's files while this run writes (in --out).
+SET_ASIDE = ".earlier_run"
+
+
+def set_aside(out: pathlib.Path, paths: list[pathlib.Path]) -> int:
+  """Moves the earlier run's files `paths` (and its `summary.json`, first) into
+  `out/.earlier_run/`, keeping their places relative to `out`. Returns how many files moved.
+
+  An interrupted `--overwrite` run left the folder with two runs' files mixed (the new
+  run's frames so far beside the earlier run's others) and the earlier summary gone:
+  `put_back` undoes the move after a failure, `drop_set_aside` deletes the files once the
+  new run's summary is written.
+  """
+  aside = out / SET_ASIDE
+  moved = 0
+  for path in [out / "summary.json", *paths]:
+    if path.is_file() and not path.is_symlink():
+      target = aside / path.relative_to(out)
+      target.parent.mkdir(parents=True, exist_ok=True)
+      path.replace(target)
+      moved += path.name != "summary.json"
+  for folder in {p.parent for p in paths} - {out}:  # e.g. depth/ of a run with calibration
+    if folder.is_dir() and not any(folder.iterdir()):
+      folder.rmdir()
+  return moved
+
+
+def put_back(out: pathlib.Path) -> int:
+  """Undoes `set_aside` after a run that did not finish (an error, Ctrl-C, or a killed run
+  found by the next one): deletes the files the unfinished run's provisional `summary.json`
+  lists, then moves the earlier run's files back. Returns how many files came back."""
+  aside = out / SET_ASIDE
+  if not aside.is_dir():
+    return 0
+  try:  # the unfinished run's list (none if it stopped before writing it)
+    summary = json.loads((out / "summary.json").read_text())
+  except (OSError, ValueError):
+    summary = {}
+  if (isinstance(summary, dict) and summary.get("tool") == SUMMARY_TOOL
+      and summary.get("complete") is False and isinstance(summary.get("outputs"), list)):
+    for rel in summary["outputs"]:
+      if isinstance(rel, str) and _is_output_name(rel):
+        path = out / rel
+        if path.is_file() and not path.is_symlink() and not path.parent.is_symlink():
+          path.unlink()
+    (out / "summary.json").unlink()
+  restored = 0
+  for path in sorted(p for p in aside.rglob("*") if p.is_file()):
+    target = out / path.relative_to(aside)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    path.replace(target)
+    restored += target.name != "summary.json"
+  shutil.rmtree(aside)
+  for name in ("disparity", "depth", "pointclouds"):  # made by the unfinished run only
+    folder = out / name
+    if folder.is_dir() and not folder.is_symlink() and not any(folder.iterdir()):
+      folder.rmdir()
+  return restored
+
+
+def drop_set_aside(out: pathlib.Path) -> None:
+  """Deletes `out/.earlier_run/` once the new run's summary is written."""
+  if (out / SET_ASIDE).is_dir():
+    shutil.rmtree(out / SET_ASIDE)
+
+
 def check_not_inputs(paths: list[pathlib.Path], inputs) -> None:
   """Raises FileExistsError if an output would replace an input video file, or go into an
   input frame folder (even beside its frames: the next run would read it as a frame).
@@ -257,11 +326,19 @@ def run(args: argparse.Namespace) -> int:
     if not (np.isfinite(args.max_depth) and args.max_depth > 0):
       raise UsageError(f"--max-depth must be a finite positive number, got {args.max_depth}")
   out = check_output_dir(args.out)
+  restored = put_back(out)  # files a killed --overwrite run had set aside
+  if restored:
+    print(f"put back {restored} files of an earlier run in {out} that an interrupted "
+          "--overwrite run had set aside")
   outputs = output_paths(out, names, formats, calib, args.depth_format)
   check_not_inputs(outputs, (args.left, args.right))
   check_overwrite(outputs, args.overwrite, out)
+  # With --overwrite, the files this run replaces and those of the earlier run it does not
+  # are set aside as it begins to write, and deleted when it ends.
   stale = earlier_outputs(out, outputs) if args.overwrite else []
   check_not_inputs(stale, (args.left, args.right))
+  if args.overwrite:
+    stale = [p for p in outputs if p.is_file()] + stale
 
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
   devices = resolve_devices_option(args.devices)
@@ -290,7 +367,13 @@ def run(args: argparse.Namespace) -> int:
                                           stride=args.stride, progress=True, devices=devices)
     if resize is not None:  # back to the input size, in its pixels
       chunks = ((t0, video_io.disparities_to_input_size(d, h, w)) for t0, d in chunks)
-    written = write_outputs(out, names, left, chunks, formats, calib, args, listed, stale=stale)
+    try:
+      written = write_outputs(out, names, left, chunks, formats, calib, args, listed,
+                              stale=stale)
+    except BaseException:
+      if put_back(out):
+        print(f"the earlier run's files in {out} were put back", file=sys.stderr)
+      raise
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
   summary = {"tool": SUMMARY_TOOL, "frames": t, "height": h, "width": w,
@@ -307,6 +390,7 @@ def run(args: argparse.Namespace) -> int:
              "max_depth": args.max_depth, **written, "complete": True,
              "outputs": listed}  # for a later run with --overwrite into this folder
   (out / "summary.json").write_text(json.dumps(summary, indent=1))
+  drop_set_aside(out)
   vmin, vmax = written["video_disparity_range"]
   print(f"side-by-side video colours: {vmin:.2f} px (dark) to {vmax:.2f} px (bright)")
   if written["png16_saturated_pixels"]:
@@ -319,6 +403,10 @@ def run(args: argparse.Namespace) -> int:
           f"pixels) are at least the frame width ({w} px), where no pixel has a match: "
           "weights that are not trained (or not for this data), swapped --left and --right, "
           "or too few --iters?")
+  if written["empty_point_clouds"]:
+    limit = "" if args.max_depth is None else f" or deeper than --max-depth {args.max_depth:g}"
+    print(f"warning: {written['empty_point_clouds']} of the {t} point clouds have no point: "
+          f"every pixel's disparity + doffs was not positive{limit} (check the calibration)")
   print(f"{frames} in {seconds:.1f} s ({t / seconds:.2f} frames/s, writing included; "
         f"{compiling:.1f} s of it compiling); outputs in {out}")
   return 0
@@ -345,8 +433,18 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
 
   Returns:
     For the summary: `video_disparity_range` (the video's colour range, px) and
-    `png16_saturated_pixels` (disparities stored as the 16-bit PNG's largest value).
+    `png16_saturated_pixels` (disparities stored as the 16-bit PNG's largest value),
+    `disparities_beyond_width` and `empty_point_clouds` (PLY files without a point).
   """
+  try:
+    return _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale)
+  finally:  # a window generator stopped by an error: its progress bar ends its line, before
+    close = getattr(chunks, "close", None)  # the error is printed (on that line, it was)
+    if close is not None:
+      close()
+
+
+def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale) -> dict:
   import tempfile  # pylint: disable=import-outside-toplevel
 
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
@@ -357,13 +455,10 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
   chunks = iter(chunks)
   chunks = itertools.chain([next(chunks)], chunks)
   if stale:
-    print(f"deleting {len(stale)} files of the earlier run in {out} that this run does not "
-          "replace (--overwrite)")
-    for path in stale:
-      path.unlink(missing_ok=True)
-    for folder in {p.parent for p in stale} - {out}:  # e.g. depth/ of a run with calibration
-      if folder.is_dir() and not any(folder.iterdir()):
-        folder.rmdir()
+    moved = set_aside(out, stale)
+    if moved:
+      print(f"setting aside {moved} files of the earlier run in {out / SET_ASIDE} "
+            "(--overwrite; deleted when this run ends, put back if it does not)")
   (out / "disparity").mkdir(parents=True, exist_ok=True)
   # (replaces an earlier run's summary, which would describe this run's files)
   (out / "summary.json").write_text(json.dumps({"tool": SUMMARY_TOOL, "complete": False,
@@ -372,9 +467,14 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
     (out / "depth").mkdir(exist_ok=True)
     (out / "pointclouds").mkdir(exist_ok=True)
   h, w = left.shape[1:3]
-  saturated = beyond = 0
+  saturated = beyond = empty_clouds = 0
   max_depth = getattr(args, "max_depth", None)
   with tempfile.TemporaryFile(dir=out, prefix=".disparity_", suffix=".tmp") as held:
+    size = len(names) * h * w * np.dtype(np.float32).itemsize
+    with writing(out, size=size, remove=False, what=f"the disparities' temporary file in {out}"):
+      # Its blocks reserved now: a memory map on a disk that fills up later gets SIGBUS (the
+      # process died with "Bus error" and no message).
+      _reserve(held, size)
     disp = np.memmap(held, np.float32, "w+", shape=(len(names), h, w))
     for t0, chunk in chunks:
       frames = left[t0:t0 + len(chunk)] if calib is not None else None
@@ -383,15 +483,20 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
         disp[i] = d
         beyond += int(np.count_nonzero(d >= w))  # no pixel of the frame can match that far
         for fmt in formats:
-          saturated += video_io.write_map(video_io.disparity_path(out / "disparity", name, fmt),
-                                          d, fmt)
+          path = video_io.disparity_path(out / "disparity", name, fmt)
+          with writing(path):
+            saturated += video_io.write_map(path, d, fmt)
         if calib is not None:
           depth = viz.depth_from_disparity(d, calib.fx, calib.baseline, calib.doffs)
-          video_io.write_map(video_io.disparity_path(out / "depth", name, args.depth_format),
-                             depth, args.depth_format)
+          path = video_io.disparity_path(out / "depth", name, args.depth_format)
+          with writing(path):
+            video_io.write_map(path, depth, args.depth_format)
           xyz, rgb = viz.disparity_to_points(d, frames[k], **calib._asdict(),
                                              max_depth=max_depth)
-          viz.write_ply(out / "pointclouds" / f"{name}.ply", xyz, rgb)
+          empty_clouds += len(xyz) == 0
+          path = out / "pointclouds" / f"{name}.ply"
+          with writing(path):
+            viz.write_ply(path, xyz, rgb)
     step = max(1, int(np.ceil(np.sqrt(disp.size / RANGE_SAMPLE))))
     vmin, vmax = viz.disparity_range(disp[:, ::step, ::step], percentiles=(1.0, 99.0))
     batch = max(1, int(args.window))
@@ -401,10 +506,49 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
         for f, d in zip(left[a:a + batch], disp[a:a + batch]):
           yield viz.side_by_side(f, viz.colorize(np.asarray(d), vmin, vmax))
 
-    viz.write_video(out / "side_by_side.mp4", video_frames(), fps=args.fps)
+    with writing(out / "side_by_side.mp4", remove=False):  # (replaced only when complete)
+      viz.write_video(out / "side_by_side.mp4", video_frames(), fps=args.fps)
     del disp
   return {"video_disparity_range": [round(float(vmin), 4), round(float(vmax), 4)],
-          "png16_saturated_pixels": saturated, "disparities_beyond_width": beyond}
+          "png16_saturated_pixels": saturated, "disparities_beyond_width": beyond,
+          "empty_point_clouds": empty_clouds}
+
+
+@contextlib.contextmanager
+def writing(path: pathlib.Path, size: int | None = None, remove: bool = True,
+            what: str | None = None):
+  """Writes `path` in its block: a failure (a full disk, a folder not writable) removes the
+  partial file (`remove`; a truncated `.npy` was left behind) and becomes one OSError that
+  names the file, the cause and the disk's free space (numpy's said only "2048 requested and
+  992 written"); Ctrl-C removes the partial file too. `size`: the bytes it needs, if known;
+  `what`: the file's name in the message, if not `path`."""
+  try:
+    yield
+  except BaseException as e:
+    if remove:
+      path.unlink(missing_ok=True)
+    if not isinstance(e, (OSError, ValueError)) or isinstance(e, FileExistsError):
+      raise
+    try:
+      free = (f"; {shutil.disk_usage(path if path.is_dir() else path.parent).free / 2**20:.1f} "
+              "MB free on its disk")
+    except OSError:
+      free = ""
+    need = "" if size is None else f" ({size / 2**20:.1f} MB)"
+    cause = os.strerror(e.errno) if isinstance(e, OSError) and e.errno else str(e)
+    cause = cause[len(str(path)) + 2:] if cause.startswith(f"{path}: ") else cause
+    free = "" if "free on its disk" in cause else free
+    raise OSError(f"cannot write {what or path}{need}: {cause}{free}") from e
+
+
+def _reserve(file, size: int) -> None:
+  """Allocates `size` bytes of `file`'s blocks on disk (ENOSPC now, not SIGBUS later)."""
+  if size == 0:
+    return
+  try:
+    os.posix_fallocate(file.fileno(), 0, size)
+  except AttributeError:  # not on this OS (macOS): the map grows as it is written
+    file.truncate(size)
 
 
 class Calibration(NamedTuple):
