@@ -429,6 +429,36 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
     (out / "disparity" / "0004.npy").touch()  # (kept: its summary was not this command's)
 
 
+def test_folders_numbered_alike_at_different_places_are_noted(tmp_path, caplog):
+  # Left 0000-0002 beside right 0001-0003 (one frame missing at the start of one folder):
+  # frames are paired by their order, so every pair was from two moments, silently.
+  frame = np.zeros((8, 8, 3), np.uint8)
+  cases = {  # (left names, right names): noted?
+      "shifted": (["0000", "0001", "0002"], ["0001", "0002", "0003"], True),
+      "gap": (["f_1", "f_2", "f_3"], ["f_1", "f_3", "f_4"], True),  # f_2 missing on the right
+      "alike": (["0000", "0001", "0002"], ["0000", "0001", "0002"], False),
+      "prefixed": (["left_0001", "left_0002"], ["right_0001", "right_0002"], False),
+      "middlebury": (["im0"], ["im1"], False),  # numbered differently, nothing in common
+      "unnumbered": (["a", "b"], ["b", "a"], False),
+  }
+  for case, (left_names, right_names, noted) in cases.items():
+    for side, names in (("l", left_names), ("r", right_names)):
+      (tmp_path / case / side).mkdir(parents=True)
+      for name in names:
+        assert cv2.imwrite(str(tmp_path / case / side / f"{name}.png"), frame)
+    for read in (video_io.open_stereo, video_io.load_stereo):
+      caplog.clear()
+      with caplog.at_level(logging.WARNING):
+        read(tmp_path / case / "l", tmp_path / case / "r")
+      assert ("number their frames alike but not at the same places" in caplog.text) == noted, (
+          case, caplog.text)
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):
+    video_io.open_stereo(tmp_path / "shifted" / "l", tmp_path / "shifted" / "r")
+  assert ("left 0001.png is frame 1 of its folder, right 0001.png frame 0 of its; frames are "
+          "paired by their order, so left 0001.png is paired with right 0002.png") in caplog.text
+
+
 def test_frame_sources_check_every_frame_when_opened(tmp_path, clip, caplog):
   left = _write_frames(tmp_path / "left", clip["left"])
   right = _write_frames(tmp_path / "right", clip["right"])

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import pathlib
+import re
 
 import cv2
 import numpy as np
@@ -306,7 +307,7 @@ def open_stereo(left, right, max_frames: int | None = None):
     raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
   notes = _same_source_note(left, right)
   lv, rv = FrameSource(left, max_frames, notes), FrameSource(right, max_frames, notes)
-  _check_pair(lv, rv, notes)
+  _check_pair(lv, rv, notes, (lv._files, rv._files))  # pylint: disable=protected-access
   return lv, rv, lv.names
 
 
@@ -319,15 +320,48 @@ def _same_source_note(left, right) -> set[str]:
           "views give a disparity of about 0 everywhere"}
 
 
-def _check_pair(lv, rv, notes: set[str]) -> None:
-  """Raises ValueError unless the two videos match in length and size; logs the notes."""
+def _check_pair(lv, rv, notes: set[str], files=(None, None)) -> None:
+  """Raises ValueError unless the two videos match in length and size; logs the notes
+  (`files`: the two folders' frame files, None for a video file)."""
   if len(lv) != len(rv):
     raise ValueError(f"different frame counts: left has {len(lv)}, right has {len(rv)}")
   if lv.shape != rv.shape:
     raise ValueError(f"different frame sizes: left is {_size(lv.shape[1:])}, right is "
                      f"{_size(rv.shape[1:])} (height x width)")
+  shifted = _shifted_pairing(*files)
+  if shifted:
+    notes.add(shifted)
   for note in sorted(notes):
     log.warning("note: %s", note)
+
+
+def _frame_number(path) -> int | None:
+  """The last group of digits in a frame file's stem (`left_0012` -> 12), or None."""
+  digits = re.findall(r"\d+", pathlib.Path(path).stem)
+  return int(digits[-1]) if digits else None
+
+
+def _shifted_pairing(left_files, right_files) -> str | None:
+  """A note when two frame folders number their frames alike but at different places
+  (left 0000, 0001, ... beside right 0001, 0002, ...: one frame missing or extra at the
+  start): frames are paired by their order, so every pair would be from two moments.
+  Folders numbered differently (`im0` / `im1`) or alike at the same places get none."""
+  if not left_files or not right_files:
+    return None
+  left_numbers = [_frame_number(f) for f in left_files]
+  right_numbers = [_frame_number(f) for f in right_files]
+  if None in left_numbers or None in right_numbers:
+    return None
+  right_place = {n: i for i, n in enumerate(right_numbers)}
+  for i, n in enumerate(left_numbers):
+    j = right_place.get(n)
+    if j is not None and j != i:
+      return (f"the frame folders number their frames alike but not at the same places: "
+              f"left {pathlib.Path(left_files[i]).name} is frame {i} of its folder, right "
+              f"{pathlib.Path(right_files[j]).name} frame {j} of its; frames are paired by "
+              f"their order, so left {pathlib.Path(left_files[i]).name} is paired with right "
+              f"{pathlib.Path(right_files[i]).name} (a frame missing or extra in one folder?)")
+  return None
 
 
 def load_stereo(left, right, max_frames: int | None = None):
@@ -349,7 +383,8 @@ def load_stereo(left, right, max_frames: int | None = None):
   notes = _same_source_note(left, right)
   lv, names = _read_source(left, max_frames, notes)
   rv, _ = _read_source(right, max_frames, notes)
-  _check_pair(lv, rv, notes)
+  _check_pair(lv, rv, notes, (_frame_files(pathlib.Path(left), max_frames),
+                              _frame_files(pathlib.Path(right), max_frames)))
   return lv, rv, names
 
 
