@@ -47,8 +47,8 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
   be negative; floats must be finite; float frames that look normalised (values below -1
   and none above 3: a mean and scale taken off) are refused; float frames that look like
   0..1 images (99.9% of a sample of their values at most 1.5, so a resize's overshoot or a
-  few hot pixels do not hide it) or lie well outside 0..255 get a warning (the model
-  expects 0..255, not 0..1 or 0..65535). `first`: the index of `video[0]` in the whole
+  few hot pixels do not hide it) or lie well outside 0..255 (below -64 or above 320, beyond
+  a resize's overshoot) get a warning (the model expects 0..255, not 0..1 or 0..65535). `first`: the index of `video[0]` in the whole
   video (frames are named by their index there).
   """
   kind = video.dtype.kind
@@ -108,13 +108,20 @@ def float_frames_range(video: np.ndarray, lo: float, hi: float) -> tuple[str | N
   """What float frames of values `lo..hi` look like, if not RGB 0..255: `("0..1", spread)`
   where 99.9% of a sample of their values are at most 1.5 (so a resize's overshoot or a few
   hot pixels do not hide 0..1 images; `spread` says so where the maximum is higher),
-  `("negative", "")` below -1 (a resize's overshoot stays above), `("16-bit", "")` above
-  256; `(None, "")` otherwise."""
+  `("negative", "")` below `OVERSHOOT_LOW` (-64: a mean taken off 0..255 frames),
+  `("16-bit", "")` above `OVERSHOOT_HIGH` (320: 10- to 16-bit values); `(None, "")`
+  otherwise. Between those bounds lie the overshoot of a bicubic or Lanczos resize of sharp
+  edges (-38..293 measured) and unclipped noise, which are 0..255 frames still (they were
+  warned about, with advice that would have damaged them: "divide by 257")."""
   bright = float(np.quantile(_sample(video), 0.999)) if hi > 1.5 else hi
   if 0 < bright <= 1.5:
     return "0..1", "" if bright == hi else f", 99.9% of them at most {bright:.3g}"
-  if lo < -1.0:
+  if lo < OVERSHOOT_LOW:
     return "negative", ""
-  if hi > 256.0:
+  if hi > OVERSHOOT_HIGH:
     return "16-bit", ""
   return None, ""
+
+
+# Float 0..255 frames may go this far outside 0..255 without a warning (see float_frames_range).
+OVERSHOOT_LOW, OVERSHOOT_HIGH = -64.0, 320.0

@@ -489,7 +489,7 @@ def _check_video_values(video, name: str) -> None:
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}{spread}: OPW and RTC expect "
                   "RGB 0..255 (multiply 0..1 images by 255); their photometric weight would "
                   "keep nearly every pixel", stacklevel=caller_stacklevel())
-  elif looks in ("negative", "16-bit"):  # a little outside: resampling's overshoot
+  elif looks in ("negative", "16-bit"):  # well outside (a resize's overshoot is not)
     fix = ("negative values are no image's: put back a normalisation's mean and scale"
            if looks == "negative" else "divide 16-bit frames by 257")
     warnings.warn(f"{name}: values {lo:g}..{hi:g}, outside 0..255, which OPW and RTC expect "

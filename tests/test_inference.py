@@ -555,6 +555,19 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   with warnings.catch_warnings():
     warnings.simplefilter("error")
     inference.check_video_values(np.float32([[[[-0.4, 255.6, 9]]]]), "left")  # overshoot
+    # A bicubic resize of sharp 0..255 edges overshoots to about -38..293, and unclipped
+    # noise further than 0..255 too: 0..255 frames still (they got "divide 16-bit frames by
+    # 257" or "put the mean and scale back").
+    edges = np.zeros((1, 8, 16, 3), np.float32)
+    edges[:, :, 8:] = 255.0
+    sharp = np.asarray(jax.image.resize(edges, (1, 8, 64, 3), "lanczos5"))
+    assert sharp.min() < -20 and sharp.max() > 275, (sharp.min(), sharp.max())
+    inference.check_video_values(sharp, "left")
+    inference.check_video_values(np.float32([[[[-63.0, 319.0, 9]]]]), "left")
+  for values, advice in (([-65.0, 200.0], "negative values are no image's"),
+                         ([0.0, 1023.0], "divide 16-bit frames by 257")):  # 10-bit as float
+    with pytest.warns(UserWarning, match=advice):
+      inference.check_video_values(np.float32(values).reshape(1, 1, 2, 1), "left")
   # 0..1 frames behind a resize's overshoot or a few bright pixels are still found.
   unit = np.random.default_rng(0).uniform(0, 1, (2, 16, 16, 3)).astype(np.float32)
   with pytest.warns(UserWarning, match=r"values -0\.0\d+\.\.1\.0\d+: .*multiply 0\.\.1"):
@@ -576,8 +589,8 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   with pytest.raises(ValueError, match=r"left: float frames with values -1\.9\d+\.\.2\.\d+ look "
                      r"normalised \(.*\(frames \* std \+ mean\) \* 255\)"):
     inference.check_video_values((unit - 0.45) / 0.225, "left")
-  with pytest.warns(UserWarning, match=r"values -5\.\.235, outside 0\.\.255.*normalised frames"):
-    inference.check_video_values(np.float32([[[[-5, 235, 9]]]]), "left")
+  with pytest.warns(UserWarning, match=r"values -124\.\.131, outside 0\.\.255.*normalised frames"):
+    inference.check_video_values(np.float32([[[[-124, 131, 9]]]]), "left")  # a mean taken off
   with pytest.raises(ValueError, match="iters must be an integer >= 2"):
     inference.predict_video(variables, video, video, iters=1)
   iters = inference.check_iters(np.int64(4))
