@@ -1134,6 +1134,7 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
     SwappedViewsWarning: once, at the first window where most disparities came out below
       -1 px before `abs()` (`negative_share`): left and right swapped, most likely.
   """
+  _check_not_traced("predict_video", variables, left, right)
   chunks = iter_predict_video(variables, left, right, cfg=cfg, iters=iters, window=window,
                               stride=stride, dtype=dtype, progress=progress,
                               check_memory=check_memory, devices=devices)
@@ -1143,6 +1144,21 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
       out = np.empty((_video_shape(left)[0], *d.shape[1:]), np.float32)
     out[t:t + len(d)] = d
   return out
+
+
+def _check_not_traced(what: str, variables, *videos) -> None:
+  """A TypeError if frames or weights are JAX tracers (`predict_video` under `jax.grad`,
+  `jit` or `vmap` failed with JAX's TracerArrayConversionError from deep inside)."""
+  leaves = [*jax.tree_util.tree_leaves(variables)]
+  for v in videos:
+    leaves.extend(v if isinstance(v, (list, tuple)) else [v])
+  if any(isinstance(x, jax.core.Tracer) for x in leaves):
+    raise TypeError(
+        f"{what} runs the model window by window and returns NumPy arrays: it cannot be "
+        "traced (jax.grad, jit, vmap). For a differentiable or jitted forward, call the model "
+        "itself: padded, pads = sav_jax.inference.pad_to_multiple(frames) for both views, "
+        "model.apply(variables, left, right, iters=..., final_only=True), then "
+        "sav_jax.inference.unpad(out.disparities[-1], pads)")
 
 
 def _is_lazy_video(x) -> bool:
@@ -1169,6 +1185,7 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
     An iterator of `(t, disparities [k, H, W])`: frames `t .. t + k - 1`, in order, every
     frame once (the same values `predict_video` returns).
   """
+  _check_not_traced("iter_predict_video", variables, left, right)
   cfg = resolve_config(cfg, dtype)
   iters = check_iters(iters)
   lazy = _is_lazy_video(left) or _is_lazy_video(right)
@@ -1199,6 +1216,7 @@ def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None
     (N - 5 for 5 < N < 20, empty for N <= 5); with `return_windows`, a tuple with the
     list of raw padded outputs `[L_i, Hp, Wp]` of every window run (dropped ones too).
   """
+  _check_not_traced("forward_batch_test_official", variables, left, right)
   cfg = resolve_config(cfg)
   iters = check_iters(iters)
   left, right = _as_video_pair(left, right)

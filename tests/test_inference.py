@@ -171,6 +171,20 @@ def test_every_frame_returned(monkeypatch, n):
   np.testing.assert_array_equal(off, disp[:len(off)])
 
 
+def test_predict_video_under_a_jax_transformation_says_what_to_call_instead():
+  # jax.grad of predict_video failed with JAX's TracerArrayConversionError from deep inside.
+  video = jnp.zeros((2, 32, 32, 3))
+  message = r"predict_video runs the model window by window .* cannot be traced \(jax\.grad"
+  for transform in (jax.grad, jax.jit, jax.vmap):
+    with pytest.raises(TypeError, match=message):
+      transform(lambda x: inference.predict_video({}, x, video).sum())(
+          video[None] if transform is jax.vmap else video)
+  with pytest.raises(TypeError, match=message.replace("predict_video", "iter_predict_video")):
+    jax.jit(lambda x: list(inference.iter_predict_video({}, x, video)))(video)
+  with pytest.raises(TypeError, match=r"forward_batch_test_official runs .*unpad"):
+    jax.jit(lambda v: inference.forward_batch_test_official(v, video, video))({"w": jnp.ones(2)})
+
+
 def test_swapped_views_are_warned_about_once(monkeypatch):
   # The model's disparities of a left view are positive; with the views swapped they come
   # out negative and the official abs() hid it: a plausible-looking map of the wrong view.
