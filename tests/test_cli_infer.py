@@ -1121,3 +1121,41 @@ def test_a_full_disk_is_one_error_naming_the_file_and_leaves_no_partial_file(
   assert not (tmp_path / "out3" / "side_by_side.mp4").exists()
   assert not list((tmp_path / "out3").glob(".side_by_side*"))  # nor its temporary file
   assert json.loads((tmp_path / "out3" / "summary.json").read_text())["complete"] is False
+
+
+def test_outputs_of_frames_sharing_a_stem_are_named_by_position_with_a_note(tmp_path, caplog):
+  # 0001.png beside 0001.jpg: every output was renamed frame_000000... without a word.
+  frame = np.zeros((8, 8, 3), np.uint8)
+  for side in ("l", "r"):
+    for name in ("0000.png", "0001.png", "0001.jpg"):
+      (tmp_path / side).mkdir(exist_ok=True)
+      assert cv2.imwrite(str(tmp_path / side / name), frame)
+  with caplog.at_level(logging.WARNING):
+    _, _, names = video_io.open_stereo(tmp_path / "l", tmp_path / "r")
+  assert names == ["frame_000000", "frame_000001", "frame_000002"]
+  assert (f"0001.jpg and 0001.png in {tmp_path / 'l'} share a name before the suffix: the "
+          "outputs are named by position, frame_000000 to frame_000002") in caplog.text
+
+
+def test_an_output_subfolder_that_cannot_be_written_fails_before_the_model_runs(
+    tmp_path, npz_ckpt, monkeypatch, capsys):
+  # A read-only OUT/disparity/ of an earlier run was found only after the model had run
+  # ("cannot write PNG"), leaving a provisional summary behind.
+  frames = np.zeros((2, 16, 24, 3), np.uint8)
+  left, right = _write_frames(tmp_path / "l", frames), _write_frames(tmp_path / "r", frames)
+  out = tmp_path / "out"
+  (out / "disparity").mkdir(parents=True)
+
+  def refuse(prefix, dir):  # as a read-only mount answers (root passes any permission bits)
+    if pathlib.Path(dir).name == "disparity":
+      raise OSError(30, "Read-only file system")
+    return real_mkdtemp(prefix=prefix, dir=dir)
+
+  import tempfile  # pylint: disable=import-outside-toplevel
+  real_mkdtemp = tempfile.mkdtemp
+  monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+  monkeypatch.setattr(inference, "_run_window", None)  # must not be reached
+  assert _infer(left, right, npz_ckpt, out, "--format", "png16") == 2
+  assert _error_line(capsys) == (f"sav-jax infer: error: --out {out / 'disparity'}: cannot "
+                                 f"create anything in {out / 'disparity'} (Read-only file system)")
+  assert sorted(p.name for p in out.iterdir()) == ["disparity"]  # no summary either

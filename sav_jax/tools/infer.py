@@ -333,6 +333,9 @@ def run(args: argparse.Namespace) -> int:
   outputs = output_paths(out, names, formats, calib, args.depth_format)
   check_not_inputs(outputs, (args.left, args.right))
   check_overwrite(outputs, args.overwrite, out)
+  for folder in sorted({p.parent for p in outputs} - {out}):  # an earlier run's disparity/...
+    if folder.is_dir():  # (not writable: found only once the model had run)
+      check_output_dir(folder)
   # With --overwrite, the files this run replaces and those of the earlier run it does not
   # are set aside as it begins to write, and deleted when it ends.
   stale = earlier_outputs(out, outputs) if args.overwrite else []

@@ -141,8 +141,18 @@ def _checked_frames(path: pathlib.Path, files, max_frames: int | None, notes: se
 
 
 def _frame_names(files, count: int) -> list[str]:
-  """Output names: the files' stems, or `frame_000000`... for a video or clashing stems."""
+  """Output names: the files' stems, or `frame_000000`... for a video or clashing stems
+  (`0001.png` beside `0001.jpg`: logged, naming the first pair)."""
   names = [f.stem for f in files] if files is not None else []
+  if files is not None and len(set(names)) != len(names):
+    seen = {}
+    for f in files:
+      if f.stem in seen:
+        log.warning("note: %s and %s in %s share a name before the suffix: the outputs are "
+                    "named by position, frame_000000 to frame_%06d (frame i of the folder's "
+                    "order)", seen[f.stem].name, f.name, f.parent, count - 1)
+        break
+      seen[f.stem] = f
   if files is None or len(set(names)) != len(names):
     names = [f"frame_{i:06d}" for i in range(count)]
   return names
