@@ -597,8 +597,13 @@ def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
                         [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in clip["right"]])
   with caplog.at_level(logging.WARNING):
     assert _infer(left, right, npz_ckpt, tmp_path / "out", "--format", "npy") == 0
-  assert "grayscale frames converted to RGB" in caplog.text
-  assert "16-bit frames converted to 8 bits" in caplog.text
+  # once each, naming the first frame (so the view) converted: a grey left view beside a
+  # colour right one was not told apart from the reverse
+  assert caplog.text.count("grayscale frames converted to RGB") == 1
+  assert f"grayscale frames converted to RGB (grey repeated in 3 channels), e.g. {left}" in (
+      caplog.text)
+  assert caplog.text.count("16-bit frames converted to 8 bits") == 1
+  assert f"16-bit frames converted to 8 bits (round(v / 257)), e.g. {left}" in caplog.text
   assert len(list((tmp_path / "out" / "disparity").iterdir())) == T
   lv, rv, names = video_io.load_stereo(left, right, max_frames=2)
   assert lv.shape == rv.shape == (2, H, W, 3) and names == ["0000", "0001"]

@@ -55,13 +55,14 @@ def to_rgb8(img: np.ndarray, source: str, notes: set[str]) -> np.ndarray:
   Args:
     img: `[H, W]`, `[H, W, 1]`, `[H, W, 3]` or `[H, W, 4]` array as `cv2.imread` returns it.
     source: name for messages.
-    notes: receives one sentence per conversion made (logged once by the caller).
+    notes: receives one sentence per kind of conversion made, naming the first file (so the
+      view) it was made for (logged once by the caller).
 
   Returns:
     `[H, W, 3]` uint8 RGB.
   """
   if img.dtype == np.uint16:
-    notes.add("16-bit frames converted to 8 bits (round(v / 257))")
+    _note_once(notes, f"16-bit frames converted to 8 bits (round(v / 257)), e.g. {source}")
     top = int(img.max())
     if top < 256:  # 8-bit values in a 16-bit file: 0..1 after the conversion
       _note_once(notes, "some 16-bit frames hold only values 0..255 (8-bit data saved as "
@@ -77,12 +78,13 @@ def to_rgb8(img: np.ndarray, source: str, notes: set[str]) -> np.ndarray:
   if img.ndim == 3 and img.shape[2] == 1:
     img = img[..., 0]
   if img.ndim == 2:
-    notes.add("grayscale frames converted to RGB (grey repeated in 3 channels)")
+    _note_once(notes, "grayscale frames converted to RGB (grey repeated in 3 channels), e.g. "
+               f"{source}")
     return np.repeat(img[..., None], 3, axis=2)
   if img.ndim != 3 or img.shape[2] not in (3, 4):
     raise ValueError(f"{source}: unsupported image shape {img.shape}")
   if img.shape[2] == 4:
-    notes.add("alpha channel dropped")
+    _note_once(notes, f"alpha channel dropped, e.g. {source}")
   return np.ascontiguousarray(img[..., 2::-1])
 
 
