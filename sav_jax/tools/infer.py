@@ -530,7 +530,7 @@ def writing(path: pathlib.Path, size: int | None = None, remove: bool = True,
   except BaseException as e:
     if remove:
       path.unlink(missing_ok=True)
-    if not isinstance(e, (OSError, ValueError)) or isinstance(e, FileExistsError):
+    if not isinstance(e, OSError) or isinstance(e, FileExistsError):  # (not the disk's)
       raise
     try:
       free = (f"; {shutil.disk_usage(path if path.is_dir() else path.parent).free / 2**20:.1f} "
