@@ -388,6 +388,7 @@ def test_iterators_and_lists_beside_lazy_sources(monkeypatch):
     np.testing.assert_array_equal(label // 1000 - 1 + label % 1000, np.arange(12))
 
 
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 def test_predict_video_fills_one_output_array(monkeypatch):
   """The windows' pieces went to a list, then np.concatenate: the output held twice."""
   monkeypatch.setattr(inference, "check_variables", lambda *a: None)
