@@ -1548,9 +1548,6 @@ def test_ctrl_c_ends_the_train_command_with_one_line(toy_run, tmp_path, during):
 def test_a_failed_checkpoint_write_is_one_line_naming_step_folder_and_cause(tmp_path):
   # A full disk during an async save surfaced as orbax's chained traceback at the next save,
   # then thousands of lines of its pending writes failing as Python shut down.
-  import subprocess  # pylint: disable=g-import-not-at-top
-  from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
-
   class Manager:
     directory = tmp_path / "checkpoints"
 
@@ -1573,34 +1570,33 @@ def test_a_failed_checkpoint_write_is_one_line_naming_step_folder_and_cause(tmp_
   with pytest.raises(ckpt_lib.CheckpointSaveError,
                      match=r"saving a checkpoint in .* failed: OSError: \[Errno 5\] I/O error"):
     ckpt_lib.wait_until_saved(Manager(OSError(5, "I/O error")))
-  code = ("import runpy, sys\nfrom train import checkpoint, loop\n"
-          "def fail(*a, **k):\n"
-          "  raise checkpoint.CheckpointSaveError('saving checkpoint 2 in W failed: no space')\n"
+  proc = _train_failing_with(
+      "checkpoint.CheckpointSaveError('saving checkpoint 2 in W failed: no space')", tmp_path)
+  assert proc.returncode == 1, proc.stderr[-2000:]
+  assert proc.stderr.strip() == "train: error: saving checkpoint 2 in W failed: no space"
+
+
+def _train_failing_with(error: str, tmp_path):
+  """`python -m train` (synthetic config, workdir `tmp_path/w`) whose `loop.run` raises
+  `error` (Python source; `jax` and `train.checkpoint` as `checkpoint` are imported)."""
+  import subprocess  # pylint: disable=g-import-not-at-top
+  from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
+  code = ("import runpy, sys, jax\nfrom train import checkpoint, loop\n"
+          f"def fail(*a, **k):\n  raise {error}\n"
           "loop.setup = lambda *a, **k: {}\nloop.run = fail\n"
           "sys.argv = ['train', '--config', 'configs/synthetic.py', '--workdir', sys.argv[1]]\n"
           "runpy.run_module('train', run_name='__main__')\n")
-  proc = subprocess.run([sys.executable, "-c", code, str(tmp_path / "w")], cwd=ROOT,
+  return subprocess.run([sys.executable, "-c", code, str(tmp_path / "w")], cwd=ROOT,
                         env=child_env(tmp_path / "cache"), capture_output=True, text=True,
                         timeout=300, check=False)
-  assert proc.returncode == 1, proc.stderr[-2000:]
-  assert proc.stderr.strip() == "train: error: saving checkpoint 2 in W failed: no space"
 
 
 def test_a_device_out_of_memory_is_one_line_with_what_to_change(tmp_path):
   # A step too big for the device ended the run with XLA's traceback and its buffer tables
   # (hundreds of lines on a GPU), naming none of the settings that make a step smaller.
-  import subprocess  # pylint: disable=g-import-not-at-top
-  from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
-  code = ("import runpy, sys, jax\nfrom train import loop\n"
-          "def fail(*a, **k):\n"
-          "  raise jax.errors.JaxRuntimeError('RESOURCE_EXHAUSTED: Out of memory while trying "
-          "to allocate 30.5GiB.\\nBufferAssignment OOM Debugging.\\n  parameter allocation: 1GiB')\n"
-          "loop.setup = lambda *a, **k: {}\nloop.run = fail\n"
-          "sys.argv = ['train', '--config', 'configs/synthetic.py', '--workdir', sys.argv[1]]\n"
-          "runpy.run_module('train', run_name='__main__')\n")
-  proc = subprocess.run([sys.executable, "-c", code, str(tmp_path / "w")], cwd=ROOT,
-                        env=child_env(tmp_path / "cache"), capture_output=True, text=True,
-                        timeout=300, check=False)
+  proc = _train_failing_with(
+      "jax.errors.JaxRuntimeError('RESOURCE_EXHAUSTED: Out of memory while trying to allocate "
+      "30.5GiB.\\nBufferAssignment OOM Debugging.\\n  parameter allocation: 1GiB')", tmp_path)
   assert proc.returncode == 1, proc.stderr[-2000:]
   assert proc.stderr.strip() == (
       "train: error: out of memory on the device: RESOURCE_EXHAUSTED: Out of memory while "
