@@ -23,7 +23,7 @@ import time
 
 from eval import config as eval_config
 from eval import report
-from sav_jax import runtime
+from sav_jax import _signals, runtime
 from sav_jax._checks import is_int
 from sav_jax.config import DTYPES
 # The evaluation's own modules (`eval.runner`, `sav_jax.inference`) import JAX: they are
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   args = build_parser().parse_args(rest)
   try:
-    with command_logging(args.verbose):
+    with command_logging(args.verbose), _signals.remembered_interrupts():
       return run(args, overrides)
   except (ValueError, OSError, UsageError) as e:  # OSError: a file that cannot be read or written
     print(f"eval: error: {e}", file=sys.stderr)
@@ -129,7 +129,7 @@ def _run_into(args, config, out) -> int:
     print(f"restored {len(restored)} prediction and plot files that an interrupted "
           f"--overwrite run had set aside in {out / runner.SET_ASIDE}")
   inference.check_window(config.window, config.stride)
-  devices = resolve_devices_option(config.devices, "config.devices")
+  devices = resolve_devices_option(config.devices, "config.devices", takes_all=False)
   seqs = eval_data.load_sequences(config, args.data_root)
   unscaled = [str(s.name) for s in seqs if s.depth2disp_scale is None]
   depth_metrics = [f"metrics.{k}" for k in ("tcc", "raft") if config.metrics[k]]

@@ -21,8 +21,9 @@ def interrupt_after(note: str | None = None):
   as a corrupt file (and a Ctrl-C its reader threads met could be lost). Only in the main
   thread (Python's rule for signal handlers); elsewhere the block runs as it is. `note`: a
   warning logged when a Ctrl-C was held."""
-  if threading.current_thread() is not threading.main_thread():
-    yield
+  if (threading.current_thread() is not threading.main_thread()
+      or signal.getsignal(signal.SIGINT) == signal.SIG_IGN):  # ignored (a background job):
+    yield  # nothing to hold back (it logged the note, then carried on)
     return
   caught = []
   previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(frame))
@@ -37,6 +38,43 @@ def interrupt_after(note: str | None = None):
       previous(signal.SIGINT, caught[0])
     elif previous != signal.SIG_IGN:
       raise KeyboardInterrupt
+
+
+_interrupted = threading.Event()
+
+
+@contextlib.contextmanager
+def remembered_interrupts():
+  """Remembers a Ctrl-C (SIGINT) while the block runs, so that `raise_if_interrupted` raises
+  it again at the caller's next safe point: Python drops a KeyboardInterrupt raised inside a
+  garbage-collection callback (JAX's `_xla_gc_callback`: "Exception ignored in ..."), and a
+  training run interrupted there went on to its last step and exited 0. The handler before
+  still runs (KeyboardInterrupt where the signal lands). Only in the main thread, and not
+  where SIGINT is ignored."""
+  previous = signal.getsignal(signal.SIGINT)
+  if (threading.current_thread() is not threading.main_thread() or not callable(previous)):
+    yield
+    return
+
+  def remember(signum, frame):
+    _interrupted.set()
+    previous(signum, frame)
+
+  _interrupted.clear()
+  signal.signal(signal.SIGINT, remember)
+  try:
+    yield
+  finally:
+    signal.signal(signal.SIGINT, previous)
+    _interrupted.clear()
+
+
+def raise_if_interrupted() -> None:
+  """Raises KeyboardInterrupt if a Ctrl-C came (inside `remembered_interrupts`) since the
+  last call: one that Python dropped on its way."""
+  if _interrupted.is_set():
+    _interrupted.clear()
+    raise KeyboardInterrupt
 
 
 def exit_interrupted(message: str) -> None:

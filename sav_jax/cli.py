@@ -8,6 +8,7 @@ import importlib
 import sys
 import warnings
 
+from sav_jax import _signals
 from sav_jax.tools import UsageError, command_logging
 
 COMMANDS = {
@@ -78,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel  # jax: after --help
   try:
-    with command_logging(args.verbose), runtime.preserved_settings(), one_line_warnings(args):
+    with (command_logging(args.verbose), runtime.preserved_settings(), one_line_warnings(args),
+          _signals.remembered_interrupts()):
       return int(args._run(args) or 0)
   except (UsageError, ValueError, OSError) as e:  # OSError: a disk full, a folder not writable
     hint = ""

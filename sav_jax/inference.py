@@ -68,7 +68,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sav_jax import runtime
+from sav_jax import _signals, runtime
 from sav_jax._checks import caller_stacklevel, check_video_values  # noqa: F401  (public)
 from sav_jax._checks import is_int as _is_int
 from sav_jax.config import DTYPES, SAVConfig, as_config, resolve_vit_attention
@@ -1025,6 +1025,7 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
     cache = FrameFeatureCache(chunk)
     if len(placed) == 1:
       for i, win in enumerate(plan):
+        _signals.raise_if_interrupted()  # a Ctrl-C that Python dropped (the CLI's commands)
         lw, rw = frames(win)
         keep_from = plan[i + 1].start if i + 1 < len(plan) else win.start + win.length
         yield kept(win, _run_window(placed[0], lw, rw, cfg=cfg, iters=iters, pads=pads,
@@ -1033,6 +1034,7 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
         bar.update(win.keep_stop - win.keep_start)
       return
     for g in range(0, len(plan), len(placed)):
+      _signals.raise_if_interrupted()
       group = plan[g:g + len(placed)]
       cache.evict_before(group[0].start)
       have, work = set(cache.frames), []

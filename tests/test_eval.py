@@ -415,7 +415,9 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
     ("--config.iters=1", "config.iters must be an integer >= 2, got 1"), ("--config.plots.enabled=maybe", "true/false"),
     ("--config.split=train", "only the split 'test'"),
     ("--config.devices=4", "config.devices: devices=4, but 1 local cpu device is available"),
-    ("--config.devices=-1", "config.devices: devices must be a number of local devices"),
+    # (0 for every device; not 'all', which the integer field refuses)
+    ("--config.devices=-1", "config.devices: devices must be a number of local devices >= 1, "
+                            "or 0 for every one, got -1"),
     ("--config.plots.tile_size=0", "config.plots.tile_size must be an integer >= 16, got 0"),
     ("--config.plots.strip_frames=0", "config.plots.strip_frames must be an integer >= 1"),
     ("--config.dtype=float64", "config.dtype must be one of ('float32', 'bfloat16'), got 'f"),

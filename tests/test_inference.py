@@ -185,6 +185,42 @@ def test_predict_video_under_a_jax_transformation_says_what_to_call_instead():
     jax.jit(lambda v: inference.forward_batch_test_official(v, video, video))({"w": jnp.ones(2)})
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # (the drop)
+def test_a_ctrl_c_that_python_dropped_stops_the_windows(monkeypatch):
+  # Python drops a KeyboardInterrupt raised in a garbage-collection callback (JAX has one):
+  # under the commands' `remembered_interrupts`, the next window raises it again.
+  import gc  # pylint: disable=import-outside-toplevel
+  import signal  # pylint: disable=import-outside-toplevel
+  from sav_jax import _signals  # pylint: disable=import-outside-toplevel
+  ran = []
+
+  def stand_in(variables, left, right, *, pads, **kw):
+    ran.append(len(left))
+    if len(ran) == 1:
+      def in_gc(phase, info):
+        if phase == "start":
+          signal.getsignal(signal.SIGINT)(signal.SIGINT, None)  # raises: Python drops it
+      gc.callbacks.append(in_gc)
+      try:
+        gc.collect()
+      finally:
+        gc.callbacks.remove(in_gc)
+    return np.full((len(left), 32, 32), 5.0, np.float32)
+
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window", stand_in)
+  video = np.zeros((35, 32, 32, 3), np.uint8)  # three windows
+  handler = signal.signal(signal.SIGINT, signal.default_int_handler)  # (xdist ignores it)
+  try:
+    with _signals.remembered_interrupts(), pytest.raises(KeyboardInterrupt):
+      inference.predict_video({}, video, video)
+    assert ran == [20]  # the second window did not run
+    ran.clear()
+    assert inference.predict_video({}, video, video).shape == (35, 32, 32)  # outside: no trace
+  finally:
+    signal.signal(signal.SIGINT, handler)
+
+
 def test_swapped_views_are_warned_about_once(monkeypatch):
   # The model's disparities of a left view are positive; with the views swapped they come
   # out negative and the official abs() hid it: a plausible-looking map of the wrong view.

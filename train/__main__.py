@@ -159,7 +159,11 @@ def main(argv):
   elif _NUM_PROC.value is not None or _PROC_ID.value is not None:
     _fail("--num_processes and --process_id need --coordinator_address (host:port of process 0)")
   elif _DISTRIBUTED.value == "auto":
-    jax.distributed.initialize()
+    try:
+      jax.distributed.initialize()
+    except (ValueError, RuntimeError) as e:  # no cluster found: JAX's traceback, status 1
+      _fail(f"--distributed=auto found no cluster to join (a TPU pod, a SLURM job, ...): {e}; "
+            "elsewhere pass --coordinator_address=host:port --num_processes=N --process_id=i")
   # Implicit host-to-device copies are bugs in a training loop: make them errors. (Not the
   # device-to-host ones: XLA:CPU does not enforce that guard, so the tests could never show
   # the loop clean of them, and libraries copy implicitly there, e.g. orbax's checkpoint

@@ -481,8 +481,8 @@ def setup(config, workdir):
   mesh = state_lib.make_mesh()
   validate_config(config, workdir, mesh.size)
   log.info("compilation cache: %s", setup_compile_cache(config) or "off")
-  log.info("mesh %s over %d devices, %d processes", dict(mesh.shape), mesh.size,
-           jax.process_count())
+  log.info("mesh %s over %s, %s", dict(mesh.shape), _count(mesh.size, "device"),
+           _count(jax.process_count(), "process", "processes"))
   data_clips = {}
   grain_it = iter(input_lib.train_dataset(config, clips=data_clips))
   # The validation clips, read before the model is traced: data that cannot be used fails
@@ -586,7 +586,7 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
   # already started is finished before the process goes: orbax writes it in a background
   # thread, and a save cut short is deleted at the next start. The SIGTERM handler stays
   # until then (a second notice while the last save is written must not kill it).
-  with Preemption(manager) as preemption:
+  with Preemption(manager) as preemption, _signals.remembered_interrupts():
     try:
       if evaluator is not None and start == 0 and config.eval.at_start:
         _validate(evaluator, state.params, writer, 0)
@@ -596,6 +596,7 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
         _validate(evaluator, state.params, writer, start)
       pending = None
       for step in range(start + 1, total + 1):
+        _signals.raise_if_interrupted()  # a Ctrl-C that Python dropped (see the function)
         with jax.profiler.StepTraceAnnotation("train", step_num=step):
           state, metrics = parts["train_step"](state, _next_batch(parts["batches"], step,
                                                                   manager))
@@ -663,6 +664,11 @@ def _validation_missing(config, writer: MetricWriter, start: int) -> bool:
   missing = np.asarray(not writer.logged(start, "val"))
   with jax.transfer_guard("allow"):  # several processes: it places `missing` on a device
     return bool(multihost_utils.broadcast_one_to_all(missing))
+
+
+def _count(n: int, one: str, many: str | None = None) -> str:
+  """`1 device`, `8 devices`."""
+  return f"{n} {one if n == 1 else many or one + 's'}"
 
 
 class Preempted(RuntimeError):

@@ -18,13 +18,16 @@ class UsageError(Exception):
   """Bad input from the user: reported without a traceback, exit status 2."""
 
 
-def resolve_devices_option(value, name: str = "--devices") -> list:
+def resolve_devices_option(value, name: str = "--devices", takes_all: bool = True) -> list:
   """The devices of a `--devices` value (`inference.resolve_devices`): a number n >= 1 of
-  local devices, or 0 or "all" for every one. Bad values raise UsageError naming `name`."""
+  local devices, or 0 or "all" for every one. Bad values raise UsageError naming `name`.
+  `takes_all`: whether the option can hold the word "all" (an integer config field cannot:
+  the message then offers 0 alone)."""
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
   text = str(value).strip().lower()
   if text != "all" and not text.isdigit():
-    raise UsageError(f"{name}: devices must be a number of local devices >= 1, or 0 or 'all' "
+    every = "0 or 'all'" if takes_all else "0"
+    raise UsageError(f"{name}: devices must be a number of local devices >= 1, or {every} "
                      f"for every one, got {value!r}")
   try:
     return inference.resolve_devices("all" if text in ("all", "0") else int(text))
