@@ -440,6 +440,13 @@ def test_folders_numbered_alike_at_different_places_are_noted(tmp_path, caplog):
       "prefixed": (["left_0001", "left_0002"], ["right_0001", "right_0002"], False),
       "middlebury": (["im0"], ["im1"], False),  # numbered differently, nothing in common
       "unnumbered": (["a", "b"], ["b", "a"], False),
+      # KITTI's multi-view names: the last number repeats (10, 11, 10, 11) in both folders
+      "kitti": (["000000_10", "000000_11", "000001_10", "000001_11"],
+                ["000000_10", "000000_11", "000001_10", "000001_11"], False),
+      "kitti_shifted": (["000000_10", "000000_11", "000001_10"],
+                        ["000000_11", "000001_10", "000001_11"], False),  # repeats: no claim
+      "suffixed": (["frame0001_left", "frame0002_left"], ["frame0002_right", "frame0003_right"],
+                   True),
   }
   for case, (left_names, right_names, noted) in cases.items():
     for side, names in (("l", left_names), ("r", right_names)):

@@ -360,9 +360,13 @@ def _shifted_pairing(left_files, right_files) -> str | None:
   Folders numbered differently (`im0` / `im1`) or alike at the same places get none."""
   if not left_files or not right_files:
     return None
+  if [pathlib.Path(f).stem for f in left_files] == [pathlib.Path(f).stem for f in right_files]:
+    return None  # the same names at the same places (KITTI's 000000_10 ... in both)
   left_numbers = [_frame_number(f) for f in left_files]
   right_numbers = [_frame_number(f) for f in right_files]
-  if None in left_numbers or None in right_numbers:
+  if (None in left_numbers or None in right_numbers  # unnumbered, or numbers that repeat
+      or len(set(left_numbers)) < len(left_numbers)
+      or len(set(right_numbers)) < len(right_numbers)):
     return None
   right_place = {n: i for i, n in enumerate(right_numbers)}
   for i, n in enumerate(left_numbers):
