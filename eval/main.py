@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
       raise
     print(f"eval: error: out of memory on the device: {oom}; use fewer frames per window "
           "(--config.window, --config.stride), fewer --config.iters or --config.dtype=bfloat16; "
-          + ("the earlier results in the output folder were put back" if args.overwrite else
+          + ("the earlier results in the output folder are kept" if args.overwrite else
              "the sequences it finished are recorded: --resume continues"), file=sys.stderr)
     return 2
   except KeyboardInterrupt:  # Ctrl-C at the command line: one line (the run can be resumed)

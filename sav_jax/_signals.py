@@ -52,13 +52,16 @@ def remembered_interrupts():
   still runs (KeyboardInterrupt where the signal lands). Only in the main thread, and not
   where SIGINT is ignored."""
   previous = signal.getsignal(signal.SIGINT)
-  if (threading.current_thread() is not threading.main_thread() or not callable(previous)):
+  if (threading.current_thread() is not threading.main_thread() or not callable(previous)
+      or getattr(previous, "remembers", False)):  # (nested: the outer block remembers)
     yield
     return
 
   def remember(signum, frame):
     _interrupted.set()
     previous(signum, frame)
+
+  remember.remembers = True
 
   _interrupted.clear()
   signal.signal(signal.SIGINT, remember)

@@ -375,9 +375,10 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
                   "side_by_side.mp4", "summary.json"]
   assert not (out / "depth").exists() and not (out / "pointclouds").exists()  # emptied: gone
   # (set aside as it began to write: 50 maps, 25 depth maps, 25 point clouds and the video)
-  assert f"setting aside 101 files of the earlier run in {out / '.earlier_run'}" in (
+  assert f"setting aside 101 files of the earlier run in {out / infer.SET_ASIDE}" in (
       capsys.readouterr().out)
-  assert not (out / ".earlier_run").exists()  # deleted once this run's summary was written
+  assert not (out / infer.SET_ASIDE).exists()  # deleted once this run's summary was written
+  assert not (out / infer.DONE).exists()
   # A --overwrite run that fails midway puts the earlier run's files back and deletes its
   # own (it left two runs' files mixed, the earlier summary replaced by its provisional one).
   before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
@@ -404,6 +405,19 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   (out / "disparity" / "0000.pfm").write_bytes(b"the killed run's")
   assert infer.put_back(out) == 2
   assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+  # A run killed after its complete summary, while deleting what it set aside: never undone
+  # (the next run put the earlier files and summary back over the finished run's).
+  finished = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+  infer.set_aside(out, [out / "disparity" / "0003.npy"])
+  (out / "summary.json").write_text(json.dumps({"tool": "sav-jax infer", "complete": True,
+                                                "outputs": ["disparity/0003.npy"]}))
+  (out / "disparity" / "0003.npy").write_bytes(b"the finished run's")
+  assert infer.put_back(out) == 0 and not (out / infer.SET_ASIDE).exists()
+  assert (out / "disparity" / "0003.npy").read_bytes() == b"the finished run's"
+  (out / infer.DONE).mkdir()  # its rename done, the deletion cut short: finished here
+  assert infer.put_back(out) == 0 and not (out / infer.DONE).exists()
+  (out / "summary.json").write_bytes(finished[pathlib.Path("summary.json")])
+  (out / "disparity" / "0003.npy").write_bytes(finished[pathlib.Path("disparity/0003.npy")])
   infer.set_aside(out, [out / "disparity" / "0003.npy"])  # killed again: the command says so
   monkeypatch.setattr(inference, "_run_window", label_model)
   assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy", "--max-frames",
@@ -1171,3 +1185,36 @@ def test_an_output_subfolder_that_cannot_be_written_fails_before_the_model_runs(
   assert _error_line(capsys) == (f"sav-jax infer: error: --out {out / 'disparity'}: cannot "
                                  f"create anything in {out / 'disparity'} (Read-only file system)")
   assert sorted(p.name for p in out.iterdir()) == ["disparity"]  # no summary either
+
+
+def test_overwrite_into_a_relative_out_and_a_second_run_into_a_busy_out(
+    tmp_path, npz_ckpt, monkeypatch, capsys):
+  # A relative --out: the files set aside were named relative to it and absolute beside it
+  # ("... is not in the subpath of 'o'"), every --overwrite that dropped a format failed.
+  # A second run into a folder a run is writing in took its set-aside files for a killed
+  # run's and put them back under it: a lock refuses it.
+  frames = np.zeros((2, 16, 24, 3), np.uint8)
+  left, right = _write_frames(tmp_path / "l", frames), _write_frames(tmp_path / "r", frames)
+  monkeypatch.setattr(inference, "_run_window", _positive_model)
+  monkeypatch.chdir(tmp_path)
+  assert _infer(left, right, npz_ckpt, "o", "--format", "png16,npy") == 0
+  assert _infer(left, right, npz_ckpt, "o", "--format", "npy", "--overwrite") == 0
+  assert sorted(p.name for p in (tmp_path / "o" / "disparity").iterdir()) == [
+      "0000.npy", "0001.npy"]
+  assert not (tmp_path / "o" / infer.SET_ASIDE).exists()
+  capsys.readouterr()
+  from sav_jax._locks import FolderLock  # pylint: disable=import-outside-toplevel
+  held = FolderLock(tmp_path / "o", infer.LOCK)  # another run's
+  try:
+    assert _infer(left, right, npz_ckpt, "o", "--format", "npy", "--overwrite") == 2
+    assert "is writing into o: wait for it or choose another --out" in _error_line(capsys)
+    assert _infer(left, right, npz_ckpt, "new/deeper", "--format", "npy") == 0  # elsewhere: yes
+  finally:
+    held.release()
+  def failing(*args, **kwargs):
+    raise ValueError("a frame that no longer decodes")
+
+  monkeypatch.setattr(inference, "_run_window", failing)  # fails: nothing left behind
+  capsys.readouterr()
+  assert _infer(left, right, npz_ckpt, "new2/deeper", "--format", "npy") == 2
+  assert not (tmp_path / "new2").exists()  # nor the folders made for the lock

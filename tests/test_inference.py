@@ -150,7 +150,7 @@ def _labelled_video(n):
 
 
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
-@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0  # labels 0..1 for short clips
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 @pytest.mark.parametrize("n", [7, 23])
 def test_every_frame_returned(monkeypatch, n):
   fake = _LabelModel()

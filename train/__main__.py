@@ -190,6 +190,9 @@ def main(argv):
     sys.exit(2)
   except KeyboardInterrupt:
     _interrupted()
+  except Exception as e:  # pylint: disable=broad-except  # XLA's, placing the initial state
+    _exit_if_out_of_memory(e)
+    raise
   try:
     loop.run(config, _WORKDIR.value, parts)
   except loop.Preempted as e:  # SIGTERM: a checkpoint was saved; 143 = 128 + SIGTERM
@@ -211,18 +214,25 @@ def main(argv):
     sys.unraisablehook = lambda _: None
     sys.exit(1)
   except Exception as e:  # pylint: disable=broad-except  # XLA's, compiling or running a step
-    from sav_jax import runtime  # pylint: disable=g-import-not-at-top
-    oom = runtime.out_of_memory(e)
-    if oom is None:
-      raise
-    if flags.FLAGS.verbosity >= 1:
-      traceback.print_exc()
-    print(f"train: error: out of memory on the device: {oom}; use "
-          "--config.train.microbatches=K (the same batch as K parts), --config.model.remat=true, "
-          "--config.model.dtype=bfloat16, a smaller --config.train.batch_size or "
-          f"--config.data.crop, or fewer --config.train.iters; {_resume_point()}",
-          file=sys.stderr)
-    sys.exit(1)
+    _exit_if_out_of_memory(e)
+    raise
+
+
+def _exit_if_out_of_memory(e: Exception) -> None:
+  """A device out of memory (`runtime.out_of_memory`): one line naming what makes a step
+  smaller and where the run resumes, status 1 (XLA's traceback with -v 1)."""
+  from sav_jax import runtime  # pylint: disable=g-import-not-at-top
+  oom = runtime.out_of_memory(e)
+  if oom is None:
+    return
+  if flags.FLAGS.verbosity >= 1:
+    traceback.print_exception(e)
+  print(f"train: error: out of memory on the device: {oom}; use "
+        "--config.train.microbatches=K (the same batch as K parts), --config.model.remat=true, "
+        "--config.model.dtype=bfloat16, a smaller --config.train.batch_size or "
+        f"--config.data.crop, or fewer --config.train.iters; {_resume_point()}",
+        file=sys.stderr)
+  sys.exit(1)
 
 
 def _interrupted() -> None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import itertools
 import json
 import logging
@@ -207,8 +208,50 @@ def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[path
   return stale
 
 
-# Where `--overwrite` keeps the earlier run's files while this run writes (in --out).
-SET_ASIDE = ".earlier_run"
+# Where `--overwrite` keeps the earlier run's files while this run writes (in --out; not
+# `python -m eval`'s `.earlier_run`), its name once this run is complete (a deletion cut
+# short is finished by the next run, never undone), and the lock a run holds in --out.
+SET_ASIDE = ".infer_earlier_run"
+DONE = SET_ASIDE + ".done"
+LOCK = ".infer.lock"
+
+
+@contextlib.contextmanager
+def output_lock(out: pathlib.Path):
+  """Holds `out/.infer.lock` while a run works in `out` (`sav_jax._locks`): a second run
+  into the same folder took the first one's set-aside files for a killed run's and put them
+  back under it. `out` is created if needed, and removed again if the run leaves it empty.
+
+  Raises:
+    FileExistsError: another `infer` holds the lock.
+  """
+  from sav_jax._locks import FolderBusyError, FolderLock  # pylint: disable=import-outside-toplevel
+  created = [f for f in (out, *out.parents) if not f.exists()]  # (made here, innermost first)
+  out.mkdir(parents=True, exist_ok=True)
+  try:
+    lock = FolderLock(out, LOCK)
+  except FolderBusyError as e:
+    raise FileExistsError(f"another sav-jax infer ({e.holder}) is writing into {out}: wait for "
+                          "it or choose another --out") from None
+  try:
+    yield
+  finally:
+    lock.release()
+    for folder in created:  # a run refused before writing leaves no empty folders behind
+      if not (folder.is_dir() and not any(folder.iterdir())):
+        break
+      folder.rmdir()
+
+
+def write_json(path: pathlib.Path, value) -> None:
+  """Writes `value` as JSON to `path` whole or not at all (a temporary file beside it,
+  renamed): a summary cut by a full disk or a kill would not parse."""
+  tmp = path.with_name(f".{path.name}.tmp")
+  try:
+    tmp.write_text(json.dumps(value, indent=1))
+    os.replace(tmp, path)
+  finally:
+    tmp.unlink(missing_ok=True)
 
 
 def set_aside(out: pathlib.Path, paths: list[pathlib.Path]) -> int:
@@ -224,7 +267,7 @@ def set_aside(out: pathlib.Path, paths: list[pathlib.Path]) -> int:
   moved = 0
   for path in [out / "summary.json", *paths]:
     if path.is_file() and not path.is_symlink():
-      target = aside / path.relative_to(out)
+      target = aside / path.absolute().relative_to(out.absolute())  # (--out may be relative)
       target.parent.mkdir(parents=True, exist_ok=True)
       path.replace(target)
       moved += path.name != "summary.json"
@@ -237,7 +280,12 @@ def set_aside(out: pathlib.Path, paths: list[pathlib.Path]) -> int:
 def put_back(out: pathlib.Path) -> int:
   """Undoes `set_aside` after a run that did not finish (an error, Ctrl-C, or a killed run
   found by the next one): deletes the files the unfinished run's provisional `summary.json`
-  lists, then moves the earlier run's files back. Returns how many files came back."""
+  lists, then moves the earlier run's files back. Returns how many files came back.
+
+  A run that finished (its complete summary written) is never undone: what it set aside is
+  deleted (`drop_set_aside`, finished here if it was cut short)."""
+  if (out / DONE).is_dir():
+    shutil.rmtree(out / DONE)
   aside = out / SET_ASIDE
   if not aside.is_dir():
     return 0
@@ -245,8 +293,11 @@ def put_back(out: pathlib.Path) -> int:
     summary = json.loads((out / "summary.json").read_text())
   except (OSError, ValueError):
     summary = {}
-  if (isinstance(summary, dict) and summary.get("tool") == SUMMARY_TOOL
-      and summary.get("complete") is False and isinstance(summary.get("outputs"), list)):
+  ours = isinstance(summary, dict) and summary.get("tool") == SUMMARY_TOOL
+  if ours and summary.get("complete") is True:  # finished, killed before its drop_set_aside
+    drop_set_aside(out)
+    return 0
+  if ours and summary.get("complete") is False and isinstance(summary.get("outputs"), list):
     for rel in summary["outputs"]:
       if isinstance(rel, str) and _is_output_name(rel):
         path = out / rel
@@ -268,9 +319,23 @@ def put_back(out: pathlib.Path) -> int:
 
 
 def drop_set_aside(out: pathlib.Path) -> None:
-  """Deletes `out/.earlier_run/` once the new run's summary is written."""
+  """Deletes the set-aside files once the new run's summary is written: renamed first (one
+  atomic step: from then on a stop cannot bring them back), then deleted."""
   if (out / SET_ASIDE).is_dir():
-    shutil.rmtree(out / SET_ASIDE)
+    (out / SET_ASIDE).replace(out / DONE)
+  if (out / DONE).is_dir():
+    shutil.rmtree(out / DONE)
+
+
+@contextlib.contextmanager
+def puts_back_on_failure(out: pathlib.Path):
+  """`put_back` if the block fails (an error, Ctrl-C), then re-raises."""
+  try:
+    yield
+  except BaseException:
+    if put_back(out):
+      print(f"the earlier run's files in {out} were put back", file=sys.stderr)
+    raise
 
 
 def check_not_inputs(paths: list[pathlib.Path], inputs) -> None:
@@ -326,12 +391,20 @@ def run(args: argparse.Namespace) -> int:
     if not (np.isfinite(args.max_depth) and args.max_depth > 0):
       raise UsageError(f"--max-depth must be a finite positive number, got {args.max_depth}")
   out = check_output_dir(args.out)
+  outputs = output_paths(out, names, formats, calib, args.depth_format)
+  check_not_inputs(outputs, (args.left, args.right))
+  with output_lock(out):
+    return _run_locked(args, out, outputs, left, right, names, formats, calib, t, h, w)
+
+
+def _run_locked(args, out, outputs, left, right, names, formats, calib, t, h, w) -> int:
+  """`run`'s rest, holding the lock on `out`."""
+  from sav_jax import viz  # pylint: disable=import-outside-toplevel
+  ckpt = pathlib.Path(args.checkpoint)
   restored = put_back(out)  # files a killed --overwrite run had set aside
   if restored:
     print(f"put back {restored} files of an earlier run in {out} that an interrupted "
           "--overwrite run had set aside")
-  outputs = output_paths(out, names, formats, calib, args.depth_format)
-  check_not_inputs(outputs, (args.left, args.right))
   check_overwrite(outputs, args.overwrite, out)
   for folder in sorted({p.parent for p in outputs} - {out}):  # an earlier run's disparity/...
     if folder.is_dir():  # (not writable: found only once the model had run)
@@ -370,13 +443,9 @@ def run(args: argparse.Namespace) -> int:
                                           stride=args.stride, progress=True, devices=devices)
     if resize is not None:  # back to the input size, in its pixels
       chunks = ((t0, video_io.disparities_to_input_size(d, h, w)) for t0, d in chunks)
-    try:
+    with puts_back_on_failure(out):
       written = write_outputs(out, names, left, chunks, formats, calib, args, listed,
                               stale=stale)
-    except BaseException:
-      if put_back(out):
-        print(f"the earlier run's files in {out} were put back", file=sys.stderr)
-      raise
   seconds = time.perf_counter() - start
   compiling = inference.compile_seconds() - compiled
   summary = {"tool": SUMMARY_TOOL, "frames": t, "height": h, "width": w,
@@ -392,7 +461,9 @@ def run(args: argparse.Namespace) -> int:
              "calibration": None if calib is None else calib._asdict(),
              "max_depth": args.max_depth, **written, "complete": True,
              "outputs": listed}  # for a later run with --overwrite into this folder
-  (out / "summary.json").write_text(json.dumps(summary, indent=1))
+  with puts_back_on_failure(out):  # (a full disk here: the earlier run's files come back)
+    with writing(out / "summary.json", remove=False):
+      write_json(out / "summary.json", summary)
   drop_set_aside(out)
   vmin, vmax = written["video_disparity_range"]
   print(f"side-by-side video colours: {vmin:.2f} px (dark) to {vmax:.2f} px (bright)")
@@ -459,13 +530,13 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
   chunks = itertools.chain([next(chunks)], chunks)
   if stale:
     moved = set_aside(out, stale)
-    if moved:
-      print(f"setting aside {moved} files of the earlier run in {out / SET_ASIDE} "
-            "(--overwrite; deleted when this run ends, put back if it does not)")
+    if moved:  # (above the progress bar of the windows, not on its line)
+      tqdm.write(f"setting aside {moved} files of the earlier run in {out / SET_ASIDE} "
+                 "(--overwrite; deleted when this run ends, put back if it does not)",
+                 file=sys.stdout)
   (out / "disparity").mkdir(parents=True, exist_ok=True)
   # (replaces an earlier run's summary, which would describe this run's files)
-  (out / "summary.json").write_text(json.dumps({"tool": SUMMARY_TOOL, "complete": False,
-                                                    "outputs": listed}, indent=1))
+  write_json(out / "summary.json", {"tool": SUMMARY_TOOL, "complete": False, "outputs": listed})
   if calib is not None:
     (out / "depth").mkdir(exist_ok=True)
     (out / "pointclouds").mkdir(exist_ok=True)
@@ -551,6 +622,10 @@ def _reserve(file, size: int) -> None:
   try:
     os.posix_fallocate(file.fileno(), 0, size)
   except AttributeError:  # not on this OS (macOS): the map grows as it is written
+    file.truncate(size)
+  except OSError as e:  # a file system without it (ZFS: EINVAL; some FUSE: EOPNOTSUPP)
+    if e.errno not in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOSYS):
+      raise
     file.truncate(size)
 
 

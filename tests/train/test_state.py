@@ -1623,14 +1623,15 @@ def test_a_failed_checkpoint_write_is_one_line_naming_step_folder_and_cause(tmp_
   assert proc.stderr.strip() == "train: error: saving checkpoint 2 in W failed: no space"
 
 
-def _train_failing_with(error: str, tmp_path):
-  """`python -m train` (synthetic config, workdir `tmp_path/w`) whose `loop.run` raises
-  `error` (Python source; `jax` and `train.checkpoint` as `checkpoint` are imported)."""
+def _train_failing_with(error: str, tmp_path, where: str = "run"):
+  """`python -m train` (synthetic config, workdir `tmp_path/w`) whose `loop.run` (or
+  `loop.setup`: `where`) raises `error` (Python source; `jax` and `train.checkpoint` as
+  `checkpoint` are imported)."""
   import subprocess  # pylint: disable=g-import-not-at-top
   from tests.train.conftest import ROOT, child_env  # pylint: disable=g-import-not-at-top
   code = ("import runpy, sys, jax\nfrom train import checkpoint, loop\n"
           f"def fail(*a, **k):\n  raise {error}\n"
-          "loop.setup = lambda *a, **k: {}\nloop.run = fail\n"
+          f"loop.setup = lambda *a, **k: {{}}\nloop.{where} = fail\n"
           "sys.argv = ['train', '--config', 'configs/synthetic.py', '--workdir', sys.argv[1]]\n"
           "runpy.run_module('train', run_name='__main__')\n")
   return subprocess.run([sys.executable, "-c", code, str(tmp_path / "w")], cwd=ROOT,
@@ -1641,16 +1642,18 @@ def _train_failing_with(error: str, tmp_path):
 def test_a_device_out_of_memory_is_one_line_with_what_to_change(tmp_path):
   # A step too big for the device ended the run with XLA's traceback and its buffer tables
   # (hundreds of lines on a GPU), naming none of the settings that make a step smaller.
-  proc = _train_failing_with(
-      "jax.errors.JaxRuntimeError('RESOURCE_EXHAUSTED: Out of memory while trying to allocate "
-      "30.5GiB.\\nBufferAssignment OOM Debugging.\\n  parameter allocation: 1GiB')", tmp_path)
-  assert proc.returncode == 1, proc.stderr[-2000:]
-  assert proc.stderr.strip() == (
-      "train: error: out of memory on the device: RESOURCE_EXHAUSTED: Out of memory while "
-      "trying to allocate 30.5GiB.; use --config.train.microbatches=K (the same batch as K "
-      "parts), --config.model.remat=true, --config.model.dtype=bfloat16, a smaller "
-      "--config.train.batch_size or --config.data.crop, or fewer --config.train.iters; no "
-      "checkpoint was saved: the same command starts the run anew"), proc.stderr[-2000:]
+  for where in ("setup", "run"):  # (setup places the initial state on the devices)
+    proc = _train_failing_with(
+        "jax.errors.JaxRuntimeError('RESOURCE_EXHAUSTED: Out of memory while trying to allocate "
+        "30.5GiB.\\nBufferAssignment OOM Debugging.\\n  parameter allocation: 1GiB')", tmp_path,
+        where)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    assert proc.stderr.strip() == (
+        "train: error: out of memory on the device: RESOURCE_EXHAUSTED: Out of memory while "
+        "trying to allocate 30.5GiB.; use --config.train.microbatches=K (the same batch as K "
+        "parts), --config.model.remat=true, --config.model.dtype=bfloat16, a smaller "
+        "--config.train.batch_size or --config.data.crop, or fewer --config.train.iters; no "
+        "checkpoint was saved: the same command starts the run anew"), (where, proc.stderr[-2000:])
 
 
 def test_a_batch_the_pipeline_cannot_make_is_one_error_naming_the_step():
