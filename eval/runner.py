@@ -9,7 +9,6 @@ Aggregation over sequences is frame-weighted (`sav_jax.metrics.aggregate`).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
 import json
@@ -28,7 +27,7 @@ from eval import data as eval_data
 from eval import plots
 from eval.config import BASELINES, METHOD_NAMES
 from sav_jax import inference, metrics
-from sav_jax._locks import FolderBusyError, FolderLock
+from sav_jax import _locks
 
 log = logging.getLogger(__name__)
 
@@ -446,31 +445,19 @@ SET_ASIDE = ".earlier_run"
 LOCK = ".eval.lock"
 
 
-@contextlib.contextmanager
 def output_lock(out: pathlib.Path):
   """Holds `out/.eval.lock` while an evaluation writes into `out` (`sav_jax._locks`).
 
   A second evaluation into the same folder is refused before it touches anything (its
   start would otherwise take the running one's set-aside files for an interrupted run's).
   A lock file that no process holds (its run was killed) is taken over. `out` is created if
-  needed, and removed again if the run leaves it empty.
+  needed, and removed again (with the folders made for it) if the run leaves it empty.
 
   Raises:
     FileExistsError: another evaluation holds the lock.
   """
-  created = not out.exists()
-  out.mkdir(parents=True, exist_ok=True)
-  try:
-    lock = FolderLock(out, LOCK)
-  except FolderBusyError as e:
-    raise FileExistsError(f"another evaluation ({e.holder}) is writing into {out}: wait for it "
-                          "or choose another --out") from None
-  try:
-    yield
-  finally:
-    lock.release()
-    if created and not any(out.iterdir()):  # a run refused before writing leaves no folder
-      out.rmdir()
+  return _locks.output_lock(out, LOCK, f"another evaluation ({{holder}}) is writing into "
+                            f"{out}: wait for it or choose another --out")
 
 
 REPORTS = ("results.json", "results.csv", "results.md")

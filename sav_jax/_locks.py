@@ -5,6 +5,7 @@ the host and PID for the message of the process that is refused."""
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import pathlib
@@ -57,3 +58,30 @@ class FolderLock:
 
   def __del__(self):
     self.release()
+
+
+@contextlib.contextmanager
+def output_lock(out, name: str, busy: str):
+  """Holds `out/name` while the block runs (a command writing into `out`). `out` is created
+  if needed, and removed again (with the folders made for it) if the block leaves it empty:
+  a run refused before writing leaves no empty folders behind.
+
+  Raises:
+    FileExistsError: another process holds the lock; the message is `busy` with `{holder}`
+      put in (the path may hold braces).
+  """
+  out = pathlib.Path(out)
+  created = [f for f in (out, *out.parents) if not f.exists()]  # (innermost first)
+  out.mkdir(parents=True, exist_ok=True)
+  try:
+    lock = FolderLock(out, name)
+  except FolderBusyError as e:
+    raise FileExistsError(busy.replace("{holder}", e.holder)) from None
+  try:
+    yield
+  finally:
+    lock.release()
+    for folder in created:
+      if not (folder.is_dir() and not any(folder.iterdir())):
+        break
+      folder.rmdir()

@@ -176,3 +176,21 @@ def run_command(monkeypatch):
       return e.code
 
   return run
+
+
+def drop_ctrl_c_in_gc() -> None:
+  """A Ctrl-C that Python drops: Python's SIGINT handler run inside a garbage-collection
+  callback raises KeyboardInterrupt there, which Python reports as "Exception ignored" and
+  drops (as one landing in JAX's `_xla_gc_callback` is)."""
+  import gc  # pylint: disable=import-outside-toplevel
+  import signal  # pylint: disable=import-outside-toplevel
+
+  def in_gc(phase, info):
+    if phase == "start":
+      signal.getsignal(signal.SIGINT)(signal.SIGINT, None)
+
+  gc.callbacks.append(in_gc)
+  try:
+    gc.collect()
+  finally:
+    gc.callbacks.remove(in_gc)

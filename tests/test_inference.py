@@ -22,7 +22,7 @@ import pytest
 
 import sav_jax
 from sav_jax import inference, runtime
-from tests.conftest import XLA_OLDER_EMITTERS
+from tests.conftest import XLA_OLDER_EMITTERS, drop_ctrl_c_in_gc
 
 ATOL = 1e-4  # px, the fixture README's criterion for final disparities
 ITERS = 2
@@ -189,7 +189,6 @@ def test_predict_video_under_a_jax_transformation_says_what_to_call_instead():
 def test_a_ctrl_c_that_python_dropped_stops_the_windows(monkeypatch):
   # Python drops a KeyboardInterrupt raised in a garbage-collection callback (JAX has one):
   # under the commands' `remembered_interrupts`, the next window raises it again.
-  import gc  # pylint: disable=import-outside-toplevel
   import signal  # pylint: disable=import-outside-toplevel
   from sav_jax import _signals  # pylint: disable=import-outside-toplevel
   ran = []
@@ -197,14 +196,7 @@ def test_a_ctrl_c_that_python_dropped_stops_the_windows(monkeypatch):
   def stand_in(variables, left, right, *, pads, **kw):
     ran.append(len(left))
     if len(ran) == 1:
-      def in_gc(phase, info):
-        if phase == "start":
-          signal.getsignal(signal.SIGINT)(signal.SIGINT, None)  # raises: Python drops it
-      gc.callbacks.append(in_gc)
-      try:
-        gc.collect()
-      finally:
-        gc.callbacks.remove(in_gc)
+      drop_ctrl_c_in_gc()
     return np.full((len(left), 32, 32), 5.0, np.float32)
 
   monkeypatch.setattr(inference, "check_variables", lambda *a: None)

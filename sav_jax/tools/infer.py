@@ -216,31 +216,13 @@ DONE = SET_ASIDE + ".done"
 LOCK = ".infer.lock"
 
 
-@contextlib.contextmanager
 def output_lock(out: pathlib.Path):
-  """Holds `out/.infer.lock` while a run works in `out` (`sav_jax._locks`): a second run
-  into the same folder took the first one's set-aside files for a killed run's and put them
-  back under it. `out` is created if needed, and removed again if the run leaves it empty.
-
-  Raises:
-    FileExistsError: another `infer` holds the lock.
-  """
-  from sav_jax._locks import FolderBusyError, FolderLock  # pylint: disable=import-outside-toplevel
-  created = [f for f in (out, *out.parents) if not f.exists()]  # (made here, innermost first)
-  out.mkdir(parents=True, exist_ok=True)
-  try:
-    lock = FolderLock(out, LOCK)
-  except FolderBusyError as e:
-    raise FileExistsError(f"another sav-jax infer ({e.holder}) is writing into {out}: wait for "
-                          "it or choose another --out") from None
-  try:
-    yield
-  finally:
-    lock.release()
-    for folder in created:  # a run refused before writing leaves no empty folders behind
-      if not (folder.is_dir() and not any(folder.iterdir())):
-        break
-      folder.rmdir()
+  """Holds `out/.infer.lock` while a run works in `out` (`sav_jax._locks.output_lock`): a
+  second run into the same folder took the first one's set-aside files for a killed run's
+  and put them back under it. FileExistsError if another `infer` holds it."""
+  from sav_jax import _locks  # pylint: disable=import-outside-toplevel
+  return _locks.output_lock(out, LOCK, f"another sav-jax infer ({{holder}}) is writing into "
+                            f"{out}: wait for it or choose another --out")
 
 
 def write_json(path: pathlib.Path, value) -> None:

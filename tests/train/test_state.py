@@ -1346,8 +1346,8 @@ def test_a_ctrl_c_that_python_drops_still_stops_the_run(tmp_path):
   # A Ctrl-C that landed in JAX's garbage-collection callback ("Exception ignored in:
   # <function _xla_gc_callback>") was dropped by Python: an 8-device run went on to its last
   # step and exited 0. The loop remembers it and stops before the next step.
-  import gc  # pylint: disable=g-import-not-at-top
   import signal  # pylint: disable=g-import-not-at-top
+  from tests.conftest import drop_ctrl_c_in_gc  # pylint: disable=g-import-not-at-top
   from train import loop  # pylint: disable=g-import-not-at-top
   c = _config()
   c.train.num_steps, c.train.log_every, c.train.progress_bar = 4, 1, False
@@ -1357,16 +1357,8 @@ def test_a_ctrl_c_that_python_drops_still_stops_the_run(tmp_path):
 
   def dropped_ctrl_c(step):
     steps.append(step)
-    if step != 1:
-      return
-    def in_gc(phase, info):
-      if phase == "start":
-        signal.getsignal(signal.SIGINT)(signal.SIGINT, None)  # raises: Python drops it
-    gc.callbacks.append(in_gc)
-    try:
-      gc.collect()
-    finally:
-      gc.callbacks.remove(in_gc)
+    if step == 1:
+      drop_ctrl_c_in_gc()
 
   handler = signal.signal(signal.SIGINT, signal.default_int_handler)  # (xdist ignores it)
   try:
