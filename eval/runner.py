@@ -28,6 +28,7 @@ from eval import plots
 from eval.config import BASELINES, METHOD_NAMES
 from sav_jax import inference, metrics
 from sav_jax import _locks
+from sav_jax._files import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -386,9 +387,7 @@ def read_progress(out: pathlib.Path, settings: dict) -> dict[str, SequenceResult
   text = path.read_text(encoding="utf-8")
   if text and not text.endswith("\n"):  # killed mid-line: that sequence is done again
     text = text[:text.rfind("\n") + 1]
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
+    write_text_atomic(path, text)
   lines = [(number, line) for number, line in enumerate(text.splitlines(), 1) if line.strip()]
   if not lines:
     path.unlink()

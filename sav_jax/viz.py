@@ -25,7 +25,6 @@ import math
 import numbers
 import os
 import pathlib
-import shutil
 import uuid
 import warnings
 
@@ -33,6 +32,7 @@ import cv2
 import numpy as np
 
 from sav_jax._checks import caller_stacklevel
+from sav_jax._files import free_space_note
 
 COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO, "turbo": cv2.COLORMAP_TURBO,
              "magma": cv2.COLORMAP_MAGMA, "viridis": cv2.COLORMAP_VIRIDIS}
@@ -401,13 +401,9 @@ def _check_written_video(path, tmp, frames: int) -> None:
   finally:
     cap.release()
   if count != frames:
-    try:
-      free = f"; {shutil.disk_usage(tmp.parent).free / 2**20:.1f} MB free on its disk"
-    except OSError:
-      free = ""
     got = "does not open" if count is None else f"holds {count} frames"
     raise OSError(f"{path}: the video was not written completely: {frames} frames written, "
-                  f"the file {got} (a full disk?){free}")
+                  f"the file {got} (a full disk?){free_space_note(tmp.parent)}")
 
 
 def _video_frame(path, i: int, frame, size, warned: list) -> np.ndarray:

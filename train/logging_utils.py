@@ -10,6 +10,8 @@ import time
 
 import jax
 
+from sav_jax._files import write_text_atomic
+
 log = logging.getLogger(__name__)
 
 
@@ -109,9 +111,7 @@ def _supersede(path: pathlib.Path, aside: pathlib.Path, start_step: int) -> None
     return
   with open(aside, "a", encoding="utf-8") as f:
     f.writelines(later)
-  tmp = path.with_name(path.name + ".tmp")
-  tmp.write_text("".join(keep), encoding="utf-8")
-  tmp.replace(path)  # atomic: the log is never half-written
+  write_text_atomic(path, "".join(keep))  # the log is never half-written
   log.info("moved %d log records after step %d to %s", len(later), start_step, aside)
 
 

@@ -32,6 +32,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sav_jax._files import FREE_SPACE, free_space_note, write_text_atomic
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, add_devices_argument,
                            add_matmul_precision_argument, check_output_dir, matmul_precision,
                            resolve_devices_option, setup_compile_cache, video_io)
@@ -225,20 +226,9 @@ def output_lock(out: pathlib.Path):
                             f"{out}: wait for it or choose another --out")
 
 
-def write_json(path: pathlib.Path, value) -> None:
-  """Writes `value` as JSON to `path` whole or not at all (a temporary file beside it,
-  renamed): a summary cut by a full disk or a kill would not parse."""
-  tmp = path.with_name(f".{path.name}.tmp")
-  try:
-    tmp.write_text(json.dumps(value, indent=1))
-    os.replace(tmp, path)
-  finally:
-    tmp.unlink(missing_ok=True)
-
-
 def set_aside(out: pathlib.Path, paths: list[pathlib.Path]) -> int:
   """Moves the earlier run's files `paths` (and its `summary.json`, first) into
-  `out/.earlier_run/`, keeping their places relative to `out`. Returns how many files moved.
+  `out/.infer_earlier_run/`, keeping their places relative to `out`. Returns how many files moved.
 
   An interrupted `--overwrite` run left the folder with two runs' files mixed (the new
   run's frames so far beside the earlier run's others) and the earlier summary gone:
@@ -376,13 +366,14 @@ def run(args: argparse.Namespace) -> int:
   outputs = output_paths(out, names, formats, calib, args.depth_format)
   check_not_inputs(outputs, (args.left, args.right))
   with output_lock(out):
-    return _run_locked(args, out, outputs, left, right, names, formats, calib, t, h, w)
+    return _run_locked(args, out, outputs, left, right, names, formats, calib)
 
 
-def _run_locked(args, out, outputs, left, right, names, formats, calib, t, h, w) -> int:
+def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:
   """`run`'s rest, holding the lock on `out`."""
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
   ckpt = pathlib.Path(args.checkpoint)
+  t, h, w = left.shape[:3]
   restored = put_back(out)  # files a killed --overwrite run had set aside
   if restored:
     print(f"put back {restored} files of an earlier run in {out} that an interrupted "
@@ -445,7 +436,7 @@ def _run_locked(args, out, outputs, left, right, names, formats, calib, t, h, w)
              "outputs": listed}  # for a later run with --overwrite into this folder
   with puts_back_on_failure(out):  # (a full disk here: the earlier run's files come back)
     with writing(out / "summary.json", remove=False):
-      write_json(out / "summary.json", summary)
+      write_text_atomic(out / "summary.json", json.dumps(summary, indent=1))
   drop_set_aside(out)
   vmin, vmax = written["video_disparity_range"]
   print(f"side-by-side video colours: {vmin:.2f} px (dark) to {vmax:.2f} px (bright)")
@@ -518,7 +509,8 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
                  file=sys.stdout)
   (out / "disparity").mkdir(parents=True, exist_ok=True)
   # (replaces an earlier run's summary, which would describe this run's files)
-  write_json(out / "summary.json", {"tool": SUMMARY_TOOL, "complete": False, "outputs": listed})
+  write_text_atomic(out / "summary.json", json.dumps(
+      {"tool": SUMMARY_TOOL, "complete": False, "outputs": listed}, indent=1))
   if calib is not None:
     (out / "depth").mkdir(exist_ok=True)
     (out / "pointclouds").mkdir(exist_ok=True)
@@ -585,15 +577,10 @@ def writing(path: pathlib.Path, size: int | None = None, remove: bool = True,
       path.unlink(missing_ok=True)
     if not isinstance(e, OSError) or isinstance(e, FileExistsError):  # (not the disk's)
       raise
-    try:
-      free = (f"; {shutil.disk_usage(path if path.is_dir() else path.parent).free / 2**20:.1f} "
-              "MB free on its disk")
-    except OSError:
-      free = ""
     need = "" if size is None else f" ({size / 2**20:.1f} MB)"
-    cause = os.strerror(e.errno) if isinstance(e, OSError) and e.errno else str(e)
+    cause = os.strerror(e.errno) if e.errno else str(e)
     cause = cause[len(str(path)) + 2:] if cause.startswith(f"{path}: ") else cause
-    free = "" if "free on its disk" in cause else free
+    free = "" if FREE_SPACE in cause else free_space_note(path if path.is_dir() else path.parent)
     raise OSError(f"cannot write {what or path}{need}: {cause}{free}") from e
 
 

@@ -145,27 +145,27 @@ def _checked_frames(path: pathlib.Path, files, max_frames: int | None, notes: se
 def _frame_names(files, count: int) -> list[str]:
   """Output names: the files' stems, or `frame_000000`... for a video or clashing stems
   (`0001.png` beside `0001.jpg`: logged, naming the first pair)."""
-  names = [f.stem for f in files] if files is not None else []
-  if files is not None and len(set(names)) != len(names):
-    seen = {}
-    for f in files:
-      if f.stem in seen:
-        log.warning("note: %s and %s in %s share a name before the suffix: the outputs are "
-                    "named by position, frame_000000 to frame_%06d (frame i of the folder's "
-                    "order)", seen[f.stem].name, f.name, f.parent, count - 1)
-        break
-      seen[f.stem] = f
-  if files is None or len(set(names)) != len(names):
-    names = [f"frame_{i:06d}" for i in range(count)]
-  return names
+  by_position = [f"frame_{i:06d}" for i in range(count)]
+  if files is None:
+    return by_position
+  seen = {}
+  for f in files:
+    if f.stem in seen:
+      log.warning("note: %s and %s in %s share a name before the suffix: the outputs are "
+                  "named by position, frame_000000 to frame_%06d (frame i of the folder's "
+                  "order)", seen[f.stem].name, f.name, f.parent, count - 1)
+      return by_position
+    seen[f.stem] = f
+  return list(seen)
 
 
 def _read_source(path, max_frames: int | None, notes: set[str]):
-  """`(frames [T, H, W, 3] uint8, names)` of a frame folder or a video file."""
+  """`(frames [T, H, W, 3] uint8, names, files)` of a frame folder or a video file (`files`:
+  the folder's frame files, None for a video file)."""
   path = pathlib.Path(path)
   files = _frame_files(path, max_frames)
   frames = np.stack(list(_checked_frames(path, files, max_frames, notes)))
-  return frames, _frame_names(files, len(frames))
+  return frames, _frame_names(files, len(frames)), files
 
 
 class FrameSource:
@@ -397,10 +397,9 @@ def load_stereo(left, right, max_frames: int | None = None):
   if max_frames is not None and max_frames < 1:
     raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
   notes = _same_source_note(left, right)
-  lv, names = _read_source(left, max_frames, notes)
-  rv, _ = _read_source(right, max_frames, notes)
-  _check_pair(lv, rv, notes, (_frame_files(pathlib.Path(left), max_frames),
-                              _frame_files(pathlib.Path(right), max_frames)))
+  lv, names, left_files = _read_source(left, max_frames, notes)
+  rv, _, right_files = _read_source(right, max_frames, notes)
+  _check_pair(lv, rv, notes, (left_files, right_files))
   return lv, rv, names
 
 
