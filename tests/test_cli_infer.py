@@ -659,7 +659,8 @@ def _bad_case(name, root, clip, npz_ckpt):
   left, right = _write_frames(root / "l", clip["left"]), _write_frames(root / "r", clip["right"])
   if name == "counts":
     (right / "0002.png").unlink()
-    return left, right, npz_ckpt, [], "different frame counts"
+    return left, right, npz_ckpt, [], f"different frame counts: left has {T} ({left}), " \
+        f"right has {T - 1} ({right})"
   if name == "sizes":
     _write_frames(right, [np.zeros((H, W - 8, 3), np.uint8)] * T)
     return left, right, npz_ckpt, [], f"different frame sizes: left is {H}x{W}, right is " \

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import decimal
+import logging
 import os
 import re
 from pathlib import Path
@@ -252,10 +253,28 @@ def find_root(root, *names: str) -> Path:
 
 
 def require_dir(path: Path, what: str = "directory") -> Path:
-  """Returns `path`; raises FileNotFoundError naming it when it is not a directory."""
+  """Returns `path`; raises FileNotFoundError naming it when it is not a directory (and,
+  where the folder is there one level deeper, the extra folder an archive unpacked into)."""
   if not Path(path).is_dir():
-    raise FileNotFoundError(f"{what} not found: {path}")
+    raise FileNotFoundError(f"{what} not found: {path}{_nested_hint(Path(path))}")
   return Path(path)
+
+
+def _nested_hint(path: Path) -> str:
+  """`"; it is one level deeper, in X: ..."` where the first missing part of `path` is a
+  folder of a sub-folder X of the deepest existing folder above it, else ""."""
+  missing = []
+  while not path.is_dir() and path != path.parent:
+    missing.append(path.name)
+    path = path.parent
+  if not missing or not os.access(path, os.R_OK | os.X_OK):
+    return ""
+  wanted = missing[-1]
+  deeper = sorted(d for d in path.iterdir() if not is_hidden(d) and (d / wanted).is_dir())
+  if not deeper:
+    return ""
+  return (f"; {deeper[0] / wanted} exists one level deeper: is the dataset in an extra folder "
+          f"(as some archives unpack)? Pass {deeper[0]} as its folder")
 
 
 def natural_key(path: Path) -> tuple:
@@ -269,8 +288,10 @@ def natural_key(path: Path) -> tuple:
 
 def is_hidden(path: Path) -> bool:
   """Names starting with a dot (`.DS_Store`, macOS `._0001.png` copies, `.ipynb_checkpoints`),
-  which a shell glob and the official loaders skip."""
-  return Path(path).name.startswith(".")
+  which a shell glob and the official loaders skip, and the `__MACOSX` folder of a zip made
+  on macOS (its `._*` resource copies of the archive's files)."""
+  name = Path(path).name
+  return name.startswith(".") or name == "__MACOSX"
 
 
 def list_files(directory: Path, *suffixes: str) -> list[Path]:
@@ -324,6 +345,24 @@ def check_matching(where: str, lists: Mapping[str, Sequence[Path]],
     for a, b in zip(lists[names[0]], lists[other]):
       if key(a) != key(b):
         raise ValueError(f"{where}: stem mismatch between {a} and {b}")
+  warn_if_gaps(where, lists[names[0]])
+
+
+def warn_if_gaps(where: str, files: Sequence[Path]) -> None:
+  """Logs a warning where a sequence's frame numbers (`digits_key`, increasing) are not
+  evenly spaced: a frame missing from every folder (a partial download) would otherwise make
+  its two neighbours look consecutive to the temporal metrics and the training clips."""
+  numbers = [digits_key(p) for p in files]
+  if len(numbers) < 3 or not all(isinstance(n, int) for n in numbers):
+    return
+  steps = [b - a for a, b in zip(numbers, numbers[1:])]
+  if min(steps) <= 0 or len(set(steps)) == 1:
+    return  # not frame numbers (e.g. a camera index last), or evenly spaced
+  usual = max(set(steps), key=steps.count)
+  i = next(i for i, s in enumerate(steps) if s != usual)
+  logging.warning("%s: frame numbers are not evenly spaced: %s is followed by %s (usually +%d; "
+                  "a frame missing?); the frames are read as consecutive", where, files[i].name,
+                  files[i + 1].name, usual)
 
 
 def _missing_frame(lists: Mapping[str, Sequence[Path]], key: Callable[[Path], object]) -> str:

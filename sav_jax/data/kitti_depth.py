@@ -3,17 +3,22 @@
 Layout (root = the `kitti_depth` folder or its parent):
 
   gt_depth/<drive>_sync/proj_depth/groundtruth/image_0{2,3}/<id>.png   Z = v / 256 m
+    (or gt_depth/{train,val}/<drive>_sync/..., as data_depth_annotated.zip unpacks)
   input/<date>/<drive>_sync/image_0{2,3}/data/<id>.png                 found by GT name
   input/<date>/calib_cam_to_cam.txt
 
 image_02 is left. The GT is sparse (v = 0: no point; frames start at raw index 5);
 valid = (d < 512) & (Z >= 1e-5). Scale: `P_rect_02[0, 0] * ||T_02 - T_03||`.
 Splits (following CODD, as the official code): "test" = the 13 drives of `TEST`,
-"val" = `VAL`, "train" = every other drive present in `gt_depth/`.
+"val" = `VAL`, "train" = every other drive present in `gt_depth/`; a training drive
+whose raw images (`input/<date>/<drive>_sync/`) are absent is skipped with a warning, as
+the official loader does.
 """
 
 from __future__ import annotations
 
+import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +38,11 @@ TEST = tuple(f"{d}_sync" for d in (
     "2011_09_28_drive_0037", "2011_09_29_drive_0026", "2011_09_30_drive_0016",
     "2011_10_03_drive_0047"))
 VAL = ("2011_10_03_drive_0042_sync",)
+# A raw KITTI drive's folder name, e.g. 2011_09_26_drive_0002_sync.
+DRIVE_NAME = re.compile(r"\d{4}_\d{2}_\d{2}_drive_\d{4}_sync")
+# The folders data_depth_annotated.zip unpacks the drives into (the KITTI depth benchmark's
+# own train/val split, not CODD's): read as if merged.
+ARCHIVE_SPLITS = ("train", "val")
 
 
 def read_calib(path: Path) -> dict[str, np.ndarray]:
@@ -64,8 +74,9 @@ def depth2disp_scale(calib_path: Path) -> float:
                       float(np.linalg.norm(calib["T_02"] - calib["T_03"])), calib_path)
 
 
-def _drive(root: Path, drive: str, dataset: str) -> DepthSequence:
-  gt_dir = root / "gt_depth" / drive / "proj_depth" / "groundtruth"
+def _drive(root: Path, gt_drive: Path, dataset: str) -> DepthSequence:
+  drive = gt_drive.name
+  gt_dir = gt_drive / "proj_depth" / "groundtruth"
   image_dir = root / "input" / drive[:10] / drive
   files = {}
   for side, cam in (("left", "image_02"), ("right", "image_03")):
@@ -106,11 +117,45 @@ def load_sequences(root, split: str, dataset: str = "kitti_depth"):
     raise ValueError(f"KITTI Depth split must be one of {SPLITS}, got {split!r}")
   root = find_root(root, *FOLDERS)
   gt_root = require_dir(root / "gt_depth", "KITTI gt_depth folder")
-  drives = split_drives([d.name for d in list_dirs(gt_root)], split)
+  found = gt_drives(gt_root)
+  drives = split_drives(sorted(found), split)
   expected = {"test": TEST, "val": VAL}.get(split, ())
   missing = sorted(set(expected) - set(drives))
   if missing:
     raise FileNotFoundError(f"KITTI Depth {split} drives missing from {gt_root}: {missing}")
+  if split == "train":
+    no_images = [d for d in drives if not (root / "input" / d[:10] / d).is_dir()]
+    if no_images:  # one line for all of them
+      logging.warning("KITTI Depth: skipping %d training drive(s) without raw images under %s: "
+                      "%s", len(no_images), root / "input", ", ".join(no_images))
+      drives = [d for d in drives if d not in no_images]
   if not drives:
     raise FileNotFoundError(f"no KITTI Depth {split} drives in {gt_root}")
-  return [_drive(root, d, dataset) for d in drives]
+  return [_drive(root, found[d], dataset) for d in drives]
+
+
+def gt_drives(gt_root: Path) -> dict[str, Path]:
+  """The drive folders of `gt_root` (`gt_depth/`), by name: its `<date>_drive_<n>_sync`
+  folders and those of its `train/` and `val/` folders (the archive's layout). Other
+  folders are left out with a warning; a drive found twice is an error naming both."""
+  found, other = {}, []
+  for entry in list_dirs(gt_root):
+    if entry.name in ARCHIVE_SPLITS:
+      entries = list_dirs(entry)
+    elif DRIVE_NAME.fullmatch(entry.name):
+      entries = [entry]
+    else:
+      other.append(entry.name)
+      continue
+    for drive in entries:
+      if not DRIVE_NAME.fullmatch(drive.name):
+        other.append(f"{entry.name}/{drive.name}")
+      elif drive.name in found:
+        raise ValueError(f"KITTI Depth drive {drive.name} is in {gt_root} twice: "
+                         f"{found[drive.name]} and {drive}; keep one")
+      else:
+        found[drive.name] = drive
+  if other:
+    logging.warning("KITTI Depth: left out %d folder(s) of %s not named like a drive "
+                    "(<date>_drive_<n>_sync): %s", len(other), gt_root, ", ".join(other))
+  return found

@@ -43,6 +43,8 @@ def _sequence(subset: str, seq_dir: Path, pass_dir: Path, dataset: str) -> Scene
   """Reads one `<seq>/{left,right}` folder and its disparity twin."""
   gt_dir = pass_dir.parent / "disparity" / seq_dir.relative_to(pass_dir)
   name = f"{subset}/{seq_dir.relative_to(pass_dir).as_posix()}"
+  if not list_files(seq_dir / "left", ".png") and list_files(seq_dir / "left", ".webp"):
+    raise FileNotFoundError(_webp(seq_dir / "left"))
   files = {"left": list_files(seq_dir / "left", ".png"),
            "right": list_files(seq_dir / "right", ".png"),
            "left_gt": list_files(require_dir(gt_dir / "left", "disparity folder"), ".pfm")}
@@ -52,9 +54,17 @@ def _sequence(subset: str, seq_dir: Path, pass_dir: Path, dataset: str) -> Scene
   return SceneFlowSequence(name, files, dataset=dataset)
 
 
+def _webp(where: Path) -> str:
+  """The message for frames from SceneFlow's WebP archives."""
+  return (f"{where}: WebP frames (SceneFlow's lossy *_webp archives); the readers take the PNG "
+          "archives' frames (frames_finalpass/, *.png), which SAV trains on")
+
+
 def _subset_sequences(root: Path, subset: str, split: str, pass_name: str,
                       dataset: str) -> list[SceneFlowSequence]:
   sub_root = root if root.name == subset else root / subset
+  if not (sub_root / pass_name).exists() and (sub_root / f"{pass_name}_webp").is_dir():
+    raise FileNotFoundError(_webp(sub_root / f"{pass_name}_webp"))
   pass_dir = require_dir(sub_root / pass_name, f"{subset} {pass_name} folder")
   base = pass_dir / ("TEST" if split == "test" else "TRAIN") if subset == "FlyingThings3D" \
       else pass_dir

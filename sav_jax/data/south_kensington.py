@@ -7,7 +7,8 @@ Layout (root = `SouthKensington/`, its `data/` folder, or their parent):
                                 `Frame <n>: Pose: <id>` blocks with 4x4 poses
 
 Sequences without a `.txt` are skipped, as in the official loader (only the Indoor
-videos ship `tracking_data.txt`); the first `.txt` by name is used. Frames have
+videos ship `tracking_data.txt`); the camera file is `tracking_data.txt`, else the first
+`.txt` by name that has an `Intrinsic:` entry (a `README.txt` beside it is not read as one). Frames have
 `disparity = valid = None`. The depth2disp scale `K[0, 0] * 0.12 m` (hard-coded
 baseline) only serves visualisation. Split: "test".
 """
@@ -69,8 +70,22 @@ def load_sequences(root, split: str = "test", dataset: str = "south_kensington")
     files = {"left": list_files(seq_dir / "images" / "left", ".png"),
              "right": list_files(seq_dir / "images" / "right", ".png")}
     check_matching(f"South Kensington {seq_dir.name}", files, digits_key)
-    scale = camera_scale(read_intrinsics(txts[0])[0, 0], BASELINE_M, txts[0])
+    camera = _camera_file(txts)
+    scale = camera_scale(read_intrinsics(camera)[0, 0], BASELINE_M, camera)
     seqs.append(StereoSequence(seq_dir.name, files, dataset=dataset, depth2disp_scale=scale))
   if not seqs:
     raise FileNotFoundError(f"no South Kensington sequences with a camera txt under {root}")
   return seqs
+
+
+def _camera_file(txts: list[Path]) -> Path:
+  """`tracking_data.txt` among a sequence's `.txt` files (sorted by name), else the first
+  with an `Intrinsic:` entry; ValueError naming them all where none has one."""
+  named = [p for p in txts if p.name == "tracking_data.txt"]
+  if named:
+    return named[0]
+  for path in txts:
+    if "Intrinsic:" in frame_io.read_text(path, "South Kensington camera file"):
+      return path
+  raise ValueError(f"no `Intrinsic: [[..] [..] [..]]` entry in any .txt of {txts[0].parent} "
+                   f"(read: {', '.join(p.name for p in txts)})")

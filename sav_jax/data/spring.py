@@ -56,6 +56,10 @@ def read_fx(path: Path) -> float:
 
 def _layout(root: Path):
   """Sequence names and a function seq -> its four folders."""
+  if (root / "train_frame_left").is_dir() and (root / "train").is_dir():
+    raise ValueError(f"Spring data under {root} in two layouts: train_frame_left/ (and its "
+                     "train_* siblings) and train/<seq>/; keep one (the other's sequences "
+                     "would be left out)")
   if (root / "train_frame_left").is_dir():
     names = [d.name for d in list_dirs(root / "train_frame_left")]
     def dirs(seq):

@@ -336,7 +336,8 @@ def _check_pair(lv, rv, notes: set[str], files=(None, None)) -> None:
   """Raises ValueError unless the two videos match in length and size; logs the notes
   (`files`: the two folders' frame files, None for a video file)."""
   if len(lv) != len(rv):
-    raise ValueError(f"different frame counts: left has {len(lv)}, right has {len(rv)}")
+    raise ValueError(f"different frame counts: left has {len(lv)} ({lv.path}), right has "
+                     f"{len(rv)} ({rv.path})")
   if lv.shape != rv.shape:
     raise ValueError(f"different frame sizes: left is {_size(lv.shape[1:])}, right is "
                      f"{_size(rv.shape[1:])} (height x width)")

@@ -156,6 +156,18 @@ def test_sceneflow_nan_disparity_and_broken_links(tmp_path):
   with pytest.raises(FileNotFoundError, match=f"right/ but no left/.*{half}"):
     registry.get_sequences("monkaa", tmp_path, "train")
   shutil.rmtree(half)
+  # Frames from SceneFlow's WebP archives: named as such, not "'left' lacks frame '0006'".
+  webp = monkaa / "a_rain_of_stones_x2" / "left"
+  for png in webp.glob("*.png"):
+    png.rename(png.with_suffix(".webp"))
+  with pytest.raises(FileNotFoundError, match=f"{webp}: WebP frames"):
+    registry.get_sequences("monkaa", tmp_path, "train")
+  for frames in webp.glob("*.webp"):
+    frames.rename(frames.with_suffix(".png"))
+  (tmp_path / "Monkaa/frames_finalpass").rename(tmp_path / "Monkaa/frames_finalpass_webp")
+  with pytest.raises(FileNotFoundError, match="frames_finalpass_webp: WebP frames"):
+    registry.get_sequences("monkaa", tmp_path, "train")
+  (tmp_path / "Monkaa/frames_finalpass_webp").rename(tmp_path / "Monkaa/frames_finalpass")
   left = monkaa / "a_rain_of_stones_x2" / "left"
   left.rename(tmp_path / "moved")
   left.symlink_to(tmp_path / "nowhere")
@@ -183,6 +195,36 @@ def _sintel(root, rng, seqs=(("alley_1", 3), ("cave_2", 2))):
       _mkfile(train / "camdata_left" / name / f"{stem}.cam", lambda p, b: p.write_bytes(b), raw)
     truth[name] = written
   return truth
+
+
+def test_a_frame_missing_from_every_folder_is_warned(tmp_path, caplog):
+  _sintel(tmp_path, np.random.default_rng(4), seqs=(("alley_1", 5),))
+  with caplog.at_level(logging.WARNING):
+    assert len(registry.get_sequences("sintel_final", tmp_path, "test")[0]) == 5
+  assert "not evenly spaced" not in caplog.text
+  for path in (tmp_path / "sintel_stereo/training").rglob("frame_0003.*"):
+    path.unlink()
+  with caplog.at_level(logging.WARNING):
+    assert len(registry.get_sequences("sintel_final", tmp_path, "test")[0]) == 4
+  assert ("Sintel final/alley_1: frame numbers are not evenly spaced: frame_0002.png is "
+          "followed by frame_0004.png (usually +1; a frame missing?)") in caplog.text
+  # Evenly spaced numbers (every 10th frame kept) and names without a frame number are not.
+  caplog.clear()
+  files = [tmp_path / f"{i:04d}.png" for i in (10, 20, 30, 40)]
+  base.warn_if_gaps("s", files)
+  base.warn_if_gaps("s", [tmp_path / f"Image_0_0_{i:04d}_0.png" for i in (1, 2, 4)])
+  assert not caplog.text
+
+
+def test_a_dataset_one_folder_too_deep_is_named(tmp_path):
+  _sintel(tmp_path / "x", np.random.default_rng(5), seqs=(("alley_1", 2),))
+  nested = tmp_path / "sintel_stereo" / "MPI-Sintel-stereo-training-20150305"
+  nested.parent.mkdir()
+  (tmp_path / "x/sintel_stereo").rename(nested)  # as the archive unpacks into its own folder
+  with pytest.raises(FileNotFoundError, match=rf"{nested / 'training'} exists one level deeper: "
+                                              rf".* Pass {nested} as its folder"):
+    registry.get_sequences("sintel_final", tmp_path, "test")
+  assert len(registry.get_sequences("sintel_final", nested, "test")) == 1
 
 
 def test_sintel_values_mask_and_scale(tmp_path):
@@ -520,6 +562,40 @@ def test_kitti_splits_sparse_depth_and_scale(tmp_path):
     kitti_depth.depth2disp_scale(calib)
 
 
+def test_kitti_archive_layout_stray_folders_and_drives_without_images(tmp_path, caplog):
+  train = ["2011_09_26_drive_0001_sync", "2011_09_26_drive_0009_sync"]
+  _kitti(tmp_path, np.random.default_rng(12), kitti_depth.TEST + kitti_depth.VAL + tuple(train),
+         n=1)
+  gt = tmp_path / "kitti_depth/gt_depth"
+  # As data_depth_annotated.zip unpacks: the drives in train/ and val/, not merged.
+  for i, drive in enumerate(sorted(p.name for p in gt.iterdir())):
+    (gt / ("train", "val")[i % 2]).mkdir(exist_ok=True)
+    (gt / drive).rename(gt / ("train", "val")[i % 2] / drive)
+  (gt / "__MACOSX/2011_09_26_drive_0001_sync").mkdir(parents=True)  # a macOS zip's copies
+  (gt / "notes").mkdir()
+  with caplog.at_level(logging.WARNING):
+    test = registry.get_sequences("kitti_depth", tmp_path, "test")
+  assert [s.name for s in test] == sorted(kitti_depth.TEST)
+  assert "left out 1 folder(s)" in caplog.text and "notes" in caplog.text
+  assert "__MACOSX" not in caplog.text
+  assert test[0][0]["valid"].sum() == 2
+  assert [s.name for s in registry.get_sequences("kitti_depth", tmp_path, "train")] == train
+  # A training drive whose raw images were not downloaded is skipped, as officially.
+  shutil.rmtree(tmp_path / "kitti_depth/input/2011_09_26/2011_09_26_drive_0009_sync")
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):
+    assert [s.name for s in registry.get_sequences("kitti_depth", tmp_path, "train")] == train[:1]
+  assert "skipping 1 training drive(s) without raw images" in caplog.text
+  assert "2011_09_26_drive_0009_sync" in caplog.text
+  # ... but a test drive's are required.
+  shutil.rmtree(tmp_path / "kitti_depth/input/2011_09_26/2011_09_26_drive_0002_sync")
+  with pytest.raises(FileNotFoundError, match="2011_09_26_drive_0002_sync/image_02/data"):
+    registry.get_sequences("kitti_depth", tmp_path, "test")
+  shutil.copytree(gt / "train" / train[0], gt / train[0])
+  with pytest.raises(ValueError, match=f"drive {train[0]} is in .* twice"):
+    registry.get_sequences("kitti_depth", tmp_path, "train")
+
+
 @pytest.mark.parametrize("layout", ["sav", "spring"])
 def test_spring_dsp5(tmp_path, layout):
   import h5py  # pylint: disable=import-outside-toplevel
@@ -565,6 +641,10 @@ def test_spring_dsp5(tmp_path, layout):
       pytest.approx(1400.5 * 0.065)
   (dirs[3] / "intrinsics.txt").write_text("0 0 0 0\n")  # fx = 0: the scale would be 0
   with pytest.raises(ValueError, match=r"intrinsics\.txt: the focal length fx is 0"):
+    registry.get_sequences("spring", tmp_path, "test")
+  # Both layouts in one folder: one of them was read, the other's sequences left out.
+  (root / ("train/0002" if layout == "sav" else "train_frame_left/0002")).mkdir(parents=True)
+  with pytest.raises(ValueError, match=r"Spring data under .*Spring in two layouts"):
     registry.get_sequences("spring", tmp_path, "test")
 
 
@@ -653,6 +733,7 @@ def test_hidden_files_are_skipped_and_frame_numbers_sort_as_numbers(tmp_path):
                tmp_path / "Monkaa/disparity/a_rain_of_stones_x2/left/._0006.pfm"):
     junk.write_bytes(b"\x00\x05\x16\x07 AppleDouble")
   (tmp_path / "Monkaa/frames_finalpass/.ipynb_checkpoints/left").mkdir(parents=True)
+  (tmp_path / "Monkaa/frames_finalpass/__MACOSX/left").mkdir(parents=True)  # a macOS zip's
   seqs = registry.get_sequences("monkaa", tmp_path, "train")
   assert [(s.name, len(s)) for s in seqs] == [("Monkaa/a_rain_of_stones_x2", 2)]
   assert seqs[0][0]["left"].shape == (H, W, 3)
@@ -666,6 +747,7 @@ def test_hidden_files_are_skipped_and_frame_numbers_sort_as_numbers(tmp_path):
     for side in ("left", "right"):
       _png(data / "s1/images" / side / f"{side}{i}.png", img)
   (data / "s1/._tracking_data.txt").write_bytes(b"\x00\x05\x16\x07\xff\xfe")
+  (data / "s1/README.txt").write_text("Recorded in South Kensington.\n")  # not the camera file
   (data / "s1/tracking_data.txt").write_text("Intrinsic: [[500. 0. 10.]\n [0. 500. 8.]\n"
                                              " [0. 0. 1.]]\n")
   (data / ".ipynb_checkpoints").mkdir()
@@ -674,6 +756,13 @@ def test_hidden_files_are_skipped_and_frame_numbers_sort_as_numbers(tmp_path):
   assert seq.depth2disp_scale == pytest.approx(500 * 0.12)
   np.testing.assert_array_equal(seq.clip(0, 6)["left"], np.stack(written))
   assert base.list_dirs(data) == [data / "s1"]
+  (data / "s1/tracking_data.txt").rename(data / "s1/camera.txt")  # after README.txt by name
+  seq, = registry.get_sequences("south_kensington", tmp_path, "test")
+  assert seq.depth2disp_scale == pytest.approx(500 * 0.12)
+  (data / "s1/camera.txt").unlink()
+  with pytest.raises(ValueError, match=r"no `Intrinsic: .* entry in any .txt of .*s1 \(read: "
+                                       r"README.txt\)"):
+    registry.get_sequences("south_kensington", tmp_path, "test")
 
 
 def test_natural_order_of_frame_names():
