@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import pathlib
 
 # (column heading, metric key); bad rates and delta^t in percent.
@@ -42,9 +43,13 @@ def markdown(summary: dict) -> str:
            f"Weights: {summary['weights']}  ",
            f"iters {summary['config']['iters']}, window {summary['config']['window']} / stride "
            f"{summary['config']['stride']}, {summary['config']['dtype']}; "
-           f"{len(summary['sequences'])} sequences, {summary['frames']} frames.", "",
-           "## Aggregate (frame-weighted mean over sequences; lower is better"
-           + (f", except {', '.join(higher)})" if higher else ")"), ""]
+           f"{len(summary['sequences'])} sequences, {summary['frames']} frames."]
+  sources = [seq["source"] for seq in summary["sequences"] if seq.get("source")]
+  if sources:  # Sintel's "test" split is its training/ folder, e.g.: where the frames came from
+    lines[-1] += "  "
+    lines.append(f"Frames read from {os.path.commonpath(sources)}")
+  lines += ["", "## Aggregate (frame-weighted mean over sequences; lower is better"
+            + (f", except {', '.join(higher)})" if higher else ")"), ""]
   head = ["Method"] + [h for h, _ in cols] + ["frames/s"]
   lines += ["| " + " | ".join(head) + " |", "|---" + "|---:" * (len(head) - 1) + "|"]
   for m in methods.values():

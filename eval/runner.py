@@ -97,23 +97,16 @@ def per_frame_errors(pred, gt, valid) -> tuple[np.ndarray, np.ndarray]:
   return reduce(epe, has), reduce(tepe, has[:-1] & has[1:])
 
 
-def gt_notes(name: str, valid) -> list[str]:
-  """Notes on a sequence whose official scores are not measurements: without any valid
-  ground-truth pixel, every metric is 0 (perfect) by the official rule, and with one frame
-  TEPE and δt are (no frame pair); its frames still count in the frame-weighted aggregate,
-  as in the official evaluator."""
-  valid = np.asarray(valid)
-  if not np.any(valid > 0.5):  # the metrics' mask threshold
-    return [f"sequence {name}: no valid ground-truth pixel in its {len(valid)} frames: the "
-            "official rule scores every metric 0 (perfect), and its frames count in the "
-            "aggregate"]
-  if len(valid) == 1:
-    return [f"sequence {name} has one frame: TEPE and δt are 0 (no frame pair) by the "
-            "official rule, and its frame counts in the aggregate"]
-  if metrics.no_valid_pair(valid):
-    return [f"sequence {name}: no pixel is valid in two consecutive frames: TEPE and δt are 0 "
-            "(nothing measured) by the official rule"]
-  return []
+def gt_notes(name: str, valid, metric_keys=()) -> list[str]:
+  """Notes on a sequence whose official scores are not all measurements
+  (`metrics.not_measured_note`: no valid ground-truth pixel, one frame, no pixel valid in two
+  consecutive frames, or, with the depth metrics of `metric_keys`, frame pairs without a
+  valid pixel in both); its frames still count in the frame-weighted aggregate, as in the
+  official evaluator."""
+  note = metrics.not_measured_note(valid, metric_keys)
+  if note is None:
+    return []
+  return [f"sequence {name}: {note}; its {len(valid)} frames count in the aggregate"]
 
 
 def predict(method: str, clip: dict, *, variables, model_cfg, config,
@@ -190,11 +183,12 @@ def evaluate_sequence(seq, methods, *, variables, model_cfg, config,
   res = SequenceResult(name=str(seq.name), frames=len(clip["left"]),
                        source=sequence_source(seq))
   has_gt = clip["disparity"] is not None
+  depth = config.metrics.tcc or flow_fn is not None
   if has_gt:
-    res.notes = gt_notes(res.name, clip["valid"])
+    keys = ("disp_TCC",) * depth + ("disp_TCM", "disp_OPW") * (flow_fn is not None)
+    res.notes = gt_notes(res.name, clip["valid"], keys)
     for note in res.notes:
       log.warning(note)
-  depth = config.metrics.tcc or flow_fn is not None
   scale = seq.depth2disp_scale if depth else None
   video = flows = None
   if has_gt and flow_fn is not None:
@@ -522,11 +516,18 @@ def restore_set_aside(out: pathlib.Path) -> list[pathlib.Path]:
 def drop_set_aside(out: pathlib.Path) -> None:
   """Deletes `out/.earlier_run/` (made by `set_aside_written`), if there is one: the new run
   has written its reports. Renamed first (one atomic step: from then on a stop cannot bring
-  the earlier run back), then deleted."""
+  the earlier run back), then deleted, with the `predictions/` or `plots/` folder it left
+  empty (a new run without `save_predictions` writes none there)."""
+  if not (out / SET_ASIDE).is_dir() and not (out / _COMMITTED).is_dir():
+    return
   if (out / SET_ASIDE).is_dir():
     (out / SET_ASIDE).replace(out / _COMMITTED)
-  if (out / _COMMITTED).is_dir():
-    shutil.rmtree(out / _COMMITTED)
+  shutil.rmtree(out / _COMMITTED)
+  for name in _OUTPUT_FOLDERS:  # the earlier run's, emptied by the set-aside: not this run's
+    try:
+      (out / name).rmdir()
+    except OSError:  # not empty (this run's files, or the user's), or not there
+      pass
 
 
 def aggregate(results: list[SequenceResult], method: str) -> dict[str, float]:

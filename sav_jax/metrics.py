@@ -59,7 +59,7 @@ from __future__ import annotations
 
 import numbers
 import warnings
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -148,7 +148,8 @@ def _mask_pair(x: np.ndarray, y: np.ndarray, mask: np.ndarray, mask_thr: float):
   check_mask_thr(mask_thr)
   keep = (mask > _F32(mask_thr)).astype(_F32)
   x = x * keep
-  y = y * keep
+  with np.errstate(invalid="ignore"):  # inf GT where masked out: NaN, then 0 as NaN GT is
+    y = y * keep
   y[np.isnan(y)] = 0
   return x, y
 
@@ -319,6 +320,16 @@ def _check_finite(name: str, a: np.ndarray) -> None:
     raise ValueError(f"{name} has NaN or inf values in frame(s) "
                      f"{np.flatnonzero(bad)[:10].tolist()}; the metrics would count them as "
                      "perfect")
+
+
+def _check_no_valid_inf(name: str, gt: np.ndarray, mask: np.ndarray, mask_name: str) -> None:
+  """ValueError naming the frames where `gt` is +-inf at a valid pixel (`mask` > 0.5): the
+  official metrics would be inf (EPE) and 100 % bad; NaN there counts as 0, officially."""
+  bad = (np.isinf(gt) & (mask > _F32(0.5))).reshape(len(gt), -1).any(axis=1)
+  if bad.any():
+    raise ValueError(f"{name} is infinite at valid pixels of {mask_name} in frame(s) "
+                     f"{np.flatnonzero(bad)[:10].tolist()} (every EPE would be inf); mark them "
+                     f"invalid in {mask_name}")
 
 
 def tcm_flow_inputs(pred_depth, gt_depth, mask, t: int, mask_thr: float = 0.5):
@@ -562,7 +573,7 @@ def _opw_rtc(left_video, pred_depth, gt_depth, mask, flows, mask_thr: float = 0.
     good = (np.maximum(r1, r2) < _F32(tau)).astype(np.float64)
     rtc[0] += _frame_ratio(good, valid)
     rtc[1] += _frame_ratio(good, valid & depth_ok[30])
-  return tuple(v / n for v in opw), tuple(v / n for v in rtc)
+  return tuple(float(v / n) for v in opw), tuple(float(v / n) for v in rtc)
 
 
 def _flow_from_fn(flow_fn: FlowFn, img1: np.ndarray, img2: np.ndarray, what: str) -> np.ndarray:
@@ -664,8 +675,10 @@ def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
       `video_flows`, `depth_flows` or `flow_fn` without `scale`; `left_video` without
       `video_flows` / `flow_fn`; `video_flows` without `left_video`), or a `left_video`
       that does not look like RGB 0..255 (e.g. 0..1 floats).
-    NotMeasuredWarning: no pixel of `mask` above 0.5 (every EPE/TEPE value 0) or one frame
-      (TEPE 0): the official numbers, which measure nothing there, are returned.
+    NotMeasuredWarning: no pixel of `mask` above 0.5 (every EPE/TEPE value 0), one frame
+      (TEPE 0), or, with depth metrics, frame pairs without a pixel valid in both (scored
+      TCC 1, TCM/OPW/RTC 0): the official numbers, which measure nothing there, are returned
+      (`not_measured_note`).
   """
   return _eval_batch(pred, gt, mask, scale, left_video, video_flows, depth_flows, flow_fn,
                      _BATCH_NAMES)
@@ -695,24 +708,41 @@ def _unused_inputs(scale, video, flows, depth_flows, flow_fn, names) -> str | No
   return None
 
 
-def _not_measured(m: np.ndarray, mask_name: str, res: Mapping[str, float]) -> str | None:
-  """The `NotMeasuredWarning` for a mask without a valid pixel, one frame, or no pixel valid
-  in two consecutive frames (TEPE's pairs), or None; `res`: the metrics computed (the depth
-  metrics' values are named where present)."""
-  if not np.any(m > _F32(0.5)):  # the metrics' mask threshold
-    scores = ["EPE, TEPE and their bad-pixel rates 0 (perfect)"]
-    scores += [text for key, text in (("disp_TCC", "TCC 1 (perfect)"), ("disp_TCM", "TCM 0"),
-                                      ("disp_OPW", "OPW 0 (perfect), RTC 0")) if key in res]
+def not_measured_note(mask, metric_keys: Iterable[str] = (), mask_name: str = "valid"
+                      ) -> str | None:
+  """What the official scores of a sequence do not measure, or None: no valid pixel (every
+  score), one frame or no pixel valid in two consecutive frames (TEPE and δt), or, where depth
+  metrics are among `metric_keys` (`"disp_TCC"`, `"disp_TCM"`, `"disp_OPW"`), frame pairs
+  without a pixel valid in both, which the official rule scores as measurements (TCC 1, TCM 0,
+  OPW 0, RTC 0) in the sequence's mean over its pairs.
+
+  Args:
+    mask: `[T, H, W]` (or `[T, 1, H, W]`) validity mask (valid: > 0.5).
+    metric_keys: the metrics computed (a result dict's keys will do).
+    mask_name: the mask's name in the text.
+  """
+  m = np.asarray(mask) > _F32(0.5)  # the metrics' mask threshold
+  keys = set(metric_keys)
+  depth = ", ".join(text for key, text in (
+      ("disp_TCC", "TCC 1 (perfect)"), ("disp_TCM", "TCM 0 (worst)"),
+      ("disp_OPW", "OPW 0 (perfect)"), ("disp_OPW", "RTC 0 (worst)")) if key in keys)
+  if not np.any(m):
+    scores = ", ".join(["EPE, TEPE and their bad-pixel rates 0 (perfect)"] + [depth] * bool(depth))
     return (f"{mask_name} has no pixel > 0.5 (no valid ground truth): the official rule scores "
-            f"{', '.join(scores)}, though nothing was measured; the official numbers are "
-            "returned")
+            f"{scores}, though nothing was measured")
   if m.shape[0] == 1:
     return ("one frame (T=1), no frame pair: the official rule scores TEPE and its bad-pixel "
-            "rates (δt) 0, though nothing was measured; the official numbers are returned")
+            "rates (δt) 0, though nothing was measured")
   if no_valid_pair(m):
     return (f"{mask_name} has no pixel valid in two consecutive frames (TEPE's pairs): the "
-            "official rule scores TEPE and its bad-pixel rates (δt) 0, though nothing was "
-            "measured; the official numbers are returned")
+            "official rule scores TEPE and its bad-pixel rates (δt) 0"
+            + (f", and every pair {depth}" if depth else "") + ", though nothing was measured")
+  m = m.reshape(m.shape[0], -1)
+  empty = int(np.sum(~np.any(m[:-1] & m[1:], axis=1)))
+  if empty and depth:
+    return (f"{empty} of the {m.shape[0] - 1} frame pairs have no pixel valid in both frames: "
+            f"the official rule scores each such pair {depth} in the sequence's mean over "
+            "its pairs, though nothing was measured there")
   return None
 
 
@@ -729,6 +759,7 @@ def _eval_batch(pred, gt, mask, scale, video, flows, depth_flows, flow_fn,
   x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask(names["mask"], mask)
   _check_same(("pred", "gt", names["mask"]), (x, y, m))
   _check_finite("pred", x)  # GT may hold NaN (masked out), a prediction may not
+  _check_no_valid_inf("gt", y, m, names["mask"])
   if scale is not None:
     scale = _check_scale(scale)
   if depth_flows is not None:
@@ -752,9 +783,10 @@ def _eval_batch(pred, gt, mask, scale, video, flows, depth_flows, flow_fn,
       opw, rtc = _opw_rtc(left, zx, zy, m, flows)
       res.update(zip(("disp_OPW", "disp_OPW_30", "disp_OPW_50", "disp_OPW_100"), opw))
       res.update(zip(("disp_RTC", "disp_RTC_30"), rtc))
-  note = _not_measured(m, names["mask"], res)
+  note = not_measured_note(m, res, names["mask"])
   if note:
-    warnings.warn(note, NotMeasuredWarning, stacklevel=caller_stacklevel())
+    warnings.warn(f"{note}; the official numbers are returned", NotMeasuredWarning,
+                  stacklevel=caller_stacklevel())
   if unused:
     warnings.warn(unused, stacklevel=caller_stacklevel())
   return res, x.shape[0]
@@ -786,8 +818,10 @@ def eval_sequence(pred, gt, valid, flows=None, *, scale: float | None = None, vi
     UserWarning: an input given but unused, naming what is missing (e.g. `video` or `flows`
       without `scale`: only EPE/TEPE; `video` without `flows` / `flow_fn`: no OPW/RTC), or
       a `video` that does not look like RGB 0..255 (e.g. 0..1 floats).
-    NotMeasuredWarning: no pixel of `valid` above 0.5 (every EPE/TEPE value 0) or one frame
-      (TEPE 0): the official numbers, which measure nothing there, are returned.
+    NotMeasuredWarning: no pixel of `valid` above 0.5 (every EPE/TEPE value 0), one frame
+      (TEPE 0), or, with depth metrics, frame pairs without a pixel valid in both (scored
+      TCC 1, TCM/OPW/RTC 0): the official numbers, which measure nothing there, are returned
+      (`not_measured_note`).
   """
   x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("valid", valid)
   _check_same(("pred", "gt", "valid"), (x, y, m))

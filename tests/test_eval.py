@@ -170,6 +170,10 @@ def test_overwrite_removes_only_the_earlier_runs_files(tmp_path, ckpt, capsys):
   assert f"{out / 'predictions' / first[1]} exists, and no earlier evaluation wrote it" in err, err
   assert (out / "predictions" / first[1]).read_bytes() == b"mine"
   assert (out / "predictions" / first[0]).is_file()  # nothing set aside or removed
+  # A rerun that saves no predictions leaves no empty predictions/ folder behind.
+  (out / "predictions" / first[1]).unlink()
+  assert main([*args, "--overwrite", "--config.save_predictions=false"]) == 0
+  assert not (out / "predictions").exists() and (out / "plots" / "notes.txt").is_file()
 
 
 def _snapshot(out):
@@ -736,6 +740,7 @@ def test_south_kensington_has_no_metrics_but_predictions_and_strips(tmp_path, ck
   md = (out / "results.md").read_text()
   assert "| Stereo Any Video | " in md and "No ground truth in this dataset: no metrics" in md
   assert f"| indoor_1 | {T} | Stereo Any Video |\n" in md  # the sequence is listed
+  assert f"Frames read from {summary['sequences'][0]['source']}\n" in md
   # TCC asked for on it ran and measured nothing, silently; refused before the run now.
   rc = main(["--config", str(CONFIGS / "south_kensington.py"), "--checkpoint", str(ckpt),
              "--data-root", str(tmp_path / "data"), "--out", str(tmp_path / "tcc"),
@@ -900,9 +905,10 @@ def test_sequences_whose_scores_are_not_measurements_are_noted(tmp_path, monkeyp
     res = eval_runner.evaluate_sequence(seq, ["sav"], variables=None, model_cfg=None,
                                         config=config)
   assert res.metrics["sav"]["disp_epe_mean"] == 0  # the official rule
-  assert res.notes == [f"sequence {seq.name}: no valid ground-truth pixel in its {T} frames: "
-                       "the official rule scores every metric 0 (perfect), and its frames "
-                       "count in the aggregate"]
+  assert res.notes == [f"sequence {seq.name}: valid has no pixel > 0.5 (no valid ground "
+                       "truth): the official rule scores EPE, TEPE and their bad-pixel rates 0 "
+                       f"(perfect), though nothing was measured; its {T} frames count in the "
+                       "aggregate"]
   assert res.notes[0] in caplog.text
   eval_runner.append_progress(tmp_path, {"s": 1}, res)  # kept for --resume
   assert eval_runner.read_progress(tmp_path, {"s": 1})[res.name].notes == res.notes
@@ -916,13 +922,32 @@ def test_sequences_whose_scores_are_not_measurements_are_noted(tmp_path, monkeyp
   res = eval_runner.evaluate_sequence(seq, ["sav"], variables=None, model_cfg=None,
                                       config=config)
   assert res.metrics["sav"]["disp_temp_epe_mean"] == 0 and len(res.notes) == 1
-  assert "has one frame: TEPE and δt are 0" in res.notes[0]
+  assert "one frame (T=1), no frame pair: the official rule scores TEPE and its bad-pixel " \
+      "rates (δt) 0" in res.notes[0]
   alternate = dict(clip, valid=clip["valid"].copy())
   alternate["valid"][1::2] = False  # valid pixels in every other frame: no TEPE pair
   assert eval_runner.gt_notes("s", alternate["valid"]) == [
-      "sequence s: no pixel is valid in two consecutive frames: TEPE and δt are 0 (nothing "
-      "measured) by the official rule"]
+      "sequence s: valid has no pixel valid in two consecutive frames (TEPE's pairs): the "
+      "official rule scores TEPE and its bad-pixel rates (δt) 0, though nothing was measured; "
+      f"its {T} frames count in the aggregate"]
   assert eval_runner.gt_notes("s", clip["valid"]) == []
+  # One frame without GT: TEPE pools its pixels, but TCC (with the depth metrics) scores each
+  # of its two pairs 1, "perfect", in a mean over T-1 pairs.
+  gap = dict(clip, valid=clip["valid"].copy())
+  gap["valid"][1] = False
+  assert eval_runner.gt_notes("s", gap["valid"]) == []  # EPE and TEPE only: measured
+  config.metrics.tcc = True
+  monkeypatch.setattr(eval_runner.eval_data, "read_sequence", lambda s: gap)
+  fake["pred"] = gap["disparity"] + 2.0
+  with caplog.at_level("WARNING"):
+    res = eval_runner.evaluate_sequence(seq, ["sav"], variables=None, model_cfg=None,
+                                        config=config)
+  assert res.notes == [f"sequence {seq.name}: 2 of the {T - 1} frame pairs have no pixel valid "
+                       "in both frames: the official rule scores each such pair TCC 1 "
+                       "(perfect) in the sequence's mean over its pairs, though nothing was "
+                       f"measured there; its {T} frames count in the aggregate"]
+  assert res.notes[0] in caplog.text and "disp_TCC" in res.metrics["sav"]
+  config.metrics.tcc = False
   monkeypatch.setattr(eval_runner.eval_data, "read_sequence", lambda s: clip)
   fake["pred"] = clip["disparity"].copy()
   fake["pred"][1, 0, 0] = np.nan

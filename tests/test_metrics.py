@@ -281,7 +281,8 @@ def test_tcm_flows_from_a_flow_fn_skip_frames_without_valid_pixels():
   assert len(calls) == 2 and np.all(np.isfinite(fx)) and not fx[1].any()
   tcm = M.eval_tcm_sequence(fx, fy, mask)
   assert 0 < tcm < 0.5  # pair (0, 1) only, divided by 2
-  res, _ = M.eval_batch(depth, depth, mask, scale=1.0, flow_fn=flow_fn)
+  with pytest.warns(M.NotMeasuredWarning, match="1 of the 2 frame pairs .* TCM 0 \\(worst\\)"):
+    res, _ = M.eval_batch(depth, depth, mask, scale=1.0, flow_fn=flow_fn)
   assert 0 < res["disp_TCM"] <= 0.5
   mask[:] = 0.0
   assert M.eval_tcm_sequence(*M.depth_flows_from_fn(depth, depth, mask, flow_fn), mask) == 0.0
@@ -289,6 +290,18 @@ def test_tcm_flows_from_a_flow_fn_skip_frames_without_valid_pixels():
   depth[1] = 4.0  # one depth over the whole GT frame: 0/0 in a pair TCM uses
   with pytest.raises(ValueError, match="GT depth of frame 1 is 4.0 at every pixel"):
     M.depth_flows_from_fn(depth, depth, mask, flow_fn)
+
+
+def test_infinite_ground_truth_at_valid_pixels_is_refused():
+  pred, gt, valid, _, _ = _clip()
+  gt = gt.copy()
+  gt[1, 0, 0] = np.inf
+  valid[1, 0, 0] = 0  # masked out: as NaN, it counts as 0
+  assert np.isfinite(M.eval_sequence(pred, gt, valid)["disp_epe_mean"])
+  valid[1, 0, 0] = 1
+  with pytest.raises(ValueError, match=r"^gt is infinite at valid pixels of valid in frame\(s\) "
+                                       r"\[1\] \(every EPE would be inf\); mark them invalid"):
+    M.eval_sequence(pred, gt, valid)
 
 
 def test_aggregate_is_frame_weighted():
@@ -562,7 +575,8 @@ def test_scores_that_measure_nothing_warn_and_keep_the_official_numbers():
   with pytest.warns(M.NotMeasuredWarning,
                     match=r"^valid has no pixel > 0\.5 \(no valid ground truth\): the official "
                           r"rule scores EPE, TEPE and their bad-pixel rates 0 \(perfect\), TCC 1 "
-                          r"\(perfect\), TCM 0, OPW 0 \(perfect\), RTC 0, though nothing was "
+                          r"\(perfect\), TCM 0 \(worst\), OPW 0 \(perfect\), RTC 0 \(worst\), "
+                          r"though nothing was "
                           r"measured; the official numbers are returned$") as record:
     res = M.eval_sequence(pred, gt, np.zeros_like(valid), flows, **full)
   assert len(record) == 1 and record[0].filename == __file__  # the caller's line
@@ -588,8 +602,22 @@ def test_scores_that_measure_nothing_warn_and_keep_the_official_numbers():
                                                 r"scores TEPE and its bad-pixel rates \(δt\) 0"):
     res = M.eval_sequence(pred, gt, alternate)
   assert res["disp_temp_epe_mean"] == 0.0 and res["disp_epe_mean"] > 0
-  valid[2:] = 0  # frames 0 and 1 valid: measured, no warning
+  with pytest.warns(M.NotMeasuredWarning, match=r"TEPE and its bad-pixel rates \(δt\) 0, and "
+                                                r"every pair TCC 1 \(perfect\), TCM 0 \(worst\)"):
+    M.eval_sequence(pred, gt, alternate, flows, **full)
   _no_warning(M.eval_sequence, pred, gt, valid, flows, **full)
+  # Frames without GT after frame 1: TEPE pools the valid pixels (measured), but the depth
+  # metrics score each empty pair as if measured, in their mean over the T-1 pairs.
+  valid[2:] = 0
+  _no_warning(M.eval_sequence, pred, gt, valid)
+  n = len(valid) - 1
+  with pytest.warns(M.NotMeasuredWarning, match=rf"^{n - 1} of the {n} frame pairs have no pixel "
+                                                r"valid in both frames: the official rule scores "
+                                                r"each such pair TCC 1 \(perfect\), TCM 0 "
+                                                r"\(worst\), OPW 0 \(perfect\), RTC 0 \(worst\) "
+                                                r"in the sequence's mean over its pairs"):
+    res = M.eval_sequence(pred, gt, valid, flows, **full)
+  assert type(res["disp_OPW"]) is float and type(res["disp_RTC"]) is float  # not np.float64
 
 
 def test_channels_last_videos_and_flows_are_refused_with_the_moveaxis():

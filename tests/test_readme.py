@@ -7,6 +7,7 @@ import json
 import re
 import subprocess
 import sys
+import textwrap
 
 import pytest
 
@@ -171,3 +172,18 @@ def test_benchmark_script_flags_exist():
   bad = [f"{doc}: {script} has no {flag} ({line!r})" for doc, script, flag, line in uses
          if flag not in options[script]]
   assert not bad, "; ".join(bad)
+
+
+def test_the_random_weights_snippet_saves_weights_the_tools_flag(tmp_path, monkeypatch):
+  """The Checkpoints section's "No weights yet?" block runs as written, and what it saves
+  restores with the random-prior warning the tools print."""
+  text = (ROOT / "README.md").read_text(encoding="utf-8")
+  block, = [b for b in re.findall(r"^ *```python\n(.*?)^ *```", text, flags=re.S | re.M)
+            if "init_variables(cfg, seed=0)" in b and "save_variables" in b]
+  from sav_jax import convert  # pylint: disable=import-outside-toplevel
+  monkeypatch.chdir(tmp_path)
+  exec(textwrap.dedent(block), {})  # pylint: disable=exec-used
+  variables, config = convert.restore_variables(tmp_path / "ckpt" / "random")
+  assert "params" in variables and config["model"]["hidden_dim"] == 128
+  assert "its frozen depth prior is random (init_variables)" in convert.random_prior_note(
+      config, "ckpt/random")
