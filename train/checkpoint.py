@@ -495,9 +495,14 @@ _FIELDS = {"sav": "init_from", "vda": "vda_weights"}
 def _convert(path, want: str, field: str, fn):
   """`fn(state dict)` of the file at `path`, which must be of kind `want` ("sav"/"vda");
   errors name the file, the config field and, for the other kind, the field it is for."""
-  sd = sav_jax.convert.load_state_dict_of_kind(
-      path, want, {k: f"give it as config.{f}" for k, f in _FIELDS.items()},
-      label=f"config.{field}={path}")
+  try:
+    sd = sav_jax.convert.load_state_dict_of_kind(
+        path, want, {k: f"give it as config.{f}" for k, f in _FIELDS.items()},
+        label=f"config.{field}={path}")
+  except ValueError as e:  # e.g. a file that is no checkpoint: it names the file
+    if str(e).startswith("config."):
+      raise
+    raise sav_jax.convert.CheckpointError(f"config.{field}: {e}") from e
   try:
     return fn(sd)
   except ValueError as e:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import warnings
 
 import jax
 import numpy as np
@@ -41,7 +42,8 @@ class Evaluator:
     batch_size = ev.batch_size
     if batch_size % mesh.size:
       raise ValueError(f"eval.batch_size={batch_size} is not divisible by {mesh.size} devices")
-    self.clips = input_lib.eval_clips(config) if clips is None else clips
+    clips = input_lib.eval_clips(config) if clips is None else clips
+    self.clips = _measured_clips(clips, ev.dataset)
     self.batches = pipeline.eval_batches(self.clips, batch_size)
     self.predict = step_lib.make_eval_fn(model, ev.iters, params_sharding, mesh)
     self.sharding = state_lib.data_sharding(mesh)
@@ -74,10 +76,43 @@ class Evaluator:
     return out
 
   def __call__(self, params) -> dict[str, float]:
-    """Frame-weighted means over the clips (official aggregation)."""
+    """Frame-weighted means over the clips (official aggregation); NaN, with a warning,
+    where a prediction holds NaN or inf (diverged weights: the run goes on, as with a
+    finite loss)."""
+    preds = self.predictions(params)
+    diverged = [i for i, pred in enumerate(preds) if not np.all(np.isfinite(pred))]
+    if diverged:
+      log.warning("validation: the predictions of %d of the %d clips hold NaN or inf (the "
+                  "weights diverged?): the scores are NaN", len(diverged), len(preds))
+      return {short: float("nan") for short in _NAMES.values()}
     results = []
-    for pred, clip in zip(self.predictions(params), self.clips):
-      res = sav_metrics.eval_sequence(pred, clip["disparity"], clip["valid"].astype(np.float32))
-      results.append((res, pred.shape[0]))
+    with warnings.catch_warnings():  # said once, when the clips were chosen
+      warnings.simplefilter("ignore", sav_metrics.NotMeasuredWarning)
+      for pred, clip in zip(preds, self.clips):
+        res = sav_metrics.eval_sequence(pred, clip["disparity"],
+                                        clip["valid"].astype(np.float32))
+        results.append((res, pred.shape[0]))
     agg = sav_metrics.aggregate(results)
     return {short: agg[key] for key, short in _NAMES.items() if key in agg}
+
+
+def _measured_clips(clips: list[dict], dataset: str) -> list[dict]:
+  """The clips with a valid ground-truth pixel: one without (sparse ground truth outside the
+  crop) would score a perfect 0 by the official rule, so it is left out, with a warning; the
+  others' partial gaps (`metrics.not_measured_note`) are warned about, once. ValueError where
+  no clip is left."""
+  notes = [sav_metrics.not_measured_note(c["valid"]) for c in clips]
+  empty = [i for i, c in enumerate(clips) if not np.any(np.asarray(c["valid"]) > 0.5)]
+  if len(empty) == len(clips):
+    raise ValueError(f"config.eval.dataset={dataset!r}: none of the {len(clips)} validation clips "
+                     "has a valid ground-truth pixel (sparse ground truth outside "
+                     "config.data.crop?)")
+  if empty:
+    log.warning("validation: %d of the %d clips of %s have no valid ground-truth pixel (sparse "
+                "ground truth outside the crop?) and are left out (the official rule would "
+                "score them a perfect 0)", len(empty), len(clips), dataset)
+  partial = [(i, n) for i, n in enumerate(notes) if n is not None and i not in empty]
+  if partial:
+    log.warning("validation: %d of the %d clips of %s are measured in part, e.g. clip %d: %s",
+                len(partial), len(clips), dataset, *partial[0])
+  return [c for i, c in enumerate(clips) if i not in empty]

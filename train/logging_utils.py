@@ -48,6 +48,9 @@ class MetricWriter:
       # TensorBoard drops the events at and after purge_step (all of them from step 0).
       self._tb = SummaryWriter(str(workdir / "tb"),
                                purge_step=start_step + 1 if start_step > 0 else 0)
+      # It warns once per NaN scalar written ("NaN or Inf found in input tensor."): a
+      # diverged validation's are said once, by the evaluator.
+      logging.getLogger("tensorboardX.x2num").setLevel(logging.ERROR)
     except ImportError:
       log.warning("tensorboardX is not installed: TensorBoard events are not written")
 

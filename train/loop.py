@@ -22,6 +22,7 @@ import pathlib
 import re
 import signal
 import threading
+import time
 
 import flax
 import jax
@@ -169,6 +170,7 @@ class _HostMetrics:
     self.config, self.writer, self.progress = config, writer, progress
     self.skipped = skipped
     self.sums, self.n, self.n_finite, self.last = {}, 0, 0, None
+    self.window_start = time.perf_counter()
 
   def __call__(self, step: int, metrics) -> None:
     last = self.last = jax.device_get(metrics)
@@ -201,12 +203,20 @@ class _HostMetrics:
       # The steps the means are over: log_every, but fewer in the first window after a
       # resume from a step off the logging period (a SIGTERM save).
       means["window_steps"] = float(self.n)
+      if "lr" in last:
+        means["lr"] = float(last["lr"])  # the rate of its last step (a mean was never used)
       self.writer.write(step, means)
+      if not self.config.train.progress_bar and jax.process_index() == 0:  # else the bar's
+        rate = self.n / max(time.perf_counter() - self.window_start, 1e-9)
+        shown = ", ".join(f"{k} {means[k]:.4g}" for k in ("loss", "epe", "1px", "lr")
+                          if k in means)
+        log.info("step %d: %s (%.3g steps/s)", step, shown, rate)
       self.sums, self.n, self.n_finite = {}, 0, 0
+      self.window_start = time.perf_counter()
 
 
 # Step metrics averaged over every step of a logging window (the others: over its finite steps).
-_OVER_ALL_STEPS = ("finite", "lr", "num_skipped")
+_OVER_ALL_STEPS = ("finite", "num_skipped")
 
 
 def _every(step: int, period: int) -> bool:
@@ -397,7 +407,13 @@ def _check_blocks(config) -> None:
     try:
       input_lib.synthetic_config(config.data, config.data.synthetic, config.data.synthetic.seed)
     except ValueError as e:  # SyntheticConfig names the field as `SyntheticConfig.<name>`
-      raise ValueError(str(e).replace("SyntheticConfig.", "config.data.synthetic.")) from e
+      where = "" if "synthetic" in datasets else (
+          f" (for the validation clips: config.eval.dataset='synthetic' generates them at "
+          f"config.data.crop={tuple(config.data.crop)}; or validate on a dataset's split, "
+          "--config.eval.dataset=NAME --config.eval.split=SPLIT, or not at all, "
+          "--config.eval.every_steps=0)")
+      raise ValueError(str(e).replace("SyntheticConfig.", "config.data.synthetic.")
+                       + where) from e
   # Real data is augmented (in the grain reader, per clip); synthetic clips are not. The
   # block is checked either way, and changes to it that no source uses are named.
   try:

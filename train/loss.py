@@ -15,12 +15,16 @@ averages the per-GPU losses, so by default (`per_sample=True`) we compute the lo
 of each clip on its own and average over clips; `per_sample=False` pools the valid
 pixels of the whole batch per frame, as `sequence_loss` does for a batch on one GPU.
 
-One deliberate difference: a frame with no valid pixel contributes 0 here, where
-PyTorch's mean of an empty selection gives NaN.
+One deliberate difference: a frame with no valid pixel contributes 0 to the loss here,
+where PyTorch's mean of an empty selection gives NaN.
 
 Metrics (official `sequence_loss`, last prediction, per frame, then averaged over
 frames and clips): `epe` is the mean |pred - gt| over valid pixels; `1px`, `3px`,
-`5px` are the fractions of valid pixels with error *below* 1, 3, 5 px.
+`5px` are the fractions of valid pixels with error *below* 1, 3, 5 px. They average
+over the frames that have a valid pixel (officially NaN otherwise): a frame without one
+(sparse ground truth outside the crop) would read as a perfect epe of 0 and the worst
+accuracy, 0; `measured_frames` is the share of frames that have one (0 in a batch
+without any valid pixel, whose metrics are then 0).
 """
 
 from __future__ import annotations
@@ -69,11 +73,23 @@ def _frame_means(values: jax.Array, mask: jax.Array, per_sample: bool) -> jax.Ar
   Returns:
     The means; 0 where a frame has no valid pixel.
   """
-  axes = (-2, -1) if per_sample else (-4, -2, -1)
+  axes = _axes(per_sample)
   m = jnp.broadcast_to(mask, values.shape)
   total = jnp.sum(jnp.where(m, values, 0.0), axis=axes)
   count = jnp.sum(m, axis=axes, dtype=jnp.float32)
   return jnp.where(count > 0, total / jnp.maximum(count, 1.0), 0.0)
+
+
+def _axes(per_sample: bool) -> tuple[int, ...]:
+  """The pixel axes of `[..., B, T, H, W]` a frame's mean runs over (with B unless
+  `per_sample`)."""
+  return (-2, -1) if per_sample else (-4, -2, -1)
+
+
+def _over_measured(frame_means: jax.Array, measured: jax.Array) -> jax.Array:
+  """The mean of `frame_means` over the frames where `measured` (0 where none is)."""
+  count = jnp.sum(measured, dtype=jnp.float32)
+  return jnp.sum(jnp.where(measured, frame_means, 0.0)) / jnp.maximum(count, 1.0)
 
 
 def sequence_loss(predictions: jax.Array, disparity: jax.Array, valid: jax.Array, *,
@@ -93,7 +109,8 @@ def sequence_loss(predictions: jax.Array, disparity: jax.Array, valid: jax.Array
 
   Returns:
     `(loss, metrics)`: scalar float32 loss and a dict of scalars `epe`, `1px`, `3px`,
-    `5px` (fractions) and `valid_fraction`.
+    `5px` (fractions; means over the frames with a valid pixel), `measured_frames` (the
+    share of frames with one) and `valid_fraction`.
   """
   predictions = predictions.astype(jnp.float32)
   disparity = disparity.astype(jnp.float32)
@@ -104,9 +121,11 @@ def sequence_loss(predictions: jax.Array, disparity: jax.Array, valid: jax.Array
   weighted = jnp.einsum("n,n...->...", weights, per_frame)        # [B, T] or [T]
   loss = jnp.mean(weighted)
   last = err[-1]
-  metrics = {"epe": jnp.mean(_frame_means(last, mask, per_sample))}
+  measured = jnp.any(mask, axis=_axes(per_sample))                # [B, T] or [T]
+  metrics = {"epe": _over_measured(_frame_means(last, mask, per_sample), measured)}
   for tau in (1, 3, 5):
     below = (last < tau).astype(jnp.float32)
-    metrics[f"{tau}px"] = jnp.mean(_frame_means(below, mask, per_sample))
+    metrics[f"{tau}px"] = _over_measured(_frame_means(below, mask, per_sample), measured)
+  metrics["measured_frames"] = jnp.mean(measured.astype(jnp.float32))
   metrics["valid_fraction"] = jnp.mean(mask.astype(jnp.float32))
   return loss, metrics

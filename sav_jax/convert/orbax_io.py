@@ -378,6 +378,12 @@ def _not_a_checkpoint_message(directory):
   if not directory.is_dir():
     return f"{directory}: not a directory (expected an orbax checkpoint directory)"
   found = sorted(os.listdir(directory))[:8]
+  for run in (directory, directory.parent):  # a run's WORKDIR, or its checkpoints/ folder
+    if (run / "checkpoints").is_dir() and (run / "metrics.jsonl").is_file() and \
+        run / "checkpoints" in (directory, directory / "checkpoints"):
+      return (f"{directory}: a training run without a finished checkpoint yet ("
+              f"{run / 'checkpoints'} holds none; the first is saved at step "
+              "config.checkpoint.every_steps)")
   return (f"{directory}: not a sav-jax checkpoint (expected {_METADATA_FILE} and the items "
           f"{list(_ITEMS)}, or a training run's WORKDIR/checkpoints/<step>; found {found})")
 

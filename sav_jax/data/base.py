@@ -286,6 +286,13 @@ def natural_key(path: Path) -> tuple:
                for i, t in enumerate(parts) if t)
 
 
+def some_of(names: Sequence[str], most: int = 6) -> str:
+  """`"a, b, c"`, or the first `most` names and `"... (N more)"`: a list for a log line."""
+  names = [str(n) for n in names]
+  shown = ", ".join(names[:most])
+  return shown + (f", ... ({len(names) - most} more)" if len(names) > most else "")
+
+
 def is_hidden(path: Path) -> bool:
   """Names starting with a dot (`.DS_Store`, macOS `._0001.png` copies, `.ipynb_checkpoints`),
   which a shell glob and the official loaders skip, and the `__MACOSX` folder of a zip made

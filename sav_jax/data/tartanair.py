@@ -23,7 +23,7 @@ from pathlib import Path
 
 from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, digits_key, find_root,
-                               list_dirs, list_files)
+                               list_dirs, list_files, some_of)
 
 # The dataset's folder under a datasets root (the root may also be that folder itself).
 FOLDERS = ("TartanAir", "tartanair")
@@ -96,5 +96,5 @@ def load_sequences(root, split: str, dataset: str = "tartanair"):
     missing = [key for key in TEST if key not in {k for k, _ in chosen}]
     if missing:
       logging.warning("TartanAir: %d of the %d test sequences are missing under %s: %s",
-                      len(missing), len(TEST), root, ", ".join("/".join(k) for k in missing))
+                      len(missing), len(TEST), root, some_of(["/".join(k) for k in missing]))
   return [_sequence(d, "_".join(key), dataset) for key, d in chosen]

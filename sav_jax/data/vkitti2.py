@@ -20,7 +20,7 @@ from pathlib import Path
 
 from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, digits_key, find_root,
-                               list_files)
+                               list_files, some_of)
 
 # The dataset's folder under a datasets root (the root may also be that folder itself).
 FOLDERS = ("vkitti2",)
@@ -86,5 +86,5 @@ def load_sequences(root, split: str, dataset: str = "vkitti2"):
     raise FileNotFoundError(f"no VKITTI2 {split} sequences under {root}")
   if missing:  # one line for all of them
     logging.warning("VKITTI2: skipping %d missing training sequences under %s: %s", len(missing),
-                    root, ", ".join(missing))
+                    root, some_of(missing))
   return seqs

@@ -136,6 +136,15 @@ def test_not_a_checkpoint(tmp_path):
   (tmp_path / "dir" / "other.bin").write_bytes(b"")
   with pytest.raises(CheckpointError, match=r"not a sav-jax checkpoint.*other\.bin"):
     orbax_io.restore_variables(tmp_path / "dir")
+  # A training run stopped before its first checkpoint (its workdir or checkpoints/ folder).
+  run = tmp_path / "run"
+  (run / "checkpoints" / "2.orbax-checkpoint-tmp-1").mkdir(parents=True)  # an unfinished save
+  (run / "metrics.jsonl").write_text("")
+  for where in (run, run / "checkpoints"):
+    with pytest.raises(CheckpointError, match=rf"^{where}: a training run without a finished "
+                                              rf"checkpoint yet \({run / 'checkpoints'} holds "
+                                              "none"):
+      orbax_io.restore_variables(where)
 
 
 def test_bad_inputs(tmp_path):

@@ -950,3 +950,8 @@ def test_tartanair_splits_depth_and_clips(tmp_path, caplog):
     registry.get_sequences("tartanair", tmp_path, "test")
   with pytest.raises(ValueError, match="tartanair has no split 'val'"):
     registry.get_sequences("tartanair", tmp_path, "val")
+
+
+def test_long_lists_in_log_lines_are_cut():
+  assert base.some_of(list("abc")) == "a, b, c"
+  assert base.some_of(list("abcdefgh")) == "a, b, c, d, e, f, ... (2 more)"

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
+import pytest
 
 from sav_jax import metrics
 from train import evaluation
@@ -45,3 +46,48 @@ def test_validation_scores_the_absolute_prediction_as_the_official_evaluator():
   signed = metrics.eval_sequence(-clips[0]["disparity"], clips[0]["disparity"],
                                  np.ones((3, 8, 16), np.float32))
   assert signed["disp_epe_mean"] > 1.0  # what scoring the signed prediction would give
+
+
+class _DivergedModel:
+  """Stands in for weights that diverged: NaN everywhere."""
+
+  def apply(self, variables, left, right, *, iters, final_only):
+    del variables, right, iters, final_only
+    return types.SimpleNamespace(disparities=jnp.full(left.shape[:-1], jnp.nan)[None])
+
+
+def test_clips_without_ground_truth_are_left_out_and_nan_predictions_score_nan(caplog):
+  """A clip without a valid pixel (sparse GT outside the crop) scored a perfect 0 and pulled
+  the means down; a diverged model's NaN stopped the run with a traceback, and its resume too
+  (the catch-up validation of the saved step)."""
+  rng = np.random.default_rng(1)
+  clips = []
+  for _ in range(3):
+    gt = rng.uniform(1.0, 20.0, (3, 8, 16)).astype(np.float32)
+    left = np.repeat(gt[..., None], 3, axis=-1)
+    clips.append({"left": left, "right": left.copy(), "disparity": gt,
+                  "valid": np.ones_like(gt, dtype=bool)})
+  clips[1]["valid"][:] = False
+  clips[2]["valid"][1] = False  # one frame without: measured, TEPE pools the other pairs
+  config = ml_collections.ConfigDict({"eval": {"batch_size": 1, "iters": 2,
+                                               "dataset": "kitti_depth"}})
+  mesh = state_lib.make_mesh(jax.devices()[:1])
+  model = _SignFlippingModel()
+  with caplog.at_level("WARNING"):
+    ev = evaluation.Evaluator(config, model, state_lib.replicated(mesh), mesh, clips=clips)
+  assert len(ev.clips) == 2 and ev.clips[1] is clips[2]
+  assert "1 of the 3 clips of kitti_depth have no valid ground-truth pixel" in caplog.text
+  assert "are left out" in caplog.text and ev.described.startswith("2 clips of kitti_depth")
+  assert ev({})["epe"] == 0.0  # the two measured clips, each exact
+  caplog.clear()
+  diverged = evaluation.Evaluator(config, _DivergedModel(), state_lib.replicated(mesh), mesh,
+                                  clips=clips)
+  with caplog.at_level("WARNING"):
+    scores = diverged({})
+  assert scores and all(np.isnan(v) for v in scores.values())
+  assert "the predictions of 2 of the 2 clips hold NaN or inf" in caplog.text
+  for clip in clips:
+    clip["valid"][:] = False
+  with pytest.raises(ValueError, match=r"config.eval.dataset='kitti_depth': none of the 3 "
+                                       r"validation clips has a valid ground-truth pixel"):
+    evaluation.Evaluator(config, model, state_lib.replicated(mesh), mesh, clips=clips)

@@ -75,14 +75,21 @@ def test_prediction_weights_official_decay():
   assert np.asarray(loss_lib.prediction_weights(1)).tolist() == [1.0]
 
 
-def test_frame_without_valid_pixels_contributes_zero():
+def test_frame_without_valid_pixels_contributes_zero_to_the_loss_and_not_to_the_metrics():
   preds, gt, valid = _case(np.random.default_rng(0))
   valid[:, 0] = 0.0
   loss, metrics = loss_lib.sequence_loss(preds, gt, valid)
   ref, ref_metrics = _official_forward_batch(preds, gt, valid, True)
   assert np.isfinite(float(loss))
   np.testing.assert_allclose(float(loss), ref, rtol=1e-5)
-  np.testing.assert_allclose(float(metrics["epe"]), ref_metrics["epe"], rtol=1e-5)
+  # The metrics average the measured frames only: an unmeasured one is no perfect 0 EPE.
+  measured = {k: v * 3 / 2 for k, v in ref_metrics.items()}  # 2 of the 3 frames measured
+  for k, v in measured.items():
+    np.testing.assert_allclose(float(metrics[k]), v, rtol=1e-5, err_msg=k)
+  np.testing.assert_allclose(float(metrics["measured_frames"]), 2 / 3, rtol=1e-6)
+  for per_sample in (True, False):  # nothing valid at all: 0, and no NaN
+    _, none = loss_lib.sequence_loss(preds, gt, np.zeros_like(valid), per_sample=per_sample)
+    assert all(float(v) == 0.0 for v in none.values()), none
 
 
 def test_large_and_invalid_disparities_are_ignored():

@@ -609,6 +609,22 @@ def test_init_files_of_the_wrong_kind_name_the_file_and_the_field(tmp_path, vda_
   save_state_dict(broken, tmp_path / "broken.npz")
   with pytest.raises(CheckpointError, match=r"(?s)config.init_from=.*broken.npz: .*fnet.conv1.weight"):
     ckpt_lib.load_model_params(tmp_path / "broken.npz", sav_jax.SAVConfig())
+  (tmp_path / "notes").write_text("not weights")  # a file that is no checkpoint: the field too
+  with pytest.raises(CheckpointError, match=rf"^config.init_from: {tmp_path / 'notes'}: unknown "
+                                            "checkpoint suffix"):
+    ckpt_lib.load_model_params(tmp_path / "notes", sav_jax.SAVConfig())
+
+
+def test_a_bad_generator_config_used_only_for_validation_says_so():
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = synthetic.get_config()
+  c.data.sources = {"sf": {"dataset": "sceneflow", "weight": 1.0}}  # trains on a dataset
+  c.data.crop, c.data.synthetic.max_disparity = (32, 64), 64.0
+  c.eval.every_steps, c.eval.dataset = 5, "synthetic"  # validates on generated clips
+  with pytest.raises(ValueError, match=r"config\.data\.synthetic\.max_disparity must be < "
+                                       r"width.* \(for the validation clips: config\.eval\.dataset="
+                                       r"'synthetic' generates them at config\.data\.crop=\(32, 64\)"):
+    loop._check_blocks(c)  # pylint: disable=protected-access
 
 
 def test_resumed_run_logs_each_step_once(tmp_path):
@@ -1227,7 +1243,8 @@ def test_logged_means_leave_out_skipped_steps(caplog):
   (s1, first), (s2, second) = writer.records
   assert (s1, s2) == (3, 6)
   assert first["loss"] == 2.0 and first["epe"] == 3.0  # the finite steps' means
-  np.testing.assert_allclose([first["finite"], first["lr"]], [2 / 3, 0.2])  # over all steps
+  np.testing.assert_allclose(first["finite"], 2 / 3)  # over all steps
+  np.testing.assert_allclose(first["lr"], 0.3)  # the last step's rate (a mean was never used)
   assert first["num_skipped"] == 1.0 and first["window_steps"] == 3
   assert np.isnan(second["loss"]) and np.isnan(second["epe"]) and second["finite"] == 0.0
   assert second["num_skipped"] == 4.0
@@ -1244,6 +1261,13 @@ def test_logged_means_leave_out_skipped_steps(caplog):
   resumed = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
   resumed(3, {"loss": 5.0, "epe": 1.0, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
   assert writer.records[-1][0] == 3 and writer.records[-1][1]["window_steps"] == 1
+  # Without the progress bar (a log file), each record is a line of the log too.
+  c.train.progress_bar = False
+  quiet = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
+  with caplog.at_level(logging.INFO):
+    quiet(3, {"loss": 5.0, "epe": 1.5, "1px": 0.25, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
+  assert re.search(r"step 3: loss 5, epe 1\.5, 1px 0\.25, lr 0\.3 \([\d.e+-]+ steps/s\)",
+                   caplog.text), caplog.text
 
 
 def _loop_parts(c, workdir, step_hook=None, evaluator=None):
