@@ -34,6 +34,21 @@ def _fmt(v) -> str:
   return "–" if v is None else f"{v:.3f}"
 
 
+def _read_from(sources: list[str]) -> str | None:
+  """The folder the sequences' frames were read from: their common folder, or a few of them
+  where that is only a filesystem root (or none: folders on other drives); None without any."""
+  if not sources:
+    return None
+  try:
+    common = os.path.commonpath(sources)
+  except ValueError:  # on other drives (Windows), or relative beside absolute
+    common = None
+  if common and os.path.dirname(common) != common:
+    return common
+  from sav_jax.data.base import some_of  # pylint: disable=import-outside-toplevel
+  return some_of(sorted(set(sources)), most=3)
+
+
 def markdown(summary: dict) -> str:
   """The Markdown report of `build_summary`'s dictionary."""
   methods = summary["methods"]
@@ -44,10 +59,10 @@ def markdown(summary: dict) -> str:
            f"iters {summary['config']['iters']}, window {summary['config']['window']} / stride "
            f"{summary['config']['stride']}, {summary['config']['dtype']}; "
            f"{len(summary['sequences'])} sequences, {summary['frames']} frames."]
-  sources = [seq["source"] for seq in summary["sequences"] if seq.get("source")]
-  if sources:  # Sintel's "test" split is its training/ folder, e.g.: where the frames came from
+  read_from = _read_from([seq["source"] for seq in summary["sequences"] if seq.get("source")])
+  if read_from:  # Sintel's "test" split is its training/ folder, e.g.: where the frames came from
     lines[-1] += "  "
-    lines.append(f"Frames read from {os.path.commonpath(sources)}")
+    lines.append(f"Frames read from {read_from}")
   lines += ["", "## Aggregate (frame-weighted mean over sequences; lower is better"
             + (f", except {', '.join(higher)})" if higher else ")"), ""]
   head = ["Method"] + [h for h, _ in cols] + ["frames/s"]

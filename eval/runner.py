@@ -93,7 +93,7 @@ def per_frame_errors(pred, gt, valid) -> tuple[np.ndarray, np.ndarray]:
     value = e.sum(axis=1, dtype=np.float64) / np.maximum(np.count_nonzero(e, axis=1), 1e-5)
     return np.where(mask.any(axis=1), value, np.nan)
 
-  has = m > 0.5  # the metrics' mask threshold
+  has = metrics.valid_pixels(m)
   return reduce(epe, has), reduce(tepe, has[:-1] & has[1:])
 
 

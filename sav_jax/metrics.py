@@ -49,8 +49,9 @@ Aggregation (`aggregate`): value = sum_s v_s T_s / sum_s T_s with T_s the number
 of frames of sequence s (T_s, not T_s - 1, also for the temporal metrics).
 
 Warnings of `eval_batch` / `eval_sequence` (the numbers stay the official ones):
-`NotMeasuredWarning` where the official rule scores what was not measured (no valid GT
-pixel: EPE/TEPE 0; one frame: TEPE 0), and a `UserWarning` for a given input that no
+`NotMeasuredWarning` where the official rule scores what was not measured (the cases of
+`not_measured_note`: no valid GT pixel, one frame, no pixel valid in two consecutive frames,
+and, with the depth metrics, frame pairs without a pixel valid in both), and a `UserWarning` for a given input that no
 metric used (e.g. a video without `scale` or without flows: OPW/RTC left out) and for a
 float video that looks 0..1 or 16-bit rather than RGB 0..255 (OPW/RTC change).
 """
@@ -325,7 +326,7 @@ def _check_finite(name: str, a: np.ndarray) -> None:
 def _check_no_valid_inf(name: str, gt: np.ndarray, mask: np.ndarray, mask_name: str) -> None:
   """ValueError naming the frames where `gt` is +-inf at a valid pixel (`mask` > 0.5): the
   official metrics would be inf (EPE) and 100 % bad; NaN there counts as 0, officially."""
-  bad = (np.isinf(gt) & (mask > _F32(0.5))).reshape(len(gt), -1).any(axis=1)
+  bad = (np.isinf(gt) & valid_pixels(mask)).reshape(len(gt), -1).any(axis=1)
   if bad.any():
     raise ValueError(f"{name} is infinite at valid pixels of {mask_name} in frame(s) "
                      f"{np.flatnonzero(bad)[:10].tolist()} (every EPE would be inf); mark them "
@@ -708,20 +709,32 @@ def _unused_inputs(scale, video, flows, depth_flows, flow_fn, names) -> str | No
   return None
 
 
+def valid_pixels(mask) -> np.ndarray:
+  """The pixels the metrics count as valid: `mask > 0.5` (the official threshold), bool."""
+  return np.asarray(mask) > _F32(0.5)
+
+
+def any_valid(mask) -> bool:
+  """Whether any pixel of `mask` is valid (`valid_pixels`)."""
+  return bool(np.any(valid_pixels(mask)))
+
+
 def not_measured_note(mask, metric_keys: Iterable[str] = (), mask_name: str = "valid"
                       ) -> str | None:
   """What the official scores of a sequence do not measure, or None: no valid pixel (every
   score), one frame or no pixel valid in two consecutive frames (TEPE and δt), or, where depth
   metrics are among `metric_keys` (`"disp_TCC"`, `"disp_TCM"`, `"disp_OPW"`), frame pairs
   without a pixel valid in both, which the official rule scores as measurements (TCC 1, TCM 0,
-  OPW 0, RTC 0) in the sequence's mean over its pairs.
+  OPW 0, RTC 0) in the sequence's mean over its pairs. Exact for binary masks: valid is
+  `valid_pixels` (> 0.5); TCC weights fractional masks as they are, and the flow metrics'
+  own selections (occlusion, large flows) may leave out more pixels than are named here.
 
   Args:
     mask: `[T, H, W]` (or `[T, 1, H, W]`) validity mask (valid: > 0.5).
     metric_keys: the metrics computed (a result dict's keys will do).
     mask_name: the mask's name in the text.
   """
-  m = np.asarray(mask) > _F32(0.5)  # the metrics' mask threshold
+  m = valid_pixels(mask)
   keys = set(metric_keys)
   depth = ", ".join(text for key, text in (
       ("disp_TCC", "TCC 1 (perfect)"), ("disp_TCM", "TCM 0 (worst)"),
@@ -740,7 +753,8 @@ def not_measured_note(mask, metric_keys: Iterable[str] = (), mask_name: str = "v
   m = m.reshape(m.shape[0], -1)
   empty = int(np.sum(~np.any(m[:-1] & m[1:], axis=1)))
   if empty and depth:
-    return (f"{empty} of the {m.shape[0] - 1} frame pairs have no pixel valid in both frames: "
+    return (f"{empty} of the {m.shape[0] - 1} frame pairs {'has' if empty == 1 else 'have'} no "
+            "pixel valid in both frames: "
             f"the official rule scores each such pair {depth} in the sequence's mean over "
             "its pairs, though nothing was measured there")
   return None
@@ -749,7 +763,7 @@ def not_measured_note(mask, metric_keys: Iterable[str] = (), mask_name: str = "v
 def no_valid_pair(mask) -> bool:
   """Whether no pixel of `[T, H, W]` `mask` is valid (> 0.5) in two consecutive frames, so
   that TEPE (weighted by `mask_t * mask_{t+1}`) measures nothing (T >= 2)."""
-  m = np.asarray(mask) > 0.5
+  m = valid_pixels(mask)
   return m.shape[0] >= 2 and not np.any(m[:-1] & m[1:])
 
 

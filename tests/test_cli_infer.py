@@ -781,6 +781,15 @@ def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, n
   assert not (tmp_path / "new_cache").exists()
 
 
+def test_frame_counts_that_differ_name_both_sources(tmp_path):
+  frames = [np.zeros((H, W, 3), np.uint8)] * 3
+  left, right = _write_frames(tmp_path / "l", frames), _write_frames(tmp_path / "r", frames[:2])
+  for load in (video_io.load_stereo, video_io.open_stereo):  # (load_stereo raised AttributeError)
+    with pytest.raises(ValueError, match=rf"^different frame counts: left has 3 \({left}\), "
+                                         rf"right has 2 \({right}\)$"):
+      load(left, right)
+
+
 def test_frame_folder_names_the_frame_of_another_size(tmp_path):
   frames, wide = [np.zeros((H, W, 3), np.uint8)] * 4, np.zeros((H, W + 2, 3), np.uint8)
   left = _write_frames(tmp_path / "l", frames[:2] + [wide] + frames[:1])

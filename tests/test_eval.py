@@ -888,6 +888,15 @@ def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt
   assert ranges and all((lo, hi) == (5, 6) for lo, hi in ranges), ranges  # a constant: +1 px
 
 
+def test_the_report_names_the_folder_the_frames_came_from():
+  read_from = eval_report._read_from  # pylint: disable=protected-access
+  assert read_from([]) is None
+  assert read_from(["/d/sintel/training/final_left/a", "/d/sintel/training/final_left/b"]) == \
+      "/d/sintel/training/final_left"
+  assert read_from(["/mnt/a/s1", "/media/b/s2"]) == "/media/b/s2, /mnt/a/s1"  # only "/" shared
+  assert read_from(["rel/s1", "/abs/s2"]) == "/abs/s2, rel/s1"  # commonpath raises on a mix
+
+
 def test_sequences_whose_scores_are_not_measurements_are_noted(tmp_path, monkeypatch, caplog):
   """No valid ground-truth pixel (every metric 0 by the official rule) or one frame (TEPE 0):
   the numbers stay the official ones, and a warning, results.json and results.md say so; a

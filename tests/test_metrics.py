@@ -610,8 +610,8 @@ def test_scores_that_measure_nothing_warn_and_keep_the_official_numbers():
   # metrics score each empty pair as if measured, in their mean over the T-1 pairs.
   valid[2:] = 0
   _no_warning(M.eval_sequence, pred, gt, valid)
-  n = len(valid) - 1
-  with pytest.warns(M.NotMeasuredWarning, match=rf"^{n - 1} of the {n} frame pairs have no pixel "
+  n = len(valid) - 1  # 2 pairs, 1 of them empty ("has")
+  with pytest.warns(M.NotMeasuredWarning, match=rf"^{n - 1} of the {n} frame pairs has no pixel "
                                                 r"valid in both frames: the official rule scores "
                                                 r"each such pair TCC 1 \(perfect\), TCM 0 "
                                                 r"\(worst\), OPW 0 \(perfect\), RTC 0 \(worst\) "

@@ -500,7 +500,7 @@ def _convert(path, want: str, field: str, fn):
         path, want, {k: f"give it as config.{f}" for k, f in _FIELDS.items()},
         label=f"config.{field}={path}")
   except ValueError as e:  # e.g. a file that is no checkpoint: it names the file
-    if str(e).startswith("config."):
+    if f"config.{field}" in str(e).split(":")[0]:  # it names the field already
       raise
     raise sav_jax.convert.CheckpointError(f"config.{field}: {e}") from e
   try:

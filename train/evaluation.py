@@ -34,7 +34,8 @@ class Evaluator:
     model: `sav_jax.StereoAnyVideo`.
     params_sharding: sharding tree of the params.
     mesh: device mesh.
-    clips: the held-out clips, if already read (`input_lib.eval_clips(config)`).
+    clips: the held-out clips, if already read (`measured_clips(input_lib.eval_clips(config),
+      ...)`, as `python -m train` reads them before the workdir is created).
   """
 
   def __init__(self, config, model, params_sharding, mesh, clips=None):
@@ -42,8 +43,8 @@ class Evaluator:
     batch_size = ev.batch_size
     if batch_size % mesh.size:
       raise ValueError(f"eval.batch_size={batch_size} is not divisible by {mesh.size} devices")
-    clips = input_lib.eval_clips(config) if clips is None else clips
-    self.clips = _measured_clips(clips, ev.dataset)
+    self.clips = (measured_clips(input_lib.eval_clips(config), ev.dataset) if clips is None
+                  else clips)
     self.batches = pipeline.eval_batches(self.clips, batch_size)
     self.predict = step_lib.make_eval_fn(model, ev.iters, params_sharding, mesh)
     self.sharding = state_lib.data_sharding(mesh)
@@ -82,8 +83,9 @@ class Evaluator:
     preds = self.predictions(params)
     diverged = [i for i, pred in enumerate(preds) if not np.all(np.isfinite(pred))]
     if diverged:
-      log.warning("validation: the predictions of %d of the %d clips hold NaN or inf (the "
-                  "weights diverged?): the scores are NaN", len(diverged), len(preds))
+      if jax.process_index() == 0:
+        log.warning("validation: the predictions of %d of the %d clips hold NaN or inf "
+                    "(the weights diverged?): the scores are NaN", len(diverged), len(preds))
       return {short: float("nan") for short in _NAMES.values()}
     results = []
     with warnings.catch_warnings():  # said once, when the clips were chosen
@@ -96,23 +98,25 @@ class Evaluator:
     return {short: agg[key] for key, short in _NAMES.items() if key in agg}
 
 
-def _measured_clips(clips: list[dict], dataset: str) -> list[dict]:
+def measured_clips(clips: list[dict], dataset: str) -> list[dict]:
   """The clips with a valid ground-truth pixel: one without (sparse ground truth outside the
   crop) would score a perfect 0 by the official rule, so it is left out, with a warning; the
-  others' partial gaps (`metrics.not_measured_note`) are warned about, once. ValueError where
-  no clip is left."""
-  notes = [sav_metrics.not_measured_note(c["valid"]) for c in clips]
-  empty = [i for i, c in enumerate(clips) if not np.any(np.asarray(c["valid"]) > 0.5)]
+  others' partial gaps (`metrics.not_measured_note`: TEPE 0 where no pixel is valid in two
+  consecutive frames) are warned about. The same clips on every process; process 0 warns.
+  ValueError where no clip is left."""
+  empty = {i for i, c in enumerate(clips) if not sav_metrics.any_valid(c["valid"])}
   if len(empty) == len(clips):
     raise ValueError(f"config.eval.dataset={dataset!r}: none of the {len(clips)} validation clips "
                      "has a valid ground-truth pixel (sparse ground truth outside "
                      "config.data.crop?)")
-  if empty:
-    log.warning("validation: %d of the %d clips of %s have no valid ground-truth pixel (sparse "
-                "ground truth outside the crop?) and are left out (the official rule would "
-                "score them a perfect 0)", len(empty), len(clips), dataset)
-  partial = [(i, n) for i, n in enumerate(notes) if n is not None and i not in empty]
-  if partial:
-    log.warning("validation: %d of the %d clips of %s are measured in part, e.g. clip %d: %s",
-                len(partial), len(clips), dataset, *partial[0])
-  return [c for i, c in enumerate(clips) if i not in empty]
+  kept = [c for i, c in enumerate(clips) if i not in empty]
+  if jax.process_index() == 0:
+    if empty:
+      log.warning("validation: %d of the %d clips of %s have no valid ground-truth pixel "
+                  "(sparse ground truth outside the crop?) and are left out (the official rule "
+                  "would score them a perfect 0)", len(empty), len(clips), dataset)
+    notes = [n for n in map(sav_metrics.not_measured_note, (c["valid"] for c in kept)) if n]
+    if notes:
+      log.warning("validation: %d of the %d clips of %s are measured in part (their scores "
+                  "count in the means), e.g.: %s", len(notes), len(kept), dataset, notes[0])
+  return kept

@@ -49,7 +49,7 @@ class MetricWriter:
       self._tb = SummaryWriter(str(workdir / "tb"),
                                purge_step=start_step + 1 if start_step > 0 else 0)
       # It warns once per NaN scalar written ("NaN or Inf found in input tensor."): a
-      # diverged validation's are said once, by the evaluator.
+      # diverged validation's are said once by the evaluator, skipped steps' by the loop.
       logging.getLogger("tensorboardX.x2num").setLevel(logging.ERROR)
     except ImportError:
       log.warning("tensorboardX is not installed: TensorBoard events are not written")

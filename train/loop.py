@@ -504,7 +504,8 @@ def setup(config, workdir):
   # The validation clips, read before the model is traced: data that cannot be used fails
   # within seconds, and before the workdir is created.
   evaluating = config.eval.every_steps > 0
-  eval_clips = input_lib.eval_clips(config) if evaluating else None
+  eval_clips = (evaluation.measured_clips(input_lib.eval_clips(config), config.eval.dataset)
+                if evaluating else None)
   model = sav_jax.StereoAnyVideo(state_lib.model_config(config))
   abstract_params = state_lib.abstract_params(model, config)
   labels = optim.param_labels(abstract_params, config.optimizer.frozen)
@@ -528,13 +529,13 @@ def setup(config, workdir):
                                              abstract_params, weights, data_clips, resumed)
     if source == "checkpoint":  # the prior the resumed weights hold, as their first run said
       depth_prior = ckpt_lib.saved_depth_prior(resumed)
+    train_step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels),
+                                         shardings, mesh)
+    evaluator = (evaluation.Evaluator(config, model, shardings.params, mesh, eval_clips)
+                 if evaluating else None)
   except BaseException:
     lock.release()
     raise
-  train_step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels),
-                                       shardings, mesh)
-  evaluator = (evaluation.Evaluator(config, model, shardings.params, mesh, eval_clips)
-               if evaluating else None)
   log.info("start at step %d of %d (state from %s)", int(jax.device_get(state.step)),
            config.train.num_steps, source)
   return dict(grain_it=grain_it, manager=manager, state=state, train_step=train_step, model=model,

@@ -126,6 +126,7 @@ def sequence_loss(predictions: jax.Array, disparity: jax.Array, valid: jax.Array
   for tau in (1, 3, 5):
     below = (last < tau).astype(jnp.float32)
     metrics[f"{tau}px"] = _over_measured(_frame_means(below, mask, per_sample), measured)
-  metrics["measured_frames"] = jnp.mean(measured.astype(jnp.float32))
+  # (per clip, also when the batch is pooled: the share of the batch's frames)
+  metrics["measured_frames"] = jnp.mean(jnp.any(mask, axis=(-2, -1)).astype(jnp.float32))
   metrics["valid_fraction"] = jnp.mean(mask.astype(jnp.float32))
   return loss, metrics

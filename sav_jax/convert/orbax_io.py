@@ -383,7 +383,7 @@ def _not_a_checkpoint_message(directory):
         run / "checkpoints" in (directory, directory / "checkpoints"):
       return (f"{directory}: a training run without a finished checkpoint yet ("
               f"{run / 'checkpoints'} holds none; the first is saved at step "
-              "config.checkpoint.every_steps)")
+              "config.checkpoint.every_steps at the latest)")
   return (f"{directory}: not a sav-jax checkpoint (expected {_METADATA_FILE} and the items "
           f"{list(_ITEMS)}, or a training run's WORKDIR/checkpoints/<step>; found {found})")
 

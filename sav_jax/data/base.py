@@ -260,21 +260,31 @@ def require_dir(path: Path, what: str = "directory") -> Path:
   return Path(path)
 
 
-def _nested_hint(path: Path) -> str:
-  """`"; it is one level deeper, in X: ..."` where the first missing part of `path` is a
-  folder of a sub-folder X of the deepest existing folder above it, else ""."""
+def _nested_hint(path: Path, most: int = 1000) -> str:
+  """`"; X/... exists one level deeper: ..."` where the missing part of `path` (all of it,
+  below the deepest existing folder A) is there in a sub-folder X of A, else "" (also where
+  a folder cannot be read: a hint never raises; at most `most` sub-folders are looked at)."""
   missing = []
   while not path.is_dir() and path != path.parent:
     missing.append(path.name)
     path = path.parent
-  if not missing or not os.access(path, os.R_OK | os.X_OK):
+  if not missing:
     return ""
-  wanted = missing[-1]
-  deeper = sorted(d for d in path.iterdir() if not is_hidden(d) and (d / wanted).is_dir())
-  if not deeper:
-    return ""
-  return (f"; {deeper[0] / wanted} exists one level deeper: is the dataset in an extra folder "
-          f"(as some archives unpack)? Pass {deeper[0]} as its folder")
+  tail = Path(*reversed(missing))
+  try:
+    for i, sub in enumerate(sorted(path.iterdir())):
+      if i >= most:
+        break
+      try:
+        found = not is_hidden(sub) and (sub / tail).is_dir()
+      except OSError:  # e.g. a lost+found folder only its owner can read
+        found = False
+      if found:
+        return (f"; {sub / missing[-1]} exists one level deeper: is the dataset in an extra "
+                f"folder (as some archives unpack)? Pass {sub} as its folder")
+  except OSError:
+    pass
+  return ""
 
 
 def natural_key(path: Path) -> tuple:
@@ -355,21 +365,25 @@ def check_matching(where: str, lists: Mapping[str, Sequence[Path]],
   warn_if_gaps(where, lists[names[0]])
 
 
-def warn_if_gaps(where: str, files: Sequence[Path]) -> None:
-  """Logs a warning where a sequence's frame numbers (`digits_key`, increasing) are not
-  evenly spaced: a frame missing from every folder (a partial download) would otherwise make
-  its two neighbours look consecutive to the temporal metrics and the training clips."""
-  numbers = [digits_key(p) for p in files]
+def warn_if_gaps(where: str, files: Sequence[Path],
+                 number: Callable[[Path], object] = digits_key) -> None:
+  """Logs a warning where a sequence's frame numbers (`number` of each file, increasing) step
+  by more than their smallest step: a frame missing from every folder (a partial download)
+  would otherwise make its two neighbours look consecutive to the temporal metrics and the
+  training clips. Names without increasing numbers (e.g. a camera index last) are passed."""
+  numbers = [number(p) for p in files]
   if len(numbers) < 3 or not all(isinstance(n, int) for n in numbers):
     return
   steps = [b - a for a, b in zip(numbers, numbers[1:])]
-  if min(steps) <= 0 or len(set(steps)) == 1:
-    return  # not frame numbers (e.g. a camera index last), or evenly spaced
-  usual = max(set(steps), key=steps.count)
-  i = next(i for i, s in enumerate(steps) if s != usual)
-  logging.warning("%s: frame numbers are not evenly spaced: %s is followed by %s (usually +%d; "
-                  "a frame missing?); the frames are read as consecutive", where, files[i].name,
-                  files[i + 1].name, usual)
+  usual = min(steps)
+  if usual <= 0:
+    return  # not frame numbers
+  gaps = [i for i, step in enumerate(steps) if step != usual]
+  if gaps:
+    i = gaps[0]
+    logging.warning("%s: frame numbers are not evenly spaced: %d gap(s), the first after %s "
+                    "(next %s; usually +%d: a frame missing?); the frames are read as "
+                    "consecutive", where, len(gaps), files[i].name, files[i + 1].name, usual)
 
 
 def _missing_frame(lists: Mapping[str, Sequence[Path]], key: Callable[[Path], object]) -> str:

@@ -23,7 +23,7 @@ import numpy as np
 
 from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, find_root, list_dirs,
-                               list_files)
+                               list_files, warn_if_gaps)
 
 # The dataset's folder under a datasets root (the root may also be that folder itself).
 FOLDERS = ("InfinigenStereo",)
@@ -43,6 +43,12 @@ def view_key(path: Path) -> str:
   camera is `subcam`, or `cam_rig` in multi-rig renders); other names are compared whole."""
   parts = frame_key(path).split("_")
   return parts[2] if len(parts) == 4 else "_".join(parts)
+
+
+def _frame_number(path: Path) -> int | str:
+  """`view_key` as an integer where it is one (the frame number)."""
+  key = view_key(path)
+  return int(key) if key.isdigit() else key
 
 
 def _camview(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -85,6 +91,7 @@ def _scene(scene: Path, dataset: str) -> DepthSequence:
     files.update(lists)
     cams[side] = lists[side + "_cam"]
   check_matching(where, {"left": files["left"], "right": files["right"]}, view_key)
+  warn_if_gaps(where, files["left"], _frame_number)
   scale = depth2disp_scale(cams["left"][0], cams["right"][0])
   return InfinigenSequence(scene.name, files, dataset=dataset, depth2disp_scale=scale,
                            depth_reader=frame_io.read_npy)

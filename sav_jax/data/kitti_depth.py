@@ -129,6 +129,9 @@ def load_sequences(root, split: str, dataset: str = "kitti_depth"):
       logging.warning("KITTI Depth: skipping %d training drive(s) without raw images under %s: "
                       "%s", len(no_images), root / "input", some_of(no_images))
       drives = [d for d in drives if d not in no_images]
+      if not drives:
+        raise FileNotFoundError(f"no KITTI Depth train drive has its raw images under "
+                                f"{root / 'input'} (<date>/<drive>_sync/image_02/data/)")
   if not drives:
     raise FileNotFoundError(f"no KITTI Depth {split} drives in {gt_root}")
   return [_drive(root, found[d], dataset) for d in drives]

@@ -43,9 +43,10 @@ def _sequence(subset: str, seq_dir: Path, pass_dir: Path, dataset: str) -> Scene
   """Reads one `<seq>/{left,right}` folder and its disparity twin."""
   gt_dir = pass_dir.parent / "disparity" / seq_dir.relative_to(pass_dir)
   name = f"{subset}/{seq_dir.relative_to(pass_dir).as_posix()}"
-  if not list_files(seq_dir / "left", ".png") and list_files(seq_dir / "left", ".webp"):
+  left = list_files(seq_dir / "left", ".png")
+  if not left and list_files(seq_dir / "left", ".webp"):
     raise FileNotFoundError(_webp(seq_dir / "left"))
-  files = {"left": list_files(seq_dir / "left", ".png"),
+  files = {"left": left,
            "right": list_files(seq_dir / "right", ".png"),
            "left_gt": list_files(require_dir(gt_dir / "left", "disparity folder"), ".pfm")}
   if (gt_dir / "right").is_dir():

@@ -80,12 +80,16 @@ def load_sequences(root, split: str = "test", dataset: str = "south_kensington")
 
 def _camera_file(txts: list[Path]) -> Path:
   """`tracking_data.txt` among a sequence's `.txt` files (sorted by name), else the first
-  with an `Intrinsic:` entry; ValueError naming them all where none has one."""
+  whose `Intrinsic:` entry reads (other text files, also ones that are not UTF-8, are passed
+  over); ValueError naming them all where none has one."""
   named = [p for p in txts if p.name == "tracking_data.txt"]
   if named:
     return named[0]
   for path in txts:
-    if "Intrinsic:" in frame_io.read_text(path, "South Kensington camera file"):
-      return path
+    try:
+      read_intrinsics(path)
+    except ValueError:  # no entry, another text, or not UTF-8
+      continue
+    return path
   raise ValueError(f"no `Intrinsic: [[..] [..] [..]]` entry in any .txt of {txts[0].parent} "
                    f"(read: {', '.join(p.name for p in txts)})")

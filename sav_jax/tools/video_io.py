@@ -319,7 +319,7 @@ def open_stereo(left, right, max_frames: int | None = None):
     raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
   notes = _same_source_note(left, right)
   lv, rv = FrameSource(left, max_frames, notes), FrameSource(right, max_frames, notes)
-  _check_pair(lv, rv, notes, (lv._files, rv._files))  # pylint: disable=protected-access
+  _check_pair(lv, rv, notes, (lv._files, rv._files), (left, right))  # pylint: disable=W0212
   return lv, rv, lv.names
 
 
@@ -332,12 +332,13 @@ def _same_source_note(left, right) -> set[str]:
           "views give a disparity of about 0 everywhere"}
 
 
-def _check_pair(lv, rv, notes: set[str], files=(None, None)) -> None:
+def _check_pair(lv, rv, notes: set[str], files=(None, None), sources=("left", "right")
+                ) -> None:
   """Raises ValueError unless the two videos match in length and size; logs the notes
-  (`files`: the two folders' frame files, None for a video file)."""
+  (`files`: the two folders' frame files, None for a video file; `sources`: their paths)."""
   if len(lv) != len(rv):
-    raise ValueError(f"different frame counts: left has {len(lv)} ({lv.path}), right has "
-                     f"{len(rv)} ({rv.path})")
+    raise ValueError(f"different frame counts: left has {len(lv)} ({sources[0]}), right has "
+                     f"{len(rv)} ({sources[1]})")
   if lv.shape != rv.shape:
     raise ValueError(f"different frame sizes: left is {_size(lv.shape[1:])}, right is "
                      f"{_size(rv.shape[1:])} (height x width)")
@@ -400,7 +401,7 @@ def load_stereo(left, right, max_frames: int | None = None):
   notes = _same_source_note(left, right)
   lv, names, left_files = _read_source(left, max_frames, notes)
   rv, _, right_files = _read_source(right, max_frames, notes)
-  _check_pair(lv, rv, notes, (left_files, right_files))
+  _check_pair(lv, rv, notes, (left_files, right_files), (left, right))
   return lv, rv, names
 
 

@@ -206,17 +206,21 @@ def test_a_frame_missing_from_every_folder_is_warned(tmp_path, caplog):
     path.unlink()
   with caplog.at_level(logging.WARNING):
     assert len(registry.get_sequences("sintel_final", tmp_path, "test")[0]) == 4
-  assert ("Sintel final/alley_1: frame numbers are not evenly spaced: frame_0002.png is "
-          "followed by frame_0004.png (usually +1; a frame missing?)") in caplog.text
-  # Evenly spaced numbers (every 10th frame kept) and names without a frame number are not.
+  assert ("Sintel final/alley_1: frame numbers are not evenly spaced: 1 gap(s), the first after "
+          "frame_0002.png (next frame_0004.png; usually +1: a frame missing?)") in caplog.text
+  # Evenly spaced numbers (every 10th frame kept) and names whose last number is no frame
+  # number (Infinigen's camera index) are not; Infinigen's own frame number is read.
   caplog.clear()
-  files = [tmp_path / f"{i:04d}.png" for i in (10, 20, 30, 40)]
-  base.warn_if_gaps("s", files)
-  base.warn_if_gaps("s", [tmp_path / f"Image_0_0_{i:04d}_0.png" for i in (1, 2, 4)])
+  base.warn_if_gaps("s", [tmp_path / f"{i:04d}.png" for i in (10, 20, 30, 40)])
+  infinigen = [tmp_path / f"Image_0_0_{i:04d}_0.png" for i in (1, 2, 4, 5, 7)]
+  base.warn_if_gaps("s", infinigen)
   assert not caplog.text
+  with caplog.at_level(logging.WARNING):
+    base.warn_if_gaps("s", infinigen, registry.infinigen._frame_number)  # pylint: disable=W0212
+  assert "2 gap(s), the first after Image_0_0_0002_0.png (next Image_0_0_0004_0.png" in caplog.text
 
 
-def test_a_dataset_one_folder_too_deep_is_named(tmp_path):
+def test_a_dataset_one_folder_too_deep_is_named(tmp_path, monkeypatch):
   _sintel(tmp_path / "x", np.random.default_rng(5), seqs=(("alley_1", 2),))
   nested = tmp_path / "sintel_stereo" / "MPI-Sintel-stereo-training-20150305"
   nested.parent.mkdir()
@@ -225,6 +229,25 @@ def test_a_dataset_one_folder_too_deep_is_named(tmp_path):
                                               rf".* Pass {nested} as its folder"):
     registry.get_sequences("sintel_final", tmp_path, "test")
   assert len(registry.get_sequences("sintel_final", nested, "test")) == 1
+  # Another dataset's training/ one level down is no hint (only the whole missing path is),
+  # nor is a folder that cannot be read.
+  other = tmp_path / "o"
+  (other / "sintel_stereo").mkdir(parents=True)
+  (other / "sintel_stereo" / "KITTI2015" / "training").mkdir(parents=True)
+  with pytest.raises(FileNotFoundError) as e:
+    registry.get_sequences("sintel_final", other, "test")
+  assert "one level deeper" not in str(e.value)
+  real_is_dir = pathlib.Path.is_dir
+
+  def is_dir(self):
+    if "locked" in self.parts:
+      raise PermissionError(13, "Permission denied", str(self))
+    return real_is_dir(self)
+
+  (other / "sintel_stereo" / "locked").mkdir()
+  monkeypatch.setattr(pathlib.Path, "is_dir", is_dir)
+  with pytest.raises(FileNotFoundError, match="directory not found"):
+    registry.get_sequences("sintel_final", other, "test")
 
 
 def test_sintel_values_mask_and_scale(tmp_path):
@@ -587,6 +610,12 @@ def test_kitti_archive_layout_stray_folders_and_drives_without_images(tmp_path, 
     assert [s.name for s in registry.get_sequences("kitti_depth", tmp_path, "train")] == train[:1]
   assert "skipping 1 training drive(s) without raw images" in caplog.text
   assert "2011_09_26_drive_0009_sync" in caplog.text
+  moved = tmp_path / "moved_input"
+  shutil.move(tmp_path / "kitti_depth/input/2011_09_26/2011_09_26_drive_0001_sync", moved)
+  with caplog.at_level(logging.WARNING), pytest.raises(
+      FileNotFoundError, match="no KITTI Depth train drive has its raw images under"):
+    registry.get_sequences("kitti_depth", tmp_path, "train")
+  shutil.move(moved, tmp_path / "kitti_depth/input/2011_09_26/2011_09_26_drive_0001_sync")
   # ... but a test drive's are required.
   shutil.rmtree(tmp_path / "kitti_depth/input/2011_09_26/2011_09_26_drive_0002_sync")
   with pytest.raises(FileNotFoundError, match="2011_09_26_drive_0002_sync/image_02/data"):
@@ -759,6 +788,10 @@ def test_hidden_files_are_skipped_and_frame_numbers_sort_as_numbers(tmp_path):
   (data / "s1/tracking_data.txt").rename(data / "s1/camera.txt")  # after README.txt by name
   seq, = registry.get_sequences("south_kensington", tmp_path, "test")
   assert seq.depth2disp_scale == pytest.approx(500 * 0.12)
+  (data / "s1/README.txt").write_bytes("Enregistré à South Kensington\n".encode("latin-1"))
+  seq, = registry.get_sequences("south_kensington", tmp_path, "test")  # not UTF-8: passed over
+  assert seq.depth2disp_scale == pytest.approx(500 * 0.12)
+  (data / "s1/README.txt").write_text("Recorded in South Kensington.\n")
   (data / "s1/camera.txt").unlink()
   with pytest.raises(ValueError, match=r"no `Intrinsic: .* entry in any .txt of .*s1 \(read: "
                                        r"README.txt\)"):

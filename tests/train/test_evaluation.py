@@ -64,24 +64,28 @@ def test_clips_without_ground_truth_are_left_out_and_nan_predictions_score_nan(c
   clips = []
   for _ in range(3):
     gt = rng.uniform(1.0, 20.0, (3, 8, 16)).astype(np.float32)
-    left = np.repeat(gt[..., None], 3, axis=-1)
+    left = np.repeat(gt[..., None] + 1.0, 3, axis=-1)  # the stand-in predicts gt + 1: EPE 1
     clips.append({"left": left, "right": left.copy(), "disparity": gt,
                   "valid": np.ones_like(gt, dtype=bool)})
   clips[1]["valid"][:] = False
-  clips[2]["valid"][1] = False  # one frame without: measured, TEPE pools the other pairs
+  clips[2]["valid"][1::2] = False  # no pixel valid in two consecutive frames: TEPE 0
+  with caplog.at_level("WARNING"):
+    kept = evaluation.measured_clips(clips, "kitti_depth")
+  assert len(kept) == 2 and kept[1] is clips[2]
+  assert ("1 of the 3 clips of kitti_depth have no valid ground-truth pixel (sparse ground "
+          "truth outside the crop?) and are left out") in caplog.text
+  assert "1 of the 2 clips of kitti_depth are measured in part" in caplog.text
+  assert "no pixel valid in two consecutive frames" in caplog.text
   config = ml_collections.ConfigDict({"eval": {"batch_size": 1, "iters": 2,
                                                "dataset": "kitti_depth"}})
   mesh = state_lib.make_mesh(jax.devices()[:1])
   model = _SignFlippingModel()
-  with caplog.at_level("WARNING"):
-    ev = evaluation.Evaluator(config, model, state_lib.replicated(mesh), mesh, clips=clips)
-  assert len(ev.clips) == 2 and ev.clips[1] is clips[2]
-  assert "1 of the 3 clips of kitti_depth have no valid ground-truth pixel" in caplog.text
-  assert "are left out" in caplog.text and ev.described.startswith("2 clips of kitti_depth")
-  assert ev({})["epe"] == 0.0  # the two measured clips, each exact
+  ev = evaluation.Evaluator(config, model, state_lib.replicated(mesh), mesh, clips=kept)
+  assert ev.described.startswith("2 clips of kitti_depth")
+  assert ev({})["epe"] == pytest.approx(1.0)  # with the empty clip's 0 it was 2/3
   caplog.clear()
   diverged = evaluation.Evaluator(config, _DivergedModel(), state_lib.replicated(mesh), mesh,
-                                  clips=clips)
+                                  clips=kept)
   with caplog.at_level("WARNING"):
     scores = diverged({})
   assert scores and all(np.isnan(v) for v in scores.values())
@@ -90,4 +94,4 @@ def test_clips_without_ground_truth_are_left_out_and_nan_predictions_score_nan(c
     clip["valid"][:] = False
   with pytest.raises(ValueError, match=r"config.eval.dataset='kitti_depth': none of the 3 "
                                        r"validation clips has a valid ground-truth pixel"):
-    evaluation.Evaluator(config, model, state_lib.replicated(mesh), mesh, clips=clips)
+    evaluation.measured_clips(clips, "kitti_depth")

@@ -87,6 +87,10 @@ def test_frame_without_valid_pixels_contributes_zero_to_the_loss_and_not_to_the_
   for k, v in measured.items():
     np.testing.assert_allclose(float(metrics[k]), v, rtol=1e-5, err_msg=k)
   np.testing.assert_allclose(float(metrics["measured_frames"]), 2 / 3, rtol=1e-6)
+  valid[1, 1:] = 0.0  # clip 1 has none left: 2 of the batch's 6 frames, pooled or not
+  for per_sample in (True, False):
+    _, m = loss_lib.sequence_loss(preds, gt, valid, per_sample=per_sample)
+    np.testing.assert_allclose(float(m["measured_frames"]), 2 / 6, rtol=1e-6)
   for per_sample in (True, False):  # nothing valid at all: 0, and no NaN
     _, none = loss_lib.sequence_loss(preds, gt, np.zeros_like(valid), per_sample=per_sample)
     assert all(float(v) == 0.0 for v in none.values()), none
