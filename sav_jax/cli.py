@@ -83,11 +83,11 @@ def main(argv: list[str] | None = None) -> int:
           _signals.remembered_interrupts()):
       return int(args._run(args) or 0)
   except (UsageError, ValueError, OSError) as e:  # OSError: a disk full, a folder not writable
-    hint = ""
-    if (isinstance(e, MemoryError) and args.command == "infer"  # inference's memory check
-        and getattr(args, "resize", None) is None):
-      hint = "; or --resize HxW to run the model on smaller frames"
-    print(f"sav-jax {args.command}: error: {e}{hint}", file=sys.stderr)
+    text = str(e)
+    if isinstance(e, MemoryError) and args.command in _OUT_OF_MEMORY_HINTS:
+      # inference's memory check: the remedies as this command's flags, not Python arguments
+      text = f"{text.split('; use ')[0]}; {_OUT_OF_MEMORY_HINTS[args.command]}"
+    print(f"sav-jax {args.command}: error: {text}", file=sys.stderr)
     return 2
   except MemoryError as e:  # numpy's: sizes far beyond this machine's memory
     print(f"sav-jax {args.command}: error: out of host memory: {e} (use smaller frames, fewer "

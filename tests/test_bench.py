@@ -104,6 +104,19 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                          "blocked here, cudnn there)"), note
   assert "H100" in bench.machine_note({**here, "device": "gpu:NVIDIA H200"},
                                       {"device": "gpu:NVIDIA H100"})
+  # Hosts of one name (every VM of a kind is "vm"): the CPU model, JAX and the date tell.
+  here.update(cpu="AMD EPYC 9B14", jax="0.8.1", date="2026-12-05")
+  assert "cpu AMD EPYC 9B14 here, AMD EPYC 7B13 there" in bench.machine_note(
+      here, {**here, "cpu": "AMD EPYC 7B13"})
+  assert "jax 0.8.1 here, 0.7.2 there" in bench.machine_note(here, {**here, "jax": "0.7.2"})
+  assert bench.machine_note(here, {**here, "date": "2026-12-01"}).startswith(
+      "note: the baseline was measured on 2026-12-01: machines of one kind differ")
+  assert bench.machine_note(here, dict(here)) == ""
+  assert isinstance(bench.cpu_model(), str) and bench.cpu_model()
+  # A compile of 0 s gives no ratio (it gave x10000000000000.00); equal values are the same.
+  assert bench.compare_line({"median_s": 2.0, "compile_s": 4.0, "peak_rss_gb": 1.0},
+                            {"median_s": 2.0, "compile_s": 0.0, "peak_rss_gb": 1.001}) == (
+      "forward the same (2 s vs 2 s), compile (4 s vs 0 s), peak RSS the same (1 GB vs 1 GB)")
   shape = dict(frames=2, height=32, width=64, iters=2, batch=1)  # ARGS's
   eager = {**eager, **shape}
   baselines = {"eager": {**eager, "median_s": None}, "shape": {**eager, "iters": 8},

@@ -603,12 +603,14 @@ def test_resize_runs_the_model_at_the_given_size(tmp_path, clip, npz_ckpt, varia
   from sav_jax.tools import infer as infer_tool  # pylint: disable=import-outside-toplevel
 
   def too_big(args):
-    raise inference.InsufficientMemoryError("a 20-frame window of 2176x3840 (padded) needs ...")
+    raise inference.InsufficientMemoryError("a 20-frame window of 2176x3840 (padded) needs ...; "
+                                            "use fewer frames per window (window/stride)")
 
   monkeypatch.setattr(infer_tool, "run", too_big)
   assert _infer(left, right, npz_ckpt, tmp_path / "big") == 2
-  assert capsys.readouterr().err.endswith(
-      "needs ...; or --resize HxW to run the model on smaller frames\n")
+  assert capsys.readouterr().err.endswith(  # the command's flags, not Python's arguments
+      "needs ...; use fewer frames per window (--window, --stride), --resize HxW, fewer --iters, "
+      "--dtype bfloat16 or a device with more memory\n")
 
 
 def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
@@ -663,8 +665,8 @@ def _bad_case(name, root, clip, npz_ckpt):
         f"right has {T - 1} ({right})"
   if name == "sizes":
     _write_frames(right, [np.zeros((H, W - 8, 3), np.uint8)] * T)
-    return left, right, npz_ckpt, [], f"different frame sizes: left is {H}x{W}, right is " \
-        f"{H}x{W - 8} (height x width)"
+    return left, right, npz_ckpt, [], f"different frame sizes: left is {H}x{W} ({left}), " \
+        f"right is {H}x{W - 8} ({right}) (height x width)"
   if name == "empty":
     (root / "e").mkdir()
     return root / "e", right, npz_ckpt, [], "empty folder"
@@ -1228,3 +1230,36 @@ def test_overwrite_into_a_relative_out_and_a_second_run_into_a_busy_out(
   capsys.readouterr()
   assert _infer(left, right, npz_ckpt, "new2/deeper", "--format", "npy") == 2
   assert not (tmp_path / "new2").exists()  # nor the folders made for the lock
+
+
+def _mjpg(path, frames, fps=24.0):
+  writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps,
+                           (frames[0].shape[1], frames[0].shape[0]))
+  for frame in frames:
+    writer.write(np.ascontiguousarray(frame[..., ::-1]))
+  writer.release()
+  return path
+
+
+def test_videos_cut_short_turned_or_at_other_rates_are_named(tmp_path, caplog):
+  rng = np.random.default_rng(3)
+  frames = [rng.integers(0, 256, (32, 64, 3), dtype=np.uint8) for _ in range(12)]
+  full = _mjpg(tmp_path / "right.avi", frames)
+  cut = tmp_path / "left.avi"
+  cut.write_bytes(full.read_bytes()[:int(full.stat().st_size * 0.6)])  # a partial download
+  with pytest.raises(ValueError, match=rf"different frame counts: left has \d+ \({cut}\), right "
+                                       rf"has 12 \({full}\); {cut}: \d+ frames decoded where the "
+                                       r"file declares 12 \(truncated or corrupt\?"):
+    video_io.open_stereo(cut, full)
+  turned = _mjpg(tmp_path / "turned.avi", [np.ascontiguousarray(f.transpose(1, 0, 2))
+                                           for f in frames])
+  with pytest.raises(ValueError, match=r"left is 64x32 .*right is 32x64 .*one is turned: rotation "
+                                       "metadata in one video file"):
+    video_io.open_stereo(turned, full)
+  with pytest.raises(ValueError, match=rf"{tmp_path}: holds video files \(left.avi...\), not "
+                                       "frames: pass one video file"):
+    video_io.open_stereo(tmp_path, full)
+  slow = _mjpg(tmp_path / "slow.avi", frames, fps=15.0)
+  with caplog.at_level(logging.WARNING):
+    video_io.open_stereo(slow, full)
+  assert "the left video runs at 15 frames/s, the right at 24" in caplog.text

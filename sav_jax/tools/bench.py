@@ -179,7 +179,21 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
       fps=batch * frames / median, peak_rss_gb=peak_rss_gb(),
       device_peak_gb=device_peak_gb(device), device_peak_compile_gb=compile_peak,
       **xla_buffers_gb(compiled), device=f"{device.platform}:{device.device_kind}",
-      host=platform.node(), jax=jax.__version__, date=time.strftime("%Y-%m-%d"))
+      host=platform.node(), cpu=cpu_model(), jax=jax.__version__,
+      date=time.strftime("%Y-%m-%d"))
+
+
+def cpu_model() -> str:
+  """The host CPU's model name (`/proc/cpuinfo` on Linux, else `platform.processor()`):
+  hosts of one name (a cloud's VMs) may differ in it."""
+  try:
+    with open("/proc/cpuinfo", encoding="utf-8") as f:
+      for line in f:
+        if line.lower().startswith("model name"):
+          return line.partition(":")[2].strip()
+  except OSError:
+    pass
+  return platform.processor() or "unknown"
 
 
 _COMPARED = ("median_s", "compile_s", "peak_rss_gb")
@@ -234,21 +248,29 @@ def machine_note(res: dict, base: dict) -> str:
     (p1, k1), (p2, k2) = device(res["device"]), device(base["device"])
     if p1 != p2 or (k1 and k2 and k1 != k2):
       differ.append(f"device {res['device']} here, {base['device']} there")
-  for key in ("host", "vit_attention", "matmul_precision"):
+  for key in ("host", "cpu", "jax", "vit_attention", "matmul_precision"):
     if base.get(key) is not None and base[key] != res.get(key):
       differ.append(f"{key} {res.get(key)} here, {base[key]} there")
-  if not differ:
-    return ""
-  return ("warning: the baseline was measured elsewhere (" + "; ".join(differ)
-          + "): the ratios compare machines, not code")
+  if differ:
+    return ("warning: the baseline was measured elsewhere (" + "; ".join(differ)
+            + "): the ratios compare machines, not code")
+  if base.get("date") and base["date"] != res.get("date"):
+    return (f"note: the baseline was measured on {base['date']}: machines of one kind differ "
+            "between sessions (up to 1.6x seen on CPUs), so remeasure it here for a ratio of "
+            "code alone")
+  return ""
 
 
 def compare_line(res: dict, base: dict) -> str:
   """This run against a baseline: `forward x1.32 faster (0.75 s vs 0.99 s), ...`."""
   def ratio(name, now, before, unit, lower_is=("faster", "slower")):
-    word = lower_is[0] if now <= before else lower_is[1]
-    r = max(now, before) / max(min(now, before), 1e-12)
-    return f"{name} x{r:.2f} {word} ({now:.3g} {unit} vs {before:.3g} {unit})"
+    values = f"({now:.3g} {unit} vs {before:.3g} {unit})"
+    if min(now, before) <= 0:  # (a compile of 0 s: a ratio says nothing)
+      return f"{name} {values}"
+    r = max(now, before) / min(now, before)
+    if round(r, 2) == 1:
+      return f"{name} the same {values}"
+    return f"{name} x{r:.2f} {lower_is[0] if now < before else lower_is[1]} {values}"
   compile_part = (f"compile {res['compile_s']:.3g} s (the baseline compiles nothing)"
                   if base["compile_s"] is None
                   else ratio("compile", res["compile_s"], base["compile_s"], "s"))

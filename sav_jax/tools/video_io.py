@@ -38,6 +38,10 @@ def list_frames(folder) -> list[pathlib.Path]:
     raise FileNotFoundError(f"{folder}: not a folder")
   files = base.list_files(folder, *IMAGE_EXTENSIONS)
   if not files:
+    videos = base.list_files(folder, *VIDEO_EXTENSIONS)
+    if videos:
+      raise ValueError(f"{folder}: holds video files ({videos[0].name}...), not frames: pass "
+                       "one video file")
     raise ValueError(f"{folder}: empty folder (no {'/'.join(IMAGE_EXTENSIONS)} images)")
   return files
 
@@ -296,6 +300,10 @@ def video_fps(path) -> float | None:
   return fps if viz.is_fps(fps) else None
 
 
+# How the note on a video that decodes to fewer frames than it declares names the cause.
+TRUNCATED = "truncated or corrupt?"
+
+
 def _decode(path, max_frames: int | None, notes: set[str]):
   """Yields the frames of a video file as `[H, W, 3]` uint8 RGB."""
   cap = cv2.VideoCapture(str(path))
@@ -306,6 +314,10 @@ def _decode(path, max_frames: int | None, notes: set[str]):
     while max_frames is None or count < max_frames:
       ok, img = cap.read()
       if not ok:
+        declared = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        if declared > count:
+          notes.add(f"{path}: {count} frames decoded where the file declares {declared} "
+                    f"({TRUNCATED}, or a variable frame rate, whose count is an estimate)")
         break
       count += 1
       yield to_rgb8(img, str(path), notes)
@@ -337,11 +349,20 @@ def _check_pair(lv, rv, notes: set[str], files=(None, None), sources=("left", "r
   """Raises ValueError unless the two videos match in length and size; logs the notes
   (`files`: the two folders' frame files, None for a video file; `sources`: their paths)."""
   if len(lv) != len(rv):
+    short = [n for n in sorted(notes) if TRUNCATED in n]
     raise ValueError(f"different frame counts: left has {len(lv)} ({sources[0]}), right has "
-                     f"{len(rv)} ({sources[1]})")
+                     f"{len(rv)} ({sources[1]})" + "".join(f"; {n}" for n in short))
   if lv.shape != rv.shape:
-    raise ValueError(f"different frame sizes: left is {_size(lv.shape[1:])}, right is "
-                     f"{_size(rv.shape[1:])} (height x width)")
+    turned = lv.shape[1:3] == rv.shape[2:0:-1]
+    raise ValueError(f"different frame sizes: left is {_size(lv.shape[1:])} ({sources[0]}), "
+                     f"right is {_size(rv.shape[1:])} ({sources[1]}) (height x width)"
+                     + ("; one is turned: rotation metadata in one video file? OpenCV applies "
+                        "it" if turned else ""))
+  fps = (getattr(lv, "fps", None), getattr(rv, "fps", None))
+  if None not in fps and abs(fps[0] - fps[1]) > 0.01 * max(fps):
+    notes.add(f"the left video runs at {fps[0]:g} frames/s, the right at {fps[1]:g}: frames "
+              "are paired by their index, so the views drift apart in time if they are one "
+              "recording")
   shifted = _shifted_pairing(*files)
   if shifted:
     notes.add(shifted)
