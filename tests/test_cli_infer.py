@@ -801,7 +801,8 @@ def test_frame_folder_names_the_frame_of_another_size(tmp_path):
     video_io.load_stereo(left, right)
   lv, _, names = video_io.load_stereo(left, right, max_frames=2)  # the odd frame not read
   assert lv.shape == (2, H, W, 3) and names == ["0000", "0001"]
-  with pytest.raises(ValueError, match=rf"left is {H}x{W}, right is {H}x{W + 2} \(height x"):
+  with pytest.raises(ValueError, match=rf"left is {H}x{W} \({right}\), right is {H}x{W + 2} "
+                                       rf"\({tmp_path / 'r2'}\) \(height x width\)$"):
     video_io.load_stereo(right, _write_frames(tmp_path / "r2", [wide] * 4))
 
 
