@@ -169,7 +169,7 @@ class _HostMetrics:
   def __init__(self, config, writer: MetricWriter, progress: Progress, skipped: int):
     self.config, self.writer, self.progress = config, writer, progress
     self.skipped = skipped
-    self.sums, self.n, self.n_finite, self.last = {}, 0, 0, None
+    self.sums, self.n, self.n_finite, self.last, self.measured = {}, 0, 0, None, 0.0
     self.window_start = time.perf_counter()
 
   def __call__(self, step: int, metrics) -> None:
@@ -178,11 +178,16 @@ class _HostMetrics:
     # finite steps only (a window of skipped steps only logs NaN), its rate and the
     # counter over all of them.
     finite = bool(last["finite"]) if "finite" in last else bool(np.isfinite(last["loss"]))
+    # The accuracy metrics are means over a step's measured frames: weighted by their share,
+    # so that a step without any (sparse ground truth outside the crops) adds nothing.
+    weight = float(last.get("measured_frames", 1.0))
     for k, v in last.items():
       if finite or k in _OVER_ALL_STEPS:
-        self.sums[k] = self.sums.get(k, 0.0) + float(v)
+        w = weight if k in _OVER_MEASURED else 1.0
+        self.sums[k] = self.sums.get(k, 0.0) + w * float(v)
     self.n += 1
     self.n_finite += finite
+    self.measured += weight if finite else 0.0
     self.progress.update(1, loss=last["loss"], epe=last["epe"])
     if int(last["num_skipped"]) > self.skipped:
       self.skipped = int(last["num_skipped"])
@@ -196,7 +201,9 @@ class _HostMetrics:
       if self.skipped > self.config.train.max_skipped_steps:
         raise FloatingPointError(f"{self.skipped} skipped updates > train.max_skipped_steps")
     if _every(step, self.config.train.log_every) or step == self.config.train.num_steps:
-      means = {k: (v / self.n if k in _OVER_ALL_STEPS else v / max(self.n_finite, 1))
+      means = {k: (v / self.n if k in _OVER_ALL_STEPS else
+                   v / self.measured if k in _OVER_MEASURED and self.measured > 0 else
+                   v / max(self.n_finite, 1))
                for k, v in self.sums.items()}
       means.update({k: float("nan") for k in last if k not in means})  # no finite step
       means["num_skipped"] = float(last["num_skipped"])  # a counter, not a mean
@@ -211,12 +218,14 @@ class _HostMetrics:
         shown = ", ".join(f"{k} {means[k]:.4g}" for k in ("loss", "epe", "1px", "lr")
                           if k in means)
         log.info("step %d: %s (%.3g steps/s)", step, shown, rate)
-      self.sums, self.n, self.n_finite = {}, 0, 0
+      self.sums, self.n, self.n_finite, self.measured = {}, 0, 0, 0.0
       self.window_start = time.perf_counter()
 
 
 # Step metrics averaged over every step of a logging window (the others: over its finite steps).
 _OVER_ALL_STEPS = ("finite", "num_skipped")
+# Step metrics averaged over a window's measured frames (`train.loss.sequence_loss`).
+_OVER_MEASURED = ("epe", "1px", "3px", "5px")
 
 
 def _every(step: int, period: int) -> bool:

@@ -1261,6 +1261,14 @@ def test_logged_means_leave_out_skipped_steps(caplog):
   resumed = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
   resumed(3, {"loss": 5.0, "epe": 1.0, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
   assert writer.records[-1][0] == 3 and writer.records[-1][1]["window_steps"] == 1
+  # A step without measured frames (no valid pixel in its batch) adds nothing to the EPE mean.
+  measured = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
+  for step, (epe, share) in enumerate([(2.0, 1.0), (0.0, 0.0), (5.0, 0.5)], 1):
+    measured(step, {"loss": 1.0, "epe": epe, "finite": 1.0, "lr": 0.1, "num_skipped": 0,
+                    "measured_frames": share})
+  record = writer.records[-1][1]
+  assert record["epe"] == pytest.approx((2.0 + 2.5) / 1.5) and record["loss"] == 1.0
+  assert record["measured_frames"] == pytest.approx(0.5)
   # Without the progress bar (a log file), each record is a line of the log too.
   c.train.progress_bar = False
   quiet = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
