@@ -84,9 +84,9 @@ def main(argv: list[str] | None = None) -> int:
       return int(args._run(args) or 0)
   except (UsageError, ValueError, OSError) as e:  # OSError: a disk full, a folder not writable
     text = str(e)
-    if isinstance(e, MemoryError) and args.command in _OUT_OF_MEMORY_HINTS:
+    if hasattr(e, "need") and args.command in _OUT_OF_MEMORY_HINTS:
       # inference's memory check: the remedies as this command's flags, not Python arguments
-      text = f"{text.split('; use ')[0]}; {_OUT_OF_MEMORY_HINTS[args.command]}"
+      text = f"{e.need}; {_OUT_OF_MEMORY_HINTS[args.command]}"
     print(f"sav-jax {args.command}: error: {text}", file=sys.stderr)
     return 2
   except MemoryError as e:  # numpy's: sizes far beyond this machine's memory

@@ -103,7 +103,15 @@ _BF16_FACTOR = 0.7
 
 
 class InsufficientMemoryError(MemoryError, ValueError):
-  """A window of this size would not fit in the available memory (message has the GB)."""
+  """A window of this size would not fit in the available memory (message has the GB).
+
+  Attributes:
+    need: the message without its remedies (a command names its own flags instead).
+  """
+
+  def __init__(self, need: str, remedies: str | None = None):
+    self.need = need
+    super().__init__(need if remedies is None else f"{need}; use {remedies}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -343,8 +351,8 @@ def _raise_if_too_big(needed: float, shape: tuple[int, int, int], what: str,
     fewer = "" if iters is None else "fewer refinement iterations (iters), "
     raise InsufficientMemoryError(
         f"a {t}-frame window of {h}x{w} (padded){its} needs about {needed / 2**30:.1f} GB "
-        f"({what}), but only {free / 2**30:.1f} GB is free on {device.platform}:{device.id}; "
-        f"use {fewer}fewer frames per window (window/stride), smaller frames, bfloat16 "
+        f"({what}), but only {free / 2**30:.1f} GB is free on {device.platform}:{device.id}",
+        f"{fewer}fewer frames per window (window/stride), smaller frames, bfloat16 "
         "(dtype='bfloat16') or a device with more memory")
 
 

@@ -603,8 +603,8 @@ def test_resize_runs_the_model_at_the_given_size(tmp_path, clip, npz_ckpt, varia
   from sav_jax.tools import infer as infer_tool  # pylint: disable=import-outside-toplevel
 
   def too_big(args):
-    raise inference.InsufficientMemoryError("a 20-frame window of 2176x3840 (padded) needs ...; "
-                                            "use fewer frames per window (window/stride)")
+    raise inference.InsufficientMemoryError("a 20-frame window of 2176x3840 (padded) needs ...",
+                                            "fewer frames per window (window/stride)")
 
   monkeypatch.setattr(infer_tool, "run", too_big)
   assert _infer(left, right, npz_ckpt, tmp_path / "big") == 2

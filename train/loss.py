@@ -73,17 +73,11 @@ def _frame_means(values: jax.Array, mask: jax.Array, per_sample: bool) -> jax.Ar
   Returns:
     The means; 0 where a frame has no valid pixel.
   """
-  axes = _axes(per_sample)
+  axes = (-2, -1) if per_sample else (-4, -2, -1)
   m = jnp.broadcast_to(mask, values.shape)
   total = jnp.sum(jnp.where(m, values, 0.0), axis=axes)
   count = jnp.sum(m, axis=axes, dtype=jnp.float32)
   return jnp.where(count > 0, total / jnp.maximum(count, 1.0), 0.0)
-
-
-def _axes(per_sample: bool) -> tuple[int, ...]:
-  """The pixel axes of `[..., B, T, H, W]` a frame's mean runs over (with B unless
-  `per_sample`)."""
-  return (-2, -1) if per_sample else (-4, -2, -1)
 
 
 def _over_measured(frame_means: jax.Array, measured: jax.Array) -> jax.Array:
@@ -121,12 +115,13 @@ def sequence_loss(predictions: jax.Array, disparity: jax.Array, valid: jax.Array
   weighted = jnp.einsum("n,n...->...", weights, per_frame)        # [B, T] or [T]
   loss = jnp.mean(weighted)
   last = err[-1]
-  measured = jnp.any(mask, axis=_axes(per_sample))                # [B, T] or [T]
+  frame_valid = jnp.any(mask, axis=(-2, -1))                      # [B, T]
+  measured = frame_valid if per_sample else jnp.any(frame_valid, axis=0)  # [B, T] or [T]
   metrics = {"epe": _over_measured(_frame_means(last, mask, per_sample), measured)}
   for tau in (1, 3, 5):
     below = (last < tau).astype(jnp.float32)
     metrics[f"{tau}px"] = _over_measured(_frame_means(below, mask, per_sample), measured)
   # (per clip, also when the batch is pooled: the share of the batch's frames)
-  metrics["measured_frames"] = jnp.mean(jnp.any(mask, axis=(-2, -1)).astype(jnp.float32))
+  metrics["measured_frames"] = jnp.mean(frame_valid.astype(jnp.float32))
   metrics["valid_fraction"] = jnp.mean(mask.astype(jnp.float32))
   return loss, metrics

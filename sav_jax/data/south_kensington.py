@@ -70,26 +70,25 @@ def load_sequences(root, split: str = "test", dataset: str = "south_kensington")
     files = {"left": list_files(seq_dir / "images" / "left", ".png"),
              "right": list_files(seq_dir / "images" / "right", ".png")}
     check_matching(f"South Kensington {seq_dir.name}", files, digits_key)
-    camera = _camera_file(txts)
-    scale = camera_scale(read_intrinsics(camera)[0, 0], BASELINE_M, camera)
+    camera, k = _camera_intrinsics(txts)
+    scale = camera_scale(k[0, 0], BASELINE_M, camera)
     seqs.append(StereoSequence(seq_dir.name, files, dataset=dataset, depth2disp_scale=scale))
   if not seqs:
     raise FileNotFoundError(f"no South Kensington sequences with a camera txt under {root}")
   return seqs
 
 
-def _camera_file(txts: list[Path]) -> Path:
-  """`tracking_data.txt` among a sequence's `.txt` files (sorted by name), else the first
-  whose `Intrinsic:` entry reads (other text files, also ones that are not UTF-8, are passed
-  over); ValueError naming them all where none has one."""
+def _camera_intrinsics(txts: list[Path]) -> tuple[Path, np.ndarray]:
+  """`(camera file, K)`: `tracking_data.txt` among a sequence's `.txt` files (sorted by
+  name), else the first whose `Intrinsic:` entry reads (other text files, also ones that are
+  not UTF-8, are passed over); ValueError naming them all where none has one."""
   named = [p for p in txts if p.name == "tracking_data.txt"]
   if named:
-    return named[0]
+    return named[0], read_intrinsics(named[0])
   for path in txts:
     try:
-      read_intrinsics(path)
+      return path, read_intrinsics(path)
     except ValueError:  # no entry, another text, or not UTF-8
       continue
-    return path
   raise ValueError(f"no `Intrinsic: [[..] [..] [..]]` entry in any .txt of {txts[0].parent} "
                    f"(read: {', '.join(p.name for p in txts)})")
