@@ -432,6 +432,9 @@ def depth_from_disparity(disp, fx: float, baseline: float, doffs: float = 0.0) -
     baseline: stereo baseline (metres, or any unit: Z is in that unit).
     doffs: x-difference of the two cameras' principal points (px; Middlebury's `doffs`,
       `cx_right - cx_left`); 0 for cameras rectified to one principal point (KITTI).
+      With doffs > 0 a disparity of 0 has a depth (fx * baseline / doffs): where 0 marks
+      "no disparity" (a KITTI-style PNG, a sparse map), mask those pixels out yourself
+      (`disparity_to_points(..., valid=disp > 0)`).
 
   Returns:
     `[..., H, W]` float32 depth; 0 where there is none (d + doffs <= 0 or not finite, or a
@@ -509,21 +512,29 @@ def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float
   return xyz[finite], rgb[v[finite], u[finite]]
 
 
-def write_ply(path, xyz, colors) -> int:
+def write_ply(path, xyz, colors, comments=()) -> int:
   """Writes a binary little-endian PLY point cloud.
 
   Args:
     path: output file.
     xyz: `[N, 3]` (or `[..., 3]`) float coordinates.
     colors: RGB of the same shape as `xyz`, uint8 or numbers in 0..255.
+    comments: lines for the header's `comment`s (the axes and unit, say), each printable
+      ASCII on one line; viewers show or skip them, `read_ply` skips them.
 
   Returns:
     The number of points N.
 
   Raises:
     ValueError: `xyz` is not `[..., 3]` numbers or not finite in float32, `colors` has
-      another shape or values outside 0..255 (checked before the file is created).
+      another shape or values outside 0..255, or a comment is not one line of printable
+      ASCII (checked before the file is created).
   """
+  comments = [comments] if isinstance(comments, str) else list(comments)
+  for c in comments:
+    if not isinstance(c, str) or not (c.isascii() and c.isprintable()):
+      raise ValueError(f"write_ply: a comment must be one line of printable ASCII text, got "
+                       f"{c!r}")
   xyz, colors = np.asarray(xyz), np.asarray(colors)
   if xyz.ndim < 1 or xyz.shape[-1] != 3 or xyz.dtype.kind not in "uif":
     raise ValueError(f"write_ply: xyz must be [N, 3] (or [..., 3]) numbers, got shape "
@@ -544,9 +555,10 @@ def write_ply(path, xyz, colors) -> int:
   for i, name in enumerate(("red", "green", "blue")):
     verts[name] = colors[:, i]
   header = ("ply\nformat binary_little_endian 1.0\n"
-            f"element vertex {len(verts)}\n"
+            + "".join(f"comment {c}\n" for c in comments)
+            + f"element vertex {len(verts)}\n"
             "property float x\nproperty float y\nproperty float z\n"
-            "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+            + "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
   with open(path, "wb") as fh:
     fh.write(header.encode("ascii"))
     fh.write(verts.tobytes())

@@ -37,15 +37,15 @@ def clip():
 
 
 @pytest.fixture(scope="module")
-def npz_ckpt(tmp_path_factory, sav_state_dict):
-  path = tmp_path_factory.mktemp("ckpt") / "sav.npz"
+def npz_ckpt(module_tmp_path, sav_state_dict):
+  path = module_tmp_path / "sav.npz"
   np.savez(path, **sav_state_dict)
   return path
 
 
 @pytest.fixture(scope="module")
-def orbax_ckpt(tmp_path_factory, variables):
-  path = tmp_path_factory.mktemp("orbax") / "sav"
+def orbax_ckpt(module_tmp_path, variables):
+  path = module_tmp_path / "orbax" / "sav"
   sav_jax.convert.save_variables(path, variables, {"model": sav_jax.SAVConfig().to_dict()})
   return path
 
@@ -59,8 +59,8 @@ def _write_frames(folder, frames, ext=".png"):
 
 
 @pytest.fixture(scope="module")
-def folders(tmp_path_factory, clip):
-  root = tmp_path_factory.mktemp("frames")
+def folders(module_tmp_path, clip):
+  root = module_tmp_path / "frames"
   return (_write_frames(root / "left", clip["left"]), _write_frames(root / "right", clip["right"]))
 
 
@@ -89,6 +89,9 @@ def test_folder_all_formats_and_calibration(tmp_path, folders, npz_ckpt, variabl
     z = 4.0 / (d.astype(np.float64) + 2.0)  # fx * baseline / (d + doffs): every pixel
     np.testing.assert_allclose(np.load(out / "depth" / f"{name}.npy"), z, rtol=1e-6)
     xyz, rgb = viz.read_ply(out / "pointclouds" / f"{name}.ply")
+    header = (out / "pointclouds" / f"{name}.ply").read_bytes().split(b"end_header")[0]
+    assert b"comment axes: x right, y down, z forward" in header
+    assert b"comment unit: the baseline's (fx 40 px, baseline 0.1, doffs 2 px)" in header
     assert len(xyz) == H * W  # raster order; OpenCV axes with fy, cx, cy as given
     np.testing.assert_allclose(xyz, np.stack([(u - 10) * z / 40, (v - 5) * z / 50, z],
                                              -1).reshape(-1, 3), rtol=1e-5, atol=1e-6)
@@ -806,7 +809,7 @@ def test_frame_folder_names_the_frame_of_another_size(tmp_path):
     video_io.load_stereo(right, _write_frames(tmp_path / "r2", [wide] * 4))
 
 
-def test_calibration_file(tmp_path):
+def test_calibration_file(tmp_path, caplog):
   from sav_jax.tools import UsageError
   from sav_jax.tools.infer import read_calibration
   kitti = tmp_path / "calib_cam_to_cam.txt"
@@ -824,6 +827,36 @@ def test_calibration_file(tmp_path):
   assert CalibrationSpec(**c).resolve(1242, 375).cx == 600
   with pytest.raises(UsageError, match="for images of width 1242, the frames' width is 621"):
     CalibrationSpec(**c).resolve(621, 188)  # half-size frames: cx 600 lies inside them
+  assert c["doffs"] == 0  # KITTI rectifies both cameras to one principal point
+  # P matrices of OpenCV's stereoRectify without CALIB_ZERO_DISPARITY: the principal points
+  # differ, and depth = fx * B / (d + cx3 - cx2) (was d alone: 3x too deep here)
+  kitti.write_text("P2: 100 0 30 0  0 100 19.5 0  0 0 1 0\n"
+                   "P3: 100 0 40 -50  0 100 19.5 0  0 0 1 0\n")
+  c = read_calibration(kitti)
+  assert (c["baseline"], c["doffs"], c["cx"]) == (0.5, 10, 30)
+  from sav_jax import viz  # pylint: disable=import-outside-toplevel
+  assert viz.depth_from_disparity(np.float32(5), c["fx"], c["baseline"], c["doffs"]) == \
+      pytest.approx(100 * 0.5 / 15)
+  with caplog.at_level(logging.WARNING, "sav_jax.tools.infer"):
+    assert not caplog.records
+    kitti.write_text("P2: 100 0 30 -50  0 100 19.5 0  0 0 1 0\n"  # the right camera's first
+                     "P3: 100 0 30 0  0 100 19.5 0  0 0 1 0\n")
+    assert read_calibration(kitti)["baseline"] == 0.5
+  assert [r.getMessage() for r in caplog.records] == [
+      f"{kitti}: P2 is to the right of P3 (P2[0,3] -50 < P3[0,3] 0): the matrices look "
+      "swapped; the disparities are the left view's (--left), so check that --left is P2's "
+      "camera"]
+  caplog.clear()
+  with caplog.at_level(logging.WARNING, "sav_jax.tools.infer"):
+    # KITTI's full-size intrinsics (no size in the file) on half-size frames: cx lies inside
+    # them, but 47% of the width from their centre
+    spec = CalibrationSpec(fx=721.5, baseline=0.54, cx=609.6, cy=172.9)
+    assert spec.resolve(1242, 375).cx == 609.6 and not caplog.records  # 1% and 4% off
+    assert spec.resolve(621, 187).fx == 721.5
+  [record] = caplog.records
+  assert record.getMessage().startswith(
+      "the calibration's principal point (cx 609.6, cy 172.9) is 48% of the frame from the "
+      "centre of the 187x621 (height x width) frames: is it for another image size")
   js = tmp_path / "c.json"
   js.write_text(json.dumps({"fx": 500, "baseline": 0.12}))
   assert read_calibration(js) == {"fx": 500.0, "baseline": 0.12}

@@ -47,15 +47,15 @@ def variables(sav_state_dict):
 
 
 @pytest.fixture(scope="module")
-def ckpt(tmp_path_factory, variables):
-  path = tmp_path_factory.mktemp("ckpt") / "sav"
+def ckpt(module_tmp_path, variables):
+  path = module_tmp_path / "ckpt" / "sav"
   sav_jax.convert.save_variables(path, variables, {"model": sav_jax.SAVConfig().to_dict()})
   return path
 
 
 @pytest.fixture(scope="module")
-def synthetic_run(tmp_path_factory, ckpt):
-  out = tmp_path_factory.mktemp("eval") / "synthetic"
+def synthetic_run(module_tmp_path, ckpt):
+  out = module_tmp_path / "eval" / "synthetic"
   rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), "--out", str(out),
              "--baseline", "sgbm", "--config.metrics.tcc=true", *SMALL])
   assert rc == 0

@@ -26,8 +26,8 @@ ATOL = 1e-4  # px, the fixture README's criterion for final disparities
 
 
 @pytest.fixture(scope="module")
-def child(tmp_path_factory):
-  out = tmp_path_factory.mktemp("multi_device") / "result.npz"
+def child(module_tmp_path):
+  out = module_tmp_path / "result.npz"
   env = dict(os.environ, JAX_PLATFORMS="cpu", TF_CPP_MIN_LOG_LEVEL="1",
              XLA_FLAGS="--xla_force_host_platform_device_count=3",
              PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))

@@ -120,6 +120,17 @@ def test_ply_header_count_and_values(tmp_path):
   back_xyz, back_rgb = viz.read_ply(tmp_path / "p.ply")
   np.testing.assert_array_equal(back_xyz, xyz)
   np.testing.assert_array_equal(back_rgb, rgb)
+  # comments (the axes and unit) go after the format line; read_ply skips them
+  assert viz.write_ply(tmp_path / "c.ply", xyz, rgb, ["axes: x right", "unit: m"]) == 57
+  header = (tmp_path / "c.ply").read_bytes().split(b"end_header\n", 1)[0].decode()
+  assert header.splitlines()[:5] == ["ply", "format binary_little_endian 1.0",
+                                     "comment axes: x right", "comment unit: m",
+                                     "element vertex 57"]
+  np.testing.assert_array_equal(viz.read_ply(tmp_path / "c.ply")[0], xyz)
+  for bad in ("two\nlines", "caf\u00e9"):  # would break the header / is not ASCII
+    with pytest.raises(ValueError, match="comment must be one line of printable ASCII"):
+      viz.write_ply(tmp_path / "bad.ply", xyz, rgb, [bad])
+  assert not (tmp_path / "bad.ply").exists()
 
 
 def _raises_within(seconds, exc, match, fn, *args):

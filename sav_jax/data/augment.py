@@ -55,14 +55,15 @@ class AugmentConfig:
     spatial_prob: probability of resizing at all (official 1.0).
     photometric: switch for the colour jitter (step 1).
     brightness, contrast, saturation: ranges of the enhance factors.
-    hue: range of the hue shift, in turns (+-0.5/3.14 officially).
+    hue: range of the hue shift, in turns (+-0.5/3.14 officially), within [-0.5, 0.5].
     gamma, gain: ranges of the gamma adjustment (official: off, (1, 1)).
     asymmetric_prob: probability of independent jitter per image (dense only).
     eraser_prob: per frame and view probability of erasing rectangles (0: off).
     eraser_count: (min, max) rectangles, inclusive.
     eraser_size: [min, max) side of a rectangle, px.
     yjitter: vertical jitter of the right view's crop (dense only).
-    yjitter_range: its amplitude, px (+-).
+    yjitter_range: its amplitude, px (+-); the crop keeps max(2, it) px from the frame's
+      top and bottom where the frame allows (officially 2 and 2).
     max_disparity: dense valid rule |d| < max_disparity.
   """
 
@@ -123,6 +124,9 @@ class AugmentConfig:
         raise ValueError(f"AugmentConfig.{name} factors must be >= 0, got {getattr(self, name)}")
     if self.gamma[0] <= 0:
       raise ValueError(f"AugmentConfig.gamma must be > 0, got {self.gamma}")
+    if not -0.5 <= self.hue[0] <= self.hue[1] <= 0.5:  # turns: +-0.5 is the whole circle
+      raise ValueError(f"AugmentConfig.hue must lie in [-0.5, 0.5] (turns of the colour "
+                       f"circle, as torchvision's ColorJitter), got {self.hue}")
     for name in ("stretch_prob", "spatial_prob", "asymmetric_prob", "eraser_prob"):
       if not 0 <= getattr(self, name) <= 1:
         raise ValueError(f"AugmentConfig.{name} is a probability in [0, 1], got "
@@ -395,11 +399,13 @@ def _crop(out: dict, cfg: AugmentConfig, rng, jitter: bool) -> None:
         f"frames, and the clip was not resized (spatial_prob={cfg.spatial_prob:g}: clips drawn "
         "without the spatial transform keep their size; the official training resizes every "
         "clip, spatial_prob=1)")
-  m = 2 if jitter else 0  # the official y-jitter crop keeps a 2 px margin
-  # Frames within 2 px of the crop (where the official randint fails): the margin shrinks.
-  y0 = min(int(rng.integers(m, max(h - ch - m, m + 1))), h - ch)
-  x0 = min(int(rng.integers(m, max(w - cw - m, m + 1))), w - cw)
   r = cfg.yjitter_range if jitter else 0
+  # The official y-jitter crop keeps a 2 px margin (its jitter is +-2): a larger jitter
+  # keeps its own in y, so that the right view's rows are not clipped at the frame's edge.
+  m, my = (2, max(2, r)) if jitter else (0, 0)
+  # Frames within the margin of the crop (where the official randint fails): it shrinks.
+  y0 = min(int(rng.integers(my, max(h - ch - my, my + 1))), h - ch)
+  x0 = min(int(rng.integers(m, max(w - cw - m, m + 1))), w - cw)
   y1 = [min(max(y0 + int(rng.integers(-r, r + 1)), 0), h - ch) if jitter else y0
         for _ in range(t)]
   for dkey, vkey, view in _GT:
@@ -429,9 +435,9 @@ def augment_clip(clip: dict, cfg: AugmentConfig, rng: np.random.Generator,
   sparse = bool(clip.get("sparse", False)) if sparse is None else bool(sparse)
   left, right = np.asarray(clip["left"]), np.asarray(clip["right"])
   if (left.ndim != 4 or left.shape[-1] != 3 or left.shape != right.shape
-      or left.dtype != np.uint8):
-    raise ValueError(f"left/right must be equal [T, H, W, 3] uint8, got {left.shape} "
-                     f"{left.dtype} and {right.shape} {right.dtype}")
+      or left.dtype != np.uint8 or 0 in left.shape):
+    raise ValueError(f"left/right must be equal [T, H, W, 3] uint8 with T, H, W >= 1, got "
+                     f"{left.shape} {left.dtype} and {right.shape} {right.dtype}")
   out = dict(clip)
   if cfg.photometric:  # returns new arrays
     left, right = _photometric(left, right, cfg, rng, sparse)
@@ -446,8 +452,9 @@ def augment_clip(clip: dict, cfg: AugmentConfig, rng: np.random.Generator,
         raise ValueError(f"{dkey} is {out[dkey].shape}, images are {left.shape[:3]}")
       if sparse and out.get(vkey) is None:
         raise ValueError(f"sparse clips need `{vkey}` with `{dkey}`")
-      if sparse:
-        out[vkey] = np.asarray(out[vkey], bool)
+      if sparse:  # bool, or weights: > 0.5 is valid, as in the metrics (0.3 was True)
+        valid = np.asarray(out[vkey])
+        out[vkey] = valid if valid.dtype == bool else valid > 0.5
         if out[vkey].shape != left.shape[:3]:
           raise ValueError(f"{vkey} is {out[vkey].shape}, images are {left.shape[:3]}")
       else:

@@ -108,7 +108,25 @@ class _LoadClip:
     if clip.get("disparity") is None:
       raise ValueError(f"{sequence!r} has no ground truth: it cannot be used for training")
     clip["sparse"] = bool(getattr(sequence, "sparse", False))
+    clip[ORIGIN] = clip_origin(sequence, indices)
     return clip
+
+
+# The key of a loaded clip that says where it comes from (`clip_origin`): errors of its
+# augmentation name it. `as_example` leaves it out of the batches.
+ORIGIN = "origin"
+
+
+def clip_origin(sequence, indices) -> str:
+  """`dataset/sequence, frames [..] (first left image PATH)` for error messages."""
+  indices = list(indices)
+  where = f"{getattr(sequence, 'dataset', '?')}/{getattr(sequence, 'name', sequence)}"
+  files = getattr(sequence, "files", None)
+  try:
+    first = f" (first left image {files['left'][indices[0]]})"
+  except (TypeError, KeyError, IndexError):
+    first = ""
+  return f"{where}, frames {indices}{first}"
 
 
 def registry_clips(dataset: str, root: str, frames: int, split: str = "train",
@@ -181,7 +199,12 @@ class Augment:
 
   def __call__(self, clip, rng: np.random.Generator) -> dict[str, np.ndarray]:
     from sav_jax.data import augment  # pylint: disable=g-import-not-at-top
-    out = as_example(augment.augment_clip(clip, self.augment_config(), rng))
+    try:
+      out = as_example(augment.augment_clip(clip, self.augment_config(), rng))
+    except ValueError as e:  # which clip of which dataset (of a mixture)
+      if not clip.get(ORIGIN):
+        raise
+      raise ValueError(f"{clip[ORIGIN]}: {e}") from e
     if out["left"].shape[1:3] != tuple(self.crop):
       raise ValueError(f"augmentation produced {out['left'].shape[1:3]}, expected the crop "
                        f"{tuple(self.crop)}")

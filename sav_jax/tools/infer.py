@@ -524,6 +524,11 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
       # process died with "Bus error" and no message).
       _reserve(held, size)
     disp = np.memmap(held, np.float32, "w+", shape=(len(names), h, w))
+    ply_comments = () if calib is None else (
+        "sav-jax infer: the left view's pixels back-projected",
+        "axes: x right, y down, z forward (OpenCV camera of the left view)",
+        f"unit: the baseline's (fx {calib.fx:g} px, baseline {calib.baseline:g}, doffs "
+        f"{calib.doffs:g} px)")
     for t0, chunk in chunks:
       frames = left[t0:t0 + len(chunk)] if calib is not None else None
       for k, d in enumerate(chunk):
@@ -544,7 +549,7 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
           empty_clouds += len(xyz) == 0
           path = out / "pointclouds" / f"{name}.ply"
           with writing(path):
-            viz.write_ply(path, xyz, rgb)
+            viz.write_ply(path, xyz, rgb, ply_comments)
     step = max(1, int(np.ceil(np.sqrt(disp.size / RANGE_SAMPLE))))
     vmin, vmax = viz.disparity_range(disp[:, ::step, ::step], percentiles=(1.0, 99.0))
     batch = max(1, int(args.window))
@@ -645,6 +650,12 @@ class CalibrationSpec(NamedTuple):
       raise UsageError(f"the calibration's principal point (cx {calib.cx:g}, cy {calib.cy:g}) "
                        f"is outside the {height}x{width} (height x width) frames: is it for "
                        f"another image size? {rescale[0].upper()}{rescale[1:]}")
+    off = (abs(calib.cx - (width - 1) / 2) / width, abs(calib.cy - (height - 1) / 2) / height)
+    if max(off) > OFF_CENTRE:  # real lenses: a few % (KITTI's 1242x375 frames: 1% and 4%)
+      log.warning("the calibration's principal point (cx %g, cy %g) is %.0f%% of the frame "
+                  "from the centre of the %dx%d (height x width) frames: is it for another "
+                  "image size (full-resolution intrinsics for smaller frames)? If so, %s",
+                  calib.cx, calib.cy, 100 * max(off), height, width, rescale)
     return calib
 
 
@@ -674,6 +685,9 @@ def calibration_from_args(args) -> CalibrationSpec | None:
 
 
 _CALIB_KEYS = ("fx", "fy", "cx", "cy", "baseline", "doffs")
+# A principal point farther than this fraction of the frame's width (height) from its centre
+# gets a warning: intrinsics for another image size?
+OFF_CENTRE = 0.25
 _SIZE_KEYS = ("width", "height")  # the image size a calibration file is for (optional)
 
 
@@ -683,7 +697,9 @@ def read_calibration(path) -> dict[str, float]:
 
   KITTI: `P_rect_02`/`P_rect_03` (raw data; `S_rect_02`, the rectified image size, gives
   `width` and `height`) or `P2`/`P3` (odometry, stereo benchmarks);
-  baseline = (P2[0,3] - P3[0,3]) / fx. Middlebury: `cam0=[fx 0 cx; 0 fy cy; 0 0 1]`,
+  baseline = (P2[0,3] - P3[0,3]) / fx, doffs = P3[0,2] - P2[0,2] (0 unless the rectified
+  principal points differ, as OpenCV's stereoRectify without CALIB_ZERO_DISPARITY gives;
+  a warning when P2 is the right camera). Middlebury: `cam0=[fx 0 cx; 0 fy cy; 0 0 1]`,
   `baseline` (mm), `doffs` (else cam1's cx - cam0's cx). Any format may give `width` and
   `height`, the image size it is for, which the frames must then have.
   """
@@ -736,8 +752,13 @@ def read_calibration(path) -> dict[str, float]:
       if not size and len(rect_size) == 2:
         size = {"width": rect_size[0], "height": rect_size[1]}
       m2, m3 = np.reshape(entries[p2], (3, 4)), np.reshape(entries[p3], (3, 4))
+      if m2[0, 3] < m3[0, 3]:  # P[0,3] = -fx * (the camera's x): the left one has the larger
+        log.warning("%s: %s is to the right of %s (%s[0,3] %g < %s[0,3] %g): the matrices "
+                    "look swapped; the disparities are the left view's (--left), so check "
+                    "that --left is %s's camera", path, p2, p3, p2, m2[0, 3], p3, m3[0, 3], p2)
       return {"fx": m2[0, 0], "fy": m2[1, 1], "cx": m2[0, 2], "cy": m2[1, 2],
-              "baseline": abs(m2[0, 3] - m3[0, 3]) / m2[0, 0], **size}
+              "baseline": abs(m2[0, 3] - m3[0, 3]) / m2[0, 0],
+              "doffs": m3[0, 2] - m2[0, 2], **size}
   out = {k: entries[k][0] for k in _CALIB_KEYS if k in entries}
   if len(entries.get("cam0") or ()) == 9 and "fx" not in out:  # Middlebury
     k0 = np.reshape(entries["cam0"], (3, 3))

@@ -162,6 +162,39 @@ def test_yjitter_moves_only_the_right_view_by_at_most_two_rows():
       assert shifts == {0}
 
 
+def test_a_larger_yjitter_keeps_its_own_margin_so_the_right_rows_are_not_clipped():
+  # +-6 px on 60-row frames cropped to 32: the left crop starts 6..22, so every right offset
+  # in -6..6 fits (a 2 px margin clipped them at the edges: too few +-6 offsets, too many 0s)
+  h = 60
+  rows = np.broadcast_to(np.arange(h, dtype=np.uint8)[:, None, None], (1, h, 80, 3))
+  clip = {"left": rows.copy(), "right": rows.copy(), "disparity": np.ones((1, h, 80), np.float32)}
+  cfg = dataclasses.replace(IDENTITY, crop_size=(32, 64), spatial_prob=0.0, yjitter=True,
+                            yjitter_range=6)
+  starts, offsets = [], []
+  for seed in range(200):
+    out = augment_clip(clip, cfg, np.random.default_rng(seed))
+    starts.append(int(out["left"][0, 0, 0, 0]))
+    offsets.append(int(out["right"][0, 0, 0, 0]) - starts[-1])
+  assert 6 <= min(starts) and max(starts) <= h - 32 - 6
+  counts = np.bincount(np.asarray(offsets) + 6, minlength=13)
+  assert len(counts) == 13 and counts.min() >= 5, counts  # uniform: ~15 each
+  # the official +-2 keeps the official 2 px margin (the same draws as before)
+  cfg2 = dataclasses.replace(cfg, yjitter_range=2)
+  assert min(int(augment_clip(clip, cfg2, np.random.default_rng(s))["left"][0, 0, 0, 0])
+             for s in range(200)) == 2
+
+
+def test_sparse_weights_as_valid_mask_are_thresholded_as_in_the_metrics():
+  clip = _planar_clip(np.random.default_rng(0))
+  clip.update(sparse=True, disparity=np.full((T, H, W), 5.0, np.float32))
+  cfg = dataclasses.replace(IDENTITY, spatial_prob=0.0)
+  for weight, any_valid in ((0.3, False), (0.7, True)):  # 0.3 was valid (bool(0.3))
+    out = augment_clip({**clip, "valid": np.full((T, H, W), weight)}, cfg,
+                       np.random.default_rng(0))
+    assert out["valid"].dtype == bool
+    assert out["valid"].all() if any_valid else not out["valid"].any()
+
+
 def test_photometric_symmetric_vs_asymmetric_brightness():
   only_brightness = dict(photometric=True, contrast=(1, 1), saturation=(1, 1), hue=(0, 0))
   colours_l = [[200, 100, 50], [90, 180, 30], [10, 60, 250]]
@@ -281,12 +314,17 @@ def test_bad_inputs():
                     (dict(crop_size=(24.0, 48.0)), r"crop_size must be a pair of integers"),
                     (dict(eraser_size=(10.5, 20)), r"eraser_size must be a pair of integers"),
                     (dict(eraser_count=(1, 1.5)), r"eraser_count must be a pair of integers"),
-                    (dict(yjitter_range=1.5), r"yjitter_range must be an integer")):
+                    (dict(yjitter_range=1.5), r"yjitter_range must be an integer"),
+                    (dict(hue=(-0.7, 0.7)), r"hue must lie in \[-0.5, 0.5\]")):
     with pytest.raises(ValueError, match=match):
       AugmentConfig(**kw)
-  with pytest.raises(ValueError, match=r"\[T, H, W, 3\] uint8, got \(2, 3, 4, 1\)"):
+  with pytest.raises(ValueError,
+                     match=r"\[T, H, W, 3\] uint8 with T, H, W >= 1, got \(2, 3, 4, 1\)"):
     gray = np.zeros((2, 3, 4, 1), np.uint8)
     augment_clip({**clip, "left": gray, "right": gray}, IDENTITY, np.random.default_rng(0))
+  empty = np.zeros((2, 0, 4, 3), np.uint8)  # was "cannot convert float NaN to integer"
+  with pytest.raises(ValueError, match=r"with T, H, W >= 1, got \(2, 0, 4, 3\) uint8"):
+    augment_clip({"left": empty, "right": empty}, IDENTITY, np.random.default_rng(0))
 
 
 @pytest.mark.parametrize("margin", [0, 1, 3])

@@ -221,6 +221,8 @@ class _FakeSequence:
   """Stands in for `base.StereoSequence`: frame i has disparity i + 1, 20x24 pixels."""
 
   sparse = False
+  dataset, name = "toy", "seq"
+  files = {"left": [pathlib.Path(f"/nowhere/seq/left/{i:04d}.png") for i in range(6)]}
 
   def gather(self, indices):
     n = len(indices)
@@ -240,6 +242,13 @@ def test_registry_source_and_official_augmentation(monkeypatch):
   src = pipeline.registry_source("toy", "/nowhere", 3)
   assert len(src) == 4 and src[1]["disparity"][:, 0, 0].tolist() == [2.0, 3.0, 4.0]
   assert src[1]["sparse"] is False
+  assert src[1][pipeline.ORIGIN] == ("toy/seq, frames [1, 2, 3] (first left image "
+                                     f"{pathlib.Path('/nowhere/seq/left/0001.png')})")
+  # an augmentation error names the clip (which dataset of a mixture, which frames)
+  too_big = pipeline.Augment((32, 32), (("spatial_prob", 0.0),))
+  with pytest.raises(ValueError, match=r"^toy/seq, frames \[0, 1, 2\] \(first left image "
+                     r".*0000\.png\): cannot crop \(32, 32\) from \(20, 24\) frames"):
+    too_big(src[0], np.random.default_rng(0))
   augment = pipeline.Augment((16, 16), (("eraser_size", [2, 4]),))
   ds = pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1,
                                    transforms=[augment])

@@ -733,10 +733,10 @@ def _toy_restore(workdir, c, model, tx, mesh):
 
 
 @pytest.fixture(scope="module")
-def toy_run(tmp_path_factory):
+def toy_run(module_tmp_path):
   """`(workdir, config, model, tx, mesh)` of a toy run with a checkpoint at step 1; tests
   that damage it work on a copy."""
-  workdir = tmp_path_factory.mktemp("toy_run")
+  workdir = module_tmp_path / "toy_run"
   return (workdir, *_toy_run(workdir))
 
 
