@@ -1,1 +1,24 @@
 """Experiment configs: Python files whose get_config() returns an ml_collections.ConfigDict."""
+
+import pathlib
+
+
+def locate(spec: str) -> str:
+  """The config file `spec` names (`path/to/config.py`, or `...py:arg`).
+
+  A path that exists is kept. One that does not and starts with `configs/` (the checkout's
+  layout, which the README's commands use) becomes this package's file when it has one:
+  `python -m train --config configs/synthetic.py` then runs from any folder with the
+  package installed (a wheel, not only the checkout). Anything else is kept, for the
+  caller's "not found" error.
+  """
+  spec = str(spec)
+  path, arg = spec.split(".py:", 1) if ".py:" in spec else (spec, None)
+  path = path + ".py" if arg is not None else path
+  parts = pathlib.PurePath(path).parts
+  if pathlib.Path(path).exists() or not parts or parts[0] != "configs":
+    return spec
+  installed = pathlib.Path(__file__).parent.joinpath(*parts[1:])
+  if not installed.is_file():
+    return spec
+  return str(installed) + ("" if arg is None else f":{arg}")

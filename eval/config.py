@@ -22,8 +22,10 @@ BASELINES = ("sgbm",)
 
 
 def load_config(spec: str) -> ml_collections.ConfigDict:
-  """Loads `path/to/config.py` or `path/to/config.py:arg`."""
-  spec = str(spec)
+  """Loads `path/to/config.py` or `path/to/config.py:arg` (`configs/...` from any folder:
+  `configs.locate`)."""
+  import configs  # pylint: disable=import-outside-toplevel
+  spec = configs.locate(spec)
   path, arg = (spec.split(".py:", 1)[0] + ".py", spec.split(".py:", 1)[1]) if ".py:" in spec \
       else (spec, "")
   file = pathlib.Path(path)

@@ -37,6 +37,8 @@ def build_parser() -> argparse.ArgumentParser:
   parser = argparse.ArgumentParser(
       prog="sav-jax", description="Stereo Any Video in JAX: temporally consistent video stereo.")
   parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+  from sav_jax import __version__  # pylint: disable=import-outside-toplevel
+  parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
   sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
   for name, module_name in COMMANDS.items():
     try:

@@ -496,6 +496,19 @@ def test_compile_cache_options(tmp_path, ckpt, capsys, monkeypatch, restore_cach
   assert folder_in_use("--no-compile-cache") is None
 
 
+def test_configs_paths_name_the_package_files_from_any_folder(tmp_path, monkeypatch):
+  import configs  # pylint: disable=import-outside-toplevel
+  monkeypatch.chdir(tmp_path)  # no configs/ here: the package's (a wheel user's folder)
+  assert eval_config.load_config("configs/eval/synthetic.py").dataset == "synthetic"
+  assert configs.locate("configs/eval/synthetic.py:x") == f"{CONFIGS / 'synthetic.py'}:x"
+  with pytest.raises(FileNotFoundError, match="config file not found: configs/eval/nope.py"):
+    eval_config.load_config("configs/eval/nope.py")
+  (tmp_path / "configs" / "eval").mkdir(parents=True)  # the folder's own come first
+  (tmp_path / "configs" / "eval" / "synthetic.py").write_text("def get_config():\n  return 1\n")
+  assert configs.locate("configs/eval/synthetic.py") == "configs/eval/synthetic.py"
+  assert configs.locate("other/synthetic.py") == "other/synthetic.py"
+
+
 def test_config_files_that_cannot_be_used(tmp_path):
   broken = tmp_path / "broken.py"
   broken.write_text("def get_config(:\n")

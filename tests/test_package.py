@@ -9,6 +9,15 @@ import sav_jax
 from tests.conftest import ROOT
 
 
+def test_version_is_the_installed_distributions_and_the_cli_says_it(capsys):
+  import importlib.metadata  # pylint: disable=import-outside-toplevel
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  assert importlib.metadata.version("sav-jax") == sav_jax.__version__  # pyproject reads it
+  with pytest.raises(SystemExit) as e:
+    cli.main(["--version"])
+  assert e.value.code == 0 and capsys.readouterr().out == f"sav-jax {sav_jax.__version__}\n"
+
+
 def test_names_and_submodules_load_on_use():
   from sav_jax import config, metrics, viz  # pylint: disable=import-outside-toplevel
   from sav_jax.model import stereo_any_video  # pylint: disable=import-outside-toplevel

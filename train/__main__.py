@@ -66,12 +66,26 @@ def last_overrides(argv: list[str]) -> list[str]:
           for a in args]
 
 
+def located_config(argv: list[str]) -> list[str]:
+  """`argv` with its --config file found by `configs.locate`: `configs/...` names the
+  installed package's file when the current folder has none."""
+  import configs  # pylint: disable=g-import-not-at-top
+  out = list(argv)
+  for i, a in enumerate(out):
+    if a in ("--config", "-config") and i + 1 < len(out):
+      out[i + 1] = configs.locate(out[i + 1])
+    elif a.startswith(("--config=", "-config=")):
+      flag, value = a.split("=", 1)
+      out[i] = f"{flag}={configs.locate(value)}"
+  return out
+
+
 def parse_flags(argv):
   """absl's flag parsing, with every error as one line and exit status 2: a flag value of the
   wrong type, a config file that does not parse, an override of a field that does not exist
   (ml_collections raises the last two from inside the parser, and absl would print their
   traceback); `--help` exits with status 0."""
-  argv = last_overrides(argv)
+  argv = located_config(last_overrides(argv))
   try:
     return flags.FLAGS(argv)
   except SystemExit as e:  # absl's --help/--helpfull print the flags and exit with status 1

@@ -9,6 +9,7 @@ ndim >= 2 -> `kernel` (Linear transposed, ConvNd `O, I, *k -> *k, I, O`), 1-D
 from __future__ import annotations
 
 import collections
+from collections.abc import Mapping
 import copy
 import re
 
@@ -67,7 +68,9 @@ def unused_array(value) -> np.ndarray:
   """A tensor kept beside the params (`torch_unused`): floating point as float32, like the
   params, so that an export from a float16 file is float32 throughout."""
   a = np.asarray(value)
-  return a.astype(np.float32) if np.issubdtype(a.dtype, np.floating) else a
+  floating = np.issubdtype(a.dtype, np.floating) or a.dtype.name.startswith(("bfloat16",
+                                                                             "float8"))
+  return a.astype(np.float32) if floating else a
 
 
 def converted(key: str, value, leaf: str, shape: tuple[int, ...], model: str = "the model"):
@@ -148,6 +151,22 @@ class KeyProblems:
     """A problem of one key (a shape, a value), written with the key's full name."""
     if problem:
       self.other.append(problem)
+
+  def unused(self, tensors: Mapping, shapes: Mapping, model: str) -> dict[str, np.ndarray]:
+    """`tensors` the model keeps beside its params (`unused_array`, for an exact export),
+    each checked as a parameter is: the `shapes` it must have, floating point, finite (a
+    bad one exported would fail the official `load_state_dict`)."""
+    out = {}
+    for key, value in tensors.items():
+      a = unused_array(value)
+      name = self.prefix + key
+      if a.shape != tuple(shapes[key]):
+        self.add(f"key {name!r}: shape {a.shape} does not match {model} (expects "
+                 f"{tuple(shapes[key])})")
+      else:
+        self.add(value_problem(name, a))
+      out[key] = a
+    return out
 
   def scoped(self, prefix: str) -> KeyProblems:
     """A view of this collector that names each key with `prefix` before it (the part of a

@@ -20,7 +20,7 @@ import numpy as np
 from flax import traverse_util
 
 from sav_jax.config import VDA_VARIANTS, SAVConfig, as_config
-from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch, unused_array
+from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch
 from sav_jax.convert.torch_io import unwrap_state_dict
 from sav_jax.model.init import abstract_variables
 from sav_jax.convert.vda import convert_vda_state_dict, vda_state_dict_from_params
@@ -73,7 +73,9 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
   target = traverse_util.flatten_dict(abstract_variables(cfg)["params"])
   problems = KeyProblems()
   flat: dict[tuple[str, ...], np.ndarray] = {}
-  unused = {k: unused_array(sd[k]) for k in SAV_UNUSED_KEYS if k in sd}
+  width = target[("update_block", "time_attn", "temporal_attn", "proj", "kernel")].shape[0]
+  unused = problems.unused({k: sd[k] for k in SAV_UNUSED_KEYS if k in sd},
+                           {SAV_UNUSED_KEYS[0]: (3 * width, width)}, "Stereo Any Video")
   vda_sd = {k[len(VDA_PREFIX):]: v for k, v in sd.items() if k.startswith(VDA_PREFIX)}
   vda_params, vda_unused = convert_vda_state_dict(vda_sd, VideoDepthAnything(**cfg.vda),
                                                   problems.scoped(VDA_PREFIX))

@@ -52,6 +52,14 @@ class CheckpointError(ValueError):
   """A checkpoint cannot be read, has an unexpected layout, or holds something refused."""
 
 
+class RefusedGlobal(CheckpointError):
+  """A pickle names a global that is not allowed (`global_name`, "module.name")."""
+
+  def __init__(self, message: str, global_name: str):
+    super().__init__(message)
+    self.global_name = global_name
+
+
 # torch dtype name -> little-endian numpy dtype of its raw storage elements.
 _RAW_DTYPES = {
     "float64": "<f8", "float32": "<f4", "float16": "<f2", "bfloat16": "<u2",
@@ -357,11 +365,12 @@ class RestrictedUnpickler(pickle.Unpickler):
     if self._opaque:
       self.refused.add(f"{module}.{name}")
       return _opaque_class(f"{module}.{name}")
-    raise CheckpointError(
+    raise RefusedGlobal(
         f"{self._source}: refusing to load the pickled global '{module}.{name}' (only tensor "
         "rebuild helpers and containers are allowed; the file may be malicious or hold "
         "pickled Python objects: load_state_dict(path, opaque_unknown=True) reads the "
-        "weights beside such objects, replacing them by inert placeholders)")
+        "weights beside such objects, replacing them by inert placeholders)",
+        f"{module}.{name}")
 
   def persistent_load(self, pid):
     if self._storage_loader is None:
@@ -478,12 +487,32 @@ def _read_member(zf, name: str, limit: int, source) -> bytes:
   return data
 
 
+# A compressed zip record inflating more than this many times its compressed size is
+# refused (weights deflate to ~0.9 of their size; an all-zero tensor to ~1/1000, so records
+# up to FREE_INFLATION bytes are exempt): a 1 MB file cannot ask for more than ~100 MB per
+# record. (The bytes read never exceed a record's declared size.)
+MAX_INFLATION = 100
+FREE_INFLATION = 1 << 20
+
+
+def check_inflation(info: zipfile.ZipInfo, source) -> None:
+  """Raises CheckpointError naming the record when `info` inflates beyond MAX_INFLATION."""
+  if (info.compress_type != zipfile.ZIP_STORED
+      and info.file_size > max(MAX_INFLATION * info.compress_size, FREE_INFLATION)):
+    raise CheckpointError(
+        f"{source}: zip record {info.filename!r} inflates {info.compress_size} bytes to "
+        f"{info.file_size} ({info.file_size / max(info.compress_size, 1):.0f}x, more than "
+        f"{MAX_INFLATION}x): not a checkpoint's weights (torch.save stores them uncompressed, "
+        "and compressed weights shrink little)")
+
+
 def _zip_record(zf, prefix, key, dtype, numel, order, source):
   name = f"{prefix}data/{key}"
   try:
     info = zf.getinfo(name)
   except KeyError:
     raise CheckpointError(f"{source}: storage record {name!r} is missing") from None
+  check_inflation(info, source)
   nbytes = numel * dtype.raw.itemsize
   if info.file_size < nbytes:
     raise CheckpointError(f"{source}: storage {name!r} has {info.file_size} bytes, "
@@ -509,7 +538,13 @@ def load_legacy(fh, source, opaque_unknown=False):
     The unpickled object with tensors as `_TensorRef`s; call `resolve_tensors` on it.
   """
   with _reading(source, "legacy torch checkpoint"):
-    magic = _unpickle(fh, source, None, False)
+    try:
+      magic = _unpickle(fh, source, None, False)
+    except RefusedGlobal as e:  # a pickle of objects, not a torch file: no weights beside them
+      raise CheckpointError(
+          f"{source}: not a torch checkpoint: refusing to load the pickled global "
+          f"'{e.global_name}' where a legacy torch file begins with its magic number (the "
+          "file may be malicious; nothing in it was run)") from None
     if magic != LEGACY_MAGIC:
       raise CheckpointError(f"{source}: not a torch checkpoint (bad legacy magic number)")
     protocol = _unpickle(fh, source, None, False)

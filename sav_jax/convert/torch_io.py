@@ -17,7 +17,7 @@ from typing import Mapping
 
 import numpy as np
 
-from sav_jax.convert.pickle_reader import LEGACY_MAGIC, CheckpointError
+from sav_jax.convert.pickle_reader import LEGACY_MAGIC, CheckpointError, check_inflation
 from sav_jax.convert.pickle_reader import load_legacy
 from sav_jax.convert.pickle_reader import load_zip
 from sav_jax.convert.pickle_reader import resolve_tensors
@@ -114,6 +114,9 @@ def _load_npz(path):
     if not magic.startswith(b"PK"):  # NumPy would call it pickled data
       raise CheckpointError(f"{path}: not an .npz archive (an .npz file is a zip archive; "
                             f"this one starts with {magic!r})")
+    with zipfile.ZipFile(path) as zf:  # before NumPy inflates a record
+      for info in zf.infolist():
+        check_inflation(info, path)
     with np.load(path, allow_pickle=False) as data:
       out = {}
       for member in data.files:
@@ -138,9 +141,7 @@ def _load_safetensors(path):
   out = {}
   for k, v in data.items():
     v = np.array(v)
-    if v.dtype.kind == "V" or v.dtype.name.startswith("bfloat16"):
-      v = v.astype(np.float32)
-    out[k] = v
+    out[k] = v.astype(np.float32) if v.dtype.kind == "V" else _widened(v)
   return out
 
 
@@ -230,9 +231,16 @@ def unwrap_state_dict(obj, source: str = "<checkpoint>") -> dict:
 _TORCH_WIDENED = ("bfloat16", "float8_e4m3fn", "float8_e5m2", "float8_e4m3fnuz", "float8_e5m2fnuz")
 
 
+def _widened(a: np.ndarray) -> np.ndarray:
+  """ml_dtypes' bfloat16 and float8 arrays as float32 (NumPy's own types as they are)."""
+  return a.astype(np.float32) if a.dtype.name.startswith(("bfloat16", "float8")) else a
+
+
 def _to_numpy(key, v, source) -> np.ndarray:
+  """`v` as a NumPy array; bfloat16 and float8 (torch's, or ml_dtypes' of JAX and NumPy
+  arrays) widened to float32 exactly, as the file readers give them."""
   if isinstance(v, np.ndarray):
-    return v
+    return _widened(v)
   try:
     if type(v).__module__.split(".")[0] == "torch" and hasattr(v, "detach"):
       # What torch.load gives: tensors that may require grad, live on a GPU or be bfloat16
@@ -241,7 +249,7 @@ def _to_numpy(key, v, source) -> np.ndarray:
       if str(v.dtype).removeprefix("torch.") in _TORCH_WIDENED:
         v = v.float()
       return v.numpy()
-    return np.asarray(v)
+    return _widened(np.asarray(v))
   except (TypeError, RuntimeError) as e:
     raise CheckpointError(f"{source}: {key!r} ({type(v).__name__} of dtype "
                           f"{getattr(v, 'dtype', '?')}) does not convert to a numpy array: {e}; "

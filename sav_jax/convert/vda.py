@@ -25,7 +25,7 @@ import numpy as np
 
 from flax.traverse_util import flatten_dict, unflatten_dict
 
-from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch, unused_array
+from sav_jax.convert.keys import KeyProblems, flax_to_torch_array, path_to_torch
 from sav_jax.convert.torch_io import unwrap_state_dict
 from sav_jax.model.dinov2 import DINO_VARIANTS
 from sav_jax.model.dpt_temporal import MOTION_ATTENTION_BLOCKS, TEMPORAL_MAX_LEN, sinusoidal_table
@@ -172,15 +172,10 @@ def convert_vda_state_dict(sd: dict[str, np.ndarray], model: VideoDepthAnything,
   pe = vda_pe_buffers(model)
   flat, unused = {}, {}
   for key, value in sd.items():
-    name = problems.prefix + key
     if key in pe:
       continue
     if key in unused_shapes:
-      a = unused_array(value)
-      if a.shape != unused_shapes[key]:
-        problems.add(f"key {name!r}: shape {a.shape} does not match Video Depth Anything "
-                     f"(expects {unused_shapes[key]})")
-      unused[key] = a
+      unused.update(problems.unused({key: value}, unused_shapes, "Video Depth Anything"))
       continue
     path = by_torch.get(key)
     arr = problems.convert(key, value, path, path and target[path].shape,

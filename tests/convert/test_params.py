@@ -267,8 +267,11 @@ def test_half_precision_checkpoints_convert(sav_state_dict):
   # A float16 or bfloat16 file holds the motion modules' sinusoidal tables rounded to
   # that type (up to 2.4e-4 / 2.0e-3 from the float32 table, against 1e-5 allowed before),
   # also saved again as float32 (the fp16 release loaded into a float32 model and saved).
+  import ml_dtypes  # pylint: disable=import-outside-toplevel  # (JAX's)
   for cast in (lambda a: a.astype(np.float16), _to_bfloat16,
-               lambda a: a.astype(np.float16).astype(np.float32)):
+               lambda a: a.astype(np.float16).astype(np.float32),
+               # in memory, as JAX or ml_dtypes give them (the tables were refused)
+               lambda a: a.astype(ml_dtypes.bfloat16), lambda a: jnp.asarray(a, jnp.bfloat16)):
     sd = {k: cast(v) if v.dtype == np.float32 else v for k, v in sav_state_dict.items()}
     variables = convert.params_from_state_dict(sd)
     params = variables["params"]
@@ -283,6 +286,23 @@ def test_half_precision_checkpoints_convert(sav_state_dict):
   sd[key] = sd[key] + np.float32(1e-3)
   with pytest.raises(ValueError, match="is not the sinusoidal table"):
     convert.params_from_state_dict(sd)
+
+
+def test_tensors_kept_for_export_are_checked_as_parameters_are(sav_state_dict):
+  # unused by the forward, kept for an exact export: a bad one converted, and the export
+  # then failed the official load_state_dict(strict=True)
+  qkv = "update_block.time_attn.temporal_attn.qkv.weight"
+  conv = "depthnet.depthanything.head.scratch.output_conv2.0.weight"
+  for key, bad, problem in (
+      (qkv, np.zeros((7, 7), np.float32), f"key '{qkv}': shape (7, 7) does not match Stereo "
+       "Any Video (expects (768, 256))"),
+      (qkv, np.zeros((768, 256), np.int64), f"key '{qkv}': dtype int64; expected a "
+       "floating-point tensor"),
+      (conv, np.full_like(sav_state_dict[conv], np.nan), f"key '{conv}': "
+       f"{sav_state_dict[conv].size} of {sav_state_dict[conv].size} values are NaN or inf")):
+    with pytest.raises(ValueError) as e:
+      convert.params_from_state_dict({**sav_state_dict, key: bad})
+    assert problem in str(e.value) and "1 problem(s)" in str(e.value), str(e.value)
 
 
 def test_export_of_trained_params_is_complete(sav_state_dict, variables):

@@ -381,9 +381,11 @@ def test_zip_with_missing_storage_record(tmp_path, fake_torch):
 
 
 def test_compressed_records_are_read_no_further_than_needed(tmp_path, fake_torch, monkeypatch):
-  """A storage record that inflates far beyond its tensor (a zip bomb: 64 MiB of zeros
-  behind 12 bytes) is read only as far as the tensor needs; an object pickle beyond
-  `MAX_PICKLE_BYTES` is refused."""
+  """A storage record that inflates far beyond its compressed size (a zip bomb: 64 MiB of
+  zeros in ~64 KB) is refused before it is read, whether its tensor asks for all of it or
+  not (a tensor of 2**24 zeros read 64 MiB from a 65 KB file); within that bound a record is
+  read only as far as the tensor needs; an object pickle beyond `MAX_PICKLE_BYTES` is
+  refused. An .npz's records are held to the same bound."""
   import tracemalloc  # pylint: disable=import-outside-toplevel
   b = _Builder(fake_torch)
   obj = {"x": b.array(np.arange(3, dtype=np.float32), "float32")}
@@ -393,6 +395,22 @@ def test_compressed_records_are_read_no_further_than_needed(tmp_path, fake_torch
     key = next(iter(b.storages))
     zf.writestr(f"archive/data/{key}", b.storages[key].raw + bytes(64 << 20))
   assert path.stat().st_size < 1 << 20
+  refused = r"bomb\.pth: zip record 'archive/data/\w+' inflates \d+ bytes to 67108876 \(\d+x, " \
+            r"more than 100x\): not a checkpoint's weights"
+  with pytest.raises(CheckpointError, match=refused):
+    torch_io.load_state_dict(path)
+  b2 = _Builder(fake_torch)  # the tensor declares every byte of the record
+  whole = {"x": b2.array(np.zeros(1 << 24, np.float32), "float32")}
+  with zipfile.ZipFile(tmp_path / "whole.pth", "w", compression=zipfile.ZIP_DEFLATED) as zf:
+    zf.writestr("archive/data.pkl", b2.pickle(whole, legacy=False))
+    key2 = next(iter(b2.storages))
+    zf.writestr(f"archive/data/{key2}", b2.storages[key2].raw)
+  with pytest.raises(CheckpointError, match=r"whole\.pth: zip record .* more than 100x"):
+    torch_io.load_state_dict(tmp_path / "whole.pth")
+  np.savez_compressed(tmp_path / "bomb.npz", w=np.zeros(1 << 24, np.float32))
+  with pytest.raises(CheckpointError, match=r"bomb\.npz: zip record 'w\.npy' inflates"):
+    torch_io.load_state_dict(tmp_path / "bomb.npz")
+  monkeypatch.setattr(pickle_reader, "MAX_INFLATION", 1 << 40)  # within the bound
   tracemalloc.start()
   try:
     sd = torch_io.load_state_dict(path)
@@ -461,6 +479,10 @@ def test_malicious_pickles_are_refused(tmp_path, where):
       body = pickle.dumps({"a": 1}, protocol=2)
       path.write_bytes(_legacy_header() + body + payload)
     _assert_refused(path, marker)
+    if where == "legacy_magic":  # a plain pickle: no weights to read beside its objects
+      with pytest.raises(CheckpointError, match="not a torch checkpoint: refusing") as e:
+        torch_io.load_checkpoint_object(path)
+      assert "opaque_unknown" not in str(e.value)
 
 
 def test_malicious_pickle_with_opaque_unknown_runs_nothing(tmp_path):

@@ -1214,6 +1214,15 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
                         env=child_env(tmp_path / "cache"), capture_output=True, text=True,
                         timeout=300, check=False)
   assert proc.returncode == 0 and "--workdir: Run directory" in proc.stdout  # absl's status: 1
+  # From another folder (an installed package's user), --config configs/... names the
+  # package's file: the override is checked against it (was "No such file or directory")
+  proc = subprocess.run(
+      [sys.executable, "-m", "train", "--config=configs/synthetic.py", "--workdir",
+       str(tmp_path / "w"), "--config.train.batch_size=abc"], cwd=tmp_path,
+      env=child_env(tmp_path / "cache"), capture_output=True, text=True, timeout=300,
+      check=False)
+  assert proc.returncode == 2, proc.stderr[-2000:]
+  assert "train: error: flag --config.train.batch_size=abc: invalid literal" in proc.stderr
 
 
 def test_logged_means_leave_out_skipped_steps(caplog):
