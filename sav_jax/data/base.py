@@ -365,12 +365,13 @@ def check_matching(where: str, lists: Mapping[str, Sequence[Path]],
   warn_if_gaps(where, lists[names[0]])
 
 
-def warn_if_gaps(where: str, files: Sequence[Path],
+def warn_if_gaps(where: str, files: Sequence,
                  number: Callable[[Path], object] = digits_key) -> None:
   """Logs a warning where a sequence's frame numbers (`number` of each file, increasing) step
   by more than their smallest step: a frame missing from every folder (a partial download)
   would otherwise make its two neighbours look consecutive to the temporal metrics and the
-  training clips. Names without increasing numbers (e.g. a camera index last) are passed."""
+  training clips. Names without increasing numbers (e.g. a camera index last) are passed.
+  `files` may also be other items (frame records' numbers), shown as they are."""
   numbers = [number(p) for p in files]
   if len(numbers) < 3 or not all(isinstance(n, int) for n in numbers):
     return
@@ -383,7 +384,8 @@ def warn_if_gaps(where: str, files: Sequence[Path],
     i = gaps[0]
     logging.warning("%s: frame numbers are not evenly spaced: %d gap(s), the first after %s "
                     "(next %s; usually +%d: a frame missing?); the frames are read as "
-                    "consecutive", where, len(gaps), files[i].name, files[i + 1].name, usual)
+                    "consecutive", where, len(gaps), getattr(files[i], "name", files[i]),
+                    getattr(files[i + 1], "name", files[i + 1]), usual)
 
 
 def _missing_frame(lists: Mapping[str, Sequence[Path]], key: Callable[[Path], object]) -> str:

@@ -25,7 +25,7 @@ import json
 from pathlib import Path
 
 from sav_jax.data import frame_io
-from sav_jax.data.base import DepthSequence, camera_scale, find_root
+from sav_jax.data.base import DepthSequence, camera_scale, find_root, warn_if_gaps
 
 # The dataset's folder under a datasets root (the root may also be that folder itself).
 FOLDERS = ("dynamic_replica_data",)
@@ -162,6 +162,7 @@ def _sequences(split_dir: Path, split: str, dataset: str) -> list[DepthSequence]
                          f"{l['frame_number']} and {r['frame_number']} (left and right "
                          "records must come in the same frame order)")
     files = {}
+    warn_if_gaps(where, [rec.get("frame_number") for rec in cams["left"]], lambda n: n)
     for side in ("left", "right"):
       paths = [_frame_paths(split_dir, rec, where) for rec in cams[side]]
       files[side] = [p[0] for p in paths]

@@ -392,13 +392,13 @@ def read_hdf5(path: PathLike, key: str) -> np.ndarray:
   """Reads dataset `key` of an HDF5 file (h5py is imported only here).
 
   Raises:
-    ImportError: h5py is not installed (it is in the `test` extra).
+    ImportError: h5py is not installed (the `spring` and `test` extras have it).
   """
   try:
     import h5py  # pylint: disable=import-outside-toplevel
   except ImportError as e:
     raise ImportError("reading HDF5 / Spring .dsp5 files needs h5py: "
-                      "pip install h5py (or the sav-jax[test] extra)") from e
+                      "pip install h5py (or the sav-jax[spring] extra)") from e
   path = require_file(path, "HDF5 file")
   try:
     with h5py.File(path, "r") as f:

@@ -404,6 +404,17 @@ def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch, caplog)
   with pytest.raises(ValueError, match=r"Dynamic Replica train/s: the 0-th left and right "
                      r"records are frames 0 and 1"):
     registry.get_sequences("dynamic_replica", tmp_path, "train")
+  # a frame missing from the annotations (frame 2 of 0..4): its neighbours are read as
+  # consecutive, which is said
+  _dynamic_replica(tmp_path, np.random.default_rng(5), "train", [("s", 5, "ndc_isotropic")])
+  with gzip.open(index, "rt", encoding="utf8") as f:
+    records = [r for r in json.load(f) if r["frame_number"] != 2]
+  with gzip.open(index, "wt", encoding="utf8") as f:
+    json.dump(records, f)
+  caplog.clear()
+  assert len(registry.get_sequences("dynamic_replica", tmp_path, "train")[0]) == 4
+  assert "Dynamic Replica train/s: frame numbers are not evenly spaced: 1 gap(s), the first " \
+         "after 1 (next 3; usually +1" in caplog.text
 
 
 def _infinigen(root, rng, split, scenes):
