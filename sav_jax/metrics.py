@@ -48,7 +48,7 @@ disparity scale), then x <- Z_x*b, y <- Z_y*b, NaN(y) -> 0; dm_t = m_t m_{t+1}.
 Aggregation (`aggregate`): value = sum_s v_s T_s / sum_s T_s with T_s the number
 of frames of sequence s (T_s, not T_s - 1, also for the temporal metrics).
 
-Warnings of `eval_batch` / `eval_sequence` (the numbers stay the official ones):
+Warnings of `eval_batch` / `eval_sequence` (the numbers stay the official rule's):
 `NotMeasuredWarning` where the official rule scores what was not measured (the cases of
 `not_measured_note`: no valid GT pixel, one frame, no pixel valid in two consecutive frames,
 and, with the depth metrics, frame pairs without a pixel valid in both), and a `UserWarning` for a given input that no
@@ -678,8 +678,9 @@ def eval_batch(pred, gt, mask, *, scale: float | None = None, left_video=None,
       that does not look like RGB 0..255 (e.g. 0..1 floats).
     NotMeasuredWarning: no pixel of `mask` above 0.5 (every EPE/TEPE value 0), one frame
       (TEPE 0), or, with depth metrics, frame pairs without a pixel valid in both (scored
-      TCC 1, TCM/OPW/RTC 0): the official numbers, which measure nothing there, are returned
-      (`not_measured_note`).
+      TCC 1, TCM/OPW/RTC 0): the official rule's numbers, which measure nothing there, are
+      returned (`not_measured_note`; where no pair is measured, the official evaluator stops
+      with an error instead).
   """
   return _eval_batch(pred, gt, mask, scale, left_video, video_flows, depth_flows, flow_fn,
                      _BATCH_NAMES)
@@ -739,17 +740,22 @@ def not_measured_note(mask, metric_keys: Iterable[str] = (), mask_name: str = "v
   depth = ", ".join(text for key, text in (
       ("disp_TCC", "TCC 1 (perfect)"), ("disp_TCM", "TCM 0 (worst)"),
       ("disp_OPW", "OPW 0 (perfect)"), ("disp_OPW", "RTC 0 (worst)")) if key in keys)
+  # The official evaluator's TCM and OPW/RTC average over the pairs they measure: with none
+  # it stops with an error (TypeError) rather than score the sequence.
+  stops = ("; the official evaluator stops with an error on such a sequence (its TCM/OPW "
+           "measure no pair)") if keys & {"disp_TCM", "disp_OPW"} else ""
   if not np.any(m):
     scores = ", ".join(["EPE, TEPE and their bad-pixel rates 0 (perfect)"] + [depth] * bool(depth))
     return (f"{mask_name} has no pixel > 0.5 (no valid ground truth): the official rule scores "
-            f"{scores}, though nothing was measured")
+            f"{scores}, though nothing was measured{stops}")
   if m.shape[0] == 1:
     return ("one frame (T=1), no frame pair: the official rule scores TEPE and its bad-pixel "
             "rates (δt) 0, though nothing was measured")
   if no_valid_pair(m):
     return (f"{mask_name} has no pixel valid in two consecutive frames (TEPE's pairs): the "
             "official rule scores TEPE and its bad-pixel rates (δt) 0"
-            + (f", and every pair {depth}" if depth else "") + ", though nothing was measured")
+            + (f", and every pair {depth}" if depth else "")
+            + f", though nothing was measured{stops}")
   m = m.reshape(m.shape[0], -1)
   empty = int(np.sum(~np.any(m[:-1] & m[1:], axis=1)))
   if empty and depth:
@@ -799,7 +805,7 @@ def _eval_batch(pred, gt, mask, scale, video, flows, depth_flows, flow_fn,
       res.update(zip(("disp_RTC", "disp_RTC_30"), rtc))
   note = not_measured_note(m, res, names["mask"])
   if note:
-    warnings.warn(f"{note}; the official numbers are returned", NotMeasuredWarning,
+    warnings.warn(f"{note}; the official rule's numbers are returned", NotMeasuredWarning,
                   stacklevel=caller_stacklevel())
   if unused:
     warnings.warn(unused, stacklevel=caller_stacklevel())
@@ -834,8 +840,9 @@ def eval_sequence(pred, gt, valid, flows=None, *, scale: float | None = None, vi
       a `video` that does not look like RGB 0..255 (e.g. 0..1 floats).
     NotMeasuredWarning: no pixel of `valid` above 0.5 (every EPE/TEPE value 0), one frame
       (TEPE 0), or, with depth metrics, frame pairs without a pixel valid in both (scored
-      TCC 1, TCM/OPW/RTC 0): the official numbers, which measure nothing there, are returned
-      (`not_measured_note`).
+      TCC 1, TCM/OPW/RTC 0): the official rule's numbers, which measure nothing there, are
+      returned (`not_measured_note`; where no pair is measured, the official evaluator stops
+      with an error instead).
   """
   x, y, m = _as_seq("pred", pred), _as_seq("gt", gt), _as_mask("valid", valid)
   _check_same(("pred", "gt", "valid"), (x, y, m))

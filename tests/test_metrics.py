@@ -576,8 +576,9 @@ def test_scores_that_measure_nothing_warn_and_keep_the_official_numbers():
                     match=r"^valid has no pixel > 0\.5 \(no valid ground truth\): the official "
                           r"rule scores EPE, TEPE and their bad-pixel rates 0 \(perfect\), TCC 1 "
                           r"\(perfect\), TCM 0 \(worst\), OPW 0 \(perfect\), RTC 0 \(worst\), "
-                          r"though nothing was "
-                          r"measured; the official numbers are returned$") as record:
+                          r"though nothing was measured; the official evaluator stops with an "
+                          r"error on such a sequence \(its TCM/OPW measure no pair\); the "
+                          r"official rule's numbers are returned$") as record:
     res = M.eval_sequence(pred, gt, np.zeros_like(valid), flows, **full)
   assert len(record) == 1 and record[0].filename == __file__  # the caller's line
   assert res["disp_TCC"] == 1.0 and all(v == 0.0 for k, v in res.items() if k != "disp_TCC")
@@ -603,7 +604,8 @@ def test_scores_that_measure_nothing_warn_and_keep_the_official_numbers():
     res = M.eval_sequence(pred, gt, alternate)
   assert res["disp_temp_epe_mean"] == 0.0 and res["disp_epe_mean"] > 0
   with pytest.warns(M.NotMeasuredWarning, match=r"TEPE and its bad-pixel rates \(δt\) 0, and "
-                                                r"every pair TCC 1 \(perfect\), TCM 0 \(worst\)"):
+                                                r"every pair TCC 1 \(perfect\), TCM 0 \(worst\)"
+                                                r".*the official evaluator stops with an error"):
     M.eval_sequence(pred, gt, alternate, flows, **full)
   _no_warning(M.eval_sequence, pred, gt, valid, flows, **full)
   # Frames without GT after frame 1: TEPE pools the valid pixels (measured), but the depth
