@@ -309,6 +309,19 @@ def _check_suffix(path, suffixes: tuple[str, ...], message: str) -> None:
     raise ValueError(f"{path}: {message}")
 
 
+def check_utf8_path(path, what: str = "file") -> None:
+  """Raises ValueError unless `path` is UTF-8 text: a name of other bytes (Latin-1 from a
+  zip made on Windows, kept by Python as surrogates) crashed OpenCV's writers with a
+  segmentation fault, and OpenEXR's refused it without naming it."""
+  try:
+    str(path).encode("utf-8")
+  except UnicodeEncodeError as e:
+    raise ValueError(
+        f"{ascii(str(path))}: the {what}'s name is not UTF-8 text (bytes of another encoding "
+        f"at character {e.start}, e.g. Latin-1 from a zip made on Windows); rename it to "
+        "UTF-8 (convmv -f latin1 -t utf8 does so)") from None
+
+
 # The largest frame side `write_video` writes (MPEG-4 part 2 codes sizes in 13 bits: FFmpeg's
 # mp4v encoder refuses 8192 and more; even, as the codec needs).
 MP4V_MAX_SIDE = 8190
@@ -338,6 +351,7 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
     The path written.
   """
   path = pathlib.Path(path)
+  check_utf8_path(path, "video")
   _check_suffix(path, VIDEO_SUFFIXES, "write_video writes mp4v video files; name one "
                 f"{'/'.join(VIDEO_SUFFIXES)}")
   check_fps(fps, f"{path}: fps")
@@ -642,9 +656,11 @@ def write_png16(path, disp) -> int:
   v = np.zeros(d.shape, np.uint16)
   scaled = np.round(d[ok].astype(np.float64) * 256.0)
   v[ok] = np.clip(scaled, 1, 65535).astype(np.uint16)
-  if not cv2.imwrite(str(path), v):
-    raise OSError(f"{path}: OpenCV could not write the PNG (a full disk, or a folder not "
-                  "writable?)")
+  encoded, data = cv2.imencode(".png", v)
+  if not encoded:
+    raise OSError(f"{path}: OpenCV could not encode the PNG")
+  with open(path, "wb") as fh:  # (any name: OpenCV's imwrite crashed on non-UTF-8 ones)
+    fh.write(data.tobytes())
   return int(np.count_nonzero(scaled > 65535))
 
 
@@ -683,6 +699,7 @@ def write_exr(path, data, channel: str = "Y") -> None:
   """OpenEXR file of float32 values (`[H, W]` -> one channel, `[H, W, 3]` -> R, G, B); a file
   at `path` is replaced."""
   import OpenEXR  # pylint: disable=import-outside-toplevel
+  check_utf8_path(path, "EXR file")
   _check_suffix(path, (".exr",), "write_exr writes OpenEXR files; name one .exr")
   if not (isinstance(channel, str) and channel):
     raise ValueError(f"channel must be a non-empty channel name such as 'Y', got {channel!r}")

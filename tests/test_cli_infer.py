@@ -279,6 +279,34 @@ def test_unusable_checkpoints_are_refused_before_the_run(tmp_path, folders, vari
   assert load_checkpoint(tmp_path / "cfg")[1].remat_policy is None
 
 
+def test_frame_names_that_are_not_utf8_are_refused_before_the_run(tmp_path, clip, npz_ckpt,
+                                                                  capsys):
+  """Latin-1 names (a zip made on Windows): OpenCV's writer crashed the process with a
+  segmentation fault after the model had run, leaving a provisional summary and a lock."""
+  for side in ("left", "right"):
+    folder = bytes(tmp_path / side)
+    os.makedirs(folder)
+    for i, frame in enumerate(clip[side]):
+      ok, data = cv2.imencode(".png", frame[..., ::-1])
+      with open(folder + f"/caf\xe9_{i:04d}.png".encode("latin-1"), "wb") as fh:
+        fh.write(data.tobytes())
+  out = tmp_path / "out"
+  assert _infer(tmp_path / "left", tmp_path / "right", npz_ckpt, out) == 2
+  err = capsys.readouterr().err
+  assert "caf\\udce9_0000.png': the output file (named after --out and the frame)'s name is " \
+         "not UTF-8 text (bytes of another encoding at character" in err, err
+  assert not out.exists()
+  # the writers: a 16-bit PNG of any name (OpenCV's imwrite crashed), a clear error for
+  # the EXR and the video
+  odd = tmp_path / os.fsdecode(b"d\xe9.png")
+  viz.write_png16(odd, np.full((2, 3), 4.0, np.float32))
+  np.testing.assert_array_equal(viz.read_png16(odd)[0], 4.0)
+  for write, name in ((viz.write_exr, b"d\xe9.exr"), (viz.write_video, b"v\xe9.mp4")):
+    with pytest.raises(ValueError, match="name is not UTF-8 text"):
+      write(tmp_path / os.fsdecode(name), np.zeros((1, 2, 4, 3) if name.endswith(b"mp4")
+                                                   else (2, 4), np.uint8))
+
+
 def test_unknown_stored_config_fields_are_named(caplog):
   """A typo in a stored config (`dtpye`) was reported as "no model config stored" and the
   run went on in float32; unknown fields beside known ones were dropped without a word."""
@@ -397,6 +425,15 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   assert f"the earlier run's files in {out} were put back" in capsys.readouterr().err
   after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
   assert after == before  # frames 0-14 of the failed run (npy and pfm) are gone
+  # Into a new folder: a run that fails midway deletes what it wrote (it left its frames so
+  # far and a provisional summary, and the next run was refused without --overwrite)
+  fresh = tmp_path / "fresh"
+  assert _infer(left, tmp_path / "right.mp4", npz_ckpt, fresh, "--format", "npy") == 2
+  assert not [p for p in fresh.rglob("*") if p.is_file()], list(fresh.rglob("*"))
+  assert not (fresh / "disparity").exists() and not (fresh / infer.SET_ASIDE).exists()
+  monkeypatch.setattr(inference, "_run_window", label_model)
+  assert _infer(left, tmp_path / "right.mp4", npz_ckpt, fresh, "--format", "npy") == 0
+  monkeypatch.setattr(inference, "_run_window", failing_model)
   # A run killed after setting files aside (no `except` ran): the next run puts them back
   # before it looks at the folder, deleting what the killed run's provisional summary lists.
   written = infer.set_aside(out, [out / "disparity" / "0003.npy", out / "side_by_side.mp4"])
@@ -464,6 +501,9 @@ def test_folders_numbered_alike_at_different_places_are_noted(tmp_path, caplog):
                         ["000000_11", "000001_10", "000001_11"], False),  # repeats: no claim
       "suffixed": (["frame0001_left", "frame0002_left"], ["frame0002_right", "frame0003_right"],
                    True),
+      # each camera dropped another frame: the same places, different numbers (was silent)
+      "dropped_each": (["0000", "0001", "0002", "0004"], ["0000", "0001", "0003", "0004"], True),
+      "counters": (["0000", "0001"], ["1000", "1001"], False),  # two cameras' own counters
   }
   for case, (left_names, right_names, noted) in cases.items():
     for side, names in (("l", left_names), ("r", right_names)):
@@ -474,8 +514,23 @@ def test_folders_numbered_alike_at_different_places_are_noted(tmp_path, caplog):
       caplog.clear()
       with caplog.at_level(logging.WARNING):
         read(tmp_path / case / "l", tmp_path / case / "r")
-      assert ("number their frames alike but not at the same places" in caplog.text) == noted, (
+      assert ("the frame folders number their frames alike" in caplog.text) == noted, (
           case, caplog.text)
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):
+    video_io.load_stereo(tmp_path / "dropped_each" / "l", tmp_path / "dropped_each" / "r")
+  assert ("number their frames alike, but 1 of the 4 pairs join different numbers, the first "
+          "left 0002.png with right 0003.png (frame 2 of each folder)") in caplog.text
+  # --max-frames: a cut that hides the shift (left 0001.. beside right 0000..) still pairs
+  # wrongly, and one that ends before the places that differ pairs right
+  for case, max_frames, noted in (("shifted", 1, True), ("dropped_each", 2, False),
+                                  ("dropped_each", 3, True)):
+    for read in (video_io.open_stereo, video_io.load_stereo):
+      caplog.clear()
+      with caplog.at_level(logging.WARNING):
+        read(tmp_path / case / "l", tmp_path / case / "r", max_frames=max_frames)
+      assert ("the frame folders number their frames alike" in caplog.text) == noted, (
+          case, max_frames, caplog.text)
   caplog.clear()
   with caplog.at_level(logging.WARNING):
     video_io.open_stereo(tmp_path / "shifted" / "l", tmp_path / "shifted" / "r")

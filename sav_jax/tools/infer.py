@@ -236,6 +236,7 @@ def set_aside(out: pathlib.Path, paths: list[pathlib.Path]) -> int:
   new run's summary is written.
   """
   aside = out / SET_ASIDE
+  aside.mkdir(exist_ok=True)  # even empty: the mark of a run under way (`put_back`)
   moved = 0
   for path in [out / "summary.json", *paths]:
     if path.is_file() and not path.is_symlink():
@@ -364,6 +365,8 @@ def run(args: argparse.Namespace) -> int:
       raise UsageError(f"--max-depth must be a finite positive number, got {args.max_depth}")
   out = check_output_dir(args.out)
   outputs = output_paths(out, names, formats, calib, args.depth_format)
+  for path in outputs:  # before anything is written (OpenCV crashed on such names)
+    viz.check_utf8_path(path, "output file (named after --out and the frame)")
   check_not_inputs(outputs, (args.left, args.right))
   with output_lock(out):
     return _run_locked(args, out, outputs, left, right, names, formats, calib)
@@ -501,12 +504,11 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
   # memory, found as it compiles) leaves no empty output folders behind.
   chunks = iter(chunks)
   chunks = itertools.chain([next(chunks)], chunks)
-  if stale:
-    moved = set_aside(out, stale)
-    if moved:  # (above the progress bar of the windows, not on its line)
-      tqdm.write(f"setting aside {moved} files of the earlier run in {out / SET_ASIDE} "
-                 "(--overwrite; deleted when this run ends, put back if it does not)",
-                 file=sys.stdout)
+  moved = set_aside(out, stale)  # (nothing to move: marks the run as under way)
+  if moved:  # (above the progress bar of the windows, not on its line)
+    tqdm.write(f"setting aside {moved} files of the earlier run in {out / SET_ASIDE} "
+               "(--overwrite; deleted when this run ends, put back if it does not)",
+               file=sys.stdout)
   (out / "disparity").mkdir(parents=True, exist_ok=True)
   # (replaces an earlier run's summary, which would describe this run's files)
   write_text_atomic(out / "summary.json", json.dumps(

@@ -363,11 +363,17 @@ def _check_pair(lv, rv, notes: set[str], files=(None, None), sources=("left", "r
     notes.add(f"the left video runs at {fps[0]:g} frames/s, the right at {fps[1]:g}: frames "
               "are paired by their index, so the views drift apart in time if they are one "
               "recording")
-  shifted = _shifted_pairing(*files)
+  shifted = _shifted_pairing(*(_whole_listing(s, f) for s, f in zip(sources, files)),
+                             pairs=len(lv))
   if shifted:
     notes.add(shifted)
   for note in sorted(notes):
     log.warning("note: %s", note)
+
+
+def _whole_listing(source, files):
+  """A frame folder's every frame file (`files`: the first --max-frames of them), else None."""
+  return None if files is None else list_frames(pathlib.Path(source))
 
 
 def _frame_number(path) -> int | None:
@@ -376,11 +382,19 @@ def _frame_number(path) -> int | None:
   return int(digits[-1]) if digits else None
 
 
-def _shifted_pairing(left_files, right_files) -> str | None:
-  """A note when two frame folders number their frames alike but at different places
-  (left 0000, 0001, ... beside right 0001, 0002, ...: one frame missing or extra at the
-  start): frames are paired by their order, so every pair would be from two moments.
-  Folders numbered differently (`im0` / `im1`) or alike at the same places get none."""
+def _shifted_pairing(left_files, right_files, pairs: int | None = None) -> str | None:
+  """A note when two frame folders number their frames alike but pair different numbers:
+  the same numbers at different places (left 0000, 0001, ... beside right 0001, 0002, ...:
+  one frame missing or extra at the start), or, where the folders share numbers, different
+  numbers at one place (each camera dropped another frame: left 0002 beside right 0003).
+  Frames are paired by their order, so such pairs are from two moments. Folders numbered
+  differently (`im0` / `im1`) or alike at the same places get none.
+
+  Args:
+    left_files, right_files: each folder's whole listing (before --max-frames: a cut that
+      hides the shift still pairs the frames wrongly).
+    pairs: how many frames are paired (--max-frames); places beyond are not.
+  """
   if not left_files or not right_files:
     return None
   if [pathlib.Path(f).stem for f in left_files] == [pathlib.Path(f).stem for f in right_files]:
@@ -391,15 +405,26 @@ def _shifted_pairing(left_files, right_files) -> str | None:
       or len(set(left_numbers)) < len(left_numbers)
       or len(set(right_numbers)) < len(right_numbers)):
     return None
+  pairs = min(len(left_files), len(right_files), pairs or len(left_files))
+  name = lambda f: pathlib.Path(f).name
   right_place = {n: i for i, n in enumerate(right_numbers)}
-  for i, n in enumerate(left_numbers):
+  for i, n in enumerate(left_numbers[:pairs]):
     j = right_place.get(n)
     if j is not None and j != i:
       return (f"the frame folders number their frames alike but not at the same places: "
-              f"left {pathlib.Path(left_files[i]).name} is frame {i} of its folder, right "
-              f"{pathlib.Path(right_files[j]).name} frame {j} of its; frames are paired by "
-              f"their order, so left {pathlib.Path(left_files[i]).name} is paired with right "
-              f"{pathlib.Path(right_files[i]).name} (a frame missing or extra in one folder?)")
+              f"left {name(left_files[i])} is frame {i} of its folder, right "
+              f"{name(right_files[j])} frame {j} of its; frames are paired by their order, so "
+              f"left {name(left_files[i])} is paired with right {name(right_files[i])} (a "
+              "frame missing or extra in one folder?)")
+  if not set(left_numbers) & set(right_numbers):
+    return None  # numbered apart (two cameras' own counters)
+  differ = [i for i in range(pairs) if left_numbers[i] != right_numbers[i]]
+  if differ:
+    i = differ[0]
+    return (f"the frame folders number their frames alike, but {len(differ)} of the "
+            f"{pairs} pairs join different numbers, the first left {name(left_files[i])} "
+            f"with right {name(right_files[i])} (frame {i} of each folder): frames are paired "
+            "by their order (a frame missing in each folder?)")
   return None
 
 
