@@ -727,7 +727,12 @@ def _bad_case(name, root, clip, npz_ckpt):
         f"right is {H}x{W - 8} ({right}) (height x width)"
   if name == "empty":
     (root / "e").mkdir()
-    return root / "e", right, npz_ckpt, [], "empty folder"
+    return root / "e", right, npz_ckpt, [], "e: no frames (no .png/"
+  if name == "scene_folder":  # the folder above the frames ("was "empty folder"), a GIF
+    (root / "scene" / "left").mkdir(parents=True)
+    (root / "scene" / "anim.gif").write_bytes(b"GIF89a")
+    return root / "scene", right, npz_ckpt, [], "images); it holds 1 folder(s) (left: give " \
+        "the one with the frames), 1 other file(s) (anim.gif)"
   if name == "unreadable":
     (left / "0001.png").write_bytes(b"not a png")
     return left, right, npz_ckpt, [], "unreadable frame"
@@ -809,7 +814,7 @@ def _bad_case(name, root, clip, npz_ckpt):
 
 
 @pytest.mark.parametrize("name", [
-    "counts", "sizes", "empty", "unreadable", "mixed_sizes", "no_checkpoint",
+    "counts", "sizes", "empty", "scene_folder", "unreadable", "mixed_sizes", "no_checkpoint",
     "incompatible_checkpoint", "vda_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
     "calibration", "calib_folder", "fy_zero", "fps", "out_is_file", "out_is_dangling_link",
     "output_is_folder",

@@ -42,7 +42,15 @@ def list_frames(folder) -> list[pathlib.Path]:
     if videos:
       raise ValueError(f"{folder}: holds video files ({videos[0].name}...), not frames: pass "
                        "one video file")
-    raise ValueError(f"{folder}: empty folder (no {'/'.join(IMAGE_EXTENSIONS)} images)")
+    entries = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
+    subfolders = [p.name for p in entries if p.is_dir()]
+    others = [p.name for p in entries if not p.is_dir()]
+    held = ("" if not entries else "; it holds " + ", ".join(
+        [f"{len(subfolders)} folder(s) ({', '.join(subfolders[:3])}: give the one with the "
+         "frames)"] * bool(subfolders)
+        + [f"{len(others)} other file(s) ({', '.join(others[:3])})"] * bool(others)))
+    raise ValueError(f"{folder}: no frames (no {'/'.join(IMAGE_EXTENSIONS)} images)" + (
+        held or ": empty folder"))
   return files
 
 
