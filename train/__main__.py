@@ -217,6 +217,11 @@ def main(argv):
       traceback.print_exc()
     print(f"train: error: {e}", file=sys.stderr)
     sys.exit(2)
+  except loop.Diverged as e:  # one line with where it resumes, status 1 (a failed run)
+    if flags.FLAGS.verbosity >= 1:
+      traceback.print_exc()
+    print(f"train: error: {e}; {_resume_point()}", file=sys.stderr)
+    sys.exit(1)
   except KeyboardInterrupt:
     _interrupted()
   except loop.ckpt_lib.CheckpointSaveError as e:  # a full disk: one line, not orbax's chains

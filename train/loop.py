@@ -139,8 +139,10 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
     if changed:  # allowed (e.g. to extend a run), but never unnoticed
       log.warning("resuming with %d config fields changed since checkpoint %d: %s",
                   len(changed), step, "; ".join(changed))
+      with jax.transfer_guard("allow"):  # one scalar, to the host
+        updates = step - int(jax.device_get(state.num_skipped))
       note = optim.schedule_change_note(config.optimizer, config.train.num_steps, step,
-                                        saved)
+                                        saved, updates)
       if note:
         log.warning("%s", note)
     return state, shardings, "checkpoint"
@@ -199,7 +201,11 @@ class _HostMetrics:
       log.warning("step %d: non-finite %s, update skipped (%d so far)", step,
                   " and ".join(bad) or "loss or gradient", self.skipped)
       if self.skipped > self.config.train.max_skipped_steps:
-        raise FloatingPointError(f"{self.skipped} skipped updates > train.max_skipped_steps")
+        raise Diverged(
+            f"step {step}: {self.skipped} updates skipped for a non-finite loss or gradient, "
+            f"more than config.train.max_skipped_steps={self.config.train.max_skipped_steps}: "
+            "the run diverged (a lower --config.optimizer.lr? the checkpoints saved since the "
+            "skips began hold the weights that diverged)")
     if _every(step, self.config.train.log_every) or step == self.config.train.num_steps:
       means = {k: (v / self.n if k in _OVER_ALL_STEPS else
                    v / self.measured if k in _OVER_MEASURED and self.measured > 0 else
@@ -361,6 +367,12 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
   for path in (existing, workdir / "checkpoints"):
     if path.exists() and not path.is_dir():
       raise NotADirectoryError(f"--workdir {workdir}: {path} exists and is not a directory")
+  from sav_jax.convert import orbax_io  # pylint: disable=g-import-not-at-top
+  for is_kind, kind in ((orbax_io.is_variables_checkpoint, "a `sav-jax convert` checkpoint"),
+                        (orbax_io.is_training_step, "a training run's checkpoint step")):
+    if workdir.is_dir() and is_kind(workdir):  # (a run there nests in it; its path loads these)
+      raise ValueError(f"--workdir {workdir} is {kind}, not a run's folder: to start from its "
+                       f"weights, pass --config.init_from={workdir} and a new --workdir")
   writable = workdir / "checkpoints" if (workdir / "checkpoints").exists() else existing
   if not os.access(writable, os.W_OK | os.X_OK):
     raise PermissionError(f"--workdir {workdir}: no permission to write in {writable}")
@@ -617,8 +629,9 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
       if evaluator is not None and start == 0 and config.eval.at_start:
         _validate(evaluator, state.params, writer, 0)
       elif evaluator is not None and _validation_missing(config, writer, start):
-        log.info("validating step %d first: the run that saved its checkpoint ended before its "
-                 "validation was logged", start)
+        log.info("validating step %d first: a validation step whose validation is not in the "
+                 "log (the run that saved it ended before validating, or validated at other "
+                 "steps)", start)
         _validate(evaluator, state.params, writer, start)
       pending = None
       for step in range(start + 1, total + 1):
@@ -695,6 +708,10 @@ def _validation_missing(config, writer: MetricWriter, start: int) -> bool:
 def _count(n: int, one: str, many: str | None = None) -> str:
   """`1 device`, `8 devices`."""
   return f"{n} {one if n == 1 else many or one + 's'}"
+
+
+class Diverged(FloatingPointError):
+  """More updates skipped for non-finite values than `train.max_skipped_steps` allows."""
 
 
 class Preempted(RuntimeError):

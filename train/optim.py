@@ -86,13 +86,16 @@ def _distinct(value: float, other: float) -> str:
   return repr(value)
 
 
-def schedule_change_note(opt_cfg, num_steps: int, step: int, saved: dict) -> str | None:
+def schedule_change_note(opt_cfg, num_steps: int, step: int, saved: dict,
+                         updates: int | None = None) -> str | None:
   """A warning for a resume at `step` whose schedule changed: `train.num_steps` or one of
   `SCHEDULE_FIELDS` differs from the saved run's (`saved`: its `"a.b": value` fields), so
   the learning rate changes from what the saved run would have used. It gives the rate at
   `step` before and after and, where only `train.num_steps` changed a one-cycle schedule,
   the `schedule_steps` that keeps the earlier cycle. None when nothing changes, or for a
-  checkpoint that saved no run config."""
+  checkpoint that saved no run config. `updates`: the updates made by `step` (steps less the
+  skipped ones), which the schedule counts (default `step`)."""
+  updates = step if updates is None else updates
   if not saved or "train.num_steps" not in saved:
     return None
   saved_steps = saved["train.num_steps"]
@@ -107,16 +110,17 @@ def schedule_change_note(opt_cfg, num_steps: int, step: int, saved: dict) -> str
     return None
   with jax.transfer_guard("allow"):  # host arithmetic; the training program disallows transfers
     try:
-      before = float(make_schedule(old, saved_steps)(step))
+      before = float(make_schedule(old, saved_steps)(updates))
     except ValueError:  # a saved schedule this version does not build
       before = float("nan")
-    after = float(make_schedule(opt_cfg, num_steps)(step))
+    after = float(make_schedule(opt_cfg, num_steps)(updates))
   if before == after:
     return None
   keep = (len(changed) == 1 and saved_steps != num_steps and old.schedule == "one_cycle"
           and old.schedule_steps <= 0)
-  return (f"{', '.join(changed)}: the learning-rate schedule changes, the rate at step {step} "
-          f"goes from {_distinct(before, after)} to {_distinct(after, before)}"
+  skipped = f" (update {updates}: {step - updates} skipped)" if updates != step else ""
+  return (f"{', '.join(changed)}: the learning-rate schedule changes, the rate at step {step}"
+          f"{skipped} goes from {_distinct(before, after)} to {_distinct(after, before)}"
           + (f"; to keep the earlier cycle (and then its final rate), pass "
              f"--config.optimizer.schedule_steps={saved_steps + 100}" if keep else ""))
 

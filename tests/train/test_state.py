@@ -315,6 +315,15 @@ def test_extending_a_one_cycle_run_names_the_learning_rate_jump():
   assert note == (f"train.num_steps 800 -> 1000, optimizer.lr 0.0001 -> 0.001: the learning-rate "
                   f"schedule changes, the rate at step 800 goes from {before:.3g} to "
                   f"{after:.3g}")
+  # Skipped updates: the schedule counts updates (step - skipped), and so do the rates named
+  # (they were the rates at step 800, which the run never used)
+  note = optim.schedule_change_note(c.optimizer, 1000, 800, saved, updates=790)
+  c.optimizer.lr = 1e-4
+  before = float(optim.make_schedule(c.optimizer, 800)(790))
+  c.optimizer.lr = 1e-3
+  after = float(optim.make_schedule(c.optimizer, 1000)(790))
+  assert note.endswith(f"the rate at step 800 (update 790: 10 skipped) goes from {before:.3g} "
+                       f"to {after:.3g}"), note
 
 def _real_abstract_params():
   c = synthetic.get_config()
@@ -982,6 +991,17 @@ def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match)
   assert not (tmp_path / "w").exists()
   with pytest.raises(ValueError, match="--workdir is empty"):  # an unset $WORKDIR
     loop.validate_config(synthetic.get_config(), "")
+  # A checkpoint given as --workdir (meant as init_from): a run trained nested inside it, and
+  # the path its last line named loaded the checkpoint's weights, not the run's
+  from sav_jax.convert import orbax_io  # pylint: disable=import-outside-toplevel
+  for name, items, kind in (("converted", orbax_io._ITEMS, "a `sav-jax convert` checkpoint"),  # pylint: disable=protected-access
+                            ("step", ("state",), "a training run's checkpoint step")):
+    for item in items:
+      (tmp_path / name / item).mkdir(parents=True)
+    (tmp_path / name / orbax_io._METADATA_FILE).write_text("{}")  # pylint: disable=protected-access
+    with pytest.raises(ValueError, match=rf"--workdir {tmp_path / name} is {kind}, not a run's "
+                       rf"folder: to start from its weights, pass --config.init_from="):
+      loop.validate_config(synthetic.get_config(), tmp_path / name)
 
 
 def test_an_empty_workdir_is_refused_by_setup(tmp_path, monkeypatch):
@@ -1265,6 +1285,12 @@ def test_logged_means_leave_out_skipped_steps(caplog):
              "l2_grads": 2.0, "l2_updates": inf})
   assert ("step 7: non-finite update norm (finite loss and gradients: is the learning rate "
           "too large?), update skipped (5 so far)") in caplog.text
+  # More than max_skipped_steps: a Diverged error naming the limit (a FloatingPointError
+  # "6 skipped updates > train.max_skipped_steps" before, printed with its traceback)
+  with pytest.raises(loop.Diverged, match=r"^step 8: 6 updates skipped for a non-finite loss "
+                     r"or gradient, more than config.train.max_skipped_steps=5: the run "
+                     r"diverged \(a lower --config.optimizer.lr\?"):
+    host(8, {"loss": nan, "epe": nan, "finite": 0.0, "lr": 0.8, "num_skipped": 6})
   # Resumed from step 2 (a SIGTERM save off the logging period): the record at step 3 is the
   # mean of one step, and says so.
   resumed = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
