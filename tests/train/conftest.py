@@ -69,6 +69,19 @@ def tiny_config(*overrides):
   return config
 
 
+def _environ_copy() -> dict[str, str]:
+  """`dict(os.environ)`, again if a key went away while it was copied: the jobs build their
+  environments in worker threads while pytest's main thread sets and removes
+  PYTEST_CURRENT_TEST at every test phase (a copy then raised KeyError: a flaky failure of
+  the job's tests, 2026-12-05)."""
+  for _ in range(99):
+    try:
+      return dict(os.environ)
+    except (KeyError, RuntimeError):  # (RuntimeError: the dict changed size while iterated)
+      continue
+  return dict(os.environ)
+
+
 def child_env(cache_dir, device_count: int | None = None, llvm_o0: bool = False,
               fast_compile: bool = False) -> dict:
   """Environment of a subprocess: CPU, shared compilation cache, fast LLVM codegen, the
@@ -89,7 +102,7 @@ def child_env(cache_dir, device_count: int | None = None, llvm_o0: bool = False,
   learning runs (280 vs 285), and the sharding job's 8- and 1-device parameters then
   differ ~10x more (2.1e-7 against 1.5e-8), too close to its 5e-7 tolerance.
   """
-  env = dict(os.environ)
+  env = _environ_copy()
   env.pop("JAX_COMPILATION_CACHE_DIR", None)
   flags = ["--xla_llvm_disable_expensive_passes=true", *TEST_XLA_FLAGS.split()]
   if llvm_o0:
