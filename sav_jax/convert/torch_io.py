@@ -141,7 +141,8 @@ def _load_safetensors(path):
   out = {}
   for k, v in data.items():
     v = np.array(v)
-    out[k] = v.astype(np.float32) if v.dtype.kind == "V" else _widened(v)
+    # (ml_dtypes' bfloat16 and float8 are of kind "V" too)
+    out[k] = v.astype(np.float32) if v.dtype.kind == "V" else v
   return out
 
 

@@ -42,7 +42,7 @@ def list_frames(folder) -> list[pathlib.Path]:
     if videos:
       raise ValueError(f"{folder}: holds video files ({videos[0].name}...), not frames: pass "
                        "one video file")
-    entries = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
+    entries = sorted(p for p in folder.iterdir() if not base.is_hidden(p))
     subfolders = [p.name for p in entries if p.is_dir()]
     others = [p.name for p in entries if not p.is_dir()]
     held = ("" if not entries else "; it holds " + ", ".join(
@@ -128,12 +128,18 @@ def _size(shape) -> str:
   return f"{shape[0]}x{shape[1]}"
 
 
-def _frame_files(path: pathlib.Path, max_frames: int | None) -> list[pathlib.Path] | None:
-  """The frame files of a folder (the first `max_frames`), or None for a video file."""
+def _frame_files(path: pathlib.Path) -> list[pathlib.Path] | None:
+  """Every frame file of a folder (callers take the first --max-frames), or None for a
+  video file."""
   if path.is_dir():
-    return list_frames(path)[:max_frames]
+    return list_frames(path)
   _check_video_path(path)
   return None
+
+
+def _first(listing, max_frames: int | None):
+  """The first `max_frames` of a folder's `listing` (None, a video file's, stays None)."""
+  return None if listing is None else listing[:max_frames]
 
 
 def _checked_frames(path: pathlib.Path, files, max_frames: int | None, notes: set[str]):
@@ -172,12 +178,14 @@ def _frame_names(files, count: int) -> list[str]:
 
 
 def _read_source(path, max_frames: int | None, notes: set[str]):
-  """`(frames [T, H, W, 3] uint8, names, files)` of a frame folder or a video file (`files`:
-  the folder's frame files, None for a video file)."""
+  """`(frames [T, H, W, 3] uint8, names, listing)` of a frame folder or a video file
+  (`listing`: all of the folder's frame files, also those beyond `max_frames`; None for a
+  video file)."""
   path = pathlib.Path(path)
-  files = _frame_files(path, max_frames)
+  listing = _frame_files(path)
+  files = _first(listing, max_frames)
   frames = np.stack(list(_checked_frames(path, files, max_frames, notes)))
-  return frames, _frame_names(files, len(frames)), files
+  return frames, _frame_names(files, len(frames)), listing
 
 
 class FrameSource:
@@ -197,7 +205,8 @@ class FrameSource:
     self.path = pathlib.Path(path)
     self.keep = keep
     self.notes = set() if notes is None else notes
-    self._files = _frame_files(self.path, max_frames)
+    self._listing = _frame_files(self.path)  # (all: the pairing check looks beyond the cut)
+    self._files = _first(self._listing, max_frames)
     count = 0
     for frame in _checked_frames(self.path, self._files, max_frames, self.notes):
       count, (h, w) = count + 1, frame.shape[:2]
@@ -339,7 +348,7 @@ def open_stereo(left, right, max_frames: int | None = None):
     raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
   notes = _same_source_note(left, right)
   lv, rv = FrameSource(left, max_frames, notes), FrameSource(right, max_frames, notes)
-  _check_pair(lv, rv, notes, (lv._files, rv._files), (left, right))  # pylint: disable=W0212
+  _check_pair(lv, rv, notes, (lv._listing, rv._listing), (left, right))  # pylint: disable=W0212
   return lv, rv, lv.names
 
 
@@ -355,7 +364,7 @@ def _same_source_note(left, right) -> set[str]:
 def _check_pair(lv, rv, notes: set[str], files=(None, None), sources=("left", "right")
                 ) -> None:
   """Raises ValueError unless the two videos match in length and size; logs the notes
-  (`files`: the two folders' frame files, None for a video file; `sources`: their paths)."""
+  (`files`: the two folders' whole listings, None for a video file; `sources`: their paths)."""
   if len(lv) != len(rv):
     short = [n for n in sorted(notes) if TRUNCATED in n]
     raise ValueError(f"different frame counts: left has {len(lv)} ({sources[0]}), right has "
@@ -371,17 +380,11 @@ def _check_pair(lv, rv, notes: set[str], files=(None, None), sources=("left", "r
     notes.add(f"the left video runs at {fps[0]:g} frames/s, the right at {fps[1]:g}: frames "
               "are paired by their index, so the views drift apart in time if they are one "
               "recording")
-  shifted = _shifted_pairing(*(_whole_listing(s, f) for s, f in zip(sources, files)),
-                             pairs=len(lv))
+  shifted = _shifted_pairing(*files, pairs=len(lv))
   if shifted:
     notes.add(shifted)
   for note in sorted(notes):
     log.warning("note: %s", note)
-
-
-def _whole_listing(source, files):
-  """A frame folder's every frame file (`files`: the first --max-frames of them), else None."""
-  return None if files is None else list_frames(pathlib.Path(source))
 
 
 def _frame_number(path) -> int | None:
@@ -453,9 +456,9 @@ def load_stereo(left, right, max_frames: int | None = None):
   if max_frames is not None and max_frames < 1:
     raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
   notes = _same_source_note(left, right)
-  lv, names, left_files = _read_source(left, max_frames, notes)
-  rv, _, right_files = _read_source(right, max_frames, notes)
-  _check_pair(lv, rv, notes, (left_files, right_files), (left, right))
+  lv, names, left_listing = _read_source(left, max_frames, notes)
+  rv, _, right_listing = _read_source(right, max_frames, notes)
+  _check_pair(lv, rv, notes, (left_listing, right_listing), (left, right))
   return lv, rv, names
 
 
