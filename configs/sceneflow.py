@@ -54,7 +54,7 @@ def base_config() -> ml_collections.ConfigDict:
   c.compile_cache = "default"
 
   c.model = ml_collections.ConfigDict()
-  # Frozen depth prior variant: "vits" (the paper) or "vitl".
+  # Frozen depth prior variant: "vits" (the paper), "vitb" or "vitl".
   c.model.vda_encoder = "vits"
   # Compute dtype: "float32" (official: mixed precision off) or "bfloat16".
   c.model.dtype = "float32"

@@ -59,6 +59,7 @@ def _ampere_or_later(device) -> bool:
 # Video Depth Anything encoder variants (DPT head width and per-level channels).
 VDA_VARIANTS = {
     "vits": dict(features=64, out_channels=(48, 96, 192, 384)),
+    "vitb": dict(features=128, out_channels=(96, 192, 384, 768)),
     "vitl": dict(features=256, out_channels=(256, 512, 1024, 1024)),
 }
 
@@ -69,9 +70,9 @@ class SAVConfig:
 
   Attributes:
     vda_encoder: Video Depth Anything variant of the frozen depth prior: "vits" (the
-      paper's and the official code's) or "vitl", an extension with no official Stereo
-      Any Video weights or counterpart (its head's map has 128 channels, which the 4x4
-      stride-4 conv takes in where the official conv takes 32).
+      paper's and the official code's), "vitb" or "vitl", extensions with no official
+      Stereo Any Video weights or counterpart (their heads' maps have 64 and 128 channels,
+      which the 4x4 stride-4 conv takes in where the official conv takes 32).
     hidden_dim: GRU hidden channels (128 only).
     context_dim: context channels (depth 32 + cnet 96; 128 only).
     fnet_dim: channels of the fnet/cnet encoders' output.

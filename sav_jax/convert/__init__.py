@@ -1,13 +1,14 @@
 """Checkpoints: reading PyTorch files safely, key mapping, orbax, export.
 
-    sd = load_state_dict("stereoanyvideo.pth")       # no torch needed, no pickled code run
+    sd = load_state_dict("StereoAnyVideo_MIX.pth")   # no torch needed, no pickled code run
     variables = params_from_state_dict(sd, cfg)      # official names -> Flax variables
     sd2 = state_dict_from_params(variables)          # and back (exact round trip)
 """
 
 from sav_jax.convert.orbax_io import (RANDOM_PRIOR, find_training_checkpoint,
                                       is_orbax_checkpoint, is_variables_checkpoint,
-                                      random_prior_note, restore_variables, save_variables)
+                                      random_prior_note, restore_variables, save_variables,
+                                      untrained_note)
 from sav_jax.convert.params import (export_state_dict, params_from_state_dict,
                                     state_dict_from_params)
 from sav_jax.convert.torch_io import (CheckpointError, checkpoint_kind, load_checkpoint_object,
@@ -20,7 +21,8 @@ __all__ = [
     "is_orbax_checkpoint", "is_variables_checkpoint", "load_checkpoint_object",
     "load_state_dict", "load_state_dict_of_kind", "params_from_state_dict", "random_prior_note",
     "restore_variables",
-    "save_state_dict", "save_variables", "state_dict_from_params", "unwrap_state_dict",
+    "save_state_dict", "save_variables", "state_dict_from_params", "untrained_note",
+    "unwrap_state_dict",
     "vda_params_from_state_dict", "vda_state_dict_from_params",
 ]
 

@@ -222,6 +222,17 @@ def random_prior_note(saved: dict, what: str) -> str | None:
           "video_depth_anything_vits.pth for a real one")
 
 
+def untrained_note(saved: dict, what: str) -> str | None:
+  """A warning for weights whose saved config (`saved`) says that only their depth prior is
+  trained (`sav-jax convert --vda` wrote them: `"kind": "vda"`), naming `what`; None
+  otherwise."""
+  if not (isinstance(saved, dict) and saved.get("kind") == "vda"):
+    return None
+  return (f"{what}: only its depth prior is trained (the output of `sav-jax convert --vda`, "
+          "whose stereo network is freshly initialised), so its disparities mean nothing; it "
+          "is an initialisation for training (--config.init_from)")
+
+
 def restore_variables(directory, target=None):
   """Restores what `save_variables` wrote.
 

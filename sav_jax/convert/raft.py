@@ -4,8 +4,9 @@ Key mapping as for the stereo model (`a.b.0.c.weight` -> `a/b_0/c/kernel`, conv 
 OIHW -> HWIO, norm `weight` -> `scale`); the context encoder's BatchNorm running statistics
 (`running_mean`, `running_var`) go to the `batch_stats` collection (`mean`, `var`) and its
 `num_batches_tracked` counters are dropped (evaluation mode never reads them). A strided
-residual block registers its skip-path BatchNorm twice (`norm3` and `downsample.1`): both
-names must be present with equal values, and `downsample.1` is used.
+residual block registers its skip-path BatchNorm twice (`norm3` and `downsample.1`, as
+`torch.save` writes it): where a file holds both they must be equal, and either one alone
+is taken for that BatchNorm.
 """
 
 from __future__ import annotations
@@ -51,7 +52,9 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
       not floating point or holds NaN/inf, and every `norm3` that differs from its
       `downsample.1`, at once.
   """
-  sd = unwrap_state_dict(state_dict, "state_dict")
+  sd = dict(unwrap_state_dict(state_dict, "state_dict"))
+  for key in [k for k in sd if ".norm3." in k]:  # the twin of a lone norm3 (equal values)
+    sd.setdefault(key.replace(".norm3.", ".downsample.1."), sd[key])
   target = {(col, path): leaf for col, tree in abstract_raft_variables().items()
             for path, leaf in traverse_util.flatten_dict(tree).items()}
   by_torch = {_torch_name(col, path): (col, path) for col, path in target}
@@ -64,7 +67,7 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
       twin = key.replace(".norm3.", ".downsample.1.")
       if twin not in by_torch:
         problems.add_unexpected(key)
-      elif twin in sd and not np.array_equal(np.asarray(sd[twin]), np.asarray(value)):
+      elif not np.array_equal(np.asarray(sd[twin]), np.asarray(value)):
         problems.add(f"key {key!r} differs from {twin!r} (one BatchNorm in RAFT, "
                      "stored under both names)")
       continue

@@ -37,7 +37,8 @@ SAV_TOP_LEVEL = frozenset({"fnet", "cnet", "update_block", "depthnet", "corr_mlp
 VDA_TOP_LEVEL = frozenset({"pretrained", "head"})
 # RAFT (the evaluator's optical flow) has three of the stereo model's names and this head.
 RAFT_TOP_LEVEL = frozenset({"fnet", "cnet", "update_block"})
-RAFT_MARKER = "update_block.mask.0.weight"
+RAFT_MARKERS = ("update_block.mask.0.weight", "update_block.gru.convz1.weight")
+RAFT_SMALL_MARKER = "update_block.gru.convz.weight"  # raft-small.pth's ConvGRU (no mask)
 
 
 def _check_file(path):
@@ -282,7 +283,8 @@ def checkpoint_kind(sd: dict, source: str = "<state dict>") -> str:
     `corr_mlp.*`, `depthnet.*` including `depthnet.depthanything.*`), or "vda" for a
     standalone Video Depth Anything file (flat `pretrained.*` and `head.*` keys), or "raft"
     for the evaluator's RAFT optical-flow model (`fnet.*`, `cnet.*`, `update_block.*` with
-    `update_block.mask.0.weight`).
+    `update_block.mask.0.weight` or RAFT's separable GRU), or "raft_small" for the small
+    RAFT (`raft-small.pth`: a plain ConvGRU, no mask), which is not supported.
 
   Raises:
     CheckpointError: the keys match neither layout (the message lists what was found).
@@ -294,7 +296,9 @@ def checkpoint_kind(sd: dict, source: str = "<state dict>") -> str:
     top = str(k).split(".", 1)[0]
     tops[top] = tops.get(top, 0) + 1
   sav_like = tops.keys() & {"fnet", "cnet", "update_block"}
-  if set(tops) == RAFT_TOP_LEVEL and RAFT_MARKER in sd:
+  if set(tops) == RAFT_TOP_LEVEL and RAFT_SMALL_MARKER in sd:
+    return "raft_small"
+  if set(tops) == RAFT_TOP_LEVEL and any(k in sd for k in RAFT_MARKERS):
     return "raft"
   if set(tops) <= SAV_TOP_LEVEL and sav_like:
     return "sav"
@@ -315,7 +319,14 @@ def checkpoint_kind(sd: dict, source: str = "<state dict>") -> str:
 
 
 KIND_NAMES = {"sav": "a Stereo Any Video", "vda": "a Video Depth Anything (depth prior only)",
-              "raft": "a RAFT (optical flow)"}
+              "raft": "a RAFT (optical flow)", "raft_small": "a RAFT-small (optical flow)"}
+# What to do with a file of each kind, unless the caller says otherwise.
+KIND_HINTS = {
+    "raft": "RAFT, the evaluation's optical-flow model, needs no conversion: give the file to "
+            "python -m eval as --config.metrics.raft=raft-things.pth (or to "
+            "sav_jax.convert.load_raft)",
+    "raft_small": "only the large RAFT is supported: raft-things.pth, from the same "
+                  "models.zip as raft-small.pth"}
 
 
 def load_state_dict_of_kind(path, want: str, hints: Mapping[str, str] | None = None,
@@ -339,7 +350,7 @@ def load_state_dict_of_kind(path, want: str, hints: Mapping[str, str] | None = N
   sd = load_state_dict(path, opaque_unknown=True)
   kind = checkpoint_kind(sd, source=str(path))
   if kind != want:
-    hint = (hints or {}).get(kind)
+    hint = {**KIND_HINTS, **(hints or {})}.get(kind)
     raise CheckpointError(f"{label or path} is {KIND_NAMES[kind]} checkpoint, not "
                           f"{KIND_NAMES[want]} one" + (f"; {hint}" if hint else ""))
   return sd

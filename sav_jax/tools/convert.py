@@ -119,6 +119,10 @@ def run(args: argparse.Namespace) -> int:
     raise convert.CheckpointError(f"{args.src}: {e}") from e
   if to_file:  # checked by the conversion, written back with the official names
     path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite, cfg=cfg)
+    if kind == "vda":  # an orbax output records it (`untrained_note`); a file cannot
+      log.warning("%s holds a freshly initialised stereo network (seed %d) beside the depth "
+                  "prior of %s: an initialisation for training, not a model to run, and "
+                  "nothing in the file says so", path, args.seed, args.src)
     print(f"converted {args.src} ({kind}, {len(sd)} tensors) -> {path} (official Stereo Any "
           "Video key names)")
     return 0

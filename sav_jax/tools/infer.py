@@ -804,9 +804,10 @@ def load_checkpoint(path, dtype: str | None = None):
     step = None if convert.is_variables_checkpoint(path) else convert.find_training_checkpoint(path)
     described = (f"orbax checkpoint {path}" if step is None
                  else f"training checkpoint {step} (params)")
-    note = convert.random_prior_note(cfg_dict, str(path if step is None else step))
-    if note:
-      log.warning("%s", note)
+    for notes in (convert.random_prior_note, convert.untrained_note):
+      note = notes(cfg_dict, str(path if step is None else step))
+      if note:
+        log.warning("%s", note)
   else:
     sd = convert.load_state_dict_of_kind(
         path, "sav", {"vda": "`sav-jax convert --vda` turns it into an initialisation for "

@@ -1,5 +1,7 @@
 """Official state dict <-> Flax variables, `sav-jax convert`, and export."""
 
+import logging
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -218,7 +220,8 @@ def test_the_depth_prior_size_is_read_from_the_file(tmp_path, capsys):
           "cnet.conv1.weight": np.zeros((64, 3, 7, 7), np.float32)}
   assert convert.params.vda_encoder_of(vitl) == "vitl"
   assert convert.params.vda_encoder_of({"pretrained.cls_token": np.zeros((1, 1, 384))}, "") == "vits"
-  assert convert.params.vda_encoder_of({"pretrained.cls_token": np.zeros((1, 1, 768))}, "") is None
+  assert convert.params.vda_encoder_of({"pretrained.cls_token": np.zeros((1, 1, 768))}, "") == "vitb"
+  assert convert.params.vda_encoder_of({"pretrained.cls_token": np.zeros((1, 1, 1536))}, "") is None
   assert convert.params.vda_encoder_of({}) is None
   # `sav-jax convert` and `sav-jax infer` build the model the file's depth prior needs: the
   # report is against the ViT-L model (its other keys missing), not 500 ViT-S shape errors.
@@ -234,6 +237,33 @@ def test_the_depth_prior_size_is_read_from_the_file(tmp_path, capsys):
                    "--checkpoint", str(tmp_path / "vitl.npz"), "--out", str(tmp_path / "o")]) == 2
   err = capsys.readouterr().err
   assert "does not match Stereo Any Video (vitl)" in err, err
+
+def test_the_vitb_depth_prior_is_supported():
+  # Video-Depth-Anything-Base (video_depth_anything_vitb.pth): its width picks the config,
+  # whose model takes its shapes; `sav-jax convert --vda` builds the model around it.
+  from sav_jax.model.vda import VideoDepthAnything  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools.convert import init_with_vda  # pylint: disable=import-outside-toplevel
+  cfg = sav_jax.SAVConfig(vda_encoder="vitb")
+  model = VideoDepthAnything(**cfg.vda)
+  shapes = jax.eval_shape(model.init, jax.random.PRNGKey(0),
+                          jnp.zeros((1, 1, 14, 14, 3), jnp.float32))["params"]
+  vda = jax.tree_util.tree_map(lambda s: np.zeros(s.shape, np.float32), shapes)
+  sd = convert.vda_state_dict_from_params(vda)
+  assert sd["pretrained.cls_token"].shape == (1, 1, 768)
+  assert sd["head.projects.3.weight"].shape == (768, 768, 1, 1)
+  assert convert.params.vda_encoder_of(sd, "") == "vitb"
+  variables = init_with_vda(sd, cfg, seed=0)
+  assert variables["params"]["depthnet"]["depthanything"]["pretrained"]["cls_token"].shape == (
+      1, 1, 768)
+  clip = jax.ShapeDtypeStruct((1, 2, 32, 32, 3), jnp.float32)
+  out = jax.eval_shape(lambda v, l, r: sav_jax.StereoAnyVideo(cfg).apply(v, l, r, iters=2),
+                       {"params": variables["params"]}, clip, clip)
+  assert out.disparities.shape == (4, 1, 2, 32, 32)
+  # ... and the vits model is told what the file is, and how to configure for it.
+  with pytest.raises(ValueError, match=r"the depth prior's weights are vitb \(DINOv2 width 768\); "
+                                       r"the model is configured for vits"):
+    convert.vda_params_from_state_dict(sd)
+
 
 def test_non_float_and_non_finite_tensors_are_refused(sav_state_dict):
   sd = dict(sav_state_dict)
@@ -402,7 +432,7 @@ def test_cli_convert_then_model_matches(tmp_path, sav_state_dict, variables, cap
   assert not (tmp_path / "copy").exists() and not (tmp_path / "v.npz").exists()
 
 
-def test_cli_convert_vda_only(tmp_path, vda_state_dict, capsys):
+def test_cli_convert_vda_only(tmp_path, vda_state_dict, capsys, caplog):
   src = tmp_path / "video_depth_anything_vits.npz"
   convert.save_state_dict(vda_state_dict, src)
   assert cli.main(["convert", str(src), str(tmp_path / "a")]) == 2  # needs --vda
@@ -421,6 +451,16 @@ def test_cli_convert_vda_only(tmp_path, vda_state_dict, capsys):
   jax.tree_util.tree_map(np.testing.assert_array_equal,
                          restored["params"]["depthnet"]["depthanything"], vda)
   assert "fnet" in restored["params"]
+  # Only the depth prior is trained: the tools that run the weights say so.
+  from sav_jax.tools.infer import load_checkpoint  # pylint: disable=import-outside-toplevel
+  with caplog.at_level(logging.WARNING):
+    load_checkpoint(tmp_path / "b")
+  assert "b: only its depth prior is trained (the output of `sav-jax convert --vda`" in \
+      caplog.text, caplog.text
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):  # a file cannot record it: said when it is written
+    assert cli.main(["convert", "--vda", str(src), str(tmp_path / "init.safetensors")]) == 0
+  assert "init.safetensors holds a freshly initialised stereo network (seed 0)" in caplog.text
 
 
 def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dict, capsys):

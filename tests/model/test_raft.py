@@ -128,6 +128,43 @@ def test_checkpoint_is_recognised_and_read_from_a_file(tmp_path, raft_state_dict
     convert.load_state_dict_of_kind(path, "sav")
 
 
+def test_raft_small_and_a_raft_missing_keys_are_named(tmp_path, raft_state_dict, capsys):
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  # raft-small.pth (from the same models.zip): a plain ConvGRU, no mask; not supported.
+  small = {k: np.zeros(s, np.float32) for k, s in (
+      ("fnet.conv1.weight", (32, 3, 7, 7)), ("cnet.conv1.weight", (32, 3, 7, 7)),
+      ("update_block.encoder.convc1.weight", (96, 196, 1, 1)),
+      ("update_block.gru.convz.weight", (96, 242, 3, 3)))}
+  assert convert.checkpoint_kind(small) == "raft_small"
+  path = convert.save_state_dict(small, tmp_path / "raft-small.safetensors")
+  with pytest.raises(CheckpointError, match=r"is a RAFT-small .optical flow. checkpoint, not a "
+                                            r"RAFT .* only the large RAFT is supported: "
+                                            r"raft-things.pth"):
+    load_raft(path)
+  # raft-things.pth less its mask head is still RAFT: the strict report names the keys.
+  sd = {k: v for k, v in raft_state_dict.items() if not k.startswith("update_block.mask.")}
+  assert convert.checkpoint_kind(sd) == "raft"
+  with pytest.raises(ValueError, match="missing key 'update_block.mask.0.weight'"):
+    load_raft(convert.save_state_dict(sd, tmp_path / "no_mask.npz"))
+  # `sav-jax convert` of a RAFT file says where the file goes instead.
+  path = convert.save_state_dict(raft_state_dict, tmp_path / "raft-things.safetensors")
+  assert cli.main(["convert", str(path), str(tmp_path / "out")]) == 2
+  err = capsys.readouterr().err
+  assert "is a RAFT (optical flow) checkpoint, not a Stereo Any Video one; RAFT, the " \
+         "evaluation's optical-flow model, needs no conversion: give the file to python -m " \
+         "eval as --config.metrics.raft=raft-things.pth" in err, err
+  assert not (tmp_path / "out").exists()
+
+
+def test_either_name_of_the_twice_registered_batchnorm_is_enough(raft_state_dict, variables):
+  for kept in ("norm3", "downsample.1"):
+    dropped = "downsample.1" if kept == "norm3" else "norm3"
+    sd = {k: v for k, v in raft_state_dict.items() if f".{dropped}." not in k}
+    assert len(sd) < len(raft_state_dict)
+    got = raft_variables_from_state_dict(sd)
+    jax.tree_util.tree_map(np.testing.assert_array_equal, got, variables)
+
+
 def test_state_dict_problems_are_listed(raft_state_dict):
   sd = dict(raft_state_dict)
   del sd["update_block.gru.convz1.weight"]
