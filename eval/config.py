@@ -59,6 +59,22 @@ def load_config(spec: str) -> ml_collections.ConfigDict:
   return config
 
 
+def check_fields(config: ml_collections.ConfigDict, spec: str) -> None:
+  """Raises ValueError naming the fields of an evaluation config (`configs/eval/common.py`)
+  that `config`, loaded from `spec`, lacks: e.g. a training config given by mistake."""
+  from configs.eval import common  # pylint: disable=import-outside-toplevel
+  missing = sorted(set(_flat_names(common.eval_config("x"))) - set(_flat_names(config)))
+  if not missing:
+    return
+  training = "train" in config or "optimizer" in config
+  raise ValueError(
+      f"{spec} is not an evaluation config: it lacks "
+      f"{', '.join(missing[:6])}{f' and {len(missing) - 6} more' if len(missing) > 6 else ''}"
+      + ("; it is a training config (python -m train)" if training else "")
+      + "; evaluation configs build on configs/eval/common.py (e.g. configs/eval/"
+      "sintel_final.py)")
+
+
 def split_overrides(argv: list[str]) -> tuple[list[str], list[tuple[str, str]]]:
   """Separates `--config.a.b=v` / `--config.a.b v` from the other arguments.
 
@@ -71,8 +87,8 @@ def split_overrides(argv: list[str]) -> tuple[list[str], list[tuple[str, str]]]:
     if arg.startswith("--config."):
       name, eq, value = arg[len("--config."):].partition("=")
       if not eq:
-        if i + 1 >= len(argv):
-          raise ValueError(f"{arg} needs a value")
+        if i + 1 >= len(argv) or argv[i + 1].startswith("--"):  # not the next option
+          raise ValueError(f"{arg} needs a value ({arg}=VALUE or {arg} VALUE)")
         value, i = argv[i + 1], i + 1
       overrides.append((name, value))
     else:
@@ -91,7 +107,7 @@ def _parse(value: str, current, name: str):
     raise ValueError(f"--config.{name}: expected true/false, got {value!r}")
   if isinstance(current, (int, float)):
     try:
-      return type(current)(value) if not isinstance(current, int) else int(value, 0)
+      return type(current)(value)  # int: decimal (010 is 10, as on the training's side)
     except ValueError:
       raise ValueError(f"--config.{name}: expected {type(current).__name__}, "
                        f"got {value!r}") from None

@@ -75,7 +75,16 @@ def synthetic_sequences(config: ml_collections.ConfigDict) -> list[SyntheticSequ
 
 
 def load_sequences(config: ml_collections.ConfigDict, data_root) -> list:
-  """The sequences of `config.dataset` / `config.split`, cut to `config.sample_len` frames.
+  """The sequences of `config.dataset` / `config.split`, cut to `config.sample_len` frames
+  (`load_sequences_and_skipped`, less the names of the sequences skipped)."""
+  return load_sequences_and_skipped(config, data_root)[0]
+
+
+def load_sequences_and_skipped(config: ml_collections.ConfigDict, data_root
+                               ) -> tuple[list, list[str]]:
+  """The sequences of `config.dataset` / `config.split`, cut to `config.sample_len` frames,
+  and the names of those skipped for being shorter (Dynamic Replica's, as the official
+  evaluation skips them).
 
   Args:
     config: evaluation config (`dataset`, `split`, `sample_len`, `max_sequences`).
@@ -83,8 +92,9 @@ def load_sequences(config: ml_collections.ConfigDict, data_root) -> list:
       the synthetic set.
 
   Returns:
-    list of StereoSequence-like objects.
+    `(sequences, skipped names)`: StereoSequence-like objects, and names.
   """
+  skipped = []
   if config.dataset == SYNTHETIC:
     if config.split != "test":
       raise ValueError(f"the synthetic dataset has only the split 'test', got "
@@ -97,12 +107,14 @@ def load_sequences(config: ml_collections.ConfigDict, data_root) -> list:
     if config.dataset not in registry.DATASETS:
       raise ValueError(f"unknown dataset {config.dataset!r}; known: "
                        f"{', '.join(registry.DATASETS + (SYNTHETIC,))}")
-    seqs = registry.get_sequences(config.dataset, data_root, config.split,
-                                  max_frames=int(config.sample_len))
+    whole = registry.get_sequences(config.dataset, data_root, config.split, max_frames=None)
+    seqs = registry.eval_chunk(whole, int(config.sample_len),
+                               drop_short=config.dataset == "dynamic_replica")
+    kept = {s.name for s in seqs}
+    skipped = [str(s.name) for s in whole if s.name not in kept]
   if config.max_sequences > 0:
     seqs = seqs[:config.max_sequences]
   if not seqs and config.dataset != SYNTHETIC and config.sample_len > 0:
-    whole = registry.get_sequences(config.dataset, data_root, config.split, max_frames=None)
     if whole:
       raise ValueError(
           f"all {len(whole)} {config.dataset}/{config.split} sequences under {data_root} are "
@@ -111,7 +123,7 @@ def load_sequences(config: ml_collections.ConfigDict, data_root) -> list:
           f"{max(len(s) for s in whole)} (or 0 for whole sequences)")
   if not seqs:
     raise ValueError(f"no sequences found for {config.dataset}/{config.split} under {data_root}")
-  return seqs
+  return seqs, skipped
 
 
 class _Head:

@@ -97,7 +97,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args, overrides) -> int:
   """Loads config, data and weights, evaluates every sequence, writes the reports."""
-  config = eval_config.apply_overrides(eval_config.load_config(args.config), overrides)
+  config = eval_config.load_config(args.config)
+  eval_config.check_fields(config, args.config)
+  config = eval_config.apply_overrides(config, overrides)
   if not (is_int(config.iters) and config.iters >= 2):
     raise ValueError(f"config.iters must be an integer >= 2, got {config.iters!r}")
   if config.dtype not in DTYPES:  # before the checkpoint is read
@@ -105,6 +107,12 @@ def run(args, overrides) -> int:
   if config.matmul_precision not in runtime.MATMUL_PRECISIONS:
     raise ValueError(f"config.matmul_precision must be one of {runtime.MATMUL_PRECISIONS}, got "
                      f"{config.matmul_precision!r}")
+  if not (is_int(config.metrics.raft_iters) and config.metrics.raft_iters >= 1):
+    raise ValueError(f"config.metrics.raft_iters must be a positive integer, got "
+                     f"{config.metrics.raft_iters!r}")
+  if not args.checkpoint.strip():
+    raise UsageError("--checkpoint is empty: name the weights (an orbax directory, a training "
+                     "run's WORKDIR or a .pth/.safetensors/.npz file)")
   for field, low in (("strip_frames", 1), ("tile_size", 16)):
     value = config.plots[field]
     if not (isinstance(value, int) and not isinstance(value, bool) and value >= low):
@@ -115,8 +123,21 @@ def run(args, overrides) -> int:
                     "config.baseline.")
   from eval import runner  # pylint: disable=import-outside-toplevel
   out = check_output_dir(args.out or f"outputs/eval/{config.dataset}")
+  _refuse_out_in_dataset(out, config.dataset, args.data_root)
   with runner.output_lock(out):
     return _run_into(args, config, out)
+
+
+def _refuse_out_in_dataset(out, dataset: str, data_root) -> None:
+  """An output folder inside the dataset's folder would be read as one of its sequences."""
+  from sav_jax.data import registry  # pylint: disable=import-outside-toplevel
+  if dataset not in registry.DATASETS:  # the synthetic set (or an unknown name: said later)
+    return
+  where = out.expanduser().resolve()
+  for folder in registry.dataset_folders(dataset, data_root):
+    if where.is_relative_to(folder.resolve()):
+      raise UsageError(f"--out {out} is inside the dataset's folder {folder}: the reader would "
+                       "take it for data; choose a folder outside the dataset")
 
 
 def _run_into(args, config, out) -> int:
@@ -130,7 +151,7 @@ def _run_into(args, config, out) -> int:
           f"--overwrite run had set aside in {out / runner.SET_ASIDE}")
   inference.check_window(config.window, config.stride)
   devices = resolve_devices_option(config.devices, "config.devices", takes_all=False)
-  seqs = eval_data.load_sequences(config, args.data_root)
+  seqs, skipped = eval_data.load_sequences_and_skipped(config, args.data_root)
   unscaled = [str(s.name) for s in seqs if s.depth2disp_scale is None]
   depth_metrics = [f"metrics.{k}" for k in ("tcc", "raft") if config.metrics[k]]
   if depth_metrics and unscaled:
@@ -189,9 +210,9 @@ def _run_into(args, config, out) -> int:
       p for s in seqs if str(s.name) not in done
       for p in runner.output_paths(out, s.name, methods, config).values()])
   run_args = (config, out, seqs, variables, model_cfg, described, methods, settings, done,
-              devices, flow_fn)
+              devices, flow_fn, skipped)
   if not args.overwrite:
-    return evaluate(*run_args)
+    return evaluate(*run_args, resumable=True)
   # The earlier run's files go aside, and come back if this run fails before its reports are
   # written (a frame that cannot be read, an interrupt): a failed run loses nothing. Once
   # they are, `evaluate` deletes them (`drop_set_aside`).
@@ -206,30 +227,43 @@ def _run_into(args, config, out) -> int:
   return rc
 
 
+def _count(n: int, what: str) -> str:
+  return f"{n} {what}{'' if n == 1 else 's'}"
+
+
 def evaluate(config, out, seqs, variables, model_cfg, described, methods, settings, done,
-             devices=None, flow_fn=None) -> int:
+             devices=None, flow_fn=None, skipped=(), resumable=False) -> int:
   """Evaluates every sequence (but those in `done`, a resumed run's finished ones), records
-  each in the progress file, and writes the reports."""
+  each in the progress file, and writes the reports (which name the `skipped` sequences).
+  With `resumable`, an error reading a sequence says that --resume continues the run."""
   from eval import runner  # pylint: disable=import-outside-toplevel
   on = f"; {len(devices)} {devices[0].platform} devices" if devices and len(devices) > 1 else ""
-  print(f"{config.dataset}/{config.split}: {len(seqs)} sequence{'s' if len(seqs) != 1 else ''}; "
+  print(f"{config.dataset}/{config.split}: {_count(len(seqs), 'sequence')}; "
         f"weights: {described}{on}")
   if done:
-    print(f"--resume: {len(done)} sequences finished by the interrupted run are not evaluated "
-          "again")
+    print(f"--resume: {_count(len(done), 'sequence')} finished by the interrupted run "
+          f"{'is' if len(done) == 1 else 'are'} not evaluated again")
   results = []
   for i, seq in enumerate(seqs):
     res = done.get(str(seq.name))
     if res is None:
-      res = runner.evaluate_sequence(seq, methods, variables=variables, model_cfg=model_cfg,
-                                     config=config, out=out, devices=devices, flow_fn=flow_fn)
+      try:
+        res = runner.evaluate_sequence(seq, methods, variables=variables, model_cfg=model_cfg,
+                                       config=config, out=out, devices=devices, flow_fn=flow_fn)
+      except (ValueError, OSError) as e:  # a frame that cannot be read, ...: say how to go on
+        if not (results and resumable):
+          raise
+        raise ValueError(f"{e}; the {_count(len(results), 'sequence')} finished before it "
+                         f"{'is' if len(results) == 1 else 'are'} recorded: fix it and run the "
+                         "same command with --resume to continue") from e
       runner.append_progress(out, settings, res)
     results.append(res)
     line = "  ".join(f"{eval_config.METHOD_NAMES[m]}: EPE {r['disp_epe_mean']:.3f} TEPE "
                      f"{r['disp_temp_epe_mean']:.3f}" for m, r in res.metrics.items())
     again = "  (from the interrupted run)" if str(seq.name) in done else ""
     print(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  {line}{again}")
-  summary = build_summary(config, described, results, methods, settings.get("weights"))
+  summary = build_summary(config, described, results, methods, settings.get("weights"),
+                          skipped)
   paths = report.write_all(out, summary)
   runner.drop_set_aside(out)  # the commit point of an --overwrite run: nothing is undone after
   if not set(done) - {str(seq.name) for seq in seqs}:  # else kept: a later --resume over
@@ -240,10 +274,10 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
 
 
 def build_summary(config, described: str, results: list, methods: list[str],
-                  weights_digest: str | None = None) -> dict:
+                  weights_digest: str | None = None, skipped=()) -> dict:
   """Everything `report` writes: config, weights (`described`, and `runner.weights_digest`
   of the parameters: the same weights from any path or format), sav-jax's version,
-  per-sequence and aggregate metrics."""
+  per-sequence and aggregate metrics, and the `skipped` sequences' names."""
   import sav_jax  # pylint: disable=import-outside-toplevel
   from eval import runner  # pylint: disable=import-outside-toplevel
   frames = sum(r.frames for r in results)
@@ -251,7 +285,8 @@ def build_summary(config, described: str, results: list, methods: list[str],
              "weights": described, "weights_digest": weights_digest,
              "sav_jax_version": sav_jax.__version__, "frames": frames,
              "metrics_seconds": sum(r.metrics_seconds for r in results),
-             "created": time.strftime("%Y-%m-%d %H:%M:%S"), "methods": {}, "sequences": []}
+             "created": time.strftime("%Y-%m-%d %H:%M:%S"), "methods": {}, "sequences": [],
+             "skipped_sequences": list(skipped)}
   for m in methods:
     seconds = sum(r.seconds.get(m, 0.0) for r in results)
     summary["methods"][m] = {"name": eval_config.METHOD_NAMES[m],

@@ -58,7 +58,8 @@ def markdown(summary: dict) -> str:
            f"Weights: {summary['weights']}  ",
            f"iters {summary['config']['iters']}, window {summary['config']['window']} / stride "
            f"{summary['config']['stride']}, {summary['config']['dtype']}; "
-           f"{len(summary['sequences'])} sequences, {summary['frames']} frames."]
+           f"{len(summary['sequences'])} sequence{'' if len(summary['sequences']) == 1 else 's'}"
+           f", {summary['frames']} frames."]
   read_from = _read_from([seq["source"] for seq in summary["sequences"] if seq.get("source")])
   if read_from:  # Sintel's "test" split is its training/ folder, e.g.: where the frames came from
     lines[-1] += "  "
@@ -82,6 +83,11 @@ def markdown(summary: dict) -> str:
       lines.append("| " + " | ".join([seq["name"], str(seq["frames"]), methods[key]["name"],
                                       *vals]) + " |")
   notes = [n for seq in summary["sequences"] for n in seq.get("notes", [])]
+  skipped = summary.get("skipped_sequences") or []
+  if skipped:  # as the official evaluation skips them: the table covers the others
+    notes.append(f"{len(skipped)} sequence{'' if len(skipped) == 1 else 's'} shorter than "
+                 f"sample_len={summary['config']['sample_len']} frames skipped, as the "
+                 f"official evaluation does: {', '.join(skipped)}.")
   if notes:
     lines += ["", "Notes:", *(f"- {n}" for n in notes)]
   compiled = ", ".join(f"{m['name']} {m['compile_seconds']:.1f} s"

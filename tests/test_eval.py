@@ -326,7 +326,7 @@ def test_resume_after_a_failed_run(tmp_path, ckpt, variables, capsys, monkeypatc
   assert main([*args, "--checkpoint", str(same), "--resume", "--config.devices=1"]) == 0
   assert evaluated == ["synthetic_001"]
   printed = capsys.readouterr().out
-  assert "--resume: 1 sequences finished by the interrupted run" in printed
+  assert "--resume: 1 sequence finished by the interrupted run is not evaluated again" in printed
   assert "synthetic_000 (4 frames)" in printed and "(from the interrupted run)" in printed
   assert not (out / eval_runner.PROGRESS).exists()  # finished: nothing left to resume
   config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")),
@@ -397,6 +397,31 @@ def test_progress_files_and_listing_survive_kills_and_hand_edits(tmp_path, ckpt,
                                               "plots/x.png"]
 
 
+def test_an_unreadable_sequence_after_finished_ones_says_resume_continues(tmp_path, ckpt,
+                                                                          capsys, monkeypatch):
+  calls = []
+
+  def fake_predict(variables, left, right, **kw):
+    calls.append(1)
+    if len(calls) == 2:
+      raise OSError("synthetic_001/frame_0003.png: cannot decode the image file")
+    return np.ones(left.shape[:3], np.float32)
+
+  monkeypatch.setattr(eval_runner.inference, "predict_video", fake_predict)
+  args = ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL,
+          "--out", str(tmp_path / "a")]
+  assert main(args) == 2
+  err = capsys.readouterr().err
+  assert err == ("eval: error: synthetic_001/frame_0003.png: cannot decode the image file; the "
+                 "1 sequence finished before it is recorded: fix it and run the same command "
+                 "with --resume to continue\n"), err
+  assert main([*args, "--resume"]) == 0
+  assert len(calls) == 3  # the second sequence only
+  calls[:] = [1]  # the first sequence fails: nothing to resume, the error as it is
+  assert main([*args[:-1], str(tmp_path / "c")]) == 2
+  assert capsys.readouterr().err.endswith("cannot decode the image file\n")
+
+
 def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch):
   seen = []
 
@@ -423,6 +448,9 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
     ("--config.devices=-1", "config.devices: devices must be a number of local devices >= 1, "
                             "or 0 for every one, got -1"),
     ("--config.plots.tile_size=0", "config.plots.tile_size must be an integer >= 16, got 0"),
+    ("--config.metrics.raft_iters=0",  # also with RAFT off (it was accepted silently)
+     "config.metrics.raft_iters must be a positive integer, got 0"),
+    ("--checkpoint=", "--checkpoint is empty: name the weights"),
     ("--config.plots.strip_frames=0", "config.plots.strip_frames must be an integer >= 1"),
     ("--config.dtype=float64", "config.dtype must be one of ('float32', 'bfloat16'), got 'f"),
     ("--config.synthetic.num_sequences=0",
@@ -543,6 +571,39 @@ def test_config_files_that_cannot_be_used(tmp_path):
   del bare.synthetic
   with pytest.raises(ValueError, match="config.dataset='synthetic' needs a config.synthetic"):
     eval_data.load_sequences(bare, tmp_path)
+
+
+def test_a_config_that_is_not_an_evaluation_config_is_named(tmp_path, ckpt, capsys):
+  # The training config of the same name (configs/synthetic.py) was a traceback from
+  # ml_collections (AttributeError: 'iters'), exit status 1.
+  training = CONFIGS.parent / "synthetic.py"
+  assert main(["--config", str(training), "--checkpoint", str(ckpt),
+               "--out", str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith(f"eval: error: {training} is not an evaluation config: it lacks ") and (
+      "it is a training config (python -m train); evaluation configs build on "
+      "configs/eval/common.py") in err and err.count("\n") == 1, err
+  old = tmp_path / "old.py"  # an evaluation config of an earlier version: no plots
+  old.write_text("from configs.eval.common import eval_config\n"
+                 "def get_config():\n  c = eval_config('synthetic')\n  del c.plots\n"
+                 "  return c\n")
+  assert main(["--config", str(old), "--checkpoint", str(ckpt), "--out", str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err
+  assert (f"{old} is not an evaluation config: it lacks plots.enabled, plots.strip_frames, "
+          "plots.tile_size; evaluation configs build on") in err, err
+  assert not (tmp_path / "o").exists()
+
+
+def test_override_values_are_parsed_as_written():
+  with pytest.raises(ValueError, match=r"--config.save_predictions needs a value "
+                                       r"\(--config.save_predictions=VALUE or"):
+    eval_config.split_overrides(["--config.save_predictions", "--baseline", "sgbm"])
+  rest, ov = eval_config.split_overrides(["--config.iters", "-3", "--config.sample_len=0150"])
+  assert ov == [("iters", "-3"), ("sample_len", "0150")]
+  config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")), ov)
+  assert config.iters == -3 and config.sample_len == 150  # decimal (int(x, 0) refused 0150)
+  with pytest.raises(ValueError, match="--config.iters: expected int, got '0x10'"):
+    eval_config.apply_overrides(config, [("iters", "0x10")])
 
 
 def test_synthetic_set_takes_every_generator_field():
@@ -899,6 +960,33 @@ def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt
   clip["valid"][:] = True  # with valid pixels: the ground truth's range (5 px everywhere)
   eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": pred}, frames=3, tile=32)
   assert ranges and all((lo, hi) == (5, 6) for lo, hi in ranges), ranges  # a constant: +1 px
+
+
+def test_the_report_names_skipped_sequences(tmp_path):
+  config = eval_config.load_config(str(CONFIGS / "dynamic_replica.py"))
+  from eval.main import build_summary  # pylint: disable=import-outside-toplevel
+  summary = build_summary(config, "w", [], ["sav"], None, ["seq_a", "seq_c"])
+  assert summary["skipped_sequences"] == ["seq_a", "seq_c"]
+  text = eval_report.markdown(summary)
+  assert ("- 2 sequences shorter than sample_len=150 frames skipped, as the official "
+          "evaluation does: seq_a, seq_c.") in text, text
+  assert "0 sequences, 0 frames" in text
+  eval_report.write_all(tmp_path, summary)
+  assert json.loads((tmp_path / "results.json").read_text())["skipped_sequences"] == [
+      "seq_a", "seq_c"]
+
+
+def test_an_output_folder_inside_the_dataset_is_refused(tmp_path, ckpt, capsys):
+  left = tmp_path / "sintel_stereo" / "training" / "final_left"
+  left.mkdir(parents=True)
+  out = left / "evalout"
+  for root in (tmp_path, tmp_path / "sintel_stereo"):
+    assert main(["--config", str(CONFIGS / "sintel_final.py"), "--checkpoint", str(ckpt),
+                 "--data-root", str(root), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert (f"--out {out} is inside the dataset's folder {tmp_path / 'sintel_stereo'}: the "
+            "reader would take it for data") in err, err
+    assert not out.exists()
 
 
 def test_the_report_names_the_folder_the_frames_came_from():

@@ -115,6 +115,16 @@ def eval_chunk(sequences: list[StereoSequence], length: int | None,
   return out
 
 
+def dataset_folders(dataset: str, root: str | Path) -> list[Path]:
+  """The folders under `root` (the datasets folder, or the dataset's own) that hold
+  `dataset`'s files, as far as they exist."""
+  _check_name(dataset)
+  base = Path(root).expanduser()
+  if base.name in _FOLDERS[dataset]:
+    return [base] if base.is_dir() else []
+  return [base / f for f in _FOLDERS[dataset] if (base / f).is_dir()]
+
+
 def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFICIAL,
                   **options) -> list[StereoSequence]:
   """The sequences of one dataset split.
@@ -147,6 +157,11 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
         or any((base / f).is_dir() for f in folders)):
       raise
     names = " or ".join(f"{f}/" for f in folders)
+    inside = next((a for a in base.resolve().parents if a.name in folders), None)
+    if inside is not None:  # e.g. sintel_stereo/training: one folder too deep
+      raise FileNotFoundError(
+          f"{e} ({base} is inside the dataset's folder {inside}: pass that folder, or the "
+          "datasets folder that holds it)") from None
     raise FileNotFoundError(
         f"{e} ({base} holds no {names} folder and is not one either: pass the datasets "
         f"folder that holds {folders[0]}/, or that folder itself)") from None

@@ -229,6 +229,14 @@ def test_a_dataset_one_folder_too_deep_is_named(tmp_path, monkeypatch):
                                               rf".* Pass {nested} as its folder"):
     registry.get_sequences("sintel_final", tmp_path, "test")
   assert len(registry.get_sequences("sintel_final", nested, "test")) == 1
+  # A folder inside the dataset's (its training/ split folder): that folder is named.
+  with pytest.raises(FileNotFoundError, match=rf"{nested / 'training'} is inside the dataset's "
+                                              rf"folder {tmp_path / 'sintel_stereo'}: pass"):
+    registry.get_sequences("sintel_final", nested / "training", "test")
+  assert registry.dataset_folders("sintel_final", tmp_path) == [tmp_path / "sintel_stereo"]
+  assert registry.dataset_folders("sintel_final", tmp_path / "sintel_stereo") == [
+      tmp_path / "sintel_stereo"]
+  assert registry.dataset_folders("kitti_depth", tmp_path) == []
   # Another dataset's training/ one level down is no hint (only the whole missing path is),
   # nor is a folder that cannot be read.
   other = tmp_path / "o"
@@ -348,6 +356,10 @@ def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch, caplog)
   with pytest.raises(ValueError, match=r"all 2 dynamic_replica/test sequences .* shorter than "
                                        r"config.sample_len=150 .* at most 3"):
     eval_data.load_sequences(config, tmp_path)
+  config.sample_len = 3  # the skipped sequences are named, for the reports
+  kept, skipped = eval_data.load_sequences_and_skipped(config, tmp_path)
+  assert [(s.name, len(s)) for s in kept] == [("seq_b", 3)] and skipped == ["seq_a"]
+  config.sample_len = 150
   seqs = registry.get_sequences("dynamic_replica", tmp_path, "test", max_frames=None)
   assert [s.name for s in seqs] == ["seq_b", "seq_a"]  # annotation order, not sorted
   for seq in seqs:
