@@ -125,6 +125,11 @@ class SAVConfig:
   detach_flow: bool = True
 
   def __post_init__(self):
+    if not isinstance(self.dtype, str):  # jnp.bfloat16, np.dtype("float32"): as predict_video
+      try:
+        object.__setattr__(self, "dtype", np.dtype(self.dtype).name)
+      except TypeError:
+        pass  # named below
     for f in dataclasses.fields(self):  # numpy scalars become Python values (hash, JSON)
       object.__setattr__(self, f.name, _checked_value(f.name, getattr(self, f.name), f.type))
     if self.remat_policy is not None and self.remat_policy not in remat_policies():

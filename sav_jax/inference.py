@@ -216,6 +216,11 @@ def _as_frames(frames):
   if hint and frames.shape[-1] > 4:  # [..., 3, H, W]: it would pad the channel and height axes
     raise ValueError(f"frames must be [..., H, W, C], channels last; got shape "
                      f"{tuple(frames.shape)}{hint}")
+  if frames.shape[-1] > 4:  # [T, H, W] (disparities, grey frames): it would pad T and H
+    raise ValueError(f"frames must be [..., H, W, C] with 1 to 4 channels last; got shape "
+                     f"{tuple(frames.shape)}, whose last axis of {frames.shape[-1]} is no "
+                     "channel axis: for [..., H, W] arrays (disparities, grey frames) add one, "
+                     "x[..., None], and take [..., 0] of the result")
   return frames
 
 
@@ -721,7 +726,14 @@ def check_variables(variables, cfg: SAVConfig | None = None, source: str = "vari
   got = variables.get("params") if isinstance(variables, Mapping) else None
   if got is None:
     found = sorted(variables)[:5] if isinstance(variables, Mapping) else type(variables).__name__
-    raise CheckpointError(f"{source}: expected Flax variables {{'params': ...}}, found {found}")
+    how = (": a training state? pass {'params': state.params}"
+           if not isinstance(variables, Mapping) and hasattr(variables, "params") else "")
+    raise CheckpointError(f"{source}: expected Flax variables {{'params': ...}}, found "
+                          f"{found}{how}")
+  if isinstance(got, Mapping) and isinstance(got.get("params"), Mapping) and (
+      "fnet" in got["params"]):
+    raise CheckpointError(f"{source}: an extra 'params' layer ({{'params': {{'params': ...}}}}): "
+                          "pass variables['params'] instead")
   want = {jax.tree_util.keystr(k): tuple(v.shape) for k, v in
           jax.tree_util.tree_leaves_with_path(abstract_variables(cfg)["params"])}
   have = {jax.tree_util.keystr(k): tuple(np.shape(v))

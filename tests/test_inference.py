@@ -13,6 +13,7 @@ import os
 import re
 import subprocess
 import sys
+import types
 import warnings
 
 import jax
@@ -22,6 +23,7 @@ import pytest
 
 import sav_jax
 from sav_jax import inference, runtime
+from sav_jax.model.init import init_variables
 from tests.conftest import XLA_OLDER_EMITTERS, drop_ctrl_c_in_gc
 
 ATOL = 1e-4  # px, the fixture README's criterion for final disparities
@@ -487,6 +489,12 @@ def test_padding_bad_input_is_named():
     inference.pad_to_multiple(np.zeros((4, 4)))
   with pytest.raises(ValueError, match="multiple must be an integer >= 1, got 0"):
     inference.pad_to_multiple(np.zeros((1, 4, 4, 3)), 0)
+  # A [T, H, W] array (ground-truth disparities) was read as [H, W, C]: T and H padded.
+  with pytest.raises(ValueError, match=r"got shape \(2, 50, 70\), whose last axis of 70 is no "
+                                       r"channel axis: .* x\[\.\.\., None\]"):
+    inference.pad_to_multiple(np.zeros((2, 50, 70)))
+  padded, pads = inference.pad_to_multiple(np.zeros((2, 50, 70))[..., None])
+  assert padded.shape == (2, 64, 96, 1) and pads == (7, 7, 13, 13)
   with pytest.raises(ValueError, match=r"cannot remove pads \(4, 4, 0, 0\) from an array of "
                      r"shape \(2, 6, 8\)"):
     inference.unpad(np.zeros((2, 6, 8)), (4, 4, 0, 0))
@@ -640,6 +648,22 @@ def test_bad_values_iters_and_variables_fail_before_compiling(variables):
   assert iters == 4 and type(iters) is int
   with pytest.raises(ValueError, match=r"expected Flax variables \{'params': \.\.\.\}"):
     inference.predict_video(variables["params"], video, video, iters=ITERS)
+  # A training state, and one 'params' layer too many, are named with the way out.
+  state = types.SimpleNamespace(params=variables["params"], step=0)
+  with pytest.raises(ValueError, match=r"found SimpleNamespace: a training state\? pass "
+                                       r"\{'params': state.params\}"):
+    inference.predict_video(state, video, video, iters=ITERS)
+  with pytest.raises(TypeError, match=r"StereoAnyVideo.apply takes the Flax variables "
+                                      r"\{'params': params\} as its first argument; got a "
+                                      r"SimpleNamespace: a training state\? pass"):
+    sav_jax.StereoAnyVideo().apply(state, video[None], video[None], iters=ITERS)
+  with pytest.raises(ValueError, match=r"an extra 'params' layer .*: pass variables\['params'\]"):
+    inference.predict_video({"params": variables}, video, video, iters=ITERS)
+  with pytest.raises(ValueError, match="seed must be an integer >= 0, got -1"):
+    init_variables(sav_jax.SAVConfig(), -1)
+  assert sav_jax.SAVConfig(dtype=jnp.bfloat16).dtype == "bfloat16"  # as predict_video(dtype=)
+  with pytest.raises(ValueError, match="SAVConfig.dtype"):
+    sav_jax.SAVConfig(dtype=object())
   with pytest.raises(ValueError, match=r"variables: the parameters hold a vits depth prior \(DINOv2 "
                      r"width 384\), the config says vda_encoder='vitl': use "
                      r"SAVConfig\(vda_encoder='vits'\)"):

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
+from sav_jax._checks import is_int
 from sav_jax.config import SAVConfig, as_config
 
 _NORM_NAMES = ("norm", "ln")
@@ -166,6 +167,8 @@ def init_variables(cfg: SAVConfig | None = None, seed: int = 0) -> dict:
     Flax variables with float32 NumPy leaves (put them on devices as needed).
   """
   cfg = as_config(cfg)
+  if not (is_int(seed) and seed >= 0):  # numpy's own error named no argument
+    raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
   flat = traverse_util.flatten_dict(abstract_variables(cfg)["params"])
   rng = np.random.default_rng(seed)
   # The depth prior's own initialisation draws from a stream of its own, so that the other

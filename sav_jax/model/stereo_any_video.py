@@ -193,6 +193,17 @@ class StereoAnyVideo(nn.Module):
 
   cfg: SAVConfig = SAVConfig()
 
+  @nn.nowrap
+  def apply(self, variables, *args, **kwargs):
+    """`nn.Module.apply`, with a clear error for `variables` that are not a mapping (a
+    training state: Flax said only "argument of type 'TrainState' is not iterable")."""
+    if not isinstance(variables, Mapping):
+      how = (": a training state? pass {'params': state.params}"
+             if hasattr(variables, "params") else "")
+      raise TypeError(f"StereoAnyVideo.apply takes the Flax variables {{'params': params}} as "
+                      f"its first argument; got a {type(variables).__name__}{how}")
+    return super().apply(variables, *args, **kwargs)
+
   def setup(self):
     # A dict (a FrozenDict once Flax has it) or None would fail deep inside, unnamed.
     as_config(self.cfg, "StereoAnyVideo(cfg)", allow_none=False)
