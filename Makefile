@@ -1,4 +1,6 @@
-# Two entry points: `make demo` and `make test`. Both create .venv on first use.
+# Entry points: `make demo`, `make test`, and `make bench` (the CPU benchmark of the README's
+# Performance section). Each creates .venv on first use. `make clean` removes .venv, the
+# pytest cache and the demo's outputs/demo (not outputs/eval or other results of yours).
 PY ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
@@ -26,4 +28,4 @@ bench: $(STAMP)
 	$(BIN)/sav-jax bench --frames 5 --height 128 --width 256 --iters 8
 
 clean:
-	rm -rf $(VENV) outputs .pytest_cache
+	rm -rf $(VENV) outputs/demo .pytest_cache

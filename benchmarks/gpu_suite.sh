@@ -44,6 +44,14 @@ out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]}
 shift
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 bench_fp32_warm train train_warm precision parity stages variants profile bench_blocked)
+known=" bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train train_warm precision parity stages profile variants raft flags "
+for s in "${steps[@]}"; do  # a mistyped step fails before anything runs (no OUTDIR, no import)
+  if [[ "$known" != *" $s "* ]]; then
+    echo "unknown step '$s' (${known# })" >&2
+    exit 2
+  fi
+done
+
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
@@ -112,14 +120,6 @@ run_step() {
   "$py" -c "import jax, flax, optax; print('jax', jax.__version__, 'flax', flax.__version__,
 'optax', optax.__version__, jax.devices())"
 } 2>&1 | tee -a "$log"
-
-known=" bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train train_warm precision parity stages profile variants raft flags "
-for s in "${steps[@]}"; do  # a mistyped step fails before the lease is spent on the others
-  if [[ "$known" != *" $s "* ]]; then
-    echo "unknown step '$s' (${known# })" >&2
-    exit 2
-  fi
-done
 
 first=1
 status=0

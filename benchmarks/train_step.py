@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import statistics
 import sys
@@ -130,10 +131,13 @@ def main():
     p.error(problem)
   if a.repeats < 1:
     p.error(f"--repeats must be >= 1, got {a.repeats}")
+  # JAX reads JAX_COMPILATION_CACHE_DIR itself: the probe must look in that folder too (a
+  # load from it was reported as a compile, cache_hit false).
   cache = None
-  if a.compile_cache:
+  folder = a.compile_cache or os.environ.get("JAX_COMPILATION_CACHE_DIR")
+  if folder:
     try:
-      cache = runtime.enable_compilation_cache(a.compile_cache)
+      cache = runtime.enable_compilation_cache(folder)
     except ValueError as e:
       p.error(str(e))
   loaded = compile_cache_probe(cache)

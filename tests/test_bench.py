@@ -125,6 +125,7 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                "bad": {"median_s": 1}, "text": {**eager, "median_s": "x"},
                "zero": {**eager, "median_s": 0}, "no_shape": {**eager, "frames": None},
                "bf16": {**eager, "dtype": "bfloat16"}, "all": {**eager, "final_only": False},
+               "str_frames": {**eager, "frames": "2"},  # was "frames: 2 here, 2 there"
                # benchmarks/train_step.py's JSON has the same keys, and more
                "train": {**eager, "samples_per_s": 0.5, "remat": True, "loss": 1.0}}
   del baselines["no_shape"]["frames"]
@@ -138,6 +139,7 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                         ("shape", "another shape or setting (iters: 2 here, 8 there)"),
                         ("bf16", "(dtype: float32 here, bfloat16 there)"),
                         ("all", "(final_only: True here, False there)"),
+                        ("str_frames", "expected integers for the shape, got {'frames': '2'}"),
                         ("train", "a training step's JSON")):
     path = tmp_path / f"{name}.json"
     assert cli.main([*ARGS, "--compare", str(path)]) == 2  # refused before measuring
@@ -176,8 +178,13 @@ def test_bench_measures_under_the_matmul_precision_asked_and_notes_a_baseline_wi
   assert seen == ["highest", "None"]
   res = {"device": "gpu:NVIDIA H200", "matmul_precision": "highest"}
   note = bench.machine_note(res, {**res, "matmul_precision": "default"})
-  assert "matmul_precision highest here, default there" in note
+  assert note == ("warning: the baseline was measured with other settings (matmul_precision "
+                  "highest here, default there): the ratios compare those settings, not code")
   assert bench.machine_note(res, dict(res)) == ""
+  # The XLA options (--no-low-memory-compile) move compile time and memory: named too.
+  res["compiler_options"] = {"xla_cpu_use_thunk_runtime": False}
+  note = bench.machine_note(res, {**res, "compiler_options": {}})
+  assert "compiler_options {'xla_cpu_use_thunk_runtime': False} here, {} there" in note, note
 
 
 def test_bench_passes_the_batch_dtype_and_every_prediction_to_the_measurement(monkeypatch):

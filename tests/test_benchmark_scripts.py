@@ -358,6 +358,15 @@ def test_train_step_script_keeps_its_program_in_the_named_compilation_cache(
   assert hits == [False, True]
   printed = capsys.readouterr().out
   assert f"stored in {tmp_path / 'cache'}" in printed and "loaded from the compilation cache" in printed
+  # The folder JAX_COMPILATION_CACHE_DIR names (the script's default) is probed as well: a
+  # load from it was reported as a compile.
+  runs = iter([{}])
+  monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "cache"))
+  out = tmp_path / "env.json"
+  monkeypatch.setattr(sys, "argv", ["train_step.py", "--json", str(out)])
+  train_step.main()
+  assert json.loads(out.read_text())["cache_hit"] is True
+  assert "loaded from the compilation cache" in capsys.readouterr().out
 
 
 def test_parity_sweep_script_checks_its_cases_and_builds_shifted_views(tmp_path, capsys):

@@ -93,6 +93,7 @@ def test_the_warm_train_step_reads_the_cold_ones_compilation_cache(tmp_path):
 
 def test_a_mistyped_step_fails_before_any_step_runs(tmp_path):
   assert _run_steps(tmp_path, ["bench_bf16", "bench_fb32"], rc=2) == []
+  assert not (tmp_path / "out").exists()  # before OUTDIR, its log, nvidia-smi and an import
 
 
 def test_a_failed_step_fails_the_suite_after_the_others_ran(tmp_path):

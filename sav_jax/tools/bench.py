@@ -224,6 +224,9 @@ def _read_baseline(path) -> dict:
   if bad:
     raise UsageError(f"--compare {path}: expected positive numbers (compile_s: >= 0 or null), "
                      f"got {bad}")
+  bad = {k: base[k] for k in _SHAPE if isinstance(base[k], bool) or not isinstance(base[k], int)}
+  if bad:  # "2" against 2 read as another shape ("frames: 2 here, 2 there")
+    raise UsageError(f"--compare {path}: expected integers for the shape, got {bad}")
   return base
 
 
@@ -248,12 +251,18 @@ def machine_note(res: dict, base: dict) -> str:
     (p1, k1), (p2, k2) = device(res["device"]), device(base["device"])
     if p1 != p2 or (k1 and k2 and k1 != k2):
       differ.append(f"device {res['device']} here, {base['device']} there")
-  for key in ("host", "cpu", "jax", "vit_attention", "matmul_precision"):
+  for key in ("host", "cpu", "jax"):
     if base.get(key) is not None and base[key] != res.get(key):
       differ.append(f"{key} {res.get(key)} here, {base[key]} there")
+  settings = [f"{key} {res.get(key)} here, {base[key]} there"
+              for key in ("vit_attention", "matmul_precision", "compiler_options")
+              if base.get(key) is not None and base[key] != res.get(key)]
   if differ:
-    return ("warning: the baseline was measured elsewhere (" + "; ".join(differ)
+    return ("warning: the baseline was measured elsewhere (" + "; ".join(differ + settings)
             + "): the ratios compare machines, not code")
+  if settings:  # e.g. --no-low-memory-compile: compile time and memory move with it
+    return ("warning: the baseline was measured with other settings (" + "; ".join(settings)
+            + "): the ratios compare those settings, not code")
   if base.get("date") and base["date"] != res.get("date"):
     return (f"note: the baseline was measured on {base['date']}: machines of one kind differ "
             "between sessions (up to 1.6x seen on CPUs), so remeasure it here for a ratio of "
