@@ -153,7 +153,8 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                           "link.json is a symbolic link; give the path of a regular file"),
                          (["--json", str(tmp_path)], "is a folder"),
                          (["--json", str(tmp_path / "no" / "r.json")], "does not exist"),
-                         (["--repeats", "0"], "--repeats must be >= 1")):
+                         (["--repeats", "0"], "--repeats must be >= 1"),
+                         (["--overwrite"], "--overwrite replaces a --json file: name one")):
     assert cli.main([*ARGS, *extra]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
@@ -187,7 +188,8 @@ def test_bench_measures_under_the_matmul_precision_asked_and_notes_a_baseline_wi
   assert "compiler_options {'xla_cpu_use_thunk_runtime': False} here, {} there" in note, note
 
 
-def test_bench_passes_the_batch_dtype_and_every_prediction_to_the_measurement(monkeypatch):
+def test_bench_passes_the_batch_dtype_and_every_prediction_to_the_measurement(monkeypatch,
+                                                                            capsys):
   from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
   calls = []
 
@@ -205,3 +207,13 @@ def test_bench_passes_the_batch_dtype_and_every_prediction_to_the_measurement(mo
   with pytest.raises(KeyboardInterrupt):
     cli.main(ARGS)
   assert calls[-1][0][4:6] == (1, "float32") and calls[-1][1]["final_only"] is True
+  # The report's input line says when every prediction was measured.
+  fake = {"device": "cpu:cpu", "jax": "x", "batch": 1, "frames": 2, "height": 32, "width": 64,
+          "iters": 2, "dtype": "float32", "vit_attention": "blocked", "compiler_options": {},
+          "compile_s": 1.0, "cache_hit": False, "median_s": 1.0, "min_s": 1.0, "fps": 2.0,
+          "peak_rss_gb": 0.5}
+  for flags, final_only in (([], True), (["--all-predictions"], False)):
+    monkeypatch.setattr(bench, "measure", lambda *a, **k: {**fake, "final_only": k["final_only"]})
+    assert cli.main([*ARGS, *flags]) == 0
+    line = next(l for l in capsys.readouterr().out.splitlines() if l.startswith("input"))
+    assert ("every prediction (--all-predictions)" in line) is not final_only, line

@@ -307,6 +307,8 @@ def run(args: argparse.Namespace) -> int:
   for name in ("frames", "batch", "repeats"):
     if getattr(args, name) < 1:
       raise UsageError(f"--{name} must be >= 1, got {getattr(args, name)}")
+  if args.overwrite and not args.json:
+    raise UsageError("--overwrite replaces a --json file: name one with --json")
   problem = json_output_problem(args.json, args.overwrite) if args.json else None
   if problem:  # checked before the long run
     raise UsageError(problem)
@@ -329,6 +331,7 @@ def run(args: argparse.Namespace) -> int:
         f"{f' ({platform})' if kind and kind.lower() != platform else ''}  (jax {res['jax']})")
   print(f"input         B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
         f"iters={res['iters']} {res['dtype']}"
+        + ("" if res["final_only"] else ", every prediction (--all-predictions)")
         + ("" if res["vit_attention"] == "blocked" else f", ViT attention {res['vit_attention']}"))
   if res["compiler_options"]:
     print("XLA options   " + ", ".join(f"{k}={v}" for k, v in res["compiler_options"].items()))
