@@ -100,8 +100,9 @@ class SAVConfig:
       (flash) attention through `jax.nn.dot_product_attention`, which never stores the
       logits (at 720x1280 the ViT's 40 frames x 6 heads x 4642^2 logits per layer); CUDA
       GPUs and `dtype="bfloat16"` only (on an H200 it halves the depth prior's time at
-      720x1280). "auto" (default): "cudnn" when JAX's default backend is a GPU and
-      `dtype="bfloat16"`, else "blocked" (`resolve_vit_attention`). Not a weight setting.
+      720x1280). "auto" (default): "cudnn" when JAX's default backend is an NVIDIA GPU
+      of compute capability 8.0 or later (Ampere on) and `dtype="bfloat16"`, else "blocked"
+      (`resolve_vit_attention`). Not a weight setting.
     detach_flow: stop the gradient of the flow entering each refinement step, as the
       official model (`flow.detach()`, RAFT's truncated backpropagation; training uses it).
       Values are the same either way; False gives the true derivative of the predictions
@@ -125,7 +126,7 @@ class SAVConfig:
   detach_flow: bool = True
 
   def __post_init__(self):
-    if not isinstance(self.dtype, str):  # jnp.bfloat16, np.dtype("float32"): as predict_video
+    if self.dtype is not None and not isinstance(self.dtype, str):  # jnp.bfloat16: as predict_video
       try:
         object.__setattr__(self, "dtype", np.dtype(self.dtype).name)
       except TypeError:

@@ -467,22 +467,22 @@ def test_bad_overrides(tmp_path, ckpt, capsys, override, message):
 
 def test_tcc_without_camera_data_is_refused_before_predicting(tmp_path, ckpt, capsys,
                                                                monkeypatch):
-  load = eval_data.load_sequences
+  load = eval_data.load_sequences_and_skipped
 
   def without_scale(config, root):
-    seqs = load(config, root)
+    seqs, skipped = load(config, root)
     for seq in seqs:
       seq.depth2disp_scale = None  # as a dataset without camera data (SceneFlow)
-    return seqs
+    return seqs, skipped
 
-  monkeypatch.setattr(eval_data, "load_sequences", without_scale)
+  monkeypatch.setattr(eval_data, "load_sequences_and_skipped", without_scale)
   monkeypatch.setattr(eval_runner.inference, "predict_video", None)  # must not be reached
   rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL,
              "--out", str(tmp_path / "o"), "--config.metrics.tcc=true"])
   err = capsys.readouterr().err
   assert rc == 2 and "config.metrics.tcc needs depth" in err and "synthetic_000" in err, err
   assert not (tmp_path / "o").exists()
-  monkeypatch.setattr(eval_data, "load_sequences", load)
+  monkeypatch.setattr(eval_data, "load_sequences_and_skipped", load)
   one_frame = [a.replace(f"frames={T}", "frames=1") for a in SMALL]  # no temporal metric
   rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *one_frame,
              "--out", str(tmp_path / "o"), "--config.metrics.tcc=true"])

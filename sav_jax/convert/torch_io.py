@@ -324,7 +324,7 @@ KIND_NAMES = {"sav": "a Stereo Any Video", "vda": "a Video Depth Anything (depth
 KIND_HINTS = {
     "raft": "RAFT, the evaluation's optical-flow model, needs no conversion: give the file to "
             "python -m eval as --config.metrics.raft=raft-things.pth (or to "
-            "sav_jax.convert.load_raft)",
+            "sav_jax.convert.raft.load_raft)",
     "raft_small": "only the large RAFT is supported: raft-things.pth, from the same "
                   "models.zip as raft-small.pth"}
 
