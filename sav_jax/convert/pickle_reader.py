@@ -30,6 +30,7 @@ import logging
 import math
 import os
 import pickle
+import pickletools
 import struct
 import zipfile
 
@@ -46,6 +47,11 @@ _MAX_EXPANDED_NUMEL = 1 << 24
 # many full views of one storage, or of many expansions, would otherwise take any memory).
 _MAX_TENSOR_TO_STORAGE = 4
 _EXTRA_TENSOR_BYTES = 1 << 30
+# A checkpoint's object pickle has a few opcodes per tensor (a training checkpoint with its
+# optimizer state: ~10^5); each opcode may build an object, so their number bounds the
+# memory the unpickler takes. Refused globals (`opaque_unknown`) each get a class: bounded.
+MAX_PICKLE_OPS = 1 << 21
+MAX_REFUSED_GLOBALS = 1000
 
 
 class CheckpointError(ValueError):
@@ -356,15 +362,20 @@ class RestrictedUnpickler(pickle.Unpickler):
     self._source = source
     self._storage_loader = persistent_load
     self._opaque = opaque_unknown
-    self.refused = set()
+    self.refused = {}  # "module.name" -> its placeholder class
 
   def find_class(self, module, name):
     obj = SAFE_GLOBALS.get((module, name))
     if obj is not None:
       return obj
     if self._opaque:
-      self.refused.add(f"{module}.{name}")
-      return _opaque_class(f"{module}.{name}")
+      key = f"{module}.{name}"
+      if key not in self.refused:
+        if len(self.refused) >= MAX_REFUSED_GLOBALS:
+          raise CheckpointError(f"{self._source}: more than {MAX_REFUSED_GLOBALS} different "
+                                "pickled globals: not a checkpoint")
+        self.refused[key] = _opaque_class(key)
+      return self.refused[key]
     raise RefusedGlobal(
         f"{self._source}: refusing to load the pickled global '{module}.{name}' (only tensor "
         "rebuild helpers and containers are allowed; the file may be malicious or hold "
@@ -378,8 +389,29 @@ class RestrictedUnpickler(pickle.Unpickler):
     return self._storage_loader(pid)
 
 
+def check_pickle_ops(file, source) -> None:
+  """Reads the next pickle of the seekable `file` opcode by opcode, without building anything,
+  and goes back to where it began; raises CheckpointError when it has more than
+  MAX_PICKLE_OPS opcodes or stores into a memo slot beyond the opcodes read so far (the C
+  unpickler allocates the memo up to the largest index: one opcode of a 300-byte file asked
+  for 4 GB)."""
+  start = file.tell()
+  count = 0
+  for op, arg, _ in pickletools.genops(file):
+    count += 1
+    if count > MAX_PICKLE_OPS:
+      raise CheckpointError(f"{source}: a pickle of more than {MAX_PICKLE_OPS} opcodes: not a "
+                            "checkpoint's")
+    if op.name in ("PUT", "BINPUT", "LONG_BINPUT") and arg > count:
+      raise CheckpointError(f"{source}: the pickle stores into memo slot {arg} after "
+                            f"{count} opcodes: not a checkpoint's pickle (it would allocate "
+                            "a memo that large)")
+  file.seek(start)
+
+
 def _unpickle(file, source, persistent_load, opaque_unknown):
   """Runs one `RestrictedUnpickler`; every `CheckpointError` it raises names `source`."""
+  check_pickle_ops(file, source)
   unpickler = RestrictedUnpickler(file, source, persistent_load, opaque_unknown)
   try:
     obj = unpickler.load()
@@ -434,9 +466,11 @@ def load_zip(path, source, opaque_unknown=False):
   """
   with _reading(source, "torch zip checkpoint"), zipfile.ZipFile(path) as zf:
     prefix = _zip_prefix(zf, source)
+    budget = InflationBudget(zf, source)
     order = "little"
     if prefix + "byteorder" in zf.namelist():
-      order = _read_member(zf, prefix + "byteorder", 64, source).decode("ascii", "replace").strip()
+      order = _read_member(zf, prefix + "byteorder", 64, source, budget).decode(
+          "ascii", "replace").strip()
     if order not in ("little", "big"):
       raise CheckpointError(f"{source}: unknown byteorder record {order!r}")
     storages = {}
@@ -445,10 +479,11 @@ def load_zip(path, source, opaque_unknown=False):
       dtype, key, numel, _ = _parse_storage_pid(pid, source, legacy=False)
       if key not in storages:
         storage = storages[key] = _Storage(key, dtype, numel, big_endian=order == "big")
-        storage.set_data(_zip_record(zf, prefix, key, dtype, numel, order, source))
+        storage.set_data(_zip_record(zf, prefix, key, dtype, numel, order, source, budget))
       return storages[key]
 
-    pickled = io.BytesIO(_read_member(zf, prefix + "data.pkl", MAX_PICKLE_BYTES, source))
+    pickled = io.BytesIO(_read_member(zf, prefix + "data.pkl", MAX_PICKLE_BYTES, source,
+                                      budget))
     return _unpickle(pickled, source, load_storage, opaque_unknown)
 
 
@@ -459,6 +494,10 @@ def _zip_prefix(zf, source):
   a TorchScript archive is told by its `<prefix>code/` folder or `constants.pkl`.
   """
   all_names = zf.namelist()
+  twice = sorted(n for n, k in collections.Counter(all_names).items() if k > 1)
+  if twice:  # which copy would a reader take? (zipfile: the last one; others: the first)
+    raise CheckpointError(f"{source}: zip file with records of the same name ({twice[:3]}): "
+                          "not a torch checkpoint")
   names = [n for n in all_names if n == "data.pkl" or n.endswith("/data.pkl")]
   names = [n for n in names if n.count("/") <= 1]
   prefix = names[0][:-len("data.pkl")] if len(names) == 1 else None
@@ -474,11 +513,13 @@ def _zip_prefix(zf, source):
 
 # The object pickle of a checkpoint is small (names, shapes, a scheduler's state): a larger
 # one is no model checkpoint, and a compressed record must not inflate without bound.
-MAX_PICKLE_BYTES = 1 << 30
+MAX_PICKLE_BYTES = 1 << 28
 
 
-def _read_member(zf, name: str, limit: int, source) -> bytes:
-  """Zip member `name`, refused when it inflates to more than `limit` bytes."""
+def _read_member(zf, name: str, limit: int, source, budget) -> bytes:
+  """Zip member `name`, refused when it inflates to more than `limit` bytes or beyond the
+  archive's `InflationBudget`."""
+  budget.check(zf.getinfo(name))
   with zf.open(name) as fh:
     data = fh.read(limit + 1)
   if len(data) > limit:
@@ -490,29 +531,59 @@ def _read_member(zf, name: str, limit: int, source) -> bytes:
 # A compressed zip record inflating more than this many times its compressed size is
 # refused (weights deflate to ~0.9 of their size; an all-zero tensor to ~1/1000, so records
 # up to FREE_INFLATION bytes are exempt): a 1 MB file cannot ask for more than ~100 MB per
-# record. (The bytes read never exceed a record's declared size.)
+# record. (The bytes read never exceed a record's declared size.) The records of one file
+# together are held to the same ratio, with FREE_TOTAL bytes exempt.
 MAX_INFLATION = 100
 FREE_INFLATION = 1 << 20
+FREE_TOTAL = 16 << 20
 
 
-def check_inflation(info: zipfile.ZipInfo, source) -> None:
-  """Raises CheckpointError naming the record when `info` inflates beyond MAX_INFLATION."""
-  if (info.compress_type != zipfile.ZIP_STORED
-      and info.file_size > max(MAX_INFLATION * info.compress_size, FREE_INFLATION)):
-    raise CheckpointError(
-        f"{source}: zip record {info.filename!r} inflates {info.compress_size} bytes to "
-        f"{info.file_size} ({info.file_size / max(info.compress_size, 1):.0f}x, more than "
-        f"{MAX_INFLATION}x): not a checkpoint's weights (torch.save stores them uncompressed, "
-        "and compressed weights shrink little)")
+class InflationBudget:
+  """The inflation bound of one zip archive's compressed records.
+
+  A record's compressed size is taken as the bytes it occupies in the file (up to the next
+  record or the central directory), not as its header declares: a crafted header declaring
+  50x its real size passed a 1000x record. The records read so far are also held to the
+  bound together (a thousand records of 1 MiB of zeros each passed one by one).
+  """
+
+  def __init__(self, zf: zipfile.ZipFile, source):
+    self.source = source
+    starts = sorted({i.header_offset for i in zf.infolist()})
+    end = getattr(zf, "start_dir", None)
+    if end is None:  # (CPython's ZipFile has it) the file's end
+      end = zf.fp.seek(0, os.SEEK_END) if zf.fp is not None else math.inf
+    self._next = {a: b for a, b in zip(starts, starts[1:] + [end])}
+    self.inflated = self.compressed = 0
+
+  def check(self, info: zipfile.ZipInfo) -> None:
+    """Raises CheckpointError naming the record when reading it would break the bound."""
+    if info.compress_type == zipfile.ZIP_STORED:
+      return
+    extent = self._next.get(info.header_offset, math.inf) - info.header_offset
+    compressed = max(min(info.compress_size, extent), 0)
+    if info.file_size > max(MAX_INFLATION * compressed, FREE_INFLATION):
+      raise CheckpointError(
+          f"{self.source}: zip record {info.filename!r} inflates {compressed} bytes to "
+          f"{info.file_size} ({info.file_size / max(compressed, 1):.0f}x, more than "
+          f"{MAX_INFLATION}x): not a checkpoint's weights (torch.save stores them "
+          "uncompressed, and compressed weights shrink little)")
+    self.inflated += info.file_size
+    self.compressed += compressed
+    if self.inflated > MAX_INFLATION * self.compressed + FREE_TOTAL:
+      raise CheckpointError(
+          f"{self.source}: its compressed zip records inflate {self.compressed} bytes to "
+          f"{self.inflated} together (more than {MAX_INFLATION}x, past "
+          f"{info.filename!r}): not a checkpoint's weights")
 
 
-def _zip_record(zf, prefix, key, dtype, numel, order, source):
+def _zip_record(zf, prefix, key, dtype, numel, order, source, budget):
   name = f"{prefix}data/{key}"
   try:
     info = zf.getinfo(name)
   except KeyError:
     raise CheckpointError(f"{source}: storage record {name!r} is missing") from None
-  check_inflation(info, source)
+  budget.check(info)
   nbytes = numel * dtype.raw.itemsize
   if info.file_size < nbytes:
     raise CheckpointError(f"{source}: storage {name!r} has {info.file_size} bytes, "

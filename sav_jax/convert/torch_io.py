@@ -17,7 +17,7 @@ from typing import Mapping
 
 import numpy as np
 
-from sav_jax.convert.pickle_reader import LEGACY_MAGIC, CheckpointError, check_inflation
+from sav_jax.convert.pickle_reader import LEGACY_MAGIC, CheckpointError, InflationBudget
 from sav_jax.convert.pickle_reader import load_legacy
 from sav_jax.convert.pickle_reader import load_zip
 from sav_jax.convert.pickle_reader import resolve_tensors
@@ -116,14 +116,15 @@ def _load_npz(path):
       raise CheckpointError(f"{path}: not an .npz archive (an .npz file is a zip archive; "
                             f"this one starts with {magic!r})")
     with zipfile.ZipFile(path) as zf:  # before NumPy inflates a record
+      budget = InflationBudget(zf, path)
       for info in zf.infolist():
-        check_inflation(info, path)
+        budget.check(info)
     with np.load(path, allow_pickle=False) as data:
       out = {}
       for member in data.files:
         out[member] = np.array(data[member])
       return out
-  except (OSError, ValueError, EOFError, zipfile.BadZipFile, MemoryError) as e:
+  except Exception as e:  # pylint: disable=broad-except  # zlib.error, LZMAError, ... too
     if isinstance(e, CheckpointError):
       raise
     where = f" (array {member!r})" if member is not None else ""

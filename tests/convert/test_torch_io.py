@@ -425,6 +425,96 @@ def test_compressed_records_are_read_no_further_than_needed(tmp_path, fake_torch
     torch_io.load_state_dict(path)
 
 
+def test_archives_that_would_take_memory_beyond_their_size_are_refused(tmp_path, fake_torch,
+                                                                       monkeypatch):
+  """Found by fuzzing: a record whose header declares 50x its compressed size passed the
+  inflation bound; records of 1 MiB of zeros each passed one by one (a 1 MB file took 5 GB);
+  two records of one name were read as the last one."""
+  b = _Builder(fake_torch)
+  obj = {"x": b.array(np.arange(3, dtype=np.float32), "float32")}
+  path = tmp_path / "lie.pth"
+  key = next(iter(b.storages))
+  name = f"archive/data/{key}"
+  with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+    zf.writestr("archive/data.pkl", b.pickle(obj, legacy=False))
+    zf.writestr(name, b.storages[key].raw + bytes(64 << 20))  # ~1000x
+  with zipfile.ZipFile(path) as zf:
+    info = zf.getinfo(name)
+  raw = bytearray(path.read_bytes())  # the central directory declares 50x the real size
+  at = raw.index(b"PK\x01\x02", raw.index(b"PK\x01\x02") + 1)  # the second entry's
+  assert raw[at + 46:at + 46 + len(name)] == name.encode()
+  assert int.from_bytes(raw[at + 20:at + 24], "little") == info.compress_size
+  raw[at + 20:at + 24] = (50 * info.compress_size).to_bytes(4, "little")
+  path.write_bytes(bytes(raw))
+  with pytest.raises(CheckpointError, match=rf"lie\.pth: zip record '{name}' inflates "
+                                            rf"\d+ bytes to 67108876 \(\d{{4}}x"):
+    torch_io.load_state_dict(path)
+  many = {f"w{i}": np.zeros((1 << 18) - 64, np.float32) for i in range(20)}  # 20 x ~1 MiB
+  np.savez_compressed(tmp_path / "many.npz", **many)
+  assert (tmp_path / "many.npz").stat().st_size < 1 << 20
+  with pytest.raises(CheckpointError, match=r"many\.npz: its compressed zip records inflate "
+                                            r"\d+ bytes to \d+ together \(more than 100x"):
+    torch_io.load_state_dict(tmp_path / "many.npz")
+  np.savez_compressed(tmp_path / "few.npz", **dict(list(many.items())[:4]))  # 4 MiB: free
+  assert len(torch_io.load_state_dict(tmp_path / "few.npz")) == 4
+  with pytest.warns(UserWarning, match="Duplicate name"):
+    with zipfile.ZipFile(tmp_path / "twice.pth", "w") as zf:
+      zf.writestr("archive/data.pkl", b.pickle(obj, legacy=False))
+      zf.writestr(name, b.storages[key].raw)
+      zf.writestr(name, np.float32([7, 8, 9]).tobytes())
+  with pytest.raises(CheckpointError, match=rf"twice\.pth: zip file with records of the same "
+                                            rf"name \(\['{name}'\]\)"):
+    torch_io.load_state_dict(tmp_path / "twice.pth")
+  # A corrupt deflate stream in an .npz: one line (zlib.error escaped as a traceback).
+  np.savez_compressed(tmp_path / "bad.npz", w=np.arange(1000, dtype=np.float32))
+  with zipfile.ZipFile(tmp_path / "bad.npz") as zf:
+    info = zf.infolist()[0]
+  raw = bytearray((tmp_path / "bad.npz").read_bytes())
+  off = info.header_offset  # the deflate stream begins after the local header's name, extra
+  off += 30 + int.from_bytes(raw[off + 26:off + 28], "little") + int.from_bytes(
+      raw[off + 28:off + 30], "little")
+  raw[off] = 0xFF  # BFINAL 1, BTYPE 3: an invalid block type
+  (tmp_path / "bad.npz").write_bytes(bytes(raw))
+  with pytest.raises(CheckpointError, match=r"bad\.npz: cannot read \.npz file .*error"):
+    torch_io.load_state_dict(tmp_path / "bad.npz")
+
+
+def _pickle_with_ops(ops: bytes) -> bytes:
+  return b"\x80\x02" + ops + b"."  # protocol 2 ... STOP
+
+
+def test_pickles_that_would_take_memory_beyond_their_size_are_refused(tmp_path, monkeypatch):
+  """One LONG_BINPUT of a huge index made the C unpickler allocate a memo of that size (a
+  548-byte file took 4.3 GB); the opcodes bound the objects built; refused globals read as
+  placeholders each made a class."""
+  memo = _pickle_with_ops(b"}" + b"r" + (1 << 22).to_bytes(4, "little"))  # EMPTY_DICT, PUT
+  for legacy in (False, True):
+    path = tmp_path / f"memo_{legacy}.pth"
+    if legacy:
+      path.write_bytes(memo)
+    else:
+      with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("archive/data.pkl", memo)
+    with pytest.raises(CheckpointError, match=r"stores into memo slot 4194304 after 3 opcodes: "
+                                              r"not a checkpoint's pickle"):
+      torch_io.load_state_dict(path, opaque_unknown=True)
+  monkeypatch.setattr(pickle_reader, "MAX_PICKLE_OPS", 50)
+  lists = _pickle_with_ops(b"]" * 60 + b"0" * 59)  # 60 empty lists, 59 POPs
+  with zipfile.ZipFile(tmp_path / "ops.pth", "w") as zf:
+    zf.writestr("archive/data.pkl", lists)
+  with pytest.raises(CheckpointError, match="a pickle of more than 50 opcodes"):
+    torch_io.load_state_dict(tmp_path / "ops.pth")
+  monkeypatch.setattr(pickle_reader, "MAX_PICKLE_OPS", 1 << 21)
+  monkeypatch.setattr(pickle_reader, "MAX_REFUSED_GLOBALS", 2)
+  ops = b"".join(b"c" + f"mod{i % 3}\nObj\n".encode() + b"0" for i in range(6)) + b"}"
+  with zipfile.ZipFile(tmp_path / "globals.pth", "w") as zf:
+    zf.writestr("archive/data.pkl", _pickle_with_ops(ops))
+  with pytest.raises(CheckpointError, match="more than 2 different pickled globals"):
+    torch_io.load_state_dict(tmp_path / "globals.pth", opaque_unknown=True)
+  unpickler = pickle_reader.RestrictedUnpickler(io.BytesIO(b""), "x", opaque_unknown=True)
+  assert unpickler.find_class("m", "A") is unpickler.find_class("m", "A")  # one class a name
+
+
 # --------------------------------------------------------------------------------------------
 # Malicious pickles: nothing may run.
 
