@@ -659,7 +659,10 @@ def _read_legacy_storages(fh, keys, storages, source):
       raise CheckpointError(f"{source}: truncated legacy checkpoint (storage {key!r})")
     (numel,) = struct.unpack("<q", header)
     nbytes = numel * storage.dtype.raw.itemsize
-    if numel < storage.numel or nbytes > remaining - 8:
+    if numel < storage.numel:  # (the message said "needs 48 bytes, 48 left")
+      raise CheckpointError(f"{source}: corrupt legacy checkpoint (storage {key!r} holds "
+                            f"{numel} elements, its persistent id declares {storage.numel})")
+    if nbytes > remaining - 8:
       raise CheckpointError(f"{source}: truncated legacy checkpoint (storage {key!r} "
                             f"needs {nbytes} bytes, {max(remaining - 8, 0)} left)")
     raw = fh.read(nbytes)

@@ -814,6 +814,13 @@ def test_legacy_huge_storage_count_is_truncation(tmp_path, fake_torch):
     f.write(pickle.dumps([st.key], protocol=2) + struct.pack("<q", 1 << 60) + st.raw)
   with pytest.raises(CheckpointError, match="truncated"):
     torch_io.load_state_dict(path)
+  for count in (1, -1):  # fewer elements than declared: said so ("needs 4 bytes, 8 left")
+    with open(path, "wb") as f:
+      f.write(_legacy_header() + b.pickle({"x": b.tensor(st, 0, (2,), (1,))}, legacy=True))
+      f.write(pickle.dumps([st.key], protocol=2) + struct.pack("<q", count) + st.raw)
+    with pytest.raises(CheckpointError, match=rf"corrupt legacy checkpoint \(storage '0' holds "
+                                              rf"{count} elements, its persistent id declares 2\)"):
+      torch_io.load_state_dict(path)
 
 
 # --------------------------------------------------------------------------------------------
