@@ -136,8 +136,9 @@ def _refuse_out_in_dataset(out, dataset: str, data_root) -> None:
   where = out.expanduser().resolve()
   for folder in registry.dataset_folders(dataset, data_root):
     if where.is_relative_to(folder.resolve()):
-      raise UsageError(f"--out {out} is inside the dataset's folder {folder}: the reader would "
-                       "take it for data; choose a folder outside the dataset")
+      raise UsageError(f"--out {out} is inside the dataset's folder {folder}: keep outputs "
+                       "out of the dataset (where the reader looks, it would take them for "
+                       "data); choose a folder outside it")
 
 
 def _run_into(args, config, out) -> int:

@@ -984,8 +984,8 @@ def test_an_output_folder_inside_the_dataset_is_refused(tmp_path, ckpt, capsys):
     assert main(["--config", str(CONFIGS / "sintel_final.py"), "--checkpoint", str(ckpt),
                  "--data-root", str(root), "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert (f"--out {out} is inside the dataset's folder {tmp_path / 'sintel_stereo'}: the "
-            "reader would take it for data") in err, err
+    assert (f"--out {out} is inside the dataset's folder {tmp_path / 'sintel_stereo'}: keep "
+            "outputs out of the dataset") in err, err
     assert not out.exists()
 
 

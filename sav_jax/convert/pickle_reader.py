@@ -48,9 +48,10 @@ _MAX_EXPANDED_NUMEL = 1 << 24
 _MAX_TENSOR_TO_STORAGE = 4
 _EXTRA_TENSOR_BYTES = 1 << 30
 # A checkpoint's object pickle has a few opcodes per tensor (a training checkpoint with its
-# optimizer state: ~10^5); each opcode may build an object, so their number bounds the
-# memory the unpickler takes. Refused globals (`opaque_unknown`) each get a class: bounded.
-MAX_PICKLE_OPS = 1 << 21
+# optimizer state: ~10^5; one with a per-step log of 300k steps: ~2.4 million); each opcode
+# may build an object, so their number bounds the memory the unpickler takes (~1 GB at
+# most). Refused globals (`opaque_unknown`) each get a class: bounded too.
+MAX_PICKLE_OPS = 1 << 24
 MAX_REFUSED_GLOBALS = 1000
 
 
@@ -543,38 +544,44 @@ class InflationBudget:
 
   A record's compressed size is taken as the bytes it occupies in the file (up to the next
   record or the central directory), not as its header declares: a crafted header declaring
-  50x its real size passed a 1000x record. The records read so far are also held to the
-  bound together (a thousand records of 1 MiB of zeros each passed one by one).
+  50x its real size passed a 1000x record. The archive's compressed records are also held
+  to the bound together, whatever their order (a thousand records of 1 MiB of zeros each
+  passed one by one).
   """
 
   def __init__(self, zf: zipfile.ZipFile, source):
     self.source = source
-    starts = sorted({i.header_offset for i in zf.infolist()})
+    infos = zf.infolist()
+    starts = sorted({i.header_offset for i in infos})
     end = getattr(zf, "start_dir", None)
     if end is None:  # (CPython's ZipFile has it) the file's end
       end = zf.fp.seek(0, os.SEEK_END) if zf.fp is not None else math.inf
     self._next = {a: b for a, b in zip(starts, starts[1:] + [end])}
-    self.inflated = self.compressed = 0
+    packed = [i for i in infos if i.compress_type != zipfile.ZIP_STORED]
+    for info in packed:  # each record (named), then all of them
+      self.check(info)
+    inflated = sum(i.file_size for i in packed)
+    compressed = sum(self._compressed(i) for i in packed)
+    if inflated > MAX_INFLATION * compressed + FREE_TOTAL:  # all records, in any order
+      raise CheckpointError(
+          f"{source}: its compressed zip records inflate {compressed} bytes to {inflated} "
+          f"together (more than {MAX_INFLATION}x): not a checkpoint's weights")
+
+  def _compressed(self, info: zipfile.ZipInfo) -> int:
+    extent = self._next.get(info.header_offset, math.inf) - info.header_offset
+    return max(min(info.compress_size, extent), 0)
 
   def check(self, info: zipfile.ZipInfo) -> None:
     """Raises CheckpointError naming the record when reading it would break the bound."""
     if info.compress_type == zipfile.ZIP_STORED:
       return
-    extent = self._next.get(info.header_offset, math.inf) - info.header_offset
-    compressed = max(min(info.compress_size, extent), 0)
+    compressed = self._compressed(info)
     if info.file_size > max(MAX_INFLATION * compressed, FREE_INFLATION):
       raise CheckpointError(
           f"{self.source}: zip record {info.filename!r} inflates {compressed} bytes to "
           f"{info.file_size} ({info.file_size / max(compressed, 1):.0f}x, more than "
           f"{MAX_INFLATION}x): not a checkpoint's weights (torch.save stores them "
           "uncompressed, and compressed weights shrink little)")
-    self.inflated += info.file_size
-    self.compressed += compressed
-    if self.inflated > MAX_INFLATION * self.compressed + FREE_TOTAL:
-      raise CheckpointError(
-          f"{self.source}: its compressed zip records inflate {self.compressed} bytes to "
-          f"{self.inflated} together (more than {MAX_INFLATION}x, past "
-          f"{info.filename!r}): not a checkpoint's weights")
 
 
 def _zip_record(zf, prefix, key, dtype, numel, order, source, budget):
