@@ -67,10 +67,14 @@ def flax_to_torch_array(x: np.ndarray, leaf: str = "kernel") -> np.ndarray:
 def unused_array(value) -> np.ndarray:
   """A tensor kept beside the params (`torch_unused`): floating point as float32, like the
   params, so that an export from a float16 file is float32 throughout."""
-  a = np.asarray(value)
-  floating = np.issubdtype(a.dtype, np.floating) or a.dtype.name.startswith(("bfloat16",
-                                                                             "float8"))
-  return a.astype(np.float32) if floating else a
+  a = widened(np.asarray(value))
+  return a.astype(np.float32) if np.issubdtype(a.dtype, np.floating) else a
+
+
+def widened(a: np.ndarray) -> np.ndarray:
+  """ml_dtypes' bfloat16 and float8 arrays (JAX's, NumPy's) as float32, exactly; NumPy's
+  own types as they are."""
+  return a.astype(np.float32) if a.dtype.name.startswith(("bfloat16", "float8")) else a
 
 
 def converted(key: str, value, leaf: str, shape: tuple[int, ...], model: str = "the model"):

@@ -37,8 +37,8 @@ SAV_UNUSED_KEYS = ("update_block.time_attn.temporal_attn.qkv.weight",)
 
 def vda_encoder_of(state_dict: Mapping, prefix: str = VDA_PREFIX) -> str | None:
   """The `SAVConfig.vda_encoder` whose depth prior the weights hold ("vits", "vitb", "vitl"),
-  from the width of the DINOv2 class token `{prefix}pretrained.cls_token` (`prefix=""` for a Video
-  Depth Anything checkpoint); None when the file does not say or names no supported one."""
+  from the width of the DINOv2 class token `{prefix}pretrained.cls_token` (`prefix=""` for a
+  Video Depth Anything checkpoint); None when the file does not say or names no supported one."""
   return encoder_of_width(np.shape(state_dict.get(prefix + "pretrained.cls_token", ()))[-1:])
 
 

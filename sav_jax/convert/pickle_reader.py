@@ -467,11 +467,10 @@ def load_zip(path, source, opaque_unknown=False):
   """
   with _reading(source, "torch zip checkpoint"), zipfile.ZipFile(path) as zf:
     prefix = _zip_prefix(zf, source)
-    budget = InflationBudget(zf, source)
+    check_inflation(zf, source)  # every record, before any is read
     order = "little"
     if prefix + "byteorder" in zf.namelist():
-      order = _read_member(zf, prefix + "byteorder", 64, source, budget).decode(
-          "ascii", "replace").strip()
+      order = _read_member(zf, prefix + "byteorder", 64, source).decode("ascii", "replace").strip()
     if order not in ("little", "big"):
       raise CheckpointError(f"{source}: unknown byteorder record {order!r}")
     storages = {}
@@ -480,11 +479,10 @@ def load_zip(path, source, opaque_unknown=False):
       dtype, key, numel, _ = _parse_storage_pid(pid, source, legacy=False)
       if key not in storages:
         storage = storages[key] = _Storage(key, dtype, numel, big_endian=order == "big")
-        storage.set_data(_zip_record(zf, prefix, key, dtype, numel, order, source, budget))
+        storage.set_data(_zip_record(zf, prefix, key, dtype, numel, order, source))
       return storages[key]
 
-    pickled = io.BytesIO(_read_member(zf, prefix + "data.pkl", MAX_PICKLE_BYTES, source,
-                                      budget))
+    pickled = io.BytesIO(_read_member(zf, prefix + "data.pkl", MAX_PICKLE_BYTES, source))
     return _unpickle(pickled, source, load_storage, opaque_unknown)
 
 
@@ -517,10 +515,9 @@ def _zip_prefix(zf, source):
 MAX_PICKLE_BYTES = 1 << 28
 
 
-def _read_member(zf, name: str, limit: int, source, budget) -> bytes:
-  """Zip member `name`, refused when it inflates to more than `limit` bytes or beyond the
-  archive's `InflationBudget`."""
-  budget.check(zf.getinfo(name))
+def _read_member(zf, name: str, limit: int, source) -> bytes:
+  """Zip member `name` (of an archive `check_inflation` passed), refused when it inflates to
+  more than `limit` bytes."""
   with zf.open(name) as fh:
     data = fh.read(limit + 1)
   if len(data) > limit:
@@ -539,58 +536,46 @@ FREE_INFLATION = 1 << 20
 FREE_TOTAL = 16 << 20
 
 
-class InflationBudget:
-  """The inflation bound of one zip archive's compressed records.
+def check_inflation(zf: zipfile.ZipFile, source) -> None:
+  """Raises CheckpointError when a compressed record of the archive `zf`, or all of them
+  together, inflate beyond MAX_INFLATION (a record is named).
 
   A record's compressed size is taken as the bytes it occupies in the file (up to the next
   record or the central directory), not as its header declares: a crafted header declaring
-  50x its real size passed a 1000x record. The archive's compressed records are also held
-  to the bound together, whatever their order (a thousand records of 1 MiB of zeros each
-  passed one by one).
+  50x its real size passed a 1000x record. The records are also held to the bound together,
+  whatever their order (a thousand records of 1 MiB of zeros each passed one by one).
   """
-
-  def __init__(self, zf: zipfile.ZipFile, source):
-    self.source = source
-    infos = zf.infolist()
-    starts = sorted({i.header_offset for i in infos})
-    end = getattr(zf, "start_dir", None)
-    if end is None:  # (CPython's ZipFile has it) the file's end
-      end = zf.fp.seek(0, os.SEEK_END) if zf.fp is not None else math.inf
-    self._next = {a: b for a, b in zip(starts, starts[1:] + [end])}
-    packed = [i for i in infos if i.compress_type != zipfile.ZIP_STORED]
-    for info in packed:  # each record (named), then all of them
-      self.check(info)
-    inflated = sum(i.file_size for i in packed)
-    compressed = sum(self._compressed(i) for i in packed)
-    if inflated > MAX_INFLATION * compressed + FREE_TOTAL:  # all records, in any order
-      raise CheckpointError(
-          f"{source}: its compressed zip records inflate {compressed} bytes to {inflated} "
-          f"together (more than {MAX_INFLATION}x): not a checkpoint's weights")
-
-  def _compressed(self, info: zipfile.ZipInfo) -> int:
-    extent = self._next.get(info.header_offset, math.inf) - info.header_offset
-    return max(min(info.compress_size, extent), 0)
-
-  def check(self, info: zipfile.ZipInfo) -> None:
-    """Raises CheckpointError naming the record when reading it would break the bound."""
+  infos = zf.infolist()
+  starts = sorted({i.header_offset for i in infos})
+  end = getattr(zf, "start_dir", None)
+  if end is None:  # (CPython's ZipFile has it) the file's end
+    end = zf.fp.seek(0, os.SEEK_END) if zf.fp is not None else math.inf
+  following = dict(zip(starts, starts[1:] + [end]))
+  inflated = compressed = 0
+  for info in infos:
     if info.compress_type == zipfile.ZIP_STORED:
-      return
-    compressed = self._compressed(info)
-    if info.file_size > max(MAX_INFLATION * compressed, FREE_INFLATION):
+      continue
+    packed = max(min(info.compress_size, following[info.header_offset] - info.header_offset), 0)
+    if info.file_size > max(MAX_INFLATION * packed, FREE_INFLATION):
       raise CheckpointError(
-          f"{self.source}: zip record {info.filename!r} inflates {compressed} bytes to "
-          f"{info.file_size} ({info.file_size / max(compressed, 1):.0f}x, more than "
+          f"{source}: zip record {info.filename!r} inflates {packed} bytes to "
+          f"{info.file_size} ({info.file_size / max(packed, 1):.0f}x, more than "
           f"{MAX_INFLATION}x): not a checkpoint's weights (torch.save stores them "
           "uncompressed, and compressed weights shrink little)")
+    inflated += info.file_size
+    compressed += packed
+  if inflated > MAX_INFLATION * compressed + FREE_TOTAL:
+    raise CheckpointError(
+        f"{source}: its compressed zip records inflate {compressed} bytes to {inflated} "
+        f"together (more than {MAX_INFLATION}x): not a checkpoint's weights")
 
 
-def _zip_record(zf, prefix, key, dtype, numel, order, source, budget):
+def _zip_record(zf, prefix, key, dtype, numel, order, source):
   name = f"{prefix}data/{key}"
   try:
     info = zf.getinfo(name)
   except KeyError:
     raise CheckpointError(f"{source}: storage record {name!r} is missing") from None
-  budget.check(info)
   nbytes = numel * dtype.raw.itemsize
   if info.file_size < nbytes:
     raise CheckpointError(f"{source}: storage {name!r} has {info.file_size} bytes, "

@@ -17,7 +17,8 @@ from typing import Mapping
 
 import numpy as np
 
-from sav_jax.convert.pickle_reader import LEGACY_MAGIC, CheckpointError, InflationBudget
+from sav_jax.convert.keys import widened
+from sav_jax.convert.pickle_reader import LEGACY_MAGIC, CheckpointError, check_inflation
 from sav_jax.convert.pickle_reader import load_legacy
 from sav_jax.convert.pickle_reader import load_zip
 from sav_jax.convert.pickle_reader import resolve_tensors
@@ -116,9 +117,7 @@ def _load_npz(path):
       raise CheckpointError(f"{path}: not an .npz archive (an .npz file is a zip archive; "
                             f"this one starts with {magic!r})")
     with zipfile.ZipFile(path) as zf:  # before NumPy inflates a record
-      budget = InflationBudget(zf, path)
-      for info in zf.infolist():
-        budget.check(info)
+      check_inflation(zf, path)
     with np.load(path, allow_pickle=False) as data:
       out = {}
       for member in data.files:
@@ -234,16 +233,11 @@ def unwrap_state_dict(obj, source: str = "<checkpoint>") -> dict:
 _TORCH_WIDENED = ("bfloat16", "float8_e4m3fn", "float8_e5m2", "float8_e4m3fnuz", "float8_e5m2fnuz")
 
 
-def _widened(a: np.ndarray) -> np.ndarray:
-  """ml_dtypes' bfloat16 and float8 arrays as float32 (NumPy's own types as they are)."""
-  return a.astype(np.float32) if a.dtype.name.startswith(("bfloat16", "float8")) else a
-
-
 def _to_numpy(key, v, source) -> np.ndarray:
   """`v` as a NumPy array; bfloat16 and float8 (torch's, or ml_dtypes' of JAX and NumPy
   arrays) widened to float32 exactly, as the file readers give them."""
   if isinstance(v, np.ndarray):
-    return _widened(v)
+    return widened(v)
   try:
     if type(v).__module__.split(".")[0] == "torch" and hasattr(v, "detach"):
       # What torch.load gives: tensors that may require grad, live on a GPU or be bfloat16
@@ -252,7 +246,7 @@ def _to_numpy(key, v, source) -> np.ndarray:
       if str(v.dtype).removeprefix("torch.") in _TORCH_WIDENED:
         v = v.float()
       return v.numpy()
-    return _widened(np.asarray(v))
+    return widened(np.asarray(v))
   except (TypeError, RuntimeError) as e:
     raise CheckpointError(f"{source}: {key!r} ({type(v).__name__} of dtype "
                           f"{getattr(v, 'dtype', '?')}) does not convert to a numpy array: {e}; "
