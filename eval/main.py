@@ -24,7 +24,7 @@ import time
 from eval import config as eval_config
 from eval import report
 from sav_jax import _signals, runtime
-from sav_jax._checks import is_int
+from sav_jax._checks import is_int, plural
 from sav_jax.config import DTYPES
 # The evaluation's own modules (`eval.runner`, `sav_jax.inference`) import JAX: they are
 # imported once the arguments and the config are checked, so `--help` and a bad config or
@@ -228,10 +228,6 @@ def _run_into(args, config, out) -> int:
   return rc
 
 
-def _count(n: int, what: str) -> str:
-  return f"{n} {what}{'' if n == 1 else 's'}"
-
-
 def evaluate(config, out, seqs, variables, model_cfg, described, methods, settings, done,
              devices=None, flow_fn=None, skipped=(), resumable=False) -> int:
   """Evaluates every sequence (but those in `done`, a resumed run's finished ones), records
@@ -239,11 +235,11 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
   With `resumable`, an error reading a sequence says that --resume continues the run."""
   from eval import runner  # pylint: disable=import-outside-toplevel
   on = f"; {len(devices)} {devices[0].platform} devices" if devices and len(devices) > 1 else ""
-  print(f"{config.dataset}/{config.split}: {_count(len(seqs), 'sequence')}; "
+  print(f"{config.dataset}/{config.split}: {plural(len(seqs), 'sequence')}; "
         f"weights: {described}{on}")
   if done:
-    print(f"--resume: {_count(len(done), 'sequence')} finished by the interrupted run "
-          f"{'is' if len(done) == 1 else 'are'} not evaluated again")
+    print(f"--resume: {plural(len(done), 'sequence')} finished by the interrupted "
+          f"run {'is' if len(done) == 1 else 'are'} not evaluated again")
   results = []
   for i, seq in enumerate(seqs):
     res = done.get(str(seq.name))
@@ -254,9 +250,9 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
       except (ValueError, OSError) as e:  # a frame that cannot be read, ...: say how to go on
         if not (results and resumable):
           raise
-        raise ValueError(f"{e}; the {_count(len(results), 'sequence')} finished before it "
-                         f"{'is' if len(results) == 1 else 'are'} recorded: fix it and run the "
-                         "same command with --resume to continue") from e
+        raise ValueError(f"{e}; the {plural(len(results), 'sequence')} finished "
+                         f"before it {'is' if len(results) == 1 else 'are'} recorded: fix it "
+                         "and run the same command with --resume to continue") from e
       runner.append_progress(out, settings, res)
     results.append(res)
     line = "  ".join(f"{eval_config.METHOD_NAMES[m]}: EPE {r['disp_epe_mean']:.3f} TEPE "

@@ -12,6 +12,8 @@ import json
 import os
 import pathlib
 
+from sav_jax._checks import plural
+
 # (column heading, metric key); bad rates and delta^t in percent.
 COLUMNS = (
     ("EPE", "disp_epe_mean"), ("bad-0.5 %", "disp_epe_bad_0.5px"),
@@ -58,8 +60,7 @@ def markdown(summary: dict) -> str:
            f"Weights: {summary['weights']}  ",
            f"iters {summary['config']['iters']}, window {summary['config']['window']} / stride "
            f"{summary['config']['stride']}, {summary['config']['dtype']}; "
-           f"{len(summary['sequences'])} sequence{'' if len(summary['sequences']) == 1 else 's'}"
-           f", {summary['frames']} frames."]
+           f"{plural(len(summary['sequences']), 'sequence')}, {summary['frames']} frames."]
   read_from = _read_from([seq["source"] for seq in summary["sequences"] if seq.get("source")])
   if read_from:  # Sintel's "test" split is its training/ folder, e.g.: where the frames came from
     lines[-1] += "  "
@@ -85,7 +86,7 @@ def markdown(summary: dict) -> str:
   notes = [n for seq in summary["sequences"] for n in seq.get("notes", [])]
   skipped = summary.get("skipped_sequences") or []
   if skipped:  # as the official evaluation skips them: the table covers the others
-    notes.append(f"{len(skipped)} sequence{'' if len(skipped) == 1 else 's'} shorter than "
+    notes.append(f"{plural(len(skipped), 'sequence')} shorter than "
                  f"sample_len={summary['config']['sample_len']} frames skipped, as the "
                  f"official evaluation does: {', '.join(skipped)}.")
   if notes:

@@ -1,4 +1,4 @@
-"""Argument checks shared by the library's modules."""
+"""Argument checks (and the counts in their messages) shared by the library's modules."""
 
 from __future__ import annotations
 
@@ -8,6 +8,11 @@ import sys
 import warnings
 
 import numpy as np
+
+
+def plural(n: int, one: str, many: str | None = None) -> str:
+  """`"1 sequence"`, `"2 sequences"`, `"2 processes"` (`many` where "s" is not the plural)."""
+  return f"{n} {one if n == 1 else many or one + 's'}"
 
 
 def is_int(x) -> bool:

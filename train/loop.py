@@ -32,6 +32,7 @@ import numpy as np
 
 import sav_jax
 from sav_jax import _signals, runtime
+from sav_jax._checks import plural
 from sav_jax._locks import FolderBusyError, FolderLock
 from sav_jax.data import pipeline
 from sav_jax.model.init import init_variables
@@ -518,8 +519,8 @@ def setup(config, workdir):
   mesh = state_lib.make_mesh()
   validate_config(config, workdir, mesh.size)
   log.info("compilation cache: %s", setup_compile_cache(config) or "off")
-  log.info("mesh %s over %s, %s", dict(mesh.shape), _count(mesh.size, "device"),
-           _count(jax.process_count(), "process", "processes"))
+  log.info("mesh %s over %s, %s", dict(mesh.shape), plural(mesh.size, "device"),
+           plural(jax.process_count(), "process", "processes"))
   data_clips = {}
   grain_it = iter(input_lib.train_dataset(config, clips=data_clips))
   # The validation clips, read before the model is traced: data that cannot be used fails
@@ -703,11 +704,6 @@ def _validation_missing(config, writer: MetricWriter, start: int) -> bool:
   missing = np.asarray(not writer.logged(start, "val"))
   with jax.transfer_guard("allow"):  # several processes: it places `missing` on a device
     return bool(multihost_utils.broadcast_one_to_all(missing))
-
-
-def _count(n: int, one: str, many: str | None = None) -> str:
-  """`1 device`, `8 devices`."""
-  return f"{n} {one if n == 1 else many or one + 's'}"
 
 
 class Diverged(FloatingPointError):

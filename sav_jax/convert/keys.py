@@ -15,6 +15,8 @@ import re
 
 import numpy as np
 
+from sav_jax._checks import plural
+
 
 def torch_to_path(key: str, ndim: int) -> tuple[str, ...]:
   """`a.b.3.c.weight` -> `('a', 'b_3', 'c', 'kernel')` (`scale` for 1-D weights)."""
@@ -227,4 +229,4 @@ def _by_module(items: list[str]) -> list[tuple[str, int]]:
 
 def _count(n: int, noun: str, tail: str) -> str:
   """`3 missing keys`, `1 key of a wrong shape`: the noun's last word takes the plural."""
-  return f"{n} {noun}{'' if n == 1 else 's'}" + (f" {tail}" if tail else "")
+  return plural(n, noun) + (f" {tail}" if tail else "")

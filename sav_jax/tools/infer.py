@@ -32,6 +32,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sav_jax._checks import plural
 from sav_jax._files import FREE_SPACE, free_space_note, write_text_atomic
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, add_devices_argument,
                            add_matmul_precision_argument, check_output_dir, matmul_precision,
@@ -404,8 +405,7 @@ def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:
   if resize == (h, w):
     resize = None
   at = f", run at {resize[0]}x{resize[1]}" if resize else ""
-  frames = f"{t} frame{'s' if t != 1 else ''}"
-  print(f"input: {frames} of {h}x{w} (height x width){at}; iters {args.iters}, {cfg.dtype}{on}")
+  print(f"input: {plural(t, 'frame')} of {h}x{w} (height x width){at}; iters {args.iters}, {cfg.dtype}{on}")
   start, compiled = time.perf_counter(), inference.compile_seconds()
   listed = [p.relative_to(out).as_posix() for p in outputs]
   # The windows are computed as write_outputs draws them, so the precision covers both.
@@ -457,7 +457,7 @@ def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:
     limit = "" if args.max_depth is None else f" or deeper than --max-depth {args.max_depth:g}"
     print(f"warning: {written['empty_point_clouds']} of the {t} point clouds have no point: "
           f"every pixel's disparity + doffs was not positive{limit} (check the calibration)")
-  print(f"{frames} in {seconds:.1f} s ({t / seconds:.2f} frames/s, writing included; "
+  print(f"{plural(t, 'frame')} in {seconds:.1f} s ({t / seconds:.2f} frames/s, writing included; "
         f"{compiling:.1f} s of it compiling); outputs in {out}")
   return 0
 
