@@ -405,7 +405,8 @@ def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:
   if resize == (h, w):
     resize = None
   at = f", run at {resize[0]}x{resize[1]}" if resize else ""
-  print(f"input: {plural(t, 'frame')} of {h}x{w} (height x width){at}; iters {args.iters}, {cfg.dtype}{on}")
+  print(f"input: {plural(t, 'frame')} of {h}x{w} (height x width){at}; iters {args.iters}, "
+        f"{cfg.dtype}{on}")
   start, compiled = time.perf_counter(), inference.compile_seconds()
   listed = [p.relative_to(out).as_posix() for p in outputs]
   # The windows are computed as write_outputs draws them, so the precision covers both.
