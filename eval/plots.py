@@ -2,7 +2,9 @@
 
 `write_curves`: per-frame EPE and per-frame-pair TEPE of each method, two panels.
 `write_strip`: a grid of a few frames (columns) x left image / ground truth / each
-method (rows), with one colour range for the whole grid (from the ground truth).
+method (rows), with one colour range for the whole grid (from the ground truth), and under
+each method its error against the ground truth in KITTI's error colours
+(`viz.colorize_error`: blues below the 3 px / 5% outlier threshold, oranges to red above).
 """
 
 from __future__ import annotations
@@ -26,15 +28,6 @@ def _text(img, text, org, scale=0.45, colour=(0, 0, 0), thickness=1):
               cv2.LINE_AA)
 
 
-def _nice_step(vmax: float, ticks: int) -> float:
-  """A 1/2/5 x 10^k step giving at most about `ticks` intervals up to `vmax` (> 0)."""
-  if not vmax > 0:
-    return 1.0
-  raw = vmax / ticks
-  base = 10.0 ** np.floor(np.log10(raw))
-  return float(next(m * base for m in (1, 2, 5, 10) if m * base >= raw))
-
-
 def _panel(series: dict[str, np.ndarray], title: str, xlabel: str) -> np.ndarray:
   """One line chart `[H, W, 3]` (BGR) of `label -> values` over their index."""
   w, h = _PANEL
@@ -43,7 +36,7 @@ def _panel(series: dict[str, np.ndarray], title: str, xlabel: str) -> np.ndarray
   pw, ph = w - left - right, h - top - bottom
   vals = [np.asarray(v, np.float64) for v in series.values() if len(v)]
   finite = np.concatenate([v[np.isfinite(v)] for v in vals]) if vals else np.zeros(0)
-  ystep = _nice_step(float(finite.max()) if finite.size else 0.0, 5)
+  ystep = viz.nice_step(float(finite.max()) if finite.size else 0.0, 5)
   ymax = ystep * max(1, int(np.ceil(finite.max() / ystep - 1e-9))) if finite.size else ystep
   n = max((len(v) for v in vals), default=1)
   xmax = max(n - 1, 1)
@@ -53,7 +46,7 @@ def _panel(series: dict[str, np.ndarray], title: str, xlabel: str) -> np.ndarray
     py = int(round(to_px(0, y)[1]))
     cv2.line(img, (left, py), (left + pw, py), (225, 225, 225), 1)
     _text(img, f"{y:.3g}", (4, py + 4), 0.4)
-  for i in range(0, xmax + 1, max(1, int(_nice_step(xmax, 10)))):
+  for i in range(0, xmax + 1, max(1, int(viz.nice_step(xmax, 10)))):
     px = int(round(to_px(i, 0)[0]))
     cv2.line(img, (px, top + ph), (px, top + ph + 4), (0, 0, 0), 1)
     _text(img, str(i), (px - 6, top + ph + 18), 0.4)
@@ -136,7 +129,11 @@ def write_strip(path, clip: dict, preds: dict[str, np.ndarray], frames: int = 6,
   if gt is not None:
     rows.append(("ground truth", [viz.colorize(np.abs(gt[i]), vmin, vmax, valid=valid[i])
                                   for i in idx]))
-  rows += [(label, [viz.colorize(p[i], vmin, vmax) for i in idx]) for label, p in preds.items()]
+  for label, p in preds.items():
+    rows.append((label, [viz.colorize(p[i], vmin, vmax) for i in idx]))
+    if gt is not None:  # KITTI's error colours against |gt| (the evaluator's abs())
+      rows.append((f"{label} error", [viz.colorize_error(p[i], np.abs(gt[i]), valid[i])
+                                      for i in idx]))
   label_w = 150
   lines = []
   for label, images in rows:

@@ -15,6 +15,12 @@ def plural(n: int, one: str, many: str | None = None) -> str:
   return f"{n} {one if n == 1 else many or one + 's'}"
 
 
+def widened(a: np.ndarray) -> np.ndarray:
+  """ml_dtypes' bfloat16 and float8 arrays (JAX's, NumPy's) as float32, exactly; NumPy's
+  own types as they are."""
+  return a.astype(np.float32) if a.dtype.name.startswith(("bfloat16", "float8")) else a
+
+
 def is_int(x) -> bool:
   """A Python or numpy integer, not a bool (which would pass as 0 or 1)."""
   return isinstance(x, numbers.Integral) and not isinstance(x, bool)

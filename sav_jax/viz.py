@@ -31,7 +31,7 @@ import warnings
 import cv2
 import numpy as np
 
-from sav_jax._checks import caller_stacklevel
+from sav_jax._checks import caller_stacklevel, widened
 from sav_jax._files import free_space_note
 
 COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO, "turbo": cv2.COLORMAP_TURBO,
@@ -90,7 +90,7 @@ def as_uint8_image(image, what: str = "image", *, is_map: bool = False) -> np.nd
   1.0 gets a warning (0..1 images come out black: multiply them by 255). `is_map`: `image`
   is a one-channel map, so a float one is likely disparity or depth: the messages then
   suggest `colorize`."""
-  a = np.asarray(image)
+  a = widened(np.asarray(image))  # bfloat16 (JAX's) as float32
   hint = f" ({_COLORIZE_HINT})" if is_map and a.dtype.kind == "f" else ""
   if a.dtype == np.uint8:
     return a
@@ -222,24 +222,8 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
   """
   if cmap not in COLORMAPS:
     raise ValueError(f"unknown colour map {cmap!r}; choose one of {sorted(COLORMAPS)}")
-  colour = np.asarray(invalid_color)
-  if (colour.shape != (3,) or colour.dtype.kind not in "uif" or not np.isfinite(colour).all()
-      or colour.min() < 0 or colour.max() > 255 or (colour != np.round(colour)).any()):
-    # (fractions were truncated: matplotlib's white (1.0, 1.0, 1.0) came out near black)
-    raise ValueError(f"invalid_color must be 3 integers (R, G, B) in 0..255, got "
-                     f"{invalid_color!r}")
-  if colour.dtype.kind == "f" and 0 < colour.max() <= 1:
-    warnings.warn(f"invalid_color {invalid_color!r} is nearly black in 0..255 (for a 0..1 "
-                  "colour multiply it by 255)", stacklevel=caller_stacklevel())
-  d = np.asarray(disp, np.float32)
-  given = d.shape
-  if d.ndim >= 3 and d.shape[-1] == 1:  # [..., H, W, 1]: one channel, not width-1 frames
-    d = d[..., 0]
-  if valid is not None:
-    if np.shape(valid) == given != d.shape:
-      valid = np.asarray(valid)[..., 0]
-    if np.shape(valid) != d.shape:
-      raise ValueError(f"valid mask shape {np.shape(valid)} differs from disparity {given}")
+  _check_colour(invalid_color)
+  d, valid = _one_channel(disp, valid)
   if vmin is None or vmax is None:
     lo, hi = disparity_range(d, valid)
     filled = "vmin" if vmin is None else "vmax"
@@ -252,6 +236,46 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
                        f"lies beyond the given end; give both vmin and vmax)") from None
   else:
     vmin, vmax = _check_range(vmin, vmax)
+  rgb = _mapped(d, vmin, vmax, cmap)
+  bad = ~np.isfinite(d) | (d <= 0)
+  if valid is not None:
+    bad |= ~(np.asarray(valid) > 0.5)  # as the metrics: a fractional weight counts above 0.5
+  rgb[bad] = invalid_color
+  return rgb
+
+
+def _check_colour(invalid_color) -> np.ndarray:
+  """`invalid_color` as 3 integers in 0..255 (ValueError otherwise; a warning for a 0..1
+  colour)."""
+  colour = np.asarray(invalid_color)
+  if (colour.shape != (3,) or colour.dtype.kind not in "uif" or not np.isfinite(colour).all()
+      or colour.min() < 0 or colour.max() > 255 or (colour != np.round(colour)).any()):
+    # (fractions were truncated: matplotlib's white (1.0, 1.0, 1.0) came out near black)
+    raise ValueError(f"invalid_color must be 3 integers (R, G, B) in 0..255, got "
+                     f"{invalid_color!r}")
+  if colour.dtype.kind == "f" and 0 < colour.max() <= 1:
+    warnings.warn(f"invalid_color {invalid_color!r} is nearly black in 0..255 (for a 0..1 "
+                  "colour multiply it by 255)", stacklevel=caller_stacklevel())
+  return colour.astype(np.uint8)
+
+
+def _one_channel(disp, valid, what: str = "disparity") -> tuple[np.ndarray, np.ndarray | None]:
+  """`disp` as float32 `[..., H, W]` (a trailing channel axis of 1 dropped where it has at
+  least 3 axes) and `valid` of that shape (or of `disp`'s own), or None."""
+  d = np.asarray(disp, np.float32)
+  given = d.shape
+  if d.ndim >= 3 and d.shape[-1] == 1:  # [..., H, W, 1]: one channel, not width-1 frames
+    d = d[..., 0]
+  if valid is not None:
+    if np.shape(valid) == given != d.shape:
+      valid = np.asarray(valid)[..., 0]
+    if np.shape(valid) != d.shape:
+      raise ValueError(f"valid mask shape {np.shape(valid)} differs from {what} {given}")
+  return d, valid
+
+
+def _mapped(d: np.ndarray, vmin: float, vmax: float, cmap: str) -> np.ndarray:
+  """`[..., 3]` uint8 RGB of `cmap` over vmin..vmax (clipped; non-finite values at vmin)."""
   if d.size == 0:
     return np.zeros((*d.shape, 3), np.uint8)
   scale = 255.0 / (vmax - vmin)
@@ -259,12 +283,121 @@ def colorize(disp, vmin: float | None = None, vmax: float | None = None, *,
   idx = np.clip((safe - float(vmin)) * scale, 0, 255).round().astype(np.uint8)
   flat = idx.reshape(-1, idx.shape[-1]) if idx.ndim >= 2 else idx.reshape(1, -1)
   rgb = cv2.applyColorMap(flat, COLORMAPS[cmap])[..., ::-1].reshape(*d.shape, 3)
-  bad = ~np.isfinite(d) | (d <= 0)
-  if valid is not None:
-    bad |= ~(np.asarray(valid) > 0.5)  # as the metrics: a fractional weight counts above 0.5
-  rgb = np.ascontiguousarray(rgb)
-  rgb[bad] = invalid_color
+  return np.ascontiguousarray(rgb)
+
+
+# KITTI's disparity error colours (its development kit's log colour map): bins of the error
+# in multiples of the outlier threshold (`colorize_error`), RGB. Blues below 1 (a correct
+# pixel), oranges to dark red from 1 (an outlier, D1's "bad" pixel).
+KITTI_ERROR_BINS = (0.0, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0, 8.0, 16.0)
+KITTI_ERROR_COLORS = ((49, 54, 149), (69, 117, 180), (116, 173, 209), (171, 217, 233),
+                      (224, 243, 248), (254, 224, 144), (253, 174, 97), (244, 109, 67),
+                      (215, 48, 39), (165, 0, 38))
+
+
+def colorize_error(pred, gt, valid=None, *, abs_thresh: float = 3.0,
+                   rel_thresh: float | None = 0.05,
+                   invalid_color: tuple[int, int, int] = (0, 0, 0)) -> np.ndarray:
+  """Colours the disparity error |pred - gt| with KITTI's error colours.
+
+  The error is measured in multiples of the outlier threshold: `min(e / abs_thresh,
+  e / (rel_thresh |gt|))` (KITTI's D1: a pixel is an outlier where its error exceeds both
+  3 px and 5% of the true disparity; `rel_thresh=None` for the absolute threshold alone,
+  as the bad-N rates), then binned by `KITTI_ERROR_BINS` into `KITTI_ERROR_COLORS`: blue
+  below the threshold, orange to dark red above it. A perfect pixel (error 0) is valid
+  and dark blue.
+
+  Args:
+    pred, gt: `[..., H, W]` (or `[..., H, W, 1]`) disparities (px) of one shape.
+    valid: optional mask of that shape (bool, or weights: > 0.5 is valid); without it the
+      pixels whose ground truth is not finite or is 0 (KITTI's "no ground truth") are
+      invalid. Either way such pixels get `invalid_color` (black, as KITTI's maps), and a
+      non-finite prediction where the ground truth is valid gets the last (worst) colour.
+    abs_thresh: absolute threshold (px), > 0.
+    rel_thresh: relative threshold (fraction of |gt|, > 0), or None.
+    invalid_color: RGB colour of pixels without ground truth.
+
+  Returns:
+    `[..., H, W, 3]` uint8 RGB.
+  """
+  p, valid = _one_channel(pred, valid, "pred")
+  g, _ = _one_channel(gt, None)
+  if p.shape != g.shape:
+    raise ValueError(f"colorize_error: pred of shape {np.shape(pred)} and gt of shape "
+                     f"{np.shape(gt)} differ")
+  ok_abs = as_real(abs_thresh)
+  ok_rel = None if rel_thresh is None else as_real(rel_thresh)
+  if ok_abs is None or not 0 < ok_abs < math.inf or (
+      rel_thresh is not None and (ok_rel is None or not 0 < ok_rel < math.inf)):
+    raise ValueError(f"colorize_error: abs_thresh must be a number > 0 and rel_thresh one > 0 "
+                     f"or None, got abs_thresh={_shown(abs_thresh)}, "
+                     f"rel_thresh={_shown(rel_thresh)}")
+  colour = _check_colour(invalid_color)
+  with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+    err = np.abs(p - g)
+    norm = err / np.float32(ok_abs)
+    if ok_rel is not None:
+      norm = np.minimum(norm, err / (np.float32(ok_rel) * np.abs(g)))
+  norm = np.where(np.isfinite(norm), norm, np.inf)  # a NaN / inf prediction: the worst
+  table = np.asarray(KITTI_ERROR_COLORS, np.uint8)
+  rgb = table[np.searchsorted(np.asarray(KITTI_ERROR_BINS, np.float32), norm, "right") - 1]
+  bad = ~np.isfinite(g) | (g == 0) if valid is None else ~(np.asarray(valid) > 0.5) | \
+      ~np.isfinite(g)
+  rgb[bad] = colour
   return rgb
+
+
+def nice_step(span: float, ticks: int) -> float:
+  """A 1/2/5 x 10^k step giving at most about `ticks` intervals over `span` (> 0)."""
+  if not span > 0:
+    return 1.0
+  raw = span / ticks
+  base = 10.0 ** np.floor(np.log10(raw))
+  return float(next(m * base for m in (1, 2, 5, 10) if m * base >= raw))
+
+
+def colorbar(vmin: float, vmax: float, *, cmap: str = "inferno", length: int = 320,
+             thickness: int = 16, ticks: int = 5, unit: str = "px") -> np.ndarray:
+  """A horizontal colour bar of `colorize`'s colours over vmin..vmax, ticks labelled below.
+
+  Put it under a frame coloured with the same range (`disparity_range`, or the range
+  `sav-jax infer` prints and keeps in summary.json): `side_by_side` needs equal heights,
+  so stack it with `np.concatenate([frame, bar], axis=0)` after `cv2.resize`-ing one of
+  them to the other's width.
+
+  Args:
+    vmin, vmax: the colour range (finite, vmin < vmax).
+    cmap: one of `COLORMAPS`.
+    length: width of the bar (px), >= 32.
+    thickness: height of the colour band (px), >= 1.
+    ticks: about this many tick intervals (1/2/5 x 10^k steps), >= 1.
+    unit: text after the last label ("" for none).
+
+  Returns:
+    `[thickness + 18, length, 3]` uint8 RGB: the band, then black tick labels on white.
+  """
+  if cmap not in COLORMAPS:
+    raise ValueError(f"unknown colour map {cmap!r}; choose one of {sorted(COLORMAPS)}")
+  vmin, vmax = _check_range(vmin, vmax)
+  for name, value, least in (("length", length, 32), ("thickness", thickness, 1),
+                             ("ticks", ticks, 1)):
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+      raise ValueError(f"colorbar: {name} must be an integer >= {least}, got {value!r}")
+  values = vmin + (vmax - vmin) * np.arange(length, dtype=np.float64) / (length - 1)
+  band = np.repeat(_mapped(values[None].astype(np.float32), vmin, vmax, cmap), thickness, 0)
+  labels = np.full((18, length, 3), 255, np.uint8)
+  step = nice_step(vmax - vmin, ticks)
+  first = math.ceil(vmin / step - 1e-9) * step
+  marks = [first + k * step for k in range(int((vmax - first) / step + 1e-9) + 1)]
+  font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.35
+  for k, v in enumerate(marks):
+    x = int(round((v - vmin) / (vmax - vmin) * (length - 1)))
+    labels[:3, x] = 0  # the tick
+    text = f"{v:.6g}" + (f" {unit}" if unit and k == len(marks) - 1 else "")
+    (tw, _), _ = cv2.getTextSize(text, font, scale, 1)
+    left = min(max(0, x - tw // 2), length - tw)
+    cv2.putText(labels, text, (left, 14), font, scale, (0, 0, 0), 1, cv2.LINE_AA)
+  return np.concatenate([band, labels], axis=0)
 
 
 def side_by_side(*images) -> np.ndarray:
@@ -549,7 +682,7 @@ def write_ply(path, xyz, colors, comments=()) -> int:
     if not isinstance(c, str) or not (c.isascii() and c.isprintable()):
       raise ValueError(f"write_ply: a comment must be one line of printable ASCII text, got "
                        f"{c!r}")
-  xyz, colors = np.asarray(xyz), np.asarray(colors)
+  xyz, colors = widened(np.asarray(xyz)), np.asarray(colors)
   if xyz.ndim < 1 or xyz.shape[-1] != 3 or xyz.dtype.kind not in "uif":
     raise ValueError(f"write_ply: xyz must be [N, 3] (or [..., 3]) numbers, got shape "
                      f"{xyz.shape} of dtype {xyz.dtype}")

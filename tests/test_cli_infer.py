@@ -960,6 +960,51 @@ def test_calibration_file(tmp_path, caplog):
       read_calibration(txt)
 
 
+def test_calibration_kitti_grey_cameras(tmp_path):
+  """KITTI files hold the grey pair (cameras 0/1) beside the colour one (2/3): the colour pair
+  by default, the grey one with `cameras=(0, 1)` / `--calib-cameras 0,1` or where a file has
+  only that pair (was refused: "no calibration found"), a missing pair named."""
+  import argparse  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import UsageError
+  from sav_jax.tools.infer import calibration_from_args, parse_camera_pair, read_calibration
+  odometry = tmp_path / "calib.txt"  # KITTI odometry sequence 00 (P0..P3 and Tr)
+  rows = {"P0": "718.856 0 607.1928 0 0 718.856 185.2157 0 0 0 1 0",
+          "P1": "718.856 0 607.1928 -386.1448 0 718.856 185.2157 0 0 0 1 0",
+          "P2": "718.856 0 607.1928 45.38225 0 718.856 185.2157 -0.1130887 0 0 1 0.003779761",
+          "P3": "718.856 0 607.1928 -337.2877 0 718.856 185.2157 2.369057 0 0 1 0.004915215"}
+  odometry.write_text("".join(f"{k}: {v}\n" for k, v in rows.items()) + "Tr: 1 0 0 0 0 1 0 0\n")
+  colour, grey = (read_calibration(odometry, c) for c in (None, (0, 1)))
+  assert colour["baseline"] == pytest.approx((45.38225 + 337.2877) / 718.856)  # 0.53233
+  assert grey["baseline"] == pytest.approx(386.1448 / 718.856)  # 0.53716
+  assert read_calibration(odometry, (2, 3)) == colour
+  grey_only = tmp_path / "grey.txt"
+  grey_only.write_text(f"P0: {rows['P0']}\nP1: {rows['P1']}\n")
+  assert read_calibration(grey_only) == grey
+  with pytest.raises(UsageError, match=r"grey.txt: no KITTI matrices of cameras 2,3 \(P_rect_02/"
+                                       r"P_rect_03 or P2/P3\); the file has P0, P1"):
+    read_calibration(grey_only, (2, 3))
+  raw = tmp_path / "calib_cam_to_cam.txt"  # KITTI raw: P_rect_00 .. P_rect_03, S_rect_0*
+  raw.write_text("S_rect_00: 1.242e+03 3.75e+02\n"
+                 "P_rect_00: 7.2e+02 0 6.0e+02 0 0 7.2e+02 1.8e+02 0 0 0 1 0\n"
+                 "P_rect_01: 7.2e+02 0 6.0e+02 -3.9e+02 0 7.2e+02 1.8e+02 0 0 0 1 0\n"
+                 "P_rect_02: 7.2e+02 0 6.0e+02 4.5e+01 0 7.2e+02 1.8e+02 0 0 0 1 0\n"
+                 "P_rect_03: 7.2e+02 0 6.0e+02 -3.4e+02 0 7.2e+02 1.8e+02 0 0 0 1 0\n")
+  assert read_calibration(raw)["baseline"] == pytest.approx(385 / 720)
+  assert read_calibration(raw, (0, 1)) == {"fx": 720, "fy": 720, "cx": 600, "cy": 180,
+                                           "baseline": pytest.approx(390 / 720), "doffs": 0,
+                                           "width": 1242, "height": 375}
+  assert parse_camera_pair(" 0, 1") == (0, 1)
+  for bad in ("0", "1,1", "2,4", "a,b", "0,1,2"):
+    with pytest.raises(argparse.ArgumentTypeError, match="two different KITTI camera numbers"):
+      parse_camera_pair(bad)
+  spec = calibration_from_args(argparse.Namespace(calib=str(odometry), calib_cameras=(0, 1)))
+  assert spec.baseline == pytest.approx(grey["baseline"])
+  with pytest.raises(UsageError, match="--calib-cameras picks the cameras of a KITTI --calib "
+                                       "file: give --calib"):
+    calibration_from_args(argparse.Namespace(calib=None, calib_cameras=(0, 1), fx=700.0,
+                                             baseline=0.5))
+
+
 def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   from sav_jax.tools import demo
   monkeypatch.setattr(demo, "BUNDLED", tmp_path / "no_bundled_checkpoint")

@@ -962,6 +962,24 @@ def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt
   assert ranges and all((lo, hi) == (5, 6) for lo, hi in ranges), ranges  # a constant: +1 px
 
 
+def test_strip_shows_each_methods_error_in_kittis_colours(tmp_path):
+  t, h, w = 3, 16, 24
+  gt = np.full((t, h, w), 20.0, np.float32)
+  pred = gt.copy()
+  pred[:, :, w // 2:] += 10.0  # the right half: 10 px off, an outlier
+  clip = {"left": np.zeros((t, h, w, 3), np.uint8), "disparity": -gt,  # stored as -d
+          "valid": np.ones((t, h, w), bool)}
+  path = eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": pred}, frames=3, tile=32)
+  img = cv2.imread(str(path))[..., ::-1]
+  assert img.shape[0] == 24 + 4 * h  # header; left, ground truth, SAV, SAV error
+  error_row = img[24 + 3 * h:, 150:]
+  good, bad = (tuple(c) for c in np.asarray(sav_jax.viz.KITTI_ERROR_COLORS)[[0, 6]])
+  assert tuple(error_row[h // 2, 2]) == good and tuple(error_row[h // 2, w - 2]) == bad
+  no_gt = {"left": clip["left"], "disparity": None, "valid": None}
+  path = eval_plots.write_strip(tmp_path / "n.png", no_gt, {"SAV": pred}, frames=3, tile=32)
+  assert cv2.imread(str(path)).shape[0] == 24 + 2 * h  # no ground truth: no error row
+
+
 def test_the_report_names_skipped_sequences(tmp_path):
   config = eval_config.load_config(str(CONFIGS / "dynamic_replica.py"))
   from eval.main import build_summary  # pylint: disable=import-outside-toplevel

@@ -537,3 +537,69 @@ def test_disparity_to_points_warns_as_the_cli_refuses_a_principal_point_outside(
         if outside else []), (cx, cy)
     assert all(w.filename == __file__ for w in caught)
   assert viz.principal_point_inside(3200, 1600, 32, 64) is False
+
+
+def test_bfloat16_images_and_points_are_taken_as_float16_ones_are(tmp_path):
+  """bfloat16 (JAX's compute dtype) was refused: "dtype bfloat16; expected uint8 or numbers"
+  (its NumPy kind is 'V'), in side_by_side, disparity_to_points' rgb and write_ply."""
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  rgb = np.arange(2 * 4 * 3, dtype=np.float32).reshape(2, 4, 3) * 8
+  for dtype in (jnp.bfloat16, np.float16):
+    assert np.array_equal(viz.side_by_side(jnp.asarray(rgb, dtype)), rgb.astype(np.uint8))
+    xyz, col = viz.disparity_to_points(np.full((2, 4), 2.0), jnp.asarray(rgb, dtype), fx=10.0,
+                                       fy=10.0, cx=1.5, cy=0.5, baseline=0.2)
+    assert np.array_equal(col, rgb.reshape(-1, 3).astype(np.uint8))
+    assert viz.write_ply(tmp_path / "p.ply", jnp.asarray(xyz, dtype), jnp.asarray(col, dtype)) == 8
+    back, colours = viz.read_ply(tmp_path / "p.ply")
+    assert np.array_equal(back, xyz.astype(jnp.bfloat16 if dtype is jnp.bfloat16 else dtype)
+                          .astype(np.float32)) and np.array_equal(colours, col)
+
+
+def test_colorize_error_uses_kittis_bins_and_keeps_perfect_pixels():
+  """Error maps: colorize's "d <= 0 is invalid" painted every perfect pixel (error 0) white;
+  colorize_error bins the error in multiples of KITTI's outlier threshold."""
+  gt = np.array([[100.0, 100.0, 100.0, 100.0, 10.0, 10.0, 0.0, 40.0]], np.float32)
+  pred = gt + np.array([[0.0, 2.9, 3.1, 5.1, 3.1, 1e3, 7.0, np.nan]], np.float32)
+  rgb = viz.colorize_error(pred, gt)
+  colours = [tuple(c) for c in viz.KITTI_ERROR_COLORS]
+  # 0 -> bin 0; 2.9 px -> 2.9/3 = 0.97 (bin 4, correct); 3.1 px at gt 100: min(1.03, 0.62)
+  # -> bin 4 (within 5%); 5.1 px at gt 100: min(1.7, 1.02) -> bin 5; 3.1 px at gt 10:
+  # min(1.03, 6.2) -> bin 5; 1000 px -> bin 9; gt 0: no ground truth (black); NaN: worst
+  assert [tuple(c) for c in rgb[0]] == [colours[0], colours[4], colours[4], colours[5],
+                                        colours[5], colours[9], (0, 0, 0), colours[9]]
+  absolute = viz.colorize_error(pred, gt, rel_thresh=None)  # the bad-3 map: 3.1 px is bad
+  assert tuple(absolute[0, 2]) == colours[5] and tuple(absolute[0, 3]) == colours[5]  # 1.7
+  valid = np.ones_like(gt)
+  valid[0, 0] = 0
+  masked = viz.colorize_error(pred[..., None], gt[..., None], valid, invalid_color=(9, 9, 9))
+  assert masked.shape == (1, 8, 3) and tuple(masked[0, 0]) == (9, 9, 9)
+  assert tuple(masked[0, 6]) == colours[6]  # gt 0 inside the given mask: 7 px / 3 = 2.3
+  video = viz.colorize_error(np.zeros((3, 2, 5)), np.ones((3, 2, 5)))  # [T, H, W]
+  assert video.shape == (3, 2, 5, 3) and (video == colours[3]).all()  # 1 px: 1/3 of 3 px
+  with pytest.raises(ValueError, match=r"pred of shape \(2, 5\) and gt of shape \(2, 4\)"):
+    viz.colorize_error(np.zeros((2, 5)), np.zeros((2, 4)))
+  for kw in ({"abs_thresh": 0}, {"rel_thresh": -1.0}, {"abs_thresh": "3"}):
+    with pytest.raises(ValueError, match="abs_thresh must be a number > 0"):
+      viz.colorize_error(pred, gt, **kw)
+  with pytest.raises(ValueError, match="invalid_color must be 3 integers"):
+    viz.colorize_error(pred, gt, invalid_color=(0, 0))
+
+
+def test_colorbar_matches_colorize_and_labels_its_ticks():
+  bar = viz.colorbar(2.0, 12.0, length=101, thickness=5, cmap="turbo")
+  assert bar.shape == (5 + 18, 101, 3) and bar.dtype == np.uint8
+  expected = viz.colorize(np.linspace(2.0, 12.0, 101, dtype=np.float32)[None], 2.0, 12.0,
+                          cmap="turbo")[0]
+  assert np.array_equal(bar[0], expected) and np.array_equal(bar[4], expected)
+  ticks = np.nonzero((bar[5] == 0).all(axis=-1))[0]  # ticks at 2, 4, .., 12: every 20 px
+  assert list(ticks) == [0, 20, 40, 60, 80, 100]
+  labels = bar[8:]
+  assert (labels < 128).any() and (labels == 255).any()  # black text on white
+  negative = viz.colorbar(-1.0, 1.0, length=64)  # ranges through 0 are coloured, not "invalid"
+  assert len({tuple(c) for c in negative[0]}) > 32
+  with pytest.raises(ValueError, match="finite vmin < vmax"):
+    viz.colorbar(3.0, 3.0)
+  with pytest.raises(ValueError, match="length must be an integer >= 32"):
+    viz.colorbar(0.0, 1.0, length=8)
+  with pytest.raises(ValueError, match="unknown colour map"):
+    viz.colorbar(0.0, 1.0, cmap="jet")

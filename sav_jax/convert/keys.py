@@ -15,7 +15,7 @@ import re
 
 import numpy as np
 
-from sav_jax._checks import plural
+from sav_jax._checks import plural, widened
 
 
 def torch_to_path(key: str, ndim: int) -> tuple[str, ...]:
@@ -71,12 +71,6 @@ def unused_array(value) -> np.ndarray:
   params, so that an export from a float16 file is float32 throughout."""
   a = widened(np.asarray(value))
   return a.astype(np.float32) if np.issubdtype(a.dtype, np.floating) else a
-
-
-def widened(a: np.ndarray) -> np.ndarray:
-  """ml_dtypes' bfloat16 and float8 arrays (JAX's, NumPy's) as float32, exactly; NumPy's
-  own types as they are."""
-  return a.astype(np.float32) if a.dtype.name.startswith(("bfloat16", "float8")) else a
 
 
 def converted(key: str, value, leaf: str, shape: tuple[int, ...], model: str = "the model"):

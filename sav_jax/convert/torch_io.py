@@ -17,7 +17,7 @@ from typing import Mapping
 
 import numpy as np
 
-from sav_jax.convert.keys import widened
+from sav_jax._checks import widened
 from sav_jax.convert.pickle_reader import LEGACY_MAGIC, CheckpointError, check_inflation
 from sav_jax.convert.pickle_reader import load_legacy
 from sav_jax.convert.pickle_reader import load_zip

@@ -96,6 +96,19 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
                                   "cx, cy, baseline, doffs; a KITTI calib file (P_rect_02/"
                                   "P_rect_03 or P2/P3); or a Middlebury calib.txt (cam0, cam1, "
                                   "doffs, baseline in mm: depth in mm)")
+  g.add_argument("--calib-cameras", type=parse_camera_pair, metavar="LEFT,RIGHT",
+                 help="the KITTI cameras of --left and --right in a KITTI --calib file: 2,3 "
+                      "(colour, image_2/image_3: the default) or 0,1 (grey, image_0/image_1; "
+                      "used by default where a file has only P0/P1)")
+
+
+def parse_camera_pair(text: str) -> tuple[int, int]:
+  """`"0,1"` -> (0, 1): the KITTI camera numbers (0-3) of the left and right views."""
+  parts = str(text).replace(" ", "").split(",")
+  if len(parts) != 2 or not all(p in ("0", "1", "2", "3") for p in parts) or parts[0] == parts[1]:
+    raise argparse.ArgumentTypeError(f"expected two different KITTI camera numbers 0-3 as "
+                                     f"LEFT,RIGHT (2,3 colour, 0,1 grey), got {text!r}")
+  return int(parts[0]), int(parts[1])
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -670,8 +683,10 @@ def calibration_from_args(args) -> CalibrationSpec | None:
   if getattr(args, "calib", None):
     if given:
       raise UsageError("give either --calib or --fx/--fy/--cx/--cy/--baseline/--doffs, not both")
-    given = read_calibration(args.calib)
+    given = read_calibration(args.calib, getattr(args, "calib_cameras", None))
     what = f"--calib {args.calib}: "
+  elif getattr(args, "calib_cameras", None) is not None:
+    raise UsageError("--calib-cameras picks the cameras of a KITTI --calib file: give --calib")
   if not given:
     return None
   missing = [k for k in ("fx", "baseline") if k not in given]
@@ -694,7 +709,7 @@ OFF_CENTRE = 0.25
 _SIZE_KEYS = ("width", "height")  # the image size a calibration file is for (optional)
 
 
-def read_calibration(path) -> dict[str, float]:
+def read_calibration(path, cameras: tuple[int, int] | None = None) -> dict[str, float]:
   """Reads fx, fy, cx, cy, baseline (doffs) from JSON, `key value` text, a KITTI calib file
   or a Middlebury `calib.txt`.
 
@@ -702,10 +717,20 @@ def read_calibration(path) -> dict[str, float]:
   `width` and `height`) or `P2`/`P3` (odometry, stereo benchmarks);
   baseline = (P2[0,3] - P3[0,3]) / fx, doffs = P3[0,2] - P2[0,2] (0 unless the rectified
   principal points differ, as OpenCV's stereoRectify without CALIB_ZERO_DISPARITY gives;
-  a warning when P2 is the right camera). Middlebury: `cam0=[fx 0 cx; 0 fy cy; 0 0 1]`,
-  `baseline` (mm), `doffs` (else cam1's cx - cam0's cx). Any format may give `width` and
-  `height`, the image size it is for, which the frames must then have.
+  a warning when P2 is the right camera). Those are the colour cameras (image_2/image_3);
+  `cameras=(0, 1)` reads the grey pair (P0/P1, P_rect_00/P_rect_01: image_0/image_1, a
+  baseline ~1% longer), which is also the default of a file that has only those.
+  Middlebury: `cam0=[fx 0 cx; 0 fy cy; 0 0 1]`, `baseline` (mm), `doffs` (else cam1's cx -
+  cam0's cx). Any format may give `width` and `height`, the image size it is for, which the
+  frames must then have.
+
+  Raises:
+    UsageError: no calibration in the file, a malformed line, or `cameras` given for a file
+      without that KITTI pair.
   """
+  if cameras is not None and (len(cameras) != 2 or not set(cameras) <= {0, 1, 2, 3}
+                              or cameras[0] == cameras[1]):
+    raise ValueError(f"cameras must be two different KITTI camera numbers 0-3, got {cameras!r}")
   path = pathlib.Path(path)
   if path.is_dir():
     raise ValueError(f"--calib {path} is a folder; give the calibration file")
@@ -749,7 +774,17 @@ def read_calibration(path) -> dict[str, float]:
       raise UsageError(f"{path}, line {number}: {key} must be one number (pixels, or metres "
                        f"for the baseline), got {rest!r}")
   size = {k: entries[k][0] for k in _SIZE_KEYS if k in entries}
-  for p2, p3, s2 in (("P_rect_02", "P_rect_03", "S_rect_02"), ("P2", "P3", None)):
+  pairs = [cameras] if cameras is not None else [(2, 3), (0, 1)]
+  kitti = [(f"P_rect_0{a}", f"P_rect_0{b}", f"S_rect_0{a}") for a, b in pairs]
+  kitti += [(f"P{a}", f"P{b}", None) for a, b in pairs]
+  if cameras is not None and not any(len(entries.get(p2) or ()) == 12
+                                     and len(entries.get(p3) or ()) == 12
+                                     for p2, p3, _ in kitti):
+    found = sorted(k for k in entries if re.fullmatch(r"P(_rect_0)?\d", k))
+    raise UsageError(f"{path}: no KITTI matrices of cameras {cameras[0]},{cameras[1]} "
+                     f"({kitti[0][0]}/{kitti[0][1]} or {kitti[1][0]}/{kitti[1][1]}); the file "
+                     f"has {', '.join(found) or 'none'}")
+  for p2, p3, s2 in kitti:
     if len(entries.get(p2) or ()) == 12 and len(entries.get(p3) or ()) == 12:
       rect_size = entries.get(s2) or ()  # KITTI raw: S_rect_02 = W H
       if not size and len(rect_size) == 2:
@@ -773,7 +808,8 @@ def read_calibration(path) -> dict[str, float]:
       out["doffs"] = entries["cam1"][2] - k0[0, 2]
   if not out:
     raise UsageError(f"{path}: no calibration found (expected JSON, 'fx 720' lines, KITTI "
-                     "P_rect_02/P_rect_03 matrices or a Middlebury calib.txt)")
+                     "P_rect_02/P_rect_03 (or 00/01) matrices, P2/P3 (or P0/P1) or a Middlebury "
+                     "calib.txt)")
   return {**out, **size}
 
 
