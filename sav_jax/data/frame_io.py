@@ -332,6 +332,18 @@ def read_npy(path: PathLike) -> np.ndarray:
   return _real_numbers(arr, path)
 
 
+def read_depth_npy(path: PathLike) -> np.ndarray:
+  """A float depth map `.npy` (Infinigen, TartanAir: float32 metres). Other dtypes are refused,
+  naming the file: a bool array (a mask saved in its place) read as depth 1 everywhere, and
+  integers (millimetres?) as tiny disparities, both counted as valid ground truth."""
+  arr = read_npy(path)
+  if arr.dtype.kind != "f":
+    mask = " (a mask saved as depth?)" if arr.dtype == bool else ""
+    raise ValueError(f"{path}: depth of dtype {arr.dtype}{mask}; expected float depth (the "
+                     "dataset's float32 metres)")
+  return arr
+
+
 def _real_numbers(arr: np.ndarray, path, key: str | None = None) -> np.ndarray:
   """`arr` if it holds real numbers (bool, integer or float), else an error naming the file
   (strings or complex values would fail later in numpy with no file named, or lose data)."""

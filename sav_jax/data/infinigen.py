@@ -94,7 +94,7 @@ def _scene(scene: Path, dataset: str) -> DepthSequence:
   warn_if_gaps(where, files["left"], _frame_number)
   scale = depth2disp_scale(cams["left"][0], cams["right"][0])
   return InfinigenSequence(scene.name, files, dataset=dataset, depth2disp_scale=scale,
-                           depth_reader=frame_io.read_npy)
+                           depth_reader=frame_io.read_depth_npy)
 
 
 def load_sequences(root, split: str, dataset: str = "infinigen_sv"):

@@ -290,9 +290,8 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
     raise ValueError(f"process_index {pi} not in [0, {pc})")
   streams = []
   for i, (src, tf) in enumerate(zip(sources, transforms)):
-    # grain takes seeds in [0, 2**32): the per-source offsets wrap around.
-    ds = src.shuffle(seed=(seed + 7919 * i) % 2**32).repeat()
-    ds = (ds.random_map(tf, seed=(seed + 104729 * (i + 1)) % 2**32) if tf is not None
+    ds = src.shuffle(seed=stream_seed(seed, i, "shuffle")).repeat()
+    ds = (ds.random_map(tf, seed=stream_seed(seed, i, "augment")) if tf is not None
           else ds.map(as_example))
     streams.append(ds)
   ds = streams[0] if len(streams) == 1 else grain.MapDataset.mix(streams, props)
@@ -310,6 +309,18 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
     it = it.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count),
                         worker_init_fn=_init_worker)
   return it
+
+
+_STREAM_PURPOSES = ("shuffle", "augment")
+
+
+def stream_seed(seed: int, source: int, purpose: str) -> int:
+  """The grain seed (in [0, 2**32)) of one source's shuffle or augmentation: a hash of
+  (seed, source, purpose). grain's shuffle takes `seed + epoch` for each epoch, so seeds
+  that differ by small offsets (`seed + i`) gave seed s + 1 the clip orders of seed s one
+  epoch later: a seed sweep shared all but one epoch's order."""
+  words = np.random.SeedSequence([seed, source, _STREAM_PURPOSES.index(purpose)])
+  return int(words.generate_state(1, np.uint32)[0])
 
 
 def _init_worker(worker_index: int, worker_count: int) -> None:

@@ -53,7 +53,7 @@ def _sequence(seq_dir: Path, name: str, dataset: str) -> DepthSequence:
   check_matching(f"TartanAir {name}", files, digits_key)
   return DepthSequence(name, files, dataset=dataset,
                        depth2disp_scale=camera_scale(FX_PX, BASELINE_M, "TartanAir"),
-                       depth_reader=frame_io.read_npy)
+                       depth_reader=frame_io.read_depth_npy)
 
 
 def _sequence_dirs(root: Path) -> list[tuple[tuple[str, str, str], Path]]:

@@ -58,6 +58,22 @@ def test_same_seed_same_stream_other_seed_other_stream():
   assert a == b and a != c
 
 
+def test_neighbouring_seeds_share_no_epoch_order():
+  """grain shuffles epoch e with `seed + e`: seed s + 1's first epoch was seed s's second
+  (a seed sweep shared all but one epoch's clip order)."""
+  def epochs(seed, n=12, k=3):
+    ds = pipeline.make_train_dataset([_tagged(0, n)], [1.0], batch_size=n, seed=seed,
+                                     num_threads=1)
+    return [_ids(b) for b in _take(iter(ds), k)]
+
+  a, b = epochs(0), epochs(1)
+  assert all(sorted(e) == list(range(12)) for e in a + b)
+  assert not {tuple(e) for e in a} & {tuple(e) for e in b}
+  seeds = {pipeline.stream_seed(s, i, p) for s in (0, 1, 2**32 - 1) for i in (0, 1)
+           for p in ("shuffle", "augment")}
+  assert len(seeds) == 12 and all(0 <= v < 2**32 for v in seeds)
+
+
 def test_seeds_up_to_two_to_the_32_with_several_augmented_sources():
   # The per-source seeds wrap into grain's [0, 2**32): the largest seed works with a
   # transform on each of two sources (grain refused a derived seed the user never gave).

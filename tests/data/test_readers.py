@@ -449,6 +449,21 @@ def _infinigen(root, rng, split, scenes):
   return truth
 
 
+@pytest.mark.parametrize("dtype", [bool, np.uint16])
+def test_depth_npy_of_another_dtype_is_refused_naming_the_file(tmp_path, dtype):
+  """A mask saved as Infinigen's depth read as 1 m everywhere (disparity 80 px, all valid),
+  integer depth (millimetres) as tiny disparities: both were taken as ground truth."""
+  _infinigen(tmp_path, np.random.default_rng(6), "train", [("scene031", 2)])
+  depth = (tmp_path / "InfinigenStereo/train/scene031/frames/Depth/camera_0/"
+           "Depth_0_0_0002_0.npy")
+  np.save(depth, np.ones((H, W), dtype))
+  [seq] = registry.get_sequences("infinigen_sv", tmp_path, "train")
+  seq[0]  # pylint: disable=pointless-statement
+  with pytest.raises(ValueError, match=rf"{re.escape(str(depth))}: depth of dtype "
+                                       rf"{np.dtype(dtype).name}.*expected float depth"):
+    seq[1]  # pylint: disable=pointless-statement
+
+
 def test_infinigen_scale_values_clips_and_eval_cut(tmp_path, monkeypatch):
   truth = _infinigen(tmp_path, np.random.default_rng(6), "train",
                      [("scene031", 12), ("scene032", 4)])
