@@ -91,7 +91,8 @@ def _state_dict(state: TrainState) -> dict:
 # with it; `check_data_state` refuses a change.)
 _OPERATIONAL = ("checkpoint.", "eval.", "compile_cache", "init_from", "vda_weights",
                 "random_depth_prior", "data.root", "data.num_threads", "data.prefetch",
-                "train.progress_bar", "train.log_every", "train.max_skipped_steps",
+                "data.skip_unreadable", "train.progress_bar", "train.log_every",
+                "train.max_skipped_steps",
                 "model.remat")
 
 

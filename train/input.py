@@ -51,7 +51,7 @@ def _source(config, spec, split: str, seed: int):
     return pipeline.synthetic_source(cfg, data.synthetic.num_clips), None, digest
   items = pipeline.registry_clips(spec.dataset, data.root, data.frames, split=split,
                                   seed=config.seed)
-  return (pipeline.clips_source(items),
+  return (pipeline.clips_source(items, data.skip_unreadable),
           pipeline.Augment(tuple(data.crop), augment_overrides(config)),
           pipeline.clips_digest(items))
 

@@ -283,6 +283,8 @@ _CHECKS = (
     ("data.num_threads", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
     ("data.prefetch", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
     ("data.worker_count", lambda x: _is_int(x) and x >= 0, "an integer >= 0 (0: threads only)"),
+    ("data.skip_unreadable", lambda x: _is_int(x) and x >= 0,
+     "an integer >= 0 (0: an unreadable clip stops the run)"),
     ("data.synthetic.num_clips", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("data.crop", _is_crop, "(height, width): two positive multiples of 16 (the model's "
      "coarsest scale is 1/16), the width at least 32 (a 1-pixel-wide 1/16 map has no "
@@ -638,8 +640,8 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
       for step in range(start + 1, total + 1):
         _signals.raise_if_interrupted()  # a Ctrl-C that Python dropped (see the function)
         with jax.profiler.StepTraceAnnotation("train", step_num=step):
-          state, metrics = parts["train_step"](state, _next_batch(parts["batches"], step,
-                                                                  manager))
+          state, metrics = parts["train_step"](state, _next_batch(
+              parts["batches"], step, manager, config.data.skip_unreadable))
         if step == start + 1:  # the step was compiled by this call: free the compiler's memory
           runtime.release_host_memory()
         if pending is not None:
@@ -719,15 +721,19 @@ class DataError(RuntimeError):
   cannot give): the run stops, its checkpoints kept."""
 
 
-def _next_batch(batches, step: int, manager):
+def _next_batch(batches, step: int, manager, skip_unreadable: int = 0):
   """The batch of `step`; a failure of the input pipeline (grain re-raises it from its
-  threads or workers) becomes one `DataError` naming the step and where to resume from."""
+  threads or workers) becomes one `DataError` naming the step and where to resume from (and,
+  for a file that does not read, `data.skip_unreadable` where it is off)."""
   try:
     return next(batches)
   except Exception as e:  # pylint: disable=broad-except  # any reader or augmentation error
     latest = manager.latest_step()
     resume = (f"the checkpoint of step {latest} is kept: fix the data or the config and run "
               "the same command to resume" if latest is not None else "no checkpoint yet")
+    if skip_unreadable == 0 and pipeline.is_unreadable(e):
+      resume += ("; --config.data.skip_unreadable=N trains on the next readable clip instead "
+                 "of an unreadable one")
     raise DataError(f"the training batch of step {step} could not be made: "
                     f"{type(e).__name__}: {e} ({resume})") from e
 

@@ -46,7 +46,7 @@ import grain
 import jax
 import numpy as np
 
-from sav_jax._checks import caller_stacklevel, is_int
+from sav_jax._checks import caller_stacklevel, is_int, plural
 from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo
 
 log = logging.getLogger(__name__)
@@ -104,12 +104,26 @@ class _LoadClip:
     if isinstance(item, Mapping):
       return dict(item)
     sequence, indices = item
-    clip = sequence.gather(list(indices))
+    try:
+      clip = sequence.gather(list(indices))
+    except (ValueError, OSError) as e:  # the readers' errors name the file
+      e.add_note(UNREADABLE_NOTE)  # kept through grain's threads and worker processes
+      raise
     if clip.get("disparity") is None:
       raise ValueError(f"{sequence!r} has no ground truth: it cannot be used for training")
     clip["sparse"] = bool(getattr(sequence, "sparse", False))
     clip[ORIGIN] = clip_origin(sequence, indices)
     return clip
+
+
+# The note (`BaseException.add_note`) on a reader's error for a clip's files: what
+# `data.skip_unreadable` skips (not a config error such as a crop the frames cannot give).
+UNREADABLE_NOTE = "a file of this clip does not read (data.skip_unreadable skips such clips)"
+
+
+def is_unreadable(error: BaseException) -> bool:
+  """Whether `error` is a clip's reader error (`UNREADABLE_NOTE`)."""
+  return UNREADABLE_NOTE in getattr(error, "__notes__", ())
 
 
 # The key of a loaded clip that says where it comes from (`clip_origin`): errors of its
@@ -172,9 +186,62 @@ def registry_source(dataset: str, root: str, frames: int, split: str = "train",
   return clips_source(registry_clips(dataset, root, frames, split, seed, consecutive))
 
 
-def clips_source(items) -> grain.MapDataset:
-  """`registry_clips` items as a lazily loading `grain.MapDataset`."""
-  return grain.MapDataset.source(list(items)).map(_LoadClip())
+def clips_source(items, skip_unreadable: int = 0) -> grain.MapDataset:
+  """`registry_clips` items as a lazily loading `grain.MapDataset`.
+
+  `skip_unreadable`: 0 (default) lets a clip that does not read (a corrupt or missing file:
+  the reader's ValueError or OSError, naming the file) fail the stream; N > 0 replaces it
+  by the next readable clip of the list, with a warning naming it, up to N clips in a row
+  (more is an error: a lost disk or mount is not skipped through). Deterministic: the same
+  clip always stands in, so a resumed run sees the batches an uninterrupted one would."""
+  if not (is_int(skip_unreadable) and skip_unreadable >= 0):
+    raise ValueError(f"skip_unreadable must be an integer >= 0, got {skip_unreadable!r}")
+  if skip_unreadable == 0:
+    return grain.MapDataset.source(list(items)).map(_LoadClip())
+  return grain.MapDataset.source(_SkippingClips(list(items), skip_unreadable))
+
+
+class _SkippingClips:
+  """`clips_source(items, skip_unreadable=N)`'s random-access source (picklable)."""
+
+  def __init__(self, items: list, skip: int):
+    self._items, self._skip, self._warned = items, skip, set()
+
+  def __len__(self) -> int:
+    return len(self._items)
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    load, n, first = _LoadClip(), len(self._items), None
+    for k in range(min(self._skip, n - 1) + 1):
+      item = self._items[(index + k) % n]
+      try:
+        return load(item)
+      except (ValueError, OSError) as e:
+        if not is_unreadable(e):
+          raise
+        first = first or e
+        key = (index + k) % n
+        if key not in self._warned:  # once per clip and process (every epoch reads it)
+          self._warned.add(key)
+          log.warning("skipping an unreadable clip (data.skip_unreadable): %s: %s: %s",
+                      _where(item), type(e).__name__, e)
+    raise ValueError(f"{plural(min(self._skip, n - 1) + 1, 'clip')} in a row from clip {index} "
+                     f"do not read (data.skip_unreadable={self._skip} skips no more: a lost disk or "
+                     f"mount?); the first: {type(first).__name__}: {first}") from first
+
+  def __getstate__(self):  # grain workers: without the warned set
+    return {"_items": self._items, "_skip": self._skip}
+
+  def __setstate__(self, state):
+    self.__dict__.update(state, _warned=set())
+
+
+def _where(item) -> str:
+  """`clip_origin` of a registry item (a loaded clip dict: its origin, if it has one)."""
+  if isinstance(item, Mapping):
+    return str(item.get(ORIGIN, "a clip"))
+  sequence, indices = item
+  return clip_origin(sequence, indices)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -180,6 +180,54 @@ def test_bad_pipeline_arguments_are_named():
   assert {w.filename for w in record} == {__file__}
 
 
+class _Sequence:
+  """A registry-like sequence whose frames in `broken` do not read (a reader's error)."""
+
+  name, dataset, sparse = "seq", "fake", False
+
+  def __init__(self, broken=()):
+    self.broken = set(broken)
+
+  def gather(self, indices):
+    for i in indices:
+      if i in self.broken:
+        raise ValueError(f"/data/seq/{i:04d}.png: cannot decode the image file")
+    t = len(indices)
+    disp = np.broadcast_to(np.float32(indices[0]), (t, 4, 4)).copy()
+    img = np.zeros((t, 4, 4, 3), np.uint8)
+    return {"left": img, "right": img, "disparity": disp, "valid": np.ones((t, 4, 4), bool)}
+
+
+def test_unreadable_clips_stop_or_are_replaced_by_the_next_readable_one(caplog):
+  seq = _Sequence(broken={2, 3})
+  items = [(seq, [i]) for i in range(6)]
+  stop = pipeline.clips_source(items)
+  assert stop[1]["disparity"][0, 0, 0] == 1
+  with pytest.raises(ValueError, match="0002.png: cannot decode") as info:
+    stop[2]  # pylint: disable=pointless-statement
+  assert pipeline.is_unreadable(info.value)  # what the training's error message tells apart
+  skip = pipeline.clips_source(items, skip_unreadable=2)
+  with caplog.at_level("WARNING", "sav_jax.data.pipeline"):
+    got = [int(skip[i]["disparity"][0, 0, 0]) for i in range(6)]
+    assert [int(skip[i]["disparity"][0, 0, 0]) for i in range(6)] == got  # deterministic
+  assert got == [0, 1, 4, 4, 4, 5]  # 2 and 3 stand in for by 4, the next readable clip
+  warned = [r.getMessage() for r in caplog.records]
+  assert len(warned) == 2 and all("skipping an unreadable clip (data.skip_unreadable): fake/seq"
+                                  in m for m in warned), warned  # once per clip
+  assert "0003.png: cannot decode" in warned[1]
+  with pytest.raises(ValueError, match=r"2 clips in a row from clip 2 do not read "
+                                       r"\(data.skip_unreadable=1 skips no more.*0002.png"):
+    pipeline.clips_source(items, skip_unreadable=1)[2]  # pylint: disable=pointless-statement
+  no_gt = (types.SimpleNamespace(gather=lambda idx: {"disparity": None}), [0])
+  with pytest.raises(ValueError, match="has no ground truth"):  # a config error: not skipped
+    pipeline.clips_source([no_gt] + items, skip_unreadable=3)[0]  # pylint: disable=pointless-statement
+  with pytest.raises(ValueError, match="skip_unreadable must be an integer >= 0"):
+    pipeline.clips_source(items, skip_unreadable=-1)
+  batches = pipeline.make_train_dataset([skip], [1.0], batch_size=3, seed=0, num_threads=2)
+  ids = sum((_ids(b) for b in _take(iter(batches), 4)), [])  # two epochs through threads
+  assert sorted(ids[:6]) == [0, 1, 4, 4, 4, 5] == sorted(ids[6:])
+
+
 def test_interrupt_and_restore_iterator_state():
   make = lambda: iter(pipeline.make_train_dataset(
       [_tagged(1, 13), pipeline.synthetic_source(CFG, 9)], [2.0, 1.0], batch_size=3, seed=5,

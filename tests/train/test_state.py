@@ -961,6 +961,8 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
     ("compile_cache", None, r"config\.compile_cache=None: expected a folder, 'default' or ''"),
     ("data.mixing", "mix", r"config\.data\.mixing='mix': expected 'concat' or 'ratio'"),
     ("data.prefetch", -1, r"config\.data\.prefetch=-1: expected an integer >= 0"),
+    ("data.skip_unreadable", True, r"config\.data\.skip_unreadable=True: expected an integer "
+     r">= 0 \(0: an unreadable clip stops the run\)"),
     ("seed", 2**32, r"config\.seed=4294967296: expected an integer in \[0, 2\*\*32\)"),
     ("data.synthetic.num_clips", 0, r"config\.data\.synthetic\.num_clips=0: expected an "),
     ("data.synthetic.max_disparity", -1.0,
@@ -1739,6 +1741,20 @@ def test_a_batch_the_pipeline_cannot_make_is_one_error_naming_the_step():
   with pytest.raises(loop.DataError, match=r"\(no checkpoint yet\)$"):
     loop._next_batch(Failing(), 1, Manager(None))  # pylint: disable=protected-access
   assert loop._next_batch(iter([{"x": 1}]), 1, Manager(None)) == {"x": 1}  # pylint: disable=protected-access
+
+  class Unreadable:  # a reader's error (its note): the option that trains through it is named
+    def __next__(self):
+      e = ValueError("/d/0011.png: cannot decode the image file")
+      e.add_note(pipeline.UNREADABLE_NOTE)
+      raise e
+
+  with pytest.raises(loop.DataError, match=r"0011.png: cannot decode the image file \(the "
+                     r"checkpoint of step 5 is kept: .* to resume; --config.data."
+                     r"skip_unreadable=N trains on the next readable clip instead of an "
+                     r"unreadable one\)$"):
+    loop._next_batch(Unreadable(), 7, Manager(5))  # pylint: disable=protected-access
+  with pytest.raises(loop.DataError, match=r"to resume\)$"):  # already on: no hint
+    loop._next_batch(Unreadable(), 7, Manager(5), 3)  # pylint: disable=protected-access
 
 
 def test_the_depth_prior_of_checkpoints_saved_before_it_was_recorded():
