@@ -542,6 +542,30 @@ def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(
     assert source == "checkpoint"
 
 
+def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+
+  class Seq:
+    name, dataset = "s", "sceneflow"
+
+    def gather(self, indices):
+      if indices[0] == 1:
+        raise ValueError("/d/s/0001.png: cannot decode the image file")
+      d = np.full((1, 2, 2), float(indices[0]), np.float32)
+      return {"left": np.zeros((1, 2, 2, 3), np.uint8), "right": np.zeros((1, 2, 2, 3), np.uint8),
+              "disparity": d, "valid": d > 0}
+
+  monkeypatch.setattr(pipeline, "registry_clips", lambda *a, **k: [(Seq(), [i]) for i in range(3)])
+  c = _config()
+  spec = types.SimpleNamespace(dataset="sceneflow", weight=1.0)
+  src, _, _ = input_lib._source(c, spec, "train", 0)  # pylint: disable=protected-access
+  with pytest.raises(ValueError, match="0001.png"):
+    src[1]  # pylint: disable=pointless-statement
+  c.data.skip_unreadable = 1
+  src, _, _ = input_lib._source(c, spec, "train", 0)  # pylint: disable=protected-access
+  assert src[1]["disparity"][0, 0, 0] == 2
+
+
 def test_a_resume_whose_training_clips_changed_is_warned_about(tmp_path, caplog):
   """Data added to a dataset between a stop and its resume: the saved position in the data
   was applied to another shuffle, silently (some clips twice, some never)."""
