@@ -285,14 +285,14 @@ def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
   would have."""
   keep = int(config.checkpoint.keep)
   steps = sorted(manager.all_steps())
-  if keep <= 0 or len(steps) <= keep:
+  if keep <= 0 or len(steps) < keep:  # the first save adds one, then orbax keeps `keep`
     return
   saved = saved.get("checkpoint.keep")
   if saved == keep:
     return
   earlier = (f"saved with config.checkpoint.keep={saved}" if saved is not None
              else "saved before the keep policy was recorded")
-  doomed = steps[:len(steps) - keep]
+  doomed = steps[:len(steps) + 1 - keep]
   raise sav_jax.convert.CheckpointError(
       f"{manager.directory} holds {len(steps)} checkpoints ({earlier}); this run's "
       f"config.checkpoint.keep={keep} would delete {doomed} at its first save. Pass "

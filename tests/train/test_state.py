@@ -530,16 +530,24 @@ def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(
   c.checkpoint.keep = 2
   with pytest.raises(sav_jax.convert.CheckpointError,
                      match=r"holds 4 checkpoints \(saved with config.checkpoint.keep=0\); this "
-                     r"run's config.checkpoint.keep=2 would delete \[1, 2\] at its first save. "
-                     r"Pass --config.checkpoint.keep=0 to keep them"):
+                     r"run's config.checkpoint.keep=2 would delete \[1, 2, 3\] at its first "
+                     r"save. Pass --config.checkpoint.keep=0 to keep them"):
     loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c), it)
   folder = tmp_path / "checkpoints"
-  assert sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) == [1, 2, 3, 4]
-  for keep in (0, 4, 9):  # the same policy, or one that deletes nothing: resumed
+  steps = lambda: sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit())  # noqa: E731
+  assert steps() == [1, 2, 3, 4]
+  c.checkpoint.keep = 4  # as many as the folder holds: the first save (step 5) pruned step 1
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"would delete \[1\] at its first"):
+    loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c), it)
+  for keep in (0, 9, 5):  # the same policy, or one that deletes nothing: resumed
     c.checkpoint.keep = keep
-    _, _, source = loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c),
-                                      it)
+    manager = ckpt_lib.make_manager(tmp_path, c)
+    state, _, source = loop.initial_state(c, model, tx, mesh, manager, it)
     assert source == "checkpoint"
+  ckpt_lib.save(manager, state.replace(step=jnp.asarray(5, jnp.int32)), it, 5, force=True,
+                run_config=c)  # keep=5: the first save deletes nothing
+  manager.wait_until_finished()
+  assert steps() == [1, 2, 3, 4, 5]
 
 
 def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
