@@ -34,6 +34,7 @@ import sav_jax
 from sav_jax import _signals, runtime
 from sav_jax._checks import plural
 from sav_jax._locks import FolderBusyError, FolderLock
+from sav_jax.convert import params as convert_params
 from sav_jax.data import pipeline
 from sav_jax.model.init import init_variables
 from sav_jax.model.stereo_any_video import check_iters
@@ -73,6 +74,13 @@ def initial_weights(config, abstract_params, saved: dict | None = None):
             if config.init_from else None)
   # Checked here, before the workdir is created.
   if host is not None:
+    token = flax.traverse_util.flatten_dict(host).get(ckpt_lib.VDA_PATH + ("pretrained",
+                                                                          "cls_token"))
+    found = convert_params.encoder_of_width(np.shape(token)[-1:])
+    if found is not None and found != cfg.vda_encoder:  # else hundreds of shape problems
+      raise ValueError(f"config.init_from={config.init_from}: its depth prior is {found} "
+                       f"(DINOv2 width {np.shape(token)[-1]}); this run's model is configured "
+                       f"for {cfg.vda_encoder}: pass --config.model.vda_encoder={found}")
     state_lib.check_params(host, abstract_params, f"config.init_from={config.init_from}: its "
                            "params")
   if vda is not None:

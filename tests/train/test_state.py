@@ -634,6 +634,24 @@ def test_vda_weights_load_into_the_real_model(tmp_path, vda_state_dict):
                    str(e.value).replace("\n", " ")), e.value
 
 
+def test_init_from_a_folder_of_another_depth_prior_names_both(monkeypatch):
+  """A folder's params (a `sav-jax convert` output, a run) of a ViT-S prior for a ViT-B model:
+  a 5,000-character list of 335 shape problems that never said ViT-S vs ViT-B."""
+  from train import loop  # pylint: disable=g-import-not-at-top
+  token = {"depthnet": {"depthanything": {"pretrained": {"cls_token": np.zeros((1, 1, 384))}}}}
+  monkeypatch.setattr(ckpt_lib, "load_model_params", lambda *a, **k: token)
+  c = synthetic.get_config()
+  c.init_from, c.model.vda_encoder = "runs/sceneflow", "vitb"
+  with pytest.raises(ValueError, match=r"^config\.init_from=runs/sceneflow: its depth prior is "
+                     r"vits \(DINOv2 width 384\); this run's model is configured for vitb: pass "
+                     r"--config\.model\.vda_encoder=vits$"):
+    loop.initial_weights(c, {})
+  c.model.vda_encoder = "vits"  # the same prior: on to the shape check, which names the rest
+  with pytest.raises(ValueError, match=r"its params do not match the model \(2 problems\): "
+                                       r"missing x; unexpected depthnet"):
+    loop.initial_weights(c, {"x": jax.ShapeDtypeStruct((1,), jnp.float32)})
+
+
 def test_init_files_of_the_wrong_kind_name_the_file_and_the_field(tmp_path, vda_state_dict,
                                                                    sav_state_dict):
   from sav_jax.convert import CheckpointError, save_state_dict  # pylint: disable=g-import-not-at-top
