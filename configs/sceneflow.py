@@ -114,7 +114,8 @@ def base_config() -> ml_collections.ConfigDict:
   c.train.log_every = 50
   # Abort when more updates than this were skipped for non-finite loss/gradients.
   c.train.max_skipped_steps = 100
-  # Show a tqdm progress bar on process 0.
+  # Show a tqdm progress bar on process 0 where standard error is a terminal (elsewhere, and
+  # with False, each training record is a log line).
   c.train.progress_bar = True
 
   c.optimizer = ml_collections.ConfigDict()

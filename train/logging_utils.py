@@ -6,6 +6,7 @@ import json
 import logging
 import math
 import pathlib
+import sys
 import time
 
 import jax
@@ -119,16 +120,26 @@ def _supersede(path: pathlib.Path, aside: pathlib.Path, start_step: int) -> None
 
 
 class Progress:
-  """tqdm bar over steps with step rate, loss and EPE (no-op off process 0 or without tqdm)."""
+  """tqdm bar over steps with step rate, loss and EPE (no-op off process 0, without tqdm, or
+  where standard error is not a terminal: a log file, `nohup`, a batch job, where the bar's
+  carriage-return updates pile up; the training records are log lines there)."""
 
-  def __init__(self, start: int, total: int, enabled: bool = True):
+  def __init__(self, start: int, total: int, enabled: bool = True, stream=None):
     self._bar = None
-    if enabled and jax.process_index() == 0:
+    stream = sys.stderr if stream is None else stream
+    terminal = bool(getattr(stream, "isatty", lambda: False)())
+    if enabled and terminal and jax.process_index() == 0:
       try:
         from tqdm import tqdm  # pylint: disable=g-import-not-at-top
-        self._bar = tqdm(total=total, initial=start, unit="step", dynamic_ncols=True)
+        self._bar = tqdm(total=total, initial=start, unit="step", dynamic_ncols=True,
+                         file=stream)
       except ImportError:
         pass
+
+  @property
+  def shown(self) -> bool:
+    """Whether the bar is drawn (else the training records are log lines)."""
+    return self._bar is not None
 
   def update(self, n: int = 1, **postfix) -> None:
     if self._bar is None:

@@ -228,13 +228,25 @@ class _HostMetrics:
       if "lr" in last:
         means["lr"] = float(last["lr"])  # the rate of its last step (a mean was never used)
       self.writer.write(step, means)
-      if not self.config.train.progress_bar and jax.process_index() == 0:  # else the bar's
+      if not self.progress.shown and jax.process_index() == 0:  # else the bar's
         rate = self.n / max(time.perf_counter() - self.window_start, 1e-9)
         shown = ", ".join(f"{k} {means[k]:.4g}" for k in ("loss", "epe", "1px", "lr")
                           if k in means)
-        log.info("step %d: %s (%.3g steps/s)", step, shown, rate)
+        left = max(int(self.config.train.num_steps) - step, 0)
+        log.info("step %d: %s (%.3g steps/s%s)", step, shown, rate,
+                 f", {_duration(left / rate)} to step {self.config.train.num_steps}"
+                 if left else "")
       self.sums, self.n, self.n_finite, self.measured = {}, 0, 0, 0.0
       self.window_start = time.perf_counter()
+
+
+def _duration(seconds: float) -> str:
+  """`1 h 05 min`, `12 min`, `40 s`: an estimated time left."""
+  seconds = int(round(seconds))
+  if seconds < 60:
+    return f"{seconds} s"
+  hours, minutes = divmod(seconds // 60, 60)
+  return f"{hours} h {minutes:02d} min" if hours else f"{minutes} min"
 
 
 # Step metrics averaged over every step of a logging window (the others: over its finite steps).
@@ -544,6 +556,7 @@ def setup(config, workdir):
   optim.check_depth_prior_frozen(labels, config.optimizer.frozen)
   log.info("parameters: %s", state_lib.param_count(abstract_params, labels))
   tx = optim.make_optimizer(config.optimizer, config.train.num_steps)
+  log.info("learning rate: %s", optim.schedule_summary(config.optimizer, config.train.num_steps))
   weights, saved = None, {}
   if (config.init_from or config.vda_weights) and resume_from is None:
     # Not resuming: weights that cannot be read fail before the workdir is created.

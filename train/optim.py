@@ -139,6 +139,26 @@ def make_schedule(opt_cfg, num_steps: int) -> Callable[[Any], jax.Array]:
                           opt_cfg.final_div_factor, stop_at=total - 1)
 
 
+def schedule_summary(opt_cfg, num_steps: int) -> str:
+  """The learning-rate schedule in words, for the run's log: `one-cycle (linear), from 4e-06
+  up to 0.0001 at update 1200, down to 4e-10 at update 120099 of a 120100-update cycle (this
+  run: 120000 updates)`, or `constant 0.0001`."""
+  if opt_cfg.schedule == "constant":
+    return f"constant {opt_cfg.lr:g}"
+  total = opt_cfg.schedule_steps if opt_cfg.schedule_steps > 0 else num_steps + 100
+  initial = opt_cfg.lr / opt_cfg.div_factor
+  peak = int(round(opt_cfg.pct_start * total - 1.0))
+  end = (f"down to {initial / opt_cfg.final_div_factor:.3g} at update {total - 1} of a "
+         f"{total}-update cycle")
+  if num_steps < total - 1:
+    with jax.transfer_guard("allow"):  # one scalar, at the start
+      last = float(make_schedule(opt_cfg, num_steps)(num_steps))
+    end += f" (this run stops at update {num_steps}, at {last:.3g})"
+  else:
+    end += f", then held (this run: {num_steps} updates)"
+  return f"one-cycle (linear), from {initial:.3g} up to {opt_cfg.lr:g} at update {peak}, {end}"
+
+
 class TrainableVector:
   """The trainable leaves of a parameter tree as one vector, and back.
 

@@ -5,6 +5,7 @@ compile it run in subprocesses (test_sharding, test_multihost, test_resume_and_l
 """
 
 import functools
+import io
 import json
 import logging
 import os
@@ -260,6 +261,8 @@ def test_log_and_save_periods_of_zero_mean_the_last_step_only():
       self.steps.append(step)
 
   class Bar:
+    shown = True  # a drawn progress bar: no log lines
+
     def update(self, *args, **kwargs):
       pass
 
@@ -1308,6 +1311,8 @@ def test_logged_means_leave_out_skipped_steps(caplog):
       self.records.append((step, scalars))
 
   class Bar:
+    shown = True  # a drawn progress bar: no log lines
+
     def update(self, *args, **kwargs):
       pass
 
@@ -1356,13 +1361,47 @@ def test_logged_means_leave_out_skipped_steps(caplog):
   record = writer.records[-1][1]
   assert record["epe"] == pytest.approx((2.0 + 2.5) / 1.5) and record["loss"] == 1.0
   assert record["measured_frames"] == pytest.approx(0.5)
-  # Without the progress bar (a log file), each record is a line of the log too.
-  c.train.progress_bar = False
+  caplog.clear()
+  with caplog.at_level(logging.INFO):
+    host(3, {"loss": 5.0, "epe": 1.5, "1px": 0.25, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
+  assert "step 3:" not in caplog.text  # the bar shows it
+  # Without the progress bar (off, or a log file), each record is a line of the log too,
+  # with the time left to the last step.
+  Bar.shown = False
   quiet = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
   with caplog.at_level(logging.INFO):
     quiet(3, {"loss": 5.0, "epe": 1.5, "1px": 0.25, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
-  assert re.search(r"step 3: loss 5, epe 1\.5, 1px 0\.25, lr 0\.3 \([\d.e+-]+ steps/s\)",
-                   caplog.text), caplog.text
+  assert re.search(r"step 3: loss 5, epe 1\.5, 1px 0\.25, lr 0\.3 \([\d.e+-]+ steps/s, "
+                   r"\d+ (s|min|h \d\d min) to step 6\)", caplog.text), caplog.text
+  assert [loop._duration(t) for t in (40.4, 720, 3900)] == ["40 s", "12 min", "1 h 05 min"]  # pylint: disable=protected-access
+
+
+def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_described():
+  """A bar in a log file (nohup, a batch job) was carriage-return updates and no step lines."""
+  from train import logging_utils  # pylint: disable=g-import-not-at-top
+
+  class Terminal(io.StringIO):
+    def isatty(self):
+      return True
+
+  for stream, enabled, shown in ((Terminal(), True, True), (io.StringIO(), True, False),
+                                 (Terminal(), False, False)):
+    bar = logging_utils.Progress(0, 10, enabled=enabled, stream=stream)
+    assert bar.shown == shown
+    bar.update(1, loss=1.0)
+    bar.close()
+    assert ("1/10" in stream.getvalue()) == shown
+  c = synthetic.get_config()
+  c.optimizer.lr, c.optimizer.pct_start, c.optimizer.div_factor = 1e-4, 0.01, 25.0
+  c.optimizer.final_div_factor, c.optimizer.schedule_steps = 1e4, 0
+  assert optim.schedule_summary(c.optimizer, 120_000) == (
+      "one-cycle (linear), from 4e-06 up to 0.0001 at update 1200, down to 4e-10 at update "
+      "120099 of a 120100-update cycle (this run stops at update 120000, at 8.37e-08)")
+  c.optimizer.schedule_steps = 1000
+  assert optim.schedule_summary(c.optimizer, 5000).endswith(
+      "update 999 of a 1000-update cycle, then held (this run: 5000 updates)")
+  c.optimizer.schedule = "constant"
+  assert optim.schedule_summary(c.optimizer, 5000) == "constant 0.0001"
 
 
 def _loop_parts(c, workdir, step_hook=None, evaluator=None):
