@@ -58,8 +58,11 @@ def remembered_interrupts():
     return
 
   def remember(signum, frame):
-    _interrupted.set()
-    previous(signum, frame)
+    try:
+      previous(signum, frame)
+    except BaseException:  # KeyboardInterrupt: remembered (a handler that stops the work
+      _interrupted.set()   # its own way, as the training's first Ctrl-C, is not)
+      raise
 
   remember.remembers = True
 

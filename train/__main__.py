@@ -209,9 +209,9 @@ def main(argv):
     raise
   try:
     loop.run(config, _WORKDIR.value, parts)
-  except loop.Preempted as e:  # SIGTERM: a checkpoint was saved; 143 = 128 + SIGTERM
+  except loop.Preempted as e:  # a checkpoint was saved; 143 = 128 + SIGTERM, 130 + SIGINT
     print(f"train: {e}", file=sys.stderr)
-    sys.exit(143)
+    sys.exit(130 if e.reason == loop.CTRL_C else 143)
   except loop.DataError as e:  # bad data met by the pipeline: one line, as bad input
     if flags.FLAGS.verbosity >= 1:
       traceback.print_exc()

@@ -663,6 +663,7 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
         with jax.profiler.StepTraceAnnotation("train", step_num=step):
           state, metrics = parts["train_step"](state, _next_batch(
               parts["batches"], step, manager, config.data.skip_unreadable))
+        _signals.raise_if_interrupted()  # a second Ctrl-C (dropped) during the step: no save
         if step == start + 1:  # the step was compiled by this call: free the compiler's memory
           runtime.release_host_memory()
         if pending is not None:
@@ -698,7 +699,7 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
       writer.close()
   if stop and step < total:
     raise Preempted(f"stopped at step {step} of {total} ({stop}), with a checkpoint of that "
-                    "step: run the same command again to resume")
+                    "step: run the same command again to resume", stop)
   if start < total and jax.process_index() == 0:
     log.info("done: step %d of %d; the latest checkpoint: %s (the weights for sav-jax infer, "
              "python -m eval and config.init_from: %s)", total, total,
@@ -734,7 +735,15 @@ class Diverged(FloatingPointError):
 
 
 class Preempted(RuntimeError):
-  """The run stopped early on a preemption notice, after saving a checkpoint of its step."""
+  """The run stopped early on a preemption notice or a Ctrl-C (`reason`: "SIGTERM",
+  `CTRL_C`, "preemption notice"), after saving a checkpoint of its step."""
+
+  def __init__(self, message: str, reason: str = "SIGTERM"):
+    super().__init__(message)
+    self.reason = reason
+
+
+CTRL_C = "Ctrl-C"
 
 
 class DataError(RuntimeError):
@@ -779,18 +788,33 @@ class Preemption:
   def __init__(self, manager):
     self.manager = manager
     self.reason = None
-    self._previous = None
+    self._previous = self._previous_int = None
 
   def __enter__(self) -> "Preemption":
     if (jax.process_count() == 1
         and threading.current_thread() is threading.main_thread()):  # Python's rule
       self._previous = signal.signal(signal.SIGTERM, self._on_signal)
+      if callable(signal.getsignal(signal.SIGINT)):  # not ignored (a background job)
+        self._previous_int = signal.signal(signal.SIGINT, self._on_interrupt)
     return self
 
   def __exit__(self, *exc) -> None:
     if self._previous is not None:
       signal.signal(signal.SIGTERM, self._previous)
       self._previous = None
+    if self._previous_int is not None:
+      signal.signal(signal.SIGINT, self._previous_int)
+      self._previous_int = None
+
+  def _on_interrupt(self, signum, frame) -> None:
+    """The first Ctrl-C stops the run as SIGTERM does (after this step, with a checkpoint of
+    it); another one, or one after a SIGTERM, stops it at once (KeyboardInterrupt)."""
+    if self.reason is not None:
+      self._previous_int(signum, frame)
+      return
+    log.warning("Ctrl-C: saving a checkpoint after this step, then stopping (Ctrl-C again "
+                "stops at once, without it)")
+    self.reason = CTRL_C
 
   def _on_signal(self, signum, frame) -> None:
     del frame

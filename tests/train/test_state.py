@@ -1471,7 +1471,8 @@ def test_a_finished_run_run_again_says_it_is_complete(tmp_path, caplog):
 
 def test_ctrl_c_during_a_checkpoint_save_lets_the_save_finish(tmp_path, monkeypatch):
   # A KeyboardInterrupt inside orbax's synchronous part of a save dropped the checkpoint:
-  # Ctrl-C is held back while the save starts, and raised once it has.
+  # Ctrl-C is held back while the save starts, and raised once it has (the first one asks
+  # for a checkpoint after the next step; the second, during that save, stops at once).
   import os  # pylint: disable=g-import-not-at-top
   import signal  # pylint: disable=g-import-not-at-top
   from train import loop  # pylint: disable=g-import-not-at-top
@@ -1491,12 +1492,45 @@ def test_ctrl_c_during_a_checkpoint_save_lets_the_save_finish(tmp_path, monkeypa
   try:
     with pytest.raises(KeyboardInterrupt):
       loop.run(c, tmp_path, _loop_parts(c, tmp_path))
-    assert saved == [True] and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert saved == [True, True] and signal.getsignal(signal.SIGINT) is signal.default_int_handler
   finally:
     signal.signal(signal.SIGINT, handler)
-  assert sav_jax.convert.find_training_checkpoint(tmp_path) == tmp_path / "checkpoints" / "2"
+  assert sav_jax.convert.find_training_checkpoint(tmp_path) == tmp_path / "checkpoints" / "3"
   with loop.interrupt_after():  # nothing held back: the block runs, nothing raised
     pass
+
+
+def test_the_first_ctrl_c_saves_the_step_and_stops_as_sigterm_does(tmp_path):
+  """Ctrl-C stopped a run where it landed: up to `checkpoint.every_steps` - 1 steps were lost
+  (2,999 with sceneflow.py), where SIGTERM saved the current step."""
+  import os  # pylint: disable=g-import-not-at-top
+  import signal  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.num_steps, c.train.log_every, c.train.progress_bar = 6, 1, False
+  c.checkpoint.every_steps, c.eval.every_steps = 100, 0
+
+  def ctrl_c(k):
+    if k == 2:
+      os.kill(os.getpid(), signal.SIGINT)
+
+  handler = signal.signal(signal.SIGINT, signal.default_int_handler)  # (xdist ignores it)
+  try:
+    with pytest.raises(loop.Preempted, match=r"stopped at step 2 of 6 \(Ctrl-C\)") as info:
+      loop.run(c, tmp_path, _loop_parts(c, tmp_path, ctrl_c))
+    assert info.value.reason == loop.CTRL_C  # (exit status 130, SIGTERM's 143)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+    assert sav_jax.convert.find_training_checkpoint(tmp_path) == tmp_path / "checkpoints" / "2"
+    state = loop.run(c, tmp_path, _resumed_parts(c, tmp_path))  # the same command resumes
+    assert int(state.step) == 6 and _steps_logged(tmp_path) == [1, 2, 3, 4, 5, 6]
+  finally:
+    signal.signal(signal.SIGINT, handler)
+  handler = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job: left as it is
+  try:
+    with loop.Preemption(None):
+      assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+  finally:
+    signal.signal(signal.SIGINT, handler)
 
 
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # (the drop)
@@ -1516,7 +1550,8 @@ def test_a_ctrl_c_that_python_drops_still_stops_the_run(tmp_path):
   def dropped_ctrl_c(step):
     steps.append(step)
     if step == 1:
-      drop_ctrl_c_in_gc()
+      drop_ctrl_c_in_gc()  # the first asks for a save after the step (nothing to drop)
+      drop_ctrl_c_in_gc()  # the second stops at once: its KeyboardInterrupt is dropped
 
   handler = signal.signal(signal.SIGINT, signal.default_int_handler)  # (xdist ignores it)
   try:
@@ -1740,6 +1775,16 @@ def test_ctrl_c_ends_the_train_command_with_one_line(toy_run, tmp_path, during):
                           timeout=300, check=False)
     assert proc.returncode == 130, proc.stderr[-2000:]
     assert proc.stderr.strip() == f"train: interrupted (Ctrl-C); {says}", proc.stderr[-2000:]
+  if during == "run":  # the first Ctrl-C: a checkpoint of the step, then 130 (SIGTERM's 143)
+    for reason, status in (("loop.CTRL_C", 130), ("'SIGTERM'", 143)):
+      stopped = code.replace("def interrupt(*a, **k):\n  raise KeyboardInterrupt\n",
+                             "def interrupt(*a, **k):\n  raise loop.Preempted('stopped at step "
+                             f"3 of 9 (x), with a checkpoint', {reason})\n")
+      proc = subprocess.run([sys.executable, "-c", stopped, str(tmp_path / "new")], cwd=ROOT,
+                            env=child_env(tmp_path / "cache"), capture_output=True, text=True,
+                            timeout=300, check=False)
+      assert proc.returncode == status, proc.stderr[-2000:]
+      assert proc.stderr.strip() == "train: stopped at step 3 of 9 (x), with a checkpoint"
 
 
 def test_a_failed_checkpoint_write_is_one_line_naming_step_folder_and_cause(tmp_path):
