@@ -369,6 +369,7 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
     raise sav_jax.convert.CheckpointError(
         f"{directory}: the checkpoint is incomplete: it has no {position.relative_to(directory)} "
         f"(this process's position in the data){hint}")
+  orbax_io.check_regular_files(directory)
   saved = _saved_shapes(directory / "state")
   _check_saved_shapes(directory, saved, target)
   restored = orbax_io.checked_restore(

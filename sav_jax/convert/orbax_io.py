@@ -18,6 +18,7 @@ import os
 import pathlib
 import re
 import shutil
+import stat
 import sys
 import threading
 import time
@@ -258,7 +259,9 @@ def restore_variables(directory, target=None):
     step = find_training_checkpoint(directory)
     if step is None:
       raise CheckpointError(_not_a_checkpoint_message(directory))
+    check_regular_files(step)
     return _restore_training_params(step, target)
+  check_regular_files(directory)
   with _checkpointer() as ckptr:
     if target is None:
       target = _target_from_metadata(ckptr, directory, "variables")
@@ -298,6 +301,9 @@ def checked_restore(restore, directory, mismatch, corrupt_hint: str = ""):
     with _signals.interrupt_after():
       restored = restore()
   except Exception as e:  # pylint: disable=broad-except  # orbax: a bare Exception if unreadable
+    memory = next((x for x in _causes(e) if isinstance(x, MemoryError)), None)
+    if memory is not None and memory is not e:
+      raise MemoryError(f"{directory}: out of host memory reading the checkpoint") from e
     corrupt = corrupt_checkpoint_error(directory, e)
     if corrupt is None:
       if not isinstance(e, (ValueError, KeyError, TypeError, IndexError)):
@@ -320,6 +326,15 @@ _TENSORSTORE_ERROR = re.compile(r"^[A-Z_]+: Error (reading|opening|decoding|writ
 _ORBAX_READ_ERROR = "Encountered error while reading array"
 
 
+def _causes(error: BaseException) -> list[BaseException]:
+  """`error` and up to 7 of its causes or contexts."""
+  chain, e = [], error
+  while e is not None and len(chain) < 8:
+    chain.append(e)
+    e = e.__cause__ or e.__context__
+  return chain
+
+
 def corrupt_checkpoint_error(directory, error: BaseException) -> CheckpointError | None:
   """A `CheckpointError` saying that the checkpoint at `directory` is corrupt or incomplete
   when `error` (or its cause) is a failed tensorstore read (e.g. truncated or deleted chunk
@@ -332,16 +347,17 @@ def corrupt_checkpoint_error(directory, error: BaseException) -> CheckpointError
   Returns:
     The error to raise (from `error`), or None for any other kind of error.
   """
-  chain, e = [], error
-  while e is not None and len(chain) < 8:
-    chain.append(e)
-    e = e.__cause__ or e.__context__
+  chain = _causes(error)
+  if any(isinstance(e, MemoryError) for e in chain):  # not a damaged file: the caller's
+    return None
   lines = [str(e).strip().splitlines()[0] if str(e).strip() else "" for e in chain]
   if not any(l.startswith(_ORBAX_READ_ERROR) or _TENSORSTORE_ERROR.match(l) for l in lines):
-    json_errors = [e for e in chain if isinstance(e, json.JSONDecodeError)]
+    json_errors = [e for e in chain if isinstance(e, (json.JSONDecodeError, RecursionError))]
     if not json_errors:
       return None
-    lines = [f"a JSON file cannot be parsed: {json_errors[0]}"]
+    what = ("nested too deeply" if isinstance(json_errors[0], RecursionError)
+            else f"cannot be parsed: {json_errors[0]}")
+    lines = [f"a JSON file {what}"]
   # The most specific line: tensorstore's own (the file and what is wrong), else orbax's
   # without the store's multi-line spec.
   detail = next((l.split(" [tensorstore_spec=")[0] for l in lines if _TENSORSTORE_ERROR.match(l)),
@@ -423,6 +439,52 @@ def _restore_training_params(step: pathlib.Path, target=None):
   return {"params": restored["state"]["params"]}, restored["config"] if has_config else {}
 
 
+# Bounds on what a checkpoint's metadata may declare before anything is read: the largest
+# array of the largest model (ViT-L prior) is 36 MiB and all of its weights 1.46 GiB, so a
+# declared 24000 x 24000 array (a few hundred kB of compressible chunks) used 4.7 GB of host
+# memory before the shape check against the model could refuse it.
+MAX_LEAF_BYTES = 256 * 2**20
+MAX_TOTAL_BYTES = 4 * 2**30
+
+
+def check_declared_sizes(directory, tree) -> None:
+  """Raises CheckpointError where the abstract arrays `tree` (from a checkpoint's metadata)
+  declare an array beyond `MAX_LEAF_BYTES` or more than `MAX_TOTAL_BYTES` in all: no model
+  has such arrays, and reading them first would take that much host memory."""
+  total = 0
+  for path, x in jax.tree_util.tree_leaves_with_path(tree):
+    if not hasattr(x, "shape"):
+      continue
+    size = int(np.prod(x.shape, dtype=object)) * np.dtype(x.dtype).itemsize
+    total += size
+    if size > MAX_LEAF_BYTES:
+      raise CheckpointError(
+          f"{directory}: the checkpoint declares {jax.tree_util.keystr(path)} of shape "
+          f"{tuple(x.shape)} ({size / 2**30:.3g} GiB), larger than any array of the model "
+          f"({MAX_LEAF_BYTES // 2**20} MiB at most): not a checkpoint of this model, or a "
+          "damaged one (nothing was read)")
+  if total > MAX_TOTAL_BYTES:
+    raise CheckpointError(
+        f"{directory}: the checkpoint declares {total / 2**30:.3g} GiB of arrays, more than any "
+        f"model's weights ({MAX_TOTAL_BYTES // 2**30} GiB at most): not a checkpoint of this "
+        "model, or a damaged one (nothing was read)")
+
+
+def check_regular_files(directory) -> None:
+  """Raises CheckpointError where a file of the checkpoint folder (links followed) is not a
+  regular file or folder: a named pipe made a restore wait forever, holding Ctrl-C back."""
+  for root, dirs, files in os.walk(directory):
+    for name in files + dirs:
+      path = pathlib.Path(root) / name
+      try:
+        mode = path.stat().st_mode
+      except OSError:
+        continue  # a broken link: the restore names the missing file
+      if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise CheckpointError(f"{directory}: {path} is not a regular file (a pipe, socket or "
+                              "device): the checkpoint is damaged or not a checkpoint")
+
+
 def _target_from_metadata(reader, directory, item, key=None):
   """Abstract arrays on this process's first device, from the saved tree metadata of `item` (its
   `key` subtree when given); with `item=None`, `reader` is the item's own handler and
@@ -446,4 +508,6 @@ def _target_from_metadata(reader, directory, item, key=None):
       return jax.ShapeDtypeStruct(tuple(meta.shape), meta.dtype, sharding=sharding)
     return meta
 
-  return jax.tree.map(leaf, tree)
+  target = jax.tree.map(leaf, tree)
+  check_declared_sizes(directory, target)
+  return target

@@ -284,3 +284,54 @@ def test_the_command_line_exit_after_ctrl_c_skips_pythons_shutdown(tmp_path):
                         timeout=120, check=False)
   assert proc.returncode == 130 and proc.stdout == "buffered", proc
   assert proc.stderr == "tool: interrupted\n", proc.stderr
+
+
+def test_declared_sizes_beyond_any_model_are_refused_before_reading(tmp_path, monkeypatch):
+  """A checkpoint of a few hundred kB declaring a 24000 x 24000 array used 4.7 GB of host
+  memory before the shape check against the model refused it (orbax reads what the metadata
+  declares): the metadata's sizes are bounded first."""
+  from sav_jax import SAVConfig  # pylint: disable=import-outside-toplevel
+  from sav_jax.model import init  # pylint: disable=import-outside-toplevel
+  largest = jax.tree.leaves(init.abstract_variables(SAVConfig(vda_encoder="vitl")))
+  sizes = [int(np.prod(x.shape)) * np.dtype(x.dtype).itemsize for x in largest]
+  assert max(sizes) < orbax_io.MAX_LEAF_BYTES / 4 and sum(sizes) < orbax_io.MAX_TOTAL_BYTES / 2
+  path = orbax_io.save_variables(tmp_path / "ckpt", {"params": {
+      "w": np.zeros((40, 40), np.float32), "b": np.zeros((30,), np.float32)}}, _CONFIG)
+  reads = []
+  monkeypatch.setattr(orbax_io, "checked_restore",
+                      lambda *a, **k: reads.append(a) or {"variables": {}, "config": {}})
+  monkeypatch.setattr(orbax_io, "MAX_LEAF_BYTES", 40 * 40 * 4 - 1)  # the model's bound, scaled
+  with pytest.raises(CheckpointError, match=r"ckpt: the checkpoint declares \['params'\]\['w'\] "
+                     r"of shape \(40, 40\) \(5\.96e-06 GiB\), larger than any array of the "
+                     r"model .*\(nothing was read\)"):
+    orbax_io.restore_variables(path)
+  monkeypatch.setattr(orbax_io, "MAX_LEAF_BYTES", 2**20)
+  monkeypatch.setattr(orbax_io, "MAX_TOTAL_BYTES", 40 * 40 * 4 + 30 * 4 - 1)
+  with pytest.raises(CheckpointError, match=r"declares 6.*e-06 GiB of arrays, more than any "
+                                            r"model's weights"):
+    orbax_io.restore_variables(path)
+  assert not reads
+  monkeypatch.setattr(orbax_io, "MAX_TOTAL_BYTES", 2**20)
+  orbax_io.restore_variables(path)
+  assert len(reads) == 1
+
+
+def test_a_pipe_in_a_checkpoint_is_refused_not_waited_on(tmp_path):
+  """A named pipe in place of a data file made `sav-jax infer` wait forever, Ctrl-C held."""
+  path = orbax_io.save_variables(tmp_path / "ckpt", {"params": {
+      "w": np.random.default_rng(0).normal(size=3000).astype(np.float32)}}, _CONFIG)
+  [chunk, *_] = sorted(path.glob("variables/ocdbt.process_*/d/*"))
+  chunk.unlink()
+  os.mkfifo(chunk)
+  with pytest.raises(CheckpointError, match=rf"{chunk} is not a regular file \(a pipe, socket "
+                                            r"or device\)"):
+    orbax_io.restore_variables(path)
+
+
+def test_deeply_nested_config_json_is_named_not_a_recursion_traceback(tmp_path):
+  path = orbax_io.save_variables(tmp_path / "ckpt", {"params": {"w": np.ones(3, np.float32)}},
+                                 _CONFIG)
+  (path / "config" / "metadata").write_text("[" * 100_000 + "]" * 100_000)
+  with pytest.raises(CheckpointError, match=r"ckpt: the checkpoint is corrupt or incomplete .*"
+                                            r"a JSON file nested too deeply"):
+    orbax_io.restore_variables(path)
