@@ -28,6 +28,7 @@ from eval import plots
 from eval.config import BASELINES, METHOD_NAMES
 from sav_jax import inference, metrics
 from sav_jax import _locks
+from sav_jax._checks import loads_json
 from sav_jax._files import write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -388,8 +389,8 @@ def read_progress(out: pathlib.Path, settings: dict) -> dict[str, SequenceResult
     return None
   restart = "; pass --overwrite to start again"
   try:
-    header = json.loads(lines[0][1])
-  except json.JSONDecodeError:
+    header = loads_json(lines[0][1])
+  except ValueError:
     header = None
   if not (isinstance(header, dict) and header.get("sav_jax_eval_progress") == _PROGRESS_VERSION):
     raise ValueError(f"{path} is not an evaluation progress file of this version{restart}")
@@ -401,7 +402,7 @@ def read_progress(out: pathlib.Path, settings: dict) -> dict[str, SequenceResult
   done = {}
   for number, line in lines[1:]:
     try:
-      rec = json.loads(line)
+      rec = loads_json(line)
       res = SequenceResult(name=rec["name"], frames=rec["frames"], metrics=rec["metrics"],
                            seconds=rec["seconds"], compile_seconds=rec["compile_seconds"],
                            metrics_seconds=rec["metrics_seconds"],
@@ -412,7 +413,7 @@ def read_progress(out: pathlib.Path, settings: dict) -> dict[str, SequenceResult
                (res.source, (str, type(None))), (res.notes, list))
       if not all(isinstance(v, t) and not isinstance(v, bool) for v, t in kinds):
         raise TypeError("a field of another type")
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
+    except (ValueError, KeyError, TypeError) as e:
       raise ValueError(f"{path}: line {number} is not a finished sequence's record ("
                        f"{type(e).__name__}: {e}){restart}") from None
     done[res.name] = res

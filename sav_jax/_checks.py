@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import numbers
 import os
 import sys
@@ -19,6 +20,15 @@ def widened(a: np.ndarray) -> np.ndarray:
   """ml_dtypes' bfloat16 and float8 arrays (JAX's, NumPy's) as float32, exactly; NumPy's
   own types as they are."""
   return a.astype(np.float32) if a.dtype.name.startswith(("bfloat16", "float8")) else a
+
+
+def loads_json(text: str):
+  """`json.loads`, its RecursionError (a document nested thousands deep) a ValueError, as its
+  other failures are, so that the callers' one-line errors cover it."""
+  try:
+    return json.loads(text)
+  except RecursionError:
+    raise ValueError("the JSON is nested too deeply") from None
 
 
 def is_int(x) -> bool:

@@ -954,6 +954,12 @@ def test_calibration_file(tmp_path, caplog):
   for cx, cy in ((-0.6, 10.0), (63.6, 10.0), (10.0, 31.6)):
     with pytest.raises(UsageError, match="principal point"):
       CalibrationSpec(400.0, 0.2, cx=cx, cy=cy).resolve(64, 32)
+  js.write_text('{"fx": ' + "[" * 100_000 + "]" * 100_000 + "}")  # a RecursionError traceback
+  with pytest.raises(UsageError, match=r"c\.json: invalid JSON \(the JSON is nested too deeply\)"):
+    read_calibration(js)
+  js.write_text('{"fx": ' + "9" * 400 + ', "baseline": 0.1}')  # an OverflowError traceback
+  with pytest.raises(UsageError, match=r"c\.json: fx must be a number, got '9{40}'"):
+    read_calibration(js)
   for line in (": 400", "= 5"):  # no key
     txt.write_text(f"fx 400\n{line}\n")
     with pytest.raises(UsageError, match=f"c.txt, line 2: expected 'key value'.*got '{line}'"):

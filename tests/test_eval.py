@@ -379,7 +379,10 @@ def test_progress_files_and_listing_survive_kills_and_hand_edits(tmp_path, ckpt,
   for text, message in (("[1]\n", "is not an evaluation progress file"),
                         ('{"sav_jax_eval_progress": 1, "x": 1}\n{"name": "a", "frames": "4", '
                          '"metrics": {}, "seconds": {}, "compile_seconds": {}, '
-                         '"metrics_seconds": 0}\n', "line 2 is not a finished sequence's")):
+                         '"metrics_seconds": 0}\n', "line 2 is not a finished sequence's"),
+                        ('{"sav_jax_eval_progress": 1, "x": 1}\n' + "[" * 100_000 + "\n",
+                         "line 2 is not a finished sequence's.*nested too deeply"),  # Recursion
+                        ("[" * 100_000 + "\n", "is not an evaluation progress file")):
     progress.write_text(text)
     with pytest.raises(ValueError, match=message):
       eval_runner.read_progress(out, settings)

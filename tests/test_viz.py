@@ -159,8 +159,10 @@ def _raises_within(seconds, exc, match, fn, *args):
     (b"Pf\n2 1\n", "malformed PFM header"),
     (b"Pf\n-2 2\n-1\n" + bytes(16), "malformed PFM header"),
     (b"Pf\n2 2\n-1\n" + bytes(8), r"truncated PFM file \(8 bytes of data, 16 expected\)"),
-    (b"P6\n2 2\n255\n" + bytes(12), "not a PFM file")],
-    ids=["truncated_header", "letters", "one_dim", "no_scale", "negative", "short", "not_pfm"])
+    (b"P6\n2 2\n255\n" + bytes(12), "not a PFM file"),
+    (b"Pf\n" + b"9" * 5000 + b" 2\n-1\n" + bytes(8), "malformed PFM header")],  # int(): no file
+    ids=["truncated_header", "letters", "one_dim", "no_scale", "negative", "short", "not_pfm",
+         "5000_digits"])
 def test_bad_pfm_names_the_file(tmp_path, content, match):
   path = tmp_path / "bad.pfm"
   path.write_bytes(content)

@@ -36,6 +36,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 import sav_jax
+from sav_jax._checks import loads_json
 from sav_jax.convert import orbax_io
 from sav_jax.model.vda import VideoDepthAnything
 from train import optim
@@ -321,7 +322,7 @@ def check_data_state(manager: ocp.CheckpointManager, step: int, config,
   saved = (saved_run(manager, step) if saved is None else saved).get("data.worker_count")
   if saved is None and files:  # from before the run config was saved: the state's form
     try:
-      state = json.loads(files[0].read_text(encoding="utf-8"))
+      state = loads_json(files[0].read_text(encoding="utf-8"))
     except (OSError, ValueError):
       state = None
     threads_only = isinstance(state, dict) and "next_index" in state

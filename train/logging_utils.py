@@ -11,6 +11,7 @@ import time
 
 import jax
 
+from sav_jax._checks import loads_json
 from sav_jax._files import write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -89,7 +90,7 @@ def _logged_steps(path: pathlib.Path) -> set[tuple[int, str]]:
   pairs = set()
   for line in path.read_text(encoding="utf-8").splitlines():
     try:
-      record = json.loads(line)
+      record = loads_json(line)
       pairs.add((int(record["step"]), str(record["split"])))
     except (ValueError, KeyError, TypeError):
       continue
@@ -106,7 +107,7 @@ def _supersede(path: pathlib.Path, aside: pathlib.Path, start_step: int) -> None
   keep, later = [], []
   for line in path.read_text(encoding="utf-8").splitlines(keepends=True):
     try:
-      step = int(json.loads(line)["step"])
+      step = int(loads_json(line)["step"])
     except (ValueError, KeyError, TypeError):
       step = None  # a line cut by the kill: moved aside too
     (keep if step is not None and step <= last_kept and line.endswith("\n")

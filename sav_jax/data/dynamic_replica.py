@@ -21,9 +21,10 @@ masks do not enter the metrics and are not read. Splits: train, valid, test.
 from __future__ import annotations
 
 import gzip
-import json
+import math
 from pathlib import Path
 
+from sav_jax._checks import loads_json
 from sav_jax.data import frame_io
 from sav_jax.data.base import DepthSequence, camera_scale, find_root, warn_if_gaps
 
@@ -38,7 +39,7 @@ def _records(split_dir: Path, split: str) -> list[dict]:
                                "Dynamic Replica annotation file")
   try:
     with gzip.open(path, "rt", encoding="utf8") as f:
-      records = json.load(f)
+      records = loads_json(f.read())
   except (OSError, EOFError, ValueError) as e:
     raise ValueError(f"cannot read Dynamic Replica annotations {path}: {e}") from e
   if not isinstance(records, list):
@@ -105,8 +106,14 @@ def depth2disp_scale(left: dict, right: dict, source="Dynamic Replica frame reco
 def _number(value, field: str) -> float:
   """`float(value)` for a record field; TypeError (a malformed record) naming the field."""
   if isinstance(value, bool) or not isinstance(value, (int, float)):
-    raise TypeError(f"field {field} holds {value!r}, not a number")
-  return float(value)
+    raise TypeError(f"field {field} holds {str(value)[:40]!r}, not a number")
+  try:
+    number = float(value)
+  except OverflowError:  # an integer beyond float's range
+    number = math.inf
+  if not math.isfinite(number):
+    raise TypeError(f"field {field} holds {str(value)[:40]}, not a finite number")
+  return number
 
 
 def _frame_paths(split_dir: Path, rec: dict, where: str) -> tuple[Path, Path]:

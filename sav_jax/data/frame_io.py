@@ -196,7 +196,7 @@ def read_pfm(path: PathLike) -> np.ndarray:
       scale = float(tokens[2]) if len(tokens) == 3 else 0.0
     except ValueError:
       scale = 0.0
-    if (len(tokens) != 3 or not (tokens[0].isdigit() and tokens[1].isdigit())
+    if (len(tokens) != 3 or not all(t.isdigit() and len(t) <= 12 for t in tokens[:2])
         or not np.isfinite(scale) or scale == 0.0 or int(tokens[0]) * int(tokens[1]) == 0):
       raise ValueError(f"malformed PFM header (expected a non-zero 'width height' and a finite "
                        f"non-zero scale, got {b' '.join(tokens)[:40]!r}): {path}")

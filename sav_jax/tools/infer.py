@@ -32,7 +32,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sav_jax._checks import plural
+from sav_jax._checks import loads_json, plural
 from sav_jax._files import FREE_SPACE, free_space_note, write_text_atomic
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, add_devices_argument,
                            add_matmul_precision_argument, check_output_dir, matmul_precision,
@@ -203,7 +203,7 @@ def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[path
   that the folder holds one run's outputs; files the summary does not list (a user's own,
   or those of a run that failed before its summary) are never deleted."""
   try:
-    summary = json.loads((out / "summary.json").read_text())
+    summary = loads_json((out / "summary.json").read_text())
   except (OSError, ValueError):  # none, or unreadable
     return []
   # Only a summary this command wrote (another tool's `summary.json` may list anything), and
@@ -277,7 +277,7 @@ def put_back(out: pathlib.Path) -> int:
   if not aside.is_dir():
     return 0
   try:  # the unfinished run's list (none if it stopped before writing it)
-    summary = json.loads((out / "summary.json").read_text())
+    summary = loads_json((out / "summary.json").read_text())
   except (OSError, ValueError):
     summary = {}
   ours = isinstance(summary, dict) and summary.get("tool") == SUMMARY_TOOL
@@ -740,8 +740,8 @@ def read_calibration(path, cameras: tuple[int, int] | None = None) -> dict[str, 
   text = frame_io.read_text(path, "calibration file")  # (a byte-order mark dropped a key)
   if text.lstrip().startswith("{"):
     try:
-      data = json.loads(text)
-    except json.JSONDecodeError as e:
+      data = loads_json(text)
+    except ValueError as e:
       raise UsageError(f"{path}: invalid JSON ({e})") from e
     if not isinstance(data, dict) or not any(k in data for k in _CALIB_KEYS):
       found = sorted(data)[:8] if isinstance(data, dict) else type(data).__name__
@@ -753,8 +753,8 @@ def read_calibration(path, cameras: tuple[int, int] | None = None) -> dict[str, 
         raise UsageError(f"{path}: {k} must be a number, got {data[k]!r}")
       try:
         out[k] = float(data[k])
-      except ValueError as e:
-        raise UsageError(f"{path}: {k} must be a number, got {data[k]!r}") from e
+      except (ValueError, OverflowError) as e:  # an integer beyond float's range
+        raise UsageError(f"{path}: {k} must be a number, got {str(data[k])[:40]!r}") from e
     return out
   entries = {}
   for number, line in enumerate(text.splitlines(), 1):

@@ -924,6 +924,14 @@ def test_dynamic_replica_camera_errors_name_the_annotation(tmp_path, monkeypatch
   with pytest.raises(ValueError, match=rf"{index} \(Dynamic Replica test/s, frame 0\): the focal length "
                      "fx is 0"):
     load(lambda recs: lefts(recs)[0]["viewpoint"].update(focal_length=[0.0, 0.0]))
+  # A 400-digit focal length (OverflowError) and a NaN image size ("cannot convert float NaN
+  # to integer"): tracebacks naming no file.
+  with pytest.raises(ValueError, match=rf"{index}: malformed frame record \(TypeError: field "
+                     r"viewpoint.focal_length holds 1(0){39}, not a finite number\)"):
+    load(lambda recs: lefts(recs)[0]["viewpoint"].update(focal_length=[10**400, 1.0]))
+  with pytest.raises(ValueError, match=rf"{index}: malformed frame record \(TypeError: field "
+                     r"image.size holds nan, not a finite number\)"):
+    load(lambda recs: lefts(recs)[0]["image"].update(size=[float("nan"), W]))
   # Images resized under the original annotation: the scale would be off by the factor.
   seq = load(lambda recs: [r["image"].update(size=[2 * H, 2 * W]) for r in recs])[0]
   with pytest.raises(ValueError, match=rf"is {H}x{W} but {index} gives image.size "
