@@ -1057,6 +1057,15 @@ def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match)
     with pytest.raises(ValueError, match=rf"--workdir {tmp_path / name} is {kind}, not a run's "
                        rf"folder: to start from its weights, pass --config.init_from="):
       loop.validate_config(synthetic.get_config(), tmp_path / name)
+  # A run's checkpoints folder: a new run nested in it, and its last line named that folder,
+  # whose weights are the old run's.
+  run = tmp_path / "run"
+  (run / "checkpoints").mkdir(parents=True)
+  (tmp_path / "step").rename(run / "checkpoints" / "2")
+  with pytest.raises(ValueError, match=rf"--workdir {run / 'checkpoints'} is a run's checkpoints "
+                     rf"folder: to resume that run, pass its folder, --workdir {run}; "):
+    loop.validate_config(synthetic.get_config(), run / "checkpoints")
+  loop.validate_config(synthetic.get_config(), run)  # the run's own folder resumes
 
 
 def test_an_empty_workdir_is_refused_by_setup(tmp_path, monkeypatch):
