@@ -223,7 +223,7 @@ def test_a_window_that_cannot_run_leaves_no_output_folders(tmp_path, folders, np
   assert not (tmp_path / "new").exists()
 
 
-def test_outputs_never_replace_the_inputs(tmp_path, clip, npz_ckpt, capsys):
+def test_outputs_never_replace_the_inputs(tmp_path, clip, folders, npz_ckpt, capsys):
   # Input frames in OUT/disparity (the folder the PNG disparities go to) and an input video
   # at OUT/side_by_side.mp4: refused even with --overwrite, and the inputs stay as they were.
   out = tmp_path / "out"
@@ -250,6 +250,15 @@ def test_outputs_never_replace_the_inputs(tmp_path, clip, npz_ckpt, capsys):
   assert _infer(video, right, npz_ckpt, video.parent, "--format", "npy", "--overwrite") == 2
   assert "would replace the input" in capsys.readouterr().err
   assert video.read_bytes() == before
+  # A calibration file saved as OUT/summary.json (an earlier run's summary, say) was replaced.
+  calib = tmp_path / "c" / "summary.json"
+  calib.parent.mkdir()
+  calib.write_text('{"fx": 40, "baseline": 0.1}')
+  assert _infer(folders[0], right, npz_ckpt, calib.parent, "--calib", str(calib),
+                "--overwrite") == 2
+  err = capsys.readouterr().err
+  assert f"output {calib} would replace the input {calib}" in err, err
+  assert calib.read_text() == '{"fx": 40, "baseline": 0.1}'
 
 
 def test_unusable_checkpoints_are_refused_before_the_run(tmp_path, folders, variables,

@@ -325,6 +325,12 @@ def puts_back_on_failure(out: pathlib.Path):
     raise
 
 
+def input_paths(args) -> list:
+  """What `infer` reads: the views, the checkpoint and a calibration file (never written)."""
+  return [p for p in (args.left, args.right, getattr(args, "checkpoint", None),
+                      getattr(args, "calib", None)) if p]
+
+
 def check_not_inputs(paths: list[pathlib.Path], inputs) -> None:
   """Raises FileExistsError if an output would replace an input video file, or go into an
   input frame folder (even beside its frames: the next run would read it as a frame).
@@ -381,7 +387,7 @@ def run(args: argparse.Namespace) -> int:
   outputs = output_paths(out, names, formats, calib, args.depth_format)
   for path in outputs:  # before anything is written (OpenCV crashed on such names)
     viz.check_utf8_path(path, "output file (named after --out and the frame)")
-  check_not_inputs(outputs, (args.left, args.right))
+  check_not_inputs(outputs, input_paths(args))
   with output_lock(out):
     return _run_locked(args, out, outputs, left, right, names, formats, calib)
 
@@ -402,7 +408,7 @@ def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:
   # With --overwrite, the files this run replaces and those of the earlier run it does not
   # are set aside as it begins to write, and deleted when it ends.
   stale = earlier_outputs(out, outputs) if args.overwrite else []
-  check_not_inputs(stale, (args.left, args.right))
+  check_not_inputs(stale, input_paths(args))
   if args.overwrite:
     stale = [p for p in outputs if p.is_file()] + stale
 
