@@ -712,6 +712,20 @@ def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
              for n in notes)
 
 
+def test_16bit_rgba_frames_convert_exactly_without_a_float_copy():
+  """Every 16-bit value rounds as round(v / 257) (now in integers, the alpha dropped first:
+  a float32 copy of four channels took 6.2 GB for a 16000x16000 frame)."""
+  values = np.arange(65536, dtype=np.uint16).reshape(256, 256)
+  rgba = np.stack([values, values[::-1], values.T, np.full_like(values, 7)], axis=-1)
+  notes = set()
+  got = video_io.to_rgb8(rgba, "rgba.png", notes)  # OpenCV's BGRA order in, RGB out
+  want = np.round(rgba[..., 2::-1].astype(np.float64) / 257).astype(np.uint8)
+  np.testing.assert_array_equal(got, want)
+  assert any("alpha channel dropped, e.g. rgba.png" in n for n in notes)
+  with pytest.raises(ValueError, match=r"two.png: unsupported image shape \(4, 4, 2\)"):
+    video_io.to_rgb8(np.zeros((4, 4, 2), np.uint8), "two.png", set())
+
+
 def test_bfloat16(tmp_path, folders, orbax_ckpt, variables, clip):
   assert _infer(*folders, orbax_ckpt, tmp_path / "out", "--format", "npy", "--dtype",
                 "bfloat16") == 0

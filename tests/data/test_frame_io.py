@@ -257,6 +257,27 @@ def test_exr(tmp_path):
     frame_io.read_exr(tmp_path / "cut.exr")
 
 
+def test_npz_that_inflates_far_is_refused_before_it_is_read(tmp_path):
+  """A 4 MB camera .npz inflated to a 4 GB array (the converter's reader had a bound)."""
+  np.savez_compressed(tmp_path / "cam.npz", K=np.eye(3), Z=np.zeros(5_000_000))  # 40 MB, ~40 kB
+  with pytest.raises(ValueError, match=r"cannot read npz file .*cam\.npz: ValueError: array "
+                                       r"'Z\.npy' inflates \d+ bytes to 40000128: damaged"):
+    frame_io.read_npz(tmp_path / "cam.npz")
+  np.savez_compressed(tmp_path / "ok.npz", K=np.eye(3), Z=np.zeros(100_000))  # 800 kB: fine
+  assert sorted(frame_io.read_npz(tmp_path / "ok.npz")) == ["K", "Z"]
+
+
+def test_an_npy_too_large_for_memory_names_the_file(tmp_path, monkeypatch):
+  np.save(tmp_path / "d.npy", np.zeros(3, np.float32))
+
+  def out_of_memory(*args, **kwargs):
+    raise MemoryError("Unable to allocate 74.5 GiB")
+
+  monkeypatch.setattr(np, "load", out_of_memory)
+  with pytest.raises(MemoryError, match=r"d\.npy: out of host memory reading the npy file"):
+    frame_io.read_npy(tmp_path / "d.npy")
+
+
 def test_npy_and_npz(tmp_path):
   arr = RNG.random((3, 4)).astype(np.float32)
   np.save(tmp_path / "d.npy", arr)
