@@ -113,8 +113,13 @@ def parse_flags(argv):
       parent = ".".join(path[:path.index(step[2])]) if step[2] in path else step[3]
       detail = f"{step[3]}: config.{parent} is {step[1]}, not a config block"
     overrides = [a.split("=", 1)[0] for a in argv if a.startswith("--config.")]
+    sources = ""
+    if any(o.startswith("--config.data.sources.") for o in overrides):
+      sources = ("; training sources are added or removed in a config file of your own (see "
+                 "configs/mixed.py): the command line can only change an existing source's "
+                 "fields")
     _fail(f"no such config field {detail} (overrides: {', '.join(overrides)}); the fields "
-          "are those of the --config file's get_config()")
+          f"are those of the --config file's get_config(){sources}")
   except Exception as e:  # pylint: disable=broad-except  # the config file's own code raised
     _config_code_error(argv, e)
 

@@ -1251,6 +1251,10 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
        "checkpoint is corrupt or incomplete"),
       ([config, "--config.train.batchsize=1"], "no such config field 'batchsize'; Did you mean "
        '"batch_size" instead of "batchsize"? (overrides: --config.train.batchsize, '),
+      ([config, "--config.data.sources.vkitti2.weight=1"], "no such config field 'vkitti2' "
+       "(overrides: --config.data.sources.vkitti2.weight, --config.train.progress_bar); the "
+       "fields are those of the --config file's get_config(); training sources are added or "
+       "removed in a config file of your own (see configs/mixed.py)"),
       ([str(tmp_path / "nope.py")], "cannot load the --config file: "
        f"[Errno 2] No such file or directory: '{tmp_path / 'nope.py'}'"),
       ([str(broken)], f"the config file {broken} does not parse: line 1: "),
