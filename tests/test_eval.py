@@ -693,6 +693,36 @@ def test_vkitti2_on_disk(tmp_path, ckpt):
       str(seq.files["left"][0].resolve().parent) for seq in seqs]
 
 
+def test_your_own_videos_in_the_folder_layout(tmp_path, ckpt):
+  """`configs/eval/folder.py`: sequences of one's own, with PFM ground truth and without."""
+  from sav_jax import viz
+  from sav_jax.data import registry
+  scfg = synthetic.SyntheticConfig(frames=T, height=H, width=W, max_disparity=6.0, num_objects=2)
+  for i, name in enumerate(("a", "b")):
+    clip, seq = synthetic.generate_clip(scfg, i), tmp_path / "mine" / "test" / name
+    for t in range(T):
+      for view in ("left", "right"):
+        (seq / view).mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(seq / view / f"{t}.png"), clip[view][t][..., ::-1])
+      if name == "a":
+        (seq / "disparity").mkdir(exist_ok=True)
+        viz.write_pfm(seq / "disparity" / f"{t}.pfm", np.where(clip["valid"][t], clip["disparity"][t], 0))
+  out = tmp_path / "out"
+  rc = main(["--config", str(CONFIGS / "folder.py"), "--checkpoint", str(ckpt), "--data-root",
+             str(tmp_path / "mine"), "--out", str(out), "--config.iters=2",
+             "--config.save_predictions=true", "--config.plots.enabled=false"])
+  assert rc == 0
+  seq = registry.get_sequences("folder", tmp_path / "mine", "test")[0]
+  summary = json.loads((out / "results.json").read_text())
+  assert [s["name"] for s in summary["sequences"]] == ["a", "b"]
+  clip = eval_data.read_sequence(seq)
+  ref = metrics.eval_sequence(np.load(out / "predictions" / "a.npy"), clip["disparity"],
+                              clip["valid"].astype(np.float32))
+  assert summary["sequences"][0]["metrics"]["sav"] == pytest.approx(ref, rel=1e-12, abs=1e-12)
+  assert not summary["sequences"][1]["metrics"].get("sav")  # no ground truth: no metrics,
+  assert np.load(out / "predictions" / "b.npy").shape == (T, H, W)  # but its predictions
+
+
 def test_resume_reads_the_sequences_from_the_same_folder(tmp_path, ckpt, capsys, monkeypatch):
   # An interrupted run over one copy of the dataset is not resumed over another copy (its
   # finished sequences' metrics would be those of other files), but is over the same files

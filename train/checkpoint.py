@@ -153,7 +153,12 @@ def changed_fields(manager: ocp.CheckpointManager, step: int, config,
   now = run_fields(config)
   return [f"{k}: {saved.get(k, '(absent)')!r} -> {now.get(k, '(absent)')!r}"
           for k in sorted(set(saved) | set(now))
-          if saved.get(k) != now.get(k) and not k.startswith(_OPERATIONAL)]
+          if saved.get(k) != now.get(k) and not _operational(k)]
+
+
+def _operational(field: str) -> bool:
+  """`_OPERATIONAL`, and a training source's own data root (`data.sources.<x>.root`)."""
+  return field.startswith(_OPERATIONAL) or bool(re.fullmatch(r"data\.sources\.\w+\.root", field))
 
 
 def depth_prior_origin(config, saved: dict | None = None) -> str:

@@ -49,11 +49,16 @@ def _source(config, spec, split: str, seed: int):
     cfg = synthetic_config(data, data.synthetic, seed)
     digest = hashlib.sha256(f"{cfg!r} {data.synthetic.num_clips}".encode()).hexdigest()[:16]
     return pipeline.synthetic_source(cfg, data.synthetic.num_clips), None, digest
-  items = pipeline.registry_clips(spec.dataset, data.root, data.frames, split=split,
-                                  seed=config.seed)
+  items = pipeline.registry_clips(spec.dataset, source_root(config, spec), data.frames,
+                                  split=split, seed=config.seed)
   return (pipeline.clips_source(items, data.skip_unreadable),
           pipeline.Augment(tuple(data.crop), augment_overrides(config)),
           pipeline.clips_digest(items))
+
+
+def source_root(config, spec) -> str:
+  """A training source's data root: its own `root`, else `config.data.root`."""
+  return spec.get("root") or config.data.root
 
 
 def augment_overrides(config) -> tuple[tuple[str, object], ...]:
@@ -76,7 +81,8 @@ def train_dataset(config, process_index=None, process_count=None, clips: dict | 
     where = (f"config.data.sources.{name}.dataset={spec.dataset!r} (config.data.synthetic)"
              if spec.dataset == "synthetic" else
              f"config.data.sources.{name}.dataset={spec.dataset!r}, "
-             f"config.data.root={config.data.root!r}")
+             + (f"config.data.sources.{name}.root={spec.root!r}" if spec.get("root") else
+                f"config.data.root={config.data.root!r}"))
     with _naming(where):
       src, tf, digest = _source(config, spec, "train", seed=config.data.synthetic.seed)
     if clips is not None:

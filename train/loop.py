@@ -451,6 +451,13 @@ def _check_blocks(config) -> None:
     if not isinstance(spec.get("dataset"), str):  # (a name that is no dataset: named later)
       raise ValueError(f"config.data.sources.{name}.dataset={spec.get('dataset')!r}: expected "
                        "'synthetic' or a dataset name (sav_jax.data.registry.DATASETS)")
+    if not isinstance(spec.get("root", ""), str):
+      raise ValueError(f"config.data.sources.{name}.root={spec.get('root')!r}: expected a "
+                       "folder (the source's own data root; default config.data.root)")
+    unknown = sorted(set(spec) - {"dataset", "weight", "root"})
+    if unknown:
+      raise ValueError(f"config.data.sources.{name} has the unknown field(s) "
+                       f"{', '.join(unknown)}; a source has dataset, weight and root")
   datasets = {spec.get("dataset") for spec in config.data.sources.values()}
   if "synthetic" in datasets or (config.eval.every_steps > 0
                                  and config.eval.dataset == "synthetic"):

@@ -22,8 +22,8 @@ import numpy as np
 
 from sav_jax._checks import is_int
 from sav_jax.data import (dynamic_replica, infinigen, kitti_depth, sceneflow, sintel,
-                          south_kensington, spring, tartanair, vkitti2)
-from sav_jax.data.base import StereoSequence, sceneflow_clips, strided_clips
+                          south_kensington, spring, stereo_folder, tartanair, vkitti2)
+from sav_jax.data.base import StereoSequence, find_root, sceneflow_clips, strided_clips
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,7 @@ _LOADERS = {
     "spring": spring.load_sequences,
     "south_kensington": south_kensington.load_sequences,
     "tartanair": tartanair.load_sequences,
+    "folder": stereo_folder.load_sequences,  # your own videos (`stereo_folder`)
 }
 DATASETS = tuple(_LOADERS)
 # The folders a datasets root holds each dataset in (`find_root`).
@@ -54,6 +55,7 @@ _FOLDERS = {
     "dynamic_replica": dynamic_replica.FOLDERS, "infinigen_sv": infinigen.FOLDERS,
     "vkitti2": vkitti2.FOLDERS, "kitti_depth": kitti_depth.FOLDERS, "spring": spring.FOLDERS,
     "south_kensington": south_kensington.FOLDERS, "tartanair": tartanair.FOLDERS,
+    "folder": (),  # the root is the dataset's folder
 }
 
 SPLITS = {
@@ -63,7 +65,7 @@ SPLITS = {
     "dynamic_replica": dynamic_replica.SPLITS, "infinigen_sv": infinigen.SPLITS,
     "vkitti2": vkitti2.SPLITS, "kitti_depth": kitti_depth.SPLITS,
     "spring": spring.SPLITS, "south_kensington": south_kensington.SPLITS,
-    "tartanair": tartanair.SPLITS,
+    "tartanair": tartanair.SPLITS, "folder": stereo_folder.SPLITS,
 }
 # Official evaluation: frames 0..L-1 of each sequence of the "test" split
 # (`sample_len` with `only_first_n_samples=1`). Sintel evaluates every frame; Spring's
@@ -71,7 +73,7 @@ SPLITS = {
 EVAL_FRAMES = {"dynamic_replica": 150, "infinigen_sv": 150, "vkitti2": 300,
                "kitti_depth": 300, "south_kensington": 300}
 # SceneFlow samples forward + time-reversed clips; these sample strided clips.
-STRIDED = ("dynamic_replica", "infinigen_sv", "kitti_depth", "vkitti2", "tartanair")
+STRIDED = ("dynamic_replica", "infinigen_sv", "kitti_depth", "vkitti2", "tartanair", "folder")
 _SCENEFLOW = ("sceneflow", "flyingthings3d", "monkaa", "driving")
 OFFICIAL = "official"
 
@@ -115,11 +117,69 @@ def eval_chunk(sequences: list[StereoSequence], length: int | None,
   return out
 
 
+def register_dataset(name: str, load_sequences, *, splits: tuple[str, ...],
+                     folders: tuple[str, ...] = (), training: str | None = "strided",
+                     eval_frames: int | None = None) -> None:
+  """Adds a dataset reader of your own layout to the registry, for `get_sequences`, training
+  sources (`config.data.sources.<x>.dataset`) and `python -m eval` (`eval_config(name)`);
+  call it where those run (a training or evaluation config file is run in their process).
+
+  Args:
+    name: the registry name (not one of `DATASETS` already).
+    load_sequences: `(folder, split, dataset=name) -> list[StereoSequence]`, called with the
+      dataset's own folder (a module-level function, so that grain's worker processes can
+      pickle the sequences' readers), raising FileNotFoundError naming what is missing.
+    splits: the splits it has ("train", "test", ...).
+    folders: the dataset's folder names under a datasets root (`root/<folder>` is taken
+      where it exists, else `root` itself; empty: the root is always the folder).
+    training: how training clips are sampled: "strided" (the official Dynamic Replica
+      clips), "sceneflow" (forward and time-reversed clips of consecutive frames) or None
+      (evaluation only).
+    eval_frames: evaluate the first L frames of each "test" sequence (None: whole ones).
+  """
+  global DATASETS, STRIDED, _SCENEFLOW  # pylint: disable=global-statement
+  if not (isinstance(name, str) and name.isidentifier()) or name in _LOADERS or \
+      name == "synthetic":
+    raise ValueError(f"register_dataset: name must be a new identifier (not one of "
+                     f"{', '.join(DATASETS)} or 'synthetic'), got {name!r}")
+  if not callable(load_sequences):
+    raise ValueError(f"register_dataset: load_sequences must be a function, got "
+                     f"{load_sequences!r}")
+  if not (isinstance(splits, (tuple, list)) and splits
+          and all(isinstance(s, str) for s in splits)):
+    raise ValueError(f"register_dataset: splits must be a non-empty tuple of names, got "
+                     f"{splits!r}")
+  if training not in ("strided", "sceneflow", None):
+    raise ValueError(f"register_dataset: training must be 'strided', 'sceneflow' or None, got "
+                     f"{training!r}")
+  if eval_frames is not None and not (is_int(eval_frames) and eval_frames > 0):
+    raise ValueError(f"register_dataset: eval_frames must be an integer > 0 or None, got "
+                     f"{eval_frames!r}")
+  _LOADERS[name] = functools.partial(_registered, load_sequences, tuple(folders), name)
+  _FOLDERS[name] = tuple(folders)
+  SPLITS[name] = tuple(splits)
+  if eval_frames is not None:
+    EVAL_FRAMES[name] = int(eval_frames)
+  if training == "strided":
+    STRIDED += (name,)
+  elif training == "sceneflow":
+    _SCENEFLOW += (name,)
+  DATASETS = tuple(_LOADERS)
+
+
+def _registered(load_sequences, folders: tuple[str, ...], name: str, root, split: str,
+                **options) -> list[StereoSequence]:
+  """A `register_dataset` reader, called with the dataset's own folder."""
+  return load_sequences(find_root(root, *folders), split, dataset=name, **options)
+
+
 def dataset_folders(dataset: str, root: str | Path) -> list[Path]:
   """The folders under `root` (the datasets folder, or the dataset's own) that hold
   `dataset`'s files, as far as they exist."""
   _check_name(dataset)
   base = Path(root).expanduser()
+  if not _FOLDERS[dataset]:  # (the root is the dataset's folder)
+    return [base] if base.is_dir() else []
   if base.name in _FOLDERS[dataset]:
     return [base] if base.is_dir() else []
   return [base / f for f in _FOLDERS[dataset] if (base / f).is_dir()]
@@ -153,7 +213,7 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
     seqs = _LOADERS[dataset](root, split, **options)
   except FileNotFoundError as e:  # where the root was taken for the dataset's own folder
     folders, base = _FOLDERS[dataset], Path(root).expanduser()
-    if (not base.is_dir() or base.name in folders  # (the dataset's own folder, incomplete)
+    if (not folders or not base.is_dir() or base.name in folders  # (its own folder, incomplete)
         or any((base / f).is_dir() for f in folders)):
       raise
     names = " or ".join(f"{f}/" for f in folders)

@@ -111,7 +111,7 @@ def test_sceneflow_train_test_values_and_clips(tmp_path):
 
 
 
-@pytest.mark.parametrize("dataset", registry.DATASETS)
+@pytest.mark.parametrize("dataset", [d for d in registry.DATASETS if d != "folder"])
 def test_a_root_without_the_dataset_folder_is_named(tmp_path, dataset):
   """A root that neither holds the dataset's folder nor is it (a typo, the wrong level) was
   reported as some file missing under it, e.g. `ROOT/training/final_left` for Sintel."""
@@ -749,7 +749,7 @@ def test_registry_names_errors_and_pickling(tmp_path):
   assert set(registry.DATASETS) == {
       "sceneflow", "flyingthings3d", "monkaa", "driving", "sintel_clean", "sintel_final",
       "dynamic_replica", "infinigen_sv", "vkitti2", "kitti_depth", "spring", "south_kensington",
-      "tartanair"}
+      "tartanair", "folder"}
   with pytest.raises(ValueError, match="unknown dataset 'kitti'.*kitti_depth"):
     registry.get_sequences("kitti", tmp_path, "test")
   with pytest.raises(ValueError, match="frames must be"):
@@ -1034,3 +1034,97 @@ def test_tartanair_splits_depth_and_clips(tmp_path, caplog):
 def test_long_lists_in_log_lines_are_cut():
   assert base.some_of(list("abc")) == "a, b, c"
   assert base.some_of(list("abcdefgh")) == "a, b, c, d, e, f, ... (2 more)"
+
+
+def _own_videos(root, rng):
+  """Two sequences of the folder layout: PNG16 (KITTI) and PFM ground truth, another naming
+  per folder, one with a calibration file, and one without ground truth."""
+  from sav_jax import viz  # pylint: disable=import-outside-toplevel
+  truth = {}
+  for seq, n, fmt in (("street", 11, ".png"), ("lab", 3, ".pfm"), ("night", 2, None)):
+    base = root / "test" / seq
+    truth[seq] = []
+    for i in range(n):
+      left, right = _rgb(rng), _rgb(rng)
+      _png(base / "left" / f"left_{i + 1}.png", left)  # 1 .. 11: natural order, not 1, 10, 11, 2
+      _png(base / "right" / f"right_{i + 1:04d}.png", right)
+      disp = rng.uniform(1.0, 40.0, (H, W)).astype(np.float32)
+      disp[0, 0] = 0.0  # no ground truth there
+      if fmt == ".png":
+        viz.write_png16(_mkdir(base / "disparity") / f"{i + 1:06d}.png", disp)
+        disp = np.round(disp * 256) / 256
+      elif fmt == ".pfm":
+        disp[1, 0] = np.nan
+        viz.write_pfm(_mkdir(base / "disparity") / f"frame{i + 1}.pfm", disp)
+      truth[seq].append((left, right, disp if fmt else None))
+  (root / "test" / "lab" / "calib.txt").write_text("fx 400\nbaseline 0.2\n")
+  return truth
+
+
+def _mkdir(path):
+  path.mkdir(parents=True, exist_ok=True)
+  return path
+
+
+def test_your_own_videos_in_the_folder_layout(tmp_path):
+  truth = _own_videos(tmp_path / "mine", np.random.default_rng(21))
+  seqs = registry.get_sequences("folder", tmp_path / "mine", "test")
+  assert [s.name for s in seqs] == ["lab", "night", "street"]
+  lab, night, street = seqs
+  assert street.sparse and not lab.sparse and len(street) == 11
+  assert lab.depth2disp_scale == pytest.approx(80.0) and street.depth2disp_scale is None
+  assert not night.has_gt and night[1]["disparity"] is None
+  for seq, frames in (("street", street), ("lab", lab)):
+    for i, (left, right, disp) in enumerate(truth[seq]):
+      f = frames[i]  # frame 10 is left_10.png, not left_2.png
+      np.testing.assert_array_equal(f["left"], left)
+      np.testing.assert_array_equal(f["right"], right)
+      valid = np.isfinite(disp) & (disp > 0)
+      np.testing.assert_array_equal(f["valid"], valid)
+      np.testing.assert_allclose(f["disparity"][valid], disp[valid], rtol=1e-6)
+      assert (f["disparity"][~valid] == 0).all()
+  clips = registry.get_training_clips("folder", tmp_path / "mine", frames=2, split="test", seed=3)
+  rng, expect = np.random.default_rng(3), []
+  for seq in seqs:  # the official strided clips
+    for ref in range(0, len(seq), 3):
+      k = int(rng.integers(1, 6))
+      if ref + 2 * k < len(seq):
+        expect.append((seq.name, [ref, ref + k]))
+  assert [(c.sequence.name, c.indices) for c in clips] == expect
+  assert registry.dataset_folders("folder", tmp_path / "mine") == [tmp_path / "mine"]
+  with pytest.raises(FileNotFoundError, match=r"no train/ folder in .*mine \(it has test of "
+                                              r"train, val, test\)"):
+    registry.get_sequences("folder", tmp_path / "mine", "train")
+  (tmp_path / "mine/test/street/right/right_0011.png").unlink()
+  with pytest.raises(ValueError, match=r"folder test/street: frame counts differ.*'right' lacks "
+                                       r"frame 11"):
+    registry.get_sequences("folder", tmp_path / "mine", "test")
+  np.save(tmp_path / "mine/test/lab/disparity/frame9.npy", np.ones((H, W), np.float32))
+  with pytest.raises(ValueError, match=r"lab/disparity: disparity files of several formats "
+                                       r"\(\.npy, \.pfm\)"):
+    registry.get_sequences("folder", tmp_path / "mine", "test")
+
+
+def test_a_reader_of_your_own_layout_is_registered(tmp_path, monkeypatch):
+  for name in ("_LOADERS", "_FOLDERS", "SPLITS", "EVAL_FRAMES"):
+    monkeypatch.setattr(registry, name, dict(getattr(registry, name)))
+  for name in ("DATASETS", "STRIDED", "_SCENEFLOW"):
+    monkeypatch.setattr(registry, name, getattr(registry, name))
+  _own_videos(tmp_path / "OwnSet", np.random.default_rng(22))
+  registry.register_dataset("own", _load_own, splits=("test",), folders=("OwnSet",),
+                            training="sceneflow", eval_frames=2)
+  assert "own" in registry.DATASETS and registry.SPLITS["own"] == ("test",)
+  seqs = registry.get_sequences("own", tmp_path, "test")  # the datasets root: OwnSet/ in it
+  assert [(s.name, s.dataset, len(s)) for s in seqs] == [("lab", "own", 2), ("night", "own", 2),
+                                                        ("street", "own", 2)]  # eval_frames
+  clips = registry.get_training_clips("own", tmp_path / "OwnSet", frames=2, split="test")
+  assert [c.indices for c in clips if c.sequence.name == "lab"] == [[0, 1], [2, 1]]  # sceneflow
+  with pytest.raises(ValueError, match="name must be a new identifier"):
+    registry.register_dataset("own", _load_own, splits=("test",))
+  with pytest.raises(ValueError, match="training must be 'strided', 'sceneflow' or None"):
+    registry.register_dataset("own2", _load_own, splits=("test",), training="random")
+
+
+def _load_own(root, split, dataset):
+  from sav_jax.data import stereo_folder  # pylint: disable=import-outside-toplevel
+  return stereo_folder.load_sequences(root, split, dataset)

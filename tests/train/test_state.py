@@ -577,6 +577,26 @@ def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
   assert src[1]["disparity"][0, 0, 0] == 2
 
 
+def test_a_training_source_may_have_its_own_data_root(monkeypatch):
+  """Your own videos (the "folder" dataset) beside the SceneFlow family under data.root."""
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  roots = []
+
+  def clips(dataset, root, *args, **kwargs):
+    roots.append((dataset, root))
+    return [(types.SimpleNamespace(name="s", gather=None), [0])]
+
+  monkeypatch.setattr(pipeline, "registry_clips", clips)
+  c = _config()
+  c.data.root = "data/datasets"
+  for spec in (ml_collections.ConfigDict(dict(dataset="folder", weight=1.0, root="my_videos")),
+               ml_collections.ConfigDict(dict(dataset="sceneflow", weight=1.0))):
+    input_lib._source(c, spec, "train", 0)  # pylint: disable=protected-access
+  assert roots == [("folder", "my_videos"), ("sceneflow", "data/datasets")]
+  assert ckpt_lib._operational("data.sources.mine.root")  # pylint: disable=protected-access
+  assert not ckpt_lib._operational("data.sources.mine.weight")  # pylint: disable=protected-access
+
+
 def test_a_resume_whose_training_clips_changed_is_warned_about(tmp_path, caplog):
   """Data added to a dataset between a stop and its resume: the saved position in the data
   was applied to another shuffle, silently (some clips twice, some never)."""
@@ -1022,6 +1042,10 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
      r"config\.data\.synthetic\.max_disparity must be >= min_disparity"),
     ("data.sources.synthetic.weight", 0.0,
      r"config\.data\.sources\.synthetic\.weight=0\.0: expected a number > 0"),
+    ("data.sources.synthetic.root", 3, r"config\.data\.sources\.synthetic\.root=3: expected a "
+     r"folder"),
+    ("data.sources.synthetic.weigth", 1.0, r"config\.data\.sources\.synthetic has the unknown "
+     r"field\(s\) weigth; a source has dataset, weight and root"),
     ("optimizer.pct_start", 0.001, r"config\.optimizer\.pct_start=0\.001 with a one-cycle "
      r"length of config\.train\.num_steps \+ 100 = 300 steps: degenerate .* = -0\.7"),
     ("eval.synthetic_seed", synthetic.get_config().data.synthetic.seed,

@@ -1,0 +1,141 @@
+"""Your own stereo videos: one folder per sequence, ground truth optional (registry "folder").
+
+Layout (root = the dataset's folder, given as `data.root` / `--data-root`):
+
+  <split>/<sequence>/left/*.png|jpg       rectified left frames
+  <split>/<sequence>/right/*.png|jpg      right frames
+  <split>/<sequence>/disparity/*          optional: the left view's disparity (px), one file
+                                          per frame: .png (16-bit, KITTI's d * 256, 0 = no
+                                          ground truth), .pfm, .npy or .exr (0, non-finite
+                                          and |d| >= 512 px: none)
+  <split>/<sequence>/calib.txt|json       optional: fx and baseline (`sav-jax infer --calib`'s
+                                          formats), for depth and TCC
+
+Splits are the folders `train`, `val` and `test` that exist. Frames of the three folders are
+matched by the last number in their names (`left_0001.png`, `right_0001.png`, `0001.pfm`), so
+each folder needs the same frame numbers; files are in natural name order (`2.png` before
+`10.png`). A disparity folder
+of 16-bit PNGs is sparse ground truth (KITTI's LiDAR convention: the sparse augmentation keeps
+its valid mask); the float formats are dense. Training clips are sampled as the official
+Dynamic Replica clips (starts 0, 3, 6, ..., a stride of 1-5 frames drawn per start);
+evaluation takes whole sequences.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sav_jax.data import frame_io
+from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key,
+                               list_dirs, list_files, require_dir)
+
+SPLITS = ("train", "val", "test")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+DISPARITY_SUFFIXES = (".png", ".pfm", ".npy", ".exr")
+CALIBRATION_FILES = ("calib.txt", "calib.json")
+
+
+class FolderSequence(StereoSequence):
+  """A sequence of `load_sequences`: disparity decoded by its file's suffix."""
+
+  def _read_gt(self, i: int, side: str) -> tuple[np.ndarray, np.ndarray]:
+    path = self.files[side + "_gt"][i]
+    return read_disparity(path)
+
+
+def read_disparity(path: Path) -> tuple[np.ndarray, np.ndarray]:
+  """`(disparity [H, W] float32 px, valid [H, W] bool)` of one ground-truth file, by suffix:
+  a 16-bit PNG as KITTI's (d * 256, 0 = none), PFM/NPY/EXR as float pixels (channel 0 of a
+  multi-channel PFM; valid where finite, non-zero and below 512 px, the official rule)."""
+  suffix = Path(path).suffix.lower()
+  if suffix == ".png":
+    raw = frame_io.read_png_uint16(path)
+    return raw.astype(np.float32) / 256.0, raw > 0
+  if suffix == ".pfm":
+    disp = frame_io.read_pfm_disparity(path)
+  elif suffix == ".npy":
+    disp = frame_io.read_npy(path)
+  elif suffix == ".exr":
+    disp = frame_io.read_exr(path)
+  else:
+    raise ValueError(f"{path}: unknown disparity format {suffix!r}; expected one of "
+                     f"{', '.join(DISPARITY_SUFFIXES)}")
+  disp = np.asarray(disp)
+  if disp.ndim != 2 or disp.dtype.kind not in "iuf" or disp.dtype == bool:
+    raise ValueError(f"{path}: disparity of shape {disp.shape} and dtype {disp.dtype}; "
+                     "expected one channel [H, W] of numbers (pixels)")
+  disp = disp.astype(np.float32)
+  valid = frame_io.dense_valid(disp)  # (False for NaN and inf too)
+  return np.where(valid, disp, 0.0).astype(np.float32), valid
+
+
+def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[StereoSequence]:
+  """The sequences of `root/<split>`, sorted by name.
+
+  Args:
+    root: the dataset's folder (it holds `train/`, `val/`, `test/`).
+    split: "train", "val" or "test".
+    dataset: registry name recorded on the sequences.
+
+  Raises:
+    FileNotFoundError: no such split folder, or no sequence in it (naming the folder).
+    ValueError: frames that do not match across `left/`, `right/` and `disparity/`, mixed
+      disparity formats, or a calibration file without fx and baseline (naming the file).
+  """
+  if split not in SPLITS:
+    raise ValueError(f"folder dataset split must be one of {SPLITS}, got {split!r}")
+  root = require_dir(Path(root).expanduser(), "dataset folder")
+  split_dir = root / split
+  if not split_dir.is_dir():
+    found = [s for s in SPLITS if (root / s).is_dir()]
+    raise FileNotFoundError(f"no {split}/ folder in {root} (it has {', '.join(found) or 'none'} "
+                            f"of {', '.join(SPLITS)}): the layout is <split>/<sequence>/left, "
+                            "right[, disparity]")
+  seqs = []
+  for seq_dir in list_dirs(split_dir):
+    where = f"{dataset} {split}/{seq_dir.name}"
+    if not (seq_dir / "left").is_dir():
+      raise FileNotFoundError(f"{seq_dir}: no left/ folder (a sequence folder holds left/, "
+                              "right/ and optionally disparity/)")
+    files = {"left": list_files(seq_dir / "left", *IMAGE_SUFFIXES),  # by number: 2 before 10
+             "right": list_files(require_dir(seq_dir / "right", "right/ folder"),
+                                 *IMAGE_SUFFIXES)}
+    sparse = False
+    if (seq_dir / "disparity").is_dir():
+      gt = list_files(seq_dir / "disparity", *DISPARITY_SUFFIXES)
+      kinds = sorted({p.suffix.lower() for p in gt})
+      if len(kinds) > 1:
+        raise ValueError(f"{seq_dir / 'disparity'}: disparity files of several formats "
+                         f"({', '.join(kinds)}); use one")
+      files["left_gt"] = gt
+      sparse = kinds == [".png"]
+    check_matching(where, files, digits_key)
+    seqs.append(FolderSequence(seq_dir.name, files, dataset=dataset, sparse=sparse,
+                               depth2disp_scale=_scale(seq_dir)))
+  if not seqs:
+    raise FileNotFoundError(f"no sequences in {split_dir} (expected <sequence>/left, right "
+                            "folders)")
+  return seqs
+
+
+def _scale(seq_dir: Path) -> float | None:
+  """fx * baseline from the sequence's calibration file, or None without one."""
+  path = next((seq_dir / n for n in CALIBRATION_FILES if (seq_dir / n).is_file()), None)
+  if path is None:
+    return None
+  from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools.infer import read_calibration  # pylint: disable=import-outside-toplevel
+  try:
+    calib = read_calibration(path)
+  except UsageError as e:  # a malformed line, no calibration in it: it names the file
+    raise ValueError(str(e)) from None
+  missing = [k for k in ("fx", "baseline") if k not in calib]
+  if missing:
+    raise ValueError(f"{path}: no {' and no '.join(missing)} (the depth-to-disparity scale "
+                     "is fx * baseline)")
+  if calib.get("doffs"):
+    raise ValueError(f"{path}: doffs {calib['doffs']:g} px: the folder dataset's depth is "
+                     "fx * baseline / disparity (rectify to one principal point)")
+  return camera_scale(calib["fx"], calib["baseline"], path)
