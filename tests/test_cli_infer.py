@@ -743,7 +743,8 @@ def _bad_case(name, root, clip, npz_ckpt):
   if name == "counts":
     (right / "0002.png").unlink()
     return left, right, npz_ckpt, [], f"different frame counts: left has {T} ({left}), " \
-        f"right has {T - 1} ({right})"
+        f"right has {T - 1} ({right}); e.g. frame 2 is in the left folder (0002.png), not in " \
+        "the right"
   if name == "sizes":
     _write_frames(right, [np.zeros((H, W - 8, 3), np.uint8)] * T)
     return left, right, npz_ckpt, [], f"different frame sizes: left is {H}x{W} ({left}), " \
@@ -874,7 +875,8 @@ def test_frame_counts_that_differ_name_both_sources(tmp_path):
   left, right = _write_frames(tmp_path / "l", frames), _write_frames(tmp_path / "r", frames[:2])
   for load in (video_io.load_stereo, video_io.open_stereo):  # (load_stereo raised AttributeError)
     with pytest.raises(ValueError, match=rf"^different frame counts: left has 3 \({left}\), "
-                                         rf"right has 2 \({right}\)$"):
+                                         rf"right has 2 \({right}\); e.g. frame 2 is in the "
+                                         r"left folder \(0002.png\), not in the right$"):
       load(left, right)
 
 

@@ -371,7 +371,8 @@ def _check_pair(lv, rv, notes: set[str], files=(None, None), sources=("left", "r
   if len(lv) != len(rv):
     short = [n for n in sorted(notes) if TRUNCATED in n]
     raise ValueError(f"different frame counts: left has {len(lv)} ({sources[0]}), right has "
-                     f"{len(rv)} ({sources[1]})" + "".join(f"; {n}" for n in short))
+                     f"{len(rv)} ({sources[1]})" + _unpaired_frame(*files)
+                     + "".join(f"; {n}" for n in short))
   if lv.shape != rv.shape:
     turned = lv.shape[1:3] == rv.shape[2:0:-1]
     raise ValueError(f"different frame sizes: left is {_size(lv.shape[1:])} ({sources[0]}), "
@@ -388,6 +389,23 @@ def _check_pair(lv, rv, notes: set[str], files=(None, None), sources=("left", "r
     notes.add(shifted)
   for note in sorted(notes):
     log.warning("note: %s", note)
+
+
+def _unpaired_frame(left_files, right_files) -> str:
+  """`"; e.g. frame 12 is in the left folder (left_0012.png), not in the right"`: the first
+  frame number that one folder's listing has and the other's lacks ("" for video files, or
+  names without numbers)."""
+  if left_files is None or right_files is None:
+    return ""
+  numbered = [{_frame_number(p): p for p in files} for files in (left_files, right_files)]
+  if None in numbered[0] or None in numbered[1]:
+    return ""
+  for (have, lack), (side, other) in (((0, 1), ("left", "right")), ((1, 0), ("right", "left"))):
+    missing = sorted(set(numbered[have]) - set(numbered[lack]))
+    if missing:
+      return (f"; e.g. frame {missing[0]} is in the {side} folder "
+              f"({pathlib.Path(numbered[have][missing[0]]).name}), not in the {other}")
+  return ""
 
 
 def _frame_number(path) -> int | None:
