@@ -568,7 +568,7 @@ def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
 
   monkeypatch.setattr(pipeline, "registry_clips", lambda *a, **k: [(Seq(), [i]) for i in range(3)])
   c = _config()
-  spec = types.SimpleNamespace(dataset="sceneflow", weight=1.0)
+  spec = ml_collections.ConfigDict(dict(dataset="sceneflow", weight=1.0))
   src, _, _ = input_lib._source(c, spec, "train", 0)  # pylint: disable=protected-access
   with pytest.raises(ValueError, match="0001.png"):
     src[1]  # pylint: disable=pointless-statement
