@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sav_jax.data import augment
-from sav_jax.data.augment import AugmentConfig, _resize_sparse, augment_clip
+from sav_jax.data.augment import AugmentConfig, _Jitter, _resize_sparse, _scales, augment_clip
 
 T, H, W = 3, 48, 96
 # Spatial identity: s = 1 exactly (crop + 8 = image size), so only the crop moves pixels.
@@ -123,6 +123,13 @@ def test_sparse_resize_scatters_rounded_points():
   assert sorted(zip(*np.nonzero(m))) == [(2, 3), (2, 4), (4, 6)]
   assert d[2, 3] == 4.5 and d[4, 6] == 7.5 and d[2, 4] == 16.5
   assert d[~m].max() == 0
+  # rounded, not floored: x = y = 1 at sx = sy = 1.7 lands on (2, 2), not (1, 1) (floor kept
+  # the point on row and column 1; the same point at 1.4 stays on (1, 1))
+  one = np.zeros((4, 6), bool)
+  one[1, 1] = True
+  for s, at in ((1.7, (2, 2)), (1.4, (1, 1))):
+    d, m = _resize_sparse(np.where(one, 2.0, 0).astype(np.float32), one, s, s, (7, 10))
+    assert list(zip(*np.nonzero(m))) == [at] and d[at] == np.float32(2.0 * s)
 
 
 def test_sparse_clip_carries_its_mask():
@@ -325,6 +332,89 @@ def test_bad_inputs():
   empty = np.zeros((2, 0, 4, 3), np.uint8)  # was "cannot convert float NaN to integer"
   with pytest.raises(ValueError, match=r"with T, H, W >= 1, got \(2, 0, 4, 3\) uint8"):
     augment_clip({"left": empty, "right": empty}, IDENTITY, np.random.default_rng(0))
+
+
+def test_defaults_are_the_official_training_values():
+  """docs/datasets.md section 3 (and the < 512 dense valid rule of section 0), literally:
+  ColorJitter brightness and contrast 0.4, saturation [0, 1.4], hue 0.5/3.14, gamma off;
+  asymmetric p = 0.2; eraser p = 0.5, 1-2 rectangles, sides [50, 100); s = 2^U(-0.2, 0.4),
+  stretch p = 0.8 by 2^U(-0.2, 0.2); always resized; 256x512 crop, y-jitter +-2."""
+  cfg = AugmentConfig()
+  assert dataclasses.asdict(cfg) == dict(
+      crop_size=(256, 512), scale_range=(-0.2, 0.4), stretch_prob=0.8, max_stretch=0.2,
+      spatial_prob=1.0, photometric=True, brightness=(1 - 0.4, 1 + 0.4),
+      contrast=(1 - 0.4, 1 + 0.4), saturation=(0.0, 1.4), hue=(-0.5 / 3.14, 0.5 / 3.14),
+      gamma=(1.0, 1.0), gain=(1.0, 1.0), asymmetric_prob=0.2, eraser_prob=0.5,
+      eraser_count=(1, 2), eraser_size=(50, 100), yjitter=True, yjitter_range=2,
+      max_disparity=512.0)
+
+
+@pytest.mark.parametrize("h, w", [(300, 600), (400, 560), (200, 300)])
+def test_scale_is_clamped_to_the_crop_plus_eight_pixels(h, w):
+  """Both scales are at least max((256 + 8) / H, (512 + 8) / W), as officially: a clip
+  drawn at s = 1/2 (or stretched below the bound) still covers the crop with 8 px to spare."""
+  bound = max((256 + 8) / h, (512 + 8) / w)
+  assert bound > max(256 / h, 512 / w) + 0.01  # the + 8 matters on these sizes
+  for stretch in (0.0, 1.0):
+    cfg = AugmentConfig(scale_range=(-1.0, -1.0), stretch_prob=stretch)
+    for seed in range(4):
+      sx, sy = _scales(h, w, cfg, np.random.default_rng(seed))
+      assert sx == sy == bound, (sx, sy, bound)
+
+
+def test_stretch_is_drawn_per_axis():
+  """With the stretch, sx = s * 2^U(+-0.2) and sy = s * 2^U(+-0.2) are independent draws
+  (one factor for both would never change the aspect ratio); without it sx == sy."""
+  ratios = []
+  for seed in range(20):
+    cfg = AugmentConfig(scale_range=(0.0, 0.0), stretch_prob=1.0)
+    sx, sy = _scales(2000, 4000, cfg, np.random.default_rng(seed))
+    assert 2 ** -0.2 <= sx <= 2 ** 0.2 and 2 ** -0.2 <= sy <= 2 ** 0.2
+    ratios.append(np.log2(sx / sy))
+  assert np.ptp(ratios) > 0.2  # one shared factor: all 0
+  cfg = AugmentConfig(scale_range=(0.1, 0.3), stretch_prob=0.0)
+  sx, sy = _scales(2000, 4000, cfg, np.random.default_rng(0))
+  assert sx == sy != 1
+
+
+def test_sparse_clips_get_symmetric_colour_and_no_yjitter():
+  """The official sparse augmentor (KITTI) has no asymmetric jitter and a plain crop: equal
+  left and right views stay equal, whatever `asymmetric_prob` and `yjitter` say (dense clips,
+  the control, come out different)."""
+  clip = _planar_clip(np.random.default_rng(0))
+  clip["right"] = clip["left"].copy()
+  clip["valid"] = np.random.default_rng(1).random((T, H, W)) < 0.3
+  cfg = AugmentConfig(crop_size=(24, 48), asymmetric_prob=1.0, eraser_prob=0.0, yjitter=True)
+  for seed in range(4):
+    out = augment_clip(clip, cfg, np.random.default_rng(seed), sparse=True)
+    np.testing.assert_array_equal(out["left"], out["right"])
+    dense = augment_clip(clip, cfg, np.random.default_rng(seed), sparse=False)
+    assert not np.array_equal(dense["left"], dense["right"])
+  # the y-jitter alone (no colour jitter): sparse rows stay aligned, dense ones move
+  cfg = dataclasses.replace(cfg, photometric=False)
+  moved = 0
+  for seed in range(4):
+    out = augment_clip(clip, cfg, np.random.default_rng(seed), sparse=True)
+    np.testing.assert_array_equal(out["left"], out["right"])
+    dense = augment_clip(clip, cfg, np.random.default_rng(seed), sparse=False)
+    moved += not np.array_equal(dense["left"], dense["right"])
+  assert moved > 0
+
+
+def test_colour_jitter_order_is_drawn_per_jitter():
+  """torchvision's ColorJitter applies brightness, contrast, saturation and hue in a random
+  order (randperm(4)) per draw: every order occurs, and the order changes the image."""
+  rng = np.random.default_rng(0)
+  orders = {tuple(int(op) for op in _Jitter(AugmentConfig(), rng).order) for _ in range(400)}
+  assert len(orders) == 24
+  # fixed factors: the order is all that differs between seeds
+  fixed = dataclasses.replace(IDENTITY, crop_size=(H, W), spatial_prob=0.0, photometric=True,
+                              brightness=(1.3, 1.3), contrast=(0.6, 0.6), saturation=(0.4, 0.4),
+                              hue=(0.2, 0.2), asymmetric_prob=0.0)
+  clip = _planar_clip(np.random.default_rng(0))
+  outs = {augment_clip(clip, fixed, np.random.default_rng(seed))["left"].tobytes()
+          for seed in range(12)}
+  assert len(outs) > 3
 
 
 @pytest.mark.parametrize("margin", [0, 1, 3])

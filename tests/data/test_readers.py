@@ -317,7 +317,7 @@ def test_sintel_values_mask_and_scale(tmp_path):
     link.unlink()
 
 
-def _dynamic_replica(root, rng, split, seqs):
+def _dynamic_replica(root, rng, split, seqs, focal=(1.5, 1.5)):
   split_dir, records, truth = root / "dynamic_replica_data" / split, [], {}
   for name, n, fmt in seqs:
     truth[name] = {"fmt": fmt}
@@ -335,7 +335,7 @@ def _dynamic_replica(root, rng, split, seqs):
             "depth": {"path": f"{name}/depths/{cam}_{i:06d}.geometric.png"},
             "mask": {"path": f"{name}/masks/{cam}_{i:06d}.png"},
             "viewpoint": {"R": np.eye(3).tolist(), "T": [tx, 0.1, 2.0],
-                          "focal_length": [1.5, 1.5], "principal_point": [0.0, 0.0],
+                          "focal_length": list(focal), "principal_point": [0.0, 0.0],
                           "intrinsics_format": fmt}})
   with gzip.open(split_dir / f"frame_annotations_{split}.jgz", "wt", encoding="utf8") as f:
     json.dump(records, f)
@@ -429,7 +429,7 @@ def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch, caplog)
          "after 1 (next 3; usually +1" in caplog.text
 
 
-def _infinigen(root, rng, split, scenes):
+def _infinigen(root, rng, split, scenes, fy=400.0):
   truth = {}
   for scene, n in scenes:
     frames = root / "InfinigenStereo" / split / scene / "frames"
@@ -444,7 +444,7 @@ def _infinigen(root, rng, split, scenes):
         pose = np.eye(4)
         pose[:3, 3] = [1.0 + 0.12 * cam, 2.0 + 0.16 * cam, 3.0]  # baseline 0.2 m
         _mkfile(frames / "camview" / f"camera_{cam}" / f"camview_{stem}.npz",
-                lambda p, t: np.savez(p, K=np.diag([400.0 + cam, 400.0, 1.0]), T=t), pose)
+                lambda p, t: np.savez(p, K=np.diag([400.0 + cam, fy, 1.0]), T=t), pose)
         truth[scene].setdefault(cam, []).append((img, depth))
   return truth
 
@@ -973,6 +973,81 @@ def test_training_clips_take_their_first_frames_camera(tmp_path):
   whole = seq.clip(0, 3)["disparity"]
   np.testing.assert_allclose(seq.gather([2, 1])["disparity"], whole[[2, 1]] * 2, rtol=1e-6)
   np.testing.assert_array_equal(seq.gather([1, 2])["disparity"], whole[[1, 2]])
+
+
+def test_depth2disp_scale_takes_the_horizontal_focal_length(tmp_path):
+  """The scale is fx[px] * baseline (DR: focal_length[0]; Infinigen: K[0, 0]); fixtures with
+  fx == fy could not tell fx from fy. In DR's ndc_norm_image_bounds format a camera with square
+  pixels on a non-square image has fx_ndc != fy_ndc (fx_ndc = f / (W/2), fy_ndc = f / (H/2))."""
+  f_px = 9.0  # square pixels: 1.5 * W/2 = 2.25 * H/2 in NDC
+  _dynamic_replica(tmp_path, np.random.default_rng(15), "train",
+                   [("bounds", 2, "ndc_norm_image_bounds"), ("iso", 2, "ndc_isotropic")],
+                   focal=(f_px / (W / 2), f_px / (H / 2)))
+  bounds, iso = registry.get_sequences("dynamic_replica", tmp_path, "train")
+  assert bounds.depth2disp_scale == pytest.approx(f_px * 0.05)  # fy_ndc gave 13.5 px
+  assert bounds.clip_scale(1) == pytest.approx(f_px * 0.05)
+  assert iso.depth2disp_scale == pytest.approx(1.5 * min(H, W) / 2 * 0.05)  # fx_ndc * H/2
+  z = bounds.depth_reader(bounds.files["left_gt"][1])  # (row 0 holds a pixel without depth)
+  np.testing.assert_allclose(bounds[1]["disparity"][1:], np.float32(f_px * 0.05) / z[1:],
+                             rtol=1e-6)
+  # Infinigen: K = diag(400, 300, 1), baseline 0.2 m
+  _infinigen(tmp_path, np.random.default_rng(16), "train", [("scene031", 2)], fy=300.0)
+  seq, = registry.get_sequences("infinigen_sv", tmp_path, "train")
+  assert seq.depth2disp_scale == pytest.approx(400.0 * 0.2)  # K[1, 1] gave 60
+  assert seq.clip_scale(1) == pytest.approx(400.0 * 0.2)  # a clip's own camera: K[0, 0] too
+
+
+def test_official_evaluation_lengths_are_the_documented_ones():
+  """`EVAL_FRAMES` (frames 0..L-1 of each test sequence) as docs/datasets.md gives the
+  official `sample_len`: DR and Infinigen 150, VKITTI2, KITTI and South Kensington 300; Sintel
+  evaluates every frame, and the others (no official protocol) are left whole."""
+  builtin = ("sceneflow", "flyingthings3d", "monkaa", "driving", "sintel_clean", "sintel_final",
+             "dynamic_replica", "infinigen_sv", "vkitti2", "kitti_depth", "spring",
+             "south_kensington", "tartanair", "folder")
+  assert {name: registry.EVAL_FRAMES[name] for name in builtin
+          if name in registry.EVAL_FRAMES} == {
+              "dynamic_replica": 150, "infinigen_sv": 150, "vkitti2": 300, "kitti_depth": 300,
+              "south_kensington": 300}
+
+
+class _FixedStride:
+  """A stand-in for the generator of `strided_clips`: every stride draw gives `k`."""
+
+  def __init__(self, k):
+    self.k, self.calls = k, []
+
+  def integers(self, low, high):
+    self.calls.append((low, high))
+    return self.k
+
+
+def test_strided_clips_keep_a_clip_only_when_start_plus_k_times_t_is_below_n():
+  """The official rule keeps a clip when start + k*T < N (strictly), although start + (T-1)k
+  < N would fit: N = 8, T = 5, k = 1 keeps [0..4] and drops [3..7]."""
+  rng = _FixedStride(1)
+  assert base.strided_clips(8, 5, rng) == [[0, 1, 2, 3, 4]]
+  assert rng.calls == [(1, 6)] * 3  # a stride in 1..5 per start 0, 3, 6, dropped clips too
+  assert base.strided_clips(9, 5, _FixedStride(1)) == [[0, 1, 2, 3, 4], [3, 4, 5, 6, 7]]
+  assert base.strided_clips(12, 3, _FixedStride(2)) == [[0, 2, 4], [3, 5, 7]]  # not [6, 8, 10]
+  rng = _FixedStride(4)
+  assert base.strided_clips(7, 1, rng) == [[0], [3]] and rng.calls == []  # T = 1: k = 1
+
+
+def test_clip_with_a_negative_start_is_out_of_range_not_wrapped(tmp_path):
+  """`seq[-1]` is the last frame, but a clip reaching before frame 0 is an error: wrapped, it
+  would splice the last frame in front of the first ones silently."""
+  files = {"left": [], "right": []}
+  for i in range(4):
+    for side in files:
+      _png(tmp_path / side / f"{i:04d}.png", np.full((H, W, 3), 10 * i, np.uint8))
+      files[side].append(tmp_path / side / f"{i:04d}.png")
+  seq = base.StereoSequence("s", files)
+  assert seq[-1]["left"][0, 0, 0] == 30
+  for start, length, stride in ((-1, 3, 1), (1, 3, -1), (2, 3, 1)):
+    with pytest.raises(IndexError, match=r"clip -?\d\.\.-?\d out of range for images/s "
+                                         r"\(4 frames\)"):
+      seq.clip(start, length, stride)
+  assert list(seq.clip(3, 4, stride=-1)["left"][:, 0, 0, 0]) == [30, 20, 10, 0]
 
 
 def _tartanair(root, rng, entries, n=3):
