@@ -628,6 +628,19 @@ def test_synthetic_set_takes_every_generator_field():
     eval_data.load_sequences(config, None)
 
 
+def test_synthetic_depth_to_disparity_scale_is_fx_times_baseline():
+  """The synthetic set's scale for the depth metrics is fx * baseline (d = fx B / Z), not fx:
+  the generator's own disparity and depth agree with it."""
+  config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")),
+                                       eval_config.split_overrides(SMALL)[1])
+  config.synthetic.num_sequences = 1
+  (seq,) = eval_data.load_sequences(config, None)
+  assert seq.depth2disp_scale == pytest.approx(W * 0.1)  # fx = width, baseline 0.1 m
+  assert seq.depth2disp_scale == pytest.approx(seq.cfg.fx * seq.cfg.baseline)
+  clip = synthetic.generate_clip(seq.cfg, 0)
+  np.testing.assert_allclose(clip["disparity"] * clip["depth"], seq.depth2disp_scale, rtol=1e-5)
+
+
 def test_sgbm_baseline_settings_are_checked_before_predicting(tmp_path, ckpt, capsys):
   for value, message in (("4", "block_size must be an odd integer >= 1, got 4"),
                          ("0", "block_size must be an odd integer >= 1, got 0")):
@@ -657,6 +670,30 @@ def test_config_overrides_and_head():
                "kitti_depth", "spring", "south_kensington", "tartanair"):
     c = eval_config.load_config(str(CONFIGS / f"{name}.py"))
     assert c.dataset == name and c.split == "test" and c.iters == 20 and c.window == 20
+
+
+# configs/eval/<name>.py -> frames evaluated per sequence (datasets.md, section 1; <= 0: all).
+OFFICIAL_SAMPLE_LEN = {"dynamic_replica": 150, "infinigen_sv": 150, "vkitti2": 300,
+                       "kitti_depth": 300, "south_kensington": 300, "sintel_clean": 0,
+                       "sintel_final": 0, "spring": 0, "tartanair": 0, "folder": 0,
+                       "synthetic": 0}
+
+
+def test_every_dataset_config_follows_the_official_protocol():
+  """datasets.md: DR and Infinigen evaluate the first 150 frames, VKITTI2, KITTI depth and South
+  Kensington the first 300, Sintel every frame; every config: the test split, windows of 20
+  frames with stride 10, 20 GRU iterations, RAFT's 20 iterations, float32."""
+  names = sorted(p.stem for p in CONFIGS.glob("*.py") if p.stem not in ("__init__", "common"))
+  assert names == sorted(OFFICIAL_SAMPLE_LEN)  # a new config gets its official value here
+  for name, sample_len in OFFICIAL_SAMPLE_LEN.items():
+    c = eval_config.load_config(str(CONFIGS / f"{name}.py"))
+    assert (c.dataset, c.split) == (name, "test"), name
+    if sample_len:
+      assert c.sample_len == sample_len, name
+    else:
+      assert c.sample_len <= 0, name
+    assert (c.window, c.stride, c.iters, c.metrics.raft_iters) == (20, 10, 20, 20), name
+    assert c.dtype == "float32" and c.max_sequences <= 0, name
 
 
 def _write_vkitti2(root, clip, name, fx=725.0087):
@@ -1025,6 +1062,84 @@ def test_the_report_names_skipped_sequences(tmp_path):
   eval_report.write_all(tmp_path, summary)
   assert json.loads((tmp_path / "results.json").read_text())["skipped_sequences"] == [
       "seq_a", "seq_c"]
+
+
+# results.md's column headings and the official metric keys they show.
+REPORT_COLUMNS = {
+    "EPE": "disp_epe_mean", "bad-0.5 %": "disp_epe_bad_0.5px", "bad-1 %": "disp_epe_bad_1px",
+    "bad-2 %": "disp_epe_bad_2px", "bad-3 %": "disp_epe_bad_3px", "TEPE": "disp_temp_epe_mean",
+    "δt-0.5px %": "disp_temp_epe_bad_0.5px", "δt-1px %": "disp_temp_epe_bad_1px",
+    "δt-2px %": "disp_temp_epe_bad_2px", "δt-3px %": "disp_temp_epe_bad_3px",
+    "TCC": "disp_TCC", "TCM": "disp_TCM", "OPW": "disp_OPW", "RTC": "disp_RTC"}
+
+
+def _table(md, first):
+  """The rows of the Markdown table whose heading row starts with `first`, as cell lists."""
+  lines = md.splitlines()
+  start = next(i for i, line in enumerate(lines) if line.startswith(f"| {first} |"))
+  rows = []
+  for line in lines[start:]:
+    if not line.startswith("|"):
+      break
+    rows.append([c.strip() for c in line.strip("|").split("|")])
+  return rows[0], rows[2:]
+
+
+def test_report_columns_show_the_metrics_they_name(tmp_path):
+  """Each column of results.md holds the metric its heading names (a distinct value per key),
+  in the aggregate and per-sequence tables; results.csv's aggregate rows carry the run's frame
+  count, the per-sequence rows their own."""
+  from eval.main import build_summary  # pylint: disable=import-outside-toplevel
+  keys = list(REPORT_COLUMNS.values()) + ["disp_OPW_30", "disp_OPW_50", "disp_OPW_100",
+                                          "disp_RTC_30"]
+  results = [eval_runner.SequenceResult(
+      name=name, frames=frames,
+      metrics={"sav": {k: i + 0.25 * j + 0.0625 for i, k in enumerate(keys)}},
+      seconds={"sav": 1.0}) for j, (name, frames) in enumerate((("seq_a", 3), ("seq_b", 5)))]
+  config = eval_config.load_config(str(CONFIGS / "dynamic_replica.py"))
+  summary = build_summary(config, "w", results, ["sav"])
+  aggregate = summary["methods"]["sav"]["aggregate"]
+  assert summary["frames"] == 8 and aggregate["disp_TCC"] == pytest.approx(10 + 0.0625 + 0.15625)
+  md = eval_report.markdown(summary)
+  head, rows = _table(md, "Method")
+  assert head == ["Method", *REPORT_COLUMNS, "frames/s"] and len(rows) == 1
+  assert rows[0][0] == "Stereo Any Video" and rows[0][-1] == "4.00"
+  for heading, cell in zip(head[1:-1], rows[0][1:-1]):
+    assert cell == f"{aggregate[REPORT_COLUMNS[heading]]:.3f}", heading
+  head, rows = _table(md, "Sequence")
+  assert head == ["Sequence", "Frames", "Method", *REPORT_COLUMNS] and len(rows) == 2
+  for res, row in zip(results, rows):
+    assert row[:3] == [res.name, str(res.frames), "Stereo Any Video"]
+    for heading, cell in zip(head[3:], row[3:]):
+      assert cell == f"{res.metrics['sav'][REPORT_COLUMNS[heading]]:.3f}", heading
+  eval_report.write_csv(tmp_path / "results.csv", summary)
+  rows = list(csv.DictReader(open(tmp_path / "results.csv", encoding="utf-8")))
+  assert [(r["sequence"], r["frames"]) for r in rows] == [
+      ("seq_a", "3"), ("seq_b", "5"), (eval_report.ALL, "8")]
+  for k in keys:
+    assert float(rows[-1][k]) == pytest.approx(aggregate[k], rel=1e-12), k
+
+
+def test_short_dynamic_replica_sequences_are_dropped_and_named(tmp_path):
+  """Dynamic Replica sequences shorter than sample_len are skipped (as the official loader does)
+  and named for the report; one of exactly sample_len frames is kept, as are the short
+  sequences of other datasets (Sintel's), whole."""
+  from tests.data.test_readers import (  # pylint: disable=import-outside-toplevel
+      _dynamic_replica, _sintel)
+  rng = np.random.default_rng(0)
+  _dynamic_replica(tmp_path, rng, "test", [("long", 4, "ndc_isotropic"),
+                                           ("short", 2, "ndc_isotropic"),
+                                           ("exact", 3, "ndc_isotropic")])
+  config = eval_config.load_config(str(CONFIGS / "dynamic_replica.py"))
+  config.sample_len = 3
+  kept, skipped = eval_data.load_sequences_and_skipped(config, tmp_path)
+  assert [(s.name, len(s)) for s in kept] == [("long", 3), ("exact", 3)]
+  assert skipped == ["short"]
+  _sintel(tmp_path, rng, seqs=(("alley_1", 3), ("cave_2", 2)))
+  config = eval_config.load_config(str(CONFIGS / "sintel_final.py"))
+  config.sample_len = 3
+  kept, skipped = eval_data.load_sequences_and_skipped(config, tmp_path)
+  assert [(s.name, len(s)) for s in kept] == [("alley_1", 3), ("cave_2", 2)] and skipped == []
 
 
 def test_an_output_folder_inside_the_dataset_is_refused(tmp_path, ckpt, capsys):

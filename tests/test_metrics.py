@@ -178,6 +178,17 @@ def test_fractional_mask_weights_and_thresholds():
   assert res["epe_bad_0.5px"] == 100.0 and res["epe_bad_1px"] == 0.0
 
 
+def test_a_weight_of_exactly_the_threshold_is_masked_out():
+  """b = [m > 0.5] is strict: a pixel weighted exactly 0.5 is dropped, however large its error
+  (with >= it would count sqrt(0.5) * 99 = 70 px and the mean would be ~24 px)."""
+  gt = np.zeros((1, 1, 3), np.float32)
+  pred = np.array([[[1.0, 1.0, 99.0]]], np.float32)
+  half = np.array([[[1.0, 1.0, 0.5]]], np.float32)
+  res = M.eval_endpoint_error_sequence(pred, gt, half)
+  assert res == M.eval_endpoint_error_sequence(pred, gt, np.array([[[1.0, 1.0, 0.0]]]))
+  assert res["epe_mean"] == 1.0 and res["epe_bad_0.5px"] == 100.0 and res["epe_bad_3px"] == 0.0
+
+
 def test_tepe_compares_absolute_temporal_differences():
   pred = np.array([1.0, 3.0], np.float32).reshape(2, 1, 1)
   gt = np.array([3.0, 1.0], np.float32).reshape(2, 1, 1)
@@ -229,6 +240,19 @@ def test_ssim_and_tcc_identity():
   assert win.shape == (11,) and win.sum() == pytest.approx(1.0, rel=1e-6)
 
 
+def test_ssim_of_anticorrelated_images_is_clipped_at_zero():
+  """SSIM's ReLU (`nonnegative`, on by default and in TCC): a checkerboard against its
+  inverse has SSIM ~-0.996, scored 0; TCC of anticorrelated depth changes is 0, not < 0."""
+  checker = (np.indices((16, 16)).sum(0) % 2).astype(np.float64)
+  assert M.ssim(checker, 1 - checker) == 0.0
+  assert M.ssim(checker, 1 - checker, nonnegative=False) == pytest.approx(-0.9964, abs=1e-4)
+  depth = np.full((2, 16, 16), 10.0, np.float32)
+  pred, gt = depth.copy(), depth.copy()
+  pred[1] += checker
+  gt[1] += 1 - checker
+  assert M.eval_tcc_sequence(pred, gt, np.ones_like(depth)) == 0.0
+
+
 def test_flow_warp_shifts_with_zero_padding():
   img = np.arange(12, dtype=np.float32).reshape(1, 3, 4)
   flow = np.zeros((1, 2, 3, 4), np.float32)
@@ -251,6 +275,43 @@ def test_opw_rtc_perfectly_consistent_video():
   np.testing.assert_allclose(M.eval_opw_sequence(video, depth, depth, mask, flows), 0.0, atol=1e-5)
   assert M.eval_rtc_sequence(video, depth, depth, mask, flows) == (1.0, 1.0)
   flows[:, 0, :5] = 300.0  # rejected flow (> 250) only drops pixels
+  assert M.eval_rtc_sequence(video, depth, depth, mask, flows) == (1.0, 1.0)
+
+
+def test_opw_depth_masks_keep_their_own_limits():
+  """OPW_30/50/100 select GT depth <= 30/50/100 at t and t+1, in that order (and under their
+  own keys in eval_batch): four GT depth bands (20, 40, 70, 200) with warping errors 0.05, 2,
+  4, 8 give four different values; RTC_30 keeps only the 20 m band, the one consistent band."""
+  t, h, w = 2, 4, 8
+  gt = np.repeat(np.array([20.0, 40.0, 70.0, 200.0], np.float32), 2)[None, None]
+  gt = np.broadcast_to(gt, (t, h, w)).copy()
+  pred = np.full((t, h, w), 10.0, np.float32)
+  pred[1] += np.repeat(np.array([1.0, 2.0, 4.0, 8.0], np.float32), 2)  # frame 1 = frame 0 + e
+  pred[1, :, :2] = 10.05  # the 20 m band: ratio 1.005 < 1.01, consistent for RTC
+  video = np.zeros((t, 3, h, w), np.uint8)
+  flows = np.zeros((t - 1, 2, h, w), np.float32)
+  mask = np.ones_like(gt)
+  want = (np.mean([0.05, 2, 4, 8]), 0.05, np.mean([0.05, 2]), np.mean([0.05, 2, 4]))
+  opw = M.eval_opw_sequence(video, pred, gt, mask, flows)
+  np.testing.assert_allclose(opw, want, rtol=1e-5)
+  assert M.eval_rtc_sequence(video, pred, gt, mask, flows) == (0.25, 1.0)
+  res, _ = M.eval_batch(1 / pred, 1 / gt, mask, scale=1.0, left_video=video, video_flows=flows)
+  got = [res[k] for k in ("disp_OPW", "disp_OPW_30", "disp_OPW_50", "disp_OPW_100")]
+  np.testing.assert_allclose(got, want, rtol=1e-4)
+  assert (res["disp_RTC"], res["disp_RTC_30"]) == (0.25, 1.0)
+
+
+def test_pixels_warped_out_of_the_frame_do_not_count():
+  """The [W_t > 0] term of V_t: a flow of +3 px samples zeros (zero padding) in the last 3
+  columns; a black video keeps their photometric weight at 1, so without the term they would
+  count |0 - 10| = 10 each (OPW 30/17). W = 17, H = 5: grid_sample's round trip is exact."""
+  t, h, w = 2, 5, 17
+  depth = np.full((t, h, w), 10.0, np.float32)
+  video = np.zeros((t, 3, h, w), np.uint8)
+  flows = np.zeros((t - 1, 2, h, w), np.float32)
+  flows[:, 0] = 3.0
+  mask = np.ones_like(depth)
+  assert M.eval_opw_sequence(video, depth, depth, mask, flows) == (0.0, 0.0, 0.0, 0.0)
   assert M.eval_rtc_sequence(video, depth, depth, mask, flows) == (1.0, 1.0)
 
 

@@ -37,6 +37,17 @@ def test_png16_round_trip(tmp_path, disp):
   assert valid.all()
 
 
+def test_png16_keeps_tiny_positive_disparities_valid(tmp_path):
+  """round(256 d) of a positive d below 1/512 px is 0, the invalid code: such values are
+  stored as 1 (1/256 px) and read back valid; 0 and negative values stay invalid."""
+  viz.write_png16(tmp_path / "t.png", np.array([[1e-3, 1 / 1024, 0.0, -1e-3]], np.float32))
+  raw = cv2.imread(str(tmp_path / "t.png"), cv2.IMREAD_UNCHANGED)
+  np.testing.assert_array_equal(raw, [[1, 1, 0, 0]])
+  back, valid = viz.read_png16(tmp_path / "t.png")
+  np.testing.assert_array_equal(back, [[1 / 256, 1 / 256, 0, 0]])
+  np.testing.assert_array_equal(valid, [[True, True, False, False]])
+
+
 @pytest.mark.parametrize("shape", [(13, 17), (6, 5, 3)])
 def test_pfm_round_trip(tmp_path, shape):
   a = np.random.default_rng(1).normal(size=shape).astype(np.float32)
@@ -239,6 +250,19 @@ def test_colorize_fixed_range_is_temporally_stable():
   np.testing.assert_array_equal(bad[0, :2], [viz.INVALID_COLOR] * 2)
   with pytest.raises(ValueError, match="colour map"):
     viz.colorize(video, cmap="nope")
+
+
+def test_colorize_is_rgb_with_white_invalid_pixels_by_default():
+  """The colour map comes out RGB (OpenCV's is BGR): inferno runs from (0, 0, 4) at vmin to
+  (252, 255, 164) at vmax; invalid pixels are white by default."""
+  rgb = viz.colorize(np.array([[1.0, 2.0, 0.0]], np.float32), 1.0, 2.0)
+  assert [tuple(c) for c in rgb[0]] == [(0, 0, 4), (252, 255, 164), (255, 255, 255)]
+  assert viz.INVALID_COLOR == (255, 255, 255)
+
+
+def test_disparity_range_ignores_non_positive_disparities():
+  """Only d > 0 sets the colour range: 0 (no disparity) and negative values do not."""
+  assert viz.disparity_range(np.array([[0.0, -1.0, 5.0, 10.0]], np.float32)) == (5.0, 10.0)
 
 
 def test_side_by_side_and_video(tmp_path):
