@@ -391,15 +391,17 @@ def stream_seed(seed: int, source: int, purpose: str) -> int:
 
 
 def _init_worker(worker_index: int, worker_count: int) -> None:
-  """A grain worker process ignores SIGTERM: schedulers send it to the whole process group,
-  and the training process, which then finishes its step and saves a checkpoint, needs its
-  workers until it is done (grain stops them itself: an event, then SIGKILL).
+  """A grain worker process ignores SIGTERM and SIGINT: schedulers send SIGTERM, and a
+  terminal's Ctrl-C SIGINT, to the whole process group, and the training process, which then
+  finishes its step and saves a checkpoint, needs its workers until it is done (grain stops
+  them itself: an event, then SIGKILL).
 
   So that a worker never outlives the training process (SIGKILLed, or taken by the
   out-of-memory killer: grain's own stop never comes, and the orphan would ignore `kill`),
   a thread ends the worker within a second of its parent's death."""
   del worker_index, worker_count
   signal.signal(signal.SIGTERM, signal.SIG_IGN)
+  signal.signal(signal.SIGINT, signal.SIG_IGN)
   parent = os.getppid()
 
   def watch_parent():

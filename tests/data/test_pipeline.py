@@ -326,9 +326,10 @@ def test_registry_source_and_official_augmentation(monkeypatch):
 
 
 def test_grain_workers_outlive_a_sigterm_to_the_process_group():
-  """Schedulers send SIGTERM to every process of a job: the training process then finishes
-  its step and saves a checkpoint, for which it still reads from its grain workers (they
-  died on the signal before: the read failed and no checkpoint was saved)."""
+  """Schedulers send SIGTERM to every process of a job, a terminal's Ctrl-C SIGINT: the
+  training process then finishes its step and saves a checkpoint, for which it still reads
+  from its grain workers (they died on the signal before: the read failed and no checkpoint
+  was saved)."""
   import os  # pylint: disable=import-outside-toplevel
   import signal  # pylint: disable=import-outside-toplevel
   import subprocess  # pylint: disable=import-outside-toplevel
@@ -351,6 +352,7 @@ def test_grain_workers_outlive_a_sigterm_to_the_process_group():
   assert workers
   for pid in workers:
     os.kill(pid, signal.SIGTERM)
+    os.kill(pid, signal.SIGINT)
   time.sleep(1.0)
   for _ in range(12):  # more batches than the workers had buffered
     assert next(it)["left"].shape == (2, 2, 16, 16, 3)
