@@ -89,9 +89,9 @@ def base_config() -> ml_collections.ConfigDict:
   # grain worker processes (mp_prefetch); 0 = threads only.
   c.data.worker_count = 0
   # A training clip whose files do not read (corrupt, missing): 0 stops the run, naming the
-  # file and the checkpoint to resume from; N > 0 trains on the next readable clip instead,
-  # with a warning naming it, up to N clips in a row (the official loader silently draws a
-  # random other clip, always).
+  # file and the checkpoint to resume from; N > 0 trains on a readable clip drawn at random
+  # instead, with a warning naming it, trying up to N stand-ins (the official loader silently
+  # draws a random other clip, always).
   c.data.skip_unreadable = 0
 
   c.train = ml_collections.ConfigDict()

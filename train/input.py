@@ -86,7 +86,8 @@ def train_dataset(config, process_index=None, process_count=None, clips: dict | 
     with _naming(where):
       src, tf, digest = _source(config, spec, "train", seed=config.data.synthetic.seed)
     if clips is not None:
-      clips[name] = {"dataset": spec.dataset, "clips": len(src), "digest": digest}
+      clips[name] = {"dataset": spec.dataset, "clips": len(src), "digest": digest,
+                     "seeding": pipeline.SEEDING}
     log.info("training source %s: %s, %d clips, weight %g", name, spec.dataset, len(src),
              spec.weight)
     sources.append(src)
@@ -114,8 +115,11 @@ def changed_clips(saved: dict, now: dict) -> list[str]:
       out.append(f"{name}: {'added' if old is None else 'removed'}")
     elif old.get("clips") != new.get("clips"):
       out.append(f"{name}: {old.get('clips')} -> {new.get('clips')} clips")
-    else:
+    elif old.get("digest") != new.get("digest"):
       out.append(f"{name}: other clips ({new.get('clips')})")
+    else:  # a checkpoint of sav-jax before the hashed seeds: another shuffle of the same clips
+      out.append(f"{name}: the clip order and augmentation are drawn with other seeds "
+                 "(the checkpoint is of sav-jax before 2026-12-05)")
   return out
 
 

@@ -775,7 +775,7 @@ def _next_batch(batches, step: int, manager, skip_unreadable: int = 0):
     resume = (f"the checkpoint of step {latest} is kept: fix the data or the config and run "
               "the same command to resume" if latest is not None else "no checkpoint yet")
     if skip_unreadable == 0 and pipeline.is_unreadable(e):
-      resume += ("; --config.data.skip_unreadable=N trains on the next readable clip instead "
+      resume += ("; --config.data.skip_unreadable=N trains on another, readable clip in place "
                  "of an unreadable one")
     raise DataError(f"the training batch of step {step} could not be made: "
                     f"{type(e).__name__}: {e} ({resume})") from e

@@ -191,9 +191,11 @@ def clips_source(items, skip_unreadable: int = 0) -> grain.MapDataset:
 
   `skip_unreadable`: 0 (default) lets a clip that does not read (a corrupt or missing file:
   the reader's ValueError or OSError, naming the file) fail the stream; N > 0 replaces it
-  by the next readable clip of the list, with a warning naming it, up to N clips in a row
-  (more is an error: a lost disk or mount is not skipped through). Deterministic: the same
-  clip always stands in, so a resumed run sees the batches an uninterrupted one would."""
+  by a readable clip drawn from the list at random (a hash of its index: not a neighbour,
+  which would share its frames), with a warning naming it, trying up to N stand-ins (all of
+  them unreadable is an error: a lost disk or mount is not skipped through). Deterministic:
+  the same clip always stands in, so a resumed run sees the batches an uninterrupted one
+  would."""
   if not (is_int(skip_unreadable) and skip_unreadable >= 0):
     raise ValueError(f"skip_unreadable must be an integer >= 0, got {skip_unreadable!r}")
   if skip_unreadable == 0:
@@ -212,22 +214,32 @@ class _SkippingClips:
 
   def __getitem__(self, index: int) -> dict[str, np.ndarray]:
     load, n, first = _LoadClip(), len(self._items), None
-    for k in range(min(self._skip, n - 1) + 1):
-      item = self._items[(index + k) % n]
+    tries = min(self._skip, n - 1) + 1
+    for k in range(tries):
+      key = self.stand_in(index, k)
+      item = self._items[key]
       try:
         return load(item)
       except (ValueError, OSError) as e:
         if not is_unreadable(e):
           raise
         first = first or e
-        key = (index + k) % n
         if key not in self._warned:  # once per clip and process (every epoch reads it)
           self._warned.add(key)
           log.warning("skipping an unreadable clip (data.skip_unreadable): %s: %s: %s",
                       _where(item), type(e).__name__, e)
-    raise ValueError(f"{plural(min(self._skip, n - 1) + 1, 'clip')} in a row from clip {index} "
-                     f"do not read (data.skip_unreadable={self._skip} skips no more: a lost disk or "
+    raise ValueError(f"clip {index} and {plural(tries - 1, 'stand-in')} drawn for it do not "
+                     f"read (data.skip_unreadable={self._skip} skips no more: a lost disk or "
                      f"mount?); the first: {type(first).__name__}: {first}") from first
+
+  def stand_in(self, index: int, k: int) -> int:
+    """The clip read for `index` at try `k`: itself, then clips drawn at random (a hash of
+    both), not its neighbours in the list, which overlap it (a SceneFlow frame is in about
+    2T neighbouring clips): one bad file does not exhaust the tries."""
+    if k == 0:
+      return index
+    other = int(np.random.default_rng([index, k]).integers(len(self._items) - 1))
+    return other + (other >= index)  # any clip but itself
 
   def __getstate__(self):  # grain workers: without the warned set
     return {"_items": self._items, "_skip": self._skip}
@@ -379,6 +391,9 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
 
 
 _STREAM_PURPOSES = ("shuffle", "augment")
+# How `stream_seed` derives the sources' seeds (recorded with training checkpoints: a resume
+# written with another derivation gets another shuffle, and is warned about).
+SEEDING = 2
 
 
 def stream_seed(seed: int, source: int, purpose: str) -> int:

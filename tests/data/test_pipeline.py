@@ -198,34 +198,40 @@ class _Sequence:
     return {"left": img, "right": img, "disparity": disp, "valid": np.ones((t, 4, 4), bool)}
 
 
-def test_unreadable_clips_stop_or_are_replaced_by_the_next_readable_one(caplog):
+def test_unreadable_clips_stop_or_are_replaced_by_a_drawn_readable_one(caplog):
   seq = _Sequence(broken={2, 3})
-  items = [(seq, [i]) for i in range(6)]
+  items = [(seq, [i]) for i in range(40)]
   stop = pipeline.clips_source(items)
   assert stop[1]["disparity"][0, 0, 0] == 1
   with pytest.raises(ValueError, match="0002.png: cannot decode") as info:
     stop[2]  # pylint: disable=pointless-statement
   assert pipeline.is_unreadable(info.value)  # what the training's error message tells apart
-  skip = pipeline.clips_source(items, skip_unreadable=2)
+  skip = pipeline.clips_source(items, skip_unreadable=3)
   with caplog.at_level("WARNING", "sav_jax.data.pipeline"):
-    got = [int(skip[i]["disparity"][0, 0, 0]) for i in range(6)]
-    assert [int(skip[i]["disparity"][0, 0, 0]) for i in range(6)] == got  # deterministic
-  assert got == [0, 1, 4, 4, 4, 5]  # 2 and 3 stand in for by 4, the next readable clip
+    got = [int(skip[i]["disparity"][0, 0, 0]) for i in range(40)]
+    assert [int(skip[i]["disparity"][0, 0, 0]) for i in range(40)] == got  # deterministic
+  drawn = pipeline._SkippingClips(items, 3)  # pylint: disable=protected-access
+  for i in (2, 3):  # a clip drawn at random stands in, not the next one (which shares frames)
+    want = next(drawn.stand_in(i, k) for k in range(1, 4) if drawn.stand_in(i, k) not in (2, 3))
+    assert got[i] == want and want not in (i - 1, i + 1)
+  assert [g for i, g in enumerate(got) if i not in (2, 3)] == [i for i in range(40)
+                                                               if i not in (2, 3)]
   warned = [r.getMessage() for r in caplog.records]
   assert len(warned) == 2 and all("skipping an unreadable clip (data.skip_unreadable): fake/seq"
                                   in m for m in warned), warned  # once per clip
-  assert "0003.png: cannot decode" in warned[1]
-  with pytest.raises(ValueError, match=r"2 clips in a row from clip 2 do not read "
+  assert "0003.png: cannot decode" in "".join(warned)
+  every = [(_Sequence(broken=range(40)), [i]) for i in range(40)]  # a lost disk
+  with pytest.raises(ValueError, match=r"clip 2 and 1 stand-in drawn for it do not read "
                                        r"\(data.skip_unreadable=1 skips no more.*0002.png"):
-    pipeline.clips_source(items, skip_unreadable=1)[2]  # pylint: disable=pointless-statement
+    pipeline.clips_source(every, skip_unreadable=1)[2]  # pylint: disable=pointless-statement
   no_gt = (types.SimpleNamespace(gather=lambda idx: {"disparity": None}), [0])
   with pytest.raises(ValueError, match="has no ground truth"):  # a config error: not skipped
     pipeline.clips_source([no_gt] + items, skip_unreadable=3)[0]  # pylint: disable=pointless-statement
   with pytest.raises(ValueError, match="skip_unreadable must be an integer >= 0"):
     pipeline.clips_source(items, skip_unreadable=-1)
-  batches = pipeline.make_train_dataset([skip], [1.0], batch_size=3, seed=0, num_threads=2)
-  ids = sum((_ids(b) for b in _take(iter(batches), 4)), [])  # two epochs through threads
-  assert sorted(ids[:6]) == [0, 1, 4, 4, 4, 5] == sorted(ids[6:])
+  batches = pipeline.make_train_dataset([skip], [1.0], batch_size=8, seed=0, num_threads=2)
+  ids = sum((_ids(b) for b in _take(iter(batches), 10)), [])  # two epochs through threads
+  assert sorted(ids[:40]) == sorted(got) == sorted(ids[40:])
 
 
 def test_interrupt_and_restore_iterator_state():
