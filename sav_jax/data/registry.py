@@ -124,11 +124,15 @@ def register_dataset(name: str, load_sequences, *, splits: tuple[str, ...],
   sources (`config.data.sources.<x>.dataset`) and `python -m eval` (`eval_config(name)`);
   call it where those run (a training or evaluation config file is run in their process).
 
+  Registering a name again with the same arguments does nothing (a config file loaded twice).
+
   Args:
     name: the registry name (not one of `DATASETS` already).
     load_sequences: `(folder, split, dataset=name) -> list[StereoSequence]`, called with the
-      dataset's own folder (a module-level function, so that grain's worker processes can
-      pickle the sequences' readers), raising FileNotFoundError naming what is missing.
+      dataset's own folder, raising FileNotFoundError naming what is missing. With grain's
+      worker processes (`data.worker_count` > 0) the sequences are pickled to them: define
+      it and your sequence class in a module they can import (not in the config file, which
+      is loaded under another name).
     splits: the splits it has ("train", "test", ...).
     folders: the dataset's folder names under a datasets root (`root/<folder>` is taken
       where it exists, else `root` itself; empty: the root is always the folder).
@@ -138,6 +142,14 @@ def register_dataset(name: str, load_sequences, *, splits: tuple[str, ...],
     eval_frames: evaluate the first L frames of each "test" sequence (None: whole ones).
   """
   global DATASETS, STRIDED, _SCENEFLOW  # pylint: disable=global-statement
+  entry = functools.partial(_registered, load_sequences, tuple(folders), name)
+  same = _LOADERS.get(name)
+  if (isinstance(same, functools.partial) and same.func is _registered
+      and same.args == entry.args and SPLITS[name] == tuple(splits)
+      and EVAL_FRAMES.get(name) == eval_frames
+      and (name in STRIDED, name in _SCENEFLOW) == (training == "strided",
+                                                    training == "sceneflow")):
+    return  # registered again as it is (a config file loaded twice, a notebook cell re-run)
   if not (isinstance(name, str) and name.isidentifier()) or name in _LOADERS or \
       name == "synthetic":
     raise ValueError(f"register_dataset: name must be a new identifier (not one of "
@@ -155,7 +167,7 @@ def register_dataset(name: str, load_sequences, *, splits: tuple[str, ...],
   if eval_frames is not None and not (is_int(eval_frames) and eval_frames > 0):
     raise ValueError(f"register_dataset: eval_frames must be an integer > 0 or None, got "
                      f"{eval_frames!r}")
-  _LOADERS[name] = functools.partial(_registered, load_sequences, tuple(folders), name)
+  _LOADERS[name] = entry
   _FOLDERS[name] = tuple(folders)
   SPLITS[name] = tuple(splits)
   if eval_frames is not None:

@@ -1194,8 +1194,10 @@ def test_a_reader_of_your_own_layout_is_registered(tmp_path, monkeypatch):
                                                         ("street", "own", 2)]  # eval_frames
   clips = registry.get_training_clips("own", tmp_path / "OwnSet", frames=2, split="test")
   assert [c.indices for c in clips if c.sequence.name == "lab"] == [[0, 1], [2, 1]]  # sceneflow
+  registry.register_dataset("own", _load_own, splits=("test",), folders=("OwnSet",),
+                            training="sceneflow", eval_frames=2)  # again, as it is: nothing
   with pytest.raises(ValueError, match="name must be a new identifier"):
-    registry.register_dataset("own", _load_own, splits=("test",))
+    registry.register_dataset("own", _load_own, splits=("test",))  # another registration
   with pytest.raises(ValueError, match="training must be 'strided', 'sceneflow' or None"):
     registry.register_dataset("own2", _load_own, splits=("test",), training="random")
 
