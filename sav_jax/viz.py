@@ -338,6 +338,7 @@ def colorize_error(pred, gt, valid=None, *, abs_thresh: float = 3.0,
     norm = err / np.float32(ok_abs)
     if ok_rel is not None:
       norm = np.minimum(norm, err / (np.float32(ok_rel) * np.abs(g)))
+    norm = np.where(err == 0, 0.0, norm)  # a perfect pixel, gt 0 too (0 / 0)
   norm = np.where(np.isfinite(norm), norm, np.inf)  # a NaN / inf prediction: the worst
   table = np.asarray(KITTI_ERROR_COLORS, np.uint8)
   rgb = table[np.searchsorted(np.asarray(KITTI_ERROR_BINS, np.float32), norm, "right") - 1]

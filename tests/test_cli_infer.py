@@ -8,6 +8,7 @@ import logging
 import os
 import pathlib
 import re
+import shutil
 
 import cv2
 import jax
@@ -223,7 +224,8 @@ def test_a_window_that_cannot_run_leaves_no_output_folders(tmp_path, folders, np
   assert not (tmp_path / "new").exists()
 
 
-def test_outputs_never_replace_the_inputs(tmp_path, clip, folders, npz_ckpt, capsys):
+def test_outputs_never_replace_the_inputs(tmp_path, clip, folders, npz_ckpt, orbax_ckpt,
+                                          capsys):
   # Input frames in OUT/disparity (the folder the PNG disparities go to) and an input video
   # at OUT/side_by_side.mp4: refused even with --overwrite, and the inputs stay as they were.
   out = tmp_path / "out"
@@ -259,6 +261,11 @@ def test_outputs_never_replace_the_inputs(tmp_path, clip, folders, npz_ckpt, cap
   err = capsys.readouterr().err
   assert f"output {calib} would replace the input {calib}" in err, err
   assert calib.read_text() == '{"fx": 40, "baseline": 0.1}'
+  # a checkpoint folder may hold the outputs (it was refused as "the input frame folder")
+  ckpt_dir = tmp_path / "run"
+  shutil.copytree(orbax_ckpt, ckpt_dir)
+  assert _infer(folders[0], right, ckpt_dir, ckpt_dir, "--format", "npy") == 0
+  assert (ckpt_dir / "summary.json").is_file()
 
 
 def test_unusable_checkpoints_are_refused_before_the_run(tmp_path, folders, variables,
@@ -1028,6 +1035,11 @@ def test_calibration_kitti_grey_cameras(tmp_path):
   for bad in ("0", "1,1", "2,4", "a,b", "0,1,2"):
     with pytest.raises(argparse.ArgumentTypeError, match="two different KITTI camera numbers"):
       parse_camera_pair(bad)
+  as_json = tmp_path / "c.json"
+  as_json.write_text('{"fx": 700, "baseline": 0.5}')
+  with pytest.raises(UsageError, match=r"c.json: a JSON calibration has no KITTI cameras to "
+                                       r"choose \(0,1 given\)"):
+    read_calibration(as_json, (0, 1))
   spec = calibration_from_args(argparse.Namespace(calib=str(odometry), calib_cameras=(0, 1)))
   assert spec.baseline == pytest.approx(grey["baseline"])
   with pytest.raises(UsageError, match="--calib-cameras picks the cameras of a KITTI --calib "

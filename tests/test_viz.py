@@ -600,6 +600,8 @@ def test_colorize_error_uses_kittis_bins_and_keeps_perfect_pixels():
   masked = viz.colorize_error(pred[..., None], gt[..., None], valid, invalid_color=(9, 9, 9))
   assert masked.shape == (1, 8, 3) and tuple(masked[0, 0]) == (9, 9, 9)
   assert tuple(masked[0, 6]) == colours[6]  # gt 0 inside the given mask: 7 px / 3 = 2.3
+  both_zero = viz.colorize_error(np.zeros((1, 2)), np.zeros((1, 2)), np.ones((1, 2)))
+  assert (both_zero == colours[0]).all()  # 0 / 0 in the relative term: perfect, not the worst
   video = viz.colorize_error(np.zeros((3, 2, 5)), np.ones((3, 2, 5)))  # [T, H, W]
   assert video.shape == (3, 2, 5, 3) and (video == colours[3]).all()  # 1 px: 1/3 of 3 px
   with pytest.raises(ValueError, match=r"pred of shape \(2, 5\) and gt of shape \(2, 4\)"):

@@ -294,8 +294,8 @@ def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
   if keep <= 0 or len(steps) < keep:  # the first save adds one, then orbax keeps `keep`
     return
   saved = saved.get("checkpoint.keep")
-  if saved == keep:
-    return
+  if saved == keep or (saved is None and len(steps) == keep):  # (None: as a run before keep
+    return  # was recorded pruned on resume, at the default keep: its own policy, likely)
   earlier = (f"saved with config.checkpoint.keep={saved}" if saved is not None
              else "saved before the keep policy was recorded")
   doomed = steps[:len(steps) + 1 - keep]

@@ -399,9 +399,10 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
   if (workdir.is_dir() and not (workdir / "checkpoints").exists()
       and any(orbax_io.is_training_step(p) for p in workdir.iterdir() if p.is_dir())):
     # (a new run nested in it, and its last line named this folder: the old run's weights)
+    run = workdir.absolute().parent
     raise ValueError(f"--workdir {workdir} is a run's checkpoints folder: to resume that run, "
-                     f"pass its folder, --workdir {workdir.parent}; to start from its weights, "
-                     f"--config.init_from={workdir.parent} and a new --workdir")
+                     f"pass its folder, --workdir {run}; to start from its weights, "
+                     f"--config.init_from={run} and a new --workdir")
   writable = workdir / "checkpoints" if (workdir / "checkpoints").exists() else existing
   if not os.access(writable, os.W_OK | os.X_OK):
     raise PermissionError(f"--workdir {workdir}: no permission to write in {writable}")

@@ -190,6 +190,8 @@ def dataset_folders(dataset: str, root: str | Path) -> list[Path]:
   `dataset`'s files, as far as they exist."""
   _check_name(dataset)
   base = Path(root).expanduser()
+  if dataset == "folder":  # the root's split folders (the reader looks nowhere else)
+    return [base / s for s in stereo_folder.SPLITS if (base / s).is_dir()]
   if not _FOLDERS[dataset]:  # (the root is the dataset's folder)
     return [base] if base.is_dir() else []
   if base.name in _FOLDERS[dataset]:

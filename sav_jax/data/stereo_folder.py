@@ -23,6 +23,7 @@ evaluation takes whole sequences.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -135,7 +136,9 @@ def _scale(seq_dir: Path) -> float | None:
   if missing:
     raise ValueError(f"{path}: no {' and no '.join(missing)} (the depth-to-disparity scale "
                      "is fx * baseline)")
-  if calib.get("doffs"):
-    raise ValueError(f"{path}: doffs {calib['doffs']:g} px: the folder dataset's depth is "
-                     "fx * baseline / disparity (rectify to one principal point)")
+  if calib.get("doffs"):  # depth = fx B / (d + doffs): no single depth-to-disparity scale
+    logging.warning("%s: doffs %g px: depth is not fx * baseline / disparity, so the sequence "
+                    "gets no depth metrics (TCC); its disparity metrics are unaffected", path,
+                    calib["doffs"])
+    return None
   return camera_scale(calib["fx"], calib["baseline"], path)

@@ -325,20 +325,19 @@ def puts_back_on_failure(out: pathlib.Path):
     raise
 
 
-def input_paths(args) -> list:
-  """What `infer` reads: the views, the checkpoint and a calibration file (never written)."""
-  return [p for p in (args.left, args.right, getattr(args, "checkpoint", None),
-                      getattr(args, "calib", None)) if p]
-
-
-def check_not_inputs(paths: list[pathlib.Path], inputs) -> None:
+def check_not_inputs(paths: list[pathlib.Path], inputs, args=None) -> None:
   """Raises FileExistsError if an output would replace an input video file, or go into an
-  input frame folder (even beside its frames: the next run would read it as a frame).
-  Holds with --overwrite too: a user's input data is never written over."""
+  input frame folder (even beside its frames: the next run would read it as a frame), or
+  replace the checkpoint or calibration file of `args` (its `checkpoint`, `calib`; a
+  checkpoint folder may hold the outputs). Holds with --overwrite too: a user's input data
+  is never written over."""
   files, folders = {}, {}
   for source in inputs:
     source = pathlib.Path(source)
     (folders if source.is_dir() else files)[source.resolve()] = source
+  for source in (getattr(args, "checkpoint", None), getattr(args, "calib", None)):
+    if source:
+      files[pathlib.Path(source).resolve()] = pathlib.Path(source)
   for p in paths:
     p_abs = p.resolve()
     if p_abs in files or p_abs in folders:
@@ -387,7 +386,7 @@ def run(args: argparse.Namespace) -> int:
   outputs = output_paths(out, names, formats, calib, args.depth_format)
   for path in outputs:  # before anything is written (OpenCV crashed on such names)
     viz.check_utf8_path(path, "output file (named after --out and the frame)")
-  check_not_inputs(outputs, input_paths(args))
+  check_not_inputs(outputs, (args.left, args.right), args)
   with output_lock(out):
     return _run_locked(args, out, outputs, left, right, names, formats, calib)
 
@@ -408,7 +407,7 @@ def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:
   # With --overwrite, the files this run replaces and those of the earlier run it does not
   # are set aside as it begins to write, and deleted when it ends.
   stale = earlier_outputs(out, outputs) if args.overwrite else []
-  check_not_inputs(stale, input_paths(args))
+  check_not_inputs(stale, (args.left, args.right), args)
   if args.overwrite:
     stale = [p for p in outputs if p.is_file()] + stale
 
@@ -745,6 +744,9 @@ def read_calibration(path, cameras: tuple[int, int] | None = None) -> dict[str, 
   from sav_jax.data import frame_io  # pylint: disable=import-outside-toplevel
   text = frame_io.read_text(path, "calibration file")  # (a byte-order mark dropped a key)
   if text.lstrip().startswith("{"):
+    if cameras is not None:
+      raise UsageError(f"{path}: a JSON calibration has no KITTI cameras to choose "
+                       f"({cameras[0]},{cameras[1]} given): leave --calib-cameras out")
     try:
       data = loads_json(text)
     except ValueError as e:

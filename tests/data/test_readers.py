@@ -1141,7 +1141,7 @@ def _mkdir(path):
   return path
 
 
-def test_your_own_videos_in_the_folder_layout(tmp_path):
+def test_your_own_videos_in_the_folder_layout(tmp_path, caplog):
   truth = _own_videos(tmp_path / "mine", np.random.default_rng(21))
   seqs = registry.get_sequences("folder", tmp_path / "mine", "test")
   assert [s.name for s in seqs] == ["lab", "night", "street"]
@@ -1166,7 +1166,11 @@ def test_your_own_videos_in_the_folder_layout(tmp_path):
       if ref + 2 * k < len(seq):
         expect.append((seq.name, [ref, ref + k]))
   assert [(c.sequence.name, c.indices) for c in clips] == expect
-  assert registry.dataset_folders("folder", tmp_path / "mine") == [tmp_path / "mine"]
+  assert registry.dataset_folders("folder", tmp_path / "mine") == [tmp_path / "mine" / "test"]
+  (tmp_path / "mine/test/lab/calib.txt").write_text("fx 400\nbaseline 0.2\ndoffs 12\n")
+  with caplog.at_level(logging.WARNING):  # depth = fx B / (d + doffs): no scale, no refusal
+    lab = registry.get_sequences("folder", tmp_path / "mine", "test")[0]
+  assert lab.depth2disp_scale is None and "doffs 12 px: depth is not fx * baseline" in caplog.text
   with pytest.raises(FileNotFoundError, match=r"no train/ folder in .*mine \(it has test of "
                                               r"train, val, test\)"):
     registry.get_sequences("folder", tmp_path / "mine", "train")

@@ -551,6 +551,14 @@ def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(
                 run_config=c)  # keep=5: the first save deletes nothing
   manager.wait_until_finished()
   assert steps() == [1, 2, 3, 4, 5]
+  # A run saved before the keep policy was recorded, holding as many as this run keeps: it
+  # pruned so itself (the default keep), and resumes as it did (it was refused)
+  c.checkpoint.keep = 5
+  ckpt_lib.check_keep(ckpt_lib.make_manager(tmp_path, c), c, {})
+  c.checkpoint.keep = 4
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"\(saved before the keep policy was "
+                     r"recorded\); this run's config.checkpoint.keep=4 would delete \[1, 2\]"):
+    ckpt_lib.check_keep(ckpt_lib.make_manager(tmp_path, c), c, {})
 
 
 def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
@@ -1061,7 +1069,7 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
     ("eval.split", "valid", r"config\.eval\.split='valid': the synthetic held-out set has only "
      r"the split 'test'"),
 ])
-def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match):
+def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match, monkeypatch):
   from train import loop  # pylint: disable=g-import-not-at-top
   c = synthetic.get_config()
   *sections, name = field.split(".")
@@ -1095,6 +1103,10 @@ def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match)
                      rf"folder: to resume that run, pass its folder, --workdir {run}; "):
     loop.validate_config(synthetic.get_config(), run / "checkpoints")
   loop.validate_config(synthetic.get_config(), run)  # the run's own folder resumes
+  monkeypatch.chdir(run / "checkpoints")  # "--workdir ." named "." as the run's folder too
+  with pytest.raises(ValueError, match=rf"--workdir \. is a run's checkpoints folder: to resume "
+                     rf"that run, pass its folder, --workdir {run}; "):
+    loop.validate_config(synthetic.get_config(), ".")
 
 
 def test_an_empty_workdir_is_refused_by_setup(tmp_path, monkeypatch):
