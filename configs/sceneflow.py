@@ -169,6 +169,9 @@ def base_config() -> ml_collections.ConfigDict:
   c.eval.dataset = "synthetic"
   # Split of a registry dataset used for validation ("test" for the synthetic set).
   c.eval.split = "test"
+  # Data root of a dataset held out (its own, e.g. your videos for the "folder" dataset);
+  # "" = config.data.root.
+  c.eval.root = ""
   # Number of held-out clips.
   c.eval.num_clips = 16
   # Clips per validation batch (a multiple of the device count).

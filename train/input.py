@@ -134,11 +134,11 @@ def eval_clips(config) -> list[dict]:
       ds = pipeline.synthetic_source(cfg, ev.num_clips)
     return pipeline.fixed_clips(ds, ev.num_clips)
   # Consecutive frames, as the evaluation's (TEPE measures the change between frames).
+  root, field = (ev.root, "eval.root") if ev.get("root") else (config.data.root, "data.root")
   with _naming(f"config.eval.dataset={ev.dataset!r}, config.eval.split={ev.split!r}, "
-               f"config.data.root={config.data.root!r}, config.data.crop="
-               f"{tuple(config.data.crop)!r}"):
-    src = pipeline.registry_source(ev.dataset, config.data.root, config.data.frames,
-                                   split=ev.split, consecutive=True)
+               f"config.{field}={root!r}, config.data.crop={tuple(config.data.crop)!r}"):
+    src = pipeline.registry_source(ev.dataset, root, config.data.frames, split=ev.split,
+                                   consecutive=True)
     stride = max(1, len(src) // ev.num_clips)  # spread over the split, deterministically
     picked = src[::stride][:ev.num_clips]
     crop = tuple(config.data.crop)

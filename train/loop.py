@@ -335,6 +335,7 @@ _EVAL_CHECKS = (
     ("eval.iters", _is_iters, "an integer >= 2"),
     ("eval.batch_size", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
     ("eval.num_clips", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
+    ("eval.root", lambda x: isinstance(x, str), "a folder, or '' for config.data.root"),
 )
 
 

@@ -601,6 +601,20 @@ def test_a_training_source_may_have_its_own_data_root(monkeypatch):
                ml_collections.ConfigDict(dict(dataset="sceneflow", weight=1.0))):
     input_lib._source(c, spec, "train", 0)  # pylint: disable=protected-access
   assert roots == [("folder", "my_videos"), ("sceneflow", "data/datasets")]
+  # the held-out set too: eval.root, else data.root
+  held_out = []
+
+  def source(dataset, root, *args, **kwargs):
+    held_out.append((dataset, root))
+    raise ValueError("no clips")
+
+  monkeypatch.setattr(pipeline, "registry_source", source)
+  c.eval.dataset, c.eval.split = "folder", "val"
+  for root, field in (("my_videos", "eval.root"), ("", "data.root")):
+    c.eval.root = root
+    with pytest.raises(ValueError, match=rf"config\.{field}='{root or 'data/datasets'}'"):
+      input_lib.eval_clips(c)
+  assert held_out == [("folder", "my_videos"), ("folder", "data/datasets")]
   assert ckpt_lib._operational("data.sources.mine.root")  # pylint: disable=protected-access
   assert not ckpt_lib._operational("data.sources.mine.weight")  # pylint: disable=protected-access
 
