@@ -122,13 +122,15 @@ def _supersede(path: pathlib.Path, aside: pathlib.Path, start_step: int) -> None
 
 class Progress:
   """tqdm bar over steps with step rate, loss and EPE (no-op off process 0, without tqdm, or
-  where standard error is not a terminal: a log file, `nohup`, a batch job, where the bar's
-  carriage-return updates pile up; the training records are log lines there)."""
+  where standard error is not a terminal or a Jupyter notebook: a log file, `nohup`, a batch
+  job, where the bar's carriage-return updates pile up; the training records are log lines
+  there)."""
 
   def __init__(self, start: int, total: int, enabled: bool = True, stream=None):
     self._bar = None
     stream = sys.stderr if stream is None else stream
-    terminal = bool(getattr(stream, "isatty", lambda: False)())
+    # (a Jupyter kernel's stderr is no terminal, but the notebook draws tqdm's updates)
+    terminal = bool(getattr(stream, "isatty", lambda: False)()) or "ipykernel" in sys.modules
     if enabled and terminal and jax.process_index() == 0:
       try:
         from tqdm import tqdm  # pylint: disable=g-import-not-at-top

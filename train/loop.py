@@ -803,6 +803,7 @@ class Preemption:
   def __init__(self, manager):
     self.manager = manager
     self.reason = None
+    self.stepped = False  # whether a step of this process finished (see `_on_interrupt`)
     self._previous = self._previous_int = None
 
   def __enter__(self) -> "Preemption":
@@ -823,8 +824,10 @@ class Preemption:
 
   def _on_interrupt(self, signum, frame) -> None:
     """The first Ctrl-C stops the run as SIGTERM does (after this step, with a checkpoint of
-    it); another one, or one after a SIGTERM, stops it at once (KeyboardInterrupt)."""
-    if self.reason is not None:
+    it); another one, one after a SIGTERM, or one before this process finished a step (in
+    the start's validation or the first compile: minutes for a checkpoint of nothing new),
+    stops it at once (KeyboardInterrupt)."""
+    if self.reason is not None or not self.stepped:
       self._previous_int(signum, frame)
       return
     log.warning("Ctrl-C: saving a checkpoint after this step, then stopping (Ctrl-C again "
@@ -840,6 +843,7 @@ class Preemption:
 
   def __call__(self, step: int) -> str | None:
     """The reason to stop after `step` (None: go on)."""
+    self.stepped = True
     if self.reason is None and jax.process_count() > 1 and self.manager.reached_preemption(step):
       self.reason = "preemption notice"
     return self.reason

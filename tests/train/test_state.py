@@ -1444,7 +1444,7 @@ def test_logged_means_leave_out_skipped_steps(caplog):
   assert [loop._duration(t) for t in (40.4, 720, 3900)] == ["40 s", "12 min", "1 h 05 min"]  # pylint: disable=protected-access
 
 
-def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_described():
+def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_described(monkeypatch):
   """A bar in a log file (nohup, a batch job) was carriage-return updates and no step lines."""
   from train import logging_utils  # pylint: disable=g-import-not-at-top
 
@@ -1452,6 +1452,7 @@ def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_describ
     def isatty(self):
       return True
 
+  monkeypatch.delitem(sys.modules, "ipykernel", raising=False)  # (not in a notebook)
   for stream, enabled, shown in ((Terminal(), True, True), (io.StringIO(), True, False),
                                  (Terminal(), False, False)):
     bar = logging_utils.Progress(0, 10, enabled=enabled, stream=stream)
@@ -1459,6 +1460,8 @@ def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_describ
     bar.update(1, loss=1.0)
     bar.close()
     assert ("1/10" in stream.getvalue()) == shown
+  monkeypatch.setitem(sys.modules, "ipykernel", types.ModuleType("ipykernel"))  # a notebook:
+  assert logging_utils.Progress(0, 10, stream=io.StringIO()).shown  # no TTY, but tqdm draws
   c = synthetic.get_config()
   c.optimizer.lr, c.optimizer.pct_start, c.optimizer.div_factor = 1e-4, 0.01, 25.0
   c.optimizer.final_div_factor, c.optimizer.schedule_steps = 1e4, 0
@@ -1593,6 +1596,17 @@ def test_the_first_ctrl_c_saves_the_step_and_stops_as_sigterm_does(tmp_path):
     assert int(state.step) == 6 and _steps_logged(tmp_path) == [1, 2, 3, 4, 5, 6]
   finally:
     signal.signal(signal.SIGINT, handler)
+  def early(k):  # before any step finished (the first compile): at once, no checkpoint
+    if k == 1:
+      os.kill(os.getpid(), signal.SIGINT)
+
+  handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+  try:
+    with pytest.raises(KeyboardInterrupt):
+      loop.run(c, tmp_path / "early", _loop_parts(c, tmp_path / "early", early))
+  finally:
+    signal.signal(signal.SIGINT, handler)
+  assert sav_jax.convert.find_training_checkpoint(tmp_path / "early") is None
   handler = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job: left as it is
   try:
     with loop.Preemption(None):
