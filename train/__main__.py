@@ -10,6 +10,7 @@ stderr; `-v 1` shows its traceback. On SIGTERM (a scheduler's preemption notice)
 saves a checkpoint of the step it is on and exits with status 143; the same command resumes.
 """
 
+import decimal
 import logging
 import pathlib
 import re
@@ -66,6 +67,31 @@ def last_overrides(argv: list[str]) -> list[str]:
           for a in args]
 
 
+_SCIENTIFIC_INTEGER = re.compile(r"[+-]?\d+(\.\d*)?[eE]\+?\d{1,3}")
+
+
+def integral_numbers(argv: list[str]) -> list[str]:
+  """`argv` with override values written as whole numbers in scientific notation (`1e3`,
+  `1.2e5`) spelt as integers: ml_collections parses integer fields with `int()`, which
+  refused `--config.train.num_steps=1e5` ("invalid literal"); float fields read the
+  integer as well. Negative exponents (`1e-4`) and fractions stay as they are."""
+  out, field = [], False
+  for arg in argv:
+    value = None
+    if arg.startswith("--config.") and "=" in arg:
+      key, value = arg.split("=", 1)
+    elif field:  # the value after `--config.a.b`
+      key, value = None, arg
+    field = arg.startswith("--config.") and "=" not in arg
+    if value is not None and _SCIENTIFIC_INTEGER.fullmatch(value.strip()):
+      number = decimal.Decimal(value.strip())
+      if number == number.to_integral_value():
+        value = str(int(number))
+        arg = value if key is None else f"{key}={value}"
+    out.append(arg)
+  return out
+
+
 def located_config(argv: list[str]) -> list[str]:
   """`argv` with its --config file found by `configs.locate`: `configs/...` names the
   installed package's file when the current folder has none."""
@@ -85,7 +111,7 @@ def parse_flags(argv):
   wrong type, a config file that does not parse, an override of a field that does not exist
   (ml_collections raises the last two from inside the parser, and absl would print their
   traceback); `--help` exits with status 0."""
-  argv = located_config(last_overrides(argv))
+  argv = located_config(integral_numbers(last_overrides(argv)))
   try:
     return flags.FLAGS(argv)
   except SystemExit as e:  # absl's --help/--helpfull print the flags and exit with status 1

@@ -1317,6 +1317,11 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
        "both empty: the frozen depth prior would stay random"),
       ([config, "--config.train.batch_size=abc"], "flag --config.train.batch_size=abc: "
        "invalid literal for int()"),
+      # a whole number in scientific notation is an integer (int() refused "2e2"); the
+      # message shows it read as 200
+      ([config, "--config.train.num_steps", "2e2", "--config.optimizer.pct_start=0.001",
+        "--config.optimizer.lr=1e-4"], "config.optimizer.pct_start=0.001 with a one-cycle "
+       "length of config.train.num_steps + 100 = 300 steps"),
       ([config, "--config.eval.every_steps=1", "--config.eval.dataset=foo"],
        "config.eval.dataset='foo', config.eval.split='test', config.data.root='data/datasets', "
        "config.data.crop=(32, 64): unknown dataset 'foo'; known datasets: sceneflow"),
