@@ -536,9 +536,12 @@ FREE_INFLATION = 1 << 20
 FREE_TOTAL = 16 << 20
 
 
-def check_inflation(zf: zipfile.ZipFile, source) -> None:
-  """Raises CheckpointError when a compressed record of the archive `zf`, or all of them
-  together, inflate beyond MAX_INFLATION (a record is named).
+def check_inflation(zf: zipfile.ZipFile, source, what: str = "a checkpoint's weights",
+                    why: str = "torch.save stores them uncompressed, and compressed weights "
+                    "shrink little", error: type[Exception] = CheckpointError) -> None:
+  """Raises `error` when a compressed record of the archive `zf`, or all of them together,
+  inflate beyond MAX_INFLATION (a record is named): such an archive is not `what`, because
+  `why`.
 
   A record's compressed size is taken as the bytes it occupies in the file (up to the next
   record or the central directory), not as its header declares: a crafted header declaring
@@ -557,17 +560,14 @@ def check_inflation(zf: zipfile.ZipFile, source) -> None:
       continue
     packed = max(min(info.compress_size, following[info.header_offset] - info.header_offset), 0)
     if info.file_size > max(MAX_INFLATION * packed, FREE_INFLATION):
-      raise CheckpointError(
-          f"{source}: zip record {info.filename!r} inflates {packed} bytes to "
-          f"{info.file_size} ({info.file_size / max(packed, 1):.0f}x, more than "
-          f"{MAX_INFLATION}x): not a checkpoint's weights (torch.save stores them "
-          "uncompressed, and compressed weights shrink little)")
+      raise error(f"{source}: zip record {info.filename!r} inflates {packed} bytes to "
+                  f"{info.file_size} ({info.file_size / max(packed, 1):.0f}x, more than "
+                  f"{MAX_INFLATION}x): not {what} ({why})")
     inflated += info.file_size
     compressed += packed
   if inflated > MAX_INFLATION * compressed + FREE_TOTAL:
-    raise CheckpointError(
-        f"{source}: its compressed zip records inflate {compressed} bytes to {inflated} "
-        f"together (more than {MAX_INFLATION}x): not a checkpoint's weights")
+    raise error(f"{source}: its compressed zip records inflate {compressed} bytes to "
+                f"{inflated} together (more than {MAX_INFLATION}x): not {what}")
 
 
 def _zip_record(zf, prefix, key, dtype, numel, order, source):

@@ -360,10 +360,10 @@ def read_npz(path: PathLike) -> dict[str, np.ndarray]:
   path = require_file(path, "npz file")
   try:
     with np.load(path, allow_pickle=False) as z:
-      for info in z.zip.infolist():  # a few MB inflating to GB (a camera file is ~1 kB)
-        if info.file_size > max(_MAX_INFLATION * info.compress_size, _FREE_INFLATION):
-          raise ValueError(f"array {info.filename!r} inflates {info.compress_size} bytes to "
-                           f"{info.file_size}: damaged, or not a dataset's file")
+      # a few MB inflating to GB (a camera file is ~1 kB): the converter's bound on .npz
+      from sav_jax.convert.pickle_reader import check_inflation  # pylint: disable=import-outside-toplevel
+      check_inflation(z.zip, path, "a dataset's arrays", "camera and depth arrays shrink "
+                      "little: a damaged file?", ValueError)
       arrays = {k: z[k] for k in z.files}
   except _CORRUPT_ARCHIVE as e:
     raise ValueError(f"cannot read npz file {path}: {type(e).__name__}: {e}") from e
@@ -371,11 +371,6 @@ def read_npz(path: PathLike) -> dict[str, np.ndarray]:
     raise MemoryError(f"{path}: out of host memory reading the npz file") from e
   return {k: _real_numbers(v, path, k) for k, v in arrays.items()}
 
-
-# A compressed array of a dataset's .npz may inflate this much, or to this size whatever its
-# ratio (zeros compress ~1000x).
-_MAX_INFLATION = 100
-_FREE_INFLATION = 16 * 2**20
 
 
 # What numpy's readers raise for a damaged `.npy`/`.npz` (a partial download, a flipped
