@@ -74,7 +74,8 @@ from sav_jax._checks import is_int as _is_int
 from sav_jax.config import DTYPES, SAVConfig, as_config, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
 from sav_jax.model.init import abstract_variables
-from sav_jax.model.stereo_any_video import channels_first_hint, check_iters, layout_hint
+from sav_jax.model.stereo_any_video import (channels_first_hint, check_iters, layout_hint,
+                                            training_state_hint)
 
 log = logging.getLogger(__name__)
 
@@ -726,10 +727,8 @@ def check_variables(variables, cfg: SAVConfig | None = None, source: str = "vari
   got = variables.get("params") if isinstance(variables, Mapping) else None
   if got is None:
     found = sorted(variables)[:5] if isinstance(variables, Mapping) else type(variables).__name__
-    how = (": a training state? pass {'params': state.params}"
-           if not isinstance(variables, Mapping) and hasattr(variables, "params") else "")
     raise CheckpointError(f"{source}: expected Flax variables {{'params': ...}}, found "
-                          f"{found}{how}")
+                          f"{found}{training_state_hint(variables)}")
   if isinstance(got, Mapping) and isinstance(got.get("params"), Mapping) and (
       "fnet" in got["params"]):
     raise CheckpointError(f"{source}: an extra 'params' layer ({{'params': {{'params': ...}}}}): "

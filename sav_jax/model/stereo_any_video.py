@@ -188,6 +188,14 @@ def check_iters(iters) -> int:
   return int(iters)
 
 
+def training_state_hint(variables) -> str:
+  """`": a training state? pass {'params': state.params}"` for something that is no mapping
+  of variables but has `params` (a `TrainState`), else ""."""
+  if isinstance(variables, Mapping) or not hasattr(variables, "params"):
+    return ""
+  return ": a training state? pass {'params': state.params}"
+
+
 class StereoAnyVideo(nn.Module):
   """Stereo Any Video (ICCV 2025). Attribute names follow the official modules."""
 
@@ -198,10 +206,9 @@ class StereoAnyVideo(nn.Module):
     """`nn.Module.apply`, with a clear error for `variables` that are not a mapping (a
     training state: Flax said only "argument of type 'TrainState' is not iterable")."""
     if not isinstance(variables, Mapping):
-      how = (": a training state? pass {'params': state.params}"
-             if hasattr(variables, "params") else "")
       raise TypeError(f"StereoAnyVideo.apply takes the Flax variables {{'params': params}} as "
-                      f"its first argument; got a {type(variables).__name__}{how}")
+                      f"its first argument; got a {type(variables).__name__}"
+                      f"{training_state_hint(variables)}")
     return super().apply(variables, *args, **kwargs)
 
   def setup(self):
