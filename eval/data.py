@@ -109,7 +109,7 @@ def load_sequences_and_skipped(config: ml_collections.ConfigDict, data_root
                        f"{', '.join(registry.DATASETS + (SYNTHETIC,))}")
     whole = registry.get_sequences(config.dataset, data_root, config.split, max_frames=None)
     seqs = registry.eval_chunk(whole, int(config.sample_len),
-                               drop_short=config.dataset == "dynamic_replica")
+                               drop_short=config.dataset in registry.DROP_SHORT)
     kept = {s.name for s in seqs}
     skipped = [str(s.name) for s in whole if s.name not in kept]
   if config.max_sequences > 0:

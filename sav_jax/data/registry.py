@@ -72,6 +72,9 @@ SPLITS = {
 # SAV protocol is unknown, and no official script evaluates TartanAir, so they are left whole.
 EVAL_FRAMES = {"dynamic_replica": 150, "infinigen_sv": 150, "vkitti2": 300,
                "kitti_depth": 300, "south_kensington": 300}
+# Datasets whose evaluation skips sequences shorter than its frames (`eval_chunk`'s
+# drop_short): the official Dynamic Replica loader fails on them.
+DROP_SHORT = ("dynamic_replica",)
 # SceneFlow samples forward + time-reversed clips; these sample strided clips.
 STRIDED = ("dynamic_replica", "infinigen_sv", "kitti_depth", "vkitti2", "tartanair", "folder")
 _SCENEFLOW = ("sceneflow", "flyingthings3d", "monkaa", "driving")
@@ -243,7 +246,7 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
     length = EVAL_FRAMES.get(dataset) if split == "test" else None
   else:
     length = max_frames
-  return eval_chunk(seqs, length, drop_short=dataset == "dynamic_replica")
+  return eval_chunk(seqs, length, drop_short=dataset in DROP_SHORT)
 
 
 def get_consecutive_clips(dataset: str, root: str | Path, frames: int, split: str, *,
