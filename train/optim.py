@@ -125,13 +125,19 @@ def schedule_change_note(opt_cfg, num_steps: int, step: int, saved: dict,
              f"--config.optimizer.schedule_steps={saved_steps + 100}" if keep else ""))
 
 
+def cycle_length(opt_cfg, num_steps: int) -> int:
+  """The one-cycle schedule's `total_steps`: `optimizer.schedule_steps`, else (<= 0) the
+  official `train.num_steps + 100`."""
+  return opt_cfg.schedule_steps if opt_cfg.schedule_steps > 0 else num_steps + 100
+
+
 def make_schedule(opt_cfg, num_steps: int) -> Callable[[Any], jax.Array]:
   """The learning-rate schedule of an optimizer config (see `configs/sceneflow.py`)."""
   if opt_cfg.schedule == "constant":
     return optax.constant_schedule(opt_cfg.lr)
   if opt_cfg.schedule != "one_cycle":
     raise ValueError(f"unknown schedule {opt_cfg.schedule!r}; expected 'one_cycle' or 'constant'")
-  total = opt_cfg.schedule_steps if opt_cfg.schedule_steps > 0 else num_steps + 100
+  total = cycle_length(opt_cfg, num_steps)
   # The official loop stops the scheduler at num_steps, before the cycle ends (total is
   # num_steps + 100). A cycle set shorter than the run (`schedule_steps`) holds its final
   # lr afterwards instead of extrapolating the linear decay below zero.
@@ -142,10 +148,10 @@ def make_schedule(opt_cfg, num_steps: int) -> Callable[[Any], jax.Array]:
 def schedule_summary(opt_cfg, num_steps: int) -> str:
   """The learning-rate schedule in words, for the run's log: `one-cycle (linear), from 4e-06
   up to 0.0001 at update 1200, down to 4e-10 at update 120099 of a 120100-update cycle (this
-  run: 120000 updates)`, or `constant 0.0001`."""
+  run stops at update 120000, at 8.37e-08)`, or `constant 0.0001`."""
   if opt_cfg.schedule == "constant":
     return f"constant {opt_cfg.lr:g}"
-  total = opt_cfg.schedule_steps if opt_cfg.schedule_steps > 0 else num_steps + 100
+  total = cycle_length(opt_cfg, num_steps)
   initial = opt_cfg.lr / opt_cfg.div_factor
   peak = int(round(opt_cfg.pct_start * total - 1.0))
   end = (f"down to {initial / opt_cfg.final_div_factor:.3g} at update {total - 1} of a "

@@ -372,7 +372,6 @@ def read_npz(path: PathLike) -> dict[str, np.ndarray]:
   return {k: _real_numbers(v, path, k) for k, v in arrays.items()}
 
 
-
 # What numpy's readers raise for a damaged `.npy`/`.npz` (a partial download, a flipped
 # byte): its own ValueErrors, zipfile's and zlib's, a header that does not tokenize or parse.
 _CORRUPT_ARCHIVE = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error,
