@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sav_jax import viz
 from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key,
                                list_dirs, list_files, require_dir)
@@ -52,8 +53,7 @@ def read_disparity(path: Path) -> tuple[np.ndarray, np.ndarray]:
   multi-channel PFM; valid where finite, non-zero and below 512 px, the official rule)."""
   suffix = Path(path).suffix.lower()
   if suffix == ".png":
-    raw = frame_io.read_png_uint16(path)
-    return raw.astype(np.float32) / 256.0, raw > 0
+    return viz.read_png16(path)
   if suffix == ".pfm":
     disp = frame_io.read_pfm_disparity(path)
   elif suffix == ".npy":
