@@ -1,4 +1,5 @@
-"""Would FFT convolutions speed up the GRU's 1x15 convolutions on CPU? (No, not enough.)
+"""Would FFT convolutions speed up the GRU's 1x15 convolutions on CPU? (These forms: no; the
+model's `layers.dft_correlate_w`, the last row: about 2.5x.)
 
     python benchmarks/fft_conv.py [--frames 5 --height 32 --width 64 --repeats 7]
 
@@ -14,6 +15,11 @@ k-tap kernel is a product in the frequency domain: per frequency bin one complex
    batched real product per bin (real and imaginary parts stacked: 2C x 2O), the inverse FFT,
    and the crop, with its parts timed alone;
 4. the same with both DFTs as real matrix products (`dft_correlate`);
+5. the model's form (`sav_jax.model.layers.dft_correlate_w`, `SAVConfig.gru_conv="dft"`): the
+   DFTs as matrix products too, but a shorter period (n = W + k//2, no wrap-around into the
+   kept outputs), three real products per bin (Karatsuba) and the layouts XLA:CPU's batched
+   products run fastest in (its kernel bins are computed in each call here; the model's
+   refinement loop computes them once per scale, outside the loop);
 
 and prints the largest difference from the direct result.
 """
@@ -25,6 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from timing import timed  # benchmarks/timing.py
+
+from sav_jax.model.layers import dft_correlate_w
 
 
 def direct(x, kernel):
@@ -121,6 +129,7 @@ def main():
       "direct, z and r fused": (jax.jit(direct), both, None),
       "FFT, z and r fused": (jax.jit(fft_correlate), both, None),
       "DFT products, fused": (jax.jit(dft_correlate), both, None),
+      "model's dft_correlate_w": (jax.jit(lambda x, k: dft_correlate_w(x, k[0])), both, None),
   }
   ref = jnp.concatenate(runs["direct, z and r apart"][0](x, kz, kr), -1)
   for name, (fn, a, b) in runs.items():

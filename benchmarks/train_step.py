@@ -35,6 +35,7 @@ from sav_jax.tools.bench import (compile_cache_note, compile_cache_probe, device
                                  json_output_problem, memory_lines, peak_rss_gb, xla_buffers_gb)
 from train import optim, state as state_lib, step as step_lib  # noqa: E402  pylint: disable=wrong-import-position
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.config import resolve_gru_conv  # noqa: E402  pylint: disable=wrong-import-position
 
 
 def build_config(a):
@@ -46,6 +47,7 @@ def build_config(a):
   config.train.microbatches = a.microbatches
   config.model.remat = a.remat
   config.model.dtype = a.dtype
+  config.model.gru_conv = a.gru_conv
   return config
 
 
@@ -96,6 +98,7 @@ def measure(config, repeats: int) -> dict:
       frames=config.data.frames, height=config.data.crop[0], width=config.data.crop[1],
       iters=config.train.iters, batch=b, microbatches=config.train.microbatches,
       remat=config.model.remat, dtype=config.model.dtype,
+      gru_conv=resolve_gru_conv(config.model.gru_conv, config.model.dtype),
       devices=mesh.size, compile_s=compile_s, trace_s=c1 - c0, lower_s=c2 - c1,
       xla_compile_s=c3 - c2, median_s=median, min_s=min(times),
       samples_per_s=b / median, peak_rss_gb=rss, peak_rss_gb_per_sample=rss / b,
@@ -116,6 +119,8 @@ def main():
                  help="train.microbatches: the batch as this many parts (gradient accumulation)")
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
   p.add_argument("--no-remat", dest="remat", action="store_false")
+  p.add_argument("--gru-conv", choices=("auto", "direct", "dft"), default="auto",
+                 help="the GRU's 1x15 convolutions (SAVConfig.gru_conv)")
   p.add_argument("--repeats", type=int, default=3)
   p.add_argument("--json", help="write the results to this JSON file (a new file, or "
                  "--overwrite)")

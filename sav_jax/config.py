@@ -20,6 +20,20 @@ FRAME_BLOCK_MB = 1024.0
 DTYPES = ("float32", "bfloat16")
 # Implementations of the depth prior's ViT attention (`SAVConfig.vit_attention`).
 VIT_ATTENTION = ("auto", "blocked", "cudnn")
+# Implementations of the GRU's wide (1x15) z/r convolutions (`SAVConfig.gru_conv`).
+GRU_CONV = ("auto", "direct", "dft")
+
+
+def resolve_gru_conv(choice: str, dtype) -> str:
+  """The implementation `SAVConfig.gru_conv` stands for on JAX's default backend: "auto" is
+  "dft" on CPU with float32 compute (about half the time of XLA:CPU's convolutions there),
+  else "direct" (GPUs: not measured; bfloat16: the DFT runs in float32)."""
+  if choice != "auto":
+    return choice
+  import jax  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  cpu = jax.default_backend() == "cpu"
+  return "dft" if cpu and jnp.dtype(dtype) == jnp.float32 else "direct"
 
 
 def resolve_vit_attention(choice: str, dtype) -> str:
@@ -103,6 +117,12 @@ class SAVConfig:
       720x1280). "auto" (default): "cudnn" when JAX's default backend is an NVIDIA GPU
       of compute capability 8.0 or later (Ampere on) and `dtype="bfloat16"`, else "blocked"
       (`resolve_vit_attention`). Not a weight setting.
+    gru_conv: the GRU's 1x15 z/r convolutions (the update block's widest). "direct":
+      XLA's convolutions. "dft": both through one real DFT along the width, three real
+      products per frequency bin instead of one per tap and pixel (`layers.dft_correlate_w`:
+      ~5x fewer multiply-adds, the same values to float32 rounding, computed in float32).
+      "auto" (default): "dft" on CPU with float32 compute, else "direct"
+      (`resolve_gru_conv`). Not a weight setting.
     detach_flow: stop the gradient of the flow entering each refinement step, as the
       official model (`flow.detach()`, RAFT's truncated backpropagation; training uses it).
       Values are the same either way; False gives the true derivative of the predictions
@@ -123,6 +143,7 @@ class SAVConfig:
   remat_policy: Optional[str] = None
   frame_block_mb: float = FRAME_BLOCK_MB
   vit_attention: str = "auto"
+  gru_conv: str = "auto"
   detach_flow: bool = True
 
   def __post_init__(self):
@@ -153,6 +174,8 @@ class SAVConfig:
     if self.vit_attention == "cudnn" and self.dtype != "bfloat16":
       raise ValueError("SAVConfig.vit_attention='cudnn' needs dtype='bfloat16' (cuDNN's fused "
                        f"attention has no float32 kernels), got dtype={self.dtype!r}")
+    if self.gru_conv not in GRU_CONV:
+      raise ValueError(f"SAVConfig.gru_conv={self.gru_conv!r}; expected one of {GRU_CONV}")
     if self.depth_dim + self.fnet_dim != self.context_dim:
       raise ValueError(
           f"depth_dim + fnet_dim must equal context_dim ({self.depth_dim} + {self.fnet_dim} "

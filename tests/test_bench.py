@@ -28,6 +28,7 @@ def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
   assert rec["median_s"] > 0 and rec["compile_s"] > 0 and rec["peak_rss_gb"] > 0.1
   assert rec["cache_hit"] is False and any(cache.iterdir())
   assert rec["vit_attention"] == "blocked"  # the default "auto", as resolved on the CPU
+  assert rec["gru_conv"] == "dft"  # the same
   assert rec["matmul_precision"] == "default"  # JAX's setting: none in the tests
   assert "XLA buffers" in out and 0 < rec["xla_temp_gb"] < 1 and rec["xla_args_gb"] > 0.05
 
@@ -114,6 +115,9 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
   assert bench.machine_note(here, {**here, "date": "2026-12-01"}).startswith(
       "note: the baseline was measured on 2026-12-01: machines of one kind differ")
   assert bench.machine_note(here, dict(here)) == ""
+  assert bench.machine_note({**here, "gru_conv": "dft"}, {**here, "gru_conv": "direct"}) == (
+      "warning: the baseline was measured with other settings (gru_conv dft here, direct "
+      "there): the ratios compare those settings, not code")
   assert isinstance(bench.cpu_model(), str) and bench.cpu_model()
   # A compile of 0 s gives no ratio (it gave x10000000000000.00); equal values are the same.
   assert bench.compare_line({"median_s": 2.0, "compile_s": 4.0, "peak_rss_gb": 1.0},
@@ -200,16 +204,18 @@ def test_bench_passes_the_batch_dtype_and_every_prediction_to_the_measurement(mo
   monkeypatch.setattr(bench, "measure", stop)
   with pytest.raises(KeyboardInterrupt):
     cli.main([*ARGS, "--batch", "3", "--dtype", "bfloat16", "--all-predictions",
-              "--vit-attention", "blocked"])
+              "--vit-attention", "blocked", "--gru-conv", "direct"])
   (args, kwargs), = calls
   assert args == (2, 32, 64, 2, 3, "bfloat16", 1)  # frames, H, W, iters, batch, dtype, repeats
   assert kwargs["final_only"] is False and kwargs["vit_attention"] == "blocked"
+  assert kwargs["gru_conv"] == "direct"
   with pytest.raises(KeyboardInterrupt):
     cli.main(ARGS)
   assert calls[-1][0][4:6] == (1, "float32") and calls[-1][1]["final_only"] is True
   # The report's input line says when every prediction was measured.
   fake = {"device": "cpu:cpu", "jax": "x", "batch": 1, "frames": 2, "height": 32, "width": 64,
-          "iters": 2, "dtype": "float32", "vit_attention": "blocked", "compiler_options": {},
+          "iters": 2, "dtype": "float32", "vit_attention": "blocked", "gru_conv": "dft",
+          "compiler_options": {},
           "compile_s": 1.0, "cache_hit": False, "median_s": 1.0, "min_s": 1.0, "fps": 2.0,
           "peak_rss_gb": 0.5}
   for flags, final_only in (([], True), (["--all-predictions"], False)):
@@ -217,3 +223,4 @@ def test_bench_passes_the_batch_dtype_and_every_prediction_to_the_measurement(mo
     assert cli.main([*ARGS, *flags]) == 0
     line = next(l for l in capsys.readouterr().out.splitlines() if l.startswith("input"))
     assert ("every prediction (--all-predictions)" in line) is not final_only, line
+    assert line.endswith(", GRU 1x15 convolutions dft"), line

@@ -201,10 +201,12 @@ def test_inference_forward_keeps_its_temporary_memory_small_with_the_same_values
   """The whole model (the effect needs the refinement loop's context; a lone attention
   block shows none): T=2, 128x256, iters=2, most XLA optimisations off (the two compiles
   take 12 s instead of 42 s). The inference options' forward needs at most XLA's default
-  `temp` and under 80 MB: 62 and 65 MB here (107 MB with XLA's default options while the
-  refinement scanned (1x9, 3x3) pairs beside an unrolled last pair, whose extra YNNPACK
-  fusion buffers the options then halved; at T=5 iters=8 now 139 vs 142 MB, then 181 vs
-  348 MB)."""
+  `temp` and under 136 MB: 120 and 141 MB here; 62 and 65 MB before the GRU's 1x15
+  convolutions became DFT products on CPU (`SAVConfig.gru_conv`), whose kernel bins at the
+  three scales (42 + 24 + 14 MB, computed once outside the refinement loops) make most of
+  the difference (107 MB with XLA's default options while the refinement scanned (1x9, 3x3)
+  pairs beside an unrolled last pair, whose extra YNNPACK fusion buffers the options then
+  halved; at T=5 iters=8 139 vs 142 MB, then 181 vs 348 MB)."""
   import numpy as np  # pylint: disable=import-outside-toplevel
 
   import sav_jax  # pylint: disable=import-outside-toplevel
@@ -222,7 +224,7 @@ def test_inference_forward_keeps_its_temporary_memory_small_with_the_same_values
   default, lean = (lowered.compile(compiler_options=XLA_DEFAULT_EMITTERS),
                    lowered.compile(compiler_options=options))
   temp = lambda c: c.memory_analysis().temp_size_in_bytes  # noqa: E731
-  assert temp(lean) <= temp(default) and temp(lean) < 80 * 2**20, (temp(lean), temp(default))
+  assert temp(lean) <= temp(default) and temp(lean) < 136 * 2**20, (temp(lean), temp(default))
   np.testing.assert_allclose(np.asarray(lean(variables, left, right)),
                              np.asarray(default(variables, left, right)), atol=1e-4)
 

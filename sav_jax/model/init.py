@@ -33,7 +33,8 @@ _NORM_NAMES = ("norm", "ln")
 
 # SAVConfig fields that set how the model computes, not its parameters (every parameter
 # is float32 whatever `dtype` says).
-COMPUTE_FIELDS = ("dtype", "remat", "remat_policy", "frame_block_mb", "vit_attention")
+COMPUTE_FIELDS = ("dtype", "remat", "remat_policy", "frame_block_mb", "vit_attention",
+                  "gru_conv")
 
 
 # Optimizer labels: the depth prior is frozen, as the official trainer's

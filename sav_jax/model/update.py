@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from sav_jax.config import FRAME_BLOCK_MB
-from sav_jax.model.layers import Conv2D, conv, dense, gelu, in_frame_blocks, layer_norm
+from sav_jax.model.layers import (Conv2D, ConvParams, conv, dense, dft_correlate_w, gelu,
+                                  in_frame_blocks, layer_norm)
 
 
 class BasicMotionEncoder(nn.Module):
@@ -176,18 +177,34 @@ class SpaceAttnBlock(nn.Module):
 
 def conv_gru(h: jax.Array, x: jax.Array, convz, convr, convq) -> jax.Array:
   """One ConvGRU update of the state `h` from the input `x` (channels last)."""
+  return gru_update(h, x, lambda hx: (convz(hx), convr(hx)), convq)
+
+
+def gru_update(h: jax.Array, x: jax.Array, gates, convq) -> jax.Array:
+  """`conv_gru` with the z and r logits from one call, `gates([h, x]) -> (z, r)`."""
   hx = jnp.concatenate([h, x], axis=-1)
-  z = jax.nn.sigmoid(convz(hx))
-  r = jax.nn.sigmoid(convr(hx))
+  z_logits, r_logits = gates(hx)
+  z, r = jax.nn.sigmoid(z_logits), jax.nn.sigmoid(r_logits)
   q = jnp.tanh(convq(jnp.concatenate([r * h, x], axis=-1)))
   return (1 - z) * h + z * q
 
 
 class SKSepConvGRU3D(nn.Module):
-  """Separable 3-D ConvGRU: a W pass (large-kernel z/r), then H, then T."""
+  """Separable 3-D ConvGRU: a W pass (large-kernel z/r), then H, then T.
+
+  Attributes:
+    hidden_dim: state channels.
+    dtype: compute dtype.
+    wide_conv: how the W pass's 1x15 z/r convolutions run: "direct" (XLA's convolutions)
+      or "dft" (both as one `dft_correlate_w`: products per frequency bin; the same
+      parameters and values to float32 rounding; `SAVConfig.gru_conv`).
+    block_mb: with "dft", the memory budget (MiB) of its spectra (`dft_correlate_w`).
+  """
 
   hidden_dim: int = 128
   dtype: Any = jnp.float32
+  wide_conv: str = "direct"
+  block_mb: float = FRAME_BLOCK_MB
 
   @nn.compact
   def __call__(self, h: jax.Array, x: jax.Array) -> jax.Array:
@@ -200,8 +217,21 @@ class SKSepConvGRU3D(nn.Module):
       second = c3((1, 1, 5), (0, 0, 2), f"{name}_2")
       return lambda y: second(gelu(first(y)))
 
-    h = conv_gru(h, x, super_kernel("convz1"), super_kernel("convr1"),
-                 c3((1, 1, 5), (0, 0, 2), "convq1"))
+    if self.wide_conv == "dft":
+      seconds = [c3((1, 1, 5), (0, 0, 2), f"conv{g}1_2") for g in "zr"]
+
+      def gates(hx):  # the z and r first convolutions share one DFT of [h, x]
+        weights = [ConvParams(hd, (1, 1, 15), name=f"conv{g}1_0")(hx.shape[-1]) for g in "zr"]
+        kernel = jnp.concatenate([k[0, 0] for k, _ in weights], axis=-1)
+        bias = jnp.concatenate([b for _, b in weights]).astype(self.dtype)
+        firsts = gelu(dft_correlate_w(hx.astype(self.dtype), kernel, self.block_mb) + bias)
+        return tuple(second(part) for second, part in zip(seconds, jnp.split(firsts, 2, -1)))
+    elif self.wide_conv == "direct":
+      convz, convr = super_kernel("convz1"), super_kernel("convr1")
+      gates = lambda hx: (convz(hx), convr(hx))  # noqa: E731
+    else:
+      raise ValueError(f"SKSepConvGRU3D.wide_conv={self.wide_conv!r}; expected 'direct' or 'dft'")
+    h = gru_update(h, x, gates, c3((1, 1, 5), (0, 0, 2), "convq1"))
     k, p = (1, 5, 1), (0, 2, 0)
     h = conv_gru(h, x, c3(k, p, "convz2"), c3(k, p, "convr2"), c3(k, p, "convq2"))
     k, p = (5, 1, 1), (2, 0, 0)
@@ -227,13 +257,14 @@ class SequenceUpdateBlock3D(nn.Module):
   mask_size: int = 4
   dtype: Any = jnp.float32
   block_mb: float = FRAME_BLOCK_MB
+  gru_conv: str = "direct"  # `SKSepConvGRU3D.wide_conv` ("auto" resolved by the model)
 
   def setup(self):
     dt = self.dtype
     self.encoder = BasicMotionEncoder(dt)
     self.time_attn = TimeAttnBlock(256, dt)
     self.space_attn = SpaceAttnBlock(256, dt, self.block_mb)
-    self.gru = SKSepConvGRU3D(self.hidden_dim, dt)
+    self.gru = SKSepConvGRU3D(self.hidden_dim, dt, self.gru_conv, self.block_mb)
     self.flow_head = FlowHead3D(dt)
     self.mask3d_0 = conv(256, (3, 3, 3), 1, 1, dtype=dt)
     self.mask3d_2 = conv(27 * self.mask_size ** 2, (1, 1, 1), 1, 0, dtype=dt)

@@ -12,7 +12,7 @@ import statistics
 import sys
 import time
 
-from sav_jax.config import VIT_ATTENTION
+from sav_jax.config import GRU_CONV, VIT_ATTENTION
 from sav_jax.tools import (add_compile_cache_arguments, add_matmul_precision_argument,
                            matmul_precision, setup_compile_cache)
 
@@ -31,6 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  help="the depth prior's ViT attention (SAVConfig.vit_attention; 'cudnn': "
                       "fused flash attention, CUDA GPUs with --dtype bfloat16; 'auto' "
                       "(default): cudnn where it applies, else blocked)")
+  p.add_argument("--gru-conv", choices=GRU_CONV, default="auto",
+                 help="the GRU's 1x15 z/r convolutions (SAVConfig.gru_conv; 'dft': products "
+                      "per frequency bin; 'auto' (default): dft on CPU in float32, else direct)")
   p.add_argument("--repeats", type=int, default=5,
                  help="timed calls after the warm-up call (default 5)")
   p.add_argument("--all-predictions", action="store_true",
@@ -123,7 +126,7 @@ def memory_lines(res: dict, batch: int | None = None) -> list[str]:
 
 
 def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
-            final_only=True, compile_cache=None, vit_attention="auto") -> dict:
+            final_only=True, compile_cache=None, vit_attention="auto", gru_conv="auto") -> dict:
   """Compiles and times the forward pass on random weights and a random clip.
 
   Like the inference helpers, it returns freed host memory to the OS after
@@ -137,7 +140,7 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
     dict with `compile_s`, `cache_hit`, `median_s`, `min_s`, `fps`, `peak_rss_gb`,
     `device_peak_gb` and `device_peak_compile_gb` (the peak after compiling, before the
     first call; None on CPU), XLA's buffer sizes (`xla_buffers_gb`) and the settings
-    (`vit_attention`: the implementation that ran, "auto" resolved).
+    (`vit_attention`, `gru_conv`: the implementations that ran, "auto" resolved).
   """
   import jax  # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
@@ -145,10 +148,11 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
 
   import sav_jax  # pylint: disable=import-outside-toplevel
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel
-  from sav_jax.config import resolve_vit_attention  # pylint: disable=import-outside-toplevel
+  from sav_jax.config import (  # pylint: disable=import-outside-toplevel
+      resolve_gru_conv, resolve_vit_attention)
   from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
 
-  cfg = sav_jax.SAVConfig(dtype=dtype, vit_attention=vit_attention)
+  cfg = sav_jax.SAVConfig(dtype=dtype, vit_attention=vit_attention, gru_conv=gru_conv)
   model = sav_jax.StereoAnyVideo(cfg)
   variables = jax.device_put(init_variables(cfg, seed=0))
   runtime.release_host_memory()
@@ -175,6 +179,7 @@ def measure(frames, height, width, iters, batch=1, dtype="float32", repeats=5,
   return dict(
       frames=frames, height=height, width=width, iters=iters, batch=batch, dtype=dtype,
       vit_attention=resolve_vit_attention(vit_attention, cfg.compute_dtype),
+      gru_conv=resolve_gru_conv(gru_conv, cfg.compute_dtype),
       final_only=final_only, compiler_options=options, compile_s=compile_s, cache_hit=cache_hit, median_s=median, min_s=min(times),
       fps=batch * frames / median, peak_rss_gb=peak_rss_gb(),
       device_peak_gb=device_peak_gb(device), device_peak_compile_gb=compile_peak,
@@ -255,7 +260,7 @@ def machine_note(res: dict, base: dict) -> str:
     if base.get(key) is not None and base[key] != res.get(key):
       differ.append(f"{key} {res.get(key)} here, {base[key]} there")
   settings = [f"{key} {res.get(key)} here, {base[key]} there"
-              for key in ("vit_attention", "matmul_precision", "compiler_options")
+              for key in ("vit_attention", "gru_conv", "matmul_precision", "compiler_options")
               if base.get(key) is not None and base[key] != res.get(key)]
   if differ:
     return ("warning: the baseline was measured elsewhere (" + "; ".join(differ + settings)
@@ -324,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
   with precision:
     res = measure(args.frames, args.height, args.width, args.iters, args.batch, args.dtype,
                   args.repeats, final_only=not args.all_predictions, compile_cache=cache,
-                  vit_attention=args.vit_attention)
+                  vit_attention=args.vit_attention, gru_conv=args.gru_conv)
   res["matmul_precision"] = precision_name
   platform, _, kind = res["device"].partition(":")
   print(f"device        {kind if kind and kind.lower() != platform else platform}"
@@ -332,7 +337,8 @@ def run(args: argparse.Namespace) -> int:
   print(f"input         B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
         f"iters={res['iters']} {res['dtype']}"
         + ("" if res["final_only"] else ", every prediction (--all-predictions)")
-        + ("" if res["vit_attention"] == "blocked" else f", ViT attention {res['vit_attention']}"))
+        + ("" if res["vit_attention"] == "blocked" else f", ViT attention {res['vit_attention']}")
+        + ("" if res["gru_conv"] == "direct" else f", GRU 1x15 convolutions {res['gru_conv']}"))
   if res["compiler_options"]:
     print("XLA options   " + ", ".join(f"{k}={v}" for k, v in res["compiler_options"].items()))
   print(f"compile       {res['compile_s']:.2f} s{compile_cache_note(cache, res['cache_hit'])}")

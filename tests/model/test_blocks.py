@@ -102,6 +102,36 @@ def test_auto_vit_attention_picks_cudnn_only_on_a_gpu_in_bfloat16(monkeypatch):
   assert "dot_product_attention" not in jaxpr and "cudnn" not in jaxpr
 
 
+def test_gru_conv_is_checked_and_auto_picks_the_dft_on_a_cpu_in_float32(monkeypatch):
+  from sav_jax.config import resolve_gru_conv  # pylint: disable=import-outside-toplevel
+  from sav_jax.model.update import SKSepConvGRU3D  # pylint: disable=import-outside-toplevel
+  assert sav_jax.SAVConfig().gru_conv == "auto"
+  with pytest.raises(ValueError, match="gru_conv='fft'; expected one of"):
+    sav_jax.SAVConfig(gru_conv="fft")
+  with pytest.raises(ValueError, match="wide_conv='fft'; expected 'direct' or 'dft'"):
+    h, x = jnp.zeros((1, 1, 2, 4, 128)), jnp.zeros((1, 1, 2, 4, 256))
+    jax.eval_shape(SKSepConvGRU3D(wide_conv="fft").init, jax.random.key(0), h, x)
+  for choice in ("direct", "dft"):  # explicit choices hold everywhere
+    assert resolve_gru_conv(choice, jnp.bfloat16) == choice
+  monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
+  assert resolve_gru_conv("auto", jnp.float32) == "dft"
+  assert resolve_gru_conv("auto", "float32") == "dft"
+  assert resolve_gru_conv("auto", jnp.bfloat16) == "direct"
+  monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # not measured there
+  assert resolve_gru_conv("auto", jnp.float32) == "direct"
+  # The model builds its GRU with the resolved choice (the DFT's products in its program).
+  monkeypatch.undo()
+  seen = []
+  monkeypatch.setattr(SKSepConvGRU3D, "__call__",
+                      lambda self, h, x: seen.append(self.wide_conv) or h)
+  video = jnp.zeros((1, 2, 64, 64, 3))
+  for choice in ("direct", "dft"):
+    model = sav_jax.StereoAnyVideo(sav_jax.SAVConfig(gru_conv=choice))
+    seen.clear()
+    jax.eval_shape(lambda m=model: m.init(jax.random.key(0), video, video, iters=2))
+    assert seen and set(seen) == {choice}
+
+
 def test_frames_per_block_is_a_divisor_within_the_budget():
   assert frames_per_block(40, 2**20, 10) == 10
   assert frames_per_block(40, 2**20, 7) == 5

@@ -1,11 +1,13 @@
-"""`conv2d`/`Conv2D`/`Conv3D`: the hand-written gradient equals XLA's, in and out of a scan."""
+"""`conv2d`/`Conv2D`/`Conv3D`: the hand-written gradient equals XLA's, in and out of a scan;
+`dft_correlate_w` equals the direct convolution."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sav_jax.model.layers import Conv2D, Conv3D, conv2d, set_canonical_conv_gradient
+from sav_jax.model.layers import (Conv2D, Conv3D, ConvParams, conv2d, dft_correlate_w,
+                                  set_canonical_conv_gradient)
 
 # Checks of values against XLA's own ops: no need for XLA's optimisations (tests/conftest.py).
 pytestmark = pytest.mark.usefixtures("fast_compile")
@@ -107,3 +109,57 @@ def test_forward_mode_autodiff_with_the_canonical_gradient_switched_off():
   finally:
     set_canonical_conv_gradient(True)
   np.testing.assert_allclose(tangent, _reference(x, kernel, pad), rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("width,taps", [(64, 15), (16, 15), (9, 15), (20, 5), (7, 1), (1, 3)])
+def test_dft_correlation_equals_the_direct_convolution_and_its_gradient(width, taps):
+  """Every width against the taps (n = W + k//2 odd and even, a kernel wider than the
+  input): the same values and gradients as torch's 'same' convolution, to float32 rounding."""
+  rng = np.random.default_rng(width * 100 + taps)
+  x = jnp.asarray(rng.standard_normal((2, 3, width, 6)), jnp.float32)
+  kernel = jnp.asarray(rng.standard_normal((taps, 6, 5)), jnp.float32)
+  pad = ((0, 0), (taps // 2, taps // 2))
+  want, vjp_want = jax.vjp(lambda a, b: _reference(a, b[None], pad), x, kernel)
+  got, vjp_got = jax.vjp(dft_correlate_w, x, kernel)
+  assert got.shape == want.shape == (2, 3, width, 5)
+  scale = float(jnp.abs(want).max())
+  np.testing.assert_allclose(got, want, rtol=0, atol=2e-6 * scale)
+  g = jnp.asarray(rng.standard_normal(want.shape), jnp.float32)
+  for a, b in zip(vjp_got(g), vjp_want(g)):
+    np.testing.assert_allclose(a, b, rtol=0, atol=2e-6 * float(jnp.abs(b).max()))
+
+
+def test_dft_correlation_in_blocks_of_rows_under_a_memory_budget():
+  rng = np.random.default_rng(2)
+  x = jnp.asarray(rng.standard_normal((2, 3, 20, 6)), jnp.float32)
+  kernel = jnp.asarray(rng.standard_normal((15, 6, 5)), jnp.float32)
+  whole = dft_correlate_w(x, kernel)
+  budget = 2.5 * (3 * 14) * (6 + 5) * 4 / 2**20  # 2.5 rows' spectra (n = 27: 14 bins)
+  blocked = lambda a: dft_correlate_w(a, kernel, budget)  # noqa: E731
+  assert "scan" in str(jax.make_jaxpr(blocked)(x))  # 3 blocks of 2 rows, one at a time
+  assert "scan" not in str(jax.make_jaxpr(lambda a: dft_correlate_w(a, kernel, 1.0))(x))
+  np.testing.assert_allclose(jax.jit(blocked)(x), whole, rtol=0, atol=1e-5)
+
+
+def test_dft_correlation_keeps_the_dtype_and_names_a_wrong_kernel():
+  rng = np.random.default_rng(1)
+  x = jnp.asarray(rng.standard_normal((4, 12, 3)), jnp.bfloat16)
+  kernel = jnp.asarray(rng.standard_normal((5, 3, 2)), jnp.float32)
+  got = dft_correlate_w(x, kernel)
+  assert got.dtype == jnp.bfloat16 and got.shape == (4, 12, 2)
+  want = _reference(x.astype(jnp.float32)[None], kernel[None], ((0, 0), (2, 2)))[0]
+  np.testing.assert_allclose(np.asarray(got, np.float32), want, rtol=1e-2, atol=1e-2)
+  for bad in ((4, 3, 2), (5, 4, 2)):  # even taps (no centre), channels not the input's
+    with pytest.raises(ValueError, match=r"dft_correlate_w: a kernel \[k odd, 3, O\]"):
+      dft_correlate_w(x, jnp.zeros(bad))
+
+
+def test_conv_params_are_conv3d_parameters():
+  """Same names, shapes and initial values as the `Conv3D` it stands for (the GRU's DFT path
+  reads the checkpoint's convolution weights through it)."""
+  x = jnp.zeros((1, 2, 3, 8, 6))
+  conv_vars = Conv3D(4, (1, 1, 5), (0, 0, 2)).init(jax.random.key(3), x)
+  params_vars = ConvParams(4, (1, 1, 5)).init(jax.random.key(3), 6)
+  assert jax.tree.map(jnp.shape, params_vars) == jax.tree.map(jnp.shape, conv_vars)
+  for a, b in zip(jax.tree.leaves(params_vars), jax.tree.leaves(conv_vars)):
+    np.testing.assert_array_equal(a, b)

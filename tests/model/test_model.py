@@ -51,7 +51,7 @@ def test_compute_settings_share_the_parameter_shapes():
   computes; a real trace of such a model gives that very tree (shapes and float32)."""
   base = sav_jax.SAVConfig()
   other = sav_jax.SAVConfig(dtype="bfloat16", remat=True, remat_policy="dots_saveable",
-                            frame_block_mb=1.0, vit_attention="blocked")
+                            frame_block_mb=1.0, vit_attention="blocked", gru_conv="direct")
   assert set(init_lib.COMPUTE_FIELDS) == {f.name for f in dataclasses.fields(base)
                                           if getattr(base, f.name) != getattr(other, f.name)}
   assert abstract_variables(other) is abstract_variables(base)

@@ -100,13 +100,15 @@ def _bt(x, t=3):
   return jnp.asarray(x.reshape(-1, t, *x.shape[1:]))
 
 
-def test_update_block(golden_small, sav_state_dict):
+@pytest.mark.parametrize("gru_conv", ["direct", "dft"])
+def test_update_block(golden_small, sav_state_dict, gru_conv):
+  """Both forms of the GRU's 1x15 convolutions (XLA's; DFT products, CPU's default)."""
   g = golden_small
   params = subtree(sav_state_dict, "update_block.")
   del params["time_attn"]["temporal_attn"]["qkv"]  # never used by the official forward
   flow = _bt(g["ub_in_flow"])
   assert np.all(np.asarray(flow[..., 1]) == 0)
-  net, mask, delta = SequenceUpdateBlock3D().apply(
+  net, mask, delta = SequenceUpdateBlock3D(gru_conv=gru_conv).apply(
       {"params": params}, _bt(g["ub_in_net"]), _bt(g["ub_in_inp"]), _bt(g["ub_in_corr"]),
       flow[..., :1])
   feature_close(net, _bt(g["ub_out_net"]))
