@@ -446,3 +446,11 @@ def test_input_pipeline_script_writes_flyingthings_and_times_the_training_stream
   with pytest.raises(SystemExit) as e:
     input_pipeline.main()
   assert e.value.code == 2 and "more than --sequence-frames 10" in capsys.readouterr().err
+
+
+def test_gru_conv_forms_agree():
+  """benchmarks/gru_conv.py times both forms of the GRU; they compute the same update."""
+  import gru_conv  # pylint: disable=import-outside-toplevel,import-error
+  times, diff = gru_conv.gru_times(2, 4, 8, repeats=1)
+  assert set(times) == {"direct", "dft"} and min(times.values()) > 0
+  assert diff < 1e-5

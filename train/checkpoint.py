@@ -94,7 +94,7 @@ _OPERATIONAL = ("checkpoint.", "eval.", "compile_cache", "init_from", "vda_weigh
                 "random_depth_prior", "data.root", "data.num_threads", "data.prefetch",
                 "data.skip_unreadable", "train.progress_bar", "train.log_every",
                 "train.max_skipped_steps",
-                "model.remat")
+                "model.remat", "model.gru_conv")
 
 
 def run_fields(config) -> dict:
