@@ -28,6 +28,10 @@
 #   raft        the evaluator's RAFT flow for one 720x1280 pair, 20 iterations (raft_flow.py)
 #               and its parity tests (tests/model/test_raft.py; needs SAV_FIXTURES); not in
 #               the default list
+#   gru_conv    the GRU's 1x15 convolutions as XLA's or as DFT products (SAVConfig.gru_conv,
+#               "auto" picks DFT products on CPUs only: not yet measured on a GPU): the GRU at
+#               each scale of the paper's window (gru_conv.py, float32 and bfloat16), then the
+#               float32 window with --gru-conv dft. Not in the default list (~3 minutes)
 #   flags       bench_bf16 (2 calls) under XLA:GPU flag sets that may speed up the refinement
 #               loop (~75 s each, compile included): command buffers off / over the whole
 #               loop and its conditional, cuBLAS instead of Triton for the products, the
@@ -44,7 +48,7 @@ out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]}
 shift
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(bench_bf16 bench_fp32 bench_fp32_warm train train_warm precision parity stages variants profile bench_blocked)
-known=" bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train train_warm precision parity stages profile variants raft flags "
+known=" bench_bf16 bench_fp32 bench_fp32_warm bench_blocked train train_warm precision parity stages profile variants raft flags gru_conv "
 for s in "${steps[@]}"; do  # a mistyped step fails before anything runs (no OUTDIR, no import)
   if [[ "$known" != *" $s "* ]]; then
     echo "unknown step '$s' (${known# })" >&2
@@ -98,6 +102,10 @@ run_step() {
     variants) step "$1" 300 "$py" benchmarks/update_variants.py "${window[@]}" --dtype bfloat16 ;;
     profile) step "$1" 240 "$py" benchmarks/op_profile.py "${window[@]}" --dtype bfloat16 \
                --repeats 1 --by module --depth 2 --top 25 ;;
+    gru_conv) step "$1" 200 bash -c "'$py' benchmarks/gru_conv.py --frames 20 --height 720 --width 1280 --repeats 3 &&
+                '$py' benchmarks/gru_conv.py --frames 20 --height 720 --width 1280 --repeats 3 --dtype bfloat16 &&
+                '$py' -m sav_jax.cli bench ${window[*]} --dtype float32 --gru-conv dft --repeats 2 \
+                  --json '$out/gpu_t20_720x1280_it20_fp32_gru_dft.json' --overwrite" ;;
     raft) step "$1" 200 bash -c "'$py' benchmarks/raft_flow.py --height 720 --width 1280 &&
             '$py' -m pytest -x -q -p no:cacheprovider tests/model/test_raft.py" ;;
     flags) local set name rc=0

@@ -28,6 +28,7 @@ sys.path.insert(0, str(ROOT))
 import jax  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.config import resolve_gru_conv  # noqa: E402  pylint: disable=wrong-import-position
 from timing import add_clip_arguments, compile_for_shape  # noqa: E402  pylint: disable=wrong-import-position
 
 
@@ -37,16 +38,19 @@ def main():
   p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
   p.add_argument("--frame-block-mb", type=float, default=None,
                  help="SAVConfig.frame_block_mb (default: the config's)")
+  p.add_argument("--gru-conv", default="auto", choices=("auto", "direct", "dft"),
+                 help="SAVConfig.gru_conv (default auto: on a CPU in float32 the DFT products, "
+                      "which a GPU does not use; direct projects a GPU's program)")
   a = p.parse_args()
 
   extra = {} if a.frame_block_mb is None else {"frame_block_mb": a.frame_block_mb}
-  cfg = sav_jax.SAVConfig(dtype=a.dtype, **extra)
+  cfg = sav_jax.SAVConfig(dtype=a.dtype, gru_conv=a.gru_conv, **extra)
   compiled, compile_s = compile_for_shape(cfg, a.frames, a.height, a.width, a.iters)
   m = compiled.memory_analysis()
   gb = lambda n: n / 2**30  # noqa: E731
   total = m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
   print(f"T={a.frames} {a.height}x{a.width} iters={a.iters} {a.dtype} "
-        f"frame_block_mb={cfg.frame_block_mb:g} "
+        f"frame_block_mb={cfg.frame_block_mb:g} gru_conv={resolve_gru_conv(cfg.gru_conv, cfg.compute_dtype)} "
         f"({jax.devices()[0].platform}, jax {jax.__version__}, compiled in {compile_s:.0f} s)")
   print(f"  parameters {gb(m.argument_size_in_bytes):6.2f} GiB   output {gb(m.output_size_in_bytes):6.3f} GiB"
         f"   temp {gb(m.temp_size_in_bytes):6.2f} GiB   total {gb(total):6.2f} GiB")

@@ -110,3 +110,12 @@ def test_rerunning_a_step_into_the_same_folder_replaces_its_json(tmp_path):
   assert len(calls) == 7
   for _, argv in calls:
     assert "--json" in argv and argv.split().count("--overwrite") == 1, argv
+
+
+def test_gru_conv_step_times_both_forms_then_the_window_with_dft_products(tmp_path):
+  calls = [argv for _, argv in _run_steps(tmp_path, ["gru_conv"])]
+  assert [a.split()[0] for a in calls] == ["benchmarks/gru_conv.py"] * 2 + ["-m"]
+  assert "--frames 20 --height 720 --width 1280" in calls[0] and "--dtype bfloat16" in calls[1]
+  assert calls[2].startswith("-m sav_jax.cli bench --frames 20 --height 720 --width 1280 "
+                             "--iters 20 --dtype float32 --gru-conv dft")
+  assert _json(calls[2]).endswith("gpu_t20_720x1280_it20_fp32_gru_dft.json")

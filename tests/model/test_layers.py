@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sav_jax.model import layers
 from sav_jax.model.layers import (Conv2D, Conv3D, ConvParams, conv2d, dft_correlate_w,
                                   set_canonical_conv_gradient)
 
@@ -134,11 +135,22 @@ def test_dft_correlation_in_blocks_of_rows_under_a_memory_budget():
   x = jnp.asarray(rng.standard_normal((2, 3, 20, 6)), jnp.float32)
   kernel = jnp.asarray(rng.standard_normal((15, 6, 5)), jnp.float32)
   whole = dft_correlate_w(x, kernel)
-  budget = 2.5 * (3 * 14) * (6 + 5) * 4 / 2**20  # 2.5 rows' spectra (n = 27: 14 bins)
-  blocked = lambda a: dft_correlate_w(a, kernel, budget)  # noqa: E731
-  assert "scan" in str(jax.make_jaxpr(blocked)(x))  # 3 blocks of 2 rows, one at a time
-  assert "scan" not in str(jax.make_jaxpr(lambda a: dft_correlate_w(a, kernel, 1.0))(x))
-  np.testing.assert_allclose(jax.jit(blocked)(x), whole, rtol=0, atol=1e-5)
+  row = (3 * 14) * (6 + 5) * 4 / 2**20  # one row's spectrum and products (n = 27: 14 bins)
+  products = lambda f: str(jax.make_jaxpr(f)(x)).count("dot_general")  # noqa: E731
+  assert products(lambda a: dft_correlate_w(a, kernel, 1.0)) == 4  # bins + 3 for all 6 rows
+  for budget, blocks in ((2.5 * row, 3), (4 * row, 2), (1e-9, 6)):  # 2, 3 or 1 rows each
+    blocked = lambda a, b=budget: dft_correlate_w(a, kernel, b)  # noqa: E731
+    assert products(blocked) == 1 + 3 * blocks, budget
+    np.testing.assert_allclose(jax.jit(blocked)(x), whole, rtol=0, atol=1e-5)
+  # 7 rows, 3 fit: blocks of 3, 3 and 1
+  seven = x.reshape(6, 20, 6)[jnp.array([0, 1, 2, 3, 4, 5, 0])]
+  blocked = lambda a: dft_correlate_w(a, kernel, 3 * row)  # noqa: E731
+  assert str(jax.make_jaxpr(blocked)(seven)).count("dot_general") == 1 + 3 * 3
+  np.testing.assert_allclose(blocked(seven), dft_correlate_w(seven, kernel), rtol=0, atol=1e-5)
+  # at most DFT_MAX_BLOCKS blocks (they are unrolled), however small the budget
+  many = jnp.zeros((layers.DFT_MAX_BLOCKS * 2, 20, 6))
+  assert str(jax.make_jaxpr(lambda a: dft_correlate_w(a, kernel, 1e-9))(many)).count(
+      "dot_general") == 1 + 3 * layers.DFT_MAX_BLOCKS
 
 
 def test_dft_correlation_keeps_the_dtype_and_names_a_wrong_kernel():
