@@ -147,6 +147,7 @@ def test_dft_correlation_in_blocks_of_rows_under_a_memory_budget():
   blocked = lambda a: dft_correlate_w(a, kernel, 3 * row)  # noqa: E731
   assert str(jax.make_jaxpr(blocked)(seven)).count("dot_general") == 1 + 3 * 3
   np.testing.assert_allclose(blocked(seven), dft_correlate_w(seven, kernel), rtol=0, atol=1e-5)
+  assert dft_correlate_w(x[:0], kernel, 1e-9).shape == (0, 3, 20, 5)  # no rows: no blocks
   # at most DFT_MAX_BLOCKS blocks (they are unrolled), however small the budget
   many = jnp.zeros((layers.DFT_MAX_BLOCKS * 2, 20, 6))
   assert str(jax.make_jaxpr(lambda a: dft_correlate_w(a, kernel, 1e-9))(many)).count(
