@@ -27,6 +27,7 @@ import jax.numpy as jnp  # noqa: E402  pylint: disable=wrong-import-position
 import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.config import resolve_gru_conv  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.tools.bench import json_output_problem  # noqa: E402  pylint: disable=wrong-import-position
 from timing import fixtures_folder, make_weights_module  # noqa: E402  benchmarks/timing.py
 
@@ -54,16 +55,20 @@ def measure(fixtures: pathlib.Path, iters: int = 4) -> list[dict]:
   # Parameters are float32 in every compute mode: one conversion serves all.
   variables = sav_jax.convert.params_from_state_dict(state_dict, sav_jax.SAVConfig())
   rows = []
-  modes = MODES + (GPU_MODES if jax.default_backend() == "gpu" else ())
-  for dtype, precision, attention in modes:
-    cfg = sav_jax.SAVConfig(dtype=dtype, vit_attention=attention)
+  default_gru = resolve_gru_conv("auto", jnp.float32)
+  other_gru = "direct" if default_gru == "dft" else "dft"
+  modes = ([(*m, default_gru if m[0] == "float32" else "direct") for m in MODES]
+           + [("float32", "highest", "blocked", other_gru)]
+           + [(*m, "direct") for m in (GPU_MODES if jax.default_backend() == "gpu" else ())])
+  for dtype, precision, attention, gru_conv in modes:
+    cfg = sav_jax.SAVConfig(dtype=dtype, vit_attention=attention, gru_conv=gru_conv)
     model = sav_jax.StereoAnyVideo(cfg)
     fwd = jax.jit(lambda v, l, r, m=model: m.apply(v, l, r, iters=iters,
                                                      final_only=True).disparities)
     with jax.default_matmul_precision(precision):
       got = np.asarray(fwd(variables, left, right), np.float32)
     diff = np.abs(got - ref)
-    rows.append(dict(dtype=dtype, precision=precision, vit_attention=attention,
+    rows.append(dict(dtype=dtype, precision=precision, vit_attention=attention, gru_conv=gru_conv,
                      mean_px=float(diff.mean()),
                      max_px=float(diff.max())))
   return rows
@@ -82,10 +87,11 @@ def main(argv=None) -> int:
   device = jax.devices()[0]
   print(f"device {device.platform}:{device.device_kind} (jax {jax.__version__}); "
         "difference from the official float32 output, fixture clip 1x3x64x128 iters=4")
-  print(f"{'dtype':<10}{'precision':<10}{'ViT attn':<10}{'mean (px)':>12}{'max (px)':>12}")
+  print(f"{'dtype':<10}{'precision':<10}{'ViT attn':<10}{'GRU 1x15':<9}{'mean (px)':>12}"
+        f"{'max (px)':>12}")
   for r in rows:
-    print(f"{r['dtype']:<10}{r['precision']:<10}{r['vit_attention']:<10}{r['mean_px']:>12.2e}"
-          f"{r['max_px']:>12.2e}")
+    print(f"{r['dtype']:<10}{r['precision']:<10}{r['vit_attention']:<10}{r['gru_conv']:<9}"
+          f"{r['mean_px']:>12.2e}{r['max_px']:>12.2e}")
   if a.json:
     with open(a.json, "w", encoding="utf-8") as f:
       json.dump(dict(device=f"{device.platform}:{device.device_kind}", jax=jax.__version__,
