@@ -1,5 +1,6 @@
 """Would FFT convolutions speed up the GRU's 1x15 convolutions on CPU? (These forms: no; the
-model's `layers.dft_correlate_w`, the last row: about 2.5x.)
+model's `layers.dft_correlate_w`, the last row: about 2x, 2.8x with its kernel bins computed
+beforehand as in the model.)
 
     python benchmarks/fft_conv.py [--frames 5 --height 32 --width 64 --repeats 7]
 

@@ -31,7 +31,7 @@
 #   gru_conv    the GRU's 1x15 convolutions as XLA's or as DFT products (SAVConfig.gru_conv,
 #               "auto" picks DFT products on CPUs only: not yet measured on a GPU): the GRU at
 #               each scale of the paper's window (gru_conv.py, float32 and bfloat16), then the
-#               float32 window with --gru-conv dft. Not in the default list (~3 minutes)
+#               float32 window with --gru-conv dft. Not in the default list (~4 minutes)
 #   flags       bench_bf16 (2 calls) under XLA:GPU flag sets that may speed up the refinement
 #               loop (~75 s each, compile included): command buffers off / over the whole
 #               loop and its conditional, cuBLAS instead of Triton for the products, the
@@ -102,7 +102,7 @@ run_step() {
     variants) step "$1" 300 "$py" benchmarks/update_variants.py "${window[@]}" --dtype bfloat16 ;;
     profile) step "$1" 240 "$py" benchmarks/op_profile.py "${window[@]}" --dtype bfloat16 \
                --repeats 1 --by module --depth 2 --top 25 ;;
-    gru_conv) step "$1" 200 bash -c "'$py' benchmarks/gru_conv.py --frames 20 --height 720 --width 1280 --repeats 3 &&
+    gru_conv) step "$1" 300 bash -c "'$py' benchmarks/gru_conv.py --frames 20 --height 720 --width 1280 --repeats 3 &&
                 '$py' benchmarks/gru_conv.py --frames 20 --height 720 --width 1280 --repeats 3 --dtype bfloat16 &&
                 '$py' -m sav_jax.cli bench ${window[*]} --dtype float32 --gru-conv dft --repeats 2 \
                   --json '$out/gpu_t20_720x1280_it20_fp32_gru_dft.json' --overwrite" ;;

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any, Sequence
 
 import flax.linen as nn
@@ -271,47 +272,55 @@ def dft_correlate_w(x: jax.Array, kernel: jax.Array, block_mb: float | None = No
   `[C] x [C, O]` products (Karatsuba) instead of one per tap and pixel.
 
   For the GRU's 1x15 gates at 1/4 of a 128x256 clip (W=64: a 71-point DFT, 36 bins) that is
-  ~5x fewer multiply-adds than the direct convolution, and on XLA:CPU about a third of its
-  time (`benchmarks/README.md`, "Fewer multiply-adds: DFT products"). Values agree with the
-  direct convolution to float32 rounding (~1e-6 relative); computed in float32 whatever the
-  input's dtype (the DFT's coefficients need its precision), returned in the input's dtype.
+  ~5x fewer multiply-adds than the direct convolution, and on XLA:CPU ~2x less time (~2.8x
+  with the kernel's bins computed beforehand, as XLA does out of the refinement loop;
+  `benchmarks/README.md`, "Fewer multiply-adds: DFT products"). Values agree with the direct
+  convolution to float32 rounding (~1e-6 relative); computed in float32 at "highest" matmul
+  precision whatever the input's dtype (the DFT's coefficients need it), returned in the
+  input's dtype (float64 inputs too are computed in float32).
 
   Args:
     x: `[..., W, C]`.
     kernel: `[k, C, O]` taps along the width, k odd (padding k//2 on each side).
     block_mb: memory budget (MiB) of the rows' spectra and products (1.5x the input's size
-      and more): rows run in blocks that fit it, one after the other (at most
-      `DFT_MAX_BLOCKS`, unrolled; the same values). None: all at once.
+      and more): the rows after the leading axis run in blocks that fit it, one after the
+      other (at most `DFT_MAX_BLOCKS`, unrolled; the same values). None: all at once.
 
   Returns:
     `[..., W, O]`.
   """
   *lead, width, c = x.shape
   taps, kc, o = kernel.shape
-  if taps % 2 == 0 or kc != c:
-    raise ValueError(f"dft_correlate_w: a kernel [k odd, {c}, O] for input channels {c}, "
-                     f"got kernel shape {kernel.shape}")
+  if taps % 2 == 0 or kc != c or width < 1:
+    raise ValueError(f"dft_correlate_w: a kernel [k odd, {c}, O] for input channels {c} and a "
+                     f"width >= 1, got kernel shape {kernel.shape} for input shape {x.shape}")
   analysis, kernel_bins, synthesis = _dft_correlation_matrices(width, taps)
+  # float32 products on every backend (a GPU's default runs float32 products as TF32: 3x
+  # the direct convolution's error there).
+  dot = functools.partial(jnp.einsum, precision=jax.lax.Precision.HIGHEST)
   # per bin [O, C]: the layout XLA:CPU's batched product runs fastest with (~1.6x [C, O])
-  bins = (kernel_bins @ kernel.astype(jnp.float32).transpose(0, 2, 1).reshape(taps, o * c))
+  bins = dot("gk,kp->gp", kernel_bins,
+             kernel.astype(jnp.float32).transpose(0, 2, 1).reshape(taps, o * c))
   bins = bins.reshape(-1, o, c)
 
-  def rows(m):  # [rows, W, C] -> [rows, W, O]
-    spectrum = jnp.einsum("mwc,wg->gmc", m, analysis)
-    return jnp.einsum("gmo,gw->mwo", jnp.einsum("gmc,goc->gmo", spectrum, bins), synthesis)
+  def rows(m):  # [..., W, C] -> [..., W, O]
+    flat = m.reshape(-1, width, c)
+    spectrum = dot("mwc,wg->gmc", flat, analysis)
+    y = dot("gmo,gw->mwo", dot("gmc,goc->gmo", spectrum, bins), synthesis)
+    return y.reshape(*m.shape[:-1], o)
 
-  m = x.astype(jnp.float32).reshape(-1, width, c)
-  n_rows = m.shape[0]
+  # Blocks split the rows after the leading (batch) axis, so a batch sharded over devices
+  # is never cut across them (blocks of all rows cost all-to-alls on 8 CPU devices).
+  m = x.astype(jnp.float32).reshape(lead[0] if lead else 1, math.prod(lead[1:]), width, c)
+  inner = m.shape[1]
   per_row = bins.shape[0] * (c + o) * 4
-  fit = n_rows if block_mb is None else max(1, int(block_mb * 2**20 // per_row))
-  # Unrolled blocks (static slices): a `lax.map` over them kept a copy of the whole input
-  # in its loop state (+1.1 GiB at the paper's window on CPU, against +0.3 GiB for these).
-  count = min(-(-n_rows // fit), DFT_MAX_BLOCKS)
+  fit = m.shape[0] * inner if block_mb is None else max(1, int(block_mb * 2**20 // per_row))
+  count = min(-(-(m.shape[0] * inner) // fit), DFT_MAX_BLOCKS, inner)
   if count <= 1:
     y = rows(m)
   else:
-    size = -(-n_rows // count)
-    y = jnp.concatenate([rows(m[i:i + size]) for i in range(0, n_rows, size)])
+    size = -(-inner // count)
+    y = jnp.concatenate([rows(m[:, i:i + size]) for i in range(0, inner, size)], axis=1)
   return y.reshape(*lead, width, o).astype(x.dtype)
 
 

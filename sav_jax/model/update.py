@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sav_jax.config import FRAME_BLOCK_MB
+from sav_jax.config import FRAME_BLOCK_MB, GRU_CONV, resolve_gru_conv
 from sav_jax.model.layers import (Conv2D, ConvParams, conv, dense, dft_correlate_w, gelu,
                                   in_frame_blocks, layer_norm)
 
@@ -195,9 +195,10 @@ class SKSepConvGRU3D(nn.Module):
   Attributes:
     hidden_dim: state channels.
     dtype: compute dtype.
-    wide_conv: how the W pass's 1x15 z/r convolutions run: "direct" (XLA's convolutions)
-      or "dft" (both as one `dft_correlate_w`: products per frequency bin; the same
-      parameters and values to float32 rounding; `SAVConfig.gru_conv`).
+    wide_conv: how the W pass's 1x15 z/r convolutions run: "direct" (XLA's convolutions),
+      "dft" (both as one `dft_correlate_w`: products per frequency bin; the same
+      parameters and values to float32 rounding) or "auto" (`SAVConfig.gru_conv`,
+      `config.resolve_gru_conv`).
     block_mb: with "dft", the memory budget (MiB) of its spectra (`dft_correlate_w`).
   """
 
@@ -217,7 +218,8 @@ class SKSepConvGRU3D(nn.Module):
       second = c3((1, 1, 5), (0, 0, 2), f"{name}_2")
       return lambda y: second(gelu(first(y)))
 
-    if self.wide_conv == "dft":
+    wide_conv = resolve_gru_conv(self.wide_conv, self.dtype)
+    if wide_conv == "dft":
       seconds = [c3((1, 1, 5), (0, 0, 2), f"conv{g}1_2") for g in "zr"]
 
       def gates(hx):  # the z and r first convolutions share one DFT of [h, x]
@@ -226,11 +228,11 @@ class SKSepConvGRU3D(nn.Module):
         bias = jnp.concatenate([b for _, b in weights]).astype(self.dtype)
         firsts = gelu(dft_correlate_w(hx.astype(self.dtype), kernel, self.block_mb) + bias)
         return tuple(second(part) for second, part in zip(seconds, jnp.split(firsts, 2, -1)))
-    elif self.wide_conv == "direct":
+    elif wide_conv == "direct":
       convz, convr = super_kernel("convz1"), super_kernel("convr1")
       gates = lambda hx: (convz(hx), convr(hx))  # noqa: E731
     else:
-      raise ValueError(f"SKSepConvGRU3D.wide_conv={self.wide_conv!r}; expected 'direct' or 'dft'")
+      raise ValueError(f"SKSepConvGRU3D.wide_conv={self.wide_conv!r}; expected one of {GRU_CONV}")
     h = gru_update(h, x, gates, c3((1, 1, 5), (0, 0, 2), "convq1"))
     k, p = (1, 5, 1), (0, 2, 0)
     h = conv_gru(h, x, c3(k, p, "convz2"), c3(k, p, "convr2"), c3(k, p, "convq2"))
@@ -257,7 +259,7 @@ class SequenceUpdateBlock3D(nn.Module):
   mask_size: int = 4
   dtype: Any = jnp.float32
   block_mb: float = FRAME_BLOCK_MB
-  gru_conv: str = "direct"  # `SKSepConvGRU3D.wide_conv` ("auto" resolved by the model)
+  gru_conv: str = "direct"  # `SKSepConvGRU3D.wide_conv`
 
   def setup(self):
     dt = self.dtype

@@ -138,18 +138,19 @@ def test_dft_correlation_in_blocks_of_rows_under_a_memory_budget():
   row = (3 * 14) * (6 + 5) * 4 / 2**20  # one row's spectrum and products (n = 27: 14 bins)
   products = lambda f: str(jax.make_jaxpr(f)(x)).count("dot_general")  # noqa: E731
   assert products(lambda a: dft_correlate_w(a, kernel, 1.0)) == 4  # bins + 3 for all 6 rows
-  for budget, blocks in ((2.5 * row, 3), (4 * row, 2), (1e-9, 6)):  # 2, 3 or 1 rows each
+  # blocks of the rows after the leading (batch) axis: of 3, 1 or 2 each (x 2 in the batch)
+  for budget, blocks in ((2.5 * row, 3), (4 * row, 2), (1e-9, 3)):
     blocked = lambda a, b=budget: dft_correlate_w(a, kernel, b)  # noqa: E731
     assert products(blocked) == 1 + 3 * blocks, budget
     np.testing.assert_allclose(jax.jit(blocked)(x), whole, rtol=0, atol=1e-5)
   # 7 rows, 3 fit: blocks of 3, 3 and 1
-  seven = x.reshape(6, 20, 6)[jnp.array([0, 1, 2, 3, 4, 5, 0])]
+  seven = x.reshape(6, 20, 6)[jnp.array([[0, 1, 2, 3, 4, 5, 0]])]
   blocked = lambda a: dft_correlate_w(a, kernel, 3 * row)  # noqa: E731
   assert str(jax.make_jaxpr(blocked)(seven)).count("dot_general") == 1 + 3 * 3
   np.testing.assert_allclose(blocked(seven), dft_correlate_w(seven, kernel), rtol=0, atol=1e-5)
   assert dft_correlate_w(x[:0], kernel, 1e-9).shape == (0, 3, 20, 5)  # no rows: no blocks
   # at most DFT_MAX_BLOCKS blocks (they are unrolled), however small the budget
-  many = jnp.zeros((layers.DFT_MAX_BLOCKS * 2, 20, 6))
+  many = jnp.zeros((1, layers.DFT_MAX_BLOCKS * 2, 20, 6))
   assert str(jax.make_jaxpr(lambda a: dft_correlate_w(a, kernel, 1e-9))(many)).count(
       "dot_general") == 1 + 3 * layers.DFT_MAX_BLOCKS
 
@@ -160,11 +161,16 @@ def test_dft_correlation_keeps_the_dtype_and_names_a_wrong_kernel():
   kernel = jnp.asarray(rng.standard_normal((5, 3, 2)), jnp.float32)
   got = dft_correlate_w(x, kernel)
   assert got.dtype == jnp.bfloat16 and got.shape == (4, 12, 2)
+  assert "precision=(Precision.HIGHEST" in str(jax.make_jaxpr(dft_correlate_w)(x, kernel))
   want = _reference(x.astype(jnp.float32)[None], kernel[None], ((0, 0), (2, 2)))[0]
   np.testing.assert_allclose(np.asarray(got, np.float32), want, rtol=1e-2, atol=1e-2)
   for bad in ((4, 3, 2), (5, 4, 2)):  # even taps (no centre), channels not the input's
-    with pytest.raises(ValueError, match=r"dft_correlate_w: a kernel \[k odd, 3, O\]"):
+    with pytest.raises(ValueError, match=r"dft_correlate_w: a kernel \[k odd, 3, O\] for "
+                       r"input channels 3 and a width >= 1, got kernel shape"):
       dft_correlate_w(x, jnp.zeros(bad))
+  with pytest.raises(ValueError, match=r"got kernel shape \(1, 3, 2\) for input shape "
+                     r"\(4, 0, 3\)"):
+    dft_correlate_w(x[:, :0], jnp.zeros((1, 3, 2)))  # no width (was a ZeroDivisionError)
 
 
 def test_conv_params_are_conv3d_parameters():
