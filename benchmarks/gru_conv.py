@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from timing import timed  # benchmarks/timing.py
+from timing import add_clip_arguments, timed  # benchmarks/timing.py
 
 from sav_jax import runtime
 from sav_jax.model.update import SKSepConvGRU3D
@@ -44,9 +44,7 @@ def gru_times(frames, h, w, repeats, seed=0, dtype=jnp.float32):
 
 def main():
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  p.add_argument("--frames", type=int, default=5)
-  p.add_argument("--height", type=int, default=128)
-  p.add_argument("--width", type=int, default=256)
+  add_clip_arguments(p, iters=None)
   p.add_argument("--repeats", type=int, default=7)
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
   a = p.parse_args()

@@ -20,6 +20,7 @@ import sav_jax
 from sav_jax import inference
 from sav_jax.model.init import init_variables
 from sav_jax.tools import resolve_devices_option
+from timing import add_clip_arguments  # benchmarks/timing.py
 
 
 def without_reuse(variables, left, right, cfg, iters):
@@ -37,10 +38,7 @@ def without_reuse(variables, left, right, cfg, iters):
 
 def main():
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  p.add_argument("--frames", type=int, default=40)
-  p.add_argument("--height", type=int, default=128)
-  p.add_argument("--width", type=int, default=256)
-  p.add_argument("--iters", type=int, default=8)
+  add_clip_arguments(p, frames=40)
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
   p.add_argument("--devices", default="1", help="also run on N local devices (a number or 'all')")
   p.add_argument("--skip-whole", action="store_true", help="leave out the whole-model path")

@@ -26,7 +26,8 @@ from sav_jax.convert.raft import raft_variables_from_state_dict
 from sav_jax.model.raft import raft_flow
 from sav_jax.tools.bench import peak_rss_gb
 
-from timing import fixtures_folder, make_weights_module, timed  # benchmarks/timing.py
+from timing import (add_clip_arguments, fixtures_folder, make_weights_module,  # benchmarks/timing.py
+                    timed)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 MANIFEST = ROOT / "tests" / "fixtures" / "raft" / "raft_manifest.json"
@@ -52,9 +53,7 @@ def official_seconds(checkout, a, b, iters, repeats):
 
 def main():
   ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-  ap.add_argument("--height", type=int, default=436)
-  ap.add_argument("--width", type=int, default=1024)
-  ap.add_argument("--iters", type=int, default=20)
+  add_clip_arguments(ap, frames=None, height=436, width=1024, iters=20)
   ap.add_argument("--repeats", type=int, default=3)
   ap.add_argument("--official", help="checkout of the official repository (times its RAFT)")
   ap.add_argument("--fixtures", help="oracle fixtures folder with make_weights.py (default: "

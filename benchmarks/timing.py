@@ -21,10 +21,12 @@ def timed(fn, *args, repeats=3):
 
 
 def add_clip_arguments(parser, frames=5, height=128, width=256, iters=8):
-  """The clip shape options shared by the scripts: --frames --height --width --iters."""
+  """The clip shape options shared by the scripts: --frames --height --width --iters (an
+  option whose default is None is left out: a script that has no use for it)."""
   for name, default in (("frames", frames), ("height", height), ("width", width),
                         ("iters", iters)):
-    parser.add_argument(f"--{name}", type=int, default=default)
+    if default is not None:
+      parser.add_argument(f"--{name}", type=int, default=default)
 
 
 def random_forward(cfg, frames, height, width, iters):

@@ -34,6 +34,7 @@ from sav_jax import runtime  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.tools.bench import (compile_cache_note, compile_cache_probe, device_peak_gb,  # noqa: E402  pylint: disable=wrong-import-position
                                  json_output_problem, memory_lines, peak_rss_gb, xla_buffers_gb)
 from train import optim, state as state_lib, step as step_lib  # noqa: E402  pylint: disable=wrong-import-position
+from timing import add_clip_arguments  # noqa: E402  pylint: disable=wrong-import-position
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.config import resolve_gru_conv  # noqa: E402  pylint: disable=wrong-import-position
 
@@ -110,10 +111,7 @@ def measure(config, repeats: int) -> dict:
 
 def main():
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  p.add_argument("--frames", type=int, default=5)
-  p.add_argument("--height", type=int, default=256)
-  p.add_argument("--width", type=int, default=512)
-  p.add_argument("--iters", type=int, default=10)
+  add_clip_arguments(p, height=256, width=512, iters=10)
   p.add_argument("--batch", type=int, default=1, help="global batch (divisible by devices)")
   p.add_argument("--microbatches", type=int, default=1,
                  help="train.microbatches: the batch as this many parts (gradient accumulation)")
