@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sav_jax._checks import check_video_values, is_int
-from sav_jax.config import SAVConfig, as_config, resolve_gru_conv
+from sav_jax.config import SAVConfig, as_config
 from sav_jax.model.depth import DepthExtractor
 from sav_jax.model.encoder import BasicEncoder
 from sav_jax.model.layers import CorrMLP, in_frame_blocks, normalize
@@ -220,8 +220,7 @@ class StereoAnyVideo(nn.Module):
     self.depthnet = DepthExtractor(self.cfg)
     self.corr_mlp = CorrMLP()
     self.update_block = SequenceUpdateBlock3D(self.cfg.hidden_dim, self.cfg.upsample_rate, dt,
-                                              self.cfg.frame_block_mb,
-                                              resolve_gru_conv(self.cfg.gru_conv, dt))
+                                              self.cfg.frame_block_mb, self.cfg.gru_conv)
 
   def frame_features(self, left: jax.Array, right: jax.Array) -> dict:
     """The per-frame part of the features: nothing here mixes frames.

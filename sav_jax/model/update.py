@@ -213,14 +213,16 @@ class SKSepConvGRU3D(nn.Module):
     hd = self.hidden_dim
     c3 = lambda k, p, n: conv(hd, k, 1, p, dtype=self.dtype, name=n)
 
-    def super_kernel(name):
-      first = c3((1, 1, 15), (0, 0, 7), f"{name}_0")
-      second = c3((1, 1, 5), (0, 0, 2), f"{name}_2")
-      return lambda y: second(gelu(first(y)))
+    # The z and r gates of the W pass: a 1x15 convolution (`conv{g}1_0`), GELU, a 1x5 one.
+    second = lambda g: c3((1, 1, 5), (0, 0, 2), f"conv{g}1_2")  # noqa: E731
+
+    def super_kernel(g):
+      first, then = c3((1, 1, 15), (0, 0, 7), f"conv{g}1_0"), second(g)
+      return lambda y: then(gelu(first(y)))
 
     wide_conv = resolve_gru_conv(self.wide_conv, self.dtype)
     if wide_conv == "dft":
-      seconds = [c3((1, 1, 5), (0, 0, 2), f"conv{g}1_2") for g in "zr"]
+      seconds = [second(g) for g in "zr"]
 
       def gates(hx):  # the z and r first convolutions share one DFT of [h, x]
         weights = [ConvParams(hd, (1, 1, 15), name=f"conv{g}1_0")(hx.shape[-1]) for g in "zr"]
@@ -229,7 +231,7 @@ class SKSepConvGRU3D(nn.Module):
         firsts = gelu(dft_correlate_w(hx.astype(self.dtype), kernel, self.block_mb) + bias)
         return tuple(second(part) for second, part in zip(seconds, jnp.split(firsts, 2, -1)))
     elif wide_conv == "direct":
-      convz, convr = super_kernel("convz1"), super_kernel("convr1")
+      convz, convr = super_kernel("z"), super_kernel("r")
       gates = lambda hx: (convz(hx), convr(hx))  # noqa: E731
     else:
       raise ValueError(f"SKSepConvGRU3D.wide_conv={self.wide_conv!r}; expected one of {GRU_CONV}")
@@ -259,7 +261,7 @@ class SequenceUpdateBlock3D(nn.Module):
   mask_size: int = 4
   dtype: Any = jnp.float32
   block_mb: float = FRAME_BLOCK_MB
-  gru_conv: str = "direct"  # `SKSepConvGRU3D.wide_conv`
+  gru_conv: str = "direct"  # `SKSepConvGRU3D.wide_conv` ("auto" resolved there)
 
   def setup(self):
     dt = self.dtype
