@@ -29,6 +29,7 @@ import logging
 import pathlib
 import re
 import shutil
+import traceback
 
 import grain
 import jax
@@ -358,19 +359,26 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
   args = ocp.args.Composite(state=ocp.args.StandardRestore(target),
                             data=grain.checkpoint.CheckpointRestore(data_iterator))
 
-  def mismatch(e):
-    first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-    return _mismatch(directory, f"{type(e).__name__}: {first[:300]}")
-
   hint = (f". Move this step folder out of {directory.parent} to resume from the checkpoint "
           "before it, or start a new WORKDIR")
+  position = (directory / "data" /
+              f"process_{jax.process_index()}-of-{jax.process_count()}.json")
+
+  def mismatch(e):
+    first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    detail = f"{type(e).__name__}: {first[:300]}"
+    if _raised_in_grain(e):  # the position file parsed, but grain could not set it
+      return sav_jax.convert.CheckpointError(
+          f"{position}: this process's position in the data cannot be restored ({detail}): "
+          f"not a position grain {grain.__version__} writes for this data pipeline (edited by "
+          f"hand, or written by another grain version?){hint}")
+    return _mismatch(directory, detail)
+
   missing = [item for item in ("state", "data") if not (directory / item).is_dir()]
   if missing:  # e.g. a copy interrupted, or a folder edited by hand
     raise sav_jax.convert.CheckpointError(
         f"{directory}: the checkpoint is incomplete: it has no {' and no '.join(missing)} "
         f"folder (the {'training state' if 'state' in missing else 'data iterator'}){hint}")
-  position = (directory / "data" /
-              f"process_{jax.process_index()}-of-{jax.process_count()}.json")
   if not position.is_file():
     raise sav_jax.convert.CheckpointError(
         f"{directory}: the checkpoint is incomplete: it has no {position.relative_to(directory)} "
@@ -383,6 +391,12 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
       corrupt_hint=hint)
   _check_restored_tree(directory, restored, target, saved)
   return TrainState(**restored)
+
+
+def _raised_in_grain(e: BaseException) -> bool:
+  """Whether `e` was raised inside grain's code (restoring the data iterator's position)."""
+  return any(frame.f_globals.get("__name__", "").startswith("grain.")
+             for frame, _ in traceback.walk_tb(e.__traceback__))
 
 
 def _mismatch(directory, detail: str) -> sav_jax.convert.CheckpointError:

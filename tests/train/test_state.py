@@ -2025,3 +2025,24 @@ def test_the_catch_up_validation_check_places_its_flag_under_the_transfer_guard(
     assert loop._validation_missing(c, logged, 7) is False  # pylint: disable=protected-access
   finally:
     jax.config.update("jax_transfer_guard_host_to_device", before)
+
+
+@pytest.mark.parametrize("content", ["{\"next_index\": 3", "", "[1, 2]", "{}"])
+def test_unreadable_data_position_is_named_as_such(toy_run, tmp_path, content):
+  """A data position cut short, or one grain cannot set (edited, another grain version), is
+  named as such, not as a model or optimizer config mismatch."""
+  import shutil  # pylint: disable=g-import-not-at-top
+  _, c, model, tx, mesh = toy_run
+  copy = tmp_path / "run"
+  shutil.copytree(toy_run[0], copy)
+  position = copy / "checkpoints" / "1" / "data" / "process_0-of-1.json"
+  position.write_text(content, encoding="utf-8")
+  with pytest.raises(sav_jax.convert.CheckpointError) as e:
+    _toy_restore(copy, c, model, tx, mesh)
+  message = str(e.value)
+  assert "does not match" not in message and "Move this step folder" in message
+  if content.startswith("{\"next") or not content:  # not JSON: a file cut short
+    assert "the checkpoint is corrupt or incomplete" in message
+  else:
+    assert message.startswith(f"{position}: this process's position in the data cannot be "
+                              "restored")
