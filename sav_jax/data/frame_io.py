@@ -395,8 +395,9 @@ def read_exr(path: PathLike, channel: str | None = None) -> np.ndarray:
   try:
     with OpenEXR.File(str(path), separate_channels=True) as f:
       chans = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
-  except (RuntimeError, ValueError) as e:  # ValueError: a file cut short ("0 parts")
-    raise ValueError(f"cannot read EXR file {path}: {e}") from e
+  except (RuntimeError, ValueError) as e:  # cut short: "Invalid part index '0': file has 0 parts"
+    raise ValueError(f"cannot read EXR file {path}: not an OpenEXR file, or one cut short or "
+                     f"corrupt (OpenEXR: {e})") from e
   if channel is not None:
     if channel not in chans:
       raise ValueError(f"EXR file {path} has no channel {channel!r} (has {sorted(chans)})")
