@@ -187,3 +187,29 @@ def test_the_random_weights_snippet_saves_weights_the_tools_flag(tmp_path, monke
   assert "params" in variables and config["model"]["hidden_dim"] == 128
   assert "its frozen depth prior is random (init_variables)" in convert.random_prior_note(
       config, "ckpt/random")
+
+
+@pytest.mark.parametrize("calib_text", [
+    "fx 720\nbaseline 0.54\n",  # the "fx 720" text the snippet's comment names: no fy, cx, cy
+    "P2: 720 0 63.5 0 0 720 31.5 0 0 0 1 0\nP3: 720 0 63.5 -388.8 0 720 31.5 0 0 0 1 0\n"])
+def test_the_viz_snippet_runs_as_written(tmp_path, monkeypatch, calib_text):
+  """The "Looking at the results" block runs with the names the README defines before it
+  (`left`, `right`, `variables`, `cfg`) and a ground truth, for a calibration file with or
+  without fy / cx / cy; predict_video is stubbed (the block is about `viz`)."""
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  text = (ROOT / "README.md").read_text(encoding="utf-8")
+  block, = [b for b in re.findall(r"^ *```python\n(.*?)^ *```", text, flags=re.S | re.M)
+            if "viz.disparity_to_points" in b]
+  rng = np.random.default_rng(0)
+  left = rng.integers(0, 256, (1, 2, 64, 128, 3), dtype=np.uint8)
+  disp = rng.uniform(1, 20, (2, 64, 128)).astype(np.float32)
+  monkeypatch.setattr(sav_jax.inference, "predict_video", lambda *a, **k: disp)
+  monkeypatch.chdir(tmp_path)
+  (tmp_path / "calib_cam_to_cam.txt").write_text(calib_text, encoding="utf-8")
+  scope = dict(sav_jax=sav_jax, variables=None, cfg=None, left=left, right=left,
+               gt=disp + 1, valid=np.ones(disp.shape, bool))
+  exec(textwrap.dedent(block), scope)  # pylint: disable=exec-used
+  assert scope["xyz"].shape == (64 * 128, 3) and (tmp_path / "frame0.ply").is_file()
+  assert scope["cam"].fy == 720 and (scope["cam"].cx, scope["cam"].cy) == (63.5, 31.5)
+  np.testing.assert_allclose(scope["depth"], 720 * 0.54 / disp, rtol=1e-5)
