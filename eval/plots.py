@@ -134,7 +134,9 @@ def write_strip(path, clip: dict, preds: dict[str, np.ndarray], frames: int = 6,
     if gt is not None:  # KITTI's error colours against |gt| (the evaluator's abs())
       rows.append((f"{label} error", [viz.colorize_error(p[i], np.abs(gt[i]), valid[i])
                                       for i in idx]))
-  label_w = 150
+  # wide enough for the longest label ("Stereo Any Video error" at 0.5: ~190 px)
+  label_w = max(150, 12 + max(cv2.getTextSize(label, _FONT, 0.5, 1)[0][0]
+                              for label, _ in rows))
   lines = []
   for label, images in rows:
     tiles = [_tile(im, tile) for im in images]

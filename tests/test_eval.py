@@ -1229,3 +1229,19 @@ def test_sequences_whose_scores_are_not_measurements_are_noted(tmp_path, monkeyp
   fake["pred"][1, 0, 0] = np.nan
   with pytest.raises(ValueError, match=rf"^sequence {seq.name}, Stereo Any Video: pred has NaN"):
     eval_runner.evaluate_sequence(seq, ["sav"], variables=None, model_cfg=None, config=config)
+
+
+def test_strip_labels_are_not_cut(tmp_path):
+  """"Stereo Any Video error" was cut to "Stereo Any Video err" by a fixed 150 px column."""
+  t, h, w = 2, 16, 24
+  gt = np.full((t, h, w), 20.0, np.float32)
+  clip = {"left": np.zeros((t, h, w, 3), np.uint8), "disparity": gt,
+          "valid": np.ones((t, h, w), bool)}
+  path = eval_plots.write_strip(tmp_path / "s.png", clip, {"Stereo Any Video": gt + 1},
+                                frames=2, tile=32)
+  img = cv2.imread(str(path))
+  text_w = cv2.getTextSize("Stereo Any Video error", cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)[0][0]
+  label_w = img.shape[1] - 2 * w
+  assert label_w >= text_w + 6, (label_w, text_w)
+  error_row = img[24 + 3 * h:24 + 4 * h]
+  assert (error_row[:, label_w - 4:label_w] == 255).all()  # white margin after the text
