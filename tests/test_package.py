@@ -53,3 +53,15 @@ def test_cli_parsers_and_configs_do_not_import_jax():
                           text=True, timeout=120, check=False)
   assert result.returncode == 0, result.stderr
   assert result.stdout.strip() == "[]", result.stdout
+
+
+def test_every_sav_jax_option_has_help():
+  """`sav-jax COMMAND --help` explains every option (bench's --dtype had no text)."""
+  import argparse  # pylint: disable=import-outside-toplevel
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  sub, = [a for a in cli.build_parser()._actions  # pylint: disable=protected-access
+          if isinstance(a, argparse._SubParsersAction)]  # pylint: disable=protected-access
+  bare = [f"sav-jax {name} {action.option_strings[-1]}" for name, parser in sub.choices.items()
+          for action in parser._actions  # pylint: disable=protected-access
+          if action.option_strings and not action.help]
+  assert not bare, bare

@@ -26,7 +26,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--iters", type=int, default=8,
                  help="refinement iterations at 1/4 (>= 2; default 8)")
   p.add_argument("--batch", type=int, default=1, help="clips per call (default 1)")
-  p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
+  p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32",
+                 help="compute dtype (default float32)")
   p.add_argument("--vit-attention", choices=VIT_ATTENTION, default="auto",
                  help="the depth prior's ViT attention (SAVConfig.vit_attention; 'cudnn': "
                       "fused flash attention, CUDA GPUs with --dtype bfloat16; 'auto' "

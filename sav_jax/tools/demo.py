@@ -45,7 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   p.add_argument("--width", type=int, default=256, help="frame width (256)")
   p.add_argument("--iters", type=int, default=4, help="refinement iterations (>= 2; 4)")
   p.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene (0)")
-  p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None, help="compute dtype")
+  p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
+                 help="compute dtype (default: the checkpoint's, float32)")
   p.add_argument("--overwrite", action="store_true",
                  help="replace files of the output names in --out that an earlier demo did not "
                       "write (an earlier demo's outputs are always replaced)")
