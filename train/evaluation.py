@@ -10,6 +10,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 
 from sav_jax import metrics as sav_metrics
+from sav_jax._checks import plural
 from sav_jax.data import pipeline
 from train import input as input_lib
 from train import state as state_lib
@@ -51,7 +52,7 @@ class Evaluator:
     frames = sorted({len(c["left"]) for c in self.clips})
     # Clips of `frames` frames (data.frames, centre-cropped to data.crop): their EPE is not
     # `python -m eval`'s, which runs whole sequences at full size in 20-frame windows.
-    self.described = (f"{len(self.clips)} clips of {ev.dataset} ("
+    self.described = (f"{plural(len(self.clips), 'clip')} of {ev.dataset} ("
                       f"{'/'.join(map(str, frames))} frames), {ev.iters} iterations")
     log.info("validation: %s", self.described)
 

@@ -17,7 +17,7 @@ from typing import Mapping
 
 import numpy as np
 
-from sav_jax._checks import widened
+from sav_jax._checks import plural, widened
 from sav_jax.convert.pickle_reader import LEGACY_MAGIC, CheckpointError, check_inflation
 from sav_jax.convert.pickle_reader import load_legacy
 from sav_jax.convert.pickle_reader import load_zip
@@ -180,7 +180,7 @@ def _is_array_dict(obj):
 def _describe(obj):
   if isinstance(obj, Mapping):
     keys = list(obj)
-    return f"a dict with {len(keys)} keys, starting {keys[:5]!r}"
+    return f"a dict with {plural(len(keys), 'key')}, starting {keys[:5]!r}"
   return f"a {type(obj).__name__}"
 
 
@@ -302,13 +302,15 @@ def checkpoint_kind(sd: dict, source: str = "<state dict>") -> str:
   if sav_like:  # a Stereo Any Video state dict with other things in it
     extra = sorted(set(tops) - SAV_TOP_LEVEL)
     first = next(k for k in sd if str(k).split(".", 1)[0] in extra)
+    counts = ", ".join(f"{t} ({plural(tops[t], 'key')})" for t in extra)
     raise CheckpointError(
         f"{source}: a Stereo Any Video state dict with keys under other top-level names: "
-        f"{', '.join(f'{t} ({tops[t]} keys)' for t in extra)}, e.g. {first!r}; the model's "
+        f"{counts}, e.g. {first!r}; the model's "
         f"are {', '.join(sorted(SAV_TOP_LEVEL))} (remove the others)")
   keys = list(sd)
   raise CheckpointError(
-      f"{source}: unrecognised checkpoint layout: {len(keys)} keys, first {keys[:5]!r}, "
+      f"{source}: unrecognised checkpoint layout: {plural(len(keys), 'key')}, first "
+      f"{keys[:5]!r}, "
       f"top-level names {dict(sorted(tops.items()))}; expected Stereo Any Video keys "
       f"({', '.join(sorted(SAV_TOP_LEVEL))}) or Video Depth Anything keys (pretrained, head)")
 

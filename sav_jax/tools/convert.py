@@ -30,7 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  help="SRC is a Video Depth Anything file (video_depth_anything_vits.pth): "
                       "write SAV variables with these depth-prior weights and a freshly "
                       "initialised (seeded) trainable part, to start training as the paper does")
-  p.add_argument("--seed", type=int, default=0, help="init seed of the trainable part (--vda; default 0)")
+  p.add_argument("--seed", type=int, default=0,
+                 help="init seed of the trainable part (--vda; default 0)")
   p.add_argument("--overwrite", action="store_true", help="replace an existing DST checkpoint")
 
 

@@ -895,7 +895,7 @@ def test_checkpoint_kind_errors(fixtures_dir):
     with pytest.raises(CheckpointError, match=r"unrecognised checkpoint layout: \d+ keys") as e:
       torch_io.checkpoint_kind(sd, source=name)
     assert name in str(e.value)
-  for name, sd, extra in (("sav_plus_junk", _tiny(sav + ["extra.weight"]), "extra (1 keys)"),
+  for name, sd, extra in (("sav_plus_junk", _tiny(sav + ["extra.weight"]), "extra (1 key)"),
                           ("mixed", _tiny(sav[:3] + vda[:3]), "pretrained (3 keys)")):
     with pytest.raises(CheckpointError, match="a Stereo Any Video state dict with keys under "
                                               "other top-level names") as e:

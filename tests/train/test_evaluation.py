@@ -82,6 +82,8 @@ def test_clips_without_ground_truth_are_left_out_and_nan_predictions_score_nan(c
   model = _SignFlippingModel()
   ev = evaluation.Evaluator(config, model, state_lib.replicated(mesh), mesh, clips=kept)
   assert ev.described.startswith("2 clips of kitti_depth")
+  one = evaluation.Evaluator(config, model, state_lib.replicated(mesh), mesh, clips=kept[:1])
+  assert one.described.startswith("1 clip of kitti_depth (3 frames)")
   assert ev({})["epe"] == pytest.approx(1.0)  # with the empty clip's 0 it was 2/3
   caplog.clear()
   diverged = evaluation.Evaluator(config, _DivergedModel(), state_lib.replicated(mesh), mesh,
