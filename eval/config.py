@@ -75,6 +75,24 @@ def check_fields(config: ml_collections.ConfigDict, spec: str) -> None:
       "sintel_final.py)")
 
 
+def fields_help() -> str:
+  """The fields every evaluation config has, with `configs/eval/common.py`'s defaults (the
+  dataset's own config sets `dataset`, `split` and `sample_len`): `python -m eval --help`."""
+  from configs.eval import common  # pylint: disable=import-outside-toplevel
+  config = common.eval_config("<dataset>")
+  shown = [f"{name}={_value(config, name)!r}" for name in _flat_names(config)
+           if name not in ("dataset", "split", "sample_len")]
+  return ("config fields, overridden with --config.<field>=<value> (the dataset's config sets "
+          "dataset, split and sample_len; configs/eval/common.py explains each): "
+          + ", ".join(shown))
+
+
+def _value(config, name: str):
+  for part in name.split("."):
+    config = config[part]
+  return config
+
+
 def split_overrides(argv: list[str]) -> tuple[list[str], list[tuple[str, str]]]:
   """Separates `--config.a.b=v` / `--config.a.b v` from the other arguments.
 

@@ -36,7 +36,8 @@ from sav_jax.tools import (UsageError, add_compile_cache_arguments, check_output
 def build_parser() -> argparse.ArgumentParser:
   p = argparse.ArgumentParser(
       prog="python -m eval", description="Evaluate Stereo Any Video with the official protocol; "
-      "override config fields with --config.<field>=<value>.")
+      "override config fields with --config.<field>=<value>.",
+      epilog=eval_config.fields_help())
   p.add_argument("--config", required=True,
                  help="config file, e.g. configs/eval/sintel_final.py (optionally path.py:arg)")
   p.add_argument("--checkpoint", required=True,

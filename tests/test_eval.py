@@ -597,6 +597,21 @@ def test_a_config_that_is_not_an_evaluation_config_is_named(tmp_path, ckpt, caps
   assert not (tmp_path / "o").exists()
 
 
+def test_help_lists_the_config_fields_with_their_defaults(capsys):
+  from configs.eval import common  # pylint: disable=g-import-not-at-top
+  with pytest.raises(SystemExit) as e:
+    main(["--help"])
+  assert e.value.code == 0
+  out = " ".join(capsys.readouterr().out.split())  # argparse wraps the epilog
+  config = common.eval_config("x")
+  assert f"iters={config.iters!r}" in out and "metrics.raft=''" in out
+  for name, value in (("window", config.window), ("stride", config.stride),
+                      ("plots.tile_size", config.plots.tile_size),
+                      ("metrics.tcc", config.metrics.tcc)):
+    assert f"{name}={value!r}" in out, name
+  assert "sample_len=" not in out and "dataset=" not in out  # the dataset's config sets them
+
+
 def test_override_values_are_parsed_as_written():
   with pytest.raises(ValueError, match=r"--config.save_predictions needs a value "
                                        r"\(--config.save_predictions=VALUE or"):
