@@ -148,7 +148,7 @@ def make_schedule(opt_cfg, num_steps: int) -> Callable[[Any], jax.Array]:
 def schedule_summary(opt_cfg, num_steps: int) -> str:
   """The learning-rate schedule in words, for the run's log: `one-cycle (linear), from 4e-06
   up to 0.0001 at update 1200, down to 4e-10 at update 120099 of a 120100-update cycle (this
-  run stops at update 120000, at 8.37e-08)`, or `constant 0.0001`."""
+  run's last update is 119999, at 8.45e-08)`, or `constant 0.0001`."""
   if opt_cfg.schedule == "constant":
     return f"constant {opt_cfg.lr:g}"
   total = cycle_length(opt_cfg, num_steps)
@@ -158,8 +158,9 @@ def schedule_summary(opt_cfg, num_steps: int) -> str:
          f"{total}-update cycle")
   if num_steps < total - 1:
     with jax.transfer_guard("allow"):  # one scalar, at the start
-      last = float(make_schedule(opt_cfg, num_steps)(num_steps))
-    end += f" (this run stops at update {num_steps}, at {last:.3g})"
+      last = float(make_schedule(opt_cfg, num_steps)(num_steps - 1))
+    # updates count from 0: the run's last one is num_steps - 1 (its log line shows this rate)
+    end += f" (this run's last update is {num_steps - 1}, at {last:.3g})"
   else:
     end += f", then held (this run: {num_steps} updates)"
   return f"one-cycle (linear), from {initial:.3g} up to {opt_cfg.lr:g} at update {peak}, {end}"

@@ -1473,7 +1473,9 @@ def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_describ
   c.optimizer.final_div_factor, c.optimizer.schedule_steps = 1e4, 0
   assert optim.schedule_summary(c.optimizer, 120_000) == (
       "one-cycle (linear), from 4e-06 up to 0.0001 at update 1200, down to 4e-10 at update "
-      "120099 of a 120100-update cycle (this run stops at update 120000, at 8.37e-08)")
+      "120099 of a 120100-update cycle (this run's last update is 119999, at 8.45e-08)")
+  # 8.45e-08: 4e-10 + (1e-4 - 4e-10) * (120099 - 119999) / (120099 - 1200), the rate the
+  # last step's log line shows (the rate after it, 8.37e-08, was shown before)
   c.optimizer.schedule_steps = 1000
   assert optim.schedule_summary(c.optimizer, 5000).endswith(
       "update 999 of a 1000-update cycle, then held (this run: 5000 updates)")
