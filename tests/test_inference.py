@@ -381,6 +381,10 @@ def test_run_window_cache_belongs_to_one_video(monkeypatch):
                      "FrameFeatureCache holds"):
     run(other[10:], start=10)
   run(video[10:], start=10)  # the same frames again: served
+  # ... the right view too: a changed right frame beside the same left one is not served
+  with pytest.raises(ValueError, match="frame 12 differs from the frame whose features"):
+    inference.run_window({}, video[10:], other[10:], cfg=sav_jax.SAVConfig(), iters=2,
+                         cache=cache, start=10)
   with pytest.raises(ValueError, match="holds features of 5x7 frames padded by"):
     run(np.zeros((4, 9, 7, 3), np.uint8), start=20)
   with pytest.raises(ValueError, match="use a new cache"):
@@ -561,6 +565,8 @@ def test_run_window_checks_its_inputs_before_compiling(variables):
            ((video, video), {"iters": 1}, "iters must be an integer >= 2"),
            ((video, video), {"pads": (1, 1, 0, 0)}, "pads must be 4 integers"),
            ((video, video), {"pads": (0, 0, -1, 1)}, "pads must be 4 integers"),
+           # 40x32: a multiple of 8, not of 16 (the model's 1/16 stage)
+           ((video, video), {"pads": (4, 4, 0, 0)}, "pads must be 4 integers"),
            ((video, video), {"start": -1}, "start must be an integer >= 0")]
   for args, kw, match in cases:
     with pytest.raises(ValueError, match=match):
@@ -910,3 +916,21 @@ def test_window_features_are_not_held_twice_while_a_window_runs(monkeypatch, dev
   else:  # two windows dispatched at once (the stand-ins run at dispatch), then forgotten
     assert held[1] == list(range(30)) and held[2] == list(range(20, 40))
   assert not caches[-1].frames
+
+
+@pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
+def test_run_window_fills_a_chunk_that_an_earlier_window_cut_short(monkeypatch):
+  """Windows [0, 15) and [10, 25) by hand with the default cache (chunks of 10): the first
+  computes [10, 15) of chunk [10, 20); the second needs frames 15..19 of that chunk too."""
+  fake = _CountingPrograms()
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "compiled_frame_features", fake.frames)
+  monkeypatch.setattr(inference, "compiled_window", fake.window)
+  video, cache = _labelled_video(25), inference.FrameFeatureCache()
+  for start, stop in ((0, 15), (10, 25)):
+    out = inference.run_window({}, video[start:stop], video[start:stop], cfg=sav_jax.SAVConfig(),
+                               iters=2, check_memory=False, cache=cache, start=start)
+    assert out.shape == (15, 32, 32)  # 5x7 padded to 32x32
+  assert sorted(fake.seen) == list(range(25))  # every frame's own features reached a window
+  assert set(fake.computed) == set(range(25))
