@@ -379,8 +379,9 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
     np.testing.assert_array_equal(np.load(out / "disparity" / f"{i:04d}.npy"), d)
     assert viz.read_png16(out / "disparity" / f"{i:04d}.png")[0].max() == min(d, 65535 / 256)
     np.testing.assert_allclose(np.load(out / "depth" / f"{i:04d}.npy"), 10 / d, rtol=1e-6)
-    points = len(viz.read_ply(out / "pointclouds" / f"{i:04d}.ply")[0])
-    assert points == (16 * 24 if 10 / d <= 0.5 else 0)  # --max-depth: frame 0 is at 0.83
+    xyz, rgb = viz.read_ply(out / "pointclouds" / f"{i:04d}.ply")
+    assert len(xyz) == (16 * 24 if 10 / d <= 0.5 else 0)  # --max-depth: frame 0 is at 0.83
+    np.testing.assert_array_equal(rgb, labels[i])  # frame i's colours, in every window
   assert max(read) <= 20  # windows (and video batches), never all 25 frames at once
   assert len(video_io.read_video_file(out / "side_by_side.mp4")) == n
   assert not list(out.glob(".disparity_*"))  # the temporary file is gone
@@ -1051,6 +1052,9 @@ def test_calibration_kitti_grey_cameras(tmp_path):
 def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   from sav_jax.tools import demo
   monkeypatch.setattr(demo, "BUNDLED", tmp_path / "no_bundled_checkpoint")
+  predicted, real_predict = [], inference.predict_video
+  monkeypatch.setattr(inference, "predict_video",
+                      lambda *a, **kw: predicted.append(real_predict(*a, **kw)) or predicted[-1])
   out = tmp_path / "demo"
   (out / "disparity").mkdir(parents=True)
   for name in (f"frame_{T:06d}.png", "frame_000000.png", "mine.png"):  # the user's files
@@ -1070,6 +1074,11 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   assert "RANDOM (untrained) weights" in printed and "StereoSGBM" in printed
   for name in ("comparison.mp4", "side_by_side.mp4", "metrics.json"):
     assert (out / name).is_file()
+  [pred] = predicted  # the frame PNGs hold the model's disparities (x256), not SGBM's
+  for t in range(T):
+    stored = np.clip(np.round(pred[t].astype(np.float64) * 256), 1, 65535)
+    np.testing.assert_array_equal(viz.read_png16(out / "disparity" / f"frame_{t:06d}.png")[0],
+                                  np.where(pred[t] > 0, stored / 256, 0))
   # --overwrite replaces the demo's own names only: frame T (the user's) stays.
   assert sorted(p.name for p in (out / "disparity").glob("*.png")) == [
       f"frame_{t:06d}.png" for t in range(T + 1)] + ["mine.png"]
