@@ -570,6 +570,15 @@ def test_frame_sources_check_every_frame_when_opened(tmp_path, clip, caplog):
     caplog.clear()
   np.testing.assert_array_equal(lv[1:3], arrays[0][1:3])
   np.testing.assert_array_equal(rv[-1], arrays[1][-1])
+  # one frame by index, as a sequence: -T is the first, beyond either end an IndexError (-T - 1
+  # wrapped around to frame T - 2, T raised numpy's "index 0 is out of bounds for ... size 0")
+  resized = video_io.ResizedSource(lv, H, W)
+  for source, frames in ((lv, arrays[0]), (resized, arrays[0].astype(np.float32))):
+    np.testing.assert_array_equal(source[-T], frames[0])
+    np.testing.assert_array_equal(source[np.int64(1)], frames[1])
+    for index in (-T - 1, T):
+      with pytest.raises(IndexError, match=f"frame index {index} is out of range for {T} frames"):
+        source[index]  # pylint: disable=pointless-statement
   video = video_io.FrameSource(tmp_path / "v.mp4")
   whole = video_io.read_video_file(tmp_path / "v.mp4")
   np.testing.assert_array_equal(np.concatenate([video[1:3], video[0:1], video[2:]]),

@@ -9,6 +9,7 @@ each with a logged note; an alpha channel is dropped. Float images are refused.
 from __future__ import annotations
 
 import logging
+import operator
 import os
 import pathlib
 import re
@@ -223,7 +224,7 @@ class FrameSource:
 
   def __getitem__(self, index) -> np.ndarray:
     if not isinstance(index, slice):
-      return self[index:index + 1][0] if index >= 0 else self[len(self) + index]
+      return _one_frame(self, index)
     start, stop, step = index.indices(len(self))
     if step != 1:
       raise ValueError("FrameSource slices take step 1")
@@ -248,6 +249,17 @@ class FrameSource:
     for old in [k for k in self._buffer if k <= i - max(1, self.keep)]:
       del self._buffer[old]
     return self._buffer[i]
+
+
+def _one_frame(source, index) -> np.ndarray:
+  """`source[index]` for an integer `index` of a sliceable source: from the end where negative,
+  an IndexError outside `[-len, len)` (a negative one wrapped around: frame 2 of 3 for -4)."""
+  n = len(source)
+  i = operator.index(index)
+  if not -n <= i < n:
+    raise IndexError(f"frame index {index} is out of range for {n} frames")
+  i %= n
+  return source[i:i + 1][0]
 
 
 def resize_frames(frames, height: int, width: int) -> np.ndarray:
@@ -297,7 +309,7 @@ class ResizedSource:
 
   def __getitem__(self, index) -> np.ndarray:
     if not isinstance(index, slice):
-      return self[index:index + 1][0] if index >= 0 else self[len(self) + index]
+      return _one_frame(self, index)
     return resize_frames(self.source[index], *self.shape[1:3])
 
 
