@@ -1062,6 +1062,9 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   from sav_jax.tools import demo
   monkeypatch.setattr(demo, "BUNDLED", tmp_path / "no_bundled_checkpoint")
   predicted, real_predict = [], inference.predict_video
+  clips, real_clip = [], synthetic.generate_clip
+  monkeypatch.setattr(synthetic, "generate_clip",
+                      lambda *a, **kw: clips.append(real_clip(*a, **kw)) or clips[-1])
   monkeypatch.setattr(inference, "predict_video",
                       lambda *a, **kw: predicted.append(real_predict(*a, **kw)) or predicted[-1])
   out = tmp_path / "demo"
@@ -1095,6 +1098,9 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   results = json.loads((out / "metrics.json").read_text())["metrics"]
   assert set(results) == {"Stereo Any Video", "StereoSGBM"}
   assert results["StereoSGBM"]["disp_epe_mean"] < 2.0  # SGBM works on the synthetic scene
+  from sav_jax import metrics  # pylint: disable=import-outside-toplevel
+  assert results["Stereo Any Video"] == pytest.approx(metrics.eval_sequence(  # the model's row
+      pred, clips[0]["disparity"], clips[0]["valid"].astype(np.float32)))
   # An earlier demo's folder is replaced without --overwrite, and the frames that a longer
   # earlier demo wrote (its metrics.json says T + 2) are removed; frame T + 2 is not its.
   summary = json.loads((out / "metrics.json").read_text())
