@@ -1065,8 +1065,14 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   clips, real_clip = [], synthetic.generate_clip
   monkeypatch.setattr(synthetic, "generate_clip",
                       lambda *a, **kw: clips.append(real_clip(*a, **kw)) or clips[-1])
-  monkeypatch.setattr(inference, "predict_video",
-                      lambda *a, **kw: predicted.append(real_predict(*a, **kw)) or predicted[-1])
+  views = []  # (left, right) as the model got them
+
+  def predict(variables, left, right, **kw):
+    views.append((left, right))
+    predicted.append(real_predict(variables, left, right, **kw))
+    return predicted[-1]
+
+  monkeypatch.setattr(inference, "predict_video", predict)
   out = tmp_path / "demo"
   (out / "disparity").mkdir(parents=True)
   for name in (f"frame_{T:06d}.png", "frame_000000.png", "mine.png"):  # the user's files
@@ -1087,6 +1093,9 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   for name in ("comparison.mp4", "side_by_side.mp4", "metrics.json"):
     assert (out / name).is_file()
   [pred] = predicted  # the frame PNGs hold the model's disparities (x256), not SGBM's
+  [(left, right)] = views  # the clip's left view as the model's left (swapped: negative)
+  np.testing.assert_array_equal(left, clips[0]["left"])
+  np.testing.assert_array_equal(right, clips[0]["right"])
   for t in range(T):
     stored = np.clip(np.round(pred[t].astype(np.float64) * 256), 1, 65535)
     np.testing.assert_array_equal(viz.read_png16(out / "disparity" / f"frame_{t:06d}.png")[0],
