@@ -108,3 +108,17 @@ def test_large_and_invalid_disparities_are_ignored():
   np.testing.assert_allclose(float(loss), 2.0, rtol=1e-6)
   np.testing.assert_allclose(float(metrics["3px"]), 1.0)
   np.testing.assert_allclose(float(metrics["1px"]), 0.0)
+
+
+def test_valid_threshold_magnitude_cut_and_accuracy_bounds():
+  # valid >= 0.5 counts (0.49 does not), the 700 cut is on |d| (a -750 is left out), and the
+  # n-px accuracies count errors strictly below n (official `(epe < n)`).
+  gt = np.array([[[[10.0, 10.0, 10.0], [-750.0, 10.0, 10.0]]]], np.float32)  # [1, 1, 2, 3]
+  valid = np.array([[[[1.0, 0.5, 0.49], [1.0, 1.0, 1.0]]]], np.float32)
+  preds = np.array([[[[[11.0, 13.0, 1e6], [1e6, 15.0, 10.0]]]]], np.float32)  # errors 1, 3, 5, 0
+  loss, metrics = loss_lib.sequence_loss(preds, gt, valid)
+  np.testing.assert_allclose(float(loss), (1 + 3 + 5 + 0) / 4, rtol=1e-6)
+  np.testing.assert_allclose(float(metrics["epe"]), (1 + 3 + 5 + 0) / 4, rtol=1e-6)
+  for tau, below in ((1, 1), (3, 2), (5, 3)):  # errors 0 | 0, 1 | 0, 1, 3
+    np.testing.assert_allclose(float(metrics[f"{tau}px"]), below / 4, rtol=1e-6, err_msg=tau)
+  np.testing.assert_allclose(float(metrics["valid_fraction"]), 4 / 6, rtol=1e-6)
