@@ -287,6 +287,13 @@ def test_schedule_shorter_than_the_run_holds_its_final_lr():
   np.testing.assert_allclose(lrs[1:], final, rtol=1e-5)
 
 
+def test_a_constant_schedule_keeps_the_configured_rate():
+  c = synthetic.get_config()
+  c.optimizer.schedule, c.optimizer.lr = "constant", 3e-4
+  sched = optim.make_schedule(c.optimizer, 200)
+  np.testing.assert_allclose([float(sched(s)) for s in (0, 1, 100, 500)], 3e-4, rtol=1e-6)
+
+
 def test_extending_a_one_cycle_run_names_the_learning_rate_jump():
   c = synthetic.get_config()
   c.optimizer.schedule, c.optimizer.schedule_steps = "one_cycle", 0
