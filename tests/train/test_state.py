@@ -28,6 +28,7 @@ from sav_jax.data import pipeline
 from sav_jax.data.synthetic import SyntheticConfig
 from sav_jax.model.stereo_any_video import SAVOutput
 from train import checkpoint as ckpt_lib
+from train import loss as loss_lib
 from train import optim, state as state_lib, step as step_lib
 
 
@@ -405,6 +406,43 @@ def test_step_updates_trainable_only_and_skips_nan_batches():
   # The lr follows applied updates: 2 applied after 3 steps.
   sched = optim.make_schedule(c.optimizer, c.train.num_steps)
   np.testing.assert_allclose(float(m["lr"]), float(sched(1)), rtol=1e-6)
+
+
+def test_the_step_trains_on_the_configured_loss_and_iterations():
+  """`loss.gamma`, `loss.max_disparity`, `loss.per_sample` and `train.iters` reach the step:
+  its loss is `sequence_loss` of the model's predictions (left, right) with those settings,
+  which differs from the loss with any one of them left at its default."""
+  c = _config()
+  c.train.iters, c.loss.gamma, c.loss.max_disparity, c.loss.per_sample = 4, 0.5, 5.0, False
+  model, mesh, _, state, _, step = _setup(c)
+  batch = _batch(np.random.default_rng(3), c)
+  batch["valid"][0, :, :6] = False  # clips of other valid counts: pooled != per clip
+  params = {"params": jax.device_get(state.params)}
+  preds = {it: model.apply(params, batch["left"], batch["right"], iters=it).disparities
+           for it in (2, 4)}
+  kwargs = dict(gamma=0.5, max_disparity=5.0, per_sample=False)
+  want = float(loss_lib.sequence_loss(preds[4], batch["disparity"], batch["valid"], **kwargs)[0])
+  others = [loss_lib.sequence_loss(preds[2], batch["disparity"], batch["valid"], **kwargs)[0]]
+  for field, default in (("gamma", 0.9), ("max_disparity", 700.0), ("per_sample", True)):
+    others.append(loss_lib.sequence_loss(preds[4], batch["disparity"], batch["valid"],
+                                         **dict(kwargs, **{field: default}))[0])
+  assert all(abs(float(o) - want) > 1e-3 * want for o in others), (want, others)
+  _, m = step(state, _put(batch, mesh))
+  np.testing.assert_allclose(float(m["loss"]), want, rtol=1e-5)
+
+
+def test_an_update_that_overflows_is_skipped():
+  """Finite loss and gradients, but an absurd learning rate makes the update non-finite: the
+  step is skipped as for a NaN batch, not applied (the parameters would be inf/NaN)."""
+  c = _config()
+  c.optimizer.schedule, c.optimizer.lr = "constant", 1e38  # finite; the update norm is not
+  _, mesh, _, state, _, step = _setup(c)
+  before = jax.device_get(state.params)
+  state, m = step(state, _put(_batch(np.random.default_rng(0), c), mesh))
+  assert np.isfinite(float(m["loss"])) and np.isfinite(float(m["l2_grads"]))
+  assert not np.isfinite(float(m["l2_updates"])) and float(m["finite"]) == 0.0
+  assert int(state.num_skipped) == 1
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(state.params), before)
 
 
 def test_checkpoint_roundtrip_with_data_iterator(tmp_path):
