@@ -511,6 +511,13 @@ def test_place_params_rejects_mismatches():
     state_lib.place_params(host, abstract, state_lib.make_mesh())
 
 
+def test_the_batch_is_split_over_the_data_axis_and_the_state_replicated():
+  # (an abstract mesh of 4 devices: this process has one)
+  mesh = jax.sharding.AbstractMesh((4,), (state_lib.DATA_AXIS,))
+  assert state_lib.data_sharding(mesh).shard_shape((8, 2, 16, 16, 3)) == (2, 2, 16, 16, 3)
+  assert state_lib.replicated(mesh).shard_shape((8, 3)) == (8, 3)
+
+
 def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path, caplog):
   from sav_jax.convert import save_variables  # pylint: disable=g-import-not-at-top
   from train import loop  # pylint: disable=g-import-not-at-top
