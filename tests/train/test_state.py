@@ -566,6 +566,28 @@ def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path, caplog):
           "7 in ") in caplog.text
 
 
+def test_depth_prior_weights_are_merged_into_the_initial_params(tmp_path):
+  """`vda_weights` replace the frozen prior's subtree, from scratch and over `init_from`'s
+  params (a run that dropped them would train with a random prior, silently)."""
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  model, mesh = ToyStereo(), state_lib.make_mesh()
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
+  abstract = state_lib.abstract_params(model, c)
+  vda = jax.tree.map(lambda a: np.full(a.shape, 0.25, a.dtype),
+                     abstract["depthnet"]["depthanything"])
+  host = jax.tree.map(lambda a: np.full(a.shape, 0.5, a.dtype), abstract)
+  for name, weights in (("scratch", (None, vda)), ("init_from", (host, vda))):
+    manager = ckpt_lib.make_manager(tmp_path / name, c)
+    state, _, source = loop.initial_state(c, model, tx, mesh, manager, None, abstract, weights)
+    manager.close()
+    params = jax.device_get(state.params)
+    assert source == "weights"
+    jax.tree.map(np.testing.assert_array_equal, params["depthnet"]["depthanything"], vda)
+    if name == "init_from":
+      np.testing.assert_array_equal(params["head"]["kernel"], host["head"]["kernel"])
+
+
 def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(tmp_path):
   # A run saved with keep=0 (all), resumed without repeating it (the default keeps 3): orbax
   # deleted the older checkpoints at the first save, the finished run's last one included.
