@@ -1763,6 +1763,20 @@ def test_sigterm_on_a_validation_step_still_validates(tmp_path):
     assert sav_jax.convert.find_training_checkpoint(workdir).name == str(notice_at)
 
 
+def test_the_last_step_is_validated_and_saved_off_the_periods(tmp_path):
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.num_steps, c.train.log_every, c.train.progress_bar = 3, 2, False
+  c.checkpoint.every_steps, c.checkpoint.async_save, c.checkpoint.keep = 2, False, 0
+  c.eval.every_steps, c.eval.at_start = 2, True
+  parts = _loop_parts(c, tmp_path, evaluator=lambda params: {"epe": 1.0})
+  assert int(loop.run(c, tmp_path, parts).step) == 3
+  records = [json.loads(l) for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+  assert [(r["step"], r["split"]) for r in records] == [
+      (0, "val"), (2, "train"), (2, "val"), (3, "train"), (3, "val")]
+  assert sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir()) == [2, 3]
+
+
 def test_a_validation_lost_with_the_process_is_run_on_resume(tmp_path):
   # The checkpoint of a validation step is saved before the validation runs: a run killed
   # while validating (SIGKILL, out of memory) resumes after that step, and the validation
