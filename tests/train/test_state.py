@@ -1129,6 +1129,12 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
     ("optimizer.lr", -1.0, r"config\.optimizer\.lr=-1\.0: expected a number > 0"),
     ("optimizer.schedule", "cosine", r"config\.optimizer\.schedule='cosine'"),
     ("optimizer.frozen", "(", r"config\.optimizer\.frozen='\(': expected a regular expression"),
+    ("optimizer.weight_decay", -1e-5, r"config\.optimizer\.weight_decay=-1e-05: expected a "
+     r"number >= 0"),
+    ("optimizer.b2", 1.0, r"config\.optimizer\.b2=1\.0: expected a number in \[0, 1\)"),
+    ("optimizer.clip_norm", -1.0, r"config\.optimizer\.clip_norm=-1\.0: expected a number >= 0"),
+    ("loss.gamma", 0.0, r"config\.loss\.gamma=0\.0: expected a number > 0"),
+    ("loss.max_disparity", 0.0, r"config\.loss\.max_disparity=0\.0: expected a number > 0"),
     ("eval.iters", 1, r"config\.eval\.iters=1: expected an integer >= 2"),
     ("model.dtype", "float16", r"config\.model\.dtype='float16'; expected 'float32' or"),
     ("model.remat_policy", "bogus", r"config\.model\.remat_policy='bogus'"),
@@ -1863,6 +1869,9 @@ def test_resume_checks_num_steps_and_never_needs_the_init_files(toy_run, tmp_pat
   c.train.num_steps = 3
   with pytest.raises(ValueError, match=r"config.train.num_steps=3 is below the step of the "
                      r"checkpoint .*checkpoints/5\): pass a train.num_steps of at least 5"):
+    loop.setup(c, workdir)
+  c.train.num_steps = 4  # one short of the checkpoint: refused too
+  with pytest.raises(ValueError, match=r"config.train.num_steps=4 is below the step of the "):
     loop.setup(c, workdir)
 
   class Reached(Exception):
