@@ -660,6 +660,18 @@ def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
   assert src[1]["disparity"][0, 0, 0] in (0, 2)  # another clip stands in
 
 
+def test_each_process_reads_its_share_of_the_batch():
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.batch_size, c.data.synthetic.num_clips = 4, 8
+  batch = next(iter(input_lib.train_dataset(c, process_index=1, process_count=2)))
+  assert batch["left"].shape[:2] == (2, c.data.frames)  # 4 clips over 2 processes
+  c.train.batch_size = 3
+  with pytest.raises(ValueError, match=r"config.train.batch_size=3 is not divisible by 2 "
+                                       r"processes"):
+    input_lib.train_dataset(c, process_index=0, process_count=2)
+
+
 def test_a_training_source_may_have_its_own_data_root(monkeypatch):
   """Your own videos (the "folder" dataset) beside the SceneFlow family under data.root."""
   from train import input as input_lib  # pylint: disable=g-import-not-at-top
@@ -1939,6 +1951,32 @@ def test_validation_clips_that_cannot_be_used_name_the_config_fields(monkeypatch
     input_lib.eval_clips(c)
   c.data.crop = (16, 32)
   assert [x["left"].shape[1:3] for x in input_lib.eval_clips(c)] == [(16, 32)] * 3
+
+
+def test_held_out_clips_are_spread_over_the_split_and_not_trained_on(monkeypatch):
+  import grain  # pylint: disable=g-import-not-at-top
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.batch_size, c.data.synthetic.num_clips, c.eval.num_clips = 4, 4, 4
+  batch = next(iter(input_lib.train_dataset(c, process_index=0, process_count=1)))
+  held_out = input_lib.eval_clips(c)  # generated from config.eval.synthetic_seed
+  assert len(held_out) == 4
+  for clip in batch["disparity"]:
+    assert not any(np.array_equal(clip, h["disparity"]) for h in held_out)
+  # A dataset's split: clips from all over it (every 5th of 10 windows), consecutive frames.
+  c.eval.dataset, c.eval.split, c.eval.num_clips = "sintel_final", "test", 2
+  calls = []
+
+  def source(*args, **kwargs):
+    calls.append(kwargs)
+    return grain.MapDataset.source([{"left": np.full((2, 16, 16, 3), i, np.uint8),
+                                     "right": np.zeros((2, 16, 16, 3), np.uint8),
+                                     "disparity": np.ones((2, 16, 16), np.float32),
+                                     "valid": np.ones((2, 16, 16), bool)} for i in range(10)])
+
+  monkeypatch.setattr(pipeline, "registry_source", source)
+  assert [int(x["left"][0, 0, 0, 0]) for x in input_lib.eval_clips(c)] == [0, 5]
+  assert calls[0]["consecutive"] is True
 
 
 @pytest.mark.parametrize("during", ["setup", "run"])
