@@ -48,6 +48,24 @@ def test_validation_scores_the_absolute_prediction_as_the_official_evaluator():
   assert signed["disp_epe_mean"] > 1.0  # what scoring the signed prediction would give
 
 
+def test_validation_runs_the_configured_number_of_iterations():
+  seen = []
+
+  class Recording(_SignFlippingModel):
+    def apply(self, variables, left, right, *, iters, final_only):
+      seen.append(iters)
+      return super().apply(variables, left, right, iters=iters, final_only=final_only)
+
+  gt = np.full((2, 8, 16), 3.0, np.float32)
+  clips = [{"left": np.repeat(gt[..., None], 3, axis=-1), "right": np.zeros((2, 8, 16, 3)),
+            "disparity": gt, "valid": np.ones_like(gt, dtype=bool)}]
+  config = ml_collections.ConfigDict({"eval": {"batch_size": 1, "iters": 6,
+                                               "dataset": "synthetic"}})
+  mesh = state_lib.make_mesh(jax.devices()[:1])
+  ev = evaluation.Evaluator(config, Recording(), state_lib.replicated(mesh), mesh, clips=clips)
+  assert ev({})["epe"] == 0.0 and seen == [6]
+
+
 class _DivergedModel:
   """Stands in for weights that diverged: NaN everywhere."""
 
