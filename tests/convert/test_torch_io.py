@@ -274,6 +274,15 @@ def test_every_dtype_round_trips(tmp_path, fake_torch, fmt):
     np.testing.assert_array_equal(out[f"w.{k}"], v, err_msg=k)
 
 
+def test_unknown_byteorder_record_is_refused(tmp_path, fake_torch):
+  # Any record but "little" read the weights as big-endian: values silently byte-swapped.
+  b = _Builder(fake_torch)
+  path = b.write_zip(tmp_path / "order.pth", {"w": b.array(np.ones(2, np.float32), "float32")},
+                     byteorder="LITTLE")
+  with pytest.raises(CheckpointError, match=r"order\.pth: unknown byteorder record 'LITTLE'"):
+    torch_io.load_state_dict(path)
+
+
 @pytest.mark.parametrize("fmt", ["zip", "legacy"])
 def test_views_offsets_and_rebuild_variants(tmp_path, fake_torch, fmt):
   b = _Builder(fake_torch)
@@ -324,6 +333,25 @@ def test_v3_tensor_on_untyped_storage(tmp_path, fake_torch):
   np.testing.assert_array_equal(sd["b"], f32)
 
 
+def test_v3_tensor_on_untyped_storage_of_a_big_endian_file(tmp_path, fake_torch):
+  # An untyped storage is bytes: a big-endian file's elements are swapped when its v3 tensor
+  # gives them their dtype (read as little-endian, 300 came back as 11265).
+  b = _Builder(fake_torch)
+  u16 = np.array([1, 65535, 300, 7], ">u2")
+  f32 = np.array([1.25, -3.0, 1e-30], ">f4")
+  st16, st32 = b.untyped(u16.tobytes()), b.untyped(f32.tobytes())
+  utils = fake_torch._utils
+  args16 = (st16, 1, (3,), (1,), False, collections.OrderedDict(), fake_torch.uint16)
+  args32 = (st32, 0, (3,), (1,), False, collections.OrderedDict(), fake_torch.float32)
+  obj = {"a": _Tensor(utils._rebuild_tensor_v3, args16),
+         "b": _Tensor(utils._rebuild_tensor_v3, args32)}
+  sd = torch_io.load_state_dict(b.write_zip(tmp_path / "v3big.pth", obj, byteorder="big"))
+  assert sd["a"].dtype == np.uint16 and sd["a"].dtype.isnative
+  np.testing.assert_array_equal(sd["a"], [65535, 300, 7])
+  assert sd["b"].dtype == np.float32 and sd["b"].dtype.isnative
+  np.testing.assert_array_equal(sd["b"], np.array([1.25, -3.0, 1e-30], np.float32))
+
+
 def test_legacy_storage_view_metadata(tmp_path, fake_torch):
   b = _Builder(fake_torch)
   st = b.storage(np.arange(10, dtype=np.float32), "float32")
@@ -341,6 +369,17 @@ def test_legacy_storage_view_metadata(tmp_path, fake_torch):
     f.write(_legacy_header() + buf.getvalue() + pickle.dumps([st.key], protocol=2))
     f.write(struct.pack("<q", st.numel) + st.raw)
   np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], [5, 6])
+  # A negative view offset sliced the base storage from its end: values of the wrong
+  # elements, silently.
+  for view in (("view0", -4, 5), ("view0", 4, -1)):
+    pid_view = ("storage", st.cls, st.key, "cpu", st.numel, view)
+    buf = io.BytesIO()
+    ViewPickler(buf, protocol=2).dump(body)
+    with open(path, "wb") as f:
+      f.write(_legacy_header() + buf.getvalue() + pickle.dumps([st.key], protocol=2))
+      f.write(struct.pack("<q", st.numel) + st.raw)
+    with pytest.raises(CheckpointError, match=r"view\.pth: malformed storage view"):
+      torch_io.load_state_dict(path)
 
 
 def test_tensor_overrunning_storage_is_refused(tmp_path, fake_torch):
@@ -353,6 +392,17 @@ def test_tensor_overrunning_storage_is_refused(tmp_path, fake_torch):
   b.write_zip(tmp_path / "huge.pth", {"x": b.tensor(st, 0, (1 << 20, 1 << 20), (0, 0))})
   with pytest.raises(CheckpointError, match="refused a tensor"):
     torch_io.load_state_dict(tmp_path / "huge.pth")
+  # numpy takes negative offsets and strides: they read memory before or after the storage's
+  # buffer (the overrun check looks only at the last element's index).
+  for offset, size, stride, match in ((0, (2,), (-1,), "tensor stride must be a tuple of "
+                                       "non-negative ints"),
+                                      (2, (3,), (-1,), "tensor stride must be"),
+                                      (-1, (3,), (1,), "bad tensor storage offset -1"),
+                                      (0, (2, -1), (1, 1), "tensor size must be a tuple of "
+                                       "non-negative ints")):
+    b.write_zip(tmp_path / "neg.pth", {"x": b.tensor(st, offset, size, stride)})
+    with pytest.raises(CheckpointError, match=rf"neg\.pth: {match}"):
+      torch_io.load_state_dict(tmp_path / "neg.pth")
 
 
 def test_many_views_of_one_storage_are_refused_beyond_a_memory_budget(tmp_path, fake_torch,
@@ -598,6 +648,32 @@ def test_malicious_pickle_with_opaque_unknown_runs_nothing(tmp_path):
   with pytest.raises(CheckpointError, match="not a state dict of tensors"):
     torch_io.load_state_dict(path, opaque_unknown=True)
   assert not marker.exists()
+
+
+def test_npz_with_pickled_objects_runs_nothing(tmp_path):
+  # np.savez pickles object arrays; np.load(allow_pickle=True) would run them on reading.
+  marker = tmp_path / "pwned"
+  evil = np.empty(1, dtype=object)
+  evil[0] = _Evil(os.system, f"touch {marker}")
+  np.savez(tmp_path / "evil.npz", w=np.ones(2, np.float32), x=evil)
+  with pytest.raises(CheckpointError, match=r"evil\.npz: cannot read \.npz file \(array 'x'\)"):
+    torch_io.load_state_dict(tmp_path / "evil.npz")
+  assert not marker.exists(), "pickled code was executed"
+
+
+def test_the_allow_list_holds_only_inert_stand_ins():
+  # What find_class may hand the unpickler: this module's helpers and markers, and
+  # OrderedDict (a C container); never a callable of builtins, os, torch, ...
+  inert = (pickle_reader._SafeFunction, pickle_reader._TypeMarker, pickle_reader.TorchDType)
+  for key, obj in pickle_reader.SAFE_GLOBALS.items():
+    assert isinstance(obj, inert) or obj is collections.OrderedDict, key
+    if isinstance(obj, pickle_reader._SafeFunction):
+      assert obj.fn.__module__ == pickle_reader.__name__, key
+  unpickler = pickle_reader.RestrictedUnpickler(io.BytesIO(b""), "x")
+  for module, name in (("builtins", "getattr"), ("builtins", "__import__"), ("torch", "load"),
+                       ("numpy", "frombuffer"), ("collections", "Counter")):
+    with pytest.raises(pickle_reader.RefusedGlobal, match=rf"'{module}\.{name}'"):
+      unpickler.find_class(module, name)
 
 
 class _Scheduler:
@@ -955,6 +1031,7 @@ def test_safetensors_bfloat16_loads_as_float32(tmp_path):
   out = torch_io.load_state_dict(path)
   assert out["x"].dtype == np.float32
   np.testing.assert_array_equal(out["x"], [1.5, -2])
+  assert torch_io.load_checkpoint_object(path)["x"].dtype == np.float32  # as documented
 
 
 def test_safetensors_written_here_read_back_with_float8_widened(tmp_path):
