@@ -335,3 +335,26 @@ def test_deeply_nested_config_json_is_named_not_a_recursion_traceback(tmp_path):
   with pytest.raises(CheckpointError, match=r"ckpt: the checkpoint is corrupt or incomplete .*"
                                             r"a JSON file nested too deeply"):
     orbax_io.restore_variables(path)
+
+
+def test_the_latest_training_step_is_found_by_number(tmp_path):
+  # `sav-jax convert WORKDIR out.npz` exports the latest finished step: 10 after 9 (not by
+  # name), and not an unfinished save (no metadata) nor a temporary folder.
+  for step in ("2", "9", "10", "11.orbax-checkpoint-tmp-1", "12"):
+    (tmp_path / "checkpoints" / step / "state").mkdir(parents=True)
+    if step != "12":
+      (tmp_path / "checkpoints" / step / "_CHECKPOINT_METADATA").write_text("{}")
+  want = tmp_path / "checkpoints" / "10"
+  for path in (tmp_path, tmp_path / "checkpoints", want):
+    assert orbax_io.find_training_checkpoint(path) == want
+  assert orbax_io.find_training_checkpoint(tmp_path / "checkpoints" / "12") is None
+
+
+def test_out_of_memory_is_not_reported_as_a_corrupt_checkpoint(tmp_path):
+  # Orbax wraps a read that ran out of host memory as it wraps a failed read: a good
+  # checkpoint called corrupt may be deleted.
+  error = Exception("Encountered error while reading array index: (slice(0, 4, 1),).")
+  error.__cause__ = MemoryError("out of memory")
+  assert orbax_io.corrupt_checkpoint_error(tmp_path, error) is None
+  error.__cause__ = None
+  assert "corrupt or incomplete" in str(orbax_io.corrupt_checkpoint_error(tmp_path, error))
