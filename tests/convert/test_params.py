@@ -192,6 +192,27 @@ def test_report_counts_the_rest_by_the_modules_concerned():
                                            "update_block.gru 3, depthnet.depthanything 1)")
   KeyProblems().raise_if_any("nothing to report", keys_given=0)  # no problems: no error
 
+def test_torch_names_and_flax_paths():
+  from sav_jax.convert import keys  # pylint: disable=import-outside-toplevel
+  for key, ndim, path in (
+      ("fnet.layer1.0.conv1.weight", 4, ("fnet", "layer1_0", "conv1", "kernel")),
+      ("update_block.mask.2.weight", 2, ("update_block", "mask_2", "kernel")),
+      ("fnet.norm1.weight", 1, ("fnet", "norm1", "scale")),
+      ("blocks.11.norm1.bias", 1, ("blocks_11", "norm1", "bias")),
+      ("pretrained.cls_token", 3, ("pretrained", "cls_token"))):
+    assert keys.torch_to_path(key, ndim) == path, key
+    assert keys.path_to_torch(path) == key, path
+  # (O, I, kh, kw) -> (kh, kw, I, O): each element where numpy's indexing puts it.
+  w = np.arange(2 * 3 * 4 * 5, dtype=np.float32).reshape(2, 3, 4, 5)
+  k = keys.torch_to_flax_array(w)
+  assert k.shape == (4, 5, 3, 2) and k[3, 1, 2, 0] == w[0, 2, 3, 1]
+  np.testing.assert_array_equal(keys.flax_to_torch_array(k), w)
+  assert keys.flax_to_torch_array(k).flags.c_contiguous
+  lin = np.arange(6, dtype=np.float32).reshape(2, 3)
+  assert keys.torch_to_flax_array(lin)[2, 1] == lin[1, 2]
+  np.testing.assert_array_equal(keys.torch_to_flax_array(lin[0], "scale"), lin[0])
+
+
 def test_a_state_dict_of_another_model_is_named_so():
   with pytest.raises(ValueError) as e:
     convert.params_from_state_dict({"encoder.conv.weight": np.zeros((2, 3), np.float32),
@@ -461,6 +482,27 @@ def test_cli_convert_vda_only(tmp_path, vda_state_dict, capsys, caplog):
   with caplog.at_level(logging.WARNING):  # a file cannot record it: said when it is written
     assert cli.main(["convert", "--vda", str(src), str(tmp_path / "init.safetensors")]) == 0
   assert "init.safetensors holds a freshly initialised stereo network (seed 0)" in caplog.text
+
+
+def test_cli_convert_vda_initialises_the_model_of_the_files_prior_with_the_seed(
+    tmp_path, capsys, monkeypatch):
+  # `sav-jax convert --vda video_depth_anything_vitb.pth` builds the ViT-B model, seeded with
+  # --seed (the initialisation itself stands in here: it is what the other tests run).
+  from sav_jax.model import init  # pylint: disable=import-outside-toplevel
+  calls = []
+
+  def fake_init(cfg, seed):
+    calls.append((cfg.vda_encoder, seed))
+    raise ValueError("stopped before the initialisation")
+
+  monkeypatch.setattr(init, "init_variables", fake_init)
+  src = tmp_path / "video_depth_anything_vitb.npz"
+  np.savez(src, **{"pretrained.cls_token": np.zeros((1, 1, 768), np.float32),
+                   "head.scratch.output_conv1.bias": np.zeros(32, np.float32)})
+  assert cli.main(["convert", "--vda", "--seed", "7", str(src), str(tmp_path / "out")]) == 2
+  assert "stopped before the initialisation" in capsys.readouterr().err
+  assert calls == [("vitb", 7)]
+  assert not (tmp_path / "out").exists()
 
 
 def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dict, capsys):
