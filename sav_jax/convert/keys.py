@@ -85,7 +85,14 @@ def converted(key: str, value, leaf: str, shape: tuple[int, ...], model: str = "
     return None, (f"key {key!r}: shape {value.shape} does not match {model} (expects "
                   f"{flax_to_torch_array(np.empty(shape), leaf).shape})")
   problem = value_problem(key, value)
-  return (None, problem) if problem else (arr.astype(np.float32), None)
+  if problem:
+    return None, problem
+  with np.errstate(over="ignore"):  # float64 beyond float32's range: inf, refused below
+    arr = arr.astype(np.float32)
+  problem = value_problem(key, arr)
+  if problem:
+    return None, f"{problem} once converted to float32 (values beyond its range)"
+  return arr, None
 
 
 def value_problem(key: str, x: np.ndarray) -> str | None:

@@ -213,6 +213,19 @@ def test_torch_names_and_flax_paths():
   np.testing.assert_array_equal(keys.torch_to_flax_array(lin[0], "scale"), lin[0])
 
 
+def test_float64_values_beyond_float32_are_refused_not_made_inf():
+  # The finiteness check looked at the float64 tensor; its float32 conversion held inf.
+  from sav_jax.convert import keys  # pylint: disable=import-outside-toplevel
+  w = np.array([[0.5, -1e300, 3.0], [2.0, 1e-300, -0.25]])  # Linear (out, in), float64
+  arr, problem = keys.converted("fc.weight", w, "kernel", (3, 2))
+  assert arr is None and problem == ("key 'fc.weight': 1 of 6 values are NaN or inf once "
+                                     "converted to float32 (values beyond its range)")
+  w[0, 1] = -1e30
+  arr, problem = keys.converted("fc.weight", w, "kernel", (3, 2))
+  assert problem is None and arr.dtype == np.float32
+  np.testing.assert_array_equal(arr, [[0.5, 2.0], [np.float32(-1e30), 0.0], [3.0, -0.25]])
+
+
 def test_a_state_dict_of_another_model_is_named_so():
   with pytest.raises(ValueError) as e:
     convert.params_from_state_dict({"encoder.conv.weight": np.zeros((2, 3), np.float32),
@@ -295,12 +308,16 @@ def test_non_float_and_non_finite_tensors_are_refused(sav_state_dict):
   sd["corr_mlp.fc1.weight"] = sd["corr_mlp.fc1.weight"].astype(np.complex64)
   vda = "depthnet.depthanything.pretrained.blocks.0.attn.qkv.bias"
   sd[vda] = np.full_like(sd[vda], np.nan)
+  big = sd["fnet.conv1.weight"].astype(np.float64)  # finite, but not in float32
+  big.flat[3] = 1e300
+  sd["fnet.conv1.weight"] = big
   with pytest.raises(ValueError) as e:
     convert.params_from_state_dict(sd)
   msg = str(e.value)
   for needle in (f"key 'cnet.conv1.weight': 2 of {w.size} values are NaN or inf",
                  "key 'fnet.conv1.bias': dtype int32", "key 'corr_mlp.fc1.weight': dtype complex64",
-                 "blocks.0.attn.qkv.bias", "4 problem(s)"):
+                 f"key 'fnet.conv1.weight': 1 of {big.size} values are NaN or inf once converted "
+                 "to float32", "blocks.0.attn.qkv.bias", "5 problem(s)"):
     assert needle in msg, (needle, msg)
   sd = dict(sav_state_dict)
   sd["cnet.conv1.weight"] = sd["cnet.conv1.weight"].astype(np.float16)  # floats of any width
