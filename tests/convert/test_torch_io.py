@@ -333,6 +333,19 @@ def test_v3_tensor_on_untyped_storage(tmp_path, fake_torch):
   np.testing.assert_array_equal(sd["b"], f32)
 
 
+def test_float8_tensors_are_widened_to_float32(tmp_path, fake_torch):
+  # float8_e4m3fn (bias 7): 0x3C = 1.5, 0xC0 = -2, 0x7E = 448, 0x01 = 2**-9 (subnormal).
+  fake_torch.float8_e4m3fn = _FakeDType("float8_e4m3fn")
+  b = _Builder(fake_torch)
+  st = b.untyped(bytes([0x3C, 0xC0, 0x7E, 0x01]))
+  args = (st, 0, (2, 2), (2, 1), False, collections.OrderedDict(), fake_torch.float8_e4m3fn)
+  sd = torch_io.load_state_dict(b.write_zip(tmp_path / "f8.pth",
+                                            {"w": _Tensor(fake_torch._utils._rebuild_tensor_v3,
+                                                          args)}))
+  assert sd["w"].dtype == np.float32
+  np.testing.assert_array_equal(sd["w"], [[1.5, -2.0], [448.0, 2.0 ** -9]])
+
+
 def test_v3_tensor_on_untyped_storage_of_a_big_endian_file(tmp_path, fake_torch):
   # An untyped storage is bytes: a big-endian file's elements are swapped when its v3 tensor
   # gives them their dtype (read as little-endian, 300 came back as 11265).
