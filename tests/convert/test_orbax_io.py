@@ -124,6 +124,16 @@ def test_refuses_to_overwrite_foreign_directory(tmp_path):
     orbax_io.save_variables(tmp_path / "data", {"params": {"w": jnp.ones(2)}}, {},
                             overwrite=True)
   assert (tmp_path / "data" / "precious.txt").read_text() == "keep me"
+  # Folders of the items' names without orbax's metadata file are not a checkpoint either
+  # (its variables/ and config/ would be replaced).
+  for item in ("variables", "config"):
+    (tmp_path / "data" / item).mkdir()
+    (tmp_path / "data" / item / "mine.txt").write_text("keep me")
+  assert not orbax_io.is_variables_checkpoint(tmp_path / "data")
+  with pytest.raises(CheckpointError, match="refusing to overwrite"):
+    orbax_io.save_variables(tmp_path / "data", {"params": {"w": jnp.ones(2)}}, {},
+                            overwrite=True)
+  assert (tmp_path / "data" / "config" / "mine.txt").read_text() == "keep me"
 
 
 def test_not_a_checkpoint(tmp_path):
