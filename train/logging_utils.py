@@ -47,9 +47,13 @@ class MetricWriter:
     self._jsonl = open(workdir / "metrics.jsonl", "a", encoding="utf-8")
     try:
       from tensorboardX import SummaryWriter  # pylint: disable=g-import-not-at-top
-      # TensorBoard drops the events at and after purge_step (all of them from step 0).
+      # TensorBoard drops the earlier files' events at and after purge_step (all of them from
+      # step 0). The suffix keeps the file names apart (tensorboardX names them by the second
+      # and opens them with "wb": a second writer within the same second, a run restarted at
+      # once, emptied the first one's file) and in their order.
       self._tb = SummaryWriter(str(workdir / "tb"),
-                               purge_step=start_step + 1 if start_step > 0 else 0)
+                               purge_step=start_step + 1 if start_step > 0 else 0,
+                               filename_suffix=f".{time.time_ns()}")
       # It warns once per NaN scalar written ("NaN or Inf found in input tensor."): a
       # diverged validation's are said once by the evaluator, skipped steps' by the loop.
       logging.getLogger("tensorboardX.x2num").setLevel(logging.ERROR)

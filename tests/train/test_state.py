@@ -851,6 +851,31 @@ def test_resumed_run_logs_each_step_once(tmp_path):
   records = [json.loads(l) for l in (fresh / "metrics.jsonl").read_text().splitlines()]
   assert [(r["step"], r["split"]) for r in records] == [(0, "val")]
   assert len((fresh / "metrics.superseded.jsonl").read_text().splitlines()) == 2
+  # TensorBoard shows the same: each run's events from its start, none lost (the runs
+  # above started within a second: tensorboardX's file names alone were the same).
+  assert _tensorboard_view(tmp_path / "tb") == {"train/loss": [(10, 1.0), (20, 1.0), (30, 0.5)]}
+  assert _tensorboard_view(fresh / "tb") == {"val/epe": [(0, 2.0)]}
+
+
+def _tensorboard_view(folder) -> dict[str, list[tuple[int, float]]]:
+  """The scalars TensorBoard shows for the event files in `folder`: read in the order of their
+  names, a file's START session log at step s drops the earlier files' events at steps >= s
+  (`purge_step`)."""
+  import struct  # pylint: disable=g-import-not-at-top
+  from tensorboardX.proto import event_pb2  # pylint: disable=g-import-not-at-top
+  scalars = {}
+  for path in sorted(folder.glob("events.out.tfevents.*")):
+    data, i = path.read_bytes(), 0
+    while i < len(data):  # TFRecord: length (8 bytes), its CRC (4), the event, its CRC (4)
+      (n,) = struct.unpack("<Q", data[i:i + 8])
+      event = event_pb2.Event.FromString(data[i + 12:i + 12 + n])
+      i += 16 + n
+      if event.session_log.status == event_pb2.SessionLog.START:
+        scalars = {tag: [(s, v) for s, v in values if s < event.step]
+                   for tag, values in scalars.items()}
+      for value in event.summary.value:
+        scalars.setdefault(value.tag, []).append((event.step, value.simple_value))
+  return {tag: values for tag, values in scalars.items() if values}
 
 
 def test_scratch_runs_start_from_the_official_initialisation(tmp_path):
