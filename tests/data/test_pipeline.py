@@ -331,6 +331,114 @@ def test_registry_source_and_official_augmentation(monkeypatch):
   assert crop["left"].shape == (3, 16, 16, 3)
 
 
+def test_as_example_conversions():
+  """Float frames are rounded to the nearest grey level, a float mask is valid from 0.5,
+  `[T, H, W, 1]` GT is squeezed, and 0..1 frames (maximum exactly 1) are warned about."""
+  left = np.array([10.6, 10.4, 300.0, -3.0], np.float32).reshape(1, 1, 4, 1).repeat(3, -1)
+  clip = {"left": left, "right": left, "disparity": np.full((1, 1, 4, 1), 2.0, np.float32),
+          "valid": np.array([0.3, 0.5, 0.7, 0.0], np.float32).reshape(1, 1, 4)}
+  ex = pipeline.as_example(clip)
+  assert ex["left"].dtype == np.uint8 and ex["left"][0, 0, :, 0].tolist() == [11, 10, 255, 0]
+  assert ex["valid"].dtype == bool and ex["valid"][0, 0].tolist() == [False, True, True, False]
+  assert ex["disparity"].shape == (1, 1, 4) and set(ex) == set(pipeline.EXAMPLE_KEYS)
+  unit = np.ones((1, 1, 4, 3), np.float32)  # a 0..1 image: white is exactly 1.0
+  with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
+    pipeline.as_example({**clip, "left": unit, "right": unit})
+
+
+class _SparseSequence(_FakeSequence):
+  sparse = True
+
+
+def test_loaded_clips_keep_their_frame_order_and_sparse_flag():
+  # SceneFlow's time-reversed clips are index lists in descending order: loaded as given.
+  items = [(_FakeSequence(), [4, 3, 2]), (_SparseSequence(), [0, 1, 2])]
+  for src in (pipeline.clips_source(items), pipeline.clips_source(items, skip_unreadable=2)):
+    assert src[0]["disparity"][:, 0, 0].tolist() == [5.0, 4.0, 3.0]
+    assert src[0]["sparse"] is False and src[1]["sparse"] is True  # sparse augmentation
+
+
+def test_stand_ins_are_other_clips_drawn_per_index():
+  drawn = pipeline._SkippingClips([None] * 3, 5)  # pylint: disable=protected-access
+  for i in range(3):  # never the unreadable clip itself (a wasted try)
+    assert all(drawn.stand_in(i, k) in {0, 1, 2} - {i} for k in range(1, 30))
+  many = pipeline._SkippingClips([None] * 40, 1)  # pylint: disable=protected-access
+  # drawn for each clip: neighbouring unreadable clips do not all take one stand-in
+  assert len({many.stand_in(i, 1) for i in range(40)}) > 10
+
+
+def test_augment_refuses_an_output_of_another_size():
+  clip = pipeline.clips_source([(_FakeSequence(), [0, 1])])[0]
+  augment = pipeline.Augment((16, 16), (("crop_size", (8, 8)), ("spatial_prob", 0.0)))
+  with pytest.raises(ValueError, match=r"produced \(8, 8\), expected the crop \(16, 16\)"):
+    augment(clip, np.random.default_rng(0))
+
+
+def test_center_crop_takes_the_central_window():
+  h, w = 7, 10
+  yx = np.arange(h * w, dtype=np.float32).reshape(1, h, w)
+  clip = {"left": np.zeros((1, h, w, 3), np.uint8), "right": np.zeros((1, h, w, 3), np.uint8),
+          "disparity": yx, "valid": np.ones((1, h, w), bool)}
+  crop = pipeline.center_crop(clip, (3, 4))  # rows 2..4, columns 3..6
+  np.testing.assert_array_equal(crop["disparity"][0],
+                                [[23, 24, 25, 26], [33, 34, 35, 36], [43, 44, 45, 46]])
+  assert crop["left"].shape == (1, 3, 4, 3) and crop["valid"].shape == (1, 3, 4)
+
+
+def test_mixed_sources_are_shuffled_independently():
+  ds = pipeline.make_train_dataset([_tagged(1, 12), _tagged(2, 12)], [1.0, 1.0], batch_size=8,
+                                   seed=0, num_threads=1)
+  ids = np.array(sum((_ids(b) for b in _take(iter(ds), 6)), []))
+  a, b = ids[ids // 1000 == 1] % 1000, ids[ids // 1000 == 2] % 1000
+  n = min(len(a), len(b), 12)
+  assert n >= 8 and a[:n].tolist() != b[:n].tolist()  # not one permutation for both
+
+
+def test_stacking_refuses_other_dtypes_or_keys():
+  a = _tagged(1, 1)[0]
+  with pytest.raises(ValueError, match=r"differ in 'disparity': \(2, 16, 16\) float32 .* float64"):
+    pipeline.stack_examples([a, {**a, "disparity": a["disparity"].astype(np.float64)}])
+  with pytest.raises(ValueError, match="different keys"):
+    pipeline.stack_examples([a, {**a, "depth": a["disparity"]}])
+
+
+def test_fixed_clips_are_the_first_ones_and_never_wrap():
+  # (a grain MapDataset wraps indices past its end: clip 3 of 3 clips would be clip 0)
+  assert [int(c["disparity"][0, 0, 0]) for c in pipeline.fixed_clips(_tagged(0, 5), 3)] == [
+      0, 1, 2]
+  with pytest.raises(ValueError, match="validation set has 3 clips, 4 requested"):
+    pipeline.fixed_clips(_tagged(0, 3), 4)
+
+
+def _folder_layout(root, frames):
+  """One sequence `test/s1` of the "folder" dataset: 4x6 PNG frames, no ground truth."""
+  import cv2  # pylint: disable=import-outside-toplevel
+  for side in ("left", "right"):
+    (root / "test/s1" / side).mkdir(parents=True)
+    for i in range(frames):
+      assert cv2.imwrite(str(root / "test/s1" / side / f"{i:04d}.png"),
+                         np.full((4, 6, 3), i, np.uint8))
+
+
+def test_registry_clips_are_consecutive_or_strided_by_the_seed(tmp_path):
+  _folder_layout(tmp_path, frames=15)
+  consecutive = pipeline.registry_clips("folder", tmp_path, 2, split="test", consecutive=True)
+  assert [c[1] for c in consecutive] == [[s, s + 1] for s in range(0, 14, 2)]  # 0, T, 2T, ...
+
+  def official(seed):  # datasets.md: starts 0, 3, 6; k in 1..5 per start; kept if s + kT < N
+    rng, out = np.random.default_rng(seed), []
+    for start in range(0, 15, 3):
+      k = int(rng.integers(1, 6))
+      if start + 2 * k < 15:
+        out.append([start, start + k])
+    return out
+
+  assert official(1) != official(0)
+  for seed in (0, 1):
+    clips = pipeline.registry_clips("folder", tmp_path, 2, split="test", seed=seed)
+    assert [c[1] for c in clips] == official(seed)
+
+
 def test_grain_workers_outlive_a_sigterm_to_the_process_group():
   """Schedulers send SIGTERM to every process of a job, a terminal's Ctrl-C SIGINT: the
   training process then finishes its step and saves a checkpoint, for which it still reads
