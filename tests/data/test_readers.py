@@ -218,6 +218,10 @@ def test_a_frame_missing_from_every_folder_is_warned(tmp_path, caplog):
   with caplog.at_level(logging.WARNING):
     base.warn_if_gaps("s", infinigen, registry.infinigen._frame_number)  # pylint: disable=W0212
   assert "2 gap(s), the first after Image_0_0_0002_0.png (next Image_0_0_0004_0.png" in caplog.text
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):  # the usual step is the smallest, not the first
+    base.warn_if_gaps("s", [tmp_path / f"{i:04d}.png" for i in (0, 2, 3, 4)])
+  assert "1 gap(s), the first after 0000.png (next 0002.png; usually +1" in caplog.text
 
 
 def test_a_dataset_one_folder_too_deep_is_named(tmp_path, monkeypatch):
@@ -1204,6 +1208,50 @@ def test_a_reader_of_your_own_layout_is_registered(tmp_path, monkeypatch):
     registry.register_dataset("own", _load_own, splits=("test",))  # another registration
   with pytest.raises(ValueError, match="training must be 'strided', 'sceneflow' or None"):
     registry.register_dataset("own2", _load_own, splits=("test",), training="random")
+
+
+def test_a_registered_datasets_eval_cut_is_of_its_test_split_only(tmp_path, monkeypatch):
+  for name in ("_LOADERS", "_FOLDERS", "SPLITS", "EVAL_FRAMES"):
+    monkeypatch.setattr(registry, name, dict(getattr(registry, name)))
+  for name in ("DATASETS", "STRIDED", "_SCENEFLOW"):
+    monkeypatch.setattr(registry, name, getattr(registry, name))
+  rng = np.random.default_rng(24)
+  for split in ("val", "test"):
+    for side in ("left", "right"):
+      for i in range(3):
+        _png(tmp_path / "Own" / split / "s" / side / f"{i}.png", _rgb(rng))
+  registry.register_dataset("own", _load_own, splits=("val", "test"), folders=("Own",),
+                            eval_frames=2)
+  assert len(registry.get_sequences("own", tmp_path, "test")[0]) == 2  # the first L frames
+  assert len(registry.get_sequences("own", tmp_path, "val")[0]) == 3  # other splits whole
+  assert len(registry.get_sequences("own", tmp_path, "test", max_frames=None)[0]) == 3
+  with pytest.raises(ValueError, match="name must be a new identifier"):  # not kept silently
+    registry.register_dataset("own", _load_own, splits=("val", "test"), folders=("Own",),
+                              eval_frames=3)
+  with pytest.raises(ValueError, match="eval_frames must be an integer > 0"):
+    registry.register_dataset("own2", _load_own, splits=("test",), eval_frames=0)
+  with pytest.raises(ValueError, match="frames must be an int >= 1"):
+    registry.get_consecutive_clips("own", tmp_path, 0, "test")
+
+
+def test_folder_dataset_unpadded_npy_ground_truth_json_calibration_empty_split(tmp_path):
+  rng = np.random.default_rng(25)
+  seq = tmp_path / "val" / "cam"
+  (seq / "disparity").mkdir(parents=True)
+  for i in range(1, 12):  # 1 .. 11 unpadded in every folder: matched in natural order
+    _png(seq / "left" / f"{i}.png", _rgb(rng))
+    _png(seq / "right" / f"{i}.png", _rgb(rng))
+    np.save(seq / "disparity" / f"{i}.npy", np.full((H, W), float(i), np.float32))
+  (seq / "calib.json").write_text('{"fx": 400, "baseline": 0.25}')
+  s, = registry.get_sequences("folder", tmp_path, "val")
+  assert s.depth2disp_scale == pytest.approx(100.0) and not s.sparse  # float GT: dense
+  assert [float(s[i]["disparity"][0, 0]) for i in range(11)] == list(range(1, 12))
+  np.save(seq / "disparity" / "5.npy", np.ones((H, W, 2), np.float32))
+  with pytest.raises(ValueError, match=r"5\.npy: disparity of shape \(8, 12, 2\) .*one channel"):
+    s[4]  # pylint: disable=pointless-statement
+  (tmp_path / "test").mkdir()
+  with pytest.raises(FileNotFoundError, match=r"no sequences in .*test"):
+    registry.get_sequences("folder", tmp_path, "test")
 
 
 def _load_own(root, split, dataset):
