@@ -276,6 +276,31 @@ def test_photometric_noise_is_optional_and_geometry_free():
   assert 2.0 < diff.std() < 4.0
 
 
+
+def test_faint_noise_rounds_to_the_noiseless_frames():
+  # +0.5 before the truncation to uint8: noise far below a grey level changes nothing.
+  base = dict(frames=1, height=16, width=32, num_objects=1, max_disparity=8.0, seed=4)
+  clean = generate_clip(SyntheticConfig(**base), 0)
+  faint = generate_clip(SyntheticConfig(**base, noise_std=1e-3), 0)
+  for key in ("left", "right"):
+    np.testing.assert_array_equal(faint[key], clean[key])
+
+
+def test_background_disparity_stays_in_its_band_where_the_right_view_sees_it():
+  """Left-image columns 0 .. W - 1 + max_disparity (what the right view shows): the
+  background's disparity stays in its band, below every object's (so it never occludes)."""
+  from sav_jax.data import raycast  # pylint: disable=import-outside-toplevel
+  cfg = SyntheticConfig(frames=1, height=32, width=64, max_disparity=40.0, background_slant=1.0)
+  cam = raycast.Camera(cfg.fx, (cfg.width - 1) / 2, (cfg.height - 1) / 2, cfg.baseline)
+  xs = np.arange(cfg.width + int(cfg.max_disparity), dtype=np.float64)
+  rx = ((xs - cam.cx) / cam.fx).astype(np.float32)[None, :]
+  ry = ((np.arange(cfg.height) - cam.cy) / cam.fx).astype(np.float32)[:, None]
+  for seed in range(20):
+    layers, hi = synthetic._background_layers(np.random.default_rng(seed), cfg, cam)  # pylint: disable=protected-access
+    depth = raycast.cast(layers[0], 0.0, rx, ry)[0]
+    disp = cam.fx * cam.baseline / depth
+    assert cfg.min_disparity - 1e-3 <= disp.min() and disp.max() <= hi + 1e-3, seed
+
 def test_textures_tile_seamlessly():
   rng = np.random.default_rng(0)
   for kind in textures.TEXTURE_KINDS:
@@ -305,6 +330,10 @@ def test_textures_tile_seamlessly():
     ("noise_std", dict(noise_std=-1.0)),
     ("baseline", dict(baseline=0.0)),
     ("seed", dict(seed=-2)),
+    ("max_disparity", dict(max_disparity=512.0)),
+    ("texture_min_cell", dict(texture_min_cell=64)),
+    ("max_speed", dict(max_speed=True)),
+    ("background_fraction", dict(background_fraction=0.0)),
     ("frames", dict(frames=True)),
     ("max_speed", dict(max_speed=float("inf"))),
     ("noise_std", dict(noise_std=float("nan"))),
