@@ -344,6 +344,8 @@ def test_as_example_conversions():
   unit = np.ones((1, 1, 4, 3), np.float32)  # a 0..1 image: white is exactly 1.0
   with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
     pipeline.as_example({**clip, "left": unit, "right": unit})
+  with pytest.raises(ValueError, match="left/right must be .* of equal shape"):
+    pipeline.as_example({**clip, "right": left[:, :, :3]})
 
 
 class _SparseSequence(_FakeSequence):
@@ -392,6 +394,21 @@ def test_mixed_sources_are_shuffled_independently():
   a, b = ids[ids // 1000 == 1] % 1000, ids[ids // 1000 == 2] % 1000
   n = min(len(a), len(b), 12)
   assert n >= 8 and a[:n].tolist() != b[:n].tolist()  # not one permutation for both
+
+
+def test_each_source_gets_its_own_transform():
+  # e.g. synthetic clips (None: used as generated) mixed with an augmented dataset
+  def mark(clip, rng):
+    del rng
+    ex = pipeline.as_example(clip)
+    ex["valid"] = np.zeros_like(ex["valid"])
+    return ex
+
+  ds = pipeline.make_train_dataset([_tagged(1, 6), _tagged(2, 6)], [1.0, 1.0], batch_size=8,
+                                   seed=0, transforms=[mark, None], num_threads=1)
+  for batch in _take(iter(ds), 3):
+    tags = batch["disparity"][:, 0, 0, 0] // 1000
+    assert (batch["valid"][:, 0, 0, 0] == (tags == 2)).all()
 
 
 def test_stacking_refuses_other_dtypes_or_keys():

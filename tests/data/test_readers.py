@@ -222,6 +222,10 @@ def test_a_frame_missing_from_every_folder_is_warned(tmp_path, caplog):
   with caplog.at_level(logging.WARNING):  # the usual step is the smallest, not the first
     base.warn_if_gaps("s", [tmp_path / f"{i:04d}.png" for i in (0, 2, 3, 4)])
   assert "1 gap(s), the first after 0000.png (next 0002.png; usually +1" in caplog.text
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):  # a number repeated: not frame numbers, passed
+    base.warn_if_gaps("s", [tmp_path / f"{i:04d}.png" for i in (1, 1, 2, 3)])
+  assert not caplog.text
 
 
 def test_a_dataset_one_folder_too_deep_is_named(tmp_path, monkeypatch):
@@ -1225,6 +1229,10 @@ def test_a_registered_datasets_eval_cut_is_of_its_test_split_only(tmp_path, monk
   assert len(registry.get_sequences("own", tmp_path, "test")[0]) == 2  # the first L frames
   assert len(registry.get_sequences("own", tmp_path, "val")[0]) == 3  # other splits whole
   assert len(registry.get_sequences("own", tmp_path, "test", max_frames=None)[0]) == 3
+  assert len(registry.get_sequences("own", tmp_path, "test", max_frames=0)[0]) == 3  # whole
+  assert [c.indices for c in registry.get_consecutive_clips("own", tmp_path, 1, "test")] == [
+      [0], [1]]  # the validation's clips: of the evaluated frames too
+  assert len(registry.get_consecutive_clips("own", tmp_path, 1, "test", max_frames=None)) == 3
   with pytest.raises(ValueError, match="name must be a new identifier"):  # not kept silently
     registry.register_dataset("own", _load_own, splits=("val", "test"), folders=("Own",),
                               eval_frames=3)
@@ -1243,7 +1251,13 @@ def test_folder_dataset_unpadded_npy_ground_truth_json_calibration_empty_split(t
     _png(seq / "right" / f"{i}.png", _rgb(rng))
     np.save(seq / "disparity" / f"{i}.npy", np.full((H, W), float(i), np.float32))
   (seq / "calib.json").write_text('{"fx": 400, "baseline": 0.25}')
-  s, = registry.get_sequences("folder", tmp_path, "val")
+  for i in (1, 2):  # JPEG frames on both sides
+    for side in ("left", "right"):
+      path = tmp_path / "val" / "jpg" / side / f"{i}.jpg"
+      path.parent.mkdir(parents=True, exist_ok=True)
+      assert cv2.imwrite(str(path), _rgb(rng))
+  s, jpg = registry.get_sequences("folder", tmp_path, "val")  # by name
+  assert jpg.name == "jpg" and len(jpg) == 2 and jpg[1]["right"].shape == (H, W, 3)
   assert s.depth2disp_scale == pytest.approx(100.0) and not s.sparse  # float GT: dense
   assert [float(s[i]["disparity"][0, 0]) for i in range(11)] == list(range(1, 12))
   np.save(seq / "disparity" / "5.npy", np.ones((H, W, 2), np.float32))
@@ -1252,6 +1266,9 @@ def test_folder_dataset_unpadded_npy_ground_truth_json_calibration_empty_split(t
   (tmp_path / "test").mkdir()
   with pytest.raises(FileNotFoundError, match=r"no sequences in .*test"):
     registry.get_sequences("folder", tmp_path, "test")
+  (seq / "calib.json").write_text('{"fx": 400}')
+  with pytest.raises(ValueError, match=r"calib\.json: no baseline"):
+    registry.get_sequences("folder", tmp_path, "val")
 
 
 def _load_own(root, split, dataset):

@@ -301,6 +301,25 @@ def test_background_disparity_stays_in_its_band_where_the_right_view_sees_it():
     disp = cam.fx * cam.baseline / depth
     assert cfg.min_disparity - 1e-3 <= disp.min() and disp.max() <= hi + 1e-3, seed
 
+
+def test_every_configured_shape_and_texture_kind_is_drawn(monkeypatch):
+  kinds = []
+  real = textures._pattern  # pylint: disable=protected-access
+  monkeypatch.setattr(textures, "_pattern", lambda rng, kind, *a: kinds.append(kind) or real(
+      rng, kind, *a))
+  cfg = SyntheticConfig(frames=1, height=32, width=64, max_disparity=16.0, max_rotation=0.2)
+  rng = np.random.default_rng(0)
+  tracks = [synthetic._sample_track(rng, cfg, 4.0) for _ in range(24)]  # pylint: disable=protected-access
+  assert {t.kind for t in tracks} == set(synthetic.SHAPES)
+  assert set(kinds) == set(textures.TEXTURE_KINDS)
+  # each object turns about its normal by its own omega per frame
+  cam = synthetic.Camera(cfg.fx, 31.5, 15.5, cfg.baseline)
+  for tr in tracks[:4]:
+    e0, e1 = (synthetic._object_layer(tr, t, cam).e1 for t in (0, 1))  # pylint: disable=protected-access
+    cos = float(e0 @ e1) / float(np.linalg.norm(e0) * np.linalg.norm(e1))
+    assert np.arccos(np.clip(cos, -1, 1)) == pytest.approx(abs(tr.omega), abs=1e-6)
+    assert abs(tr.omega) > 1e-4
+
 def test_textures_tile_seamlessly():
   rng = np.random.default_rng(0)
   for kind in textures.TEXTURE_KINDS:
