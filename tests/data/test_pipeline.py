@@ -419,6 +419,12 @@ def test_stacking_refuses_other_dtypes_or_keys():
     pipeline.stack_examples([a, {**a, "depth": a["disparity"]}])
 
 
+def test_clips_digest_tells_sequences_apart():
+  # a sequence replaced by another of the same length: a resumed run is warned
+  a, b = types.SimpleNamespace(name="a"), types.SimpleNamespace(name="b")
+  assert pipeline.clips_digest([(a, [0, 1])]) != pipeline.clips_digest([(b, [0, 1])])
+
+
 def test_fixed_clips_are_the_first_ones_and_never_wrap():
   # (a grain MapDataset wraps indices past its end: clip 3 of 3 clips would be clip 0)
   assert [int(c["disparity"][0, 0, 0]) for c in pipeline.fixed_clips(_tagged(0, 5), 3)] == [

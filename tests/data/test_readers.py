@@ -1240,6 +1240,10 @@ def test_a_registered_datasets_eval_cut_is_of_its_test_split_only(tmp_path, monk
     registry.register_dataset("own2", _load_own, splits=("test",), eval_frames=0)
   with pytest.raises(ValueError, match="frames must be an int >= 1"):
     registry.get_consecutive_clips("own", tmp_path, 0, "test")
+  seq = registry.get_sequences("own", tmp_path, "val")[0]
+  assert len(seq.head(2)) == 2 and len(seq) == 3  # a copy: the sequence stays whole
+  (tmp_path / "more" / "spring").mkdir(parents=True)  # a dataset's other folder name
+  assert base.find_root(tmp_path / "more", "Spring", "spring") == tmp_path / "more" / "spring"
 
 
 def test_folder_dataset_unpadded_npy_ground_truth_json_calibration_empty_split(tmp_path):

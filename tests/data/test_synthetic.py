@@ -320,6 +320,25 @@ def test_every_configured_shape_and_texture_kind_is_drawn(monkeypatch):
     assert np.arccos(np.clip(cos, -1, 1)) == pytest.approx(abs(tr.omega), abs=1e-6)
     assert abs(tr.omega) > 1e-4
 
+
+def test_objects_are_nearer_than_the_background_band_and_rendered_whole(monkeypatch):
+  """Tilted objects keep every pixel's disparity above the background's band (the valid mask
+  assumes the background never occludes), and the pixel boxes that limit the ray casting hold
+  each layer's whole image: casting every pixel gives the same clip."""
+  from sav_jax.data import raycast  # pylint: disable=import-outside-toplevel
+  cfg = SyntheticConfig(frames=1, height=32, width=32, focal=32.0, num_objects=8,
+                        max_disparity=24.0, max_tilt=1.2, object_size=(0.6, 1.0), seed=5)
+  band = cfg.min_disparity + cfg.background_fraction * (cfg.max_disparity - cfg.min_disparity)
+  clips = [generate_clip(cfg, i) for i in (1, 6)]  # large tilted objects near the band
+  for clip in clips:
+    on_objects = clip["segmentation"] > 0
+    assert on_objects.any() and clip["disparity"][on_objects].min() >= band * (1 - 1e-5)
+  monkeypatch.setattr(raycast, "bbox", lambda layer, ox, cam, h, w: (0, h, 0, w))
+  for i, clip in zip((1, 6), clips):
+    whole = generate_clip(cfg, i)
+    for key in clip:
+      np.testing.assert_array_equal(whole[key], clip[key], err_msg=key)
+
 def test_textures_tile_seamlessly():
   rng = np.random.default_rng(0)
   for kind in textures.TEXTURE_KINDS:
