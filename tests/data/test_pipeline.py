@@ -374,6 +374,9 @@ def test_augment_refuses_an_output_of_another_size():
   augment = pipeline.Augment((16, 16), (("crop_size", (8, 8)), ("spatial_prob", 0.0)))
   with pytest.raises(ValueError, match=r"produced \(8, 8\), expected the crop \(16, 16\)"):
     augment(clip, np.random.default_rng(0))
+  # a config file's lists are the config's tuples (compared with the defaults by the trainer)
+  assert pipeline.Augment((16, 16), (("eraser_size", [2, 4]),)).augment_config().eraser_size == (
+      2, 4)
 
 
 def test_center_crop_takes_the_central_window():
