@@ -56,10 +56,14 @@ def test_gradient_inside_a_scan_matches_the_unrolled_loop():
 
 
 # (kernel, padding, output channels, frames): widening (7 > 5 channels: the taps read
-# input slices) and narrowing (3 < 5: the taps' outputs are shifted), one frame too.
+# input slices) and narrowing (3 < 5: the taps' outputs are shifted), one frame too. With
+# one or two frames the edge taps reach no frame or a single one (the narrowing path then
+# drops taps from its side-by-side kernel: the flow head's 256 -> 2 conv on short clips).
 @pytest.mark.parametrize("kernel,padding,out,frames", [
     ((3, 3, 3), (1, 1, 1), 7, 4), ((3, 3, 3), (1, 1, 1), 3, 4), ((5, 3, 1), (2, 1, 0), 3, 3),
-    ((3, 3, 3), (1, 1, 1), 7, 1), ((5, 1, 1), (2, 0, 0), 7, 4), ((1, 1, 15), (0, 0, 7), 7, 4)])
+    ((3, 3, 3), (1, 1, 1), 7, 1), ((5, 1, 1), (2, 0, 0), 7, 4), ((1, 1, 15), (0, 0, 7), 7, 4),
+    ((3, 3, 3), (1, 1, 1), 3, 1), ((3, 3, 3), (1, 1, 1), 7, 2), ((3, 3, 3), (1, 1, 1), 3, 2),
+    ((5, 3, 1), (2, 1, 0), 3, 2)])
 def test_conv3d_equals_xla_3d_convolution(kernel, padding, out, frames):
   rng = np.random.default_rng(2)
   x = jnp.asarray(rng.standard_normal((2, frames, 6, 9, 5)), jnp.float32)
