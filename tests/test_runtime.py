@@ -152,6 +152,18 @@ def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch
   assert runtime.inference_compiler_options("cpu") == {}  # unchanged
 
 
+def test_no_cpu_options_for_other_backends_that_would_take_them(monkeypatch,
+                                                              restore_low_memory_compile):
+  # On a GPU host every backend compiles with XLA's options (xla_cpu_* and the disabled
+  # passes included): only the platform decides, not whether the options are accepted.
+  monkeypatch.setattr(runtime, "_accepts_options", lambda platform, options: True)
+  runtime.set_low_memory_compile(True)
+  assert runtime.inference_compiler_options("cpu")
+  for platform in ("gpu", "cuda", "rocm", "tpu"):
+    assert runtime.inference_compiler_options(platform) == {}, platform
+    assert runtime.inference_compiler_options(platform, per_frame=True) == {}, platform
+
+
 @pytest.mark.usefixtures("without_suite_xla_flags")
 def test_low_memory_compile_gives_the_same_values(restore_low_memory_compile):
   runtime.set_low_memory_compile(True)
