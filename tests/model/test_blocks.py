@@ -66,6 +66,63 @@ def test_cudnn_vit_attention_is_checked_with_clear_errors():
     vit = DinoVisionTransformer(depth=1, layers=(0,), dtype=jnp.bfloat16, attention="cudnn")
     with pytest.raises(ValueError, match="needs a CUDA GPU"):
       jax.eval_shape(vit.init, jax.random.key(0), jnp.zeros((1, 28, 28, 3)))
+    # the model's depth prior takes the config's choice (not its own default, "blocked")
+    video = jnp.zeros((1, 1, 32, 32, 3))
+    with pytest.raises(ValueError, match="needs a CUDA GPU"):
+      jax.eval_shape(lambda: model.init(jax.random.key(0), video, video, iters=2))
+
+
+def test_auto_vit_attention_runs_the_fused_kernel_where_it_resolves_to_cudnn(monkeypatch):
+  """The ViT's attention resolves "auto" itself: on a (faked) Ampere CUDA GPU in bfloat16 it
+  calls the fused kernel, in float32 the blocked softmax; the fused kernel refuses float32."""
+  device = type("Device", (), {"client": type("Client", (), {"platform_version": "cuda 12080"})(),
+                               "compute_capability": "9.0"})()
+  monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+  monkeypatch.setattr(jax, "devices", lambda *a: [device])
+  with pytest.raises(ValueError, match="needs bfloat16 compute, got float32"):
+    fused_attention(*[jnp.zeros((1, 4, 2, 8), jnp.float32)] * 3, "cudnn")
+  calls = []
+  monkeypatch.setattr(dinov2, "fused_attention",
+                      lambda q, k, v, impl: calls.append(impl) or softmax_attention(q, k, v))
+  x = jnp.zeros((1, 5, 16))
+  for dtype, want in ((jnp.bfloat16, ["cudnn"]), (jnp.float32, [])):
+    calls.clear()
+    jax.eval_shape(dinov2.Attention(2, dtype, implementation="auto").init, jax.random.key(0), x)
+    assert calls == want, dtype
+
+
+def test_frame_block_mb_reaches_the_depth_priors_blocked_stages(monkeypatch):
+  """`frame_block_mb` bounds the ViT attention's logits (every layer's) and the depth head's
+  full-resolution end, whose frames are blocked by their float32 map (H x W x 32 channels
+  for vits: 118 MB a frame at 720x1280)."""
+  from sav_jax.model import depth  # pylint: disable=import-outside-toplevel
+  budgets, tails = [], []
+  attention = dinov2.softmax_attention
+  monkeypatch.setattr(dinov2, "softmax_attention",
+                      lambda q, k, v, mb: budgets.append(mb) or attention(q, k, v, mb))
+  blocks = depth.in_frame_blocks
+  monkeypatch.setattr(depth, "in_frame_blocks", lambda m, fn, x, frame_bytes, mb: (
+      tails.append((x.shape[0], frame_bytes, mb)) or blocks(m, fn, x, frame_bytes, mb)))
+  extractor = depth.DepthExtractor(sav_jax.SAVConfig(frame_block_mb=3.0))
+  jax.eval_shape(extractor.init, jax.random.key(0), jnp.zeros((1, 2, 32, 48, 3)))
+  # (init traces the frozen prior twice: nn.map_variables)
+  assert len(budgets) >= 12 and set(budgets) == {3.0}  # the 12 ViT blocks of vits
+  assert tails and set(tails) == {(2, 32 * 48 * 32 * 4, 3.0)}
+
+
+def test_gru_dft_runs_in_blocks_under_its_budget():
+  """With the DFT's 1x15 gates, `block_mb` splits their spectra into blocks of rows (more,
+  smaller products; values as tests/model/test_layers.py checks), where the default budget
+  takes all rows at once."""
+  from sav_jax.model.update import SKSepConvGRU3D  # pylint: disable=import-outside-toplevel
+  h, x = jnp.zeros((1, 2, 4, 8, 128)), jnp.zeros((1, 2, 4, 8, 256))
+
+  def dots(**kwargs):
+    gru = SKSepConvGRU3D(wide_conv="dft", **kwargs)
+    variables = jax.eval_shape(gru.init, jax.random.key(0), h, x)
+    return str(jax.make_jaxpr(gru.apply)(variables, h, x)).count("dot_general")
+
+  assert dots(block_mb=1e-3) > dots()
 
 
 def test_auto_vit_attention_picks_cudnn_only_on_a_gpu_in_bfloat16(monkeypatch):
