@@ -405,6 +405,7 @@ class StereoAnyVideo(nn.Module):
     """`__call__` from precomputed `frame_features` (frames of size `size` = (H, W))."""
     size = check_frame_features(frame_feats, size)
     iters = check_iters(iters)
+    final_only = check_final_only(final_only)
     return self.cascade(*self.window_features(frame_feats, *size), size, iters, final_only)
 
   def cascade(self, fmap1, fmap2, context, size: tuple[int, int], iters: int,

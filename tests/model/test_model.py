@@ -102,6 +102,17 @@ def test_frame_feature_entry_points_check_sizes(model):
       run(size)
   with pytest.raises(ValueError, match=r"frame_features' dict \(tokens, fnet, cnet\)"):
     run((32, 48), {"fnet": feats["fnet"]})
+  # iters and final_only are checked as __call__ checks them (iters=1 has no 1/16 step)
+  call = lambda **kw: jax.eval_shape(  # noqa: E731
+      lambda v, f: model.apply(v, f, (32, 48), method=sav_jax.StereoAnyVideo.from_frame_features,
+                               **kw), params, feats)
+  assert call(iters=2, final_only=False).disparities.shape == (4, 1, 2, 32, 48)
+  with pytest.raises(ValueError, match=r"iters must be an integer >= 2 .* got 1"):
+    call(iters=1)
+  with pytest.raises(ValueError, match=r"iters must be an integer >= 2 .* got 2.5"):
+    call(iters=2.5)
+  with pytest.raises(ValueError, match="final_only must be True or False, got 'no'"):
+    call(iters=2, final_only="no")
   odd = jax.ShapeDtypeStruct((1, 2, 20, 40, 3), jnp.float32)
   with pytest.raises(ValueError, match="multiples of 16, got 20x40"):
     jax.eval_shape(lambda v, l, r: model.apply(v, l, r, method=method), params, odd, odd)
