@@ -214,6 +214,7 @@ def test_bad_config_raises():
     ({"context_dim": 160, "fnet_dim": 128}, r"context_dim=160: the model supports only 128"),
     ({"upsample_rate": 2}, r"upsample_rate=2: the model supports only 4"),
     ({"corr_groups": 5}, r"corr_groups=5 must divide the 128 feature channels"),
+    ({"depth_dim": 16}, r"depth_dim \+ fnet_dim must equal context_dim \(16 \+ 96 != 128\)"),
     ({"frame_block_mb": float("inf")}, r"frame_block_mb must be a finite number > 0"),
 ])
 def test_config_fields_of_the_wrong_type_or_value_are_named(fields, match):
@@ -421,6 +422,10 @@ def test_inference_runs_every_update_inside_the_refinement_loops(model, variable
   assert len(scans) == 3
   assert [_primitive_counts(e.params["jaxpr"].jaxpr).get("logistic") for e in scans] == [6] * 3
   assert [e.params["length"] for e in scans] == [2, 2, 4]  # iters//2, iters//2, iters
+  # No scan upsamples: each keeps only maps of its own scale (h = H/16, H/8, H/4), not the
+  # every-iteration full-resolution predictions of training.
+  heights = [max(v.aval.shape[-3] for v in e.outvars if v.aval.ndim >= 5) for e in scans]
+  assert heights == [SHAPE[2] // 16, SHAPE[2] // 8, SHAPE[2] // 4]
 
 
 def test_training_rematerializes_single_steps_and_encoder_blocks(variables, clip):
@@ -469,13 +474,19 @@ def test_final_only_equals_the_last_of_all_predictions(model, variables, clip):
 
   @jax.jit
   def both(v, l, r):
-    full = model.apply(v, l, r, iters=6).disparities
-    last = model.apply(v, l, r, iters=6, final_only=True).disparities
-    return full, last
+    full, full_inter = model.apply(v, l, r, iters=6, mutable=["intermediates"])
+    last, last_inter = model.apply(v, l, r, iters=6, final_only=True, mutable=["intermediates"])
+    return full.disparities, last.disparities, full_inter, last_inter
 
-  full, last = both(variables, *clip)
+  full, last, full_inter, last_inter = both(variables, *clip)
   assert full.shape == (12, *SHAPE[:4]) and last.shape == (1, *SHAPE[:4])
   np.testing.assert_allclose(last[0], full[-1], atol=1e-5)
+  # the flow entering every iteration (intermediates) is the same in both modes
+  flows, last_flows = (inter["intermediates"] for inter in (full_inter, last_inter))
+  assert flows.keys() == last_flows.keys() == {"flow_in_2x3", "flow_in_4x6", "flow_in_8x12"}
+  for name, (want,) in flows.items():
+    assert want.shape[0] == (6 if name == "flow_in_8x12" else 3)
+    np.testing.assert_allclose(last_flows[name][0], want, atol=1e-5, err_msg=name)
 
 
 def test_detach_flow_false_differentiates_through_every_refinement_step(variables, clip,
