@@ -91,23 +91,35 @@ def test_auto_vit_attention_runs_the_fused_kernel_where_it_resolves_to_cudnn(mon
     assert calls == want, dtype
 
 
-def test_frame_block_mb_reaches_the_depth_priors_blocked_stages(monkeypatch):
-  """`frame_block_mb` bounds the ViT attention's logits (every layer's) and the depth head's
-  full-resolution end, whose frames are blocked by their float32 map (H x W x 32 channels
-  for vits: 118 MB a frame at 720x1280)."""
-  from sav_jax.model import depth  # pylint: disable=import-outside-toplevel
-  budgets, tails = [], []
-  attention = dinov2.softmax_attention
-  monkeypatch.setattr(dinov2, "softmax_attention",
-                      lambda q, k, v, mb: budgets.append(mb) or attention(q, k, v, mb))
-  blocks = depth.in_frame_blocks
-  monkeypatch.setattr(depth, "in_frame_blocks", lambda m, fn, x, frame_bytes, mb: (
-      tails.append((x.shape[0], frame_bytes, mb)) or blocks(m, fn, x, frame_bytes, mb)))
-  extractor = depth.DepthExtractor(sav_jax.SAVConfig(frame_block_mb=3.0))
-  jax.eval_shape(extractor.init, jax.random.key(0), jnp.zeros((1, 2, 32, 48, 3)))
-  # (init traces the frozen prior twice: nn.map_variables)
-  assert len(budgets) >= 12 and set(budgets) == {3.0}  # the 12 ViT blocks of vits
-  assert tails and set(tails) == {(2, 32 * 48 * 32 * 4, 3.0)}
+def test_frame_block_mb_reaches_every_blocked_stage(monkeypatch):
+  """`frame_block_mb` bounds every per-frame stage of the model: the ViT attention's logits
+  (every layer's), the depth head's full-resolution end (blocked by its float32 map, H x W x
+  32 channels for vits: 118 MB a frame at 720x1280), the fnet/cnet encoders, the update
+  block's space attention and its GRU's DFT spectra."""
+  from sav_jax.model import depth, stereo_any_video, update  # pylint: disable=import-outside-toplevel
+  seen = {}
+
+  def record(module, name, budget_of):
+    original = getattr(module, name)
+
+    def wrapper(*args):
+      seen.setdefault(f"{module.__name__.rsplit('.', 1)[-1]}.{name}", set()).add(budget_of(args))
+      return original(*args)
+
+    monkeypatch.setattr(module, name, wrapper)
+
+  record(dinov2, "softmax_attention", lambda a: a[3])
+  record(depth, "in_frame_blocks", lambda a: (a[2].shape[0], a[3], a[4]))
+  record(stereo_any_video, "in_frame_blocks", lambda a: a[4])
+  record(update, "in_frame_blocks", lambda a: a[4])
+  record(update, "dft_correlate_w", lambda a: a[2])
+  model = sav_jax.StereoAnyVideo(sav_jax.SAVConfig(frame_block_mb=3.0, gru_conv="dft"))
+  video = jnp.zeros((1, 2, 32, 48, 3))
+  jax.eval_shape(lambda: model.init(jax.random.key(0), video, video, iters=2))
+  assert seen == {"dinov2.softmax_attention": {3.0},
+                  "depth.in_frame_blocks": {(2 * 2, 32 * 48 * 32 * 4, 3.0)},  # both views
+                  "stereo_any_video.in_frame_blocks": {3.0},
+                  "update.in_frame_blocks": {3.0}, "update.dft_correlate_w": {3.0}}
 
 
 def test_gru_dft_runs_in_blocks_under_its_budget():
