@@ -38,6 +38,20 @@ def test_blocked_softmax_attention_equals_the_single_product(budget_rows):
   assert (frames, rows) == ((2, length) if budget_rows is None else (1, budget_rows))
   got = jax.jit(lambda q, k, v: softmax_attention(q, k, v, budget))(q, k, v)
   np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+  # the loops run over blocks of that size: n / frames blocks, or frames then row blocks
+  jaxpr = jax.make_jaxpr(lambda q, k, v: softmax_attention(q, k, v, budget))(q, k, v).jaxpr
+  assert _scan_lengths(jaxpr) == ([n // frames] if rows == length else [n, -(-length // rows)])
+
+
+def _scan_lengths(jaxpr) -> list[int]:
+  """The lengths of the scans (`lax.map`s) in `jaxpr`, outer ones first."""
+  lengths = []
+  for eqn in jaxpr.eqns:
+    if eqn.primitive.name == "scan":
+      lengths.append(eqn.params["length"])
+    for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+      lengths += _scan_lengths(sub)
+  return lengths
 
 
 @pytest.mark.parametrize("dtype,tol", [(jnp.float32, 1e-5), (jnp.bfloat16, 2e-2)])

@@ -102,6 +102,9 @@ def test_frame_feature_entry_points_check_sizes(model):
       run(size)
   with pytest.raises(ValueError, match=r"frame_features' dict \(tokens, fnet, cnet\)"):
     run((32, 48), {"fnet": feats["fnet"]})
+  cnet = jax.ShapeDtypeStruct((2, *feats["cnet"].shape[1:]), jnp.float32)  # another batch's
+  with pytest.raises(ValueError, match=r"do not fit 32x48 frames: .* cnet \(2, 2, 8, 12, 96\)"):
+    run((32, 48), {**feats, "cnet": cnet})
   # iters and final_only are checked as __call__ checks them (iters=1 has no 1/16 step)
   call = lambda **kw: jax.eval_shape(  # noqa: E731
       lambda v, f: model.apply(v, f, (32, 48), method=sav_jax.StereoAnyVideo.from_frame_features,
@@ -214,6 +217,7 @@ def test_bad_config_raises():
     ({"context_dim": 160, "fnet_dim": 128}, r"context_dim=160: the model supports only 128"),
     ({"upsample_rate": 2}, r"upsample_rate=2: the model supports only 4"),
     ({"corr_groups": 5}, r"corr_groups=5 must divide the 128 feature channels"),
+    ({"hiden_dim": 128}, r"unknown SAVConfig fields \['hiden_dim'\]; known: \['context_dim'"),
     ({"depth_dim": 16}, r"depth_dim \+ fnet_dim must equal context_dim \(16 \+ 96 != 128\)"),
     ({"frame_block_mb": float("inf")}, r"frame_block_mb must be a finite number > 0"),
 ])
