@@ -460,6 +460,17 @@ def test_training_rematerializes_single_steps_and_encoder_blocks(variables, clip
   assert lengths == [3, 3, 6] and checkpoints == [0] * 3 and gates == [6] * 3
 
 
+def test_remat_policy_reaches_the_refinement_steps(variables, clip):
+  """`remat_policy` names the checkpoint policy of every refinement step (the three scales'
+  scans), not only the config's field."""
+  m = sav_jax.StereoAnyVideo(sav_jax.SAVConfig(remat=True, remat_policy="dots_saveable"))
+  jaxpr = jax.make_jaxpr(lambda v, l, r: m.apply(v, l, r, iters=2).disparities)(
+      variables, *clip).jaxpr
+  bodies = [e.params["jaxpr"].jaxpr for e in jaxpr.eqns if e.primitive.name == "scan"]
+  policies = [q.params["policy"] for b in bodies for q in b.eqns if q.primitive.name == "remat2"]
+  assert policies == [jax.checkpoint_policies.dots_saveable] * 3
+
+
 def test_batch_elements_are_independent(model, variables, clip):
   """Changing one clip of a batch leaves the other's result unchanged (one compile)."""
   left, right = clip
