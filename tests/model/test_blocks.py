@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import sav_jax
-from sav_jax.model import dinov2, dpt_temporal
+from sav_jax.model import depth, dinov2, dpt_temporal, stereo_any_video, update
 from sav_jax.model.dinov2 import (DinoVisionTransformer, attention_blocks, fused_attention,
                                   softmax_attention)
 from sav_jax.model.layers import frames_per_block
@@ -110,7 +110,6 @@ def test_frame_block_mb_reaches_every_blocked_stage(monkeypatch):
   (every layer's), the depth head's full-resolution end (blocked by its float32 map, H x W x
   32 channels for vits: 118 MB a frame at 720x1280), the fnet/cnet encoders, the update
   block's space attention and its GRU's DFT spectra."""
-  from sav_jax.model import depth, stereo_any_video, update  # pylint: disable=import-outside-toplevel
   seen = {}
 
   def record(module, name, budget_of):
