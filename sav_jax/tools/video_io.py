@@ -12,12 +12,12 @@ import logging
 import operator
 import os
 import pathlib
-import re
 
 import cv2
 import numpy as np
 
 from sav_jax import viz
+from sav_jax.data.base import digits_key
 
 log = logging.getLogger(__name__)
 
@@ -421,9 +421,10 @@ def _unpaired_frame(left_files, right_files) -> str:
 
 
 def _frame_number(path) -> int | None:
-  """The last group of digits in a frame file's stem (`left_0012` -> 12), or None."""
-  digits = re.findall(r"\d+", pathlib.Path(path).stem)
-  return int(digits[-1]) if digits else None
+  """The last group of digits in a frame file's stem (`left_0012` -> 12: `digits_key`), or
+  None."""
+  number = digits_key(pathlib.Path(path))
+  return number if isinstance(number, int) else None
 
 
 def _shifted_pairing(left_files, right_files, pairs: int | None = None) -> str | None:
