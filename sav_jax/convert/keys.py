@@ -87,9 +87,10 @@ def converted(key: str, value, leaf: str, shape: tuple[int, ...], model: str = "
   problem = value_problem(key, value)
   if problem:
     return None, problem
-  with np.errstate(over="ignore"):  # float64 beyond float32's range: inf, refused below
+  wide = arr.dtype.itemsize > 4  # float64: values beyond float32's range become inf
+  with np.errstate(over="ignore"):
     arr = arr.astype(np.float32)
-  problem = value_problem(key, arr)
+  problem = value_problem(key, arr) if wide else None  # (narrower types stay finite)
   if problem:
     return None, f"{problem} once converted to float32 (values beyond its range)"
   return arr, None
