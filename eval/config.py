@@ -80,17 +80,11 @@ def fields_help() -> str:
   dataset's own config sets `dataset`, `split` and `sample_len`): `python -m eval --help`."""
   from configs.eval import common  # pylint: disable=import-outside-toplevel
   config = common.eval_config("<dataset>")
-  shown = [f"{name}={_value(config, name)!r}" for name in _flat_names(config)
+  shown = [f"{name}={value!r}" for name, value in _flat_items(config)
            if name not in ("dataset", "split", "sample_len")]
   return ("config fields, overridden with --config.<field>=<value> (the dataset's config sets "
           "dataset, split and sample_len; configs/eval/common.py explains each): "
           + ", ".join(shown))
-
-
-def _value(config, name: str):
-  for part in name.split("."):
-    config = config[part]
-  return config
 
 
 def split_overrides(argv: list[str]) -> tuple[list[str], list[tuple[str, str]]]:
@@ -158,9 +152,14 @@ def apply_overrides(config: ml_collections.ConfigDict,
   return config
 
 
-def _flat_names(config, prefix=""):
+def _flat_items(config, prefix=""):
+  """`(dotted name, value)` of every leaf field of `config`."""
   for k, v in config.items():
     if isinstance(v, ml_collections.ConfigDict):
-      yield from _flat_names(v, f"{prefix}{k}.")
+      yield from _flat_items(v, f"{prefix}{k}.")
     else:
-      yield prefix + k
+      yield prefix + k, v
+
+
+def _flat_names(config):
+  return (name for name, _ in _flat_items(config))
