@@ -317,20 +317,25 @@ def test_views_offsets_and_rebuild_variants(tmp_path, fake_torch, fmt):
   assert all(v.flags.c_contiguous and v.flags.writeable for v in sd.values())
 
 
-def test_v3_tensor_on_untyped_storage(tmp_path, fake_torch):
+@pytest.mark.parametrize("byteorder", ["little", "big"])
+def test_v3_tensor_on_untyped_storage(tmp_path, fake_torch, byteorder):
+  # An untyped storage is bytes: a big-endian file's elements are swapped when its v3 tensor
+  # gives them their dtype (read as little-endian, 300 came back as 11265).
   b = _Builder(fake_torch)
-  u16 = np.array([1, 65535, 300, 7], "<u2")
-  f32 = np.array([1.25, -3.0], "<f4")
+  end = "<" if byteorder == "little" else ">"
+  u16 = np.array([1, 65535, 300, 7], f"{end}u2")
+  f32 = np.array([1.25, -3.0, 1e-30], f"{end}f4")
   st16, st32 = b.untyped(u16.tobytes()), b.untyped(f32.tobytes())
   utils = fake_torch._utils
   args16 = (st16, 1, (3,), (1,), False, collections.OrderedDict(), fake_torch.uint16)
-  args32 = (st32, 0, (2,), (1,), False, collections.OrderedDict(), fake_torch.float32)
+  args32 = (st32, 0, (3,), (1,), False, collections.OrderedDict(), fake_torch.float32)
   obj = {"a": _Tensor(utils._rebuild_tensor_v3, args16),
          "b": _Tensor(utils._rebuild_tensor_v3, args32)}
-  sd = torch_io.load_state_dict(b.write_zip(tmp_path / "v3.pth", obj))
-  assert sd["a"].dtype == np.uint16
-  np.testing.assert_array_equal(sd["a"], u16[1:])
-  np.testing.assert_array_equal(sd["b"], f32)
+  sd = torch_io.load_state_dict(b.write_zip(tmp_path / "v3.pth", obj, byteorder=byteorder))
+  assert sd["a"].dtype == np.uint16 and sd["a"].dtype.isnative
+  np.testing.assert_array_equal(sd["a"], [65535, 300, 7])
+  assert sd["b"].dtype == np.float32 and sd["b"].dtype.isnative
+  np.testing.assert_array_equal(sd["b"], np.array([1.25, -3.0, 1e-30], np.float32))
 
 
 def test_float8_tensors_are_widened_to_float32(tmp_path, fake_torch):
@@ -344,25 +349,6 @@ def test_float8_tensors_are_widened_to_float32(tmp_path, fake_torch):
                                                           args)}))
   assert sd["w"].dtype == np.float32
   np.testing.assert_array_equal(sd["w"], [[1.5, -2.0], [448.0, 2.0 ** -9]])
-
-
-def test_v3_tensor_on_untyped_storage_of_a_big_endian_file(tmp_path, fake_torch):
-  # An untyped storage is bytes: a big-endian file's elements are swapped when its v3 tensor
-  # gives them their dtype (read as little-endian, 300 came back as 11265).
-  b = _Builder(fake_torch)
-  u16 = np.array([1, 65535, 300, 7], ">u2")
-  f32 = np.array([1.25, -3.0, 1e-30], ">f4")
-  st16, st32 = b.untyped(u16.tobytes()), b.untyped(f32.tobytes())
-  utils = fake_torch._utils
-  args16 = (st16, 1, (3,), (1,), False, collections.OrderedDict(), fake_torch.uint16)
-  args32 = (st32, 0, (3,), (1,), False, collections.OrderedDict(), fake_torch.float32)
-  obj = {"a": _Tensor(utils._rebuild_tensor_v3, args16),
-         "b": _Tensor(utils._rebuild_tensor_v3, args32)}
-  sd = torch_io.load_state_dict(b.write_zip(tmp_path / "v3big.pth", obj, byteorder="big"))
-  assert sd["a"].dtype == np.uint16 and sd["a"].dtype.isnative
-  np.testing.assert_array_equal(sd["a"], [65535, 300, 7])
-  assert sd["b"].dtype == np.float32 and sd["b"].dtype.isnative
-  np.testing.assert_array_equal(sd["b"], np.array([1.25, -3.0, 1e-30], np.float32))
 
 
 def test_legacy_storage_view_metadata(tmp_path, fake_torch):
