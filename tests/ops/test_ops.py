@@ -9,7 +9,7 @@ from sav_jax.ops.correlation import SMALL_WINDOW, WIDE_WINDOW, aapc, window_corr
 from sav_jax.ops.pool import avg_pool
 from sav_jax.ops.resize import interp_matrix, resize
 from sav_jax.ops.sample import warp_x
-from sav_jax.ops.upsample import convex_upsample_3d, neighbours_3d
+from sav_jax.ops.upsample import convex_upsample_2d, convex_upsample_3d, neighbours_3d
 
 RNG = np.random.default_rng(0)
 
@@ -244,3 +244,176 @@ def test_convex_upsample_of_constant_flow_in_the_interior():
   mask = RNG.normal(size=(1, 3, 4, 4, 27 * 16)).astype(np.float32)
   out = np.asarray(convex_upsample_3d(jnp.asarray(flow), jnp.asarray(mask)))
   np.testing.assert_allclose(out[0, 1, 4:12, 4:12], 6.0, atol=1e-5)
+
+
+# ---------------------------------------------------------------- torch semantics, in NumPy
+# Independent references written from the documented definitions of torch's
+# F.interpolate (bilinear, bicubic), grid_sample and F.unfold, per output element.
+def _linear_taps(n_in, n_out, align_corners, scale=None):
+  """torch's linear interpolation along one axis: per output index, its `(input, weight)`
+  taps. Source index: `i * (in - 1) / (out - 1)` (0 for one output) with align_corners,
+  else `(i + 0.5) / scale - 0.5` (scale: the given factor, else out / in) clamped at 0; the
+  second tap is the next input, or the same one at the last input."""
+  taps = []
+  for i in range(n_out):
+    if align_corners:
+      src = i * (n_in - 1) / (n_out - 1) if n_out > 1 else 0.0
+    else:
+      src = max((i + 0.5) * (1.0 / scale if scale else n_in / n_out) - 0.5, 0.0)
+    i0 = int(np.floor(src))
+    lam = src - i0
+    taps.append([(i0, 1.0 - lam), (i0 + 1 if i0 < n_in - 1 else i0, lam)])
+  return taps
+
+
+def _keys_cubic(d, a=-0.75):
+  d = abs(d)
+  if d <= 1:
+    return (a + 2) * d**3 - (a + 3) * d**2 + 1
+  return a * d**3 - 5 * a * d**2 + 8 * a * d - 4 * a if d < 2 else 0.0
+
+
+def _cubic_taps(n_in, n_out, align_corners, scale=None):
+  """torch's bicubic taps along one axis: four inputs around the (unclamped) source index,
+  Keys' kernel with A = -0.75, each index clamped to the border."""
+  taps = []
+  for i in range(n_out):
+    if align_corners:
+      src = i * (n_in - 1) / (n_out - 1) if n_out > 1 else 0.0
+    else:
+      src = (i + 0.5) * (1.0 / scale if scale else n_in / n_out) - 0.5
+    f = int(np.floor(src))
+    taps.append([(min(max(f - 1 + k, 0), n_in - 1), _keys_cubic(src - (f - 1 + k)))
+                 for k in range(4)])
+  return taps
+
+
+def _interpolate_ref(x, size, mode, align_corners, scale=(None, None)):
+  """`F.interpolate` of channels-last `x` [N, H, W, C] in float64, output by output."""
+  taps = _linear_taps if mode == "bilinear" else _cubic_taps
+  ty = taps(x.shape[1], size[0], align_corners, scale[0])
+  tx = taps(x.shape[2], size[1], align_corners, scale[1])
+  out = np.zeros((x.shape[0], *size, x.shape[3]))
+  for i, j in np.ndindex(*size):
+    for a, wa in ty[i]:
+      for b, wb in tx[j]:
+        out[:, i, j] += wa * wb * x[:, a, b].astype(np.float64)
+  return out
+
+
+@pytest.mark.parametrize("mode,shape,size,align_corners,scale", [
+    ("bilinear", (1, 5, 7, 2), (1, 1), True, None),  # one output: the first input
+    ("bilinear", (1, 5, 7, 2), (1, 3), False, None),
+    ("bilinear", (2, 5, 7, 2), (3, 11), False, (0.6, 1.7)),  # the scale factors, per axis
+    ("bilinear", (1, 3, 4, 2), (3, 4), False, (1.2, 1.1)),  # same size, shifted by the factor
+    ("bilinear", (1, 4, 6, 1), (9, 2), True, None),
+    ("bicubic", (1, 4, 5, 2), (9, 11), False, None),  # border taps clamp (upsampling)
+    ("bicubic", (1, 4, 5, 2), (7, 13), True, None),
+    ("bicubic", (1, 6, 5, 1), (1, 1), True, None),
+    ("bicubic", (1, 9, 6, 2), (4, 8), False, (0.47, 1.4)),
+    ("bicubic", (1, 3, 4, 1), (3, 4), False, (1.2, 1.1)),
+])
+def test_resize_matches_torch_interpolate_definition(mode, shape, size, align_corners, scale):
+  x = RNG.normal(size=shape).astype(np.float32)
+  got = resize(jnp.asarray(x), size, mode, align_corners, scale)
+  assert got.shape == (shape[0], *size, shape[3])
+  want = _interpolate_ref(x, size, mode, align_corners, scale or (None, None))
+  np.testing.assert_allclose(np.asarray(got), want, rtol=1e-5, atol=1e-5)
+
+
+def test_integer_resize_clips_the_bicubic_overshoot():
+  """Bicubic weights go negative: a sharp 0/255 edge overshoots below 0 and above 255; uint8
+  outputs are the rounded values clipped to 0..255, not wrapped around."""
+  edge = np.zeros((1, 4, 8, 1), np.uint8)
+  edge[:, :, 4:] = 255
+  want = _interpolate_ref(edge, (4, 19), "bicubic", False)
+  assert want.min() < -0.5 and want.max() > 255.5  # (the overshoot is there to clip)
+  got = np.asarray(resize(jnp.asarray(edge), (4, 19), "bicubic", False))
+  assert got.dtype == np.uint8
+  np.testing.assert_array_equal(got, np.clip(np.floor(want + 0.5), 0, 255))
+
+
+def _grid_sample_x(features, disp):
+  """grid_sample (bilinear, zero padding, align_corners=True) at `(x - disp, y)`: two taps,
+  each outside `[0, W - 1]` contributing zero."""
+  n, h, w, _ = features.shape
+  out = np.zeros(features.shape, np.float64)
+  for b, y, x in np.ndindex(n, h, w):
+    sx = x - float(disp[b, y, x])
+    x0 = int(np.floor(sx))
+    for xi, wt in ((x0, 1.0 - (sx - x0)), (x0 + 1, sx - x0)):
+      if 0 <= xi < w:
+        out[b, y, x] += wt * features[b, y, xi]
+  return out
+
+
+def test_warp_matches_grid_sample_for_any_disparity():
+  """Fractional disparities of both signs, far outside the row too: samples past either
+  edge fade to zero, those exactly at the last column read it."""
+  w = 7
+  f = RNG.normal(size=(2, 3, w, 4)).astype(np.float32)
+  disp = RNG.uniform(-w - 2, w + 2, (2, 3, w)).astype(np.float32)
+  disp[0, 0] = np.arange(w) - (w - 1)  # every sample at x = W - 1 exactly
+  disp[0, 1] = -0.5  # half a pixel right: the last column half outside
+  disp[0, 2] = np.arange(w) - (w - 0.25)  # a quarter pixel past the last column
+  got = warp_x(jnp.asarray(f), jnp.asarray(disp))
+  np.testing.assert_allclose(np.asarray(got), _grid_sample_x(f, disp), atol=1e-6)
+  np.testing.assert_allclose(np.asarray(got)[0, 0], np.broadcast_to(f[0, 0, -1], (w, 4)))
+  assert warp_x(jnp.asarray(f, jnp.bfloat16), jnp.asarray(disp)).dtype == jnp.bfloat16
+
+
+def test_aapc_correlates_the_left_map_with_the_warped_right_map():
+  f1 = RNG.normal(size=(1, 4, 11, 8)).astype(np.float32)
+  f2 = RNG.normal(size=(1, 4, 11, 8)).astype(np.float32)
+  disp = RNG.uniform(-3, 6, (1, 4, 11)).astype(np.float32)
+  warped = _grid_sample_x(f2, disp)
+  # the official windows: 1x9 (wide) and 3x3 (small)
+  for window, official in ((WIDE_WINDOW, (1, 9)), (SMALL_WINDOW, (3, 3))):
+    out = aapc(jnp.asarray(f1), jnp.asarray(f2), jnp.asarray(disp), window)
+    np.testing.assert_allclose(out, _corr_loops(f1, warped, official), atol=1e-4)
+
+
+def test_avg_pool_refuses_a_map_narrower_than_the_window():
+  x = jnp.zeros((1, 9, 3, 2))
+  with pytest.raises(ValueError, match="a 9x3 map is smaller than the 4x4 window"):
+    avg_pool(x, 4)
+  assert avg_pool(jnp.zeros((1, 4, 4, 2)), 4).shape == (1, 1, 1, 2)  # the window itself: fine
+
+
+def _convex_2d_loops(flow, mask, rate):
+  """RAFT's upsample_flow: the mask viewed as [9, rate, rate] per pixel, softmax over the 9
+  taps, times F.unfold(rate * flow, 3, padding=1) (zero padding, tap k = dy * 3 + dx)."""
+  b, h, w, c = flow.shape
+  wts = mask.reshape(b, h, w, 9, rate, rate).astype(np.float64)
+  wts = np.exp(wts - wts.max(3, keepdims=True))
+  wts /= wts.sum(3, keepdims=True)
+  fp = np.pad(rate * flow.astype(np.float64), [(0, 0), (1, 1), (1, 1), (0, 0)])
+  out = np.zeros((b, h * rate, w * rate, c))
+  for y, x, ry, rx in np.ndindex(h, w, rate, rate):
+    for k in range(9):
+      out[:, y * rate + ry, x * rate + rx] += (wts[:, y, x, k, ry, rx, None]
+                                               * fp[:, y + k // 3, x + k % 3])
+  return out
+
+
+@pytest.mark.parametrize("rate", [8, 2])
+def test_convex_upsample_2d_matches_raft(rate):
+  flow = RNG.normal(size=(1, 3, 4, 2)).astype(np.float32)
+  mask = (RNG.normal(size=(1, 3, 4, 9 * rate * rate)) * 3).astype(np.float32)
+  if rate == 8:  # RAFT's rate is the default
+    out = convex_upsample_2d(jnp.asarray(flow), jnp.asarray(mask))
+  else:
+    out = convex_upsample_2d(jnp.asarray(flow), jnp.asarray(mask), rate=rate)
+  assert out.shape == (1, 3 * rate, 4 * rate, 2) and out.dtype == jnp.float32
+  np.testing.assert_allclose(out, _convex_2d_loops(flow, mask, rate), rtol=1e-5, atol=1e-5)
+
+
+def test_convex_upsampling_asks_for_full_float32_products():
+  """The convex combinations ask for HIGHEST precision whatever the default matmul
+  precision (on GPUs, TF32 or bfloat16 products would round the flow to ~1e-3 relative)."""
+  flow2, mask2 = jnp.zeros((1, 2, 2, 2)), jnp.zeros((1, 2, 2, 9 * 4))
+  flow3, mask3 = jnp.zeros((1, 2, 2, 2, 2)), jnp.zeros((1, 2, 2, 2, 27 * 4))
+  with jax.default_matmul_precision("bfloat16"):
+    for fn, args in ((convex_upsample_2d, (flow2, mask2)), (convex_upsample_3d, (flow3, mask3))):
+      text = jax.jit(lambda f, m, fn=fn: fn(f, m, rate=2)).lower(*args).as_text()
+      assert "HIGHEST" in text, fn.__name__
