@@ -290,8 +290,10 @@ def test_the_command_line_exit_after_ctrl_c_skips_pythons_shutdown(tmp_path):
           "print('buffered', end='')\n"
           "from sav_jax._signals import exit_interrupted\n"
           "exit_interrupted('tool: interrupted')\n")
+  # (stdout block-buffered, as in a pipe: PYTHONUNBUFFERED would hide a missing flush)
+  env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
   proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                        timeout=120, check=False)
+                        timeout=120, check=False, env=env)
   assert proc.returncode == 130 and proc.stdout == "buffered", proc
   assert proc.stderr == "tool: interrupted\n", proc.stderr
 
