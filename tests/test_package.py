@@ -65,3 +65,125 @@ def test_every_sav_jax_option_has_help():
           for action in parser._actions  # pylint: disable=protected-access
           if action.option_strings and not action.help]
   assert not bare, bare
+
+
+# -------------------------------------------------------- `sav_jax.cli.main` around a command
+@pytest.fixture
+def bench_runs(monkeypatch):
+  """`bench_runs(fn)`: `sav-jax bench` runs `fn(args)` instead of the benchmark."""
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+
+  def use(fn):
+    monkeypatch.setattr(bench, "run", fn)
+
+  return use
+
+
+def test_a_commands_status_is_mains(bench_runs):
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  bench_runs(lambda args: 3)
+  assert cli.main(["bench"]) == 3
+  bench_runs(lambda args: None)
+  assert cli.main(["bench"]) == 0
+
+
+def test_an_empty_compile_cache_is_refused(tmp_path, capsys, monkeypatch, bench_runs):
+  # "" would put the compilation cache in the current folder
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  monkeypatch.chdir(tmp_path)
+  bench_runs(lambda args: pytest.fail("the command ran"))
+  assert cli.main(["bench", "--compile-cache", ""]) == 2
+  assert "sav-jax bench: error: --compile-cache is empty; give a path" in capsys.readouterr().err
+  assert not any(tmp_path.iterdir())
+
+
+def test_a_commands_warnings_are_one_line_each_on_stderr(capsys, bench_runs):
+  import warnings  # pylint: disable=import-outside-toplevel
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  shown = warnings.showwarning
+
+  def warn(args):
+    warnings.warn("frames 0..4 look swapped", UserWarning)
+    return 0
+
+  bench_runs(warn)
+  assert cli.main(["bench"]) == 0
+  captured = capsys.readouterr()
+  assert captured.err == "sav-jax bench: warning: frames 0..4 look swapped\n"
+  assert captured.out == ""
+  assert warnings.showwarning is shown  # put back
+
+
+def test_main_leaves_the_callers_settings_and_logging(tmp_path, bench_runs):
+  import logging  # pylint: disable=import-outside-toplevel
+  import jax  # pylint: disable=import-outside-toplevel
+  from sav_jax import cli, runtime  # pylint: disable=import-outside-toplevel
+  seen = []
+
+  def change_settings(args):
+    seen.append(logging.getLogger().getEffectiveLevel())
+    runtime.enable_compilation_cache(tmp_path / "cache", min_compile_time_s=77.0)
+    runtime.set_low_memory_compile(not runtime._low_memory_compile)  # pylint: disable=protected-access
+    return 0
+
+  bench_runs(change_settings)
+  before = (jax.config.jax_compilation_cache_dir,
+            jax.config.jax_persistent_cache_min_compile_time_secs,
+            runtime._low_memory_compile, logging.getLogger().level)  # pylint: disable=protected-access
+  assert cli.main(["bench"]) == 0 and cli.main(["-v", "bench"]) == 0
+  assert seen == [logging.INFO, logging.DEBUG]  # -v: debug messages too
+  assert (jax.config.jax_compilation_cache_dir,
+          jax.config.jax_persistent_cache_min_compile_time_secs,
+          runtime._low_memory_compile, logging.getLogger().level) == before  # pylint: disable=protected-access
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # (the drop)
+def test_a_ctrl_c_that_python_dropped_inside_a_command_is_raised_again(bench_runs):
+  import signal  # pylint: disable=import-outside-toplevel
+  from sav_jax import _signals, cli  # pylint: disable=import-outside-toplevel
+  from tests.conftest import drop_ctrl_c_in_gc  # pylint: disable=import-outside-toplevel
+  after = []
+
+  def dropped(args):
+    drop_ctrl_c_in_gc()  # (in JAX's garbage-collection callback, say)
+    _signals.raise_if_interrupted()  # the command's next safe point (a window, a step)
+    after.append("went on")
+    return 0
+
+  bench_runs(dropped)
+  handler = signal.signal(signal.SIGINT, signal.default_int_handler)  # (xdist ignores it)
+  try:
+    with pytest.raises(KeyboardInterrupt):
+      cli.main(["bench"])
+  finally:
+    signal.signal(signal.SIGINT, handler)
+  assert not after
+
+
+def test_out_of_memory_before_compiling_names_the_commands_flags(capsys, bench_runs):
+  from sav_jax import cli, inference  # pylint: disable=import-outside-toplevel
+
+  def too_big(args):
+    raise inference.InsufficientMemoryError("a window of 20 frames needs 41.3 GB, 7.9 GB free",
+                                            "fewer frames per window (window/stride)")
+
+  bench_runs(too_big)
+  assert cli.main(["bench"]) == 2
+  assert capsys.readouterr().err == (
+      "sav-jax bench: error: a window of 20 frames needs 41.3 GB, 7.9 GB free; use a smaller "
+      "--batch, fewer --frames, smaller --height/--width, fewer --iters or --dtype bfloat16\n")
+
+
+def test_a_command_missing_a_dependency_fails_loudly(tmp_path, monkeypatch):
+  # A command module that is not shipped is left out of the parser; one whose own import
+  # fails (a missing dependency) is an error, not a command that silently disappears.
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  (tmp_path / "sav_test_command.py").write_text("import sav_no_such_dependency\n")
+  monkeypatch.syspath_prepend(str(tmp_path))
+  monkeypatch.setitem(cli.COMMANDS, "absent", "sav_jax.tools.sav_no_such_command")
+  sub = lambda: next(a for a in cli.build_parser()._actions  # noqa: E731  # pylint: disable=protected-access
+                     if a.choices and "bench" in a.choices).choices
+  assert "absent" not in sub() and "infer" in sub()
+  monkeypatch.setitem(cli.COMMANDS, "broken", "sav_test_command")
+  with pytest.raises(ModuleNotFoundError, match="sav_no_such_dependency"):
+    cli.build_parser()
