@@ -175,8 +175,170 @@ def _child(out_path):
            window_one=window_one, log=json.dumps(log))
 
 
+def _plumbing_child(out_path):
+  """Runs in a fresh process with 8 CPU devices: `predict_video`'s placement of windows and
+  per-frame features, with stand-ins for the compiled programs (pointwise functions of the
+  frames: no model compile), and the training mesh's shardings."""
+  import signal  # pylint: disable=import-outside-toplevel
+  import jax  # pylint: disable=import-outside-toplevel
+  from jax.sharding import Mesh, NamedSharding, PartitionSpec  # pylint: disable=import-outside-toplevel
+  from sav_jax import _signals  # pylint: disable=import-outside-toplevel
+  from tests.conftest import drop_ctrl_c_in_gc  # pylint: disable=import-outside-toplevel
+  from train import state as state_lib  # pylint: disable=import-outside-toplevel
+  devs = jax.devices()
+  res = {"devices": jax.device_count(),
+         "resolved": {str(k): [d.id for d in inference.resolve_devices(k)]
+                      for k in (8, 0, "all", 3)}}
+  try:
+    inference.resolve_devices(9)
+  except ValueError as e:
+    res["nine"] = str(e)
+  # Frame t of the left view holds t + a pattern, the right view 0: the stand-in disparity of
+  # frame t is 2 * (t + pattern) - 1, so every frame's value tells where it came from.
+  frames, h, w = 75, 6, 10
+  pattern = np.arange(h * w, dtype=np.float32).reshape(h, w) % 7
+  left = np.repeat((np.arange(frames, dtype=np.float32)[:, None, None] + pattern)[..., None], 3, -1)
+  right = np.zeros_like(left)
+  want = np.abs(2.0 * (np.arange(frames)[:, None, None] + pattern) - 1.0)  # (abs())
+  variables = {"params": {"w": np.float32(2.0), "b": np.float32(-1.0)}}
+  feature = jax.jit(lambda v, l, r: {"f": ((l - r).mean(-1) * v["params"]["w"])[None]})
+  refine = jax.jit(lambda v, feats: feats["f"][0] + v["params"]["b"])
+  log, hooks = [], []
+
+  def programs(variables, shape, pads, todo, *, cfg, iters, check_memory):
+    device = inference._device_of(variables).id  # pylint: disable=protected-access
+
+    def features(v, l, r):  # l[:, pads[0], pads[2], 0] holds the frames' indices
+      log.append(["features", device, [int(t) for t in l[:, pads[0], pads[2], 0]]])
+      for hook in hooks:
+        hook()
+      return feature(v, l, r)
+
+    def window(v, feats):
+      log.append(["window", device, sorted({d.id for x in jax.tree.leaves(feats)
+                                            for d in x.devices()})])
+      return refine(v, feats)
+
+    return {b - a: features for a, b in todo}, window
+
+  inference._window_programs = programs  # pylint: disable=protected-access
+  inference.check_variables = lambda *args, **kwargs: None
+
+  def run(name, variables, devices=None):
+    log.clear()
+    out = inference.predict_video(variables, left, right, iters=2, devices=devices)
+    res[name] = {"log": list(log), "max_err": float(np.abs(out - want).max())}
+
+  run("three", variables, 3)
+  # What the feature cache holds while a group's results are taken: the frames the next
+  # group needs, not the whole group's.
+  caches = []
+
+  class Cache(inference.FrameFeatureCache):
+    def __init__(self, *args, **kwargs):
+      super().__init__(*args, **kwargs)
+      caches.append(self)
+
+  inference.FrameFeatureCache = Cache
+  res["held"] = [[t, sorted(caches[0].frames)[:1] + sorted(caches[0].frames)[-1:]]
+                 for t, _ in inference.iter_predict_video(variables, left, right, iters=2,
+                                                          devices=3)]
+  inference.FrameFeatureCache = Cache.__bases__[0]
+  run("none", variables)
+  run("on_five", jax.device_put(variables, devs[5]))
+  run("mesh_2_to_4", jax.device_put(variables, NamedSharding(Mesh(np.array(devs[2:5]), ("x",)),
+                                                             PartitionSpec())))
+  run("seven_four", variables, [devs[7], devs[4]])
+  # A Ctrl-C that Python dropped while the first group ran: no second group.
+  hooks.append(lambda: hooks.clear() or drop_ctrl_c_in_gc())
+  handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+  log.clear()
+  try:
+    with _signals.remembered_interrupts():
+      inference.predict_video(variables, left, right, iters=2, devices=3)
+    res["ctrl_c"] = "not raised"
+  except KeyboardInterrupt:
+    res["ctrl_c"] = [entry[1] for entry in log if entry[0] == "window"]
+  finally:
+    signal.signal(signal.SIGINT, handler)
+  # The training mesh: one `data` axis over every device, the batch split on it.
+  mesh = state_lib.make_mesh()
+  batch = jax.device_put(np.arange(32).reshape(16, 2), state_lib.data_sharding(mesh))
+  params = jax.device_put(np.arange(4), state_lib.replicated(mesh))
+  res["mesh"] = dict(mesh.shape)
+  res["batch_shards"] = sorted([s.device.id, *np.asarray(s.data)[:, 0].tolist()]
+                               for s in batch.addressable_shards)
+  res["param_shards"] = sorted([s.device.id, len(s.data)] for s in params.addressable_shards)
+  pathlib.Path(out_path).write_text(json.dumps(res))
+
+
 if __name__ == "__main__":
-  _child(sys.argv[1])
+  if sys.argv[1] == "--plumbing":
+    _plumbing_child(sys.argv[2])
+  else:
+    _child(sys.argv[1])
+
+
+@pytest.fixture(scope="module")
+def plumbing(module_tmp_path):
+  out = module_tmp_path / "plumbing.json"
+  env = dict(os.environ, JAX_PLATFORMS="cpu", TF_CPP_MIN_LOG_LEVEL="1",
+             XLA_FLAGS="--xla_force_host_platform_device_count=8",
+             PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+  proc = subprocess.run([sys.executable, "-m", "tests.test_multi_device", "--plumbing", str(out)],
+                        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300,
+                        check=False)
+  assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+  return json.loads(out.read_text())
+
+
+def test_device_counts_of_eight_devices(plumbing):
+  assert plumbing["devices"] == 8
+  assert plumbing["resolved"] == {"8": list(range(8)), "0": list(range(8)),
+                                  "all": list(range(8)), "3": [0, 1, 2]}
+  assert plumbing["nine"] == "devices=9, but 8 local cpu devices are available"
+
+
+def _windows(run):
+  return [entry[1] for entry in run["log"] if entry[0] == "window"]
+
+
+def test_windows_take_turns_on_the_devices_and_every_frame_is_computed_once(plumbing):
+  # 75 frames: 7 windows of 20 (stride 10); on 3 devices, groups of 3 consecutive windows.
+  three = plumbing["three"]
+  assert three["max_err"] == 0.0  # every frame's own value, in order
+  assert _windows(three) == [0, 1, 2, 0, 1, 2, 0]
+  assert all(entry[2] == [entry[1]] for entry in three["log"] if entry[0] == "window")
+  computed = [t for entry in three["log"] if entry[0] == "features" for t in entry[2]]
+  assert sorted(computed) == list(range(75))  # once each, wherever a window needs them
+  # the features of a window's frames are computed on the device of the first window that
+  # needs them: device 1's window [10, 30) computes 20..29 for device 2's [20, 40)
+  assert ["features", 1, list(range(20, 30))] in three["log"]
+  # while the first group's results are taken, the cache holds frames 30..39 (the next
+  # group's first window starts at 30), no earlier ones; nothing at the end
+  assert plumbing["held"] == [[0, [30, 39]], [15, [30, 39]], [25, [30, 39]],
+                              [35, [60, 69]], [45, [60, 69]], [55, [60, 69]], [65, []]]
+  assert _windows(plumbing["seven_four"]) == [7, 4, 7, 4, 7, 4, 7]
+  assert plumbing["seven_four"]["max_err"] == 0.0
+
+
+def test_without_devices_windows_run_where_the_weights_are(plumbing):
+  assert _windows(plumbing["none"]) == [0] * 7 and plumbing["none"]["max_err"] == 0.0
+  assert _windows(plumbing["on_five"]) == [5] * 7 and plumbing["on_five"]["max_err"] == 0.0
+  # replicated over devices 2..4 (not the default one): the first of them
+  assert _windows(plumbing["mesh_2_to_4"]) == [2] * 7
+  assert plumbing["mesh_2_to_4"]["max_err"] == 0.0
+
+
+def test_a_dropped_ctrl_c_stops_the_next_group_of_windows(plumbing):
+  assert plumbing["ctrl_c"] == [0, 1, 2]  # the first group finished, no other started
+
+
+def test_the_training_mesh_splits_the_batch_and_replicates_the_state(plumbing):
+  assert plumbing["mesh"] == {"data": 8}
+  # 16 rows over 8 devices: device i holds rows 2i and 2i + 1 (first column 4i, 4i + 2)
+  assert plumbing["batch_shards"] == [[i, 4 * i, 4 * i + 2] for i in range(8)]
+  assert plumbing["param_shards"] == [[i, 4] for i in range(8)]
 
 
 def test_each_device_keeps_its_own_executables(monkeypatch):
