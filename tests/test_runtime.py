@@ -54,6 +54,48 @@ def test_a_file_in_the_way_is_refused(tmp_path, restore_cache_config):
   assert blocker.read_text() == "user data"
 
 
+def test_an_empty_xdg_cache_home_and_a_tilde_mean_the_home_folder(tmp_path, monkeypatch,
+                                                                 restore_cache_config):
+  # XDG: an empty XDG_CACHE_HOME is unset (not a cache folder relative to where the command
+  # runs); a --compile-cache "~/..." that the shell left unexpanded is the user's home.
+  monkeypatch.setenv("HOME", str(tmp_path / "home"))
+  monkeypatch.setenv("XDG_CACHE_HOME", "")
+  assert runtime.default_cache_dir() == tmp_path / "home" / ".cache" / "sav-jax" / "xla"
+  folder = runtime.enable_compilation_cache("~/xla", min_compile_time_s=0)
+  assert folder == tmp_path / "home" / "xla" and folder.is_dir()
+  assert jax.config.jax_compilation_cache_dir == str(folder)
+
+
+def test_a_new_folder_takes_effect_after_the_cache_was_used(tmp_path, restore_cache_config):
+  # JAX decides once per process whether (and where) it caches: a folder given after a first
+  # compile must still receive the later programs.
+  first = runtime.enable_compilation_cache(tmp_path / "first", min_compile_time_s=0)
+  jax.jit(lambda x: jnp.tanh(x) * 7.0 - 3.0)(jnp.arange(9.0)).block_until_ready()
+  assert any(first.iterdir())
+  second = runtime.enable_compilation_cache(tmp_path / "second", min_compile_time_s=0)
+  jax.jit(lambda x: jnp.cosh(x) * 11.0 + 2.0)(jnp.arange(6.0)).block_until_ready()
+  assert any(second.iterdir()), "the program went to the first folder (or nowhere)"
+
+
+def test_preserved_settings_puts_every_setting_back(tmp_path):
+  before = (jax.config.jax_compilation_cache_dir,
+            jax.config.jax_persistent_cache_min_compile_time_secs,
+            runtime._low_memory_compile)  # pylint: disable=protected-access
+  with runtime.preserved_settings():
+    runtime.enable_compilation_cache(tmp_path / "elsewhere", min_compile_time_s=123.0)
+    runtime.set_low_memory_compile(not before[2])
+    assert jax.config.jax_compilation_cache_dir == str(tmp_path / "elsewhere")
+  assert (jax.config.jax_compilation_cache_dir,
+          jax.config.jax_persistent_cache_min_compile_time_secs,
+          runtime._low_memory_compile) == before  # pylint: disable=protected-access
+  with pytest.raises(KeyError), runtime.preserved_settings():  # and after an error
+    runtime.disable_compilation_cache()
+    runtime.set_low_memory_compile(not before[2])
+    raise KeyError
+  assert jax.config.jax_compilation_cache_dir == before[0]
+  assert runtime._low_memory_compile == before[2]  # pylint: disable=protected-access
+
+
 @pytest.mark.parametrize("flags,default_on", [({"no_compile_cache": True}, True), ({}, False)])
 def test_cache_off_means_off_even_when_the_environment_sets_one(tmp_path, restore_cache_config,
                                                                 flags, default_on):
@@ -203,6 +245,39 @@ def test_low_memory_compile_keeps_long_reductions_whole(restore_low_memory_compi
     np.testing.assert_allclose(np.asarray(compiled(x)), want, atol=2e-5)
 
 
+@pytest.mark.usefixtures("without_suite_xla_flags")
+def test_inference_options_as_xla_reads_the_users_flags(monkeypatch, restore_low_memory_compile):
+  runtime.set_low_memory_compile(True)
+  ynn = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_DOT,"
+         "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT,LIBRARY_FUSION_TYPE_INDIVIDUAL_CONVOLUTION"}
+  older = {"xla_cpu_use_fusion_emitters": False,
+           "xla_disable_hlo_passes": "tree_reduction_rewriter"} if XLA_OLDER_EMITTERS else {}
+  assert runtime.inference_compiler_options("cpu") == {**ynn, **older}  # (no stray comma)
+  # the older emitters asked for in XLA's other spellings of false: the pass goes with them
+  for value in ("0", "False"):
+    monkeypatch.setenv("XLA_FLAGS", f"--xla_cpu_use_fusion_emitters={value}")
+    assert runtime.inference_compiler_options("cpu") == (
+        {**ynn, "xla_disable_hlo_passes": "tree_reduction_rewriter"} if XLA_OLDER_EMITTERS
+        else ynn), value
+  # the rewriter already disabled by the user: their XLA_FLAGS list is left to apply
+  monkeypatch.setenv("XLA_FLAGS", "--xla_disable_hlo_passes=tree_reduction_rewriter")
+  assert runtime.inference_compiler_options("cpu") == (
+      {**ynn, "xla_cpu_use_fusion_emitters": False} if XLA_OLDER_EMITTERS else ynn)
+  # an unbalanced quote (XLA's parser decides what it means): the plain words, no error
+  monkeypatch.setenv("XLA_FLAGS", '--xla_disable_hlo_passes="algsimp --xla_dump_to=/tmp/x')
+  assert "xla_cpu_experimental_ynn_fusion_type" in runtime.inference_compiler_options("cpu")
+
+
+@pytest.mark.usefixtures("without_suite_xla_flags")
+def test_inference_options_this_jaxlib_refuses_are_dropped(monkeypatch, restore_low_memory_compile):
+  runtime.set_low_memory_compile(True)
+  monkeypatch.setattr(runtime, "_accepts_options", lambda platform, options: all(
+      k != "xla_cpu_experimental_ynn_fusion_type" for k, _ in options))
+  assert runtime.inference_compiler_options("cpu") == (
+      {"xla_cpu_use_fusion_emitters": False, "xla_disable_hlo_passes": "tree_reduction_rewriter"}
+      if XLA_OLDER_EMITTERS else {})
+
+
 def test_unknown_xla_options_are_detected_not_raised():
   assert runtime._accepts_options("cpu", (("xla_sav_jax_no_such_option", "1"),)) is False  # pylint: disable=protected-access
 
@@ -301,3 +376,28 @@ def test_memory_of_an_accelerator_without_statistics_is_unknown_not_the_hosts():
     assert inference.available_memory_bytes(Device("cpu", stats)) > 1 << 20  # the host's
   assert inference.available_memory_bytes(
       Device("tpu", {"bytes_limit": 16 << 30, "bytes_in_use": 1 << 30})) == 15 << 30
+
+
+def test_cgroup_limits_at_their_edges(tmp_path):
+  gib = 1 << 30
+  proc = tmp_path / "cgroup"
+  # v1's "no limit" (2**63 rounded down to pages) is no limit; a line that is not
+  # "id:controllers:path" is skipped, not the end of the file
+  proc.write_text("garbage\n4:memory:/job\n")
+  v1 = tmp_path / "fs" / "memory"
+  _group(v1, memory_limit_in_bytes=str(9223372036854771712), memory_usage_in_bytes=str(gib))
+  _group(v1 / "job", memory_limit_in_bytes=str(9223372036854771712),
+         memory_usage_in_bytes=str(gib))
+  assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) is None
+  (v1 / "job" / "memory.limit_in_bytes").write_text(str(4 * gib))
+  assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) == 3 * gib
+  # usage above the limit: nothing left (not a negative size); more inactive page cache than
+  # usage (the two files are read at different times): the whole limit, not more
+  (v1 / "job" / "memory.usage_in_bytes").write_text(str(5 * gib))
+  assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) == 0
+  (v1 / "job" / "memory.usage_in_bytes").write_text(str(gib))
+  (v1 / "job" / "memory.stat").write_text(f"total_inactive_file {2 * gib}\n")
+  assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) == 4 * gib
+  # a group path that is not ASCII: unknown, not an error
+  proc.write_bytes("0::/caf\u00e9\n".encode())
+  assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) is None
