@@ -77,6 +77,8 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
     return
   if kind not in "uif":
     raise ValueError(f"{name}: frames of dtype {video.dtype}; expected uint8 or float (0..255)")
+  if not video.size:  # no values to check (numpy's min() of none failed: "zero-size array")
+    return
   if kind == "f":
     bad = ~np.isfinite(video).reshape(len(video), -1).all(axis=1)
     if bad.any():

@@ -302,6 +302,10 @@ def test_frame_values_at_the_edges_of_what_passes():
     warnings.simplefilter("error")
     _checks.check_video_values(np.zeros((2, 4, 4, 3), np.float32))  # black: no 0..1 warning
     _checks.check_video_values(np.full((1, 2, 2, 3), 255, np.int32))
+  for empty in (np.zeros((0, 4, 4, 3), np.float32), np.zeros((2, 0, 4, 3), np.int16)):
+    _checks.check_video_values(empty)  # no values to refuse (a numpy error before)
+  with pytest.raises(ValueError, match="frames of dtype bool"):
+    _checks.check_video_values(np.zeros((0, 4, 4, 3), bool))
   with pytest.raises(ValueError, match=r"int32 values 0\.\.256 are outside 0\.\.255 in frame\(s\) "
                      r"\[1\] \(convert 16-bit frames to 8-bit first"):
     _checks.check_video_values(np.int32([[[[0]]], [[[256]]]]))
