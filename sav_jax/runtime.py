@@ -46,8 +46,12 @@ log = logging.getLogger(__name__)
 
 
 def default_cache_dir() -> pathlib.Path:
-  """`$XDG_CACHE_HOME/sav-jax/xla` (`~/.cache/sav-jax/xla` when unset)."""
-  base = os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache"
+  """`$XDG_CACHE_HOME/sav-jax/xla` (`~/.cache/sav-jax/xla` when it is unset, empty or a
+  relative path, which the XDG specification says to ignore: a relative one put the cache
+  in whatever folder a command ran from)."""
+  base = os.environ.get("XDG_CACHE_HOME", "")
+  if not os.path.isabs(base):
+    base = pathlib.Path.home() / ".cache"
   return pathlib.Path(base) / "sav-jax" / "xla"
 
 

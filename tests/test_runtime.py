@@ -54,16 +54,19 @@ def test_a_file_in_the_way_is_refused(tmp_path, restore_cache_config):
   assert blocker.read_text() == "user data"
 
 
-def test_an_empty_xdg_cache_home_and_a_tilde_mean_the_home_folder(tmp_path, monkeypatch,
-                                                                 restore_cache_config):
+def test_an_empty_or_relative_xdg_cache_home_and_a_tilde_mean_the_home_folder(
+    tmp_path, monkeypatch, restore_cache_config):
   # XDG: an empty XDG_CACHE_HOME is unset (not a cache folder relative to where the command
   # runs); a --compile-cache "~/..." that the shell left unexpanded is the user's home.
+  monkeypatch.chdir(tmp_path)  # (where a relative path would land)
   monkeypatch.setenv("HOME", str(tmp_path / "home"))
-  monkeypatch.setenv("XDG_CACHE_HOME", "")
-  assert runtime.default_cache_dir() == tmp_path / "home" / ".cache" / "sav-jax" / "xla"
+  for xdg in ("", "rel/cache"):  # a relative one is invalid too (XDG): not under the cwd
+    monkeypatch.setenv("XDG_CACHE_HOME", xdg)
+    assert runtime.default_cache_dir() == tmp_path / "home" / ".cache" / "sav-jax" / "xla"
   folder = runtime.enable_compilation_cache("~/xla", min_compile_time_s=0)
   assert folder == tmp_path / "home" / "xla" and folder.is_dir()
   assert jax.config.jax_compilation_cache_dir == str(folder)
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["home"]
 
 
 def test_a_new_folder_takes_effect_after_the_cache_was_used(tmp_path, restore_cache_config):
