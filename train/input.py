@@ -14,6 +14,7 @@ import logging
 
 import jax
 
+from sav_jax._checks import plural
 from sav_jax.data import pipeline
 from sav_jax.data.synthetic import SyntheticConfig, config_from_block
 
@@ -51,6 +52,13 @@ def _source(config, spec, split: str, seed: int):
     return pipeline.synthetic_source(cfg, data.synthetic.num_clips), None, digest
   items = pipeline.registry_clips(spec.dataset, source_root(config, spec), data.frames,
                                   split=split, seed=config.seed)
+  missing = pipeline.without_ground_truth(items)
+  if missing:  # found here, not at the step whose batch first draws one of their clips
+    raise ValueError(
+        f"{plural(len(missing), 'sequence')} of {spec.dataset}/{split} without ground truth "
+        f"(for the folder dataset: no disparity/ folder): {pipeline.sequences_named(missing)}; "
+        "every training clip needs it: move such sequences out of the training split "
+        "(python -m eval and sav-jax infer run on them)")
   return (pipeline.clips_source(items, data.skip_unreadable),
           pipeline.Augment(tuple(data.crop), augment_overrides(config)),
           pipeline.clips_digest(items))

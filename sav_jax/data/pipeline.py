@@ -36,6 +36,7 @@ import dataclasses
 import hashlib
 import logging
 import os
+import pathlib
 import signal
 import threading
 import time
@@ -110,7 +111,8 @@ class _LoadClip:
       e.add_note(UNREADABLE_NOTE)  # kept through grain's threads and worker processes
       raise
     if clip.get("disparity") is None:
-      raise ValueError(f"{sequence!r} has no ground truth: it cannot be used for training")
+      raise ValueError(f"{clip_origin(sequence, indices)} has no ground truth: it cannot be "
+                       "used for training")
     clip["sparse"] = bool(getattr(sequence, "sparse", False))
     clip[ORIGIN] = clip_origin(sequence, indices)
     return clip
@@ -161,6 +163,46 @@ def registry_clips(dataset: str, root: str, frames: int, split: str = "train",
   return items
 
 
+def without_ground_truth(items) -> list:
+  """The sequences of `registry_clips` items whose frames carry no ground truth (`has_gt`
+  False: a "folder" sequence without `disparity/`, an images-only dataset), once each, in
+  order."""
+  seqs = []
+  for sequence, _ in items:
+    if not getattr(sequence, "has_gt", True) and all(s is not sequence for s in seqs):
+      seqs.append(sequence)
+  return seqs
+
+
+def sequences_named(seqs) -> str:
+  """`night (/data/val/night/left), ...`: sequences by name and the folder of their left
+  frames, for messages (the first 5, the rest counted)."""
+  def one(seq):
+    try:
+      return f"{seq.name} ({pathlib.Path(seq.files['left'][0]).parent})"
+    except (AttributeError, TypeError, KeyError, IndexError):
+      return str(getattr(seq, "name", seq))
+  named = ", ".join(one(s) for s in seqs[:5])
+  return named + (f" and {len(seqs) - 5} more" if len(seqs) > 5 else "")
+
+
+def measured_items(items, dataset: str, split: str) -> list:
+  """`items` without the clips of sequences that have no ground truth (validation: they
+  have nothing to be scored against), with a warning naming those sequences; ValueError
+  where no clip is left."""
+  missing = without_ground_truth(items)
+  if not missing:
+    return list(items)
+  kept = [item for item in items if all(item[0] is not s for s in missing)]
+  what = f"{plural(len(missing), 'sequence')} of {dataset}/{split} without ground truth"
+  if not kept:
+    raise ValueError(f"no clip has ground truth to be scored against: {what}: "
+                     f"{sequences_named(missing)}")
+  log.warning("validation: left out the clips of %s (nothing to score them against): %s",
+              what, sequences_named(missing))
+  return kept
+
+
 def clips_digest(items) -> str:
   """A digest of which clips `items` are, in order (sequence names and frame indices): a
   resumed run compares it with the saving run's to tell whether its data changed."""
@@ -181,9 +223,13 @@ def registry_source(dataset: str, root: str, frames: int, split: str = "train",
     split: dataset split.
     seed: seed of the official per-start stride draws.
     consecutive: clips of consecutive frames instead (`registry.get_consecutive_clips`,
-      any dataset with ground truth; for validation).
+      any dataset with ground truth; for validation: the clips of sequences without ground
+      truth are left out, with a warning, `measured_items`).
   """
-  return clips_source(registry_clips(dataset, root, frames, split, seed, consecutive))
+  items = registry_clips(dataset, root, frames, split, seed, consecutive)
+  if consecutive:  # validation: a sequence without ground truth has nothing to score
+    items = measured_items(items, dataset, split)
+  return clips_source(items)
 
 
 def clips_source(items, skip_unreadable: int = 0) -> grain.MapDataset:

@@ -11,6 +11,7 @@ import logging
 import os
 import pathlib
 import re
+import shutil
 import sys
 import types
 
@@ -704,6 +705,53 @@ def test_a_training_source_may_have_its_own_data_root(monkeypatch):
   assert held_out == [("folder", "my_videos"), ("folder", "data/datasets")]
   assert ckpt_lib._operational("data.sources.mine.root")  # pylint: disable=protected-access
   assert not ckpt_lib._operational("data.sources.mine.weight")  # pylint: disable=protected-access
+
+
+def _own_videos(root, sequences):
+  """`<root>/<split>/<name>/{left,right[,disparity]}` of the "folder" dataset: 16x16 frames,
+  `(split, name, frames, with ground truth)` each."""
+  import cv2  # pylint: disable=import-outside-toplevel
+  from sav_jax import viz  # pylint: disable=import-outside-toplevel
+  for split, name, frames, gt in sequences:
+    for side in ("left", "right") + (("disparity",) if gt else ()):
+      (root / split / name / side).mkdir(parents=True)
+    for i in range(frames):
+      for side in ("left", "right"):
+        assert cv2.imwrite(str(root / split / name / side / f"{i:04d}.png"),
+                           np.full((16, 16, 3), 10 * i, np.uint8))
+      if gt:
+        viz.write_png16(root / split / name / "disparity" / f"{i:04d}.png",
+                        np.full((16, 16), 2.0 + i, np.float32))
+
+
+def test_sequences_without_ground_truth_are_refused_for_training_left_out_of_validation(
+    tmp_path, caplog):
+  """A "folder" sequence without disparity/ in the training split stopped the run at the
+  step whose batch first drew one of its clips (its repr for a name), and in the validation
+  split it stopped the start as "cannot be used for training": the held-out clips without
+  ground truth are left out with a warning, as those without a valid pixel are."""
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  _own_videos(tmp_path, [("train", "walk", 12, True), ("train", "night", 12, False),
+                         ("val", "park", 4, True), ("val", "dusk", 4, False)])
+  c = _config()
+  c.data.sources = ml_collections.ConfigDict(
+      {"mine": dict(dataset="folder", weight=1.0, root=str(tmp_path))})
+  c.data.frames, c.seed = 2, 0
+  with pytest.raises(ValueError, match=r"config\.data\.sources\.mine\.dataset='folder', "
+                     r"config\.data\.sources\.mine\.root=.*: 1 sequence of folder/train "
+                     r"without ground truth .*: night \(.*train/night/left\); every training "
+                     r"clip needs it"):
+    input_lib.train_dataset(c, process_index=0, process_count=1)
+  c.eval.dataset, c.eval.split, c.eval.root, c.eval.num_clips = "folder", "val", str(tmp_path), 4
+  with caplog.at_level(logging.WARNING, "sav_jax.data.pipeline"):
+    held_out = input_lib.eval_clips(c)
+  assert [x["disparity"][:, 0, 0].tolist() for x in held_out] == [[2.0, 3.0], [4.0, 5.0]]
+  assert re.search(r"left out the clips of 1 sequence of folder/val without ground truth "
+                   r".*: dusk \(.*val/dusk/left\)", caplog.text)
+  shutil.rmtree(tmp_path / "val" / "park")
+  with pytest.raises(ValueError, match=r"config\.eval\.dataset='folder', .*: no clip has ground "
+                                       r"truth to be scored against: 1 sequence of folder/val"):
+    input_lib.eval_clips(c)
 
 
 def test_a_resume_whose_training_clips_changed_is_warned_about(tmp_path, caplog):
