@@ -154,24 +154,27 @@ def _run_into(args, config, out) -> int:
   inference.check_window(config.window, config.stride)
   devices = resolve_devices_option(config.devices, "config.devices", takes_all=False)
   seqs, skipped = eval_data.load_sequences_and_skipped(config, args.data_root)
-  unscaled = [str(s.name) for s in seqs if s.depth2disp_scale is None]
   depth_metrics = [f"metrics.{k}" for k in ("tcc", "raft") if config.metrics[k]]
+  # The depth metrics measure the sequences with ground truth (the others, e.g. a folder
+  # sequence without disparity/, get predictions and plots only): theirs need a scale.
+  measured = [s for s in seqs if getattr(s, "has_gt", True)]
+  if depth_metrics and not measured:
+    raise ValueError(f"config.{' and config.'.join(depth_metrics)}: {config.dataset} has no "
+                     "ground truth (a qualitative run: predictions and plots only), so there is "
+                     f"nothing to measure: drop {' and '.join(depth_metrics)}")
+  unscaled = [str(s.name) for s in measured if s.depth2disp_scale is None]
   if depth_metrics and unscaled:
     need = "needs" if len(depth_metrics) == 1 else "need"
     raise ValueError(f"config.{' and config.'.join(depth_metrics)} {need} depth, but "
                      f"{config.dataset} sequence {unscaled[0]} has no depth-to-disparity scale "
-                     f"(no camera data; {len(unscaled)} of {len(seqs)} sequences): drop "
-                     f"{' and '.join(depth_metrics)}")
-  if depth_metrics and not any(getattr(s, "has_gt", True) for s in seqs):
-    raise ValueError(f"config.{' and config.'.join(depth_metrics)}: {config.dataset} has no "
-                     "ground truth (a qualitative run: predictions and plots only), so there is "
-                     f"nothing to measure: drop {' and '.join(depth_metrics)}")
-  short = [s for s in seqs if len(s) < 2]
+                     f"(no camera data; {len(unscaled)} of the {len(measured)} sequences with "
+                     f"ground truth): drop {' and '.join(depth_metrics)}")
+  short = [s for s in measured if len(s) < 2]
   if depth_metrics and short:
     raise ValueError(f"config.{' and config.'.join(depth_metrics)}: temporal consistency needs "
                      f"sequences of 2 frames or more, but {config.dataset} sequence "
-                     f"{short[0].name} has {len(short[0])} ({len(short)} of {len(seqs)} "
-                     "sequences)")
+                     f"{short[0].name} has {len(short[0])} ({len(short)} of the "
+                     f"{len(measured)} sequences with ground truth)")
   earlier = [p for p in (*(out / r for r in runner.REPORTS),
                          out / runner.WRITTEN_LIST, out / runner.PROGRESS, out / "predictions",
                          out / "plots")

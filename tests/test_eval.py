@@ -759,17 +759,22 @@ def test_your_own_videos_in_the_folder_layout(tmp_path, ckpt):
       if name == "a":
         (seq / "disparity").mkdir(exist_ok=True)
         viz.write_pfm(seq / "disparity" / f"{t}.pfm", np.where(clip["valid"][t], clip["disparity"][t], 0))
+  (tmp_path / "mine" / "test" / "a" / "calib.txt").write_text("fx 64\nbaseline 0.5\n")
   out = tmp_path / "out"
+  # TCC measures "a": "b" has no ground truth, and no camera data, which it does not need
+  # (the run was refused: "b has no depth-to-disparity scale")
   rc = main(["--config", str(CONFIGS / "folder.py"), "--checkpoint", str(ckpt), "--data-root",
              str(tmp_path / "mine"), "--out", str(out), "--config.iters=2",
-             "--config.save_predictions=true", "--config.plots.enabled=false"])
+             "--config.save_predictions=true", "--config.plots.enabled=false",
+             "--config.metrics.tcc=true"])
   assert rc == 0
   seq = registry.get_sequences("folder", tmp_path / "mine", "test")[0]
   summary = json.loads((out / "results.json").read_text())
   assert [s["name"] for s in summary["sequences"]] == ["a", "b"]
   clip = eval_data.read_sequence(seq)
   ref = metrics.eval_sequence(np.load(out / "predictions" / "a.npy"), clip["disparity"],
-                              clip["valid"].astype(np.float32))
+                              clip["valid"].astype(np.float32), scale=32.0)
+  assert "disp_TCC" in ref
   assert summary["sequences"][0]["metrics"]["sav"] == pytest.approx(ref, rel=1e-12, abs=1e-12)
   assert not summary["sequences"][1]["metrics"].get("sav")  # no ground truth: no metrics,
   assert np.load(out / "predictions" / "b.npy").shape == (T, H, W)  # but its predictions
