@@ -138,6 +138,7 @@ def parse_flags(argv):
       path = step[3].split(".")
       parent = ".".join(path[:path.index(step[2])]) if step[2] in path else step[3]
       detail = f"{step[3]}: config.{parent} is {step[1]}, not a config block"
+    _not_a_training_config(argv)  # an override into a block the file lacks: the file is wrong
     overrides = [a.split("=", 1)[0] for a in argv if a.startswith("--config.")]
     sources = ""
     if any(o.startswith("--config.data.sources.") for o in overrides):
@@ -148,6 +149,26 @@ def parse_flags(argv):
           f"are those of the --config file's get_config(){sources}")
   except Exception as e:  # pylint: disable=broad-except  # the config file's own code raised
     _config_code_error(argv, e)
+
+
+def _not_a_training_config(argv) -> None:
+  """Exits naming the top-level fields of a training config that the --config file's config
+  lacks, if it lacks any (an evaluation config given by mistake): an override into one of
+  them (`--config.data.root=...`) was reported as a misspelt override, "no such config field
+  'data'"."""
+  try:  # (absl keeps no value of a flag whose parsing failed: the file is loaded again)
+    keys = set(flags.FLAGS["config"].parser.parse(_config_arg(argv)).keys())
+  except Exception:  # pylint: disable=broad-except  # no config to look at: the caller reports
+    return
+  from configs import sceneflow  # pylint: disable=g-import-not-at-top
+  missing = [k for k in sceneflow.base_config() if k not in keys]
+  if missing:  # (the words of train.loop.check_fields, which checks every field)
+    evaluation = ("; it is an evaluation config (python -m eval)"
+                  if {"baseline", "window", "stride"} <= keys else "")
+    _fail(f"the config file {_config_arg(argv)} lacks {len(missing)} of a training config's "
+          f"fields ({', '.join(missing[:8])}{', ...' if len(missing) > 8 else ''})"
+          f"{evaluation}: build its get_config() on configs.sceneflow.base_config(), as "
+          "configs/synthetic.py does")
 
 
 def _config_arg(argv) -> str:

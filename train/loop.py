@@ -361,9 +361,12 @@ def check_fields(config) -> None:
   from configs import sceneflow  # pylint: disable=import-outside-toplevel
   missing = missing_fields(config, sceneflow.base_config())
   if missing:
+    evaluation = ("; it is an evaluation config (python -m eval)"
+                  if {"baseline", "window", "stride"} <= set(config.keys()) else "")
     raise ValueError(f"the config lacks {len(missing)} fields ({', '.join(missing[:8])}"
-                     f"{', ...' if len(missing) > 8 else ''}): build its get_config() on "
-                     "configs.sceneflow.base_config(), as configs/synthetic.py does")
+                     f"{', ...' if len(missing) > 8 else ''}){evaluation}: build its "
+                     "get_config() on configs.sceneflow.base_config(), as configs/synthetic.py "
+                     "does")
 
 
 def _given_workdir(workdir) -> pathlib.Path:

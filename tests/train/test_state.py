@@ -1375,6 +1375,10 @@ def test_config_blocks_a_run_cannot_use_are_named(tmp_path, caplog):
   with pytest.raises(ValueError, match=r"the config lacks \d+ fields \(checkpoint, compile_cache"
                      r".*model\.gru_conv.*base_config\(\)"):
     loop.check_fields(c)
+  from configs.eval import folder  # pylint: disable=g-import-not-at-top
+  with pytest.raises(ValueError, match=r"the config lacks 12 fields \(.*\); it is an evaluation "
+                     r"config \(python -m eval\): build"):
+    loop.check_fields(folder.get_config())
   assert not (tmp_path / "w").exists()
 
 
@@ -1476,6 +1480,13 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
        "(overrides: --config.data.sources.vkitti2.weight, --config.train.progress_bar); the "
        "fields are those of the --config file's get_config(); training sources are added or "
        "removed in a config file of your own (see configs/mixed.py)"),
+      # an evaluation config given by mistake, with an override into a block it lacks (as
+      # every command here has): it was "no such config field 'train'", a misspelt override
+      ([str(ROOT / "configs/eval/folder.py")],
+       f"the config file {ROOT / 'configs/eval/folder.py'} lacks 12 of a training config's "
+       "fields (checkpoint, compile_cache, data, eval, init_from, loss, model, optimizer, ...); "
+       "it is an evaluation config (python -m eval): build its get_config() on "
+       "configs.sceneflow.base_config()"),
       ([str(tmp_path / "nope.py")], "cannot load the --config file: "
        f"[Errno 2] No such file or directory: '{tmp_path / 'nope.py'}'"),
       ([str(broken)], f"the config file {broken} does not parse: line 1: "),
