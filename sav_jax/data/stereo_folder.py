@@ -9,7 +9,8 @@ Layout (root = the dataset's folder, given as `data.root` / `--data-root`):
                                           ground truth), .pfm, .npy or .exr (0, non-finite
                                           and |d| >= 512 px: none)
   <split>/<sequence>/calib.txt|json       optional: fx and baseline (`sav-jax infer --calib`'s
-                                          formats), for depth and TCC
+                                          formats, checked against the frames' size as
+                                          there), for depth and TCC
 
 Splits are the folders `train`, `val` and `test` that exist. Frames of the three folders are
 matched by the last number in their names (`left_0001.png`, `right_0001.png`, `0001.pfm`), so
@@ -114,20 +115,23 @@ def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[S
       sparse = kinds == [".png"]
     check_matching(where, files, digits_key)
     seqs.append(FolderSequence(seq_dir.name, files, dataset=dataset, sparse=sparse,
-                               depth2disp_scale=_scale(seq_dir)))
+                               depth2disp_scale=_scale(seq_dir, files["left"])))
   if not seqs:
     raise FileNotFoundError(f"no sequences in {split_dir} (expected <sequence>/left, right "
                             "folders)")
   return seqs
 
 
-def _scale(seq_dir: Path) -> float | None:
-  """fx * baseline from the sequence's calibration file, or None without one."""
+def _scale(seq_dir: Path, left: list[Path]) -> float | None:
+  """fx * baseline from the sequence's calibration file, or None without one; a file for
+  another image size than the `left` frames' is refused, as `sav-jax infer --calib` refuses
+  it (its width/height, or a principal point outside the frames)."""
   path = next((seq_dir / n for n in CALIBRATION_FILES if (seq_dir / n).is_file()), None)
   if path is None:
     return None
   from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
-  from sav_jax.tools.infer import read_calibration  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools.infer import (CalibrationSpec,  # pylint: disable=import-outside-toplevel
+                                   read_calibration)
   try:
     calib = read_calibration(path)
   except UsageError as e:  # a malformed line, no calibration in it: it names the file
@@ -136,6 +140,14 @@ def _scale(seq_dir: Path) -> float | None:
   if missing:
     raise ValueError(f"{path}: no {' and no '.join(missing)} (the depth-to-disparity scale "
                      "is fx * baseline)")
+  if left and any(k in calib for k in ("width", "height", "cx", "cy")):
+    height, width = frame_io.read_image(left[0]).shape[:2]
+    spec = CalibrationSpec(**{k: float(v) for k, v in calib.items()
+                              if k in CalibrationSpec._fields})
+    try:  # (fx for frames of another size would scale every depth: TCC and the rest change)
+      spec.resolve(width, height)
+    except UsageError as e:
+      raise ValueError(f"{path}: {e} (the first frame: {left[0]})") from None
   if calib.get("doffs"):  # depth = fx B / (d + doffs): no single depth-to-disparity scale
     logging.warning("%s: doffs %g px: depth is not fx * baseline / disparity, so the sequence "
                     "gets no depth metrics (TCC); its disparity metrics are unaffected", path,

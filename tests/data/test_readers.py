@@ -1273,6 +1273,19 @@ def test_folder_dataset_unpadded_npy_ground_truth_json_calibration_empty_split(t
   (seq / "calib.json").write_text('{"fx": 400}')
   with pytest.raises(ValueError, match=r"calib\.json: no baseline"):
     registry.get_sequences("folder", tmp_path, "val")
+  # A calibration for another image size is refused, as sav-jax infer --calib refuses it (its
+  # fx for frames of twice the size gave every depth twice its value, and TCC changed)
+  (seq / "calib.json").write_text(f'{{"fx": 800, "baseline": 0.25, "width": {2 * W}}}')
+  with pytest.raises(ValueError, match=rf"calib\.json: the calibration is for images of width "
+                                       rf"{2 * W}, the frames' width is {W}: .*left.1\.png"):
+    registry.get_sequences("folder", tmp_path, "val")
+  (seq / "calib.json").write_text('{"fx": 800, "baseline": 0.25, "cx": 20.5, "cy": 7.5}')
+  with pytest.raises(ValueError, match=r"calib\.json: the calibration's principal point "
+                                       r"\(cx 20\.5, cy 7\.5\) is outside the 8x12"):
+    registry.get_sequences("folder", tmp_path, "val")
+  (seq / "calib.json").write_text(f'{{"fx": 400, "baseline": 0.25, "width": {W}, "height": {H},'
+                                  f' "cx": 5.5, "cy": 3.5}}')
+  assert registry.get_sequences("folder", tmp_path, "val")[0].depth2disp_scale == 100.0
 
 
 def _load_own(root, split, dataset):
