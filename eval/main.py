@@ -30,7 +30,8 @@ from sav_jax.config import DTYPES
 # imported once the arguments and the config are checked, so `--help` and a bad config or
 # override are answered at once.
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, check_output_dir,
-                           command_logging, resolve_devices_option, setup_compile_cache)
+                           command_logging, one_line_warnings, resolve_devices_option,
+                           setup_compile_cache)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   args = build_parser().parse_args(rest)
   try:
-    with command_logging(args.verbose), _signals.remembered_interrupts():
+    with (command_logging(args.verbose), one_line_warnings("eval"),
+          _signals.remembered_interrupts()):
       return run(args, overrides)
   except (ValueError, OSError, UsageError) as e:  # OSError: a file that cannot be read or written
     print(f"eval: error: {e}", file=sys.stderr)

@@ -6,10 +6,10 @@ import argparse
 import contextlib
 import importlib
 import sys
-import warnings
 
 from sav_jax import _signals
 from sav_jax.tools import UsageError, command_logging
+from sav_jax.tools import one_line_warnings as tools_one_line_warnings
 
 COMMANDS = {
     "demo": "sav_jax.tools.demo",
@@ -57,15 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
 def one_line_warnings(args):
   """Python warnings met by the command (e.g. `inference.SwappedViewsWarning`) as one line
   each, `sav-jax COMMAND: warning: ...`, not as a source file, line and its code."""
-  from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
-
-  def show(message, category, filename, lineno, file=None, line=None):
-    # (above a progress bar, not on its line)
-    tqdm.write(f"sav-jax {args.command}: warning: {message}",
-               file=sys.stderr if file is None else file)
-
-  with warnings.catch_warnings():
-    warnings.showwarning = show
+  with tools_one_line_warnings(f"sav-jax {args.command}"):
     yield
 
 

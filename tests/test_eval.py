@@ -495,6 +495,25 @@ def test_tcc_without_camera_data_is_refused_before_predicting(tmp_path, ckpt, ca
   assert not (tmp_path / "o").exists()
 
 
+def test_python_warnings_are_one_line_each(tmp_path, ckpt, capsys, monkeypatch):
+  """A Python warning met by the run (a 16-bit frame's) was shown as its source file, line and
+  code, two lines among the run's one-line messages; now as `sav-jax` commands show them."""
+  import warnings  # pylint: disable=import-outside-toplevel
+  shown = warnings.showwarning
+
+  def load(config, root):
+    warnings.warn("a/left/0001.png is a 16-bit image whose values all fit in 0..255")
+    raise ValueError("stop here")
+
+  monkeypatch.setattr(eval_data, "load_sequences_and_skipped", load)
+  rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL,
+             "--out", str(tmp_path / "o")])
+  err = capsys.readouterr().err
+  assert rc == 2 and "eval: warning: a/left/0001.png is a 16-bit image whose values all fit in " \
+      "0..255\n" in err and "UserWarning" not in err and "warnings.warn" not in err, err
+  assert warnings.showwarning is shown  # put back
+
+
 def test_compile_cache_options(tmp_path, ckpt, capsys, monkeypatch, restore_cache_config):
   """As `sav-jax infer`: on by default (here the test session's folder, which JAX was given),
   `--compile-cache DIR` for a folder, `--no-compile-cache` to leave JAX's setting alone; a

@@ -11,7 +11,9 @@ import contextlib
 import logging
 import os
 import pathlib
+import sys
 import tempfile
+import warnings
 
 
 class UsageError(Exception):
@@ -150,6 +152,23 @@ def command_logging(verbose: bool):
     root.setLevel(saved[1])
     for q, level in zip(quiet, saved[2]):
       q.setLevel(level)
+
+
+@contextlib.contextmanager
+def one_line_warnings(prefix: str):
+  """Python warnings met by a command run (e.g. a 16-bit frame's, `inference`'s) as one line
+  each, `PREFIX: warning: ...`, not as a source file, line and its code."""
+  from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+
+  def show(message, category, filename, lineno, file=None, line=None):
+    del category, filename, lineno, line
+    # (above a progress bar, not on its line)
+    tqdm.write(f"{prefix}: warning: {message}", file=sys.stderr if file is None else file)
+
+  with warnings.catch_warnings():
+    warnings.showwarning = show
+    yield
+
 
 from sav_jax._lazy import submodule_getattr
 
