@@ -24,6 +24,9 @@ import numpy as np
 from sav_jax._checks import is_int
 from sav_jax.data import frame_io
 
+log = logging.getLogger(__name__)
+
+
 class StereoSequence:
   """One stereo video, frame by frame; the base class is the images-only reader.
 
@@ -382,10 +385,10 @@ def warn_if_gaps(where: str, files: Sequence,
   gaps = [i for i, step in enumerate(steps) if step != usual]
   if gaps:
     i = gaps[0]
-    logging.warning("%s: frame numbers are not evenly spaced: %d gap(s), the first after %s "
-                    "(next %s; usually +%d: a frame missing?); the frames are read as "
-                    "consecutive", where, len(gaps), getattr(files[i], "name", files[i]),
-                    getattr(files[i + 1], "name", files[i + 1]), usual)
+    log.warning("%s: frame numbers are not evenly spaced: %d gap(s), the first after %s "
+                "(next %s; usually +%d: a frame missing?); the frames are read as "
+                "consecutive", where, len(gaps), getattr(files[i], "name", files[i]),
+                getattr(files[i + 1], "name", files[i + 1]), usual)
 
 
 def _missing_frame(lists: Mapping[str, Sequence[Path]], key: Callable[[Path], object]) -> str:

@@ -27,6 +27,8 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, find_root,
                                list_dirs, list_files, require_dir, some_of)
 
+log = logging.getLogger(__name__)
+
 # The dataset's folder under a datasets root (the root may also be that folder itself).
 FOLDERS = ("kitti_depth",)
 
@@ -126,8 +128,8 @@ def load_sequences(root, split: str, dataset: str = "kitti_depth"):
   if split == "train":
     no_images = [d for d in drives if not (root / "input" / d[:10] / d).is_dir()]
     if no_images:  # one line for all of them
-      logging.warning("KITTI Depth: skipping %d training drive(s) without raw images under %s: "
-                      "%s", len(no_images), root / "input", some_of(no_images))
+      log.warning("KITTI Depth: skipping %d training drive(s) without raw images under %s: "
+                  "%s", len(no_images), root / "input", some_of(no_images))
       drives = [d for d in drives if d not in no_images]
       if not drives:
         raise FileNotFoundError(f"no KITTI Depth train drive has its raw images under "
@@ -159,6 +161,6 @@ def gt_drives(gt_root: Path) -> dict[str, Path]:
       else:
         found[drive.name] = drive
   if other:
-    logging.warning("KITTI Depth: left out %d folder(s) of %s not named like a drive "
-                    "(<date>_drive_<n>_sync): %s", len(other), gt_root, some_of(other))
+    log.warning("KITTI Depth: left out %d folder(s) of %s not named like a drive "
+                "(<date>_drive_<n>_sync): %s", len(other), gt_root, some_of(other))
   return found

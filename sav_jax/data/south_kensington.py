@@ -25,6 +25,8 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key, find_root,
                                is_hidden, list_dirs, list_files, refuse_broken_links)
 
+log = logging.getLogger(__name__)
+
 # The dataset's folder under a datasets root (the root may also be that folder itself).
 FOLDERS = ("SouthKensington",)
 
@@ -65,7 +67,7 @@ def load_sequences(root, split: str = "test", dataset: str = "south_kensington")
     refuse_broken_links(candidates)  # a camera txt behind a dead link: the sequence vanished
     txts = sorted(p for p in candidates if p.is_file())
     if not txts:
-      logging.info("South Kensington: skipping %s (no camera txt)", seq_dir)
+      log.info("South Kensington: skipping %s (no camera txt)", seq_dir)
       continue
     files = {"left": list_files(seq_dir / "images" / "left", ".png"),
              "right": list_files(seq_dir / "images" / "right", ".png")}

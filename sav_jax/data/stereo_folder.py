@@ -34,6 +34,8 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key,
                                list_dirs, list_files, require_dir)
 
+log = logging.getLogger(__name__)
+
 SPLITS = ("train", "val", "test")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DISPARITY_SUFFIXES = (".png", ".pfm", ".npy", ".exr")
@@ -149,8 +151,8 @@ def _scale(seq_dir: Path, left: list[Path]) -> float | None:
     except UsageError as e:
       raise ValueError(f"{path}: {e} (the first frame: {left[0]})") from None
   if calib.get("doffs"):  # depth = fx B / (d + doffs): no single depth-to-disparity scale
-    logging.warning("%s: doffs %g px: depth is not fx * baseline / disparity, so the sequence "
-                    "gets no depth metrics (TCC); its disparity metrics are unaffected", path,
-                    calib["doffs"])
+    log.warning("%s: doffs %g px: depth is not fx * baseline / disparity, so the sequence "
+                "gets no depth metrics (TCC); its disparity metrics are unaffected", path,
+                calib["doffs"])
     return None
   return camera_scale(calib["fx"], calib["baseline"], path)

@@ -25,6 +25,8 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, digits_key, find_root,
                                list_dirs, list_files, some_of)
 
+log = logging.getLogger(__name__)
+
 # The dataset's folder under a datasets root (the root may also be that folder itself).
 FOLDERS = ("TartanAir", "tartanair")
 
@@ -95,6 +97,6 @@ def load_sequences(root, split: str, dataset: str = "tartanair"):
   if split == "test":
     missing = [key for key in TEST if key not in {k for k, _ in chosen}]
     if missing:
-      logging.warning("TartanAir: %d of the %d test sequences are missing under %s: %s",
-                      len(missing), len(TEST), root, some_of(["/".join(k) for k in missing]))
+      log.warning("TartanAir: %d of the %d test sequences are missing under %s: %s",
+                  len(missing), len(TEST), root, some_of(["/".join(k) for k in missing]))
   return [_sequence(d, "_".join(key), dataset) for key, d in chosen]

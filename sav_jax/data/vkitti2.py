@@ -22,6 +22,8 @@ from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, digits_key, find_root,
                                list_files, some_of)
 
+log = logging.getLogger(__name__)
+
 # The dataset's folder under a datasets root (the root may also be that folder itself).
 FOLDERS = ("vkitti2",)
 
@@ -85,6 +87,6 @@ def load_sequences(root, split: str, dataset: str = "vkitti2"):
   if not seqs:
     raise FileNotFoundError(f"no VKITTI2 {split} sequences under {root}")
   if missing:  # one line for all of them
-    logging.warning("VKITTI2: skipping %d missing training sequences under %s: %s", len(missing),
-                    root, some_of(missing))
+    log.warning("VKITTI2: skipping %d missing training sequences under %s: %s", len(missing),
+                root, some_of(missing))
   return seqs

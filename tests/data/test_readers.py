@@ -208,6 +208,9 @@ def test_a_frame_missing_from_every_folder_is_warned(tmp_path, caplog):
     assert len(registry.get_sequences("sintel_final", tmp_path, "test")[0]) == 4
   assert ("Sintel final/alley_1: frame numbers are not evenly spaced: 1 gap(s), the first after "
           "frame_0002.png (next frame_0004.png; usually +1: a frame missing?)") in caplog.text
+  # from the module's own logger (filterable by name; the root logger's "WARNING root:" before)
+  assert {r.name for r in caplog.records if "evenly spaced" in r.getMessage()} == {
+      "sav_jax.data.base"}
   # Evenly spaced numbers (every 10th frame kept) and names whose last number is no frame
   # number (Infinigen's camera index) are not; Infinigen's own frame number is read.
   caplog.clear()
@@ -558,7 +561,9 @@ def test_vkitti2_splits_depth_and_sky(tmp_path, caplog):
   # "train" lists all 50 pairs; missing ones are skipped (the 5 test ones exist here).
   with caplog.at_level(logging.WARNING):
     assert len(registry.get_sequences("vkitti2", tmp_path / "vkitti2", "train")) == 5
-  (warning,) = [r.getMessage() for r in caplog.records if "VKITTI2" in r.getMessage()]
+  (record,) = [r for r in caplog.records if "VKITTI2" in r.getMessage()]
+  warning = record.getMessage()
+  assert record.name == "sav_jax.data.vkitti2"
   assert "skipping 45 missing training sequences under" in warning and "Scene01/clone" in warning
   clips = registry.get_training_clips("vkitti2", tmp_path, frames=1)
   assert [c.indices for c in clips] == [[0]] * 5
