@@ -1284,3 +1284,475 @@ def test_strip_labels_are_not_cut(tmp_path):
   assert label_w >= text_w + 6, (label_w, text_w)
   error_row = img[24 + 3 * h:24 + 4 * h]
   assert (error_row[:, label_w - 4:label_w] == 255).all()  # white margin after the text
+
+
+def _official_by_hand(pred, gt, valid):
+  """The official evaluator's EPE / TEPE and bad-N rates of one sequence, written out in numpy:
+  pred x round(valid), |gt|, both zeroed where valid <= 0.5; errors |x - y| per pixel and
+  ||x_t - x_t+1| - |y_t - y_t+1|| per pixel pair valid in both frames; each mean and rate over
+  the non-zero errors."""
+  keep = np.asarray(valid, np.float32) > 0.5
+  x = np.where(keep, np.asarray(pred, np.float32), np.float32(0))
+  y = np.where(keep, np.abs(np.asarray(gt, np.float32)), np.float32(0))
+  both = keep[1:] & keep[:-1]
+  errors = {"epe": np.abs(x - y),
+            "temp_epe": np.where(both, np.abs(np.abs(x[1:] - x[:-1]) - np.abs(y[1:] - y[:-1])),
+                                 0)}
+  out = {}
+  for prefix, e in errors.items():
+    n = max(np.count_nonzero(e), 1e-5)
+    out[f"disp_{prefix}_mean"] = float(e.astype(np.float64).sum() / n)
+    for name, tau in (("0.5", 0.5), ("1", 1.0), ("2", 2.0), ("3", 3.0)):
+      out[f"disp_{prefix}_bad_{name}px"] = 100.0 * np.count_nonzero(e > tau) / n
+  return out
+
+
+def _folder_dataset(root, rng):
+  """Three sequences of the folder layout (`configs/eval/folder.py`) of 3, 5 and 2 frames:
+  `a` with positive ground truth, `b` stored as -d (the evaluator scores |gt|), `c` without
+  any. A fifth of the pixels has no ground truth (0), a tenth is predicted exactly (by the
+  stand-in prediction `_stand_in_prediction`: an error of 0, left out of the official
+  denominators). Returns `{name: (left, right, gt or None, valid or None)}` as written."""
+  written = {}
+  for name, frames, sign in (("a", 3, 1.0), ("b", 5, -1.0), ("c", 2, None)):
+    folder = root / "test" / name
+    left = rng.integers(0, 256, (frames, H, W, 3), dtype=np.uint8)
+    right = np.roll(left, -4, axis=2)  # something for SGBM to match
+    gt = valid = None
+    if sign is not None:
+      d = rng.uniform(1.0, 30.0, (frames, H, W)).astype(np.float32)
+      exact = rng.random((frames, H, W)) < 0.1
+      d[exact] = _stand_in_prediction(left)[exact]
+      d[exact & (d == 0)] = 1.0  # (0 is "no ground truth")
+      valid = rng.random((frames, H, W)) >= 0.2
+      gt = np.where(valid, sign * d, 0).astype(np.float32)
+      (folder / "disparity").mkdir(parents=True)
+    for t in range(frames):
+      for view, video in (("left", left), ("right", right)):
+        (folder / view).mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(folder / view / f"{t:04d}.png"), video[t][..., ::-1])
+      if gt is not None:
+        np.save(folder / "disparity" / f"{t:04d}.npy", gt[t])
+    written[name] = (left, right, gt, valid)
+  return written
+
+
+def _stand_in_prediction(left):
+  """A prediction that depends on the frames only, so a test knows it without the model."""
+  return np.asarray(left, np.float32)[..., 0] / 8 + np.asarray(left, np.float32)[..., 1] / 64
+
+
+def _numbers(text):
+  return [float(v) for v in re.findall(r"-?\d+\.\d+", text)]
+
+
+def test_reported_numbers_are_the_official_metrics_of_the_files(tmp_path, ckpt, capsys,
+                                                               monkeypatch):
+  """A dataset of the folder layout, sequences of different lengths, partly valid ground truth
+  (one sequence stored as -d, one without any), the model replaced by a known function of the
+  frames and SGBM run as configured: every number of results.json, results.csv, results.md and
+  the printed lines is the official metric computed here by hand in numpy from the files written,
+  the aggregate a frame-weighted mean over the sequences with ground truth; the prediction files
+  are the predictions, the strips and curves the plots of them with the configured settings."""
+  from sav_jax.tools.demo import stereo_sgbm  # pylint: disable=import-outside-toplevel
+  written = _folder_dataset(tmp_path / "mine", np.random.default_rng(7))
+  calls = []
+
+  def stand_in(variables, left, right, **kw):
+    calls.append(kw)
+    return _stand_in_prediction(left)
+
+  monkeypatch.setattr(eval_runner.inference, "predict_video", stand_in)
+  out = tmp_path / "out"
+  capsys.readouterr()
+  assert main(["--config", str(CONFIGS / "folder.py"), "--checkpoint", str(ckpt),
+               "--data-root", str(tmp_path / "mine"), "--out", str(out), "--baseline", "sgbm",
+               "--config.iters=3", "--config.window=4", "--config.stride=3",
+               "--config.baseline.max_disparity=16", "--config.baseline.block_size=7",
+               "--config.save_predictions=true", "--config.plots.strip_frames=2",
+               "--config.plots.tile_size=16"]) == 0
+  printed = capsys.readouterr().out
+  assert [(k["iters"], k["window"], k["stride"]) for k in calls] == [(3, 4, 3)] * 3
+  summary = json.loads((out / "results.json").read_text())
+  assert [(s["name"], s["frames"]) for s in summary["sequences"]] == [("a", 3), ("b", 5),
+                                                                      ("c", 2)]
+  expected, weighted = {}, {m: {} for m in ("sav", "sgbm")}
+  for rec, (name, (left, right, gt, valid)) in zip(summary["sequences"], written.items()):
+    preds = {"sav": _stand_in_prediction(left),
+             "sgbm": stereo_sgbm(left, right, max_disparity=16, block_size=7)}
+    for method, suffix in (("sav", ""), ("sgbm", "_sgbm")):
+      np.testing.assert_array_equal(np.load(out / "predictions" / f"{name}{suffix}.npy"),
+                                    preds[method])
+    clip = {"left": left, "disparity": gt, "valid": valid}
+    labelled = {eval_config.METHOD_NAMES[m]: p for m, p in preds.items()}
+    eval_plots.write_strip(tmp_path / "strip.png", clip, labelled, frames=2, tile=16)
+    np.testing.assert_array_equal(cv2.imread(str(out / "plots" / f"{name}_strip.png")),
+                                  cv2.imread(str(tmp_path / "strip.png")))
+    if gt is None:
+      assert rec["metrics"] == {} and not (out / "plots" / f"{name}_curves.png").exists()
+      continue
+    curves = {eval_config.METHOD_NAMES[m]: eval_runner.per_frame_errors(p, gt, valid)
+              for m, p in preds.items()}
+    eval_plots.write_curves(tmp_path / "curves.png", curves, title=name)
+    np.testing.assert_array_equal(cv2.imread(str(out / "plots" / f"{name}_curves.png")),
+                                  cv2.imread(str(tmp_path / "curves.png")))
+    for method, pred in preds.items():
+      ref = expected[name, method] = _official_by_hand(pred, gt, valid)
+      assert rec["metrics"][method] == pytest.approx(ref, rel=1e-5, abs=1e-9), (name, method)
+      for k, v in ref.items():
+        weighted[method][k] = weighted[method].get(k, 0.0) + v * rec["frames"]
+  aggregate = {m: {k: v / (3 + 5) for k, v in w.items()} for m, w in weighted.items()}
+  for method in ("sav", "sgbm"):
+    assert summary["methods"][method]["aggregate"] == pytest.approx(aggregate[method],
+                                                                    rel=1e-5, abs=1e-9)
+  # results.csv: a row per sequence with ground truth and method, then the aggregates
+  rows = list(csv.DictReader(open(out / "results.csv", encoding="utf-8")))
+  assert [(r["sequence"], r["method"]) for r in rows] == [
+      ("a", "sav"), ("a", "sgbm"), ("b", "sav"), ("b", "sgbm"), (eval_report.ALL, "sav"),
+      (eval_report.ALL, "sgbm")]
+  assert [r["frames"] for r in rows[:4]] == ["3", "3", "5", "5"]
+  for row in rows:
+    ref = (aggregate[row["method"]] if row["sequence"] == eval_report.ALL
+           else expected[row["sequence"], row["method"]])
+    assert {k: float(row[k]) for k in ref} == pytest.approx(ref, rel=1e-5, abs=1e-9), row
+  # results.md: both tables, each cell the metric its heading names, to 3 decimals
+  names = {"Stereo Any Video": "sav", "StereoSGBM": "sgbm"}
+  md = (out / "results.md").read_text()
+  head, table = _table(md, "Method")
+  assert [r[0] for r in table] == list(names)
+  for row in table:
+    for heading, cell in zip(head[1:-1], row[1:-1]):
+      assert abs(float(cell) - aggregate[names[row[0]]][REPORT_COLUMNS[heading]]) <= 5.01e-4, (
+          row[0], heading)
+  head, table = _table(md, "Sequence")
+  assert [r[:3] for r in table] == [
+      [s, f, m] for s, f in (("a", "3"), ("b", "5")) for m in names] + [
+          ["c", "2", "Stereo Any Video"], ["c", "2", "StereoSGBM"]]
+  for row in table:
+    for heading, cell in zip(head[3:], row[3:]):
+      if row[0] == "c":
+        assert cell == "–"
+      else:
+        ref = expected[row[0], names[row[2]]][REPORT_COLUMNS[heading]]
+        assert abs(float(cell) - ref) <= 5.01e-4, (row[:3], heading)
+  # printed: a line per sequence with each method's EPE and TEPE, then the aggregate table
+  lines = [line for line in printed.splitlines() if line.startswith("[")]
+  assert [line.split("  ")[0] for line in lines] == [
+      "[1/3] a (3 frames)", "[2/3] b (5 frames)", "[3/3] c (2 frames)"]
+  for line, name in zip(lines, ("a", "b")):
+    assert "Stereo Any Video: EPE" in line and "StereoSGBM: EPE" in line
+    got = _numbers(line.split("frames)", 1)[1])
+    ref = [expected[name, m][k] for m in ("sav", "sgbm")
+           for k in ("disp_epe_mean", "disp_temp_epe_mean")]
+    assert np.allclose(got, ref, rtol=0, atol=5.01e-4), (line, ref)
+  assert md.split("## Per sequence")[0].rstrip() in printed
+
+
+def test_synthetic_sequences_are_the_generators_clips_with_its_valid_mask():
+  """Each synthetic sequence holds clip i of the generator as it renders it, with its valid mask
+  (occluded pixels, out of the right view, have no ground truth) and the official rule on top;
+  sample_len and max_sequences <= 0 mean every frame and every sequence."""
+  config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")),
+                                       eval_config.split_overrides(SMALL)[1])
+  config.synthetic.num_sequences = 3
+  for sample_len, max_sequences in ((-1, -1), (0, 0)):
+    config.sample_len, config.max_sequences = sample_len, max_sequences
+    seqs = eval_data.load_sequences(config, None)
+    assert [(s.name, len(s)) for s in seqs] == [(f"synthetic_00{i}", T) for i in range(3)]
+  for i, seq in enumerate(seqs[:2]):
+    clip = synthetic.generate_clip(seq.cfg, i)
+    assert seq.cfg.seed == config.synthetic.seed
+    assert not clip["valid"].all()  # (occlusions: what the mask leaves out)
+    got = eval_data.read_sequence(seq)
+    for key in ("left", "right", "disparity"):
+      np.testing.assert_array_equal(got[key], clip[key], err_msg=key)
+    d = clip["disparity"]
+    np.testing.assert_array_equal(got["valid"], clip["valid"] & (d != 0) & (np.abs(d) < 512))
+  config.sample_len, config.max_sequences = 2, 2
+  heads = eval_data.load_sequences(config, None)
+  assert [(s.name, len(s)) for s in heads] == [("synthetic_000", 2), ("synthetic_001", 2)]
+  np.testing.assert_array_equal(eval_data.read_sequence(heads[1])["left"],
+                                synthetic.generate_clip(seqs[1].cfg, 1)["left"][:2])
+
+
+def test_the_synthetic_evaluation_set_is_not_the_training_set():
+  """configs/eval/synthetic.py's clips come from another seed than the training config's
+  generator (configs/synthetic.py): evaluated on its clips, a model would be scored on the very
+  clips it was trained on."""
+  from configs import synthetic as training  # pylint: disable=import-outside-toplevel
+  train_seed = training.get_config().data.synthetic.seed
+  config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+  assert config.synthetic.seed != train_seed
+  assert eval_data.load_sequences(config, None)[0].cfg.seed == config.synthetic.seed
+
+
+def test_per_frame_curves_are_the_official_rule_per_frame(monkeypatch):
+  """The curves' values, written out in numpy: each frame's errors |pred x round(valid) - |gt||
+  summed over its valid pixels and divided by their non-zero count (an exact pixel is left out,
+  as in the official denominators); NaN for a frame (pair) without a valid pixel; a frame
+  predicted exactly scores 0. `evaluate_sequence` keeps them per method."""
+  rng = np.random.default_rng(11)
+  t, h, w = 5, 6, 7
+  gt = -rng.uniform(1.0, 20.0, (t, h, w)).astype(np.float32)  # stored as -d
+  valid = rng.random((t, h, w)) > 0.3
+  valid[2] = False  # no ground truth in frame 2
+  pred = np.abs(gt) + rng.normal(0, 2, (t, h, w)).astype(np.float32)
+  exact = rng.random((t, h, w)) < 0.2
+  pred[exact] = np.abs(gt)[exact]  # some pixels exact
+  pred[4] = np.abs(gt[4])  # frame 4 exact everywhere
+  pred[~valid] = 99.0  # what the mask leaves out
+  epe, tepe = eval_runner.per_frame_errors(pred, gt, valid)
+  x, y = np.where(valid, pred, 0), np.where(valid, np.abs(gt), 0)
+  e = np.abs(x - y)
+  want_epe = [e[i].sum() / np.count_nonzero(e[i]) if valid[i].any() and e[i].any()
+              else (0.0 if valid[i].any() else np.nan) for i in range(t)]
+  both = valid[1:] & valid[:-1]
+  te = np.where(both, np.abs(np.abs(x[1:] - x[:-1]) - np.abs(y[1:] - y[:-1])), 0)
+  want_tepe = [te[i].sum() / np.count_nonzero(te[i]) if both[i].any() else np.nan
+               for i in range(t - 1)]
+  assert np.isnan(want_epe[2]) and want_epe[4] == 0 and np.isnan(want_tepe[1])
+  np.testing.assert_allclose(epe, want_epe, rtol=1e-5)
+  np.testing.assert_allclose(tepe, want_tepe, rtol=1e-5)
+  # evaluate_sequence: each method's curves, of its own prediction against the ground truth
+  config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+  config.plots.enabled = False
+  seq = types.SimpleNamespace(name="s", depth2disp_scale=None)
+  clip = {"left": np.zeros((t, h, w, 3), np.uint8), "right": np.zeros((t, h, w, 3), np.uint8),
+          "disparity": gt, "valid": valid}
+  preds = {"sav": pred, "sgbm": np.abs(gt) + 1.5}
+  monkeypatch.setattr(eval_runner.eval_data, "read_sequence", lambda s: clip)
+  monkeypatch.setattr(eval_runner, "predict", lambda method, clip, **_: preds[method])
+  res = eval_runner.evaluate_sequence(seq, ["sav", "sgbm"], variables=None, model_cfg=None,
+                                      config=config)
+  np.testing.assert_allclose(res.curves["sav"][0], want_epe, rtol=1e-5)
+  np.testing.assert_allclose(res.curves["sav"][1], want_tepe, rtol=1e-5)
+  np.testing.assert_allclose(res.curves["sgbm"][0], np.where(valid.any((1, 2)), 1.5, np.nan),
+                             rtol=1e-5)
+
+
+def test_override_values_of_each_type():
+  """Booleans take true/false, 1/0, yes/no, on/off (any case); an integer field refuses a
+  fraction instead of cutting it; a float field takes an integer; a string field keeps the text
+  as written; a nested field is named with its block."""
+  config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+  for text, value in (("yes", True), ("No", False), ("ON", True), ("off", False), ("1", True),
+                      ("0", False), ("True", True), ("false", False)):
+    eval_config.apply_overrides(config, [("plots.enabled", text)])
+    assert config.plots.enabled is value, text
+  for bad in ("4.5", "4e0", "four"):
+    with pytest.raises(ValueError, match=f"--config.iters: expected int, got '{bad}'"):
+      eval_config.apply_overrides(config, [("iters", bad)])
+  eval_config.apply_overrides(config, [("synthetic.max_disparity", "7"), ("metrics.raft", "1"),
+                                       ("dtype", "bfloat16")])
+  assert config.synthetic.max_disparity == 7.0 and isinstance(config.synthetic.max_disparity,
+                                                               float)
+  assert config.metrics.raft == "1" and config.dtype == "bfloat16"
+  for name in ("plots", "metrics.raft.x", "iters.x", "synthetic"):  # a block, or below a leaf
+    with pytest.raises(ValueError, match=f"--config.{name}: no such config field"):
+      eval_config.apply_overrides(config, [(name, "1")])
+
+
+def test_progress_records_are_appended_and_read_back(tmp_path):
+  """Records appended one by one (the header once) are read back, by name; a record cut short by
+  a kill is dropped and the file ends where the last whole line does, so that the next record
+  starts a line of its own and is read back too."""
+  settings = {"config": {"iters": 2}, "weights": "w", "methods": ["sav"]}
+  results = [eval_runner.SequenceResult(name=n, frames=f, metrics={"sav": {"disp_epe_mean": e}},
+                                        seconds={"sav": 0.5}, compile_seconds={"sav": 0.0},
+                                        metrics_seconds=0.25, source=f"/d/{n}", notes=[n])
+             for n, f, e in (("a", 3, 1.5), ("b", 4, 2.5), ("c", 5, 3.5))]
+  for res in results[:2]:
+    eval_runner.append_progress(tmp_path, settings, res)
+  done = eval_runner.read_progress(tmp_path, settings)
+  assert list(done) == ["a", "b"]
+  for res in results[:2]:
+    assert done[res.name] == res
+  progress = tmp_path / eval_runner.PROGRESS
+  whole = progress.read_text()
+  progress.write_text(whole + '{"name": "c", "fra')  # killed while writing c's record
+  assert list(eval_runner.read_progress(tmp_path, settings)) == ["a", "b"]
+  assert progress.read_text() == whole
+  eval_runner.append_progress(tmp_path, settings, results[2])
+  assert eval_runner.read_progress(tmp_path, settings) == {r.name: r for r in results}
+
+
+def test_only_the_runs_own_files_are_removed_or_written_over(tmp_path):
+  """written_files.txt names what --overwrite deletes: a line that leads out of predictions/ or
+  plots/ (a hand edit), or names a link, deletes nothing; a file or a broken link of the user's
+  where a run would write is refused."""
+  out = tmp_path / "out"
+  (out / "predictions").mkdir(parents=True)
+  (out / "plots").mkdir()
+  (tmp_path / "victim.txt").write_text("mine")
+  (out / "mine.txt").write_text("mine")
+  (out / "predictions" / "a.npy").write_bytes(b"run")
+  (out / "plots" / "link.png").symlink_to(out / "mine.txt")
+  (out / eval_runner.WRITTEN_LIST).write_text(
+      "predictions/a.npy\n../victim.txt\nmine.txt\npredictions/../../victim.txt\n"
+      "plots/link.png\n")
+  assert eval_runner.remove_written(out) == [out / "predictions" / "a.npy"]
+  assert not (out / "predictions" / "a.npy").exists()
+  assert not (out / eval_runner.WRITTEN_LIST).exists()  # (it would name a user's file later)
+  assert (tmp_path / "victim.txt").read_text() == "mine" and (out / "mine.txt").is_file()
+  assert (out / "plots" / "link.png").is_symlink()
+  dangling = out / "predictions" / "b.npy"
+  dangling.symlink_to(tmp_path / "elsewhere.npy")
+  eval_runner.record_written(out, [out / "predictions" / "c.npy"])
+  (out / "predictions" / "c.npy").write_bytes(b"run")
+  eval_runner.refuse_unlisted_outputs(out, [out / "predictions" / "c.npy"])  # its own: fine
+  with pytest.raises(FileExistsError, match="b.npy exists, and no earlier evaluation wrote it"):
+    eval_runner.refuse_unlisted_outputs(out, [out / "predictions" / "c.npy", dangling])
+
+
+def test_a_resumed_run_may_differ_only_in_devices_and_max_sequences():
+  variables = {"params": {"w": np.arange(3, dtype=np.float32)}}
+  config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+  settings = eval_runner.run_settings(config, variables, ["sav"])
+  config.devices, config.max_sequences = 0, 1
+  assert eval_runner.run_settings(config, variables, ["sav"]) == settings
+  for name, value in (("iters", 3), ("sample_len", 2), ("save_predictions", True)):
+    other = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+    setattr(other, name, value)
+    assert eval_runner.run_settings(other, variables, ["sav"]) != settings, name
+  assert eval_runner.run_settings(config, variables, ["sav", "sgbm"]) != settings
+  other = {"params": {"w": np.arange(1, 4, dtype=np.float32)}}
+  assert eval_runner.run_settings(config, other, ["sav"]) != settings
+
+
+def test_curve_panels_show_epe_over_tepe(tmp_path):
+  """The curves PNG is the EPE panel above the TEPE panel: each depends on its own series."""
+  epe, tepe = np.array([1.0, 3.0, 2.0, 5.0]), np.array([0.5, 4.0, 1.0])
+  images = {}
+  for name, curves in (("base", (epe, tepe)), ("epe", (epe[::-1], tepe)),
+                       ("tepe", (epe, tepe[::-1]))):
+    path = eval_plots.write_curves(tmp_path / f"{name}.png", {"m": curves}, title="s")
+    images[name] = cv2.imread(str(path))
+  half = images["base"].shape[0] // 2
+  assert images["base"].shape[0] == 2 * half
+  top, bottom = slice(0, half), slice(half, None)
+  assert np.array_equal(images["epe"][bottom], images["base"][bottom])
+  assert not np.array_equal(images["epe"][top], images["base"][top])
+  assert np.array_equal(images["tepe"][top], images["base"][top])
+  assert not np.array_equal(images["tepe"][bottom], images["base"][bottom])
+
+
+def test_strip_rows_show_the_frames_and_the_absolute_ground_truth(tmp_path):
+  """The strip's first row is the left frames in their colours; the ground-truth row is |gt|
+  (stored as -d it looks the same); a prediction equal to |gt| looks like it; a tile larger than
+  tile_size is scaled down to it (longest side)."""
+  t, h, w = 2, 16, 24
+  rng = np.random.default_rng(5)
+  left = np.zeros((t, h, w, 3), np.uint8)
+  left[..., 0], left[..., 2] = 200, 30  # reddish, RGB
+  gt = rng.uniform(5, 40, (t, h, w)).astype(np.float32)
+  valid = np.ones((t, h, w), bool)
+  strips = []
+  for sign in (1, -1):
+    clip = {"left": left, "disparity": sign * gt, "valid": valid}
+    path = eval_plots.write_strip(tmp_path / f"s{sign}.png", clip, {"SAV": gt.copy()},
+                                  frames=t, tile=32)
+    strips.append(cv2.imread(str(path))[..., ::-1])  # RGB
+  assert np.array_equal(strips[0], strips[1])
+  img = strips[0]
+  rows = [img[24 + k * h:24 + (k + 1) * h] for k in range(4)]  # left, GT, SAV, SAV error
+  label_w = img.shape[1] - t * w
+  assert (rows[0][:, label_w:] == (200, 0, 30)).all()
+  assert np.array_equal(rows[1][:, label_w:], rows[2][:, label_w:])
+  small = eval_plots.write_strip(tmp_path / "small.png", {"left": left, "disparity": gt,
+                                                          "valid": valid},
+                                 {"SAV": gt}, frames=t, tile=12)
+  img = cv2.imread(str(small))
+  assert img.shape[0] == 24 + 4 * 8 and img.shape[1] == label_w + t * 12  # 24x16 -> 12x8
+
+
+def test_default_output_folder_and_files(tmp_path, ckpt, monkeypatch):
+  """Without --out the reports go to outputs/eval/<dataset>; predictions are written only when
+  asked for, plots by default; --resume with nothing to resume (an empty or new folder) runs."""
+  monkeypatch.setattr(eval_runner.inference, "predict_video",
+                      lambda variables, left, right, **kw: _stand_in_prediction(left))
+  monkeypatch.chdir(tmp_path)
+  small = [a for a in SMALL if "save_predictions" not in a]
+  assert main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt),
+               *small]) == 0
+  out = tmp_path / "outputs" / "eval" / "synthetic"
+  assert sorted(p.name for p in out.iterdir()) == [
+      "plots", "results.csv", "results.json", "results.md", "written_files.txt"]
+  assert sorted(p.name for p in (out / "plots").iterdir()) == [
+      f"synthetic_00{i}_{kind}.png" for i in range(2) for kind in ("curves", "strip")]
+  (tmp_path / "empty").mkdir()
+  for folder in ("empty", "new"):
+    assert main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *small,
+                 "--out", folder, "--resume"]) == 0
+    assert (tmp_path / folder / "results.json").is_file()
+
+
+def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, ckpt, capsys, monkeypatch):
+  """A sequence the interrupted run finished that has gained a frame since (same folder, same
+  settings) is not taken from the progress file: its numbers would be of other frames."""
+  written = _folder_dataset(tmp_path / "mine", np.random.default_rng(8))
+  monkeypatch.setattr(eval_runner.inference, "predict_video",
+                      lambda variables, left, right, **kw: _stand_in_prediction(left))
+  real_append = eval_runner.append_progress
+
+  def second_fails(out_, settings, res):
+    if res.name != "a":
+      raise OSError(f"{res.name}: disk full")
+    return real_append(out_, settings, res)
+
+  args = ["--config", str(CONFIGS / "folder.py"), "--checkpoint", str(ckpt), "--data-root",
+          str(tmp_path / "mine"), "--out", str(tmp_path / "out"), "--config.iters=2",
+          "--config.plots.enabled=false"]
+  with monkeypatch.context() as m:
+    m.setattr(eval_runner, "append_progress", second_fails)
+    assert main(args) == 2
+  capsys.readouterr()
+  folder = tmp_path / "mine" / "test" / "a"
+  left, right, gt, _ = written["a"]
+  for view, video in (("left", left), ("right", right)):
+    cv2.imwrite(str(folder / view / "0003.png"), video[0][..., ::-1])
+  np.save(folder / "disparity" / "0003.npy", gt[0])
+  assert main([*args, "--resume"]) == 2
+  assert ("cannot resume: sequence a has 4 frames, the interrupted run evaluated 3; pass "
+          "--overwrite to start again") in capsys.readouterr().err
+
+
+def test_a_sequence_read_through_a_link_has_the_source_of_its_files(tmp_path):
+  """`sequence_source` names the folder of the files themselves: the dataset reached through a
+  link (--data-root on another path to the same files) gives the same source, so --resume
+  accepts it; a copy of the dataset gives another."""
+  from sav_jax.data import registry  # pylint: disable=import-outside-toplevel
+  _folder_dataset(tmp_path / "mine", np.random.default_rng(9))
+  (tmp_path / "link").symlink_to(tmp_path / "mine")
+  shutil.copytree(tmp_path / "mine", tmp_path / "copy")
+  sources = {root: [eval_runner.sequence_source(s)
+                    for s in registry.get_sequences("folder", tmp_path / root, "test")]
+             for root in ("mine", "link", "copy")}
+  real = tmp_path.resolve() / "mine" / "test"
+  assert sources["mine"] == sources["link"] == [str(real / n / "left") for n in "abc"]
+  assert sources["copy"] == [str(tmp_path.resolve() / "copy" / "test" / n / "left")
+                             for n in "abc"]
+  assert eval_runner.sequence_source(types.SimpleNamespace(name="synthetic_000")) is None
+
+
+def test_a_failed_overwrite_of_an_interrupted_run_puts_that_run_back(tmp_path):
+  """An interrupted run (its progress file, predictions, no reports yet) replaced with
+  --overwrite by a run that fails after writing some reports: its progress file comes back (it
+  can still be resumed), and none of the failed run's files or reports stay."""
+  out = tmp_path / "out"
+  (out / "predictions").mkdir(parents=True)
+  (out / "predictions" / "a.npy").write_bytes(b"earlier")
+  eval_runner.record_written(out, [out / "predictions" / "a.npy"])
+  (out / eval_runner.PROGRESS).write_text('{"earlier": 1}\n')
+  (out / "notes.txt").write_text("mine")
+  before = _snapshot(out)
+  assert eval_runner.set_aside_written(out) == [out / "predictions" / "a.npy"]
+  assert sorted(p.name for p in out.iterdir()) == [eval_runner.SET_ASIDE, "notes.txt",
+                                                   "predictions"]
+  # the failed run: a prediction, its progress, two of its three reports
+  (out / "predictions" / "b.npy").write_bytes(b"failed")
+  eval_runner.record_written(out, [out / "predictions" / "b.npy"])
+  (out / eval_runner.PROGRESS).write_text('{"failed": 1}\n')
+  for name in eval_runner.REPORTS[:2]:
+    (out / name).write_text("failed")
+  assert eval_runner.restore_set_aside(out) == [out / "predictions" / "a.npy"]
+  assert _snapshot(out) == before
