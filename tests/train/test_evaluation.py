@@ -115,3 +115,75 @@ def test_clips_without_ground_truth_are_left_out_and_nan_predictions_score_nan(c
   with pytest.raises(ValueError, match=r"config.eval.dataset='kitti_depth': none of the 3 "
                                        r"validation clips has a valid ground-truth pixel"):
     evaluation.measured_clips(clips, "kitti_depth")
+
+
+class _OffByModel(_SignFlippingModel):
+  """Predicts the ground truth (from the left image) plus a fixed per-pixel offset, with the
+  sign of the left half flipped (|prediction| is scored)."""
+
+  def __init__(self, offset):
+    self.offset = offset
+
+  def apply(self, variables, left, right, *, iters, final_only):
+    out = super().apply(variables, left + self.offset[..., None], right, iters=iters,
+                        final_only=final_only)
+    return out
+
+
+def _by_hand(pred, gt, valid):
+  """The official EPE / TEPE numbers of one clip in numpy (cf. tests/test_eval.py)."""
+  x, y = np.where(valid, np.abs(pred), 0), np.where(valid, np.abs(gt), 0)
+  both = valid[1:] & valid[:-1]
+  errors = {"epe": np.abs(x - y),
+            "temp_epe": np.where(both, np.abs(np.abs(x[1:] - x[:-1]) - np.abs(y[1:] - y[:-1])),
+                                 0)}
+  out = {}
+  for prefix, e in errors.items():
+    n = max(np.count_nonzero(e), 1e-5)
+    out[f"{prefix}_mean"] = e.astype(np.float64).sum() / n
+    for tau in (1, 3):
+      out[f"{prefix}_bad_{tau}px"] = 100.0 * np.count_nonzero(e > tau) / n
+  return out
+
+
+def test_validation_scores_are_frame_weighted_means_of_each_named_metric(caplog):
+  """Each logged score is the official metric its name says, averaged over the clips weighted by
+  their frames (computed here by hand); a prediction holding inf scores NaN as NaN does."""
+  rng = np.random.default_rng(2)
+  clips, hand = [], []
+  offset = rng.normal(0, 2.5, (8, 16)).astype(np.float32)  # errors across the bad-N thresholds
+  for frames in (2, 5):
+    gt = rng.uniform(1.0, 20.0, (frames, 8, 16)).astype(np.float32)
+    valid = rng.random((frames, 8, 16)) > 0.25
+    left = np.repeat(gt[..., None], 3, axis=-1)
+    clips.append({"left": left, "right": left.copy(), "disparity": gt, "valid": valid})
+    hand.append((_by_hand(gt + offset, gt, valid), frames))
+  config = ml_collections.ConfigDict({"eval": {"batch_size": 1, "iters": 2,
+                                               "dataset": "synthetic"}})
+  mesh = state_lib.make_mesh(jax.devices()[:1])
+  ev = evaluation.Evaluator(config, _OffByModel(offset), state_lib.replicated(mesh), mesh,
+                            clips=clips)
+  scores = ev({})
+  names = {"epe": "epe_mean", "tepe": "temp_epe_mean", "bad_1px": "epe_bad_1px",
+           "bad_3px": "epe_bad_3px", "temp_bad_1px": "temp_epe_bad_1px"}
+  assert set(scores) == set(names)
+  for short, key in names.items():
+    want = sum(h[key] * n for h, n in hand) / 7
+    assert scores[short] == pytest.approx(want, rel=1e-5), short
+  assert len({round(v, 6) for v in scores.values()}) == len(names)  # (distinct: no mix-up)
+
+  class _InfModel(_SignFlippingModel):
+    def apply(self, variables, left, right, *, iters, final_only):
+      out = super().apply(variables, left, right, iters=iters, final_only=final_only)
+      return types.SimpleNamespace(disparities=out.disparities.at[..., 0, 0].set(jnp.inf))
+
+  diverged = evaluation.Evaluator(config, _InfModel(), state_lib.replicated(mesh), mesh,
+                                  clips=clips)
+  with caplog.at_level("WARNING"):
+    scores = diverged({})
+  assert set(scores) == set(names) and all(np.isnan(v) for v in scores.values())
+  assert "the predictions of 2 of the 2 clips hold NaN or inf" in caplog.text
+  with pytest.raises(ValueError, match="eval.batch_size=4 is not divisible by 3 devices"):
+    evaluation.Evaluator(ml_collections.ConfigDict({"eval": {"batch_size": 4, "iters": 2,
+                                                             "dataset": "synthetic"}}),
+                         _InfModel(), None, types.SimpleNamespace(size=3), clips=clips)
