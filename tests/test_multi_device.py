@@ -25,15 +25,21 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 ATOL = 1e-4  # px, the fixture README's criterion for final disparities
 
 
+def _run_child(devices: int, *args, timeout: int) -> None:
+  """This file's `__main__` in a process of its own with `devices` fake CPU devices."""
+  env = dict(os.environ, JAX_PLATFORMS="cpu", TF_CPP_MIN_LOG_LEVEL="1",
+             XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
+             PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+  proc = subprocess.run([sys.executable, "-m", "tests.test_multi_device", *map(str, args)],
+                        cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout,
+                        check=False)
+  assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+
+
 @pytest.fixture(scope="module")
 def child(module_tmp_path):
   out = module_tmp_path / "result.npz"
-  env = dict(os.environ, JAX_PLATFORMS="cpu", TF_CPP_MIN_LOG_LEVEL="1",
-             XLA_FLAGS="--xla_force_host_platform_device_count=3",
-             PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-  proc = subprocess.run([sys.executable, "-m", "tests.test_multi_device", str(out)], cwd=ROOT,
-                        env=env, capture_output=True, text=True, timeout=900, check=False)
-  assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+  _run_child(3, out, timeout=900)
   result = dict(np.load(out))
   result["log"] = json.loads(str(result["log"]))
   return result
@@ -282,13 +288,7 @@ if __name__ == "__main__":
 @pytest.fixture(scope="module")
 def plumbing(module_tmp_path):
   out = module_tmp_path / "plumbing.json"
-  env = dict(os.environ, JAX_PLATFORMS="cpu", TF_CPP_MIN_LOG_LEVEL="1",
-             XLA_FLAGS="--xla_force_host_platform_device_count=8",
-             PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-  proc = subprocess.run([sys.executable, "-m", "tests.test_multi_device", "--plumbing", str(out)],
-                        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300,
-                        check=False)
-  assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+  _run_child(8, "--plumbing", out, timeout=300)
   return json.loads(out.read_text())
 
 
