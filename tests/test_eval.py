@@ -28,6 +28,7 @@ from eval import runner as eval_runner
 from eval.main import main
 from sav_jax import inference, metrics
 from sav_jax.data import synthetic
+from tests.official_metrics import epe_tepe_by_hand
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs" / "eval"
@@ -1286,27 +1287,6 @@ def test_strip_labels_are_not_cut(tmp_path):
   assert (error_row[:, label_w - 4:label_w] == 255).all()  # white margin after the text
 
 
-def _official_by_hand(pred, gt, valid):
-  """The official evaluator's EPE / TEPE and bad-N rates of one sequence, written out in numpy:
-  pred x round(valid), |gt|, both zeroed where valid <= 0.5; errors |x - y| per pixel and
-  ||x_t - x_t+1| - |y_t - y_t+1|| per pixel pair valid in both frames; each mean and rate over
-  the non-zero errors."""
-  keep = np.asarray(valid, np.float32) > 0.5
-  x = np.where(keep, np.asarray(pred, np.float32), np.float32(0))
-  y = np.where(keep, np.abs(np.asarray(gt, np.float32)), np.float32(0))
-  both = keep[1:] & keep[:-1]
-  errors = {"epe": np.abs(x - y),
-            "temp_epe": np.where(both, np.abs(np.abs(x[1:] - x[:-1]) - np.abs(y[1:] - y[:-1])),
-                                 0)}
-  out = {}
-  for prefix, e in errors.items():
-    n = max(np.count_nonzero(e), 1e-5)
-    out[f"disp_{prefix}_mean"] = float(e.astype(np.float64).sum() / n)
-    for name, tau in (("0.5", 0.5), ("1", 1.0), ("2", 2.0), ("3", 3.0)):
-      out[f"disp_{prefix}_bad_{name}px"] = 100.0 * np.count_nonzero(e > tau) / n
-  return out
-
-
 def _folder_dataset(root, rng):
   """Three sequences of the folder layout (`configs/eval/folder.py`) of 3, 5 and 2 frames:
   `a` with positive ground truth, `b` stored as -d (the evaluator scores |gt|), `c` without
@@ -1397,7 +1377,8 @@ def test_reported_numbers_are_the_official_metrics_of_the_files(tmp_path, ckpt, 
     np.testing.assert_array_equal(cv2.imread(str(out / "plots" / f"{name}_curves.png")),
                                   cv2.imread(str(tmp_path / "curves.png")))
     for method, pred in preds.items():
-      ref = expected[name, method] = _official_by_hand(pred, gt, valid)
+      ref = expected[name, method] = {f"disp_{k}": v for k, v in
+                                       epe_tepe_by_hand(pred, gt, valid).items()}
       assert rec["metrics"][method] == pytest.approx(ref, rel=1e-5, abs=1e-9), (name, method)
       for k, v in ref.items():
         weighted[method][k] = weighted[method].get(k, 0.0) + v * rec["frames"]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from sav_jax import metrics
+from tests.official_metrics import epe_tepe_by_hand
 from train import evaluation
 from train import state as state_lib
 
@@ -130,22 +131,6 @@ class _OffByModel(_SignFlippingModel):
     return out
 
 
-def _by_hand(pred, gt, valid):
-  """The official EPE / TEPE numbers of one clip in numpy (cf. tests/test_eval.py)."""
-  x, y = np.where(valid, np.abs(pred), 0), np.where(valid, np.abs(gt), 0)
-  both = valid[1:] & valid[:-1]
-  errors = {"epe": np.abs(x - y),
-            "temp_epe": np.where(both, np.abs(np.abs(x[1:] - x[:-1]) - np.abs(y[1:] - y[:-1])),
-                                 0)}
-  out = {}
-  for prefix, e in errors.items():
-    n = max(np.count_nonzero(e), 1e-5)
-    out[f"{prefix}_mean"] = e.astype(np.float64).sum() / n
-    for tau in (1, 3):
-      out[f"{prefix}_bad_{tau}px"] = 100.0 * np.count_nonzero(e > tau) / n
-  return out
-
-
 def test_validation_scores_are_frame_weighted_means_of_each_named_metric(caplog):
   """Each logged score is the official metric its name says, averaged over the clips weighted by
   their frames (computed here by hand); a prediction holding inf scores NaN as NaN does."""
@@ -157,7 +142,7 @@ def test_validation_scores_are_frame_weighted_means_of_each_named_metric(caplog)
     valid = rng.random((frames, 8, 16)) > 0.25
     left = np.repeat(gt[..., None], 3, axis=-1)
     clips.append({"left": left, "right": left.copy(), "disparity": gt, "valid": valid})
-    hand.append((_by_hand(gt + offset, gt, valid), frames))
+    hand.append((epe_tepe_by_hand(np.abs(gt + offset), gt, valid, taus=(1, 3)), frames))
   config = ml_collections.ConfigDict({"eval": {"batch_size": 1, "iters": 2,
                                                "dataset": "synthetic"}})
   mesh = state_lib.make_mesh(jax.devices()[:1])
