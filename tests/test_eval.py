@@ -424,6 +424,11 @@ def test_an_unreadable_sequence_after_finished_ones_says_resume_continues(tmp_pa
   calls[:] = [1]  # the first sequence fails: nothing to resume, the error as it is
   assert main([*args[:-1], str(tmp_path / "c")]) == 2
   assert capsys.readouterr().err.endswith("cannot decode the image file\n")
+  calls.clear()  # an --overwrite run puts the earlier results back: nothing to resume either
+  assert main([*args, "--overwrite"]) == 2
+  assert capsys.readouterr().err == ("eval: error: synthetic_001/frame_0003.png: cannot decode "
+                                     "the image file\n")
+  assert (tmp_path / "a" / "results.json").is_file()
 
 
 def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch):
@@ -1459,12 +1464,14 @@ def test_synthetic_sequences_are_the_generators_clips_with_its_valid_mask():
 def test_the_synthetic_evaluation_set_is_not_the_training_set():
   """configs/eval/synthetic.py's clips come from another seed than the training config's
   generator (configs/synthetic.py): evaluated on its clips, a model would be scored on the very
-  clips it was trained on."""
+  clips it was trained on. Its SGBM baseline searches the whole disparity range."""
   from configs import synthetic as training  # pylint: disable=import-outside-toplevel
   train_seed = training.get_config().data.synthetic.seed
   config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
   assert config.synthetic.seed != train_seed
   assert eval_data.load_sequences(config, None)[0].cfg.seed == config.synthetic.seed
+  # (and its SGBM baseline searches the whole disparity range of the clips)
+  assert config.baseline.max_disparity >= config.synthetic.max_disparity
 
 
 def test_per_frame_curves_are_the_official_rule_per_frame(monkeypatch):
@@ -1648,7 +1655,7 @@ def test_strip_rows_show_the_frames_and_the_absolute_ground_truth(tmp_path):
 
 def test_default_output_folder_and_files(tmp_path, ckpt, monkeypatch):
   """Without --out the reports go to outputs/eval/<dataset>; predictions are written only when
-  asked for, plots by default; --resume with nothing to resume (an empty or new folder) runs."""
+  asked for, plots by default; --resume with nothing to resume (an empty folder) runs."""
   monkeypatch.setattr(eval_runner.inference, "predict_video",
                       lambda variables, left, right, **kw: _stand_in_prediction(left))
   monkeypatch.chdir(tmp_path)
@@ -1661,10 +1668,9 @@ def test_default_output_folder_and_files(tmp_path, ckpt, monkeypatch):
   assert sorted(p.name for p in (out / "plots").iterdir()) == [
       f"synthetic_00{i}_{kind}.png" for i in range(2) for kind in ("curves", "strip")]
   (tmp_path / "empty").mkdir()
-  for folder in ("empty", "new"):
-    assert main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *small,
-                 "--out", folder, "--resume"]) == 0
-    assert (tmp_path / folder / "results.json").is_file()
+  assert main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *small,
+               "--out", "empty", "--resume", "--config.plots.enabled=false"]) == 0
+  assert (tmp_path / "empty" / "results.json").is_file()
 
 
 def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, ckpt, capsys, monkeypatch):
@@ -1737,3 +1743,19 @@ def test_a_failed_overwrite_of_an_interrupted_run_puts_that_run_back(tmp_path):
     (out / name).write_text("failed")
   assert eval_runner.restore_set_aside(out) == [out / "predictions" / "a.npy"]
   assert _snapshot(out) == before
+
+
+def test_report_shows_a_zero_as_a_number_and_a_missing_metric_as_a_dash():
+  """A metric of 0 (a perfect score, or the official rule's 0 without valid pixels) is shown as
+  0.000; only a metric a method lacks is a dash."""
+  from eval.main import build_summary  # pylint: disable=import-outside-toplevel
+  results = [eval_runner.SequenceResult(
+      name="s", frames=2, seconds={"sav": 1.0, "sgbm": 1.0},
+      metrics={"sav": {"disp_epe_mean": 0.0, "disp_temp_epe_mean": 1.25},
+               "sgbm": {"disp_epe_mean": 2.5}})]
+  config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+  md = eval_report.markdown(build_summary(config, "w", results, ["sav", "sgbm"]))
+  for first in ("Method", "Sequence"):
+    head, rows = _table(md, first)
+    cells = [dict(zip(head, row)) for row in rows]
+    assert [(c["EPE"], c["TEPE"]) for c in cells] == [("0.000", "1.250"), ("2.500", "–")], first
