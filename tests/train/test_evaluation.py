@@ -148,6 +148,7 @@ def test_validation_scores_are_frame_weighted_means_of_each_named_metric(caplog)
   mesh = state_lib.make_mesh(jax.devices()[:1])
   ev = evaluation.Evaluator(config, _OffByModel(offset), state_lib.replicated(mesh), mesh,
                             clips=clips)
+  assert ev.described == "2 clips of synthetic (2/5 frames), 2 iterations"
   scores = ev({})
   names = {"epe": "epe_mean", "tepe": "temp_epe_mean", "bad_1px": "epe_bad_1px",
            "bad_3px": "epe_bad_3px", "temp_bad_1px": "temp_epe_bad_1px"}
