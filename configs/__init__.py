@@ -22,3 +22,15 @@ def locate(spec: str) -> str:
   if not installed.is_file():
     return spec
   return str(installed) + ("" if arg is None else f":{arg}")
+
+
+def lacking_fields(config, missing: list[str], what: str = "fields") -> str:
+  """`lacks N <what> (a, b, ...)[; it is an evaluation config (python -m eval)]: build its
+  get_config() on ...`: the words for a training config that lacks the `missing` fields of
+  `configs.sceneflow.base_config()` (`train.loop.check_fields`, and `python -m train`'s
+  parsing of overrides, which must not import JAX)."""
+  evaluation = ("; it is an evaluation config (python -m eval)"
+                if {"baseline", "window", "stride"} <= set(config.keys()) else "")
+  return (f"lacks {len(missing)} {what} ({', '.join(missing[:8])}"
+          f"{', ...' if len(missing) > 8 else ''}){evaluation}: build its get_config() on "
+          "configs.sceneflow.base_config(), as configs/synthetic.py does")

@@ -157,18 +157,15 @@ def _not_a_training_config(argv) -> None:
   them (`--config.data.root=...`) was reported as a misspelt override, "no such config field
   'data'"."""
   try:  # (absl keeps no value of a flag whose parsing failed: the file is loaded again)
-    keys = set(flags.FLAGS["config"].parser.parse(_config_arg(argv)).keys())
+    config = flags.FLAGS["config"].parser.parse(_config_arg(argv))
+    keys = set(config.keys())
   except Exception:  # pylint: disable=broad-except  # no config to look at: the caller reports
     return
-  from configs import sceneflow  # pylint: disable=g-import-not-at-top
+  from configs import lacking_fields, sceneflow  # pylint: disable=g-import-not-at-top
   missing = [k for k in sceneflow.base_config() if k not in keys]
-  if missing:  # (the words of train.loop.check_fields, which checks every field)
-    evaluation = ("; it is an evaluation config (python -m eval)"
-                  if {"baseline", "window", "stride"} <= keys else "")
-    _fail(f"the config file {_config_arg(argv)} lacks {len(missing)} of a training config's "
-          f"fields ({', '.join(missing[:8])}{', ...' if len(missing) > 8 else ''})"
-          f"{evaluation}: build its get_config() on configs.sceneflow.base_config(), as "
-          "configs/synthetic.py does")
+  if missing:  # (train.loop.check_fields checks every field, with the same words)
+    what = "of a training config's fields"
+    _fail(f"the config file {_config_arg(argv)} {lacking_fields(config, missing, what)}")
 
 
 def _config_arg(argv) -> str:

@@ -358,15 +358,10 @@ def missing_fields(config, base, prefix: str = "") -> list[str]:
 def check_fields(config) -> None:
   """Raises a ValueError naming the fields a training config lacks (a config file written
   from scratch instead of on `configs.sceneflow.base_config()`), before any is read."""
-  from configs import sceneflow  # pylint: disable=import-outside-toplevel
+  from configs import lacking_fields, sceneflow  # pylint: disable=import-outside-toplevel
   missing = missing_fields(config, sceneflow.base_config())
   if missing:
-    evaluation = ("; it is an evaluation config (python -m eval)"
-                  if {"baseline", "window", "stride"} <= set(config.keys()) else "")
-    raise ValueError(f"the config lacks {len(missing)} fields ({', '.join(missing[:8])}"
-                     f"{', ...' if len(missing) > 8 else ''}){evaluation}: build its "
-                     "get_config() on configs.sceneflow.base_config(), as configs/synthetic.py "
-                     "does")
+    raise ValueError(f"the config {lacking_fields(config, missing)}")
 
 
 def _given_workdir(workdir) -> pathlib.Path:
