@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import importlib
 import sys
 
 from sav_jax import _signals
-from sav_jax.tools import UsageError, command_logging
-from sav_jax.tools import one_line_warnings as tools_one_line_warnings
+from sav_jax.tools import UsageError, command_logging, one_line_warnings
 
 COMMANDS = {
     "demo": "sav_jax.tools.demo",
@@ -53,14 +51,6 @@ def build_parser() -> argparse.ArgumentParser:
   return parser
 
 
-@contextlib.contextmanager
-def one_line_warnings(args):
-  """Python warnings met by the command (e.g. `inference.SwappedViewsWarning`) as one line
-  each, `sav-jax COMMAND: warning: ...`, not as a source file, line and its code."""
-  with tools_one_line_warnings(f"sav-jax {args.command}"):
-    yield
-
-
 def main(argv: list[str] | None = None) -> int:
   """Runs one command; called from Python, it leaves logging and JAX's settings as it found
   them (`sav_jax.runtime.preserved_settings`)."""
@@ -73,8 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel  # jax: after --help
   try:
-    with (command_logging(args.verbose), runtime.preserved_settings(), one_line_warnings(args),
-          _signals.remembered_interrupts()):
+    # (warnings met by the command, e.g. `inference.SwappedViewsWarning`, as one line each)
+    with (command_logging(args.verbose), runtime.preserved_settings(),
+          one_line_warnings(f"sav-jax {args.command}"), _signals.remembered_interrupts()):
       return int(args._run(args) or 0)
   except (UsageError, ValueError, OSError) as e:  # OSError: a disk full, a folder not writable
     text = str(e)
