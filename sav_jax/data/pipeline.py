@@ -48,6 +48,7 @@ import jax
 import numpy as np
 
 from sav_jax._checks import caller_stacklevel, is_int, plural
+from sav_jax.data.base import some_of
 from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo
 
 log = logging.getLogger(__name__)
@@ -176,14 +177,13 @@ def without_ground_truth(items) -> list:
 
 def sequences_named(seqs) -> str:
   """`night (/data/val/night/left), ...`: sequences by name and the folder of their left
-  frames, for messages (the first 5, the rest counted)."""
+  frames, for messages (the first 5, the rest counted: `some_of`)."""
   def one(seq):
     try:
       return f"{seq.name} ({pathlib.Path(seq.files['left'][0]).parent})"
     except (AttributeError, TypeError, KeyError, IndexError):
       return str(getattr(seq, "name", seq))
-  named = ", ".join(one(s) for s in seqs[:5])
-  return named + (f" and {len(seqs) - 5} more" if len(seqs) > 5 else "")
+  return some_of([one(s) for s in seqs], most=5)
 
 
 def measured_items(items, dataset: str, split: str) -> list:
