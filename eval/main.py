@@ -280,7 +280,8 @@ def build_summary(config, described: str, results: list, methods: list[str],
                   weights_digest: str | None = None, skipped=()) -> dict:
   """Everything `report` writes: config, weights (`described`, and `runner.weights_digest`
   of the parameters: the same weights from any path or format), sav-jax's version,
-  per-sequence and aggregate metrics, and the `skipped` sequences' names."""
+  per-sequence and aggregate metrics (with `measured_frames`, the frames of the sequences
+  with ground truth: the aggregate's weight), and the `skipped` sequences' names."""
   import sav_jax  # pylint: disable=import-outside-toplevel
   from eval import runner  # pylint: disable=import-outside-toplevel
   frames = sum(r.frames for r in results)
@@ -294,6 +295,8 @@ def build_summary(config, described: str, results: list, methods: list[str],
     seconds = sum(r.seconds.get(m, 0.0) for r in results)
     summary["methods"][m] = {"name": eval_config.METHOD_NAMES[m],
                              "aggregate": runner.aggregate(results, m),
+                             "measured_frames": sum(r.frames for r in results
+                                                    if m in r.metrics),
                              "seconds": seconds,
                              "compile_seconds": sum(r.compile_seconds.get(m, 0.0)
                                                     for r in results),

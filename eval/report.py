@@ -51,6 +51,14 @@ def _read_from(sources: list[str]) -> str | None:
   return some_of(sorted(set(sources)), most=3)
 
 
+def _with_gt(summary: dict) -> str:
+  """" (F with ground truth)" where the aggregates weigh fewer frames than were predicted."""
+  measured = max((_measured(summary, m) for m in summary["methods"].values()), default=0)
+  if summary["methods"] and 0 < measured < summary["frames"]:
+    return f" ({measured} with ground truth)"
+  return ""
+
+
 def markdown(summary: dict) -> str:
   """The Markdown report of `build_summary`'s dictionary."""
   methods = summary["methods"]
@@ -60,7 +68,8 @@ def markdown(summary: dict) -> str:
            f"Weights: {summary['weights']}  ",
            f"iters {summary['config']['iters']}, window {summary['config']['window']} / stride "
            f"{summary['config']['stride']}, {summary['config']['dtype']}; "
-           f"{plural(len(summary['sequences']), 'sequence')}, {summary['frames']} frames."]
+           f"{plural(len(summary['sequences']), 'sequence')}, {summary['frames']} frames"
+           + _with_gt(summary) + "."]
   read_from = _read_from([seq["source"] for seq in summary["sequences"] if seq.get("source")])
   if read_from:  # Sintel's "test" split is its training/ folder, e.g.: where the frames came from
     lines[-1] += "  "
@@ -103,14 +112,21 @@ def markdown(summary: dict) -> str:
   return "\n".join(lines)
 
 
+def _measured(summary: dict, method: dict) -> int:
+  """The frames `method`'s aggregate weighs (results.json of runs before the field: all)."""
+  return method.get("measured_frames", summary["frames"])
+
+
 def write_csv(path, summary: dict) -> None:
-  """One row per (method, sequence) plus one aggregate row per method."""
+  """One row per (method, sequence) plus one aggregate row per method, whose frames are those
+  its mean weighs (the sequences with ground truth)."""
   rows = []
   for seq in summary["sequences"]:
     for key, res in seq["metrics"].items():
       rows.append({"method": key, "sequence": seq["name"], "frames": seq["frames"], **res})
   for key, m in summary["methods"].items():
-    rows.append({"method": key, "sequence": ALL, "frames": summary["frames"], **m["aggregate"]})
+    rows.append({"method": key, "sequence": ALL, "frames": _measured(summary, m),
+                 **m["aggregate"]})
   keys = [k for _, k in COLUMNS if any(k in r for r in rows)]
   keys += sorted({k for r in rows for k in r} - set(keys) - {"method", "sequence", "frames"})
   with open(path, "w", newline="", encoding="utf-8") as fh:

@@ -1132,8 +1132,8 @@ def _table(md, first):
 
 def test_report_columns_show_the_metrics_they_name(tmp_path):
   """Each column of results.md holds the metric its heading names (a distinct value per key),
-  in the aggregate and per-sequence tables; results.csv's aggregate rows carry the run's frame
-  count, the per-sequence rows their own."""
+  in the aggregate and per-sequence tables; results.csv's aggregate rows carry the frames their
+  means weigh (those with ground truth), the per-sequence rows their own."""
   from eval.main import build_summary  # pylint: disable=import-outside-toplevel
   keys = list(REPORT_COLUMNS.values()) + ["disp_OPW_30", "disp_OPW_50", "disp_OPW_100",
                                           "disp_RTC_30"]
@@ -1163,6 +1163,18 @@ def test_report_columns_show_the_metrics_they_name(tmp_path):
       ("seq_a", "3"), ("seq_b", "5"), (eval_report.ALL, "8")]
   for k in keys:
     assert float(rows[-1][k]) == pytest.approx(aggregate[k], rel=1e-12), k
+  assert summary["methods"]["sav"]["measured_frames"] == 8 and "(8 with" not in md
+  # A sequence without ground truth (no metrics): predicted, not in the means, and the
+  # aggregate rows say which frames they weigh.
+  results.append(eval_runner.SequenceResult(name="seq_c", frames=4, seconds={"sav": 1.0}))
+  summary = build_summary(config, "w", results, ["sav"])
+  assert summary["methods"]["sav"]["aggregate"] == aggregate
+  assert summary["frames"] == 12 and summary["methods"]["sav"]["measured_frames"] == 8
+  assert "3 sequences, 12 frames (8 with ground truth)." in eval_report.markdown(summary)
+  eval_report.write_csv(tmp_path / "results.csv", summary)
+  rows = list(csv.DictReader(open(tmp_path / "results.csv", encoding="utf-8")))
+  assert [(r["sequence"], r["frames"]) for r in rows] == [
+      ("seq_a", "3"), ("seq_b", "5"), (eval_report.ALL, "8")]
 
 
 def test_short_dynamic_replica_sequences_are_dropped_and_named(tmp_path):
