@@ -1040,7 +1040,8 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
     warned = warned or _warn_if_swapped(raw, first)
     return first, np.abs(raw)
 
-  with tqdm(total=total, unit="frame", desc="disparity", disable=not progress) as bar:
+  with tqdm(total=total, unit="frame", desc="disparity",
+            disable=not (progress and runtime.draws_progress())) as bar:
     cache = FrameFeatureCache(chunk)
     if len(placed) == 1:
       for i, win in enumerate(plan):
@@ -1138,7 +1139,8 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
     iters: refinement iterations at 1/4 resolution (>= 2; the official evaluation uses 20).
     window, stride: sliding window (official: 20, 10).
     dtype: compute dtype override ("float32" or "bfloat16").
-    progress: show a tqdm progress bar (frames, frames per second).
+    progress: show a tqdm progress bar (frames, frames per second) where standard error is
+      a terminal or in a notebook (`runtime.draws_progress`; not in a log file).
     check_memory: refuse sizes that cannot fit (InsufficientMemoryError).
     devices: where the windows run: None where the variables are (the default device for
       numpy ones), or as `resolve_devices` takes them: a number n for the first n local

@@ -37,12 +37,27 @@ import logging
 import os
 import pathlib
 import shlex
+import sys
 
 import numpy as np
 
 # JAX is imported where it is used: `sav-jax --help` imports this module for its defaults.
 
 log = logging.getLogger(__name__)
+
+
+def draws_progress(stream=None) -> bool:
+  """Whether a tqdm bar on `stream` (standard error by default) is drawn where it belongs: a
+  terminal, or a Jupyter notebook (whose kernel's stderr is no terminal, but the notebook
+  draws tqdm's updates). Not in a log file, `nohup`'s output or a batch job's, where the bar's
+  carriage-return updates pile up on one line."""
+  stream = sys.stderr if stream is None else stream
+  isatty = getattr(stream, "isatty", None)
+  try:
+    terminal = bool(isatty()) if callable(isatty) else False
+  except (OSError, ValueError):  # a closed stream
+    terminal = False
+  return terminal or "ipykernel" in sys.modules
 
 
 def default_cache_dir() -> pathlib.Path:

@@ -9,6 +9,7 @@ import os
 import pathlib
 import re
 import shutil
+import sys
 
 import cv2
 import jax
@@ -16,7 +17,7 @@ import numpy as np
 import pytest
 
 import sav_jax
-from sav_jax import cli, inference, viz
+from sav_jax import cli, inference, runtime, viz
 from sav_jax.data import synthetic
 from sav_jax.tools import infer, video_io
 
@@ -1478,3 +1479,19 @@ def test_videos_cut_short_turned_or_at_other_rates_are_named(tmp_path, caplog):
   with caplog.at_level(logging.WARNING):
     video_io.open_stereo(slow, full)
   assert "the left video runs at 15 frames/s, the right at 24" in caplog.text
+
+
+def test_progress_bars_are_drawn_on_terminals_only(tmp_path, npz_ckpt, monkeypatch, capsys):
+  """In a log file (nohup, a batch job) the bars' carriage-return updates piled up on a line."""
+  frames = np.random.default_rng(0).integers(0, 255, (3, 16, 24, 3)).astype(np.uint8)
+  left, right = _write_frames(tmp_path / "l", frames), _write_frames(tmp_path / "r", frames)
+  monkeypatch.setattr(inference, "_run_window", _positive_model)
+  monkeypatch.delitem(sys.modules, "ipykernel", raising=False)  # (not in a notebook)
+  assert _infer(left, right, npz_ckpt, tmp_path / "log") == 0  # capsys: no terminal
+  err = capsys.readouterr().err
+  assert "disparity:" not in err and "video:" not in err and "\r" not in err, err
+  monkeypatch.setattr(runtime, "draws_progress", lambda stream=None: True)
+  assert _infer(left, right, npz_ckpt, tmp_path / "tty") == 0
+  err = capsys.readouterr().err
+  assert "disparity: 100%" in err and "video: 100%" in err, err
+

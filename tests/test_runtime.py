@@ -1,7 +1,9 @@
 """The persistent compilation cache switch and `release_host_memory`."""
 
 import ctypes
+import io
 import platform
+import sys
 import types
 
 import jax
@@ -404,3 +406,18 @@ def test_cgroup_limits_at_their_edges(tmp_path):
   # a group path that is not ASCII: unknown, not an error
   proc.write_bytes("0::/caf\u00e9\n".encode())
   assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) is None
+
+
+def test_draws_progress_on_terminals_and_in_notebooks(monkeypatch):
+  class Terminal(io.StringIO):
+    def isatty(self):
+      return True
+
+  closed = io.StringIO()
+  closed.close()  # its isatty() raises ValueError
+  monkeypatch.delitem(sys.modules, "ipykernel", raising=False)
+  assert runtime.draws_progress(Terminal())
+  assert not runtime.draws_progress(io.StringIO())
+  assert not runtime.draws_progress(closed) and not runtime.draws_progress(object())
+  monkeypatch.setitem(sys.modules, "ipykernel", types.ModuleType("ipykernel"))
+  assert runtime.draws_progress(io.StringIO())

@@ -11,6 +11,7 @@ import time
 
 import jax
 
+from sav_jax import runtime
 from sav_jax._checks import loads_json
 from sav_jax._files import write_text_atomic
 
@@ -133,9 +134,7 @@ class Progress:
   def __init__(self, start: int, total: int, enabled: bool = True, stream=None):
     self._bar = None
     stream = sys.stderr if stream is None else stream
-    # (a Jupyter kernel's stderr is no terminal, but the notebook draws tqdm's updates)
-    terminal = bool(getattr(stream, "isatty", lambda: False)()) or "ipykernel" in sys.modules
-    if enabled and terminal and jax.process_index() == 0:
+    if enabled and runtime.draws_progress(stream) and jax.process_index() == 0:
       try:
         from tqdm import tqdm  # pylint: disable=g-import-not-at-top
         self._bar = tqdm(total=total, initial=start, unit="step", dynamic_ncols=True,

@@ -32,6 +32,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sav_jax import runtime
 from sav_jax._checks import loads_json, plural
 from sav_jax._files import FREE_SPACE, free_space_note, write_text_atomic
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, add_devices_argument,
@@ -576,7 +577,8 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
     batch = max(1, int(args.window))
 
     def video_frames():
-      for a in tqdm(range(0, len(names), batch), desc="video", unit="batch"):
+      for a in tqdm(range(0, len(names), batch), desc="video", unit="batch",
+                    disable=not runtime.draws_progress()):
         for f, d in zip(left[a:a + batch], disp[a:a + batch]):
           yield viz.side_by_side(f, viz.colorize(np.asarray(d), vmin, vmax))
 
@@ -838,7 +840,7 @@ def load_checkpoint(path, dtype: str | None = None):
     CheckpointError (a ValueError): not a checkpoint, or not one of this model.
   """
   import sav_jax  # pylint: disable=import-outside-toplevel
-  from sav_jax import convert, inference, runtime  # pylint: disable=import-outside-toplevel
+  from sav_jax import convert, inference  # pylint: disable=import-outside-toplevel
   path = pathlib.Path(path)
   if not path.exists():
     raise FileNotFoundError(f"checkpoint not found: {path}")
