@@ -270,10 +270,12 @@ class _SkippingClips:
         if not is_unreadable(e):
           raise
         first = first or e
-        if key not in self._warned:  # once per clip and process (every epoch reads it)
-          self._warned.add(key)
-          log.warning("skipping an unreadable clip (data.skip_unreadable): %s: %s: %s",
-                      _where(item), type(e).__name__, e)
+        error = f"{type(e).__name__}: {e}"  # (readers name the file)
+        if error not in self._warned:  # once per error and process: every epoch reads the
+          self._warned.add(error)      # clip, and a bad frame is in ~2T overlapping clips
+          log.warning("skipping an unreadable clip (data.skip_unreadable): %s: %s (other "
+                      "clips with this error are skipped without a warning)", _where(item),
+                      error)
     raise ValueError(f"clip {index} and {plural(tries - 1, 'stand-in')} drawn for it do not "
                      f"read (data.skip_unreadable={self._skip} skips no more: a lost disk or "
                      f"mount?); the first: {type(first).__name__}: {first}") from first

@@ -220,6 +220,14 @@ def test_unreadable_clips_stop_or_are_replaced_by_a_drawn_readable_one(caplog):
   assert len(warned) == 2 and all("skipping an unreadable clip (data.skip_unreadable): fake/seq"
                                   in m for m in warned), warned  # once per clip
   assert "0003.png: cannot decode" in "".join(warned)
+  caplog.clear()  # A bad frame in overlapping clips (each frame is in T of them): one warning
+  overlapping = pipeline.clips_source([(seq, [i, i + 1, i + 2]) for i in range(38)],
+                                      skip_unreadable=3)
+  with caplog.at_level("WARNING", "sav_jax.data.pipeline"):
+    for i in range(38):
+      overlapping[i]  # pylint: disable=pointless-statement
+  warned = [r.getMessage() for r in caplog.records]
+  assert len(warned) == 2 and "0002.png" in warned[0] and "0003.png" in warned[1], warned
   every = [(_Sequence(broken=range(40)), [i]) for i in range(40)]  # a lost disk
   with pytest.raises(ValueError, match=r"clip 2 and 1 stand-in drawn for it do not read "
                                        r"\(data.skip_unreadable=1 skips no more.*0002.png"):
