@@ -27,6 +27,22 @@ T, H, W, ITERS = 3, 32, 48, 2
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
+def test_a_checkpoint_saved_on_a_gpu_runs_with_this_machines_settings(tmp_path, variables,
+                                                                        caplog):
+  """A training run's checkpoint from a GPU with `vit_attention="cudnn"` could not be used on
+  a CPU ("needs a CUDA GPU") and no option of infer or eval could change it."""
+  stored = sav_jax.SAVConfig(dtype="bfloat16", vit_attention="cudnn", gru_conv="direct",
+                             remat=True, remat_policy="dots_saveable", frame_block_mb=64)
+  sav_jax.convert.save_variables(tmp_path / "gpu", variables, {"model": stored.to_dict()})
+  with caplog.at_level(logging.INFO):
+    _, cfg, _ = infer.load_checkpoint(tmp_path / "gpu")
+  assert cfg == sav_jax.SAVConfig(dtype="bfloat16")  # the stored dtype stays: --dtype's default
+  assert (f"{tmp_path / 'gpu'}: the stored remat=True, remat_policy='dots_saveable', "
+          "frame_block_mb=64.0, vit_attention='cudnn', gru_conv='direct' (the saving machine's "
+          "settings) replaced by this machine's defaults") in caplog.text
+  assert infer.load_checkpoint(tmp_path / "gpu", dtype="float32")[1] == sav_jax.SAVConfig()
+
+
 @pytest.fixture(scope="module")
 def variables(sav_state_dict):
   return sav_jax.convert.params_from_state_dict(sav_state_dict, sav_jax.SAVConfig())

@@ -846,7 +846,7 @@ def load_checkpoint(path, dtype: str | None = None):
     raise FileNotFoundError(f"checkpoint not found: {path}")
   if path.is_dir():
     variables, cfg_dict = convert.restore_variables(path)
-    cfg = config_from_dict(cfg_dict, path)
+    cfg = this_machines_settings(config_from_dict(cfg_dict, path), path)
     inference.check_variables(variables, cfg, path)  # NaN or inf weights too
     step = None if convert.is_variables_checkpoint(path) else convert.find_training_checkpoint(path)
     described = (f"orbax checkpoint {path}" if step is None
@@ -871,6 +871,24 @@ def load_checkpoint(path, dtype: str | None = None):
     described = f"state dict {path} (converted on the fly)"
   runtime.release_host_memory()  # the reader's and converter's temporaries
   return variables, inference.resolve_config(cfg, dtype), described
+
+
+def this_machines_settings(cfg, path):
+  """`cfg` with the settings of how the model computes, other than its dtype, at their
+  defaults (`sav_jax.model.init.COMPUTE_FIELDS`): a checkpoint stores those of the machine it
+  was trained or saved on (cuDNN's ViT attention, which runs on NVIDIA GPUs only; the GRU's
+  convolutions; remat; a frame block budget), not what suits this one ("auto" picks)."""
+  import dataclasses  # pylint: disable=import-outside-toplevel
+
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from sav_jax.model.init import COMPUTE_FIELDS  # pylint: disable=import-outside-toplevel
+  defaults = sav_jax.SAVConfig()
+  stored = {f: getattr(cfg, f) for f in COMPUTE_FIELDS
+            if f != "dtype" and getattr(cfg, f) != getattr(defaults, f)}
+  if stored:
+    log.info("%s: the stored %s (the saving machine's settings) replaced by this machine's "
+             "defaults", path, ", ".join(f"{k}={v!r}" for k, v in stored.items()))
+  return dataclasses.replace(cfg, **{f: getattr(defaults, f) for f in stored})
 
 
 def config_from_dict(cfg_dict, path):
