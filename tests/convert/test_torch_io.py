@@ -765,6 +765,71 @@ def test_errors_from_rebuild_helpers_name_the_file(tmp_path):
   assert torch_io.load_checkpoint_object(path) == obj
 
 
+def test_torch_size_in_a_checkpoint_is_a_tuple(tmp_path, fake_torch):
+  # torch.Size pickles as `GLOBAL torch Size` called with its dims (e.g. shapes kept in a
+  # training checkpoint's metadata): read as a tuple of ints, the weights beside it too.
+  fake_torch.Size = _fake_function("torch", "Size")
+  b = _Builder(fake_torch)
+  obj = {"model": {"w": b.array(np.arange(6, dtype=np.float32).reshape(2, 3), "float32")},
+         "shape": _Tensor(fake_torch.Size, ((2, 3),)), "empty": _Tensor(fake_torch.Size, ((),))}
+  out = torch_io.load_checkpoint_object(b.write_zip(tmp_path / "size.pth", obj))
+  assert out["shape"] == (2, 3) and isinstance(out["shape"], tuple) and out["empty"] == ()
+  np.testing.assert_array_equal(out["model"]["w"], [[0, 1, 2], [3, 4, 5]])
+  bad = {"shape": _Tensor(fake_torch.Size, ((2, -1),))}
+  with pytest.raises(CheckpointError, match=r"torch\.Size must be a tuple of non-negative"):
+    torch_io.load_checkpoint_object(b.write_zip(tmp_path / "bad_size.pth", bad))
+
+
+def test_rebuild_helpers_refuse_what_is_not_a_tensor(tmp_path, fake_torch):
+  # A parameter is rebuilt from a tensor, a v3 tensor names its dtype: anything else is a
+  # malformed (or crafted) file, refused by name rather than returned as a "weight".
+  b = _Builder(fake_torch)
+  utils = fake_torch._utils
+  st = b.storage(np.arange(4, dtype=np.float32), "float32")
+  v3 = lambda dtype: _Tensor(utils._rebuild_tensor_v3,
+                             (st, 0, (4,), (1,), False, collections.OrderedDict(), dtype))
+  cases = {
+      "param": ({"w": _Tensor(utils._rebuild_parameter, ([1.0, 2.0], True,
+                                                         collections.OrderedDict()))},
+                r"parameter rebuilt from a list, not a tensor"),
+      "v3_none": ({"w": v3(None)}, r"_rebuild_tensor_v3 needs a torch dtype, got None"),
+      "v3_str": ({"w": v3("float32")}, r"_rebuild_tensor_v3 needs a torch dtype"),
+  }
+  for name, (obj, message) in cases.items():
+    path = b.write_zip(tmp_path / f"{name}.pth", obj)
+    with pytest.raises(CheckpointError, match=rf"{name}\.pth: .*{message}"):
+      torch_io.load_checkpoint_object(path)
+  np.testing.assert_array_equal(  # the same v3 tensor with its dtype is read
+      torch_io.load_state_dict(b.write_zip(tmp_path / "ok.pth", {"w": v3(fake_torch.float32)}))
+      ["w"], [0, 1, 2, 3])
+
+
+def test_records_without_a_prefix_folder_are_read(tmp_path, fake_torch):
+  # `data.pkl` and `data/<key>` at the archive's root (an empty record prefix) are a
+  # checkpoint as well.
+  b = _Builder(fake_torch)
+  sd = {"w": b.array(np.array([[1.5, -2.0]], np.float32), "float32")}
+  path = tmp_path / "flat.pth"
+  with zipfile.ZipFile(path, "w") as zf:
+    zf.writestr("data.pkl", b.pickle(sd, legacy=False))
+    zf.writestr("data/0", b.storages["0"].raw)
+  out = torch_io.load_state_dict(path)
+  assert list(out) == ["w"] and out["w"].dtype == np.float32
+  np.testing.assert_array_equal(out["w"], [[1.5, -2.0]])
+
+
+@pytest.mark.parametrize("names", [["code/__torch__/m.py", "constants.pkl"],
+                                   ["outer/archive/data.pkl", "outer/archive/code/m.py"]])
+def test_torchscript_code_without_a_checkpoints_data_pkl_is_named(tmp_path, names):
+  # No single `<dir>/data.pkl` record, but a TorchScript `code/` folder: named as such.
+  path = tmp_path / "scripted.pt"
+  with zipfile.ZipFile(path, "w") as zf:
+    for name in names:
+      zf.writestr(name, b"")
+  with pytest.raises(CheckpointError, match=r"scripted\.pt: a TorchScript archive"):
+    torch_io.load_checkpoint_object(path)
+
+
 def test_deeply_nested_structure(tmp_path):
   depth = 5000
   data = b"\x80\x02" + b"]" * depth + b"a" * (depth - 1) + b"."
