@@ -830,6 +830,21 @@ def test_torchscript_code_without_a_checkpoints_data_pkl_is_named(tmp_path, name
     torch_io.load_checkpoint_object(path)
 
 
+def test_self_references_stay_shared_and_a_tuple_holding_itself_is_refused(tmp_path):
+  cyclic = []
+  cyclic.append(cyclic)
+  shared = [1]
+  obj = {"cyclic": cyclic, "a": shared, "b": shared}
+  out = torch_io.load_checkpoint_object(_zip_with_pickle(tmp_path / "lists.pth",
+                                                         pickle.dumps(obj, protocol=2)))
+  assert out["cyclic"][0] is out["cyclic"] and out["a"] is out["b"] == [1]
+  loop = ([],)
+  loop[0].append(loop)  # a tuple cannot be rebuilt before its items
+  path = _zip_with_pickle(tmp_path / "loop.pth", pickle.dumps({"t": loop}, protocol=2))
+  with pytest.raises(CheckpointError, match=r"loop\.pth: self-referencing tuple"):
+    torch_io.load_checkpoint_object(path)
+
+
 def test_deeply_nested_structure(tmp_path):
   depth = 5000
   data = b"\x80\x02" + b"]" * depth + b"a" * (depth - 1) + b"."
