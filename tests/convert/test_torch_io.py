@@ -1025,6 +1025,9 @@ def test_unwrap_errors():
     torch_io.unwrap_state_dict({"model": {}})
   with pytest.raises(CheckpointError, match="'b': int"):
     torch_io.unwrap_state_dict({"a": np.zeros(2), "b": 3})
+  with pytest.raises(CheckpointError, match=r"f\.pth: not a state dict of tensors: 1 of 2 "
+                     r"entries .* e\.g\. 0: ndarray"):
+    torch_io.unwrap_state_dict({"a": np.zeros(2), 0: np.zeros(2)}, source="f.pth")
 
 
 def test_checkpoint_kind_from_manifests(fixtures_dir):
