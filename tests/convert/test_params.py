@@ -122,6 +122,21 @@ def test_torch_tensors_accepted_as_torch_load_gives_them(sav_state_dict, variabl
     jax.tree_util.tree_map(np.testing.assert_array_equal, got["params"], want["params"])
 
 
+def test_torch_tensors_keep_their_dtype_unless_numpy_has_none():
+  # Only bfloat16 (and float8), which NumPy has no type for, are widened to float32: a
+  # BatchNorm's int64 counter and a float16 weight stay as they are (as in a file read).
+  half = np.array([0.5, -2.0], np.float16)
+  count = np.array(12, np.int64)
+  sd = convert.unwrap_state_dict({
+      "w": _TorchLikeTensor(half, "torch.float16", requires_grad=True),
+      "n": _TorchLikeTensor(count, "torch.int64"),
+      "b": _TorchLikeTensor(_to_bfloat16(np.array([1.5, 3.0], np.float32)), "torch.bfloat16")})
+  assert sd["w"].dtype == np.float16 and sd["n"].dtype == np.int64 and sd["n"] == 12
+  assert sd["b"].dtype == np.float32
+  np.testing.assert_array_equal(sd["w"], half)
+  np.testing.assert_array_equal(sd["b"], [1.5, 3.0])
+
+
 def test_strict_errors_list_every_problem(sav_state_dict):
   sd = dict(sav_state_dict)
   del sd["fnet.conv1.weight"]
