@@ -281,6 +281,24 @@ def test_fresh_depth_prior_is_initialised_as_the_official_constructors_do(variab
   assert float(jnp.abs(patch["bias"]).max()) <= bound and float(jnp.std(patch["bias"])) > 0.5 * bound / np.sqrt(3)
 
 
+def test_fresh_depth_prior_head_and_embeddings_are_initialised_as_officially(variables):
+  # Outside DINOv2 (the DPT head, its motion modules) PyTorch's defaults hold: Linear weight
+  # and bias U(+-1/sqrt(fan_in)), not DINOv2's N(0, 0.02) and zero biases; the position
+  # embedding is N(0, 0.02), LayerScale's gamma 1.
+  vda = variables["params"]["depthnet"]["depthanything"]
+  attn = vda["head"]["motion_modules_0"]["temporal_transformer"]["transformer_blocks_0"][
+      "attention_blocks_0"]
+  for name in ("to_q", "to_out_0"):
+    w = np.asarray(attn[name]["kernel"])
+    bound = 1 / np.sqrt(w.shape[0])
+    assert np.abs(w).max() <= bound and abs(w.std() / (bound / np.sqrt(3)) - 1) < 0.05, name
+  b = np.asarray(attn["to_out_0"]["bias"])
+  assert 0.5 / np.sqrt(len(b)) < np.abs(b).max() <= 1 / np.sqrt(len(b))
+  pos = np.asarray(vda["pretrained"]["pos_embed"])
+  assert 0.019 < pos.std() < 0.021 and abs(pos.mean()) < 0.002, (pos.std(), pos.mean())
+  assert np.all(np.asarray(vda["pretrained"]["blocks_0"]["ls1"]["gamma"]) == 1)
+
+
 def test_fresh_weights_outside_the_depth_prior_follow_the_official_initialisation(variables):
   # The official model: fnet/cnet (BasicEncoder) conv weights kaiming_normal_(fan_out, relu),
   # i.e. N(0, 2 / fan_out) with fan_out = out * kh * kw; temporal_fc zeroed (update.py); norms
