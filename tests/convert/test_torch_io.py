@@ -1039,6 +1039,12 @@ def test_checkpoint_kind_from_manifests(fixtures_dir):
   wrapped = {"model": _tiny("module." + k for k in sav), "optimizer": {}, "total_steps": 5}
   assert torch_io.checkpoint_kind(torch_io.unwrap_state_dict(wrapped)) == "sav"
   assert torch_io.checkpoint_kind(_tiny(k for k in sav if not k.startswith("depthnet."))) == "sav"
+  # Without depthnet and corr_mlp its keys are under RAFT's three top-level names: still a
+  # Stereo Any Video state dict, unless RAFT's own head is there.
+  three = [k for k in sav if k.split(".")[0] in torch_io.RAFT_TOP_LEVEL]
+  assert torch_io.checkpoint_kind(_tiny(three)) == "sav"
+  assert torch_io.checkpoint_kind(_tiny(three + ["update_block.mask.0.weight"])) == "raft"
+  assert torch_io.checkpoint_kind(_tiny(three + [torch_io.RAFT_SMALL_MARKER])) == "raft_small"
 
 
 def test_checkpoint_kind_errors(fixtures_dir):
@@ -1048,6 +1054,7 @@ def test_checkpoint_kind_errors(fixtures_dir):
       "resnet": _tiny(["conv1.weight", "bn1.weight", "fc.bias"]),
       "vda_half": _tiny(k for k in vda if k.startswith("pretrained.")),
       "still_prefixed": _tiny("module." + k for k in sav),
+      "depth_prior_only": _tiny(k for k in sav if k.startswith(("depthnet.", "corr_mlp."))),
   }
   for name, sd in cases.items():
     with pytest.raises(CheckpointError, match=r"unrecognised checkpoint layout: \d+ keys") as e:
