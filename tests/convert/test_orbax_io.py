@@ -109,9 +109,23 @@ def test_overwrite_through_a_symlink_keeps_the_link(tmp_path):
     orbax_io.save_variables(tmp_path / "gone", {"params": {"w": jnp.ones(2)}}, {})
 
 
+def test_an_empty_folder_made_for_it_is_written_into(tmp_path):
+  # (`mkdir ckpt` first, with or without overwrite): nothing to replace, nothing refused.
+  for overwrite in (False, True):
+    path = tmp_path / f"empty_{overwrite}"
+    path.mkdir()
+    orbax_io.save_variables(path, {"params": {"w": jnp.ones(2)}}, {"v": 1}, overwrite=overwrite)
+    restored, config = orbax_io.restore_variables(path)
+    np.testing.assert_array_equal(restored["params"]["w"], [1, 1])
+    assert config == {"v": 1}
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["empty_False", "empty_True"]
+
+
 def test_refuses_to_overwrite_a_file(tmp_path):
   path = tmp_path / "notes.txt"
   path.write_text("keep me")
+  with pytest.raises(FileExistsError, match="overwrite=True"):
+    orbax_io.save_variables(path, {"params": {"w": jnp.ones(2)}}, {})
   with pytest.raises(CheckpointError, match="is a file, not a checkpoint folder"):
     orbax_io.save_variables(path, {"params": {"w": jnp.ones(2)}}, {}, overwrite=True)
   assert path.read_text() == "keep me"
