@@ -544,6 +544,11 @@ def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dic
   assert cli.main(["convert", str(src), str(dst)]) == 0  # checked, then the official names
   assert dst.is_file()
   _assert_same_state_dicts(convert.load_state_dict(dst), sav_state_dict)
+  dst.write_bytes(b"stale")  # an existing file is replaced with --overwrite only
+  assert cli.main(["convert", str(src), str(dst)]) == 2
+  assert "exists; pass --overwrite" in capsys.readouterr().err and dst.read_bytes() == b"stale"
+  assert cli.main(["convert", str(src), str(dst), "--overwrite"]) == 0
+  _assert_same_state_dicts(convert.load_state_dict(dst), sav_state_dict)
   (tmp_path / "notes.txt").write_text("mine")
   (tmp_path / "folder.npz").mkdir()
   (tmp_path / "folder").mkdir()
