@@ -96,7 +96,7 @@ def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[S
     found = [s for s in SPLITS if (root / s).is_dir()]
     raise FileNotFoundError(f"no {split}/ folder in {root} (it has {', '.join(found) or 'none'} "
                             f"of {', '.join(SPLITS)}): the layout is <split>/<sequence>/left, "
-                            "right[, disparity]")
+                            f"right[, disparity]{_root_hint(root, split)}")
   seqs = []
   for seq_dir in list_dirs(split_dir):
     where = f"{dataset} {split}/{seq_dir.name}"
@@ -122,6 +122,20 @@ def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[S
     raise FileNotFoundError(f"no sequences in {split_dir} (expected <sequence>/left, right "
                             "folders)")
   return seqs
+
+
+def _root_hint(root: Path, split: str) -> str:
+  """What a root without the split's folder is, where it looks like one level of the layout:
+  a sequence (left/ in it), or a folder of sequences (a split's, or to be put in one)."""
+  if (root / "left").is_dir():
+    return (f"; {root} is a sequence: give the dataset's folder, {root.parent.parent}"
+            if root.parent.name in SPLITS else
+            f"; {root} is a sequence: put it in {root.parent}/{split}/ and give {root.parent}")
+  if any((d / "left").is_dir() for d in list_dirs(root)):
+    return (f"; {root} holds the sequences: give the folder above it, {root.parent}"
+            if root.name in SPLITS else
+            f"; {root} holds the sequences: put them in {root}/{split}/")
+  return ""
 
 
 def _scale(seq_dir: Path, left: list[Path]) -> float | None:

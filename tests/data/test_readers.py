@@ -1187,6 +1187,24 @@ def test_your_own_videos_in_the_folder_layout(tmp_path, caplog):
   with pytest.raises(FileNotFoundError, match=r"no train/ folder in .*mine \(it has test of "
                                               r"train, val, test\)"):
     registry.get_sequences("folder", tmp_path / "mine", "train")
+  # A root one level off the layout is told where the dataset's folder is.
+  mine = tmp_path / "mine"
+  for root, hint in ((mine / "test", f"; {mine / 'test'} holds the sequences: give the folder "
+                                     f"above it, {mine}"),
+                     (mine / "test" / "lab", f"; {mine / 'test' / 'lab'} is a sequence: give "
+                                             f"the dataset's folder, {mine}"),
+                     (mine / "test" / "lab" / "left", "")):
+    with pytest.raises(FileNotFoundError) as info:
+      registry.get_sequences("folder", root, "test")
+    assert str(info.value).endswith("<split>/<sequence>/left, right[, disparity]" + hint), info.value
+  loose = tmp_path / "loose"  # sequences not in a split folder yet
+  shutil.copytree(mine / "test" / "lab", loose / "lab")
+  for root, hint in ((loose, f"; {loose} holds the sequences: put them in {loose}/test/"),
+                     (loose / "lab", f"; {loose / 'lab'} is a sequence: put it in {loose}/test/ "
+                                     f"and give {loose}")):
+    with pytest.raises(FileNotFoundError) as info:
+      registry.get_sequences("folder", root, "test")
+    assert str(info.value).endswith(hint), info.value
   (tmp_path / "mine/test/street/right/right_0011.png").unlink()
   with pytest.raises(ValueError, match=r"folder test/street: frame counts differ.*'right' lacks "
                                        r"frame 11"):
