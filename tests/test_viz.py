@@ -1,5 +1,6 @@
 """Colour maps, videos, point clouds and disparity file formats (round trips)."""
 
+import math
 import re
 import threading
 import warnings
@@ -631,3 +632,256 @@ def test_colorbar_matches_colorize_and_labels_its_ticks():
     viz.colorbar(0.0, 1.0, length=8)
   with pytest.raises(ValueError, match="unknown colour map"):
     viz.colorbar(0.0, 1.0, cmap="jet")
+
+
+def _lut(cmap=cv2.COLORMAP_INFERNO):
+  """OpenCV's colour map as an RGB table of 256 entries (index = colour level)."""
+  return cv2.applyColorMap(np.arange(256, dtype=np.uint8)[None], cmap)[0, :, ::-1]
+
+
+def test_disparity_range_edge_cases():
+  # inf and NaN are not disparities; a weight of exactly 0.5 is not valid (> 0.5 is)
+  d = np.array([[2.0, np.inf, 6.0, np.nan, 9.0]], np.float32)
+  assert viz.disparity_range(d) == (2.0, 9.0)
+  assert viz.disparity_range(d, valid=np.array([[1.0, 1.0, 1.0, 1.0, 0.5]])) == (2.0, 6.0)
+  # nothing usable: (0, 1); one value (or equal percentiles): a range of 1 px above it
+  assert viz.disparity_range(np.array([[0.0, -3.0, np.nan]])) == (0.0, 1.0)
+  assert viz.disparity_range(np.full((2, 3), 5.0)) == (5.0, 6.0)
+  ramp = np.arange(1, 102, dtype=np.float32)  # 1..101: the p-th percentile is 1 + p
+  assert viz.disparity_range(ramp, percentiles=(50, 50)) == (51.0, 52.0)
+  assert viz.disparity_range(ramp, percentiles=(10, 90)) == (11.0, 91.0)
+  with pytest.warns(UserWarning, match="both at most 1"):
+    viz.disparity_range(ramp, percentiles=(0, 1))
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    assert viz.disparity_range(ramp, percentiles=(0, 1.5)) == (1.0, 2.5)
+
+
+def test_as_uint8_image_bounds_and_the_0_to_1_warning():
+  assert viz.as_uint8_image(np.zeros((0, 2, 3), np.float32)).shape == (0, 2, 3)
+  assert viz.as_uint8_image(np.zeros((0, 2, 3), np.float32)).dtype == np.uint8
+  np.testing.assert_array_equal(viz.as_uint8_image(np.array([254.6, 255.0, 0.4])), [255, 255, 0])
+  for bad in (255.5, 256, -0.1):
+    with pytest.raises(ValueError, match="outside 0..255"):
+      viz.as_uint8_image(np.array([0.0, bad]))
+  with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
+    viz.as_uint8_image(np.array([0.0, 1.0], np.float32))
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")  # black, integer 0..1, or brighter than 1: no warning
+    for fine in (np.zeros(3, np.float32), np.array([0, 1], np.uint16), np.array([0.0, 2.0])):
+      viz.as_uint8_image(fine)
+
+
+def test_fps_and_principal_point_bounds():
+  assert viz.is_fps(0.01) and viz.is_fps(65535) and viz.is_fps(25)
+  assert not any(viz.is_fps(f) for f in (0.0099, 65535.5, 0, -5, math.inf, math.nan, True, "5"))
+  # pixel centres at integers: a 4x6 (height x width) frame spans [-0.5, 5.5] x [-0.5, 3.5]
+  inside = [(-0.5, -0.5), (5.5, 3.5), (2.5, 1.5), (-0.5, 3.5), (5.5, -0.5)]
+  outside = [(-0.51, 1.0), (5.51, 1.0), (2.0, -0.51), (2.0, 3.51), (6.0, 1.0), (2.0, 4.0)]
+  assert all(viz.principal_point_inside(cx, cy, 4, 6) for cx, cy in inside)
+  assert not any(viz.principal_point_inside(cx, cy, 4, 6) for cx, cy in outside)
+
+
+def test_colorize_maps_the_range_linearly_and_clips_outside_it():
+  lut = _lut()
+  # range 2..12: level round((d - 2) * 25.5); below vmin the first colour, above the last
+  d = np.array([[2.0, 7.0, 12.0, 4.0, 1.0, 50.0]], np.float32)
+  levels = [0, 128, 255, 51, 0, 255]  # (127.5 rounds to even)
+  np.testing.assert_array_equal(viz.colorize(d, 2.0, 12.0)[0], lut[levels])
+  np.testing.assert_array_equal(viz.colorize(d, 2.0, 12.0, cmap="turbo")[0],
+                                _lut(cv2.COLORMAP_TURBO)[levels])
+  # one end given: the other from the data (here 1..50)
+  np.testing.assert_array_equal(viz.colorize(d, vmin=0.0)[0, 5], lut[255])
+  np.testing.assert_array_equal(viz.colorize(d, vmin=0.0)[0, 4], lut[round(255 / 50)])
+  np.testing.assert_array_equal(viz.colorize(d, vmax=99.0)[0, 4], lut[0])
+  # a weight of exactly 0.5 is invalid (> 0.5 is valid), as in the metrics
+  rgb = viz.colorize(np.ones((1, 2)), 0.0, 2.0, valid=np.array([[0.5, 0.51]]))
+  assert tuple(rgb[0, 0]) == viz.INVALID_COLOR and tuple(rgb[0, 1]) == tuple(lut[128])
+  assert viz.colorize(np.zeros((0, 4), np.float32), 0.0, 1.0).shape == (0, 4, 3)
+
+
+def test_colorize_error_masks_and_thresholds():
+  colours = [tuple(c) for c in viz.KITTI_ERROR_COLORS]
+  gt = np.array([[np.nan, 10.0, 10.0, 0.0, 0.0, 1e-38]], np.float32)
+  pred = np.array([[5.0, 10.0, 40.0, 0.0, 7.0, 1e3]], np.float32)
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")  # 0 / 0, x / 0, overflow, NaN: no RuntimeWarning
+    rgb = viz.colorize_error(pred, gt)
+    masked = viz.colorize_error(pred, gt, valid=np.array([[1.0, 0.5, 0.51, 1.0, 1.0, 1.0]]))
+  # no ground truth (NaN or 0) is black without a mask; a NaN one stays black within a mask
+  # (30 px at gt 10: min(30 / 3, 30 / 0.5) = 10 -> bin 8, 8..16; 7 px at gt 0: 7 / 3 ->
+  # bin 6; 1000 px at gt 1e-38: 1000 / 3 -> bin 9)
+  assert [tuple(c) for c in rgb[0]] == [(0, 0, 0), colours[0], colours[8], (0, 0, 0),
+                                        (0, 0, 0), colours[9]]
+  assert [tuple(c) for c in masked[0]] == [(0, 0, 0), (0, 0, 0), colours[8], colours[0],
+                                           colours[6], colours[9]]
+  # thresholds: any number > 0 (below 1 too), not 0, not inf
+  off, hundred = np.array([[101.0]]), np.array([[100.0]])  # an error of 1 px
+  half = viz.colorize_error(off, hundred, abs_thresh=0.5, rel_thresh=None)  # 1 / 0.5 = 2
+  assert tuple(half[0, 0]) == colours[6]
+  rel = viz.colorize_error(off, hundred, abs_thresh=100.0, rel_thresh=0.5)  # 1 / 50: bin 0
+  assert tuple(rel[0, 0]) == colours[0]
+  for kw in ({"abs_thresh": math.inf}, {"rel_thresh": 0.0}, {"rel_thresh": math.inf},
+             {"abs_thresh": -0.5}):
+    with pytest.raises(ValueError, match="abs_thresh must be a number > 0"):
+      viz.colorize_error(off, hundred, **kw)
+
+
+def test_nice_step_is_1_2_5_times_a_power_of_10():
+  # the smallest 1/2/5 x 10^k step >= span / ticks
+  for span, ticks, step in ((10, 5, 2), (1, 5, 0.2), (7, 5, 2), (30, 5, 10), (3, 5, 1),
+                            (0.3, 5, 0.1), (1000, 4, 500), (12, 10, 2), (4.5, 1, 5)):
+    assert viz.nice_step(span, ticks) == pytest.approx(step), (span, ticks)
+  assert viz.nice_step(0.0, 5) == 1.0 and viz.nice_step(-2.0, 5) == 1.0
+
+
+def _tick_columns(bar):
+  return list(np.nonzero((bar[-18] == 0).all(axis=-1))[0])
+
+
+def test_colorbar_ticks_off_the_step_and_at_the_last_pixel():
+  # 4.5..13.7: step 2, ticks at 6, 8, 10, 12 -> column round((v - 4.5) / 9.2 * 91)
+  bar = viz.colorbar(4.5, 13.7, length=92)
+  assert _tick_columns(bar) == [round((v - 4.5) / 9.2 * 91) for v in (6, 8, 10, 12)]
+  # float steps: 0.07 / 0.01 is 7.000000000000001 and 0.3 / 0.1 is 2.9999999999999996; the
+  # ticks at both ends are kept all the same
+  assert _tick_columns(viz.colorbar(0.07, 0.11, length=41)) == [0, 10, 20, 30, 40]
+  assert _tick_columns(viz.colorbar(0.0, 0.3, length=61)) == [0, 20, 40, 60]
+  # the smallest sizes accepted
+  assert viz.colorbar(0.0, 1.0, length=32, thickness=1, ticks=1).shape == (1 + 18, 32, 3)
+  for kw in ({"thickness": 0}, {"ticks": 0}, {"length": 31}):
+    with pytest.raises(ValueError, match="must be an integer >="):
+      viz.colorbar(0.0, 1.0, **kw)
+
+
+def test_side_by_side_repeats_grey_maps_of_any_width():
+  rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 1, 3, 3)  # [T=2, H=1, W=3, 3]
+  for width in (1, 2, 4):  # (2 and 4 are channel counts only with 3 or more axes)
+    grey = np.arange(width, dtype=np.uint8)[None] * 10  # [H=1, W]
+    out = viz.side_by_side(rgb[0], grey)
+    assert out.shape == (1, 3 + width, 3)
+    np.testing.assert_array_equal(out[:, :3], rgb[0])
+    np.testing.assert_array_equal(out[0, 3:], np.repeat(grey[0][:, None], 3, axis=1))
+  video = viz.side_by_side(rgb, np.full((2, 1, 5), 7, np.uint8), rgb)  # a grey video [T, H, W]
+  assert video.shape == (2, 1, 11, 3) and (video[:, :, 3:8] == 7).all()
+  np.testing.assert_array_equal(video[:, :, 8:], rgb)
+
+
+def _read_video(path):
+  cap = cv2.VideoCapture(str(path))
+  frames = []
+  while True:
+    ok, frame = cap.read()
+    if not ok:
+      break
+    frames.append(frame[..., ::-1])  # (OpenCV reads BGR)
+  fps = cap.get(cv2.CAP_PROP_FPS)
+  cap.release()
+  return np.stack(frames), fps
+
+
+def test_write_video_keeps_colours_order_rate_and_pads_with_the_edge(tmp_path):
+  # 3 frames of 9x7 (odd: padded to 10x8 with the last row / column repeated): pure red,
+  # green, blue, each with a white last row and column; float frames in 0..255 too
+  frames = np.zeros((3, 9, 7, 3), np.float32)
+  for t in range(3):
+    frames[t, :, :, t] = 255.0
+  frames[:, -1], frames[:, :, -1] = 255.0, 255.0
+  path = tmp_path / "v.mp4"
+  assert viz.write_video(path, list(frames), fps=7.5) == path
+  back, fps = _read_video(path)
+  assert back.shape == (3, 10, 8, 3) and fps == pytest.approx(7.5)
+  for t in range(3):  # (mp4v is lossy: compare with a margin)
+    centre = back[t, 3:6, 2:4].reshape(-1, 3).astype(int).mean(axis=0)
+    assert centre[t] > 200 and np.delete(centre, t).max() < 60, (t, centre)
+    assert back[t, -2:, :6].min() > 180 and back[t, :7, -2:].min() > 180  # edge, not black
+  # a 1x1 frame is a frame (padded to 2x2); a frame with no pixels is not
+  viz.write_video(tmp_path / "one.mp4", np.full((2, 1, 1, 3), 200, np.uint8))
+  back, _ = _read_video(tmp_path / "one.mp4")
+  assert back.shape == (2, 2, 2, 3) and abs(int(back.mean()) - 200) < 20
+  with pytest.raises(ValueError, match="frame 0 has shape"):
+    viz.write_video(tmp_path / "none.mp4", np.zeros((1, 4, 0, 3), np.uint8))
+
+
+def test_write_video_scales_tall_frames_to_fit(tmp_path):
+  # 8200x1: scaled by 8190 / 8200 to 8190 rows and (at least) 1 column, padded to 2
+  tall = np.zeros((1, 8200, 1, 3), np.uint8)
+  tall[:, 4100:] = 255
+  with pytest.warns(UserWarning, match=r"frames of 8200x1 are scaled to 8190x1"):
+    viz.write_video(tmp_path / "tall.mp4", tall, fps=5)
+  back, _ = _read_video(tmp_path / "tall.mp4")
+  assert back.shape == (1, 8190, 2, 3)
+  assert back[0, :4000].max() < 40 and back[0, 4200:8000].min() > 215  # the content, scaled
+  with pytest.warns(UserWarning, match=r"frames of 1x8200 are scaled to 1x8190"):
+    viz.write_video(tmp_path / "wide.mp4", tall.transpose(0, 2, 1, 3), fps=5)
+  assert _read_video(tmp_path / "wide.mp4")[0].shape == (1, 2, 8190, 3)
+
+
+def test_write_video_refuses_names_it_cannot_write(tmp_path):
+  frames = np.zeros((1, 4, 4, 3), np.uint8)
+  with pytest.raises(ValueError, match="write_video writes mp4v video files"):
+    viz.write_video(tmp_path / "v.png", frames)
+  with pytest.raises(ValueError, match="name is not UTF-8 text"):  # (OpenCV crashed on it)
+    viz.write_video(tmp_path / "caf\udce9.mp4", frames)
+  assert list(tmp_path.iterdir()) == []
+
+
+def test_points_and_ply_bytes_by_hand(tmp_path):
+  # Z = fx B / d, X = (u - cx) Z / fx, Y = (v - cy) Z / fy, rows in raster order
+  d = np.array([[4.0, 8.0], [2.0, 16.0]], np.float32)
+  rgb = np.array([[[10, 20, 30], [40, 50, 60]], [[70, 80, 90], [100, 110, 120]]], np.float32)
+  fx, fy, cx, cy, b = 80.0, 40.0, 0.5, 0.25, 0.1
+  xyz, col = viz.disparity_to_points(d, rgb, fx=fx, fy=fy, cx=cx, cy=cy, baseline=b,
+                                     valid=np.array([[1.0, 0.5], [0.51, 1.0]]))
+  want = [[(u - cx) * (fx * b / d[v, u]) / fx, (v - cy) * (fx * b / d[v, u]) / fy,
+           fx * b / d[v, u]] for v, u in ((0, 0), (1, 0), (1, 1))]  # (0, 1): weight 0.5
+  np.testing.assert_allclose(xyz, want, rtol=1e-6)
+  assert xyz.dtype == np.float32 and col.dtype == np.uint8
+  np.testing.assert_array_equal(col, [[10, 20, 30], [70, 80, 90], [100, 110, 120]])
+  # The PLY's bytes as any reader sees them: an ASCII header, then 15-byte little-endian
+  # records x, y, z (float32) and red, green, blue (uint8); one comment line per string
+  assert viz.write_ply(tmp_path / "p.ply", xyz, col, comments="unit: m") == 3
+  header, body = (tmp_path / "p.ply").read_bytes().split(b"end_header\n", 1)
+  assert header.decode("ascii").splitlines()[2:4] == ["comment unit: m", "element vertex 3"]
+  rec = np.frombuffer(body, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"),
+                                      ("g", "u1"), ("b", "u1")]))
+  np.testing.assert_array_equal(np.stack([rec["x"], rec["y"], rec["z"]], -1), xyz)
+  np.testing.assert_array_equal(np.stack([rec["r"], rec["g"], rec["b"]], -1), col)
+  # one point of shape [3] is a cloud of one; disparities <= 0 give no depth, no warning
+  assert viz.write_ply(tmp_path / "one.ply", xyz[0], col[0]) == 1
+  np.testing.assert_array_equal(viz.read_ply(tmp_path / "one.ply")[0], xyz[:1])
+  with np.errstate(all="raise"):
+    z = viz.depth_from_disparity(np.array([[0.0, -1.0, 5.0]], np.float32), fx=10.0, baseline=2.0)
+  np.testing.assert_array_equal(z, [[0.0, 0.0, 4.0]])
+
+
+def test_formats_and_frames_refused_with_their_reason(tmp_path):
+  for bad in (np.array([True, False]), np.array([1 + 2j])):
+    with pytest.raises(ValueError, match="expected uint8 or numbers in 0..255"):
+      viz.as_uint8_image(bad)
+  with pytest.raises(ValueError, match="NaN or inf"):
+    viz.as_uint8_image(np.array([1.0, np.nan]))
+  with pytest.raises(ValueError, match="no frames to write"):
+    viz.write_video(tmp_path / "e.mp4", [])
+  with pytest.raises(ValueError, match="no frames to write"):
+    viz.write_video(tmp_path / "e.mp4", iter([]))
+  assert list(tmp_path.iterdir()) == []
+  with pytest.raises(ValueError, match="valid mask shape"):  # (not broadcast over the rows)
+    viz.disparity_to_points(np.ones((2, 3)), np.zeros((2, 3, 3), np.uint8), fx=1.0, fy=1.0,
+                            cx=1.0, cy=0.5, baseline=1.0, valid=np.ones((1, 3)))
+  with pytest.raises(ValueError, match="16-bit PNG disparity file stores"):
+    viz.write_png16(tmp_path / "rgb.png", np.ones((2, 3, 3)))
+  # inf is not a disparity: stored as 0 (invalid), not as the largest one
+  assert viz.write_png16(tmp_path / "inf.png", np.array([[np.inf, -np.inf, 2.0]])) == 0
+  np.testing.assert_array_equal(viz.read_png16(tmp_path / "inf.png")[1], [[False, False, True]])
+  (tmp_path / "latin.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\ncomment caf\xe9\n"
+                                       b"element vertex 0\nend_header\n")
+  with pytest.raises(ValueError, match="PLY header line 3 is not ASCII"):
+    viz.read_ply(tmp_path / "latin.ply")
+
+
+def test_colorbar_unit_follows_the_last_label_only():
+  with_unit, without = (viz.colorbar(2.0, 12.0, length=201, unit=u) for u in ("px", ""))
+  differ = np.nonzero((with_unit != without).any(axis=(0, 2)))[0]
+  assert len(differ) and differ.min() > 160  # right of the 10 tick (column 160): "12 px"
+  assert differ.max() >= 195  # the label ends at the bar's right edge
