@@ -26,6 +26,10 @@ def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
   rec = json.loads(first.read_text())
   assert rec["frames"] == 2 and rec["height"] == 32 and rec["iters"] == 2
   assert rec["median_s"] > 0 and rec["compile_s"] > 0 and rec["peak_rss_gb"] > 0.1
+  assert rec["batch"] == 1 and rec["width"] == 64 and rec["dtype"] == "float32"
+  assert rec["final_only"] is True and 0 < rec["min_s"] <= rec["median_s"]
+  assert rec["fps"] == pytest.approx(2 / rec["median_s"])  # B * T frames per median call
+  assert f"throughput    {rec['fps']:.2f} frames/s" in out
   assert rec["cache_hit"] is False and any(cache.iterdir())
   assert rec["vit_attention"] == "blocked"  # the default "auto", as resolved on the CPU
   assert rec["gru_conv"] == "dft"  # the same
@@ -133,10 +137,12 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                # benchmarks/train_step.py's JSON has the same keys, and more
                "train": {**eager, "samples_per_s": 0.5, "remat": True, "loss": 1.0}}
   del baselines["no_shape"]["frames"]
+  baselines["no_compile"] = {k: v for k, v in eager.items() if k != "compile_s"}
   for name, base in baselines.items():
     (tmp_path / f"{name}.json").write_text(json.dumps(base))
   for name, message in (("none", "cannot read"), ("bad", "lacks"),
                         ("no_shape", "lacks ['frames']"),
+                        ("no_compile", "lacks ['compile_s']"),
                         ("text", "expected positive numbers"),
                         ("eager", "expected positive numbers"),
                         ("zero", "expected positive numbers"),
@@ -224,3 +230,139 @@ def test_bench_passes_the_batch_dtype_and_every_prediction_to_the_measurement(mo
     line = next(l for l in capsys.readouterr().out.splitlines() if l.startswith("input"))
     assert ("every prediction (--all-predictions)" in line) is not final_only, line
     assert line.endswith(", GRU 1x15 convolutions dft"), line
+
+
+def test_memory_and_cache_helpers_report_in_gb_from_what_they_are_given(tmp_path):
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+
+  class Device:  # jax.Device.memory_stats: a dict, None, or an error (CPU backends)
+    def __init__(self, stats):
+      self.stats = stats
+
+    def memory_stats(self):
+      if isinstance(self.stats, Exception):
+        raise self.stats
+      return self.stats
+
+  assert bench.device_peak_gb(Device({"peak_bytes_in_use": 3 * 2 ** 30, "bytes_in_use": 1})) == 3.0
+  for stats in (None, {}, {"bytes_in_use": 5}, NotImplementedError("cpu")):
+    assert bench.device_peak_gb(Device(stats)) is None
+
+  class Analysis:
+    temp_size_in_bytes, argument_size_in_bytes, output_size_in_bytes = 2 ** 30, 2 ** 29, 2 ** 28
+
+  class Compiled:
+    def __init__(self, analysis):
+      self.analysis = analysis
+
+    def memory_analysis(self):
+      if self.analysis is None:
+        raise NotImplementedError("no analysis here")
+      return self.analysis
+
+  assert bench.xla_buffers_gb(Compiled(Analysis())) == {
+      "xla_temp_gb": 1.0, "xla_args_gb": 0.5, "xla_out_gb": 0.25}
+  assert bench.xla_buffers_gb(Compiled(None)) == dict.fromkeys(
+      ("xla_temp_gb", "xla_args_gb", "xla_out_gb"))
+  # the peak RSS is the kernel's high-water mark (VmHWM, in kB) in GB
+  def hwm_kb():
+    with open("/proc/self/status", encoding="ascii") as f:
+      return next(int(l.split()[1]) for l in f if l.startswith("VmHWM:"))
+  before = hwm_kb()
+  peak = bench.peak_rss_gb()
+  assert before / 2 ** 20 * 0.98 <= peak <= hwm_kb() / 2 ** 20 * 1.02
+  with pytest.MonkeyPatch.context() as mp:  # macOS counts ru_maxrss in bytes, not kB
+    mp.setattr(bench.sys, "platform", "darwin")
+    assert bench.peak_rss_gb() == pytest.approx(peak / 1024, rel=0.02)
+  # a compile is a cache load when the cache folder gained no entry
+  assert bench.compile_cache_note(None, True) == ""
+  assert bench.compile_cache_note(tmp_path, True) == " (loaded from the compilation cache)"
+  assert bench.compile_cache_note(tmp_path, False) == f" (stored in {tmp_path})"
+  loaded = bench.compile_cache_probe(tmp_path)
+  assert loaded() is True
+  (tmp_path / "entry").write_text("x")
+  assert loaded() is False and bench.compile_cache_probe(tmp_path)() is True
+  assert bench.compile_cache_probe(None)() is False
+
+
+def test_a_baseline_takes_any_positive_time_and_a_compile_of_0_s(tmp_path):
+  from sav_jax.tools import UsageError, bench  # pylint: disable=import-outside-toplevel
+  base = dict(frames=2, height=32, width=64, iters=2, batch=1, median_s=0.5, compile_s=0,
+              peak_rss_gb=0.25)
+  path = tmp_path / "base.json"
+  path.write_text(json.dumps(base))
+  assert bench._read_baseline(path) == base  # pylint: disable=protected-access
+  for key, value in (("compile_s", -0.5), ("median_s", -0.5), ("peak_rss_gb", 0)):
+    path.write_text(json.dumps({**base, key: value}))
+    with pytest.raises(UsageError, match=rf"expected positive numbers .*'{key}'"):
+      bench._read_baseline(path)  # pylint: disable=protected-access
+
+
+def test_compare_line_rounds_ratios_to_2_places_and_notes_one_cache_load():
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  base = {"median_s": 1.0, "compile_s": 2.0, "peak_rss_gb": 1.0}
+  line = bench.compare_line({"median_s": 1.04, "compile_s": 2.004, "peak_rss_gb": 1.0}, base)
+  assert line.startswith("forward x1.04 slower (1.04 s vs 1 s), compile the same (2 s vs 2 s)")
+  # both from the compilation cache: like against like, nothing to note
+  line = bench.compare_line({**base, "cache_hit": True}, {**base, "cache_hit": True})
+  assert "compilation cache" not in line
+  line = bench.compare_line(base, {**base, "cache_hit": True})
+  assert "compile the same (2 s vs 2 s) (the baseline loaded it from the compilation cache)" in line
+  # a device peak on one side only (a GPU run against a CPU one): no ratio of it
+  line = bench.compare_line({**base, "device_peak_gb": 3.0}, base)
+  assert "device peak" not in line and line.endswith("peak RSS the same (1 GB vs 1 GB)")
+
+
+def test_bench_takes_the_smallest_sizes(monkeypatch):
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  calls = []
+
+  def stop(*args, **kwargs):
+    calls.append(args)
+    raise KeyboardInterrupt
+
+  monkeypatch.setattr(bench, "measure", stop)
+  with pytest.raises(KeyboardInterrupt):  # measured, not refused
+    cli.main(["bench", "--frames", "1", "--height", "16", "--width", "32", "--iters", "2",
+              "--repeats", "1", "--batch", "1"])
+  assert calls == [(1, 16, 32, 2, 1, "float32", 1)]
+  assert cli.main(["bench", "--iters", "1"]) == 2 and calls == [(1, 16, 32, 2, 1, "float32", 1)]
+
+
+def test_bench_report_json_and_compare_from_one_measurement(tmp_path, monkeypatch, capsys,
+                                                            restore_cache_config,
+                                                            restore_low_memory_compile):
+  """The printed report, the --json record and the --compare lines, from a measurement given
+  (nothing compiled); without --compile-cache the cache is off (bench measures compiling)."""
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  fake = {"device": "cpu:cpu", "jax": "x", "host": "here", "batch": 1, "frames": 2,
+          "height": 32, "width": 64, "iters": 2, "dtype": "float32", "final_only": True,
+          "vit_attention": "blocked", "gru_conv": "direct", "compiler_options": {"opt": 7},
+          "compile_s": 3.0, "cache_hit": False, "median_s": 0.5, "min_s": 0.25, "fps": 4.0,
+          "peak_rss_gb": 1.5}
+  caches = []
+
+  def measure(*args, **kwargs):
+    caches.append(kwargs["compile_cache"])
+    return dict(fake)
+
+  monkeypatch.setattr(bench, "measure", measure)
+  base = tmp_path / "base.json"
+  base.write_text(json.dumps({**fake, "host": "there", "median_s": 1.0}))
+  rec = tmp_path / "rec.json"
+  assert cli.main([*ARGS, "--json", str(rec), "--compare", str(base)]) == 0
+  assert caches == [None]
+  lines = capsys.readouterr().out.splitlines()
+  assert lines == [
+      "device        cpu  (jax x)",
+      "input         B=1 T=2 32x64 iters=2 float32",
+      "XLA options   opt=7",
+      "compile       3.00 s",
+      "forward       median 0.500 s  (min 0.250 s, 1 runs)",
+      "throughput    4.00 frames/s",
+      "peak host RSS 1.50 GB",
+      "warning: the baseline was measured elsewhere (host here here, there there): the ratios "
+      "compare machines, not code",
+      f"vs {base}: forward x2.00 faster (0.5 s vs 1 s), compile the same (3 s vs 3 s), "
+      "peak RSS the same (1.5 GB vs 1.5 GB)"], lines
+  assert json.loads(rec.read_text()) == {**fake, "matmul_precision": "default"}
