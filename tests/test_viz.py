@@ -874,10 +874,12 @@ def test_formats_and_frames_refused_with_their_reason(tmp_path):
   # inf is not a disparity: stored as 0 (invalid), not as the largest one
   assert viz.write_png16(tmp_path / "inf.png", np.array([[np.inf, -np.inf, 2.0]])) == 0
   np.testing.assert_array_equal(viz.read_png16(tmp_path / "inf.png")[1], [[False, False, True]])
-  (tmp_path / "latin.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\ncomment caf\xe9\n"
-                                       b"element vertex 0\nend_header\n")
-  with pytest.raises(ValueError, match="PLY header line 3 is not ASCII"):
-    viz.read_ply(tmp_path / "latin.ply")
+  # a big-endian PLY of write_ply's vertices is refused, not read as little-endian values
+  viz.write_ply(tmp_path / "big.ply", np.ones((1, 3)), np.full((1, 3), 9, np.uint8))
+  header, body = (tmp_path / "big.ply").read_bytes().split(b"end_header\n")
+  (tmp_path / "big.ply").write_bytes(header.replace(b"little", b"big") + b"end_header\n" + body)
+  with pytest.raises(ValueError, match="unsupported PLY format 'format binary_big_endian 1.0'"):
+    viz.read_ply(tmp_path / "big.ply")
 
 
 def test_colorbar_unit_follows_the_last_label_only():
