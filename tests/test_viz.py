@@ -730,7 +730,8 @@ def test_colorize_error_masks_and_thresholds():
 def test_nice_step_is_1_2_5_times_a_power_of_10():
   # the smallest 1/2/5 x 10^k step >= span / ticks
   for span, ticks, step in ((10, 5, 2), (1, 5, 0.2), (7, 5, 2), (30, 5, 10), (3, 5, 1),
-                            (0.3, 5, 0.1), (1000, 4, 500), (12, 10, 2), (4.5, 1, 5)):
+                            (0.3, 5, 0.1), (1000, 4, 500), (12, 10, 2), (4.5, 1, 5),
+                            (10, 10, 1), (50, 5, 10)):
     assert viz.nice_step(span, ticks) == pytest.approx(step), (span, ticks)
   assert viz.nice_step(0.0, 5) == 1.0 and viz.nice_step(-2.0, 5) == 1.0
 
@@ -788,7 +789,7 @@ def test_write_video_keeps_colours_order_rate_and_pads_with_the_edge(tmp_path):
     frames[t, :, :, t] = 255.0
   frames[:, -1], frames[:, :, -1] = 255.0, 255.0
   path = tmp_path / "v.mp4"
-  assert viz.write_video(path, list(frames), fps=7.5) == path
+  assert viz.write_video(str(path), list(frames), fps=7.5) == path  # (a str path too)
   back, fps = _read_video(path)
   assert back.shape == (3, 10, 8, 3) and fps == pytest.approx(7.5)
   for t in range(3):  # (mp4v is lossy: compare with a margin)
