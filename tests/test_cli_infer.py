@@ -1146,6 +1146,69 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   assert (out / "disparity" / "frame_000001.png").read_bytes() == b"mine"
 
 
+def test_demo_outputs_with_a_stand_in_model(tmp_path, monkeypatch, capsys):
+  """The demo's files and table around the model (a stand-in predicting a plane, nothing
+  compiled): comparison.mp4 is left | ground truth | model | SGBM at 5 frames/s in one
+  colour range, side_by_side.mp4 left | model, the PNGs the model's disparities."""
+  import types  # pylint: disable=import-outside-toplevel
+
+  from sav_jax import metrics  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
+  clips, real_clip = [], synthetic.generate_clip
+  monkeypatch.setattr(synthetic, "generate_clip",
+                      lambda *a, **kw: clips.append(real_clip(*a, **kw)) or clips[-1])
+  monkeypatch.setattr(demo, "_weights", lambda args, dtype: (
+      None, types.SimpleNamespace(dtype="float32"), "stand-in weights"))
+  plane = np.full((T, H, W), 2.5, np.float32)
+  plane[:, :, W // 2:] = 4.0
+  monkeypatch.setattr(inference, "predict_video", lambda *a, **kw: plane.copy())
+  out = tmp_path / "demo"
+  assert cli.main(["demo", "--out", str(out), "--frames", str(T), "--height", str(H),
+                   "--width", str(W), "--iters", str(ITERS), "--seed", "3"]) == 0
+  [clip] = clips  # the scene asked for: --seed 3, disparities up to W / 8
+  expected = real_clip(synthetic.SyntheticConfig(frames=T, height=H, width=W,
+                                                 max_disparity=W / 8, seed=3), 0)
+  for key in ("left", "right", "disparity"):
+    np.testing.assert_array_equal(clip[key], expected[key])
+  gt, valid = clip["disparity"], clip["valid"]
+  vmin, vmax = viz.disparity_range(gt, valid)
+  sgbm = demo.stereo_sgbm(clip["left"], clip["right"], max_disparity=min(64.0, W / 8) * 1.25)
+  panels = [clip["left"], viz.colorize(gt, vmin, vmax, valid=valid),
+            viz.colorize(plane, vmin, vmax), viz.colorize(sgbm, vmin, vmax)]
+  for name, parts in (("comparison.mp4", panels), ("side_by_side.mp4", panels[::2])):
+    cap = cv2.VideoCapture(str(out / name))
+    assert cap.get(cv2.CAP_PROP_FPS) == 5.0
+    cap.release()
+    frames = video_io.read_video_file(out / name).astype(int)
+    assert frames.shape == (T, H, len(parts) * W, 3), name
+    for i, want in enumerate(parts):  # (mp4v is lossy)
+      err = np.abs(frames[:, :, i * W:(i + 1) * W] - want).mean()
+      assert err < 8, (name, i, err)
+  for t in range(T):
+    np.testing.assert_array_equal(viz.read_png16(out / "disparity" / f"frame_{t:06d}.png")[0],
+                                  plane[t])
+  summary = json.loads((out / "metrics.json").read_text())
+  assert summary["weights"] == "stand-in weights" and summary["iters"] == ITERS
+  assert summary["synthetic"] == {"frames": T, "height": H, "width": W, "seed": 3}
+  assert set(summary["seconds"]) == {"Stereo Any Video", "StereoSGBM"}
+  assert all(0 <= v < 120 for v in summary["seconds"].values()), summary["seconds"]
+  mine = metrics.eval_sequence(plane, gt, valid.astype(np.float32))
+  assert summary["metrics"]["Stereo Any Video"] == pytest.approx(mine)
+  assert summary["metrics"]["StereoSGBM"] == pytest.approx(
+      metrics.eval_sequence(sgbm, gt, valid.astype(np.float32)))
+  printed = capsys.readouterr().out.splitlines()
+  assert printed[:2] == ["weights: stand-in weights", f"synthetic video: {T} frames of {H}x{W} "
+                         f"(seed 3), iters {ITERS}, float32"]
+  head = next(i for i, l in enumerate(printed) if l.startswith("method"))
+  assert printed[head].split() == ["method", "EPE", "bad-1px", "%", "TEPE", "δt-1px", "%",
+                                   "seconds"]
+  row = printed[head + 2]
+  assert row.startswith("Stereo Any Video  ") and row.split()[3:7] == [
+      f"{mine[k]:.3f}" for k in ("disp_epe_mean", "disp_epe_bad_1px", "disp_temp_epe_mean",
+                                 "disp_temp_epe_bad_1px")], row
+  assert printed[head + 3].startswith("StereoSGBM")
+
+
 def test_compile_cache_folder_option(tmp_path, folders, npz_ckpt, restore_cache_config):
   import logging  # pylint: disable=import-outside-toplevel
 
@@ -1183,6 +1246,56 @@ def test_stereo_sgbm_range_cut_to_the_frame_width(caplog, monkeypatch):
   stereo_sgbm = demo.stereo_sgbm
   with pytest.raises(ValueError, match="wider than 16 px"):
     stereo_sgbm(left[:, :, :16], right[:, :, :16])
+
+
+def test_stereo_sgbm_finds_each_frames_shift(caplog, monkeypatch):
+  """Textured frames whose right view is the left one shifted by 3 and 18 px: SGBM's
+  disparities (OpenCV's fixed point / 16) are those shifts, the holes at the left border
+  filled from the right. --max-disparity 20 searches 32 px (a multiple of 16), no cut on
+  64-px-wide frames; 64 is cut to 48."""
+  from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
+  monkeypatch.setattr(demo, "_SGBM_CUTS", set())
+  rng = np.random.default_rng(0)
+  left = rng.integers(0, 256, (2, 16, 32, 3), dtype=np.uint8)
+  left = np.repeat(np.repeat(left, 2, axis=1), 2, axis=2)  # 32x64, 2x2 blocks
+  right = np.stack([np.roll(left[0], -3, axis=1), np.roll(left[1], -18, axis=1)])
+  disp = demo.stereo_sgbm(left, right, max_disparity=20)
+  assert disp.shape == (2, 32, 64) and disp.dtype == np.float32
+  assert np.median(disp[0]) == 3.0 and np.median(disp[1]) == 18.0
+  np.testing.assert_allclose(disp[0], 3.0, atol=0.5)  # (sub-pixel: 1/16 steps)
+  np.testing.assert_allclose(disp[1, :, 20:], 18.0, atol=0.5)
+  assert "cut to" not in caplog.text
+  demo.stereo_sgbm(left[:1], right[:1], max_disparity=64)
+  assert "max disparity 64 cut to 48 for 64-px-wide frames" in caplog.text
+  with pytest.raises(ValueError, match="block_size must be an odd integer"):
+    demo.stereo_sgbm(left, right, block_size=4)
+
+
+def test_sgbm_arguments_odd_blocks_and_disparities_of_at_least_1():
+  from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
+  for block, disparity in ((1, 1), (3, 1.0), (5, np.float32(1.5)), (7, 256)):
+    demo.check_sgbm_args(disparity, block)
+  for block in (0, 2, 4, -1, 3.0, True):
+    with pytest.raises(ValueError, match="block_size must be an odd integer >= 1"):
+      demo.check_sgbm_args(16, block)
+  for disparity in (0.99, 0, -16, np.inf, np.nan, True, "16"):
+    with pytest.raises(ValueError, match="max_disparity must be a finite number >= 1"):
+      demo.check_sgbm_args(disparity, 5)
+
+
+def test_fill_invalid_takes_the_smaller_nearest_valid_value_of_the_row():
+  from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
+  disp = np.array([[0, 5, 0, 0, 3, 0],      # holes between 5 and 3 get 3; the ends their one
+                   [4, 0, 0, -1, 0, 9],     # (-1: SGBM's invalid code too) min(4, 9)
+                   [0, 0, 0, 0, 0, 0],      # nothing valid: 0
+                   [0, 0, 2, 8, 0, 6],
+                   [0.5, 0, 0, 0, 0, 0.25]], np.float32)  # (sub-pixel values are valid)
+  want = [[5, 5, 3, 3, 3, 3], [4, 4, 4, 4, 4, 9], [0] * 6, [2, 2, 2, 8, 6, 6],
+          [0.5, 0.25, 0.25, 0.25, 0.25, 0.25]]
+  filled = demo.fill_invalid(disp)
+  assert filled.dtype == np.float32
+  np.testing.assert_array_equal(filled, want)
+  np.testing.assert_array_equal(demo.fill_invalid(disp[:, ::-1]), np.array(want)[:, ::-1])
 
 
 def test_command_logging_quiets_jax_and_absl_and_restores():
