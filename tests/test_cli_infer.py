@@ -1283,6 +1283,62 @@ def test_sgbm_arguments_odd_blocks_and_disparities_of_at_least_1():
       demo.check_sgbm_args(disparity, 5)
 
 
+def test_resize_frames_with_aligned_corners_and_disparities_back_at_the_input_size():
+  """torch's align_corners=True: output pixel i samples the input at i (n - 1) / (m - 1)."""
+  ramp = np.arange(0, 30, 10, dtype=np.float32)  # 0, 10, 20
+  frames = np.broadcast_to(ramp[None, None, :, None], (2, 2, 3, 3))  # [N, H, W, C]
+  up = video_io.resize_frames(frames, 3, 5)
+  assert up.shape == (2, 3, 5, 3) and up.dtype == np.float32
+  np.testing.assert_allclose(up[1, 2, :, 0], [0, 5, 10, 15, 20])
+  column = np.arange(5, dtype=np.float32)[None, :, None] * 4  # 0, 4, .., 16 down the rows
+  np.testing.assert_allclose(video_io.resize_frames(column, 3, 1)[0, :, 0], [0, 8, 16])
+  same = np.ones((1, 2, 2), np.uint8)
+  assert video_io.resize_frames(same, 2, 2).dtype == np.float32
+  assert video_io.align_corners_scale(5, 3) == 2.0 and video_io.align_corners_scale(9, 3) == 4.0
+  assert video_io.align_corners_scale(4, 1) == 4.0 and video_io.align_corners_scale(1, 4) == 0.25
+  # a disparity of 1 px on 3-wide frames is 2 px on the 5-wide input
+  back = video_io.disparities_to_input_size(np.ones((2, 2, 3), np.float32), 3, 5)
+  assert back.shape == (2, 3, 5)
+  np.testing.assert_allclose(back, 2.0)
+  lazy = video_io.ResizedSource(frames, 3, 5)
+  assert len(lazy) == 2 and lazy.shape == (2, 3, 5, 3)
+  np.testing.assert_allclose(lazy[-1], up[1])
+  np.testing.assert_allclose(lazy[0:2], up)
+  with pytest.raises(IndexError, match="frame index 2 is out of range for 2 frames"):
+    lazy[2]  # pylint: disable=pointless-statement
+  with pytest.raises(IndexError, match="frame index -3 is out of range for 2 frames"):
+    lazy[-3]  # pylint: disable=pointless-statement
+
+
+def test_to_rgb8_conversions_and_their_notes():
+  grey = np.array([[0, 7, 255]], np.uint8)
+  for img in (grey, grey[..., None]):  # [H, W] and [H, W, 1]: grey repeated, noted
+    notes = set()
+    out = video_io.to_rgb8(img, "g.png", notes)
+    assert out.shape == (1, 3, 3) and out.dtype == np.uint8
+    np.testing.assert_array_equal(out, np.repeat(grey[..., None], 3, axis=2))
+    assert [n.split(", e.g.")[0] for n in notes] == [
+        "grayscale frames converted to RGB (grey repeated in 3 channels)"]
+  bgr = np.array([[[1, 2, 3], [4, 5, 6]]], np.uint8)
+  notes = set()
+  np.testing.assert_array_equal(video_io.to_rgb8(bgr, "c.png", notes), bgr[..., ::-1])
+  assert not notes
+  # 16 bits: round(v / 257) (128 / 257 = 0.498, 129 / 257 = 0.502, 386 / 257 = 1.502)
+  v = np.array([[0, 128, 129, 257, 385, 386, 65535]], np.uint16)
+  np.testing.assert_array_equal(video_io.to_rgb8(v, "w.png", set())[..., 0],
+                                [[0, 0, 1, 1, 1, 2, 255]])
+  for top, note in ((255, "hold only values 0..255"), (256, "below 4096"),
+                    (4095, "below 4096"), (4096, None)):
+    notes = set()
+    video_io.to_rgb8(np.array([[0, top]], np.uint16), "w.png", notes)
+    assert [n for n in notes if "some 16-bit" in n and (note is None or note not in n)] == []
+    assert any(note in n for n in notes) if note else len(notes) == 2, (top, notes)
+  for bad, match in ((np.zeros((2, 2), np.float32), "unsupported pixel type float32"),
+                     (np.zeros((2, 2, 2), np.uint8), r"unsupported image shape \(2, 2, 2\)")):
+    with pytest.raises(ValueError, match=match):
+      video_io.to_rgb8(bad, "x.png", set())
+
+
 def test_fill_invalid_takes_the_smaller_nearest_valid_value_of_the_row():
   from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
   disp = np.array([[0, 5, 0, 0, 3, 0],      # holes between 5 and 3 get 3; the ends their one
