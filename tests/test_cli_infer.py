@@ -1159,14 +1159,21 @@ def test_demo_outputs_with_a_stand_in_model(tmp_path, monkeypatch, capsys):
                       lambda *a, **kw: clips.append(real_clip(*a, **kw)) or clips[-1])
   monkeypatch.setattr(demo, "_weights", lambda args, dtype: (
       None, types.SimpleNamespace(dtype="float32"), "stand-in weights"))
-  plane = np.full((T, H, W), 2.5, np.float32)
+  n = 2  # the fewest frames the temporal metrics take
+  plane = np.full((n, H, W), 2.5, np.float32)
   plane[:, :, W // 2:] = 4.0
-  monkeypatch.setattr(inference, "predict_video", lambda *a, **kw: plane.copy())
+  calls = []
+  monkeypatch.setattr(inference, "predict_video",
+                      lambda *a, **kw: calls.append(kw) or plane.copy())
   out = tmp_path / "demo"
-  assert cli.main(["demo", "--out", str(out), "--frames", str(T), "--height", str(H),
-                   "--width", str(W), "--iters", str(ITERS), "--seed", "3"]) == 0
+  args = ["demo", "--out", str(out), "--frames", str(n), "--height", str(H), "--width", str(W),
+          "--seed", "3"]
+  assert cli.main([*args, "--iters", "1"]) == 2 and "iters" in capsys.readouterr().err
+  assert cli.main([*args, "--iters", str(ITERS)]) == 0
+  [kwargs] = calls
+  assert kwargs["iters"] == ITERS and kwargs["cfg"].dtype == "float32"
   [clip] = clips  # the scene asked for: --seed 3, disparities up to W / 8
-  expected = real_clip(synthetic.SyntheticConfig(frames=T, height=H, width=W,
+  expected = real_clip(synthetic.SyntheticConfig(frames=n, height=H, width=W,
                                                  max_disparity=W / 8, seed=3), 0)
   for key in ("left", "right", "disparity"):
     np.testing.assert_array_equal(clip[key], expected[key])
@@ -1180,16 +1187,16 @@ def test_demo_outputs_with_a_stand_in_model(tmp_path, monkeypatch, capsys):
     assert cap.get(cv2.CAP_PROP_FPS) == 5.0
     cap.release()
     frames = video_io.read_video_file(out / name).astype(int)
-    assert frames.shape == (T, H, len(parts) * W, 3), name
+    assert frames.shape == (n, H, len(parts) * W, 3), name
     for i, want in enumerate(parts):  # (mp4v is lossy)
       err = np.abs(frames[:, :, i * W:(i + 1) * W] - want).mean()
       assert err < 8, (name, i, err)
-  for t in range(T):
+  for t in range(n):
     np.testing.assert_array_equal(viz.read_png16(out / "disparity" / f"frame_{t:06d}.png")[0],
                                   plane[t])
   summary = json.loads((out / "metrics.json").read_text())
   assert summary["weights"] == "stand-in weights" and summary["iters"] == ITERS
-  assert summary["synthetic"] == {"frames": T, "height": H, "width": W, "seed": 3}
+  assert summary["synthetic"] == {"frames": n, "height": H, "width": W, "seed": 3}
   assert set(summary["seconds"]) == {"Stereo Any Video", "StereoSGBM"}
   assert all(0 <= v < 120 for v in summary["seconds"].values()), summary["seconds"]
   mine = metrics.eval_sequence(plane, gt, valid.astype(np.float32))
@@ -1197,12 +1204,13 @@ def test_demo_outputs_with_a_stand_in_model(tmp_path, monkeypatch, capsys):
   assert summary["metrics"]["StereoSGBM"] == pytest.approx(
       metrics.eval_sequence(sgbm, gt, valid.astype(np.float32)))
   printed = capsys.readouterr().out.splitlines()
-  assert printed[:2] == ["weights: stand-in weights", f"synthetic video: {T} frames of {H}x{W} "
+  assert printed[:2] == ["weights: stand-in weights", f"synthetic video: {n} frames of {H}x{W} "
                          f"(seed 3), iters {ITERS}, float32"]
   head = next(i for i, l in enumerate(printed) if l.startswith("method"))
   assert printed[head].split() == ["method", "EPE", "bad-1px", "%", "TEPE", "δt-1px", "%",
                                    "seconds"]
   row = printed[head + 2]
+  assert len(row.split()) == 8 and float(row.split()[7]) >= 0  # and the seconds
   assert row.startswith("Stereo Any Video  ") and row.split()[3:7] == [
       f"{mine[k]:.3f}" for k in ("disp_epe_mean", "disp_epe_bad_1px", "disp_temp_epe_mean",
                                  "disp_temp_epe_bad_1px")], row
