@@ -1347,6 +1347,36 @@ def test_to_rgb8_conversions_and_their_notes():
       video_io.to_rgb8(bad, "x.png", set())
 
 
+def test_video_files_read_in_order_with_their_rate_and_names_from_str_paths(tmp_path,
+                                                                             monkeypatch):
+  levels = (40, 120, 200)  # frame t: grey level levels[t] on the left, its colour on the right
+  frames = np.zeros((3, 16, 16, 3), np.uint8)
+  for t, level in enumerate(levels):
+    frames[t, :, :8] = level
+    frames[t, :, 8:, t] = 255
+  viz.write_video(tmp_path / "v.mp4", frames, fps=12.5)
+  path = str(tmp_path / "v.mp4")
+  whole = video_io.read_video_file(path)
+  assert whole.shape == (3, 16, 16, 3)
+  for t, level in enumerate(levels):  # (mp4v is lossy)
+    assert abs(whole[t, :, :8].mean() - level) < 8
+    assert whole[t, 4:12, 10:14, t].mean() > 200 and whole[t, 4:12, 10:14].mean() < 140
+  source = video_io.FrameSource(path)
+  assert len(source) == 3 and source.fps == 12.5 and video_io.video_fps(path) == 12.5
+  assert source.names == ["frame_000000", "frame_000001", "frame_000002"]
+  np.testing.assert_array_equal(source[-1], whole[2])
+  np.testing.assert_array_equal(source[1:3], whole[1:])
+  assert source[2:2].shape == (0, 16, 16, 3) and source[2:2].dtype == np.uint8
+  with pytest.raises(ValueError, match="FrameSource slices take step 1"):
+    source[0:3:2]  # pylint: disable=pointless-statement
+  left, right, names = video_io.load_stereo(path, path)
+  np.testing.assert_array_equal(left, whole)
+  assert names == source.names
+  monkeypatch.setattr(video_io, "_decode", lambda *a: iter(()))  # opens, decodes nothing
+  with pytest.raises(ValueError, match="v.mp4: the video has no decodable frames"):
+    video_io.read_video_file(path)
+
+
 def test_fill_invalid_takes_the_smaller_nearest_valid_value_of_the_row():
   from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
   disp = np.array([[0, 5, 0, 0, 3, 0],      # holes between 5 and 3 get 3; the ends their one
