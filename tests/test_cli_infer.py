@@ -225,6 +225,45 @@ def test_a_symlink_among_an_earlier_demos_files_is_not_written_through(tmp_path)
   assert mine.read_bytes() == b"user data"
 
 
+def test_demo_output_check_replaces_only_an_earlier_demos_files(tmp_path):
+  """What `sav-jax demo` may replace in --out: its own names when an earlier demo wrote them
+  (its metrics.json says so, with its frame count), the rest only with --overwrite; the
+  earlier demo's frames beyond this run's count are returned to be deleted."""
+  from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
+  out = tmp_path / "out"
+  (out / "disparity").mkdir(parents=True)
+  frame = lambda t: out / "disparity" / f"frame_{t:06d}.png"  # noqa: E731
+  assert demo.check_demo_output(out, 3, False) == []  # nothing there yet
+  frame(0).write_bytes(b"mine")  # no earlier demo: a file of the demo's names is the user's
+  with pytest.raises(FileExistsError, match="frame_000000.png"):
+    demo.check_demo_output(out, 3, False)
+  assert demo.check_demo_output(out, 3, True) == []
+  (out / "comparison.mp4").write_bytes(b"mine")
+  with pytest.raises(FileExistsError, match="comparison.mp4"):
+    demo.check_demo_output(out, 1, False)
+  summary = {"weights": "w", "metrics": {}, "synthetic": {"frames": 5}}
+  (out / "metrics.json").write_text(json.dumps(summary))
+  for t in range(7):
+    frame(t).write_bytes(b"x")
+  # an earlier demo of 5 frames: frames 3 and 4 were its (stale now), 5 and 6 are not
+  assert demo.check_demo_output(out, 3, False) == [frame(3), frame(4)]
+  assert demo.check_demo_output(out, 5, False) == []
+  with pytest.raises(FileExistsError, match="frame_000005.png"):  # beyond its frames
+    demo.check_demo_output(out, 6, False)
+  assert demo.check_demo_output(out, 6, True) == []
+  frame(5).unlink()
+  frame(6).unlink()
+  assert demo.check_demo_output(out, 7, False) == []
+  # what counts as an earlier demo's metrics.json
+  for text, frames in ((json.dumps(summary), 5), ("{not json", None), ("[1, 2]", None),
+                       (json.dumps({"weights": "w", "metrics": {}}), None),
+                       (json.dumps({**summary, "synthetic": [5]}), 0),
+                       (json.dumps({**summary, "synthetic": {"frames": True}}), 0),
+                       (json.dumps({**summary, "synthetic": {}}), 0)):
+    (out / "metrics.json").write_text(text)
+    assert demo._earlier_demo_frames(out) == frames, text  # pylint: disable=protected-access
+
+
 def test_a_window_that_cannot_run_leaves_no_output_folders(tmp_path, folders, npz_ckpt,
                                                             capsys, monkeypatch):
   """The memory check of the first window runs as it compiles, after the outputs were
