@@ -1411,6 +1411,11 @@ def test_video_files_read_in_order_with_their_rate_and_names_from_str_paths(tmp_
   left, right, names = video_io.load_stereo(path, path)
   np.testing.assert_array_equal(left, whole)
   assert names == source.names
+  junk = tmp_path / "junk.mp4"
+  junk.write_bytes(b"not a video")
+  assert video_io.video_fps(junk) is None
+  with pytest.raises(ValueError, match="junk.mp4: unreadable video"):
+    video_io.read_video_file(junk)
   monkeypatch.setattr(video_io, "_decode", lambda *a: iter(()))  # opens, decodes nothing
   with pytest.raises(ValueError, match="v.mp4: the video has no decodable frames"):
     video_io.read_video_file(path)
