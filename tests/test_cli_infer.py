@@ -1343,6 +1343,7 @@ def test_resize_frames_with_aligned_corners_and_disparities_back_at_the_input_si
   assert video_io.resize_frames(same, 2, 2).dtype == np.float32
   assert video_io.align_corners_scale(5, 3) == 2.0 and video_io.align_corners_scale(9, 3) == 4.0
   assert video_io.align_corners_scale(4, 1) == 4.0 and video_io.align_corners_scale(1, 4) == 0.25
+  assert video_io.align_corners_scale(5, 2) == 4.0 and video_io.align_corners_scale(2, 5) == 0.25
   # a disparity of 1 px on 3-wide frames is 2 px on the 5-wide input
   back = video_io.disparities_to_input_size(np.ones((2, 2, 3), np.float32), 3, 5)
   assert back.shape == (2, 3, 5)
@@ -1402,6 +1403,7 @@ def test_video_files_read_in_order_with_their_rate_and_names_from_str_paths(tmp_
     assert whole[t, 4:12, 10:14, t].mean() > 200 and whole[t, 4:12, 10:14].mean() < 140
   source = video_io.FrameSource(path)
   assert len(source) == 3 and source.fps == 12.5 and video_io.video_fps(path) == 12.5
+  assert source.notes == set()  # a complete video: no "fewer frames than declared" note
   assert source.names == ["frame_000000", "frame_000001", "frame_000002"]
   np.testing.assert_array_equal(source[-1], whole[2])
   np.testing.assert_array_equal(source[1:3], whole[1:])
@@ -1411,6 +1413,9 @@ def test_video_files_read_in_order_with_their_rate_and_names_from_str_paths(tmp_
   left, right, names = video_io.load_stereo(path, path)
   np.testing.assert_array_equal(left, whole)
   assert names == source.names
+  for read in (video_io.load_stereo, video_io.open_stereo):
+    with pytest.raises(ValueError, match="--max-frames must be >= 1, got 0"):
+      read(path, path, max_frames=0)
   junk = tmp_path / "junk.mp4"
   junk.write_bytes(b"not a video")
   assert video_io.video_fps(junk) is None
@@ -1419,6 +1424,25 @@ def test_video_files_read_in_order_with_their_rate_and_names_from_str_paths(tmp_
   monkeypatch.setattr(video_io, "_decode", lambda *a: iter(()))  # opens, decodes nothing
   with pytest.raises(ValueError, match="v.mp4: the video has no decodable frames"):
     video_io.read_video_file(path)
+
+
+def test_disparity_maps_round_trip_in_every_format(tmp_path):
+  d = np.array([[0.0, 1.5, 100.25], [3.0, 255.0, 300.0]], np.float32)
+  for fmt, suffix in (("png16", ".png"), ("npy", ".npy"), ("pfm", ".pfm"), ("exr", ".exr")):
+    path = video_io.disparity_path(tmp_path, "f", fmt)
+    assert path == tmp_path / f"f{suffix}"
+    assert video_io.write_map(path, d, fmt) == (1 if fmt == "png16" else 0)  # 300 saturates
+    back = video_io.read_map(path)
+    assert back.dtype == np.float32 and back.shape == (2, 3)
+    want = np.minimum(d, 65535 / 256) if fmt == "png16" else d  # (x256 integers: exact here)
+    np.testing.assert_array_equal(back, want)
+  with pytest.raises(ValueError, match="unknown format 'tiff'"):
+    video_io.disparity_path(tmp_path, "f", "tiff")
+  with pytest.raises(ValueError, match="unknown format 'tiff'"):
+    video_io.write_map(tmp_path / "f.tiff", d, "tiff")
+  (tmp_path / "f.txt").write_text("1")
+  with pytest.raises(ValueError, match="f.txt: unknown disparity file type"):
+    video_io.read_map(tmp_path / "f.txt")
 
 
 def test_fill_invalid_takes_the_smaller_nearest_valid_value_of_the_row():
