@@ -624,6 +624,14 @@ def test_colorbar_matches_colorize_and_labels_its_ticks():
   assert list(ticks) == [0, 20, 40, 60, 80, 100]
   labels = bar[8:]
   assert (labels < 128).any() and (labels == 255).any()  # black text on white
+  # every tick's number is drawn under it (text ink near each tick column), and the unit after
+  # the last one only
+  plain = viz.colorbar(2.0, 12.0, length=101, thickness=5, cmap="turbo", unit="")
+  ink = np.nonzero((plain[5 + 5:] < 128).any(axis=(0, 2)))[0]
+  for x in ticks:
+    assert np.any(np.abs(ink - x) <= 6), (x, ink)
+  differs = np.nonzero((plain != bar).any(axis=(0, 2)))[0]
+  assert differs.size and differs.min() > 64, differs  # "12 px" in place of "12" (to the left)
   negative = viz.colorbar(-1.0, 1.0, length=64)  # ranges through 0 are coloured, not "invalid"
   assert len({tuple(c) for c in negative[0]}) > 32
   with pytest.raises(ValueError, match="finite vmin < vmax"):
