@@ -379,6 +379,18 @@ def test_legacy_storage_view_metadata(tmp_path, fake_torch):
       f.write(struct.pack("<q", st.numel) + st.raw)
     with pytest.raises(CheckpointError, match=r"view\.pth: malformed storage view"):
       torch_io.load_state_dict(path)
+  # A view reaching past its base storage's end (elements 8..12 of 10) is refused, even
+  # where the tensor reads only the part that exists.
+  body = {"x": b.tensor(st, 0, (2,), (1,))}
+  pid_view = ("storage", st.cls, st.key, "cpu", st.numel, ("view0", 8, 5))
+  buf = io.BytesIO()
+  ViewPickler(buf, protocol=2).dump(body)
+  with open(path, "wb") as f:
+    f.write(_legacy_header() + buf.getvalue() + pickle.dumps([st.key], protocol=2))
+    f.write(struct.pack("<q", st.numel) + st.raw)
+  with pytest.raises(CheckpointError, match=r"view\.pth: storage view view0 lies outside its "
+                                            r"base storage"):
+    torch_io.load_state_dict(path)
 
 
 def test_tensor_overrunning_storage_is_refused(tmp_path, fake_torch):
@@ -827,6 +839,10 @@ def test_torchscript_code_without_a_checkpoints_data_pkl_is_named(tmp_path, name
     for name in names:
       zf.writestr(name, b"")
   with pytest.raises(CheckpointError, match=r"scripted\.pt: a TorchScript archive"):
+    torch_io.load_checkpoint_object(path)
+  with zipfile.ZipFile(path, "w") as zf:  # neither a checkpoint nor TorchScript
+    zf.writestr("weights/0", b"")
+  with pytest.raises(CheckpointError, match=r"scripted\.pt: zip file without a single"):
     torch_io.load_checkpoint_object(path)
 
 
