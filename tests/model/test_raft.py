@@ -175,7 +175,8 @@ def test_state_dict_problems_are_listed(raft_state_dict):
   with pytest.raises(ValueError) as err:
     raft_variables_from_state_dict(sd)
   msg = str(err.value)
-  assert "5 problem(s)" in msg, msg
+  assert msg.startswith("state dict does not match RAFT (the large model of raft-things.pth): "
+                        "5 problem(s)"), msg
   for part in ("missing key 'update_block.gru.convz1.weight'",
                "key 'fnet.conv1.weight': shape (64, 3, 5, 5) does not match RAFT (expects "
                "(64, 3, 7, 7))",
@@ -183,3 +184,6 @@ def test_state_dict_problems_are_listed(raft_state_dict):
                "key 'cnet.layer2.0.norm3.bias' differs from 'cnet.layer2.0.downsample.1.bias'",
                "unexpected key 'update_block.extra.weight'"):
     assert part in msg, (part, msg)
+  with pytest.raises(ValueError, match=r"none of the state dict's 2 keys is one of the model's"):
+    raft_variables_from_state_dict({"encoder.weight": np.zeros((2, 2), np.float32),
+                                    "head.bias": np.zeros(2, np.float32)})
