@@ -757,6 +757,35 @@ def test_unexpected_persistent_id_is_refused(tmp_path):
     torch_io.load_checkpoint_object(path)
 
 
+@pytest.mark.parametrize("fmt", ["zip", "legacy"])
+def test_storage_ids_of_the_other_format_are_malformed(tmp_path, fake_torch, fmt):
+  # A zip storage id has 5 fields, a legacy one 6 (the last: a view of the storage): one of
+  # the other length is refused, not read with its view ignored or its fields shifted.
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(10, dtype=np.float32), "float32")
+  body = {"x": b.tensor(st, 0, (2,), (1,))}
+  pid = ("storage", st.cls, st.key, "cpu", st.numel)
+  pid = pid + (("view0", 4, 5),) if fmt == "zip" else pid
+
+  class OtherPickler(pickle.Pickler):
+    def persistent_id(self, o):
+      return pid if isinstance(o, _Storage) else None
+
+  buf = io.BytesIO()
+  OtherPickler(buf, protocol=2).dump(body)
+  path = tmp_path / "other.pth"
+  if fmt == "zip":
+    with zipfile.ZipFile(path, "w") as zf:
+      zf.writestr("archive/data.pkl", buf.getvalue())
+      zf.writestr("archive/data/0", st.raw)
+  else:
+    with open(path, "wb") as f:
+      f.write(_legacy_header() + buf.getvalue() + pickle.dumps([st.key], protocol=2))
+      f.write(struct.pack("<q", st.numel) + st.raw)
+  with pytest.raises(CheckpointError, match=r"other\.pth: malformed storage id"):
+    torch_io.load_state_dict(path)
+
+
 def _zip_with_pickle(path, data, extra=()):
   with zipfile.ZipFile(path, "w") as zf:
     zf.writestr("archive/data.pkl", data)
