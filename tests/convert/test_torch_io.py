@@ -1092,6 +1092,17 @@ def test_checkpoint_kind_from_manifests(fixtures_dir):
   assert torch_io.checkpoint_kind(_tiny(three + [torch_io.RAFT_SMALL_MARKER])) == "raft_small"
 
 
+def test_a_file_of_another_kind_is_refused_with_the_callers_hint(tmp_path, fixtures_dir):
+  vda = _manifest_keys(fixtures_dir, "vda_vits_manifest.json")
+  np.savez(tmp_path / "vda.npz", **_tiny(vda))
+  assert torch_io.load_state_dict_of_kind(tmp_path / "vda.npz", "vda").keys() == set(vda)
+  with pytest.raises(CheckpointError) as e:
+    torch_io.load_state_dict_of_kind(tmp_path / "vda.npz", "sav", {"vda": "add --vda"},
+                                     label="SRC")
+  assert str(e.value) == ("SRC is a Video Depth Anything (depth prior only) checkpoint, not a "
+                          "Stereo Any Video one; add --vda")
+
+
 def test_checkpoint_kind_errors(fixtures_dir):
   vda = _manifest_keys(fixtures_dir, "vda_vits_manifest.json")
   sav = _manifest_keys(fixtures_dir, "sav_manifest.json")
