@@ -885,9 +885,11 @@ def this_machines_settings(cfg, path):
   defaults = sav_jax.SAVConfig()
   stored = {f: getattr(cfg, f) for f in COMPUTE_FIELDS
             if f != "dtype" and getattr(cfg, f) != getattr(defaults, f)}
-  if stored:
+  noted = {k: v for k, v in stored.items()  # (remat changes nothing in a forward pass)
+           if k not in ("remat", "remat_policy")}
+  if noted:
     log.info("%s: the stored %s (the saving machine's settings) replaced by this machine's "
-             "defaults", path, ", ".join(f"{k}={v!r}" for k, v in stored.items()))
+             "defaults", path, ", ".join(f"{k}={v!r}" for k, v in noted.items()))
   return dataclasses.replace(cfg, **{f: getattr(defaults, f) for f in stored})
 
 
