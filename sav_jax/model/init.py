@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Mapping
 
 import jax
 import jax.numpy as jnp
@@ -86,7 +87,15 @@ def freeze_depth_prior(tx, params, frozen_pattern: str = DEPTH_PRIOR_PATTERN):
 
   Returns:
     An `optax.multi_transform` to `init(params)` and `update(grads, state, params)`.
+
+  Raises:
+    ValueError: `params` is the Flax variables dict (`{"params": ...}`) rather than the
+      parameter tree: optax would fail only at `init`, on a tree-structure mismatch.
   """
+  if isinstance(params, Mapping) and "params" in params:
+    raise ValueError(f"freeze_depth_prior takes the parameter tree the optimizer sees, "
+                     f"variables['params']; it got the Flax variables (collections "
+                     f"{sorted(params)}): pass variables['params']")
   import optax  # pylint: disable=g-import-not-at-top
   return optax.multi_transform({TRAINABLE: tx, FROZEN: optax.set_to_zero()},
                                param_labels(params, frozen_pattern))

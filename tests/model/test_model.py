@@ -601,3 +601,18 @@ def test_freeze_depth_prior_leaves_the_prior_out_of_a_users_optimizer(variables)
     assert all(np.abs(x).min() > 0 for x in jax.tree.leaves(updates[name]))
   np.testing.assert_array_equal(updates["depthnet"]["conv"]["kernel"],
                                 plain["depthnet"]["conv"]["kernel"])
+
+
+def test_freeze_depth_prior_names_the_variables_dict_passed_for_the_params():
+  """`freeze_depth_prior(tx, variables)` (the README says `variables["params"]`) would build
+  labels that `tx.init(variables["params"])` fails on with optax's tree-structure error."""
+  import optax  # pylint: disable=g-import-not-at-top
+  params = {"depthnet": {"depthanything": {"w": np.ones(2, np.float32)}},
+            "fnet": {"w": np.ones(2, np.float32)}}
+  with pytest.raises(ValueError, match=r"got the Flax variables \(collections \['params'\]\): "
+                     r"pass variables\['params'\]"):
+    init_lib.freeze_depth_prior(optax.sgd(1.0), {"params": params})
+  tx = init_lib.freeze_depth_prior(optax.sgd(1.0), params)
+  updates = tx.update(params, tx.init(params), params)[0]
+  np.testing.assert_array_equal(updates["depthnet"]["depthanything"]["w"], 0)
+  np.testing.assert_array_equal(updates["fnet"]["w"], -1)
