@@ -190,7 +190,7 @@ def test_the_random_weights_snippet_saves_weights_the_tools_flag(tmp_path, monke
 
 
 @pytest.mark.parametrize("calib_text", [
-    "fx 720\nbaseline 0.54\n",  # the "fx 720" text the snippet's comment names: no fy, cx, cy
+    "fx 720\nbaseline 0.54\n",  # the key-value text the snippet's comment names: no fy, cx, cy
     "P2: 720 0 63.5 0 0 720 31.5 0 0 0 1 0\nP3: 720 0 63.5 -388.8 0 720 31.5 0 0 0 1 0\n"])
 def test_the_viz_snippet_runs_as_written(tmp_path, monkeypatch, calib_text):
   """The "Looking at the results" block runs with the names the README defines before it
