@@ -93,8 +93,8 @@ def freeze_depth_prior(tx, params, frozen_pattern: str = DEPTH_PRIOR_PATTERN):
       parameter tree: optax would fail only at `init`, on a tree-structure mismatch.
   """
   if isinstance(params, Mapping) and "params" in params:
-    raise ValueError(f"freeze_depth_prior takes the parameter tree the optimizer sees, "
-                     f"variables['params']; it got the Flax variables (collections "
+    raise ValueError("freeze_depth_prior takes the parameter tree the optimizer sees, "
+                     "variables['params']; it got the Flax variables (collections "
                      f"{sorted(params)}): pass variables['params']")
   import optax  # pylint: disable=g-import-not-at-top
   return optax.multi_transform({TRAINABLE: tx, FROZEN: optax.set_to_zero()},
