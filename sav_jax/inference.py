@@ -258,8 +258,11 @@ def unpad(x, pads: tuple[int, int, int, int]):
   """Removes `pad_frames` padding from `[..., Hp, Wp]` (disparities; NumPy or JAX)."""
   top, bottom, left, right = _check_pads(pads)
   if x.ndim < 2 or top + bottom > x.shape[-2] or left + right > x.shape[-1]:
+    why = ("expected [..., Hp, Wp]" if x.ndim < 2 else
+           f"they add up to {top + bottom} x {left + right}, more than its last two axes "
+           f"{tuple(x.shape[-2:])}: [..., Hp, Wp] expected")
     raise ValueError(f"cannot remove pads {pads} from an array of shape {tuple(x.shape)}: "
-                     "expected [..., Hp, Wp] (for frames [..., Hp, Wp, C], unpad x[..., c])")
+                     f"{why} (for frames [..., Hp, Wp, C], unpad x[..., c])")
   return x[..., top:x.shape[-2] - bottom, left:x.shape[-1] - right]
 
 
@@ -727,8 +730,10 @@ def check_variables(variables, cfg: SAVConfig | None = None, source: str = "vari
   got = variables.get("params") if isinstance(variables, Mapping) else None
   if got is None:
     found = sorted(variables)[:5] if isinstance(variables, Mapping) else type(variables).__name__
+    bare = isinstance(variables, Mapping) and "fnet" in variables  # variables["params"]
     raise CheckpointError(f"{source}: expected Flax variables {{'params': ...}}, found "
-                          f"{found}{training_state_hint(variables)}")
+                          f"{found}{training_state_hint(variables)}"
+                          + (": the parameters alone? pass {'params': params}" if bare else ""))
   if isinstance(got, Mapping) and isinstance(got.get("params"), Mapping) and (
       "fnet" in got["params"]):
     raise CheckpointError(f"{source}: an extra 'params' layer ({{'params': {{'params': ...}}}}): "

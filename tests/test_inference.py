@@ -500,8 +500,11 @@ def test_padding_bad_input_is_named():
   padded, pads = inference.pad_to_multiple(np.zeros((2, 50, 70))[..., None])
   assert padded.shape == (2, 64, 96, 1) and pads == (7, 7, 13, 13)
   with pytest.raises(ValueError, match=r"cannot remove pads \(4, 4, 0, 0\) from an array of "
-                     r"shape \(2, 6, 8\)"):
+                     r"shape \(2, 6, 8\): they add up to 8 x 0, more than its last two axes "
+                     r"\(6, 8\)"):
     inference.unpad(np.zeros((2, 6, 8)), (4, 4, 0, 0))
+  with pytest.raises(ValueError, match=r"shape \(8,\): expected \[\.\.\., Hp, Wp\]"):
+    inference.unpad(np.zeros(8), (0, 0, 0, 0))
 
 
 def test_bad_inputs():

@@ -412,7 +412,8 @@ def test_export_refuses_variables_that_are_not_the_models(tmp_path, variables):
                      (nan, r"hold NaN or inf values, e\.g\. \['cnet'\]\['conv1'\]\['bias'\]"),
                      (wrong, r": 1 with other shapes, e\.g\. \['corr_mlp'\]\['fc1'\]\['kernel'\] "
                       r"\(3, 3\) \(expected \(324, 256\)\)$"),
-                     (params, r"expected Flax variables \{'params': \.\.\.\}")):
+                     (params, r"expected Flax variables \{'params': \.\.\.\}, found "
+                      r"\['cnet', .*: the parameters alone\? pass \{'params': params\}$")):
     with pytest.raises(convert.CheckpointError, match=match):
       convert.export_state_dict(bad, good, overwrite=True)
   assert good.read_bytes() == before
