@@ -354,40 +354,27 @@ def test_float8_tensors_are_widened_to_float32(tmp_path, fake_torch):
 def test_legacy_storage_view_metadata(tmp_path, fake_torch):
   b = _Builder(fake_torch)
   st = b.storage(np.arange(10, dtype=np.float32), "float32")
-  body = {"x": b.tensor(st, 1, (2,), (1,))}
-  pid_view = ("storage", st.cls, st.key, "cpu", st.numel, ("view0", 4, 5))
-
-  class ViewPickler(pickle.Pickler):
-    def persistent_id(self, o):
-      return pid_view if isinstance(o, _Storage) else None
-
-  buf = io.BytesIO()
-  ViewPickler(buf, protocol=2).dump(body)
   path = tmp_path / "view.pth"
-  with open(path, "wb") as f:
-    f.write(_legacy_header() + buf.getvalue() + pickle.dumps([st.key], protocol=2))
-    f.write(struct.pack("<q", st.numel) + st.raw)
+
+  def write(body, view):  # a legacy file whose storages are `view`s of `st`
+    pid = ("storage", st.cls, st.key, "cpu", st.numel, view)
+    with open(path, "wb") as f:
+      f.write(_legacy_header() + _with_storage_id(body, pid)
+              + pickle.dumps([st.key], protocol=2))
+      f.write(struct.pack("<q", st.numel) + st.raw)
+
+  body = {"x": b.tensor(st, 1, (2,), (1,))}
+  write(body, ("view0", 4, 5))
   np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], [5, 6])
   # A negative view offset sliced the base storage from its end: values of the wrong
   # elements, silently.
   for view in (("view0", -4, 5), ("view0", 4, -1)):
-    pid_view = ("storage", st.cls, st.key, "cpu", st.numel, view)
-    buf = io.BytesIO()
-    ViewPickler(buf, protocol=2).dump(body)
-    with open(path, "wb") as f:
-      f.write(_legacy_header() + buf.getvalue() + pickle.dumps([st.key], protocol=2))
-      f.write(struct.pack("<q", st.numel) + st.raw)
+    write(body, view)
     with pytest.raises(CheckpointError, match=r"view\.pth: malformed storage view"):
       torch_io.load_state_dict(path)
   # A view reaching past its base storage's end (elements 8..12 of 10) is refused, even
   # where the tensor reads only the part that exists.
-  body = {"x": b.tensor(st, 0, (2,), (1,))}
-  pid_view = ("storage", st.cls, st.key, "cpu", st.numel, ("view0", 8, 5))
-  buf = io.BytesIO()
-  ViewPickler(buf, protocol=2).dump(body)
-  with open(path, "wb") as f:
-    f.write(_legacy_header() + buf.getvalue() + pickle.dumps([st.key], protocol=2))
-    f.write(struct.pack("<q", st.numel) + st.raw)
+  write({"x": b.tensor(st, 0, (2,), (1,))}, ("view0", 8, 5))
   with pytest.raises(CheckpointError, match=r"view\.pth: storage view view0 lies outside its "
                                             r"base storage"):
     torch_io.load_state_dict(path)
@@ -766,24 +753,30 @@ def test_storage_ids_of_the_other_format_are_malformed(tmp_path, fake_torch, fmt
   body = {"x": b.tensor(st, 0, (2,), (1,))}
   pid = ("storage", st.cls, st.key, "cpu", st.numel)
   pid = pid + (("view0", 4, 5),) if fmt == "zip" else pid
+  data = _with_storage_id(body, pid)
+  path = tmp_path / "other.pth"
+  if fmt == "zip":
+    with zipfile.ZipFile(path, "w") as zf:
+      zf.writestr("archive/data.pkl", data)
+      zf.writestr("archive/data/0", st.raw)
+  else:
+    with open(path, "wb") as f:
+      f.write(_legacy_header() + data + pickle.dumps([st.key], protocol=2))
+      f.write(struct.pack("<q", st.numel) + st.raw)
+  with pytest.raises(CheckpointError, match=r"other\.pth: malformed storage id"):
+    torch_io.load_state_dict(path)
 
-  class OtherPickler(pickle.Pickler):
+
+def _with_storage_id(body, pid) -> bytes:
+  """`body` pickled (protocol 2) with `pid` as the persistent id of every storage in it."""
+
+  class Pickler(pickle.Pickler):
     def persistent_id(self, o):
       return pid if isinstance(o, _Storage) else None
 
   buf = io.BytesIO()
-  OtherPickler(buf, protocol=2).dump(body)
-  path = tmp_path / "other.pth"
-  if fmt == "zip":
-    with zipfile.ZipFile(path, "w") as zf:
-      zf.writestr("archive/data.pkl", buf.getvalue())
-      zf.writestr("archive/data/0", st.raw)
-  else:
-    with open(path, "wb") as f:
-      f.write(_legacy_header() + buf.getvalue() + pickle.dumps([st.key], protocol=2))
-      f.write(struct.pack("<q", st.numel) + st.raw)
-  with pytest.raises(CheckpointError, match=r"other\.pth: malformed storage id"):
-    torch_io.load_state_dict(path)
+  Pickler(buf, protocol=2).dump(body)
+  return buf.getvalue()
 
 
 def _zip_with_pickle(path, data, extra=()):
