@@ -158,10 +158,8 @@ def _scale(seq_dir: Path, left: list[Path]) -> float | None:
                      "is fx * baseline)")
   if left and any(k in calib for k in ("width", "height", "cx", "cy")):
     height, width = frame_io.read_image(left[0]).shape[:2]
-    spec = CalibrationSpec(**{k: float(v) for k, v in calib.items()
-                              if k in CalibrationSpec._fields})
     try:  # (fx for frames of another size would scale every depth: TCC and the rest change)
-      spec.resolve(width, height)
+      CalibrationSpec.from_mapping(calib).resolve(width, height)
     except UsageError as e:
       raise ValueError(f"{path}: {e} (the first frame: {left[0]})") from None
   if calib.get("doffs"):  # depth = fx B / (d + doffs): no single depth-to-disparity scale

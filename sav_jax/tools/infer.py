@@ -650,6 +650,11 @@ class CalibrationSpec(NamedTuple):
   width: float | None = None   # the image size the calibration is for, where a file says
   height: float | None = None
 
+  @classmethod
+  def from_mapping(cls, calib) -> "CalibrationSpec":
+    """`read_calibration`'s dict (or options of the same names) as a spec, in floats."""
+    return cls(**{k: float(v) for k, v in calib.items()})
+
   def resolve(self, width: int, height: int) -> Calibration:
     """Fills fy = fx and the principal point at the image centre where not given.
 
@@ -706,7 +711,7 @@ def calibration_from_args(args) -> CalibrationSpec | None:
                      "(fy, cx, cy, doffs are optional)")
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
   viz.check_intrinsics(what, **{k: v for k, v in given.items() if k not in _SIZE_KEYS})
-  return CalibrationSpec(**{k: float(v) for k, v in given.items()})
+  return CalibrationSpec.from_mapping(given)
 
 
 _CALIB_KEYS = ("fx", "fy", "cx", "cy", "baseline", "doffs")
