@@ -39,7 +39,7 @@ import orbax.checkpoint as ocp
 import sav_jax
 from sav_jax._checks import loads_json
 from sav_jax.convert import orbax_io
-from sav_jax.model.init import COMPUTE_FIELDS
+from sav_jax.model.init import MACHINE_FIELDS
 from sav_jax.model.vda import VideoDepthAnything
 from train import optim
 from train.state import TrainState
@@ -92,14 +92,14 @@ def _state_dict(state: TrainState) -> dict:
 # resume is expected (prefixes).
 # (`data.worker_count` is not one: grain's iterator state, and what each batch holds, differ
 # with it; `check_data_state` refuses a change.)
-# The model's are its compute fields but the dtype (remat, the ViT attention's and the GRU's
+# The model's are its `MACHINE_FIELDS` (remat, the ViT attention's and the GRU's
 # implementations, the frame block budget: the same values, e.g. a GPU run resumed on a CPU,
 # where cuDNN's attention does not run).
 _OPERATIONAL = ("checkpoint.", "eval.", "compile_cache", "init_from", "vda_weights",
                 "random_depth_prior", "data.root", "data.num_threads", "data.prefetch",
                 "data.skip_unreadable", "train.progress_bar", "train.log_every",
                 "train.max_skipped_steps",
-                *(f"model.{f}" for f in COMPUTE_FIELDS if f != "dtype"))
+                *(f"model.{f}" for f in MACHINE_FIELDS))
 
 
 def run_fields(config) -> dict:

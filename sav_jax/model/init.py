@@ -36,6 +36,10 @@ _NORM_NAMES = ("norm", "ln")
 # is float32 whatever `dtype` says).
 COMPUTE_FIELDS = ("dtype", "remat", "remat_policy", "frame_block_mb", "vit_attention",
                   "gru_conv")
+# Those of them that choose how the machine runs it, not the values (the dtype does): a
+# checkpoint's are its saving machine's (`sav-jax infer` takes this one's defaults), and a
+# resumed training run may change them unannounced.
+MACHINE_FIELDS = tuple(f for f in COMPUTE_FIELDS if f != "dtype")
 
 
 # Optimizer labels: the depth prior is frozen, as the official trainer's

@@ -880,16 +880,15 @@ def load_checkpoint(path, dtype: str | None = None):
 
 def this_machines_settings(cfg, path):
   """`cfg` with the settings of how the model computes, other than its dtype, at their
-  defaults (`sav_jax.model.init.COMPUTE_FIELDS`): a checkpoint stores those of the machine it
+  defaults (`sav_jax.model.init.MACHINE_FIELDS`): a checkpoint stores those of the machine it
   was trained or saved on (cuDNN's ViT attention, which runs on NVIDIA GPUs only; the GRU's
   convolutions; remat; a frame block budget), not what suits this one ("auto" picks)."""
   import dataclasses  # pylint: disable=import-outside-toplevel
 
   import sav_jax  # pylint: disable=import-outside-toplevel
-  from sav_jax.model.init import COMPUTE_FIELDS  # pylint: disable=import-outside-toplevel
+  from sav_jax.model.init import MACHINE_FIELDS  # pylint: disable=import-outside-toplevel
   defaults = sav_jax.SAVConfig()
-  stored = {f: getattr(cfg, f) for f in COMPUTE_FIELDS
-            if f != "dtype" and getattr(cfg, f) != getattr(defaults, f)}
+  stored = {f: getattr(cfg, f) for f in MACHINE_FIELDS if getattr(cfg, f) != getattr(defaults, f)}
   noted = {k: v for k, v in stored.items()  # (remat changes nothing in a forward pass)
            if k not in ("remat", "remat_policy")}
   if noted:
