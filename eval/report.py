@@ -54,7 +54,7 @@ def _read_from(sources: list[str]) -> str | None:
 def _with_gt(summary: dict) -> str:
   """" (F with ground truth)" where the aggregates weigh fewer frames than were predicted."""
   measured = max((_measured(summary, m) for m in summary["methods"].values()), default=0)
-  if summary["methods"] and 0 < measured < summary["frames"]:
+  if 0 < measured < summary["frames"]:
     return f" ({measured} with ground truth)"
   return ""
 
