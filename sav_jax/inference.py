@@ -1190,9 +1190,11 @@ def _check_not_traced(what: str, variables, *videos) -> None:
 
 
 def _is_lazy_video(x) -> bool:
-  """A lazy video source: not an array or a list, with a `[T, H, W, 3]` shape and slicing."""
+  """A lazy video source: not an array or a list, with a shape and slicing (of any number of
+  axes: a source of grey `[T, H, W]` frames is refused by its shape, not taken for a 0-d
+  array of one object)."""
   return (not isinstance(x, (np.ndarray, jax.Array, list, tuple)) and hasattr(x, "shape")
-          and hasattr(x, "__getitem__") and len(getattr(x, "shape", ())) == 4)
+          and hasattr(x, "__getitem__"))
 
 
 def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,

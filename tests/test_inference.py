@@ -349,6 +349,10 @@ def test_lazy_source_frames_must_match_its_shape(monkeypatch):
     source = _ShortSource(video, shape)
     with pytest.raises(ValueError, match="left video source _ShortSource " + match):
       inference.predict_video({}, source, _ShortSource(video, shape))
+  # A source of grey [T, H, W] frames was taken for a 0-d array of one object: "got shape ()"
+  grey = _ShortSource(video[..., 0], video.shape[:3])
+  with pytest.raises(ValueError, match=r"got shape \(22, 5, 7\) \(grey frames\? give them 3"):
+    inference.predict_video({}, grey, grey)
 
 
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
