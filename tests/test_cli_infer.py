@@ -908,7 +908,10 @@ def _bad_case(name, root, clip, npz_ckpt):
                                f"width={W * 4}\n",
                                f"for images of width {W * 4}, the frames' width is {W}"),
            "json_size": (json.dumps({"fx": 700, "baseline": 0.5, "height": H * 2}),
-                         f"for images of height {H * 2}, the frames' height is {H}")}
+                         f"for images of height {H * 2}, the frames' height is {H}"),
+           # (NumPy's "divide by zero encountered" came first, a line of its own)
+           "kitti_fx_zero": ("P2: 0 0 6 44 0 700 4 0 0 0 1 0\nP3: 0 0 6 -300 0 700 4 0 0 0 1 0\n",
+                             "calib.txt: fx must be a finite positive number, got 0")}
   if name in calib:
     text, message = calib[name]
     (root / "calib.txt").write_text(text)
@@ -924,6 +927,7 @@ def _bad_case(name, root, clip, npz_ckpt):
     "output_folder_is_file",
     "calib_no_keys", "calib_null",
     "calib_units", "calib_no_baseline", "middlebury_no_doffs", "middlebury_size", "json_size",
+    "kitti_fx_zero",
     "principal_point",
     "depth_format_without_calibration", "max_depth_without_calibration", "max_depth_negative",
     "devices_word", "devices_too_many"])

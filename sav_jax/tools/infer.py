@@ -809,9 +809,10 @@ def read_calibration(path, cameras: tuple[int, int] | None = None) -> dict[str, 
         log.warning("%s: %s is to the right of %s (%s[0,3] %g < %s[0,3] %g): the matrices "
                     "look swapped; the disparities are the left view's (--left), so check "
                     "that --left is %s's camera", path, p2, p3, p2, m2[0, 3], p3, m3[0, 3], p2)
+      with np.errstate(divide="ignore", invalid="ignore"):  # fx 0: refused by its checks
+        baseline = abs(m2[0, 3] - m3[0, 3]) / m2[0, 0]  # (NumPy's warning came first)
       return {"fx": m2[0, 0], "fy": m2[1, 1], "cx": m2[0, 2], "cy": m2[1, 2],
-              "baseline": abs(m2[0, 3] - m3[0, 3]) / m2[0, 0],
-              "doffs": m3[0, 2] - m2[0, 2], **size}
+              "baseline": baseline, "doffs": m3[0, 2] - m2[0, 2], **size}
   out = {k: entries[k][0] for k in _CALIB_KEYS if k in entries}
   if len(entries.get("cam0") or ()) == 9 and "fx" not in out:  # Middlebury
     k0 = np.reshape(entries["cam0"], (3, 3))
