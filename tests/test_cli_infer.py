@@ -374,6 +374,16 @@ def test_frame_names_that_are_not_utf8_are_refused_before_the_run(tmp_path, clip
   assert "caf\\udce9_0000.png': the output file (named after --out and the frame)'s name is " \
          "not UTF-8 text (bytes of another encoding at character" in err, err
   assert not out.exists()
+  # an input video of such a name (or in a folder of one): OpenCV's reader crashed too
+  viz.write_video(tmp_path / "v.mp4", clip["left"])
+  video = tmp_path / os.fsdecode(b"l\xe9ft.mp4")
+  os.rename(tmp_path / "v.mp4", video)
+  assert _infer(video, video, npz_ckpt, out) == 2
+  err = capsys.readouterr().err
+  assert "l\\udce9ft.mp4': the video file's name is not UTF-8 text" in err, err
+  assert not out.exists()
+  with pytest.raises(ValueError, match="the video file's name is not UTF-8 text"):
+    video_io.video_fps(video)
   # the writers: a 16-bit PNG of any name (OpenCV's imwrite crashed), a clear error for
   # the EXR and the video
   odd = tmp_path / os.fsdecode(b"d\xe9.png")

@@ -319,11 +319,13 @@ def _check_video_path(path: pathlib.Path) -> None:
   if path.suffix.lower() not in VIDEO_EXTENSIONS:
     raise ValueError(f"{path}: expected a frame folder or a video file "
                      f"({'/'.join(VIDEO_EXTENSIONS)})")
+  viz.check_utf8_path(path, "video file")  # OpenCV's reader crashed on other bytes
 
 
 def video_fps(path) -> float | None:
   """The frame rate a video file declares, or None where it declares none a video can be
   written at (`viz.is_fps`)."""
+  viz.check_utf8_path(path, "video file")  # (a segmentation fault in OpenCV otherwise)
   cap = cv2.VideoCapture(str(path))
   try:
     fps = float(cap.get(cv2.CAP_PROP_FPS)) if cap.isOpened() else 0.0
