@@ -358,7 +358,7 @@ def test_unusable_checkpoints_are_refused_before_the_run(tmp_path, folders, vari
 
 
 def test_frame_names_that_are_not_utf8_are_refused_before_the_run(tmp_path, clip, npz_ckpt,
-                                                                  capsys):
+                                                                  orbax_ckpt, capsys):
   """Latin-1 names (a zip made on Windows): OpenCV's writer crashed the process with a
   segmentation fault after the model had run, leaving a provisional summary and a lock."""
   for side in ("left", "right"):
@@ -384,6 +384,11 @@ def test_frame_names_that_are_not_utf8_are_refused_before_the_run(tmp_path, clip
   assert not out.exists()
   with pytest.raises(ValueError, match="the video file's name is not UTF-8 text"):
     video_io.video_fps(video)
+  # a checkpoint folder of such a name: orbax's TensorStore failed with a traceback
+  checkpoint = tmp_path / os.fsdecode(b"ck\xe9")
+  shutil.copytree(orbax_ckpt, checkpoint)
+  with pytest.raises(ValueError, match="the checkpoint folder's name is not UTF-8 text"):
+    infer.load_checkpoint(checkpoint)
   # the writers: a 16-bit PNG of any name (OpenCV's imwrite crashed), a clear error for
   # the EXR and the video
   odd = tmp_path / os.fsdecode(b"d\xe9.png")
