@@ -1301,6 +1301,16 @@ def test_compile_cache_folder_option(tmp_path, folders, npz_ckpt, restore_cache_
           len(logging.getLogger().handlers), logging.getLogger("absl").level) == before
 
 
+def test_a_compile_cache_folder_whose_name_is_not_utf8_is_refused(tmp_path, folders, npz_ckpt,
+                                                                 restore_cache_config, capsys):
+  """JAX's cache took it, then failed at the first compile with a TypeError from its C++
+  options (a traceback, after the checkpoint had loaded)."""
+  cache = tmp_path / os.fsdecode(b"xla\xe9")
+  assert _infer(*folders, npz_ckpt, tmp_path / "out", "--compile-cache", str(cache)) == 2
+  assert "xla\\udce9': its name is not UTF-8 text" in _error_line(capsys)
+  assert not os.path.exists(cache) and not (tmp_path / "out").exists()
+
+
 def test_stereo_sgbm_range_cut_to_the_frame_width(caplog, monkeypatch):
   """OpenCV fails on numDisparities >= width; the baseline searches what the frames allow,
   saying so once per frame width (python -m eval ran it on every sequence)."""
