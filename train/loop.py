@@ -39,7 +39,8 @@ from sav_jax.data import pipeline
 from sav_jax.model.init import init_variables
 from sav_jax.model.stereo_any_video import check_iters
 from train import checkpoint as ckpt_lib
-from train import evaluation, input as input_lib, optim, state as state_lib, step as step_lib
+from train import evaluation, input as input_lib, loss as loss_lib, optim
+from train import state as state_lib, step as step_lib
 from train.logging_utils import MetricWriter, Progress
 
 log = logging.getLogger(__name__)
@@ -252,7 +253,7 @@ def _duration(seconds: float) -> str:
 # Step metrics averaged over every step of a logging window (the others: over its finite steps).
 _OVER_ALL_STEPS = ("finite", "num_skipped")
 # Step metrics averaged over a window's measured frames (`train.loss.sequence_loss`).
-_OVER_MEASURED = ("epe", "1px", "3px", "5px")
+_OVER_MEASURED = loss_lib.MEASURED_METRICS
 
 
 def _every(step: int, period: int) -> bool:

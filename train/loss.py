@@ -34,6 +34,9 @@ import jax.numpy as jnp
 
 MAX_DISPARITY = 700.0
 LOSS_GAMMA = 0.9
+# The metrics that are means over the frames with a valid pixel (`measured_frames` their
+# share): means of them over several batches weight each by that share.
+MEASURED_METRICS = ("epe", "1px", "3px", "5px")
 
 
 def prediction_weights(num_predictions: int, gamma: float = LOSS_GAMMA) -> jax.Array:

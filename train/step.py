@@ -56,15 +56,19 @@ def make_train_step(model, tx: optax.GradientTransformation, config, labels):
   def accumulated(state, trainable, batch, rng):
     """`loss_and_grads` of the batch as the mean over `microbatches` equal parts, run one
     after the other (`lax.scan`): the activations of one part at a time. Per-clip losses
-    and metrics make the mean of the parts' means the batch's mean. Part j takes clips j,
+    and metrics make the mean of the parts' means the batch's mean; the accuracy metrics,
+    means over a part's measured frames, are weighted by their count (a part without any,
+    sparse ground truth outside its crops, would pull them toward 0). Part j takes clips j,
     j + k, j + 2k... (k = microbatches), so that every device holds its share of it."""
     parts = jax.tree.map(lambda x: jnp.swapaxes(
         x.reshape(x.shape[0] // microbatches, microbatches, *x.shape[1:]), 0, 1), batch)
 
     def body(total, part):
       j, clips = part
-      out = loss_and_grads(state, trainable, clips, jax.random.fold_in(rng, j))
-      return jax.tree.map(jnp.add, total, out), None
+      (loss, metrics), grads = loss_and_grads(state, trainable, clips, jax.random.fold_in(rng, j))
+      metrics = {k: v * metrics["measured_frames"] if k in loss_lib.MEASURED_METRICS else v
+                 for k, v in metrics.items()}
+      return jax.tree.map(jnp.add, total, ((loss, metrics), grads)), None
 
     # The sums start at zero: the loss's scalars (its shapes from the loss alone: tracing
     # the model for them cost as much as the step's own trace) and the gradient's leaves.
@@ -74,7 +78,11 @@ def make_train_step(model, tx: optax.GradientTransformation, config, labels):
     zeros = (jax.tree.map(lambda s: jnp.zeros(s.shape, jnp.float32), scalars),
              jax.tree.map(jnp.zeros_like, trainable))
     total, _ = jax.lax.scan(body, zeros, (jnp.arange(microbatches), parts))
-    return jax.tree.map(lambda x: x / microbatches, total)
+    (loss, metrics), grads = jax.tree.map(lambda x: x / microbatches, total)
+    measured = metrics["measured_frames"]  # (0 in a batch without any: the sums are 0 too)
+    metrics = {k: v / jnp.maximum(measured, 1e-12) if k in loss_lib.MEASURED_METRICS else v
+               for k, v in metrics.items()}
+    return (loss, metrics), grads
 
   def train_step(state: TrainState, batch):
     step_rng = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)

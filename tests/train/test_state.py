@@ -2010,6 +2010,19 @@ def test_microbatches_give_the_whole_batchs_step():
                         jax.tree.leaves(before)):
       np.testing.assert_allclose(a, b, atol=1e-3 * max(float(np.abs(b - p0).max()), 1e-12))
   assert not np.allclose(got[1][0].params["head"]["kernel"], before["head"]["kernel"])
+  # Sparse ground truth: part 1 of 2 (clips 1 and 3) without a valid pixel, a frame of
+  # clip 2 with a few only: the accuracy metrics are the whole batch's means over its
+  # measured frames, not the mean of the parts' (which halved them).
+  batch["valid"][1::2] = False
+  batch["valid"][2, 0] = False
+  batch["valid"][2, 0, :2] = True
+  sparse = {}
+  for k in (1, 2):
+    c.train.microbatches = k
+    _, mesh, _, state, _, step = _setup(c)
+    sparse[k] = jax.device_get(step(state, _put(batch, mesh)))[1]
+  for key in ("loss", "epe", "1px", "3px", "5px", "measured_frames", "valid_fraction"):
+    np.testing.assert_allclose(sparse[2][key], sparse[1][key], rtol=1e-5, err_msg=key)
   for k, per_sample, match in ((3, True, "microbatches=3 does not divide config.train.batch_size=4"),
                                (0, True, "microbatches=0: expected an integer >= 1"),
                                (2, False, "needs config.loss.per_sample=True")):
