@@ -184,7 +184,10 @@ class _HostMetrics:
     self.sums, self.n, self.n_finite, self.last, self.measured = {}, 0, 0, None, 0.0
     self.window_start = time.perf_counter()
 
-  def __call__(self, step: int, metrics) -> None:
+  def __call__(self, step: int, metrics, last_step: bool = False) -> None:
+    """Takes `step`'s metrics; writes the window's means at the end of a logging period, at
+    `train.num_steps`, and at `last_step` (a run that stops there with a checkpoint: its
+    steps since the last record would never be logged, as the resumed run starts after it)."""
     last = self.last = jax.device_get(metrics)
     # A skipped step's loss, EPE and norms are NaN or inf: the window's means are over its
     # finite steps only (a window of skipped steps only logs NaN), its rate and the
@@ -216,15 +219,16 @@ class _HostMetrics:
             f"more than config.train.max_skipped_steps={self.config.train.max_skipped_steps}: "
             "the run diverged (a lower --config.optimizer.lr? the checkpoints saved since the "
             "skips began hold the weights that diverged)")
-    if _every(step, self.config.train.log_every) or step == self.config.train.num_steps:
+    if (_every(step, self.config.train.log_every) or step == self.config.train.num_steps
+        or last_step):
       means = {k: (v / self.n if k in _OVER_ALL_STEPS else
                    v / self.measured if k in _OVER_MEASURED and self.measured > 0 else
                    v / max(self.n_finite, 1))
                for k, v in self.sums.items()}
       means.update({k: float("nan") for k in last if k not in means})  # no finite step
       means["num_skipped"] = float(last["num_skipped"])  # a counter, not a mean
-      # The steps the means are over: log_every, but fewer in the first window after a
-      # resume from a step off the logging period (a SIGTERM save).
+      # The steps the means are over: log_every, but fewer in the window that ends at a
+      # stop off the logging period (a SIGTERM save) and in the first one after it.
       means["window_steps"] = float(self.n)
       if "lr" in last:
         means["lr"] = float(last["lr"])  # the rate of its last step (a mean was never used)
@@ -688,7 +692,7 @@ def _train(config, workdir: pathlib.Path, parts: dict) -> state_lib.TrainState:
         eval_now = evaluator is not None and (_every(step, config.eval.every_steps)
                                               or step == total)
         if save_now or eval_now:
-          host(*pending)
+          host(*pending, last_step=bool(stop))
           pending = None
         if save_now:
           with interrupt_after():  # a Ctrl-C inside orbax's start of a save would drop it

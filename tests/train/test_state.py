@@ -1709,6 +1709,15 @@ def test_sigterm_saves_the_current_step_and_stops(tmp_path):
   # The same command resumes from it and finishes.
   state = loop.run(c, tmp_path, _resumed_parts(c, tmp_path))
   assert int(state.step) == 6 and _steps_logged(tmp_path) == [1, 2, 3, 4, 5, 6]
+  # Off the logging period, the window up to the stop is logged at the stop, so that every
+  # step is in one record (the resumed run starts after it): 1-2, 3 | 4, 5-6.
+  c.train.log_every = 2
+  again = tmp_path / "again"
+  with pytest.raises(loop.Preempted, match=r"stopped at step 3 of 6 \(SIGTERM\)"):
+    loop.run(c, again, _loop_parts(c, again, lambda k: k == 3 and preempt(2)))
+  loop.run(c, again, _resumed_parts(c, again))
+  records = [json.loads(l) for l in (again / "metrics.jsonl").read_text().splitlines()]
+  assert [(r["step"], r["window_steps"]) for r in records] == [(2, 2), (3, 1), (4, 1), (6, 2)]
 
 
 def test_a_finished_run_run_again_says_it_is_complete(tmp_path, caplog):
