@@ -63,7 +63,13 @@ def check_depth_prior_frozen(labels, frozen_pattern: str) -> None:
   """Raises ValueError if `frozen_pattern` leaves a depth-prior leaf (`depthanything` in its
   path) trainable: the model stops the gradient at the prior's output (as the official
   model runs it without gradients), so such a leaf would get Adam moments and weight decay
-  but never a gradient."""
+  but never a gradient; or if it freezes every parameter (e.g. `.`, or `^`, which matches
+  every path): the run would make no update in all its steps."""
+  if TRAINABLE not in jax.tree.leaves(labels):
+    raise ValueError(
+        f"config.optimizer.frozen={frozen_pattern!r} freezes every parameter of the model: "
+        "the run would train nothing; use a pattern that matches the depth prior's paths "
+        "only, 'depthanything' (the default)")
   loose = [path_name(path) for path, label in jax.tree_util.tree_leaves_with_path(labels)
            if label == TRAINABLE and "depthanything" in path_name(path)]
   if loose:

@@ -367,6 +367,10 @@ def test_a_frozen_pattern_that_misses_the_depth_prior_is_refused():
                        rf"leaves {n} parameters of the frozen depth prior trainable "
                        r"\(e\.g\. depthnet/depthanything/"):
       optim.check_depth_prior_frozen(optim.param_labels(params, pattern), pattern)
+  for pattern in (".", "^", "depthnet|fnet"):  # everything frozen: no update in the whole run
+    with pytest.raises(ValueError, match=rf"config\.optimizer\.frozen='{re.escape(pattern)}' "
+                       "freezes every parameter of the model"):
+      optim.check_depth_prior_frozen(optim.param_labels(params, pattern), pattern)
 
 
 def test_real_model_optimizer_state_has_no_frozen_entries():
