@@ -121,10 +121,14 @@ class StereoSequence:
     if disp.shape != size:
       raise ValueError(f"ground truth {self.files[side + '_gt'][i]} is {disp.shape} but the "
                        f"image {self.files[side][i]} is {size}")
-    return np.ascontiguousarray(disp, np.float32), np.ascontiguousarray(valid, bool)
+    valid = np.asarray(valid)
+    if valid.dtype != bool:  # weights: above 0.5, as the metrics and the augmentation count
+      valid = valid > 0.5    # them (a cast to bool took any weight above 0, 0.3 too)
+    return np.ascontiguousarray(disp, np.float32), np.ascontiguousarray(valid)
 
   def _read_gt(self, i: int, side: str) -> tuple[np.ndarray, np.ndarray]:
-    """(disparity, valid) of frame i for `side` ("left"/"right"); subclasses decode."""
+    """(disparity, valid) of frame i for `side` ("left"/"right"); subclasses decode. `valid`
+    is bool, or weights of which those above 0.5 count (the official metrics' rule)."""
     raise NotImplementedError(f"{type(self).__name__} has no ground truth")
 
   def gather(self, indices: Iterable[int]) -> dict:

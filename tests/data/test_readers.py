@@ -803,6 +803,25 @@ def test_gather_names_the_frame_of_another_size(tmp_path):
     seq.gather([1, 2, -1])
 
 
+class _WeightedGT(base.StereoSequence):
+  """A reader of your own whose valid mask is weights (e.g. a mask resized bilinearly)."""
+
+  def _read_gt(self, i, side):
+    return (np.full((H, W), 3.0, np.float32),
+            np.tile(np.float32([0.0, 0.3, 0.5, 0.6, 1.0, 2.0]), (H, W // 6)))
+
+
+def test_a_readers_valid_weights_count_above_one_half_as_in_the_metrics(tmp_path):
+  img = tmp_path / "frame.png"
+  _png(img, np.zeros((H, W, 3), np.uint8))
+  seq = _WeightedGT("s", {"left": [img], "right": [img], "left_gt": [img]}, dataset="mine")
+  valid = seq[0]["valid"]  # a cast to bool counted every weight above 0 (0.3 too)
+  assert valid.dtype == bool
+  assert valid.shape == (H, W)
+  np.testing.assert_array_equal(valid[0, :6], [False, False, False, True, True, True])
+  np.testing.assert_array_equal(seq.clip(0, 1)["valid"][0], valid)
+
+
 def test_hidden_files_are_skipped_and_frame_numbers_sort_as_numbers(tmp_path):
   # macOS archives leave `._<name>` copies beside every file, notebooks `.ipynb_checkpoints`:
   # shell globs (and the official loaders) skip them, so must we.
