@@ -68,7 +68,8 @@ def base_config() -> ml_collections.ConfigDict:
   c.model.gru_conv = "auto"
 
   c.data = ml_collections.ConfigDict()
-  # Frames per training clip, T (official sample_len).
+  # Frames per training clip, T (official sample_len; at most 32, the depth prior's temporal
+  # attention length).
   c.data.frames = 5
   # Training crop (H, W) (official image_size).
   c.data.crop = (256, 512)

@@ -36,6 +36,7 @@ from sav_jax._checks import plural
 from sav_jax._locks import FolderBusyError, FolderLock
 from sav_jax.convert import params as convert_params
 from sav_jax.data import pipeline
+from sav_jax.model.dpt_temporal import TEMPORAL_MAX_LEN
 from sav_jax.model.init import init_variables
 from sav_jax.model.stereo_any_video import check_iters
 from train import checkpoint as ckpt_lib
@@ -303,7 +304,9 @@ _CHECKS = (
     ("matmul_precision", lambda x: x in runtime.MATMUL_PRECISIONS,
      ", ".join(map(repr, runtime.MATMUL_PRECISIONS[:-1]))
      + f" or {runtime.MATMUL_PRECISIONS[-1]!r}"),
-    ("data.frames", lambda x: _is_int(x) and x >= 1, "an integer >= 1"),
+    ("data.frames", lambda x: _is_int(x) and 1 <= x <= TEMPORAL_MAX_LEN,
+     f"an integer in [1, {TEMPORAL_MAX_LEN}] (the depth prior's temporal attention takes at "
+     f"most {TEMPORAL_MAX_LEN} frames)"),
     ("data.mixing", lambda x: x in ("concat", "ratio"), "'concat' or 'ratio'"),
     ("data.num_threads", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
     ("data.prefetch", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),

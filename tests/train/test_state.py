@@ -1232,6 +1232,8 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
     ("compile_cache", None, r"config\.compile_cache=None: expected a folder, 'default' or ''"),
     ("data.mixing", "mix", r"config\.data\.mixing='mix': expected 'concat' or 'ratio'"),
     ("data.prefetch", -1, r"config\.data\.prefetch=-1: expected an integer >= 0"),
+    ("data.frames", 33, r"config\.data\.frames=33: expected an integer in \[1, 32\] \(the "
+     r"depth prior's temporal attention takes at most 32 frames\)"),
     ("data.skip_unreadable", True, r"config\.data\.skip_unreadable=True: expected an integer "
      r">= 0 \(0: an unreadable clip stops the run\)"),
     ("seed", 2**32, r"config\.seed=4294967296: expected an integer in \[0, 2\*\*32\)"),
