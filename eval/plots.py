@@ -23,8 +23,15 @@ _PANEL = (760, 300)  # width, height of one curve panel
 _MARGIN = (70, 20, 36, 44)  # left, right, top, bottom
 
 
+def _drawable(text: str) -> str:
+  """`text` with `?` for the characters of a name that is not UTF-8 (a sequence folder from a
+  zip made on Windows, kept by Python as surrogates): OpenCV's putText and getTextSize crashed
+  the process with a segmentation fault on them."""
+  return text.encode("utf-8", "replace").decode("utf-8")
+
+
 def _text(img, text, org, scale=0.45, colour=(0, 0, 0), thickness=1):
-  cv2.putText(img, text, (int(org[0]), int(org[1])), _FONT, scale, colour, thickness,
+  cv2.putText(img, _drawable(text), (int(org[0]), int(org[1])), _FONT, scale, colour, thickness,
               cv2.LINE_AA)
 
 
@@ -87,9 +94,19 @@ def write_curves(path, curves: dict[str, tuple[np.ndarray, np.ndarray]], title: 
   epe = _panel({k: v[0] for k, v in curves.items()}, f"{title}  EPE per frame (px)", "frame")
   tepe = _panel({k: v[1] for k, v in curves.items()}, f"{title}  TEPE per frame pair (px)",
                 "frame t (pair t, t+1)")
-  if not cv2.imwrite(str(path), np.concatenate([epe, tepe], axis=0)):
-    raise OSError(f"{path}: cannot write PNG")
+  _write_png(path, np.concatenate([epe, tepe], axis=0))
   return pathlib.Path(path)
+
+
+def _write_png(path, bgr: np.ndarray) -> None:
+  """Writes a BGR image as a PNG at `path`, a path of any bytes (OpenCV's imwrite crashed the
+  process with a segmentation fault on a name that is not UTF-8: encoded here, written by
+  Python, as `viz.write_png16` does)."""
+  encoded, data = cv2.imencode(".png", bgr)
+  if not encoded:
+    raise OSError(f"{path}: OpenCV could not encode the PNG")
+  with open(path, "wb") as fh:
+    fh.write(data.tobytes())
 
 
 def _tile(img: np.ndarray, size: int) -> np.ndarray:
@@ -135,7 +152,7 @@ def write_strip(path, clip: dict, preds: dict[str, np.ndarray], frames: int = 6,
       rows.append((f"{label} error", [viz.colorize_error(p[i], np.abs(gt[i]), valid[i])
                                       for i in idx]))
   # wide enough for the longest label ("Stereo Any Video error" at 0.5: ~190 px)
-  label_w = max(150, 12 + max(cv2.getTextSize(label, _FONT, 0.5, 1)[0][0]
+  label_w = max(150, 12 + max(cv2.getTextSize(_drawable(label), _FONT, 0.5, 1)[0][0]
                               for label, _ in rows))
   lines = []
   for label, images in rows:
@@ -147,6 +164,5 @@ def write_strip(path, clip: dict, preds: dict[str, np.ndarray], frames: int = 6,
   header = np.full((24, lines[0].shape[1], 3), 255, np.uint8)
   _text(header, f"frames {', '.join(map(str, idx))}; colour range {vmin:.2f}..{vmax:.2f} px",
         (6, 17), 0.45)
-  if not cv2.imwrite(str(path), np.concatenate([header] + lines, axis=0)):
-    raise OSError(f"{path}: cannot write PNG")
+  _write_png(path, np.concatenate([header] + lines, axis=0))
   return pathlib.Path(path)

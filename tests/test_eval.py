@@ -1771,3 +1771,23 @@ def test_report_shows_a_zero_as_a_number_and_a_missing_metric_as_a_dash():
     head, rows = _table(md, first)
     cells = [dict(zip(head, row)) for row in rows]
     assert [(c["EPE"], c["TEPE"]) for c in cells] == [("0.000", "1.250"), ("2.500", "–")], first
+
+
+def test_plots_are_written_to_a_folder_whose_name_is_not_utf8(tmp_path):
+  """Latin-1 bytes in --out (a zip made on Windows): OpenCV's imwrite crashed the process with
+  a segmentation fault when the plots were written, after the model had run; so did its
+  putText on a sequence name of such bytes (the curves' title), drawn with `?` for them."""
+  from sav_jax.data import frame_io
+  t, h, w = 2, 16, 24
+  gt = np.full((t, h, w), 20.0, np.float32)
+  clip = {"left": np.zeros((t, h, w, 3), np.uint8), "disparity": gt,
+          "valid": np.ones((t, h, w), bool)}
+  odd = tmp_path / os.fsdecode(b"caf\xe9")
+  odd.mkdir()
+  for folder in (tmp_path, odd):
+    eval_plots.write_strip(folder / "s.png", clip, {"SAV": gt + 1}, frames=2, tile=32)
+    for title, name in (("s?", "c.png"), (os.fsdecode(b"s\xe9"), "c_odd.png")):
+      eval_plots.write_curves(folder / name, {"m": (np.ones(t), np.ones(t - 1))}, title=title)
+  for name in ("s.png", "c.png", "c_odd.png"):
+    assert np.array_equal(frame_io.read_image(odd / name), frame_io.read_image(tmp_path / name))
+  assert np.array_equal(frame_io.read_image(odd / "c.png"), frame_io.read_image(odd / "c_odd.png"))
