@@ -241,8 +241,8 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
   With `resumable`, an error reading a sequence says that --resume continues the run."""
   from eval import runner  # pylint: disable=import-outside-toplevel
   on = f"; {len(devices)} {devices[0].platform} devices" if devices and len(devices) > 1 else ""
-  print(f"{config.dataset}/{config.split}: {plural(len(seqs), 'sequence')}; "
-        f"weights: {described}{on}")
+  print(report.shown(f"{config.dataset}/{config.split}: {plural(len(seqs), 'sequence')}; "
+                     f"weights: {described}{on}"))
   if done:
     print(f"--resume: {plural(len(done), 'sequence')} finished by the interrupted "
           f"run {'is' if len(done) == 1 else 'are'} not evaluated again")
@@ -264,15 +264,16 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
     line = "  ".join(f"{eval_config.METHOD_NAMES[m]}: EPE {r['disp_epe_mean']:.3f} TEPE "
                      f"{r['disp_temp_epe_mean']:.3f}" for m, r in res.metrics.items())
     again = "  (from the interrupted run)" if str(seq.name) in done else ""
-    print(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  {line}{again}")
+    print(report.shown(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  "
+                       f"{line}{again}"))
   summary = build_summary(config, described, results, methods, settings.get("weights"),
                           skipped)
   paths = report.write_all(out, summary)
   runner.drop_set_aside(out)  # the commit point of an --overwrite run: nothing is undone after
   if not set(done) - {str(seq.name) for seq in seqs}:  # else kept: a later --resume over
     (out / runner.PROGRESS).unlink(missing_ok=True)   # more sequences reads those again
-  print(report.markdown(summary).split("## Per sequence")[0].rstrip())
-  print("wrote " + ", ".join(str(p) for p in paths))
+  print(report.shown(report.markdown(summary).split("## Per sequence")[0].rstrip()))
+  print(report.shown("wrote " + ", ".join(str(p) for p in paths)))
   return 0
 
 

@@ -117,6 +117,18 @@ def _measured(summary: dict, method: dict) -> int:
   return method.get("measured_frames", summary["frames"])
 
 
+# How results.md, results.csv and the printed lines show the bytes of a path or sequence name
+# that is not UTF-8 (Latin-1 from a zip made on Windows, kept by Python as surrogates): as
+# `\udce9` (writing them failed with "surrogates not allowed" after the whole run;
+# results.json keeps them, escaped as JSON does).
+NOT_UTF8 = "backslashreplace"
+
+
+def shown(text: str) -> str:
+  """`text` as the reports show it: such bytes as `\udce9`."""
+  return text.encode("utf-8", NOT_UTF8).decode("utf-8")
+
+
 def write_csv(path, summary: dict) -> None:
   """One row per (method, sequence) plus one aggregate row per method, whose frames are those
   its mean weighs (the sequences with ground truth)."""
@@ -129,7 +141,7 @@ def write_csv(path, summary: dict) -> None:
                  **m["aggregate"]})
   keys = [k for _, k in COLUMNS if any(k in r for r in rows)]
   keys += sorted({k for r in rows for k in r} - set(keys) - {"method", "sequence", "frames"})
-  with open(path, "w", newline="", encoding="utf-8") as fh:
+  with open(path, "w", newline="", encoding="utf-8", errors=NOT_UTF8) as fh:
     writer = csv.DictWriter(fh, ["method", "sequence", "frames"] + keys)
     writer.writeheader()
     writer.writerows(rows)
@@ -141,5 +153,5 @@ def write_all(out: pathlib.Path, summary: dict) -> list[pathlib.Path]:
   paths = [out / "results.json", out / "results.csv", out / "results.md"]
   paths[0].write_text(json.dumps(summary, indent=1), encoding="utf-8")
   write_csv(paths[1], summary)
-  paths[2].write_text(markdown(summary), encoding="utf-8")
+  paths[2].write_text(markdown(summary), encoding="utf-8", errors=NOT_UTF8)
   return paths

@@ -1791,3 +1791,36 @@ def test_plots_are_written_to_a_folder_whose_name_is_not_utf8(tmp_path):
   for name in ("s.png", "c.png", "c_odd.png"):
     assert np.array_equal(frame_io.read_image(odd / name), frame_io.read_image(tmp_path / name))
   assert np.array_equal(frame_io.read_image(odd / "c.png"), frame_io.read_image(odd / "c_odd.png"))
+
+
+def test_folders_and_sequences_whose_names_are_not_utf8(tmp_path, sav_state_dict, capsys):
+  """Latin-1 bytes (a zip made on Windows) in --data-root, a sequence's folder, --out and the
+  checkpoint file's folder: the whole run was lost at its end, "eval: error: 'utf-8' codec
+  can't encode character '\\udce9'" when the sequence's line was printed or results.md
+  written (left empty). The reports show such bytes as \\udce9; results.json keeps them."""
+  from sav_jax import viz
+  root, out = tmp_path / os.fsdecode(b"d\xe9"), tmp_path / os.fsdecode(b"o\xe9")
+  checkpoint = tmp_path / os.fsdecode(b"c\xe9") / "sav.npz"
+  checkpoint.parent.mkdir()
+  np.savez(checkpoint, **sav_state_dict)
+  name = os.fsdecode(b"b\xe9")
+  scfg = synthetic.SyntheticConfig(frames=T, height=H, width=W, max_disparity=6.0, num_objects=2)
+  clip, seq = synthetic.generate_clip(scfg, 0), root / "test" / name
+  for t in range(T):
+    for view in ("left", "right"):
+      (seq / view).mkdir(parents=True, exist_ok=True)
+      (seq / view / f"{t}.png").write_bytes(cv2.imencode(".png", clip[view][t])[1].tobytes())
+    (seq / "disparity").mkdir(exist_ok=True)
+    viz.write_pfm(seq / "disparity" / f"{t}.pfm", np.where(clip["valid"][t], clip["disparity"][t], 0))
+  rc = main(["--config", str(CONFIGS / "folder.py"), "--checkpoint", str(checkpoint),
+             "--data-root", str(root), "--out", str(out), "--config.iters=2"])
+  std = capsys.readouterr()
+  assert rc == 0, std.err
+  assert "[1/1] b\\udce9 (4 frames)" in std.out and "c\\udce9" in std.out
+  summary = json.loads((out / "results.json").read_text())
+  assert [s["name"] for s in summary["sequences"]] == [name]
+  assert summary["sequences"][0]["source"] == str((seq / "left").resolve())
+  md = (out / "results.md").read_text(encoding="utf-8")
+  assert "b\\udce9" in md and "d\\udce9" in md
+  assert "b\\udce9" in (out / "results.csv").read_text(encoding="utf-8")
+  assert len(list((out / "plots").iterdir())) == 2
