@@ -7,7 +7,7 @@ import importlib
 import sys
 
 from sav_jax import _signals
-from sav_jax.tools import UsageError, command_logging, one_line_warnings
+from sav_jax.tools import UsageError, command_logging, one_line_warnings, printable_names
 
 COMMANDS = {
     "demo": "sav_jax.tools.demo",
@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel  # jax: after --help
   try:
     # (warnings met by the command, e.g. `inference.SwappedViewsWarning`, as one line each)
-    with (command_logging(args.verbose), runtime.preserved_settings(),
+    with (command_logging(args.verbose), runtime.preserved_settings(), printable_names(),
           one_line_warnings(f"sav-jax {args.command}"), _signals.remembered_interrupts()):
       return int(args._run(args) or 0)
   except (UsageError, ValueError, OSError) as e:  # OSError: a disk full, a folder not writable

@@ -48,6 +48,14 @@ def _ocp():
   return orbax.checkpoint
 
 
+def _check_utf8(directory: pathlib.Path) -> None:
+  """A ValueError naming `directory` unless its path is UTF-8 text: orbax's TensorStore takes
+  no other bytes (a name from a zip made on Windows failed deep inside it with a traceback,
+  "Unable to cast Python instance of type <class 'str'>")."""
+  from sav_jax import viz  # pylint: disable=import-outside-toplevel
+  viz.check_utf8_path(directory, "orbax checkpoint folder")
+
+
 def _checkpointer():
   ocp = _ocp()
   handler = ocp.CompositeCheckpointHandler(variables=ocp.StandardCheckpointHandler(),
@@ -118,6 +126,7 @@ def save_variables(directory, variables, config_dict: dict, overwrite: bool = Fa
       raise CheckpointError(f"{directory} is a broken symbolic link (to {os.readlink(directory)})")
     # replace what the link points to, and keep the link (the swap below renames folders)
     directory = directory.resolve()
+  _check_utf8(directory)
   if directory.exists():
     if not overwrite and not (directory.is_dir() and not any(directory.iterdir())):
       raise FileExistsError(f"{directory} exists; pass overwrite=True to replace it")
@@ -255,6 +264,7 @@ def restore_variables(directory, target=None):
       target does not match it.
   """
   directory = pathlib.Path(directory).absolute()
+  _check_utf8(directory)
   if not is_variables_checkpoint(directory):
     step = find_training_checkpoint(directory)
     if step is None:

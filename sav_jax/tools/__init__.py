@@ -155,6 +155,25 @@ def command_logging(verbose: bool):
 
 
 @contextlib.contextmanager
+def printable_names():
+  """A command's printed lines show the bytes of a name that is not UTF-8 (Latin-1 from a zip
+  made on Windows, kept by Python as surrogates) as `\\udce9`, as its error lines on stderr
+  do: the strict UTF-8 stdout of a UTF-8 locale failed on them with "surrogates not allowed"
+  after the command's work (`sav-jax convert` reported an error for a file it had written).
+  Afterwards stdout is as it was (the command may be called from Python)."""
+  stream = sys.stdout
+  errors = getattr(stream, "errors", None)
+  if errors != "strict" or not hasattr(stream, "reconfigure"):
+    yield  # (a C locale's surrogateescape writes the name's own bytes)
+    return
+  stream.reconfigure(errors="backslashreplace")
+  try:
+    yield
+  finally:
+    stream.reconfigure(errors=errors)
+
+
+@contextlib.contextmanager
 def one_line_warnings(prefix: str):
   """Python warnings met by a command run (e.g. a 16-bit frame's, `inference`'s) as one line
   each, `PREFIX: warning: ...`, not as a source file, line and its code."""

@@ -53,6 +53,9 @@ def check_destination(src: str, dst: str, to_file: bool, overwrite: bool) -> Non
   if os.path.realpath(src) == os.path.realpath(dst):
     raise UsageError(f"SRC and DST are the same path ({dst}); write to another one")
   check_output_dir(os.path.dirname(os.path.abspath(dst)), flag=f"DST {dst}: folder")
+  if not to_file:  # (orbax's TensorStore failed on other bytes, after the conversion's work)
+    from sav_jax import viz  # pylint: disable=import-outside-toplevel
+    viz.check_utf8_path(os.path.abspath(dst), "orbax checkpoint folder DST")
   if not os.path.lexists(dst):
     return
   if not to_file and os.path.isdir(dst) and not os.path.islink(dst) and not os.listdir(dst):

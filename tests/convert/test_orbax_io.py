@@ -384,3 +384,20 @@ def test_out_of_memory_is_not_reported_as_a_corrupt_checkpoint(tmp_path):
   assert orbax_io.corrupt_checkpoint_error(tmp_path, error) is None
   error.__cause__ = None
   assert "corrupt or incomplete" in str(orbax_io.corrupt_checkpoint_error(tmp_path, error))
+
+
+def test_a_folder_whose_name_is_not_utf8_is_named_not_a_tensorstore_traceback(tmp_path):
+  """Latin-1 bytes (a zip made on Windows): orbax's TensorStore failed deep inside with
+  "Unable to cast Python instance of type <class 'str'>" (a RuntimeError, a traceback at the
+  command line), after the checkpoint's other files were checked."""
+  odd = tmp_path / os.fsdecode(b"caf\xe9")
+  ok = tmp_path / "ok"
+  orbax_io.save_variables(ok, {"params": {"w": jnp.ones(2)}}, {"v": 1})
+  files = sorted(p.name for p in ok.iterdir())
+  os.rename(ok, odd)
+  message = "': the orbax checkpoint folder's name is not UTF-8 text"
+  with pytest.raises(ValueError, match=r"caf\\udce9" + message):
+    orbax_io.restore_variables(odd)
+  with pytest.raises(ValueError, match=r"caf\\udce9/ckpt" + message):
+    orbax_io.save_variables(odd / "ckpt", {"params": {"w": jnp.ones(2)}}, {})
+  assert sorted(p.name for p in odd.iterdir()) == files  # (no ckpt folder begun)

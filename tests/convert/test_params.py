@@ -595,3 +595,23 @@ def test_cli_convert_rejects_garbage(tmp_path, capsys):
   assert cli.main(["convert", str(bad), str(tmp_path / "out")]) == 2
   assert "random.pth" in capsys.readouterr().err
   assert not (tmp_path / "out").exists()
+
+
+def test_cli_convert_with_paths_that_are_not_utf8(tmp_path, sav_state_dict, capsys, caplog):
+  """Latin-1 bytes in a folder's name (a zip made on Windows): files are read and written;
+  an orbax DST is refused before the conversion's work (orbax's TensorStore failed after it,
+  with a traceback: "Unable to cast Python instance of type <class 'str'>")."""
+  import os  # pylint: disable=import-outside-toplevel
+  # (pytest-xdist cannot send a report whose captured log holds the path's surrogates)
+  caplog.set_level(logging.WARNING, logger="sav_jax.convert.torch_io")
+  odd = tmp_path / os.fsdecode(b"caf\xe9")
+  odd.mkdir()
+  np.savez(odd / "sav.npz", **sav_state_dict)
+  assert cli.main(["convert", str(odd / "sav.npz"), str(odd / "sav.safetensors")]) == 0
+  _assert_same_state_dicts(convert.load_state_dict(odd / "sav.safetensors"), sav_state_dict)
+  assert "caf\\udce9/sav.safetensors (official" in capsys.readouterr().out
+  assert cli.main(["convert", str(odd / "sav.npz"), str(odd / "ckpt")]) == 2
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and ("caf\\udce9/ckpt': the orbax checkpoint folder DST's name is "
+                                   "not UTF-8 text") in err, err
+  assert sorted(p.name for p in odd.iterdir()) == ["sav.npz", "sav.safetensors"]
