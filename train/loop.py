@@ -389,10 +389,13 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
     num_devices: devices of the mesh, which the batch sizes must be multiples of.
 
   Raises:
-    ValueError: naming `config.<field>`, its value and what it must be.
+    ValueError: naming `config.<field>`, its value and what it must be; or `workdir`, whose
+      path is not UTF-8 text (orbax cannot write checkpoints there).
     NotADirectoryError: `workdir` (or a folder above it, or its `checkpoints`) is a file.
   """
   workdir = _given_workdir(workdir)
+  # (orbax's TensorStore takes no other bytes: the first checkpoint save failed, after training)
+  sav_jax.viz.check_utf8_path(workdir.absolute(), "--workdir folder")
   existing = next(p for p in (workdir, *workdir.absolute().parents) if p.exists())
   for path in (existing, workdir / "checkpoints"):
     if path.exists() and not path.is_dir():

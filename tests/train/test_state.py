@@ -2296,3 +2296,16 @@ def test_unreadable_data_position_is_named_as_such(toy_run, tmp_path, content):
   else:
     assert message.startswith(f"{position}: this process's position in the data cannot be "
                               "restored")
+
+
+def test_a_workdir_whose_name_is_not_utf8_is_refused_before_the_run(tmp_path):
+  """Latin-1 bytes (a zip made on Windows): the run trained, then its first checkpoint save
+  failed inside orbax's TensorStore ("Unable to cast Python instance of type <class 'str'>"),
+  the training's steps lost."""
+  from train import loop  # pylint: disable=g-import-not-at-top
+  odd = tmp_path / os.fsdecode(b"caf\xe9")
+  for workdir in (odd, odd / "run"):
+    with pytest.raises(ValueError, match=r"caf\\udce9.*': the --workdir folder's name is not "
+                                         "UTF-8 text"):
+      loop.validate_config(synthetic.get_config(), workdir)
+  assert not odd.exists()
