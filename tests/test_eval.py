@@ -1811,7 +1811,8 @@ def test_folders_and_sequences_whose_names_are_not_utf8(tmp_path, sav_state_dict
       (seq / view).mkdir(parents=True, exist_ok=True)
       (seq / view / f"{t}.png").write_bytes(cv2.imencode(".png", clip[view][t])[1].tobytes())
     (seq / "disparity").mkdir(exist_ok=True)
-    viz.write_pfm(seq / "disparity" / f"{t}.pfm", np.where(clip["valid"][t], clip["disparity"][t], 0))
+    viz.write_pfm(seq / "disparity" / f"{t}.pfm",
+                  np.where(clip["valid"][t], clip["disparity"][t], 0))
   rc = main(["--config", str(CONFIGS / "folder.py"), "--checkpoint", str(checkpoint),
              "--data-root", str(root), "--out", str(out), "--config.iters=2"])
   std = capsys.readouterr()
