@@ -1423,7 +1423,7 @@ def test_to_rgb8_conversions_and_their_notes():
 
 
 def test_video_files_read_in_order_with_their_rate_and_names_from_str_paths(tmp_path,
-                                                                             monkeypatch):
+                                                                             caplog, monkeypatch):
   levels = (40, 120, 200)  # frame t: grey level levels[t] on the left, its colour on the right
   frames = np.zeros((3, 16, 16, 3), np.uint8)
   for t, level in enumerate(levels):
@@ -1821,3 +1821,30 @@ def test_progress_bars_are_drawn_on_terminals_only(tmp_path, npz_ckpt, monkeypat
   err = capsys.readouterr().err
   assert "disparity: 100%" in err and "video: 100%" in err, err
 
+
+
+def test_a_resize_that_turns_the_frames_orientation_is_warned_about(tmp_path, folders, npz_ckpt,
+                                                                     caplog, monkeypatch):
+  """--resize is HxW; 1280x720 for 1280-wide frames (width x height out of habit) ran the model
+  on portrait-distorted frames without a word. A warning naming both sizes, said before the
+  checkpoint is read; a size of the frames' orientation (or a square one) is not."""
+  def stop(*_, **__):
+    raise ValueError("stopped after the size checks")
+
+  monkeypatch.setattr(infer, "load_checkpoint", stop)
+  assert H < W  # landscape frames
+  cases = (((W, H), True), ((W + 8, H - 1), True), ((2 * H, 2 * W), False), ((40, 40), False),
+           ((H, H + 1), False))
+  for i, (size, warned) in enumerate(cases):
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+      assert _infer(*folders, npz_ckpt, tmp_path / f"out{i}", "--resize", "%dx%d" % size) == 2
+    line = (f"--resize {size[0]}x{size[1]} is height x width: it turns the {H}x{W} (height x "
+            f"width) frames from landscape to portrait; for their orientation give --resize "
+            f"{size[1]}x{size[0]}")
+    assert (line in caplog.text) == warned, (size, caplog.text)
+    assert ("is height x width" in caplog.text) == warned, (size, caplog.text)
+  assert infer.flips_orientation((720, 1280), (1280, 720))
+  assert infer.flips_orientation((1280, 720), (720, 1280))
+  assert not infer.flips_orientation((720, 1280), (360, 640))
+  assert not infer.flips_orientation((720, 720), (1280, 720))

@@ -124,6 +124,14 @@ def parse_size(text: str) -> tuple[int, int]:
   return size
 
 
+def flips_orientation(size: tuple[int, int], resized: tuple[int, int]) -> bool:
+  """Whether `resized` (height, width) turns frames of `size` from landscape to portrait or
+  the reverse: `--resize` given as width x height (1280x720 for 1280-wide frames) out of
+  habit, which distorts every frame (square frames or sizes: never)."""
+  (h, w), (rh, rw) = size, resized
+  return (h - w) * (rh - rw) < 0
+
+
 def parse_formats(values: list[str] | None) -> list[str]:
   """`--format` values (repeated and/or comma-separated) -> ordered unique formats."""
   out = []
@@ -417,12 +425,17 @@ def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:
   setup_compile_cache(args)  # (after the devices are checked: it may create the folder)
   for source in (left, right):  # the reach of the windows' and the outputs' reads
     source.keep = args.window + (len(devices) - 1) * args.stride + 1
-  variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
-  print(f"weights: {described}")
-  on = f"; {len(devices)} devices ({devices[0].platform})" if len(devices) > 1 else ""
   resize = getattr(args, "resize", None)
   if resize == (h, w):
     resize = None
+  if resize is not None and flips_orientation((h, w), resize):
+    log.warning("--resize %dx%d is height x width: it turns the %dx%d (height x width) frames "
+                "%s; for their orientation give --resize %dx%d", *resize, h, w,
+                "from landscape to portrait" if w > h else "from portrait to landscape",
+                resize[1], resize[0])
+  variables, cfg, described = load_checkpoint(ckpt, dtype=args.dtype)
+  print(f"weights: {described}")
+  on = f"; {len(devices)} devices ({devices[0].platform})" if len(devices) > 1 else ""
   at = f", run at {resize[0]}x{resize[1]}" if resize else ""
   print(f"input: {plural(t, 'frame')} of {h}x{w} (height x width){at}; iters {args.iters}, "
         f"{cfg.dtype}{on}")
