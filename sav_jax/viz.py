@@ -21,6 +21,7 @@ File formats (all round trips are tested value by value):
 
 from __future__ import annotations
 
+import io
 import math
 import numbers
 import os
@@ -445,8 +446,8 @@ def _check_suffix(path, suffixes: tuple[str, ...], message: str) -> None:
 
 def check_utf8_path(path, what: str = "file") -> None:
   """Raises ValueError unless `path` is UTF-8 text: a name of other bytes (Latin-1 from a
-  zip made on Windows, kept by Python as surrogates) crashed OpenCV's writers with a
-  segmentation fault, and OpenEXR's refused it without naming it."""
+  zip made on Windows, kept by Python as surrogates) crashed OpenCV's video writer and reader
+  with a segmentation fault, and orbax and JAX's cache fail on it with a traceback."""
   try:
     str(path).encode("utf-8")
   except UnicodeEncodeError as e:
@@ -833,7 +834,6 @@ def write_exr(path, data, channel: str = "Y") -> None:
   """OpenEXR file of float32 values (`[H, W]` -> one channel, `[H, W, 3]` -> R, G, B); a file
   at `path` is replaced."""
   import OpenEXR  # pylint: disable=import-outside-toplevel
-  check_utf8_path(path, "EXR file")
   _check_suffix(path, (".exr",), "write_exr writes OpenEXR files; name one .exr")
   if not (isinstance(channel, str) and channel):
     raise ValueError(f"channel must be a non-empty channel name such as 'Y', got {channel!r}")
@@ -843,8 +843,11 @@ def write_exr(path, data, channel: str = "Y") -> None:
   else:
     channels = {c: np.ascontiguousarray(a[..., i]) for i, c in enumerate("RGB")}
   header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+  encoded = io.BytesIO()
   with OpenEXR.File(header, channels) as f:
-    f.write(str(path))
+    f.write(encoded)
+  with open(path, "wb") as fh:  # (any name: OpenEXR's own writer took UTF-8 names only)
+    fh.write(encoded.getvalue())
 
 
 def read_exr(path, channel: str | None = None) -> np.ndarray:

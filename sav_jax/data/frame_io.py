@@ -392,8 +392,8 @@ def read_exr(path: PathLike, channel: str | None = None) -> np.ndarray:
   import OpenEXR  # pylint: disable=import-outside-toplevel
 
   path = require_file(path, "EXR file")
-  try:
-    with OpenEXR.File(str(path), separate_channels=True) as f:
+  try:  # (opened by Python: OpenEXR's own open took UTF-8 names only, "not an OpenEXR file")
+    with open(path, "rb") as fh, OpenEXR.File(fh, separate_channels=True) as f:
       chans = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
   except (RuntimeError, ValueError) as e:  # cut short: "Invalid part index '0': file has 0 parts"
     raise ValueError(f"cannot read EXR file {path}: not an OpenEXR file, or one cut short or "
