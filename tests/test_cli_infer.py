@@ -1851,3 +1851,14 @@ def test_a_resize_that_turns_the_frames_orientation_is_warned_about(tmp_path, fo
   assert infer.flips_orientation((1280, 720), (720, 1280))
   assert not infer.flips_orientation((720, 1280), (360, 640))
   assert not infer.flips_orientation((720, 720), (1280, 720))
+
+
+def test_a_demo_out_folder_whose_name_is_not_utf8_is_refused_before_the_run(tmp_path, capsys):
+  """Latin-1 bytes (a zip made on Windows): the demo ran the model, then its video writer
+  refused the folder (OpenCV's writer cannot take such names)."""
+  out = tmp_path / os.fsdecode(b"d\xe9mo")
+  assert cli.main(["demo", "--out", str(out), "--frames", "2", "--height", "16", "--width", "32",
+                   "--iters", "2", "--no-compile-cache"]) == 2
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and "d\\udce9mo': the --out folder's name is not UTF-8 text" in err
+  assert not out.exists()

@@ -190,6 +190,8 @@ def run(args: argparse.Namespace) -> int:
     raise UsageError("need --frames >= 2 (the temporal metrics compare consecutive frames), "
                      "--height >= 16 and --width >= 32")
   out = check_output_dir(args.out)
+  # (its videos: OpenCV's video writer cannot take other bytes, refused after the model ran)
+  viz.check_utf8_path(out.absolute(), "--out folder")
   stale = check_demo_output(out, args.frames, args.overwrite)
   setup_compile_cache(args)
   variables, cfg, described = _weights(args, args.dtype)  # a bad checkpoint fails first
