@@ -125,7 +125,7 @@ NOT_UTF8 = "backslashreplace"
 
 
 def shown(text: str) -> str:
-  """`text` as the reports show it: such bytes as `\udce9`."""
+  """`text` as the reports show it: such bytes as `\\udce9`."""
   return text.encode("utf-8", NOT_UTF8).decode("utf-8")
 
 
