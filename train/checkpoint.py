@@ -94,11 +94,12 @@ def _state_dict(state: TrainState) -> dict:
 # with it; `check_data_state` refuses a change.)
 # The model's are its `MACHINE_FIELDS` (remat, the ViT attention's and the GRU's
 # implementations, the frame block budget: the same values, e.g. a GPU run resumed on a CPU,
-# where cuDNN's attention does not run).
+# where cuDNN's attention does not run), and `train.microbatches` (the same step in K parts,
+# for a device's memory).
 _OPERATIONAL = ("checkpoint.", "eval.", "compile_cache", "init_from", "vda_weights",
                 "random_depth_prior", "data.root", "data.num_threads", "data.prefetch",
                 "data.skip_unreadable", "train.progress_bar", "train.log_every",
-                "train.max_skipped_steps",
+                "train.max_skipped_steps", "train.microbatches",
                 *(f"model.{f}" for f in MACHINE_FIELDS))
 
 

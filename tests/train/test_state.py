@@ -557,6 +557,7 @@ def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path, caplog):
   c.optimizer.lr, c.train.num_steps, c.checkpoint.keep = 0.5, c.train.num_steps + 1, 9
   c.model.gru_conv = "direct"  # how the GRU computes, the same values
   c.model.remat_policy = "dots_saveable"  # and the other compute fields (but dtype)
+  c.train.microbatches = 2  # the same step in two parts
   assert ckpt_lib.changed_fields(manager, 7, c) == [  # keep: where and how, not what
       f"optimizer.lr: {_config().optimizer.lr!r} -> 0.5",
       f"train.num_steps: {_config().train.num_steps} -> {_config().train.num_steps + 1}"]
