@@ -1219,7 +1219,8 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
     ("data.crop", (32, 40), r"config\.data\.crop=\(32, 40\).*multiples of 16"),
     ("optimizer.lr", -1.0, r"config\.optimizer\.lr=-1\.0: expected a number > 0"),
     ("optimizer.schedule", "cosine", r"config\.optimizer\.schedule='cosine'"),
-    ("optimizer.frozen", "(", r"config\.optimizer\.frozen='\(': expected a regular expression"),
+    ("optimizer.frozen", "(", r"config\.optimizer\.frozen='\(': expected a regular expression "
+     r"matching the depth prior's parameter paths"),
     ("optimizer.weight_decay", -1e-5, r"config\.optimizer\.weight_decay=-1e-05: expected a "
      r"number >= 0"),
     ("optimizer.b2", 1.0, r"config\.optimizer\.b2=1\.0: expected a number in \[0, 1\)"),
