@@ -33,6 +33,7 @@ from sav_jax.convert.pickle_reader import CheckpointError
 
 __all__ = ["save_variables", "restore_variables", "is_variables_checkpoint",
            "find_training_checkpoint", "is_orbax_checkpoint", "checked_restore",
+           "check_target_shapes",
            "corrupt_checkpoint_error", "quiet_failed_reads"]
 
 log = logging.getLogger(__name__)
@@ -251,8 +252,9 @@ def restore_variables(directory, target=None):
       `find_training_checkpoint`), whose `params` are returned as `{"params": ...}` with
       the config saved beside them (`{}` for checkpoints from before configs were saved).
     target: optional abstract pytree (e.g. `jax.eval_shape(model.init, ...)`, leaves
-      `jax.ShapeDtypeStruct`, with or without shardings) or concrete arrays to restore into.
-      Without it, the structure, shapes and dtypes come from the saved metadata and arrays
+      `jax.ShapeDtypeStruct`, with or without shardings) or concrete arrays to restore into
+      (`{"params": ...}` for a training checkpoint); a leaf of another shape than the
+      checkpoint's is refused, named, before anything is read. Without it, the structure, shapes and dtypes come from the saved metadata and arrays
       are placed on this process's first device (so a checkpoint written on another device
       or topology, or read by each of several processes, restores too).
 
@@ -273,8 +275,11 @@ def restore_variables(directory, target=None):
     return _restore_training_params(step, target)
   check_regular_files(directory)
   with _checkpointer() as ckptr:
+    stored = _target_from_metadata(ckptr, directory, "variables")
     if target is None:
-      target = _target_from_metadata(ckptr, directory, "variables")
+      target = stored
+    else:
+      check_target_shapes(directory, target, stored)
     ocp = _ocp()
     args = ocp.args.Composite(variables=ocp.args.StandardRestore(target),
                               config=ocp.args.JsonRestore())
@@ -435,8 +440,16 @@ def _restore_training_params(step: pathlib.Path, target=None):
   with ocp.Checkpointer(ocp.CompositeCheckpointHandler(**handlers)) as ckptr:
     # The tree from the `state` item's own metadata: the composite's would also look at the
     # `data` item (the grain iterator, which has no handler here) and warn about it.
-    params = (_target_from_metadata(handlers["state"], step / "state", None, "params")
-              if target is None else target["params"])
+    stored = _target_from_metadata(handlers["state"], step / "state", None, "params")
+    if target is None:
+      params = stored
+    else:
+      if not (isinstance(target, Mapping) and "params" in target):
+        found = sorted(target)[:5] if isinstance(target, Mapping) else type(target).__name__
+        raise CheckpointError(f"{step}: the target must be Flax variables {{'params': ...}}, "
+                              f"found {found}")
+      params = target["params"]
+      check_target_shapes(step, {"params": params}, {"params": stored})
     args = {"state": ocp.args.PyTreeRestore(
         {"params": params}, restore_args={"params": ocp.checkpoint_utils.construct_restore_args(
             params)}, partial_restore=True)}  # the optimizer state is not read
@@ -493,6 +506,24 @@ def check_regular_files(directory) -> None:
       if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
         raise CheckpointError(f"{directory}: {path} is not a regular file (a pipe, socket or "
                               "device): the checkpoint is damaged or not a checkpoint")
+
+
+def check_target_shapes(directory, target, stored) -> None:
+  """Raises CheckpointError where a leaf of `target` has another shape than the same leaf of
+  `stored` (the checkpoint's abstract arrays): orbax checks shapes only for targets with
+  shardings, and restored the others (NumPy arrays, `jax.eval_shape`'s ShapeDtypeStructs) at
+  the stored shape without a word. Leaves of one tree only are left to orbax's own check."""
+  have = {jax.tree_util.keystr(p): tuple(x.shape)
+          for p, x in jax.tree_util.tree_leaves_with_path(stored) if hasattr(x, "shape")}
+  wrong = []
+  for path, x in jax.tree_util.tree_leaves_with_path(target):
+    key = jax.tree_util.keystr(path)
+    shape = tuple(x.shape) if hasattr(x, "shape") else None
+    if key in have and shape is not None and shape != have[key]:
+      wrong.append(f"{key} {shape} (stored {have[key]})")
+  if wrong:
+    raise CheckpointError(f"{directory}: the target does not match the checkpoint: "
+                          f"{len(wrong)} array(s) of other shapes, e.g. {', '.join(wrong[:3])}")
 
 
 def _target_from_metadata(reader, directory, item, key=None):

@@ -192,6 +192,29 @@ def test_mismatched_target(tmp_path):
     orbax_io.restore_variables(tmp_path / "ckpt", target=target)
 
 
+def test_a_target_of_other_shapes_is_refused_also_without_shardings(tmp_path):
+  # Orbax checks shapes only for targets with shardings: a jax.eval_shape target (or NumPy
+  # arrays) of another model came back silently at the stored shapes, as NumPy arrays.
+  import orbax.checkpoint as ocp  # pylint: disable=import-outside-toplevel
+  orbax_io.save_variables(tmp_path / "ckpt", {"params": {"w": jnp.ones(3)}}, {})
+  step = tmp_path / "run" / "checkpoints" / "5"  # a training run's checkpoint
+  with ocp.Checkpointer(ocp.CompositeCheckpointHandler(state=ocp.PyTreeCheckpointHandler())) as c:
+    c.save(step, args=ocp.args.Composite(state=ocp.args.PyTreeSave(
+        {"params": {"w": np.ones(3, np.float32)}, "step": np.int32(5)})))
+  for where in (tmp_path / "ckpt", tmp_path / "run"):
+    for w in (jax.ShapeDtypeStruct((4,), jnp.float32), np.zeros(2, np.float32)):
+      with pytest.raises(CheckpointError, match=r"the target does not match the checkpoint: 1 "
+                         r"array\(s\) of other shapes, e.g. \['params'\]\['w'\] \([42],\) "
+                         r"\(stored \(3,\)\)"):
+        orbax_io.restore_variables(where, target={"params": {"w": w}})
+    restored, _ = orbax_io.restore_variables(
+        where, target={"params": {"w": jax.ShapeDtypeStruct((3,), jnp.float32)}})
+    np.testing.assert_array_equal(restored["params"]["w"], np.ones(3))
+  with pytest.raises(CheckpointError, match=r"5: the target must be Flax variables "
+                                            r"\{'params': \.\.\.\}, found \['w'\]"):
+    orbax_io.restore_variables(step, target={"w": jax.ShapeDtypeStruct((3,), jnp.float32)})
+
+
 @pytest.mark.parametrize("damage", ["truncated", "deleted", "manifest", "config"])
 def test_corrupt_checkpoint_is_named_as_such(tmp_path, damage, monkeypatch):
   """Damaged files (a copy cut short, a sync that lost files) give one CheckpointError naming
