@@ -492,6 +492,10 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
   check_fps(fps, f"{path}: fps")
   if not path.parent.is_dir():  # OpenCV would only say it cannot open the writer
     raise FileNotFoundError(f"{path}: the folder {path.parent} does not exist")
+  if path.is_dir() and not path.is_symlink():  # (the rename failed once every frame was
+    # written, an iterator's frames consumed, naming the temporary file)
+    raise IsADirectoryError(f"{path} is a folder; name the video file to write (e.g. "
+                            f"{path / ('video' + path.suffix)})")
   streamed = not isinstance(frames, (np.ndarray, list, tuple))
   warned: list[int] = []  # the 0..1 warning is given once per video, not once per frame
   if not streamed:  # all checked before the file is created

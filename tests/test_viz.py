@@ -834,6 +834,17 @@ def test_write_video_refuses_names_it_cannot_write(tmp_path):
   with pytest.raises(ValueError, match="name is not UTF-8 text"):  # (OpenCV crashed on it)
     viz.write_video(tmp_path / "caf\udce9.mp4", frames)
   assert list(tmp_path.iterdir()) == []
+  # A folder of the video's name: refused before any frame is taken (the rename failed once
+  # the whole video was written, an iterator's frames consumed, naming the temporary file).
+  (tmp_path / "out.mp4").mkdir()
+  taken = []
+  def stream():
+    for f in frames:
+      taken.append(f)
+      yield f
+  with pytest.raises(IsADirectoryError, match=r"out\.mp4 is a folder; name the video file"):
+    viz.write_video(tmp_path / "out.mp4", stream())
+  assert taken == [] and sorted(p.name for p in tmp_path.iterdir()) == ["out.mp4"]
 
 
 def test_points_and_ply_bytes_by_hand(tmp_path):
