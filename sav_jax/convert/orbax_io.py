@@ -33,7 +33,7 @@ from sav_jax.convert.pickle_reader import CheckpointError
 
 __all__ = ["save_variables", "restore_variables", "is_variables_checkpoint",
            "find_training_checkpoint", "is_orbax_checkpoint", "checked_restore",
-           "check_target_shapes",
+           "check_target",
            "corrupt_checkpoint_error", "quiet_failed_reads"]
 
 log = logging.getLogger(__name__)
@@ -253,10 +253,12 @@ def restore_variables(directory, target=None):
       the config saved beside them (`{}` for checkpoints from before configs were saved).
     target: optional abstract pytree (e.g. `jax.eval_shape(model.init, ...)`, leaves
       `jax.ShapeDtypeStruct`, with or without shardings) or concrete arrays to restore into
-      (`{"params": ...}` for a training checkpoint); a leaf of another shape than the
-      checkpoint's is refused, named, before anything is read. Without it, the structure, shapes and dtypes come from the saved metadata and arrays
-      are placed on this process's first device (so a checkpoint written on another device
-      or topology, or read by each of several processes, restores too).
+      (`{"params": ...}` for a training checkpoint); one that misses arrays of the
+      checkpoint, has others or other shapes is refused, naming them, before anything is
+      read (`check_target`). Without it, the structure, shapes and dtypes come from the
+      saved metadata and arrays are placed on this process's first device (so a checkpoint
+      written on another device or topology, or read by each of several processes,
+      restores too).
 
   Returns:
     `(variables, config_dict)`.
@@ -279,7 +281,7 @@ def restore_variables(directory, target=None):
     if target is None:
       target = stored
     else:
-      check_target_shapes(directory, target, stored)
+      check_target(directory, target, stored)
     ocp = _ocp()
     args = ocp.args.Composite(variables=ocp.args.StandardRestore(target),
                               config=ocp.args.JsonRestore())
@@ -449,7 +451,7 @@ def _restore_training_params(step: pathlib.Path, target=None):
         raise CheckpointError(f"{step}: the target must be Flax variables {{'params': ...}}, "
                               f"found {found}")
       params = target["params"]
-      check_target_shapes(step, {"params": params}, {"params": stored})
+      check_target(step, {"params": params}, {"params": stored})
     args = {"state": ocp.args.PyTreeRestore(
         {"params": params}, restore_args={"params": ocp.checkpoint_utils.construct_restore_args(
             params)}, partial_restore=True)}  # the optimizer state is not read
@@ -508,22 +510,27 @@ def check_regular_files(directory) -> None:
                               "device): the checkpoint is damaged or not a checkpoint")
 
 
-def check_target_shapes(directory, target, stored) -> None:
-  """Raises CheckpointError where a leaf of `target` has another shape than the same leaf of
-  `stored` (the checkpoint's abstract arrays): orbax checks shapes only for targets with
-  shardings, and restored the others (NumPy arrays, `jax.eval_shape`'s ShapeDtypeStructs) at
-  the stored shape without a word. Leaves of one tree only are left to orbax's own check."""
-  have = {jax.tree_util.keystr(p): tuple(x.shape)
-          for p, x in jax.tree_util.tree_leaves_with_path(stored) if hasattr(x, "shape")}
-  wrong = []
-  for path, x in jax.tree_util.tree_leaves_with_path(target):
-    key = jax.tree_util.keystr(path)
-    shape = tuple(x.shape) if hasattr(x, "shape") else None
-    if key in have and shape is not None and shape != have[key]:
-      wrong.append(f"{key} {shape} (stored {have[key]})")
-  if wrong:
+def check_target(directory, target, stored) -> None:
+  """Raises CheckpointError unless `target` has the arrays of `stored` (the checkpoint's
+  abstract arrays), by name and shape: orbax checks shapes only for targets with shardings
+  (it restored the others, NumPy arrays or `jax.eval_shape`'s ShapeDtypeStructs, at the
+  stored shapes without a word), and a training checkpoint's partial restore (which skips
+  the optimizer state) returned a target's subset of the parameters, or leaves of it that
+  the checkpoint does not hold, as they were."""
+  def arrays(tree):
+    return {jax.tree_util.keystr(p): tuple(x.shape) if hasattr(x, "shape") else None
+            for p, x in jax.tree_util.tree_leaves_with_path(tree)}
+  have, want = arrays(stored), arrays(target)
+  missing, extra = sorted(have.keys() - want.keys()), sorted(want.keys() - have.keys())
+  wrong = [f"{k} {want[k]} (stored {have[k]})" for k in want
+           if k in have and want[k] is not None and want[k] != have[k]]
+  parts = [f"{len(missing)} missing from the target, e.g. {', '.join(missing[:3])}"
+           if missing else "",
+           f"{len(extra)} not in the checkpoint, e.g. {', '.join(extra[:3])}" if extra else "",
+           f"{len(wrong)} array(s) of other shapes, e.g. {', '.join(wrong[:3])}" if wrong else ""]
+  if missing or extra or wrong:
     raise CheckpointError(f"{directory}: the target does not match the checkpoint: "
-                          f"{len(wrong)} array(s) of other shapes, e.g. {', '.join(wrong[:3])}")
+                          + "; ".join(p for p in parts if p))
 
 
 def _target_from_metadata(reader, directory, item, key=None):

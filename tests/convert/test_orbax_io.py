@@ -188,11 +188,13 @@ def test_bad_inputs(tmp_path):
 def test_mismatched_target(tmp_path):
   orbax_io.save_variables(tmp_path / "ckpt", {"params": {"w": jnp.ones(2)}}, {})
   target = {"params": {"other": jax.ShapeDtypeStruct((2,), jnp.float32)}}
-  with pytest.raises(CheckpointError, match="cannot restore"):
+  with pytest.raises(CheckpointError, match=r"the target does not match the checkpoint: 1 "
+                     r"missing from the target, e.g. \['params'\]\['w'\]; 1 not in the "
+                     r"checkpoint, e.g. \['params'\]\['other'\]$"):
     orbax_io.restore_variables(tmp_path / "ckpt", target=target)
 
 
-def test_a_target_of_other_shapes_is_refused_also_without_shardings(tmp_path):
+def test_a_target_of_other_arrays_is_refused_also_without_shardings(tmp_path):
   # Orbax checks shapes only for targets with shardings: a jax.eval_shape target (or NumPy
   # arrays) of another model came back silently at the stored shapes, as NumPy arrays.
   import orbax.checkpoint as ocp  # pylint: disable=import-outside-toplevel
@@ -213,6 +215,14 @@ def test_a_target_of_other_shapes_is_refused_also_without_shardings(tmp_path):
   with pytest.raises(CheckpointError, match=r"5: the target must be Flax variables "
                                             r"\{'params': \.\.\.\}, found \['w'\]"):
     orbax_io.restore_variables(step, target={"w": jax.ShapeDtypeStruct((3,), jnp.float32)})
+  # A training checkpoint's partial restore (it skips the optimizer state) returned a subset
+  # of the parameters, or a target's leaf the checkpoint does not hold, as they were.
+  w, v = jax.ShapeDtypeStruct((3,), jnp.float32), jax.ShapeDtypeStruct((1,), jnp.float32)
+  for target, problem in (
+      ({}, r"1 missing from the target, e.g. \['params'\]\['w'\]$"),
+      ({"w": w, "v": v}, r"1 not in the checkpoint, e.g. \['params'\]\['v'\]$")):
+    with pytest.raises(CheckpointError, match=problem):
+      orbax_io.restore_variables(step, target={"params": target})
 
 
 @pytest.mark.parametrize("damage", ["truncated", "deleted", "manifest", "config"])
