@@ -331,6 +331,11 @@ def read_npy(path: PathLike) -> np.ndarray:
     raise ValueError(f"cannot read npy file {path}: {type(e).__name__}: {e}") from e
   except MemoryError as e:  # a header declaring a huge shape
     raise MemoryError(f"{path}: out of host memory reading the npy file") from e
+  if not isinstance(arr, np.ndarray):  # np.load opens an .npz archive whatever its name
+    names = ", ".join(arr.files)
+    arr.close()
+    raise ValueError(f"{path}: an .npz archive (of {names or 'no arrays'}) under an .npy name; "
+                     "expected one array as np.save writes it")
   return _real_numbers(arr, path)
 
 
@@ -359,7 +364,16 @@ def read_npz(path: PathLike) -> dict[str, np.ndarray]:
   """All arrays of an `.npz` archive (Infinigen camview: `K`, `T`)."""
   path = require_file(path, "npz file")
   try:
-    with np.load(path, allow_pickle=False) as z:
+    loaded = np.load(path, allow_pickle=False)
+  except _CORRUPT_ARCHIVE as e:
+    raise ValueError(f"cannot read npz file {path}: {type(e).__name__}: {e}") from e
+  except MemoryError as e:
+    raise MemoryError(f"{path}: out of host memory reading the npz file") from e
+  if not isinstance(loaded, np.lib.npyio.NpzFile):  # np.load reads an .npy whatever its name
+    raise ValueError(f"{path}: a single .npy array of shape {loaded.shape} under an .npz name; "
+                     "expected an .npz archive of named arrays (np.savez)")
+  try:
+    with loaded as z:
       # a few MB inflating to GB (a camera file is ~1 kB): the converter's bound on .npz
       from sav_jax.convert.pickle_reader import check_inflation  # pylint: disable=import-outside-toplevel
       check_inflation(z.zip, path, "a dataset's arrays", "camera and depth arrays shrink "

@@ -282,6 +282,24 @@ def test_an_npy_too_large_for_memory_names_the_file(tmp_path, monkeypatch):
     frame_io.read_npy(tmp_path / "d.npy")
 
 
+def test_an_npz_under_an_npy_name_and_the_reverse_are_named(tmp_path):
+  """np.load opens either format whatever the file's name (np.savez to an open file named
+  .npy keeps that name): an archive as depth or disparity, or one array as an Infinigen camera,
+  went through as an AttributeError or TypeError naming no file."""
+  with open(tmp_path / "d.npy", "wb") as f:
+    np.savez(f, depth=np.ones((2, 3), np.float32))
+  with pytest.raises(ValueError, match=r"d\.npy: an \.npz archive \(of depth\) under an \.npy "
+                     r"name; expected one array as np\.save writes it"):
+    frame_io.read_npy(tmp_path / "d.npy")
+  with pytest.raises(ValueError, match=r"d\.npy: an \.npz archive"):
+    frame_io.read_depth_npy(tmp_path / "d.npy")
+  with open(tmp_path / "cam.npz", "wb") as f:
+    np.save(f, np.eye(3))
+  with pytest.raises(ValueError, match=r"cam\.npz: a single \.npy array of shape \(3, 3\) under "
+                     r"an \.npz name"):
+    frame_io.read_npz(tmp_path / "cam.npz")
+
+
 def test_npy_and_npz(tmp_path):
   arr = RNG.random((3, 4)).astype(np.float32)
   np.save(tmp_path / "d.npy", arr)
