@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 from pathlib import Path
 from typing import NamedTuple
 
@@ -23,7 +24,8 @@ import numpy as np
 from sav_jax._checks import is_int
 from sav_jax.data import (dynamic_replica, infinigen, kitti_depth, sceneflow, sintel,
                           south_kensington, spring, stereo_folder, tartanair, vkitti2)
-from sav_jax.data.base import StereoSequence, find_root, sceneflow_clips, strided_clips
+from sav_jax.data.base import (StereoSequence, find_root, is_hidden, sceneflow_clips,
+                               strided_clips)
 
 log = logging.getLogger(__name__)
 
@@ -231,7 +233,7 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
   except FileNotFoundError as e:  # where the root was taken for the dataset's own folder
     folders, base = _FOLDERS[dataset], Path(root).expanduser()
     if (not folders or not base.is_dir() or base.name in folders  # (its own folder, incomplete)
-        or any((base / f).is_dir() for f in folders)):
+        or any((base / f).is_dir() for f in folders) or _names_a_path_inside(base, e)):
       raise
     names = " or ".join(f"{f}/" for f in folders)
     inside = next((a for a in base.resolve().parents if a.name in folders), None)
@@ -247,6 +249,17 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
   else:
     length = max_frames
   return eval_chunk(seqs, length, drop_short=dataset in DROP_SHORT)
+
+
+def _names_a_path_inside(base: Path, error: Exception) -> bool:
+  """Whether `error` names a path inside one of `base`'s folders: the reader took `base` as
+  the dataset's folder (one renamed, e.g. `DR/` for `dynamic_replica_data/`, reads as well)
+  and something in it is missing, so `base` is not to be called "not the dataset's folder"."""
+  text = str(error)
+  try:
+    return any(f"{d}{os.sep}" in text for d in base.iterdir() if d.is_dir() and not is_hidden(d))
+  except OSError:  # an unreadable root: the hint stays
+    return False
 
 
 def get_consecutive_clips(dataset: str, root: str | Path, frames: int, split: str, *,

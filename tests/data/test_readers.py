@@ -128,6 +128,27 @@ def test_a_root_without_the_dataset_folder_is_named(tmp_path, dataset):
     registry.get_sequences(dataset, own, registry.SPLITS[dataset][0])
   assert "is not one either" not in str(e.value) and str(own) in str(e.value)
 
+def test_a_renamed_dataset_folder_missing_a_file_is_not_called_the_wrong_root(tmp_path):
+  """A dataset's folder under another name reads as that folder; a file missing in it was
+  reported with "(ROOT holds no dynamic_replica_data/ folder and is not one either: pass the
+  datasets folder ...)", sending the user to look for a wrong root instead of the file."""
+  _dynamic_replica(tmp_path, np.random.default_rng(0), "test", [("seq_a", 3, "ndc_isotropic")])
+  _sintel(tmp_path / "s", np.random.default_rng(1))
+  dr, sintel = tmp_path / "DR", tmp_path / "Sintel"
+  (tmp_path / "dynamic_replica_data").rename(dr)
+  (tmp_path / "s" / "sintel_stereo").rename(sintel)
+  assert len(registry.get_sequences("dynamic_replica", dr, "test", max_frames=None)) == 1
+  assert len(registry.get_sequences("sintel_final", sintel, "test")) == 2
+  (dr / "test" / "seq_a" / "depths" / "right_000002.geometric.png").unlink()
+  shutil.rmtree(sintel / "training" / "camdata_left" / "cave_2")
+  for dataset, root, missing in (
+      ("dynamic_replica", dr, "depths/right_000002.geometric.png"),
+      ("sintel_final", sintel, "camdata_left/cave_2")):
+    with pytest.raises(FileNotFoundError, match=re.escape(missing)) as e:
+      registry.get_sequences(dataset, root, "test", max_frames=None)
+    assert "is not one either" not in str(e.value)
+
+
 def test_sceneflow_nan_disparity_and_broken_links(tmp_path):
   truth = _sceneflow(tmp_path, np.random.default_rng(1), frames=2)
   gt = tmp_path / "Monkaa/disparity/a_rain_of_stones_x2/left/0006.pfm"
