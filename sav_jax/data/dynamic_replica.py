@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import gzip
 import math
+import zlib
 from pathlib import Path
 
 from sav_jax._checks import loads_json
@@ -40,7 +41,7 @@ def _records(split_dir: Path, split: str) -> list[dict]:
   try:
     with gzip.open(path, "rt", encoding="utf8") as f:
       records = loads_json(f.read())
-  except (OSError, EOFError, ValueError) as e:
+  except (OSError, EOFError, ValueError, zlib.error) as e:  # (zlib's: a damaged byte)
     raise ValueError(f"cannot read Dynamic Replica annotations {path}: {e}") from e
   if not isinstance(records, list):
     raise ValueError(f"{path}: expected a JSON list of frame records")

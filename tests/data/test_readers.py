@@ -461,6 +461,24 @@ def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch, caplog)
          "after 1 (next 3; usually +1" in caplog.text
 
 
+def test_a_damaged_dynamic_replica_annotation_file_is_named(tmp_path):
+  """A byte changed in the gzip stream (a bad copy) raised zlib.error ("Error -3 while
+  decompressing data: invalid distance too far back"), naming no file."""
+  _dynamic_replica(tmp_path, np.random.default_rng(5), "test", [("s", 2, "ndc_isotropic")])
+  index = tmp_path / "dynamic_replica_data/test/frame_annotations_test.jgz"
+  data = index.read_bytes()
+  refused = 0
+  for i in range(0, len(data), 5):  # (a byte of the header's time stamp or name changes nothing)
+    index.write_bytes(data[:i] + bytes([data[i] ^ 0x5A]) + data[i + 1:])
+    try:
+      registry.get_sequences("dynamic_replica", tmp_path, "test", max_frames=None)
+    except ValueError as e:
+      assert re.search(r"cannot read Dynamic Replica annotations .*frame_annotations_test\.jgz",
+                       str(e)), e
+      refused += 1
+  assert refused > len(data) // 10
+
+
 def _infinigen(root, rng, split, scenes, fy=400.0):
   truth = {}
   for scene, n in scenes:
