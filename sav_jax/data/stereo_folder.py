@@ -32,7 +32,7 @@ import numpy as np
 from sav_jax import viz
 from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key,
-                               list_dirs, list_files, require_dir)
+                               list_dirs, list_files, refuse_broken_links, require_dir)
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +107,8 @@ def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[S
              "right": list_files(require_dir(seq_dir / "right", "right/ folder"),
                                  *IMAGE_SUFFIXES)}
     sparse = False
+    # a link to a missing disparity/ or calibration file: the sequence read without them
+    refuse_broken_links([seq_dir / "disparity", *(seq_dir / n for n in CALIBRATION_FILES)])
     if (seq_dir / "disparity").is_dir():
       gt = list_files(seq_dir / "disparity", *DISPARITY_SUFFIXES)
       kinds = sorted({p.suffix.lower() for p in gt})

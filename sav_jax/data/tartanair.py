@@ -23,7 +23,7 @@ from pathlib import Path
 
 from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, digits_key, find_root,
-                               list_dirs, list_files, some_of)
+                               list_dirs, list_files, refuse_broken_links, some_of)
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +63,7 @@ def _sequence_dirs(root: Path) -> list[tuple[tuple[str, str, str], Path]]:
   by name, Easy before Hard, parts by name."""
   out = []
   for scene in list_dirs(root):
+    refuse_broken_links([scene / d for d in DIFFICULTIES])  # (its sequences were left out)
     for difficulty in DIFFICULTIES:
       if (scene / difficulty).is_dir():
         out += [((scene.name, difficulty, part.name), part)

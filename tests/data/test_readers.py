@@ -1177,6 +1177,32 @@ def test_tartanair_splits_depth_and_clips(tmp_path, caplog):
     registry.get_sequences("tartanair", tmp_path, "val")
 
 
+def test_links_to_missing_folders_are_named_not_left_out(tmp_path):
+  """A TartanAir `<scene>/Hard` or a folder sequence's `disparity/` (or calibration file) that
+  is a link to nothing: its sequences were left out, or the sequence read without ground truth
+  or calibration, silently."""
+  _tartanair(tmp_path, np.random.default_rng(0), [("abandonedfactory", "Easy", "P000"),
+                                                  ("abandonedfactory", "Hard", "P001")])
+  assert len(registry.get_sequences("tartanair", tmp_path, "train")) == 2
+  hard = tmp_path / "TartanAir/abandonedfactory/Hard"
+  shutil.rmtree(hard)
+  hard.symlink_to(tmp_path / "elsewhere")
+  with pytest.raises(FileNotFoundError, match=r"abandonedfactory/Hard: a symbolic link to a "
+                     "missing file or folder"):
+    registry.get_sequences("tartanair", tmp_path, "train")
+  _own_videos(tmp_path / "mine", np.random.default_rng(1))
+  lab = tmp_path / "mine/test/lab"
+  for name in ("disparity", "calib.txt"):
+    moved = tmp_path / f"moved_{name}"
+    (lab / name).rename(moved)
+    (lab / name).symlink_to(tmp_path / "gone")
+    with pytest.raises(FileNotFoundError, match=rf"lab/{name}: a symbolic link to a missing"):
+      registry.get_sequences("folder", tmp_path / "mine", "test")
+    (lab / name).unlink()
+    moved.rename(lab / name)
+  assert registry.get_sequences("folder", tmp_path / "mine", "test")[0].has_gt
+
+
 def test_long_lists_in_log_lines_are_cut():
   assert base.some_of(list("abc")) == "a, b, c"
   assert base.some_of(list("abcdefgh")) == "a, b, c, d, e, f, ... (2 more)"
