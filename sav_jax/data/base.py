@@ -253,6 +253,7 @@ def find_root(root, *names: str) -> Path:
     raise NotADirectoryError(f"dataset root {root} is a file, not a folder")
   if not root.is_dir():
     raise FileNotFoundError(f"dataset root not found: {root}")
+  refuse_broken_links([root / name for name in names])  # (not "the root holds no <name>/")
   for name in names:
     if (root / name).is_dir():
       return root / name

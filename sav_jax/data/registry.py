@@ -233,7 +233,8 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
   except FileNotFoundError as e:  # where the root was taken for the dataset's own folder
     folders, base = _FOLDERS[dataset], Path(root).expanduser()
     if (not folders or not base.is_dir() or base.name in folders  # (its own folder, incomplete)
-        or any((base / f).is_dir() for f in folders) or _names_a_path_inside(base, e)):
+        or any((base / f).is_dir() or (base / f).is_symlink() for f in folders)
+        or _names_a_path_inside(base, e)):
       raise
     names = " or ".join(f"{f}/" for f in folders)
     inside = next((a for a in base.resolve().parents if a.name in folders), None)

@@ -128,6 +128,18 @@ def test_a_root_without_the_dataset_folder_is_named(tmp_path, dataset):
     registry.get_sequences(dataset, own, registry.SPLITS[dataset][0])
   assert "is not one either" not in str(e.value) and str(own) in str(e.value)
 
+@pytest.mark.parametrize("dataset", [d for d in registry.DATASETS if d != "folder"])
+def test_a_dataset_folder_linked_to_nothing_is_named(tmp_path, dataset):
+  """`data/datasets/<folder>` a link to a missing folder (storage not mounted): the error said
+  the root "holds no <folder>/ folder and is not one either", not that the link is broken."""
+  folder = registry._FOLDERS[dataset][0]  # pylint: disable=protected-access
+  (tmp_path / folder).symlink_to(tmp_path / "unmounted")
+  with pytest.raises(FileNotFoundError, match=rf"{re.escape(folder)}: a symbolic link to a "
+                     "missing file or folder") as e:
+    registry.get_sequences(dataset, tmp_path, registry.SPLITS[dataset][0])
+  assert "is not one either" not in str(e.value)
+
+
 def test_a_renamed_dataset_folder_missing_a_file_is_not_called_the_wrong_root(tmp_path):
   """A dataset's folder under another name reads as that folder; a file missing in it was
   reported with "(ROOT holds no dynamic_replica_data/ folder and is not one either: pass the
