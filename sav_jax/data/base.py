@@ -264,6 +264,10 @@ def require_dir(path: Path, what: str = "directory") -> Path:
   """Returns `path`; raises FileNotFoundError naming it when it is not a directory (and,
   where the folder is there one level deeper, the extra folder an archive unpacked into)."""
   if not Path(path).is_dir():
+    part = Path(path)
+    while not part.exists() and part != part.parent:  # a link to nothing on the way: named
+      refuse_broken_links([part])
+      part = part.parent
     raise FileNotFoundError(f"{what} not found: {path}{_nested_hint(Path(path))}")
   return Path(path)
 

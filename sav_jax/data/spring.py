@@ -27,7 +27,7 @@ import numpy as np
 
 from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key, find_root,
-                               list_dirs, list_files)
+                               list_dirs, list_files, refuse_broken_links)
 
 # The dataset's folder under a datasets root (the root may also be that folder itself).
 FOLDERS = ("Spring", "spring")
@@ -56,6 +56,7 @@ def read_fx(path: Path) -> float:
 
 def _layout(root: Path):
   """Sequence names and a function seq -> its four folders."""
+  refuse_broken_links([root / "train_frame_left", root / "train"])  # (not "no Spring data")
   if (root / "train_frame_left").is_dir() and (root / "train").is_dir():
     raise ValueError(f"Spring data under {root} in two layouts: train_frame_left/ (and its "
                      "train_* siblings) and train/<seq>/; keep one (the other's sequences "

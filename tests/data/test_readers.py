@@ -1215,6 +1215,23 @@ def test_links_to_missing_folders_are_named_not_left_out(tmp_path):
   assert registry.get_sequences("folder", tmp_path / "mine", "test")[0].has_gt
 
 
+def test_a_link_to_nothing_above_a_missing_folder_is_named(tmp_path):
+  """A folder a reader needs lying behind a link to nothing (Sintel's `camdata_left/`, Spring's
+  `train/`) was reported as "directory not found: .../camdata_left/alley_1", or as "no Spring
+  data under ...: neither train_frame_left/ nor train/ exists", not as the link it is."""
+  _sintel(tmp_path, np.random.default_rng(2))
+  cams = tmp_path / "sintel_stereo/training/camdata_left"
+  shutil.rmtree(cams)
+  cams.symlink_to(tmp_path / "unmounted")
+  with pytest.raises(FileNotFoundError, match=r"training/camdata_left: a symbolic link to a "
+                     r"missing file or folder, or a loop of links \(.*unmounted\)"):
+    registry.get_sequences("sintel_final", tmp_path, "test")
+  (tmp_path / "Spring").mkdir()
+  (tmp_path / "Spring" / "train").symlink_to(tmp_path / "unmounted")
+  with pytest.raises(FileNotFoundError, match=r"Spring/train: a symbolic link to a missing"):
+    registry.get_sequences("spring", tmp_path, "test")
+
+
 def test_long_lists_in_log_lines_are_cut():
   assert base.some_of(list("abc")) == "a, b, c"
   assert base.some_of(list("abcdefgh")) == "a, b, c, d, e, f, ... (2 more)"
