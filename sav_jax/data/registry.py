@@ -257,8 +257,10 @@ def _names_a_path_inside(base: Path, error: Exception) -> bool:
   the dataset's folder (one renamed, e.g. `DR/` for `dynamic_replica_data/`, reads as well)
   and something in it is missing, so `base` is not to be called "not the dataset's folder"."""
   text = str(error)
+  others = {f for folders in _FOLDERS.values() for f in folders}  # a datasets folder's, not in one
   try:
-    return any(f"{d}{os.sep}" in text for d in base.iterdir() if d.is_dir() and not is_hidden(d))
+    return any(f"{d}{os.sep}" in text for d in base.iterdir()
+               if d.is_dir() and not is_hidden(d) and d.name not in others)
   except OSError:  # an unreadable root: the hint stays
     return False
 

@@ -159,6 +159,11 @@ def test_a_renamed_dataset_folder_missing_a_file_is_not_called_the_wrong_root(tm
     with pytest.raises(FileNotFoundError, match=re.escape(missing)) as e:
       registry.get_sequences(dataset, root, "test", max_frames=None)
     assert "is not one either" not in str(e.value)
+  # a datasets folder (another dataset's folder in it, read as a sequence) keeps the hint
+  (tmp_path / "kitti_depth").mkdir()
+  (tmp_path / "kitti_depth" / "README.txt").write_text("Intrinsic: [[1 0 0] [0 1 0] [0 0 1]]")
+  with pytest.raises(FileNotFoundError, match="is not one either"):
+    registry.get_sequences("south_kensington", tmp_path, "test")
 
 
 def test_sceneflow_nan_disparity_and_broken_links(tmp_path):
