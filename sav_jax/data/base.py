@@ -264,12 +264,18 @@ def require_dir(path: Path, what: str = "directory") -> Path:
   """Returns `path`; raises FileNotFoundError naming it when it is not a directory (and,
   where the folder is there one level deeper, the extra folder an archive unpacked into)."""
   if not Path(path).is_dir():
-    part = Path(path)
-    while not part.exists() and part != part.parent:  # a link to nothing on the way: named
-      refuse_broken_links([part])
-      part = part.parent
+    refuse_broken_links_to(path)
     raise FileNotFoundError(f"{what} not found: {path}{_nested_hint(Path(path))}")
   return Path(path)
+
+
+def refuse_broken_links_to(path: Path) -> None:
+  """Raises FileNotFoundError naming the link where `path`, missing, is missing because it or
+  a folder above it is a link to nothing (storage not mounted); else does nothing."""
+  part = Path(path)
+  while not part.exists() and part != part.parent:
+    refuse_broken_links([part])
+    part = part.parent
 
 
 def _nested_hint(path: Path, most: int = 1000) -> str:

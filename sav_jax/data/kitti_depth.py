@@ -25,7 +25,8 @@ import numpy as np
 
 from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, find_root,
-                               list_dirs, list_files, require_dir, some_of)
+                               list_dirs, list_files, refuse_broken_links_to, require_dir,
+                               some_of)
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +127,8 @@ def load_sequences(root, split: str, dataset: str = "kitti_depth"):
   if missing:
     raise FileNotFoundError(f"KITTI Depth {split} drives missing from {gt_root}: {missing}")
   if split == "train":
+    for d in drives:  # (a link to nothing is named, not taken for images not downloaded)
+      refuse_broken_links_to(root / "input" / d[:10] / d)
     no_images = [d for d in drives if not (root / "input" / d[:10] / d).is_dir()]
     if no_images:  # one line for all of them
       log.warning("KITTI Depth: skipping %d training drive(s) without raw images under %s: "

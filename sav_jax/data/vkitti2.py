@@ -20,7 +20,7 @@ from pathlib import Path
 
 from sav_jax.data import frame_io
 from sav_jax.data.base import (DepthSequence, camera_scale, check_matching, digits_key, find_root,
-                               list_files, some_of)
+                               list_files, refuse_broken_links_to, some_of)
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +80,7 @@ def load_sequences(root, split: str, dataset: str = "vkitti2"):
   seqs, missing = [], []
   for name in names:
     scene, variation = name.split("_", 1)
+    refuse_broken_links_to(root / scene / variation)  # (not taken for a sequence not there)
     if split == "train" and not (root / scene / variation).is_dir():
       missing.append(f"{scene}/{variation}")
       continue

@@ -1237,6 +1237,25 @@ def test_a_link_to_nothing_above_a_missing_folder_is_named(tmp_path):
     registry.get_sequences("spring", tmp_path, "test")
 
 
+def test_training_data_behind_a_link_to_nothing_is_named_not_skipped(tmp_path):
+  """KITTI raw images or a VKITTI2 sequence behind a link to nothing (storage not mounted) were
+  taken for data not downloaded: the drives and sequences were skipped with a warning that said
+  so, and training went on without them."""
+  train = ("2011_09_26_drive_0001_sync",)
+  _kitti(tmp_path, np.random.default_rng(13), train + ("2011_09_28_drive_0002_sync",), n=1)
+  date = tmp_path / "kitti_depth/input/2011_09_26"
+  date.rename(tmp_path / "moved")
+  date.symlink_to(tmp_path / "unmounted")
+  with pytest.raises(FileNotFoundError, match=r"input/2011_09_26: a symbolic link to a missing"):
+    registry.get_sequences("kitti_depth", tmp_path, "train")
+  _vkitti2(tmp_path, np.random.default_rng(14), ("Scene01_clone", "Scene02_fog"))
+  fog = tmp_path / "vkitti2/Scene02/fog"
+  shutil.rmtree(fog)
+  fog.symlink_to(tmp_path / "unmounted")
+  with pytest.raises(FileNotFoundError, match=r"Scene02/fog: a symbolic link to a missing"):
+    registry.get_sequences("vkitti2", tmp_path, "train")
+
+
 def test_long_lists_in_log_lines_are_cut():
   assert base.some_of(list("abc")) == "a, b, c"
   assert base.some_of(list("abcdefgh")) == "a, b, c, d, e, f, ... (2 more)"
