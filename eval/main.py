@@ -105,6 +105,9 @@ def run(args, overrides) -> int:
   config = eval_config.apply_overrides(config, overrides)
   if not (is_int(config.iters) and config.iters >= 2):
     raise ValueError(f"config.iters must be an integer >= 2, got {config.iters!r}")
+  for field in ("sample_len", "max_sequences"):  # a config file may set None
+    if not is_int(config[field]):
+      raise ValueError(f"config.{field} must be an integer (<= 0: all), got {config[field]!r}")
   if config.dtype not in DTYPES:  # before the checkpoint is read
     raise ValueError(f"config.dtype must be one of {DTYPES}, got {config.dtype!r}")
   if config.matmul_precision not in runtime.MATMUL_PRECISIONS:

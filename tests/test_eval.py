@@ -620,6 +620,17 @@ def test_a_config_that_is_not_an_evaluation_config_is_named(tmp_path, ckpt, caps
   assert (f"{old} is not an evaluation config: it lacks plots.enabled, plots.strip_frames, "
           "plots.tile_size; evaluation configs build on") in err, err
   assert not (tmp_path / "o").exists()
+  # None ("all frames"?) in a config file: ConfigDict takes it for any field; it was a
+  # TypeError traceback from the sequence loader (int(None), None > 0)
+  for field in ("sample_len", "max_sequences"):
+    old.write_text("from configs.eval.common import eval_config\n"
+                   f"def get_config():\n  c = eval_config('synthetic')\n  c.{field} = None\n"
+                   "  return c\n")
+    assert main(["--config", str(old), "--checkpoint", str(ckpt),
+                 "--out", str(tmp_path / "o")]) == 2
+    assert capsys.readouterr().err == (f"eval: error: config.{field} must be an integer "
+                                       "(<= 0: all), got None\n")
+  assert not (tmp_path / "o").exists()
 
 
 def test_help_lists_the_config_fields_with_their_defaults(capsys):
