@@ -63,7 +63,8 @@ def check_fields(config: ml_collections.ConfigDict, spec: str) -> None:
   """Raises ValueError naming the fields of an evaluation config (`configs/eval/common.py`)
   that `config`, loaded from `spec`, lacks: e.g. a training config given by mistake."""
   from configs.eval import common  # pylint: disable=import-outside-toplevel
-  missing = sorted(set(_flat_names(common.eval_config("x"))) - set(_flat_names(config)))
+  fields = _flat_names(common.eval_config("x", sample_len=-1))
+  missing = sorted(set(fields) - set(_flat_names(config)))
   if not missing:
     return
   training = "train" in config or "optimizer" in config
@@ -79,7 +80,7 @@ def fields_help() -> str:
   """The fields every evaluation config has, with `configs/eval/common.py`'s defaults (the
   dataset's own config sets `dataset`, `split` and `sample_len`): `python -m eval --help`."""
   from configs.eval import common  # pylint: disable=import-outside-toplevel
-  config = common.eval_config("<dataset>")
+  config = common.eval_config("<dataset>", sample_len=-1)
   shown = [f"{name}={value!r}" for name, value in _flat_items(config)
            if name not in ("dataset", "split", "sample_len")]
   return ("config fields, overridden with --config.<field>=<value> (the dataset's config sets "

@@ -816,6 +816,35 @@ def test_your_own_videos_in_the_folder_layout(tmp_path, ckpt):
   assert np.load(out / "predictions" / "b.npy").shape == (T, H, W)  # but its predictions
 
 
+def test_a_registered_datasets_eval_frames_are_what_eval_evaluates(tmp_path, ckpt, monkeypatch):
+  """`register_dataset(..., eval_frames=L)` in one's evaluation config, which then calls
+  `eval_config(name)`: the first L frames of each test sequence are evaluated, as
+  `get_sequences` cuts them (every frame was: eval_config's default sample_len was -1)."""
+  from sav_jax.data import registry
+  for name in ("_LOADERS", "_FOLDERS", "SPLITS", "EVAL_FRAMES"):
+    monkeypatch.setattr(registry, name, dict(getattr(registry, name)))
+  for name in ("DATASETS", "STRIDED", "_SCENEFLOW"):
+    monkeypatch.setattr(registry, name, getattr(registry, name))
+  _folder_dataset(tmp_path / "mine", np.random.default_rng(3))  # a: 3, b: 5, c: 2 frames
+  config = tmp_path / "mine.py"
+  config.write_text("from sav_jax.data import registry, stereo_folder\n"
+                    "registry.register_dataset('mine', stereo_folder.load_sequences, "
+                    "splits=('test',), training=None, eval_frames=2)\n"
+                    "from configs.eval.common import eval_config\n"
+                    "def get_config():\n  return eval_config('mine')\n")
+  monkeypatch.setattr(eval_runner.inference, "predict_video",
+                      lambda variables, left, right, **kw: _stand_in_prediction(left))
+  for extra, frames in (([], [2, 2, 2]), (["--config.sample_len=0"], [3, 5, 2])):
+    out = tmp_path / f"out{len(extra)}"
+    assert main(["--config", str(config), "--checkpoint", str(ckpt), "--data-root",
+                 str(tmp_path / "mine"), "--out", str(out), "--config.plots.enabled=false",
+                 *extra]) == 0
+    summary = json.loads((out / "results.json").read_text())
+    assert [s["frames"] for s in summary["sequences"]] == frames, extra
+    assert summary["config"]["sample_len"] == (2 if not extra else 0)
+  assert eval_config.load_config(str(CONFIGS / "folder.py")).sample_len == -1  # none: whole
+
+
 def test_resume_reads_the_sequences_from_the_same_folder(tmp_path, ckpt, capsys, monkeypatch):
   # An interrupted run over one copy of the dataset is not resumed over another copy (its
   # finished sequences' metrics would be those of other files), but is over the same files

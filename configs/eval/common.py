@@ -1,24 +1,30 @@
 """The fields every evaluation config shares (the official SAV evaluation protocol).
 
 Each `configs/eval/<dataset>.py` calls `eval_config(...)` with its dataset name, split
-and number of evaluated frames per sequence (`datasets.md`, section 2).
+and number of evaluated frames per sequence (`datasets.md`, section 2); a dataset registered
+with `register_dataset(..., eval_frames=L)` gets L when `sample_len` is not given.
 """
 
 import ml_collections
 
 
-def eval_config(dataset: str, split: str = "test", sample_len: int = -1
+def eval_config(dataset: str, split: str = "test", sample_len: int | None = None
                 ) -> ml_collections.ConfigDict:
   """Evaluation config of one dataset.
 
   Args:
     dataset: registry name (`sav_jax.data.registry.DATASETS`) or "synthetic".
     split: dataset split.
-    sample_len: frames evaluated per sequence, from the first one (<= 0: all frames).
+    sample_len: frames evaluated per sequence, from the first one (<= 0: all frames); None:
+      the dataset's own for its "test" split (`sav_jax.data.registry.EVAL_FRAMES`: the
+      official ones, or `register_dataset(..., eval_frames=L)`'s), else all frames.
 
   Returns:
     The ConfigDict (override any field with `--config.<field>=<value>`).
   """
+  if sample_len is None:
+    from sav_jax.data import registry  # pylint: disable=import-outside-toplevel
+    sample_len = registry.EVAL_FRAMES.get(dataset, -1) if split == "test" else -1
   c = ml_collections.ConfigDict()
   # Dataset name, as the registry knows it.
   c.dataset = dataset
