@@ -61,11 +61,18 @@ def load_config(spec: str) -> ml_collections.ConfigDict:
 
 def check_fields(config: ml_collections.ConfigDict, spec: str) -> None:
   """Raises ValueError naming the fields of an evaluation config (`configs/eval/common.py`)
-  that `config`, loaded from `spec`, lacks: e.g. a training config given by mistake."""
+  that `config`, loaded from `spec`, lacks (e.g. a training config given by mistake), or
+  the fields it has that none has (a misspelt name, which nothing would read); the block
+  `synthetic` is the synthetic set's (`eval.data`)."""
   from configs.eval import common  # pylint: disable=import-outside-toplevel
-  fields = _flat_names(common.eval_config("x", sample_len=-1))
-  missing = sorted(set(fields) - set(_flat_names(config)))
+  fields = set(_flat_names(common.eval_config("x", sample_len=-1)))
+  missing = sorted(fields - set(_flat_names(config)))
   if not missing:
+    unknown = sorted(name for name in set(_flat_names(config)) - fields
+                     if name.split(".")[0] != "synthetic")
+    if unknown:
+      raise ValueError(f"{spec}: no such config field {', '.join(unknown)} (misspelt? it would "
+                       "be ignored; python -m eval --help lists the fields)")
     return
   training = "train" in config or "optimizer" in config
   raise ValueError(

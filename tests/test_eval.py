@@ -620,6 +620,14 @@ def test_a_config_that_is_not_an_evaluation_config_is_named(tmp_path, ckpt, caps
   assert (f"{old} is not an evaluation config: it lacks plots.enabled, plots.strip_frames, "
           "plots.tile_size; evaluation configs build on") in err, err
   assert not (tmp_path / "o").exists()
+  # A misspelt field, which nothing reads, is named (the run evaluated every frame, with plots)
+  old.write_text("from configs.eval.common import eval_config\n"
+                 "def get_config():\n  c = eval_config('synthetic')\n  c.sample_length = 2\n"
+                 "  c.plots.enable = False\n  return c\n")
+  assert main(["--config", str(old), "--checkpoint", str(ckpt), "--out", str(tmp_path / "o")]) == 2
+  assert capsys.readouterr().err == (
+      f"eval: error: {old}: no such config field plots.enable, sample_length (misspelt? it "
+      "would be ignored; python -m eval --help lists the fields)\n")
   # None ("all frames"?) in a config file: ConfigDict takes it for any field; it was a
   # TypeError traceback from the sequence loader (int(None), None > 0)
   for field in ("sample_len", "max_sequences"):
