@@ -6,12 +6,14 @@ import numpy as np
 
 def epe_tepe_by_hand(pred, gt, valid, taus=(0.5, 1, 2, 3)) -> dict[str, float]:
   """EPE / TEPE and their bad-N rates of `[T, H, W]` arrays: pred x round(valid), |gt|, both
-  zeroed where valid <= 0.5; errors |x - y| per pixel and ||x_t - x_t+1| - |y_t - y_t+1|| per
-  pixel pair valid in both frames; each mean and rate (in %) over the non-zero errors. Keys
+  zeroed where valid <= 0.5, then NaN in the ground truth 0 (at valid pixels too); errors
+  |x - y| per pixel and ||x_t - x_t+1| - |y_t - y_t+1|| per pixel pair valid in both frames;
+  each mean and rate (in %) over the non-zero errors. Keys
   `epe_mean`, `epe_bad_{tau}px`, `temp_epe_mean`, `temp_epe_bad_{tau}px` (tau as `%g`)."""
   keep = np.asarray(valid, np.float32) > 0.5
   x = np.where(keep, np.asarray(pred, np.float32), np.float32(0))
   y = np.where(keep, np.abs(np.asarray(gt, np.float32)), np.float32(0))
+  y[np.isnan(y)] = 0
   both = keep[1:] & keep[:-1]
   errors = {"epe": np.abs(x - y),
             "temp_epe": np.where(both, np.abs(np.abs(x[1:] - x[:-1]) - np.abs(y[1:] - y[:-1])),

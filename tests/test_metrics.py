@@ -169,6 +169,21 @@ def test_nan_gt_zeroed_after_masking():
   assert res["epe_mean"] == 0.0
 
 
+def test_the_by_hand_reference_zeroes_nan_ground_truth_as_the_official_rule():
+  """tests/official_metrics.py (the reference of eval's and training's reports) takes NaN in
+  the ground truth at a valid pixel as 0, an error of |pred| there (it gave NaN metrics)."""
+  from tests.official_metrics import epe_tepe_by_hand  # pylint: disable=import-outside-toplevel
+  rng = np.random.default_rng(5)
+  gt = rng.uniform(1, 9, (3, 4, 5)).astype(np.float32)
+  gt[0, 1, 1] = gt[2, 0, 3] = np.nan
+  pred = rng.uniform(1, 9, gt.shape).astype(np.float32)
+  valid = rng.random(gt.shape) < 0.8
+  valid[0, 1, 1] = valid[2, 0, 3] = True
+  ref = epe_tepe_by_hand(pred, gt, valid)
+  res = M.eval_sequence(pred, gt, valid)
+  assert {f"disp_{k}": v for k, v in ref.items()} == pytest.approx(res, rel=1e-6, abs=0)
+
+
 def test_fractional_mask_weights_and_thresholds():
   gt = np.zeros((1, 1, 2), np.float32)
   pred = np.ones((1, 1, 2), np.float32)
