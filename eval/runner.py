@@ -69,10 +69,11 @@ class SequenceResult:
 def safe_name(name: str) -> str:
   """A file-name-safe version of a sequence name, one per name: a name that had to change
   (characters other than letters, digits and `._-`, or leading/trailing `_`) gets 8 hex
-  digits of its hash, so that "alley 1" and "alley_1" do not write the same files."""
+  digits of its hash, so that "alley 1" and "alley_1" do not write the same files; so does a
+  name that ends as a baseline's prediction file (`_sgbm`: "walk_sgbm.npy" is "walk"'s)."""
   name = str(name)
   safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_") or "sequence"
-  if safe == name:
+  if safe == name and not name.endswith(tuple(f"_{b}" for b in BASELINES)):
     return safe
   return f"{safe}-{hashlib.sha256(name.encode('utf-8', 'surrogatepass')).hexdigest()[:8]}"
 

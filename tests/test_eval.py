@@ -1099,6 +1099,12 @@ def test_sequence_names_that_differ_write_different_files():
                                         "PYTHONIOENCODING": "utf-8"})
     assert res.stdout.split() == here, (seed, res.stderr)
   assert re.fullmatch(r"alley_1-[0-9a-f]{8}", runner.safe_name("alley 1"))
+  # "walk"'s SGBM prediction and "walk_sgbm"'s own were both predictions/walk_sgbm.npy
+  names = ["walk", "walk_sgbm"]
+  paths = [p for n in names
+           for p in runner.output_paths(pathlib.Path("out"), n, ["sav", "sgbm"], config).values()]
+  assert len(set(paths)) == len(paths) == 4 * len(names)
+  assert re.fullmatch(r"walk_sgbm-[0-9a-f]{8}", runner.safe_name("walk_sgbm"))
 
 
 def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt(
