@@ -28,7 +28,7 @@ from eval import plots
 from eval.config import BASELINES, METHOD_NAMES
 from sav_jax import inference, metrics
 from sav_jax import _locks
-from sav_jax._checks import loads_json
+from sav_jax._checks import loads_json, plural
 from sav_jax._files import write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -108,7 +108,8 @@ def gt_notes(name: str, valid, metric_keys=()) -> list[str]:
   note = metrics.not_measured_note(valid, metric_keys)
   if note is None:
     return []
-  return [f"sequence {name}: {note}; its {len(valid)} frames count in the aggregate"]
+  frames = plural(len(valid), "frame") + (" counts" if len(valid) == 1 else " count")
+  return [f"sequence {name}: {note}; its {frames} in the aggregate"]
 
 
 def predict(method: str, clip: dict, *, variables, model_cfg, config,

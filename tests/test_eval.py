@@ -1310,7 +1310,8 @@ def test_sequences_whose_scores_are_not_measurements_are_noted(tmp_path, monkeyp
                                       config=config)
   assert res.metrics["sav"]["disp_temp_epe_mean"] == 0 and len(res.notes) == 1
   assert "one frame (T=1), no frame pair: the official rule scores TEPE and its bad-pixel " \
-      "rates (δt) 0" in res.notes[0]
+      "rates (δt) 0" in res.notes[0] and res.notes[0].endswith(
+          "; its 1 frame counts in the aggregate")  # (was "its 1 frames count")
   alternate = dict(clip, valid=clip["valid"].copy())
   alternate["valid"][1::2] = False  # valid pixels in every other frame: no TEPE pair
   assert eval_runner.gt_notes("s", alternate["valid"]) == [
