@@ -211,6 +211,12 @@ def _run_into(args, config, out) -> int:
       raise ValueError(f"cannot resume: sequence {seq.name} has {len(seq)} frames, the "
                        f"interrupted run evaluated {earlier.frames}; pass --overwrite to start "
                        "again")
+    has_gt = getattr(seq, "has_gt", True)  # (a record with ground truth has metrics)
+    if bool(earlier.metrics) != has_gt:  # e.g. a folder sequence's disparity/ added since
+      raise ValueError(f"cannot resume: sequence {seq.name} has "
+                       f"{'ground truth' if has_gt else 'no ground truth'} now, the interrupted "
+                       f"run {'had none' if has_gt else 'measured it'}; pass --overwrite to "
+                       "start again")
     source = runner.sequence_source(seq)  # the same dataset, not another copy of it
     if earlier.source is not None and source != earlier.source:
       raise ValueError(f"cannot resume: sequence {seq.name} is read from {source}, the "

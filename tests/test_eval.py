@@ -1770,6 +1770,45 @@ def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, ckpt, capsys, 
           "--overwrite to start again") in capsys.readouterr().err
 
 
+def test_resume_refuses_a_sequence_whose_ground_truth_came_or_went(tmp_path, ckpt, capsys,
+                                                                 monkeypatch):
+  """A sequence the interrupted run finished without ground truth (a folder sequence without
+  disparity/) that has it now, or the reverse, is not taken from the progress file: it was
+  read back without metrics and left out of the aggregates (or kept its old ones)."""
+  _folder_dataset(tmp_path / "mine", np.random.default_rng(9))  # a, b with GT; c without
+  monkeypatch.setattr(eval_runner.inference, "predict_video",
+                      lambda variables, left, right, **kw: _stand_in_prediction(left))
+  real_append = eval_runner.append_progress
+
+  def only_a(out_, settings, res):
+    if res.name != "a":
+      raise OSError(f"{res.name}: disk full")
+    return real_append(out_, settings, res)
+
+  args = ["--config", str(CONFIGS / "folder.py"), "--checkpoint", str(ckpt), "--data-root",
+          str(tmp_path / "mine"), "--out", str(tmp_path / "out"), "--config.iters=2",
+          "--config.plots.enabled=false"]
+  gt_a = tmp_path / "mine" / "test" / "a" / "disparity"
+  gt_a.rename(tmp_path / "gt_a")  # a has no ground truth in the interrupted run
+  with monkeypatch.context() as m:
+    m.setattr(eval_runner, "append_progress", only_a)
+    assert main(args) == 2
+  capsys.readouterr()
+  (tmp_path / "gt_a").rename(gt_a)
+  assert main([*args, "--resume"]) == 2
+  assert ("cannot resume: sequence a has ground truth now, the interrupted run had none; pass "
+          "--overwrite to start again") in capsys.readouterr().err
+  shutil.rmtree(tmp_path / "out")
+  with monkeypatch.context() as m:  # a measured, then its ground truth taken away
+    m.setattr(eval_runner, "append_progress", only_a)
+    assert main(args) == 2
+  capsys.readouterr()
+  shutil.rmtree(gt_a)
+  assert main([*args, "--resume"]) == 2
+  assert ("cannot resume: sequence a has no ground truth now, the interrupted run measured it; "
+          "pass --overwrite to start again") in capsys.readouterr().err
+
+
 def test_a_sequence_read_through_a_link_has_the_source_of_its_files(tmp_path):
   """`sequence_source` names the folder of the files themselves: the dataset reached through a
   link (--data-root on another path to the same files) gives the same source, so --resume
