@@ -1,6 +1,7 @@
 """The READMEs' references stay true: the files, the Python names and the command-line flags
 they name exist (a renamed flag or module would otherwise leave the documentation wrong)."""
 
+import functools
 import glob
 import importlib
 import json
@@ -64,6 +65,93 @@ def test_named_python_objects_exist(doc):
   assert not unresolved, f"{doc} names Python objects that do not exist: {unresolved}"
 
 
+# A file name such as `metrics.json` or `init.safetensors` is not a Python reference.
+_FILE_SUFFIX = re.compile(r"\.(?:py|json|jsonl|md|txt|csv|png|jpg|exr|pfm|ply|npy|npz|mp4|zip|"
+                          r"pth|safetensors|sh|log|yaml|toml)$")
+
+
+def _prose_spans(doc: str) -> list[str]:
+  """The inline code spans of `doc` outside its fenced blocks (where a `model` or `cfg` of the
+  README's own snippets cannot be meant)."""
+  text = (ROOT / doc).read_text(encoding="utf-8")
+  return re.findall(r"`([^`\n]+)`", re.sub(r"^ *```.*?^ *```", "", text, flags=re.S | re.M))
+
+
+def _dotted_spans(doc: str, prefixes) -> list[tuple[str, str]]:
+  """(span, dotted name) of each prose span that is a dotted name starting with one of
+  `prefixes`, alone or followed by a call `(...)` or a value `=...` (the name before those)."""
+  found = []
+  for span in _prose_spans(doc):
+    m = re.fullmatch(r"([A-Za-z_]\w*(?:\.\w+)+)(?:\(.*\)|=.*)?", span)
+    if m and m.group(1).split(".")[0] in prefixes and not _FILE_SUFFIX.search(m.group(1)):
+      found.append((span, m.group(1)))
+  return found
+
+
+def _resolves(module: str, attrs) -> bool:
+  """`module`'s attribute chain `attrs` exists (a dataclass field without a class-level default,
+  such as a `SAVConfig` field, counts)."""
+  import dataclasses  # pylint: disable=import-outside-toplevel
+  try:
+    obj = importlib.import_module(module)
+  except ImportError:
+    return False
+  for attr in attrs:
+    if (isinstance(obj, type) and dataclasses.is_dataclass(obj)
+        and attr in {f.name for f in dataclasses.fields(obj)}):
+      obj = None  # the field's value is not a reference the README can go on with
+      continue
+    try:
+      obj = getattr(obj, attr)
+    except AttributeError:
+      return False
+  return True
+
+
+def _short_names() -> dict[str, list[str]]:
+  """Short name -> the full names it may stand for: every module of sav_jax by its last
+  component (`viz`, `inference`, `layers`; `convert` is sav_jax.convert or
+  sav_jax.tools.convert) and the classes `sav_jax` exports (`SAVConfig`, `StereoAnyVideo`)."""
+  import pkgutil  # pylint: disable=import-outside-toplevel
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  names: dict[str, list[str]] = {}
+  for info in pkgutil.walk_packages(sav_jax.__path__, "sav_jax."):
+    names.setdefault(info.name.rsplit(".", 1)[1], []).append(info.name)
+  for name in sav_jax.__all__:
+    if name[0].isupper():
+      names.setdefault(name, []).append(f"sav_jax.{name}")
+  return names
+
+
+def _config_sections() -> set[str]:
+  """The config sections a README may name bare (`data.crop`, `model.remat`, `metrics.raft`):
+  the training configs' and the eval configs' fields that hold fields, and `config` itself."""
+  return {"config"} | {key for config in _configs() for key, value in config.items()
+                       if hasattr(value, "keys")}
+
+
+def _python_name_resolves(name: str, short: dict[str, list[str]]) -> bool:
+  first, *attrs = name.split(".")
+  for full in short.get(first, []):
+    module, _, cls = full.rpartition(".") if full.split(".")[-1][0].isupper() else (full, "", "")
+    if _resolves(module, [cls, *attrs] if cls else attrs):
+      return True
+  return False
+
+
+@pytest.mark.parametrize("doc", DOCS)
+def test_short_python_names_exist(doc):
+  """`viz.colorize_error`, `inference.run_window`, `layers.dft_correlate_w`,
+  `SAVConfig.frame_block_mb`: a prose span that starts with a sav_jax module's short name (or a
+  class sav_jax exports) names something that exists. Names that start with a config section
+  (`model.remat`, `data.augment`, `metrics.raft`) are test_config_fields_in_prose_exist's."""
+  short = _short_names()
+  spans = _dotted_spans(doc, set(short) - _config_sections())
+  assert len(spans) > 5, spans  # the pattern still finds the short names
+  unresolved = [span for span, name in spans if not _python_name_resolves(name, short)]
+  assert not unresolved, f"{doc} names Python objects that do not exist: {unresolved}"
+
+
 def test_named_python_objects_resolve_after_import_sav_jax():
   """`sav_jax.model.init.init_variables` as the README writes it works after `import sav_jax`
   alone (each package imports its submodules on first use), in a fresh interpreter."""
@@ -117,16 +205,24 @@ def _has_field(config, dotted: str) -> bool:
   return True
 
 
+@functools.cache
+def _configs() -> tuple:
+  """Every training config (configs/*.py) and every eval config (configs/eval/*.py), built."""
+  from eval import config as eval_config  # pylint: disable=import-outside-toplevel
+  configs = [importlib.import_module(f"configs.{path.stem}").get_config()
+             for path in sorted((ROOT / "configs").glob("*.py")) if path.stem != "__init__"]
+  configs += [eval_config.load_config(str(path))
+              for path in sorted((ROOT / "configs" / "eval").glob("*.py"))
+              if path.stem not in ("__init__", "common")]
+  assert len(configs) > 10, configs
+  return tuple(configs)
+
+
 @pytest.mark.parametrize("doc", DOCS)
 def test_config_overrides_name_config_fields(doc):
   """Every `--config.<field>` is a field of the training configs or of the eval configs."""
-  from configs import mixed, sceneflow, synthetic  # pylint: disable=import-outside-toplevel
-  from eval import config as eval_config  # pylint: disable=import-outside-toplevel
-  configs = [m.get_config() for m in (sceneflow, mixed, synthetic)]
-  configs += [eval_config.load_config(str(ROOT / "configs" / "eval" / name))
-              for name in ("sintel_final.py", "synthetic.py")]
   fields = set(re.findall(r"--config\.([a-z_][\w.]*\w)", _code(doc)))
-  unknown = sorted(f for f in fields if not any(_has_field(c, f) for c in configs))
+  unknown = sorted(f for f in fields if not any(_has_field(c, f) for c in _configs()))
   assert not unknown, f"{doc} overrides config fields that no config has: {unknown}"
 
 
