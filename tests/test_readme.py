@@ -220,10 +220,54 @@ def _configs() -> tuple:
 
 @pytest.mark.parametrize("doc", DOCS)
 def test_config_overrides_name_config_fields(doc):
-  """Every `--config.<field>` is a field of the training configs or of the eval configs."""
-  fields = set(re.findall(r"--config\.([a-z_][\w.]*\w)", _code(doc)))
+  """Every `--config.<field>`, in code or prose, is a field of the training configs or of the
+  eval configs."""
+  text = (ROOT / doc).read_text(encoding="utf-8")  # code and prose
+  fields = set(re.findall(r"--config\.([a-z_][\w.]*\w)", text))
   unknown = sorted(f for f in fields if not any(_has_field(c, f) for c in _configs()))
   assert not unknown, f"{doc} overrides config fields that no config has: {unknown}"
+
+
+def _import_resolves(name: str) -> bool:
+  """`name` is a module of this repository (`train.optim`) or an attribute chain below one."""
+  parts = name.split(".")
+  for i in range(len(parts), 0, -1):
+    try:
+      importlib.import_module(".".join(parts[:i]))
+    except ImportError:
+      continue
+    return _resolves(".".join(parts[:i]), parts[i:])
+  return False
+
+
+@pytest.mark.parametrize("doc", DOCS)
+def test_config_fields_in_prose_exist(doc):
+  """Config fields the prose names: `config.<field>` (in a code span or not, `config.py` and
+  `sav_jax.config.x` aside) is a field of a training or an eval config; a code span that
+  starts with a config section (`data.crop`, `model.dtype=bfloat16`, `optimizer.frozen`,
+  `metrics.raft`) is such a field, unless it is a Python name the section's word also stands
+  for: a sav_jax module by its short name (`metrics.not_measured_note`), the model
+  (`model.apply`, `model.init`: StereoAnyVideo's methods) or this repository's train / eval
+  package (`train.optim.TrainableVector`)."""
+  prose = re.sub(r"^ *```.*?^ *```", "", (ROOT / doc).read_text(encoding="utf-8"),
+                 flags=re.S | re.M)
+  prefixed = {f for f in re.findall(r"(?<![\w./-])config\.([a-z_][\w.]*\w)", prose)
+              if not _FILE_SUFFIX.search("." + f)}
+  unknown = sorted(f"config.{f}" for f in prefixed
+                   if not any(_has_field(c, f) for c in _configs()))
+  short = _short_names()
+  spans = _dotted_spans(doc, _config_sections() - {"config"})
+  for span, name in spans:
+    section, rest = name.split(".", 1)
+    if (any(_has_field(c, name) for c in _configs())
+        or _python_name_resolves(name, short)
+        or (section == "model" and _resolves("sav_jax.model.stereo_any_video",
+                                             ["StereoAnyVideo", *rest.split(".")]))
+        or (section in ("train", "eval") and _import_resolves(name))):
+      continue
+    unknown.append(span)
+  assert len(prefixed) + len(spans) > (10 if doc == "README.md" else 1), (prefixed, spans)
+  assert not unknown, f"{doc} names config fields that no config has: {unknown}"
 
 
 # Imports each script named on the command line and runs its `main` until it parses its
