@@ -18,11 +18,18 @@ DOCS = ("README.md", "benchmarks/README.md")
 
 
 def _code(doc: str) -> str:
-  """The text of the fenced blocks and inline code spans of `doc`."""
+  """The text of the fenced blocks (also those indented under a list item) and inline code
+  spans of `doc`."""
   text = (ROOT / doc).read_text(encoding="utf-8")
-  blocks = re.findall(r"^```[^\n]*\n(.*?)^```", text, flags=re.S | re.M)
-  spans = re.findall(r"`([^`\n]+)`", re.sub(r"^```.*?^```", "", text, flags=re.S | re.M))
+  blocks = re.findall(r"^ *```[^\n]*\n(.*?)^ *```", text, flags=re.S | re.M)
+  spans = re.findall(r"`([^`\n]+)`", re.sub(r"^ *```.*?^ *```", "", text, flags=re.S | re.M))
   return "\n".join(blocks + spans)
+
+
+def _command_lines(doc: str) -> list[str]:
+  """The lines of `_code(doc)`, each command continued with a trailing backslash joined into
+  one line (its flags on the next lines belong to it)."""
+  return re.sub(r"\\\n[ \t]*", " ", _code(doc)).splitlines()
 
 
 def _expand(pattern: str) -> list[str]:
@@ -179,12 +186,21 @@ def test_command_line_flags_exist(doc):
   # absl flags, defined in train/__main__.py (importing it would define them in this process)
   commands["python -m train"] = {"--" + name for name in re.findall(
       r"DEFINE_\w+\(\s*\"(\w+)\"", (ROOT / "train" / "__main__.py").read_text(encoding="utf-8"))}
-  code = _code(doc)
+  top_level = _options(cli.build_parser())  # `sav-jax -v infer ...`: before the sub-command
   bad, seen = [], 0
-  for line in code.splitlines():
-    for m in re.finditer(r"(sav-jax \w+(?![\w-])|python -m eval|python -m train)\b(.*?)"
+  for line in _command_lines(doc):
+    for m in re.finditer(r"(?<![\w/.-])(sav-jax|python -m eval|python -m train)(?![\w/.-])(.*?)"
                          r"(?=sav-jax |python -m |$)", line):
       command, rest = m.group(1), m.group(2)
+      if command == "sav-jax":
+        parts = re.match(r"((?:\s+-[-\w]+)*)(?:\s+(\w+)(?![\w-]))?", rest)
+        flags = re.findall(r"(?<![\w.-])(--?[a-z][\w-]*)", parts.group(1))
+        seen += len(flags)
+        bad += [f"sav-jax has no {flag} ({line.strip()!r})" for flag in flags
+                if flag not in top_level]
+        if not parts.group(2):
+          continue
+        command, rest = f"sav-jax {parts.group(2)}", rest[parts.end():]
       if command not in commands:
         bad.append(f"unknown command {command!r} in {line!r}")
         continue
@@ -298,7 +314,7 @@ def test_benchmark_script_flags_exist():
   """`python benchmarks/X.py --flag` in either README: X.py's parser has `--flag`."""
   uses = []
   for doc in DOCS:
-    for line in _code(doc).splitlines():
+    for line in _command_lines(doc):
       for m in re.finditer(r"python (benchmarks/\w+\.py)(.*?)(?=python |sav-jax |$)", line):
         uses += [(doc, m.group(1), flag, line.strip())
                  for flag in re.findall(r"(?<![\w.-])(--[a-z][\w-]*)", m.group(2))]
