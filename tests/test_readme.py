@@ -33,21 +33,32 @@ def _command_lines(doc: str) -> list[str]:
 
 
 def _expand(pattern: str) -> list[str]:
-  """`a_{x,y}.json` -> [a_x.json, a_y.json] (one brace group)."""
+  """`a_{x,y}_{1,2}.json` -> [a_x_1.json, a_x_2.json, a_y_1.json, a_y_2.json] (every brace
+  group, as the shell expands them)."""
   m = re.search(r"\{([^{}]*)\}", pattern)
   if not m:
     return [pattern]
-  return [pattern[:m.start()] + alt + pattern[m.end():] for alt in m.group(1).split(",")]
+  return [path for alt in m.group(1).split(",")
+          for path in _expand(pattern[:m.start()] + alt + pattern[m.end():])]
 
 
 @pytest.mark.parametrize("doc", DOCS)
 def test_named_files_exist(doc):
   text = (ROOT / doc).read_text(encoding="utf-8")
-  refs = set(re.findall(r"(?<![\w/.-])((?:benchmarks|configs|sav_jax|train|eval|tests|\.ci)/"
-                        r"[\w/.*{},-]*[\w*}])", text))
+  refs = {(ROOT, ref) for ref in re.findall(
+      r"(?<![\w/.-])((?:benchmarks|configs|sav_jax|train|eval|tests|\.ci)/[\w/.*{},-]*[\w*}])",
+      text)}
+  # a README below the root also names files relative to its folder (`results/x_{a,b}.json`)
+  base = (ROOT / doc).parent
+  local = sorted(p.name for p in base.iterdir()
+                 if p.is_dir() and base != ROOT and not p.name.startswith(("_", ".")))
+  if local:
+    refs |= {(base, ref) for ref in re.findall(
+        rf"(?<![\w/.-])((?:{'|'.join(map(re.escape, local))})/[\w/.*{{}},-]*[\w*}}])", text)}
   assert len(refs) > 10, refs  # the pattern still finds the references
-  missing = [ref for ref in sorted(refs) for path in _expand(ref)
-             if not glob.glob(str(ROOT / path)) and not glob.glob(str(ROOT / path) + "*")
+  missing = [ref if path == ref else f"{ref} ({path})"
+             for folder, ref in sorted(refs) for path in _expand(ref)
+             if not glob.glob(str(folder / path)) and not glob.glob(str(folder / path) + "*")
              and not ref.startswith("sav_jax/assets/")]  # optional: a bundled checkpoint
   assert not missing, f"{doc} names files that do not exist: {missing}"
 
