@@ -235,6 +235,11 @@ def test_crop_and_channel_axis():
     M.eval_tcc_sequence(depth, depth + 1, mask, mask_thr=2)
   with pytest.raises(ValueError, match=r"mask_thr must be a number in \[0, 1\) .*got -1$"):
     M.tcm_flow_inputs(depth, depth + 1, mask, 0, mask_thr=-1)
+  # The pair (t, t+1) of 3 frames: t in 0..1 (t=-1 paired the last frame with the first).
+  assert len(M.tcm_flow_inputs(depth, depth + 1, mask, np.int64(1))) == 4
+  for t in (-1, 2, 0.0, True):
+    with pytest.raises(ValueError, match=rf"t must be a frame index in \[0, 1\] .*got {t!r}$"):
+      M.tcm_flow_inputs(depth, depth + 1, mask, t)
 
 
 def test_shape_mismatch_names_both_shapes():
