@@ -3,7 +3,8 @@
 from sav_jax.data import frame_io
 from sav_jax.data.augment import AugmentConfig, augment_clip
 from sav_jax.data.base import DepthSequence, StereoSequence
-from sav_jax.data.registry import (DATASETS, EVAL_FRAMES, TrainingClip, get_sequences,
+from sav_jax.data import registry
+from sav_jax.data.registry import (EVAL_FRAMES, TrainingClip, get_sequences,
                                    get_training_clips)
 from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo, generate_clip
 
@@ -25,4 +26,16 @@ __all__ = [
 
 from sav_jax._lazy import submodule_getattr
 
-__getattr__ = submodule_getattr(__name__)  # its other modules, on first use
+_submodule = submodule_getattr(__name__)  # its other modules, on first use
+
+
+def __getattr__(name: str):
+  # `DATASETS` is read from the registry on every use: `register_dataset` replaces the
+  # registry's tuple, so a copy bound here at import would miss the datasets added later.
+  if name == "DATASETS":
+    return registry.DATASETS
+  return _submodule(name)
+
+
+def __dir__():
+  return sorted({*globals(), "DATASETS"})

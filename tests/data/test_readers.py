@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
+import sav_jax.data
 from sav_jax.data import base, frame_io, kitti_depth, registry
 
 H, W = 8, 12
@@ -1361,6 +1362,8 @@ def test_a_reader_of_your_own_layout_is_registered(tmp_path, monkeypatch):
   registry.register_dataset("own", _load_own, splits=("test",), folders=("OwnSet",),
                             training="sceneflow", eval_frames=2)
   assert "own" in registry.DATASETS and registry.SPLITS["own"] == ("test",)
+  # the package's name for the list too (it was the tuple of the import, without "own")
+  assert sav_jax.data.DATASETS == registry.DATASETS and "DATASETS" in dir(sav_jax.data)
   seqs = registry.get_sequences("own", tmp_path, "test")  # the datasets root: OwnSet/ in it
   assert [(s.name, s.dataset, len(s)) for s in seqs] == [("lab", "own", 2), ("night", "own", 2),
                                                         ("street", "own", 2)]  # eval_frames
