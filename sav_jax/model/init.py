@@ -110,10 +110,18 @@ def abstract_variables(cfg: SAVConfig):
 
   Traced once per architecture (~7 s on CPU): configs that differ only in
   `COMPUTE_FIELDS` (a bfloat16 or rematerialised model of the same weights) share it.
+  Each call returns dicts of its own (the leaves are shared), so a caller may edit the tree.
   """
   cfg, defaults = as_config(cfg), SAVConfig()
-  return _abstract_variables(
-      dataclasses.replace(cfg, **{f: getattr(defaults, f) for f in COMPUTE_FIELDS}))
+  return _copy_dicts(_abstract_variables(
+      dataclasses.replace(cfg, **{f: getattr(defaults, f) for f in COMPUTE_FIELDS})))
+
+
+def _copy_dicts(tree):
+  """`tree`'s nested dicts copied (in their order), its leaves as they are: the cached trace
+  stays as traced whatever a caller does to the copy (`init_variables`, the converters and
+  the checkpoint checks read it)."""
+  return {k: _copy_dicts(v) for k, v in tree.items()} if isinstance(tree, Mapping) else tree
 
 
 @functools.lru_cache(maxsize=8)

@@ -54,7 +54,16 @@ def test_compute_settings_share_the_parameter_shapes():
                             frame_block_mb=1.0, vit_attention="blocked", gru_conv="direct")
   assert set(init_lib.COMPUTE_FIELDS) == {f.name for f in dataclasses.fields(base)
                                           if getattr(base, f.name) != getattr(other, f.name)}
-  assert abstract_variables(other) is abstract_variables(base)
+  assert all(a is b for a, b in zip(jax.tree.leaves(abstract_variables(other)),
+                                    jax.tree.leaves(abstract_variables(base))))  # one trace
+  # each call's dicts are its own: editing one (a trimmed restore target) changes no other
+  mine = abstract_variables(base)
+  mine["params"].pop("corr_mlp")
+  mine["params"]["fnet"].clear()
+  assert set(abstract_variables(base)["params"]) == {"cnet", "fnet", "depthnet", "corr_mlp",
+                                                     "update_block"}
+  assert abstract_variables(other)["params"]["fnet"]
+  assert "corr_mlp" in init_variables(base)["params"]
   dummy = jax.ShapeDtypeStruct((1, 2, 64, 64, 3), jnp.float32)
   traced = jax.eval_shape(lambda l, r: sav_jax.StereoAnyVideo(other).init(
       jax.random.PRNGKey(0), l, r, iters=2), dummy, dummy)
