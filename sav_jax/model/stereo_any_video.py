@@ -196,6 +196,15 @@ def training_state_hint(variables) -> str:
   return ": a training state? pass {'params': state.params}"
 
 
+def _check_collections(collections: set) -> None:
+  """A ValueError when the Flax variables' collections are the parameter tree's top-level
+  modules (`params` given instead of `{"params": params}`)."""
+  if "params" not in collections and collections & {"depthnet", "fnet", "cnet", "update_block"}:
+    raise ValueError("StereoAnyVideo.apply takes the Flax variables {'params': params}; it "
+                     f"got the parameter tree itself (keys {sorted(collections)[:4]}...): "
+                     "call model.apply({'params': params}, left, right, ...)")
+
+
 class StereoAnyVideo(nn.Module):
   """Stereo Any Video (ICCV 2025). Attribute names follow the official modules."""
 
@@ -209,6 +218,7 @@ class StereoAnyVideo(nn.Module):
       raise TypeError(f"StereoAnyVideo.apply takes the Flax variables {{'params': params}} as "
                       f"its first argument; got a {type(variables).__name__}"
                       f"{training_state_hint(variables)}")
+    _check_collections(set(variables))  # every method (features too), not only __call__
     return super().apply(variables, *args, **kwargs)
 
   def setup(self):
@@ -376,11 +386,7 @@ class StereoAnyVideo(nn.Module):
     first parameter)."""
     if self.is_initializing():
       return
-    collections = set(self.variables)
-    if "params" not in collections and collections & {"depthnet", "fnet", "cnet", "update_block"}:
-      raise ValueError("StereoAnyVideo.apply takes the Flax variables {'params': params}; it "
-                       f"got the parameter tree itself (keys {sorted(collections)[:4]}...): "
-                       "call model.apply({'params': params}, left, right, ...)")
+    _check_collections(set(self.variables))
 
   def __call__(self, left: jax.Array, right: jax.Array, iters: int = 20,
                final_only: bool = False) -> SAVOutput:

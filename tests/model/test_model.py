@@ -579,6 +579,9 @@ def test_apply_with_the_parameter_tree_itself_is_named(model, variables):
   with pytest.raises(ValueError, match=r"takes the Flax variables \{'params': params\}; it got "
                      r"the parameter tree itself \(keys \['cnet', 'corr_mlp', 'depthnet'"):
     jax.eval_shape(lambda p: model.apply(p, x, x, iters=2), variables["params"])
+  for method in (sav_jax.StereoAnyVideo.features, "frame_features"):  # README's other entries
+    with pytest.raises(ValueError, match=r"got the parameter tree itself"):
+      jax.eval_shape(lambda p: model.apply(p, x, x, method=method), variables["params"])
   out = jax.eval_shape(lambda v: model.apply(v, x, x, iters=2, final_only=True), variables)
   assert out.disparities.shape == (1, *SHAPE[:4])
 
