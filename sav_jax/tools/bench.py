@@ -10,6 +10,7 @@ import platform
 import resource
 import statistics
 import sys
+import tempfile
 import time
 
 from sav_jax.config import GRU_CONV, VIT_ATTENTION
@@ -51,7 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def json_output_problem(path: str, overwrite: bool, flag: str = "--json") -> str | None:
   """What is wrong with writing a results JSON at `path` (checked before a long run), or
   None: a symbolic link, a folder, an existing file without `overwrite`, a missing parent
-  folder."""
+  folder or one where nothing can be created."""
   if os.path.islink(path):  # open() would write into the link's target, whatever it is
     return f"{flag} {path} is a symbolic link; give the path of a regular file"
   if os.path.isdir(path):
@@ -61,6 +62,10 @@ def json_output_problem(path: str, overwrite: bool, flag: str = "--json") -> str
   parent = os.path.dirname(os.path.abspath(path))
   if not os.path.isdir(parent):
     return f"{flag} {path}: folder {parent} does not exist"
+  try:  # os.access says yes to root everywhere: /proc, /sys and read-only mounts refuse later
+    os.rmdir(tempfile.mkdtemp(prefix=".sav-jax-write-test-", dir=parent))
+  except OSError as e:
+    return f"{flag} {path}: cannot create a file in {parent} ({e.strerror or e})"
   return None
 
 
