@@ -147,6 +147,11 @@ def register_dataset(name: str, load_sequences, *, splits: tuple[str, ...],
     eval_frames: evaluate the first L frames of each "test" sequence (None: whole ones).
   """
   global DATASETS, STRIDED, _SCENEFLOW  # pylint: disable=global-statement
+  if not (isinstance(folders, (tuple, list))
+          and all(isinstance(f, str) and f for f in folders)):  # a str: one per letter
+    raise ValueError(f"register_dataset: folders must be a tuple of folder names, got "
+                     f"{folders!r}" + (f" (one folder: folders=({folders!r},))"
+                                       if isinstance(folders, str) else ""))
   entry = functools.partial(_registered, load_sequences, tuple(folders), name)
   same = _LOADERS.get(name)
   if (isinstance(same, functools.partial) and same.func is _registered

@@ -1375,6 +1375,14 @@ def test_a_reader_of_your_own_layout_is_registered(tmp_path, monkeypatch):
     registry.register_dataset("own", _load_own, splits=("test",))  # another registration
   with pytest.raises(ValueError, match="training must be 'strided', 'sceneflow' or None"):
     registry.register_dataset("own2", _load_own, splits=("test",), training="random")
+  # a name for a tuple was taken letter by letter (folders O/, w/, n/, ...: never found)
+  with pytest.raises(ValueError, match=r"folders must be a tuple of folder names, got 'OwnSet' "
+                                       r"\(one folder: folders=\('OwnSet',\)\)"):
+    registry.register_dataset("own2", _load_own, splits=("test",), folders="OwnSet")
+  for folders in (("OwnSet", 3), ("",), None):
+    with pytest.raises(ValueError, match="folders must be a tuple of folder names"):
+      registry.register_dataset("own2", _load_own, splits=("test",), folders=folders)
+  assert "own2" not in registry.DATASETS
 
 
 def test_a_registered_datasets_eval_cut_is_of_its_test_split_only(tmp_path, monkeypatch):
