@@ -1740,15 +1740,15 @@ def test_default_output_folder_and_files(tmp_path, ckpt, monkeypatch):
   assert (tmp_path / "empty" / "results.json").is_file()
 
 
-def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, ckpt, capsys, monkeypatch):
-  """A sequence the interrupted run finished that has gained a frame since (same folder, same
-  settings) is not taken from the progress file: its numbers would be of other frames."""
-  written = _folder_dataset(tmp_path / "mine", np.random.default_rng(8))
+def _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch) -> list[str]:
+  """Evaluates the folder dataset under `tmp_path / "mine"` with stand-in predictions (kept
+  for the rest of the test) into `tmp_path / "out"`, interrupted after sequence a (the next
+  one's progress write fails: "disk full"); returns the run's arguments, for a --resume."""
   monkeypatch.setattr(eval_runner.inference, "predict_video",
                       lambda variables, left, right, **kw: _stand_in_prediction(left))
   real_append = eval_runner.append_progress
 
-  def second_fails(out_, settings, res):
+  def only_a(out_, settings, res):
     if res.name != "a":
       raise OSError(f"{res.name}: disk full")
     return real_append(out_, settings, res)
@@ -1757,9 +1757,17 @@ def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, ckpt, capsys, 
           str(tmp_path / "mine"), "--out", str(tmp_path / "out"), "--config.iters=2",
           "--config.plots.enabled=false"]
   with monkeypatch.context() as m:
-    m.setattr(eval_runner, "append_progress", second_fails)
+    m.setattr(eval_runner, "append_progress", only_a)
     assert main(args) == 2
   capsys.readouterr()
+  return args
+
+
+def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, ckpt, capsys, monkeypatch):
+  """A sequence the interrupted run finished that has gained a frame since (same folder, same
+  settings) is not taken from the progress file: its numbers would be of other frames."""
+  written = _folder_dataset(tmp_path / "mine", np.random.default_rng(8))
+  args = _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch)
   folder = tmp_path / "mine" / "test" / "a"
   left, right, gt, _ = written["a"]
   for view, video in (("left", left), ("right", right)):
@@ -1776,34 +1784,16 @@ def test_resume_refuses_a_sequence_whose_ground_truth_came_or_went(tmp_path, ckp
   disparity/) that has it now, or the reverse, is not taken from the progress file: it was
   read back without metrics and left out of the aggregates (or kept its old ones)."""
   _folder_dataset(tmp_path / "mine", np.random.default_rng(9))  # a, b with GT; c without
-  monkeypatch.setattr(eval_runner.inference, "predict_video",
-                      lambda variables, left, right, **kw: _stand_in_prediction(left))
-  real_append = eval_runner.append_progress
-
-  def only_a(out_, settings, res):
-    if res.name != "a":
-      raise OSError(f"{res.name}: disk full")
-    return real_append(out_, settings, res)
-
-  args = ["--config", str(CONFIGS / "folder.py"), "--checkpoint", str(ckpt), "--data-root",
-          str(tmp_path / "mine"), "--out", str(tmp_path / "out"), "--config.iters=2",
-          "--config.plots.enabled=false"]
   gt_a = tmp_path / "mine" / "test" / "a" / "disparity"
   gt_a.rename(tmp_path / "gt_a")  # a has no ground truth in the interrupted run
-  with monkeypatch.context() as m:
-    m.setattr(eval_runner, "append_progress", only_a)
-    assert main(args) == 2
-  capsys.readouterr()
+  args = _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch)
   (tmp_path / "gt_a").rename(gt_a)
   assert main([*args, "--resume"]) == 2
   assert ("cannot resume: sequence a has ground truth now, the interrupted run had none; pass "
           "--overwrite to start again") in capsys.readouterr().err
   shutil.rmtree(tmp_path / "out")
-  with monkeypatch.context() as m:  # a measured, then its ground truth taken away
-    m.setattr(eval_runner, "append_progress", only_a)
-    assert main(args) == 2
-  capsys.readouterr()
-  shutil.rmtree(gt_a)
+  _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch)  # a measured, then its ground
+  shutil.rmtree(gt_a)  # truth taken away
   assert main([*args, "--resume"]) == 2
   assert ("cannot resume: sequence a has no ground truth now, the interrupted run measured it; "
           "pass --overwrite to start again") in capsys.readouterr().err
