@@ -1058,6 +1058,9 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
                                     keep_from=keep_from))
         bar.update(win.keep_stop - win.keep_start)
       return
+    if check_memory:
+      _check_shared_host_memory(devices, plan, (shape[1] + pads[0] + pads[1],
+                                                shape[2] + pads[2] + pads[3]), cfg, iters)
     for g in range(0, len(plan), len(placed)):
       _signals.raise_if_interrupted()
       group = plan[g:g + len(placed)]
@@ -1081,6 +1084,26 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
       for win, raw in zip(group, raws):
         yield kept(win, np.asarray(jax.device_get(raw)))
         bar.update(win.keep_stop - win.keep_start)
+
+
+def _check_shared_host_memory(devices, plan, padded, cfg, iters) -> None:
+  """InsufficientMemoryError where the windows run at once on CPU devices (one process's
+  fake devices, `--xla_force_host_platform_device_count`) would not fit together: they
+  share the host's memory, which each device's own check counts whole (8 windows that
+  each fit passed, then ran out of it together)."""
+  cpus = [d for d in devices if d.platform == "cpu"][:len(plan)]
+  if len(cpus) < 2:
+    return
+  t, (h, w) = plan[0].length, padded
+  needed = len(cpus) * estimate_memory_bytes(t, h, w, iters, cfg)
+  free = available_memory_bytes(cpus[0])
+  if free is not None and needed > _PRECHECK_MARGIN * free:
+    raise InsufficientMemoryError(
+        f"{len(cpus)} {t}-frame windows of {h}x{w} (padded) at once, one per CPU device, need "
+        f"about {needed / 2**30:.1f} GB (estimated), but only {free / 2**30:.1f} GB is free "
+        "on the host, whose memory CPU devices share (fewer devices run fewer windows at once)",
+        "fewer devices (devices), fewer frames per window (window/stride), smaller frames or "
+        "bfloat16 (dtype='bfloat16')")
 
 
 def resolve_devices(devices=None) -> list:

@@ -267,6 +267,18 @@ def _plumbing_child(out_path):
     res["ctrl_c"] = [entry[1] for entry in log if entry[0] == "window"]
   finally:
     signal.signal(signal.SIGINT, handler)
+  # CPU devices share the host's memory: windows that each fit it, but not 3 at once.
+  free = inference.available_memory_bytes
+  one = inference.estimate_memory_bytes(20, 32, 32, 2, inference.SAVConfig())  # padded 6x10
+  inference.available_memory_bytes = lambda device=None: int(one / 1.2)  # margin 1.5: 1 fits
+  try:
+    inference.predict_video(variables, left, right, iters=2, devices=3)
+    res["shared_memory"] = "not raised"
+  except inference.InsufficientMemoryError as e:
+    res["shared_memory"] = str(e)
+  res["shared_memory_one"] = float(np.abs(inference.predict_video(variables, left, right,
+                                                                  iters=2) - want).max())
+  inference.available_memory_bytes = free
   # The training mesh: one `data` axis over every device, the batch split on it.
   mesh = state_lib.make_mesh()
   batch = jax.device_put(np.arange(32).reshape(16, 2), state_lib.data_sharding(mesh))
@@ -332,6 +344,17 @@ def test_without_devices_windows_run_where_the_weights_are(plumbing):
 
 def test_a_dropped_ctrl_c_stops_the_next_group_of_windows(plumbing):
   assert plumbing["ctrl_c"] == [0, 1, 2]  # the first group finished, no other started
+
+
+def test_windows_at_once_on_cpu_devices_are_checked_against_the_shared_host_memory(plumbing):
+  # Each window fits the host's free memory, so each device's own check passed; 3 at once
+  # (one per fake CPU device, all in the host's memory) do not, and are refused before
+  # anything runs. One device runs them one at a time.
+  assert plumbing["shared_memory"].startswith(
+      "3 20-frame windows of 32x32 (padded) at once, one per CPU device, need about ")
+  assert "whose memory CPU devices share" in plumbing["shared_memory"]
+  assert "use fewer devices (devices)" in plumbing["shared_memory"]
+  assert plumbing["shared_memory_one"] == 0.0
 
 
 def test_the_training_mesh_splits_the_batch_and_replicates_the_state(plumbing):
