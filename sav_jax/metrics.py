@@ -64,7 +64,7 @@ from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from sav_jax._checks import caller_stacklevel, float_frames_range, is_int
+from sav_jax._checks import caller_stacklevel, float_frames_range, is_int, widened
 
 _F32 = np.float32
 BAD_THRESHOLDS = (0.5, 1.0, 2.0, 3.0)
@@ -494,13 +494,23 @@ def _check_video_values(video, name: str) -> None:
   """Warns if `video` does not look like RGB 0..255 (float frames no brighter than ~1, as
   0..1 images, or values well outside 0..255): OPW/RTC's photometric weight
   exp(-50 ||warp(I_{t+1}) - I_t|| / 255) assumes 0..255 (0..1 frames keep nearly every
-  pixel). As `sav_jax.inference.check_video_values` warns for the model's frames."""
-  v = np.asarray(video)
+  pixel). As `sav_jax.inference.check_video_values` warns for the model's frames.
+
+  Raises ValueError for NaN/inf values in the left view (the one OPW/RTC use), naming its
+  frames: the photometric weight would be NaN there and OPW and RTC 0 without a word."""
+  v = widened(np.asarray(video))  # bfloat16 (JAX's) as float32
   if v.dtype == np.uint8 or v.dtype.kind not in "uif" or v.size == 0:
     return
+  if v.dtype.kind == "f":
+    left = v[:, 0] if v.ndim == 5 else v
+    bad = ~np.isfinite(left).reshape(len(left), -1).all(axis=1) if left.ndim else ()
+    if np.any(bad):
+      raise ValueError(f"{name} has NaN or inf values in frame(s) "
+                       f"{np.flatnonzero(bad)[:10].tolist()}; OPW and RTC would be 0 (their "
+                       "photometric weight NaN)")
   lo, hi = float(v.min()), float(v.max())
   if not (np.isfinite(lo) and np.isfinite(hi)):
-    return
+    return  # NaN/inf in the right view of a stereo video, which no metric reads
   looks, spread = float_frames_range(v, lo, hi)
   if v.dtype.kind == "f" and looks == "0..1":
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}{spread}: OPW and RTC expect "
@@ -534,6 +544,8 @@ def eval_opw_sequence(left_video, pred_depth, gt_depth, mask, flows, mask_thr: f
     `(opw, opw_30, opw_50, opw_100)`.
 
   Warns (UserWarning): `left_video` does not look like RGB 0..255 (e.g. 0..1 floats).
+
+  Raises (ValueError): NaN or inf values in the left view of `left_video`.
   """
   _check_video_values(left_video, "left_video")
   return _opw_rtc(left_video, pred_depth, gt_depth, mask, flows, mask_thr)[0]
@@ -556,6 +568,8 @@ def eval_rtc_sequence(left_video, pred_depth, gt_depth, mask, flows, mask_thr: f
     `(rtc, rtc_30)`.
 
   Warns (UserWarning): `left_video` does not look like RGB 0..255 (e.g. 0..1 floats).
+
+  Raises (ValueError): NaN or inf values in the left view of `left_video`.
   """
   _check_video_values(left_video, "left_video")
   return _opw_rtc(left_video, pred_depth, gt_depth, mask, flows, mask_thr, tau)[1]
@@ -615,7 +629,7 @@ def video_flows_from_fn(left_video, flow_fn: FlowFn) -> np.ndarray:
   Raises:
     ValueError: `left_video` is not `[T, 3, H, W]` / `[T, 2, 3, H, W]` (channels last is
       named, with its `np.moveaxis`), or `flow_fn` returned another shape than `[2, H, W]`
-      or NaN/inf.
+      or NaN/inf; NaN/inf values in the left view of `left_video`.
 
   Warns (UserWarning): `left_video` does not look like RGB 0..255 (e.g. 0..1 floats).
   """

@@ -747,6 +747,44 @@ def test_channels_last_videos_and_flows_are_refused_with_the_moveaxis():
   assert M.video_flows_from_fn(video, batched).shape == flows.shape
 
 
+def test_non_finite_video_values_are_refused():
+  """NaN/inf in the left video made OPW and RTC 0 (NaN photometric weights) without a word;
+  the right view of a stereo video, which no metric reads, may hold them."""
+  pred, gt, valid, video, flows = _clip()
+  bad = video.copy()
+  bad[1, 0, 4, 5] = np.nan
+  msg = r"video has NaN or inf values in frame\(s\) \[1\]; OPW and RTC would be 0"
+  with pytest.raises(ValueError, match=r"^" + msg):
+    M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=bad)
+  zero_flow = lambda a, b: np.zeros((2, *a.shape[1:]), np.float32)
+  with pytest.raises(ValueError, match=r"^left_" + msg):
+    M.eval_batch(pred, gt, valid, scale=100.0, left_video=np.where(bad == bad, bad, np.inf),
+                 flow_fn=zero_flow)
+  for fn in (M.eval_opw_sequence, M.eval_rtc_sequence):
+    with pytest.raises(ValueError, match=r"^left_" + msg):
+      fn(bad, pred, gt, valid, flows)
+  with pytest.raises(ValueError, match=r"^left_" + msg):
+    M.video_flows_from_fn(bad, zero_flow)
+  stereo = np.stack([video, bad], axis=1)  # [T, 2, 3, H, W]: NaN in the right view only
+  want = _no_warning(M.eval_sequence, pred, gt, valid, flows, scale=100.0, video=video)
+  assert _no_warning(M.eval_sequence, pred, gt, valid, flows, scale=100.0,
+                     video=stereo) == want
+
+
+def test_bfloat16_videos_are_checked_as_floats():
+  """A bfloat16 video (kind "V" to NumPy) skipped the 0..1 warning and the NaN check."""
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  pred, gt, valid, video, flows = _clip()
+  with pytest.warns(UserWarning, match=r"^video: float frames with values .*: OPW and RTC "
+                                       r"expect RGB 0\.\.255"):
+    M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=jnp.asarray(video / 255,
+                                                                             jnp.bfloat16))
+  bad = video.copy()
+  bad[2, 1, 0, 0] = np.inf
+  with pytest.raises(ValueError, match=r"^video has NaN or inf values in frame\(s\) \[2\]"):
+    M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=jnp.asarray(bad, jnp.bfloat16))
+
+
 def test_videos_that_are_not_rgb_0_255_warn():
   """A 0..1 float video changes OPW/RTC (its photometric weight keeps nearly every pixel)."""
   pred, gt, valid, video, flows = _clip()
