@@ -95,7 +95,7 @@ def _as_seq(name: str, a) -> np.ndarray:
 def _check_scale(scale) -> float:
   """`scale` (the depth-to-disparity scale) as a float; ValueError unless it is one finite
   positive real number (a string, bool, array, 0, NaN or inf is refused)."""
-  a = np.asarray(scale) if not isinstance(scale, (str, bytes)) else None
+  a = widened(np.asarray(scale)) if not isinstance(scale, (str, bytes)) else None  # bfloat16
   if a is None or a.ndim != 0 or a.dtype.kind not in "uif" or not (np.isfinite(a) and a > 0):
     raise ValueError(f"scale (depth-to-disparity scale, fx * baseline) must be a finite positive "
                      f"number, got {scale!r}")

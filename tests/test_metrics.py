@@ -785,6 +785,16 @@ def test_bfloat16_videos_are_checked_as_floats():
     M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=jnp.asarray(bad, jnp.bfloat16))
 
 
+def test_a_bfloat16_scale_is_a_number():
+  """A JAX bfloat16 scalar scale (NumPy kind "V") was refused as not "a finite positive
+  number"."""
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  pred, gt, valid, _, _ = _clip()
+  want = M.eval_sequence(pred, gt, valid, scale=96.0)
+  assert M.eval_sequence(pred, gt, valid, scale=jnp.bfloat16(96)) == want
+  assert M.eval_batch(pred, gt, valid, scale=jnp.asarray(96, jnp.bfloat16))[0] == want
+
+
 def test_videos_that_are_not_rgb_0_255_warn():
   """A 0..1 float video changes OPW/RTC (its photometric weight keeps nearly every pixel)."""
   pred, gt, valid, video, flows = _clip()
