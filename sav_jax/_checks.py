@@ -61,7 +61,7 @@ def caller_stacklevel() -> int:
   return level
 
 
-def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -> None:
+def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -> bool:
   """Raises ValueError unless `video` (`[T, ...]` frames) holds finite RGB values in 0..255.
 
   uint8 passes as is; other integers must not exceed 255 (convert 16-bit frames first) nor
@@ -70,15 +70,15 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
   0..1 images (99.9% of a sample of their values at most 1.5, so a resize's overshoot or a
   few hot pixels do not hide it) or lie well outside 0..255 (below -64 or above 320, beyond
   a resize's overshoot) get a warning (the model expects 0..255, not 0..1 or 0..65535). `first`: the index of `video[0]` in the whole
-  video (frames are named by their index there).
+  video (frames are named by their index there). Returns whether it warned.
   """
   kind = video.dtype.kind
   if kind == "u" and video.dtype.itemsize == 1:
-    return
+    return False
   if kind not in "uif":
     raise ValueError(f"{name}: frames of dtype {video.dtype}; expected uint8 or float (0..255)")
   if not video.size:  # no values to check (numpy's min() of none failed: "zero-size array")
-    return
+    return False
   if kind == "f":
     bad = ~np.isfinite(video).reshape(len(video), -1).all(axis=1)
     if bad.any():
@@ -96,7 +96,7 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
                      + ("convert 16-bit frames to 8-bit first, e.g. frames >> 8)" if lo >= 0 else
                         normalised + ")"))
   if kind != "f":
-    return
+    return False
   if lo < -1.0 and hi <= 3.0:
     raise ValueError(f"{name}: float frames with values {lo:g}..{hi:g} look normalised ("
                      f"{normalised}, e.g. (frames * std + mean) * 255)")
@@ -111,6 +111,7 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
   elif looks == "16-bit":
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}, outside 0..255, which the "
                   "model expects (divide 16-bit frames by 257)", stacklevel=caller_stacklevel())
+  return looks is not None
 
 
 def _sample(video: np.ndarray, size: int = 200_000) -> np.ndarray:

@@ -182,6 +182,29 @@ def test_concrete_frames_are_checked_for_values_as_predict_video_checks_them(mod
   assert out.disparities.shape == (1, 2, *SHAPE[1:4])
 
 
+def test_one_odd_clip_in_a_batch_is_found(model, variables):
+  """One clip of 0..1 or normalised frames beside 0..255 clips left the batch's range (and
+  its 99.9% quantile) as 0..255 frames': it passed a model call without a word. Each clip
+  is looked at alone too; the first odd one is named, once per view."""
+  rng = np.random.default_rng(4)
+  frames = rng.uniform(0, 255, (3, *SHAPE[1:])).astype(np.float32)
+  unit = frames.copy()
+  unit[1] /= 255
+  nan = frames.copy()
+  nan[2, 1, 0, 0, 0] = np.nan
+  with (pytest.warns(UserWarning, match=r"^left clip 1 \(of 3\): float frames with values "
+                     r"[\d.e-]+\.\.0\.99\d*: .*multiply 0\.\.1 images by 255") as record,
+        pytest.raises(ValueError, match=r"right \(its 3 clips' frames in order, 2 each\): "
+                      r"non-finite values \(NaN/inf\) in frame\(s\) \[5\]")):
+    model.apply(variables, unit, nan, iters=2)
+  assert len(record) == 1 and record[0].filename == __file__
+  normalised = frames.copy()
+  normalised[2] = (normalised[2] / 255 - 0.45) / 0.225
+  with pytest.raises(ValueError, match=r"^left clip 2 \(of 3\): float frames with values "
+                     r"-[\d.]+\.\.[\d.]+ look normalised"):
+    model.apply(variables, normalised, frames, iters=2)
+
+
 def test_numpy_integer_iters_accepted(model):
   """`iters=np.int64(2)` (e.g. from a config array) runs like `iters=2`."""
   left = jnp.zeros((1, 2, 32, 48, 3))
