@@ -61,7 +61,8 @@ def caller_stacklevel() -> int:
   return level
 
 
-def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -> bool:
+def check_video_values(video: np.ndarray, name: str = "video", first: int = 0,
+                       warn: bool = True) -> bool:
   """Raises ValueError unless `video` (`[T, ...]` frames) holds finite RGB values in 0..255.
 
   uint8 passes as is; other integers must not exceed 255 (convert 16-bit frames first) nor
@@ -70,7 +71,8 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
   0..1 images (99.9% of a sample of their values at most 1.5, so a resize's overshoot or a
   few hot pixels do not hide it) or lie well outside 0..255 (below -64 or above 320, beyond
   a resize's overshoot) get a warning (the model expects 0..255, not 0..1 or 0..65535). `first`: the index of `video[0]` in the whole
-  video (frames are named by their index there). Returns whether it warned.
+  video (frames are named by their index there). Returns whether it warned (with `warn`
+  False, whether it would have: the errors still raise).
   """
   kind = video.dtype.kind
   if kind == "u" and video.dtype.itemsize == 1:
@@ -101,6 +103,8 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0) -
     raise ValueError(f"{name}: float frames with values {lo:g}..{hi:g} look normalised ("
                      f"{normalised}, e.g. (frames * std + mean) * 255)")
   looks, spread = float_frames_range(video, lo, hi)
+  if not warn:
+    return looks is not None
   if looks == "0..1":
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}{spread}: the model "
                   "expects 0..255 (multiply 0..1 images by 255; 0..255 frames of a very dark "

@@ -839,12 +839,17 @@ def _check_video_shapes(left_shape: tuple, right_shape: tuple) -> None:
                      + layout_hint(left_shape, batched=False))
 
 
-def _as_video_pair(left, right, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
-  """`first`: the index of the first frame in the video, for messages."""
+def _as_video_pair(left, right, first: int = 0,
+                   warned: set | None = None) -> tuple[np.ndarray, np.ndarray]:
+  """`first`: the index of the first frame in the video, for messages. `warned`: the views
+  already warned about (a lazy source's earlier windows), not warned about again; a view
+  warned about now is added."""
   left, right = _as_video(left, "left"), _as_video(right, "right")
   _check_video_shapes(left.shape, right.shape)
   for name, video in (("left", left), ("right", right)):
-    check_video_values(video, name, first)
+    if check_video_values(video, name, first, warn=warned is None or name not in warned):
+      if warned is not None:
+        warned.add(name)
   return left, right  # cast to float32 per window, so long uint8 videos stay small
 
 
@@ -1032,9 +1037,9 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
             f"{name} video source {type(source).__name__} declares shape "
             f"{_video_shape(source)}, but its frames {win.start}..{win.start + win.length - 1} "
             f"came back with shape {tuple(np.shape(got))}, not {want}")
-    return _as_video_pair(lw, rw, win.start)
+    return _as_video_pair(lw, rw, win.start, values_warned)
 
-  warned = False
+  warned, values_warned = False, set()  # a value warning once per view, not every window's
 
   def kept(win, raw):
     nonlocal warned
@@ -1230,7 +1235,8 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
   a `shape` `(T, H, W, 3)` whose `source[a:b]` returns those frames as an array (e.g.
   `sav_jax.tools.video_io.FrameSource`, which decodes frames when asked). Only one window
   of frames (and the per-frame features of its overlap) is held at a time; a lazy
-  source's frames are checked as they are read. The arguments are checked by the call;
+  source's frames are checked as they are read (a warning about their values once per
+  view, not at every window). The arguments are checked by the call;
   the windows run as the returned iterator is consumed. With several `devices`, a group of
   that many windows (and their frames) is held at a time.
 

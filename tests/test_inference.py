@@ -355,6 +355,29 @@ def test_lazy_source_frames_must_match_its_shape(monkeypatch):
     inference.predict_video({}, grey, grey)
 
 
+def test_a_lazy_source_of_0_1_frames_is_warned_about_once_per_view(monkeypatch):
+  """A lazy source's frames are checked window by window; 0..1 frames were warned about at
+  every window (two warnings per window: 200 for 1000 frames), now once per view."""
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window",
+                      lambda v, left, right, *, pads, **k: np.zeros(
+                          (len(left), 8 + pads[0] + pads[1], 8 + pads[2] + pads[3]), np.float32))
+  unit = np.random.default_rng(0).uniform(0, 1, (45, 8, 8, 3)).astype(np.float32)
+  with warnings.catch_warnings(record=True) as record:
+    warnings.simplefilter("default")
+    out = inference.predict_video({}, _ShortSource(unit, unit.shape),
+                                  _ShortSource(unit, unit.shape))
+  assert out.shape == (45, 8, 8)
+  assert [str(w.message).split(":")[0] for w in record] == ["left", "right"]
+  assert all(w.filename == __file__ for w in record)
+  nan = unit.copy()
+  nan[33, 1, 1, 1] = np.nan  # the errors are not silenced: frame 33 (in the last windows)
+  with (pytest.warns(UserWarning, match="multiply 0..1 images by 255"),
+        pytest.raises(ValueError, match=r"^right: non-finite values \(NaN/inf\) in frame\(s\) "
+                      r"\[33\]")):
+    inference.predict_video({}, _ShortSource(unit, unit.shape), _ShortSource(nan, nan.shape))
+
+
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
 @pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 def test_run_window_cache_belongs_to_one_video(monkeypatch):
