@@ -30,8 +30,8 @@ from sav_jax.config import DTYPES
 # imported once the arguments and the config are checked, so `--help` and a bad config or
 # override are answered at once.
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, check_output_dir,
-                           command_logging, one_line_warnings, resolve_devices_option,
-                           setup_compile_cache)
+                           command_logging, one_line_warnings, printable_names,
+                           resolve_devices_option, setup_compile_cache)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,7 +70,9 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   args = build_parser().parse_args(rest)
   try:
-    with (command_logging(args.verbose), one_line_warnings("eval"),
+    # (printable_names: a sequence or folder name that is not UTF-8 is printed as \udce9, as
+    # results.md and results.csv show it)
+    with (command_logging(args.verbose), printable_names(), one_line_warnings("eval"),
           _signals.remembered_interrupts()):
       return run(args, overrides)
   except (ValueError, OSError, UsageError) as e:  # OSError: a file that cannot be read or written
@@ -250,8 +252,8 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
   With `resumable`, an error reading a sequence says that --resume continues the run."""
   from eval import runner  # pylint: disable=import-outside-toplevel
   on = f"; {len(devices)} {devices[0].platform} devices" if devices and len(devices) > 1 else ""
-  print(report.shown(f"{config.dataset}/{config.split}: {plural(len(seqs), 'sequence')}; "
-                     f"weights: {described}{on}"))
+  print(f"{config.dataset}/{config.split}: {plural(len(seqs), 'sequence')}; "
+        f"weights: {described}{on}")
   if done:
     print(f"--resume: {plural(len(done), 'sequence')} finished by the interrupted "
           f"run {'is' if len(done) == 1 else 'are'} not evaluated again")
@@ -273,16 +275,15 @@ def evaluate(config, out, seqs, variables, model_cfg, described, methods, settin
     line = "  ".join(f"{eval_config.METHOD_NAMES[m]}: EPE {r['disp_epe_mean']:.3f} TEPE "
                      f"{r['disp_temp_epe_mean']:.3f}" for m, r in res.metrics.items())
     again = "  (from the interrupted run)" if str(seq.name) in done else ""
-    print(report.shown(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  "
-                       f"{line}{again}"))
+    print(f"[{i + 1}/{len(seqs)}] {res.name} ({res.frames} frames)  {line}{again}")
   summary = build_summary(config, described, results, methods, settings.get("weights"),
                           skipped)
   paths = report.write_all(out, summary)
   runner.drop_set_aside(out)  # the commit point of an --overwrite run: nothing is undone after
   if not set(done) - {str(seq.name) for seq in seqs}:  # else kept: a later --resume over
     (out / runner.PROGRESS).unlink(missing_ok=True)   # more sequences reads those again
-  print(report.shown(report.markdown(summary).split("## Per sequence")[0].rstrip()))
-  print(report.shown("wrote " + ", ".join(str(p) for p in paths)))
+  print(report.markdown(summary).split("## Per sequence")[0].rstrip())
+  print("wrote " + ", ".join(str(p) for p in paths))
   return 0
 
 

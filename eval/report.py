@@ -117,16 +117,11 @@ def _measured(summary: dict, method: dict) -> int:
   return method.get("measured_frames", summary["frames"])
 
 
-# How results.md, results.csv and the printed lines show the bytes of a path or sequence name
-# that is not UTF-8 (Latin-1 from a zip made on Windows, kept by Python as surrogates): as
-# `\udce9` (writing them failed with "surrogates not allowed" after the whole run;
-# results.json keeps them, escaped as JSON does).
+# How results.md and results.csv show the bytes of a path or sequence name that is not UTF-8
+# (Latin-1 from a zip made on Windows, kept by Python as surrogates): as `\udce9` (writing
+# them failed with "surrogates not allowed" after the whole run; results.json keeps them,
+# escaped as JSON does; the printed lines show them so too: `tools.printable_names`).
 NOT_UTF8 = "backslashreplace"
-
-
-def shown(text: str) -> str:
-  """`text` as the reports show it: such bytes as `\\udce9`."""
-  return text.encode("utf-8", NOT_UTF8).decode("utf-8")
 
 
 def write_csv(path, summary: dict) -> None:
