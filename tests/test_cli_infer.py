@@ -387,7 +387,7 @@ def test_frame_names_that_are_not_utf8_are_refused_before_the_run(tmp_path, clip
   # a checkpoint folder of such a name: orbax's TensorStore failed with a traceback
   checkpoint = tmp_path / os.fsdecode(b"ck\xe9")
   shutil.copytree(orbax_ckpt, checkpoint)
-  with pytest.raises(ValueError, match="the checkpoint folder's name is not UTF-8 text"):
+  with pytest.raises(ValueError, match="the orbax checkpoint folder's name is not UTF-8 text"):
     infer.load_checkpoint(checkpoint)
   # the writers: a 16-bit PNG and an EXR of any name (OpenCV's imwrite crashed, OpenEXR
   # refused it: read back as "not an OpenEXR file"), a clear error for the video

@@ -863,10 +863,7 @@ def load_checkpoint(path, dtype: str | None = None):
   path = pathlib.Path(path)
   if not path.exists():
     raise FileNotFoundError(f"checkpoint not found: {path}")
-  if path.is_dir():
-    from sav_jax import viz  # pylint: disable=import-outside-toplevel
-    # (other bytes failed deep inside orbax's TensorStore: "Unable to cast Python instance")
-    viz.check_utf8_path(path.absolute(), "checkpoint folder")
+  if path.is_dir():  # (a path that is not UTF-8: refused by restore_variables, for orbax)
     variables, cfg_dict = convert.restore_variables(path)
     cfg = this_machines_settings(config_from_dict(cfg_dict, path), path)
     inference.check_variables(variables, cfg, path)  # NaN or inf weights too
