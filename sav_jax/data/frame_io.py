@@ -16,6 +16,7 @@ Conventions (`docs/datasets.md`, section 0):
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import tokenize
@@ -325,12 +326,8 @@ def read_float16_png(path: PathLike) -> np.ndarray:
 def read_npy(path: PathLike) -> np.ndarray:
   """`np.load` without pickles (Infinigen depth, TartanAir depth)."""
   path = require_file(path, "npy file")
-  try:
+  with _numpy_read_errors(path, "npy"):  # (MemoryError: a header declaring a huge shape)
     arr = np.load(path, allow_pickle=False)
-  except _CORRUPT_ARCHIVE as e:
-    raise ValueError(f"cannot read npy file {path}: {type(e).__name__}: {e}") from e
-  except MemoryError as e:  # a header declaring a huge shape
-    raise MemoryError(f"{path}: out of host memory reading the npy file") from e
   if not isinstance(arr, np.ndarray):  # np.load opens an .npz archive whatever its name
     names = ", ".join(arr.files)
     arr.close()
@@ -363,26 +360,17 @@ def _real_numbers(arr: np.ndarray, path, key: str | None = None) -> np.ndarray:
 def read_npz(path: PathLike) -> dict[str, np.ndarray]:
   """All arrays of an `.npz` archive (Infinigen camview: `K`, `T`)."""
   path = require_file(path, "npz file")
-  try:
+  with _numpy_read_errors(path, "npz"):
     loaded = np.load(path, allow_pickle=False)
-  except _CORRUPT_ARCHIVE as e:
-    raise ValueError(f"cannot read npz file {path}: {type(e).__name__}: {e}") from e
-  except MemoryError as e:
-    raise MemoryError(f"{path}: out of host memory reading the npz file") from e
   if not isinstance(loaded, np.lib.npyio.NpzFile):  # np.load reads an .npy whatever its name
     raise ValueError(f"{path}: a single .npy array of shape {loaded.shape} under an .npz name; "
                      "expected an .npz archive of named arrays (np.savez)")
-  try:
-    with loaded as z:
-      # a few MB inflating to GB (a camera file is ~1 kB): the converter's bound on .npz
-      from sav_jax.convert.pickle_reader import check_inflation  # pylint: disable=import-outside-toplevel
-      check_inflation(z.zip, path, "a dataset's arrays", "camera and depth arrays shrink "
-                      "little: a damaged file?", ValueError)
-      arrays = {k: z[k] for k in z.files}
-  except _CORRUPT_ARCHIVE as e:
-    raise ValueError(f"cannot read npz file {path}: {type(e).__name__}: {e}") from e
-  except MemoryError as e:
-    raise MemoryError(f"{path}: out of host memory reading the npz file") from e
+  with _numpy_read_errors(path, "npz"), loaded as z:  # (its arrays are read here)
+    # a few MB inflating to GB (a camera file is ~1 kB): the converter's bound on .npz
+    from sav_jax.convert.pickle_reader import check_inflation  # pylint: disable=import-outside-toplevel
+    check_inflation(z.zip, path, "a dataset's arrays", "camera and depth arrays shrink "
+                    "little: a damaged file?", ValueError)
+    arrays = {k: z[k] for k in z.files}
   return {k: _real_numbers(v, path, k) for k, v in arrays.items()}
 
 
@@ -390,6 +378,18 @@ def read_npz(path: PathLike) -> dict[str, np.ndarray]:
 # byte): its own ValueErrors, zipfile's and zlib's, a header that does not tokenize or parse.
 _CORRUPT_ARCHIVE = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error,
                     NotImplementedError, tokenize.TokenError, SyntaxError)
+
+
+@contextlib.contextmanager
+def _numpy_read_errors(path, kind: str):
+  """numpy's errors reading the `kind` ("npy", "npz") file `path` as one naming it: a damaged
+  file (`_CORRUPT_ARCHIVE`) as a ValueError, a size beyond this host as a MemoryError."""
+  try:
+    yield
+  except _CORRUPT_ARCHIVE as e:
+    raise ValueError(f"cannot read {kind} file {path}: {type(e).__name__}: {e}") from e
+  except MemoryError as e:
+    raise MemoryError(f"{path}: out of host memory reading the {kind} file") from e
 
 
 def read_exr(path: PathLike, channel: str | None = None) -> np.ndarray:
