@@ -61,6 +61,11 @@ def caller_stacklevel() -> int:
   return level
 
 
+def nonfinite_frames(video: np.ndarray) -> np.ndarray:
+  """The indices of the frames of `video` (`[T, ...]`, float) that hold NaN or inf."""
+  return np.flatnonzero(~np.isfinite(video).reshape(len(video), -1).all(axis=1))
+
+
 def check_video_values(video: np.ndarray, name: str = "video", first: int = 0,
                        warn: bool = True) -> bool:
   """Raises ValueError unless `video` (`[T, ...]` frames) holds finite RGB values in 0..255.
@@ -82,11 +87,10 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0,
   if not video.size:  # no values to check (numpy's min() of none failed: "zero-size array")
     return False
   if kind == "f":
-    bad = ~np.isfinite(video).reshape(len(video), -1).all(axis=1)
-    if bad.any():
+    bad = nonfinite_frames(video)
+    if bad.size:
       raise ValueError(f"{name}: non-finite values (NaN/inf) in frame(s) "
-                       f"{(np.flatnonzero(bad)[:10] + first).tolist()}; the model would "
-                       "return NaN")
+                       f"{(bad[:10] + first).tolist()}; the model would return NaN")
   lo, hi = float(video.min()), float(video.max())
   normalised = ("RGB frames are 0..255: negative values are no image's; normalised "
                 "frames need their mean and scale put back")

@@ -847,9 +847,9 @@ def _as_video_pair(left, right, first: int = 0,
   left, right = _as_video(left, "left"), _as_video(right, "right")
   _check_video_shapes(left.shape, right.shape)
   for name, video in (("left", left), ("right", right)):
-    if check_video_values(video, name, first, warn=warned is None or name not in warned):
-      if warned is not None:
-        warned.add(name)
+    if (check_video_values(video, name, first, warn=warned is None or name not in warned)
+        and warned is not None):
+      warned.add(name)
   return left, right  # cast to float32 per window, so long uint8 videos stay small
 
 

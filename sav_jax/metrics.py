@@ -64,7 +64,8 @@ from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from sav_jax._checks import caller_stacklevel, float_frames_range, is_int, widened
+from sav_jax._checks import (caller_stacklevel, float_frames_range, is_int, nonfinite_frames,
+                             widened)
 
 _F32 = np.float32
 BAD_THRESHOLDS = (0.5, 1.0, 2.0, 3.0)
@@ -501,13 +502,11 @@ def _check_video_values(video, name: str) -> None:
   v = widened(np.asarray(video))  # bfloat16 (JAX's) as float32
   if v.dtype == np.uint8 or v.dtype.kind not in "uif" or v.size == 0:
     return
-  if v.dtype.kind == "f":
-    left = v[:, 0] if v.ndim == 5 else v
-    bad = ~np.isfinite(left).reshape(len(left), -1).all(axis=1) if left.ndim else ()
-    if np.any(bad):
-      raise ValueError(f"{name} has NaN or inf values in frame(s) "
-                       f"{np.flatnonzero(bad)[:10].tolist()}; OPW and RTC would be 0 (their "
-                       "photometric weight NaN)")
+  if v.dtype.kind == "f" and v.ndim:
+    bad = nonfinite_frames(v[:, 0] if v.ndim == 5 else v)
+    if bad.size:
+      raise ValueError(f"{name} has NaN or inf values in frame(s) {bad[:10].tolist()}; OPW "
+                       "and RTC would be 0 (their photometric weight NaN)")
   lo, hi = float(v.min()), float(v.max())
   if not (np.isfinite(lo) and np.isfinite(hi)):
     return  # NaN/inf in the right view of a stereo video, which no metric reads
