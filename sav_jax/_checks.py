@@ -22,6 +22,19 @@ def widened(a: np.ndarray) -> np.ndarray:
   return a.astype(np.float32) if a.dtype.name.startswith(("bfloat16", "float8")) else a
 
 
+def check_utf8_path(path, what: str = "file") -> None:
+  """Raises ValueError unless `path` is UTF-8 text: a name of other bytes (Latin-1 from a
+  zip made on Windows, kept by Python as surrogates) crashed OpenCV's video writer and reader
+  with a segmentation fault, and orbax and JAX's cache fail on it with a traceback."""
+  try:
+    str(path).encode("utf-8")
+  except UnicodeEncodeError as e:
+    raise ValueError(
+        f"{ascii(str(path))}: the {what}'s name is not UTF-8 text (bytes of another encoding "
+        f"at character {e.start}, e.g. Latin-1 from a zip made on Windows); rename it to "
+        "UTF-8 (convmv -f latin1 -t utf8 does so)") from None
+
+
 def loads_json(text: str):
   """`json.loads`, its RecursionError (a document nested thousands deep) a ValueError, as its
   other failures are, so that the callers' one-line errors cover it."""

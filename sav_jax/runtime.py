@@ -41,6 +41,8 @@ import sys
 
 import numpy as np
 
+from sav_jax._checks import check_utf8_path
+
 # JAX is imported where it is used: `sav-jax --help` imports this module for its defaults.
 
 log = logging.getLogger(__name__)
@@ -99,12 +101,8 @@ def enable_compilation_cache(path: str | os.PathLike | None = None,
   if path is None and current:
     return pathlib.Path(current)  # the user's own setup, left as it is
   folder = (pathlib.Path(path) if path is not None else default_cache_dir()).expanduser()
-  try:  # (JAX's C++ options take no other bytes: a TypeError at the first compile)
-    str(folder).encode("utf-8")
-  except UnicodeEncodeError:
-    raise ValueError(f"compilation cache folder {ascii(str(folder))}: its name is not UTF-8 "
-                     "text (bytes of another encoding), which JAX's cache cannot use; choose "
-                     "another folder") from None
+  # (JAX's C++ options take no other bytes: a TypeError at the first compile)
+  check_utf8_path(folder, "compilation cache folder")
   if folder.exists() and not folder.is_dir():
     raise ValueError(f"compilation cache {folder} exists and is not a folder")
   try:

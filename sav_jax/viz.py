@@ -32,7 +32,7 @@ import warnings
 import cv2
 import numpy as np
 
-from sav_jax._checks import caller_stacklevel, widened
+from sav_jax._checks import caller_stacklevel, check_utf8_path, widened  # (viz's API too)
 from sav_jax._files import free_space_note
 
 COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO, "turbo": cv2.COLORMAP_TURBO,
@@ -442,19 +442,6 @@ def _check_suffix(path, suffixes: tuple[str, ...], message: str) -> None:
   x.png; OpenCV picks the format from the name)."""
   if pathlib.Path(path).suffix.lower() not in suffixes:
     raise ValueError(f"{path}: {message}")
-
-
-def check_utf8_path(path, what: str = "file") -> None:
-  """Raises ValueError unless `path` is UTF-8 text: a name of other bytes (Latin-1 from a
-  zip made on Windows, kept by Python as surrogates) crashed OpenCV's video writer and reader
-  with a segmentation fault, and orbax and JAX's cache fail on it with a traceback."""
-  try:
-    str(path).encode("utf-8")
-  except UnicodeEncodeError as e:
-    raise ValueError(
-        f"{ascii(str(path))}: the {what}'s name is not UTF-8 text (bytes of another encoding "
-        f"at character {e.start}, e.g. Latin-1 from a zip made on Windows); rename it to "
-        "UTF-8 (convmv -f latin1 -t utf8 does so)") from None
 
 
 # The largest frame side `write_video` writes (MPEG-4 part 2 codes sizes in 13 bits: FFmpeg's

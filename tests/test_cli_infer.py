@@ -1310,7 +1310,7 @@ def test_a_compile_cache_folder_whose_name_is_not_utf8_is_refused(tmp_path, fold
   options (a traceback, after the checkpoint had loaded)."""
   cache = tmp_path / os.fsdecode(b"xla\xe9")
   assert _infer(*folders, npz_ckpt, tmp_path / "out", "--compile-cache", str(cache)) == 2
-  assert "xla\\udce9': its name is not UTF-8 text" in _error_line(capsys)
+  assert "xla\\udce9': the compilation cache folder's name is not UTF-8 text" in _error_line(capsys)
   assert not os.path.exists(cache) and not (tmp_path / "out").exists()
 
 

@@ -32,7 +32,7 @@ import numpy as np
 
 import sav_jax
 from sav_jax import _signals, runtime
-from sav_jax._checks import plural
+from sav_jax._checks import check_utf8_path, plural
 from sav_jax._locks import FolderBusyError, FolderLock
 from sav_jax.convert import params as convert_params
 from sav_jax.data import pipeline
@@ -396,7 +396,7 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
   """
   workdir = _given_workdir(workdir)
   # (orbax's TensorStore takes no other bytes: the first checkpoint save failed, after training)
-  sav_jax.viz.check_utf8_path(workdir.absolute(), "--workdir folder")
+  check_utf8_path(workdir.absolute(), "--workdir folder")
   existing = next(p for p in (workdir, *workdir.absolute().parents) if p.exists())
   for path in (existing, workdir / "checkpoints"):
     if path.exists() and not path.is_dir():

@@ -29,6 +29,7 @@ import jax
 import numpy as np
 
 from sav_jax import _signals
+from sav_jax._checks import check_utf8_path
 from sav_jax.convert.pickle_reader import CheckpointError
 
 __all__ = ["save_variables", "restore_variables", "is_variables_checkpoint",
@@ -53,8 +54,7 @@ def _check_utf8(directory: pathlib.Path) -> None:
   """A ValueError naming `directory` unless its path is UTF-8 text: orbax's TensorStore takes
   no other bytes (a name from a zip made on Windows failed deep inside it with a traceback,
   "Unable to cast Python instance of type <class 'str'>")."""
-  from sav_jax import viz  # pylint: disable=import-outside-toplevel
-  viz.check_utf8_path(directory, "orbax checkpoint folder")
+  check_utf8_path(directory, "orbax checkpoint folder")
 
 
 def _checkpointer():

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import logging
 
+from sav_jax._checks import check_utf8_path
 from sav_jax.tools import UsageError, check_output_dir
 
 HELP = ("convert an official .pth/.pt/.safetensors/.npz checkpoint into an orbax directory "
@@ -54,8 +55,7 @@ def check_destination(src: str, dst: str, to_file: bool, overwrite: bool) -> Non
     raise UsageError(f"SRC and DST are the same path ({dst}); write to another one")
   check_output_dir(os.path.dirname(os.path.abspath(dst)), flag=f"DST {dst}: folder")
   if not to_file:  # (orbax's TensorStore failed on other bytes, after the conversion's work)
-    from sav_jax import viz  # pylint: disable=import-outside-toplevel
-    viz.check_utf8_path(os.path.abspath(dst), "orbax checkpoint folder DST")
+    check_utf8_path(os.path.abspath(dst), "orbax checkpoint folder DST")
   if not os.path.lexists(dst):
     return
   if not to_file and os.path.isdir(dst) and not os.path.islink(dst) and not os.listdir(dst):
