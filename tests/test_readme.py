@@ -17,13 +17,18 @@ from tests.conftest import ROOT
 DOCS = ("README.md", "benchmarks/README.md")
 
 
+def _prose(doc: str) -> str:
+  """The text of `doc` without its fenced blocks (also those indented under a list item)."""
+  return re.sub(r"^ *```.*?^ *```", "", (ROOT / doc).read_text(encoding="utf-8"),
+                flags=re.S | re.M)
+
+
 def _code(doc: str) -> str:
   """The text of the fenced blocks (also those indented under a list item) and inline code
   spans of `doc`."""
   text = (ROOT / doc).read_text(encoding="utf-8")
   blocks = re.findall(r"^ *```[^\n]*\n(.*?)^ *```", text, flags=re.S | re.M)
-  spans = re.findall(r"`([^`\n]+)`", re.sub(r"^ *```.*?^ *```", "", text, flags=re.S | re.M))
-  return "\n".join(blocks + spans)
+  return "\n".join(blocks + _prose_spans(doc))
 
 
 def _command_lines(doc: str) -> list[str]:
@@ -91,8 +96,7 @@ _FILE_SUFFIX = re.compile(r"\.(?:py|json|jsonl|md|txt|csv|png|jpg|exr|pfm|ply|np
 def _prose_spans(doc: str) -> list[str]:
   """The inline code spans of `doc` outside its fenced blocks (where a `model` or `cfg` of the
   README's own snippets cannot be meant)."""
-  text = (ROOT / doc).read_text(encoding="utf-8")
-  return re.findall(r"`([^`\n]+)`", re.sub(r"^ *```.*?^ *```", "", text, flags=re.S | re.M))
+  return re.findall(r"`([^`\n]+)`", _prose(doc))
 
 
 def _dotted_spans(doc: str, prefixes) -> list[tuple[str, str]]:
@@ -276,8 +280,7 @@ def test_config_fields_in_prose_exist(doc):
   for: a sav_jax module by its short name (`metrics.not_measured_note`), the model
   (`model.apply`, `model.init`: StereoAnyVideo's methods) or this repository's train / eval
   package (`train.optim.TrainableVector`)."""
-  prose = re.sub(r"^ *```.*?^ *```", "", (ROOT / doc).read_text(encoding="utf-8"),
-                 flags=re.S | re.M)
+  prose = _prose(doc)
   prefixed = {f for f in re.findall(r"(?<![\w./-])config\.([a-z_][\w.]*\w)", prose)
               if not _FILE_SUFFIX.search("." + f)}
   unknown = sorted(f"config.{f}" for f in prefixed
