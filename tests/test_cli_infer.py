@@ -1862,3 +1862,52 @@ def test_a_demo_out_folder_whose_name_is_not_utf8_is_refused_before_the_run(tmp_
   err = capsys.readouterr().err
   assert err.count("\n") == 1 and "d\\udce9mo': the --out folder's name is not UTF-8 text" in err
   assert not out.exists()
+
+
+def test_the_held_disparities_are_not_mapped_into_memory(tmp_path, npz_ckpt, monkeypatch):
+  """The disparities that wait for the side-by-side video sat in a memory map of their
+  temporary file: every frame written stayed in the process's resident memory (1000 frames
+  of 240x320: 280 MB more than 40 frames), so the memory grew with the video's length. They
+  are written to the file and read back in batches: nothing of it is mapped, and the video
+  and its colour range are those of every frame."""
+  n = 23
+  labels = np.arange(n, dtype=np.uint8) * 11
+  frames = np.broadcast_to(labels[:, None, None, None], (n, 8, 12, 3)).copy()
+  left = _write_frames(tmp_path / "left", frames)
+  right = _write_frames(tmp_path / "right", frames)
+
+  def label_model(variables, lw, rw, *, pads, **kwargs):  # disparity 0.5 (index + 1)
+    value = (np.round(lw[:, 0, 0, 0] / 11).astype(np.float32) + 1) / 2
+    hp, wp = lw.shape[1] + pads[0] + pads[1], lw.shape[2] + pads[2] + pads[3]
+    ramp = np.arange(wp, dtype=np.float32) / 16  # a range that differs across columns
+    return value[:, None, None] + np.broadcast_to(ramp, (len(lw), hp, wp))
+
+  mapped, shown = [], []
+  real_write_video = viz.write_video
+
+  def watching_write_video(path, video, fps=10.0):
+    def frames_seen():
+      for f in video:
+        with open("/proc/self/maps", encoding="utf-8", errors="replace") as fh:
+          mapped.extend(l for l in fh if str(out) in l)  # (an O_TMPFILE file has no name)
+        shown.append(f)
+        yield f
+    return real_write_video(path, frames_seen(), fps)
+
+  monkeypatch.setattr(inference, "_run_window", label_model)
+  monkeypatch.setattr(viz, "write_video", watching_write_video)
+  out = tmp_path / "out"
+  assert _infer(left, right, npz_ckpt, out, "--format", "npy", "--window", "6",
+                "--stride", "4") == 0
+  assert not mapped, mapped  # (Linux's view of the process's mappings)
+  disp = np.stack([np.load(out / "disparity" / f"{i:04d}.npy") for i in range(n)])
+  top, _, lft, _ = pads = inference.pad_amounts(8, 12)
+  expected = label_model(None, frames, frames, pads=pads)[:, top:top + 8, lft:lft + 12]
+  np.testing.assert_allclose(disp, expected, rtol=1e-6)
+  summary = json.loads((out / "summary.json").read_text())
+  lo, hi = viz.disparity_range(disp, percentiles=(1.0, 99.0))
+  assert summary["video_disparity_range"] == [round(lo, 4), round(hi, 4)]
+  assert len(shown) == n  # every frame, each the left view beside its own disparities
+  for f, l, d in zip(shown, frames, disp):
+    np.testing.assert_array_equal(f, viz.side_by_side(l, viz.colorize(d, lo, hi)))
+  assert not list(out.glob(".disparity_*"))

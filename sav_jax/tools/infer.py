@@ -512,7 +512,9 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
   `chunks` yields `(first frame, disparities [k, H, W])` in order
   (`inference.iter_predict_video`; at least one, computed before any folder is made).
   Each chunk's files are written as it comes; the disparities wait in a temporary file in
-  `out` (not in memory) for the video, whose one colour range needs them all.
+  `out` (written and read back with plain file I/O, not mapped: a memory map kept every
+  frame written in the process's resident memory) for the video, whose one colour range
+  needs them all (taken from a regular subsample gathered as the frames come).
 
   Returns:
     For the summary: `video_disparity_range` (the video's colour range, px) and
@@ -553,12 +555,17 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
   saturated = beyond = empty_clouds = 0
   max_depth = getattr(args, "max_depth", None)
   with tempfile.TemporaryFile(dir=out, prefix=".disparity_", suffix=".tmp") as held:
-    size = len(names) * h * w * np.dtype(np.float32).itemsize
-    with writing(out, size=size, remove=False, what=f"the disparities' temporary file in {out}"):
-      # Its blocks reserved now: a memory map on a disk that fills up later gets SIGBUS (the
-      # process died with "Bus error" and no message).
+    frame_bytes = h * w * np.dtype(np.float32).itemsize
+    size = len(names) * frame_bytes
+    held_file = f"the disparities' temporary file in {out}"
+    with writing(out, size=size, remove=False, what=held_file):
+      # Its blocks reserved now: a full disk is found before any map is written (a memory
+      # map on a disk that filled up later got SIGBUS: "Bus error" and no message).
       _reserve(held, size)
-    disp = np.memmap(held, np.float32, "w+", shape=(len(names), h, w))
+    # The colour range's sample: every step-th row and column of every frame, at most
+    # RANGE_SAMPLE values.
+    step = max(1, int(np.ceil(np.sqrt(len(names) * h * w / RANGE_SAMPLE))))
+    sample = np.empty((len(names), -(-h // step), -(-w // step)), np.float32)
     ply_comments = () if calib is None else (
         "sav-jax infer: the left view's pixels back-projected",
         "axes: x right, y down, z forward (OpenCV camera of the left view)",
@@ -568,7 +575,11 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
       frames = left[t0:t0 + len(chunk)] if calib is not None else None
       for k, d in enumerate(chunk):
         i, name = t0 + k, names[t0 + k]
-        disp[i] = d
+        d = np.ascontiguousarray(d, np.float32)
+        with writing(out, remove=False, what=held_file):
+          held.seek(i * frame_bytes)
+          held.write(d.data)
+        sample[i] = d[::step, ::step]
         beyond += int(np.count_nonzero(d >= w))  # no pixel of the frame can match that far
         for fmt in formats:
           path = video_io.disparity_path(out / "disparity", name, fmt)
@@ -585,19 +596,27 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
           path = out / "pointclouds" / f"{name}.ply"
           with writing(path):
             viz.write_ply(path, xyz, rgb, ply_comments)
-    step = max(1, int(np.ceil(np.sqrt(disp.size / RANGE_SAMPLE))))
-    vmin, vmax = viz.disparity_range(disp[:, ::step, ::step], percentiles=(1.0, 99.0))
+    vmin, vmax = viz.disparity_range(sample, percentiles=(1.0, 99.0))
+    del sample
     batch = max(1, int(args.window))
+
+    def held_frames(a: int, b: int) -> np.ndarray:
+      d = np.empty((b - a, h, w), np.float32)
+      held.seek(a * frame_bytes)
+      if held.readinto(memoryview(d).cast("B")) != d.nbytes:
+        raise OSError(f"{held_file}: frames {a}..{b - 1} could not be read back")
+      return d
 
     def video_frames():
       for a in tqdm(range(0, len(names), batch), desc="video", unit="batch",
                     disable=not runtime.draws_progress()):
-        for f, d in zip(left[a:a + batch], disp[a:a + batch]):
-          yield viz.side_by_side(f, viz.colorize(np.asarray(d), vmin, vmax))
+        b = min(a + batch, len(names))
+        for f, d in zip(left[a:b], held_frames(a, b)):
+          yield viz.side_by_side(f, viz.colorize(d, vmin, vmax))
 
+    held.flush()
     with writing(out / "side_by_side.mp4", remove=False):  # (replaced only when complete)
       viz.write_video(out / "side_by_side.mp4", video_frames(), fps=args.fps)
-    del disp
   return {"video_disparity_range": [round(float(vmin), 4), round(float(vmax), 4)],
           "png16_saturated_pixels": saturated, "disparities_beyond_width": beyond,
           "empty_point_clouds": empty_clouds}
