@@ -1225,6 +1225,13 @@ def _is_lazy_video(x) -> bool:
           and hasattr(x, "__getitem__"))
 
 
+def _is_uint8_frame_list(video) -> bool:
+  """Whether `video` is a non-empty list (or tuple) of uint8 NumPy frames of one shape."""
+  return (isinstance(video, (list, tuple)) and len(video) > 0
+          and all(isinstance(f, np.ndarray) and f.dtype == np.uint8
+                  and f.shape == video[0].shape for f in video))
+
+
 def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
                        iters: int = 20, window: int = WINDOW, stride: int = STRIDE,
                        dtype: str | None = None, progress: bool = False,
@@ -1233,7 +1240,8 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
 
   `left` and `right` are arrays as for `predict_video`, or lazy video sources: objects with
   a `shape` `(T, H, W, 3)` whose `source[a:b]` returns those frames as an array (e.g.
-  `sav_jax.tools.video_io.FrameSource`, which decodes frames when asked). Only one window
+  `sav_jax.tools.video_io.FrameSource`, which decodes frames when asked). A list of uint8
+  frames (beside uint8 frames) is read window by window as well, not stacked whole. Only one window
   of frames (and the per-frame features of its overlap) is held at a time; a lazy
   source's frames are checked as they are read (a warning about their values once per
   view, not at every window). The arguments are checked by the call;
@@ -1248,6 +1256,12 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
   cfg = resolve_config(cfg, dtype)
   iters = check_iters(iters)
   lazy = _is_lazy_video(left) or _is_lazy_video(right)
+  # A list of uint8 frames beside uint8 frames (which need no value check) is read window by
+  # window too: stacking it whole made a second copy of the video.
+  lazy = lazy or (any(_is_uint8_frame_list(v) for v in (left, right))
+                  and all(_is_uint8_frame_list(v) or (isinstance(v, np.ndarray)
+                                                      and v.dtype == np.uint8)
+                          for v in (left, right)))
   if lazy:  # the frames themselves are checked window by window, as they are read
     _check_video_shapes(_video_shape(left, "left"), _video_shape(right, "right"))
   else:

@@ -964,3 +964,39 @@ def test_run_window_fills_a_chunk_that_an_earlier_window_cut_short(monkeypatch):
     assert out.shape == (15, 32, 32)  # 5x7 padded to 32x32
   assert sorted(fake.seen) == list(range(25))  # every frame's own features reached a window
   assert set(fake.computed) == set(range(25))
+
+
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
+def test_a_list_of_uint8_frames_is_not_copied_whole(monkeypatch):
+  """A list of uint8 frames (`[cv2.imread(p)[..., ::-1] for p in paths]`) was stacked into
+  one array before the first window: a second copy of the whole video. Such lists are read
+  window by window, as lazy sources are (uint8 values need no check); the output is the
+  same, and lists of other frames are still checked whole before anything runs."""
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window", _LabelModel())
+  stacked = []
+  real_stack = np.stack
+  monkeypatch.setattr(np, "stack", lambda arrays, *a, **k: (
+      stacked.append(len(arrays)) if isinstance(arrays, (list, tuple)) else None)
+      or real_stack(arrays, *a, **k))
+  video = _labelled_video(23).astype(np.uint8)
+  frames = list(video)
+  out = inference.predict_video({}, frames, list(video))
+  assert max(stacked) <= 20, stacked  # a window's frames at most, never all 23
+  label = out[:, 0, 0]
+  np.testing.assert_array_equal(label // 1000 - 1 + label % 1000, np.arange(23))
+  np.testing.assert_array_equal(out, inference.predict_video({}, video, video))
+  # beside an array, and window by window from iter_predict_video
+  got = dict(inference.iter_predict_video({}, frames, video, window=8, stride=4))
+  assert sorted(got) == [0, 6, 10, 14, 18]
+  np.testing.assert_array_equal(np.concatenate([got[t] for t in sorted(got)]),
+                                inference.predict_video({}, video, video, window=8, stride=4))
+  # lists of other frames: checked (and stacked) whole, before any window runs
+  floats = [f.astype(np.float32) for f in video]
+  floats[17] = floats[17] * np.nan
+  with pytest.raises(ValueError, match=r"left: non-finite values \(NaN/inf\) in frame\(s\) \[17\]"):
+    inference.predict_video({}, floats, video)
+  with pytest.raises(ValueError, match="left: frame 3 has shape"):
+    inference.predict_video({}, frames[:3] + [video[3, :4]] + frames[4:], video)
+  with pytest.raises(ValueError, match="differ in shape"):
+    inference.predict_video({}, frames[:22], video)
