@@ -117,11 +117,25 @@ class StereoSequence:
     return frame
 
   def _checked_gt(self, i: int, side: str, size: tuple[int, int]):
-    disp, valid = self._read_gt(i, side)
+    path = self.files[side + "_gt"][i]
+    reader = f"{type(self).__name__}._read_gt"
+    gt = self._read_gt(i, side)
+    # A reader of your own: what it returns is checked here, naming it and the file (a
+    # bare array, a list or a mask of another size failed later, naming neither).
+    if not (isinstance(gt, tuple) and len(gt) == 2):
+      raise ValueError(f"{reader} returned {_what(gt)} for {path}; expected a pair "
+                       "(disparity [H, W], valid [H, W])")
+    disp, valid = (np.asarray(a) for a in gt)
+    if disp.dtype.kind not in "iuf":
+      raise ValueError(f"{reader}: the disparity of {path} is of dtype {disp.dtype}; "
+                       "expected numbers (pixels)")
     if disp.shape != size:
-      raise ValueError(f"ground truth {self.files[side + '_gt'][i]} is {disp.shape} but the "
+      raise ValueError(f"ground truth {path} is {disp.shape} but the "
                        f"image {self.files[side][i]} is {size}")
-    valid = np.asarray(valid)
+    if valid.shape != size or valid.dtype.kind not in "biuf":
+      raise ValueError(f"{reader}: the valid mask of {path} is {valid.shape} {valid.dtype}; "
+                       f"expected {size} bool (or weights) as the image "
+                       f"{self.files[side][i]}")
     if valid.dtype != bool:  # weights: above 0.5, as the metrics and the augmentation count
       valid = valid > 0.5    # them (a cast to bool took any weight above 0, 0.3 too)
     return np.ascontiguousarray(disp, np.float32), np.ascontiguousarray(valid)
@@ -227,6 +241,18 @@ class DepthSequence(StereoSequence):
 
 
 # ----------------------------------------------------------------------------- helpers
+
+
+def _what(value) -> str:
+  """`value` in words for an error message: `an array of shape (48, 96) float32`, `a list`,
+  `a tuple of 3`, `None`."""
+  if value is None:
+    return "None"
+  if isinstance(value, np.ndarray):
+    return f"an array of shape {value.shape} {value.dtype}"
+  if isinstance(value, tuple):
+    return f"a tuple of {len(value)}"
+  return f"a {type(value).__name__}"
 
 
 def camera_scale(fx: float, baseline: float, source) -> float:

@@ -879,6 +879,40 @@ def test_a_readers_valid_weights_count_above_one_half_as_in_the_metrics(tmp_path
   np.testing.assert_array_equal(seq.clip(0, 1)["valid"][0], valid)
 
 
+class _OwnReader(base.StereoSequence):
+  """A reader of your own that returns what `kind` says (its mistakes, or a list)."""
+
+  kind = "pair"
+
+  def _read_gt(self, i, side):
+    d = np.full((H, W), 3.0, np.float32)
+    return {"bare": lambda: d, "list": lambda: (d.tolist(), np.ones((H, W), bool)),
+            "mask": lambda: (d, np.ones((3, 3), bool)),
+            "strings": lambda: (d.astype(str), np.ones((H, W), bool))}[self.kind]()
+
+
+@pytest.mark.parametrize("kind,message", [
+    ("bare", r"_OwnReader._read_gt returned an array of shape \(\d+, \d+\) float32 for "
+             r".*gt.npy; expected a pair \(disparity \[H, W\], valid \[H, W\]\)"),
+    ("mask", r"_OwnReader._read_gt: the valid mask of .*gt.npy is \(3, 3\) bool; expected "
+             r"\(\d+, \d+\) bool \(or weights\) as the image .*frame.png"),
+    ("strings", r"_OwnReader._read_gt: the disparity of .*gt.npy is of dtype <U\d+; expected "
+                r"numbers")])
+def test_what_a_readers_read_gt_returns_is_checked_naming_the_reader_and_file(tmp_path, kind,
+                                                                              message):
+  # A bare array failed as "too many values to unpack", a mask of another size was carried
+  # into training (dense clips recompute theirs) or the metrics: neither named the file.
+  img = tmp_path / "frame.png"
+  _png(img, np.zeros((H, W, 3), np.uint8))
+  seq = _OwnReader("s", {"left": [img], "right": [img], "left_gt": [tmp_path / "gt.npy"]},
+                   dataset="mine")
+  seq.kind = kind
+  with pytest.raises(ValueError, match=message):
+    seq.clip(0, 1)
+  seq.kind = "list"  # numbers in a list are numbers
+  np.testing.assert_array_equal(seq.clip(0, 1)["disparity"], np.full((1, H, W), 3.0))
+
+
 def test_hidden_files_are_skipped_and_frame_numbers_sort_as_numbers(tmp_path):
   # macOS archives leave `._<name>` copies beside every file, notebooks `.ipynb_checkpoints`:
   # shell globs (and the official loaders) skip them, so must we.
