@@ -114,9 +114,38 @@ class _LoadClip:
     if clip.get("disparity") is None:
       raise ValueError(f"{clip_origin(sequence, indices)} has no ground truth: it cannot be "
                        "used for training")
+    check_disparity_sign(clip, sequence, indices)
     clip["sparse"] = bool(getattr(sequence, "sparse", False))
     clip[ORIGIN] = clip_origin(sequence, indices)
     return clip
+
+
+def check_disparity_sign(clip: Mapping[str, Any], sequence, indices) -> None:
+  """Raises ValueError, naming the clip and a ground-truth file, where most valid pixels of
+  a frame of a loaded clip have a negative disparity: the loss compares the model's positive
+  disparities of the left view (x_left - x_right) with it, and the dense augmentation counts
+  any non-zero value below 512 px as valid, so a reader of your own that returns the
+  official loaders' internal `-d` (or a right-view disparity) trained without a word on a
+  target of the wrong sign."""
+  disp = np.asarray(clip["disparity"])
+  valid = clip.get("valid")
+  valid = (disp != 0) if valid is None else np.asarray(valid, bool)
+  negative = np.sum(valid & (disp < 0), axis=(-2, -1))
+  positive = np.sum(valid & (disp > 0), axis=(-2, -1))
+  bad = np.flatnonzero(negative > positive)
+  if not bad.size:
+    return
+  t = int(bad[0])
+  frame = list(indices)[t]
+  files = getattr(sequence, "files", {}) or {}
+  gt = files.get("left_gt", ())
+  where = f" ({gt[frame]})" if frame < len(gt) else ""
+  share = 100.0 * negative[t] / max(1, negative[t] + positive[t])
+  raise ValueError(
+      f"{clip_origin(sequence, indices)}: the ground truth of frame {frame}{where} is negative "
+      f"at {share:.0f}% of its valid pixels (min {float(disp[t][valid[t]].min()):.3g} px): "
+      "training needs the left view's disparity as a positive number of pixels (x_left - "
+      "x_right; the official loaders store -d internally): negate it in your reader")
 
 
 # The note (`BaseException.add_note`) on a reader's error for a clip's files: what

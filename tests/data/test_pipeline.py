@@ -368,6 +368,36 @@ def test_loaded_clips_keep_their_frame_order_and_sparse_flag():
     assert src[0]["sparse"] is False and src[1]["sparse"] is True  # sparse augmentation
 
 
+class _NegativeSequence(_FakeSequence):
+  """A reader of your own that returns the official loaders' internal -d for frames >= 2
+  (a few positive pixels in them, and a few negative ones in the others)."""
+
+  files = {**_FakeSequence.files,
+           "left_gt": [pathlib.Path(f"/nowhere/seq/disparity/{i:04d}.npy") for i in range(6)]}
+
+  def gather(self, indices):
+    clip = super().gather(indices)
+    for t, i in enumerate(indices):
+      clip["disparity"][t] *= -1 if i >= 2 else 1
+      clip["disparity"][t, 0, :3] *= -1  # a minority of the other sign
+    clip["valid"] = clip["disparity"] != 0
+    return clip
+
+
+def test_a_clip_of_negative_ground_truth_is_refused_naming_the_frame_and_file():
+  # Dense clips count any non-zero value below 512 px as valid: -d trained silently against
+  # the model's positive disparities.
+  seq = _NegativeSequence()
+  for skip in (0, 2):  # a convention error, not an unreadable file: never skipped through
+    src = pipeline.clips_source([(seq, [0, 1]), (seq, [1, 3, 4])], skip_unreadable=skip)
+    assert src[0]["disparity"][:, 5, 5].tolist() == [1.0, 2.0]  # a few negative pixels: fine
+    with pytest.raises(ValueError, match=(
+        r"toy/seq, frames \[1, 3, 4\] \(first left image .*left/0001.png\): the ground truth "
+        r"of frame 3 \(.*disparity/0003.npy\) is negative at 99% of its valid pixels "
+        r"\(min -4 px\): .* positive .*negate it")):
+      src[1]  # pylint: disable=pointless-statement
+
+
 def test_stand_ins_are_other_clips_drawn_per_index():
   drawn = pipeline._SkippingClips([None] * 3, 5)  # pylint: disable=protected-access
   for i in range(3):  # never the unreadable clip itself (a wasted try)
