@@ -25,6 +25,7 @@ evaluation takes whole sequences.
 from __future__ import annotations
 
 import logging
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -72,7 +73,32 @@ def read_disparity(path: Path) -> tuple[np.ndarray, np.ndarray]:
                      "expected one channel [H, W] of numbers (pixels)")
   disp = disp.astype(np.float32)
   valid = frame_io.dense_valid(disp)  # (False for NaN and inf too)
+  _warn_if_out_of_range(path, disp, valid)
   return np.where(valid, disp, 0.0).astype(np.float32), valid
+
+
+_RANGE_WARNED: set[str] = set()
+
+
+def _warn_if_out_of_range(path: Path, disp: np.ndarray, valid: np.ndarray) -> None:
+  """Warns (once per folder) where most of a file's finite non-zero disparities are 512 px
+  or more: the official rule leaves them out, so a folder of disparities in other units
+  (KITTI's d * 256 saved as floats, 1/16 px, depth) trained and scored on its few small
+  values only (a frame without any: a loss of 0, read as an EPE of 0)."""
+  folder = str(Path(path).parent)
+  if folder in _RANGE_WARNED:
+    return
+  given = np.isfinite(disp) & (disp != 0)
+  large = int(np.count_nonzero(given & ~valid))
+  if large * 2 <= int(np.count_nonzero(given)):
+    return
+  _RANGE_WARNED.add(folder)
+  warnings.warn(f"{path}: {100 * large / np.count_nonzero(given):.0f}% of its non-zero "
+                f"disparities are {frame_io.MAX_DISPARITY:g} px or more (max "
+                f"{float(np.nanmax(np.where(given, np.abs(disp), 0))):g}), which the official "
+                f"rule leaves out (valid: 0 < |d| < {frame_io.MAX_DISPARITY:g} px): is it in "
+                "pixels (not d * 256, 1/16 px or depth)? Training and the metrics use the "
+                "rest only (this is said once per folder)", stacklevel=2)
 
 
 def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[StereoSequence]:

@@ -13,6 +13,7 @@ import pickle
 import re
 import shutil
 import struct
+import warnings
 
 import cv2
 import numpy as np
@@ -1491,6 +1492,32 @@ def test_folder_dataset_unpadded_npy_ground_truth_json_calibration_empty_split(t
   (seq / "calib.json").write_text(f'{{"fx": 400, "baseline": 0.25, "width": {W}, "height": {H},'
                                   f' "cx": 5.5, "cy": 3.5}}')
   assert registry.get_sequences("folder", tmp_path, "val")[0].depth2disp_scale == 100.0
+
+
+def test_folder_disparities_mostly_beyond_512_px_are_warned_once_per_folder(tmp_path):
+  # KITTI's d * 256 saved as float .npy: every value but the small ones was left out by the
+  # official valid rule without a word (a frame without any: a loss of 0, an EPE of 0).
+  rng = np.random.default_rng(26)
+  seq = tmp_path / "train" / "cam"
+  (seq / "disparity").mkdir(parents=True)
+  for i in range(3):
+    _png(seq / "left" / f"{i}.png", _rgb(rng))
+    _png(seq / "right" / f"{i}.png", _rgb(rng))
+    disp = np.full((H, W), 4.0 * 256, np.float32)
+    disp[0, :3] = (0.0, np.nan, 3.0)
+    np.save(seq / "disparity" / f"{i}.npy", disp if i else disp / 256)  # frame 0 in pixels
+  (s,) = registry.get_sequences("folder", tmp_path, "train")
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    assert s[0]["valid"].sum() == H * W - 2  # pixels: no warning
+  with pytest.warns(UserWarning, match=r"1\.npy: 99% of its non-zero disparities are 512 px "
+                                       r"or more \(max 1024\), which the official rule "
+                                       r"leaves out .*is it in pixels"):
+    frame = s[1]
+  assert frame["valid"].sum() == 1 and frame["disparity"][0, 2] == 3.0
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")  # once per folder
+    s.clip(0, 3)
 
 
 def _load_own(root, split, dataset):
