@@ -114,10 +114,30 @@ class _LoadClip:
     if clip.get("disparity") is None:
       raise ValueError(f"{clip_origin(sequence, indices)} has no ground truth: it cannot be "
                        "used for training")
+    sparse = bool(getattr(sequence, "sparse", False))
+    if not sparse:
+      honour_dense_masks(clip)
     check_disparity_sign(clip, sequence, indices)
-    clip["sparse"] = bool(getattr(sequence, "sparse", False))
+    clip["sparse"] = sparse
     clip[ORIGIN] = clip_origin(sequence, indices)
     return clip
+
+
+def honour_dense_masks(clip: dict) -> None:
+  """Sets a dense clip's disparity to 0 where its reader's valid mask says no but the
+  official dense rule (`d != 0 and |d| < 512`, which the augmentation applies to the
+  resized disparity instead of carrying the mask) would count it: a reader of your own
+  that marks pixels invalid and leaves a value there (-1, a fill, garbage) trained on
+  them. The built-in readers leave 0 or a value of 512 px or more there, so their clips,
+  and the official resize of them, are unchanged."""
+  from sav_jax.data import frame_io  # pylint: disable=g-import-not-at-top
+  for dkey, vkey in (("disparity", "valid"), ("right_disparity", "right_valid")):
+    if clip.get(dkey) is None or clip.get(vkey) is None:
+      continue
+    disp, valid = np.asarray(clip[dkey]), np.asarray(clip[vkey], bool)
+    hidden = ~valid & frame_io.dense_valid(disp)
+    if hidden.any():
+      clip[dkey] = np.where(hidden, np.float32(0), disp).astype(disp.dtype)
 
 
 def check_disparity_sign(clip: Mapping[str, Any], sequence, indices) -> None:

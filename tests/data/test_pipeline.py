@@ -398,6 +398,37 @@ def test_a_clip_of_negative_ground_truth_is_refused_naming_the_frame_and_file():
       src[1]  # pylint: disable=pointless-statement
 
 
+class _MaskedSequence(_FakeSequence):
+  """A dense reader of your own that marks a band invalid and leaves -1 (or a fill of 7)
+  there; the top rows carry 600 px, invalid by the official rule, which stays as it is."""
+
+  def gather(self, indices):
+    clip = super().gather(indices)
+    clip["disparity"][:, 8:12] = np.float32([-1, 7, 7, 7])[:, None]
+    clip["disparity"][:, :2] = 600.0
+    clip["valid"] = np.ones_like(clip["valid"])
+    clip["valid"][:, 8:12] = False
+    clip["valid"][:, :2] = False
+    return clip
+
+
+def test_a_dense_readers_invalid_pixels_stay_out_of_training():
+  # The dense augmentation recomputes the mask from the disparity (official), so the -1 and
+  # the 7s of the band, which the reader marked invalid, were trained on.
+  clip = pipeline.clips_source([(_MaskedSequence(), [0, 1])])[0]
+  assert (clip["disparity"][:, 8:12] == 0).all()
+  assert (clip["disparity"][:, :2] == 600).all() and (clip["disparity"][:, 2:8] > 0).all()
+  # scale 1 (the crop + 8 px is the frame's height), a 12-row crop: rows 8..11 are in it
+  identity = (("scale_range", (0.0, 0.0)), ("stretch_prob", 0.0), ("photometric", False),
+              ("eraser_prob", 0.0), ("yjitter", False))
+  for seed in range(4):
+    out = pipeline.Augment((12, 16), identity)(clip, np.random.default_rng(seed))
+    assert set(np.unique(out["disparity"][out["valid"]])) == {1.0, 2.0}  # frames 0 and 1
+    assert ((~out["valid"]).sum(axis=(1, 2)) >= 4 * 16).all()  # the band's rows at least
+  sparse = pipeline.clips_source([(type("S", (_MaskedSequence,), {"sparse": True})(), [0])])[0]
+  assert (sparse["disparity"][:, 8] == -1).all()  # a sparse mask is carried: left as read
+
+
 def test_stand_ins_are_other_clips_drawn_per_index():
   drawn = pipeline._SkippingClips([None] * 3, 5)  # pylint: disable=protected-access
   for i in range(3):  # never the unreadable clip itself (a wasted try)
