@@ -84,6 +84,13 @@ def as_example(clip: Mapping[str, Any]) -> dict[str, np.ndarray]:
   if left.dtype.kind == "f" and left.size and 0 < float(left.max()) <= 1.0:
     warnings.warn(f"float frames with values up to {float(left.max()):g}: the pipeline expects "
                   "0..255 (multiply 0..1 images by 255)", stacklevel=caller_stacklevel())
+  for name, view in (("left", left), ("right", right)):
+    if view.dtype.kind in "iu" and view.dtype != np.uint8 and view.size and (
+        int(view.max()) > 255 or int(view.min()) < 0):
+      # (clipped to 0..255, a 16-bit frame was all but white)
+      raise ValueError(f"{name} frames of dtype {view.dtype} with values in "
+                       f"{int(view.min())}..{int(view.max())}: the pipeline expects 8-bit RGB, "
+                       "0..255 (a 16-bit frame: x >> 8, as the dataset readers read one)")
   as_u8 = lambda a: a if a.dtype == np.uint8 else np.clip(np.rint(a), 0, 255).astype(np.uint8)
   return {"left": as_u8(left), "right": as_u8(right), "disparity": disp, "valid": valid}
 

@@ -354,6 +354,15 @@ def test_as_example_conversions():
     pipeline.as_example({**clip, "left": unit, "right": unit})
   with pytest.raises(ValueError, match="left/right must be .* of equal shape"):
     pipeline.as_example({**clip, "right": left[:, :, :3]})
+  # integer frames beyond 8 bits (a 16-bit source of your own) were clipped to white
+  deep = np.full(left.shape, 60000, np.uint16)
+  deep[0, 0, 0] = 0
+  with pytest.raises(ValueError, match=r"right frames of dtype uint16 with values in 0\.\.60000: "
+                                       r"the pipeline expects 8-bit RGB, 0\.\.255"):
+    pipeline.as_example({**clip, "left": np.zeros_like(left, np.uint8), "right": deep})
+  small = pipeline.as_example({**clip, "left": np.full_like(left, 7, np.int64),
+                               "right": np.full_like(left, 255, np.uint16)})
+  assert small["left"].dtype == np.uint8 and small["right"].max() == 255  # in range: fine
 
 
 class _SparseSequence(_FakeSequence):
