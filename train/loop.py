@@ -381,6 +381,32 @@ def _given_workdir(workdir) -> pathlib.Path:
   return pathlib.Path(workdir)
 
 
+def _refuse_workdir_in_data(config, workdir: pathlib.Path) -> None:
+  """Raises ValueError where `workdir` is inside the folder of a dataset the run reads (a
+  training source's, or the validation's): the run writes `checkpoints/`, `tb/` and
+  `metrics.jsonl` there, which its reader may take for data (a run in the `train/` split of
+  the "folder" dataset made `checkpoints/` a sequence without `left/`, so that the same
+  command could not resume); `python -m eval` refuses its `--out` there alike."""
+  from sav_jax.data import registry  # pylint: disable=g-import-not-at-top
+  where = workdir.expanduser().resolve()
+  used = [(f"config.data.sources.{name}", spec.get("dataset"), input_lib.source_root(config, spec))
+          for name, spec in sorted(config.data.sources.items())]
+  if config.eval.every_steps > 0:
+    root, field = ((config.eval.root, "config.eval.root") if config.eval.get("root") else
+                   (config.data.root, "config.data.root"))
+    used.append((f"config.eval.dataset ({field})", config.eval.dataset, root))
+  for field, dataset, root in used:
+    if dataset not in registry.DATASETS:  # synthetic (or an unknown name: said later)
+      continue
+    for folder in registry.dataset_folders(dataset, root):
+      if where.is_relative_to(folder.resolve()):
+        raise ValueError(f"--workdir {workdir} is inside {folder}, a folder of the dataset "
+                         f"{dataset!r} ({field}): a run writes checkpoints/, tb/ and "
+                         "metrics.jsonl there, "
+                         "which the dataset's reader would take for data; keep runs out of the "
+                         "dataset: choose a folder outside it")
+
+
 def validate_config(config, workdir, num_devices: int | None = None) -> None:
   """Checks the values of a training config and the workdir before a run creates anything.
 
@@ -417,6 +443,7 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
   writable = workdir / "checkpoints" if (workdir / "checkpoints").exists() else existing
   if not os.access(writable, os.W_OK | os.X_OK):
     raise PermissionError(f"--workdir {workdir}: no permission to write in {writable}")
+  _refuse_workdir_in_data(config, workdir)
   evaluating = config.eval.every_steps > 0
   for field, ok, want in _CHECKS + (_EVAL_CHECKS if evaluating else ()):
     value = _value(config, field)

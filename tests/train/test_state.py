@@ -680,6 +680,34 @@ def test_each_process_reads_its_share_of_the_batch():
     input_lib.train_dataset(c, process_index=0, process_count=2)
 
 
+def test_a_workdir_inside_a_dataset_the_run_reads_is_refused(tmp_path):
+  # A run in the folder dataset's train/ split wrote checkpoints/ there, which the reader then
+  # took for a sequence without left/: the same command could not resume.
+  from train import loop  # pylint: disable=g-import-not-at-top
+  data = tmp_path / "my_videos"
+  for split in ("train", "val"):
+    (data / split / "seq" / "left").mkdir(parents=True)
+  c = synthetic.get_config()
+  c.data.sources = ml_collections.ConfigDict(
+      {"mine": dict(dataset="folder", weight=1.0, root=str(data))})
+  for inside in (data / "train", data / "train" / "runs" / "a"):
+    with pytest.raises(ValueError, match=rf"--workdir {inside} is inside {data / 'train'}, a "
+                       r"folder of the dataset 'folder' \(config\.data\.sources\.mine\): a "
+                       r"run writes checkpoints/.* choose a folder outside it"):
+      loop.validate_config(c, inside)
+    assert not (inside / "checkpoints").exists()
+  held_out = tmp_path / "held_out"
+  (held_out / "val" / "seq" / "left").mkdir(parents=True)
+  c.eval.dataset, c.eval.split, c.eval.root = "folder", "val", str(held_out)
+  with pytest.raises(ValueError, match=r"inside .*held_out/val, a folder of the dataset "
+                                       r"'folder' \(config\.eval\.dataset \(config\.eval\.root\)\)"):
+    loop.validate_config(c, held_out / "val" / "run")
+  loop.validate_config(c, data / "runs" / "a")  # beside the splits: the reader looks not there
+  loop.validate_config(c, tmp_path / "run")
+  c.eval.every_steps = 0  # no validation: its data is not read
+  loop.validate_config(c, held_out / "val" / "run")
+
+
 def test_a_training_source_may_have_its_own_data_root(monkeypatch):
   """Your own videos (the "folder" dataset) beside the SceneFlow family under data.root."""
   from train import input as input_lib  # pylint: disable=g-import-not-at-top
