@@ -700,7 +700,7 @@ def test_a_workdir_inside_a_dataset_the_run_reads_is_refused(tmp_path):
   (held_out / "val" / "seq" / "left").mkdir(parents=True)
   c.eval.dataset, c.eval.split, c.eval.root = "folder", "val", str(held_out)
   with pytest.raises(ValueError, match=r"inside .*held_out/val, a folder of the dataset "
-                                       r"'folder' \(config\.eval\.dataset \(config\.eval\.root\)\)"):
+                     r"'folder' \(config\.eval\.dataset \(config\.eval\.root\)\)"):
     loop.validate_config(c, held_out / "val" / "run")
   loop.validate_config(c, data / "runs" / "a")  # beside the splits: the reader looks not there
   loop.validate_config(c, tmp_path / "run")
