@@ -22,7 +22,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from sav_jax.ops.pool import pad_replicate
+from sav_jax.ops.pool import accumulation_dtype, pad_replicate
 from sav_jax.ops.sample import warp_x
 
 WIDE_WINDOW = (1, 9)
@@ -39,7 +39,7 @@ def _band_products(left: jax.Array, right: jax.Array, bands: int, block: int) ->
     block: positions per matrix product.
 
   Returns:
-    `[..., Q, bands]` float32.
+    `[..., Q, bands]` in `accumulation_dtype` (float32, float64 for float64 inputs).
   """
   *lead, q, c = left.shape
   nb = q // block
@@ -47,7 +47,7 @@ def _band_products(left: jax.Array, right: jax.Array, bands: int, block: int) ->
   main = right[..., :q, :].reshape(*lead, nb, block, c)
   nxt = right[..., block:q + block, :].reshape(*lead, nb, block, c)[..., :bands - 1, :]
   rb = jnp.concatenate([main, nxt], axis=-2)  # [..., nb, block + bands - 1, C]
-  m = jnp.einsum("...qc,...rc->...qr", lb, rb, preferred_element_type=jnp.float32)
+  m = jnp.einsum("...qc,...rc->...qr", lb, rb, preferred_element_type=accumulation_dtype(left.dtype, right.dtype))
   # Skew: row q of m, columns q .. q + bands - 1. Flattened with one extra
   # column per row, element (q, q + k) sits at row q, column k.
   width = block + bands - 1
@@ -72,7 +72,7 @@ def window_correlation(
       result does not depend on it). Raised to `2 wx - 2` when smaller.
 
   Returns:
-    `[N, H, W, groups * n * n]` float32 with `n = wy*wx`; channel
+    `[N, H, W, groups * n * n]` float32 (float64 for float64 inputs) with `n = wy*wx`; channel
     `g*n*n + a*n + b` is `sum_c left_view_a[c] * right_view_b[c]` over the
     channels of group g, where view `a = dy*wx + dx` holds the map at
     `(y + dy - wy//2, x + dx - wx//2)` with coordinates clamped to the border.
@@ -120,7 +120,7 @@ def aapc(
     groups: channel groups (4).
 
   Returns:
-    `[N, H, W, groups * n * n]`, float32.
+    `[N, H, W, groups * n * n]`, float32 (float64 for float64 inputs).
   """
   warped = warp_x(fmap2, disp)
   return window_correlation(fmap1, warped, window, groups)

@@ -6,6 +6,13 @@ import jax
 import jax.numpy as jnp
 
 
+def accumulation_dtype(*dtypes) -> jnp.dtype:
+  """The dtype the ops compute in for inputs of `dtypes`: float32 for integers, bfloat16,
+  float16 and float32, float64 for float64 inputs (with `jax_enable_x64`; without it a NumPy
+  float64 array is read as float32, as JAX reads it anyway)."""
+  return jax.dtypes.canonicalize_dtype(jnp.promote_types(jnp.float32, jnp.result_type(*dtypes)))
+
+
 def avg_pool(x: jax.Array, k: int) -> jax.Array:
   """`F.avg_pool2d(x, k, stride=k)`: non-overlapping mean, remainder dropped.
 

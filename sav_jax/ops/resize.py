@@ -18,6 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sav_jax.ops.pool import accumulation_dtype
+
 # Torch's bicubic kernel constant (upsample_bicubic2d).
 _CUBIC_A = -0.75
 
@@ -72,13 +74,13 @@ def bilinear_taps(in_size: int, out_size: int, align_corners: bool = False,
 
 
 def _blend_axis(x: jax.Array, axis: int, taps) -> jax.Array:
-  """The two-tap blend of `bilinear_taps` along `axis` of float32 `x` (identity: `x`)."""
+  """The two-tap blend of `bilinear_taps` along `axis` of floating `x` (identity: `x`)."""
   i0, i1, w1 = taps
   if len(i0) == x.shape[axis] and not w1.any() and np.array_equal(i0, np.arange(len(i0))):
     return x
   shape = [1] * x.ndim
   shape[axis] = len(w1)
-  w = jnp.asarray(w1.reshape(shape), jnp.float32)
+  w = jnp.asarray(w1.reshape(shape), x.dtype)
   a = jnp.take(x, jnp.asarray(i0), axis=axis, mode="clip")
   b = jnp.take(x, jnp.asarray(i1), axis=axis, mode="clip")
   return (1.0 - w) * a + w * b
@@ -146,9 +148,11 @@ def resize(
   in_h, in_w = x.shape[-3], x.shape[-2]
   out_h, out_w = size
   sy, sx = scale_factor if scale_factor is not None else (None, None)
+  dt = accumulation_dtype(x.dtype)
   if mode == "bilinear":
-    # Two taps per axis in float32 whatever the input dtype (bf16 inputs stay accurate).
-    y = _blend_axis(x.astype(jnp.float32), x.ndim - 3,
+    # Two taps per axis in float32 whatever the input dtype (bf16 inputs stay accurate;
+    # float64 ones stay float64).
+    y = _blend_axis(x.astype(dt), x.ndim - 3,
                     bilinear_taps(in_h, out_h, align_corners, sy))
     y = _blend_axis(y, x.ndim - 2, bilinear_taps(in_w, out_w, align_corners, sx))
     return _cast_like(y, x.dtype)
@@ -157,15 +161,15 @@ def resize(
   if (in_h, in_w) == (out_h, out_w) and np.array_equal(my, np.eye(in_h)) and np.array_equal(
       mx, np.eye(in_w)):
     return x
-  my = jnp.asarray(my, dtype=jnp.float32)
-  mx = jnp.asarray(mx, dtype=jnp.float32)
-  y = jnp.einsum("oh,...hwc->...owc", my, x.astype(jnp.float32))
+  my = jnp.asarray(my, dtype=dt)
+  mx = jnp.asarray(mx, dtype=dt)
+  y = jnp.einsum("oh,...hwc->...owc", my, x.astype(dt))
   y = jnp.einsum("pw,...owc->...opc", mx, y)
   return _cast_like(y, x.dtype)
 
 
 def _cast_like(y: jax.Array, dtype) -> jax.Array:
-  """float32 `y` in `dtype`: integers rounded to the nearest (halves up, as OpenCV's
+  """float32 (or float64) `y` in `dtype`: integers rounded to the nearest (halves up, as OpenCV's
   integer resizes do) and clipped to the type's range (a plain cast truncates: ~half of a
   uint8 image's values came out one lower)."""
   if jnp.issubdtype(dtype, jnp.integer):

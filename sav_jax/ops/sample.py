@@ -11,6 +11,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from sav_jax.ops.pool import accumulation_dtype
+
 
 def warp_x(features: jax.Array, disp: jax.Array) -> jax.Array:
   """Samples `features` at `x - disp` along the width axis.
@@ -20,11 +22,13 @@ def warp_x(features: jax.Array, disp: jax.Array) -> jax.Array:
     disp: `[N, H, W]`, horizontal flow in pixels (positive moves the sample left).
 
   Returns:
-    `[N, H, W, C]`: `features[n, y, x - disp[n, y, x]]`, linearly interpolated,
-    zero outside the image.
+    `[N, H, W, C]` in the dtype of `features`: `features[n, y, x - disp[n, y, x]]`,
+    linearly interpolated, zero outside the image; computed in float32 (float64 for
+    float64 inputs).
   """
   width = features.shape[2]
-  xs = jnp.arange(width, dtype=jnp.float32)[None, None, :] - disp.astype(jnp.float32)
+  dt = accumulation_dtype(features.dtype, disp.dtype)
+  xs = jnp.arange(width, dtype=dt)[None, None, :] - disp.astype(dt)
   x0 = jnp.floor(xs)
   w1 = (xs - x0)[..., None]
   x0 = x0.astype(jnp.int32)
@@ -33,7 +37,7 @@ def warp_x(features: jax.Array, disp: jax.Array) -> jax.Array:
   def tap(idx):
     inside = ((idx >= 0) & (idx <= width - 1))[..., None]
     vals = jnp.take_along_axis(features, jnp.clip(idx, 0, width - 1)[..., None], axis=2)
-    return jnp.where(inside, vals.astype(jnp.float32), 0.0)
+    return jnp.where(inside, vals.astype(dt), 0.0)
 
   out = (1.0 - w1) * tap(x0) + w1 * tap(x1)
   return out.astype(features.dtype)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from sav_jax.ops.pool import accumulation_dtype
+
 
 def neighbours_3d(x: jax.Array) -> jax.Array:
   """The 27 zero-padded 3x3x3 neighbours of every position (`unfoldNd`, padding 1).
@@ -30,7 +32,8 @@ def convex_upsample_3d(flow: jax.Array, mask: jax.Array, rate: int = 4) -> jax.A
 
   Each output pixel is a softmax-weighted sum over the 27 (t, y, x) neighbours of
   its low-resolution cell in the previous, current and next frame; the flow is
-  multiplied by `rate` first. Computed in float32 whatever the input dtype.
+  multiplied by `rate` first. Computed in float32 whatever the input dtype (float64 for
+  float64 inputs).
 
   Args:
     flow: `[B, T, h, w, C]`.
@@ -38,14 +41,15 @@ def convex_upsample_3d(flow: jax.Array, mask: jax.Array, rate: int = 4) -> jax.A
     rate: upsampling factor.
 
   Returns:
-    `[B, T, rate*h, rate*w, C]`, float32.
+    `[B, T, rate*h, rate*w, C]`, float32 (float64 for float64 inputs).
   """
   b, t, h, w, c = flow.shape
-  weights = mask.astype(jnp.float32).reshape(b, t, h, w, 27, rate, rate)
+  dt = accumulation_dtype(flow.dtype, mask.dtype)
+  weights = mask.astype(dt).reshape(b, t, h, w, 27, rate, rate)
   # Softmax over the last axis: jaxlib 0.10 on CPU crashes (SIGSEGV) on the
   # gradient of a softmax over an inner axis of this shape.
   weights = jax.nn.softmax(jnp.moveaxis(weights, 4, -1), axis=-1)  # [B,T,h,w,ry,rx,27]
-  nb = neighbours_3d(rate * flow.astype(jnp.float32))  # [B,T,h,w,27,C]
+  nb = neighbours_3d(rate * flow.astype(dt))  # [B,T,h,w,27,C]
   # Tiny contraction: keep full float32 even where matmuls default to TF32/bf16.
   up = jnp.einsum(
       "bthwyxk,bthwkc->bthywxc", weights, nb, precision=jax.lax.Precision.HIGHEST)
@@ -70,7 +74,8 @@ def neighbours_2d(x: jax.Array) -> jax.Array:
 def convex_upsample_2d(flow: jax.Array, mask: jax.Array, rate: int = 8) -> jax.Array:
   """RAFT's convex upsampling: each output pixel a softmax-weighted sum of 3x3 neighbours.
 
-  The flow is multiplied by `rate` first; computed in float32 whatever the input dtype.
+  The flow is multiplied by `rate` first; computed in float32 whatever the input dtype
+  (float64 for float64 inputs).
 
   Args:
     flow: `[B, h, w, C]`.
@@ -78,11 +83,12 @@ def convex_upsample_2d(flow: jax.Array, mask: jax.Array, rate: int = 8) -> jax.A
     rate: upsampling factor.
 
   Returns:
-    `[B, rate*h, rate*w, C]`, float32.
+    `[B, rate*h, rate*w, C]`, float32 (float64 for float64 inputs).
   """
   b, h, w, c = flow.shape
-  weights = mask.astype(jnp.float32).reshape(b, h, w, 9, rate, rate)
+  dt = accumulation_dtype(flow.dtype, mask.dtype)
+  weights = mask.astype(dt).reshape(b, h, w, 9, rate, rate)
   weights = jax.nn.softmax(jnp.moveaxis(weights, 3, -1), axis=-1)  # [B,h,w,ry,rx,9]
-  nb = neighbours_2d(rate * flow.astype(jnp.float32))  # [B,h,w,9,C]
+  nb = neighbours_2d(rate * flow.astype(dt))  # [B,h,w,9,C]
   up = jnp.einsum("bhwyxk,bhwkc->bhywxc", weights, nb, precision=jax.lax.Precision.HIGHEST)
   return up.reshape(b, h * rate, w * rate, c)
