@@ -22,7 +22,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from sav_jax.ops.pool import accumulation_dtype, pad_replicate
+from sav_jax._checks import is_int
+from sav_jax.ops.pool import accumulation_dtype, check_array, pad_replicate
 from sav_jax.ops.sample import warp_x
 
 WIDE_WINDOW = (1, 9)
@@ -77,10 +78,19 @@ def window_correlation(
     channels of group g, where view `a = dy*wx + dx` holds the map at
     `(y + dy - wy//2, x + dx - wx//2)` with coordinates clamped to the border.
   """
+  check_array("left", left, 4, "[N, H, W, C]")
+  check_array("right", right, 4, "[N, H, W, C]")
+  if tuple(left.shape) != tuple(right.shape):
+    raise ValueError(f"left and right feature maps differ in shape: {tuple(left.shape)} vs "
+                     f"{tuple(right.shape)}")
+  if (not isinstance(window, (tuple, list)) or len(window) != 2
+      or not all(is_int(k) and k >= 1 and k % 2 for k in window)):
+    raise ValueError(f"window must be two odd sizes (wy, wx), e.g. (1, 9) or (3, 3), got "
+                     f"{window!r}")
   n_, h, w, c = left.shape
-  if c % groups:
-    raise ValueError(f"feature channels {c} are not divisible by {groups} groups")
-  wy, wx = window
+  wy, wx = (int(k) for k in window)
+  if not is_int(groups) or groups < 1 or c % groups:
+    raise ValueError(f"feature channels {c} are not divisible by {groups!r} groups")
   ry, rx = wy // 2, wx // 2
   hp, wp = h + 2 * ry, w + 2 * rx
   dys, dxs = 2 * wy - 1, 2 * wx - 1

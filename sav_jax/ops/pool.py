@@ -13,6 +13,17 @@ def accumulation_dtype(*dtypes) -> jnp.dtype:
   return jax.dtypes.canonicalize_dtype(jnp.promote_types(jnp.float32, jnp.result_type(*dtypes)))
 
 
+def check_array(name: str, x, ndim: int, layout: str) -> None:
+  """A ValueError naming `name`, its shape and the expected `layout` unless `x` is a
+  numeric (float or integer) array of `ndim` dimensions (a TypeError for a non-array)."""
+  if not hasattr(x, "shape") or not hasattr(x, "dtype"):
+    raise TypeError(f"{name} must be an array {layout}, got a {type(x).__name__}")
+  if not (jnp.issubdtype(x.dtype, jnp.floating) or jnp.issubdtype(x.dtype, jnp.integer)):
+    raise ValueError(f"{name} must hold real numbers, got dtype {x.dtype}")
+  if x.ndim != ndim:
+    raise ValueError(f"{name} must be {layout} ({ndim} dimensions), got shape {tuple(x.shape)}")
+
+
 def avg_pool(x: jax.Array, k: int) -> jax.Array:
   """`F.avg_pool2d(x, k, stride=k)`: non-overlapping mean, remainder dropped.
 

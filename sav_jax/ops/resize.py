@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sav_jax.ops.pool import accumulation_dtype
+from sav_jax.ops.pool import accumulation_dtype, check_array
 
 # Torch's bicubic kernel constant (upsample_bicubic2d).
 _CUBIC_A = -0.75
@@ -145,8 +145,18 @@ def resize(
   Returns:
     `[..., size[0], size[1], channels]`, same dtype as `x`.
   """
+  if hasattr(x, "ndim") and x.ndim < 3:
+    raise ValueError(f"x must be [..., height, width, channels] (channels last, at least 3 "
+                     f"dimensions), got shape {tuple(x.shape)}; a single-channel image is "
+                     "x[..., None]")
+  check_array("x", x, getattr(x, "ndim", 3), "[..., height, width, channels]")
+  try:
+    out_h, out_w = (int(v) for v in size)
+  except (TypeError, ValueError):
+    raise ValueError(f"size must be the output (height, width), got {size!r}") from None
+  if (out_h, out_w) != tuple(size) or min(out_h, out_w) < 1:
+    raise ValueError(f"size must be two positive integers (height, width), got {size!r}")
   in_h, in_w = x.shape[-3], x.shape[-2]
-  out_h, out_w = size
   sy, sx = scale_factor if scale_factor is not None else (None, None)
   dt = accumulation_dtype(x.dtype)
   if mode == "bilinear":

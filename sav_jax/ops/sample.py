@@ -11,7 +11,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from sav_jax.ops.pool import accumulation_dtype
+from sav_jax.ops.pool import accumulation_dtype, check_array
 
 
 def warp_x(features: jax.Array, disp: jax.Array) -> jax.Array:
@@ -26,6 +26,11 @@ def warp_x(features: jax.Array, disp: jax.Array) -> jax.Array:
     linearly interpolated, zero outside the image; computed in float32 (float64 for
     float64 inputs).
   """
+  check_array("features", features, 4, "[N, H, W, C]")
+  check_array("disp", disp, 3, "[N, H, W]")
+  if tuple(disp.shape) != tuple(features.shape[:3]):
+    raise ValueError(f"disp {tuple(disp.shape)} must be features' [N, H, W] "
+                     f"{tuple(features.shape[:3])}")
   width = features.shape[2]
   dt = accumulation_dtype(features.dtype, disp.dtype)
   xs = jnp.arange(width, dtype=dt)[None, None, :] - disp.astype(dt)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from sav_jax.ops.pool import accumulation_dtype
+from sav_jax._checks import is_int
+from sav_jax.ops.pool import accumulation_dtype, check_array
 
 
 def neighbours_3d(x: jax.Array) -> jax.Array:
@@ -27,6 +28,18 @@ def neighbours_3d(x: jax.Array) -> jax.Array:
   return jnp.stack(views, axis=4)
 
 
+def _check_convex(flow, mask, rate, layout: str, taps: int) -> None:
+  """A ValueError naming the argument whose shape does not fit the other's."""
+  check_array("flow", flow, len(layout.split(",")), layout)
+  check_array("mask", mask, flow.ndim, layout.replace("C]", f"{taps} * rate * rate]"))
+  if not is_int(rate) or rate < 1:
+    raise ValueError(f"rate must be a positive integer, got {rate!r}")
+  want = (*flow.shape[:-1], taps * rate * rate)
+  if tuple(mask.shape) != want:
+    raise ValueError(f"mask {tuple(mask.shape)} does not fit flow {tuple(flow.shape)} at rate "
+                     f"{rate}: expected {want} ({taps} * rate * rate logits per position)")
+
+
 def convex_upsample_3d(flow: jax.Array, mask: jax.Array, rate: int = 4) -> jax.Array:
   """Upsamples a flow field by a convex combination of its 3x3x3 neighbours.
 
@@ -43,6 +56,7 @@ def convex_upsample_3d(flow: jax.Array, mask: jax.Array, rate: int = 4) -> jax.A
   Returns:
     `[B, T, rate*h, rate*w, C]`, float32 (float64 for float64 inputs).
   """
+  _check_convex(flow, mask, rate, "[B, T, h, w, C]", 27)
   b, t, h, w, c = flow.shape
   dt = accumulation_dtype(flow.dtype, mask.dtype)
   weights = mask.astype(dt).reshape(b, t, h, w, 27, rate, rate)
@@ -85,6 +99,7 @@ def convex_upsample_2d(flow: jax.Array, mask: jax.Array, rate: int = 8) -> jax.A
   Returns:
     `[B, rate*h, rate*w, C]`, float32 (float64 for float64 inputs).
   """
+  _check_convex(flow, mask, rate, "[B, h, w, C]", 9)
   b, h, w, c = flow.shape
   dt = accumulation_dtype(flow.dtype, mask.dtype)
   weights = mask.astype(dt).reshape(b, h, w, 9, rate, rate)

@@ -465,3 +465,34 @@ def test_float64_inputs_are_computed_in_float64_and_match_finite_differences():
                             SMALL_WINDOW).dtype == jnp.float32
   assert convex_upsample_3d(jnp.zeros((1, 1, 1, 1, 1), jnp.bfloat16),
                             jnp.zeros((1, 1, 1, 1, 27 * 4), jnp.bfloat16), 2).dtype == jnp.float32
+
+
+def test_misshapen_op_arguments_are_named():
+  """Misshapen arguments got deep errors ("indices and arr must have the same number of
+  dimensions", "cannot reshape array") or, for right maps of another width and even windows,
+  a silently wrong correlation; each is now a ValueError naming the argument and its shape."""
+  f = jnp.ones((1, 4, 8, 8))
+  cases = [
+      (lambda: warp_x(f, jnp.ones((1, 4, 8, 1))), r"disp must be \[N, H, W\].*\(1, 4, 8, 1\)"),
+      (lambda: warp_x(f, jnp.ones((1, 4, 5))), r"disp \(1, 4, 5\) must be features' .*\(1, 4, 8\)"),
+      (lambda: aapc(f, f, jnp.ones((1, 4, 8, 1)), SMALL_WINDOW), r"disp must be \[N, H, W\]"),
+      (lambda: window_correlation(f, jnp.ones((1, 4, 9, 8)), SMALL_WINDOW),
+       r"left and right .* differ in shape: \(1, 4, 8, 8\) vs \(1, 4, 9, 8\)"),
+      (lambda: window_correlation(f, f, (2, 2)), r"window must be two odd sizes .*\(2, 2\)"),
+      (lambda: window_correlation(f[0], f[0], SMALL_WINDOW), r"left must be \[N, H, W, C\].*\(4, 8, 8\)"),
+      (lambda: window_correlation(f.astype(bool), f.astype(bool), SMALL_WINDOW), "left .*dtype bool"),
+      (lambda: resize(f, 16), r"size must be the output \(height, width\), got 16"),
+      (lambda: resize(jnp.ones((4, 4)), (8, 8)), r"x must be \[\.\.\., height, width, channels\].*\(4, 4\)"),
+      (lambda: convex_upsample_3d(jnp.ones((1, 2, 3, 4, 1)), jnp.ones((1, 2, 3, 4, 16)), 4),
+       r"mask \(1, 2, 3, 4, 16\) does not fit flow \(1, 2, 3, 4, 1\) at rate 4: expected "
+       r"\(1, 2, 3, 4, 432\)"),
+      (lambda: convex_upsample_3d(jnp.ones((2, 3, 4, 1)), jnp.ones((2, 3, 4, 432)), 4),
+       r"flow must be \[B, T, h, w, C\].*\(2, 3, 4, 1\)"),
+      (lambda: convex_upsample_2d(jnp.ones((1, 3, 4, 1)), jnp.ones((1, 3, 4, 27 * 4)), 2),
+       r"expected \(1, 3, 4, 36\)"),
+  ]
+  for fn, match in cases:
+    with pytest.raises(ValueError, match=match):
+      fn()
+  with pytest.raises(TypeError, match="disp must be an array"):
+    warp_x(f, 2.0)
