@@ -255,8 +255,11 @@ def pad_to_multiple(frames, multiple: int = PAD_MULTIPLE):
 
 
 def unpad(x, pads: tuple[int, int, int, int]):
-  """Removes `pad_frames` padding from `[..., Hp, Wp]` (disparities; NumPy or JAX)."""
+  """Removes `pad_frames` padding from `[..., Hp, Wp]` (disparities; NumPy or JAX, or a
+  list, which gives a NumPy array as `pad_frames` does)."""
   top, bottom, left, right = _check_pads(pads)
+  if not isinstance(x, jax.Array):
+    x = np.asarray(x)
   if x.ndim < 2 or top + bottom > x.shape[-2] or left + right > x.shape[-1]:
     why = ("expected [..., Hp, Wp]" if x.ndim < 2 else
            f"they add up to {top + bottom} x {left + right}, more than its last two axes "

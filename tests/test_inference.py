@@ -484,6 +484,9 @@ def test_padding_matches_input_padder():
   assert p.shape == (2, 6, 8, 1)
   np.testing.assert_array_equal(p[:, 0, 3:], x[:, 0])  # replicate
   np.testing.assert_array_equal(inference.unpad(p[..., 0], pads), x[..., 0])
+  # A list, which pad_frames takes, is taken here too (it failed with "'list' object has
+  # no attribute 'ndim'").
+  np.testing.assert_array_equal(inference.unpad(p[..., 0].tolist(), pads), x[..., 0])
 
 
 def test_padding_in_jax_pipelines():
