@@ -254,6 +254,7 @@ class StereoAnyVideo(nn.Module):
       then right clips), "fnet": `[2B, T, H/4, W/4, 96]`, "cnet": `[B, T, H/4, W/4, 96]`
       (left view), float32 apart from the tokens (compute dtype).
     """
+    self._check_bound("frame_features")
     check_videos(left, right)
     b, t, h, w, _ = left.shape
     both = normalize(jnp.concatenate([left, right], axis=0)).reshape(2 * b * t, h, w, 3)
@@ -305,6 +306,7 @@ class StereoAnyVideo(nn.Module):
       `(fmap1, fmap2, context)`, each `[B, T, H/4, W/4, 128]` float32:
       `[depth 32 | fnet 96]` per view and `[depth 32 | cnet 96]` of the left view.
     """
+    self._check_bound("features")
     return self.window_features(self.frame_features(left, right), *left.shape[2:4])
 
   def step(self, net, flow, inp, fmap1, fmap2, window, with_up: bool = True):
@@ -387,10 +389,25 @@ class StereoAnyVideo(nn.Module):
     """The flow entering every iteration, for inspection (no-op unless mutable)."""
     self.sow("intermediates", f"flow_in_{fmap1.shape[2]}x{fmap1.shape[3]}", flows_in)
 
+  def _check_bound(self, method: str) -> None:
+    """A TypeError for a method called on the module itself, without variables (Flax said
+    only "Can't check if running under init() on unbound modules")."""
+    if self.scope is None:
+      args = {"__call__": "left, right, iters=20",
+              "from_frame_features": "frame_feats, size"}.get(method, "left, right")
+      how = "" if method == "__call__" else f", method=sav_jax.StereoAnyVideo.{method}"
+      name = "model" if method == "__call__" else f"model.{method}"
+      raise TypeError(f"StereoAnyVideo is a Flax module without weights: call "
+                      f"model.apply(variables, {args}{how}) with variables = "
+                      "{'params': params} (sav_jax.convert.params_from_state_dict, or "
+                      "sav_jax.model.init.init_variables for fresh ones), not "
+                      f"{name}({args})")
+
   def _check_variables(self) -> None:
     """A ValueError when `apply` was given the parameter tree itself instead of the Flax
     variables `{"params": params}` (Flax would fail deep inside the depth prior, naming its
     first parameter)."""
+    self._check_bound("__call__")
     if self.is_initializing():
       return
     _check_collections(set(self.variables))
@@ -416,6 +433,7 @@ class StereoAnyVideo(nn.Module):
   def from_frame_features(self, frame_feats: dict, size: tuple[int, int], iters: int = 20,
                           final_only: bool = True) -> SAVOutput:
     """`__call__` from precomputed `frame_features` (frames of size `size` = (H, W))."""
+    self._check_bound("from_frame_features")
     size = check_frame_features(frame_feats, size)
     iters = check_iters(iters)
     final_only = check_final_only(final_only)

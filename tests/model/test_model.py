@@ -609,6 +609,22 @@ def test_apply_with_the_parameter_tree_itself_is_named(model, variables):
   assert out.disparities.shape == (1, *SHAPE[:4])
 
 
+def test_calling_the_module_without_variables_says_to_use_apply(model):
+  """`model(left, right)` (a notebook's first try) failed with Flax's "Can't check if running
+  under init() on unbound modules"; each entry point now names the `apply` call to make."""
+  x = np.zeros(SHAPE, np.float32)
+  with pytest.raises(TypeError, match=r"without weights: call model\.apply\(variables, left, "
+                     r"right, iters=20\) with variables = \{'params': params\}.*not "
+                     r"model\(left, right, iters=20\)"):
+    model(x, x, iters=2)
+  for method in ("features", "frame_features"):
+    with pytest.raises(TypeError, match=rf"model\.apply\(variables, left, right, "
+                       rf"method=sav_jax\.StereoAnyVideo\.{method}\)"):
+      getattr(model, method)(x, x)
+  with pytest.raises(TypeError, match=r"method=sav_jax\.StereoAnyVideo\.from_frame_features"):
+    model.from_frame_features({}, SHAPE[2:4])
+
+
 def test_freeze_depth_prior_leaves_the_prior_out_of_a_users_optimizer(variables):
   """A plain AdamW over all parameters decays the frozen prior's weights (its gradient is
   zero, its weight decay is not) and holds moments for it; `freeze_depth_prior` gives those
