@@ -13,6 +13,7 @@ resizes alone took ~4 TMAC in float32 that way.
 from __future__ import annotations
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -157,7 +158,7 @@ def resize(
   if (out_h, out_w) != tuple(size) or min(out_h, out_w) < 1:
     raise ValueError(f"size must be two positive integers (height, width), got {size!r}")
   in_h, in_w = x.shape[-3], x.shape[-2]
-  sy, sx = scale_factor if scale_factor is not None else (None, None)
+  sy, sx = _check_scale_factor(scale_factor, (in_h, in_w), (out_h, out_w))
   dt = accumulation_dtype(x.dtype)
   if mode == "bilinear":
     # Two taps per axis in float32 whatever the input dtype (bf16 inputs stay accurate;
@@ -176,6 +177,25 @@ def resize(
   y = jnp.einsum("oh,...hwc->...owc", my, x.astype(dt))
   y = jnp.einsum("pw,...owc->...opc", mx, y)
   return _cast_like(y, x.dtype)
+
+
+def _check_scale_factor(scale_factor, in_size, out_size) -> tuple:
+  """`scale_factor` as `(sy, sx)` (`(None, None)` for None); a ValueError unless it is two
+  positive numbers whose output size, torch's `floor(in * s)`, is `out_size`."""
+  if scale_factor is None:
+    return None, None
+  try:
+    sy, sx = (float(s) for s in scale_factor)
+  except (TypeError, ValueError):
+    raise ValueError(f"scale_factor must be two numbers (sy, sx), got {scale_factor!r}") from None
+  if not (0 < sy < float("inf") and 0 < sx < float("inf")):
+    raise ValueError(f"scale_factor must be two positive numbers (sy, sx), got {scale_factor!r}")
+  want = (math.floor(in_size[0] * sy), math.floor(in_size[1] * sx))
+  if want != tuple(out_size):
+    raise ValueError(f"size {tuple(out_size)} does not follow scale_factor {scale_factor!r} for "
+                     f"a {in_size[0]}x{in_size[1]} input: torch's output size is floor(in * s) "
+                     f"= {want}")
+  return sy, sx
 
 
 def _cast_like(y: jax.Array, dtype) -> jax.Array:

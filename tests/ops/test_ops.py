@@ -496,3 +496,15 @@ def test_misshapen_op_arguments_are_named():
       fn()
   with pytest.raises(TypeError, match="disp must be an array"):
     warp_x(f, 2.0)
+
+
+def test_resize_scale_factor_must_give_the_size():
+  """A size that is not torch's floor(in * scale_factor) has no torch counterpart: the
+  source coordinates (from the scale) and the output grid disagree. It was accepted silently."""
+  x = jnp.asarray(RNG.normal(size=(4, 4, 1)), jnp.float32)
+  with pytest.raises(ValueError, match=r"size \(10, 10\) does not follow scale_factor \(2, 2\) "
+                     r"for a 4x4 input: .* = \(8, 8\)"):
+    resize(x, (10, 10), "bicubic", scale_factor=(2, 2))
+  with pytest.raises(ValueError, match="scale_factor must be two positive numbers"):
+    resize(x, (8, 8), "bilinear", scale_factor=(2, -2))
+  assert resize(x, (9, 9), "bicubic", scale_factor=(2.3, 2.3)).shape == (9, 9, 1)
