@@ -90,7 +90,10 @@ def window_correlation(
   n_, h, w, c = left.shape
   wy, wx = (int(k) for k in window)
   if not is_int(groups) or groups < 1 or c % groups:
-    raise ValueError(f"feature channels {c} are not divisible by {groups!r} groups")
+    raise ValueError(f"groups must be a positive integer that divides the {c} feature "
+                     f"channels, got {groups!r}")
+  if not is_int(block) or block < 1:
+    raise ValueError(f"block must be a positive integer, got {block!r}")
   ry, rx = wy // 2, wx // 2
   hp, wp = h + 2 * ry, w + 2 * rx
   dys, dxs = 2 * wy - 1, 2 * wx - 1

@@ -186,8 +186,12 @@ def test_aapc_with_zero_flow_is_plain_window_correlation():
 
 
 def test_correlation_rejects_indivisible_channels():
-  with pytest.raises(ValueError, match="divisible"):
+  with pytest.raises(ValueError, match="divides the 6 feature channels, got 4"):
     window_correlation(jnp.zeros((1, 2, 2, 6)), jnp.zeros((1, 2, 2, 6)), SMALL_WINDOW)
+  # block=0 with a one-column window divided by zero; a fractional one failed in jnp.pad
+  for block in (0, 2.5):
+    with pytest.raises(ValueError, match=rf"block must be a positive integer, got {block}"):
+      window_correlation(jnp.zeros((1, 2, 2, 8)), jnp.zeros((1, 2, 2, 8)), (3, 1), block=block)
 
 
 # ---------------------------------------------------------------- convex upsampling
