@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numbers
+
 import jax
 import jax.numpy as jnp
 
@@ -34,6 +36,9 @@ def avg_pool(x: jax.Array, k: int) -> jax.Array:
   Returns:
     `[..., H // k, W // k, C]`.
   """
+  check_array("x", x, max(getattr(x, "ndim", 0), 3), "[..., H, W, C]")
+  if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
+    raise ValueError(f"avg_pool: the window k must be a positive integer, got {k!r}")
   h, w, c = x.shape[-3:]
   if h < k or w < k:  # torch: "Output size is too small"
     raise ValueError(f"avg_pool: a {h}x{w} map is smaller than the {k}x{k} window")

@@ -382,6 +382,10 @@ def test_avg_pool_refuses_a_map_narrower_than_the_window():
   with pytest.raises(ValueError, match="a 9x3 map is smaller than the 4x4 window"):
     avg_pool(x, 4)
   assert avg_pool(jnp.zeros((1, 4, 4, 2)), 4).shape == (1, 1, 1, 2)  # the window itself: fine
+  # k = 0 divided by zero, a float k failed in a reshape
+  for k in (0, 2.0):
+    with pytest.raises(ValueError, match=rf"the window k must be a positive integer, got {k}"):
+      avg_pool(x, k)
 
 
 def _convex_2d_loops(flow, mask, rate):
