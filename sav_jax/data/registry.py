@@ -160,6 +160,10 @@ def register_dataset(name: str, load_sequences, *, splits: tuple[str, ...],
       and (name in STRIDED, name in _SCENEFLOW) == (training == "strided",
                                                     training == "sceneflow")):
     return  # registered again as it is (a config file loaded twice, a notebook cell re-run)
+  if isinstance(same, functools.partial) and same.func is _registered:
+    raise ValueError(f"register_dataset: {name!r} is already registered with other "
+                     "arguments (load_sequences, splits, folders, training or eval_frames); "
+                     "a registered name keeps its arguments: choose another name")
   if not (isinstance(name, str) and name.isidentifier()) or name in _LOADERS or \
       name == "synthetic":
     raise ValueError(f"register_dataset: name must be a new identifier (not one of "

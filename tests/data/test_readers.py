@@ -1406,8 +1406,10 @@ def test_a_reader_of_your_own_layout_is_registered(tmp_path, monkeypatch):
   assert [c.indices for c in clips if c.sequence.name == "lab"] == [[0, 1], [2, 1]]  # sceneflow
   registry.register_dataset("own", _load_own, splits=("test",), folders=("OwnSet",),
                             training="sceneflow", eval_frames=2)  # again, as it is: nothing
-  with pytest.raises(ValueError, match="name must be a new identifier"):
+  with pytest.raises(ValueError, match="'own' is already registered with other arguments"):
     registry.register_dataset("own", _load_own, splits=("test",))  # another registration
+  with pytest.raises(ValueError, match="name must be a new identifier"):  # a built-in reader
+    registry.register_dataset("sintel_clean", _load_own, splits=("test",))
   with pytest.raises(ValueError, match="training must be 'strided', 'sceneflow' or None"):
     registry.register_dataset("own2", _load_own, splits=("test",), training="random")
   # a name for a tuple was taken letter by letter (folders O/, w/, n/, ...: never found)
@@ -1439,7 +1441,7 @@ def test_a_registered_datasets_eval_cut_is_of_its_test_split_only(tmp_path, monk
   assert [c.indices for c in registry.get_consecutive_clips("own", tmp_path, 1, "test")] == [
       [0], [1]]  # the validation's clips: of the evaluated frames too
   assert len(registry.get_consecutive_clips("own", tmp_path, 1, "test", max_frames=None)) == 3
-  with pytest.raises(ValueError, match="name must be a new identifier"):  # not kept silently
+  with pytest.raises(ValueError, match="already registered with other arguments"):  # not kept
     registry.register_dataset("own", _load_own, splits=("val", "test"), folders=("Own",),
                               eval_frames=3)
   with pytest.raises(ValueError, match="eval_frames must be an integer > 0"):
