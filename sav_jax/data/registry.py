@@ -318,8 +318,12 @@ def get_training_clips(dataset: str, root: str | Path, frames: int, split: str =
   """
   _check_name(dataset)
   if dataset not in _SCENEFLOW + STRIDED:
+    own = getattr(_LOADERS[dataset], "func", None) is _registered
     raise ValueError(f"{dataset} has no official training clips; datasets with them: "
-                     f"{', '.join(_SCENEFLOW + STRIDED)}")
+                     f"{', '.join(_SCENEFLOW + STRIDED)}" + (
+                         f" ({dataset!r} was registered with training=None, for evaluation "
+                         "only: register it with training='strided' or 'sceneflow' to train "
+                         "on it)" if own else ""))
   if not isinstance(frames, (int, np.integer)) or frames < 1:
     raise ValueError(f"frames must be an int >= 1, got {frames!r}")
   seqs = get_sequences(dataset, root, split, max_frames=None, **options)

@@ -1420,6 +1420,11 @@ def test_a_reader_of_your_own_layout_is_registered(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="folders must be a tuple of folder names"):
       registry.register_dataset("own2", _load_own, splits=("test",), folders=folders)
   assert "own2" not in registry.DATASETS
+  registry.register_dataset("own3", _load_own, splits=("test",), folders=("OwnSet",),
+                            training=None)  # evaluation only: training on it says why not
+  with pytest.raises(ValueError, match=r"'own3' was registered with training=None, for "
+                                       r"evaluation only: register it with training="):
+    registry.get_training_clips("own3", tmp_path, frames=2, split="test")
 
 
 def test_a_registered_datasets_eval_cut_is_of_its_test_split_only(tmp_path, monkeypatch):
