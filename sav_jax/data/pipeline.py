@@ -8,13 +8,17 @@ A training example is a dict of numpy arrays with static shapes:
 
 The pipeline (per source, then mixed; the same on every process up to the slice):
 
-  source.shuffle(seed).repeat()             a new permutation every epoch
-    .map(load).random_map(augment)          augmentation seeded by (seed, index)
-  MapDataset.mix(sources, weights)          deterministic interleaving by weight
+  source (loading clips lazily)
+    .shuffle(s).repeat()                    a new permutation every epoch (grain: seed s + epoch)
+    .random_map(augment, seed=a)            augmentation seeded by (a, index)
+  MapDataset.mix(sources, weights)          deterministic, even interleaving by weight
+                                            (grain rounds the shares: the smallest to 100)
     [process_index::process_count]          each process reads and augments its share
     .to_iter_dataset(ReadOptions(threads))  prefetching threads
     .batch(per_process_batch, drop_remainder=True)  -> [B_local, T, H, W, ...]
     [.mp_prefetch(workers)]
+
+with `s` and `a` hashes of (seed, source index, purpose) (`stream_seed`).
 
 `GlobalBatchIterator` turns each local batch into global `jax.Array`s sharded on the
 mesh's data axis (`jax.make_array_from_process_local_data`). Its `get_state()` /
