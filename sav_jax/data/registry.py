@@ -224,7 +224,9 @@ def get_sequences(dataset: str, root: str | Path, split: str, *, max_frames=OFFI
       dataset has one).
     max_frames: "official" cuts the "test" split as the official evaluation does
       (`EVAL_FRAMES`) and leaves other splits whole; an int L cuts every sequence to
-      its first L frames (None or <= 0: whole sequences).
+      its first L frames, of any split (None or <= 0: whole sequences). Either way a
+      Dynamic Replica sequence shorter than L is skipped, with a warning, as the official
+      evaluation skips it (`DROP_SHORT`).
     **options: passed to the dataset's `load_sequences` (e.g. `pass_name` for
       SceneFlow).
 

@@ -1530,3 +1530,18 @@ def test_folder_disparities_mostly_beyond_512_px_are_warned_once_per_folder(tmp_
 def _load_own(root, split, dataset):
   from sav_jax.data import stereo_folder  # pylint: disable=import-outside-toplevel
   return stereo_folder.load_sequences(root, split, dataset)
+
+
+def test_max_frames_cuts_any_split_and_dynamic_replica_skips_short_sequences(monkeypatch):
+  # get_sequences' docstring: an int L cuts every sequence of any split to its first L
+  # frames; a Dynamic Replica sequence shorter than L is skipped (the official evaluation's).
+  seqs = [base.StereoSequence(name, {"left": ["l.png"] * n, "right": ["r.png"] * n})
+          for name, n in (("short", 5), ("long", 20))]
+  for dataset in ("dynamic_replica", "vkitti2"):
+    monkeypatch.setitem(registry._LOADERS, dataset, lambda root, split, **options: seqs)
+  cut = registry.get_sequences("vkitti2", "/nowhere", "train", max_frames=10)
+  assert [(s.name, len(s)) for s in cut] == [("short", 5), ("long", 10)]
+  cut = registry.get_sequences("dynamic_replica", "/nowhere", "train", max_frames=10)
+  assert [(s.name, len(s)) for s in cut] == [("long", 10)]
+  whole = registry.get_sequences("dynamic_replica", "/nowhere", "train")  # "official": whole
+  assert [(s.name, len(s)) for s in whole] == [("short", 5), ("long", 20)]
