@@ -250,7 +250,7 @@ def _hsv_tables():
 
 def _build_hsv_tables():
   """Lookup tables of PIL's HSV conversions, exact for every 8-bit colour (64 MB, built
-  in ~3 s).
+  in ~2 s).
 
   `hue[(r << 16) | (g << 8) | b]`: hue depends only on the colour less its minimum
   (equalities between channels decide PIL's branch), which has a zero channel, so it is
@@ -422,7 +422,10 @@ def augment_clip(clip: dict, cfg: AugmentConfig, rng: np.random.Generator,
   Args:
     clip: `left`, `right` [T, H, W, 3] uint8; `disparity` [T, H, W] float32 positive
       px (or None); `valid` [T, H, W] bool; optionally `right_disparity` /
-      `right_valid`, and `sparse`. Other keys are passed through unchanged.
+      `right_valid`, and `sparse`. Other keys are passed through unchanged. A dense
+      clip's `valid` is not read (step 5 recomputes it from the disparity, as the
+      official augmentor does): a pixel it marks invalid needs a disparity of 0 (or of
+      512 px or more) there, as `pipeline.honour_dense_masks` sets before training.
     cfg: augmentation ranges.
     rng: the only source of randomness (same seed, same output).
     sparse: sparse GT (KITTI, Sintel): symmetric colour, scatter resize, plain crop,
