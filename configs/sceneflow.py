@@ -49,8 +49,9 @@ def base_config() -> ml_collections.ConfigDict:
   c.matmul_precision = "default"
   # JAX's persistent compilation cache, so that a resumed or repeated run loads its compiled
   # train and validation steps instead of compiling them (at the paper's shape 38.8 s on a
-  # 2-core CPU, 174 s on an H200): "default" (JAX_COMPILATION_CACHE_DIR if set, else
-  # ~/.cache/sav-jax/xla, as `sav-jax infer`), a folder, or "" (off).
+  # 2-core CPU, 106 s on an H200): "default" (JAX_COMPILATION_CACHE_DIR if set, else
+  # $XDG_CACHE_HOME/sav-jax/xla, by default ~/.cache/sav-jax/xla, as `sav-jax infer`), a
+  # folder, or "" (off).
   c.compile_cache = "default"
 
   c.model = ml_collections.ConfigDict()
