@@ -1,9 +1,11 @@
 """Small run on the built-in procedural stereo videos: no downloads, fits a laptop CPU.
 
-The full model (frozen VDA-S included) is trained; only the clip size, the number of
-refinement iterations and the batch are small, so that the 200 steps take about five
-minutes on a 2-core CPU (1.3 s per step; `benchmarks/train_step.py --frames 3 --height 32
---width 64 --iters 2 --batch 2 --no-remat`). On an accelerator, raise them freely.
+The full model runs, the VDA-S depth prior included (frozen, as in every config: here it
+keeps its random initialisation, `random_depth_prior`), and everything else is trained; only
+the clip size, the number of refinement iterations and the batch are small, so that the 200
+steps take about five minutes on a 2-core CPU (1.3 s per step; `benchmarks/train_step.py
+--frames 3 --height 32 --width 64 --iters 2 --batch 2 --no-remat`). On an accelerator, raise
+them freely.
 
 Usage:
   python -m train --config configs/synthetic.py --workdir /tmp/sav_synth
