@@ -34,7 +34,8 @@ def dataclass_fields(cls, skip=(), **values) -> ml_collections.ConfigDict:
 def base_config() -> ml_collections.ConfigDict:
   """Fields shared by every training config (the paper's recipe)."""
   c = ml_collections.ConfigDict()
-  # Seed of the model init, the shuffling and the augmentation (the official seed is 0).
+  # Seed of the model init, the shuffling, the augmentation and the frame steps (1-5) of the
+  # strided training clips (the official seed is 0).
   c.seed = 0
   # Full-model weights to start from: official .pth/.safetensors/.npz or an orbax dir ("" = none).
   c.init_from = ""
