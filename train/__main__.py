@@ -224,7 +224,7 @@ def main(argv):
   elif _DISTRIBUTED.value == "auto":
     try:
       jax.distributed.initialize()
-    except (ValueError, RuntimeError) as e:  # no cluster found: JAX's traceback, status 1
+    except (ValueError, RuntimeError) as e:  # no cluster found (JAX alone: a traceback, status 1)
       _fail(f"--distributed=auto found no cluster to join (a TPU pod, a SLURM job, ...): {e}; "
             "elsewhere pass --coordinator_address=host:port --num_processes=N --process_id=i")
   # Implicit host-to-device copies are bugs in a training loop: make them errors. (Not the
