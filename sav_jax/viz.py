@@ -32,7 +32,8 @@ import warnings
 import cv2
 import numpy as np
 
-from sav_jax._checks import caller_stacklevel, check_utf8_path, widened  # (viz's API too)
+from sav_jax._checks import (OVERSHOOT_HIGH, OVERSHOOT_LOW, caller_stacklevel,  # (viz's API too)
+                             check_utf8_path, widened)
 from sav_jax._files import free_space_note
 
 COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO, "turbo": cv2.COLORMAP_TURBO,
@@ -87,29 +88,43 @@ _COLORIZE_HINT = "a disparity or depth map? colour it with viz.colorize first"
 
 def as_uint8_image(image, what: str = "image", *, is_map: bool = False) -> np.ndarray:
   """`image` as uint8: uint8 passes; other numbers must be finite and within 0..255 (they
-  are rounded). Raises ValueError naming `what` otherwise; a float image no brighter than
-  1.0 gets a warning (0..1 images come out black: multiply them by 255). `is_map`: `image`
-  is a one-channel map, so a float one is likely disparity or depth: the messages then
-  suggest `colorize`."""
+  are rounded). A float image may overshoot 0..255 as far as `predict_video` lets its frames
+  do without a warning (`_checks.OVERSHOOT_LOW` .. `OVERSHOOT_HIGH`, -64..320: a bicubic or
+  Lanczos resize of sharp edges, unclipped noise): such values are clipped to 0..255. Raises
+  ValueError naming `what` otherwise, with advice for what the values look like (16-bit,
+  normalised); a float image no brighter than 1.0 gets a warning (0..1 images come out
+  black: multiply them by 255). `is_map`: `image` is a one-channel map, so a float one is
+  likely disparity or depth: it gets no overshoot allowance and the messages suggest
+  `colorize`."""
   a = widened(np.asarray(image))  # bfloat16 (JAX's) as float32
-  hint = f" ({_COLORIZE_HINT})" if is_map and a.dtype.kind == "f" else ""
+  is_float = a.dtype.kind == "f"
+  hint = f" ({_COLORIZE_HINT})" if is_map and is_float else ""
   if a.dtype == np.uint8:
     return a
   if a.dtype.kind not in "uif":
     raise ValueError(f"{what}: dtype {a.dtype}; expected uint8 or numbers in 0..255")
   if a.size == 0:
     return a.astype(np.uint8)
-  if a.dtype.kind == "f" and not np.isfinite(a).all():
+  if is_float and not np.isfinite(a).all():
     raise ValueError(f"{what}: NaN or inf values; expected 0..255{hint}")
   lo, hi = float(a.min()), float(a.max())
-  if lo < 0 or hi > 255:
-    advice = _COLORIZE_HINT if hint else "16-bit images: >> 8"
+  overshoot = is_float and not is_map and OVERSHOOT_LOW <= lo and hi <= OVERSHOOT_HIGH
+  if (lo < 0 or hi > 255) and not overshoot:
+    if hint:
+      advice = _COLORIZE_HINT
+    elif lo < 0:
+      advice = ("RGB images are 0..255: negative values are no image's; normalised images "
+                "need their mean and scale put back")
+    else:
+      advice = "16-bit images: divide by 257" if is_float else "16-bit images: >> 8"
     raise ValueError(f"{what}: values {lo:g}..{hi:g} outside 0..255 ({advice})")
-  if a.dtype.kind == "f" and 0 < hi <= 1.0:
+  if is_float and 0 < hi <= 1.0:
     advice = (f"{_COLORIZE_HINT}; a 0..1 grey image: multiply it by 255" if hint
               else "multiply 0..1 images by 255")
     warnings.warn(f"{what}: float values {lo:g}..{hi:g}: expected 0..255 ({advice})",
                   stacklevel=caller_stacklevel())
+  if overshoot:
+    a = np.clip(a, 0, 255)
   return np.rint(a).astype(np.uint8)
 
 
@@ -606,7 +621,8 @@ def disparity_to_points(disp, rgb, *, fx: float, fy: float, cx: float, cy: float
 
   Args:
     disp: `[H, W]` disparity (px).
-    rgb: `[H, W, 3]` uint8 colours of the left view.
+    rgb: `[H, W, 3]` colours of the left view: uint8 or numbers in 0..255 (`as_uint8_image`:
+      a float frame's resize overshoot is clipped).
     fx, fy, cx, cy: intrinsics of the left camera (px); Python or NumPy numbers or 0-d
       arrays. A principal point outside the frame (`principal_point_inside`, which
       `sav-jax infer` enforces) gets a warning: intrinsics for another image size?
@@ -658,7 +674,7 @@ def write_ply(path, xyz, colors, comments=()) -> int:
   Args:
     path: output file.
     xyz: `[N, 3]` (or `[..., 3]`) float coordinates.
-    colors: RGB of the same shape as `xyz`, uint8 or numbers in 0..255.
+    colors: RGB of the same shape as `xyz`, uint8 or numbers in 0..255 (`as_uint8_image`).
     comments: lines for the header's `comment`s (the axes and unit, say), each printable
       ASCII on one line; viewers show or skip them, `read_ply` skips them.
 

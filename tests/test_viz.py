@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from sav_jax import viz
+from sav_jax._checks import OVERSHOOT_HIGH, OVERSHOOT_LOW
 
 
 @pytest.fixture()
@@ -229,7 +230,7 @@ def test_write_ply_refuses_bad_shapes_and_colours(tmp_path):
       (np.zeros((3, 2)), np.zeros((3, 2)), r"xyz must be \[N, 3\].*shape \(3, 2\)"),
       (np.array([["a", "b", "c"]]), np.zeros((1, 3)), "dtype <U1"),
       (np.zeros((2, 3)), np.zeros((3, 3)), r"colors of shape \(3, 3\) do not match xyz \(2, 3\)"),
-      (np.zeros((1, 3)), np.full((1, 3), 300.0), r"values 300\.\.300 outside 0\.\.255"),
+      (np.zeros((1, 3)), np.full((1, 3), 400.0), r"values 400\.\.400 outside 0\.\.255"),
       (np.zeros((1, 3)), np.full((1, 3), -1), r"values -1\.\.-1 outside 0\.\.255"),
       (np.array([[0, 0, 1], [np.nan, 0, 1], [1e39, 0, 1]]), np.zeros((3, 3)),
        r"2 of 3 points are not finite in float32 .*, the first at index 1")):
@@ -312,9 +313,10 @@ def test_a_failed_video_leaves_the_file_it_would_replace(tmp_path):
 
 
 def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
-  # Floats in 0..255 are rounded; anything outside, NaN, or a wrong layout is an error.
+  # Floats in 0..255 are rounded (a resize's overshoot clipped); beyond, NaN, or a wrong layout
+  # is an error.
   np.testing.assert_array_equal(viz.side_by_side(np.full((2, 2, 3), 9.6, np.float32)), 10)
-  for bad, match in ((np.full((2, 2, 3), 300.0), r"values 300\.\.300 outside 0\.\.255"),
+  for bad, match in ((np.full((2, 2, 3), 400.0), r"values 400\.\.400 outside 0\.\.255"),
                      (np.full((2, 2, 3), np.nan), "NaN or inf"),
                      (np.full((2, 2, 3), 1000, np.uint16), "16-bit")):
     with pytest.raises(ValueError, match=match):
@@ -514,7 +516,9 @@ def test_side_by_side_points_a_float_map_to_colorize():
       viz.side_by_side(rgb, bad)
   # RGB images keep their advice
   with pytest.raises(ValueError, match=r"outside 0\.\.255 \(16-bit images: >> 8\)"):
-    viz.side_by_side(np.full((4, 5, 3), 300.0))
+    viz.side_by_side(np.full((4, 5, 3), 300, np.uint16))
+  with pytest.raises(ValueError, match=r"outside 0\.\.255 \(16-bit images: divide by 257\)"):
+    viz.side_by_side(np.full((4, 5, 3), 1000.0))
 
 
 def test_disparity_range_warns_about_fractions():
@@ -670,7 +674,10 @@ def test_as_uint8_image_bounds_and_the_0_to_1_warning():
   assert viz.as_uint8_image(np.zeros((0, 2, 3), np.float32)).shape == (0, 2, 3)
   assert viz.as_uint8_image(np.zeros((0, 2, 3), np.float32)).dtype == np.uint8
   np.testing.assert_array_equal(viz.as_uint8_image(np.array([254.6, 255.0, 0.4])), [255, 255, 0])
-  for bad in (255.5, 256, -0.1):
+  for bad in (256, -1, 65535):  # integers: no overshoot allowance
+    with pytest.raises(ValueError, match="outside 0..255"):
+      viz.as_uint8_image(np.array([0, bad]))
+  for bad in (320.5, -64.5):  # floats beyond a resize's overshoot
     with pytest.raises(ValueError, match="outside 0..255"):
       viz.as_uint8_image(np.array([0.0, bad]))
   with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
@@ -679,6 +686,31 @@ def test_as_uint8_image_bounds_and_the_0_to_1_warning():
     warnings.simplefilter("error")  # black, integer 0..1, or brighter than 1: no warning
     for fine in (np.zeros(3, np.float32), np.array([0, 1], np.uint16), np.array([0.0, 2.0])):
       viz.as_uint8_image(fine)
+
+
+def test_float_images_may_overshoot_as_predict_video_frames_may():
+  # a bicubic resize of 0..255 frames overshoots (255.3, -2.4): predict_video takes such
+  # frames without a word, so the image helpers clip them instead of refusing them with
+  # advice for 16-bit images
+  frame = np.array([[[255.3, 128.0, -2.4], [0.0, 255.0, 12.6]]], np.float32)
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    np.testing.assert_array_equal(viz.as_uint8_image(frame), [[[255, 128, 0], [0, 255, 13]]])
+    xyz, rgb = viz.disparity_to_points(np.ones((1, 2), np.float32), frame, fx=10.0, fy=10.0,
+                                       cx=0.5, cy=0.0, baseline=1.0)
+  assert len(xyz) == 2 and rgb.tolist() == [[255, 128, 0], [0, 255, 13]]
+  edges = np.array([0.0, 255.0, OVERSHOOT_LOW, OVERSHOOT_HIGH])
+  np.testing.assert_array_equal(viz.as_uint8_image(edges), [0, 255, 0, 255])
+  # beyond the overshoot, the advice fits what the values look like
+  with pytest.raises(ValueError, match=r"0\.\.40000 outside 0\.\.255 \(16-bit images: divide by 257\)"):
+    viz.as_uint8_image(np.array([0.0, 40000.0]))
+  with pytest.raises(ValueError, match=r"-120\.\.100 outside 0\.\.255 \(.*normalised"):
+    viz.as_uint8_image(np.array([-120.0, 100.0]))
+  with pytest.raises(ValueError, match=r"-1\.\.3 outside 0\.\.255 \(.*normalised"):
+    viz.as_uint8_image(np.array([-1, 3], np.int16))
+  # a float map is likely disparity: no allowance, the colorize advice
+  with pytest.raises(ValueError, match=r"255\.3 outside 0\.\.255 \(a disparity or depth map"):
+    viz.as_uint8_image(np.array([[0.0, 255.3]]), is_map=True)
 
 
 def test_fps_and_principal_point_bounds():
