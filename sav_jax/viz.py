@@ -303,8 +303,9 @@ def _mapped(d: np.ndarray, vmin: float, vmax: float, cmap: str) -> np.ndarray:
 
 
 # KITTI's disparity error colours (its development kit's log colour map): bins of the error
-# in multiples of the outlier threshold (`colorize_error`), RGB. Blues below 1 (a correct
-# pixel), oranges to dark red from 1 (an outlier, D1's "bad" pixel).
+# in multiples of the outlier threshold (`colorize_error`), RGB; each bin is closed on the
+# right, (lo, hi] (0 in the first). Blues up to 1 (a correct pixel), oranges to dark red above
+# 1 (an outlier, D1's "bad" pixel).
 KITTI_ERROR_BINS = (0.0, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0, 8.0, 16.0)
 KITTI_ERROR_COLORS = ((49, 54, 149), (69, 117, 180), (116, 173, 209), (171, 217, 233),
                       (224, 243, 248), (254, 224, 144), (253, 174, 97), (244, 109, 67),
@@ -319,9 +320,10 @@ def colorize_error(pred, gt, valid=None, *, abs_thresh: float = 3.0,
   The error is measured in multiples of the outlier threshold: `min(e / abs_thresh,
   e / (rel_thresh |gt|))` (KITTI's D1: a pixel is an outlier where its error exceeds both
   3 px and 5% of the true disparity; `rel_thresh=None` for the absolute threshold alone,
-  as the bad-N rates), then binned by `KITTI_ERROR_BINS` into `KITTI_ERROR_COLORS`: blue
-  below the threshold, orange to dark red above it. A perfect pixel (error 0) is valid
-  and dark blue.
+  as the bad-N rates), then binned by `KITTI_ERROR_BINS` into `KITTI_ERROR_COLORS`, each bin
+  closed on the right as in KITTI's devkit (`(1/16, 1/8]`, ...): blue up to the threshold,
+  orange to dark red above it (an error of exactly the threshold is correct, as D1 and the
+  metrics' strict bad-N rates count it). A perfect pixel (error 0) is valid and dark blue.
 
   Args:
     pred, gt: `[..., H, W]` (or `[..., H, W, 1]`) disparities (px) of one shape.
@@ -357,7 +359,10 @@ def colorize_error(pred, gt, valid=None, *, abs_thresh: float = 3.0,
     norm = np.where(err == 0, 0.0, norm)  # a perfect pixel, gt 0 too (0 / 0)
   norm = np.where(np.isfinite(norm), norm, np.inf)  # a NaN / inf prediction: the worst
   table = np.asarray(KITTI_ERROR_COLORS, np.uint8)
-  rgb = table[np.searchsorted(np.asarray(KITTI_ERROR_BINS, np.float32), norm, "right") - 1]
+  # bins closed on the right, (lo, hi], as KITTI's devkit takes them: an error of exactly the
+  # threshold (1) is correct, as D1 and the bad-N rates count only errors above it
+  bin_index = np.searchsorted(np.asarray(KITTI_ERROR_BINS, np.float32), norm, "left") - 1
+  rgb = table[np.maximum(bin_index, 0)]
   bad = ~np.isfinite(g) | (g == 0) if valid is None else ~(np.asarray(valid) > 0.5) | \
       ~np.isfinite(g)
   rgb[bad] = colour

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sav_jax import viz
+from sav_jax import metrics, viz
 from sav_jax._checks import OVERSHOOT_HIGH, OVERSHOOT_LOW
 
 
@@ -758,10 +758,18 @@ def test_colorize_error_masks_and_thresholds():
                                            colours[6], colours[9]]
   # thresholds: any number > 0 (below 1 too), not 0, not inf
   off, hundred = np.array([[101.0]]), np.array([[100.0]])  # an error of 1 px
-  half = viz.colorize_error(off, hundred, abs_thresh=0.5, rel_thresh=None)  # 1 / 0.5 = 2
-  assert tuple(half[0, 0]) == colours[6]
+  half = viz.colorize_error(off, hundred, abs_thresh=0.5, rel_thresh=None)  # 1 / 0.5 = 2: (1, 2]
+  assert tuple(half[0, 0]) == colours[5]
   rel = viz.colorize_error(off, hundred, abs_thresh=100.0, rel_thresh=0.5)  # 1 / 50: bin 0
   assert tuple(rel[0, 0]) == colours[0]
+  # an error of exactly a bin's upper edge is in that bin (KITTI's devkit): exactly 3 px is
+  # correct, as bad_3px (strict, e > 3) and D1 count it, and 1.5 px is in (1/4, 1/2]
+  gt = np.full((1, 4), 50.0, np.float32)
+  pred = gt + np.array([[3.0, 1.5, 3.0001, 0.0]], np.float32)
+  edges = viz.colorize_error(pred, gt, rel_thresh=None)
+  assert [tuple(c) for c in edges[0]] == [colours[4], colours[3], colours[5], colours[0]]
+  bad = metrics.eval_endpoint_error_sequence(pred[None], gt[None], np.ones((1, 1, 4)))
+  assert bad["epe_bad_3px"] == 100 / 3  # the 3.0001 px pixel only (the 0 error is not counted)
   for kw in ({"abs_thresh": math.inf}, {"rel_thresh": 0.0}, {"rel_thresh": math.inf},
              {"abs_thresh": -0.5}):
     with pytest.raises(ValueError, match="abs_thresh must be a number > 0"):
