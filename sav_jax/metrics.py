@@ -28,8 +28,9 @@ Depth metrics (`eval_batch`): Z = s / max(d, 1e-10) for x and y (s = depth to
 disparity scale), then x <- Z_x*b, y <- Z_y*b, NaN(y) -> 0; dm_t = m_t m_{t+1}.
   TCC = mean_t relu(SSIM(|x_t - x_{t+1}| dm_t, |y_t - y_{t+1}| dm_t)), NaN(x) -> 0.
   TCM = (1/(T-1)) sum_{t: sum(M_t)>0} mean_{c=u,v} relu(SSIM_c(F^x_t M_t, F^y_t M_t)),
-        F^x_t / F^y_t = optical flow between the min-max normalised depths of
-        frames t, t+1 of x / y (RAFT in the official code: passed in as flows or
+        F^x_t / F^y_t = optical flow between the depths of frames t, t+1 of x / y,
+        both normalised to 0..255 by the min and max of the masked GT depth y_t
+        (`tcm_flow_inputs`; RAFT in the official code: passed in as flows or
         a `flow_fn`, e.g. `sav_jax.model.raft.raft_flow_fn`),
         M_t = dm_t * [no channel of F^y_t > 250].
   SSIM: Gaussian window 11, sigma 1.5, "valid" filtering (an axis shorter than the

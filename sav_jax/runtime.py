@@ -2,10 +2,12 @@
 
 Compiling the model takes ~20 s on a 2-core CPU for one clip shape; with the
 persistent compilation cache a later process with the same shape, model
-settings and JAX version loads the executable instead (about a second) and never
-runs the compiler, which also keeps the compiler's working memory out of the
-process. The `sav-jax` commands `infer` and `demo` turn it on by default
-(`--no-compile-cache` to skip, `--compile-cache DIR` to choose the folder).
+settings and JAX version loads the executable instead (~4-7 s there: T=5 128x256,
+21 s compile -> 7 s load; README, "Compilation cache") and never runs the compiler,
+which also keeps the compiler's working memory out of the process. `sav-jax infer`,
+`sav-jax demo` and `python -m eval` turn it on by default (`--no-compile-cache` to skip,
+`--compile-cache DIR` to choose the folder); `sav-jax bench` only with `--compile-cache DIR`,
+and `python -m train` with `--config.compile_cache`.
 
 `release_host_memory` hands freed heap memory back to the operating system. On
 glibc, the allocator keeps what the compiler and the host-side weight
