@@ -4,7 +4,7 @@
 `write_strip`: a grid of a few frames (columns) x left image / ground truth / each
 method (rows), with one colour range for the whole grid (from the ground truth), and under
 each method its error against the ground truth in KITTI's error colours
-(`viz.colorize_error`: blues below the 3 px / 5% outlier threshold, oranges to red above).
+(`viz.colorize_error`: blues up to the 3 px / 5% outlier threshold, oranges to red above).
 """
 
 from __future__ import annotations
