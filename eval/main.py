@@ -8,8 +8,10 @@ Writes to --out (default `outputs/eval/<dataset>`): `results.md` (the paper's co
 `results.json` (config, weights, per-sequence and aggregate metrics), `results.csv`,
 `plots/<sequence>_curves.png` (per-frame EPE and TEPE) and `plots/<sequence>_strip.png`
 (colourized disparity), and with `--config.save_predictions=true`
-`predictions/<sequence>.npy`; `written_files.txt` lists the prediction and plot files written,
-which `--overwrite` deletes before the next run (nothing else in the folder is touched).
+`predictions/<sequence>.npy` (`<sequence>_sgbm.npy` for `--baseline sgbm`); `written_files.txt`
+lists the prediction and plot files written. `--overwrite` sets those files and the earlier
+reports aside in `.earlier_run/` while the new run goes, deletes them once it has written its
+reports and puts them back if it fails (nothing else in the folder is touched).
 While it runs, `progress.jsonl` records each finished sequence: `--resume` continues an
 interrupted run (a frame that could not be read, a stop) without evaluating those again, if
 its settings are the same. Bad input exits with status 2 and one line on stderr.
