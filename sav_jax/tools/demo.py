@@ -1,6 +1,7 @@
 """`sav-jax demo`: the whole pipeline on a built-in synthetic stereo video.
 
-    sav-jax demo                       # 8 frames of 128x256 (HxW), iters 4, ~1-2 min on 2 CPU cores
+    sav-jax demo                       # 8 frames of 128x256 (HxW), iters 4: ~35 s on 2 CPU cores
+                                       # (compiling included, no cache; 2026-12-06)
     sav-jax demo --checkpoint ckpt     # with trained weights
 
 Generates a procedural stereo video with exact ground truth (`sav_jax.data.synthetic`),
