@@ -3,7 +3,8 @@
 A config is a Python file with `get_config()` (or `get_config(arg)`, selected with
 `path.py:arg` as in big_vision) returning an `ml_collections.ConfigDict`. Overrides
 name an existing field; the value is parsed to that field's type (bool accepts
-true/false/1/0/yes/no; tuples and lists are Python literals).
+true/false/1/0/yes/no/on/off; integers are decimal, `010` is 10; tuples and lists are Python
+literals).
 """
 
 from __future__ import annotations

@@ -67,6 +67,6 @@ def eval_config(dataset: str, split: str = "test", sample_len: int | None = None
   c.plots.enabled = True
   # Frames shown in each disparity strip.
   c.plots.strip_frames = 6
-  # Longest side of a strip tile (px).
+  # Longest side of a strip tile (px); smaller frames are shown at their own size.
   c.plots.tile_size = 320
   return c
