@@ -4,9 +4,10 @@
         --data-root data/datasets [--out DIR] [--baseline sgbm] [--overwrite | --resume] \\
         [--compile-cache DIR | --no-compile-cache] [--config.iters=20 --config.max_sequences=2 ...]
 
-Writes to --out (default `outputs/eval/<dataset>`): `results.md` (the paper's columns),
-`results.json` (config, weights, per-sequence and aggregate metrics), `results.csv`,
-`plots/<sequence>_curves.png` (per-frame EPE and TEPE) and `plots/<sequence>_strip.png`
+Writes to --out (default `outputs/eval/<dataset>`): `results.md` (the official evaluator's
+metrics), `results.json` (config, weights, per-sequence and aggregate metrics), `results.csv`,
+`plots/<sequence>_curves.png` (per-frame EPE and TEPE; sequences with ground truth) and
+`plots/<sequence>_strip.png`
 (colourized disparity), and with `--config.save_predictions=true`
 `predictions/<sequence>.npy` (`<sequence>_sgbm.npy` for `--baseline sgbm`); `written_files.txt`
 lists the prediction and plot files written. `--overwrite` sets those files and the earlier

@@ -1,4 +1,4 @@
-"""Result tables: Markdown (the paper's columns), JSON (everything) and CSV.
+"""Result tables: Markdown (the official evaluator's metrics), JSON (everything) and CSV.
 
 Metric keys are those of the official `result_eval.json` (`disp_epe_mean`,
 `disp_temp_epe_bad_1px`, ...). delta^t_1px of the paper is `disp_temp_epe_bad_1px`.
