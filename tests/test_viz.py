@@ -702,7 +702,8 @@ def test_float_images_may_overshoot_as_predict_video_frames_may():
   edges = np.array([0.0, 255.0, OVERSHOOT_LOW, OVERSHOOT_HIGH])
   np.testing.assert_array_equal(viz.as_uint8_image(edges), [0, 255, 0, 255])
   # beyond the overshoot, the advice fits what the values look like
-  with pytest.raises(ValueError, match=r"0\.\.40000 outside 0\.\.255 \(16-bit images: divide by 257\)"):
+  with pytest.raises(ValueError,
+                     match=r"0\.\.40000 outside 0\.\.255 \(16-bit images: divide by 257\)"):
     viz.as_uint8_image(np.array([0.0, 40000.0]))
   with pytest.raises(ValueError, match=r"-120\.\.100 outside 0\.\.255 \(.*normalised"):
     viz.as_uint8_image(np.array([-120.0, 100.0]))
