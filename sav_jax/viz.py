@@ -426,9 +426,10 @@ def side_by_side(*images) -> np.ndarray:
   """Concatenates images (or videos) of equal height along the width.
 
   Args:
-    *images: `[..., H, W_i, 3]` RGB, uint8 or numbers in 0..255. A grey map `[..., H, W]`
-      (or `[..., H, W, 1]`) is repeated to grey RGB (colour a disparity or depth map with
-      `colorize` first). With 3 or more axes a last axis of 2 or 4 is taken for channels
+    *images: `[..., H, W_i, 3]` RGB, uint8 or numbers in 0..255 (`as_uint8_image`: a float
+      image's resize overshoot is clipped, a float grey map gets no allowance). A grey map
+      `[..., H, W]` (or `[..., H, W, 1]`) is repeated to grey RGB (colour a disparity or
+      depth map with `colorize` first). With 3 or more axes a last axis of 2 or 4 is taken for channels
       (grey + alpha, RGBA) and refused: drop the alpha first (`image[..., :3]`).
 
   Returns:
@@ -688,8 +689,9 @@ def write_ply(path, xyz, colors, comments=()) -> int:
 
   Raises:
     ValueError: `xyz` is not `[..., 3]` numbers or not finite in float32, `colors` has
-      another shape or values outside 0..255, or a comment is not one line of printable
-      ASCII (checked before the file is created).
+      another shape or values outside 0..255 (beyond a float image's clipped overshoot,
+      `as_uint8_image`), or a comment is not one line of printable ASCII (checked before the
+      file is created).
   """
   comments = [comments] if isinstance(comments, str) else list(comments)
   for c in comments:
