@@ -429,8 +429,8 @@ def side_by_side(*images) -> np.ndarray:
     *images: `[..., H, W_i, 3]` RGB, uint8 or numbers in 0..255 (`as_uint8_image`: a float
       image's resize overshoot is clipped, a float grey map gets no allowance). A grey map
       `[..., H, W]` (or `[..., H, W, 1]`) is repeated to grey RGB (colour a disparity or
-      depth map with `colorize` first). With 3 or more axes a last axis of 2 or 4 is taken for channels
-      (grey + alpha, RGBA) and refused: drop the alpha first (`image[..., :3]`).
+      depth map with `colorize` first). With 3 or more axes a last axis of 2 or 4 is taken
+      for channels (grey + alpha, RGBA) and refused: drop the alpha first (`image[..., :3]`).
 
   Returns:
     `[..., H, sum W_i, 3]` uint8.
