@@ -276,8 +276,9 @@ def refuse_unlisted_outputs(out: pathlib.Path, paths) -> None:
 
 # The prediction and plot files an evaluation wrote into its --out folder, one relative path
 # per line, appended as they are written (so an interrupted run's list is complete too).
-# `--overwrite` deletes exactly these before a new run: a run over fewer sequences leaves
-# no stale files of the earlier one, and files the user put there are never touched.
+# `--overwrite` sets exactly these aside as a new run starts (`set_aside_written`) and deletes
+# them once it has written its reports: a run over fewer sequences leaves no stale files of
+# the earlier one, and files the user put there are never touched.
 WRITTEN_LIST = "written_files.txt"
 _OUTPUT_FOLDERS = ("predictions", "plots")
 
