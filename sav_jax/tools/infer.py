@@ -208,8 +208,9 @@ def _is_output_name(rel: str) -> bool:
 def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[pathlib.Path]:
   """The files an earlier run in `out` wrote (its `summary.json` lists them) that this run
   will not replace: other formats, frames beyond a shorter video, depth and point clouds
-  of a run with calibration. `--overwrite` deletes them as this run begins to write, so
-  that the folder holds one run's outputs; files the summary does not list (a user's own,
+  of a run with calibration. `--overwrite` sets them aside as this run begins to write
+  (`set_aside`) and deletes them once its summary is written (`drop_set_aside`), so that
+  the folder holds one run's outputs; files the summary does not list (a user's own,
   or those of a run that failed before its summary) are never deleted."""
   try:
     summary = loads_json((out / "summary.json").read_text())
@@ -505,9 +506,11 @@ def write_outputs(out: pathlib.Path, names, left, chunks, formats, calib, args,
   """Disparity files, the side-by-side video and, with calibration, depth and PLY files.
 
   Once the first window has been computed: `stale`, an earlier run's files
-  (`earlier_outputs`), are deleted, and a provisional `summary.json` lists this run's files
-  (`listed`, relative to `out`; `"complete": false`) until the caller writes the final one,
-  so that a later `--overwrite` run finds the files of a run that failed midway.
+  (`earlier_outputs`), are set aside in `SET_ASIDE` (deleted by the caller once the final
+  summary is written, put back if the run fails), and a provisional `summary.json` lists
+  this run's files (`listed`, relative to `out`; `"complete": false`) until the caller
+  writes the final one, so that a later `--overwrite` run finds the files of a run that
+  failed midway.
 
   `chunks` yields `(first frame, disparities [k, H, W])` in order
   (`inference.iter_predict_video`; at least one, computed before any folder is made).
