@@ -8,8 +8,9 @@ Outputs in --out: `disparity/<frame>.<png|npy|pfm|exr>` (16-bit PNGs use the KIT
 x256 convention), `side_by_side.mp4` (left | colourized disparity, one colour range for
 the whole video, recorded in the summary), `summary.json`; with calibration also
 `depth/<frame>.<npy|exr>` (in the baseline's unit, 0 where disparity + doffs is not positive)
-and `pointclouds/<frame>.ply` (OpenCV camera axes: x right, y down, z forward). Inputs, checkpoint and existing outputs are all checked
-before anything is computed; an error found then writes nothing. Once the first window is
+and `pointclouds/<frame>.ply` (OpenCV camera axes: x right, y down, z forward). Inputs,
+checkpoint and existing outputs are all checked before anything is computed; an error found
+then writes nothing. Once the first window is
 computed, a provisional `summary.json` (`"complete": false`) lists the run's files.
 """
 
