@@ -117,6 +117,8 @@ def as_uint8_image(image, what: str = "image", *, is_map: bool = False) -> np.nd
                 "need their mean and scale put back")
     else:
       advice = "16-bit images: divide by 257" if is_float else "16-bit images: >> 8"
+      if is_map:  # an integer one-channel map: a 16-bit grey image or a stored disparity
+        advice += f"; {_COLORIZE_HINT}"
     raise ValueError(f"{what}: values {lo:g}..{hi:g} outside 0..255 ({advice})")
   if is_float and 0 < hi <= 1.0:
     advice = (f"{_COLORIZE_HINT}; a 0..1 grey image: multiply it by 255" if hint

@@ -709,6 +709,11 @@ def test_float_images_may_overshoot_as_predict_video_frames_may():
     viz.as_uint8_image(np.array([-120.0, 100.0]))
   with pytest.raises(ValueError, match=r"-1\.\.3 outside 0\.\.255 \(.*normalised"):
     viz.as_uint8_image(np.array([-1, 3], np.int16))
+  # an integer map beyond 0..255 may be a 16-bit grey image or a stored disparity (a KITTI
+  # PNG's 256 d): both pieces of advice, not ">> 8" alone
+  with pytest.raises(ValueError, match=r"\(16-bit images: >> 8; a disparity or depth map\? "
+                                       r"colour it with viz\.colorize first\)"):
+    viz.side_by_side(np.zeros((2, 3, 3), np.uint8), np.full((2, 3), 5120, np.uint16))
   # a float map is likely disparity: no allowance, the colorize advice
   with pytest.raises(ValueError, match=r"255\.3 outside 0\.\.255 \(a disparity or depth map"):
     viz.as_uint8_image(np.array([[0.0, 255.3]]), is_map=True)
