@@ -323,9 +323,11 @@ def colorize_error(pred, gt, valid=None, *, abs_thresh: float = 3.0,
   e / (rel_thresh |gt|))` (KITTI's D1: a pixel is an outlier where its error exceeds both
   3 px and 5% of the true disparity; `rel_thresh=None` for the absolute threshold alone,
   as the bad-N rates), then binned by `KITTI_ERROR_BINS` into `KITTI_ERROR_COLORS`, each bin
-  closed on the right as in KITTI's devkit (`(1/16, 1/8]`, ...): blue up to the threshold,
-  orange to dark red above it (an error of exactly the threshold is correct, as D1 and the
-  metrics' strict bad-N rates count it). A perfect pixel (error 0) is valid and dark blue.
+  closed on the right (`(1/16, 1/8]`, ...): blue up to the threshold, orange to dark red
+  above it, so that an error of exactly the threshold is coloured correct, as D1 and the
+  metrics' strict bad-N rates count it (KITTI's devkit takes its colour bins as `[lo, hi)`
+  and colours that one error as an outlier though its own D1 counts it correct; the two
+  differ at the bins' exact edges only). A perfect pixel (error 0) is valid and dark blue.
 
   Args:
     pred, gt: `[..., H, W]` (or `[..., H, W, 1]`) disparities (px) of one shape.
@@ -361,7 +363,7 @@ def colorize_error(pred, gt, valid=None, *, abs_thresh: float = 3.0,
     norm = np.where(err == 0, 0.0, norm)  # a perfect pixel, gt 0 too (0 / 0)
   norm = np.where(np.isfinite(norm), norm, np.inf)  # a NaN / inf prediction: the worst
   table = np.asarray(KITTI_ERROR_COLORS, np.uint8)
-  # bins closed on the right, (lo, hi], as KITTI's devkit takes them: an error of exactly the
+  # bins closed on the right, (lo, hi] (KITTI's devkit: [lo, hi)): an error of exactly the
   # threshold (1) is correct, as D1 and the bad-N rates count only errors above it
   bin_index = np.searchsorted(np.asarray(KITTI_ERROR_BINS, np.float32), norm, "left") - 1
   rgb = table[np.maximum(bin_index, 0)]

@@ -768,7 +768,7 @@ def test_colorize_error_masks_and_thresholds():
   assert tuple(half[0, 0]) == colours[5]
   rel = viz.colorize_error(off, hundred, abs_thresh=100.0, rel_thresh=0.5)  # 1 / 50: bin 0
   assert tuple(rel[0, 0]) == colours[0]
-  # an error of exactly a bin's upper edge is in that bin (KITTI's devkit): exactly 3 px is
+  # an error of exactly a bin's upper edge is in that bin (not KITTI's devkit's): 3 px is
   # correct, as bad_3px (strict, e > 3) and D1 count it, and 1.5 px is in (1/4, 1/2]
   gt = np.full((1, 4), 50.0, np.float32)
   pred = gt + np.array([[3.0, 1.5, 3.0001, 0.0]], np.float32)
