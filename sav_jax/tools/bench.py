@@ -337,6 +337,7 @@ def run(args: argparse.Namespace) -> int:
                   args.repeats, final_only=not args.all_predictions, compile_cache=cache,
                   vit_attention=args.vit_attention, gru_conv=args.gru_conv)
   res["matmul_precision"] = precision_name
+  res["repeats"] = args.repeats  # the median's sample size (the READMEs' "median of 3")
   platform, _, kind = res["device"].partition(":")
   print(f"device        {kind if kind and kind.lower() != platform else platform}"
         f"{f' ({platform})' if kind and kind.lower() != platform else ''}  (jax {res['jax']})")
