@@ -8,7 +8,7 @@
     sav-jax bench --compare benchmarks/results/cpu_official_torch_t5_128x256_it8.json
 
 Issue 7's targets are ratios against the official release *on the same hardware*, and the
-machines of one kind differ by up to ~1.6x in speed from day to day, so both sides of a ratio
+machines of one kind differ by up to ~1.75x in speed from day to day, so both sides of a ratio
 are measured in the same session. This script imports the official code from the checkout
 given with `--repo` (nothing of it is copied into this project), builds `StereoAnyVideo` with
 random weights (its time does not depend on the values; the Video-Depth-Anything checkpoint

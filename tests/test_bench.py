@@ -119,6 +119,8 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
   assert "jax 0.8.1 here, 0.7.2 there" in bench.machine_note(here, {**here, "jax": "0.7.2"})
   assert bench.machine_note(here, {**here, "date": "2026-12-01"}).startswith(
       "note: the baseline was measured on 2026-12-01: machines of one kind differ")
+  # the spread the note quotes: the same code at 8.37 s (2026-11-30) and 14.65 s (2026-12-01)
+  assert "(up to 1.75x seen on CPUs)" in bench.machine_note(here, {**here, "date": "2026-12-01"})
   assert bench.machine_note(here, dict(here)) == ""
   assert bench.machine_note({**here, "gru_conv": "dft"}, {**here, "gru_conv": "direct"}) == (
       "warning: the baseline was measured with other settings (gru_conv dft here, direct "

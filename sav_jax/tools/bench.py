@@ -276,7 +276,7 @@ def machine_note(res: dict, base: dict) -> str:
             + "): the ratios compare those settings, not code")
   if base.get("date") and base["date"] != res.get("date"):
     return (f"note: the baseline was measured on {base['date']}: machines of one kind differ "
-            "between sessions (up to 1.6x seen on CPUs), so remeasure it here for a ratio of "
+            "between sessions (up to 1.75x seen on CPUs), so remeasure it here for a ratio of "
             "code alone")
   return ""
 
