@@ -146,6 +146,7 @@ def main():
   loaded = compile_cache_probe(cache)
   res = measure(build_config(a), a.repeats)
   res["cache_hit"] = loaded()  # as `sav-jax bench` records it
+  res["repeats"] = a.repeats  # the median's sample size, as `sav-jax bench` records it
   print(f"device        {res['device']} x{res['devices']}  (jax {res['jax']})")
   print(f"step          B={res['batch']} T={res['frames']} {res['height']}x{res['width']} "
         f"iters={res['iters']} {res['dtype']} remat={res['remat']}")

@@ -355,6 +355,7 @@ def test_train_step_script_keeps_its_program_in_the_named_compilation_cache(
                                       "--json", str(out)])
     train_step.main()
     hits.append(json.loads(out.read_text())["cache_hit"])
+    assert json.loads(out.read_text())["repeats"] == 3  # the default: the median's sample size
   assert hits == [False, True]
   printed = capsys.readouterr().out
   assert f"stored in {tmp_path / 'cache'}" in printed and "loaded from the compilation cache" in printed
