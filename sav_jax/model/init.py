@@ -10,8 +10,13 @@ model is initialised before training:
 - `fnet` / `cnet` conv kernels: `kaiming_normal_(mode="fan_out", relu)`, zero-free
   bias as torch default;
 - `update_block.time_attn.temporal_fc`: zeros (the official code zero-inits it);
-- norm `scale` 1, norm `bias` 0; LayerScale `gamma` 1; tokens and position
-  embeddings N(0, 0.02).
+- norm `scale` 1, norm `bias` 0; LayerScale `gamma` 1; position embeddings N(0, 0.02);
+- the depth prior as its own constructors initialise it (`_init_depth_prior`): DINOv2's
+  Linear layers N(0, 0.02) with zero biases and its class token N(0, 1e-6) (`init_weights`),
+  the motion modules' `proj_out` zeroed (each starts as an identity residual); its
+  convolutions and DPT head keep the PyTorch defaults above. The depth prior draws from a
+  stream of its own (`default_rng([seed, 1])`): the other parameters are the values
+  PyTorch's defaults give all of them.
 """
 
 from __future__ import annotations
