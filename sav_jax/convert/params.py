@@ -109,7 +109,8 @@ def state_dict_from_params(variables: Mapping, cfg: SAVConfig | None = None
   Args:
     variables: `{"params": ...}` (plus `"torch_unused"`).
     cfg: the model config they are for (default: the paper's model with the depth prior
-      the parameters hold, ViT-S or ViT-L).
+      the parameters hold, ViT-S, ViT-B or ViT-L; ViT-S where the tree has no
+      class token to tell).
 
   Raises:
     CheckpointError: the variables are not the model's (missing, unexpected or mis-shaped
