@@ -73,6 +73,7 @@ from sav_jax._checks import caller_stacklevel, check_video_values  # noqa: F401 
 from sav_jax._checks import is_int as _is_int
 from sav_jax.config import DTYPES, SAVConfig, as_config, resolve_vit_attention
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
+from sav_jax.model.dpt_temporal import TEMPORAL_MAX_LEN
 from sav_jax.model.init import abstract_variables
 from sav_jax.model.stereo_any_video import (channels_first_hint, check_iters, layout_hint,
                                             training_state_hint)
@@ -133,10 +134,16 @@ class Window:
 
 
 def check_window(window: int, stride: int) -> None:
-  """Raises ValueError unless window and stride are integers with 1 <= stride <= window."""
+  """Raises ValueError unless window and stride are integers with 1 <= stride <= window and
+  the window is at most `TEMPORAL_MAX_LEN` (32) frames, what the depth prior's temporal
+  attention takes at once (a longer window failed in the model's trace, not naming it)."""
   if not (_is_int(window) and _is_int(stride) and 1 <= stride <= window):
     raise ValueError(f"need integers 1 <= stride <= window, got window={window!r}, "
                      f"stride={stride!r}")
+  if window > TEMPORAL_MAX_LEN:
+    raise ValueError(f"window={window!r} frames is more than the model runs at once: the depth "
+                     f"prior's temporal attention takes at most {TEMPORAL_MAX_LEN} frames "
+                     "(official windows: 20)")
 
 
 def window_plan(num_frames: int, window: int = WINDOW, stride: int = STRIDE) -> list[Window]:
@@ -144,7 +151,7 @@ def window_plan(num_frames: int, window: int = WINDOW, stride: int = STRIDE) -> 
 
   Args:
     num_frames: video length N >= 1.
-    window: frames per window.
+    window: frames per window (at most 32, `check_window`).
     stride: distance between window starts (<= window).
 
   Returns:
@@ -1173,7 +1180,8 @@ def predict_video(variables, left, right, *, cfg: SAVConfig | None = None, iters
       (`check_video_values`).
     cfg: model config (default `SAVConfig()`).
     iters: refinement iterations at 1/4 resolution (>= 2; the official evaluation uses 20).
-    window, stride: sliding window (official: 20, 10).
+    window, stride: sliding window (official: 20, 10; window <= 32, the depth prior's
+      temporal attention length).
     dtype: compute dtype override ("float32" or "bfloat16").
     progress: show a tqdm progress bar (frames, frames per second) where standard error is
       a terminal or in a notebook (`runtime.draws_progress`; not in a log file).
@@ -1258,6 +1266,7 @@ def iter_predict_video(variables, left, right, *, cfg: SAVConfig | None = None,
   _check_not_traced("iter_predict_video", variables, left, right)
   cfg = resolve_config(cfg, dtype)
   iters = check_iters(iters)
+  check_window(window, stride)  # before the videos and weights are read
   lazy = _is_lazy_video(left) or _is_lazy_video(right)
   # A list of uint8 frames beside uint8 frames (which need no value check) is read window by
   # window too: stacking it whole made a second copy of the video.
@@ -1295,6 +1304,7 @@ def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None
   _check_not_traced("forward_batch_test_official", variables, left, right)
   cfg = resolve_config(cfg)
   iters = check_iters(iters)
+  check_window(window, stride)
   left, right = _as_video_pair(left, right)
   check_variables(variables, cfg)
   raws = [] if return_windows else None

@@ -878,6 +878,9 @@ def _bad_case(name, root, clip, npz_ckpt):
     return root / "l.txt", right, npz_ckpt, [], "expected a frame folder or a video file"
   if name == "odd_iters":
     return left, right, npz_ckpt, ["--iters", "1"], "--iters must be an integer >= 2"
+  if name == "long_window":  # more frames than the depth prior's temporal attention takes
+    return left, right, npz_ckpt, ["--iters", str(ITERS), "--window", "40", "--stride", "10"], \
+        "--window must be at most 32 (the depth prior's temporal attention length), got 40"
   if name == "calibration":
     return left, right, npz_ckpt, ["--fx", "100"], "--baseline"
   if name == "fy_zero":
@@ -940,6 +943,7 @@ def _bad_case(name, root, clip, npz_ckpt):
 @pytest.mark.parametrize("name", [
     "counts", "sizes", "empty", "scene_folder", "unreadable", "mixed_sizes", "no_checkpoint",
     "incompatible_checkpoint", "vda_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
+    "long_window",
     "calibration", "calib_folder", "fy_zero", "fps", "out_is_file", "out_is_dangling_link",
     "output_is_folder",
     "output_folder_is_file",

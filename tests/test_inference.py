@@ -565,6 +565,15 @@ def test_bad_inputs():
         jax.random.PRNGKey(0), np.zeros((1, 2, 3, 8, 10)), np.zeros((1, 2, 3, 8, 10)), iters=2)
   with pytest.raises(ValueError, match="stride"):
     inference.window_plan(10, window=4, stride=5)
+  # The depth prior's temporal attention takes 32 frames: a longer window is named up front
+  # (it failed in the window program's trace with "VDA processes at most 32 frames").
+  assert inference.window_plan(40, window=32, stride=16)[0].length == 32
+  for plan in (inference.window_plan, inference.official_window_plan):
+    with pytest.raises(ValueError, match=r"window=33 frames is more than the model runs at once"
+                       r": the depth prior's temporal attention takes at most 32 frames"):
+      plan(40, window=33, stride=10)
+  with pytest.raises(ValueError, match="window=40 frames"):
+    inference.predict_video({}, np.zeros((3, 8, 8, 3)), np.zeros((3, 8, 8, 3)), window=40)
   for n in (0, 25.5):
     with pytest.raises(ValueError, match="need an integer number of frames >= 1"):
       inference.window_plan(n)

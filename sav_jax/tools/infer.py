@@ -72,7 +72,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                       "large frames; the disparities are resized back to the input size and "
                       "scaled to its pixels ((W-1)/(w-1) for align_corners); default: the "
                       "input size")
-  p.add_argument("--window", type=int, default=20, help="frames per sliding window (20)")
+  p.add_argument("--window", type=int, default=20,
+                 help="frames per sliding window (20; at most 32)")
   p.add_argument("--stride", type=int, default=10, help="sliding window stride (10)")
   p.add_argument("--fps", type=float, default=None,
                  help="frame rate of the output video (default: the left input video's, "
@@ -368,6 +369,10 @@ def check_model_args(iters: int, window: int, stride: int) -> None:
     raise UsageError(f"--iters must be an integer >= 2, got {iters}")
   if not 1 <= stride <= window:
     raise UsageError(f"need 1 <= --stride <= --window, got stride {stride}, window {window}")
+  from sav_jax.model.dpt_temporal import TEMPORAL_MAX_LEN  # pylint: disable=import-outside-toplevel
+  if window > TEMPORAL_MAX_LEN:
+    raise UsageError(f"--window must be at most {TEMPORAL_MAX_LEN} (the depth prior's temporal "
+                     f"attention length), got {window}")
 
 
 def run(args: argparse.Namespace) -> int:
