@@ -251,8 +251,10 @@ class StereoAnyVideo(nn.Module):
 
     Returns:
       dict with "tokens": VDA's four DINOv2 token maps `[2B, T, h*w, D]` (left clips
-      then right clips), "fnet": `[2B, T, H/4, W/4, 96]`, "cnet": `[B, T, H/4, W/4, 96]`
-      (left view), float32 apart from the tokens (compute dtype).
+      then right clips; h x w the patch grid, no class token), "fnet":
+      `[2B, T, H/4, W/4, fnet_dim]`, "cnet": `[B, T, H/4, W/4, fnet_dim]` (left view;
+      `cfg.fnet_dim`, 96 in the official model), float32 apart from the tokens (compute
+      dtype).
     """
     self._check_bound("frame_features")
     check_videos(left, right)
@@ -304,7 +306,8 @@ class StereoAnyVideo(nn.Module):
 
     Returns:
       `(fmap1, fmap2, context)`, each `[B, T, H/4, W/4, 128]` float32:
-      `[depth 32 | fnet 96]` per view and `[depth 32 | cnet 96]` of the left view.
+      `[depth | fnet]` per view and `[depth | cnet]` of the left view (`cfg.depth_dim` +
+      `cfg.fnet_dim` channels: 32 + 96 in the official model).
     """
     self._check_bound("features")
     return self.window_features(self.frame_features(left, right), *left.shape[2:4])
