@@ -1293,7 +1293,11 @@ def forward_batch_test_official(variables, left, right, *, cfg: SAVConfig | None
   """The official `forward_batch_test`, frame drops included (for parity checks).
 
   Args:
-    variables, left, right, cfg, iters, window, stride: as `predict_video`.
+    variables, left, right, cfg, iters, window, stride: as `predict_video`. The official
+      code runs 20/10; other values apply its slices with this `stride`
+      (`official_window_plan`), which tile the video only where `window == 2 * stride`:
+      otherwise consecutive windows keep overlapping frames (the output repeats them, e.g.
+      56 frames for 40 with 20/8) or leave gaps.
     return_windows: also return every window's raw output.
 
   Returns:
