@@ -16,6 +16,11 @@ import numpy as np
 # (`SAVConfig.frame_block_mb`).
 FRAME_BLOCK_MB = 1024.0
 
+# Frames the depth prior's temporal attention takes at once (the length of its motion
+# modules' sinusoidal table, `num_frames` of the official VideoDepthAnything): the longest
+# clip or window the model runs.
+TEMPORAL_MAX_LEN = 32
+
 # Compute dtypes of the model (parameters stay float32).
 DTYPES = ("float32", "bfloat16")
 # Implementations of the depth prior's ViT attention (`SAVConfig.vit_attention`).

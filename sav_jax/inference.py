@@ -71,9 +71,9 @@ import numpy as np
 from sav_jax import _signals, runtime
 from sav_jax._checks import caller_stacklevel, check_video_values  # noqa: F401  (public)
 from sav_jax._checks import is_int as _is_int
-from sav_jax.config import DTYPES, SAVConfig, as_config, resolve_vit_attention
+from sav_jax.config import (DTYPES, TEMPORAL_MAX_LEN, SAVConfig, as_config,
+                            resolve_vit_attention)
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
-from sav_jax.model.dpt_temporal import TEMPORAL_MAX_LEN
 from sav_jax.model.init import abstract_variables
 from sav_jax.model.stereo_any_video import (channels_first_hint, check_iters, layout_hint,
                                             training_state_hint)

@@ -369,7 +369,7 @@ def check_model_args(iters: int, window: int, stride: int) -> None:
     raise UsageError(f"--iters must be an integer >= 2, got {iters}")
   if not 1 <= stride <= window:
     raise UsageError(f"need 1 <= --stride <= --window, got stride {stride}, window {window}")
-  from sav_jax.model.dpt_temporal import TEMPORAL_MAX_LEN  # pylint: disable=import-outside-toplevel
+  from sav_jax.config import TEMPORAL_MAX_LEN  # pylint: disable=import-outside-toplevel
   if window > TEMPORAL_MAX_LEN:
     raise UsageError(f"--window must be at most {TEMPORAL_MAX_LEN} (the depth prior's temporal "
                      f"attention length), got {window}")
