@@ -435,7 +435,9 @@ class StereoAnyVideo(nn.Module):
 
   def from_frame_features(self, frame_feats: dict, size: tuple[int, int], iters: int = 20,
                           final_only: bool = True) -> SAVOutput:
-    """`__call__` from precomputed `frame_features` (frames of size `size` = (H, W))."""
+    """`__call__` from precomputed `frame_features` (frames of size `size` = (H, W)), but
+    with `final_only=True` by default (the last prediction, `P = 1`, as long-video inference
+    uses it; `__call__`'s default is every prediction)."""
     self._check_bound("from_frame_features")
     size = check_frame_features(frame_feats, size)
     iters = check_iters(iters)
