@@ -167,6 +167,7 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                          (["--json", str(tmp_path)], "is a folder"),
                          (["--json", str(tmp_path / "no" / "r.json")], "does not exist"),
                          (["--repeats", "0"], "--repeats must be >= 1"),
+                         (["--frames", "33"], "--frames must be at most 32 (the depth prior"),
                          (["--overwrite"], "--overwrite replaces a --json file: name one"),
                          # a folder nothing can be created in (Linux's /proc; root included):
                          # the JSON was written, and failed, only after the run

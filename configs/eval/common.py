@@ -34,7 +34,8 @@ def eval_config(dataset: str, split: str = "test", sample_len: int | None = None
   c.sample_len = sample_len
   # Refinement iterations at 1/4 resolution (the official evaluation uses 20).
   c.iters = 20
-  # Sliding window length and stride of the official forward_batch_test.
+  # Sliding window length and stride of the official forward_batch_test (window <= 32, the
+  # depth prior's temporal attention length).
   c.window = 20
   c.stride = 10
   # Compute dtype of the model: "float32" (official, mixed precision off) or "bfloat16".

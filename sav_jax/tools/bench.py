@@ -318,6 +318,11 @@ def run(args: argparse.Namespace) -> int:
   for name in ("frames", "batch", "repeats"):
     if getattr(args, name) < 1:
       raise UsageError(f"--{name} must be >= 1, got {getattr(args, name)}")
+  from sav_jax.config import TEMPORAL_MAX_LEN  # pylint: disable=import-outside-toplevel
+  if args.frames > TEMPORAL_MAX_LEN:  # (the model's trace failed, naming no flag)
+    raise UsageError(f"--frames must be at most {TEMPORAL_MAX_LEN} (the depth prior's temporal "
+                     f"attention length; predict_video runs longer videos in windows), got "
+                     f"{args.frames}")
   if args.overwrite and not args.json:
     raise UsageError("--overwrite replaces a --json file: name one with --json")
   problem = json_output_problem(args.json, args.overwrite) if args.json else None
