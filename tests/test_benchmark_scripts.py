@@ -163,9 +163,12 @@ def test_update_block_rewrites_compute_the_modules_values():
       jnp.bfloat16)
   assert [label for label, *_ in corr][0].endswith("(model)") and len(corr) == 3
   outs = [np.asarray(fn(*args)) for _, fn, args, _ in corr]
+  # bfloat16 rounds to 2**-9 (0.2 %) of a value; through the maps and the MLP the rows land
+  # within 0.6 % of the largest float32 value, so 2 % of it is the bound (10 % let a warp by
+  # 0.97 times the disparity pass: 9.6 %).
   for out in outs[1:]:
     assert out.shape == outs[0].shape == (3, 4, 5, 128)
-    np.testing.assert_allclose(out, outs[0], atol=0.1 * float(np.abs(outs[0]).max()))
+    np.testing.assert_allclose(out, outs[0], rtol=0, atol=0.02 * float(np.abs(outs[0]).max()))
 
 
 def test_official_torch_script_checks_its_arguments_and_times_parts_per_scale(tmp_path, capsys):
