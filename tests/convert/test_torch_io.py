@@ -720,13 +720,22 @@ def test_build_cannot_mutate_allow_listed_objects(tmp_path, torch_dir):
   payload = b"\x80\x02ctorch\nFloatStorage\nN}X\x03\x00\x00\x00rawK\x01s\x86b."
   # BUILD with a plain state dict on a rebuild function.
   payload2 = b"\x80\x02ctorch._utils\n_rebuild_tensor_v2\n}X\x02\x00\x00\x00fnK\x01sb."
-  for i, data in enumerate((payload, payload2)):
+  # BUILD with slot state {'fn': 1} on the rebuild function.
+  payload3 = b"\x80\x02ctorch._utils\n_rebuild_tensor_v2\nN}X\x02\x00\x00\x00fnK\x01s\x86b."
+  # Each refusal is the one meant (not any error): the frozen object's own, or (a plain
+  # state dict) the missing __dict__ of an object with __slots__.
+  for i, (data, why) in enumerate((
+      (payload, r"refused to set attribute 'raw' of TorchDType$"),
+      (payload2, r"'_SafeFunction' object has no attribute '__dict__'"),
+      (payload3, r"refused to set attribute 'fn' of _SafeFunction$"))):
     path = tmp_path / f"build{i}.pth"
     with zipfile.ZipFile(path, "w") as zf:
       zf.writestr("archive/data.pkl", data)
-    with pytest.raises(CheckpointError):
+    with pytest.raises(CheckpointError, match=why):
       torch_io.load_checkpoint_object(path)
   assert pickle_reader.SAFE_GLOBALS[("torch", "FloatStorage")].raw == np.dtype("<f4")
+  assert (pickle_reader.SAFE_GLOBALS[("torch._utils", "_rebuild_tensor_v2")].fn
+          is pickle_reader._rebuild_tensor_v2)  # pylint: disable=protected-access
   torch_io.load_state_dict(torch_dir / "plain_state_dict.pth")
 
 
