@@ -378,7 +378,14 @@ def test_infinite_ground_truth_at_valid_pixels_is_refused():
   gt = gt.copy()
   gt[1, 0, 0] = np.inf
   valid[1, 0, 0] = 0  # masked out: as NaN, it counts as 0
-  assert np.isfinite(M.eval_sequence(pred, gt, valid)["disp_epe_mean"])
+  masked = M.eval_sequence(pred, gt, valid)
+  # the mean |pred - gt| over the other (valid) pixels, and the same scores as any finite GT
+  # value there
+  want = np.abs(pred.astype(np.float64) - gt)[valid > 0].mean()
+  assert masked["disp_epe_mean"] == pytest.approx(want, rel=1e-6)
+  finite_gt = gt.copy()
+  finite_gt[1, 0, 0] = 7.0
+  assert masked == pytest.approx(M.eval_sequence(pred, finite_gt, valid), rel=1e-12)
   valid[1, 0, 0] = 1
   with pytest.raises(ValueError, match=r"^gt is infinite at valid pixels of valid in frame\(s\) "
                                        r"\[1\] \(every EPE would be inf\); mark them invalid"):
@@ -411,7 +418,14 @@ def test_non_finite_predictions_and_flows_are_refused():
       fn(pred, gt, valid)
   gt_nan = gt.copy()
   gt_nan[0, 0, 0] = np.nan
-  assert np.isfinite(M.eval_sequence(gt, gt_nan, valid)["disp_epe_mean"])
+  # A NaN GT pixel counts as GT 0 (the official rule): with pred == gt elsewhere its error
+  # |pred| is the only non-zero one, and the rates divide by the non-zero count (1).
+  scores = M.eval_sequence(gt, gt_nan, valid)
+  gt_zero = gt.copy()
+  gt_zero[0, 0, 0] = 0.0
+  assert scores == pytest.approx(M.eval_sequence(gt, gt_zero, valid), rel=1e-12)
+  assert scores["disp_epe_mean"] == pytest.approx(float(gt[0, 0, 0]), rel=1e-6)
+  assert scores["disp_epe_bad_3px"] == (100.0 if gt[0, 0, 0] > 3 else 0.0)
   flows = np.zeros((2, 2, 8, 10), np.float32)
   flows[0, 0, 0, 0] = np.inf
   video = rng.uniform(0, 255, (3, 3, 8, 10)).astype(np.float32)
