@@ -85,7 +85,9 @@ def test_a_lock_dropped_without_release_is_freed(tmp_path):
   lock = _locks.FolderLock(tmp_path, ".x.lock")
   del lock
   gc.collect()
-  _locks.FolderLock(tmp_path, ".x.lock").release()
+  assert not (tmp_path / ".x.lock").exists()  # released as release() does: file removed
+  _locks.FolderLock(tmp_path, ".x.lock").release()  # (raises FolderBusyError if still held)
+  assert not (tmp_path / ".x.lock").exists()
 
 
 def test_a_refused_lock_leaves_nothing_to_clean_up(tmp_path, monkeypatch):
