@@ -124,6 +124,9 @@ def test_avg_pool_drops_remainder_like_torch():
   out = np.asarray(avg_pool(jnp.asarray(x), 4))
   assert out.shape == (1, 2, 2, 2)
   np.testing.assert_allclose(out[0, 1, 0], x[0, 4:8, 0:4].mean(axis=(0, 1)), atol=1e-6)
+  # every window: the 4x4 blocks of the 8x8 corner (the last row and 2 columns dropped)
+  want = x[:, :8, :8].astype(np.float64).reshape(1, 2, 4, 2, 4, 2).mean(axis=(2, 4))
+  np.testing.assert_allclose(out, want, rtol=0, atol=1e-6)
   with pytest.raises(ValueError, match="a 3x10 map is smaller than the 4x4 window"):
     avg_pool(jnp.asarray(x[:, :3]), 4)  # torch refuses it too; an empty map before
 
