@@ -265,7 +265,13 @@ def test_ssim_of_anticorrelated_images_is_clipped_at_zero():
   inverse has SSIM ~-0.996, scored 0; TCC of anticorrelated depth changes is 0, not < 0."""
   checker = (np.indices((16, 16)).sum(0) % 2).astype(np.float64)
   assert M.ssim(checker, 1 - checker) == 0.0
-  assert M.ssim(checker, 1 - checker, nonnegative=False) == pytest.approx(-0.9964, abs=1e-4)
+  # By hand: x in {0, 1}, y = 1 - x. A Gaussian window averages the checkerboard to 1/2
+  # (its alternating sum is ~1e-4, squared ~1e-8), so mu_x = mu_y = 1/2, var = E[x^2] - 1/4
+  # = 1/4 each, cov = E[xy] - 1/4 = -1/4: luminance term 1, contrast-structure term
+  # (-1/2 + C2) / (1/2 + C2) with C2 = 0.03^2.
+  c2 = 0.03 ** 2
+  want = (-0.5 + c2) / (0.5 + c2)  # -0.99640647
+  assert M.ssim(checker, 1 - checker, nonnegative=False) == pytest.approx(want, rel=1e-6)
   depth = np.full((2, 16, 16), 10.0, np.float32)
   pred, gt = depth.copy(), depth.copy()
   pred[1] += checker
