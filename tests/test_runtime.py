@@ -285,6 +285,9 @@ def test_inference_options_this_jaxlib_refuses_are_dropped(monkeypatch, restore_
 
 def test_unknown_xla_options_are_detected_not_raised():
   assert runtime._accepts_options("cpu", (("xla_sav_jax_no_such_option", "1"),)) is False  # pylint: disable=protected-access
+  # ... while no options, and an option XLA has, are accepted (not False for everything)
+  assert runtime._accepts_options("cpu", ()) is True  # pylint: disable=protected-access
+  assert runtime._accepts_options("cpu", (("xla_backend_optimization_level", "1"),)) is True  # pylint: disable=protected-access
 
 
 @pytest.mark.usefixtures("fast_compile",  # the last test here: the fixture is module-scoped
