@@ -516,6 +516,12 @@ def test_clips_digest_tells_sequences_apart():
   # a sequence replaced by another of the same length: a resumed run is warned
   a, b = types.SimpleNamespace(name="a"), types.SimpleNamespace(name="b")
   assert pipeline.clips_digest([(a, [0, 1])]) != pipeline.clips_digest([(b, [0, 1])])
+  # a resumed run holds other objects for the same sequences: same names, same digest;
+  # the clips' order is part of it
+  again = types.SimpleNamespace(name="a")
+  assert pipeline.clips_digest([(a, [0, 1])]) == pipeline.clips_digest([(again, [0, 1])])
+  assert (pipeline.clips_digest([(a, [0, 1]), (b, [0, 1])])
+          != pipeline.clips_digest([(b, [0, 1]), (a, [0, 1])]))
 
 
 def test_fixed_clips_are_the_first_ones_and_never_wrap():
