@@ -698,7 +698,14 @@ def test_video_source_reads_long_windows_without_decoding_again(tmp_path, monkey
 
 def test_read_video_file_checks_the_name_and_every_frame(tmp_path, clip, monkeypatch):
   viz.write_video(tmp_path / "v.mp4", clip["left"])
-  assert video_io.read_video_file(tmp_path / "v.mp4", max_frames=2).shape == (2, H, W, 3)
+  got = video_io.read_video_file(tmp_path / "v.mp4", max_frames=2)
+  assert got.shape == (2, H, W, 3) and got.dtype == np.uint8
+  # The first two frames, RGB, within the codec's loss (mean |error| 4 here; 18 in BGR order),
+  # each nearer its own frame than the other one.
+  err = lambda a, b: np.abs(a.astype(np.float64) - b).mean()  # noqa: E731
+  for i in range(2):
+    assert err(got[i], clip["left"][i]) < 8, (i, err(got[i], clip["left"][i]))
+    assert err(got[i], clip["left"][i]) < err(got[i], clip["left"][1 - i]), i
   with pytest.raises(FileNotFoundError, match="nope.mp4: no such file"):
     video_io.read_video_file(tmp_path / "nope.mp4")
   (tmp_path / "notes.txt").write_text("not a video")
