@@ -1,6 +1,7 @@
 """`conv2d`/`Conv2D`/`Conv3D`: the hand-written gradient equals XLA's, in and out of a scan;
 `dft_correlate_w` equals the direct convolution."""
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -97,6 +98,16 @@ def test_conv2d_module_keeps_leading_axes_and_nn_conv_parameters():
   assert variables["params"]["kernel"].shape == (3, 3, 4, 6)
   assert variables["params"]["bias"].shape == (6,)
   assert layer.apply(variables, x).shape == (2, 3, 8, 8, 6)
+  # Values: every [b, t] frame on its own, as nn.Conv computes it with the same parameters
+  # (distinct frames and a non-zero bias, so frames mixed or misplaced would show).
+  x = jnp.asarray(np.random.default_rng(5).standard_normal((2, 3, 8, 8, 4)), jnp.float32)
+  variables = jax.tree.map(lambda v: v + 0.1, variables)
+  got = np.asarray(layer.apply(variables, x))
+  ref = nn.Conv(6, (3, 3), padding=((1, 1), (1, 1)), precision="highest")
+  for b in range(2):
+    for t in range(3):
+      np.testing.assert_allclose(got[b, t], ref.apply(variables, x[b, t]), rtol=0, atol=1e-5,
+                                 err_msg=str((b, t)))
 
 
 def test_forward_mode_autodiff_with_the_canonical_gradient_switched_off():
