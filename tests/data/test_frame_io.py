@@ -330,6 +330,8 @@ def test_npy_and_npz(tmp_path):
       frame_io.read_npy(tmp_path / "damaged.npy")
     except ValueError as e:
       assert "damaged.npy" in str(e)
+    else:  # a "(" anywhere else breaks the header's dict literal
+      assert header[i:i + 1] == b"(", f"a header with '(' at byte {i} was read"
 
 
 def test_hdf5_dsp5(tmp_path, monkeypatch):
