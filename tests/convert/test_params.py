@@ -360,6 +360,10 @@ def test_half_precision_checkpoints_convert(sav_state_dict):
     params = variables["params"]
     np.testing.assert_allclose(params["cnet"]["conv1"]["kernel"].transpose(3, 2, 0, 1),
                                sav_state_dict["cnet.conv1.weight"], rtol=1e-2, atol=1e-3)
+    # exactly the file's half-precision values, widened (float32 holds every one of them)
+    np.testing.assert_array_equal(
+        params["cnet"]["conv1"]["kernel"].transpose(3, 2, 0, 1),
+        np.asarray(cast(sav_state_dict["cnet.conv1.weight"])).astype(np.float32))
     # the tensors kept for export are float32 too: an export is float32 throughout
     unused = variables[convert.params.UNUSED_COLLECTION]
     assert len(unused) >= 2 and {v.dtype for v in unused.values()} == {np.dtype(np.float32)}
