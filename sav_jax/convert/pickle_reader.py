@@ -95,12 +95,25 @@ class _Frozen:
 
   The pickle BUILD opcode can set attributes on any object on the unpickler's stack; freezing
   them keeps a malicious file from altering these objects (some are shared module globals).
+  BUILD calls `__setstate__`: its slot state reaches `__setattr__` (refused, naming the
+  attribute), any other state is refused as a BUILD of an object that takes no state (without
+  it, a plain state dict failed only by accident, for want of a `__dict__`).
   """
 
   __slots__ = ()
 
   def __setattr__(self, name, value):
     raise CheckpointError(f"refused to set attribute {name!r} of {type(self).__name__}")
+
+  def __setstate__(self, state):
+    if (isinstance(state, tuple) and len(state) == 2 and state[0] is None
+        and isinstance(state[1], dict)):
+      for name, value in state[1].items():
+        setattr(self, name, value)  # refused by __setattr__
+    raise CheckpointError(
+        f"refused the pickle BUILD opcode on a {type(self).__name__}: it takes no state "
+        "(setting state on the reader's objects is not allowed in a checkpoint; the file may "
+        "be malicious)")
 
   def _init(self, **attrs):
     for name, value in attrs.items():

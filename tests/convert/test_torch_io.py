@@ -724,12 +724,23 @@ def test_build_cannot_mutate_allow_listed_objects(tmp_path, torch_dir):
   payload2 = b"\x80\x02ctorch._utils\n_rebuild_tensor_v2\n}X\x02\x00\x00\x00fnK\x01sb."
   # BUILD with slot state {'fn': 1} on the rebuild function.
   payload3 = b"\x80\x02ctorch._utils\n_rebuild_tensor_v2\nN}X\x02\x00\x00\x00fnK\x01s\x86b."
-  # Each refusal is the one meant (not any error): the frozen object's own, or (a plain
-  # state dict) the missing __dict__ of an object with __slots__.
+  # BUILD with a plain state dict on a dtype marker.
+  payload4 = b"\x80\x02ctorch\nfloat32\n}X\x03\x00\x00\x00rawK\x01sb."
+  # BUILD with both a plain state dict and slot state {'fn': 1} on the rebuild function.
+  payload5 = (b"\x80\x02ctorch._utils\n_rebuild_tensor_v2\n}X\x01\x00\x00\x00aK\x01s"
+              b"}X\x02\x00\x00\x00fnK\x01s\x86b.")
+  # Each refusal is the one meant (not any error): the frozen object's own for slot state,
+  # and for any other state an explicit refusal of BUILD on an object that takes no state
+  # (not the accidental AttributeError of the missing __dict__, reported as corruption).
+  no_state = (r"build{}\.pth: refused the pickle BUILD opcode on a {}: it takes no state "
+              r"\(setting state on the reader's objects is not allowed in a checkpoint; the "
+              r"file may be malicious\)$")
   for i, (data, why) in enumerate((
       (payload, r"refused to set attribute 'raw' of TorchDType$"),
-      (payload2, r"'_SafeFunction' object has no attribute '__dict__'"),
-      (payload3, r"refused to set attribute 'fn' of _SafeFunction$"))):
+      (payload2, no_state.format(1, "_SafeFunction")),
+      (payload3, r"refused to set attribute 'fn' of _SafeFunction$"),
+      (payload4, no_state.format(3, "TorchDType")),
+      (payload5, no_state.format(4, "_SafeFunction")))):
     path = tmp_path / f"build{i}.pth"
     with zipfile.ZipFile(path, "w") as zf:
       zf.writestr("archive/data.pkl", data)
