@@ -187,3 +187,38 @@ def test_a_command_missing_a_dependency_fails_loudly(tmp_path, monkeypatch):
   monkeypatch.setitem(cli.COMMANDS, "broken", "sav_test_command")
   with pytest.raises(ModuleNotFoundError, match="sav_no_such_dependency"):
     cli.build_parser()
+
+
+# ------------------------------------------------------------- the source distribution's files
+def _in_sdist(paths: list[str]) -> set[str]:
+  """Which of `paths` (relative to the root) `python -m build --sdist` packs: the packages
+  pyproject.toml's `packages.find` includes and what MANIFEST.in adds (building one needs
+  setuptools >= 77 from the network; its MANIFEST.in reader is setuptools' own FileList)."""
+  import re  # pylint: disable=import-outside-toplevel
+  from setuptools._distutils.filelist import FileList  # pylint: disable=import-outside-toplevel
+  found = re.search(r"\[tool\.setuptools\.packages\.find\]\s*include\s*=\s*\[([^\]]*)\]",
+                    (ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+  packages = [p.rstrip("*") for p in re.findall(r'"([^"]+)"', found.group(1))]
+  assert packages and all(p.isidentifier() for p in packages), packages
+  manifest = FileList()
+  manifest.allfiles = list(paths)
+  for line in (ROOT / "MANIFEST.in").read_text(encoding="utf-8").splitlines():
+    if line.strip() and not line.lstrip().startswith("#"):
+      manifest.process_template_line(line)
+  return set(manifest.files) | {p for p in paths if p.split("/")[0] in packages}
+
+
+def test_the_sdist_holds_the_files_the_readme_and_tests_name():
+  """An unpacked sdist passes tests/test_readme.py: the README's files (`.ci/run` was left
+  out) and the tests themselves are in it."""
+  import re  # pylint: disable=import-outside-toplevel
+  named = set(re.findall(r"(?<![\w/.-])((?:benchmarks|configs|sav_jax|train|eval|tests|\.ci)/"
+                         r"[\w/.-]*\w)", (ROOT / "README.md").read_text(encoding="utf-8")))
+  wanted = sorted({p.relative_to(ROOT).as_posix() for ref in named for p in ROOT.glob(ref + "*")
+                   if p.is_file()}
+                  | {p.relative_to(ROOT).as_posix() for p in (ROOT / "tests").rglob("*")
+                     if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc"}
+                  | {"README.md", "LICENSE", "Makefile"})
+  assert len(wanted) > 40 and ".ci/run" in wanted, wanted  # the references are still found
+  packed = _in_sdist(wanted)
+  assert [p for p in wanted if p not in packed] == []
