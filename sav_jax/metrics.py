@@ -346,7 +346,7 @@ def tcm_flow_inputs(pred_depth, gt_depth, mask, t: int, mask_thr: float = 0.5):
     from `pred_t -> pred_t1` and `gt_t -> gt_t1`.
   """
   x, y, _ = _tcm_depths(pred_depth, gt_depth, mask, mask_thr)
-  if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or not 0 <= t < len(x) - 1:
+  if not is_int(t) or not 0 <= t < len(x) - 1:
     # (a negative t took NumPy's wrapped frames: t=-1 paired the last frame with the first)
     raise ValueError(f"t must be a frame index in [0, {len(x) - 2}] (the pair t, t+1 of "
                      f"{len(x)} frames), got {t!r}")

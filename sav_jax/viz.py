@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from sav_jax._checks import (OVERSHOOT_HIGH, OVERSHOOT_LOW, caller_stacklevel,  # (viz's API too)
-                             check_utf8_path, widened)
+                             check_utf8_path, is_int, widened)
 from sav_jax._files import free_space_note
 
 COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO, "turbo": cv2.COLORMAP_TURBO,
@@ -407,7 +407,7 @@ def colorbar(vmin: float, vmax: float, *, cmap: str = "inferno", length: int = 3
   vmin, vmax = _check_range(vmin, vmax)
   for name, value, least in (("length", length, 32), ("thickness", thickness, 1),
                              ("ticks", ticks, 1)):
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+    if not is_int(value) or value < least:
       raise ValueError(f"colorbar: {name} must be an integer >= {least}, got {value!r}")
   values = vmin + (vmax - vmin) * np.arange(length, dtype=np.float64) / (length - 1)
   band = np.repeat(_mapped(values[None].astype(np.float32), vmin, vmax, cmap), thickness, 0)

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import numbers
-
 import jax
 import jax.numpy as jnp
+
+from sav_jax._checks import is_int
 
 
 def accumulation_dtype(*dtypes) -> jnp.dtype:
@@ -37,7 +37,7 @@ def avg_pool(x: jax.Array, k: int) -> jax.Array:
     `[..., H // k, W // k, C]`.
   """
   check_array("x", x, max(getattr(x, "ndim", 0), 3), "[..., H, W, C]")
-  if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
+  if not is_int(k) or k < 1:
     raise ValueError(f"avg_pool: the window k must be a positive integer, got {k!r}")
   h, w, c = x.shape[-3:]
   if h < k or w < k:  # torch: "Output size is too small"
