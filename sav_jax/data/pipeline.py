@@ -52,6 +52,7 @@ import jax
 import numpy as np
 
 from sav_jax._checks import caller_stacklevel, is_int, plural
+from sav_jax.data import frame_io
 from sav_jax.data.base import some_of
 from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo
 
@@ -141,7 +142,6 @@ def honour_dense_masks(clip: dict) -> None:
   that marks pixels invalid and leaves a value there (-1, a fill, garbage) trained on
   them. The built-in readers leave 0 or a value of 512 px or more there, so their clips,
   and the official resize of them, are unchanged."""
-  from sav_jax.data import frame_io  # pylint: disable=g-import-not-at-top
   for dkey, vkey in (("disparity", "valid"), ("right_disparity", "right_valid")):
     if clip.get(dkey) is None or clip.get(vkey) is None:
       continue
