@@ -229,7 +229,8 @@ def _run_into(args, config, out) -> int:
                        "it had, or pass --overwrite to start again")
   runner.refuse_unlisted_outputs(out, [
       p for s in seqs if str(s.name) not in done
-      for p in runner.output_paths(out, s.name, methods, config).values()])
+      for p in runner.output_paths(out, s.name, methods, config,
+                                   has_gt=getattr(s, "has_gt", True)).values()])
   run_args = (config, out, seqs, variables, model_cfg, described, methods, settings, done,
               devices, flow_fn, skipped)
   if not args.overwrite:

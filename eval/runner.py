@@ -228,7 +228,7 @@ def _write_sequence_outputs(out: pathlib.Path, res: SequenceResult, clip: dict, 
                             config) -> None:
   """Writes a sequence's predictions and plots, each listed in `written_files.txt` before it
   is written (a run killed while writing one leaves no file that --overwrite would miss)."""
-  paths = output_paths(out, res.name, list(preds), config)
+  paths = output_paths(out, res.name, list(preds), config, has_gt=bool(res.curves))
 
   def listed(path: pathlib.Path) -> pathlib.Path:
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -247,9 +247,11 @@ def _write_sequence_outputs(out: pathlib.Path, res: SequenceResult, clip: dict, 
       plots.write_curves(listed(paths["curves"]), curves, title=res.name)
 
 
-def output_paths(out: pathlib.Path, sequence: str, methods, config) -> dict[str, pathlib.Path]:
-  """The files `_write_sequence_outputs` may write for a sequence: each method's prediction
-  (by method name) and the plots ("strip", "curves"), as the config asks for them."""
+def output_paths(out: pathlib.Path, sequence: str, methods, config,
+                 has_gt: bool = True) -> dict[str, pathlib.Path]:
+  """The files `_write_sequence_outputs` writes for a sequence: each method's prediction
+  (by method name) and the plots ("strip", and "curves" where the sequence has ground truth),
+  as the config asks for them."""
   name, paths = safe_name(sequence), {}
   if config.save_predictions:
     for method in methods:
@@ -257,7 +259,8 @@ def output_paths(out: pathlib.Path, sequence: str, methods, config) -> dict[str,
       paths[method] = out / "predictions" / f"{name}{suffix}.npy"
   if config.plots.enabled:
     paths["strip"] = out / "plots" / f"{name}_strip.png"
-    paths["curves"] = out / "plots" / f"{name}_curves.png"
+    if has_gt:
+      paths["curves"] = out / "plots" / f"{name}_curves.png"
   return paths
 
 

@@ -1416,13 +1416,17 @@ def test_reported_numbers_are_the_official_metrics_of_the_files(tmp_path, ckpt, 
 
   monkeypatch.setattr(eval_runner.inference, "predict_video", stand_in)
   out = tmp_path / "out"
+  # a file of the user's named as a curves plot of "c", which has no ground truth and so no
+  # curves: --overwrite neither refuses it as a file it would write over nor touches it
+  (out / "plots").mkdir(parents=True)
+  (out / "plots" / "c_curves.png").write_bytes(b"the user's")
   capsys.readouterr()
   assert main(["--config", str(CONFIGS / "folder.py"), "--checkpoint", str(ckpt),
                "--data-root", str(tmp_path / "mine"), "--out", str(out), "--baseline", "sgbm",
                "--config.iters=3", "--config.window=4", "--config.stride=3",
                "--config.baseline.max_disparity=16", "--config.baseline.block_size=7",
                "--config.save_predictions=true", "--config.plots.strip_frames=2",
-               "--config.plots.tile_size=16"]) == 0
+               "--config.plots.tile_size=16", "--overwrite"]) == 0
   printed = capsys.readouterr().out
   assert [(k["iters"], k["window"], k["stride"]) for k in calls] == [(3, 4, 3)] * 3
   summary = json.loads((out / "results.json").read_text())
@@ -1441,7 +1445,8 @@ def test_reported_numbers_are_the_official_metrics_of_the_files(tmp_path, ckpt, 
     np.testing.assert_array_equal(cv2.imread(str(out / "plots" / f"{name}_strip.png")),
                                   cv2.imread(str(tmp_path / "strip.png")))
     if gt is None:
-      assert rec["metrics"] == {} and not (out / "plots" / f"{name}_curves.png").exists()
+      assert rec["metrics"] == {}
+      assert (out / "plots" / f"{name}_curves.png").read_bytes() == b"the user's"
       continue
     curves = {eval_config.METHOD_NAMES[m]: eval_runner.per_frame_errors(p, gt, valid)
               for m, p in preds.items()}
