@@ -1,5 +1,6 @@
 """Experiment configs: Python files whose get_config() returns an ml_collections.ConfigDict."""
 
+import os
 import pathlib
 
 
@@ -10,9 +11,10 @@ def locate(spec: str) -> str:
   layout, which the README's commands use) becomes this package's file when it has one:
   `python -m train --config configs/synthetic.py` then runs from any folder with the
   package installed (a wheel, not only the checkout). Anything else is kept, for the
-  caller's "not found" error.
+  caller's "not found" error. A leading `~` is expanded (the shell leaves it after
+  `--config=`).
   """
-  spec = str(spec)
+  spec = os.path.expanduser(str(spec))
   path, arg = spec.split(".py:", 1) if ".py:" in spec else (spec, None)
   path = path + ".py" if arg is not None else path
   parts = pathlib.PurePath(path).parts

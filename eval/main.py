@@ -34,7 +34,7 @@ from sav_jax.config import DTYPES
 # override are answered at once.
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, check_output_dir,
                            command_logging, one_line_warnings, printable_names,
-                           resolve_devices_option, setup_compile_cache)
+                           resolve_devices_option, setup_compile_cache, user_path)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,14 +42,14 @@ def build_parser() -> argparse.ArgumentParser:
       prog="python -m eval", description="Evaluate Stereo Any Video with the official protocol; "
       "override config fields with --config.<field>=<value>.",
       epilog=eval_config.fields_help())
-  p.add_argument("--config", required=True,
+  p.add_argument("--config", required=True, type=user_path,
                  help="config file, e.g. configs/eval/sintel_final.py (optionally path.py:arg)")
-  p.add_argument("--checkpoint", required=True,
+  p.add_argument("--checkpoint", required=True, type=user_path,
                  help="orbax directory, a training run's WORKDIR (latest checkpoint) or "
                       "WORKDIR/checkpoints/STEP, or a .pth/.pt/.safetensors/.npz state dict")
-  p.add_argument("--data-root", default="data/datasets",
+  p.add_argument("--data-root", default="data/datasets", type=user_path,
                  help="datasets folder or the dataset's own folder (default data/datasets)")
-  p.add_argument("--out", help="output folder (default outputs/eval/<dataset>)")
+  p.add_argument("--out", type=user_path, help="output folder (default outputs/eval/<dataset>)")
   p.add_argument("--baseline", action="append", choices=eval_config.BASELINES, default=[],
                  help="add a baseline row computed on the same frames (repeatable)")
   again = p.add_mutually_exclusive_group()

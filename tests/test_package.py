@@ -97,6 +97,35 @@ def test_an_empty_compile_cache_is_refused(tmp_path, capsys, monkeypatch, bench_
   assert not any(tmp_path.iterdir())
 
 
+def test_path_options_expand_the_home_folder(tmp_path, monkeypatch):
+  """The shell leaves `~` after `--out=` as it is: every option naming a file or folder, of
+  every command and of `python -m eval`, expands it (no folder named `~` made here)."""
+  import argparse  # pylint: disable=import-outside-toplevel
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  from eval import main as eval_main  # pylint: disable=import-outside-toplevel
+  monkeypatch.setenv("HOME", str(tmp_path))
+  parsers = {name: action.choices[name] for action in cli.build_parser()._actions
+             if isinstance(action, argparse._SubParsersAction) for name in action.choices}
+  parsers["eval"] = eval_main.build_parser()
+  required = {"infer": ["--left=l", "--right=r", "--checkpoint=c", "--out=o"],
+              "convert": ["s", "d"], "eval": ["--config=c", "--checkpoint=c"]}
+  seen = set()
+  for name, parser in parsers.items():
+    for action in parser._actions:
+      if action.dest not in (*cli._PATH_ARGS, "data_root", "config"):
+        continue
+      seen.add(action.dest)
+      if action.option_strings:  # the option given last wins over the required one
+        argv = [*required.get(name, []), f"{action.option_strings[-1]}=~/{action.dest}"]
+      else:  # convert's SRC and DST
+        argv = [f"~/{d}" if d == action.dest else "x" for d in ("src", "dst")]
+      got = vars(parser.parse_args(argv))[action.dest]
+      assert got == str(tmp_path / action.dest), (name, action.dest, got)
+  assert seen == {*cli._PATH_ARGS, "data_root", "config"}, seen
+  import configs  # pylint: disable=import-outside-toplevel  # python -m train's --config=~/...
+  assert configs.locate("~/mine.py:arg") == f"{tmp_path / 'mine.py'}:arg"
+
+
 def test_a_commands_warnings_are_one_line_each_on_stderr(capsys, bench_runs):
   import warnings  # pylint: disable=import-outside-toplevel
   from sav_jax import cli  # pylint: disable=import-outside-toplevel

@@ -485,7 +485,7 @@ def load_model_params(path, cfg: sav_jax.SAVConfig, saved: dict | None = None) -
   Returns:
     Nested dict of numpy arrays; `torch_unused` and other collections are dropped.
   """
-  path = pathlib.Path(path)
+  path = pathlib.Path(path).expanduser()  # (`~` the shell left after --config.init_from=)
   if path.is_dir():
     try:  # any collections (e.g. torch_unused), on this process's first device
       variables, stored = sav_jax.convert.restore_variables(path)
@@ -504,7 +504,8 @@ def load_model_params(path, cfg: sav_jax.SAVConfig, saved: dict | None = None) -
 def load_vda_params(path, cfg: sav_jax.SAVConfig | None = None) -> dict:
   """Host params of the frozen prior (to go under `params/depthnet/depthanything`), for the
   depth prior of `cfg.vda_encoder` (default: the paper's model)."""
-  if pathlib.Path(path).is_dir():
+  path = pathlib.Path(path).expanduser()  # (`~` the shell left after --config.vda_weights=)
+  if path.is_dir():
     raise sav_jax.convert.CheckpointError(
         f"config.vda_weights={path} is a folder: it takes a Video Depth Anything weights file "
         "(.pth/.safetensors/.npz); a whole model's folder (a `sav-jax convert` output, a "

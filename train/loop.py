@@ -374,11 +374,12 @@ def check_fields(config) -> None:
 
 
 def _given_workdir(workdir) -> pathlib.Path:
-  """`workdir` as a Path; "" (an unset, quoted $WORKDIR) is refused: Path("") is the
-  current folder, where the run would write."""
+  """`workdir` as a Path, `~` expanded (the shell leaves it after `--workdir=`: the run made
+  a folder named `~` in the current one); "" (an unset, quoted $WORKDIR) is refused:
+  Path("") is the current folder, where the run would write."""
   if not str(workdir):
     raise ValueError("--workdir is empty; give the run's folder")
-  return pathlib.Path(workdir)
+  return pathlib.Path(workdir).expanduser()
 
 
 def _refuse_workdir_in_data(config, workdir: pathlib.Path) -> None:
@@ -581,7 +582,8 @@ def setup(config, workdir):
         f"{int(resume_from.name)}, or another --workdir")
   for field in ("init_from", "vda_weights"):  # before anything is created in the workdir
     # (a resumed run never reads them: the files may have moved since its first start)
-    if resume_from is None and config[field] and not pathlib.Path(config[field]).exists():
+    if (resume_from is None and config[field]
+        and not pathlib.Path(config[field]).expanduser().exists()):
       raise FileNotFoundError(f"config.{field}={config[field]}: no such file or directory")
   if not (config.init_from or config.vda_weights or config.random_depth_prior) and (
       resume_from is None):

@@ -16,6 +16,12 @@ import tempfile
 import warnings
 
 
+def user_path(value: str) -> str:
+  """The argparse type of a path option: `~` and `~user` expanded, as the shell does not
+  after `--option=` (`--out=~/runs` would otherwise make a folder named `~` here)."""
+  return os.path.expanduser(value)
+
+
 class UsageError(Exception):
   """Bad input from the user: reported without a traceback, exit status 2."""
 
@@ -71,7 +77,7 @@ def add_compile_cache_arguments(p, default_on: bool = True) -> None:
   g = p.add_mutually_exclusive_group()
   where = (f"default: JAX_COMPILATION_CACHE_DIR if set, else {default_cache_dir()}"
            if default_on else "default: off")
-  g.add_argument("--compile-cache", metavar="DIR",
+  g.add_argument("--compile-cache", metavar="DIR", type=user_path,
                  help=f"keep compiled programs in DIR for later runs ({where})")
   if default_on:
     g.add_argument("--no-compile-cache", action="store_true",

@@ -15,7 +15,7 @@ import time
 
 from sav_jax.config import GRU_CONV, VIT_ATTENTION
 from sav_jax.tools import (add_compile_cache_arguments, add_matmul_precision_argument,
-                           matmul_precision, setup_compile_cache)
+                           matmul_precision, setup_compile_cache, user_path)
 
 HELP = "benchmark the compiled forward pass (compile time, median time, fps, peak memory)"
 
@@ -40,10 +40,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  help="timed calls after the warm-up call (default 5)")
   p.add_argument("--all-predictions", action="store_true",
                  help="return every refinement step (training view) instead of the final one")
-  p.add_argument("--json", help="write the results to this JSON file (a new file, or an "
+  p.add_argument("--json", type=user_path, help="write the results to this JSON file (a new file, or an "
                                  "existing one with --overwrite)")
   p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
-  p.add_argument("--compare", help="a JSON written by --json (or by benchmarks/official_torch.py, "
+  p.add_argument("--compare", type=user_path, help="a JSON written by --json (or by benchmarks/official_torch.py, "
                                     "the official PyTorch forward): print the ratios against it")
   add_matmul_precision_argument(p)
   add_compile_cache_arguments(p, default_on=False)

@@ -10,7 +10,7 @@ import argparse
 import logging
 
 from sav_jax._checks import check_utf8_path
-from sav_jax.tools import UsageError, check_output_dir
+from sav_jax.tools import UsageError, check_output_dir, user_path
 
 HELP = ("convert an official .pth/.pt/.safetensors/.npz checkpoint into an orbax directory "
         "(or another state-dict file), or export an orbax directory or a training run's "
@@ -19,10 +19,10 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-  p.add_argument("src", help="Stereo Any Video checkpoint (or, with --vda, a VDA-only file); "
+  p.add_argument("src", type=user_path, help="Stereo Any Video checkpoint (or, with --vda, a VDA-only file); "
                  "an orbax directory, or a training run's WORKDIR (latest checkpoint) or "
                  "WORKDIR/checkpoints/STEP, to export")
-  p.add_argument("dst", help="orbax checkpoint directory to create, or a .safetensors/.npz/"
+  p.add_argument("dst", type=user_path, help="orbax checkpoint directory to create, or a .safetensors/.npz/"
                  ".pth/.pt/.bin file (the last three need torch) to write the (checked) "
                  "weights to under the official key names; for a "
                  "training checkpoint SRC, a path without suffix makes a variables directory "

@@ -26,7 +26,8 @@ import cv2
 import numpy as np
 
 from sav_jax._checks import is_int
-from sav_jax.tools import add_compile_cache_arguments, check_output_dir, setup_compile_cache
+from sav_jax.tools import (add_compile_cache_arguments, check_output_dir, setup_compile_cache,
+                           user_path)
 
 log = logging.getLogger(__name__)
 
@@ -37,10 +38,10 @@ TABLE = (("EPE", "disp_epe_mean"), ("bad-1px %", "disp_epe_bad_1px"),
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--checkpoint", help="orbax directory, a training run's WORKDIR, or a "
+  p.add_argument("--checkpoint", type=user_path, help="orbax directory, a training run's WORKDIR, or a "
                                       ".pth/.pt/.safetensors/.npz state dict (default: "
                                       f"{BUNDLED} if present, else random weights)")
-  p.add_argument("--out", default="outputs/demo", help="output folder (default outputs/demo)")
+  p.add_argument("--out", default="outputs/demo", type=user_path, help="output folder (default outputs/demo)")
   p.add_argument("--frames", type=int, default=8, help="frames of the synthetic video (8)")
   p.add_argument("--height", type=int, default=128, help="frame height (128)")
   p.add_argument("--width", type=int, default=256, help="frame width (256)")

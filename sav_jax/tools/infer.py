@@ -38,20 +38,21 @@ from sav_jax._checks import loads_json, plural
 from sav_jax._files import FREE_SPACE, free_space_note, write_text_atomic
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, add_devices_argument,
                            add_matmul_precision_argument, check_output_dir, matmul_precision,
-                           resolve_devices_option, setup_compile_cache, video_io)
+                           resolve_devices_option, setup_compile_cache, user_path,
+                           video_io)
 
 HELP = "estimate disparity for a stereo video (frame folders or video files)"
 log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--left", required=True, help="left frames: a folder of images or a video file")
-  p.add_argument("--right", required=True, help="right frames: a folder of images or a video file")
-  p.add_argument("--checkpoint", required=True,
+  p.add_argument("--left", required=True, type=user_path, help="left frames: a folder of images or a video file")
+  p.add_argument("--right", required=True, type=user_path, help="right frames: a folder of images or a video file")
+  p.add_argument("--checkpoint", required=True, type=user_path,
                  help="orbax directory from `sav-jax convert`, a training run's WORKDIR (latest "
                       "checkpoint) or WORKDIR/checkpoints/STEP, or a .pth/.pt/.safetensors/.npz "
                       "state dict (converted on the fly)")
-  p.add_argument("--out", required=True, help="output folder")
+  p.add_argument("--out", required=True, type=user_path, help="output folder")
   p.add_argument("--iters", type=int, default=20, help="refinement iterations (>= 2; default 20)")
   p.add_argument("--format", action="append", dest="formats", metavar="FMT",
                  help="disparity file format, repeatable or comma-separated: "
@@ -95,7 +96,7 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
   g.add_argument("--doffs", type=float,
                  help="cx of the right camera minus cx of the left (px; default 0): "
                       "depth = fx * baseline / (disparity + doffs)")
-  g.add_argument("--calib", help="calibration file: JSON or 'key value' text with fx, fy, "
+  g.add_argument("--calib", type=user_path, help="calibration file: JSON or 'key value' text with fx, fy, "
                                   "cx, cy, baseline, doffs; a KITTI calib file (P_rect_02/"
                                   "P_rect_03 or P2/P3); or a Middlebury calib.txt (cam0, cam1, "
                                   "doffs, baseline in mm: depth in mm)")

@@ -894,6 +894,33 @@ def test_init_files_of_the_wrong_kind_name_the_file_and_the_field(tmp_path, vda_
     ckpt_lib.load_model_params(tmp_path / "notes", sav_jax.SAVConfig())
 
 
+def test_paths_with_the_home_folder_as_tilde_are_expanded(tmp_path, monkeypatch,
+                                                          vda_state_dict, sav_state_dict):
+  """The shell leaves `~` after `--workdir=` and `--config.init_from=`: the run made a folder
+  named `~` in the current one, and the weights' files were not found."""
+  from train import loop  # pylint: disable=g-import-not-at-top
+  from sav_jax.convert import CheckpointError, save_state_dict  # pylint: disable=g-import-not-at-top
+  monkeypatch.setenv("HOME", str(tmp_path / "home"))
+  monkeypatch.chdir(tmp_path)
+  save_state_dict(vda_state_dict, tmp_path / "home" / "vda.npz")
+  save_state_dict(sav_state_dict, tmp_path / "home" / "sav.npz")
+  # read from the home folder: the other kind's error, not "no such file"
+  with pytest.raises(CheckpointError, match=r"sav\.npz is a Stereo Any Video"):
+    ckpt_lib.load_vda_params("~/sav.npz")
+  with pytest.raises(CheckpointError, match=r"vda\.npz is a Video Depth Anything"):
+    ckpt_lib.load_model_params("~/vda.npz", sav_jax.SAVConfig())
+  from sav_jax.convert import orbax_io  # pylint: disable=import-outside-toplevel
+  step = tmp_path / "home" / "run" / "checkpoints" / "3"
+  (step / "state").mkdir(parents=True)
+  (step / orbax_io._METADATA_FILE).write_text("{}")  # pylint: disable=protected-access
+  c = synthetic.get_config()
+  c.init_from = "~/sav.npz"
+  c.train.num_steps = 2  # the home folder's run is at step 3: refused, naming it
+  with pytest.raises(ValueError, match=rf"resume from \({step}\)"):
+    loop.setup(c, "~/run")
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["home"]  # no folder named "~"
+
+
 def test_a_bad_generator_config_used_only_for_validation_says_so():
   from train import loop  # pylint: disable=g-import-not-at-top
   c = synthetic.get_config()
