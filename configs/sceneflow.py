@@ -14,6 +14,7 @@ import dataclasses
 import ml_collections
 from ml_collections import config_dict
 
+from sav_jax.config import FRAME_BLOCK_MB
 from sav_jax.data.augment import AugmentConfig
 from sav_jax.data.synthetic import SyntheticConfig
 
@@ -68,6 +69,11 @@ def base_config() -> ml_collections.ConfigDict:
   # The GRU's 1x15 convolutions (SAVConfig.gru_conv): "auto" (DFT products on CPU in float32:
   # the same values, a step ~10-14% faster there; XLA's convolutions elsewhere), "direct", "dft".
   c.model.gru_conv = "auto"
+  # The depth prior's attention (SAVConfig.vit_attention): "auto" (cuDNN's fused kernel on a
+  # recent NVIDIA GPU in bfloat16, else "blocked"), "blocked", "cudnn".
+  c.model.vit_attention = "auto"
+  # Memory budget (MiB) of the per-frame stages' blocks of frames (SAVConfig.frame_block_mb).
+  c.model.frame_block_mb = FRAME_BLOCK_MB
 
   c.data = ml_collections.ConfigDict()
   # Frames per training clip, T (official sample_len; at most 32, the depth prior's temporal

@@ -558,6 +558,7 @@ def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path, caplog):
   c.optimizer.lr, c.train.num_steps, c.checkpoint.keep = 0.5, c.train.num_steps + 1, 9
   c.model.gru_conv = "direct"  # how the GRU computes, the same values
   c.model.remat_policy = "dots_saveable"  # and the other compute fields (but dtype)
+  c.model.vit_attention, c.model.frame_block_mb = "blocked", 64.0
   c.train.microbatches = 2  # the same step in two parts
   assert ckpt_lib.changed_fields(manager, 7, c) == [  # keep: where and how, not what
       f"optimizer.lr: {_config().optimizer.lr!r} -> 0.5",
@@ -1438,7 +1439,7 @@ def test_config_blocks_a_run_cannot_use_are_named(tmp_path, caplog):
     loop.validate_config(c, tmp_path / "w")
   c = ml_collections.ConfigDict(dict(seed=0, model=dict(dtype="float32")))
   with pytest.raises(ValueError, match=r"the config lacks \d+ fields \(checkpoint, compile_cache"
-                     r".*model\.gru_conv.*base_config\(\)"):
+                     r".*model\.frame_block_mb.*base_config\(\)"):
     loop.check_fields(c)
   from configs.eval import folder  # pylint: disable=g-import-not-at-top
   with pytest.raises(ValueError, match=r"the config lacks 12 fields \(.*\); it is an evaluation "
@@ -1534,6 +1535,9 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
       ([str(tmp_path / "frame.png")], f"the config file {tmp_path / 'frame.png'} does not "
        "parse: source code string cannot contain null bytes"),
       ([config, "--config.train.iters=1"], "config.train.iters=1: expected an integer >= 2"),
+      # the model's compute fields are the config's (vit_attention was "no such config field")
+      ([config, "--config.model.vit_attention=flash"], "config.model.vit_attention='flash'; "
+       "expected one of ('auto', 'blocked', 'cudnn')"),
       # a repeated override: the last wins (a tuple's values were joined: (32, 32, 48, 56))
       ([config, "--config.data.crop=(32, 32)", "--config.data.crop", "(48, 56)"],
        "config.data.crop=(48, 56): expected (height, width): two positive multiples of 16"),
