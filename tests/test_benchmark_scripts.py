@@ -115,6 +115,12 @@ def test_im2col_form_equals_the_direct_convolution():
     got = conv_throughput.im2col_conv(x, k, pad)
     assert got.shape == want.shape == (2, 6, 9, 7)
     assert float(jnp.abs(got - want).max()) < 1e-5 * float(jnp.abs(want).max())
+    # --dtype bfloat16: bfloat16 operands, float32 sums, in both forms
+    xb, kb = x.astype(jnp.bfloat16), k.astype(jnp.bfloat16)
+    for got in (conv_throughput.xla_conv(xb, kb, pad, jnp.float32),
+                conv_throughput.im2col_conv(xb, kb, pad, jnp.float32)):
+      assert got.dtype == jnp.float32
+      assert float(jnp.abs(got - want).max()) < 2e-2 * float(jnp.abs(want).max())
 
 
 def test_winograd_forms_equal_the_direct_convolution():
