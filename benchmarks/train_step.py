@@ -70,7 +70,7 @@ def measure(config, repeats: int) -> dict:
   tx = optim.make_optimizer(config.optimizer, config.train.num_steps)
   params = state_lib.place_params(init_variables(model.cfg, seed=0)["params"], abstract, mesh)
   state, shardings = state_lib.create_train_state(model, tx, config, mesh, params)
-  step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels),
+  step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels, mesh),
                                  shardings, mesh)
   batch = jax.device_put(random_batch(config), state_lib.data_sharding(mesh))
   c0 = time.perf_counter()

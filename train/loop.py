@@ -628,7 +628,7 @@ def setup(config, workdir):
                                              abstract_params, weights, data_clips, resumed)
     if source == "checkpoint":  # the prior the resumed weights hold, as their first run said
       depth_prior = ckpt_lib.saved_depth_prior(resumed)
-    train_step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels),
+    train_step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, config, labels, mesh),
                                          shardings, mesh)
     evaluator = (evaluation.Evaluator(config, model, shardings.params, mesh, eval_clips)
                  if evaluating else None)

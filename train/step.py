@@ -11,10 +11,41 @@ import optax
 from sav_jax import runtime
 from train import loss as loss_lib
 from train import optim
-from train.state import TrainState, data_sharding, replicated
+from jax.sharding import PartitionSpec as P
+
+from train.state import DATA_AXIS, TrainState, data_sharding, replicated
 
 
-def make_train_step(model, tx: optax.GradientTransformation, config, labels):
+def per_device_apply(model, mesh=None):
+  """`model.apply(variables, left, right, **kwargs)`, run by each device on its own clips.
+
+  Under a mesh whose `data` axis has several devices, the forward pass is a `shard_map`
+  over that axis: every device runs the model on its share of the batch (the variables
+  replicated), as one device runs the whole batch. Traced on the global batch instead,
+  the model's whole-batch steps moved clips between devices in every step: the views
+  concatenated along the batch axis and split again (all-to-alls and collective permutes
+  of the frames and 1/4 feature maps), and the frame blocks of `cfg.frame_block_mb`
+  (`layers.in_frame_blocks`, sized for the global batch: `sceneflow.py`'s 80 frames in
+  blocks of 4 on 8 devices) gathered the frames, so that each device ran the encoders on
+  every clip of the batch. The output's disparities `[P, B, ...]` stay split on B.
+  Without a mesh, or with one device on `data`, plain `model.apply`.
+  """
+  if mesh is None or dict(mesh.shape).get(DATA_AXIS, 1) == 1:
+    return model.apply
+  batch = P(DATA_AXIS)
+
+  def apply(variables, left, right, *, rngs=None, **kwargs):
+    def local(variables, left, right, rngs):
+      return model.apply(variables, left, right, rngs=rngs, **kwargs)
+
+    return jax.shard_map(local, mesh=mesh, in_specs=(P(), batch, batch, P()),
+                         out_specs=P(None, DATA_AXIS), check_vma=False)(
+                             variables, left, right, rngs)
+
+  return apply
+
+
+def make_train_step(model, tx: optax.GradientTransformation, config, labels, mesh=None):
   """`train_step(state, batch) -> (state, metrics)` (not jitted; see `jit_train_step`).
 
   The batch is `left/right [B, T, H, W, 3]` (uint8 or float, 0..255), `disparity
@@ -32,7 +63,10 @@ def make_train_step(model, tx: optax.GradientTransformation, config, labels):
     tx: optimizer from `train.optim.make_optimizer`.
     config: full training config (`train.iters`, `loss.*`, `optimizer.*`).
     labels: optimizer labels of the params (`train.optim.param_labels`).
+    mesh: the mesh the step runs on (`jit_train_step`'s): the forward pass then runs on
+      each device's own clips (`per_device_apply`); None traces it on the global batch.
   """
+  apply = per_device_apply(model, mesh)
   schedule = optim.make_schedule(config.optimizer, config.train.num_steps)
   iters = config.train.iters
   vector = optim.TrainableVector(labels)
@@ -44,8 +78,8 @@ def make_train_step(model, tx: optax.GradientTransformation, config, labels):
     right = batch["right"].astype(jnp.float32)
 
     def loss_fn(trainable):
-      out = model.apply({"params": vector.replace(state.params, trainable)}, left, right,
-                        iters=iters, rngs={"dropout": rng})
+      out = apply({"params": vector.replace(state.params, trainable)}, left, right,
+                  iters=iters, rngs={"dropout": rng})
       return loss_lib.sequence_loss(out.disparities, batch["disparity"], batch["valid"],
                                     gamma=config.loss.gamma,
                                     max_disparity=config.loss.max_disparity,
@@ -149,12 +183,13 @@ def make_eval_fn(model, iters: int, params_sharding, mesh):
   score it: a pixel predicted with the wrong sign is not a large error there.
   """
   dsh = data_sharding(mesh)
+  apply = per_device_apply(model, mesh)
 
   @functools.partial(jax.jit, in_shardings=(params_sharding, dsh, dsh), out_shardings=dsh,
                      compiler_options=runtime.inference_compiler_options())
   def predict(params, left, right):
-    out = model.apply({"params": params}, left.astype(jnp.float32),
-                      right.astype(jnp.float32), iters=iters, final_only=True)
+    out = apply({"params": params}, left.astype(jnp.float32), right.astype(jnp.float32),
+                iters=iters, final_only=True)
     return jnp.abs(out.disparities[0])
 
   return predict

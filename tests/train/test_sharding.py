@@ -14,12 +14,16 @@ Adam's first update is lr * g / (|g| + eps), so with the default eps = 1e-8 a gr
 entry at rounding level (|g| ~ 1e-9) whose sign differs between the two reductions moves
 by up to 2 lr (with eps = 1e-8 we saw 7e-5 of the entries do so).
 
+The step runs the model on each device's own clips (`train.step.per_device_apply`); the
+reference is the step traced for one device.
+
 The initial parameters are the parity fixtures' deterministic official-layout weights
 (converted, then placed on the 8-device mesh), which also spares a compilation of the
 random initialiser.
 """
 
 import json
+import re
 import sys
 
 import numpy as np
@@ -42,6 +46,17 @@ def test_eight_devices_match_one_device(jobs):
   assert result["param_max_abs_diff"] <= 5e-3 * STEP_LR
   assert result["changed_fraction"] > 0.5  # the step did update the parameters
   assert result["frozen_unchanged"]
+
+
+@pytest.mark.train_job("sharding")
+def test_each_device_runs_the_model_on_its_own_clips(jobs):
+  # The gradient's all-reduce and nothing else: traced on the global batch, the model's
+  # concatenation of the views along the batch axis (and the slices back) moved frames and
+  # feature maps between the devices in every step (3 all-to-alls, 26 collective permutes
+  # here), and frame blocks (`model.frame_block_mb`) gathered every clip to every device.
+  result = json.loads(jobs.get("sharding").read_text())
+  assert set(result["step_collectives"]) == {"all-reduce"}, result["step_collectives"]
+  assert result["eval_collectives"] == {}
 
 
 @pytest.mark.train_job("sharding")
@@ -147,10 +162,16 @@ def _dft_blocks_on_eight_devices() -> dict:
           "dft_block_max_diff": diff}
 
 
+def _collectives(hlo: str) -> dict:
+  """Collective operations of a compiled program's text, counted by kind."""
+  found = re.findall(r"\b(all-gather|all-to-all|collective-permute|all-reduce|reduce-scatter)"
+                     r"(?:-start)?\(", hlo)
+  return {op: found.count(op) for op in sorted(set(found))}
+
+
 def _child(out_path):
   """Runs in a fresh process with 8 CPU devices."""
   import jax  # pylint: disable=g-import-not-at-top
-  import jax.extend.core  # pylint: disable=g-import-not-at-top
   import sav_jax  # pylint: disable=g-import-not-at-top
   from sav_jax.data import pipeline  # pylint: disable=g-import-not-at-top
   from train import input as input_lib  # pylint: disable=g-import-not-at-top
@@ -162,7 +183,6 @@ def _child(out_path):
   params = S.abstract_params(model, c)
   labels = optim.param_labels(params, c.optimizer.frozen)
   tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
-  train_step = st.make_train_step(model, tx, c, labels)
   batch = next(iter(input_lib.train_dataset(c, process_index=0, process_count=1)))
   batch = dict(batch, left=batch["left"].astype(np.float32),
                right=batch["right"].astype(np.float32))
@@ -171,18 +191,19 @@ def _child(out_path):
   jax.config.update("jax_transfer_guard", "disallow")
   state8, sh8 = S.create_train_state(model, tx, c, mesh8, params=placed)
   host0 = jax.device_get(state8)
-  step8 = st.jit_train_step(train_step, sh8, mesh8)
+  step8 = st.jit_train_step(st.make_train_step(model, tx, c, labels, mesh8), sh8, mesh8)
   batch8 = pipeline.to_global(batch, S.data_sharding(mesh8))
-  traced = step8.trace(state8, batch8)  # the call below reuses this trace
-  new8, m8 = step8(state8, batch8)
+  compiled8 = step8.lower(state8, batch8).compile()
+  out["step_collectives"] = _collectives(compiled8.as_text())
+  eval8 = st.make_eval_fn(model, 2, sh8.params, mesh8)
+  out["eval_collectives"] = _collectives(eval8.lower(
+      state8.params, batch8["left"], batch8["right"]).compile().as_text())
+  new8, m8 = compiled8(state8, batch8)
   host8, m8 = jax.device_get((new8, m8))
-  # The reference: the same traced step (no sharding in it; ~16 s of tracing saved)
-  # jitted for one device.
+  # The reference: the step traced for one device (the model's forward on the whole batch).
   sh1 = S.state_shardings(host0, mesh1)
-  step1 = jax.jit(jax.extend.core.jaxpr_as_fun(traced.jaxpr))
-  flat1 = jax.tree.leaves((jax.device_put(host0, sh1),
-                           pipeline.to_global(batch, S.data_sharding(mesh1))))
-  new1, m1 = jax.tree.unflatten(traced.out_tree, step1(*flat1))
+  step1 = st.jit_train_step(st.make_train_step(model, tx, c, labels, mesh1), sh1, mesh1)
+  new1, m1 = step1(jax.device_put(host0, sh1), pipeline.to_global(batch, S.data_sharding(mesh1)))
   host1, m1 = jax.device_get((new1, m1))
   out.update({"devices": jax.device_count(), "mesh8": dict(mesh8.shape), "loss8": float(m8["loss"]),
          "loss1": float(m1["loss"]), "metrics8": {k: float(v) for k, v in m8.items()},
@@ -191,7 +212,7 @@ def _child(out_path):
                       host0.params["depthnet"]["depthanything"]))
   nan_batch = dict(batch, left=batch["left"].copy())
   nan_batch["left"][3, 1, 7, 9, 0] = np.nan
-  after, mn = jax.device_get(step8(jax.device_put(host8, sh8), pipeline.to_global(
+  after, mn = jax.device_get(compiled8(jax.device_put(host8, sh8), pipeline.to_global(
       nan_batch, S.data_sharding(mesh8))))
   same = lambda a, b: all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a),
                                                                jax.tree.leaves(b)))
