@@ -287,7 +287,46 @@ def _plumbing_child(out_path):
   res["batch_shards"] = sorted([s.device.id, *np.asarray(s.data)[:, 0].tolist()]
                                for s in batch.addressable_shards)
   res["param_shards"] = sorted([s.device.id, len(s.data)] for s in params.addressable_shards)
+  res.update(_mesh_of_yours(devs))
   pathlib.Path(out_path).write_text(json.dumps(res))
+
+
+def _mesh_of_yours(devs) -> dict:
+  """Training's validation on a mesh with a second axis: `data` 4 x `model` 2, batch 4 (the
+  batch splits over `data` alone: it was refused as not divisible by 8), a stand-in model
+  (the clip's ground truth, in the left image's first channel); and a mesh without `data`."""
+  import ml_collections  # pylint: disable=import-outside-toplevel
+  from jax.sharding import Mesh  # pylint: disable=import-outside-toplevel
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from train import evaluation, state as state_lib  # pylint: disable=import-outside-toplevel
+
+  class Model:
+    def apply(self, variables, left, right, *, iters, final_only):
+      del variables, right, iters, final_only
+      return sav_jax.SAVOutput(disparities=left[None, ..., 0])
+
+  rng = np.random.default_rng(0)
+  clips = []
+  for _ in range(5):
+    gt = rng.uniform(1.0, 9.0, (2, 4, 6)).astype(np.float32)
+    clips.append({"left": np.repeat(gt[..., None], 3, -1), "right": np.zeros((2, 4, 6, 3),
+                                                                          np.float32),
+                  "disparity": gt, "valid": np.ones((2, 4, 6), bool)})
+  config = ml_collections.ConfigDict({"eval": {"batch_size": 4, "iters": 2,
+                                               "dataset": "synthetic"}})
+  mesh = Mesh(np.array(devs).reshape(4, 2), ("data", "model"))
+  out = {}
+  try:
+    ev = evaluation.Evaluator(config, Model(), state_lib.replicated(mesh), mesh, clips=clips)
+    preds = ev.predictions({})
+    out["two_axes"] = float(max(np.abs(p - c["disparity"]).max() for p, c in zip(preds, clips)))
+  except ValueError as e:
+    out["two_axes"] = str(e)
+  try:
+    state_lib.data_sharding(Mesh(np.array(devs[:2]), ("batch",)))
+  except ValueError as e:
+    out["no_data_axis"] = str(e)
+  return out
 
 
 if __name__ == "__main__":
@@ -362,6 +401,12 @@ def test_the_training_mesh_splits_the_batch_and_replicates_the_state(plumbing):
   # 16 rows over 8 devices: device i holds rows 2i and 2i + 1 (first column 4i, 4i + 2)
   assert plumbing["batch_shards"] == [[i, 4 * i, 4 * i + 2] for i in range(8)]
   assert plumbing["param_shards"] == [[i, 4] for i in range(8)]
+
+
+def test_validation_on_a_mesh_with_other_axes_splits_the_batch_over_data(plumbing):
+  assert plumbing["two_axes"] == 0.0  # every clip's prediction, in order
+  assert plumbing["no_data_axis"] == ("the mesh has no 'data' axis (its axes: 'batch'): the batch "
+                                      "is split over an axis named 'data'")
 
 
 def test_each_device_keeps_its_own_executables(monkeypatch):

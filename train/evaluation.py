@@ -42,8 +42,10 @@ class Evaluator:
   def __init__(self, config, model, params_sharding, mesh, clips=None):
     ev = config.eval
     batch_size = ev.batch_size
-    if batch_size % mesh.size:
-      raise ValueError(f"eval.batch_size={batch_size} is not divisible by {mesh.size} devices")
+    parts = state_lib.data_devices(mesh)  # (a mesh's other axes hold copies)
+    if batch_size % parts:
+      raise ValueError(f"eval.batch_size={batch_size} is not divisible by the {parts} devices "
+                       f"of the mesh's {state_lib.DATA_AXIS!r} axis")
     self.clips = (measured_clips(input_lib.eval_clips(config), ev.dataset) if clips is None
                   else clips)
     self.batches = pipeline.eval_batches(self.clips, batch_size)

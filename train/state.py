@@ -54,8 +54,24 @@ def replicated(mesh: Mesh) -> NamedSharding:
   return NamedSharding(mesh, P())
 
 
+def data_devices(mesh: Mesh) -> int:
+  """The number of parts the batch is split into: the size of the mesh's `data` axis (a
+  mesh of yours with other axes holds copies of each part along them).
+
+  Raises:
+    ValueError: the mesh has no `data` axis.
+  """
+  if DATA_AXIS not in mesh.axis_names:
+    raise ValueError(f"the mesh has no {DATA_AXIS!r} axis (its axes: "
+                     f"{', '.join(map(repr, mesh.axis_names)) or 'none'}): the batch is split "
+                     f"over an axis named {DATA_AXIS!r}")
+  return dict(mesh.shape)[DATA_AXIS]
+
+
 def data_sharding(mesh: Mesh) -> NamedSharding:
-  """Leading (batch) axis split over `data`, the rest replicated."""
+  """Leading (batch) axis split over `data`, the rest replicated (ValueError naming the
+  mesh's axes when it has no `data` axis)."""
+  data_devices(mesh)
   return NamedSharding(mesh, P(DATA_AXIS))
 
 

@@ -36,7 +36,8 @@ def per_device_apply(model, mesh=None):
 
   def apply(variables, left, right, *, rngs=None, **kwargs):
     def local(variables, left, right, rngs):
-      return model.apply(variables, left, right, rngs=rngs, **kwargs)
+      return model.apply(variables, left, right, **kwargs,
+                         **({} if rngs is None else {"rngs": rngs}))
 
     return jax.shard_map(local, mesh=mesh, in_specs=(P(), batch, batch, P()),
                          out_specs=P(None, DATA_AXIS), check_vma=False)(

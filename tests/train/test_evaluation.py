@@ -169,7 +169,9 @@ def test_validation_scores_are_frame_weighted_means_of_each_named_metric(caplog)
     scores = diverged({})
   assert set(scores) == set(names) and all(np.isnan(v) for v in scores.values())
   assert "the predictions of 2 of the 2 clips hold NaN or inf" in caplog.text
-  with pytest.raises(ValueError, match="eval.batch_size=4 is not divisible by 3 devices"):
+  with pytest.raises(ValueError, match="eval.batch_size=4 is not divisible by the 3 devices of "
+                     "the mesh's 'data' axis"):
     evaluation.Evaluator(ml_collections.ConfigDict({"eval": {"batch_size": 4, "iters": 2,
                                                              "dataset": "synthetic"}}),
-                         _InfModel(), None, types.SimpleNamespace(size=3), clips=clips)
+                         _InfModel(), None, jax.sharding.Mesh(np.array(jax.devices()[:1] * 3),
+                                                              ("data",)), clips=clips)
