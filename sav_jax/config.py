@@ -115,6 +115,8 @@ class SAVConfig:
       the encoders, the depth prior's ViT attention logits and its full-resolution map
       run over blocks of frames (very large frames: of query rows) that fit it. Same
       values; bounds the memory of long, high-resolution windows. Not a weight setting.
+      Training on several devices runs the model on each device's own clips
+      (`train.step.per_device_apply`): a budget per device.
     vit_attention: the depth prior's ViT attention. "blocked" (every backend):
       `softmax(q k^T) v` in blocks under `frame_block_mb`. "cudnn": cuDNN's fused
       (flash) attention through `jax.nn.dot_product_attention`, which never stores the
