@@ -81,7 +81,8 @@ def _setup(c):
   labels = optim.param_labels(params, c.optimizer.frozen)
   tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
   state, shardings = state_lib.create_train_state(model, tx, c, mesh)
-  step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, c, labels), shardings, mesh)
+  step = step_lib.jit_train_step(step_lib.make_train_step(model, tx, c, labels, mesh), shardings,
+                                 mesh)
   return model, mesh, tx, state, shardings, step
 
 
