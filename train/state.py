@@ -45,9 +45,23 @@ class TrainState:
 
 
 def make_mesh(devices=None) -> Mesh:
-  """A 1-D mesh with axis `data` over `devices` (default: all devices of all processes)."""
-  devices = jax.devices() if devices is None else devices
-  return Mesh(np.asarray(devices), (DATA_AXIS,))
+  """A 1-D mesh with axis `data` over `devices` (default: all devices of all processes).
+
+  Raises:
+    ValueError: `devices` is not a non-empty sequence of distinct `jax.Device`s (a number,
+      an empty list and a device twice gave JAX's errors, or none until later).
+  """
+  if devices is None:
+    return Mesh(np.asarray(jax.devices()), (DATA_AXIS,))
+  try:
+    listed = list(devices)
+  except TypeError:
+    listed = None
+  if (not listed or not all(isinstance(d, jax.Device) for d in listed)
+      or len(set(listed)) != len(listed)):
+    raise ValueError(f"make_mesh takes a non-empty list of distinct jax devices (e.g. "
+                     f"jax.devices()[:4]), got {devices!r}")
+  return Mesh(np.asarray(listed), (DATA_AXIS,))
 
 
 def replicated(mesh: Mesh) -> NamedSharding:

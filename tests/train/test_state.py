@@ -518,6 +518,15 @@ def test_place_params_rejects_mismatches():
     state_lib.place_params(host, abstract, state_lib.make_mesh())
 
 
+def test_make_mesh_refuses_what_is_no_list_of_distinct_devices():
+  one = jax.devices()[0]
+  assert state_lib.make_mesh([one]).shape == {"data": 1}
+  for bad in ([], [one, one], 2, "cpu", [one, "cpu:1"]):
+    with pytest.raises(ValueError, match="make_mesh takes a non-empty list of distinct jax "
+                                         "devices"):
+      state_lib.make_mesh(bad)
+
+
 def test_the_batch_is_split_over_the_data_axis_and_the_state_replicated():
   # (an abstract mesh of 4 devices: this process has one)
   mesh = jax.sharding.AbstractMesh((4,), (state_lib.DATA_AXIS,))
