@@ -39,11 +39,19 @@ def per_device_apply(model, mesh=None):
       return model.apply(variables, left, right, **kwargs,
                          **({} if rngs is None else {"rngs": rngs}))
 
-    return jax.shard_map(local, mesh=mesh, in_specs=(P(), batch, batch, P()),
-                         out_specs=P(None, DATA_AXIS), check_vma=False)(
-                             variables, left, right, rngs)
+    return _shard_map(local, mesh=mesh, in_specs=(P(), batch, batch, P()),
+                      out_specs=P(None, DATA_AXIS))(variables, left, right, rngs)
 
   return apply
+
+
+def _shard_map(fn, **kwargs):
+  """`jax.shard_map` without its replication checks (jax >= 0.7), or the experimental one
+  that jax 0.6, which pyproject.toml allows, has instead."""
+  if hasattr(jax, "shard_map"):
+    return jax.shard_map(fn, check_vma=False, **kwargs)
+  from jax.experimental.shard_map import shard_map  # pylint: disable=g-import-not-at-top
+  return shard_map(fn, check_rep=False, **kwargs)
 
 
 def make_train_step(model, tx: optax.GradientTransformation, config, labels, mesh=None):
