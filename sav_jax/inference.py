@@ -1134,7 +1134,7 @@ def resolve_devices(devices=None) -> list:
 
   Raises:
     ValueError: a negative number or one above the local device count, an empty or
-      repeated list, or something else.
+      repeated list, another process's device, or something else.
   """
   if devices is None:
     return [_default_device()]
@@ -1163,6 +1163,10 @@ def resolve_devices(devices=None) -> list:
   bad = [d for d in devices if not isinstance(d, jax.Device)]
   if not devices or bad or len(set(devices)) != len(devices):
     raise ValueError(f"devices must be a non-empty list of distinct jax devices, got {devices!r}")
+  remote = [d for d in devices if d.process_index != jax.process_index()]
+  if remote:  # (jax.devices() with several processes: JAX's error placing the weights there)
+    raise ValueError(f"devices must be this process's own devices (jax.local_devices()), but "
+                     f"{remote[0]} is process {remote[0].process_index}'s")
   return devices
 
 

@@ -102,6 +102,16 @@ def test_device_choices_are_checked():
       inference.resolve_devices(bad)
 
 
+def test_another_processs_devices_are_refused(monkeypatch):
+  import jax  # pylint: disable=import-outside-toplevel
+  device = jax.local_devices()[0]
+  monkeypatch.setattr(jax, "process_index", lambda: device.process_index + 1)
+  with pytest.raises(ValueError, match=r"devices must be this process's own devices "
+                     rf"\(jax.local_devices\(\)\), but {device} is process "
+                     f"{device.process_index}'s"):
+    inference.resolve_devices([device])
+
+
 def _golden_clip(fixtures_dir):
   """The golden_batch_test frames, `(left, right)` `[21, 28, 30, 3]`."""
   g = np.load(fixtures_dir / "golden_batch_test.npz")
