@@ -384,6 +384,10 @@ def restore(manager: ocp.CheckpointManager, abstract_state: TrainState, sharding
     raise sav_jax.convert.CheckpointError(
         f"{directory}: the checkpoint is incomplete: it has no {' and no '.join(missing)} "
         f"folder (the {'training state' if 'state' in missing else 'data iterator'}){hint}")
+  if not (directory / "state" / "_METADATA").is_file():  # (orbax's error: a tree mismatch)
+    raise sav_jax.convert.CheckpointError(
+        f"{directory}: the checkpoint is incomplete: it has no state/_METADATA (the list of the "
+        f"training state's arrays){hint}")
   if not position.is_file():
     raise sav_jax.convert.CheckpointError(
         f"{directory}: the checkpoint is incomplete: it has no {position.relative_to(directory)} "

@@ -537,6 +537,11 @@ def _target_from_metadata(reader, directory, item, key=None):
   """Abstract arrays on this process's first device, from the saved tree metadata of `item` (its
   `key` subtree when given); with `item=None`, `reader` is the item's own handler and
   `directory` the item's folder."""
+  listing = (directory if item is None else directory / item) / "_METADATA"
+  if not listing.is_file():  # (orbax: a bare FileNotFoundError, or a tree of None)
+    raise CheckpointError(f"{directory}: the checkpoint is corrupt or incomplete (a file of it "
+                          f"is truncated or missing): it has no {listing.relative_to(directory)} "
+                          "(the list of its arrays)")
   try:
     if item is None:
       tree = reader.metadata(directory).tree

@@ -225,7 +225,7 @@ def test_a_target_of_other_arrays_is_refused_also_without_shardings(tmp_path):
       orbax_io.restore_variables(step, target={"params": target})
 
 
-@pytest.mark.parametrize("damage", ["truncated", "deleted", "manifest", "config"])
+@pytest.mark.parametrize("damage", ["truncated", "deleted", "manifest", "config", "listing"])
 def test_corrupt_checkpoint_is_named_as_such(tmp_path, damage, monkeypatch):
   """Damaged files (a copy cut short, a sync that lost files) give one CheckpointError naming
   the folder, not orbax's bare Exception with a TensorStore spec."""
@@ -240,6 +240,8 @@ def test_corrupt_checkpoint_is_named_as_such(tmp_path, damage, monkeypatch):
     (path / "variables" / "manifest.ocdbt").write_bytes(b"xx")
   elif damage == "config":
     (path / "config" / "metadata").write_text("{")
+  elif damage == "listing":  # (was "unreadable checkpoint metadata ('NoneType' object ...)")
+    (path / "variables" / "_METADATA").unlink()
   for chunk in chunks if damage in ("truncated", "deleted") else ():
     if damage == "truncated":
       chunk.write_bytes(chunk.read_bytes()[:10])

@@ -1137,6 +1137,17 @@ def test_training_checkpoint_without_an_item_is_named_incomplete(toy_run, tmp_pa
   assert str(e.value).startswith(f"{step}: the checkpoint is incomplete: it has no data folder")
   assert "does not match" not in str(e.value) and "Move this step folder" in str(e.value)
   shutil.copytree(toy_run[0] / "checkpoints" / "1" / "data", step / "data")
+  (step / "state" / "_METADATA").unlink()  # the list of the state's arrays: resuming said "does
+  with pytest.raises(sav_jax.convert.CheckpointError) as e:  # not match this run's model"
+    _toy_restore(copy, c, model, tx, mesh)
+  assert str(e.value).startswith(f"{step}: the checkpoint is incomplete: it has no "
+                                 "state/_METADATA")
+  assert "does not match" not in str(e.value) and "Move this step folder" in str(e.value)
+  with pytest.raises(sav_jax.convert.CheckpointError,  # (infer, convert: a FileNotFoundError)
+                     match=f"{step / 'state'}: the checkpoint is corrupt or incomplete .*no "
+                     "_METADATA"):
+    sav_jax.convert.restore_variables(copy)
+  shutil.copy(toy_run[0] / "checkpoints" / "1" / "state" / "_METADATA", step / "state")
   (step / "data" / "process_0-of-1.json").unlink()  # the folder, without this process's file
   with pytest.raises(sav_jax.convert.CheckpointError) as e:
     _toy_restore(copy, c, model, tx, mesh)
