@@ -121,12 +121,28 @@ def run_fields(config) -> dict:
 def saved_config(manager: ocp.CheckpointManager, step: int) -> dict:
   """The JSON config `save` wrote with checkpoint `step` (`model`, `step`, `run`,
   `data_clips`), {} where there is none; read once by a resume, its entries taken with
-  `saved_entry`."""
+  `saved_entry`.
+
+  Raises:
+    CheckpointError: the checkpoint has a config item that cannot be read (a file cut short):
+      a resume would skip every check of what changed since, without a word.
+  """
+  directory = pathlib.Path(manager.directory) / str(step)
+  if not (directory / "config").is_dir():  # written before the config was saved with it
+    return {}
   try:
     saved = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
     saved = saved["config"]
-  except Exception:  # pylint: disable=broad-except  # the state's restore names problems
-    return {}
+  except Exception as e:  # pylint: disable=broad-except  # orbax's, from the JSON or the file
+    corrupt = orbax_io.corrupt_checkpoint_error(directory, e)
+    if corrupt is None:
+      first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+      corrupt = sav_jax.convert.CheckpointError(
+          f"{directory}: the checkpoint is corrupt or incomplete: its config item cannot be "
+          f"read ({type(e).__name__}: {first[:300]})")
+    raise sav_jax.convert.CheckpointError(
+        f"{corrupt}. Move this step folder out of {directory.parent} to resume from the "
+        "checkpoint before it, or start a new WORKDIR") from e
   return saved if isinstance(saved, dict) else {}
 
 

@@ -2360,6 +2360,37 @@ def test_the_catch_up_validation_check_places_its_flag_under_the_transfer_guard(
     jax.config.update("jax_transfer_guard_host_to_device", before)
 
 
+@pytest.mark.parametrize("damage", ["truncated", "deleted"])
+def test_a_resume_names_an_unreadable_config_item(toy_run, tmp_path, damage):
+  """The config saved with a checkpoint, cut short: the resume went on without a word,
+  skipping every check of the fields changed since (keep, worker count, the warnings)."""
+  import shutil  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  _, c, model, tx, mesh = toy_run
+  copy = tmp_path / "run"
+  shutil.copytree(toy_run[0], copy)
+  step = copy / "checkpoints" / "1"
+  if damage == "truncated":
+    (step / "config" / "metadata").write_text("{\"model\": {", encoding="utf-8")
+  else:
+    (step / "config" / "metadata").unlink()
+  manager = ckpt_lib.make_manager(copy, c)
+  try:
+    with pytest.raises(sav_jax.convert.CheckpointError,
+                       match=f"{step}: the checkpoint is corrupt or incomplete.*Move this step "
+                       "folder") as e:
+      loop.initial_state(c, model, tx, mesh, manager, _toy_iterator())
+  finally:
+    manager.close()
+  assert len(str(e.value)) < 800
+  shutil.rmtree(step / "config")  # no config item at all: a checkpoint from before it was saved
+  manager = ckpt_lib.make_manager(copy, c)
+  try:
+    assert loop.initial_state(c, model, tx, mesh, manager, _toy_iterator())[2] == "checkpoint"
+  finally:
+    manager.close()
+
+
 @pytest.mark.parametrize("content", ["{\"next_index\": 3", "", "[1, 2]", "{}"])
 def test_unreadable_data_position_is_named_as_such(toy_run, tmp_path, content):
   """A data position cut short, or one grain cannot set (edited, another grain version), is
