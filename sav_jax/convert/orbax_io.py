@@ -273,6 +273,8 @@ def restore_variables(directory, target=None):
     step = find_training_checkpoint(directory)
     if step is None:
       raise CheckpointError(_not_a_checkpoint_message(directory))
+    if step != directory:  # (a step folder given by name is what was asked for)
+      _warn_of_newer_unfinished(step)
     check_regular_files(step)
     return _restore_training_params(step, target)
   check_regular_files(directory)
@@ -414,6 +416,19 @@ def _is_failed_read_noise(unraisable) -> bool:
     return True
   # From tensorstore's threads or a pending read's coroutine, once orbax closed its loop.
   return isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"
+
+
+def _warn_of_newer_unfinished(step: pathlib.Path) -> None:
+  """Warns where `step`'s folder holds step folders of later steps that are not finished
+  checkpoints (a copy of the run cut short): `find_training_checkpoint` passes over them, so
+  the weights read are not the run's latest (a resume refuses such folders)."""
+  newer = sorted((int(d.name) for d in step.parent.iterdir()
+                  if d.name.isdigit() and int(d.name) > int(step.name) and d.is_dir()
+                  and not is_training_step(d)))
+  if newer:
+    log.warning("%s: %s named like later checkpoints but %s no %s and state/ (unfinished, or "
+                "a copy cut short): reading the latest finished one, step %s", step.parent,
+                newer[:5], "has" if len(newer) == 1 else "have", _METADATA_FILE, step.name)
 
 
 def _not_a_checkpoint_message(directory):

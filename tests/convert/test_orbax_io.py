@@ -411,6 +411,25 @@ def test_the_latest_training_step_is_found_by_number(tmp_path):
   assert orbax_io.find_training_checkpoint(tmp_path / "checkpoints" / "12") is None
 
 
+def test_reading_a_run_names_later_step_folders_that_are_no_checkpoints(tmp_path, caplog):
+  # A copy of a run cut short (12 without its metadata): infer, eval, convert and init_from
+  # read step 10 without a word, where the run itself refuses the folder.
+  import logging  # pylint: disable=import-outside-toplevel
+  for step in ("10", "12", "13"):
+    (tmp_path / "checkpoints" / step / "state").mkdir(parents=True)
+  (tmp_path / "checkpoints" / "10" / "_CHECKPOINT_METADATA").write_text("{}")
+  with caplog.at_level(logging.WARNING), pytest.raises(CheckpointError, match="no state/_METADATA|"
+                                                       "has no _METADATA"):
+    orbax_io.restore_variables(tmp_path)  # (these hand-made folders hold no arrays)
+  assert (f"{tmp_path / 'checkpoints'}: [12, 13] named like later checkpoints but have no "
+          "_CHECKPOINT_METADATA and state/ (unfinished, or a copy cut short): reading the "
+          "latest finished one, step 10") in caplog.text
+  caplog.clear()
+  with caplog.at_level(logging.WARNING), pytest.raises(CheckpointError):
+    orbax_io.restore_variables(tmp_path / "checkpoints" / "10")  # asked for by name: no news
+  assert "named like later checkpoints" not in caplog.text
+
+
 def test_out_of_memory_is_not_reported_as_a_corrupt_checkpoint(tmp_path):
   # Orbax wraps a read that ran out of host memory as it wraps a failed read: a good
   # checkpoint called corrupt may be deleted.
