@@ -34,7 +34,7 @@ import sav_jax
 from sav_jax import _signals, runtime
 from sav_jax._checks import check_utf8_path, plural
 from sav_jax._locks import FolderBusyError, FolderLock
-from sav_jax.convert import params as convert_params
+from sav_jax.convert import keys as keys_lib, params as convert_params
 from sav_jax.data import pipeline
 from sav_jax.model.dpt_temporal import TEMPORAL_MAX_LEN
 from sav_jax.model.init import init_variables
@@ -85,6 +85,14 @@ def initial_weights(config, abstract_params, saved: dict | None = None):
                        f"for {cfg.vda_encoder}: pass --config.model.vda_encoder={found}")
     state_lib.check_params(host, abstract_params, f"config.init_from={config.init_from}: its "
                            "params")
+    # An orbax folder's arrays are not checked on the way as an official file's are: a NaN
+    # made every step a skipped one, an integer array was cast to float without a word.
+    bad = [problem for key, x in flax.traverse_util.flatten_dict(host, sep="/").items()
+           if (problem := keys_lib.value_problem(key, x))]
+    if bad:
+      raise ValueError(f"config.init_from={config.init_from}: its params cannot start a run "
+                       f"({len(bad)} problems): {'; '.join(bad[:10])}"
+                       + (f" (and {len(bad) - 10} more)" if len(bad) > 10 else ""))
   if vda is not None:
     state_lib.check_params(vda, _vda_part(abstract_params),
                            f"config.vda_weights={config.vda_weights}: its params")

@@ -560,6 +560,15 @@ def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path, caplog):
   with pytest.raises(ValueError, match=f"config.init_from={tmp_path / 'w2'}: its params do not "
                      r"match the model \(1 problems\): unexpected extra/w"):
     loop.initial_weights(c, params)  # (before the manager: `setup` calls it first)
+  broken = jax.tree.map(np.copy, weights)  # NaN or integer arrays: every step was skipped
+  broken["head"]["kernel"][0, 0] = np.nan
+  broken["depthnet"]["depthanything"]["Dense_0"]["bias"] = np.zeros(3, np.int32)
+  save_variables(tmp_path / "w3", {"params": broken}, {})
+  c.init_from = str(tmp_path / "w3")
+  with pytest.raises(ValueError, match=f"config.init_from={tmp_path / 'w3'}: its params cannot "
+                     r"start a run \(2 problems\): key 'depthnet/depthanything/Dense_0/bias': "
+                     r"dtype int32; .*key 'head/kernel': 1 of \d+ values are NaN or inf"):
+    loop.initial_weights(c, params)
   c.init_from = str(tmp_path / "w")
   ckpt_lib.save(manager, scratch.replace(step=jnp.asarray(7, jnp.int32)), it, 7, force=True,
                 run_config=c)
