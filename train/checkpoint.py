@@ -64,6 +64,13 @@ def make_manager(workdir, config) -> ocp.CheckpointManager:
   directory = pathlib.Path(workdir).absolute() / "checkpoints"
   steps = [p for p in directory.iterdir() if p.name.isdigit()] if directory.is_dir() else []
   foreign = sorted(p.name for p in steps if not orbax_io.is_training_step(p))
+  remains = [name for name in foreign if _checkpoint_remains(directory / name)]
+  if remains:  # (a kill while orbax deleted an old checkpoint: it is not renamed first)
+    raise sav_jax.convert.CheckpointError(
+        f"{directory}: {remains[:5]} hold only parts of a checkpoint (no _CHECKPOINT_METADATA "
+        "or no state/): what a deletion of an old checkpoint (checkpoint.keep) leaves when a "
+        "kill cuts it short. Delete them, or move them out of this folder, to resume (nothing "
+        "was changed)")
   if foreign:
     raise sav_jax.convert.CheckpointError(
         f"{directory}: {foreign[:5]} are named like checkpoints but are not ones written by "
@@ -81,6 +88,20 @@ def make_manager(workdir, config) -> ocp.CheckpointManager:
       enable_async_checkpointing=ck.async_save, cleanup_tmp_directories=False)
   return ocp.CheckpointManager(directory, item_names=("state", "data", "config"),
                                options=options)
+
+
+# What a step folder of a training checkpoint holds (`save`'s items and orbax's files).
+_STEP_ENTRIES = frozenset({"_CHECKPOINT_METADATA", "commit_success.txt", "state", "data",
+                           "config"})
+
+
+def _checkpoint_remains(path: pathlib.Path) -> bool:
+  """Whether the step-named folder `path`, not a checkpoint, holds nothing but a checkpoint's
+  own entries (some of them): an old checkpoint partly deleted, not a folder of the user's."""
+  if not path.is_dir() or path.is_symlink():
+    return False
+  names = {p.name for p in path.iterdir()}
+  return bool(names) and names <= _STEP_ENTRIES
 
 
 def _state_dict(state: TrainState) -> dict:

@@ -1295,6 +1295,16 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
                      match=r"\['0'\] are named like checkpoints but are not"):
     ckpt_lib.make_manager(tmp_path, c)
   assert (ckpts / "0" / "mine.txt").read_text() == "keep me"
+  shutil.rmtree(ckpts / "0")
+  # An old checkpoint whose deletion (keep) a kill cut short: orbax deletes it in place, so
+  # its metadata can go first. Named as such (it was "not ones written by python -m train").
+  (ckpts / "3" / "state" / "ocdbt.process_0").mkdir(parents=True)
+  (ckpts / "3" / "commit_success.txt").write_text("")
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"\['3'\] hold only parts of a checkpoint .*checkpoint.keep.*Delete "
+                     "them, or move them out of this folder, to resume"):
+    ckpt_lib.make_manager(tmp_path, c)
+  assert (ckpts / "3" / "state" / "ocdbt.process_0").is_dir()  # left alone
 
 
 @pytest.mark.parametrize("field,value,match", [
