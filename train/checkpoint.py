@@ -328,25 +328,41 @@ def wait_until_saved(manager: ocp.CheckpointManager) -> None:
 def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
   """Raises CheckpointError where this run's `checkpoint.keep` would delete checkpoints an
   earlier keep policy kept: orbax prunes every step of the folder beyond the last `keep` at
-  the first save, so a run resumed without its `--config.checkpoint.keep=0` (the default is
-  3) deleted the older checkpoints, a finished run's included, without a word. The same keep
-  as the saving run's (`saved`: `saved_run` of the latest checkpoint) prunes as that run
-  would have."""
+  each save, so a run resumed without its `--config.checkpoint.keep=0` (the default is 3)
+  deleted the older checkpoints, a finished run's included, without a word (at its first
+  save, or at a later one where the folder held fewer than `keep`). The same keep as the
+  saving run's (`saved`: `saved_run` of the latest checkpoint) prunes as that run would have;
+  a larger one than its, fewer."""
   keep = int(config.checkpoint.keep)
   steps = sorted(manager.all_steps())
-  if keep <= 0 or len(steps) < keep:  # the first save adds one, then orbax keeps `keep`
+  saves = _saves_after(config, steps[-1]) if steps else 0
+  if keep <= 0 or saves == 0 or len(steps) + saves <= keep:  # orbax keeps `keep` per save
     return
   saved = saved.get("checkpoint.keep")
   if saved == keep or (saved is None and len(steps) == keep):  # (None: as a run before keep
     return  # was recorded pruned on resume, at the default keep: its own policy, likely)
+  doomed = steps[:len(steps) + saves - keep]
+  if isinstance(saved, int) and 0 < saved < keep:  # the earlier policy deletes more of them
+    return
   earlier = (f"saved with config.checkpoint.keep={saved}" if saved is not None
              else "saved before the keep policy was recorded")
-  doomed = steps[:len(steps) + 1 - keep]
+  when = ("at its first save" if saves == 1 else
+          f"by the last of the {saves} checkpoints it saves up to step {config.train.num_steps}")
   raise sav_jax.convert.CheckpointError(
       f"{manager.directory} holds {len(steps)} checkpoints ({earlier}); this run's "
-      f"config.checkpoint.keep={keep} would delete {doomed} at its first save. Pass "
+      f"config.checkpoint.keep={keep} would delete {doomed} {when}. Pass "
       f"--config.checkpoint.keep={saved if saved is not None else 0} to keep them (0 keeps "
       f"all), or move the ones you do not need out of that folder first")
+
+
+def _saves_after(config, start: int) -> int:
+  """How many checkpoints a run resumed at step `start` saves: those of the period
+  `checkpoint.every_steps` and the last step's (a SIGTERM or Ctrl-C adds one)."""
+  total, every = int(config.train.num_steps), int(config.checkpoint.every_steps)
+  if total <= start:
+    return 0
+  periodic = total // every - start // every if every > 0 else 0
+  return periodic + int(every <= 0 or total % every != 0)
 
 
 def check_data_state(manager: ocp.CheckpointManager, step: int, config,

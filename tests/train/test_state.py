@@ -662,6 +662,21 @@ def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(
   with pytest.raises(sav_jax.convert.CheckpointError, match=r"\(saved before the keep policy was "
                      r"recorded\); this run's config.checkpoint.keep=4 would delete \[1, 2\]"):
     ckpt_lib.check_keep(ckpt_lib.make_manager(tmp_path, c), c, {})
+  c.train.num_steps = 5  # a finished run, run again: it saves nothing, so deletes nothing
+  ckpt_lib.check_keep(ckpt_lib.make_manager(tmp_path, c), c, {})
+  # Fewer checkpoints than keep, but more saves to come: orbax pruned the earlier policy's
+  # checkpoints at a later save, without a word (the check looked at the first save only).
+  for step in (1, 2, 3):
+    shutil.rmtree(folder / str(step))
+  c.checkpoint.keep, c.checkpoint.every_steps, c.train.num_steps = 3, 2, 11
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"holds 2 checkpoints \(saved with "
+                     r"config.checkpoint.keep=5\); this run's config.checkpoint.keep=3 would "
+                     r"delete \[4, 5\] by the last of the 4 checkpoints it saves up to step 11"):
+    loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c), it)
+  c.train.num_steps = 6  # one save: the folder then holds 3, all kept
+  assert loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c), it)[2] == (
+      "checkpoint")
+  assert steps() == [4, 5]
 
 
 def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
