@@ -503,6 +503,14 @@ def _check_saved_shapes(directory, saved: dict | None, target: dict) -> None:
              "e.g. another model config")
       raise _mismatch(directory, f"{name} has shape {saved[name]} in the checkpoint, "
                       f"{wanted[name]} in this run; {why}")
+  # Arrays of other names (orbax: "tree structures do not match:", naming none of them).
+  extra, lacking = sorted(saved.keys() - wanted.keys()), sorted(wanted.keys() - saved.keys())
+  if extra or lacking:
+    parts = [f"{len(extra)} arrays of the checkpoint are not in this run's state, e.g. "
+             f"{', '.join(extra[:3])}" if extra else "",
+             f"{len(lacking)} arrays of this run's state are not in the checkpoint, e.g. "
+             f"{', '.join(lacking[:3])}" if lacking else ""]
+    raise _mismatch(directory, "; ".join(p for p in parts if p))
 
 
 def _check_restored_tree(directory, restored: dict, target: dict, saved: dict | None) -> None:

@@ -481,8 +481,12 @@ def test_checkpoint_roundtrip_with_data_iterator(tmp_path):
   _, shardings2 = state_lib.create_train_state(model, tx2, c, mesh)
   abstract2 = jax.eval_shape(state_lib.make_init_fn(model, tx2, c))
   with pytest.raises(sav_jax.convert.CheckpointError, match="does not match this run's model or "
-                     "optimizer config.*init_from"):
+                     "optimizer config.*init_from") as e:
     ckpt_lib.restore(ckpt_lib.make_manager(tmp_path, c), abstract2, shardings2, fresh)
+  # ... naming the arrays (orbax's "tree structures do not match:" named none)
+  assert ("(4 arrays of the checkpoint are not in this run's state, e.g. opt_state/1/0/count, "
+          "opt_state/1/0/mu, opt_state/1/0/nu; 4 arrays of this run's state are not in the "
+          "checkpoint, e.g. opt_state/0/0/count") in str(e.value)
 
 
 def test_only_the_last_k_checkpoints_are_kept(tmp_path):
