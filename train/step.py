@@ -6,13 +6,12 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from jax.sharding import PartitionSpec as P
 import optax
 
 from sav_jax import runtime
 from train import loss as loss_lib
 from train import optim
-from jax.sharding import PartitionSpec as P
-
 from train.state import DATA_AXIS, TrainState, data_sharding, replicated
 
 
