@@ -51,7 +51,12 @@ def im2col_conv(x, k, padding, result=None):
   return jnp.matmul(patches, k.reshape(kh * kw * cin, cout), preferred_element_type=result)
 
 
-def main(dtype: str = "float32"):
+def main(argv=None):
+  parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+  parser.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32",
+                      help="the operands' dtype (bfloat16: with float32 sums)")
+  dtype = parser.parse_args(argv).dtype
   rng = np.random.default_rng(0)
   result = jnp.float32 if dtype == "bfloat16" else None
   print(f"forward convolutions, [5, 32, 64] pixels, {dtype}"
@@ -95,8 +100,4 @@ def main(dtype: str = "float32"):
 
 
 if __name__ == "__main__":
-  parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                   formatter_class=argparse.RawDescriptionHelpFormatter)
-  parser.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32",
-                      help="the operands' dtype (bfloat16: with float32 sums)")
-  main(parser.parse_args().dtype)
+  main()
