@@ -34,6 +34,7 @@ from typing import NamedTuple
 import numpy as np
 
 from sav_jax import runtime
+from sav_jax.tools import parallel
 from sav_jax._checks import loads_json, plural
 from sav_jax._files import FREE_SPACE, free_space_note, write_text_atomic
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, add_devices_argument,
@@ -581,31 +582,49 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
         "axes: x right, y down, z forward (OpenCV camera of the left view)",
         f"unit: the baseline's (fx {calib.fx:g} px, baseline {calib.baseline:g}, doffs "
         f"{calib.doffs:g} px)")
-    for t0, chunk in chunks:
-      frames = left[t0:t0 + len(chunk)] if calib is not None else None
-      for k, d in enumerate(chunk):
-        i, name = t0 + k, names[t0 + k]
-        d = np.ascontiguousarray(d, np.float32)
-        with writing(out, remove=False, what=held_file):
-          held.seek(i * frame_bytes)
-          held.write(d.data)
-        sample[i] = d[::step, ::step]
-        beyond += int(np.count_nonzero(d >= w))  # no pixel of the frame can match that far
-        for fmt in formats:
-          path = video_io.disparity_path(out / "disparity", name, fmt)
-          with writing(path):
-            saturated += video_io.write_map(path, d, fmt)
-        if calib is not None:
-          depth = viz.depth_from_disparity(d, calib.fx, calib.baseline, calib.doffs)
-          path = video_io.disparity_path(out / "depth", name, args.depth_format)
-          with writing(path):
-            video_io.write_map(path, depth, args.depth_format)
-          xyz, rgb = viz.disparity_to_points(d, frames[k], **calib._asdict(),
-                                             max_depth=max_depth)
-          empty_clouds += len(xyz) == 0
-          path = out / "pointclouds" / f"{name}.ply"
-          with writing(path):
-            viz.write_ply(path, xyz, rgb, ply_comments)
+    fd = held.fileno()
+
+    def write_frame(i: int, d: np.ndarray, frame) -> tuple[int, int, int]:
+      """Frame i's files (in a writer thread): (saturated, beyond, empty cloud)."""
+      name = names[i]
+      d = np.ascontiguousarray(d, np.float32)
+      with writing(out, remove=False, what=held_file):
+        _pwrite_all(fd, memoryview(d).cast("B"), i * frame_bytes)
+      sample[i] = d[::step, ::step]
+      counts = [0, int(np.count_nonzero(d >= w)), 0]  # (beyond: no pixel can match that far)
+      for fmt in formats:
+        path = video_io.disparity_path(out / "disparity", name, fmt)
+        with writing(path):
+          counts[0] += video_io.write_map(path, d, fmt)
+      if calib is not None:
+        depth = viz.depth_from_disparity(d, calib.fx, calib.baseline, calib.doffs)
+        path = video_io.disparity_path(out / "depth", name, args.depth_format)
+        with writing(path):
+          video_io.write_map(path, depth, args.depth_format)
+        xyz, rgb = viz.disparity_to_points(d, frame, **calib._asdict(), max_depth=max_depth)
+        counts[2] = int(len(xyz) == 0)
+        path = out / "pointclouds" / f"{name}.ply"
+        with writing(path):
+          viz.write_ply(path, xyz, rgb, ply_comments)
+      return counts
+
+    totals = [0, 0, 0]
+
+    def collect(counts) -> None:
+      for j, c in enumerate(counts):
+        totals[j] += c
+
+    # Each frame's files are written by a few threads while the next window is computed (at
+    # most `ahead` frames in flight: two windows' worth, under 256 MB of disparities); an
+    # error in one is raised here, and an error or Ctrl-C waits for the files being written
+    # and drops the rest before the run's clean-up.
+    ahead = max(2 * parallel.io_threads(), min(2 * int(args.window), (256 << 20) // frame_bytes))
+    with parallel.Writer(collect, ahead=ahead) as writer:
+      for t0, chunk in chunks:
+        frames = left[t0:t0 + len(chunk)] if calib is not None else None
+        for k, d in enumerate(chunk):
+          writer.submit(write_frame, t0 + k, d, None if frames is None else frames[k])
+    saturated, beyond, empty_clouds = totals
     vmin, vmax = viz.disparity_range(sample, percentiles=(1.0, 99.0))
     del sample
     batch = max(1, int(args.window))
@@ -617,12 +636,15 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
         raise OSError(f"{held_file}: frames {a}..{b - 1} could not be read back")
       return d
 
-    def video_frames():
+    def pairs():
       for a in tqdm(range(0, len(names), batch), desc="video", unit="batch",
                     disable=not runtime.draws_progress()):
         b = min(a + batch, len(names))
-        for f, d in zip(left[a:b], held_frames(a, b)):
-          yield viz.side_by_side(f, viz.colorize(d, vmin, vmax))
+        yield from zip(left[a:b], held_frames(a, b))
+
+    def video_frames():  # (coloured by a few threads, in order, as the writer takes them)
+      yield from parallel.ordered_map(
+          lambda fd: viz.side_by_side(fd[0], viz.colorize(fd[1], vmin, vmax)), pairs())
 
     held.flush()
     with writing(out / "side_by_side.mp4", remove=False):  # (replaced only when complete)
@@ -652,6 +674,15 @@ def writing(path: pathlib.Path, size: int | None = None, remove: bool = True,
     cause = cause[len(str(path)) + 2:] if cause.startswith(f"{path}: ") else cause
     free = "" if FREE_SPACE in cause else free_space_note(path if path.is_dir() else path.parent)
     raise OSError(f"cannot write {what or path}{need}: {cause}{free}") from e
+
+
+def _pwrite_all(fd: int, data: memoryview, offset: int) -> None:
+  """Writes all of `data` at `offset` of the file `fd` (thread-safe: no shared position)."""
+  while data:
+    n = os.pwrite(fd, data, offset)
+    if n == 0:
+      raise OSError(errno.EIO, "wrote nothing")
+    data, offset = data[n:], offset + n
 
 
 def _reserve(file, size: int) -> None:

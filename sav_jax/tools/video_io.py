@@ -12,6 +12,7 @@ import logging
 import operator
 import os
 import pathlib
+import threading
 
 import cv2
 import numpy as np
@@ -55,11 +56,15 @@ def list_frames(folder) -> list[pathlib.Path]:
   return files
 
 
+_NOTES_LOCK = threading.Lock()  # (frames are decoded in threads: `parallel.ordered_map`)
+
+
 def _note_once(notes: set[str], note: str) -> None:
   """Adds `note` unless a note of its kind (the same words up to ", e.g.") is there."""
   kind = note.split(", e.g. ")[0]
-  if not any(n.split(", e.g. ")[0] == kind for n in notes):
-    notes.add(note)
+  with _NOTES_LOCK:
+    if not any(n.split(", e.g. ")[0] == kind for n in notes):
+      notes.add(note)
 
 
 def to_rgb8(img: np.ndarray, source: str, notes: set[str]) -> np.ndarray:
@@ -101,6 +106,8 @@ def to_rgb8(img: np.ndarray, source: str, notes: set[str]) -> np.ndarray:
     return np.repeat(img[..., None], 3, axis=2)
   if img.ndim != 3 or img.shape[2] != 3:
     raise ValueError(f"{source}: unsupported image shape {img.shape}")
+  if img.dtype == np.uint8 and img.flags.c_contiguous:  # (the same bytes, ~3x faster)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
   return np.ascontiguousarray(img[..., ::-1])
 
 
@@ -150,7 +157,9 @@ def _checked_frames(path: pathlib.Path, files, max_frames: int | None, notes: se
   """Yields the frames of a folder (`files`) or of a video file (`files` None) as `[H, W, 3]`
   uint8 RGB; a ValueError naming the frame if one cannot be decoded or differs in size from
   the first, or if a video has none."""
-  frames = ((read_frame(f, notes) for f in files) if files is not None
+  from sav_jax.tools import parallel  # pylint: disable=import-outside-toplevel
+  # (a folder's frames decoded by a few threads, in order: the first bad one is still named)
+  frames = (parallel.ordered_map(lambda f: read_frame(f, notes), files) if files is not None
             else _decode(path, max_frames, notes))
   label = (lambda i: files[i].name) if files is not None else (lambda i: f"frame {i}")
   first = None
@@ -229,10 +238,24 @@ class FrameSource:
     if step != 1:
       raise ValueError("FrameSource slices take step 1")
     if self._files is not None:
-      frames = [read_frame(f, self.notes) for f in self._files[start:stop]]
+      frames = self._folder_frames(start, stop)
     else:
       frames = [self._video_frame(i) for i in range(start, stop)]
     return np.stack(frames) if frames else np.zeros((0, *self.shape[1:]), np.uint8)
+
+  def _folder_frames(self, start: int, stop: int) -> list[np.ndarray]:
+    """Frames start..stop-1 of a folder: those not kept from the last reads decoded by a
+    few threads; the last `keep` are kept for the next read (windows overlap)."""
+    from sav_jax.tools import parallel  # pylint: disable=import-outside-toplevel
+    missing = [i for i in range(start, stop) if i not in self._buffer]
+    decoded = dict(zip(missing, parallel.ordered_map(
+        lambda i: read_frame(self._files[i], self.notes), missing)))
+    frames = [self._buffer[i] if i in self._buffer else decoded[i] for i in range(start, stop)]
+    if stop > start:
+      self._buffer.update(decoded)
+      for old in [k for k in self._buffer if k <= stop - 1 - max(1, self.keep) or k >= stop]:
+        del self._buffer[old]
+    return frames
 
   def _video_frame(self, i: int) -> np.ndarray:
     if i in self._buffer:

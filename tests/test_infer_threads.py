@@ -1,0 +1,175 @@
+"""`sav-jax infer`'s threads (decoding, writing): the same files in the same places as one
+thread writes them, errors raised in the main thread, Ctrl-C stops cleanly."""
+
+import json
+import random
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from sav_jax import cli, inference, viz
+from sav_jax.tools import parallel, video_io
+
+N, H, W = 37, 16, 24
+
+
+@pytest.fixture(scope="module")
+def npz_ckpt(module_tmp_path, sav_state_dict):
+  path = module_tmp_path / "sav.npz"
+  np.savez(path, **sav_state_dict)
+  return path
+
+
+@pytest.fixture(scope="module")
+def video(module_tmp_path):
+  """Frames whose pixel (0, 0) labels them (i * 6); the rest random (distinct files)."""
+  rng = np.random.default_rng(0)
+  frames = rng.integers(0, 255, (N, H, W, 3), np.uint8)
+  frames[:, 0, 0, :] = (np.arange(N) * 6)[:, None]
+  for side in ("left", "right"):
+    (module_tmp_path / side).mkdir()
+    for i, f in enumerate(frames):
+      assert cv2.imwrite(str(module_tmp_path / side / f"{i:04d}.png"), f[..., ::-1])
+  return module_tmp_path / "left", module_tmp_path / "right", frames
+
+
+def label_model(variables, lw, rw, *, cfg, iters, pads, check_memory, cache, start,
+                keep_from=None):
+  """Frame i's disparity: 1.5 + i / 4 + a per-pixel ramp (from its label pixel)."""
+  del variables, rw, cfg, iters, check_memory, cache, start, keep_from
+  index = np.round(lw[:, 0, 0, 0] / 6).astype(np.float32)
+  hp, wp = lw.shape[1] + pads[0] + pads[1], lw.shape[2] + pads[2] + pads[3]
+  ramp = np.linspace(0, 3, hp * wp, dtype=np.float32).reshape(hp, wp)
+  return -(1.5 + index[:, None, None] / 4 + ramp)
+
+
+def _run(video, ckpt, out, *extra):
+  left, right, _ = video
+  return cli.main(["infer", "--left", str(left), "--right", str(right), "--checkpoint",
+                   str(ckpt), "--out", str(out), "--iters", "2", "--format", "png16,npy,pfm",
+                   "--fx", "10", "--baseline", "1", *extra])
+
+
+def _files(out):
+  return {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*"))
+          if p.is_file() and p.name != "summary.json"}
+
+
+def _summary(out):
+  s = json.loads((out / "summary.json").read_text())
+  for k in ("seconds", "frames_per_second", "frames_per_second_without_compile",
+            "compile_seconds", "left", "right"):
+    s.pop(k)
+  return s
+
+
+def test_threads_write_every_frame_in_its_place_as_one_thread_does(tmp_path, video, npz_ckpt,
+                                                                   monkeypatch):
+  monkeypatch.setattr(inference, "_run_window", label_model)
+  monkeypatch.setenv("SAV_IO_THREADS", "1")
+  assert _run(video, npz_ckpt, tmp_path / "one") == 0
+  # Writers that finish out of order (random delays): still each frame's file at its name.
+  real_write_map, real_read_frame = video_io.write_map, video_io.read_frame
+  rng = random.Random(0)
+
+  def slow_write_map(path, data, fmt):
+    time.sleep(rng.random() * 0.01)
+    return real_write_map(path, data, fmt)
+
+  def slow_read_frame(path, notes):
+    time.sleep(rng.random() * 0.005)
+    return real_read_frame(path, notes)
+
+  monkeypatch.setattr(video_io, "write_map", slow_write_map)
+  monkeypatch.setattr(video_io, "read_frame", slow_read_frame)
+  monkeypatch.setenv("SAV_IO_THREADS", "4")
+  assert _run(video, npz_ckpt, tmp_path / "four") == 0
+  one, four = _files(tmp_path / "one"), _files(tmp_path / "four")
+  assert one.keys() == four.keys()
+  assert len([k for k in one if k.startswith("disparity/")]) == 3 * N
+  assert [k for k in one if one[k] != four[k]] == []  # byte for byte, the video included
+  assert _summary(tmp_path / "one") == _summary(tmp_path / "four")
+  ramp = np.linspace(0, 3, 32 * 32, dtype=np.float32).reshape(32, 32)[8:24, 4:28]
+  for i in range(N):  # each frame's own values (none dropped, none swapped)
+    want = 1.5 + np.float32(i / 4) + ramp
+    np.testing.assert_array_equal(np.load(tmp_path / "four" / "disparity" / f"{i:04d}.npy"),
+                                  np.abs(-want))
+    np.testing.assert_array_equal(viz.read_pfm(tmp_path / "four" / "disparity" / f"{i:04d}.pfm"),
+                                  np.abs(-want))
+    _, rgb = viz.read_ply(tmp_path / "four" / "pointclouds" / f"{i:04d}.ply")
+    assert rgb[0, 0] == i * 6  # frame i's colours
+  assert len(video_io.read_video_file(tmp_path / "four" / "side_by_side.mp4")) == N
+
+
+def test_an_error_in_a_writer_thread_stops_the_run_and_leaves_nothing(tmp_path, video,
+                                                                      npz_ckpt, monkeypatch,
+                                                                      capsys):
+  monkeypatch.setattr(inference, "_run_window", label_model)
+  monkeypatch.setenv("SAV_IO_THREADS", "4")
+  real = video_io.write_map
+
+  def failing_write_map(path, data, fmt):
+    if path.name == "0017.npy":
+      raise OSError(28, "No space left on device")
+    return real(path, data, fmt)
+
+  monkeypatch.setattr(video_io, "write_map", failing_write_map)
+  out = tmp_path / "out"
+  assert _run(video, npz_ckpt, out) == 2
+  err = capsys.readouterr().err
+  assert f"cannot write {out / 'disparity' / '0017.npy'}: No space left on device" in err
+  assert not [p for p in out.rglob("*") if p.is_file()], list(out.rglob("*"))
+
+
+def test_ctrl_c_stops_the_writers_and_leaves_no_output(tmp_path, video, npz_ckpt,
+                                                       monkeypatch):
+  monkeypatch.setenv("SAV_IO_THREADS", "4")
+
+  def interrupted(variables, lw, rw, *, start, **kwargs):
+    if start > 0:
+      raise KeyboardInterrupt
+    return label_model(variables, lw, rw, start=start, **kwargs)
+
+  monkeypatch.setattr(inference, "_run_window", interrupted)
+  out = tmp_path / "out"
+  before = set(threading.enumerate())
+  with pytest.raises(KeyboardInterrupt):
+    _run(video, npz_ckpt, out)
+  assert not [p for p in out.rglob("*") if p.is_file()], list(out.rglob("*"))
+  assert not [t for t in set(threading.enumerate()) - before if t.name.startswith("sav-")]
+
+
+def test_ordered_map_and_writer_keep_order_bound_the_work_and_raise_errors():
+  rng = random.Random(1)
+
+  def slow(i):
+    time.sleep(rng.random() * 0.003)
+    return i
+
+  assert list(parallel.ordered_map(slow, range(50), threads=4)) == list(range(50))
+  running, most = [0], [0]
+  lock = threading.Lock()
+
+  def task(i):
+    with lock:
+      running[0] += 1
+      most[0] = max(most[0], running[0])
+    time.sleep(0.002)
+    with lock:
+      running[0] -= 1
+    if i == 30:
+      raise ValueError("frame 30")
+    return i
+
+  got = []
+  with pytest.raises(ValueError, match="frame 30"):
+    with parallel.Writer(got.append, ahead=5, threads=3) as w:
+      for i in range(60):
+        w.submit(task, i)
+  assert got[:25] == list(range(25)) and got == sorted(got) and most[0] <= 3
+  assert [t for t in threading.enumerate() if t.name.startswith("sav-write")] == []
+  with pytest.raises(ValueError, match="frame 30"):
+    list(parallel.ordered_map(task, range(60), threads=3))
