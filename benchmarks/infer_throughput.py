@@ -20,6 +20,7 @@ import json
 import os
 import pathlib
 import pstats
+import resource
 import shutil
 import sys
 import time
@@ -176,13 +177,14 @@ def main() -> None:
       argv += ["--depth-format", args.depth_format]
   field(*[-(-s // 32) * 32 for s in (args.height, args.width)])  # (precomputed: not timed)
   prof = cProfile.Profile() if args.profile else None
-  start = time.perf_counter()
+  cpu = lambda: sum(resource.getrusage(resource.RUSAGE_SELF)[:2])  # noqa: E731 user + sys
+  start, cpu0 = time.perf_counter(), cpu()
   if prof is not None:
     prof.enable()
   rc = cli.main(argv)
   if prof is not None:
     prof.disable()
-  seconds = time.perf_counter() - start
+  seconds, cpu_s = time.perf_counter() - start, cpu() - cpu0
   summary = json.loads((out / "summary.json").read_text()) if rc == 0 else {}
   peak = peak_rss_gb()
   # infer's own per-frame work: the whole command less the weights' loading (a fixed cost)
@@ -193,13 +195,15 @@ def main() -> None:
         f"--format {args.format}{', calib' if args.calib else ''}): {seconds:.1f} s in all, "
         f"{TIMERS['load_checkpoint']:.1f} s loading the weights, {TIMERS['stand-in']:.1f} s "
         f"stand-in model; infer's own work {own:.1f} s: {fps:.2f} frames/s; "
+        f"CPU time (all threads, weights' loading included) {cpu_s:.1f} s; "
         f"peak RSS {peak:.2f} GB")
   result = {"frames": args.frames, "height": args.height, "width": args.width,
             "input": args.input, "format": args.format, "calib": args.calib,
             "depth_format": args.depth_format, "seconds": round(seconds, 2),
             "load_checkpoint_s": round(TIMERS["load_checkpoint"], 2),
             "stand_in_s": round(TIMERS["stand-in"], 2), "own_seconds": round(own, 2),
-            "frames_per_second": round(fps, 2), "peak_rss_gb": round(peak, 3),
+            "frames_per_second": round(fps, 2), "cpu_seconds": round(cpu_s, 2),
+            "peak_rss_gb": round(peak, 3),
             "summary_seconds": summary.get("seconds"), "cpus": os.cpu_count(),
             "io_threads": os.environ.get("SAV_IO_THREADS"),
             "date": time.strftime("%Y-%m-%d")}

@@ -464,3 +464,27 @@ def test_gru_conv_forms_agree():
   times, diff = gru_conv.gru_times(2, 4, 8, repeats=1)
   assert set(times) == {"direct", "dft"} and min(times.values()) > 0
   assert diff < 1e-5
+
+
+def test_infer_throughput_script_runs_infer_with_its_stand_in(tmp_path, monkeypatch, capsys):
+  """benchmarks/infer_throughput.py's stand-in still fits `inference._run_window` and the
+  command it times writes every frame."""
+  import json  # pylint: disable=import-outside-toplevel
+
+  import infer_throughput  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import infer  # pylint: disable=import-outside-toplevel
+  monkeypatch.setattr(inference, "_run_window",
+                      inference._run_window)  # pylint: disable=protected-access
+  monkeypatch.setattr(infer, "load_checkpoint", infer.load_checkpoint)
+  monkeypatch.setattr(sys, "argv", ["infer_throughput.py", str(tmp_path / "d"), "--frames", "23",
+                                    "--height", "16", "--width", "24", "--format", "png16,npy",
+                                    "--calib", "--keep", "--profile", "--json",
+                                    str(tmp_path / "r.jsonl")])
+  infer_throughput.main()
+  assert "exit 0;" in capsys.readouterr().out
+  (out,) = (tmp_path / "d").glob("out_*")
+  assert len(list((out / "disparity").glob("*.png"))) == 23
+  assert len(list((out / "pointclouds").glob("*.ply"))) == 23
+  (row,) = [json.loads(line) for line in (tmp_path / "r.jsonl").read_text().splitlines()]
+  assert row["frames"] == 23 and row["frames_per_second"] > 0 and "stages_s" in row

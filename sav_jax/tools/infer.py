@@ -615,10 +615,10 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
         totals[j] += c
 
     # Each frame's files are written by a few threads while the next window is computed (at
-    # most `ahead` frames in flight: two windows' worth, under 256 MB of disparities); an
+    # most `ahead` frames in flight: a window's worth, under 128 MB of disparities); an
     # error in one is raised here, and an error or Ctrl-C waits for the files being written
     # and drops the rest before the run's clean-up.
-    ahead = max(2 * parallel.io_threads(), min(2 * int(args.window), (256 << 20) // frame_bytes))
+    ahead = max(2 * parallel.io_threads(), min(int(args.window), (128 << 20) // frame_bytes))
     with parallel.Writer(collect, ahead=ahead) as writer:
       for t0, chunk in chunks:
         frames = left[t0:t0 + len(chunk)] if calib is not None else None
