@@ -32,6 +32,20 @@ def io_threads() -> int:
   return max(1, min(_MAX_THREADS, os.cpu_count() or 1))
 
 
+_PREFETCH: list = []
+
+
+def prefetch_pool() -> concurrent.futures.ThreadPoolExecutor | None:
+  """The threads that decode frames ahead of their reads (`video_io.FrameSource`); None with
+  one I/O thread. Kept for the process (idle threads; their tasks only decode)."""
+  if io_threads() <= 1:
+    return None
+  if not _PREFETCH:
+    _PREFETCH.append(concurrent.futures.ThreadPoolExecutor(
+        io_threads(), thread_name_prefix="sav-prefetch"))
+  return _PREFETCH[0]
+
+
 def _stop(pool: concurrent.futures.ThreadPoolExecutor, pending) -> None:
   """Cancels the tasks not started and waits for the running ones."""
   for f in pending:

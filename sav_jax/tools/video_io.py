@@ -227,6 +227,7 @@ class FrameSource:
     self.shape = (count, h, w, 3)
     self.fps = None if self._files is not None else video_fps(self.path)
     self._reader, self._next, self._buffer = None, 0, {}
+    self._ahead = {}  # frame index: a decoding begun ahead of its read (folders)
 
   def __len__(self) -> int:
     return self.shape[0]
@@ -245,16 +246,31 @@ class FrameSource:
 
   def _folder_frames(self, start: int, stop: int) -> list[np.ndarray]:
     """Frames start..stop-1 of a folder: those not kept from the last reads decoded by a
-    few threads; the last `keep` are kept for the next read (windows overlap)."""
+    few threads (or taken from the ones decoded ahead); the last `keep` are kept for the
+    next read (windows overlap), and the next `stop - start` are decoded ahead in the
+    background (while the model runs on these: a decoding error is raised when the frame
+    is read)."""
     from sav_jax.tools import parallel  # pylint: disable=import-outside-toplevel
-    missing = [i for i in range(start, stop) if i not in self._buffer]
-    decoded = dict(zip(missing, parallel.ordered_map(
+    got = {}
+    for i in range(start, stop):
+      if i not in self._buffer and i in self._ahead:
+        got[i] = self._ahead.pop(i).result()
+    missing = [i for i in range(start, stop) if i not in self._buffer and i not in got]
+    got.update(zip(missing, parallel.ordered_map(
         lambda i: read_frame(self._files[i], self.notes), missing)))
-    frames = [self._buffer[i] if i in self._buffer else decoded[i] for i in range(start, stop)]
+    frames = [self._buffer[i] if i in self._buffer else got[i] for i in range(start, stop)]
     if stop > start:
-      self._buffer.update(decoded)
+      self._buffer.update(got)
       for old in [k for k in self._buffer if k <= stop - 1 - max(1, self.keep) or k >= stop]:
         del self._buffer[old]
+      ahead = range(stop, min(len(self), stop + (stop - start)))
+      for old in [k for k in self._ahead if k not in ahead]:
+        self._ahead.pop(old).cancel()
+      pool = parallel.prefetch_pool()
+      if pool is not None:
+        for i in ahead:
+          if i not in self._ahead:
+            self._ahead[i] = pool.submit(read_frame, self._files[i], self.notes)
     return frames
 
   def _video_frame(self, i: int) -> np.ndarray:
