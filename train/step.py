@@ -26,7 +26,9 @@ def per_device_apply(model, mesh=None):
   of the frames and 1/4 feature maps), and the frame blocks of `cfg.frame_block_mb`
   (`layers.in_frame_blocks`, sized for the global batch: `sceneflow.py`'s 80 frames in
   blocks of 4 on 8 devices) gathered the frames, so that each device ran the encoders on
-  every clip of the batch. The output's disparities `[P, B, ...]` stay split on B.
+  every clip of the batch. The output's disparities `[P, B, ...]` stay split on B. Each
+  device's `rngs` are folded with its index on `data`: with the one key of the step, every
+  device drew the same random numbers (a dropout mask, say) for its own clips.
   Without a mesh, or with one device on `data`, plain `model.apply`.
   """
   if mesh is None or dict(mesh.shape).get(DATA_AXIS, 1) == 1:
@@ -35,6 +37,9 @@ def per_device_apply(model, mesh=None):
 
   def apply(variables, left, right, *, rngs=None, **kwargs):
     def local(variables, left, right, rngs):
+      if rngs is not None:
+        index = jax.lax.axis_index(DATA_AXIS)
+        rngs = jax.tree.map(lambda key: jax.random.fold_in(key, index), rngs)
       return model.apply(variables, left, right, **kwargs,
                          **({} if rngs is None else {"rngs": rngs}))
 

@@ -82,6 +82,14 @@ def test_dft_row_blocks_keep_a_sharded_batch_on_its_devices(jobs):
   assert result["dft_block_max_diff"] <= 2e-6 * result["dft_block_scale"]  # float32 rounding
 
 
+@pytest.mark.train_job("sharding")
+def test_each_device_draws_its_own_random_numbers(jobs):
+  # One key for the step: every device drew the same dropout mask for its own clips.
+  result = json.loads(jobs.get("sharding").read_text())
+  assert result["dropout_distinct_masks"] == 8
+  assert result["dropout_keep_fraction"] == pytest.approx(0.5, abs=0.05)
+
+
 def _config():
   from configs import synthetic  # pylint: disable=g-import-not-at-top
   c = synthetic.get_config()
@@ -140,6 +148,30 @@ def _toy_microbatches() -> dict:
                                 for k in ("loss", "epe", "l2_grads")}}
 
 
+def _dropout_on_eight_devices() -> dict:
+  """`per_device_apply` of a model that only drops out (rate 1/2) a batch of 8 clips of ones on
+  the 8 devices, with the one `dropout` key of a step: the masks of the clips, which the
+  devices draw each for their own."""
+  import flax.linen as nn  # pylint: disable=g-import-not-at-top
+  import jax  # pylint: disable=g-import-not-at-top
+  import jax.numpy as jnp  # pylint: disable=g-import-not-at-top
+  from sav_jax.model.stereo_any_video import SAVOutput  # pylint: disable=g-import-not-at-top
+  from train import state as S, step as st  # pylint: disable=g-import-not-at-top
+
+  class Dropping(nn.Module):
+    @nn.compact
+    def __call__(self, left, right, iters=2, final_only=False):
+      return SAVOutput(disparities=nn.Dropout(0.5, deterministic=False)(left[None, ..., 0]))
+
+  mesh = S.make_mesh()
+  ones = jax.device_put(jnp.ones((8, 2, 16, 16, 3)), S.data_sharding(mesh))
+  apply = jax.jit(lambda x: st.per_device_apply(Dropping(), mesh)(
+      {}, x, x, rngs={"dropout": jax.random.key(0)}).disparities)
+  masks = np.asarray(apply(ones))[0] > 0
+  return {"dropout_distinct_masks": len({m.tobytes() for m in masks}),
+          "dropout_keep_fraction": float(masks.mean())}
+
+
 def _dft_blocks_on_eight_devices() -> dict:
   """The GRU's DFT products (`layers.dft_correlate_w`) on a batch sharded over the 8 devices,
   in row blocks: blocks split the rows after the batch axis, so no device trades rows."""
@@ -178,6 +210,7 @@ def _child(out_path):
   from train import optim, state as S, step as st  # pylint: disable=g-import-not-at-top
   out = _toy_microbatches()
   out.update(_dft_blocks_on_eight_devices())
+  out.update(_dropout_on_eight_devices())
   c = _config()
   model = sav_jax.StereoAnyVideo(S.model_config(c))
   params = S.abstract_params(model, c)
