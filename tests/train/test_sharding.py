@@ -90,6 +90,21 @@ def test_each_device_draws_its_own_random_numbers(jobs):
   assert result["dropout_keep_fraction"] == pytest.approx(0.5, abs=0.05)
 
 
+@pytest.mark.train_job("sharding")
+def test_a_mesh_with_a_second_axis_gives_the_one_device_step_and_predictions(jobs):
+  # data=4 x model=2 (the model axis holds copies) and data=8 against one device, toy model:
+  # the step (the gradient's transpose through shard_map on both axes), the validation's
+  # predictions, and one compilation each for two steps and two predictions.
+  result = json.loads(jobs.get("sharding").read_text())
+  for name in ("8", "4x2"):
+    toy = result["toy_meshes"][name]
+    np.testing.assert_allclose(toy["loss"], result["toy_meshes"]["1"]["loss"], rtol=1e-6)
+    np.testing.assert_allclose(toy["l2_grads"], result["toy_meshes"]["1"]["l2_grads"], rtol=1e-5)
+    assert toy["param_diff"] <= 1e-3 * toy["step_size"], name
+    assert toy["eval_diff"] <= 1e-5 * toy["eval_scale"], name
+    assert toy["compilations"] == [1, 1], name
+
+
 def _config():
   from configs import synthetic  # pylint: disable=g-import-not-at-top
   c = synthetic.get_config()
@@ -146,6 +161,48 @@ def _toy_microbatches() -> dict:
   return {"toy_micro_param_diff": diff, "toy_step_size": moved,
           "toy_micro_metrics": {k: [float(got[1][1][k]), float(got[2][1][k])]
                                 for k in ("loss", "epe", "l2_grads")}}
+
+
+def _toy_meshes() -> dict:
+  """Two steps and two validation predictions of the toy model of test_state (batch 8) on one
+  device, on data=8 and on data=4 x model=2, from the same state."""
+  import jax  # pylint: disable=g-import-not-at-top
+  from jax.sharding import Mesh  # pylint: disable=g-import-not-at-top
+  from tests.train import test_state as ts  # pylint: disable=g-import-not-at-top
+  from train import optim, state as S, step as st  # pylint: disable=g-import-not-at-top
+  c = ts._config()  # pylint: disable=protected-access
+  c.train.batch_size = 8
+  model = ts.ToyStereo()
+  labels = optim.param_labels(S.abstract_params(model, c), c.optimizer.frozen)
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
+  batches = [ts._batch(np.random.default_rng(i), c) for i in (0, 1)]  # pylint: disable=protected-access
+  meshes = {"1": S.make_mesh(jax.devices()[:1]), "8": S.make_mesh(),
+            "4x2": Mesh(np.asarray(jax.devices()).reshape(4, 2), (S.DATA_AXIS, "model"))}
+  host0, got = None, {}
+  for name, mesh in meshes.items():
+    state, sh = S.create_train_state(model, tx, c, mesh)
+    host0 = jax.device_get(state) if host0 is None else host0
+    step = st.jit_train_step(st.make_train_step(model, tx, c, labels, mesh), sh, mesh)
+    predict = st.make_eval_fn(model, 2, sh.params, mesh)
+    state, metrics = step(jax.device_put(host0, sh), ts._put(batches[0], mesh))  # pylint: disable=protected-access
+    params, metrics = jax.device_get((state.params, metrics))
+    state, _ = step(state, ts._put(batches[1], mesh))  # pylint: disable=protected-access
+    b = ts._put(batches[0], mesh)  # pylint: disable=protected-access
+    preds = [np.asarray(predict(state.params, b["left"], b["right"])) for _ in range(2)]
+    got[name] = (params, metrics, preds[0],
+                 [step._cache_size(), predict._cache_size()])  # pylint: disable=protected-access
+  out = {}
+  for name, (params, metrics, pred, compilations) in got.items():
+    p1, _, pred1, _ = got["1"]
+    out[name] = {
+        "loss": float(metrics["loss"]), "l2_grads": float(metrics["l2_grads"]),
+        "param_diff": max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
+                          for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(p1))),
+        "step_size": max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
+                         for a, b in zip(jax.tree.leaves(p1), jax.tree.leaves(host0.params))),
+        "eval_diff": float(np.abs(pred - pred1).max()), "eval_scale": float(np.abs(pred1).max()),
+        "compilations": compilations}
+  return {"toy_meshes": out}
 
 
 def _dropout_on_eight_devices() -> dict:
@@ -211,6 +268,7 @@ def _child(out_path):
   out = _toy_microbatches()
   out.update(_dft_blocks_on_eight_devices())
   out.update(_dropout_on_eight_devices())
+  out.update(_toy_meshes())
   c = _config()
   model = sav_jax.StereoAnyVideo(S.model_config(c))
   params = S.abstract_params(model, c)
