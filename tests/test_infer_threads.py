@@ -174,3 +174,20 @@ def test_ordered_map_and_writer_keep_order_bound_the_work_and_raise_errors():
   assert [t for t in threading.enumerate() if t.name.startswith("sav-write")] == []
   with pytest.raises(ValueError, match="frame 30"):
     list(parallel.ordered_map(task, range(60), threads=3))
+
+
+@pytest.mark.parametrize("value", ["abc", "0"])
+def test_a_bad_sav_io_threads_is_named_before_the_model_runs(tmp_path, video, npz_ckpt,
+                                                             monkeypatch, capsys, value):
+  # (a video file's frames are not decoded in threads: it was found after the first window)
+  left, right = tmp_path / "l.mp4", tmp_path / "r.mp4"
+  for path in (left, right):
+    viz.write_video(path, list(video[2][:4]), fps=10)
+  ran = []
+  monkeypatch.setattr(inference, "_run_window", lambda *a, **k: ran.append(1) or 1 / 0)
+  monkeypatch.setenv("SAV_IO_THREADS", value)
+  out = tmp_path / "out"
+  assert cli.main(["infer", "--left", str(left), "--right", str(right), "--checkpoint",
+                   str(npz_ckpt), "--out", str(out), "--iters", "2"]) == 2
+  assert f"SAV_IO_THREADS must be a positive integer, got {value!r}" in capsys.readouterr().err
+  assert not ran and not out.exists()

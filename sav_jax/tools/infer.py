@@ -378,6 +378,7 @@ def check_model_args(iters: int, window: int, stride: int) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+  parallel.io_threads()  # (a bad SAV_IO_THREADS named now, not after the first window ran)
   formats = parse_formats(args.formats)
   check_model_args(args.iters, args.window, args.stride)
   from sav_jax import viz  # pylint: disable=import-outside-toplevel
