@@ -191,3 +191,22 @@ def test_a_bad_sav_io_threads_is_named_before_the_model_runs(tmp_path, video, np
                    str(npz_ckpt), "--out", str(out), "--iters", "2"]) == 2
   assert f"SAV_IO_THREADS must be a positive integer, got {value!r}" in capsys.readouterr().err
   assert not ran and not out.exists()
+
+
+def test_writer_raises_the_first_error_in_submission_order():
+  # (a later task that fails first: the error was the later one's, not one thread's)
+  def task(i):
+    if i == 3:
+      time.sleep(0.3)
+      raise ValueError("frame 3")
+    if i == 5:
+      raise ValueError("frame 5")
+    return i
+
+  got = []
+  with pytest.raises(ValueError, match="frame 3"):
+    with parallel.Writer(got.append, ahead=8, threads=4) as w:
+      for i in range(20):
+        w.submit(task, i)
+        time.sleep(0.02)
+  assert got == [0, 1, 2]

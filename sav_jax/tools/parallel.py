@@ -81,7 +81,8 @@ class Writer:
   """Runs `submit(fn, *args)` tasks in threads, at most `ahead` unfinished at a time (the
   submit waits for the oldest beyond that, so memory stays bounded); `fn`'s results are
   handed to `collect` in submission order. A task's error is raised in the thread that
-  submits (at the next submit after it failed) or calls `finish`; used as a context manager, an
+  submits (at the next submit after it failed; the first error in submission order) or
+  calls `finish`; used as a context manager, an
   error or Ctrl-C in the block waits for the running tasks and drops the others before it
   propagates (nothing is written after that)."""
 
@@ -99,9 +100,12 @@ class Writer:
     if self._pool is None:
       self.collect(fn(*args))
       return
-    for f in self._pending:  # a task that failed stops the run now, not when it is due
+    # A task that failed stops the run now, not when it is due; the error raised is the
+    # first in submission order (an earlier task still running may fail too), as one thread's.
+    for n, f in enumerate(self._pending):
       if f.done() and not f.cancelled() and f.exception() is not None:
-        raise f.exception()
+        for _ in range(n + 1):
+          self.collect(self._pending.popleft().result())
     self._pending.append(self._pool.submit(fn, *args))
     while len(self._pending) > self.ahead:
       self.collect(self._pending.popleft().result())
