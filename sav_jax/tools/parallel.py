@@ -82,9 +82,8 @@ class Writer:
   submit waits for the oldest beyond that, so memory stays bounded); `fn`'s results are
   handed to `collect` in submission order. A task's error is raised in the thread that
   submits (at the next submit after it failed; the first error in submission order) or
-  calls `finish`; used as a context manager, an
-  error or Ctrl-C in the block waits for the running tasks and drops the others before it
-  propagates (nothing is written after that)."""
+  calls `finish`; used as a context manager, an error or Ctrl-C in the block waits for the
+  running tasks and drops the others before it propagates (nothing is written after that)."""
 
   def __init__(self, collect: Callable = lambda result: None, ahead: int | None = None,
                threads: int | None = None):
