@@ -210,3 +210,30 @@ def test_writer_raises_the_first_error_in_submission_order():
         w.submit(task, i)
         time.sleep(0.02)
   assert got == [0, 1, 2]
+
+
+def test_ctrl_c_while_the_video_is_written_ends_its_threads(tmp_path, video, npz_ckpt,
+                                                             monkeypatch):
+  # (the colouring threads stayed until the KeyboardInterrupt was freed: past the clean-up)
+  monkeypatch.setattr(inference, "_run_window", label_model)
+  monkeypatch.setenv("SAV_IO_THREADS", "4")
+  real = viz.write_video
+
+  def interrupted(path, frames, fps):
+    def some():
+      for i, f in enumerate(frames):
+        if i == 5:
+          raise KeyboardInterrupt
+        yield f
+    return real(path, some(), fps)
+
+  monkeypatch.setattr(viz, "write_video", interrupted)
+  out = tmp_path / "out"
+  before, left = set(threading.enumerate()), None
+  try:
+    _run(video, npz_ckpt, out)
+  except KeyboardInterrupt:  # (while it propagates: as the caller's clean-up runs)
+    left = [t for t in set(threading.enumerate()) - before
+            if t.name.startswith(("sav-io", "sav-write"))]
+  assert left == []
+  assert not [p for p in out.rglob("*") if p.is_file()], list(out.rglob("*"))

@@ -643,13 +643,14 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
         b = min(a + batch, len(names))
         yield from zip(left[a:b], held_frames(a, b))
 
-    def video_frames():  # (coloured by a few threads, in order, as the writer takes them)
-      yield from parallel.ordered_map(
-          lambda fd: viz.side_by_side(fd[0], viz.colorize(fd[1], vmin, vmax)), pairs())
+    # (coloured by a few threads, in order, as the writer takes them; closed on an error or
+    # Ctrl-C, so that its threads end before the run's clean-up, not when the error is freed)
+    video_frames = contextlib.closing(parallel.ordered_map(
+        lambda fd: viz.side_by_side(fd[0], viz.colorize(fd[1], vmin, vmax)), pairs()))
 
     held.flush()
-    with writing(out / "side_by_side.mp4", remove=False):  # (replaced only when complete)
-      viz.write_video(out / "side_by_side.mp4", video_frames(), fps=args.fps)
+    with writing(out / "side_by_side.mp4", remove=False), video_frames as frames:
+      viz.write_video(out / "side_by_side.mp4", frames, fps=args.fps)  # (replaced if complete)
   return {"video_disparity_range": [round(float(vmin), 4), round(float(vmax), 4)],
           "png16_saturated_pixels": saturated, "disparities_beyond_width": beyond,
           "empty_point_clouds": empty_clouds}
