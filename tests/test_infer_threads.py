@@ -237,3 +237,22 @@ def test_ctrl_c_while_the_video_is_written_ends_its_threads(tmp_path, video, npz
             if t.name.startswith(("sav-io", "sav-write"))]
   assert left == []
   assert not [p for p in out.rglob("*") if p.is_file()], list(out.rglob("*"))
+
+
+def test_a_bad_frame_found_while_checking_a_folder_ends_the_decoding_threads(tmp_path,
+                                                                             monkeypatch):
+  # (the threads decoding the frames after it ran on until the ValueError was freed)
+  monkeypatch.setenv("SAV_IO_THREADS", "4")
+  for i in range(30):
+    assert cv2.imwrite(str(tmp_path / f"{i:04d}.png"),
+                       np.zeros((8 if i == 2 else 6, 10, 3), np.uint8))
+  real = video_io.read_frame
+  monkeypatch.setattr(video_io, "read_frame",
+                      lambda path, notes: (time.sleep(0.05), real(path, notes))[1])
+  before, left = set(threading.enumerate()), None
+  try:
+    video_io.FrameSource(tmp_path)
+  except ValueError as e:
+    assert "0002.png is 8x10 but the first frame 0000.png is 6x10" in str(e)
+    left = [t for t in set(threading.enumerate()) - before if t.name.startswith("sav-io")]
+  assert left == []

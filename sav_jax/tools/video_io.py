@@ -8,6 +8,7 @@ each with a logged note; an alpha channel is dropped. Float images are refused.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import operator
 import os
@@ -163,12 +164,13 @@ def _checked_frames(path: pathlib.Path, files, max_frames: int | None, notes: se
             else _decode(path, max_frames, notes))
   label = (lambda i: files[i].name) if files is not None else (lambda i: f"frame {i}")
   first = None
-  for i, frame in enumerate(frames):
-    first = frame.shape if first is None else first
-    if frame.shape != first:
-      raise ValueError(f"{path}: frames differ in size: {label(i)} is {_size(frame.shape)} but "
-                       f"the first frame {label(0)} is {_size(first)} (height x width)")
-    yield frame
+  with contextlib.closing(frames):  # (an error here stops the decoding threads now)
+    for i, frame in enumerate(frames):
+      first = frame.shape if first is None else first
+      if frame.shape != first:
+        raise ValueError(f"{path}: frames differ in size: {label(i)} is {_size(frame.shape)} "
+                         f"but the first frame {label(0)} is {_size(first)} (height x width)")
+      yield frame
   if first is None:
     raise ValueError(f"{path}: the video has no decodable frames")
 
