@@ -256,3 +256,21 @@ def test_a_bad_frame_found_while_checking_a_folder_ends_the_decoding_threads(tmp
     assert "0002.png is 8x10 but the first frame 0000.png is 6x10" in str(e)
     left = [t for t in set(threading.enumerate()) - before if t.name.startswith("sav-io")]
   assert left == []
+
+
+def test_a_note_names_the_first_frame_of_its_kind_as_one_thread_does(tmp_path, monkeypatch):
+  # (the frame decoded first was named: 0001.png when 0000.png took longer)
+  monkeypatch.setenv("SAV_IO_THREADS", "4")
+  for i in range(12):
+    assert cv2.imwrite(str(tmp_path / f"{i:04d}.png"), np.zeros((6, 10), np.uint8))
+  from sav_jax.data import frame_io  # pylint: disable=import-outside-toplevel
+  real = frame_io.decode_image_file
+
+  def slow_first(path):
+    time.sleep(0.2 if path.name == "0000.png" else 0)
+    return real(path)
+
+  monkeypatch.setattr(frame_io, "decode_image_file", slow_first)
+  assert video_io.FrameSource(tmp_path).notes == {
+      f"grayscale frames converted to RGB (grey repeated in 3 channels), e.g. "
+      f"{tmp_path / '0000.png'}"}

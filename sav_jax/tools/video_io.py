@@ -154,18 +154,30 @@ def _first(listing, max_frames: int | None):
   return None if listing is None else listing[:max_frames]
 
 
+def _read_noted(path) -> tuple[np.ndarray, set[str]]:
+  """`read_frame` with notes of its own: `(frame, notes)`."""
+  notes: set[str] = set()
+  return read_frame(path, notes), notes
+
+
 def _checked_frames(path: pathlib.Path, files, max_frames: int | None, notes: set[str]):
   """Yields the frames of a folder (`files`) or of a video file (`files` None) as `[H, W, 3]`
   uint8 RGB; a ValueError naming the frame if one cannot be decoded or differs in size from
   the first, or if a video has none."""
   from sav_jax.tools import parallel  # pylint: disable=import-outside-toplevel
-  # (a folder's frames decoded by a few threads, in order: the first bad one is still named)
-  frames = (parallel.ordered_map(lambda f: read_frame(f, notes), files) if files is not None
+  # (a folder's frames decoded by a few threads, in order: the first bad one is still named;
+  # each frame's notes kept apart and added in the frames' order, so that a note names the
+  # first file of its kind, as one thread does, not the one decoded first)
+  frames = (parallel.ordered_map(_read_noted, files) if files is not None
             else _decode(path, max_frames, notes))
   label = (lambda i: files[i].name) if files is not None else (lambda i: f"frame {i}")
   first = None
   with contextlib.closing(frames):  # (an error here stops the decoding threads now)
     for i, frame in enumerate(frames):
+      if files is not None:
+        frame, its_notes = frame
+        for note in sorted(its_notes):
+          _note_once(notes, note)
       first = frame.shape if first is None else first
       if frame.shape != first:
         raise ValueError(f"{path}: frames differ in size: {label(i)} is {_size(frame.shape)} "
