@@ -172,7 +172,8 @@ def _checked_frames(path: pathlib.Path, files, max_frames: int | None, notes: se
             else _decode(path, max_frames, notes))
   label = (lambda i: files[i].name) if files is not None else (lambda i: f"frame {i}")
   first = None
-  with contextlib.closing(frames):  # (an error here stops the decoding threads now)
+  # (an error here stops the decoding threads now)
+  with contextlib.closing(frames) if files is not None else contextlib.nullcontext():
     for i, frame in enumerate(frames):
       if files is not None:
         frame, its_notes = frame
