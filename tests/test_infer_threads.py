@@ -274,3 +274,20 @@ def test_a_note_names_the_first_frame_of_its_kind_as_one_thread_does(tmp_path, m
   assert video_io.FrameSource(tmp_path).notes == {
       f"grayscale frames converted to RGB (grey repeated in 3 channels), e.g. "
       f"{tmp_path / '0000.png'}"}
+
+
+@pytest.mark.parametrize("threads", ["1", "3"])
+def test_a_read_inside_the_last_one_decodes_no_frame_again(tmp_path, monkeypatch, threads):
+  # (infer's calibrated frames of a chunk, read between windows: the frames after the chunk
+  # were dropped, and decoded again for the next window)
+  monkeypatch.setenv("SAV_IO_THREADS", threads)
+  for i in range(16):
+    assert cv2.imwrite(str(tmp_path / f"{i:04d}.png"), np.full((6, 10, 3), i, np.uint8))
+  source = video_io.FrameSource(tmp_path)
+  decoded = []
+  real = video_io.read_frame
+  monkeypatch.setattr(video_io, "read_frame",
+                      lambda path, notes: decoded.append(path.name) or real(path, notes))
+  for a, b in ((0, 8), (2, 6), (4, 12), (6, 10), (8, 16)):
+    assert source[a:b][:, 0, 0, 0].tolist() == list(range(a, b))
+  assert sorted(decoded) == [f"{i:04d}.png" for i in range(16)]

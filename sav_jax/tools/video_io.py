@@ -266,6 +266,11 @@ class FrameSource:
     background (while the model runs on these: a decoding error is raised when the frame
     is read)."""
     from sav_jax.tools import parallel  # pylint: disable=import-outside-toplevel
+    if all(i in self._buffer for i in range(start, stop)):
+      # (frames of the last reads, e.g. `infer`'s calibrated frames of a window's chunk: kept
+      # as they are, with the frames decoded ahead; dropping those beyond `stop` had them
+      # decoded again for the next window)
+      return [self._buffer[i] for i in range(start, stop)]
     got = {}
     for i in range(start, stop):
       if i not in self._buffer and i in self._ahead:
