@@ -291,3 +291,31 @@ def test_a_read_inside_the_last_one_decodes_no_frame_again(tmp_path, monkeypatch
   for a, b in ((0, 8), (2, 6), (4, 12), (6, 10), (8, 16)):
     assert source[a:b][:, 0, 0, 0].tolist() == list(range(a, b))
   assert sorted(decoded) == [f"{i:04d}.png" for i in range(16)]
+
+
+def test_no_frame_is_decoded_ahead_after_a_run_that_failed(tmp_path, video, npz_ckpt,
+                                                            monkeypatch):
+  # (the next window's frames queued for decoding ran on after infer had returned)
+  running = []
+  monkeypatch.setattr(inference, "_run_window",
+                      lambda *a, **k: running.append(1) or label_model(*a, **k))
+  monkeypatch.setenv("SAV_IO_THREADS", "2")
+  real_read, real_write = video_io.read_frame, video_io.write_map
+  decoded = []
+
+  def slow_read_frame(path, notes):
+    time.sleep(0.05 if running else 0)  # (once the frames are checked)
+    decoded.append(path)
+    return real_read(path, notes)
+
+  def failing_write_map(path, data, fmt):
+    if path.name == "0003.npy":
+      raise OSError(28, "No space left on device")
+    return real_write(path, data, fmt)
+
+  monkeypatch.setattr(video_io, "read_frame", slow_read_frame)
+  monkeypatch.setattr(video_io, "write_map", failing_write_map)
+  assert _run(video, npz_ckpt, tmp_path / "out") == 2
+  count = len(decoded)
+  time.sleep(0.5)
+  assert len(decoded) == count

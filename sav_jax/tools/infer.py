@@ -406,8 +406,12 @@ def run(args: argparse.Namespace) -> int:
   for path in outputs:  # before anything is written (OpenCV crashed on such names)
     viz.check_utf8_path(path, "output file (named after --out and the frame)")
   check_not_inputs(outputs, (args.left, args.right), args)
-  with output_lock(out):
-    return _run_locked(args, out, outputs, left, right, names, formats, calib)
+  try:
+    with output_lock(out):
+      return _run_locked(args, out, outputs, left, right, names, formats, calib)
+  finally:  # (an error or Ctrl-C: the frames being decoded ahead are not decoded after it)
+    left.close()
+    right.close()
 
 
 def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:

@@ -8,6 +8,7 @@ each with a logged note; an alpha channel is dropped. Float images are refused.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import logging
 import operator
@@ -292,6 +293,14 @@ class FrameSource:
           if i not in self._ahead:
             self._ahead[i] = pool.submit(read_frame, self._files[i], self.notes)
     return frames
+
+  def close(self) -> None:
+    """Stops the decoding of frames ahead of their reads (waiting for those begun) and
+    drops the frames kept; a later read decodes its frames again."""
+    ahead, self._ahead, self._buffer = self._ahead, {}, {}
+    for future in ahead.values():
+      future.cancel()
+    concurrent.futures.wait(list(ahead.values()))
 
   def _video_frame(self, i: int) -> np.ndarray:
     if i in self._buffer:
