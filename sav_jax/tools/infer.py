@@ -620,9 +620,10 @@ def _write_outputs(out, names, left, chunks, formats, calib, args, listed, stale
         totals[j] += c
 
     # Each frame's files are written by a few threads while the next window is computed (at
-    # most `ahead` frames in flight: a window's worth, under 128 MB of disparities); an
-    # error in one is raised here, and an error or Ctrl-C waits for the files being written
-    # and drops the rest before the run's clean-up.
+    # most `ahead` frames in flight: a window's worth up to 128 MB of disparities, but two
+    # per thread at least, so more for small windows or frames over 8 MB); an error in one is
+    # raised here, and an error or Ctrl-C waits for the files being written and drops the
+    # rest before the run's clean-up.
     ahead = max(2 * parallel.io_threads(), min(int(args.window), (128 << 20) // frame_bytes))
     with parallel.Writer(collect, ahead=ahead) as writer:
       for t0, chunk in chunks:
