@@ -319,3 +319,33 @@ def test_no_frame_is_decoded_ahead_after_a_run_that_failed(tmp_path, video, npz_
   count = len(decoded)
   time.sleep(0.5)
   assert len(decoded) == count
+
+
+@pytest.mark.parametrize("threads", ["1", "3"])
+def test_a_folder_source_read_from_several_threads_gives_each_its_frames(tmp_path,
+                                                                         monkeypatch, threads):
+  # (the kept frames, shared since the read-ahead came in: KeyError; a folder's reads kept
+  # nothing before)
+  monkeypatch.setenv("SAV_IO_THREADS", threads)
+  for i in range(40):
+    assert cv2.imwrite(str(tmp_path / f"{i:04d}.png"), np.full((6, 10, 3), i, np.uint8))
+  source = video_io.FrameSource(tmp_path, keep=4)
+  wrong = []
+
+  def reads(seed):
+    rng = random.Random(seed)
+    for _ in range(200):
+      a = rng.randrange(36)
+      b = a + rng.randrange(1, 5)
+      try:
+        if source[a:b][:, 0, 0, 0].tolist() != list(range(a, b)):
+          wrong.append((a, b))
+      except Exception as e:  # pylint: disable=broad-except
+        wrong.append(repr(e))
+
+  workers = [threading.Thread(target=reads, args=(seed,)) for seed in range(4)]
+  for t in workers:
+    t.start()
+  for t in workers:
+    t.join()
+  assert wrong == []

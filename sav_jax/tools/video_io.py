@@ -244,6 +244,7 @@ class FrameSource:
     self.fps = None if self._files is not None else video_fps(self.path)
     self._reader, self._next, self._buffer = None, 0, {}
     self._ahead = {}  # frame index: a decoding begun ahead of its read (folders)
+    self._lock = threading.Lock()  # (reads from several threads: one at a time)
 
   def __len__(self) -> int:
     return self.shape[0]
@@ -254,10 +255,11 @@ class FrameSource:
     start, stop, step = index.indices(len(self))
     if step != 1:
       raise ValueError("FrameSource slices take step 1")
-    if self._files is not None:
-      frames = self._folder_frames(start, stop)
-    else:
-      frames = [self._video_frame(i) for i in range(start, stop)]
+    with self._lock:  # (the kept frames are shared: reads from threads raised KeyError)
+      if self._files is not None:
+        frames = self._folder_frames(start, stop)
+      else:
+        frames = [self._video_frame(i) for i in range(start, stop)]
     return np.stack(frames) if frames else np.zeros((0, *self.shape[1:]), np.uint8)
 
   def _folder_frames(self, start: int, stop: int) -> list[np.ndarray]:
@@ -297,7 +299,8 @@ class FrameSource:
   def close(self) -> None:
     """Stops the decoding of frames ahead of their reads (waiting for those begun) and
     drops the frames kept; a later read decodes its frames again."""
-    ahead, self._ahead, self._buffer = self._ahead, {}, {}
+    with self._lock:
+      ahead, self._ahead, self._buffer = self._ahead, {}, {}
     for future in ahead.values():
       future.cancel()
     concurrent.futures.wait(list(ahead.values()))
