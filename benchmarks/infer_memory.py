@@ -37,6 +37,19 @@ def write_data(root: pathlib.Path, frames: int, height: int, width: int) -> None
   np.savez(root / "sav.npz", **sd)
 
 
+def prepare_data(parser, args, write) -> None:
+  """`write(DATA, frames, height, width)` into a new DATA folder; a DATA folder an earlier run
+  wrote is reused if it holds the video asked for (else `parser.error`)."""
+  if not (args.data / "sav.npz").exists():
+    write(args.data, args.frames, args.height, args.width)
+    return
+  pngs = sorted((args.data / "left").glob("*.png"))
+  size = cv2.imread(str(pngs[0])).shape[:2] if pngs else None
+  if (len(pngs), size) != (args.frames, (args.height, args.width)):
+    parser.error(f"{args.data} holds {len(pngs)} frames of {size} from an earlier run, not "
+                 f"{args.frames} of {(args.height, args.width)}; name another DATA folder")
+
+
 def stand_in(variables, left, right, *, cfg, iters, pads, check_memory, **_):
   """A window's raw output without the model: frame k of the window gets -(k + 1)."""
   del variables, right, cfg, iters, check_memory
@@ -51,14 +64,7 @@ def main() -> None:
   p.add_argument("--height", type=int, default=480)
   p.add_argument("--width", type=int, default=640)
   args = p.parse_args()
-  if not (args.data / "sav.npz").exists():
-    write_data(args.data, args.frames, args.height, args.width)
-  else:  # reused: it must hold the video asked for
-    pngs = sorted((args.data / "left").glob("*.png"))
-    size = cv2.imread(str(pngs[0])).shape[:2] if pngs else None
-    if (len(pngs), size) != (args.frames, (args.height, args.width)):
-      p.error(f"{args.data} holds {len(pngs)} frames of {size} from an earlier run, not "
-              f"{args.frames} of {(args.height, args.width)}; name another DATA folder")
+  prepare_data(p, args, write_data)
   name = "_run_window" if hasattr(inference, "_run_window") else "run_window"  # older code
   setattr(inference, name, stand_in)
   start = time.perf_counter()

@@ -36,6 +36,8 @@ from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wro
 from sav_jax.tools import infer as infer_tool  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.tools.bench import peak_rss_gb  # noqa: E402  pylint: disable=wrong-import-position
 
+from infer_memory import prepare_data  # noqa: E402  # benchmarks/infer_memory.py
+
 
 def scene(height: int, width: int, seed: int = 0) -> np.ndarray:
   """A textured RGB image (blurred noise over gradients: compresses like a photo, not noise)."""
@@ -159,14 +161,7 @@ def main() -> None:
   p.add_argument("--keep", action="store_true", help="keep the outputs")
   p.add_argument("--json", type=pathlib.Path, default=None, help="append the result here")
   args = p.parse_args()
-  if not (args.data / "sav.npz").exists():
-    write_data(args.data, args.frames, args.height, args.width)
-  else:  # reused: it must hold the video asked for
-    pngs = sorted((args.data / "left").glob("*.png"))
-    size = cv2.imread(str(pngs[0])).shape[:2] if pngs else None
-    if (len(pngs), size) != (args.frames, (args.height, args.width)):
-      p.error(f"{args.data} holds {len(pngs)} frames of {size} from an earlier run, not "
-              f"{args.frames} of {(args.height, args.width)}; name another DATA folder")
+  prepare_data(p, args, write_data)
   name = "_run_window" if hasattr(inference, "_run_window") else "run_window"  # older code
   setattr(inference, name, stand_in)
   MODEL_FPS[0] = args.model_fps

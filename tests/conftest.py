@@ -90,6 +90,14 @@ def sav_state_dict(fixtures_dir):
   return _load_make_weights().make_state_dict(str(fixtures_dir / "sav_manifest.json"), 0)
 
 
+@pytest.fixture(scope="module")
+def npz_ckpt(module_tmp_path, sav_state_dict):
+  """The state dict of `sav_state_dict` as an official-layout `.npz` file (a test module's)."""
+  path = module_tmp_path / "sav.npz"
+  np.savez(path, **sav_state_dict)
+  return path
+
+
 RAFT_FIXTURES = ROOT / "tests" / "fixtures" / "raft"
 
 

@@ -61,13 +61,6 @@ def clip():
 
 
 @pytest.fixture(scope="module")
-def npz_ckpt(module_tmp_path, sav_state_dict):
-  path = module_tmp_path / "sav.npz"
-  np.savez(path, **sav_state_dict)
-  return path
-
-
-@pytest.fixture(scope="module")
 def orbax_ckpt(module_tmp_path, variables):
   path = module_tmp_path / "orbax" / "sav"
   sav_jax.convert.save_variables(path, variables, {"model": sav_jax.SAVConfig().to_dict()})

@@ -17,13 +17,6 @@ N, H, W = 37, 16, 24
 
 
 @pytest.fixture(scope="module")
-def npz_ckpt(module_tmp_path, sav_state_dict):
-  path = module_tmp_path / "sav.npz"
-  np.savez(path, **sav_state_dict)
-  return path
-
-
-@pytest.fixture(scope="module")
 def video(module_tmp_path):
   """Frames whose pixel (0, 0) labels them (i * 6); the rest random (distinct files)."""
   rng = np.random.default_rng(0)
