@@ -34,12 +34,11 @@ from typing import NamedTuple
 import numpy as np
 
 from sav_jax import runtime
-from sav_jax.tools import parallel
 from sav_jax._checks import loads_json, plural
 from sav_jax._files import FREE_SPACE, free_space_note, write_text_atomic
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, add_devices_argument,
                            add_matmul_precision_argument, check_output_dir, matmul_precision,
-                           resolve_devices_option, setup_compile_cache, user_path,
+                           parallel, resolve_devices_option, setup_compile_cache, user_path,
                            video_io)
 
 HELP = "estimate disparity for a stereo video (frame folders or video files)"

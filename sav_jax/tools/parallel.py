@@ -46,13 +46,6 @@ def prefetch_pool() -> concurrent.futures.ThreadPoolExecutor | None:
   return _PREFETCH[0]
 
 
-def _stop(pool: concurrent.futures.ThreadPoolExecutor, pending) -> None:
-  """Cancels the tasks not started and waits for the running ones."""
-  for f in pending:
-    f.cancel()
-  pool.shutdown(wait=True, cancel_futures=True)
-
-
 def ordered_map(fn: Callable, items: Iterable, ahead: int | None = None,
                 threads: int | None = None) -> Iterator:
   """`fn(item)` for each item, in order, computed by up to `threads` threads with at most
@@ -73,8 +66,8 @@ def ordered_map(fn: Callable, items: Iterable, ahead: int | None = None,
         yield pending.popleft().result()
     while pending:
       yield pending.popleft().result()
-  finally:
-    _stop(pool, pending)
+  finally:  # the tasks not started cancelled, the running ones waited for
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 class Writer:
@@ -99,12 +92,11 @@ class Writer:
     if self._pool is None:
       self.collect(fn(*args))
       return
-    # A task that failed stops the run now, not when it is due; the error raised is the
-    # first in submission order (an earlier task still running may fail too), as one thread's.
-    for n, f in enumerate(self._pending):
-      if f.done() and not f.cancelled() and f.exception() is not None:
-        for _ in range(n + 1):
-          self.collect(self._pending.popleft().result())
+    # A task that failed stops the run now, not when it is due; `finish` raises the first
+    # error in submission order (an earlier task still running may fail too), as one thread's.
+    if any(f.done() and not f.cancelled() and f.exception() is not None
+           for f in self._pending):
+      self.finish()
     self._pending.append(self._pool.submit(fn, *args))
     while len(self._pending) > self.ahead:
       self.collect(self._pending.popleft().result())
@@ -122,5 +114,5 @@ class Writer:
       if exc_type is None:
         self.finish()
     finally:
-      if self._pool is not None:
-        _stop(self._pool, self._pending)
+      if self._pool is not None:  # (as ordered_map's)
+        self._pool.shutdown(wait=True, cancel_futures=True)
