@@ -12,7 +12,7 @@ import optax
 from sav_jax import runtime
 from train import loss as loss_lib
 from train import optim
-from train.state import DATA_AXIS, TrainState, data_sharding, replicated
+from train.state import DATA_AXIS, TrainState, data_devices, data_sharding, replicated
 
 
 def per_device_apply(model, mesh=None):
@@ -31,7 +31,7 @@ def per_device_apply(model, mesh=None):
   device drew the same random numbers (a dropout mask, say) for its own clips.
   Without a mesh, or with one device on `data`, plain `model.apply`.
   """
-  if mesh is None or dict(mesh.shape).get(DATA_AXIS, 1) == 1:
+  if mesh is None or data_devices(mesh) == 1:
     return model.apply
   batch = P(DATA_AXIS)
 
