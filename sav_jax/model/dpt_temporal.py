@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sav_jax.config import TEMPORAL_MAX_LEN
+from sav_jax.config import TEMPORAL_MAX_LEN  # the sinusoidal table's length (`max_len`)
 from sav_jax.model.layers import conv, dense, gelu, layer_norm
 from sav_jax.ops.resize import resize
 
@@ -29,9 +29,6 @@ MOTION_GROUPS = 32
 MOTION_GN_EPS = 1e-6
 # The transformer blocks use torch's default nn.LayerNorm eps, unlike DINOv2 (1e-6).
 MOTION_LN_EPS = 1e-5
-# Length of the sinusoidal table (`num_frames` of VideoDepthAnything): at most
-# this many frames can be processed at once, as in the official code (defined in
-# `sav_jax.config`, which the CLI's checks read without importing JAX).
 
 
 @functools.lru_cache(maxsize=32)
