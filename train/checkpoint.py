@@ -9,7 +9,9 @@ A checkpoint `workdir/checkpoints/<step>/` holds three items:
           frozen depth prior's weights came from (`depth_prior_origin`)}` (`JsonSave`),
           so that `sav-jax infer`/`convert`, `python -m eval` and `init_from` can use the
           step folder (or the workdir: its latest step) as model weights, and a resumed run
-          can name the fields changed since (`changed_fields`).
+          can name the fields changed since (`changed_fields`); the run config's
+          `checkpoint.keep` is the keep policy the checkpoint was saved under, which a later
+          run's pruning keeps to (`check_keep`).
 Orbax writes into a temporary directory and renames it when complete, so a run killed
 mid-save leaves no checkpoint under a final name; such leftovers (`<step>.orbax-checkpoint-tmp*`,
 nothing else) are deleted at start.
@@ -261,7 +263,8 @@ def save(manager: ocp.CheckpointManager, state: TrainState, data_iterator, step:
       only applies finite updates and reports `l2_params`); False refuses to save.
     force: save even if `step` is not on the manager's save interval.
     model_config: the model's config (default: `SAVConfig()`), for readers of the weights.
-    run_config: the training config, saved for `changed_fields` (None: not saved).
+    run_config: the training config, saved for `changed_fields` and `check_keep` (its
+      `checkpoint.keep`: this checkpoint's keep policy) (None: not saved).
     data_clips: each training source's clip count and digest (`train.input.train_dataset`'s
       `clips`), saved for a resumed run to compare (None: not saved).
     depth_prior: `depth_prior_origin` (None: not saved).
@@ -326,33 +329,96 @@ def wait_until_saved(manager: ocp.CheckpointManager) -> None:
 
 
 def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
-  """Raises CheckpointError where this run's `checkpoint.keep` would delete checkpoints an
-  earlier keep policy kept: orbax prunes every step of the folder beyond the last `keep` at
-  each save, so a run resumed without its `--config.checkpoint.keep=0` (the default is 3)
-  deleted the older checkpoints, a finished run's included, without a word (at its first
-  save, or at a later one where the folder held fewer than `keep`). The same keep as the
-  saving run's (`saved`: `saved_run` of the latest checkpoint) prunes as that run would have;
-  a larger one than its, fewer."""
+  """Raises CheckpointError where this run's `checkpoint.keep` would delete a checkpoint that
+  the keep policy it was saved with keeps: orbax prunes every step of the folder beyond the
+  last `keep` at each save, so a run resumed without its `--config.checkpoint.keep=0` (the
+  default is 3) deleted the older checkpoints, a finished run's included, without a word (at
+  its first save, or at a later one where the folder held fewer than `keep`).
+
+  Each checkpoint records the keep of the run that saved it (`checkpoint.keep` of its saved
+  run config), and each one this run would delete is judged by its own: one saved with
+  `keep=0` is never deleted, one saved with `keep=K` only by a run whose keep is K or larger
+  (it then goes no sooner than its own policy had it go). The latest checkpoint's keep alone
+  did not tell: a run resumed with a keep under which its saves deleted nothing (the folder
+  held fewer) records that keep in its own checkpoints, and a later resume with it deleted
+  the earlier run's `keep=0` checkpoints. A checkpoint saved before the run config was
+  recorded goes only where the folder holds exactly `keep` checkpoints, all of them from
+  before the record (the latest's `saved` has no keep): such a run pruned so itself, at this
+  keep.
+
+  Args:
+    manager: the run's checkpoint manager.
+    config: this run's training config.
+    saved: `saved_run` of the latest checkpoint (read by the caller already).
+  """
   keep = int(config.checkpoint.keep)
   steps = sorted(manager.all_steps())
   saves = _saves_after(config, steps[-1]) if steps else 0
   if keep <= 0 or saves == 0 or len(steps) + saves <= keep:  # orbax keeps `keep` per save
     return
-  saved = saved.get("checkpoint.keep")
-  if saved == keep or (saved is None and len(steps) == keep):  # (None: as a run before keep
-    return  # was recorded pruned on resume, at the default keep: its own policy, likely)
   doomed = steps[:len(steps) + saves - keep]
-  if isinstance(saved, int) and 0 < saved < keep:  # the earlier policy deletes more of them
+  policies = {step: _saved_keep(saved if step == steps[-1] else None, manager, step)
+              for step in doomed}
+  unrecorded_ok = _saved_keep(saved) is None and len(steps) == keep
+
+  def deletable(policy) -> bool:
+    if policy is None:  # saved before the keep was recorded
+      return unrecorded_ok
+    return isinstance(policy, int) and 0 < policy <= keep  # (a string: unreadable)
+
+  if all(deletable(p) for p in policies.values()):
     return
-  earlier = (f"saved with config.checkpoint.keep={saved}" if saved is not None
-             else "saved before the keep policy was recorded")
+  protective = [p for p in policies.values() if not (isinstance(p, int) and p > 0)]
+  suggest = 0 if protective else max(policies.values())  # every one then goes as it would
   when = ("at its first save" if saves == 1 else
           f"by the last of the {saves} checkpoints it saves up to step {config.train.num_steps}")
   raise sav_jax.convert.CheckpointError(
-      f"{manager.directory} holds {len(steps)} checkpoints ({earlier}); this run's "
-      f"config.checkpoint.keep={keep} would delete {doomed} {when}. Pass "
-      f"--config.checkpoint.keep={saved if saved is not None else 0} to keep them (0 keeps "
-      f"all), or move the ones you do not need out of that folder first")
+      f"{manager.directory} holds {len(steps)} checkpoints; this run's "
+      f"config.checkpoint.keep={keep} would delete {doomed} ({_policies_text(policies)}) "
+      f"{when}. Pass --config.checkpoint.keep={suggest} to keep them (0 keeps all), or move "
+      "the ones you do not need out of that folder first")
+
+
+_UNREADABLE = "with a config whose keep cannot be read"
+
+
+def _saved_keep(run: dict | None, manager: ocp.CheckpointManager | None = None,
+                step: int | None = None) -> int | str | None:
+  """The `checkpoint.keep` a checkpoint was saved with, from its saved run config `run`
+  (None: read checkpoint `step`'s): None where it was saved before the run config was
+  recorded, `_UNREADABLE` where its config cannot be read or holds no valid keep (such a
+  checkpoint is never deleted by a keep other than 0)."""
+  if run is None:
+    try:
+      stored = saved_config(manager, step)
+    except sav_jax.convert.CheckpointError:  # cut short: named, and kept
+      return _UNREADABLE
+    if "run" not in stored:
+      return None
+    run = saved_entry(stored, "run")
+  if "checkpoint.keep" not in run:
+    return None if not run else _UNREADABLE
+  policy = run["checkpoint.keep"]
+  valid = isinstance(policy, int) and not isinstance(policy, bool) and policy >= 0
+  return policy if valid else _UNREADABLE
+
+
+def _policies_text(policies: dict) -> str:
+  """`{step: _saved_keep}` as "saved with config.checkpoint.keep=0" where all agree, else
+  "steps 1, 2 saved with config.checkpoint.keep=0, step 3 with ..."."""
+  def what(policy):
+    if policy is None:
+      return "before the keep policy was recorded"
+    return policy if policy == _UNREADABLE else f"with config.checkpoint.keep={policy}"
+
+  groups = {}
+  for step, policy in policies.items():
+    groups.setdefault(what(policy), []).append(step)
+  if len(groups) == 1:
+    return f"saved {next(iter(groups))}"
+  parts = [f"step{'s' if len(s) > 1 else ''} {', '.join(map(str, s))} "
+           f"{'saved ' if i == 0 else ''}{w}" for i, (w, s) in enumerate(groups.items())]
+  return ", ".join(parts)
 
 
 def _saves_after(config, start: int) -> int:

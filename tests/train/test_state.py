@@ -639,15 +639,16 @@ def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(
   manager.wait_until_finished()
   c.checkpoint.keep = 2
   with pytest.raises(sav_jax.convert.CheckpointError,
-                     match=r"holds 4 checkpoints \(saved with config.checkpoint.keep=0\); this "
-                     r"run's config.checkpoint.keep=2 would delete \[1, 2, 3\] at its first "
+                     match=r"holds 4 checkpoints; this run's config.checkpoint.keep=2 would "
+                     r"delete \[1, 2, 3\] \(saved with config.checkpoint.keep=0\) at its first "
                      r"save. Pass --config.checkpoint.keep=0 to keep them"):
     loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c), it)
   folder = tmp_path / "checkpoints"
   steps = lambda: sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit())  # noqa: E731
   assert steps() == [1, 2, 3, 4]
   c.checkpoint.keep = 4  # as many as the folder holds: the first save (step 5) pruned step 1
-  with pytest.raises(sav_jax.convert.CheckpointError, match=r"would delete \[1\] at its first"):
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"would delete \[1\] \(saved with "
+                     r"config.checkpoint.keep=0\) at its first"):
     loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c), it)
   for keep in (0, 9, 5):  # the same policy, or one that deletes nothing: resumed
     c.checkpoint.keep = keep
@@ -658,24 +659,45 @@ def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(
                 run_config=c)  # keep=5: the first save deletes nothing
   manager.wait_until_finished()
   assert steps() == [1, 2, 3, 4, 5]
-  # A run saved before the keep policy was recorded, holding as many as this run keeps: it
-  # pruned so itself (the default keep), and resumes as it did (it was refused)
+  # A run saved before the keep policy was recorded (no run config in its checkpoints),
+  # holding as many as this run keeps: it pruned so itself (the default keep), and resumes as
+  # it did (it was refused)
+  old = tmp_path / "old"
+  c.checkpoint.keep = 0
+  manager = ckpt_lib.make_manager(old, c)
+  for step in (1, 2, 3, 4, 5):
+    ckpt_lib.save(manager, state.replace(step=jnp.asarray(step, jnp.int32)), it, step,
+                  force=True)
+  manager.wait_until_finished()
   c.checkpoint.keep = 5
-  ckpt_lib.check_keep(ckpt_lib.make_manager(tmp_path, c), c, {})
+  ckpt_lib.check_keep(ckpt_lib.make_manager(old, c), c, {})
   c.checkpoint.keep = 4
-  with pytest.raises(sav_jax.convert.CheckpointError, match=r"\(saved before the keep policy was "
-                     r"recorded\); this run's config.checkpoint.keep=4 would delete \[1, 2\]"):
-    ckpt_lib.check_keep(ckpt_lib.make_manager(tmp_path, c), c, {})
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"holds 5 checkpoints; this run's "
+                     r"config.checkpoint.keep=4 would delete \[1, 2\] \(saved before the keep "
+                     r"policy was recorded\) at its first save. Pass --config.checkpoint.keep=0"):
+    ckpt_lib.check_keep(ckpt_lib.make_manager(old, c), c, {})
   c.train.num_steps = 5  # a finished run, run again: it saves nothing, so deletes nothing
-  ckpt_lib.check_keep(ckpt_lib.make_manager(tmp_path, c), c, {})
+  ckpt_lib.check_keep(ckpt_lib.make_manager(old, c), c, {})
+  # ... but once a later checkpoint records its keep, nothing says how the unrecorded ones
+  # were kept (that run may have deleted nothing): they are not deleted
+  c.checkpoint.keep, c.train.num_steps = 5, 10
+  manager = ckpt_lib.make_manager(old, c)
+  ckpt_lib.save(manager, state.replace(step=jnp.asarray(6, jnp.int32)), it, 6, force=True,
+                run_config=c)
+  manager.wait_until_finished()
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"would delete \[2\] \(saved before "
+                     r"the keep policy was recorded\) at its first save"):
+    ckpt_lib.check_keep(ckpt_lib.make_manager(old, c), c, ckpt_lib.saved_run(manager, 6))
   # Fewer checkpoints than keep, but more saves to come: orbax pruned the earlier policy's
   # checkpoints at a later save, without a word (the check looked at the first save only).
   for step in (1, 2, 3):
     shutil.rmtree(folder / str(step))
   c.checkpoint.keep, c.checkpoint.every_steps, c.train.num_steps = 3, 2, 11
-  with pytest.raises(sav_jax.convert.CheckpointError, match=r"holds 2 checkpoints \(saved with "
-                     r"config.checkpoint.keep=5\); this run's config.checkpoint.keep=3 would "
-                     r"delete \[4, 5\] by the last of the 4 checkpoints it saves up to step 11"):
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"holds 2 checkpoints; this run's "
+                     r"config.checkpoint.keep=3 would delete \[4, 5\] \(step 4 saved with "
+                     r"config.checkpoint.keep=0, step 5 with config.checkpoint.keep=5\) by the "
+                     r"last of the 4 checkpoints it saves up to step 11. Pass "
+                     r"--config.checkpoint.keep=0"):
     loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c), it)
   c.train.num_steps = 6  # one save: the folder then holds 3, all kept
   assert loop.initial_state(c, model, tx, mesh, ckpt_lib.make_manager(tmp_path, c), it)[2] == (
@@ -2461,3 +2483,76 @@ def test_a_workdir_whose_name_is_not_utf8_is_refused_before_the_run(tmp_path):
                                          "UTF-8 text"):
       loop.validate_config(synthetic.get_config(), workdir)
   assert not odd.exists()
+
+
+def test_a_keep_recorded_by_a_run_that_pruned_nothing_never_deletes_keep_all_checkpoints(
+    tmp_path):
+  """Each checkpoint is kept as the run that saved it asked. A run saved with keep=0 (all),
+  resumed with keep=5 for fewer saves than would prune (allowed: nothing is deleted), records
+  keep=5 in its own checkpoints; a later resume with that keep was allowed too (the latest
+  checkpoint's keep), and orbax deleted the keep=0 run's checkpoints at its saves."""
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.checkpoint.async_save, c.checkpoint.keep, c.checkpoint.every_steps = False, 0, 1
+  model, mesh = ToyStereo(), state_lib.make_mesh()
+  tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
+  src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
+                                                  max_disparity=8.0), 10)
+  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1))
+  folder = tmp_path / "checkpoints"
+  steps = lambda: sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit())  # noqa: E731
+
+  def run(keep, num_steps):  # a run (or resume) of `keep`, saving each step to `num_steps`
+    c.checkpoint.keep, c.train.num_steps = keep, num_steps
+    manager = ckpt_lib.make_manager(tmp_path, c)
+    state, _, _ = loop.initial_state(c, model, tx, mesh, manager, it)
+    for step in range(int(state.step) + 1, num_steps + 1):
+      ckpt_lib.save(manager, state.replace(step=jnp.asarray(step, jnp.int32)), it, step,
+                    force=True, run_config=c)
+    manager.wait_until_finished()
+    manager.close()
+
+  run(0, 2)  # the user's run: keep every checkpoint
+  assert steps() == [1, 2]
+  run(5, 4)  # resumed with keep=5, two saves: the folder holds 4, nothing is deleted
+  assert steps() == [1, 2, 3, 4]
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"holds 4 checkpoints; this run's config.checkpoint.keep=5 would "
+                     r"delete \[1, 2\] \(saved with config.checkpoint.keep=0\) by the last of "
+                     r"the 3 checkpoints it saves up to step 7\. Pass "
+                     r"--config.checkpoint.keep=0 to keep them"):
+    run(5, 7)  # the same keep=5 again, with saves that prune: steps 1 and 2 would go
+  assert steps() == [1, 2, 3, 4]
+  run(5, 5)  # one save: the folder then holds 5, all kept
+  assert steps() == [1, 2, 3, 4, 5]
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"would delete \[1\] \(saved with "
+                     r"config.checkpoint.keep=0\) by the last of the 4 checkpoints"):
+    run(8, 9)  # a larger keep than the latest checkpoint's does not delete them either
+  # Checkpoints of a pruning policy go as that policy (or a larger keep) has them go: a
+  # resume with keep=5 after the keep=0 ones were moved out deletes step 3 (saved with 5).
+  for step in (1, 2):
+    shutil.move(folder / str(step), tmp_path / str(step))
+  run(5, 8)
+  assert steps() == [4, 5, 6, 7, 8]
+  run(0, 9)  # keep=0 resumes whatever the folder holds
+  assert steps() == [4, 5, 6, 7, 8, 9]
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"would delete \[4, 5, 6, 7\] \(saved "
+                     r"with config.checkpoint.keep=5\) at its first save. Pass "
+                     r"--config.checkpoint.keep=5 to keep them"):
+    run(3, 10)  # a smaller keep than theirs
+  assert steps() == [4, 5, 6, 7, 8, 9]
+  run(5, 10)  # theirs: steps 4 and 5 go, as keep=5 has them go; step 9 (keep=0) stays newest
+  assert steps() == [6, 7, 8, 9, 10]
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"would delete \[6, 7, 8, 9\] \(steps "
+                     r"6, 7, 8 saved with config.checkpoint.keep=5, step 9 with "
+                     r"config.checkpoint.keep=0\) by the last of the 4 checkpoints it saves up "
+                     r"to step 14. Pass --config.checkpoint.keep=0"):
+    run(5, 14)
+  assert steps() == [6, 7, 8, 9, 10]
+  # A checkpoint whose config (its keep) cannot be read is kept, and named
+  (folder / "6" / "config" / "metadata").write_text("{\"model\": {", encoding="utf-8")
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"would delete \[6\] \(saved with a "
+                     r"config whose keep cannot be read\) at its first save. Pass "
+                     r"--config.checkpoint.keep=0"):
+    run(5, 11)
+  assert steps() == [6, 7, 8, 9, 10]
