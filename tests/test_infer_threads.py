@@ -2,6 +2,7 @@
 thread writes them, errors raised in the main thread, Ctrl-C stops cleanly."""
 
 import json
+import os
 import random
 import threading
 import time
@@ -342,3 +343,194 @@ def test_a_folder_source_read_from_several_threads_gives_each_its_frames(tmp_pat
   for t in workers:
     t.join()
   assert wrong == []
+
+
+def test_io_threads_default_to_the_cores_up_to_eight(monkeypatch):
+  monkeypatch.delenv("SAV_IO_THREADS", raising=False)
+  for cores, want in ((None, 1), (1, 1), (2, 2), (6, 6), (64, 8)):
+    monkeypatch.setattr(parallel.os, "cpu_count", lambda cores=cores: cores)
+    assert parallel.io_threads() == want, cores
+  monkeypatch.setenv("SAV_IO_THREADS", "")  # (set but empty: as unset)
+  assert parallel.io_threads() == 8
+  monkeypatch.setenv("SAV_IO_THREADS", "12")  # (the variable: more than 8 if asked)
+  assert parallel.io_threads() == 12
+
+
+def test_one_io_thread_does_all_the_work_in_the_calling_thread(tmp_path, monkeypatch):
+  # (SAV_IO_THREADS=1: no thread decodes ahead, none decodes or writes; results still
+  # collected, the folder's frames still read in order)
+  monkeypatch.setenv("SAV_IO_THREADS", "1")
+  caller = threading.current_thread()
+  threads = []
+
+  def where(i):
+    threads.append(threading.current_thread())
+    return i
+
+  assert parallel.prefetch_pool() is None
+  assert list(parallel.ordered_map(where, range(5))) == list(range(5))
+  got = []
+  with parallel.Writer(got.append) as w:
+    for i in range(5):
+      w.submit(where, i)
+  assert got == list(range(5))
+  for i in range(6):
+    assert cv2.imwrite(str(tmp_path / f"{i:04d}.png"), np.full((6, 10, 3), i, np.uint8))
+  real = video_io.read_frame
+  monkeypatch.setattr(video_io, "read_frame",
+                      lambda path, notes: where(0) or real(path, notes))
+  source = video_io.FrameSource(tmp_path)
+  assert source[0:3][:, 0, 0, 0].tolist() == [0, 1, 2]
+  assert source[3:6][:, 0, 0, 0].tolist() == [3, 4, 5]
+  assert len(threads) == 5 + 5 + 6 + 6 and set(threads) == {caller}
+
+
+def test_the_decoding_ahead_threads_are_made_once(monkeypatch):
+  # (a pool per read: threads that never end, 8 more for every window)
+  monkeypatch.setenv("SAV_IO_THREADS", "3")
+  pool = parallel.prefetch_pool()
+  assert pool is not None and parallel.prefetch_pool() is pool
+
+
+def test_a_folders_next_frames_are_decoded_ahead_in_the_background(tmp_path, monkeypatch):
+  # (while the model runs on this window: the next window's frames are already decoded)
+  monkeypatch.setenv("SAV_IO_THREADS", "3")
+  for i in range(12):
+    assert cv2.imwrite(str(tmp_path / f"{i:04d}.png"), np.full((6, 10, 3), i, np.uint8))
+  source = video_io.FrameSource(tmp_path, keep=0)
+  decoded = {}
+  real = video_io.read_frame
+
+  def read(path, notes):
+    decoded[path.name] = threading.current_thread().name
+    return real(path, notes)
+
+  monkeypatch.setattr(video_io, "read_frame", read)
+  assert source[0:4][:, 0, 0, 0].tolist() == [0, 1, 2, 3]
+  deadline = time.monotonic() + 5
+  while len(decoded) < 8 and time.monotonic() < deadline:
+    time.sleep(0.01)
+  ahead = {f"{i:04d}.png" for i in range(4, 8)}
+  assert ahead <= decoded.keys() and all(decoded[n].startswith("sav-prefetch") for n in ahead)
+  assert "0008.png" not in decoded  # (a window's frames ahead, not more)
+  decoded.clear()
+  assert source[4:8][:, 0, 0, 0].tolist() == [4, 5, 6, 7]  # served from them
+  assert not ahead & decoded.keys()
+
+
+def test_ordered_map_takes_items_as_the_results_are_taken(monkeypatch):
+  # (memory bounded: at most `ahead` results computed beyond the one yielded; and closing
+  # it runs no task that had not begun)
+  taken, called = [], []
+
+  def items():
+    for i in range(100):
+      taken.append(i)
+      yield i
+
+  def fn(i):
+    called.append(i)
+    time.sleep(0 if i == 0 else 0.1)
+    return i
+
+  results = parallel.ordered_map(fn, items(), ahead=3, threads=2)
+  assert next(results) == 0
+  assert len(taken) <= 4  # (the one yielded and 3 ahead)
+  results.close()
+  assert set(called) <= {0, 1, 2}, called
+
+
+def test_writer_holds_at_most_ahead_unfinished_tasks():
+  got = []
+  with parallel.Writer(got.append, ahead=3, threads=2) as w:
+    for i in range(10):
+      w.submit(time.sleep, 0.005)
+      assert len(got) >= i + 1 - 3, (i, len(got))
+  assert len(got) == 10
+
+
+def test_writer_raises_a_failed_tasks_error_at_the_next_submit():
+  # (not only when it is due: a run went on computing windows after a write had failed)
+  def fail():
+    raise OSError(28, "No space left on device")
+
+  with pytest.raises(OSError, match="No space left"):
+    with parallel.Writer(ahead=100, threads=2) as w:
+      w.submit(fail)
+      deadline = time.monotonic() + 5
+      pending = w._pending  # pylint: disable=protected-access
+      while not pending[0].done() and time.monotonic() < deadline:
+        time.sleep(0.01)
+      w.submit(time.sleep, 0)
+      raise AssertionError("the next submit did not raise the error")
+
+
+def test_an_error_in_the_writers_block_runs_no_task_that_had_not_begun():
+  # (Ctrl-C: the frames queued to be written are dropped, not written after it)
+  called = []
+
+  def task(i):
+    called.append(i)
+    time.sleep(0.1)
+
+  with pytest.raises(KeyboardInterrupt):
+    with parallel.Writer(ahead=10, threads=2) as w:
+      for i in range(8):
+        w.submit(task, i)
+      raise KeyboardInterrupt
+  count = len(called)
+  time.sleep(0.15)
+  assert count <= 2 and len(called) == count, called
+
+
+def test_closing_a_folder_source_drops_the_frames_queued_to_be_decoded_ahead(tmp_path,
+                                                                            monkeypatch):
+  # (infer's error or Ctrl-C: its exit waited for the next window's frames to be decoded)
+  monkeypatch.setenv("SAV_IO_THREADS", "2")
+  for i in range(32):
+    assert cv2.imwrite(str(tmp_path / f"{i:04d}.png"), np.full((6, 10, 3), i, np.uint8))
+  source = video_io.FrameSource(tmp_path, keep=0)
+  begun, decoded = [], []
+  real = video_io.read_frame
+
+  def read(path, notes):
+    if int(path.stem) >= 16:
+      begun.append(path.name)
+      time.sleep(0.1)
+      decoded.append(path.name)
+    return real(path, notes)
+
+  monkeypatch.setattr(video_io, "read_frame", read)
+  assert source[0:16][:, 0, 0, 0].tolist() == list(range(16))  # (16..31 queued)
+  deadline = time.monotonic() + 5
+  while not begun and time.monotonic() < deadline:
+    time.sleep(0.005)
+  source.close()  # (waits for the decodings begun)
+  count = len(decoded)
+  time.sleep(0.3)
+  workers = parallel.prefetch_pool()._max_workers  # pylint: disable=protected-access
+  assert count == len(decoded) <= workers < 16, (count, decoded)
+
+
+def test_a_frames_disparities_are_written_whole_when_the_system_writes_part(tmp_path,
+                                                                            monkeypatch):
+  # (pwrite may write less than asked: the rest goes after it; writing nothing is an error,
+  # not a loop without end)
+  from sav_jax.tools import infer  # pylint: disable=import-outside-toplevel
+  path = tmp_path / "held"
+  path.write_bytes(bytes(16))
+  real = os.pwrite
+  monkeypatch.setattr(os, "pwrite", lambda fd, data, offset: real(fd, data[:3], offset))
+  with open(path, "r+b") as f:
+    infer._pwrite_all(f.fileno(), memoryview(b"abcdefgh"), 4)  # pylint: disable=protected-access
+  assert path.read_bytes() == bytes(4) + b"abcdefgh" + bytes(4)
+  calls = []
+
+  def nothing(fd, data, offset):
+    calls.append(offset)
+    assert len(calls) < 100, "pwrite called again and again"
+    return 0
+
+  monkeypatch.setattr(os, "pwrite", nothing)
+  with open(path, "r+b") as f, pytest.raises(OSError, match="wrote nothing"):
+    infer._pwrite_all(f.fileno(), memoryview(b"abc"), 0)  # pylint: disable=protected-access
