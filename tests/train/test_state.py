@@ -531,6 +531,52 @@ def test_make_mesh_refuses_what_is_no_list_of_distinct_devices():
       state_lib.make_mesh(bad)
 
 
+def test_each_device_runs_the_forward_on_its_own_clips_with_its_own_key():
+  # (traced on an abstract mesh of data 4 x model 2: this process has one device) The model
+  # runs on each device's share of the batch (not on the global batch: clips moved between
+  # devices in every step), the variables whole, the disparities [P, B, ...] split on B,
+  # and each device's key folded with its index on `data` (one key: the same dropout mask).
+  seen = []
+
+  class Model:
+    def apply(self, variables, left, right, *, iters, rngs=None):
+      del iters
+      seen.append((left.shape, right.shape, rngs is None))
+      noise = 0.0 if rngs is None else jax.random.uniform(rngs["dropout"], left.shape)
+      return SAVOutput(disparities=(left * variables["w"] + noise)[None])
+
+  mesh = jax.sharding.AbstractMesh((4, 2), (state_lib.DATA_AXIS, "model"))
+  apply = step_lib.per_device_apply(Model(), mesh)
+  clips = jnp.ones((8, 3))
+
+  def primitives(jaxpr):
+    for eqn in jaxpr.eqns:
+      yield eqn
+      for value in eqn.params.values():
+        for sub in value if isinstance(value, (tuple, list)) else (value,):
+          sub = getattr(sub, "jaxpr", sub)  # (a ClosedJaxpr's)
+          if hasattr(sub, "eqns"):
+            yield from primitives(sub)
+
+  for rngs in (True, False):
+    seen.clear()
+    jaxpr = jax.make_jaxpr(lambda w, l, r, k: apply(  # pylint: disable=cell-var-from-loop
+        {"w": w}, l, r, iters=2, **({"rngs": {"dropout": k}} if rngs else {})).disparities)(
+            jnp.ones(()), clips, clips, jax.random.key(0))
+    assert seen == [((2, 3), (2, 3), not rngs)]  # 8 clips over data=4 (model: copies)
+    assert jaxpr.out_avals[0].shape == (1, 8, 3)
+    eqns = list(primitives(jaxpr.jaxpr))
+    index = [e.params["axis_name"] for e in eqns if e.primitive.name == "axis_index"]
+    folds = [e for e in eqns if e.primitive.name == "random_fold_in"]
+    assert (index, len(folds)) == (([state_lib.DATA_AXIS], 1) if rngs else ([], 0))
+  one = jax.sharding.AbstractMesh((1, 2), (state_lib.DATA_AXIS, "model"))
+  model = Model()
+  assert step_lib.per_device_apply(model, one) == model.apply  # (one device on data: as is)
+  assert step_lib.per_device_apply(model, None) == model.apply
+  with pytest.raises(ValueError, match="the mesh has no 'data' axis \\(its axes: 'batch'\\)"):
+    step_lib.per_device_apply(model, jax.sharding.AbstractMesh((2,), ("batch",)))
+
+
 def test_the_batch_is_split_over_the_data_axis_and_the_state_replicated():
   # (an abstract mesh of 4 devices: this process has one)
   mesh = jax.sharding.AbstractMesh((4,), (state_lib.DATA_AXIS,))
@@ -979,6 +1025,9 @@ def test_paths_with_the_home_folder_as_tilde_are_expanded(tmp_path, monkeypatch,
   c.train.num_steps = 2  # the home folder's run is at step 3: refused, naming it
   with pytest.raises(ValueError, match=rf"resume from \({step}\)"):
     loop.setup(c, "~/run")
+  c.vda_weights = "~/none.npz"  # a new run's files, looked for in the home folder: only this
+  with pytest.raises(FileNotFoundError, match="config.vda_weights=~/none.npz: no such file"):
+    loop.setup(c, "~/new")
   assert sorted(p.name for p in tmp_path.iterdir()) == ["home"]  # no folder named "~"
 
 
