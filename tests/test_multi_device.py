@@ -297,6 +297,7 @@ def _plumbing_child(out_path):
   res["batch_shards"] = sorted([s.device.id, *np.asarray(s.data)[:, 0].tolist()]
                                for s in batch.addressable_shards)
   res["param_shards"] = sorted([s.device.id, len(s.data)] for s in params.addressable_shards)
+  res["mesh_of_three"] = [d.id for d in state_lib.make_mesh(devs[5:2:-1]).devices.flat]
   res.update(_mesh_of_yours(devs))
   pathlib.Path(out_path).write_text(json.dumps(res))
 
@@ -411,6 +412,7 @@ def test_the_training_mesh_splits_the_batch_and_replicates_the_state(plumbing):
   # 16 rows over 8 devices: device i holds rows 2i and 2i + 1 (first column 4i, 4i + 2)
   assert plumbing["batch_shards"] == [[i, 4 * i, 4 * i + 2] for i in range(8)]
   assert plumbing["param_shards"] == [[i, 4] for i in range(8)]
+  assert plumbing["mesh_of_three"] == [5, 4, 3]  # the devices given, in their order
 
 
 def test_validation_on_a_mesh_with_other_axes_splits_the_batch_over_data(plumbing):
