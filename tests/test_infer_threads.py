@@ -534,3 +534,24 @@ def test_a_frames_disparities_are_written_whole_when_the_system_writes_part(tmp_
   monkeypatch.setattr(os, "pwrite", nothing)
   with open(path, "r+b") as f, pytest.raises(OSError, match="wrote nothing"):
     infer._pwrite_all(f.fileno(), memoryview(b"abc"), 0)  # pylint: disable=protected-access
+
+
+@pytest.mark.parametrize("threads,window,ahead", [("2", 8, 8), ("6", 4, 12)])
+def test_the_writer_holds_a_windows_frames_but_two_per_thread_at_least(tmp_path, video, npz_ckpt,
+                                                                       monkeypatch, threads,
+                                                                       window, ahead):
+  # (memory bounded: the frames given to the writer and not yet written; without the bound a
+  # model faster than the disk piled up the whole video's disparities)
+  monkeypatch.setattr(inference, "_run_window", label_model)
+  monkeypatch.setenv("SAV_IO_THREADS", threads)
+  aheads = []
+
+  class Writer(parallel.Writer):
+    def __init__(self, *args, **kwargs):
+      super().__init__(*args, **kwargs)
+      aheads.append(self.ahead)
+
+  monkeypatch.setattr(parallel, "Writer", Writer)
+  assert _run(video, npz_ckpt, tmp_path / "out", "--window", str(window), "--stride",
+              str(window // 2)) == 0
+  assert aheads == [ahead]  # (frames of 1.5 kB: far below 128 MB a window)
