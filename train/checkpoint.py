@@ -39,7 +39,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 import sav_jax
-from sav_jax._checks import loads_json
+from sav_jax._checks import loads_json, plural
 from sav_jax.convert import orbax_io
 from sav_jax.model.init import MACHINE_FIELDS
 from sav_jax.model.vda import VideoDepthAnything
@@ -372,11 +372,15 @@ def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
   suggest = 0 if protective else max(policies.values())  # every one then goes as it would
   when = ("at its first save" if saves == 1 else
           f"by the last of the {saves} checkpoints it saves up to step {config.train.num_steps}")
+  # (a keep they were saved with deletes them too, as that keep does: not "to keep them")
+  fix = ("to keep them (0 keeps all)" if suggest == 0 else
+         "(the largest keep they were saved with: each is then deleted only as its own keep "
+         "deletes it), or 0 to keep them all")
   raise sav_jax.convert.CheckpointError(
-      f"{manager.directory} holds {len(steps)} checkpoints; this run's "
+      f"{manager.directory} holds {plural(len(steps), 'checkpoint')}; this run's "
       f"config.checkpoint.keep={keep} would delete {doomed} ({_policies_text(policies)}) "
-      f"{when}. Pass --config.checkpoint.keep={suggest} to keep them (0 keeps all), or move "
-      "the ones you do not need out of that folder first")
+      f"{when}. Pass --config.checkpoint.keep={suggest} {fix}, or move the ones you do not "
+      "need out of that folder first")
 
 
 _UNREADABLE = "with a config whose keep cannot be read"

@@ -2561,7 +2561,14 @@ def test_a_keep_recorded_by_a_run_that_pruned_nothing_never_deletes_keep_all_che
     manager.wait_until_finished()
     manager.close()
 
-  run(0, 2)  # the user's run: keep every checkpoint
+  run(0, 1)  # the user's run: keep every checkpoint
+  with pytest.raises(sav_jax.convert.CheckpointError,  # (one checkpoint, the latest: named)
+                     match=r"holds 1 checkpoint; this run's config.checkpoint.keep=3 would "
+                     r"delete \[1\] \(saved with config.checkpoint.keep=0\) by the last of "
+                     r"the 3 checkpoints it saves up to step 4\. Pass "
+                     r"--config.checkpoint.keep=0 to keep them"):
+    run(3, 4)  # resumed without it, at the default keep
+  run(0, 2)
   assert steps() == [1, 2]
   run(5, 4)  # resumed with keep=5, two saves: the folder holds 4, nothing is deleted
   assert steps() == [1, 2, 3, 4]
@@ -2587,10 +2594,12 @@ def test_a_keep_recorded_by_a_run_that_pruned_nothing_never_deletes_keep_all_che
   assert steps() == [4, 5, 6, 7, 8, 9]
   with pytest.raises(sav_jax.convert.CheckpointError, match=r"would delete \[4, 5, 6, 7\] \(saved "
                      r"with config.checkpoint.keep=5\) at its first save. Pass "
-                     r"--config.checkpoint.keep=5 to keep them"):
+                     r"--config.checkpoint.keep=5 \(the largest keep they were saved with: each "
+                     r"is then deleted only as its own keep deletes it\), or 0 to keep them all, "
+                     r"or move"):
     run(3, 10)  # a smaller keep than theirs
   assert steps() == [4, 5, 6, 7, 8, 9]
-  run(5, 10)  # theirs: steps 4 and 5 go, as keep=5 has them go; step 9 (keep=0) stays newest
+  run(5, 10)  # theirs: steps 4, 5 go (not "kept"), as keep=5 has them go; step 9 (keep=0) stays
   assert steps() == [6, 7, 8, 9, 10]
   with pytest.raises(sav_jax.convert.CheckpointError, match=r"would delete \[6, 7, 8, 9\] \(steps "
                      r"6, 7, 8 saved with config.checkpoint.keep=5, step 9 with "
