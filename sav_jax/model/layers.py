@@ -18,8 +18,9 @@ def conv(features: int, kernel: Sequence[int], stride: int | Sequence[int] = 1,
   """A convolution with torch's explicit symmetric zero padding.
 
   Stride-1 convolutions are `Conv2D`/`Conv3D` (2-D convolutions with a hand-written
-  backward pass, see `conv2d`); strided ones are `nn.Conv`. All have the parameters
-  of `nn.Conv` (`kernel` `[*kernel, C, O]`, `bias`).
+  backward pass, see `conv2d`); strided 2-D ones are `StridedConv` (others `nn.Conv`). All
+  have the parameters of `nn.Conv` (`kernel` `[*kernel, C, O]`, `bias`); all but `nn.Conv`
+  add their bias with `add_bias` (its gradient summed in float32).
 
   Args:
     features: output channels.
@@ -36,8 +37,48 @@ def conv(features: int, kernel: Sequence[int], stride: int | Sequence[int] = 1,
   if strides == (1,) * nd and nd in (2, 3):
     cls = Conv3D if nd == 3 else Conv2D
     return cls(features, tuple(kernel), pads, use_bias, dtype, name=name)
+  if nd == 2:
+    return StridedConv(features, tuple(kernel), strides, pads, use_bias, dtype, name=name)
   return nn.Conv(features, tuple(kernel), strides=strides, padding=[(p, p) for p in pads],
                  use_bias=use_bias, dtype=dtype, param_dtype=jnp.float32, name=name)
+
+
+def add_bias(y: jax.Array, bias: jax.Array) -> jax.Array:
+  """`y + bias` in `y`'s dtype for a float32 `bias` `[C]` over `y` `[..., C]`.
+
+  The bias is broadcast to `y`'s shape before it is cast: the same values as
+  `y + bias.astype(y.dtype)`, but the bias's gradient (the sum of `y`'s cotangent over
+  every position) is summed in float32. Cast first, the broadcast's transpose sums a
+  bfloat16 cotangent in bfloat16, which stalls once the sum is 2^8 times a term (XLA:CPU
+  gave 1024 for 4096 ones): a bfloat16 training step got its biases' gradients wrong.
+  """
+  return y + jnp.broadcast_to(bias, y.shape).astype(y.dtype)
+
+
+class StridedConv(nn.Module):
+  """A strided 2-D convolution `[..., H, W, C] -> [..., H', W', features]` with torch's
+  symmetric zero padding: `nn.Conv`'s parameters (`kernel` `[kh, kw, C, O]`, `bias`) and
+  values, with the bias added by `add_bias` (its gradient summed in float32)."""
+
+  features: int
+  kernel_size: tuple[int, int]
+  strides: tuple[int, int]
+  padding: tuple[int, int]
+  use_bias: bool = True
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    *lead, h, w, c = x.shape
+    kernel = self.param("kernel", nn.initializers.lecun_normal(),
+                        (*self.kernel_size, c, self.features), jnp.float32)
+    y = jax.lax.conv_general_dilated(
+        x.astype(self.dtype).reshape(-1, h, w, c), kernel.astype(self.dtype),
+        tuple(self.strides), [(p, p) for p in self.padding], dimension_numbers=_NHWC)
+    y = y.reshape(*lead, *y.shape[1:])
+    if self.use_bias:
+      y = add_bias(y, self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32))
+    return y
 
 
 _NHWC = ("NHWC", "HWIO", "NHWC")
@@ -132,8 +173,7 @@ class Conv2D(nn.Module):
     y = conv2d(x.astype(self.dtype).reshape(-1, h, w, c), kernel, ((ph, ph), (pw, pw)))
     y = y.reshape(*lead, *y.shape[1:])
     if self.use_bias:
-      y = y + self.param("bias", nn.initializers.zeros, (self.features,),
-                         jnp.float32).astype(self.dtype)
+      y = add_bias(y, self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32))
     return y
 
 
@@ -170,7 +210,7 @@ class Conv3D(nn.Module):
       y = _temporal_taps(x, kernel, pt, ((ph, ph), (pw, pw)))
     y = y.reshape(b, t, h, w, self.features)
     if self.use_bias:
-      y = y + self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32).astype(self.dtype)
+      y = add_bias(y, self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32))
     return y
 
 
@@ -371,9 +411,28 @@ def layer_norm(eps: float = 1e-5, dtype: Any = jnp.float32, name: str | None = N
                       name=name)
 
 
+class Dense(nn.Module):
+  """`nn.Dense` (same parameters, initialisers and values) with the bias added by
+  `add_bias`, so that its gradient is summed in float32 in bfloat16 compute."""
+
+  features: int
+  use_bias: bool = True
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    kernel = self.param("kernel", nn.initializers.lecun_normal(), (x.shape[-1], self.features),
+                        jnp.float32)
+    y = jax.lax.dot_general(x.astype(self.dtype), kernel.astype(self.dtype),
+                            (((x.ndim - 1,), (0,)), ((), ())))
+    if self.use_bias:
+      y = add_bias(y, self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32))
+    return y
+
+
 def dense(features: int, use_bias: bool = True, dtype: Any = jnp.float32,
-          name: str | None = None) -> nn.Dense:
-  return nn.Dense(features, use_bias=use_bias, dtype=dtype, param_dtype=jnp.float32, name=name)
+          name: str | None = None) -> Dense:
+  return Dense(features, use_bias=use_bias, dtype=dtype, name=name)
 
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

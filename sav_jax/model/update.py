@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from sav_jax.config import FRAME_BLOCK_MB, GRU_CONV, resolve_gru_conv
-from sav_jax.model.layers import (Conv2D, ConvParams, conv, dense, dft_correlate_w, gelu,
-                                  in_frame_blocks, layer_norm)
+from sav_jax.model.layers import (Conv2D, ConvParams, add_bias, conv, dense, dft_correlate_w,
+                                  gelu, in_frame_blocks, layer_norm)
 
 
 class BasicMotionEncoder(nn.Module):
@@ -227,8 +227,8 @@ class SKSepConvGRU3D(nn.Module):
       def gates(hx):  # the z and r first convolutions share one DFT of [h, x]
         weights = [ConvParams(hd, (1, 1, 15), name=f"conv{g}1_0")(hx.shape[-1]) for g in "zr"]
         kernel = jnp.concatenate([k[0, 0] for k, _ in weights], axis=-1)
-        bias = jnp.concatenate([b for _, b in weights]).astype(self.dtype)
-        firsts = gelu(dft_correlate_w(hx.astype(self.dtype), kernel, self.block_mb) + bias)
+        bias = jnp.concatenate([b for _, b in weights])
+        firsts = gelu(add_bias(dft_correlate_w(hx.astype(self.dtype), kernel, self.block_mb), bias))
         return tuple(second(part) for second, part in zip(seconds, jnp.split(firsts, 2, -1)))
     elif wide_conv == "direct":
       convz, convr = super_kernel("z"), super_kernel("r")

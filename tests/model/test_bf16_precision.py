@@ -255,3 +255,40 @@ def test_bfloat16_disparities_between_and_after_the_scans_stay_float32(bf16_casc
       paths |= after & _reach(pred, [inits[k + 1]], keep=top_level)
       assert inits[k + 1] in paths
     assert out in paths and not _not_float32(paths, aval), (k, _not_float32(paths, aval))
+
+
+def _equations(jaxpr):
+  """Every equation of `jaxpr` and of the jaxprs its equations call (scan and cond bodies,
+  pjit, custom_vjp and remat calls), recursively."""
+  for eqn in jaxpr.eqns:
+    yield eqn
+    for value in eqn.params.values():
+      for sub in value if isinstance(value, (list, tuple)) else [value]:
+        if isinstance(sub, jax.extend.core.ClosedJaxpr):
+          yield from _equations(sub.jaxpr)
+        elif isinstance(sub, jax.extend.core.Jaxpr):
+          yield from _equations(sub)
+
+
+def test_bfloat16_training_gradient_sums_in_float32():
+  """The bfloat16 training gradient (every trainable parameter, all predictions) has no sum
+  of more than 32 bfloat16 terms: the biases' gradients (sums of the output's cotangent over
+  every position, B*T*h*w terms) are summed in float32 (`layers.add_bias`). Summed in
+  bfloat16 they were 85 reductions of 64-2048 terms at this tiny shape, and XLA:CPU's stall at
+  a few hundred times a term made them ~10x too small at 8192 positions
+  (tests/model/test_layers.py). What remains are the linear attention's normalisers over
+  a head's 32 channels and its 8 heads (a few bfloat16 steps). Traced, not compiled."""
+  cfg = sav_jax.SAVConfig(dtype="bfloat16")
+  model = sav_jax.StereoAnyVideo(cfg)
+  params = sav_jax.model.init.abstract_variables(cfg)["params"]
+  frames = jax.ShapeDtypeStruct((B, T, H, W, 3), jnp.float32)
+
+  def loss(p, left, right):
+    return jnp.mean(model.apply({"params": p}, left, right, iters=ITERS).disparities)
+
+  jaxpr = jax.make_jaxpr(jax.grad(loss))(params, frames, frames).jaxpr
+  sums = [(int(np.prod([e.invars[0].aval.shape[a] for a in e.params["axes"]])),
+           str(e.invars[0].aval.shape)) for e in _equations(jaxpr)
+          if e.primitive.name == "reduce_sum" and e.invars[0].aval.dtype == jnp.bfloat16]
+  assert sums  # the program does compute in bfloat16 (the attention's normalisers)
+  assert max(sums)[0] <= 32, sorted(s for s in sums if s[0] > 32)[-5:]

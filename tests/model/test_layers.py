@@ -1,5 +1,5 @@
 """`conv2d`/`Conv2D`/`Conv3D`: the hand-written gradient equals XLA's, in and out of a scan;
-`dft_correlate_w` equals the direct convolution."""
+`dft_correlate_w` equals the direct convolution; bfloat16 biases get float32-summed gradients."""
 
 import flax.linen as nn
 import jax
@@ -197,3 +197,30 @@ def test_conv_params_are_conv3d_parameters():
   assert jax.tree.map(jnp.shape, params_vars) == jax.tree.map(jnp.shape, conv_vars)
   for a, b in zip(jax.tree.leaves(params_vars), jax.tree.leaves(conv_vars)):
     np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("make,shape", [
+    (lambda: layers.conv(8, (3, 3), 1, 1, dtype=jnp.bfloat16), (4, 32, 64, 6)),
+    (lambda: layers.conv(8, (3, 3, 3), 1, 1, dtype=jnp.bfloat16), (1, 4, 32, 64, 6)),
+    (lambda: layers.conv(8, (5, 1, 1), 1, (2, 0, 0), dtype=jnp.bfloat16), (1, 4, 32, 64, 6)),
+    (lambda: layers.conv(8, (4, 4), 4, 0, dtype=jnp.bfloat16), (4, 128, 256, 3)),
+    (lambda: layers.dense(8, dtype=jnp.bfloat16), (4, 32, 64, 6))])
+def test_bfloat16_bias_gradient_is_summed_in_float32(make, shape):
+  """In bfloat16 compute a bias's gradient is the sum of the output's cotangent over its
+  8192 positions. Summed in bfloat16 (the bias cast before its broadcast, as flax's Dense
+  and Conv do), XLA:CPU stalled at 1024 where the sum is ~10240 (8192 cotangents of ~1.25:
+  a term below half a bfloat16 step of its partial sum is lost). It must be the float32
+  sum of the bfloat16 cotangents: within 1e-4 relative of their float64 sum (float32
+  summation of 8192 positive terms is ~1e-6 off)."""
+  rng = np.random.default_rng(0)
+  module = make()
+  x = jnp.asarray(rng.standard_normal(shape), jnp.float32)
+  variables = module.init(jax.random.key(0), x)
+  y = module.apply(variables, x)
+  assert y.dtype == jnp.bfloat16 and np.prod(y.shape[:-1]) == 8192
+  cot = jnp.asarray(1 + rng.uniform(0, 0.5, y.shape), jnp.bfloat16)  # exact bfloat16 values
+  loss = lambda v: jnp.sum(module.apply(v, x).astype(jnp.float32) * cot)  # noqa: E731
+  got = jax.grad(loss)(variables)["params"]["bias"]
+  want = np.asarray(cot, np.float64).reshape(-1, y.shape[-1]).sum(axis=0)
+  assert got.dtype == jnp.float32
+  np.testing.assert_allclose(got, want, rtol=1e-4)
