@@ -49,6 +49,22 @@ def is_int(x) -> bool:
   return isinstance(x, numbers.Integral) and not isinstance(x, bool)
 
 
+def sav_jax_configs(command: str):
+  """sav-jax's `configs` package (the config files of `python -m train` and `python -m eval`),
+  imported. ValueError where another package or module of that name comes first on the module
+  path, e.g. a project's own `configs/` in the current folder, which `python -m` puts first:
+  the commands stopped there with an AttributeError or ModuleNotFoundError traceback."""
+  import configs  # pylint: disable=import-outside-toplevel
+  if callable(getattr(configs, "locate", None)):
+    return configs
+  where = getattr(configs, "__file__", None) or ", ".join(getattr(configs, "__path__", ()))
+  raise ValueError(
+      f"`configs` is {where or 'another package'}, not sav-jax's configs package: a "
+      f"configs/ (or configs.py) of your own in the current folder hides it; run `python -P -m "
+      f"{command} ...` (Python 3.11+: leaves the current folder off the module path) or run "
+      "from another folder")
+
+
 def _package_dirs() -> tuple[str, ...]:
   """sav_jax's folder, and Flax's and JAX's where they are imported (a model call goes
   through them: `model.apply` -> Flax -> the module's checks)."""

@@ -251,3 +251,28 @@ def test_the_sdist_holds_the_files_the_readme_and_tests_name():
   assert len(wanted) > 40 and ".ci/run" in wanted, wanted  # the references are still found
   packed = _in_sdist(wanted)
   assert [p for p in wanted if p not in packed] == []
+
+
+def test_a_configs_package_of_the_current_folder_is_named_not_a_traceback(tmp_path):
+  """A project's own `configs/` in the folder `python -m train` / `python -m eval` run from
+  hides sav-jax's configs package: one line saying so and what to run (an AttributeError and a
+  ModuleNotFoundError traceback before), and `python -P` runs them."""
+  (tmp_path / "configs").mkdir()
+  (tmp_path / "configs" / "__init__.py").write_text("")
+
+  def run(*args):
+    return subprocess.run([sys.executable, *args], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=120, check=False)
+
+  for command, args in (("train", ["--config", "configs/synthetic.py", "--workdir", "w"]),
+                        ("eval", ["--help"])):
+    result = run("-m", command, *args)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.splitlines() == [
+        f"{command}: error: `configs` is {tmp_path / 'configs' / '__init__.py'}, not sav-jax's "
+        "configs package: a configs/ (or configs.py) of your own in the current folder hides "
+        f"it; run `python -P -m {command} ...` (Python 3.11+: leaves the current folder off the "
+        "module path) or run from another folder"]
+  if sys.version_info >= (3, 11):
+    assert run("-P", "-m", "eval", "--help").returncode == 0
+  assert not (tmp_path / "w").exists()

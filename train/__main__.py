@@ -94,15 +94,23 @@ def integral_numbers(argv: list[str]) -> list[str]:
 
 def located_config(argv: list[str]) -> list[str]:
   """`argv` with its --config file found by `configs.locate`: `configs/...` names the
-  installed package's file when the current folder has none."""
-  import configs  # pylint: disable=g-import-not-at-top
+  installed package's file when the current folder has none (a configs/ of the folder's own
+  that hides the package: one line naming it)."""
+  from sav_jax._checks import sav_jax_configs  # pylint: disable=g-import-not-at-top
+
+  def locate(spec):
+    try:
+      return sav_jax_configs("train").locate(spec)
+    except ValueError as e:
+      _fail(str(e))
+
   out = list(argv)
   for i, a in enumerate(out):
     if a in ("--config", "-config") and i + 1 < len(out):
-      out[i + 1] = configs.locate(out[i + 1])
+      out[i + 1] = locate(out[i + 1])
     elif a.startswith(("--config=", "-config=")):
       flag, value = a.split("=", 1)
-      out[i] = f"{flag}={configs.locate(value)}"
+      out[i] = f"{flag}={locate(value)}"
   return out
 
 
