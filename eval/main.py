@@ -21,6 +21,7 @@ its settings are the same. Bad input exits with status 2 and one line on stderr.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
@@ -47,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--checkpoint", required=True, type=user_path,
                  help="orbax directory, a training run's WORKDIR (latest checkpoint) or "
                       "WORKDIR/checkpoints/STEP, or a .pth/.pt/.safetensors/.npz state dict")
-  p.add_argument("--data-root", default="data/datasets", type=user_path,
+  p.add_argument("--data-root", type=user_path,  # (None: DEFAULT_DATA_ROOT, see run)
                  help="datasets folder or the dataset's own folder (default data/datasets)")
   p.add_argument("--out", type=user_path, help="output folder (default outputs/eval/<dataset>)")
   p.add_argument("--baseline", action="append", choices=eval_config.BASELINES, default=[],
@@ -104,6 +105,10 @@ def main(argv: list[str] | None = None) -> int:
         "continue"))
 
 
+# --data-root where none is given.
+DEFAULT_DATA_ROOT = "data/datasets"
+
+
 def run(args, overrides) -> int:
   """Loads config, data and weights, evaluates every sequence, writes the reports."""
   config = eval_config.load_config(args.config)
@@ -133,6 +138,14 @@ def run(args, overrides) -> int:
     from sav_jax.tools.demo import check_sgbm_args  # pylint: disable=import-outside-toplevel
     check_sgbm_args(config.baseline.max_disparity, config.baseline.block_size,
                     "config.baseline.")
+  if args.data_root is None:
+    args.data_root = DEFAULT_DATA_ROOT
+    from sav_jax.data import registry  # pylint: disable=import-outside-toplevel
+    if config.dataset in registry.DATASETS and not os.path.isdir(DEFAULT_DATA_ROOT):
+      mine = (f"the folder that holds your videos' {config.split}/" if config.dataset == "folder"
+              else "the datasets folder or the dataset's own")
+      raise UsageError(f"no --data-root given, and its default {DEFAULT_DATA_ROOT}/ is not a "
+                       f"folder here: pass --data-root DIR, {mine}")
   from eval import runner  # pylint: disable=import-outside-toplevel
   out = check_output_dir(args.out or f"outputs/eval/{config.dataset}")
   _refuse_out_in_dataset(out, config.dataset, args.data_root)

@@ -1266,6 +1266,20 @@ def test_an_output_folder_inside_the_dataset_is_refused(tmp_path, ckpt, capsys):
     assert not out.exists()
 
 
+def test_no_data_root_where_its_default_folder_is_missing_says_to_pass_one(
+    tmp_path, monkeypatch, capsys):
+  """Run from a folder without data/datasets/ (a wheel's user): the missing --data-root is
+  named, not only the default path ("dataset folder not found: data/datasets")."""
+  monkeypatch.chdir(tmp_path)
+  for config, where in (("folder.py", "the folder that holds your videos' test/"),
+                        ("sintel_final.py", "the datasets folder or the dataset's own")):
+    assert main(["--config", str(CONFIGS / config), "--checkpoint", "c"]) == 2
+    assert capsys.readouterr().err == (
+        "eval: error: no --data-root given, and its default data/datasets/ is not a folder "
+        f"here: pass --data-root DIR, {where}\n")
+  assert list(tmp_path.iterdir()) == []
+
+
 def test_the_report_names_the_folder_the_frames_came_from():
   read_from = eval_report._read_from  # pylint: disable=protected-access
   assert read_from([]) is None
