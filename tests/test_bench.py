@@ -374,6 +374,7 @@ def test_bench_report_json_and_compare_from_one_measurement(tmp_path, monkeypatc
       "warning: the baseline was measured elsewhere (host here here, there there): the ratios "
       "compare machines, not code",
       f"vs {base}: forward x2.00 faster (0.5 s vs 1 s), compile the same (3 s vs 3 s), "
-      "peak RSS the same (1.5 GB vs 1.5 GB)"], lines
+      "peak RSS the same (1.5 GB vs 1.5 GB)",
+      f"wrote {rec}"], lines  # (where the record went: it said nothing)
   # the record says how many calls the median is of (ARGS: --repeats 1)
   assert json.loads(rec.read_text()) == {**fake, "matmul_precision": "default", "repeats": 1}

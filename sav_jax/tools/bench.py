@@ -366,4 +366,5 @@ def run(args: argparse.Namespace) -> int:
   if args.json:
     with open(args.json, "w", encoding="utf-8") as f:
       json.dump(res, f, indent=1)
+    print(f"wrote {args.json}")
   return 0
