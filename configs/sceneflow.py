@@ -169,6 +169,9 @@ def base_config() -> ml_collections.ConfigDict:
   c.checkpoint.every_steps = 3000
   # Checkpoints kept (the latest ones); 0 keeps all.
   c.checkpoint.keep = 3
+  # Let a resumed run's keep delete earlier checkpoints saved under a keep that kept them (to
+  # lower the keep on purpose; without it such a resume is refused, naming them).
+  c.checkpoint.prune_earlier = False
   # Write checkpoints in a background thread.
   c.checkpoint.async_save = True
 

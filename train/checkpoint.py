@@ -344,7 +344,9 @@ def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
   the earlier run's `keep=0` checkpoints. A checkpoint saved before the run config was
   recorded goes only where the folder holds exactly `keep` checkpoints, all of them from
   before the record (the latest's `saved` has no keep): such a run pruned so itself, at this
-  keep.
+  keep. `checkpoint.prune_earlier` (a user lowering the keep on purpose: the checkpoints this
+  run resumes from are among those a smaller keep deletes, so moving them out first cannot
+  help) lets this run's keep delete them, with a warning that names them.
 
   Args:
     manager: the run's checkpoint manager.
@@ -368,10 +370,14 @@ def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
 
   if all(deletable(p) for p in policies.values()):
     return
-  protective = [p for p in policies.values() if not (isinstance(p, int) and p > 0)]
-  suggest = 0 if protective else max(policies.values())  # every one then goes as it would
   when = ("at its first save" if saves == 1 else
           f"by the last of the {saves} checkpoints it saves up to step {config.train.num_steps}")
+  if config.checkpoint.get("prune_earlier", False):  # the user lowers the keep on purpose
+    log.warning("config.checkpoint.prune_earlier: this run's config.checkpoint.keep=%d will "
+                "delete %s (%s) %s", keep, doomed, _policies_text(policies), when)
+    return
+  protective = [p for p in policies.values() if not (isinstance(p, int) and p > 0)]
+  suggest = 0 if protective else max(policies.values())  # every one then goes as it would
   # (a keep they were saved with deletes them too, as that keep does: not "to keep them")
   fix = ("to keep them (0 keeps all)" if suggest == 0 else
          "(the largest keep they were saved with: each is then deleted only as its own keep "
@@ -380,7 +386,8 @@ def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
       f"{manager.directory} holds {plural(len(steps), 'checkpoint')}; this run's "
       f"config.checkpoint.keep={keep} would delete {doomed} ({_policies_text(policies)}) "
       f"{when}. Pass --config.checkpoint.keep={suggest} {fix}, or move the ones you do not "
-      "need out of that folder first")
+      "need out of that folder first (or, to lower the keep on purpose, "
+      "--config.checkpoint.prune_earlier=true lets this keep delete them)")
 
 
 _UNREADABLE = "with a config whose keep cannot be read"

@@ -2535,7 +2535,7 @@ def test_a_workdir_whose_name_is_not_utf8_is_refused_before_the_run(tmp_path):
 
 
 def test_a_keep_recorded_by_a_run_that_pruned_nothing_never_deletes_keep_all_checkpoints(
-    tmp_path):
+    tmp_path, caplog):
   """Each checkpoint is kept as the run that saved it asked. A run saved with keep=0 (all),
   resumed with keep=5 for fewer saves than would prune (allowed: nothing is deleted), records
   keep=5 in its own checkpoints; a later resume with that keep was allowed too (the latest
@@ -2614,3 +2614,12 @@ def test_a_keep_recorded_by_a_run_that_pruned_nothing_never_deletes_keep_all_che
                      r"--config.checkpoint.keep=0"):
     run(5, 11)
   assert steps() == [6, 7, 8, 9, 10]
+  # Lowering the keep on purpose: the checkpoint resumed from is among those a smaller keep
+  # deletes, so no move helps; checkpoint.prune_earlier lets it, naming what goes
+  c.checkpoint.prune_earlier = True
+  with caplog.at_level(logging.WARNING, logger="train.checkpoint"):
+    run(2, 12)
+  assert steps() == [11, 12]
+  assert re.search(r"prune_earlier: this run's config.checkpoint.keep=2 will delete "
+                   r"\[6, 7, 8, 9, 10\] \(.*step 9 .*keep=0.*\) by the last of the 2 "
+                   r"checkpoints it saves up to step 12", caplog.text), caplog.text
