@@ -39,7 +39,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 import sav_jax
-from sav_jax._checks import loads_json, plural
+from sav_jax._checks import is_int, loads_json, plural
 from sav_jax.convert import orbax_io
 from sav_jax.model.init import MACHINE_FIELDS
 from sav_jax.model.vda import VideoDepthAnything
@@ -401,17 +401,13 @@ def _saved_keep(run: dict | None, manager: ocp.CheckpointManager | None = None,
   checkpoint is never deleted by a keep other than 0)."""
   if run is None:
     try:
-      stored = saved_config(manager, step)
+      run = saved_run(manager, step)
     except sav_jax.convert.CheckpointError:  # cut short: named, and kept
       return _UNREADABLE
-    if "run" not in stored:
-      return None
-    run = saved_entry(stored, "run")
   if "checkpoint.keep" not in run:
     return None if not run else _UNREADABLE
   policy = run["checkpoint.keep"]
-  valid = isinstance(policy, int) and not isinstance(policy, bool) and policy >= 0
-  return policy if valid else _UNREADABLE
+  return policy if is_int(policy) and policy >= 0 else _UNREADABLE
 
 
 def _policies_text(policies: dict) -> str:
