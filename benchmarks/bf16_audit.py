@@ -46,6 +46,7 @@ from sav_jax.model.depth import DepthExtractor  # noqa: E402  pylint: disable=wr
 from sav_jax.model.encoder import BasicEncoder  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.layers import CorrMLP, conv  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.tools.bench import json_output_problem  # noqa: E402  pylint: disable=wrong-import-position
+import gradient_check  # noqa: E402  benchmarks/gradient_check.py
 from timing import fixtures_folder, make_weights_module  # noqa: E402  benchmarks/timing.py
 
 # Modules whose compute dtype can be set alone; "carry" is the GRU state between steps.
@@ -138,14 +139,9 @@ def forward_rows(variables, left, right, parts: bool) -> list[dict]:
 
 def gradient_clip(t: int, h: int, w: int):
   """benchmarks/gradient_check.py's frames and training-loss ground truth (`t` frames of
-  `h` x `w`)."""
-  left = np.random.default_rng(0).uniform(0, 255, (1, t, h, w, 3)).astype(np.float32)
-  x = np.arange(w, dtype=np.float32)
-  disparity = np.ascontiguousarray(np.broadcast_to(3 + 2 * np.sin(x / 5), (1, t, h, w)),
-                                   np.float32)
-  valid = np.ones(disparity.shape, bool)
-  valid[..., :h // 4, :w // 4] = False
-  return left, np.roll(left, -3, axis=3), disparity, valid
+  `h` x `w`): `(left, right, disparity, valid)`."""
+  size = argparse.Namespace(frames=t, height=h, width=w)
+  return (*gradient_check.frames(size), *gradient_check.ground_truth(size))
 
 
 def gradients(mode, params, clip):

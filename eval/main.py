@@ -27,8 +27,8 @@ import time
 
 from eval import config as eval_config
 from eval import report
-from sav_jax import _checks, _signals, runtime
-from sav_jax._checks import is_int, plural
+from sav_jax import _signals, runtime
+from sav_jax._checks import is_int, plural, sav_jax_configs
 from sav_jax.config import DTYPES
 # The evaluation's own modules (`eval.runner`, `sav_jax.inference`) import JAX: they are
 # imported once the arguments and the config are checked, so `--help` and a bad config or
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
   argv = sys.argv[1:] if argv is None else list(argv)
   try:
     rest, overrides = eval_config.split_overrides(argv)
-    _checks.sav_jax_configs("eval")  # (the parser's help lists its fields)
+    sav_jax_configs("eval")  # (the parser's help lists its fields)
   except ValueError as e:
     print(f"eval: error: {e}", file=sys.stderr)
     return 2
