@@ -384,3 +384,126 @@ def test_image_header_beyond_opencvs_pixel_limit_is_named(tmp_path):
   (tmp_path / "huge.png").write_bytes(png)  # 65 bytes declaring 3.6e9 pixels
   with pytest.raises(ValueError, match="huge.png: cannot decode the image file"):
     frame_io.decode_image_file(tmp_path / "huge.png")
+
+
+def test_pfm_data_one_value_short_or_over_is_refused_stray_bytes_pass(tmp_path):
+  # Exactly W x H float32 values follow the header: one value missing is a truncated file
+  # (numpy's own "buffer is smaller" error named no file), one value more a header declaring
+  # fewer pixels than were written (the rows would be cut wrongly); 1-3 stray bytes after
+  # the values (a trailing newline) are no pixel and are read past.
+  values = np.arange(1, 7, dtype="<f4")  # 2 rows of 3, stored bottom row first
+  header = b"Pf\n3 2\n-1.0\n"
+  for name, data in (("short", values.tobytes()[:-4]), ("byte", values.tobytes()[:-1])):
+    (tmp_path / f"{name}.pfm").write_bytes(header + data)
+    with pytest.raises(ValueError, match=fr"truncated PFM file \({len(data)} bytes of data, 24 "
+                       fr"expected\): .*{name}\.pfm"):
+      frame_io.read_pfm(tmp_path / f"{name}.pfm")
+  (tmp_path / "over.pfm").write_bytes(header + values.tobytes() + struct.pack("<f", 7.0))
+  with pytest.raises(ValueError, match=r"more data than its header's 3x2 float32 values "
+                     r"\(28 bytes, 24 expected\)"):
+    frame_io.read_pfm(tmp_path / "over.pfm")
+  for stray in (b"\n", b"\n\n\n"):
+    (tmp_path / "stray.pfm").write_bytes(header + values.tobytes() + stray)
+    np.testing.assert_array_equal(frame_io.read_pfm(tmp_path / "stray.pfm"),
+                                  [[4, 5, 6], [1, 2, 3]])
+
+
+def test_pfm_zero_scale_and_other_magic_numbers_are_refused(tmp_path):
+  # The scale's sign is the byte order: 0 (or -0) gives none, and the official reader would
+  # take it as big-endian silently. PGM/PPM (P5, P6) and case variants are not PFM.
+  values = np.arange(6, dtype="<f4").tobytes()
+  for scale in (b"0", b"-0.0", b"0.0"):
+    (tmp_path / "zero.pfm").write_bytes(b"Pf\n3 2\n" + scale + b"\n" + values)
+    with pytest.raises(ValueError, match=r"malformed PFM header .*zero\.pfm"):
+      frame_io.read_pfm(tmp_path / "zero.pfm")
+  for magic in (b"P5", b"P6", b"pf", b"pF", b"PF4"):
+    (tmp_path / "magic.pfm").write_bytes(magic + b"\n3 2\n-1.0\n" + values)
+    with pytest.raises(ValueError, match=r"not a PFM file .*magic\.pfm"):
+      frame_io.read_pfm(tmp_path / "magic.pfm")
+
+
+def test_sintel_occlusion_any_non_zero_value_is_occluded(tmp_path):
+  # The official mask is `occlusion == 0`: a value of 1 (not only 255) is occluded, so a
+  # threshold at mid-grey would count faintly marked pixels as valid ground truth.
+  d = np.full((1, 6, 3), (0, 0, 3), np.uint8)  # BGR: R = 3, d = 12 px everywhere
+  cv2.imwrite(str(tmp_path / "d.png"), d)
+  cv2.imwrite(str(tmp_path / "o.png"), np.array([[0, 1, 2, 127, 128, 255]], np.uint8))
+  disp, valid = frame_io.read_sintel_disparity(tmp_path / "d.png", tmp_path / "o.png")
+  np.testing.assert_array_equal(disp, np.full((1, 6), 12.0, np.float32))
+  np.testing.assert_array_equal(valid, [[True, False, False, False, False, False]])
+
+
+def test_sintel_cam_one_value_short_is_truncated(tmp_path):
+  # 4 + 21 * 8 bytes: a file missing its last float64 (t_z) is named as truncated, not
+  # left to numpy's "buffer is smaller than requested size" naming no file.
+  raw = struct.pack("<f", 202021.25) + struct.pack("<21d", *range(21))
+  (tmp_path / "f.cam").write_bytes(raw)
+  k, rt = frame_io.read_sintel_cam(tmp_path / "f.cam")
+  assert k[0, 0] == 0 and k[2, 2] == 8 and rt[0, 0] == 9 and rt[2, 3] == 20
+  for cut in (8, 1):
+    (tmp_path / "short.cam").write_bytes(raw[:-cut])
+    with pytest.raises(ValueError, match=r"truncated Sintel \.cam file .*short\.cam"):
+      frame_io.read_sintel_cam(tmp_path / "short.cam")
+
+
+def test_16_bit_depth_png_of_several_channels_is_refused(tmp_path):
+  # A 16-bit colour PNG (a depth visualisation saved in its place) has 3 channels: refused
+  # naming the file, not returned as [H, W, 3] "depth" that fails later without it.
+  cv2.imwrite(str(tmp_path / "rgb.png"), np.full((2, 3, 3), 1000, np.uint16))
+  for read in (frame_io.read_kitti_depth, frame_io.read_vkitti2_depth,
+               frame_io.read_float16_png):
+    with pytest.raises(ValueError, match=r"expected a 1-channel 16-bit PNG, got uint16 with "
+                       r"shape \(2, 3, 3\) in .*rgb\.png"):
+      read(tmp_path / "rgb.png")
+
+
+def test_dense_valid_rule_at_its_edges():
+  # The official dense rule `d != 0 and |d| < 512`: a negative disparity counts (|d|), 512
+  # itself does not, nor 0, NaN or inf.
+  d = np.array([-3.0, 0.0, -0.0, 3.0, 511.5, 512.0, -511.5, -512.0, 600.0, np.nan, np.inf,
+                -np.inf], np.float32)
+  np.testing.assert_array_equal(frame_io.dense_valid(d),
+                                [1, 0, 0, 1, 1, 0, 1, 0, 0, 0, 0, 0])
+  np.testing.assert_array_equal(frame_io.dense_valid(d, max_disparity=4.0),
+                                [1, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0])
+
+
+def test_depth_to_disparity_of_exactly_512_px_is_invalid():
+  # d < 512, strict (the official `disp < 512`): scale 1024 over depth 2 m gives 512 px.
+  disp, valid = frame_io.depth_to_disparity(np.array([[2.0, 4.0, 2.0 + 2**-20]], np.float32),
+                                            1024.0)
+  np.testing.assert_array_equal(disp[0, :2], [512.0, 256.0])
+  np.testing.assert_array_equal(valid, [[False, True, True]])
+
+
+def test_sintel_disparity_png_of_16_bits_is_refused(tmp_path):
+  # The encoding is of 8-bit channels (4 R + G / 64 + B / 16384): 16-bit channels would give
+  # disparities 256 times too large, read as if valid.
+  cv2.imwrite(str(tmp_path / "d.png"), np.full((2, 3, 3), 3, np.uint16))
+  cv2.imwrite(str(tmp_path / "o.png"), np.zeros((2, 3), np.uint8))
+  with pytest.raises(ValueError, match=r"expected an 8-bit RGB Sintel disparity PNG, got "
+                     r"uint16 .*d\.png"):
+    frame_io.read_sintel_disparity(tmp_path / "d.png", tmp_path / "o.png")
+
+
+def test_16_bit_image_warning_edge_is_255(tmp_path):
+  # A 16-bit frame whose maximum is 255 reads as black (255 >> 8 = 0): warned; one reaching
+  # 256 keeps a non-zero high byte somewhere and is not.
+  for folder, top, warned in (("at", 255, True), ("over", 256, False)):
+    (tmp_path / folder).mkdir()
+    img = np.zeros((2, 3), np.uint16)
+    img[1, 2] = top
+    cv2.imwrite(str(tmp_path / folder / "0.png"), img)
+    with warnings.catch_warnings(record=True) as caught:
+      warnings.simplefilter("always")
+      out = frame_io.read_image(tmp_path / folder / "0.png")
+    assert len(caught) == int(warned), folder
+    assert out[1, 2].tolist() == [top >> 8] * 3
+
+
+def test_write_pfm_takes_one_channel_arrays_as_pf(tmp_path):
+  # [H, W, 1] (a disparity with its channel axis kept) is the one-channel `Pf` of [H, W].
+  arr = np.arange(6, dtype=np.float32).reshape(2, 3, 1)
+  frame_io.write_pfm(tmp_path / "a.pfm", arr)
+  assert (tmp_path / "a.pfm").read_bytes() == _pfm_bytes(arr[..., 0], True, b"Pf").replace(
+      b"-1.000000", b"-1.0")
