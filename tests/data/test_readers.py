@@ -755,7 +755,8 @@ def test_spring_dsp5(tmp_path, layout):
     with h5py.File(dirs[2] / f"disp1_left_{i:04d}.dsp5", "w") as f:
       f.create_dataset("disparity", data=full if i == 1 else full[::2, ::2])
   dirs[3].mkdir(parents=True)
-  (dirs[3] / "intrinsics.txt").write_text("1500.5 1500.5 960 540\n1501 1501 960 540\n")
+  # fy differs from fx: the scale takes fx, the first column of the first row.
+  (dirs[3] / "intrinsics.txt").write_text("1500.5 1497.25 960 540\n1501 1498 960 540\n")
   seq = registry.get_sequences("spring", tmp_path, "test")[0]
   assert seq.depth2disp_scale == pytest.approx(1500.5 * 0.065) and not seq.sparse
   f = seq[0]
@@ -798,7 +799,7 @@ def test_south_kensington_images_only(tmp_path, monkeypatch):
       written.setdefault(side, []).append(img)
   _png(data / "outdoor_1/images/left/left000000.png", _rgb(rng))  # no txt: skipped
   (data / "indoor_1/tracking_data.txt").write_text(
-      "Intrinsic: [[910.5 0. 640.]\n [0. 910.5 360.]\n [0. 0. 1.]]\n"
+      "Intrinsic: [[910.5 0. 640.]\n [0. 905.25 360.]\n [0. 0. 1.]]\n"  # fx = K[0, 0], not fy
       "Frame 0: Pose: 17\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
   monkeypatch.setitem(registry.EVAL_FRAMES, "south_kensington", 2)
   seqs = registry.get_sequences("south_kensington", tmp_path, "test")
@@ -1545,3 +1546,45 @@ def test_max_frames_cuts_any_split_and_dynamic_replica_skips_short_sequences(mon
   assert [(s.name, len(s)) for s in cut] == [("long", 10)]
   whole = registry.get_sequences("dynamic_replica", "/nowhere", "train")  # "official": whole
   assert [(s.name, len(s)) for s in whole] == [("short", 5), ("long", 20)]
+
+
+def test_dynamic_replica_focal_length_without_a_format_and_in_capitals(tmp_path):
+  # PyTorch3D's ViewpointAnnotation defaults intrinsics_format to "ndc_norm_image_bounds"
+  # (fx = f * W / 2), and the official conversion compares the format lower-cased.
+  from sav_jax.data import dynamic_replica  # pylint: disable=import-outside-toplevel
+  size = [480, 640]  # [H, W]: the two formats differ where H != W
+  assert dynamic_replica.focal_px({"focal_length": [2.0, 2.5]}, size) == 640.0
+  assert dynamic_replica.focal_px({"focal_length": [2.0, 2.5],
+                                   "intrinsics_format": "NDC_Isotropic"}, size) == 480.0
+  assert dynamic_replica.focal_px({"focal_length": [2.0, 2.5],
+                                   "intrinsics_format": "NDC_norm_image_bounds"}, size) == 640.0
+
+
+def test_folder_disparities_warned_only_when_more_than_half_are_beyond_512_px(tmp_path):
+  # "Most" is more than half of the finite non-zero values: half of them large is not warned
+  # (0 and NaN are not counted either way).
+  from sav_jax.data import stereo_folder  # pylint: disable=import-outside-toplevel
+  for name, values, warned in (("half", [0.0, np.nan, 3.0, 5.0, 600.0, 700.0], False),
+                               ("most", [0.0, np.nan, 3.0, 600.0, 700.0, 800.0], True)):
+    (tmp_path / name).mkdir()
+    np.save(tmp_path / name / "0.npy", np.array([values], np.float32))
+    with warnings.catch_warnings(record=True) as caught:
+      warnings.simplefilter("always")
+      disp, valid = stereo_folder.read_disparity(tmp_path / name / "0.npy")
+    assert [str(w.message).split(":")[0] for w in caught] == \
+        ([str(tmp_path / name / "0.npy")] if warned else []), name
+    np.testing.assert_array_equal(valid, [[v not in (0.0, 600.0, 700.0, 800.0) and v == v
+                                           for v in values]])
+    np.testing.assert_array_equal(disp, np.where(valid, np.array([values], np.float32), 0))
+
+
+def test_folder_disparity_of_booleans_is_refused(tmp_path):
+  # A mask saved as the disparity would read as 1 px wherever it is set, counted as valid.
+  from sav_jax.data import stereo_folder  # pylint: disable=import-outside-toplevel
+  np.save(tmp_path / "0.npy", np.ones((2, 3), bool))
+  with pytest.raises(ValueError, match=r"0\.npy: disparity of shape \(2, 3\) and dtype bool"):
+    stereo_folder.read_disparity(tmp_path / "0.npy")
+  np.save(tmp_path / "1.npy", np.array([[0, 7, 600]], np.int16))  # integers are pixels
+  disp, valid = stereo_folder.read_disparity(tmp_path / "1.npy")
+  np.testing.assert_array_equal(disp, [[0.0, 7.0, 0.0]])
+  np.testing.assert_array_equal(valid, [[False, True, False]])
