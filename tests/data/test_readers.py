@@ -1588,3 +1588,18 @@ def test_folder_disparity_of_booleans_is_refused(tmp_path):
   disp, valid = stereo_folder.read_disparity(tmp_path / "1.npy")
   np.testing.assert_array_equal(disp, [[0.0, 7.0, 0.0]])
   np.testing.assert_array_equal(valid, [[False, True, False]])
+
+
+def test_tartanair_test_split_is_the_official_loaders_17_entries():
+  # The official TartanAir loader's (scene, difficulty, part) test entries, written out: an
+  # entry off by its difficulty moved a sequence between train and test silently.
+  from sav_jax.data import tartanair  # pylint: disable=import-outside-toplevel
+  official = {
+      ("abandonedfactory", "Easy", "P002"), ("abandonedfactory", "Hard", "P002"),
+      ("amusement", "Easy", "P007"), ("amusement", "Hard", "P007"),
+      ("carwelding", "Hard", "P003"), ("endofworld", "Easy", "P006"),
+      ("endofworld", "Hard", "P006"), ("gascola", "Easy", "P001"), ("gascola", "Hard", "P001"),
+      ("hospital", "Hard", "P042"), ("office", "Easy", "P006"), ("office", "Hard", "P006"),
+      ("office2", "Easy", "P004"), ("office2", "Hard", "P004"), ("oldtown", "Hard", "P006"),
+      ("soulcity", "Easy", "P008"), ("soulcity", "Hard", "P008")}
+  assert len(tartanair.TEST) == 17 and set(tartanair.TEST) == official
