@@ -461,3 +461,164 @@ def test_hsv_tables_are_built_once_by_concurrent_threads(monkeypatch):
   for t in threads:
     t.join()
   assert len(builds) == 1 and got == [("tables",)] * 4
+
+
+def _coded_clip(t, h, w):
+  """Dense clip whose disparity is 1000 * (row + 1) + column + 1, so that every output pixel
+  names the source pixel it was cropped from (valid under the tests' max_disparity=1e9);
+  flat black images."""
+  ys, xs = np.mgrid[0:h, 0:w]
+  disp = np.broadcast_to((1000.0 * (ys + 1) + xs + 1).astype(np.float32), (t, h, w))
+  image = np.zeros((t, h, w, 3), np.uint8)
+  return {"left": image, "right": image.copy(), "disparity": disp.copy(),
+          "right_disparity": disp.copy()}
+
+
+def test_dense_crop_corner_is_drawn_as_the_official_randint_2_to_size_minus_crop_minus_2():
+  # Official y-jitter crop: y0 = randint(2, H - ch - 2), x0 = randint(2, W - cw - 2) (numpy's
+  # randint excludes the high end). On 48x96 frames cropped to 40x88 both are in {2, 3, 4, 5}.
+  clip = _coded_clip(2, H, W)
+  cfg = dataclasses.replace(IDENTITY, spatial_prob=0.0, yjitter=True, max_disparity=1e9)
+  corners = set()
+  for seed in range(120):
+    d = augment_clip(clip, cfg, np.random.default_rng(seed))["disparity"][0, 0, 0]
+    corners.add((int(d) // 1000 - 1, int(d) % 1000 - 1))
+  assert {y for y, _ in corners} == {2, 3, 4, 5}
+  assert {x for _, x in corners} == {2, 3, 4, 5}
+  # a y-jitter under 2 px keeps the 2 px margin (AugmentConfig.yjitter_range: max(2, it))
+  cfg1 = dataclasses.replace(cfg, yjitter_range=1)
+  assert {int(augment_clip(clip, cfg1, np.random.default_rng(s))["disparity"][0, 0, 0]) // 1000 - 1
+          for s in range(120)} == {2, 3, 4, 5}
+  # without the y-jitter (and for sparse clips): the plain randint(0, H - ch), randint(0, W - cw)
+  sparse_clip = {**clip, "right_disparity": None, "valid": np.ones((2, H, W), bool)}
+  for plain, c in ((dataclasses.replace(cfg, yjitter=False), clip), (cfg, sparse_clip)):
+    corners = set()
+    for seed in range(150):
+      out = augment_clip(c, plain, np.random.default_rng(seed), sparse=c is sparse_clip)
+      d = int(out["disparity"][0, 0, 0])
+      corners.add((d // 1000 - 1, d % 1000 - 1))
+    assert {y for y, _ in corners} == set(range(8)) == {x for _, x in corners}, sorted(corners)
+
+
+def test_yjitter_offset_is_drawn_per_frame():
+  # Officially `y1 = y0 + randint(-2, 3)` inside the frame loop: the frames of one clip get
+  # their own offsets (one offset for the whole clip would be a different augmentation).
+  clip = _coded_clip(8, H, W)
+  cfg = dataclasses.replace(IDENTITY, spatial_prob=0.0, yjitter=True, max_disparity=1e9)
+  for seed in range(3):
+    out = augment_clip(clip, cfg, np.random.default_rng(seed))
+    offsets = (out["right_disparity"][:, 0, 0] - out["disparity"][:, 0, 0]) / 1000
+    assert set(offsets.tolist()) <= {-2, -1, 0, 1, 2}
+    assert len(set(offsets.tolist())) > 1, offsets
+
+
+def test_eraser_rectangles_corner_anywhere_in_the_frame_sides_50_to_99():
+  # Officially: x0 = randint(0, W), y0 = randint(0, H), dx, dy = randint(50, 100) each, the
+  # rectangle [y0:y0+dy, x0:x0+dx] (clipped by the frame). A flat right view shows the fill
+  # (frame 0 left's mean colour) as one rectangle whose top-left corner is (y0, x0).
+  h, w = 120, 200  # wider than high: swapped x/y ranges show
+  cfg = dataclasses.replace(IDENTITY, eraser_prob=1.0, eraser_count=(1, 1))
+  corners, sides = [], []
+  for seed in range(150):
+    left = np.full((1, h, w, 3), (200, 10, 10), np.uint8)
+    right = np.full((1, h, w, 3), 5, np.uint8)
+    augment._erase(left, right, cfg,  # pylint: disable=protected-access
+                   np.random.default_rng(seed))
+    ys, xs = np.nonzero((right[0] == (200, 10, 10)).all(-1))
+    assert ys.size > 0  # p = 1: every right view is erased, inside the frame
+    y0, x0, y1, x1 = ys.min(), xs.min(), ys.max() + 1, xs.max() + 1
+    assert ys.size == (y1 - y0) * (x1 - x0)  # one filled rectangle
+    corners.append((y0, x0))
+    sides += [s for s, end, size in ((y1 - y0, y1, h), (x1 - x0, x1, w)) if end < size]
+  # x0 reaches past the frame's height (x drawn over the width), y0 covers the height
+  assert max(x for _, x in corners) >= h and max(y for y, _ in corners) > h // 2
+  assert min(sides) >= 50 and max(sides) == 99, (min(sides), max(sides))
+
+
+def test_gain_alone_scales_through_the_gamma_lut():
+  # torchvision adjust_gamma on PIL: int(255.999 * gain * (v / 255) ** gamma), also for gamma 1
+  clip = _uniform_clip([[200, 100, 50]] * T, [[10, 60, 250]] * T)
+  cfg = dataclasses.replace(IDENTITY, photometric=True, brightness=(1, 1), contrast=(1, 1),
+                            saturation=(1, 1), hue=(0, 0), gain=(0.5, 0.5))
+  out = augment_clip(clip, cfg, np.random.default_rng(0))
+  np.testing.assert_array_equal(out["left"][0, 0, 0], [100, 50, 25])  # int(255.999*.5*v/255)
+  np.testing.assert_array_equal(out["right"][0, 0, 0], [5, 30, 125])
+
+
+def test_sparse_points_on_the_far_edges_are_dropped_and_collisions_keep_the_last():
+  # Official resize_sparse_flow_map keeps 0 < x < W1 and 0 < y < H1 (rounded, scaled) and
+  # writes the points in row-major order (the last write to a pixel stays).
+  disp = np.zeros((4, 6), np.float32)
+  valid = np.zeros((4, 6), bool)
+  for (y, x, v) in ((1, 5, 3.0), (3, 2, 5.0), (1, 1, 7.0), (2, 4, 8.0), (2, 5, 9.0)):
+    disp[y, x], valid[y, x] = v, True
+  # sx = sy = 2 into (6, 10): (1,5) -> x = 10 = W1 dropped; (3,2) -> y = 6 = H1 dropped;
+  # (1,1) -> (2, 2); (2,4) -> (4, 8); (2,5) -> x = 10 dropped. sx = sy = 0.5 into (2, 3):
+  # (1,5), (1,1) -> y = 0 dropped; (3,2) -> y = 2 = H1 dropped; (2,4) -> (1, 2) and
+  # (2,5) -> (1, round(2.5) = 2), the same pixel: the later point's 9 * 0.5 stays.
+  d, m = _resize_sparse(disp, valid, 2.0, 2.0, (6, 10))
+  assert list(zip(*np.nonzero(m))) == [(2, 2), (4, 8)] and (d[2, 2], d[4, 8]) == (14.0, 16.0)
+  d, m = _resize_sparse(disp, valid, 0.5, 0.5, (2, 3))
+  assert list(zip(*np.nonzero(m))) == [(1, 2)] and d[1, 2] == 4.5  # 9 * 0.5, not 8 * 0.5
+
+
+def test_asymmetric_jitter_works_on_each_image_own_pixels():
+  # With p = 1 every image gets its own draw of its own pixels: identity ranges (every
+  # ColorJitter operation left out) give the input back, views and frames in place.
+  clip = _uniform_clip([[200, 100, 50], [90, 180, 30], [10, 60, 250]],
+                       [[150, 150, 150], [240, 20, 120], [70, 70, 200]])
+  cfg = dataclasses.replace(IDENTITY, photometric=True, brightness=(1, 1), contrast=(1, 1),
+                            saturation=(1, 1), hue=(0, 0), asymmetric_prob=1.0)
+  out = augment_clip(clip, cfg, np.random.default_rng(0))
+  np.testing.assert_array_equal(out["left"], clip["left"][:, 4:-4, 4:-4])
+  np.testing.assert_array_equal(out["right"], clip["right"][:, 4:-4, 4:-4])
+
+
+def test_eraser_fill_is_the_truncated_mean_colour():
+  # Official: `seq[i][cam][...] = np.mean(seq[0][0].reshape(-1, 3), axis=0)`, a float mean
+  # written into uint8 (truncated): half 0, half 255 is 127.5 -> 127; 1/3 of 200 -> 66.
+  left = np.zeros((1, 60, 90, 3), np.uint8)
+  left[0, :30] = (255, 255, 0)
+  left[0, :20, :, 2] = 200
+  before = left.copy()
+  cfg = dataclasses.replace(IDENTITY, eraser_prob=1.0, eraser_count=(1, 1))
+  # frame 0's left is the first image erased: its fill is the mean of the unerased image
+  augment._erase(left, np.zeros_like(left), cfg,  # pylint: disable=protected-access
+                 np.random.default_rng(0))
+  filled = left[0][(left[0] != before[0]).any(-1)]
+  assert len(filled) > 0 and (filled == (127, 127, 66)).all(), np.unique(filled, axis=0)
+
+
+def test_stretch_factors_span_both_directions_on_each_axis():
+  # sx = s * 2^U(-0.2, 0.2) and sy = s * 2^U(-0.2, 0.2): each axis both shrinks and grows.
+  cfg = AugmentConfig(scale_range=(0.0, 0.0), stretch_prob=1.0)
+  logs = np.log2([_scales(2000, 4000, cfg, np.random.default_rng(seed)) for seed in range(40)])
+  assert (np.abs(logs) <= 0.2).all()
+  assert (logs.min(0) < -0.1).all() and (logs.max(0) > 0.1).all(), logs
+
+
+def test_dense_valid_rule_keeps_negative_and_drops_zero_and_the_cut():
+  # Official (video_datasets.py, dense): valid = |d| < 512 and d != 0 on the final disparity;
+  # the sign does not matter, and `max_disparity` moves the cut.
+  clip = _planar_clip(np.random.default_rng(0))
+  clip["disparity"][:, :, :] = np.array([-5.0, 0.0, 511.5, 512.0, -600.0, 30.0] * (W // 6),
+                                        np.float32)
+  out = augment_clip(clip, IDENTITY, np.random.default_rng(0))
+  kinds = {float(d): bool(v) for d, v in zip(out["disparity"][0, 0], out["valid"][0, 0])}
+  assert kinds == {-5.0: True, 0.0: False, 511.5: True, 512.0: False, -600.0: False,
+                   30.0: True}
+  out = augment_clip(clip, dataclasses.replace(IDENTITY, max_disparity=30.0),
+                     np.random.default_rng(0))
+  kinds = {float(d): bool(v) for d, v in zip(out["disparity"][0, 0], out["valid"][0, 0])}
+  assert kinds == {-5.0: True, 0.0: False, 511.5: False, 512.0: False, -600.0: False,
+                   30.0: False}
+
+
+def test_sparse_weight_of_exactly_one_half_is_invalid():
+  # AugmentConfig/augment_clip: weights count where > 0.5, as the metrics' `m > 0.5`
+  clip = _planar_clip(np.random.default_rng(0))
+  clip.update(sparse=True, disparity=np.full((T, H, W), 5.0, np.float32),
+              valid=np.full((T, H, W), 0.5))
+  out = augment_clip(clip, dataclasses.replace(IDENTITY, spatial_prob=0.0),
+                     np.random.default_rng(0))
+  assert not out["valid"].any()
