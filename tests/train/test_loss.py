@@ -122,3 +122,14 @@ def test_valid_threshold_magnitude_cut_and_accuracy_bounds():
   for tau, below in ((1, 1), (3, 2), (5, 3)):  # errors 0 | 0, 1 | 0, 1, 3
     np.testing.assert_allclose(float(metrics[f"{tau}px"]), below / 4, rtol=1e-6, err_msg=tau)
   np.testing.assert_allclose(float(metrics["valid_fraction"]), 4 / 6, rtol=1e-6)
+
+
+def test_the_loss_cut_is_700_not_the_dense_valid_rules_512():
+  # Official sequence_loss: max_flow = 700. A ground truth of 600 px (beyond the dense
+  # datasets' 512 valid rule, which augmentation applies) still counts in the loss.
+  gt = np.array([[[[600.0, 699.0, 10.0]]]], np.float32)  # [1, 1, 1, 3]
+  preds = np.array([[[[[602.0, 695.0, 11.0]]]]], np.float32)  # errors 2, 4, 1
+  loss, metrics = loss_lib.sequence_loss(preds, gt, np.ones_like(gt))
+  assert loss_lib.MAX_DISPARITY == 700.0
+  np.testing.assert_allclose(float(loss), (2 + 4 + 1) / 3, rtol=1e-6)
+  np.testing.assert_allclose(float(metrics["valid_fraction"]), 1.0)
