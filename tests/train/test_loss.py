@@ -133,3 +133,16 @@ def test_the_loss_cut_is_700_not_the_dense_valid_rules_512():
   assert loss_lib.MAX_DISPARITY == 700.0
   np.testing.assert_allclose(float(loss), (2 + 4 + 1) / 3, rtol=1e-6)
   np.testing.assert_allclose(float(metrics["valid_fraction"]), 1.0)
+
+
+def test_pooled_frames_count_as_measured_when_any_clip_has_a_valid_pixel():
+  # per_sample=False pools a frame's valid pixels over the batch (official sequence_loss on
+  # one GPU): a frame where only clip 0 has ground truth is still one pooled, measured
+  # frame, so the metrics are the official ones with no frame left out.
+  preds, gt, valid = _case(np.random.default_rng(4))
+  valid[1, 1:] = 0.0  # clip 1: frames 1 and 2 without ground truth
+  loss, metrics = loss_lib.sequence_loss(preds, gt, valid, per_sample=False)
+  ref_loss, ref_metrics = _official_forward_batch(preds, gt, valid, False)
+  np.testing.assert_allclose(float(loss), ref_loss, rtol=1e-5)
+  for k, v in ref_metrics.items():
+    np.testing.assert_allclose(float(metrics[k]), v, rtol=1e-5, atol=1e-7, err_msg=k)
