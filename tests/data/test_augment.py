@@ -622,3 +622,17 @@ def test_sparse_weight_of_exactly_one_half_is_invalid():
   out = augment_clip(clip, dataclasses.replace(IDENTITY, spatial_prob=0.0),
                      np.random.default_rng(0))
   assert not out["valid"].any()
+
+
+def test_each_jitter_factor_is_drawn_over_its_own_whole_range():
+  # torchvision ColorJitter draws every factor uniformly in its own [min, max] (brightness
+  # 0.4 is [0.6, 1.4], not [1, 1.4]); distinct ranges show a factor drawn from another's.
+  ranges = dict(brightness=(0.6, 1.4), contrast=(0.2, 0.3), saturation=(0.0, 1.4),
+                hue=(-0.5 / 3.14, 0.5 / 3.14), gamma=(0.5, 0.7), gain=(1.1, 1.3))
+  cfg = AugmentConfig(**ranges)
+  rng = np.random.default_rng(0)
+  draws = [_Jitter(cfg, rng) for _ in range(200)]
+  for name, (lo, hi) in ranges.items():
+    values = np.array([getattr(j, name) for j in draws])
+    span = hi - lo
+    assert lo <= values.min() < lo + 0.1 * span and hi - 0.1 * span < values.max() <= hi, name
