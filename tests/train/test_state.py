@@ -2623,3 +2623,13 @@ def test_a_keep_recorded_by_a_run_that_pruned_nothing_never_deletes_keep_all_che
   assert re.search(r"prune_earlier: this run's config.checkpoint.keep=2 will delete "
                    r"\[6, 7, 8, 9, 10\] \(.*step 9 .*keep=0.*\) by the last of the 2 "
                    r"checkpoints it saves up to step 12", caplog.text), caplog.text
+
+
+def test_one_cycle_refuses_a_warm_up_ending_at_step_0_or_at_the_cycles_end():
+  # PyTorch's linear OneCycleLR divides by the warm-up's length (pct_start * total - 1): at
+  # 0 its first rate is 0 / 0 (here NaN); a warm-up ending at total - 1 leaves no decay.
+  with pytest.raises(ValueError, match="degenerate one-cycle schedule"):
+    optim.one_cycle_linear(1e-4, 100, 0.01)  # 0.01 * 100 - 1 = 0
+  with pytest.raises(ValueError, match="degenerate one-cycle schedule"):
+    optim.one_cycle_linear(1e-4, 100, 1.0)  # ends at 99 = total - 1
+  assert np.isfinite(float(optim.one_cycle_linear(1e-4, 201, 0.01)(0)))  # ends at 1.01
