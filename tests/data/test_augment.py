@@ -636,3 +636,27 @@ def test_each_jitter_factor_is_drawn_over_its_own_whole_range():
     values = np.array([getattr(j, name) for j in draws])
     span = hi - lo
     assert lo <= values.min() < lo + 0.1 * span and hi - 0.1 * span < values.max() <= hi, name
+
+
+def test_sparse_mask_is_carried_through_the_resize_not_read_off_the_disparity():
+  # Official resize_sparse_flow_map scatters the valid flags themselves: a valid point keeps
+  # its flag whatever its value (here 0 px everywhere), only its place changes.
+  clip = _planar_clip(np.random.default_rng(0))
+  clip.update(sparse=True, disparity=np.zeros((T, H, W), np.float32),
+              valid=np.ones((T, H, W), bool))
+  cfg = dataclasses.replace(IDENTITY, crop_size=(24, 48), scale_range=(-0.3, -0.3))
+  out = augment_clip(clip, cfg, np.random.default_rng(0))  # s = 0.81 > (24 + 8) / 48
+  assert (out["disparity"] == 0).all() and out["valid"].mean() > 0.9
+
+
+def test_right_ground_truth_is_resized_and_cropped_as_the_left():
+  # Officially every GT map of a frame goes through the same resize (times sx) and crop:
+  # with equal left and right GT and no y-jitter they stay equal.
+  clip = _planar_clip(np.random.default_rng(0))
+  clip["right_disparity"] = clip["disparity"].copy()
+  cfg = AugmentConfig(crop_size=(24, 48), scale_range=(0.2, 0.4), photometric=False,
+                      eraser_prob=0.0, yjitter=False)
+  for seed in range(3):
+    out = augment_clip(clip, cfg, np.random.default_rng(seed))
+    np.testing.assert_array_equal(out["right_disparity"], out["disparity"])
+    np.testing.assert_array_equal(out["right_valid"], out["valid"])
