@@ -404,7 +404,7 @@ def test_aggregate_is_frame_weighted():
   assert out["b"] == pytest.approx(0.5)  # missing metric still divides by all frames
   assert M.aggregate([]) == {}
   for bad in ([({"a": 1.0}, -3), ({"a": 1.0}, 3)], [({"a": 1.0}, 2.7)], [{"a": 1.0}],
-              [({"a": 1.0}, True)]):
+              [({"a": 1.0}, True)], [({"a": 1.0}, 0)]):  # 0: a sequence without frames
     with pytest.raises(ValueError, match=r"item 0 must be a \(metrics dict, frame count >= 1\)"):
       M.aggregate(bad)
 
@@ -450,6 +450,11 @@ def test_eval_sequence_preprocessing():
   assert "disp_TCC" not in res  # no scale: depth metrics skipped
   res = M.eval_sequence(pred, gt, valid, scale=100.0)
   assert "disp_TCC" in res and "disp_OPW" not in res
+  # round(valid), not valid, scales the prediction: a weight 0.64 keeps it whole, and the
+  # error is sqrt(0.64 * (1 - 0)^2) = 0.8 (pred * 0.64 would give 0.64 * 0.8 = 0.512).
+  one = np.ones((2, 1, 2), np.float32)
+  res = M.eval_sequence(one, 0 * one, 0.64 * one)
+  assert res["disp_epe_mean"] == pytest.approx(0.8, rel=1e-6)
 
 
 def test_masks_outside_zero_one_are_refused():
@@ -840,3 +845,179 @@ def test_videos_that_are_not_rgb_0_255_warn():
                                        r"0\.\.255, which OPW and RTC expect \(RGB 0\.\.255; "
                                        r"divide 16-bit"):
     M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=video * 257)
+
+
+def test_a_one_pixel_crop_removes_the_border():
+  """crop=1 drops one row and column on each side (the official `[..., 1:-1, 1:-1]`): a
+  border of 9 px errors around a 0.25 px interior leaves EPE 0.25 with no pixel bad at 0.5 px
+  (uncropped, the 14 border pixels of each 4x5 frame would dominate: (14*9 + 6*0.25) / 20)."""
+  gt = np.zeros((2, 4, 5), np.float32)
+  pred = np.full_like(gt, 9.0)
+  pred[:, 1:-1, 1:-1] = 0.25
+  pred[1, 1:-1, 1:-1] = 0.75  # interior temporal change 0.5 px, border none
+  res = M.eval_endpoint_error_sequence(pred, gt, np.ones_like(gt), crop=1)
+  assert res["epe_mean"] == pytest.approx(0.5)  # (6 * 0.25 + 6 * 0.75) / 12
+  assert res["epe_bad_0.5px"] == 50.0 and res["epe_bad_1px"] == 0.0
+  assert res["temp_epe_mean"] == pytest.approx(0.5) and res["temp_epe_bad_0.5px"] == 0.0
+  full = M.eval_endpoint_error_sequence(pred, gt, np.ones_like(gt))
+  assert full["epe_mean"] == pytest.approx((28 * 9 + 6 * 0.25 + 6 * 0.75) / 40)
+
+
+def _ssim_by_hand(x, y, size=11, sigma=1.5, k=(0.01, 0.03)):
+  """SSIM of one [H, W] pair written out window by window: a 2-D Gaussian (outer product of
+  the 1-D window) over every window position fully inside the image; an axis shorter than the
+  window is not filtered (a 1-pixel window there), as the reference `gaussian_filter`."""
+  g = np.exp(-((np.arange(size) - size // 2) ** 2) / (2 * sigma ** 2))
+  g /= g.sum()
+  gh = g if x.shape[0] >= size else np.ones(1)
+  gw = g if x.shape[1] >= size else np.ones(1)
+  w2 = np.outer(gh, gw)
+  c1, c2 = k[0] ** 2, k[1] ** 2
+  vals = []
+  for i in range(x.shape[0] - len(gh) + 1):
+    for j in range(x.shape[1] - len(gw) + 1):
+      a, b = x[i:i + len(gh), j:j + len(gw)], y[i:i + len(gh), j:j + len(gw)]
+      mx, my = (w2 * a).sum(), (w2 * b).sum()
+      vx, vy = (w2 * a * a).sum() - mx ** 2, (w2 * b * b).sum() - my ** 2
+      cxy = (w2 * a * b).sum() - mx * my
+      vals.append((2 * mx * my + c1) / (mx ** 2 + my ** 2 + c1)
+                  * (2 * cxy + c2) / (vx + vy + c2))
+  return np.mean(vals)
+
+
+@pytest.mark.parametrize("shape", [(11, 11), (11, 16), (16, 11), (7, 13), (12, 5)])
+def test_ssim_matches_a_window_by_window_computation(shape):
+  """SSIM of images whose sides are exactly the window size (11: one valid position, filtered)
+  or shorter (not filtered along that axis), against the definition written out by hand."""
+  rng = np.random.default_rng(sum(shape))
+  x = rng.uniform(0, 1, shape)
+  y = np.clip(x + rng.normal(0, 0.2, shape), 0, 1)
+  want = _ssim_by_hand(x, y)
+  assert want > 0.1  # (so that the ReLU does not hide a difference)
+  # rel 1e-6: the window is built in float32, as the reference's (here in float64)
+  assert M.ssim(x, y) == pytest.approx(want, rel=1e-6)
+
+
+def test_tcc_of_nan_predicted_depth_counts_it_as_zero():
+  """eval_tcc_sequence sets NaN predicted depth to 0 after masking, as the official TCC: a NaN
+  at a masked-out pixel changes nothing (it is not NaN), one at a valid pixel scores as 0."""
+  rng = np.random.default_rng(7)
+  gt = rng.uniform(5, 20, (3, 16, 16)).astype(np.float32)
+  pred = gt + rng.normal(0, 0.5, gt.shape).astype(np.float32)
+  mask = np.ones_like(gt)
+  mask[1, 3, 4] = 0
+  want = M.eval_tcc_sequence(pred, gt, mask)
+  assert 0 < want < 1
+  nan_pred = pred.copy()
+  nan_pred[1, 3, 4] = np.nan
+  assert M.eval_tcc_sequence(nan_pred, gt, mask) == want
+  nan_pred[2, 5, 6] = np.nan
+  zero_pred = pred.copy()
+  zero_pred[2, 5, 6] = 0
+  assert M.eval_tcc_sequence(nan_pred, gt, mask) == M.eval_tcc_sequence(zero_pred, gt, mask)
+
+
+def test_tcm_drops_pixels_where_the_gt_flow_exceeds_250():
+  """M_t keeps pixels where no channel of the GT depth flow is > 250 (strictly; the predicted
+  flow is not looked at): predicted flows that agree with the GT except at pixels of GT flow
+  300 score a perfect 1; the same disagreement where only the predicted flow is 300, or where
+  the GT flow is 250, counts (< 1)."""
+  rng = np.random.default_rng(8)
+  fy = rng.normal(0, 2, (1, 2, 16, 16)).astype(np.float32)
+  fx = fy.copy()
+  mask = np.ones((2, 16, 16), np.float32)
+  fy[0, 1, 4:8, 4:8] = 300.0  # the GT flow's v channel only
+  assert M.eval_tcm_sequence(fx, fy, mask) == pytest.approx(1.0, rel=1e-12)
+  assert M.eval_tcm_sequence(fy, fx, mask) < 0.99  # the pixels count when only pred is 300
+  fy[0, 1, 4:8, 4:8] = 250.0  # not above 250: kept, and the disagreement counts
+  assert M.eval_tcm_sequence(fx, fy, mask) < 0.99
+
+
+def test_tcm_clips_each_pairs_ssim_at_zero():
+  """TCM applies SSIM's ReLU per flow channel, as the official `nonnegative_ssim=True`: flows
+  that are a checkerboard and its inverse (SSIM ~-0.996 by hand, see the SSIM test above)
+  score 0, not a negative TCM."""
+  checker = (np.indices((16, 16)).sum(0) % 2).astype(np.float32)
+  fx = np.stack([checker, checker])[None]
+  mask = np.ones((2, 16, 16), np.float32)
+  assert M.eval_tcm_sequence(fx, 1 - fx, mask) == 0.0
+  assert M.eval_tcm_sequence(fx, fx, mask) == pytest.approx(1.0, rel=1e-12)
+
+
+def test_opw_keeps_flows_up_to_250_px():
+  """V_t drops pixels whose left-video flow is > 250 px only: a 30 px flow is kept. Frame 1's
+  depth is 12 where frame 0's is 10 (a black video keeps the photometric weight 1), so the
+  pixels that sample inside the frame (columns 0..9 of 40) give OPW |12 - 10| = 2, and RTC 0
+  (ratio 1.2)."""
+  t, h, w = 2, 3, 40
+  depth = np.full((t, h, w), 10.0, np.float32)
+  depth[1] = 12.0
+  video = np.zeros((t, 3, h, w), np.uint8)
+  flows = np.zeros((t - 1, 2, h, w), np.float32)
+  flows[:, 0] = 30.0
+  mask = np.ones_like(depth)
+  np.testing.assert_allclose(M.eval_opw_sequence(video, depth, depth, mask, flows), 2.0,
+                             rtol=1e-5)
+  assert M.eval_rtc_sequence(video, depth, depth, mask, flows) == (0.0, 0.0)
+  # The depth bands are <= K: a GT depth of exactly 30 is in OPW_30, one just above it is not.
+  gt = np.full_like(depth, 30.0)
+  np.testing.assert_allclose(M.eval_opw_sequence(video, depth, gt, mask, flows), 2.0, rtol=1e-5)
+  gt[1] = np.nextafter(np.float32(30), np.float32(31))
+  opw = M.eval_opw_sequence(video, depth, gt, mask, flows)
+  assert opw[1] == 0.0 and opw[0] == opw[2] == opw[3] == pytest.approx(2.0, rel=1e-5)
+
+
+def test_opw_weight_of_exactly_one_percent_is_dropped():
+  """V_t = [weight > 0.01], strict: a pixel whose mask product m_t m_{t+1} is exactly 0.01
+  (photometric weight 1 on a black video) is left out. With a +1 px flow, column 0 samples
+  column 1 of frame 1 (depth 20 against 10: error 10) under the weight 1 * 0.01; the other
+  pixels inside the frame have error |12 - 10| = 2, so OPW is 2 without column 0."""
+  t, h, w = 2, 5, 17
+  depth = np.full((t, h, w), 10.0, np.float32)
+  depth[1] = 12.0
+  depth[1, :, 1] = 20.0
+  mask = np.ones_like(depth)
+  mask[1, :, 0] = 0.01
+  video = np.zeros((t, 3, h, w), np.uint8)
+  flows = np.zeros((t - 1, 2, h, w), np.float32)
+  flows[:, 0] = 1.0
+  opw = M.eval_opw_sequence(video, depth, depth, mask, flows)
+  np.testing.assert_allclose(opw, 2.0, rtol=1e-5)
+
+
+def test_rtc_counts_an_overflowing_depth_ratio_as_consistent():
+  """The official RTC sets an infinite ratio to -1e10 before max(x_t / W_t, W_t / x_t) < 1.01:
+  where x_t / W_t overflows float32 (3e38 / 1e-3), the max is the other ratio, ~0, and the
+  pixel counts as consistent (RTC 1, not 0), however inconsistent the depths are."""
+  t, h, w = 2, 4, 6
+  depth = np.full((t, h, w), 3e38, np.float32)
+  depth[1] = 1e-3
+  video = np.zeros((t, 3, h, w), np.uint8)
+  flows = np.zeros((t - 1, 2, h, w), np.float32)
+  mask = np.ones_like(depth)
+  gt = np.full_like(depth, 10.0)
+  with np.errstate(over="ignore"):  # (the overflow this test is about)
+    assert M.eval_rtc_sequence(video, depth, gt, mask, flows) == (1.0, 1.0)
+  depth[0] = 1e3  # a finite ratio of 1e6: inconsistent
+  assert M.eval_rtc_sequence(video, depth, gt, mask, flows) == (0.0, 0.0)
+
+
+def test_rtc_ratio_threshold_and_masked_out_depths():
+  """RTC's ratio test is strict (< 1.01): depths 1.01 against 1 (float32, as the reference
+  compares) are inconsistent, the float just below 1.01 consistent. A pixel of mask 0.4 at t
+  (x_t masked to 0, but V_t weighs 0.4 > 0.01) has W_t / x_t = inf, set to -1e10, and
+  x_t / W_t = 0: it counts as consistent, as in the official code. W = 17, H = 5 keeps
+  grid_sample's round trip exact."""
+  t, h, w = 2, 5, 17
+  video = np.zeros((t, 3, h, w), np.uint8)
+  flows = np.zeros((t - 1, 2, h, w), np.float32)
+  mask = np.ones((t, h, w), np.float32)
+  gt = np.full((t, h, w), 10.0, np.float32)
+  depth = np.ones((t, h, w), np.float32)
+  depth[0] = 1.01
+  assert M.eval_rtc_sequence(video, depth, gt, mask, flows) == (0.0, 0.0)
+  depth[0] = np.nextafter(np.float32(1.01), np.float32(0))
+  assert M.eval_rtc_sequence(video, depth, gt, mask, flows) == (1.0, 1.0)
+  depth[0] = 2.0  # ratio 2 everywhere ...
+  mask[0, :, :5] = 0.4  # ... but the 5 columns masked out at t count as consistent
+  assert M.eval_rtc_sequence(video, depth, gt, mask, flows) == (5 / 17, 5 / 17)
