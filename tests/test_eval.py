@@ -1231,6 +1231,26 @@ def test_report_columns_show_the_metrics_they_name(tmp_path):
       ("seq_a", "3"), ("seq_b", "5"), (eval_report.ALL, "8")]
 
 
+def test_report_shows_a_metric_that_any_method_has():
+  """A column of results.md is shown when at least one method has its metric; a method
+  without it shows "–" there (the columns were those of every method: none at all here). The
+  aggregate heading names the metrics where higher is better: TCC, TCM and RTC (the share of
+  consistent pixels), not OPW (a warping error)."""
+  from eval.main import build_summary  # pylint: disable=import-outside-toplevel
+  sav = {"disp_epe_mean": 1.5, "disp_TCC": 0.75, "disp_TCM": 0.5, "disp_OPW": 2.25,
+         "disp_RTC": 0.25}
+  results = [eval_runner.SequenceResult(name="seq_a", frames=3,
+                                        metrics={"sav": sav, "sgbm": {"disp_epe_mean": 2.5}},
+                                        seconds={"sav": 1.0, "sgbm": 1.0})]
+  config = eval_config.load_config(str(CONFIGS / "dynamic_replica.py"))
+  md = eval_report.markdown(build_summary(config, "w", results, ["sav", "sgbm"]))
+  head, rows = _table(md, "Method")
+  assert head == ["Method", "EPE", "TCC", "TCM", "OPW", "RTC", "frames/s"], head
+  assert rows[0][1:6] == ["1.500", "0.750", "0.500", "2.250", "0.250"]
+  assert rows[1][:6] == ["StereoSGBM", "2.500", "–", "–", "–", "–"]
+  assert "lower is better, except TCC, TCM, RTC)" in md
+
+
 def test_short_dynamic_replica_sequences_are_dropped_and_named(tmp_path):
   """Dynamic Replica sequences shorter than sample_len are skipped (as the official loader does)
   and named for the report; one of exactly sample_len frames is kept, as are the short
@@ -1558,6 +1578,18 @@ def test_the_synthetic_evaluation_set_is_not_the_training_set():
   assert eval_data.load_sequences(config, None)[0].cfg.seed == config.synthetic.seed
   # (and its SGBM baseline searches the whole disparity range of the clips)
   assert config.baseline.max_disparity >= config.synthetic.max_disparity
+
+
+def test_per_frame_curves_scale_the_prediction_by_the_rounded_mask():
+  """per_frame_errors multiplies the prediction by round(valid), as the evaluator does: a
+  weight 0.64 (kept: > 0.5) leaves it whole, and the error is sqrt(0.64 * (1 - 0)^2) = 0.8
+  (by valid itself, 0.64 * 0.8 = 0.512); a weight 0.3 drops the pixel."""
+  pred = np.ones((2, 1, 3), np.float32)
+  valid = np.array([0.64, 0.64, 0.3], np.float32)[None, None].repeat(2, axis=0)
+  pred[:, :, 2] = 50.0
+  epe, tepe = eval_runner.per_frame_errors(pred, np.zeros_like(pred), valid)
+  np.testing.assert_allclose(epe, [0.8, 0.8], rtol=1e-6)
+  np.testing.assert_array_equal(tepe, [0.0])  # the same prediction in both frames
 
 
 def test_per_frame_curves_are_the_official_rule_per_frame(monkeypatch):
