@@ -1249,6 +1249,15 @@ def test_report_shows_a_metric_that_any_method_has():
   assert rows[0][1:6] == ["1.500", "0.750", "0.500", "2.250", "0.250"]
   assert rows[1][:6] == ["StereoSGBM", "2.500", "–", "–", "–", "–"]
   assert "lower is better, except TCC, TCM, RTC)" in md
+  # Each table's separator row has one cell per heading (one more and it is no table).
+  lines = md.splitlines()
+  for first in ("| Method |", "| Sequence |"):
+    i = next(i for i, line in enumerate(lines) if line.startswith(first))
+    assert lines[i + 1].count("|") == lines[i].count("|"), (lines[i], lines[i + 1])
+  # Without ground truth anywhere no "(0 with ground truth)": the frames are all there is.
+  results = [eval_runner.SequenceResult(name="seq_b", frames=4, seconds={"sav": 1.0})]
+  md = eval_report.markdown(build_summary(config, "w", results, ["sav"]))
+  assert "1 sequence, 4 frames." in md and "with ground truth" not in md, md
 
 
 def test_short_dynamic_replica_sequences_are_dropped_and_named(tmp_path):

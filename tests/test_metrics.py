@@ -1021,3 +1021,41 @@ def test_rtc_ratio_threshold_and_masked_out_depths():
   depth[0] = 2.0  # ratio 2 everywhere ...
   mask[0, :, :5] = 0.4  # ... but the 5 columns masked out at t count as consistent
   assert M.eval_rtc_sequence(video, depth, gt, mask, flows) == (5 / 17, 5 / 17)
+
+
+def test_two_frames_without_a_pixel_valid_in_both_are_noted():
+  """no_valid_pair holds from T = 2 frames on: two frames whose valid pixels lie in different
+  places leave TEPE's only pair empty, and the note says so (a note for T > 2 only left the
+  two-frame case silent); one frame has no pair at all (its own note, T=1)."""
+  mask = np.zeros((2, 2, 2), np.float32)
+  mask[0, 0] = 1
+  mask[1, 1] = 1
+  assert M.no_valid_pair(mask) and not M.no_valid_pair(np.ones_like(mask))
+  assert not M.no_valid_pair(mask[:1])
+  assert M.not_measured_note(mask).startswith(
+      "valid has no pixel valid in two consecutive frames (TEPE's pairs)")
+
+
+def test_negative_infinite_ground_truth_is_refused_by_eval_batch_too():
+  """eval_batch takes the GT as it is (no |gt|): -inf at a valid pixel would give an infinite
+  EPE as +inf does, and is refused the same way."""
+  gt = np.full((2, 3, 3), 4.0, np.float32)
+  gt[1, 2, 2] = -np.inf
+  with pytest.raises(ValueError, match=r"^gt is infinite at valid pixels of mask in frame\(s\) "
+                                       r"\[1\]"):
+    M.eval_batch(np.ones_like(gt), gt, np.ones_like(gt))
+
+
+def test_tcc_weighs_depth_changes_by_the_fractional_mask():
+  """eval_batch's TCC multiplies the depth changes by m_t m_{t+1} of the fractional mask as
+  given (the official delta_mask), not a rounded one: against SSIM written out by hand."""
+  rng = np.random.default_rng(9)
+  disp = rng.uniform(2, 8, (2, 12, 12)).astype(np.float32)
+  pred = disp + rng.normal(0, 0.3, disp.shape).astype(np.float32)
+  mask = rng.uniform(0.6, 1.0, disp.shape).astype(np.float32)
+  res, _ = M.eval_batch(pred, disp, mask, scale=20.0)
+  zx, zy = np.float32(20.0) / pred, np.float32(20.0) / disp
+  dm = (mask[0] * mask[1]).astype(np.float64)
+  want = _ssim_by_hand(np.abs(zx[0] - zx[1]) * dm, np.abs(zy[0] - zy[1]) * dm)
+  assert 0.1 < want < 0.99
+  assert res["disp_TCC"] == pytest.approx(want, rel=1e-6)
