@@ -1258,6 +1258,11 @@ def test_report_shows_a_metric_that_any_method_has():
   results = [eval_runner.SequenceResult(name="seq_b", frames=4, seconds={"sav": 1.0})]
   md = eval_report.markdown(build_summary(config, "w", results, ["sav"]))
   assert "1 sequence, 4 frames." in md and "with ground truth" not in md, md
+  # The notes of every sequence are listed, in order.
+  results = [eval_runner.SequenceResult(name=n, frames=2, seconds={"sav": 1.0}, notes=[n + "!"])
+             for n in ("seq_b", "seq_c")]
+  md = eval_report.markdown(build_summary(config, "w", results, ["sav"]))
+  assert "Notes:\n- seq_b!\n- seq_c!\n" in md, md
 
 
 def test_short_dynamic_replica_sequences_are_dropped_and_named(tmp_path):
@@ -1592,13 +1597,15 @@ def test_the_synthetic_evaluation_set_is_not_the_training_set():
 def test_per_frame_curves_scale_the_prediction_by_the_rounded_mask():
   """per_frame_errors multiplies the prediction by round(valid), as the evaluator does: a
   weight 0.64 (kept: > 0.5) leaves it whole, and the error is sqrt(0.64 * (1 - 0)^2) = 0.8
-  (by valid itself, 0.64 * 0.8 = 0.512); a weight 0.3 drops the pixel."""
-  pred = np.ones((2, 1, 3), np.float32)
-  valid = np.array([0.64, 0.64, 0.3], np.float32)[None, None].repeat(2, axis=0)
+  (by valid itself, 0.64 * 0.8 = 0.512); a weight 0.3 drops the pixel (a frame of them
+  has no valid pixel)."""
+  pred = np.ones((3, 1, 3), np.float32)
+  valid = np.array([0.64, 0.64, 0.3], np.float32)[None, None].repeat(3, axis=0)
   pred[:, :, 2] = 50.0
+  valid[2] = 0.3  # frame 2: no pixel above 0.5, no measurement (NaN), not a perfect 0
   epe, tepe = eval_runner.per_frame_errors(pred, np.zeros_like(pred), valid)
-  np.testing.assert_allclose(epe, [0.8, 0.8], rtol=1e-6)
-  np.testing.assert_array_equal(tepe, [0.0])  # the same prediction in both frames
+  np.testing.assert_allclose(epe, [0.8, 0.8, np.nan], rtol=1e-6)
+  np.testing.assert_array_equal(tepe, [0.0, np.nan])  # the same prediction in frames 0, 1
 
 
 def test_per_frame_curves_are_the_official_rule_per_frame(monkeypatch):

@@ -365,7 +365,17 @@ def test_tcm_flows_from_a_flow_fn_skip_frames_without_valid_pixels():
 
   mask[2] = 0.0
   fx, fy = M.depth_flows_from_fn(depth * 1.1, depth, mask, flow_fn)
-  assert len(calls) == 2 and np.all(np.isfinite(fx)) and not fx[1].any()
+  assert len(calls) == 2 and np.all(np.isfinite(fx)) and not fx[1].any() and not fy[1].any()
+  # One pixel valid in both frames is a pair TCM measures: its flows are computed.
+  one = np.zeros_like(mask)
+  one[:, 3, 4] = 1.0
+  calls.clear()
+  M.depth_flows_from_fn(depth * 1.1, depth, one, flow_fn)
+  assert len(calls) == 4
+  # A flow_fn with a batch axis, [1, 2, H, W]: the axis is dropped, the values kept.
+  batched = lambda a, b: np.full((1, 2, *a.shape[1:]), 1.5, np.float32)
+  bx, by = M.depth_flows_from_fn(depth * 1.1, depth, one, batched)
+  assert bx.shape == by.shape == (2, 2, 16, 20) and np.all(bx == 1.5) and np.all(by == 1.5)
   tcm = M.eval_tcm_sequence(fx, fy, mask)
   assert 0 < tcm < 0.5  # pair (0, 1) only, divided by 2
   with pytest.warns(M.NotMeasuredWarning, match="1 of the 2 frame pairs .* TCM 0 \\(worst\\)"):
