@@ -976,3 +976,64 @@ def test_map_writers_and_readers_take_names_that_are_not_utf8(tmp_path):
   with pytest.raises(ValueError, match=r"caf\\udce9/v.mp4': the video's name is not UTF-8"):
     viz.write_video(odd / "v.mp4", np.zeros((1, 2, 4, 3), np.uint8))
   assert sorted(p.name for p in odd.iterdir()) == ["d.exr", "d.pfm", "d.png", "p.ply"]
+
+
+def test_read_ply_refuses_vertex_layouts_other_than_write_ply_s(tmp_path):
+  # Six properties, as write_ply's, in another order or of another type: the same 15 bytes
+  # a vertex would be read as the wrong fields (colours as coordinates, BGR as RGB), so
+  # read_ply refuses such a header rather than count its properties only
+  body = np.zeros(2, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"),
+                               ("g", "u1"), ("b", "u1")])).tobytes()
+  for props in (["float x", "float y", "float z", "uchar blue", "uchar green", "uchar red"],
+                ["float y", "float x", "float z", "uchar red", "uchar green", "uchar blue"],
+                ["float x", "float y", "float z", "char red", "uchar green", "uchar blue"]):
+    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 2\n"
+              + "".join(f"property {p}\n" for p in props) + "end_header\n")
+    (tmp_path / "o.ply").write_bytes(header.encode("ascii") + body)
+    with pytest.raises(ValueError, match="PLY vertex properties .* differ from write_ply's"):
+      viz.read_ply(tmp_path / "o.ply")
+
+
+def test_write_exr_names_a_one_channel_map_s_channel(tmp_path):
+  # `channel` names the one channel of an [H, W] map (a depth map as "Z"): stored under that
+  # name, not the default "Y"
+  a = np.array([[1.5, -2.0, 3.25]], np.float32)
+  viz.write_exr(tmp_path / "z.exr", a, channel="Z")
+  np.testing.assert_array_equal(viz.read_exr(tmp_path / "z.exr", "Z"), a)
+  with pytest.raises(ValueError, match=r"has no channel 'Y' \(has \['Z'\]\)"):
+    viz.read_exr(tmp_path / "z.exr", "Y")
+
+
+def test_colorize_error_relative_threshold_takes_the_magnitude_of_negative_gt():
+  # The relative threshold is 5% of |gt|: a negative ground truth (datasets that store the
+  # right view's disparity, or signed flow) gets the same colour as its positive mirror.
+  # 4 px off gt -10: min(4 / 3, 4 / (0.05 * 10)) = min(1.33, 8) = 1.33 -> bin (1, 2], the
+  # first outlier colour; a signed gt made 4 / -0.5 = -8, coloured as a perfect pixel
+  colours = [tuple(c) for c in viz.KITTI_ERROR_COLORS]
+  pred = np.array([[-14.0, 14.0]], np.float32)
+  gt = np.array([[-10.0, 10.0]], np.float32)
+  assert [tuple(c) for c in viz.colorize_error(pred, gt)[0]] == [colours[5], colours[5]]
+
+
+def test_colorize_level_is_255_steps_over_the_range():
+  # range 2..12 has 255 steps of 10 / 255 px: 9.5 px is round(7.5 * 25.5) = round(191.25) =
+  # level 191 (a 256-step scale would give round(192.0) = 192)
+  lut = _lut()
+  d = np.array([[9.5, 3.0]], np.float32)  # 3.0: round(25.5) = 26 (half to even)
+  np.testing.assert_array_equal(viz.colorize(d, 2.0, 12.0)[0], lut[[191, 26]])
+
+
+def test_error_colours_and_bins_are_kittis_devkit_table():
+  # KITTI stereo devkit (io_disp.h, errorImage): rows (lo, hi, R, G, B) of the error in
+  # multiples of the 3 px / 5% threshold, copied from there, not from viz
+  devkit = ((0, 0.0625, 49, 54, 149), (0.0625, 0.125, 69, 117, 180),
+            (0.125, 0.25, 116, 173, 209), (0.25, 0.5, 171, 217, 233), (0.5, 1, 224, 243, 248),
+            (1, 2, 254, 224, 144), (2, 4, 253, 174, 97), (4, 8, 244, 109, 67),
+            (8, 16, 215, 48, 39), (16, 1e9, 165, 0, 38))
+  assert viz.KITTI_ERROR_BINS == tuple(float(r[0]) for r in devkit)
+  assert viz.KITTI_ERROR_COLORS == tuple(r[2:] for r in devkit)
+  # and colorize_error uses them: 3 px per unit (rel_thresh=None) -> 20 px is 6.7 (bin 7),
+  # 30 px is 10 (bin 8), 60 px is 20 (bin 9, the last, dark red)
+  gt = np.full((1, 3), 100.0, np.float32)
+  rgb = viz.colorize_error(gt + np.array([[20.0, 30.0, 60.0]], np.float32), gt, rel_thresh=None)
+  assert [tuple(c) for c in rgb[0]] == [devkit[k][2:] for k in (7, 8, 9)]
