@@ -1146,6 +1146,35 @@ def test_calibration_kitti_grey_cameras(tmp_path):
                                              baseline=0.5))
 
 
+def test_calibration_with_unequal_focal_lengths(tmp_path):
+  """fx and fy differ (non-square pixels, or frames resized anisotropically): the baseline
+  is KITTI's (P2[0,3] - P3[0,3]) / fx, P[0,3] being -fx times the camera's x, never fy; cx,
+  cy come from the third column, fy from P[1,1] (Middlebury: cam0's K likewise)."""
+  from sav_jax.tools.infer import read_calibration
+  kitti = tmp_path / "calib.txt"
+  kitti.write_text("P2: 100 0 30 0  0 80 20 0  0 0 1 0\n"
+                   "P3: 100 0 30 -50  0 80 20 0  0 0 1 0\n")
+  # 50 px / fx 100 = 0.5 (over fy 80 it would be 0.625)
+  assert read_calibration(kitti) == {"fx": 100, "fy": 80, "cx": 30, "cy": 20, "baseline": 0.5,
+                                     "doffs": 0}
+  mb = tmp_path / "calib_mb.txt"  # Middlebury: K = [fx 0 cx; 0 fy cy; 0 0 1], doffs from cam1
+  mb.write_text("cam0=[100 0 30; 0 80 20; 0 0 1]\ncam1=[100 0 42.5; 0 80 20; 0 0 1]\n"
+                "baseline=160\n")
+  assert read_calibration(mb) == {"fx": 100, "fy": 80, "cx": 30, "cy": 20, "baseline": 160,
+                                  "doffs": 12.5}
+
+
+def test_calibration_spec_fills_defaults_on_the_pixel_centre_grid():
+  """Fast twin of the check in test_folder_all_formats_and_calibration (a model run): pixel
+  centres are at integers, so a 9 x 6 (width x height) frame's centre is (4, 2.5), not
+  (4.5, 3); fy defaults to fx; given values (doffs too) are kept as given."""
+  from sav_jax.tools.infer import Calibration, CalibrationSpec
+  assert CalibrationSpec(fx=40.0, baseline=0.1).resolve(9, 6) == Calibration(
+      40.0, 40.0, 4.0, 2.5, 0.1, 0.0)
+  assert CalibrationSpec(fx=40.0, baseline=0.1, fy=50.0, cx=1.0, cy=2.0, doffs=3.0).resolve(
+      9, 6) == Calibration(40.0, 50.0, 1.0, 2.0, 0.1, 3.0)
+
+
 def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   from sav_jax.tools import demo
   monkeypatch.setattr(demo, "BUNDLED", tmp_path / "no_bundled_checkpoint")
