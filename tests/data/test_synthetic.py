@@ -274,6 +274,9 @@ def test_photometric_noise_is_optional_and_geometry_free():
     np.testing.assert_array_equal(clean[key], noisy[key])
   diff = noisy["left"].astype(np.float32) - clean["left"]
   assert 2.0 < diff.std() < 4.0
+  # independent per pixel and channel: the channels' noise is uncorrelated (|r| ~ 0.01)
+  corr = np.corrcoef(diff.reshape(-1, 3).T)
+  assert np.abs(corr[np.triu_indices(3, 1)]).max() < 0.1, corr
 
 
 
@@ -295,11 +298,14 @@ def test_background_disparity_stays_in_its_band_where_the_right_view_sees_it():
   xs = np.arange(cfg.width + int(cfg.max_disparity), dtype=np.float64)
   rx = ((xs - cam.cx) / cam.fx).astype(np.float32)[None, :]
   ry = ((np.arange(cfg.height) - cam.cy) / cam.fx).astype(np.float32)[:, None]
+  # the documented band: the lowest background_fraction of [min_disparity, max_disparity]
+  band = cfg.min_disparity + cfg.background_fraction * (cfg.max_disparity - cfg.min_disparity)
   for seed in range(20):
     layers, hi = synthetic._background_layers(np.random.default_rng(seed), cfg, cam)  # pylint: disable=protected-access
+    assert hi == pytest.approx(band)  # objects are drawn above `hi`
     depth = raycast.cast(layers[0], 0.0, rx, ry)[0]
     disp = cam.fx * cam.baseline / depth
-    assert cfg.min_disparity - 1e-3 <= disp.min() and disp.max() <= hi + 1e-3, seed
+    assert cfg.min_disparity - 1e-3 <= disp.min() and disp.max() <= band + 1e-3, seed
 
 
 def test_every_configured_shape_and_texture_kind_is_drawn(monkeypatch):
@@ -314,11 +320,15 @@ def test_every_configured_shape_and_texture_kind_is_drawn(monkeypatch):
   assert set(kinds) == set(textures.TEXTURE_KINDS)
   # each object turns about its normal by its own omega per frame
   cam = synthetic.Camera(cfg.fx, 31.5, 15.5, cfg.baseline)
-  for tr in tracks[:4]:
+  turns = []
+  for tr in tracks:
     e0, e1 = (synthetic._object_layer(tr, t, cam).e1 for t in (0, 1))  # pylint: disable=protected-access
     cos = float(e0 @ e1) / float(np.linalg.norm(e0) * np.linalg.norm(e1))
-    assert np.arccos(np.clip(cos, -1, 1)) == pytest.approx(abs(tr.omega), abs=1e-6)
+    turns.append(np.arccos(np.clip(cos, -1, 1)))
+    assert turns[-1] == pytest.approx(abs(tr.omega), abs=1e-6)
     assert abs(tr.omega) > 1e-4
+  # at most max_rotation rad a frame, and the range is used
+  assert cfg.max_rotation / 2 < max(turns) <= cfg.max_rotation + 1e-6, max(turns)
 
 
 def test_objects_are_nearer_than_the_background_band_and_rendered_whole(monkeypatch):
@@ -419,3 +429,234 @@ def test_config_from_block_names_the_config_fields():
   with pytest.raises(ValueError, match=r"^SyntheticConfig\.seed "):
     synthetic.config_from_block({"seed": 1}, "config.d", seed=-1)
   assert synthetic.config_from_block({"seed": 1}, "config.d", seed=5).seed == 5
+
+
+def _shape_area(kind, params):
+  """Area (texels^2) of a shape from its parameters, by elementary geometry."""
+  if kind == "rectangle":
+    return 4 * params[0] * params[1]
+  if kind == "ellipse":
+    return np.pi * params[0] * params[1]
+  _, px, py = params  # shoelace formula over the (angularly ordered) vertices
+  px, py = px.astype(np.float64), py.astype(np.float64)
+  return 0.5 * abs(np.dot(px, np.roll(py, -1)) - np.dot(py, np.roll(px, -1)))
+
+
+@pytest.mark.parametrize("kind", synthetic.SHAPES)
+def test_object_image_size_follows_its_depth(kind):
+  """A fronto-parallel object shows its shape at 1 texel = 1 px at frame 0, and its image
+  scales as Z_0 / Z_t when it approaches or recedes (size and disparity change together)."""
+  from sav_jax.data import raycast  # pylint: disable=import-outside-toplevel
+  cfg = SyntheticConfig(frames=1, height=128, width=128, num_objects=1, max_disparity=32.0,
+                        max_tilt=0.0, shapes=(kind,), object_size=(0.5, 0.6), seed=3)
+  cam = raycast.Camera(cfg.fx, 63.5, 63.5, cfg.baseline)
+  rng = np.random.default_rng(11)
+  bg = synthetic._background_layers(rng, cfg, cam)[0][0]  # pylint: disable=protected-access
+  tr = synthetic._sample_track(rng, cfg, 10.0)  # pylint: disable=protected-access
+  # centred, not moving in the image, receding by 6% a frame
+  tr = tr._replace(u0=cam.cx, v0=cam.cy, vel=(0.0, 0.0), rate=0.06)
+  rx = ((np.arange(128) - cam.cx) / cam.fx).astype(np.float32)[None, :]
+  ry = ((np.arange(128) - cam.cy) / cam.fx).astype(np.float32)[:, None]
+  area0 = _shape_area(kind, tr.params)
+  for t in (0, 4):
+    layer = synthetic._object_layer(tr, t, cam)  # pylint: disable=protected-access
+    _, depth, seg = raycast.render_view([bg, layer], 0.0, cam, rx, ry)
+    z = tr.depth0 * 1.06 ** t
+    expect = area0 * (tr.depth0 / z) ** 2
+    # pixel counting of a shape a few dozen px across: within 3% of the area
+    assert abs((seg == 1).sum() - expect) < 0.03 * expect, (t, (seg == 1).sum(), expect)
+    np.testing.assert_allclose(depth[seg == 1], z, rtol=1e-5)
+
+
+def test_cast_hits_the_plane_at_the_solved_intersection():
+  """Ray/plane intersection against a 3x3 linear solve: O + Z (rx, ry, 1) = C + s u1 + r u2
+  (u1, u2 the unit in-plane axes); the texel offsets are s |e1| and r |e2|. A plane behind
+  the camera is not hit."""
+  from sav_jax.data import raycast  # pylint: disable=import-outside-toplevel
+  normal = raycast.unit(np.array([0.3, -0.2, 1.0]))
+  e1, e2 = raycast.plane_axes(normal, 0.7)
+  center = np.array([0.2, -0.1, 3.0])
+  layer = raycast.Layer(center, normal, 40.0 * e1, 40.0 * e2, "rectangle", (1e3, 1e3), (),
+                        0.0, np.zeros((64, 64, 4), np.uint8), (0.0, 0.0))
+  rx = np.array([[-0.4, 0.0, 0.25]], np.float32)
+  ry = np.array([[-0.3], [0.1]], np.float32)
+  for ox in (0.0, 0.1):
+    depth, tu, tv, hit = raycast.cast(layer, ox, rx, ry)
+    assert hit.all()
+    for i in range(2):
+      for j in range(3):
+        a = np.stack([[rx[0, j], ry[i, 0], 1.0], -e1, -e2], axis=1)
+        z, s, r = np.linalg.solve(a, center - np.array([ox, 0.0, 0.0]))
+        assert depth[i, j] == pytest.approx(z, rel=1e-5)
+        assert tu[i, j] == pytest.approx(40.0 * s, abs=1e-3)
+        assert tv[i, j] == pytest.approx(40.0 * r, abs=1e-3)
+  behind = layer._replace(center=center * np.array([1.0, 1.0, -1.0]))
+  assert not raycast.cast(behind, 0.0, rx, ry)[3].any()
+
+
+def test_background_drift_is_bounded_by_background_speed():
+  """A fronto-parallel background (1 texel = 1 px everywhere) drifts by at most
+  background_speed px/frame: the translation between consecutive left frames, found by
+  phase correlation refined by ECC alignment (accurate to ~0.01 px here)."""
+  import cv2  # pylint: disable=import-outside-toplevel
+  cfg = SyntheticConfig(frames=2, height=64, width=128, num_objects=0, max_disparity=16.0,
+                        background_slant=0.0, background_speed=3.0, seed=9)
+  window = cv2.createHanningWindow((cfg.width, cfg.height), cv2.CV_32F)
+  stop = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+  shifts = []
+  for i in range(12):
+    left = generate_clip(cfg, i)["left"].astype(np.float32).mean(-1)
+    (dx, dy), _ = cv2.phaseCorrelate(left[0], left[1], window)
+    warp = np.array([[1, 0, dx], [0, 1, dy]], np.float32)
+    _, warp = cv2.findTransformECC(left[0], left[1], warp, cv2.MOTION_TRANSLATION, stop, None, 1)
+    shifts.append(np.hypot(*warp[:, 2]))
+  shifts = np.array(shifts)
+  assert shifts.max() <= cfg.background_speed + 0.05, shifts
+  assert np.median(shifts) > 0.2 * cfg.background_speed, shifts  # it really drifts
+
+
+def test_without_objects_validity_is_exactly_the_right_image_bounds():
+  """Nothing occludes a lone background: a left pixel is valid iff 0 <= x - d <= W - 1.
+  Sub-pixel disparities (the background band is [0.25, 1]) put the last column's x - d in
+  (W - 2, W - 1], which must still count as in view."""
+  cfg = SyntheticConfig(frames=2, height=32, width=64, num_objects=0, min_disparity=0.25,
+                        max_disparity=4.0, background_fraction=0.2, seed=2)
+  for i in range(3):
+    clip = generate_clip(cfg, i)
+    xr = np.arange(cfg.width, dtype=np.float64) - clip["disparity"].astype(np.float64)
+    expect = (xr >= 0) & (xr <= cfg.width - 1)
+    np.testing.assert_array_equal(clip["valid"], expect)
+    assert (xr[..., -1] > cfg.width - 2).any()  # the case above really occurs
+
+
+def test_an_object_is_drawn_where_its_centre_projects(monkeypatch):
+  """Principal point at the image centre ((W-1)/2, (H-1)/2, pixel centres at integers) and
+  image-plane motion as configured: a fronto-parallel ellipse whose centre projects to
+  (u0 + vx t, v0 + vy t), while it approaches, is rasterised around that point in the left
+  view and around (u - d, v) in the right one."""
+  real = synthetic._sample_track  # pylint: disable=protected-access
+  u0, v0, vel = 50.3, 27.6, (1.5, -0.8)
+  monkeypatch.setattr(synthetic, "_sample_track", lambda rng, cfg, lo: real(rng, cfg, lo)._replace(
+      u0=u0, v0=v0, vel=vel, rate=-0.05))
+  cfg = SyntheticConfig(frames=3, height=64, width=128, num_objects=1, max_disparity=16.0,
+                        max_tilt=0.0, shapes=("ellipse",), object_size=(0.4, 0.5), seed=1)
+  for i in range(3):
+    clip = generate_clip(cfg, i)
+    for t in range(cfg.frames):
+      u, v = u0 + vel[0] * t, v0 + vel[1] * t
+      d = float(clip["disparity"][t][clip["segmentation"][t] == 1].mean())
+      for seg, x in ((clip["segmentation"][t], u), (clip["segmentation_right"][t], u - d)):
+        ys, xs = np.nonzero(seg == 1)
+        # centroid of a rasterised ellipse >= 14 px across: within 0.15 px of its centre
+        assert abs(xs.mean() - x) < 0.15 and abs(ys.mean() - v) < 0.15, (i, t, xs.mean(), ys.mean())
+
+
+def test_valid_mask_sees_a_nearly_coplanar_occluder():
+  """An occluder only 0.5% nearer than the surface behind it still hides a sliver of it from
+  the right camera (closed-form for fronto-parallel rectangles: left pixel x of the far one
+  is hidden where x - d_far falls inside the near one's right image)."""
+  from sav_jax.data import raycast  # pylint: disable=import-outside-toplevel
+  h, w, fx, base = 48, 160, 160.0, 0.16  # fB = 25.6
+  cam = raycast.Camera(fx, (w - 1) / 2, (h - 1) / 2, base)
+  tex = np.full((8, 8, 4), 128, np.uint8)
+
+  def rect(k, u, v, z, a, b):  # 1 texel = 1 px: a, b are the half-sizes in px
+    s = fx / z
+    center = np.array([(u - cam.cx) * z / fx, (v - cam.cy) * z / fx, z])
+    return raycast.Layer(center, np.array([0.0, 0.0, 1.0]), np.array([s, 0.0, 0.0]),
+                         np.array([0.0, s, 0.0]), "rectangle", (a, b), (-a, a, -b, b), z, tex,
+                         (0.0, 0.0))
+
+  bg = rect(0, cam.cx, cam.cy, 20.0, 0, 0)._replace(kind="background", params=(), extent=())
+  z_far, z_near = 0.4, 0.398  # d = 64 and 64.32 px
+  far = rect(1, 100.0, 24.0, z_far, 30.0, 20.0)
+  near = rect(2, 110.1, 24.0, z_near, 10.0, 10.0)  # left edge at x = 100.1
+  layers = [bg, far, near]
+  ry = ((np.arange(h) - cam.cy) / fx).astype(np.float32)[:, None]
+  rx = ((np.arange(w) - cam.cx) / fx).astype(np.float32)[None, :]
+  _, depth, seg = raycast.render_view(layers, 0.0, cam, rx, ry)
+  valid = raycast.valid_mask(layers, depth, seg, cam, ry)
+  d_far, d_near = fx * base / z_far, fx * base / z_near
+  x = np.arange(w)[None, :] - d_far
+  y = np.arange(h)[:, None]
+  hidden = (np.abs(x - (110.1 - d_near)) <= 10.0) & (np.abs(y - 24.0) <= 10.0) & (seg == 1)
+  assert hidden.sum() >= 15  # one column of the far rectangle, rows 14..34
+  assert not valid[hidden].any()
+  assert valid[(seg == 1) & ~hidden].all()
+
+
+def test_valid_mask_agrees_with_unculled_ray_casting(monkeypatch):
+  """The valid mask skips layers by pixel box and depth bound (zmin); casting the right
+  camera's ray through x - d into every layer, without any culling, must give the same mask.
+  Large, strongly tilted objects make the depth bound matter (a tilted layer's near part is
+  well in front of its centre)."""
+  from sav_jax.data import raycast  # pylint: disable=import-outside-toplevel
+  scenes = []
+  real = synthetic.valid_mask
+  monkeypatch.setattr(synthetic, "valid_mask", lambda layers, *a: scenes.append(layers) or real(
+      layers, *a))
+  n_occluded = 0
+  for seed in range(3):
+    cfg = SyntheticConfig(frames=2, height=64, width=128, num_objects=10, max_tilt=1.2,
+                          object_size=(0.4, 0.9), max_disparity=40.0, seed=seed)
+    for i in range(2):
+      scenes.clear()
+      clip = generate_clip(cfg, i)
+      h, w, fx, cx, cy = cfg.height, cfg.width, cfg.fx, (cfg.width - 1) / 2, (cfg.height - 1) / 2
+      for t, layers in enumerate(scenes):
+        depth, seg = clip["depth"][t], clip["segmentation"][t]
+        xr = np.arange(w)[None, :] - clip["disparity"][t]
+        rx = ((xr - cx) / fx).astype(np.float32)
+        ry = np.broadcast_to(((np.arange(h) - cy) / fx).astype(np.float32)[:, None], (h, w))
+        occluded = np.zeros((h, w), bool)
+        for layer in layers[1:]:  # a plane never occludes itself: no need to skip seg == j
+          z, _, _, hit = raycast.cast(layer, cfg.baseline, rx, ry)
+          occluded |= hit & (z < depth * np.float32(1 - 1e-5))
+        expect = (xr >= 0) & (xr <= w - 1) & ~occluded
+        n_occluded += (occluded & (xr >= 0)).sum()
+        np.testing.assert_array_equal(clip["valid"][t], expect, err_msg=f"{seed} {i} {t}")
+  assert n_occluded > 1000
+
+
+def _shape_outline(kind, params):
+  """Points (texels) whose convex hull holds the shape: depth is affine on a plane, so its
+  extremes over the shape are among them."""
+  if kind == "rectangle":
+    a, b = params
+    return np.array([[-a, -b], [-a, b], [a, -b], [a, b]])
+  if kind == "ellipse":
+    phi = np.linspace(0, 2 * np.pi, 721)
+    return np.stack([params[0] * np.cos(phi), params[1] * np.sin(phi)], 1)
+  return np.stack([params[1], params[2]], 1).astype(np.float64)
+
+
+def test_tilted_objects_changing_depth_keep_every_point_in_the_disparity_range():
+  """Every point of every object, in every frame, has its disparity inside [top of the
+  background band, max_disparity] (computed from the 3D plane points, visible or not), also
+  for large, strongly tilted objects whose depth changes fast."""
+  cfg = SyntheticConfig(frames=6, height=64, width=64, num_objects=1, max_disparity=24.0,
+                        max_tilt=1.2, max_depth_change=0.2, object_size=(0.5, 1.0), seed=6)
+  band = cfg.min_disparity + cfg.background_fraction * (cfg.max_disparity - cfg.min_disparity)
+  cam = synthetic.Camera(cfg.fx, 31.5, 31.5, cfg.baseline)
+  rng = np.random.default_rng(0)
+  top = []
+  for _ in range(60):
+    tr = synthetic._sample_track(rng, cfg, band)  # pylint: disable=protected-access
+    outline = _shape_outline(tr.kind, tr.params)
+    for t in range(cfg.frames):
+      layer = synthetic._object_layer(tr, t, cam)  # pylint: disable=protected-access
+      # texel offsets -> metres: e1, e2 are orthogonal with length texels/metre
+      pts = layer.center + outline @ np.stack([layer.e1, layer.e2]) / (layer.e1 @ layer.e1)
+      disp = cfg.fx * cfg.baseline / pts[:, 2]
+      assert band * (1 - 1e-6) <= disp.min() and disp.max() <= cfg.max_disparity * (1 + 1e-6)
+      top.append(disp.max())
+  assert max(top) > 0.97 * cfg.max_disparity  # the bound is approached, so it is tested
+
+
+def test_equal_disparity_bounds_make_every_surface_fronto_parallel_at_that_disparity():
+  # min_disparity == max_disparity leaves no room for tilt or depth motion: every pixel of
+  # every frame has exactly that disparity (objects fall back to still, untilted planes).
+  cfg = SyntheticConfig(frames=3, height=32, width=64, num_objects=4, min_disparity=8.0,
+                        max_disparity=8.0, max_tilt=1.0, max_depth_change=0.2, seed=3)
+  disp = generate_clip(cfg, 0)["disparity"]
+  np.testing.assert_allclose(disp, 8.0, rtol=1e-5)
