@@ -660,3 +660,67 @@ def test_equal_disparity_bounds_make_every_surface_fronto_parallel_at_that_dispa
                         max_disparity=8.0, max_tilt=1.0, max_depth_change=0.2, seed=3)
   disp = generate_clip(cfg, 0)["disparity"]
   np.testing.assert_allclose(disp, 8.0, rtol=1e-5)
+
+
+def test_value_noise_is_normalised():
+  # zero mean and a standard deviation of about 1 (exactly 1 on the node grid; the bicubic
+  # interpolation to full size lowers it slightly)
+  for seed in range(3):
+    noise = textures.value_noise(np.random.default_rng(seed), 128, 4)
+    assert abs(noise.mean()) < 0.05 and 0.8 < noise.std() < 1.05, (noise.mean(), noise.std())
+
+
+def test_texture_contrast_scales_the_colour_amplitudes():
+  # The same draws at half the contrast: texel = base + contrast * amplitude, so
+  # 2 * half - full is the constant base colour (up to 8-bit rounding) where nothing saturates.
+  for kind in textures.TEXTURE_KINDS:
+    full, half = (textures.make_texture(np.random.default_rng(1), 128, (kind,), contrast=c)
+                  .astype(np.float64) for c in (1.0, 0.5))
+    for ch in range(3):
+      unsaturated = (full[..., ch] > 0) & (full[..., ch] < 255)
+      base = (2 * half[..., ch] - full[..., ch])[unsaturated]
+      assert unsaturated.mean() > 0.9 and np.ptp(base) <= 3.0, (kind, ch, np.ptp(base))
+    assert full.std((0, 1)).min() > 5, kind  # not a trivially flat texture
+
+
+@pytest.mark.parametrize("min_cell", [4, 8])
+def test_textures_have_no_detail_finer_than_min_cell(min_cell):
+  """Band limit: wavelengths shorter than min_cell texels carry under 0.1% of a texture's
+  (grey) variance (measured <= 0.04%; noise octaves at min_cell / 2 would give >= 0.1%)."""
+  for kind in textures.TEXTURE_KINDS:
+    for seed in range(2):
+      tex = textures.make_texture(np.random.default_rng(seed), 128, (kind,), min_cell)
+      grey = tex.astype(np.float64).mean(-1)
+      power = np.abs(np.fft.fft2(grey - grey.mean())) ** 2
+      f = np.fft.fftfreq(128)
+      fine = np.hypot(f[:, None], f[None, :]) > 1 / min_cell
+      assert power[fine].sum() < 1e-3 * power.sum(), (kind, seed, power[fine].sum() / power.sum())
+
+
+def test_projected_object_centres_move_at_most_max_speed():
+  """The image-plane speed bound, on the projection of each object's 3D centre (exact, where
+  the rasterised-centroid test above needs a 0.3 px allowance): every step <= max_speed px,
+  and the bound is approached."""
+  cfg = SyntheticConfig(frames=3, height=64, width=64, num_objects=1, max_disparity=16.0,
+                        max_speed=3.0, seed=2)
+  cam = synthetic.Camera(cfg.fx, 31.5, 31.5, cfg.baseline)
+  rng = np.random.default_rng(0)
+  steps = []
+  for _ in range(40):
+    tr = synthetic._sample_track(rng, cfg, 5.0)  # pylint: disable=protected-access
+    c = np.array([synthetic._object_layer(tr, t, cam).center for t in range(cfg.frames)])  # pylint: disable=protected-access
+    uv = cfg.fx * c[:, :2] / c[:, 2:] + np.array([cam.cx, cam.cy])
+    steps.extend(np.hypot(*np.diff(uv, axis=0).T))
+  assert max(steps) <= cfg.max_speed * (1 + 1e-9), max(steps)
+  assert max(steps) > 0.9 * cfg.max_speed, max(steps)
+
+
+def test_an_object_texture_does_not_repeat_across_the_object():
+  # One texture period spans the whole shape, so an object shows no repeated pattern (which
+  # would make its matching ambiguous).
+  cfg = SyntheticConfig(frames=1, height=256, width=256, num_objects=1, object_size=(0.5, 1.0))
+  rng = np.random.default_rng(0)
+  for _ in range(6):
+    tr = synthetic._sample_track(rng, cfg, 20.0)  # pylint: disable=protected-access
+    span = np.ptp(_shape_outline(tr.kind, tr.params), axis=0).max()  # texels
+    assert tr.texture.shape[0] >= span, (tr.texture.shape, span)
