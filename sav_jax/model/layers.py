@@ -55,6 +55,16 @@ def add_bias(y: jax.Array, bias: jax.Array) -> jax.Array:
   return y + jnp.broadcast_to(bias, y.shape).astype(y.dtype)
 
 
+def with_bias(module: nn.Module, y: jax.Array) -> jax.Array:
+  """`y` plus `module`'s float32 `bias` parameter `[module.features]` (zeros at init), added
+  by `add_bias`, where `module.use_bias`; else `y`. The bias of every convolution and
+  `Dense` here."""
+  if not module.use_bias:
+    return y
+  return add_bias(y, module.param("bias", nn.initializers.zeros, (module.features,),
+                                  jnp.float32))
+
+
 class StridedConv(nn.Module):
   """A strided 2-D convolution `[..., H, W, C] -> [..., H', W', features]` with torch's
   symmetric zero padding: `nn.Conv`'s parameters (`kernel` `[kh, kw, C, O]`, `bias`) and
@@ -76,9 +86,7 @@ class StridedConv(nn.Module):
         x.astype(self.dtype).reshape(-1, h, w, c), kernel.astype(self.dtype),
         tuple(self.strides), [(p, p) for p in self.padding], dimension_numbers=_NHWC)
     y = y.reshape(*lead, *y.shape[1:])
-    if self.use_bias:
-      y = add_bias(y, self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32))
-    return y
+    return with_bias(self, y)
 
 
 _NHWC = ("NHWC", "HWIO", "NHWC")
@@ -172,9 +180,7 @@ class Conv2D(nn.Module):
     (ph, pw) = self.padding
     y = conv2d(x.astype(self.dtype).reshape(-1, h, w, c), kernel, ((ph, ph), (pw, pw)))
     y = y.reshape(*lead, *y.shape[1:])
-    if self.use_bias:
-      y = add_bias(y, self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32))
-    return y
+    return with_bias(self, y)
 
 
 class Conv3D(nn.Module):
@@ -209,9 +215,7 @@ class Conv3D(nn.Module):
                          f"{(kt - 1) // 2} on each side (same length), got {pt}")
       y = _temporal_taps(x, kernel, pt, ((ph, ph), (pw, pw)))
     y = y.reshape(b, t, h, w, self.features)
-    if self.use_bias:
-      y = add_bias(y, self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32))
-    return y
+    return with_bias(self, y)
 
 
 def _temporal_taps(x: jax.Array, kernel: jax.Array, pt: int, padding) -> jax.Array:
@@ -425,9 +429,7 @@ class Dense(nn.Module):
                         jnp.float32)
     y = jax.lax.dot_general(x.astype(self.dtype), kernel.astype(self.dtype),
                             (((x.ndim - 1,), (0,)), ((), ())))
-    if self.use_bias:
-      y = add_bias(y, self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32))
-    return y
+    return with_bias(self, y)
 
 
 def dense(features: int, use_bias: bool = True, dtype: Any = jnp.float32,
