@@ -649,3 +649,214 @@ def _proc_state(pid: int) -> str:
     return pathlib.Path(f"/proc/{pid}/status").read_text().split("State:")[1].split("\n")[0]
   except (OSError, IndexError):
     return "zombie"  # gone meanwhile
+
+
+def test_as_example_keeps_each_view_and_gives_the_pipelines_dtypes():
+  # Each view as given (the right view is not the left one), a float64 disparity as float32,
+  # a [T, H, W, 1] mask (as a [T, H, W, 1] disparity) as [T, H, W] bool thresholded at 0.5;
+  # a mask of another size, or integer frames below 0, are refused.
+  left = np.full((2, 1, 3, 3), 10, np.int64)
+  right = np.full((2, 1, 3, 3), 20, np.int64)
+  valid = np.array([0.0, 0.5, 1.0, 1.0, 0.2, 0.0], np.float32).reshape(2, 1, 3, 1)
+  clip = {"left": left, "right": right, "disparity": np.full((2, 1, 3), 1.5, np.float64),
+          "valid": valid}
+  ex = pipeline.as_example(clip)
+  assert ex["left"].dtype == ex["right"].dtype == np.uint8
+  assert (ex["left"] == 10).all() and (ex["right"] == 20).all()
+  assert ex["disparity"].dtype == np.float32 and (ex["disparity"] == 1.5).all()
+  assert ex["valid"].shape == (2, 1, 3) and ex["valid"].dtype == bool
+  assert ex["valid"].tolist() == [[[False, True, True]], [[True, False, False]]]
+  for key in ("disparity", "valid"):  # [T, H, W] of the frames, each
+    with pytest.raises(ValueError, match=rf"{key} \(2, 1, 2\).* do not match the images"):
+      pipeline.as_example({**clip, key: np.ones((2, 1, 2), clip[key].dtype)})
+  with pytest.raises(ValueError, match=r"right frames of dtype int64 with values in 20\.\.256"):
+    pipeline.as_example({**clip, "right": right + (np.arange(3) == 2) * 236})  # 8 bits: <= 255
+  below = np.full(left.shape, 5, np.int16)
+  below[1, 0, 2, 1] = -1
+  with pytest.raises(ValueError, match=r"left frames of dtype int16 with values in -1\.\.5"):
+    pipeline.as_example({**clip, "left": below})
+
+
+def test_global_batches_keep_the_local_dtypes_and_values():
+  # The train step receives uint8 frames, float32 disparities and a bool mask, as stacked on
+  # the host (a float copy of the frames is 4x the transfer). The copy is allowed under any
+  # transfer guard: on one process it is an explicit one, which "disallow" lets through, so
+  # "disallow_explicit" tells whether `to_global` allows it (as it must for a run of several
+  # processes under "disallow", where the placement counts as implicit).
+  mesh = jax.sharding.Mesh(np.asarray(jax.devices()), ("data",))
+  sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
+  n = len(jax.devices())
+  clips = [_tagged(3, 2 * n)[i] for i in range(2 * n)]
+  local = pipeline.stack_examples(clips)
+  with jax.transfer_guard("disallow_explicit"):
+    batch = pipeline.to_global(local, sharding)
+  assert {k: v.dtype for k, v in batch.items()} == {
+      "left": np.uint8, "right": np.uint8, "disparity": np.float32, "valid": np.bool_}
+  for k, v in batch.items():
+    assert v.sharding == sharding and v.shape == local[k].shape
+    np.testing.assert_array_equal(np.asarray(v), local[k])
+  assert _ids(jax.device_get(batch)) == [3000 + i for i in range(2 * n)]
+
+
+def test_the_process_share_defaults_to_jaxs_process_index_and_count(monkeypatch):
+  # Without process_index/process_count (the trainer's multi-host default), process 1 of 2
+  # reads the odd elements of the one global stream, not process 0's share.
+  make = lambda **kw: iter(pipeline.make_train_dataset([_tagged(0, 12)], [1.0], batch_size=3,
+                                                       seed=2, num_threads=1, **kw))
+  single = sum((_ids(b) for b in _take(make(process_index=0, process_count=1), 4)), [])
+  monkeypatch.setattr(jax, "process_index", lambda: 1)
+  monkeypatch.setattr(jax, "process_count", lambda: 2)
+  assert sum((_ids(b) for b in _take(make(), 2)), []) == single[1::2]
+
+
+def test_stream_seeds_are_the_recorded_derivation():
+  # Checkpoints record the derivation (pipeline.SEEDING = 2): words (seed, source, purpose
+  # 0 = shuffle / 1 = augment) of a numpy SeedSequence, its first uint32. Another derivation
+  # gives a resumed run other clip orders, so it must come with another SEEDING.
+  assert pipeline.SEEDING == 2
+  for seed, source, purpose, word in ((0, 0, "shuffle", 0), (7, 1, "augment", 1),
+                                      (2**32 - 1, 3, "shuffle", 0)):
+    want = int(np.random.SeedSequence([seed, source, word]).generate_state(1, np.uint32)[0])
+    assert pipeline.stream_seed(seed, source, purpose) == want
+
+
+def test_center_crop_rounds_odd_margins_down_and_may_take_the_whole_frame():
+  # margins of 5 rows and 7 columns: 2 rows above, 3 columns left (floor of half)
+  h, w = 8, 11
+  yx = np.arange(h * w, dtype=np.float32).reshape(1, h, w)
+  clip = {"left": np.zeros((1, h, w, 3), np.uint8), "right": np.zeros((1, h, w, 3), np.uint8),
+          "disparity": yx, "valid": np.ones((1, h, w), bool)}
+  crop = pipeline.center_crop(clip, (3, 4))
+  np.testing.assert_array_equal(crop["disparity"][0],
+                                [[25, 26, 27, 28], [36, 37, 38, 39], [47, 48, 49, 50]])
+  for full in ((8, 11), (8, 3), (2, 11)):  # a crop the size of the frames (in either axis)
+    assert pipeline.center_crop(clip, full)["disparity"].shape == (1, *full)
+
+
+def test_eval_batches_hold_the_clips_in_order_then_the_padding():
+  # num_real_clips counts the first rows: the real clips come first, in order, then copies of
+  # the last one; extra keys of a loaded clip (its origin) stay out of the batch.
+  clips = [dict(_tagged(0, 5)[i], origin=f"clip {i}") for i in range(5)]
+  batches = pipeline.eval_batches(clips, 3)
+  assert [(_ids(b), n) for b, n in batches] == [([0, 1, 2], 3), ([3, 4, 4], 2)]
+  assert all(set(b) == set(pipeline.EXAMPLE_KEYS) for b, _ in batches)
+
+
+def test_dense_masks_are_honoured_for_the_right_view_too():
+  # A pixel the reader marks invalid is set to 0 where the official rule would count it
+  # (d != 0 and |d| < 512): -1 and 7 go, 600 (invalid by the rule) and valid pixels stay.
+  disp = np.array([3.0, -1.0, 7.0, 600.0], np.float32).reshape(1, 1, 4)
+  valid = np.array([True, False, False, False]).reshape(1, 1, 4)
+  clip = {"disparity": disp.copy(), "valid": valid, "right_disparity": disp.copy() + 1,
+          "right_valid": valid}
+  pipeline.honour_dense_masks(clip)
+  assert clip["disparity"].ravel().tolist() == [3.0, 0.0, 0.0, 600.0]
+  assert clip["right_disparity"].ravel().tolist() == [4.0, 0.0, 0.0, 601.0]
+  assert clip["disparity"].dtype == np.float32
+
+
+def test_the_sign_check_refuses_a_majority_of_negative_valid_pixels_only():
+  # "most valid pixels negative": a tie is no majority, a valid 0 has no sign, and invalid
+  # pixels (a sparse reader's -1 fill) are not counted.
+  seq = types.SimpleNamespace(name="s", dataset="d")
+  check = lambda d, v: pipeline.check_disparity_sign(
+      {"disparity": np.float32(d).reshape(1, 1, 4), "valid": np.array(v).reshape(1, 1, 4)},
+      seq, [0])
+  check([2, -2, 0, 5], [True, True, False, False])  # one each
+  check([1, 0, 0, 0], [True] * 4)  # zeros count for neither sign
+  check([1, -1, -1, -1], [True, False, False, False])  # the negatives are invalid
+  with pytest.raises(ValueError, match="d/s, frames \\[0\\]: the ground truth of frame 0 is "
+                                       "negative at 67% of its valid pixels"):
+    check([1, -1, -1, 0], [True] * 4)
+
+
+class _MissingFiles(_Sequence):
+  """A sequence whose frames in `broken` are missing files (the reader's OSError)."""
+
+  def gather(self, indices):
+    for i in indices:
+      if i in self.broken:
+        raise FileNotFoundError(f"/data/seq/{i:04d}.png: no such file")
+    return super().gather(indices)
+
+
+def test_a_missing_file_is_an_unreadable_clip_and_stand_ins_are_distinct_draws():
+  items = [(_MissingFiles(broken={5}), [i]) for i in range(40)]
+  with pytest.raises(FileNotFoundError, match="0005.png") as info:
+    pipeline.clips_source(items)[5]  # pylint: disable=pointless-statement
+  assert pipeline.is_unreadable(info.value)  # skipped by data.skip_unreadable, as a ValueError
+  assert int(pipeline.clips_source(items, skip_unreadable=1)[5]["disparity"][0, 0, 0]) != 5
+  drawn = pipeline._SkippingClips(items, 3)  # pylint: disable=protected-access
+  # each try draws again: not the same stand-in three times (one bad clip, three tries)
+  assert all(len({drawn.stand_in(i, k) for k in (1, 2, 3)}) > 1 for i in range(40))
+  # the tries for a clip are bounded by the other clips there are: 2 stand-ins of 3 clips
+  lost = [(_MissingFiles(broken=range(3)), [i]) for i in range(3)]
+  with pytest.raises(ValueError, match="clip 0 and 2 stand-ins drawn for it do not read"):
+    pipeline.clips_source(lost, skip_unreadable=5)[0]  # pylint: disable=pointless-statement
+
+
+def test_a_skipping_source_keeps_its_skip_count_in_grain_workers():
+  # grain's worker processes get the source pickled
+  import pickle  # pylint: disable=import-outside-toplevel
+  src = pipeline._SkippingClips([(_Sequence(broken={2}), [i]) for i in range(10)], 2)  # pylint: disable=protected-access
+  again = pickle.loads(pickle.dumps(src))
+  assert int(again[2]["disparity"][0, 0, 0]) == int(src[2]["disparity"][0, 0, 0]) != 2
+
+
+def test_a_source_without_a_transform_is_made_examples():
+  # transforms=None: `as_example` (the batch gets the pipeline's keys and dtypes, not a
+  # loader's float frames, [T, H, W, 1] disparities or extra keys)
+  def make(i):
+    return {"left": np.full((2, 4, 4, 3), 100.4 + i), "right": np.full((2, 4, 4, 3), 50.0),
+            "disparity": np.full((2, 4, 4, 1), i, np.float64), "valid": np.ones((2, 4, 4)),
+            "origin": f"clip {i}"}
+
+  ds = pipeline.make_train_dataset([grain.MapDataset.range(4).map(make)], [1.0], batch_size=2,
+                                   seed=0, num_threads=1)
+  batch = next(iter(ds))
+  assert {k: (v.dtype, v.shape) for k, v in batch.items()} == {
+      "left": (np.uint8, (2, 2, 4, 4, 3)), "right": (np.uint8, (2, 2, 4, 4, 3)),
+      "disparity": (np.float32, (2, 2, 4, 4)), "valid": (np.bool_, (2, 2, 4, 4))}
+  assert (batch["left"][:, 0, 0, 0, 0] == 100 + batch["disparity"][:, 0, 0, 0]).all()
+
+
+def test_augmented_sources_draw_independently():
+  # Each source's random map has its own seed: the k-th clip of one source is not jittered
+  # as the k-th clip of the other.
+  def draw(clip, rng):
+    ex = pipeline.as_example(clip)
+    ex["disparity"][:, :, 1:] = rng.uniform()  # [.., 0, 0] keeps the clip's tag
+    return ex
+
+  ds = pipeline.make_train_dataset([_tagged(1, 8), _tagged(2, 8)], [1.0, 1.0], batch_size=8,
+                                   seed=0, transforms=[draw, draw], num_threads=1)
+  draws = {1: set(), 2: set()}
+  for batch in _take(iter(ds), 2):
+    for tag, value in zip(np.array(_ids(batch)) // 1000, batch["disparity"][:, 0, 0, 1]):
+      draws[tag].add(float(value))
+  assert len(draws[1]) >= 6 and len(draws[2]) >= 6 and not draws[1] & draws[2]
+
+
+def test_registry_sources_get_the_seed_and_name_the_stride_only_for_strided_clips(monkeypatch):
+  from sav_jax.data import registry  # pylint: disable=import-outside-toplevel
+  seeds = []
+  monkeypatch.setattr(registry, "get_training_clips",
+                      lambda *a, seed=0, **kw: seeds.append(seed) or [])
+  monkeypatch.setattr(registry, "get_consecutive_clips", lambda *a, **kw: [])
+  with pytest.raises(ValueError, match="every 1st to 5th frame"):
+    pipeline.registry_source("vkitti2", "root", 8, seed=7)
+  assert seeds == [7]  # the official per-start stride draws
+  with pytest.raises(ValueError, match=r"too short for them; use fewer frames per clip$"):
+    pipeline.registry_source("vkitti2", "root", 8, consecutive=True)  # consecutive: no stride
+
+
+def test_clips_digest_tells_frame_indices_apart():
+  a = types.SimpleNamespace(name="a")
+  assert pipeline.clips_digest([(a, [0, 1])]) != pipeline.clips_digest([(a, [1, 2])])
+
+
+def test_an_augmentation_error_of_a_clip_without_an_origin_is_raised_as_it_is():
+  # (a generated clip, or one of your own pipeline: no `origin` to name)
+  clip = _tagged(0, 1)[0]
+  with pytest.raises(ValueError, match=r"^cannot crop \(32, 32\) from \(16, 16\) frames"):
+    pipeline.Augment((32, 32), (("spatial_prob", 0.0),))(clip, np.random.default_rng(0))

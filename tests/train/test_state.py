@@ -787,6 +787,96 @@ def test_each_process_reads_its_share_of_the_batch():
     input_lib.train_dataset(c, process_index=0, process_count=2)
 
 
+def test_the_processes_batches_interleave_the_single_process_batch():
+  """Process p of P reads elements p, p + P, ... of the one global stream: with a global
+  batch of 4, process 0 holds the single process's clips 0 and 2, process 1 clips 1 and 3
+  (every clip of the global batch once, none on two processes)."""
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.batch_size, c.data.synthetic.num_clips = 4, 8
+  first = lambda p, n: next(iter(input_lib.train_dataset(c, process_index=p, process_count=n)))
+  single = first(0, 1)
+  for p in (0, 1):
+    got = first(p, 2)
+    for k in pipeline.EXAMPLE_KEYS:
+      np.testing.assert_array_equal(got[k], single[k][p::2], err_msg=f"process {p}: {k}")
+
+
+def test_config_seed_orders_the_clips_and_the_generator_seed_makes_them():
+  """config.seed shuffles the training stream (the same synthetic clips in another order);
+  config.data.synthetic.seed generates the clips (other clips, config.seed unchanged)."""
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.train.batch_size, c.data.synthetic.num_clips = 4, 4  # one batch: one epoch
+  epoch = lambda: list(next(iter(input_lib.train_dataset(c, process_index=0,
+                                                         process_count=1)))["disparity"])
+  base = epoch()
+  where = lambda clip: [j for j, b in enumerate(base) if np.array_equal(clip, b)]
+  c.seed = 1
+  order = [where(clip) for clip in epoch()]
+  assert sorted(order) == [[0], [1], [2], [3]] and order != [[0], [1], [2], [3]]
+  c.seed, c.data.synthetic.seed = 0, 1
+  assert all(where(clip) == [] for clip in epoch())
+
+
+def test_the_training_stream_gets_the_config_fields(monkeypatch):
+  """train_dataset hands the stream the run's seed, mixing mode, per-process batch, process
+  share, reader settings, and each source's weight, sources in the order of their names."""
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  got = {}
+
+  def stream(sources, weights, **kwargs):
+    got.update(kwargs, weights=list(weights), clips=[len(s) for s in sources])
+    return "stream"
+
+  monkeypatch.setattr(pipeline, "make_train_dataset", stream)
+  c = _config()
+  c.data.sources = ml_collections.ConfigDict({"b": dict(dataset="synthetic", weight=3.0),
+                                              "a": dict(dataset="synthetic", weight=0.5)})
+  c.seed, c.data.mixing, c.train.batch_size, c.data.synthetic.num_clips = 17, "concat", 6, 9
+  c.data.num_threads, c.data.prefetch, c.data.worker_count = 3, 5, 2
+  assert input_lib.train_dataset(c, process_index=2, process_count=3) == "stream"
+  transforms = got.pop("transforms")
+  assert got == dict(weights=[0.5, 3.0], clips=[9, 9], batch_size=2, seed=17, mode="concat",
+                     process_index=2, process_count=3, num_threads=3, prefetch=5,
+                     worker_count=2)
+  assert list(transforms) == [None, None]  # generated clips are used as they are
+
+
+def test_the_training_clips_have_the_configs_frames_and_crop_and_a_digest_of_them(
+    monkeypatch):
+  """Generated clips of config.data.frames frames at config.data.crop = (H, W); the record
+  of the clips (what a resume compares) changes with the generator's settings; a registry
+  source draws its clips with config.seed."""
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  c = _config()
+  c.data.frames, c.data.crop, c.data.synthetic.num_clips = 3, (16, 32), 4
+  records = []
+
+  def batch():
+    records.append({})
+    return next(iter(input_lib.train_dataset(c, process_index=0, process_count=1,
+                                             clips=records[-1])))
+
+  assert batch()["left"].shape == (2, 3, 16, 32, 3)
+  batch()
+  c.data.synthetic.max_disparity += 1.0
+  batch()
+  assert records[0] == records[1] and records[2] != records[0]
+  assert input_lib.changed_clips(records[0], records[2]) == ["synthetic: other clips (4)"]
+  seeds = []
+
+  def clips(*args, seed=None, **kwargs):
+    seeds.append(seed)
+    return [(types.SimpleNamespace(name="s", gather=None), [0])]
+
+  monkeypatch.setattr(pipeline, "registry_clips", clips)
+  c.seed = 11
+  input_lib._source(c, ml_collections.ConfigDict(dict(dataset="sceneflow", weight=1.0)),  # pylint: disable=protected-access
+                    "train", 0)
+  assert seeds == [11]
+
+
 def test_a_workdir_inside_a_dataset_the_run_reads_is_refused(tmp_path):
   # A run in the folder dataset's train/ split wrote checkpoints/ there, which the reader then
   # took for a sequence without left/: the same command could not resume.
