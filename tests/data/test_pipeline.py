@@ -731,6 +731,9 @@ def test_center_crop_rounds_odd_margins_down_and_may_take_the_whole_frame():
                                 [[25, 26, 27, 28], [36, 37, 38, 39], [47, 48, 49, 50]])
   for full in ((8, 11), (8, 3), (2, 11)):  # a crop the size of the frames (in either axis)
     assert pipeline.center_crop(clip, full)["disparity"].shape == (1, *full)
+  for big in ((9, 4), (3, 12)):  # larger than the frames in either axis
+    with pytest.raises(ValueError, match="at most the frames"):
+      pipeline.center_crop(clip, big)
 
 
 def test_eval_batches_hold_the_clips_in_order_then_the_padding():
@@ -860,3 +863,17 @@ def test_an_augmentation_error_of_a_clip_without_an_origin_is_raised_as_it_is():
   clip = _tagged(0, 1)[0]
   with pytest.raises(ValueError, match=r"^cannot crop \(32, 32\) from \(16, 16\) frames"):
     pipeline.Augment((32, 32), (("spatial_prob", 0.0),))(clip, np.random.default_rng(0))
+
+
+def test_augment_gives_only_the_example_keys():
+  # A loaded clip carries `sparse` and `origin`, which augment_clip passes through: neither
+  # goes into a batch (an array of strings does not go to the devices).
+  clip = pipeline.clips_source([(_FakeSequence(), [0, 1])])[0]
+  assert {"sparse", pipeline.ORIGIN} <= set(clip)
+  out = pipeline.Augment((16, 16))(clip, np.random.default_rng(0))
+  assert set(out) == set(pipeline.EXAMPLE_KEYS)
+
+
+def test_a_stream_needs_a_source():
+  with pytest.raises(ValueError, match="need one weight per source, got 0 for 0"):
+    pipeline.make_train_dataset([], [], batch_size=1, seed=0)
