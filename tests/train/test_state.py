@@ -877,6 +877,19 @@ def test_the_training_clips_have_the_configs_frames_and_crop_and_a_digest_of_the
   assert seeds == [11]
 
 
+def test_data_errors_name_the_config_fields_once_and_keep_their_type():
+  """A data error is prefixed with the config fields behind it, unless it names a field
+  itself; a missing file stays a FileNotFoundError (what the trainer tells apart)."""
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  naming = input_lib._naming  # pylint: disable=protected-access
+  with pytest.raises(FileNotFoundError, match=r"^config\.data\.root='d': /d/x\.png: missing$"):
+    with naming("config.data.root='d'"):
+      raise FileNotFoundError("/d/x.png: missing")
+  with pytest.raises(ValueError, match=r"^config\.data\.crop=\(8, 8\) is odd$"):
+    with naming("config.data.root='d'"):
+      raise ValueError("config.data.crop=(8, 8) is odd")
+
+
 def test_a_workdir_inside_a_dataset_the_run_reads_is_refused(tmp_path):
   # A run in the folder dataset's train/ split wrote checkpoints/ there, which the reader then
   # took for a sequence without left/: the same command could not resume.
