@@ -1951,3 +1951,152 @@ def test_the_held_disparities_are_not_mapped_into_memory(tmp_path, npz_ckpt, mon
   for f, l, d in zip(shown, frames, disp):
     np.testing.assert_array_equal(f, viz.side_by_side(l, viz.colorize(d, lo, hi)))
   assert not list(out.glob(".disparity_*"))
+
+
+def test_8bit_frames_with_alpha_come_out_rgb(tmp_path):
+  """An 8-bit PNG with alpha (BGRA as OpenCV decodes it) takes `to_rgb8`'s path for
+  non-contiguous channels (not cv2.cvtColor's): the alpha dropped and the colours in RGB
+  order, as the file holds them (a red pixel stays red)."""
+  bgra = np.array([[[10, 20, 30, 255], [40, 50, 60, 0], [0, 0, 255, 128]]], np.uint8)
+  assert cv2.imwrite(str(tmp_path / "a.png"), bgra)
+  notes = set()
+  got = video_io.read_frame(tmp_path / "a.png", notes)
+  np.testing.assert_array_equal(got, [[[30, 20, 10], [60, 50, 40], [255, 0, 0]]])
+  assert [n.split(", e.g.")[0] for n in notes] == ["alpha channel dropped"]
+
+
+class _FakeCapture:
+  """A stand-in for cv2.VideoCapture: `decoded` grey frames 8x8 (level 10 * i), `declared` in
+  its header."""
+
+  def __init__(self, decoded, declared):
+    self.decoded, self.declared, self.i = decoded, declared, 0
+
+  def isOpened(self):  # pylint: disable=invalid-name
+    return True
+
+  def read(self):
+    if self.i >= self.decoded:
+      return False, None
+    self.i += 1
+    return True, np.full((8, 8, 3), 10 * (self.i - 1), np.uint8)
+
+  def get(self, prop):
+    return {cv2.CAP_PROP_FRAME_COUNT: self.declared, cv2.CAP_PROP_FPS: 25.0}.get(prop, 0.0)
+
+  def release(self):
+    pass
+
+
+def test_a_video_one_frame_short_of_its_header_is_noted(tmp_path, monkeypatch):
+  """The note on a video that decodes to fewer frames than its header declares comes from one
+  frame missing on (the last one of a cut download), none where the counts agree."""
+  video = tmp_path / "v.avi"
+  video.write_bytes(b"")
+  for decoded, declared, noted in ((3, 4, True), (3, 3, False), (3, 2, False)):
+    monkeypatch.setattr(video_io.cv2, "VideoCapture",
+                        lambda path, d=decoded, n=declared: _FakeCapture(d, n))
+    source = video_io.FrameSource(video)
+    assert len(source) == decoded
+    want = {f"{video}: 3 frames decoded where the file declares 4 (truncated or corrupt?, or a "
+            "variable frame rate, whose count is an estimate)"} if noted else set()
+    assert source.notes == want, (decoded, declared)
+
+
+def test_outputs_are_named_after_the_left_frames(tmp_path):
+  """The output names are the --left folder's stems (`left_0001`...), not the right's: the
+  disparities are the left view's."""
+  frame = np.zeros((8, 8, 3), np.uint8)
+  for side in ("left", "right"):
+    (tmp_path / side).mkdir()
+    for i in (1, 2):
+      assert cv2.imwrite(str(tmp_path / side / f"{side}_{i:04d}.png"), frame)
+  for read in (video_io.open_stereo, video_io.load_stereo):
+    assert read(tmp_path / "left", tmp_path / "right")[2] == ["left_0001", "left_0002"]
+    assert read(tmp_path / "right", tmp_path / "left")[2] == ["right_0001", "right_0002"]
+
+
+def test_videos_at_rates_a_percent_apart_are_noted_and_the_same_source_too(tmp_path, caplog):
+  """Frame rates more than 1% apart get the drift note (25 vs 24 frames/s: 4%), rates within
+  1% (NTSC's 29.97 beside 30) none; --left and --right naming one source get the note that
+  the disparity will be about 0, two sources with the same frames none."""
+  frames = [np.full((16, 16, 3), 40 * i, np.uint8) for i in range(3)]
+  rates = {"v24": 24.0, "v25": 25.0, "v2997": 30000 / 1001, "v30": 30.0}
+  paths = {name: _mjpg(tmp_path / f"{name}.avi", frames, fps) for name, fps in rates.items()}
+  for left, right, noted in (("v24", "v25", True), ("v2997", "v30", False)):
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+      video_io.open_stereo(paths[left], paths[right])
+    assert ("frames are paired by their index, so the views drift apart" in caplog.text) == noted
+  folder = _write_frames(tmp_path / "f", np.stack(frames))
+  copy = _write_frames(tmp_path / "g", np.stack(frames))
+  same = "--left and --right are the same source"
+  for read in (video_io.open_stereo, video_io.load_stereo):
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+      read(folder, tmp_path / "f" / ".." / "f")
+    assert (f"{same} ({os.path.realpath(folder)}): identical views give a disparity of "
+            "about 0") in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+      read(folder, copy)
+    assert same not in caplog.text
+
+
+def test_frame_count_mismatch_names_the_first_frame_one_folder_lacks(tmp_path):
+  """With several frames missing on the right (2 and 4 of 0-4), the message names the first
+  of them; numbers repeated in one folder only (two cameras' files in one folder) make no
+  claim about shifted pairs."""
+  frame = np.zeros((8, 8, 3), np.uint8)
+  for side, numbers in (("l", (0, 1, 2, 3, 4)), ("r", (0, 1, 3))):
+    (tmp_path / side).mkdir()
+    for i in numbers:
+      assert cv2.imwrite(str(tmp_path / side / f"{i:04d}.png"), frame)
+  with pytest.raises(ValueError, match=r"left has 5 .*right has 3 .*; e\.g\. frame 2 is in the "
+                                       r"left folder \(0002\.png\), not in the right$"):
+    video_io.open_stereo(tmp_path / "l", tmp_path / "r")
+  with pytest.raises(ValueError, match=r"; e\.g\. frame 2 is in the right folder \(0002\.png\), "
+                                       "not in the left$"):
+    video_io.load_stereo(tmp_path / "r", tmp_path / "l")  # (the side is named as it is)
+  shifted = video_io._shifted_pairing  # pylint: disable=protected-access
+  assert shifted(["a_5.png", "b_5.png"], ["5.png", "6.png"]) is None
+  assert shifted(["5.png", "6.png"], ["a_5.png", "b_5.png"]) is None
+
+
+def test_disparities_back_at_the_input_size_scale_by_the_widths_alone():
+  """A disparity is a horizontal distance: back at the input size it is scaled by the widths'
+  align_corners factor ((W - 1) / (w - 1): 2 for 3 -> 5 columns), whatever the heights'
+  (2 -> 5 rows would give 4)."""
+  back = video_io.disparities_to_input_size(np.full((1, 2, 3), 1.5, np.float32), 5, 5)
+  assert back.shape == (1, 5, 5)
+  np.testing.assert_allclose(back, 3.0)
+  tall = video_io.disparities_to_input_size(np.ones((1, 9, 2), np.float32), 3, 4)
+  np.testing.assert_allclose(tall, 3.0)  # (4 - 1) / (2 - 1), not the heights' 2 / 8
+
+
+def test_npy_maps_stay_float32_and_map_suffixes_are_read_in_any_case(tmp_path):
+  """`.npy` disparities are float32 files (a float16 one rounds 1000.1 to 1000 and 1/3 to
+  0.33325); `read_map` takes `F.PNG`, `F.NPY`... as their lower-case suffixes (files from
+  Windows tools)."""
+  d = np.array([[1 / 3, 1000.1], [0.0, 64.25]], np.float32)
+  video_io.write_map(tmp_path / "f.npy", d, "npy")
+  raw = np.load(tmp_path / "f.npy")
+  assert raw.dtype == np.float32
+  np.testing.assert_array_equal(raw, d)
+  for fmt in video_io.DISPARITY_FORMATS:
+    path = video_io.disparity_path(tmp_path, "g", fmt)
+    video_io.write_map(path, d, fmt)
+    upper = path.rename(path.with_suffix(path.suffix.upper()))
+    # (png16: KITTI's round(256 d) integers, 65535 at most: 1000.1 saturates)
+    want = np.minimum(np.round(d * 256), 65535) / 256 if fmt == "png16" else d
+    np.testing.assert_array_equal(video_io.read_map(upper), want)
+
+
+def test_video_files_with_upper_case_suffixes_are_read(tmp_path):
+  """Cameras name their videos `IMG_0001.MOV` or `CLIP.AVI`: the suffix is matched in any
+  case (was refused as "expected a frame folder or a video file")."""
+  frames = [np.full((16, 16, 3), 40 * i, np.uint8) for i in range(3)]
+  video = _mjpg(tmp_path / "clip.avi", frames).rename(tmp_path / "CLIP.AVI")
+  left, right, names = video_io.open_stereo(video, video)
+  assert len(left) == len(right) == 3 and names[0] == "frame_000000"
+  assert len(video_io.read_video_file(video)) == 3
