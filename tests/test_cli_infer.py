@@ -2100,3 +2100,157 @@ def test_video_files_with_upper_case_suffixes_are_read(tmp_path):
   left, right, names = video_io.open_stereo(video, video)
   assert len(left) == len(right) == 3 and names[0] == "frame_000000"
   assert len(video_io.read_video_file(video)) == 3
+
+
+def test_infer_argument_parsers_by_hand():
+  """--resize takes HxW (or H,W, any case of the x) of positive integers, nothing else;
+  --format values are split at commas, lower-cased, de-duplicated in their order (png16 by
+  default); --iters >= 2 and 1 <= --stride <= --window."""
+  import argparse  # pylint: disable=import-outside-toplevel
+
+  from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
+  for text, want in (("720x1280", (720, 1280)), ("720X1280", (720, 1280)),
+                     (" 36,48 ", (36, 48)), ("1x1", (1, 1))):
+    assert infer.parse_size(text) == want, text
+  for text in ("0x5", "5x0", "-2x5", "720", "720x1280x3", "axb", "720x"):
+    with pytest.raises(argparse.ArgumentTypeError, match="expected HEIGHTxWIDTH"):
+      infer.parse_size(text)
+  assert infer.parse_formats(None) == ["png16"]
+  assert infer.parse_formats(["npy, PFM", "npy", "EXR,png16"]) == ["npy", "pfm", "exr", "png16"]
+  with pytest.raises(UsageError, match="unknown --format 'tif'"):
+    infer.parse_formats(["npy,tif"])
+  assert infer.parse_camera_pair("3, 2") == (3, 2) and infer.parse_camera_pair("0,1") == (0, 1)
+  for text in ("2,2", "2", "2,4", "1,2,3"):
+    with pytest.raises(argparse.ArgumentTypeError, match="two different KITTI camera numbers"):
+      infer.parse_camera_pair(text)
+  infer.check_model_args(2, 4, 4)
+  infer.check_model_args(2, 4, 1)
+  for iters, window, stride in ((1, 4, 2), (2, 4, 5), (2, 4, 0)):
+    with pytest.raises(UsageError):
+      infer.check_model_args(iters, window, stride)
+
+
+def test_output_paths_name_every_file_of_a_run():
+  """The files of a run, by frame name: each disparity format, the video and summary, and with
+  a calibration one depth file (its format) and one point cloud per frame."""
+  out = pathlib.Path("out")
+  calib = infer.Calibration(100.0, 100.0, 10.0, 8.0, 0.5)
+  paths = infer.output_paths(out, ["a", "b"], ["png16", "npy"], calib, "exr")
+  assert [p.as_posix() for p in paths] == [
+      "out/disparity/a.png", "out/disparity/a.npy", "out/disparity/b.png", "out/disparity/b.npy",
+      "out/side_by_side.mp4", "out/summary.json", "out/depth/a.exr", "out/depth/b.exr",
+      "out/pointclouds/a.ply", "out/pointclouds/b.ply"]
+  assert [p.as_posix() for p in infer.output_paths(out, ["a"], ["pfm"], None, "npy")] == [
+      "out/disparity/a.pfm", "out/side_by_side.mp4", "out/summary.json"]
+
+
+def test_check_overwrite_refuses_existing_outputs_and_what_is_not_a_file(tmp_path):
+  """Existing output files are refused without --overwrite (the first 3 named, the rest
+  counted) and taken with it; a folder where an output file goes, or a file where its folder
+  goes, is refused even with --overwrite (it would be lost)."""
+  out = tmp_path / "out"
+  (out / "disparity").mkdir(parents=True)
+  paths = [out / "disparity" / f"{i:04d}.npy" for i in range(5)]
+  infer.check_overwrite(paths, False, out)  # nothing there yet
+  for p in paths:
+    p.write_bytes(b"user data")
+  with pytest.raises(FileExistsError, match=r"output files exist \(.*0000\.npy, .*0001\.npy, "
+                                            r".*0002\.npy and 2 more\); pass --overwrite"):
+    infer.check_overwrite(paths, False, out)
+  with pytest.raises(FileExistsError, match=r"output files exist \(.*0004\.npy\); pass"):
+    infer.check_overwrite(paths[4:], False, out)
+  infer.check_overwrite(paths, True, out)
+  paths[1].unlink()
+  paths[1].mkdir()
+  for overwrite in (False, True):
+    with pytest.raises(FileExistsError, match=r"0001\.npy exists and is not a file"):
+      infer.check_overwrite(paths[1:2], overwrite, out)
+  (out / "depth").write_text("a file where a folder goes")
+  for overwrite in (False, True):
+    with pytest.raises(FileExistsError, match=r"depth is a file, not a folder"):
+      infer.check_overwrite([out / "depth" / "0000.npy"], overwrite, out)
+  assert (out / "depth").read_text() == "a file where a folder goes"
+
+
+def test_earlier_outputs_takes_only_files_infer_writes_from_its_own_summary(tmp_path):
+  """`--overwrite` deletes what an earlier run's summary lists and this run does not write:
+  only names infer writes (`disparity|depth/*.png|npy|pfm|exr`, `pointclouds/*.ply`,
+  `side_by_side.mp4`), never hidden files, `..` or other folders, and only from a summary of
+  `sav-jax infer`'s."""
+  out = tmp_path / "out"
+  listed = ["disparity/a.png", "disparity/a.npy", "depth/a.exr", "pointclouds/a.ply",
+            "side_by_side.mp4", "disparity/.a.npy", "disparity/../keep.npy", "notes.txt",
+            "pointclouds/a.npy", "depth/a.ply", "other/a.npy", "disparity/x/a.npy", "summary.json"]
+  for rel in listed:
+    (out / rel).parent.mkdir(parents=True, exist_ok=True)
+    (out / rel).write_bytes(b"x")
+  (out / "keep.npy").write_bytes(b"x")
+  summary = {"tool": infer.SUMMARY_TOOL, "complete": True, "outputs": listed}
+  (out / "summary.json").write_text(json.dumps(summary))
+  this_run = [out / "disparity" / "a.png", out / "summary.json"]
+  assert sorted(p.relative_to(out.absolute()).as_posix()
+                for p in infer.earlier_outputs(out, this_run)) == [
+      "depth/a.exr", "disparity/a.npy", "pointclouds/a.ply", "side_by_side.mp4"]
+  (out / "summary.json").write_text(json.dumps({**summary, "tool": "python -m eval"}))
+  assert infer.earlier_outputs(out, this_run) == []
+  assert infer.earlier_outputs(out, this_run) == []
+
+
+def test_check_not_inputs_keeps_every_output_off_the_inputs(tmp_path):
+  """No output replaces an input video, the checkpoint or the calibration file, or goes into
+  an input frame folder (beside its frames too: the next run would read it as a frame)."""
+  import argparse  # pylint: disable=import-outside-toplevel
+  frames = tmp_path / "frames"
+  frames.mkdir()
+  (frames / "0000.png").write_bytes(b"x")
+  video, ckpt, calib = tmp_path / "v.mp4", tmp_path / "w.npz", tmp_path / "calib.txt"
+  for path in (video, ckpt, calib):
+    path.write_bytes(b"x")
+  args = argparse.Namespace(checkpoint=ckpt, calib=calib)
+  fine = tmp_path / "out" / "disparity" / "0000.png"
+  infer.check_not_inputs([fine], (frames, video), args)
+  for path, how, source in ((frames / "0000.png", "replace a file of the input", frames),
+                            (frames / "0001.npy", "be written into the input frame folder", frames),
+                            (video, "replace the input", video), (ckpt, "replace the input", ckpt),
+                            (calib, "replace the input", calib)):
+    with pytest.raises(FileExistsError, match=re.escape(f"output {path} would {how} {source}")):
+      infer.check_not_inputs([fine, path], (frames, video), args)
+
+
+def test_calibrated_outputs_pair_each_frame_with_its_disparity_colours_and_depth(
+    tmp_path, npz_ckpt, monkeypatch):
+  """A run with a stand-in model (no compile) whose disparity labels the frame (frame t, grey
+  level 40 (t + 1): 2 (t + 1) px): each frame's files hold its own disparity (KITTI's x256 in
+  the 16-bit PNG), depth fx * baseline / (d + doffs) in the default npy, and a point cloud
+  coloured by its own left frame; the video plays at the 10 frames/s of frame folders."""
+  levels = (40, 80, 120)
+  frames = np.stack([np.full((16, 24, 3), v, np.uint8) for v in levels])
+  left = _write_frames(tmp_path / "l", frames)
+  right = _write_frames(tmp_path / "r", frames)
+
+  def label_model(variables, lw, rw, *, cfg, iters, pads, check_memory, cache, start,
+                  keep_from=None):
+    value = np.round(lw[:, 0, 0, 0] / 20).astype(np.float32)  # 2 (t + 1)
+    hp, wp = lw.shape[1] + pads[0] + pads[1], lw.shape[2] + pads[2] + pads[3]
+    return -np.broadcast_to(value[:, None, None], (len(lw), hp, wp)).copy()
+
+  monkeypatch.setattr(inference, "_run_window", label_model)
+  out = tmp_path / "out"
+  assert _infer(left, right, npz_ckpt, out, "--format", "png16,npy", "--fx", "100",
+                "--baseline", "0.5", "--doffs", "3", "--window", "2", "--stride", "1") == 0
+  for t, name in enumerate(["0000", "0001", "0002"]):
+    d = 2.0 * (t + 1)
+    png = cv2.imread(str(out / "disparity" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
+    assert png.dtype == np.uint16 and (png == 256 * d).all(), (t, np.unique(png))
+    np.testing.assert_array_equal(np.load(out / "disparity" / f"{name}.npy"),
+                                  np.full((16, 24), d, np.float32))
+    depth = np.load(out / "depth" / f"{name}.npy")
+    np.testing.assert_allclose(depth, 100 * 0.5 / (d + 3), rtol=1e-6)
+    xyz, rgb = viz.read_ply(out / "pointclouds" / f"{name}.ply")
+    assert len(xyz) == 16 * 24 and (rgb == levels[t]).all(), (t, np.unique(rgb))
+    np.testing.assert_allclose(xyz[:, 2], 100 * 0.5 / (d + 3), rtol=1e-6)
+  summary = json.loads((out / "summary.json").read_text())
+  assert summary["video_fps"] == 10.0 and summary["frames"] == 3
+  assert sorted(p.name for p in (out / "depth").iterdir()) == ["0000.npy", "0001.npy", "0002.npy"]
+  assert len(video_io.read_video_file(out / "side_by_side.mp4")) == 3
+  assert video_io.video_fps(out / "side_by_side.mp4") == 10.0
