@@ -2222,7 +2222,8 @@ def test_calibrated_outputs_pair_each_frame_with_its_disparity_colours_and_depth
   """A run with a stand-in model (no compile) whose disparity labels the frame (frame t, grey
   level 40 (t + 1): 2 (t + 1) px): each frame's files hold its own disparity (KITTI's x256 in
   the 16-bit PNG), depth fx * baseline / (d + doffs) in the default npy, and a point cloud
-  coloured by its own left frame; the video plays at the 10 frames/s of frame folders."""
+  coloured by its own left frame; the video shows them in order, at the 10 frames/s of frame
+  folders."""
   levels = (40, 80, 120)
   frames = np.stack([np.full((16, 24, 3), v, np.uint8) for v in levels])
   left = _write_frames(tmp_path / "l", frames)
@@ -2237,7 +2238,7 @@ def test_calibrated_outputs_pair_each_frame_with_its_disparity_colours_and_depth
   monkeypatch.setattr(inference, "_run_window", label_model)
   out = tmp_path / "out"
   assert _infer(left, right, npz_ckpt, out, "--format", "png16,npy", "--fx", "100",
-                "--baseline", "0.5", "--doffs", "3", "--window", "2", "--stride", "1") == 0
+                "--baseline", "0.5", "--doffs", "3") == 0  # (one window: one chunk of 3)
   for t, name in enumerate(["0000", "0001", "0002"]):
     d = 2.0 * (t + 1)
     png = cv2.imread(str(out / "disparity" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
@@ -2252,5 +2253,12 @@ def test_calibrated_outputs_pair_each_frame_with_its_disparity_colours_and_depth
   summary = json.loads((out / "summary.json").read_text())
   assert summary["video_fps"] == 10.0 and summary["frames"] == 3
   assert sorted(p.name for p in (out / "depth").iterdir()) == ["0000.npy", "0001.npy", "0002.npy"]
-  assert len(video_io.read_video_file(out / "side_by_side.mp4")) == 3
+  video = video_io.read_video_file(out / "side_by_side.mp4")
+  assert video.shape == (3, 16, 48, 3)  # left | colourized disparity, dark to bright: 2, 4, 6 px
+  brightness = video[:, :, 24:].astype(np.float32).mean(axis=(1, 2, 3))
+  assert brightness[0] < brightness[1] < brightness[2], brightness
+  vmin, vmax = summary["video_disparity_range"]
+  for t in range(3):  # each frame's own colours, not another's nor the invalid white (mp4: lossy)
+    want = viz.colorize(np.full((16, 24), 2.0 * (t + 1), np.float32), vmin, vmax)
+    assert np.abs(video[t, :, 24:].astype(np.float32) - want).mean() < 8, t
   assert video_io.video_fps(out / "side_by_side.mp4") == 10.0
