@@ -2262,3 +2262,43 @@ def test_calibrated_outputs_pair_each_frame_with_its_disparity_colours_and_depth
     want = viz.colorize(np.full((16, 24), 2.0 * (t + 1), np.float32), vmin, vmax)
     assert np.abs(video[t, :, 24:].astype(np.float32) - want).mean() < 8, t
   assert video_io.video_fps(out / "side_by_side.mp4") == 10.0
+
+
+def test_an_earlier_runs_list_never_deletes_through_links(tmp_path):
+  """The files an earlier run's summary lists are deleted (`--overwrite`'s `earlier_outputs`,
+  `put_back` after an unfinished run) only where they are plain files in --out: not through a
+  linked subfolder (a user's `depth -> ~/data`) nor a linked file."""
+  out, user = tmp_path / "out", tmp_path / "user"
+  user.mkdir()
+  (user / "a.npy").write_bytes(b"user data")
+  (user / "b.npy").write_bytes(b"user data")
+  (out / "disparity").mkdir(parents=True)
+  (out / "depth").symlink_to(user)
+  (out / "disparity" / "a.npy").write_bytes(b"run")
+  (out / "disparity" / "b.npy").symlink_to(user / "b.npy")
+  listed = ["depth/a.npy", "disparity/a.npy", "disparity/b.npy"]
+  summary = {"tool": infer.SUMMARY_TOOL, "complete": True, "outputs": listed}
+  (out / "summary.json").write_text(json.dumps(summary))
+  assert infer.earlier_outputs(out, []) == [(out / "disparity" / "a.npy").absolute()]
+  (out / infer.SET_ASIDE).mkdir()  # an unfinished --overwrite run's
+  (out / "summary.json").write_text(json.dumps({**summary, "complete": False}))
+  (out / "pointclouds").mkdir()  # made by the unfinished run, left empty: removed
+  assert infer.put_back(out) == 0
+  assert not (out / "pointclouds").exists()
+  assert not (out / "disparity" / "a.npy").exists()  # the unfinished run's own file: deleted
+  assert (user / "a.npy").read_bytes() == (user / "b.npy").read_bytes() == b"user data"
+  assert (out / "disparity" / "b.npy").is_symlink() and (out / "depth").is_symlink()
+
+
+def test_put_back_restores_the_set_aside_files_unless_the_run_is_known_complete(tmp_path):
+  """Only a summary saying `"complete": true` lets `put_back` delete the set-aside files of
+  the earlier run; one that does not say (`complete` missing or not a boolean) has them put
+  back, as for an unfinished run."""
+  for complete in ({}, {"complete": None}, {"complete": "yes"}):
+    out = tmp_path / str(len(list(tmp_path.iterdir())))
+    (out / infer.SET_ASIDE / "disparity").mkdir(parents=True)
+    (out / infer.SET_ASIDE / "disparity" / "a.npy").write_bytes(b"earlier run")
+    (out / "summary.json").write_text(json.dumps({"tool": infer.SUMMARY_TOOL, **complete}))
+    assert infer.put_back(out) == 1, complete
+    assert (out / "disparity" / "a.npy").read_bytes() == b"earlier run"
+    assert not (out / infer.SET_ASIDE).exists()
