@@ -2302,3 +2302,36 @@ def test_put_back_restores_the_set_aside_files_unless_the_run_is_known_complete(
     assert infer.put_back(out) == 1, complete
     assert (out / "disparity" / "a.npy").read_bytes() == b"earlier run"
     assert not (out / infer.SET_ASIDE).exists()
+
+
+def test_the_output_video_plays_at_the_left_videos_rate(tmp_path, npz_ckpt, monkeypatch):
+  """Without --fps, side_by_side.mp4 takes the left input video's frame rate (12.5 here, not
+  frame folders' 10), so that it plays at the input's speed; --fps sets it."""
+  frames = [np.full((16, 24, 3), 40 * (i + 1), np.uint8) for i in range(3)]
+  left = _mjpg(tmp_path / "left.avi", frames, fps=12.5)
+  right = _mjpg(tmp_path / "right.avi", frames, fps=12.5)
+  monkeypatch.setattr(inference, "_run_window", _positive_model)
+  for out, extra, fps in (("a", (), 12.5), ("b", ("--fps", "7"), 7.0)):
+    assert _infer(left, right, npz_ckpt, tmp_path / out, *extra) == 0
+    assert json.loads((tmp_path / out / "summary.json").read_text())["video_fps"] == fps
+    assert video_io.video_fps(tmp_path / out / "side_by_side.mp4") == fps
+    assert (sorted(p.name for p in (tmp_path / out / "disparity").iterdir())
+            == ["frame_000000.png", "frame_000001.png", "frame_000002.png"])
+
+
+def test_overwrite_never_deletes_input_frames_an_earlier_summary_lists(tmp_path, npz_ckpt,
+                                                                       monkeypatch, capsys):
+  """An earlier run's summary may list files that are now this run's input (frames copied
+  into `out/depth/` and given as --left): `--overwrite` refuses to set them aside for deletion
+  before anything runs, and the frames stay."""
+  frames = np.zeros((2, 16, 24, 3), np.uint8)
+  out = tmp_path / "out"
+  left = _write_frames(out / "depth", frames)
+  right = _write_frames(tmp_path / "r", frames)
+  (out / "summary.json").write_text(json.dumps({
+      "tool": infer.SUMMARY_TOOL, "complete": True,
+      "outputs": ["depth/0000.png", "depth/0001.png", "side_by_side.mp4"]}))
+  monkeypatch.setattr(inference, "_run_window", _positive_model)
+  assert _infer(left, right, npz_ckpt, out, "--overwrite") == 2
+  assert "would replace a file of the input" in _error_line(capsys)
+  assert sorted(p.name for p in left.iterdir()) == ["0000.png", "0001.png"]
