@@ -2335,3 +2335,46 @@ def test_overwrite_never_deletes_input_frames_an_earlier_summary_lists(tmp_path,
   assert _infer(left, right, npz_ckpt, out, "--overwrite") == 2
   assert "would replace a file of the input" in _error_line(capsys)
   assert sorted(p.name for p in left.iterdir()) == ["0000.png", "0001.png"]
+
+
+def test_calibration_files_and_options_edge_cases(tmp_path, caplog):
+  """A KITTI file whose right matrix is missing is no calibration (not a crash on P3); an
+  explicit fx beside a Middlebury cam0 is kept; --calib with --fx is refused; a principal
+  point far off the centre in x alone is warned about."""
+  import argparse  # pylint: disable=import-outside-toplevel
+
+  from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
+  calib = tmp_path / "calib.txt"
+  calib.write_text("P2: 100 0 30 0  0 100 19.5 0  0 0 1 0\nP3: 100 0 30\n")
+  with pytest.raises(UsageError, match="no calibration found"):
+    infer.read_calibration(calib)
+  calib.write_text("fx 500\nbaseline 0.1\ncam0=[400 0 10; 0 400 8; 0 0 1]\ndoffs 0\n")
+  assert infer.read_calibration(calib)["fx"] == 500
+  args = argparse.Namespace(calib=calib, fx=500.0, fy=None, cx=None, cy=None, baseline=None,
+                            doffs=None, calib_cameras=None)
+  with pytest.raises(UsageError, match="give either --calib or --fx"):
+    infer.calibration_from_args(args)
+  with caplog.at_level(logging.WARNING, "sav_jax.tools.infer"):
+    infer.CalibrationSpec(100.0, 0.5, cx=90.0, cy=15.5).resolve(100, 32)  # x: 40% off centre
+  assert "principal point (cx 90, cy 15.5) is 40% of the frame from the centre" in caplog.text
+
+
+def test_max_frames_cuts_the_output_names_and_a_video_source_keeping_no_frame_reads(tmp_path):
+  """--max-frames 2 of 3 frames names two outputs (names beyond it listed files that were
+  never written); output names keep the file stems' case; a video source with keep=0 still
+  returns every frame it is asked for."""
+  frames = np.stack([np.full((8, 8, 3), 40 * (i + 1), np.uint8) for i in range(3)])
+  left, right = _write_frames(tmp_path / "l", frames), _write_frames(tmp_path / "r", frames)
+  for read in (video_io.open_stereo, video_io.load_stereo):
+    lv, _, names = read(left, right, max_frames=2)
+    assert names == ["0000", "0001"] and len(lv) == 2
+  (tmp_path / "m").mkdir()  # names keep their case (`Cam_0001`, not `cam_0001`)
+  for i in (1, 2):
+    assert cv2.imwrite(str(tmp_path / "m" / f"Cam_{i:04d}.PNG"), frames[i])
+  assert video_io.FrameSource(tmp_path / "m").names == ["Cam_0001", "Cam_0002"]
+  video = _mjpg(tmp_path / "v.avi", list(frames))
+  source = video_io.FrameSource(video, keep=0)
+  got = source[0:3]
+  assert got.shape == (3, 8, 8, 3)
+  assert [abs(int(f.mean()) - 40 * (i + 1)) < 6 for i, f in enumerate(got)] == [True] * 3
+  np.testing.assert_array_equal(source[1], got[1])
