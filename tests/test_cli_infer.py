@@ -2378,3 +2378,24 @@ def test_max_frames_cuts_the_output_names_and_a_video_source_keeping_no_frame_re
   assert got.shape == (3, 8, 8, 3)
   assert [abs(int(f.mean()) - 40 * (i + 1)) < 6 for i, f in enumerate(got)] == [True] * 3
   np.testing.assert_array_equal(source[1], got[1])
+
+
+def test_max_depth_leaves_far_points_out_of_the_point_clouds(tmp_path, npz_ckpt, monkeypatch,
+                                                             capsys):
+  """With a stand-in disparity of 5 px, fx 100 and baseline 0.5 every point is 10 deep:
+  --max-depth 20 keeps all 16 x 24 of each frame, --max-depth 5 none (empty clouds, counted
+  in the summary and warned about)."""
+  frames = np.zeros((2, 16, 24, 3), np.uint8)
+  left, right = _write_frames(tmp_path / "l", frames), _write_frames(tmp_path / "r", frames)
+  monkeypatch.setattr(inference, "_run_window", _positive_model)
+  for max_depth, points in (("20", 16 * 24), ("5", 0)):
+    out = tmp_path / max_depth
+    assert _infer(left, right, npz_ckpt, out, "--fx", "100", "--baseline", "0.5",
+                  "--max-depth", max_depth) == 0
+    for name in ("0000", "0001"):
+      xyz, _ = viz.read_ply(out / "pointclouds" / f"{name}.ply")
+      assert len(xyz) == points and (xyz[:, 2] == pytest.approx(10.0) if points else True)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["empty_point_clouds"] == (2 if points == 0 else 0)
+    assert summary["max_depth"] == float(max_depth)
+  assert "2 of the 2 point clouds have no point" in capsys.readouterr().out
