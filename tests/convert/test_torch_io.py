@@ -1316,3 +1316,91 @@ def test_save_pth_hands_torch_save_the_arrays_in_their_dtypes(tmp_path, monkeypa
   assert got["e4m3"].dtype is None and got["e4m3"].array.dtype == np.float32  # torch lacks it
   np.testing.assert_array_equal(got["e4m3"].array, sd["e4m3"].astype(np.float32))
 
+
+
+# --------------------------------------------------------------------------------------------
+# Dtype tables, rebuild-argument checks and storage views pinned one by one (gaps found by
+# mutation testing: a wrong entry or a dropped check loaded wrong values silently, or a
+# malformed file failed with an unrelated error).
+
+# (torch dtype name as pickled by a v3 tensor, the little-endian numpy dtype its elements
+# are by the format's definition, values a misreading would change: the sign bit set in
+# unsigned ints, magnitudes beyond the narrower types).
+_V3_DTYPES = (
+    ("float64", "<f8", [1.5, -2.0 ** -1000]), ("float32", "<f4", [1.5, -3e38]),
+    ("float16", "<f2", [0.5, -65504.0]), ("int64", "<i8", [2 ** 40, -3]),
+    ("int32", "<i4", [2 ** 30, -7]), ("int16", "<i2", [-32768, 300]), ("int8", "i1", [-128, 5]),
+    ("uint8", "u1", [255, 1]), ("uint16", "<u2", [65535, 300]),
+    ("uint32", "<u4", [2 ** 32 - 1, 2 ** 31]), ("uint64", "<u8", [2 ** 64 - 1, 2 ** 63]),
+    ("bool", "?", [True, False]), ("complex64", "<c8", [1 + 2j, -3.5j]),
+    ("complex128", "<c16", [1e300 + 2j, -3.5j]),
+    # torch's aliases (torch.float is torch.float32, torch.long is torch.int64, ...)
+    ("float", "<f4", [1.5, -3e38]), ("double", "<f8", [1.5, -2.0 ** -1000]),
+    ("half", "<f2", [0.5, -65504.0]), ("long", "<i8", [2 ** 40, -3]),
+    ("int", "<i4", [2 ** 30, -7]), ("short", "<i2", [-32768, 300]),
+    ("cfloat", "<c8", [1 + 2j, -3.5j]), ("cdouble", "<c16", [1e300 + 2j, -3.5j]),
+)
+
+
+@pytest.mark.parametrize("byteorder", ["little", "big"])
+def test_v3_tensors_of_every_dtype_and_alias(tmp_path, fake_torch, byteorder):
+  # Each v3 tensor reads its untyped storage's bytes as the dtype it names; the storage
+  # offset (1) counts elements of that dtype. A big-endian file holds each element (each
+  # part of a complex one) big-endian.
+  b = _Builder(fake_torch)
+  obj = {}
+  for name, dtype, values in _V3_DTYPES:
+    setattr(fake_torch, name, _FakeDType(name))
+    elements = np.array([values[1]] + values, np.dtype(dtype))
+    if byteorder == "big":
+      elements = elements.astype(np.dtype(dtype).newbyteorder(">"))
+    args = (b.untyped(elements.tobytes()), 1, (2,), (1,), False, collections.OrderedDict(),
+            getattr(fake_torch, name))
+    obj[name] = _Tensor(fake_torch._utils._rebuild_tensor_v3, args)
+  sd = torch_io.load_state_dict(b.write_zip(tmp_path / "v3.pth", obj, byteorder=byteorder))
+  for name, dtype, values in _V3_DTYPES:
+    want = np.dtype(dtype).newbyteorder("=")
+    assert sd[name].dtype == want and sd[name].dtype.isnative, name
+    np.testing.assert_array_equal(sd[name], np.array(values, want), err_msg=name)
+
+
+# torch storage class -> (its elements as numpy stores them, values, what the reader gives).
+_STORAGE_CLASS_VALUES = {
+    "DoubleStorage": ("<f8", [1.5, -2.0 ** -1000], None),
+    "FloatStorage": ("<f4", [1.5, -3e38], None),
+    "HalfStorage": ("<f2", [0.5, -65504.0], None),
+    # bfloat16 is the high half of a float32: 0x3FC0 is 1.5, 0xC000 is -2.
+    "BFloat16Storage": ("<u2", [0x3FC0, 0xC000], np.array([1.5, -2.0], np.float32)),
+    "LongStorage": ("<i8", [2 ** 40, -3], None), "IntStorage": ("<i4", [2 ** 30, -7], None),
+    "ShortStorage": ("<i2", [-32768, 300], None), "CharStorage": ("i1", [-128, 5], None),
+    "ByteStorage": ("u1", [255, 1], None), "BoolStorage": ("?", [True, False], None),
+    "ComplexFloatStorage": ("<c8", [1 + 2j, -3.5j], None),
+    "ComplexDoubleStorage": ("<c16", [1e300 + 2j, -3.5j], None),
+    "UntypedStorage": ("u1", [200, 1], None),  # bytes: uint8, as torch's untyped storage
+}
+
+
+@pytest.mark.parametrize("module", ["torch", "torch.cuda", "torch.storage"])
+def test_v2_tensors_on_every_storage_class(tmp_path, fake_torch, monkeypatch, module):
+  # A storage class names the dtype of a v2 tensor's elements, under `torch` (torch.save),
+  # `torch.cuda` (a legacy file of GPU tensors) or `torch.storage`.
+  if module != "torch":
+    mod = types.ModuleType(module)
+    monkeypatch.setitem(sys.modules, module, mod)
+    setattr(fake_torch, module.split(".")[1], mod)
+  else:
+    mod = fake_torch
+  b = _Builder(fake_torch)
+  obj = {}
+  for cls_name, (dtype, values, _) in _STORAGE_CLASS_VALUES.items():
+    cls = type(cls_name, (), {"__module__": module})
+    setattr(mod, cls_name, cls)
+    key = str(len(b.storages))
+    b.storages[key] = _Storage(key, cls, 2, np.array(values, dtype).tobytes())
+    obj[cls_name] = _Tensor(fake_torch._utils._rebuild_tensor_v2,
+                            (b.storages[key], 0, (2,), (1,), False, collections.OrderedDict()))
+  sd = torch_io.load_state_dict(b.write_zip(tmp_path / "classes.pth", obj))
+  for cls_name, (dtype, values, want) in _STORAGE_CLASS_VALUES.items():
+    want = np.array(values, np.dtype(dtype).newbyteorder("=")) if want is None else want
+    assert sd[cls_name].dtype == want.dtype, cls_name
+    np.testing.assert_array_equal(sd[cls_name], want, err_msg=cls_name)
