@@ -379,6 +379,21 @@ def test_legacy_storage_view_metadata(tmp_path, fake_torch):
   with pytest.raises(CheckpointError, match=r"view\.pth: storage view view0 lies outside its "
                                             r"base storage"):
     torch_io.load_state_dict(path)
+  # At the boundary: a view ending at its base's last element (5..9 of 10) is read; one
+  # element further (6..10) is refused. A view from element 0 is one.
+  write({"x": b.tensor(st, 3, (2,), (1,))}, ("view0", 5, 5))
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], [8, 9])
+  write({"x": b.tensor(st, 1, (2,), (1,))}, ("view0", 0, 3))
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], [1, 2])
+  write({"x": b.tensor(st, 0, (2,), (1,))}, ("view0", 6, 5))
+  with pytest.raises(CheckpointError, match=r"view0 lies outside its base storage"):
+    torch_io.load_state_dict(path)
+  # A view holds its own elements only: a tensor reading past them (4 of a 3-element view
+  # at 4) is refused, though its base has them.
+  write({"x": b.tensor(st, 0, (4,), (1,))}, ("view0", 4, 3))
+  with pytest.raises(CheckpointError, match=r"view\.pth: tensor of size \(4,\), stride \(1,\), "
+                                            r"offset 0 overruns its storage of 3 elements"):
+    torch_io.load_state_dict(path)
 
 
 def test_tensor_overrunning_storage_is_refused(tmp_path, fake_torch):
@@ -1404,3 +1419,96 @@ def test_v2_tensors_on_every_storage_class(tmp_path, fake_torch, monkeypatch, mo
     want = np.array(values, np.dtype(dtype).newbyteorder("=")) if want is None else want
     assert sd[cls_name].dtype == want.dtype, cls_name
     np.testing.assert_array_equal(sd[cls_name], want, err_msg=cls_name)
+
+
+def test_every_allow_listed_tensor_form_is_read(tmp_path, fake_torch):
+  # The forms torch.save writes beside plain v2 tensors: a Parameter with extra state
+  # (`_rebuild_parameter_with_state`), a tensor subclass rebuilt by `_rebuild_from_type_v2`
+  # with `torch.Tensor` (pickled as `torch Tensor`) or `torch.nn.parameter.Parameter`, and
+  # torch.device objects kept in a checkpoint ("cuda:0", "cpu").
+  utils = fake_torch._utils
+  utils._rebuild_parameter_with_state = _fake_function("torch._utils",
+                                                       "_rebuild_parameter_with_state")
+  fake_torch.Tensor = type("Tensor", (), {"__module__": "torch"})
+  fake_torch.device = _fake_function("torch", "device")
+  parameter = sys.modules["torch.nn.parameter"].Parameter
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(6, dtype=np.float32), "float32")
+  args = (st, 2, (2,), (1,), False, collections.OrderedDict())
+  obj = {
+      "model": {
+          "with_state": _Tensor(utils._rebuild_parameter_with_state,
+                                (_Tensor(utils._rebuild_tensor_v2, args), True,
+                                 collections.OrderedDict(), {"extra": 1})),
+          "tensor": _Tensor(fake_torch._tensor._rebuild_from_type_v2,
+                            (utils._rebuild_tensor_v2, fake_torch.Tensor, args, {})),
+          "parameter": _Tensor(fake_torch._tensor._rebuild_from_type_v2,
+                               (utils._rebuild_tensor_v2, parameter, args, {})),
+      },
+      "devices": [_Tensor(fake_torch.device, ("cuda", 0)), _Tensor(fake_torch.device, ("cpu",))],
+  }
+  path = b.write_zip(tmp_path / "forms.pth", obj)
+  out = torch_io.load_checkpoint_object(path)
+  assert out["devices"] == ["cuda:0", "cpu"]
+  for key in obj["model"]:
+    np.testing.assert_array_equal(out["model"][key], [2, 3], err_msg=key)
+
+
+def test_malformed_rebuild_arguments_are_refused_by_name(tmp_path, fake_torch):
+  # Each argument a rebuild helper or allow-listed builtin gets is checked, and a bad one
+  # refused with its own message (not an AttributeError or a numpy error from further on,
+  # nor accepted: True as a size or offset, a set built from a string's characters, a
+  # complex number parsed from text, any allow-listed function under _rebuild_from_type_v2).
+  import codecs  # pylint: disable=import-outside-toplevel
+  utils = fake_torch._utils
+  from_type = fake_torch._tensor._rebuild_from_type_v2
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(6, dtype=np.float32), "float32")
+  v2 = lambda *args: _Tensor(utils._rebuild_tensor_v2, args + (False, collections.OrderedDict()))
+  good = (st, 0, (2,), (1,), False, collections.OrderedDict())
+  cases = {
+      "bool_size": (v2(st, 0, (True, 2), (2, 1)),
+                    r"tensor size must be a tuple of non-negative ints, got \(True, 2\)"),
+      "dict_size": (v2(st, 0, {2: 1}, (1,)), r"tensor size must be a tuple of non-negative"),
+      "bool_offset": (v2(st, True, (2,), (1,)), r"bad tensor storage offset True"),
+      "ranks": (v2(st, 0, (2, 3), (1,)), r"tensor size \(2, 3\) and stride \(1,\) differ in "
+                                         r"length"),
+      "no_storage": (v2([1.0, 2.0], 0, (2,), (1,)), r"tensor rebuilt from a list, not a storage"),
+      "from_type_type": (_Tensor(from_type, (utils._rebuild_tensor_v2, st.cls, good, {})),
+                         r"_rebuild_from_type_v2 for unsupported type TorchDType\(float32\)"),
+      "from_type_fn": (_Tensor(from_type, (set, fake_torch._tensor.Tensor, ([1, 2],), {})),
+                       r"_rebuild_from_type_v2 with unsupported function "
+                       r"<safe (__builtin__|builtins)\.set>"),
+      "from_type_args": (_Tensor(from_type, (utils._rebuild_tensor_v2, fake_torch._tensor.Tensor,
+                                             list(good), {})),
+                         r"_rebuild_from_type_v2 needs an argument tuple"),
+      "codecs": (_Evil(codecs.encode, 5, "latin1"), r"refused _codecs\.encode\(int, 'latin1'\)"),
+      "set_of_str": (_Evil(set, "ab"), r"refused to build a set from a str"),
+      "complex_of_str": (_Evil(complex, "1", "2"), r"refused complex\(\) of non-numbers"),
+  }
+  for name, (value, message) in cases.items():
+    path = b.write_zip(tmp_path / f"{name}.pth", {"w": value})
+    with pytest.raises(CheckpointError, match=rf"{name}\.pth: {message}"):
+      torch_io.load_checkpoint_object(path)
+
+
+def test_sets_and_frozensets_keep_their_type(tmp_path):
+  # pickle protocol 2 writes both as a call of the builtin on a list: a frozenset read back
+  # as a set compares equal to it (and then is mutable and unhashable).
+  obj = {"s": {1, 2}, "f": frozenset([3, 4])}
+  out = torch_io.load_checkpoint_object(_zip_with_pickle(tmp_path / "sets.pth",
+                                                         pickle.dumps(obj, protocol=2)))
+  assert type(out["s"]) is set and out["s"] == {1, 2}
+  assert type(out["f"]) is frozenset and out["f"] == frozenset([3, 4])
+
+
+def test_legacy_storage_of_no_listed_record_is_named(tmp_path, fake_torch):
+  # A legacy file's object names a storage its key list leaves out: its data never comes.
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(3, dtype=np.float32), "float32")
+  path = tmp_path / "unlisted.pth"
+  path.write_bytes(_legacy_header() + b.pickle({"x": b.tensor(st, 0, (3,), (1,))}, legacy=True)
+                   + pickle.dumps([], protocol=2))
+  with pytest.raises(CheckpointError, match=r"unlisted\.pth: the data of storage '0' is "
+                                            r"missing$"):
+    torch_io.load_state_dict(path)
