@@ -1512,3 +1512,85 @@ def test_legacy_storage_of_no_listed_record_is_named(tmp_path, fake_torch):
   with pytest.raises(CheckpointError, match=r"unlisted\.pth: the data of storage '0' is "
                                             r"missing$"):
     torch_io.load_state_dict(path)
+
+
+def test_pickle_bounds_at_their_limits(tmp_path, monkeypatch):
+  # "More than MAX_PICKLE_OPS opcodes" and "a memo slot beyond the opcodes read so far",
+  # exactly: PROTO, NONE, STOP is 3 opcodes; PROTO, EMPTY_DICT, LONG_BINPUT n is 3 opcodes
+  # when slot n is stored. The text PUT of protocol 0 is held to the same bound.
+  path = _zip_with_pickle(tmp_path / "ops.pth", _pickle_with_ops(b"N"))
+  monkeypatch.setattr(pickle_reader, "MAX_PICKLE_OPS", 3)
+  assert torch_io.load_checkpoint_object(path) is None
+  monkeypatch.setattr(pickle_reader, "MAX_PICKLE_OPS", 2)
+  with pytest.raises(CheckpointError, match=r"ops\.pth: a pickle of more than 2 opcodes"):
+    torch_io.load_checkpoint_object(path)
+  monkeypatch.undo()
+  for slot in (3, 4):
+    path = _zip_with_pickle(tmp_path / f"memo{slot}.pth",
+                            _pickle_with_ops(b"}r" + slot.to_bytes(4, "little")))
+    if slot == 3:
+      assert torch_io.load_checkpoint_object(path) == {}
+    else:
+      with pytest.raises(CheckpointError, match=r"memo4\.pth: the pickle stores into memo slot 4 "
+                                                r"after 3 opcodes"):
+        torch_io.load_checkpoint_object(path)
+  path = _zip_with_pickle(tmp_path / "text_put.pth", b"(dp4194304\n.")  # MARK DICT PUT STOP
+  with pytest.raises(CheckpointError, match=r"text_put\.pth: the pickle stores into memo slot "
+                                            r"4194304 after 3 opcodes"):
+    torch_io.load_checkpoint_object(path)
+
+
+def test_persistent_id_outside_the_object_pickle_is_refused(tmp_path):
+  # In a legacy file only the object pickle names storages; a persistent id in its key
+  # list (BINUNICODE 'a', BINPERSID) is refused by name, not failed on as corruption.
+  path = tmp_path / "pid.pth"
+  path.write_bytes(_legacy_header() + pickle.dumps({}, protocol=2)
+                   + b"\x80\x02X\x01\x00\x00\x00aQ.")
+  with pytest.raises(CheckpointError, match=r"pid\.pth: unexpected persistent id 'a'$"):
+    torch_io.load_checkpoint_object(path)
+
+
+@pytest.mark.parametrize("fmt", ["zip", "legacy"])
+def test_empty_storage(tmp_path, fake_torch, fmt):
+  # torch.zeros(0) is saved with a storage of 0 elements (an empty record): an empty array.
+  b = _Builder(fake_torch)
+  st = b.storage(np.zeros(0, np.float32), "float32")
+  obj = {"e": b.tensor(st, 0, (0,), (1,)), "e2": b.tensor(st, 0, (0, 3), (3, 1))}
+  path = tmp_path / "empty.pth"
+  b.write_legacy(path, obj) if fmt == "legacy" else b.write_zip(path, obj)
+  sd = torch_io.load_state_dict(path)
+  assert sd["e"].shape == (0,) and sd["e2"].shape == (0, 3)
+  assert sd["e"].dtype == sd["e2"].dtype == np.float32
+
+
+def test_malformed_storage_ids_are_refused(tmp_path, fake_torch):
+  # ('storage', <storage class>, <key: str>, <location>, <numel: int >= 0>): a negative
+  # count read the whole record whatever it declared; an int key named a record all the
+  # same; a storage type that is no torch class failed further on as corruption.
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(3, dtype=np.float32), "float32")
+  body = {"x": b.tensor(st, 0, (2,), (1,))}
+  for name, pid, message in (
+      ("negative", ("storage", st.cls, "0", "cpu", -1), r"malformed storage id"),
+      ("int_key", ("storage", st.cls, 0, "cpu", 3), r"malformed storage id"),
+      ("str_type", ("storage", "FloatStorage", "0", "cpu", 3),
+       r"storage type 'FloatStorage' is not a known torch storage")):
+    path = _zip_with_pickle(tmp_path / f"{name}.pth", _with_storage_id(body, pid))
+    with zipfile.ZipFile(path, "a") as zf:
+      zf.writestr("archive/data/0", st.raw)
+    with pytest.raises(CheckpointError, match=rf"{name}\.pth: {message}"):
+      torch_io.load_state_dict(path)
+
+
+def test_byteorder_record_with_a_line_end_is_read(tmp_path, fake_torch):
+  # The record is compared without surrounding whitespace: "big\n" is big-endian.
+  b = _Builder(fake_torch)
+  path = b.write_zip(tmp_path / "nl.pth", {"w": b.array(np.array([1.5, -2.0], np.float32),
+                                                        "float32")}, byteorder="big")
+  with zipfile.ZipFile(path) as zf:
+    records = {n: zf.read(n) for n in zf.namelist()}
+  records["archive/byteorder"] = b"big\n"
+  with zipfile.ZipFile(path, "w") as zf:
+    for n, data in records.items():
+      zf.writestr(n, data)
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["w"], [1.5, -2.0])
