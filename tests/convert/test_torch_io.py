@@ -1594,3 +1594,103 @@ def test_byteorder_record_with_a_line_end_is_read(tmp_path, fake_torch):
     for n, data in records.items():
       zf.writestr(n, data)
   np.testing.assert_array_equal(torch_io.load_state_dict(path)["w"], [1.5, -2.0])
+
+
+@pytest.mark.parametrize("names", [["a/data.pkl", "b/data.pkl"], ["a/b/data.pkl"],
+                                   ["archive/xdata.pkl"]])
+def test_zip_without_exactly_one_top_level_data_pkl_is_refused(tmp_path, names):
+  # torch reads `<dir>/data.pkl` of the archive's one folder (or the root): two candidates
+  # are ambiguous, a deeper one or another name ending in "data.pkl" is no checkpoint's.
+  path = tmp_path / "which.pth"
+  with zipfile.ZipFile(path, "w") as zf:
+    for name in names:
+      zf.writestr(name, pickle.dumps({}, protocol=2))
+  with pytest.raises(CheckpointError, match=r"which\.pth: zip file without a single "
+                                            r"'<dir>/data\.pkl' record"):
+    torch_io.load_checkpoint_object(path)
+
+
+def test_object_pickle_size_limit_is_inclusive(tmp_path, monkeypatch):
+  # "Larger than MAX_PICKLE_BYTES" is refused: a data.pkl of exactly that many bytes is read.
+  data = pickle.dumps({"a": 1}, protocol=2)
+  path = _zip_with_pickle(tmp_path / "limit.pth", data)
+  monkeypatch.setattr(pickle_reader, "MAX_PICKLE_BYTES", len(data))
+  assert torch_io.load_checkpoint_object(path) == {"a": 1}
+  monkeypatch.setattr(pickle_reader, "MAX_PICKLE_BYTES", len(data) - 1)
+  with pytest.raises(CheckpointError, match=rf"limit\.pth: zip record 'archive/data\.pkl' is "
+                                            rf"larger than {len(data) - 1} bytes"):
+    torch_io.load_checkpoint_object(path)
+
+
+def _zip_bytes(records, compression=zipfile.ZIP_DEFLATED):
+  """An in-memory zip of `{name: (bytes, compress_type)}` records."""
+  buf = io.BytesIO()
+  with zipfile.ZipFile(buf, "w") as zf:
+    for name, (data, how) in records.items():
+      zf.writestr(name, data, compress_type=how)
+  return zipfile.ZipFile(io.BytesIO(buf.getvalue()))
+
+
+def test_inflation_bounds_at_their_limits(monkeypatch):
+  # A compressed record inflating to FREE_INFLATION bytes is exempt, one byte more (from a
+  # few bytes of deflated zeros) is refused; stored (uncompressed) records count neither
+  # way, so a large stored record cannot cover compressed records beyond the total bound.
+  monkeypatch.setattr(pickle_reader, "FREE_INFLATION", 10000)
+  monkeypatch.setattr(pickle_reader, "FREE_TOTAL", 1 << 30)
+  pickle_reader.check_inflation(_zip_bytes({"z": (bytes(10000), zipfile.ZIP_DEFLATED)}), "ok")
+  with pytest.raises(CheckpointError, match=r"over: zip record 'z' inflates \d+ bytes to 10001 "):
+    pickle_reader.check_inflation(_zip_bytes({"z": (bytes(10001), zipfile.ZIP_DEFLATED)}), "over")
+  monkeypatch.setattr(pickle_reader, "FREE_TOTAL", 0)
+  zeros = {f"z{i}": (bytes(10000), zipfile.ZIP_DEFLATED) for i in range(10)}  # ~30 B each
+  stored = {"w": (np.random.default_rng(0).bytes(100000), zipfile.ZIP_STORED)}
+  with pytest.raises(CheckpointError, match=r"total: its compressed zip records inflate \d+ "
+                                            r"bytes to 100000 together"):
+    pickle_reader.check_inflation(_zip_bytes({**stored, **zeros}), "total")
+  pickle_reader.check_inflation(_zip_bytes(stored), "stored")  # stored only: nothing inflates
+
+
+def _declare_in_central_directory(raw: bytes, sizes) -> bytes:
+  """`raw` (a zip) with the central directory's compressed (+20) and uncompressed (+24)
+  sizes of the records named in `sizes` ({name: (compressed or None, size or None)})
+  replaced: the record headers a reader trusts."""
+  raw = bytearray(raw)
+  at = raw.find(b"PK\x01\x02")
+  while at >= 0:
+    name = bytes(raw[at + 46:at + 46 + int.from_bytes(raw[at + 28:at + 30], "little")]).decode()
+    for field, value in zip((20, 24), sizes.get(name, (None, None))):
+      if value is not None:
+        raw[at + field:at + field + 4] = value.to_bytes(4, "little")
+    at = raw.find(b"PK\x01\x02", at + 4)
+  return bytes(raw)
+
+
+def test_inflation_total_counts_the_bytes_records_occupy(monkeypatch):
+  # Headers declaring 5000 compressed bytes for records of ~30 (deflated zeros) do not
+  # raise the archive's allowance: the bound is on the bytes in the file.
+  monkeypatch.setattr(pickle_reader, "FREE_TOTAL", 0)
+  buf = io.BytesIO()
+  with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+    for i in range(10):
+      zf.writestr(f"z{i}", bytes(10000))
+  raw = _declare_in_central_directory(buf.getvalue(), {f"z{i}": (5000, None) for i in range(10)})
+  with zipfile.ZipFile(io.BytesIO(raw)) as zf:
+    assert all(i.compress_size == 5000 for i in zf.infolist())
+    with pytest.raises(CheckpointError, match=r"lie: its compressed zip records inflate \d{3} "
+                                              r"bytes to 100000 together"):
+      pickle_reader.check_inflation(zf, "lie")
+
+
+def test_storage_record_shorter_than_its_header_declares(tmp_path, fake_torch):
+  # A deflated record whose header declares 12 bytes but inflates to 8: the tensor's 3
+  # elements are refused by name (not a numpy error on a short buffer).
+  b = _Builder(fake_torch)
+  obj = {"x": b.array(np.arange(3, dtype=np.float32), "float32")}
+  buf = io.BytesIO()
+  with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+    zf.writestr("archive/data.pkl", b.pickle(obj, legacy=False))
+    zf.writestr("archive/data/0", b.storages["0"].raw[:8])
+  path = tmp_path / "short.pth"
+  path.write_bytes(_declare_in_central_directory(buf.getvalue(), {"archive/data/0": (None, 12)}))
+  with pytest.raises(CheckpointError, match=r"short\.pth: storage 'archive/data/0' has 8 bytes, "
+                                            r"needs 12$"):
+    torch_io.load_state_dict(path)
