@@ -1694,3 +1694,33 @@ def test_storage_record_shorter_than_its_header_declares(tmp_path, fake_torch):
   with pytest.raises(CheckpointError, match=r"short\.pth: storage 'archive/data/0' has 8 bytes, "
                                             r"needs 12$"):
     torch_io.load_state_dict(path)
+
+
+def test_legacy_storage_key_lists_and_headers(tmp_path, fake_torch):
+  # After the object pickle: a list of str keys, then per key an 8-byte count and the
+  # elements. A key no tensor uses, the key of a view (its data is its base's), a key of
+  # another type, a view named by a non-str key, and a count cut short are refused by name.
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(4, dtype=np.float32), "float32")
+  path = tmp_path / "keys.pth"
+
+  def write(keys, tail=struct.pack("<q", 4) + st.raw, view=None):
+    pid = ("storage", st.cls, st.key, "cpu", st.numel, view)
+    path.write_bytes(_legacy_header() + _with_storage_id({"x": b.tensor(st, 0, (2,), (1,))}, pid)
+                     + pickle.dumps(keys, protocol=2) + tail)
+
+  write(["0"])
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], [0, 1])
+  for keys, view, message in (
+      (["0", "9"], None, r"storage '9' listed but never used by a tensor"),
+      (["v"], ("v", 1, 2), r"storage 'v' listed but never used by a tensor"),
+      ([0], None, r"malformed storage key list"),
+      (["0"], (7, 1, 2), r"malformed storage view \(7, 1, 2\)")):
+    write(keys, view=view)
+    with pytest.raises(CheckpointError, match=rf"keys\.pth: {message}"):
+      torch_io.load_state_dict(path)
+  for tail in (b"", struct.pack("<q", 4)[:5]):  # the file ends in the count
+    write(["0"], tail)
+    with pytest.raises(CheckpointError, match=r"keys\.pth: truncated legacy checkpoint "
+                                              r"\(storage '0'\)$"):
+      torch_io.load_state_dict(path)
