@@ -1724,3 +1724,88 @@ def test_legacy_storage_key_lists_and_headers(tmp_path, fake_torch):
     with pytest.raises(CheckpointError, match=r"keys\.pth: truncated legacy checkpoint "
                                               r"\(storage '0'\)$"):
       torch_io.load_state_dict(path)
+
+
+def test_float8_variants_are_widened_to_float32(tmp_path, fake_torch):
+  # By the formats' definitions: e5m2 (bias 15) 0x3C = 1, 0xC0 = -2, 0x7B = 57344, 0x01 =
+  # 2**-16; e4m3fnuz (bias 8) 0x40 = 1, 0xC8 = -2, 0x7F = 240, 0x01 = 2**-10; e5m2fnuz
+  # (bias 16) 0x40 = 1, 0xC4 = -2, 0x7F = 57344, 0x01 = 2**-17.
+  b = _Builder(fake_torch)
+  cases = {"float8_e5m2": ([0x3C, 0xC0, 0x7B, 0x01], [1, -2, 57344, 2.0 ** -16]),
+           "float8_e4m3fnuz": ([0x40, 0xC8, 0x7F, 0x01], [1, -2, 240, 2.0 ** -10]),
+           "float8_e5m2fnuz": ([0x40, 0xC4, 0x7F, 0x01], [1, -2, 57344, 2.0 ** -17])}
+  obj = {}
+  for name, (bits, _) in cases.items():
+    setattr(fake_torch, name, _FakeDType(name))
+    args = (b.untyped(bytes(bits)), 0, (4,), (1,), False, collections.OrderedDict(),
+            getattr(fake_torch, name))
+    obj[name] = _Tensor(fake_torch._utils._rebuild_tensor_v3, args)
+  sd = torch_io.load_state_dict(b.write_zip(tmp_path / "f8.pth", obj))
+  for name, (_, values) in cases.items():
+    assert sd[name].dtype == np.float32, name
+    np.testing.assert_array_equal(sd[name], np.array(values, np.float32), err_msg=name)
+
+
+def test_tensor_shape_limits(tmp_path, fake_torch):
+  # A stride-0 expansion may have more elements than its storage (up to 2**24); a tensor
+  # of more than 32 dimensions is refused; a v3 tensor on an untyped storage whose bytes
+  # are no whole number of its elements is refused by name.
+  b = _Builder(fake_torch)
+  st = b.storage(np.array([1, 2, 3], np.float32), "float32")
+  path = b.write_zip(tmp_path / "expand.pth", {"x": b.tensor(st, 0, (4, 3), (0, 1))})
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], [[1, 2, 3]] * 4)
+  path = b.write_zip(tmp_path / "dims.pth", {"x": b.tensor(st, 0, (1,) * 33, (1,) * 33)})
+  with pytest.raises(CheckpointError, match=r"dims\.pth: refused a tensor of size \(1, 1, "):
+    torch_io.load_state_dict(path)
+  path = b.write_zip(tmp_path / "dims32.pth", {"x": b.tensor(st, 0, (1,) * 32, (1,) * 32)})
+  assert torch_io.load_state_dict(path)["x"].shape == (1,) * 32
+  b = _Builder(fake_torch)
+  args = (b.untyped(bytes(5)), 0, (1,), (1,), False, collections.OrderedDict(), fake_torch.float32)
+  path = b.write_zip(tmp_path / "odd.pth", {"x": _Tensor(fake_torch._utils._rebuild_tensor_v3,
+                                                         args)})
+  with pytest.raises(CheckpointError, match=r"odd\.pth: storage size is not a multiple of "
+                                            r"float32"):
+    torch_io.load_state_dict(path)
+
+
+def test_memory_budget_counts_output_bytes_and_view_roots(tmp_path, fake_torch, monkeypatch):
+  # The tensors may take 4x the bytes of the storages they come from (no extra allowance
+  # here): counted in the bytes of the arrays made (float32 for a bfloat16 or a v3 float32
+  # tensor on an untyped storage, whatever the storage's element), up to the bound
+  # inclusive; a legacy view's allowance is its base storage's.
+  monkeypatch.setattr(pickle_reader, "_EXTRA_TENSOR_BYTES", 0)
+  b = _Builder(fake_torch)
+  bf = b.storage(np.ones(100, np.float32), "bfloat16")  # 200 bytes: 800 allowed
+  for n, ok in ((2, True), (3, False)):  # 400 bytes each as float32
+    b.write_zip(tmp_path / "bf.pth", {f"w{i}": b.tensor(bf, 0, (100,), (1,)) for i in range(n)})
+    if ok:
+      assert len(torch_io.load_state_dict(tmp_path / "bf.pth")) == n
+    else:
+      with pytest.raises(CheckpointError, match=r"bf\.pth: refused: its tensors would take"):
+        torch_io.load_state_dict(tmp_path / "bf.pth")
+  b = _Builder(fake_torch)
+  raw = b.untyped(np.ones(100, np.float32).tobytes())  # 400 bytes: 1600 allowed
+  v3 = lambda: _Tensor(fake_torch._utils._rebuild_tensor_v3,
+                       (raw, 0, (100,), (1,), False, collections.OrderedDict(), fake_torch.float32))
+  b.write_zip(tmp_path / "v3.pth", {f"w{i}": v3() for i in range(4)})
+  assert len(torch_io.load_state_dict(tmp_path / "v3.pth")) == 4
+  b.write_zip(tmp_path / "v3.pth", {f"w{i}": v3() for i in range(5)})
+  with pytest.raises(CheckpointError, match=r"v3\.pth: refused: its tensors would take"):
+    torch_io.load_state_dict(tmp_path / "v3.pth")
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(10, dtype=np.float32), "float32")  # 40 bytes: 160 allowed
+  pid = ("storage", st.cls, st.key, "cpu", st.numel, ("view0", 2, 8))
+  path = tmp_path / "view.pth"
+  path.write_bytes(_legacy_header() + _with_storage_id({"x": b.tensor(st, 0, (8,), (1,))}, pid)
+                   + pickle.dumps([st.key], protocol=2) + struct.pack("<q", 10) + st.raw)
+  np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], np.arange(2, 10))
+
+
+def test_empty_tensor_needs_no_storage_elements(tmp_path, fake_torch):
+  # A tensor of no elements reads none, wherever its offset points (as torch's set_ takes
+  # it): (0, 2) at offset 7 of a 6-element storage is an empty array, not an overrun.
+  b = _Builder(fake_torch)
+  st = b.storage(np.arange(6, dtype=np.float32), "float32")
+  sd = torch_io.load_state_dict(b.write_zip(tmp_path / "e.pth",
+                                            {"x": b.tensor(st, 7, (0, 2), (2, 1))}))
+  assert sd["x"].shape == (0, 2) and sd["x"].dtype == np.float32
