@@ -1809,3 +1809,113 @@ def test_empty_tensor_needs_no_storage_elements(tmp_path, fake_torch):
   sd = torch_io.load_state_dict(b.write_zip(tmp_path / "e.pth",
                                             {"x": b.tensor(st, 7, (0, 2), (2, 1))}))
   assert sd["x"].shape == (0, 2) and sd["x"].dtype == np.float32
+
+
+def test_files_are_told_by_suffix_in_any_case_and_by_content(tmp_path, fake_torch):
+  # Suffixes are compared lower-cased (for reading and writing); `.ckpt` is a torch file; an
+  # empty zip archive (only its end record, PK\x05\x06) is a zip without a checkpoint; a
+  # pickle not starting with the legacy magic number is no torch file.
+  b = _Builder(fake_torch)
+  b.write_zip(tmp_path / "w.ckpt", {"w": b.array(np.array([1.5], np.float32), "float32")})
+  np.testing.assert_array_equal(torch_io.load_state_dict(tmp_path / "w.ckpt")["w"], [1.5])
+  torch_io.save_state_dict({"w": np.array([2.5], np.float32)}, tmp_path / "W.NPZ")
+  with zipfile.ZipFile(tmp_path / "W.NPZ") as zf:
+    assert zf.namelist() == ["w.npy"]
+  np.testing.assert_array_equal(torch_io.load_state_dict(tmp_path / "W.NPZ")["w"], [2.5])
+  (tmp_path / "empty.pth").write_bytes(b"PK\x05\x06" + bytes(18))
+  with pytest.raises(CheckpointError, match=r"empty\.pth: zip file without a single"):
+    torch_io.load_state_dict(tmp_path / "empty.pth")
+  (tmp_path / "long.pth").write_bytes(b"L123L\n.")  # protocol 0: the long 123
+  with pytest.raises(CheckpointError, match=r"long\.pth: not a torch checkpoint \(neither a zip "
+                                            r"archive nor a legacy pickle"):
+    torch_io.load_state_dict(tmp_path / "long.pth")
+
+
+class _ArrayLike:
+  """Converts to a numpy array like a JAX array (has `__array__` and `shape`)."""
+
+  def __init__(self, array):
+    self.array, self.shape = array, array.shape
+
+  def __array__(self, dtype=None, copy=None):
+    del copy
+    return self.array if dtype is None else self.array.astype(dtype)
+
+
+class _FakeTorchTensor:
+  """Like a torch bfloat16 tensor: `.numpy()` refuses bfloat16, `.float()` converts."""
+
+  __module__ = "torch"
+
+  def __init__(self, values, dtype="torch.bfloat16"):
+    self.values, self.dtype, self.shape = values, dtype, values.shape
+
+  def __array__(self, dtype=None, copy=None):
+    raise TypeError("not through __array__")
+
+  def detach(self):
+    return self
+
+  def cpu(self):
+    return self
+
+  def float(self):
+    return _FakeTorchTensor(self.values.astype(np.float32), "torch.float32")
+
+  def numpy(self):
+    if self.dtype != "torch.float32":
+      raise TypeError(f"Got unsupported ScalarType {self.dtype}")
+    return self.values
+
+
+def test_unwrap_converts_array_likes_and_widens_bfloat16():
+  # Values that are tensors of another library become numpy arrays; bfloat16 (ml_dtypes',
+  # or torch's through .float()) becomes float32 with the same values.
+  import ml_dtypes  # pylint: disable=import-outside-toplevel
+  values = np.array([1.5, -2.0], np.float32)
+  sd = torch_io.unwrap_state_dict({
+      "np_bf16": values.astype(ml_dtypes.bfloat16),
+      "like": _ArrayLike(values.astype(np.float16)),
+      "like_bf16": _ArrayLike(values.astype(ml_dtypes.bfloat16)),
+      "torch_bf16": _FakeTorchTensor(values.astype(ml_dtypes.bfloat16)),
+  })
+  assert sd["like"].dtype == np.float16 and isinstance(sd["like"], np.ndarray)
+  for key in ("np_bf16", "like_bf16", "torch_bf16"):
+    assert sd[key].dtype == np.float32, key
+    np.testing.assert_array_equal(sd[key], values, err_msg=key)
+  # "model" is the wrapper taken where a checkpoint has both.
+  both = {"state_dict": {"b": np.zeros(1)}, "model": {"a": np.zeros(1)}}
+  assert list(torch_io.unwrap_state_dict(both)) == ["a"]
+
+
+def test_checkpoint_kind_markers_and_names():
+  # RAFT is told by either marker, only when the keys are under RAFT's three names alone;
+  # any of fnet, cnet, update_block with the model's other names is Stereo Any Video.
+  kind = lambda keys: torch_io.checkpoint_kind(_tiny(keys))
+  assert kind(["fnet.a", "cnet.b", "update_block.gru.convz1.weight"]) == "raft"
+  assert kind(["fnet.a", "cnet.b", "update_block.mask.0.weight"]) == "raft"
+  assert kind(["fnet.a", "depthnet.b", "update_block.mask.0.weight"]) == "sav"
+  assert kind(["fnet.a", "depthnet.b", torch_io.RAFT_SMALL_MARKER]) == "sav"
+  assert kind(["update_block.a", "depthnet.b"]) == "sav"
+
+
+def test_callers_hint_replaces_the_default_one(tmp_path):
+  np.savez(tmp_path / "raft.npz", **_tiny(["fnet.a", "cnet.b", "update_block.mask.0.weight"]))
+  with pytest.raises(CheckpointError) as e:
+    torch_io.load_state_dict_of_kind(tmp_path / "raft.npz", "sav", {"raft": "mine"}, label="R")
+  assert str(e.value) == "R is a RAFT (optical flow) checkpoint, not a Stereo Any Video one; mine"
+
+
+def test_expansion_limit_is_inclusive(tmp_path, fake_torch):
+  # A stride-0 expansion may have up to 2**24 elements whatever its storage's size (one
+  # uint8 here: a 16 MiB array); one more is refused.
+  b = _Builder(fake_torch)
+  st = b.storage(np.array([7], np.uint8), "uint8")
+  path = b.write_zip(tmp_path / "x.pth", {"x": b.tensor(st, 0, (1 << 24,), (0,))})
+  x = torch_io.load_state_dict(path)["x"]
+  assert x.shape == (1 << 24,) and x[0] == x[-1] == 7
+  del x
+  b.write_zip(path, {"x": b.tensor(st, 0, ((1 << 24) + 1,), (0,))})
+  with pytest.raises(CheckpointError, match=r"x\.pth: refused a tensor of size \(16777217,\) "
+                                            r"built from a storage of 1 elements"):
+    torch_io.load_state_dict(path)
