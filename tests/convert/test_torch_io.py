@@ -1919,3 +1919,30 @@ def test_expansion_limit_is_inclusive(tmp_path, fake_torch):
   with pytest.raises(CheckpointError, match=r"x\.pth: refused a tensor of size \(16777217,\) "
                                             r"built from a storage of 1 elements"):
     torch_io.load_state_dict(path)
+
+
+@pytest.mark.parametrize("where", ["magic", "protocol", "sys_info", "keys"])
+def test_legacy_header_pickles_get_no_placeholders(tmp_path, where):
+  # opaque_unknown replaces refused globals in the object pickle only: one in the magic
+  # number, protocol version, sys_info or storage key list pickle is refused all the same
+  # (an ignored sys_info would otherwise let any object through unseen).
+  marker = tmp_path / "pwned"
+  evil = pickle.dumps(_Evil(os.system, f"touch {marker}"), protocol=2)
+  parts = [pickle.dumps(x, protocol=2) for x in
+           (pickle_reader.LEGACY_MAGIC, 1001, {"little_endian": True}, {"a": 1}, [])]
+  parts[["magic", "protocol", "sys_info", "keys"].index(where) + (where == "keys")] = evil
+  path = tmp_path / "header.pth"
+  path.write_bytes(b"".join(parts))
+  with pytest.raises(CheckpointError, match=r"header\.pth: .*refusing to load the pickled "
+                                            r"global '(os|posix)\.system'"):
+    torch_io.load_checkpoint_object(path, opaque_unknown=True)
+  assert not marker.exists()
+
+
+def test_ordered_dicts_become_plain_dicts(tmp_path):
+  # As documented: OrderedDicts (torch's state dicts) come back as plain dicts, in order.
+  obj = collections.OrderedDict([("b", 1), ("a", collections.OrderedDict([("y", 2), ("x", 3)]))])
+  out = torch_io.load_checkpoint_object(_zip_with_pickle(tmp_path / "od.pth",
+                                                         pickle.dumps(obj, protocol=2)))
+  assert type(out) is dict and type(out["a"]) is dict
+  assert list(out) == ["b", "a"] and list(out["a"].items()) == [("y", 2), ("x", 3)]
