@@ -1946,3 +1946,17 @@ def test_ordered_dicts_become_plain_dicts(tmp_path):
                                                          pickle.dumps(obj, protocol=2)))
   assert type(out) is dict and type(out["a"]) is dict
   assert list(out) == ["b", "a"] and list(out["a"].items()) == [("y", 2), ("x", 3)]
+
+
+def test_npz_refusals_are_not_wrapped_as_read_errors(tmp_path):
+  # The reader's own refusals of an .npz (not an archive, a bomb) are given as they are,
+  # not wrapped as "cannot read .npz file (CheckpointError: ...)".
+  np.save(tmp_path / "one.npy", np.zeros(3))
+  (tmp_path / "one.npz").write_bytes((tmp_path / "one.npy").read_bytes())
+  with pytest.raises(CheckpointError) as e:
+    torch_io.load_state_dict(tmp_path / "one.npz")
+  assert str(e.value) == f"{tmp_path / 'one.npz'}: not an .npz archive (a single .npy array)"
+  np.savez_compressed(tmp_path / "bomb.npz", w=np.zeros(1 << 21, np.float32))  # 8 MiB of zeros
+  with pytest.raises(CheckpointError) as e:
+    torch_io.load_state_dict(tmp_path / "bomb.npz")
+  assert str(e.value).startswith(f"{tmp_path / 'bomb.npz'}: zip record 'w.npy' inflates ")
