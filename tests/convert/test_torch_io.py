@@ -1960,3 +1960,12 @@ def test_npz_refusals_are_not_wrapped_as_read_errors(tmp_path):
   with pytest.raises(CheckpointError) as e:
     torch_io.load_state_dict(tmp_path / "bomb.npz")
   assert str(e.value).startswith(f"{tmp_path / 'bomb.npz'}: zip record 'w.npy' inflates ")
+
+
+def test_torch_size_of_a_list_is_a_tuple(tmp_path, fake_torch):
+  # torch.Size is a tuple, whatever sequence its pickle calls it with.
+  fake_torch.Size = _fake_function("torch", "Size")
+  b = _Builder(fake_torch)
+  out = torch_io.load_checkpoint_object(b.write_zip(tmp_path / "s.pth",
+                                                    {"s": _Tensor(fake_torch.Size, ([2, 3],))}))
+  assert type(out["s"]) is tuple and out["s"] == (2, 3)
