@@ -1013,6 +1013,9 @@ def test_calibration_file(tmp_path, caplog):
     f.write("S_rect_02: 1.242000e+03 3.750000e+02\nS_rect_03: 1.242000e+03 3.750000e+02\n")
   c = read_calibration(kitti)
   assert (c["width"], c["height"]) == (1242, 375)
+  own = tmp_path / "own_size.txt"  # the file's own width/height entries take precedence
+  own.write_text(kitti.read_text() + "width: 621\nheight: 188\n")
+  assert (read_calibration(own)["width"], read_calibration(own)["height"]) == (621, 188)
   from sav_jax.tools.infer import CalibrationSpec  # pylint: disable=import-outside-toplevel
   assert CalibrationSpec(**c).resolve(1242, 375).cx == 600
   with pytest.raises(UsageError, match="for images of width 1242, the frames' width is 621"):

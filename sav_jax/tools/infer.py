@@ -805,8 +805,11 @@ def read_calibration(path, cameras: tuple[int, int] | None = None) -> dict[str, 
   or a Middlebury `calib.txt`.
 
   KITTI: `P_rect_02`/`P_rect_03` (raw data; `S_rect_02`, the rectified image size, gives
-  `width` and `height`) or `P2`/`P3` (odometry, stereo benchmarks);
-  baseline = (P2[0,3] - P3[0,3]) / fx, doffs = P3[0,2] - P2[0,2] (0 unless the rectified
+  `width` and `height` unless the file has `width` or `height` entries of its own, which
+  take precedence) or `P2`/`P3` (odometry, stereo benchmarks);
+  baseline = (P2[0,3] - P3[0,3]) / fx (P[0,3] alone, as is usual for KITTI: the rectified
+  matrices' small z offsets, cx * P[2,3], would change it by ~0.1-0.2% in the raw data's
+  files and are left out), doffs = P3[0,2] - P2[0,2] (0 unless the rectified
   principal points differ, as OpenCV's stereoRectify without CALIB_ZERO_DISPARITY gives;
   a warning when P2 is the right camera). Those are the colour cameras (image_2/image_3);
   `cameras=(0, 1)` reads the grey pair (P0/P1, P_rect_00/P_rect_01: image_0/image_1, a
