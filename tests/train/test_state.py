@@ -510,6 +510,26 @@ def test_only_the_last_k_checkpoints_are_kept(tmp_path):
   assert sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) == [2, 3, 4, 5, 6]
 
 
+def test_restore_without_a_step_resumes_from_the_latest_checkpoint(tmp_path):
+  """`restore(step=None)` (what `initial_state` calls) takes the newest step, not an older
+  one the folder also holds: a resume from an older one would redo steps, silently."""
+  c = _config()
+  c.checkpoint.async_save, c.checkpoint.keep = False, 0
+  model, _, tx, state, shardings, _ = _setup(c)
+  src = pipeline.synthetic_source(
+      SyntheticConfig(frames=2, height=16, width=16, max_disparity=8.0), 50)
+  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
+  manager = ckpt_lib.make_manager(tmp_path, c)
+  for step in (2, 4, 5):  # the latest: 5; not the first, nor one before it
+    next(it)
+    assert ckpt_lib.save(manager, state.replace(step=jnp.asarray(step, jnp.int32)), it, step,
+                         force=True)
+  manager.wait_until_finished()
+  fresh = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
+  abstract = jax.eval_shape(state_lib.make_init_fn(model, tx, c))
+  restored = ckpt_lib.restore(ckpt_lib.make_manager(tmp_path, c), abstract, shardings, fresh)
+  assert int(restored.step) == 5
+
 def test_place_params_rejects_mismatches():
   c = _config()
   model = ToyStereo()
