@@ -771,6 +771,79 @@ def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(
   assert steps() == [4, 5]
 
 
+@pytest.mark.parametrize("num_steps,every,start,saves", [
+    (10, 3, 0, 4),  # 3, 6, 9 and the last, 10
+    (9, 3, 0, 3),  # 3, 6, 9 (the last is one of them)
+    (10, 3, 2, 4),  # 3, 6, 9, 10
+    (10, 3, 3, 3),  # 6, 9, 10
+    (10, 3, 9, 1),  # 10
+    (10, 5, 4, 2),  # 5, 10
+    (10, 5, 5, 1),  # 10
+    (10, 3, 10, 0),  # a finished run saves nothing
+    (10, 3, 12, 0),
+    (10, 0, 2, 1),  # no period: the last step's only
+])
+def test_saves_after_counts_the_periodic_and_the_last_checkpoints(num_steps, every, start,
+                                                                    saves):
+  """How many checkpoints a resumed run saves decides which ones `check_keep` sees deleted
+  (counted by hand: the multiples of every_steps in (start, num_steps], and num_steps)."""
+  c = _config()
+  c.train.num_steps, c.checkpoint.every_steps = num_steps, every
+  assert ckpt_lib._saves_after(c, start) == saves  # pylint: disable=protected-access
+
+
+class _Steps:
+  """A stand-in for a checkpoint manager: only the steps it holds (their saved run configs
+  come from a patched `saved_run`)."""
+
+  def __init__(self, directory, steps):
+    self.directory, self._steps = directory, steps
+
+  def all_steps(self):
+    return list(self._steps)
+
+
+def test_check_keep_judges_each_checkpoint_by_the_keep_it_was_saved_with(tmp_path,
+                                                                         monkeypatch):
+  """Steps 1, 2, 3 and one more save at keep=3: orbax deletes step 1. Allowed where step 1
+  was saved with a keep of 1..3; refused (naming its policy and the keep that keeps it) where
+  it was saved with keep=0, a larger keep, or a run config without a readable keep."""
+  runs = {2: {"checkpoint.keep": 3}, 3: {"checkpoint.keep": 3}}
+  monkeypatch.setattr(ckpt_lib, "saved_run", lambda manager, step: runs[step])
+  c = _config()
+  c.checkpoint.keep, c.checkpoint.every_steps, c.train.num_steps = 3, 10, 10
+  check = lambda: ckpt_lib.check_keep(_Steps(tmp_path, [1, 2, 3]), c, runs[3])  # noqa: E731
+  for keep in (1, 3):  # its own policy deletes it as soon
+    runs[1] = {"checkpoint.keep": keep}
+    check()
+  head = r"holds 3 checkpoints; this run's config.checkpoint.keep=3 would delete \[1\] "
+  runs[1] = {"checkpoint.keep": 0}
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=head + r"\(saved with config.checkpoint.keep=0\) at its first save. "
+                     r"Pass --config.checkpoint.keep=0 to keep them \(0 keeps all\)"):
+    check()
+  runs[1] = {"checkpoint.keep": 4}  # kept longer by its own run: suggest that keep
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=head + r"\(saved with config.checkpoint.keep=4\) at its first save. "
+                     r"Pass --config.checkpoint.keep=4 \(the largest keep they were saved with"):
+    check()
+  runs[1] = {"train.num_steps": 10}  # a run config without the keep: unreadable, kept
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=head + r"\(saved with a config whose keep cannot be read\) at its "
+                     r"first save. Pass --config.checkpoint.keep=0"):
+    check()
+  c.checkpoint.prune_earlier = True  # lowering the keep on purpose: allowed
+  check()
+  # Seven saves to come from step 3 (every step to 10): all three go by the last of them
+  c.checkpoint.prune_earlier, c.checkpoint.every_steps = False, 1
+  runs[1] = {"checkpoint.keep": 3}
+  runs[3] = {"checkpoint.keep": 0}
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"would delete \[1, 2, 3\] \(steps 1, 2 saved with "
+                     r"config.checkpoint.keep=3, step 3 with config.checkpoint.keep=0\) by the "
+                     r"last of the 7 checkpoints it saves up to step 10"):
+    check()
+
 def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
   from train import input as input_lib  # pylint: disable=g-import-not-at-top
 
