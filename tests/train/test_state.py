@@ -1399,6 +1399,29 @@ def _corrupt_copy(workdir, tmp_path, how):
   return copy
 
 
+def test_a_pipe_in_a_training_checkpoint_is_refused_before_the_restore(toy_run, tmp_path):
+  """A named pipe in the step folder (even one orbax would not read) is refused, as for
+  `restore_variables`: a pipe orbax reads makes a resume wait forever, Ctrl-C held back."""
+  _, c, model, tx, mesh = toy_run
+  copy = tmp_path / "run"
+  shutil.copytree(toy_run[0], copy)
+  pipe = copy / "checkpoints" / "1" / "state" / "stray"
+  os.mkfifo(pipe)
+  with pytest.raises(sav_jax.convert.CheckpointError, match=f"{pipe} is not a regular file"):
+    _toy_restore(copy, c, model, tx, mesh)
+
+
+def test_changed_fields_names_fields_new_or_gone_since_the_checkpoint():
+  """A field the saved run config lacks (added to the config since) or holds alone (gone
+  since) is a change too, shown as '(absent)'; operational ones (checkpoint.*) are not."""
+  c = _config()
+  saved = dict(ckpt_lib.run_fields(c))
+  del saved["train.num_steps"]  # c has it (10)
+  del saved["checkpoint.keep"]  # operational: not named
+  saved["train.gone"] = 1
+  assert ckpt_lib.changed_fields(None, 1, c, saved=saved) == [
+      "train.gone: 1 -> '(absent)'", "train.num_steps: '(absent)' -> 10"]
+
 @pytest.mark.parametrize("how", ["truncated", "deleted"])
 def test_corrupt_training_checkpoint_is_named_as_such(toy_run, tmp_path, how, monkeypatch):
   import gc  # pylint: disable=g-import-not-at-top
