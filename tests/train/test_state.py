@@ -1616,6 +1616,28 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
   assert (ckpts / "3" / "state" / "ocdbt.process_0").is_dir()  # left alone
 
 
+def test_only_a_steps_own_unfinished_save_is_removed_at_start(tmp_path):
+  """The start removes `<step>.orbax-checkpoint-tmp[-N]` folders only: not a user's folders
+  whose names merely contain that (a prefix, a suffix), not a link of that name (nor what it
+  points to)."""
+  c = _config()
+  ckpts = tmp_path / "checkpoints"
+  ckpts.mkdir()
+  mine = ["run7.orbax-checkpoint-tmp-1", "7.orbax-checkpoint-tmp-1.bak", "a7.orbax-checkpoint-tmp"]
+  for name in mine:
+    (ckpts / name).mkdir()
+    (ckpts / name / "n.txt").write_text("keep me")
+  (tmp_path / "elsewhere").mkdir()
+  (tmp_path / "elsewhere" / "n.txt").write_text("keep me")
+  (ckpts / "8.orbax-checkpoint-tmp-2").symlink_to(tmp_path / "elsewhere")
+  (ckpts / "9.orbax-checkpoint-tmp").mkdir()  # a save cut by a kill: removed
+  ckpt_lib.make_manager(tmp_path, c).close()
+  assert sorted(p.name for p in ckpts.iterdir()) == sorted(mine + ["8.orbax-checkpoint-tmp-2"])
+  for name in mine:
+    assert (ckpts / name / "n.txt").read_text() == "keep me"
+  assert (ckpts / "8.orbax-checkpoint-tmp-2").is_symlink()
+  assert (tmp_path / "elsewhere" / "n.txt").read_text() == "keep me"
+
 @pytest.mark.parametrize("field,value,match", [
     ("train.batch_size", 0, r"config\.train\.batch_size=0: expected an integer >= 1"),
     ("train.batch_size", 3, r"config\.train\.batch_size=3 is not divisible by the 2 devices"),
