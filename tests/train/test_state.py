@@ -1619,7 +1619,7 @@ def test_checkpoint_folder_keeps_the_users_own_folders(tmp_path):
 def test_only_a_steps_own_unfinished_save_is_removed_at_start(tmp_path):
   """The start removes `<step>.orbax-checkpoint-tmp[-N]` folders only: not a user's folders
   whose names merely contain that (a prefix, a suffix), not a link of that name (nor what it
-  points to)."""
+  points to); and a step-named link is not taken for a partly deleted checkpoint."""
   c = _config()
   ckpts = tmp_path / "checkpoints"
   ckpts.mkdir()
@@ -1637,6 +1637,14 @@ def test_only_a_steps_own_unfinished_save_is_removed_at_start(tmp_path):
     assert (ckpts / name / "n.txt").read_text() == "keep me"
   assert (ckpts / "8.orbax-checkpoint-tmp-2").is_symlink()
   assert (tmp_path / "elsewhere" / "n.txt").read_text() == "keep me"
+  # A step-named link to a folder of checkpoint-like entries is not called the remains of a
+  # deletion ("Delete them"): it is named as a folder that is not a checkpoint (move it)
+  (tmp_path / "partial" / "state").mkdir(parents=True)
+  (ckpts / "3").symlink_to(tmp_path / "partial")
+  with pytest.raises(sav_jax.convert.CheckpointError,
+                     match=r"\['3'\] are named like checkpoints but are not ones written"):
+    ckpt_lib.make_manager(tmp_path, c)
+  assert (tmp_path / "partial" / "state").is_dir()
 
 @pytest.mark.parametrize("field,value,match", [
     ("train.batch_size", 0, r"config\.train\.batch_size=0: expected an integer >= 1"),
