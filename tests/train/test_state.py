@@ -1419,8 +1419,21 @@ def test_changed_fields_names_fields_new_or_gone_since_the_checkpoint():
   del saved["train.num_steps"]  # c has it (10)
   del saved["checkpoint.keep"]  # operational: not named
   saved["train.gone"] = 1
+  saved["eval.every_steps"] = -7  # where and how it runs: not named
+  saved["init_from"] = "/elsewhere"
   assert ckpt_lib.changed_fields(None, 1, c, saved=saved) == [
       "train.gone: 1 -> '(absent)'", "train.num_steps: '(absent)' -> 10"]
+
+
+def test_a_checkpoint_without_data_positions_passes_the_data_state_check(tmp_path):
+  """No `data/process_*` files (a copy cut short): `check_data_state` has no counts to
+  compare and lets `restore` name the missing folder, instead of failing itself."""
+  c = _config()
+  (tmp_path / "1").mkdir()
+  manager = _Steps(tmp_path, [1])
+  ckpt_lib.check_data_state(manager, 1, c, saved={"data.worker_count": c.data.worker_count})
+  with pytest.raises(sav_jax.convert.CheckpointError, match=r"data.worker_count=5, this run"):
+    ckpt_lib.check_data_state(manager, 1, c, saved={"data.worker_count": 5})
 
 @pytest.mark.parametrize("how", ["truncated", "deleted"])
 def test_corrupt_training_checkpoint_is_named_as_such(toy_run, tmp_path, how, monkeypatch):
