@@ -1423,6 +1423,8 @@ def test_changed_fields_names_fields_new_or_gone_since_the_checkpoint():
   saved["init_from"] = "/elsewhere"
   assert ckpt_lib.changed_fields(None, 1, c, saved=saved) == [
       "train.gone: 1 -> '(absent)'", "train.num_steps: '(absent)' -> 10"]
+  # A checkpoint saved before the run config was: nothing to compare (not every field "new")
+  assert ckpt_lib.changed_fields(None, 1, c, saved={}) == []
 
 
 def test_a_checkpoint_without_data_positions_passes_the_data_state_check(tmp_path):
@@ -1465,7 +1467,8 @@ def test_training_checkpoint_without_an_item_is_named_incomplete(toy_run, tmp_pa
   shutil.rmtree(step / "data")  # the grain iterator's state
   with pytest.raises(sav_jax.convert.CheckpointError) as e:
     _toy_restore(copy, c, model, tx, mesh)
-  assert str(e.value).startswith(f"{step}: the checkpoint is incomplete: it has no data folder")
+  assert str(e.value).startswith(f"{step}: the checkpoint is incomplete: it has no data folder "
+                                 "(the data iterator)")
   assert "does not match" not in str(e.value) and "Move this step folder" in str(e.value)
   shutil.copytree(toy_run[0] / "checkpoints" / "1" / "data", step / "data")
   (step / "state" / "_METADATA").unlink()  # the list of the state's arrays: resuming said "does
