@@ -1427,6 +1427,14 @@ def test_changed_fields_names_fields_new_or_gone_since_the_checkpoint():
   assert ckpt_lib.changed_fields(None, 1, c, saved={}) == []
 
 
+def test_a_saved_run_config_without_all_three_weights_fields_leaves_the_prior_unknown():
+  """`saved_depth_prior` derives the prior from the saved run config only where it holds all
+  of vda_weights, init_from and random_depth_prior; with some missing it is unknown."""
+  unknown = "unknown (saved before depth_prior was recorded)"
+  assert ckpt_lib.saved_depth_prior({"run": {"init_from": "w.pth"}}) == unknown
+  assert ckpt_lib.saved_depth_prior({"run": {"vda_weights": "v.pth",
+                                             "random_depth_prior": False}}) == unknown
+
 def test_a_checkpoint_without_data_positions_passes_the_data_state_check(tmp_path):
   """No `data/process_*` files (a copy cut short): `check_data_state` has no counts to
   compare and lets `restore` name the missing folder, instead of failing itself."""
@@ -1647,9 +1655,11 @@ def test_only_a_steps_own_unfinished_save_is_removed_at_start(tmp_path):
   (tmp_path / "elsewhere" / "n.txt").write_text("keep me")
   (ckpts / "8.orbax-checkpoint-tmp-2").symlink_to(tmp_path / "elsewhere")
   (ckpts / "9.orbax-checkpoint-tmp").mkdir()  # a save cut by a kill: removed
+  (ckpts / "5.orbax-checkpoint-tmp-3").write_text("keep me")  # a file, not a save: kept
+  mine.append("5.orbax-checkpoint-tmp-3")
   ckpt_lib.make_manager(tmp_path, c).close()
   assert sorted(p.name for p in ckpts.iterdir()) == sorted(mine + ["8.orbax-checkpoint-tmp-2"])
-  for name in mine:
+  for name in mine[:-1]:
     assert (ckpts / name / "n.txt").read_text() == "keep me"
   assert (ckpts / "8.orbax-checkpoint-tmp-2").is_symlink()
   assert (tmp_path / "elsewhere" / "n.txt").read_text() == "keep me"
