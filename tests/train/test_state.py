@@ -522,9 +522,15 @@ def test_restore_without_a_step_resumes_from_the_latest_checkpoint(tmp_path):
   manager = ckpt_lib.make_manager(tmp_path, c)
   for step in (2, 4, 5):  # the latest: 5; not the first, nor one before it
     next(it)
+    extra = dict(run_config=c, data_clips={"s": [3, "d"]}, depth_prior="P") if step == 5 else {}
     assert ckpt_lib.save(manager, state.replace(step=jnp.asarray(step, jnp.int32)), it, step,
-                         force=True)
+                         force=True, **extra)
   manager.wait_until_finished()
+  # The config item holds what was given to `save`, and only that
+  saved = ckpt_lib.saved_config(manager, 5)
+  assert (saved["step"], saved["data_clips"], saved["depth_prior"]) == (5, {"s": [3, "d"]}, "P")
+  assert saved["run"]["checkpoint.keep"] == 0 and saved["run"]["train.num_steps"] == 10
+  assert set(ckpt_lib.saved_config(manager, 2)) == {"model", "step"}
   fresh = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
   abstract = jax.eval_shape(state_lib.make_init_fn(model, tx, c))
   restored = ckpt_lib.restore(ckpt_lib.make_manager(tmp_path, c), abstract, shardings, fresh)
