@@ -1868,7 +1868,6 @@ def test_progress_bars_are_drawn_on_terminals_only(tmp_path, npz_ckpt, monkeypat
   assert "disparity: 100%" in err and "video: 100%" in err, err
 
 
-
 def test_a_resize_that_turns_the_frames_orientation_is_warned_about(tmp_path, folders, npz_ckpt,
                                                                      caplog, monkeypatch):
   """--resize is HxW; 1280x720 for 1280-wide frames (width x height out of habit) ran the model

@@ -350,7 +350,6 @@ def test_tcm_skips_frames_without_valid_pixels():
   assert M.eval_tcm_sequence(f, f, mask) == pytest.approx(0.5, rel=1e-9)
 
 
-
 def test_tcm_flows_from_a_flow_fn_skip_frames_without_valid_pixels():
   """The official TCM runs RAFT on a frame without valid GT (0/0 inputs) and drops the NaN
   flows with the pair; the flow_fn path skips the pair before, instead of failing on them."""

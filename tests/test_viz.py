@@ -389,7 +389,6 @@ def test_bad_images_and_parameters_are_refused_before_writing(tmp_path):
     assert (tmp_path / name).read_bytes() == b"mine"
 
 
-
 def test_colorize_fractional_valid_follows_the_metrics_threshold():
   rgb = viz.colorize(np.ones((1, 3), np.float32), 0.0, 2.0, valid=np.array([[0.3, 0.6, 1.0]]))
   assert tuple(rgb[0, 0]) == viz.INVALID_COLOR and tuple(rgb[0, 1]) != viz.INVALID_COLOR

@@ -167,7 +167,6 @@ def test_only_official_names_are_accepted(sav_state_dict):
   assert msg.count("problem") == 1 and "4 problem(s)" in msg, msg
 
 
-
 def test_long_reports_are_bounded_and_name_full_keys(sav_state_dict):
   sd = {k: v for k, v in sav_state_dict.items() if not k.startswith("update_block.")}
   vda = "depthnet.depthanything.pretrained.norm.bias"
@@ -206,6 +205,7 @@ def test_report_counts_the_rest_by_the_modules_concerned():
   assert str(e.value).splitlines()[-1] == ("  ... and 4 more missing keys (by module: "
                                            "update_block.gru 3, depthnet.depthanything 1)")
   KeyProblems().raise_if_any("nothing to report", keys_given=0)  # no problems: no error
+
 
 def test_torch_names_and_flax_paths():
   from sav_jax.convert import keys  # pylint: disable=import-outside-toplevel
@@ -286,6 +286,7 @@ def test_the_depth_prior_size_is_read_from_the_file(tmp_path, capsys):
                    "--checkpoint", str(tmp_path / "vitl.npz"), "--out", str(tmp_path / "o")]) == 2
   err = capsys.readouterr().err
   assert "does not match Stereo Any Video (vitl)" in err, err
+
 
 def test_the_vitb_depth_prior_is_supported():
   # Video-Depth-Anything-Base (video_depth_anything_vitb.pth): its width picks the config,

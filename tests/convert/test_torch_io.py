@@ -1332,7 +1332,6 @@ def test_save_pth_hands_torch_save_the_arrays_in_their_dtypes(tmp_path, monkeypa
   np.testing.assert_array_equal(got["e4m3"].array, sd["e4m3"].astype(np.float32))
 
 
-
 # --------------------------------------------------------------------------------------------
 # Dtype tables, rebuild-argument checks and storage views pinned one by one (gaps found by
 # mutation testing: a wrong entry or a dropped check loaded wrong values silently, or a

@@ -112,7 +112,6 @@ def test_dense_valid_is_recomputed_from_the_final_disparity():
   assert (~out["valid"]).sum() > 0 and out["valid"].sum() > 0
 
 
-
 def test_a_dense_clips_valid_mask_is_not_read():
   # augment_clip's docstring: a dense clip's valid mask is recomputed, not carried (the
   # official rule); pixels it marks invalid need a disparity of 0 (pipeline.honour_dense_masks)
@@ -121,6 +120,7 @@ def test_a_dense_clips_valid_mask_is_not_read():
   out = augment_clip(clip, IDENTITY, np.random.default_rng(2))
   np.testing.assert_array_equal(out["valid"], out["disparity"] != 0)
   assert out["valid"].all()
+
 
 def test_sparse_resize_scatters_rounded_points():
   disp = np.zeros((4, 6), np.float32)

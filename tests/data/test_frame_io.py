@@ -177,6 +177,7 @@ def test_read_image_refuses_a_jpeg_cut_short(tmp_path, progressive):
   with pytest.raises(ValueError, match="empty.jpg: cannot decode"):
     frame_io.read_image(tmp_path / "empty.jpg")
 
+
 def test_sintel_disparity_png_and_occlusion_mask(tmp_path):
   r, g, b = (RNG.integers(0, 256, (4, 5), dtype=np.uint8) for _ in range(3))
   r[0, 0] = g[0, 0] = b[0, 0] = 0  # d = 0: invalid even where not occluded

@@ -128,7 +128,6 @@ def test_mixture_proportions(mode, expected):
   np.testing.assert_allclose([np.mean(tags == 1), np.mean(tags == 2)], expected, atol=0.02)
 
 
-
 def test_mixture_is_an_even_interleaving_of_rounded_shares():
   # README, Training: any run of n clips holds n x share of each source to within about one
   # clip, the shares as grain rounds them (the smallest to 100: 0.3/0.7 drawn as 100/233).
@@ -139,6 +138,7 @@ def test_mixture_is_an_even_interleaving_of_rounded_shares():
     runs = np.convolve(first, np.ones(n), "valid")
     assert np.abs(runs - 0.3 * n).max() < 1.5, n
   assert abs(np.mean(first) / 0.3 - 1) < 0.01  # (rounded by grain: within 1%)
+
 
 def test_mixture_weights_validation():
   assert pipeline.mixture_weights([10, 30], [1, 1], "concat") == [0.25, 0.75]

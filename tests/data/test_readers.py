@@ -112,7 +112,6 @@ def test_sceneflow_train_test_values_and_clips(tmp_path):
     registry.get_sequences("sceneflow", tmp_path / "a_file", "train")
 
 
-
 @pytest.mark.parametrize("dataset", [d for d in registry.DATASETS if d != "folder"])
 def test_a_root_without_the_dataset_folder_is_named(tmp_path, dataset):
   """A root that neither holds the dataset's folder nor is it (a typo, the wrong level) was
@@ -129,6 +128,7 @@ def test_a_root_without_the_dataset_folder_is_named(tmp_path, dataset):
   with pytest.raises(FileNotFoundError) as e:
     registry.get_sequences(dataset, own, registry.SPLITS[dataset][0])
   assert "is not one either" not in str(e.value) and str(own) in str(e.value)
+
 
 @pytest.mark.parametrize("dataset", [d for d in registry.DATASETS if d != "folder"])
 def test_a_dataset_folder_linked_to_nothing_is_named(tmp_path, dataset):

@@ -279,7 +279,6 @@ def test_photometric_noise_is_optional_and_geometry_free():
   assert np.abs(corr[np.triu_indices(3, 1)]).max() < 0.1, corr
 
 
-
 def test_faint_noise_rounds_to_the_noiseless_frames():
   # +0.5 before the truncation to uint8: noise far below a grey level changes nothing.
   base = dict(frames=1, height=16, width=32, num_objects=1, max_disparity=8.0, seed=4)
@@ -348,6 +347,7 @@ def test_objects_are_nearer_than_the_background_band_and_rendered_whole(monkeypa
     whole = generate_clip(cfg, i)
     for key in clip:
       np.testing.assert_array_equal(whole[key], clip[key], err_msg=key)
+
 
 def test_textures_tile_seamlessly():
   rng = np.random.default_rng(0)

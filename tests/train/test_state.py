@@ -338,6 +338,7 @@ def test_extending_a_one_cycle_run_names_the_learning_rate_jump():
   assert note.endswith(f"the rate at step 800 (update 790: 10 skipped) goes from {before:.3g} "
                        f"to {after:.3g}"), note
 
+
 def _real_abstract_params():
   c = synthetic.get_config()
   return state_lib.abstract_params(sav_jax.StereoAnyVideo(state_lib.model_config(c)), c)
@@ -535,6 +536,7 @@ def test_restore_without_a_step_resumes_from_the_latest_checkpoint(tmp_path):
   abstract = jax.eval_shape(state_lib.make_init_fn(model, tx, c))
   restored = ckpt_lib.restore(ckpt_lib.make_manager(tmp_path, c), abstract, shardings, fresh)
   assert int(restored.step) == 5
+
 
 def test_place_params_rejects_mismatches():
   c = _config()
@@ -849,6 +851,7 @@ def test_check_keep_judges_each_checkpoint_by_the_keep_it_was_saved_with(tmp_pat
                      r"config.checkpoint.keep=3, step 3 with config.checkpoint.keep=0\) by the "
                      r"last of the 7 checkpoints it saves up to step 10"):
     check()
+
 
 def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
   from train import input as input_lib  # pylint: disable=g-import-not-at-top
@@ -1441,6 +1444,7 @@ def test_a_saved_run_config_without_all_three_weights_fields_leaves_the_prior_un
   assert ckpt_lib.saved_depth_prior({"run": {"vda_weights": "v.pth",
                                              "random_depth_prior": False}}) == unknown
 
+
 def test_a_checkpoint_without_data_positions_passes_the_data_state_check(tmp_path):
   """No `data/process_*` files (a copy cut short): `check_data_state` has no counts to
   compare and lets `restore` name the missing folder, instead of failing itself."""
@@ -1450,6 +1454,7 @@ def test_a_checkpoint_without_data_positions_passes_the_data_state_check(tmp_pat
   ckpt_lib.check_data_state(manager, 1, c, saved={"data.worker_count": c.data.worker_count})
   with pytest.raises(sav_jax.convert.CheckpointError, match=r"data.worker_count=5, this run"):
     ckpt_lib.check_data_state(manager, 1, c, saved={"data.worker_count": 5})
+
 
 @pytest.mark.parametrize("how", ["truncated", "deleted"])
 def test_corrupt_training_checkpoint_is_named_as_such(toy_run, tmp_path, how, monkeypatch):
@@ -1677,6 +1682,7 @@ def test_only_a_steps_own_unfinished_save_is_removed_at_start(tmp_path):
                      match=r"\['3'\] are named like checkpoints but are not ones written"):
     ckpt_lib.make_manager(tmp_path, c)
   assert (tmp_path / "partial" / "state").is_dir()
+
 
 @pytest.mark.parametrize("field,value,match", [
     ("train.batch_size", 0, r"config\.train\.batch_size=0: expected an integer >= 1"),
