@@ -457,9 +457,7 @@ def test_checkpoint_roundtrip_with_data_iterator(tmp_path):
   c = _config()
   c.checkpoint.async_save = False
   model, mesh, tx, state, shardings, step = _setup(c)
-  src = pipeline.synthetic_source(
-      SyntheticConfig(frames=2, height=16, width=16, max_disparity=8.0), 50)
-  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
+  it = _toy_iterator(50, seed=3)
   state, _ = step(state, _put(_batch(np.random.default_rng(1), c), mesh))
   next(it)
   manager = ckpt_lib.make_manager(tmp_path, c)
@@ -467,7 +465,7 @@ def test_checkpoint_roundtrip_with_data_iterator(tmp_path):
   assert ckpt_lib.save(manager, state, it, 1, force=True)
   manager.wait_until_finished()
   expected_next = next(it)
-  fresh = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
+  fresh = _toy_iterator(50, seed=3)
   abstract = jax.eval_shape(state_lib.make_init_fn(model, tx, c))
   restored = ckpt_lib.restore(ckpt_lib.make_manager(tmp_path, c), abstract, shardings, fresh)
   assert int(restored.step) == 1 and restored.params["head"]["kernel"].sharding == \
@@ -494,9 +492,7 @@ def test_only_the_last_k_checkpoints_are_kept(tmp_path):
   c = _config()
   c.checkpoint.async_save, c.checkpoint.keep = False, 2
   _, _, _, state, _, _ = _setup(c)
-  src = pipeline.synthetic_source(
-      SyntheticConfig(frames=2, height=16, width=16, max_disparity=8.0), 50)
-  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
+  it = _toy_iterator(50, seed=3)
   manager = ckpt_lib.make_manager(tmp_path, c)
   for step in (1, 2, 3):
     assert ckpt_lib.save(manager, state, it, step, force=True)
@@ -517,9 +513,7 @@ def test_restore_without_a_step_resumes_from_the_latest_checkpoint(tmp_path):
   c = _config()
   c.checkpoint.async_save, c.checkpoint.keep = False, 0
   model, _, tx, state, shardings, _ = _setup(c)
-  src = pipeline.synthetic_source(
-      SyntheticConfig(frames=2, height=16, width=16, max_disparity=8.0), 50)
-  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
+  it = _toy_iterator(50, seed=3)
   manager = ckpt_lib.make_manager(tmp_path, c)
   for step in (2, 4, 5):  # the latest: 5; not the first, nor one before it
     next(it)
@@ -532,7 +526,7 @@ def test_restore_without_a_step_resumes_from_the_latest_checkpoint(tmp_path):
   assert (saved["step"], saved["data_clips"], saved["depth_prior"]) == (5, {"s": [3, "d"]}, "P")
   assert saved["run"]["checkpoint.keep"] == 0 and saved["run"]["train.num_steps"] == 10
   assert set(ckpt_lib.saved_config(manager, 2)) == {"model", "step"}
-  fresh = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=3, num_threads=1))
+  fresh = _toy_iterator(50, seed=3)
   abstract = jax.eval_shape(state_lib.make_init_fn(model, tx, c))
   restored = ckpt_lib.restore(ckpt_lib.make_manager(tmp_path, c), abstract, shardings, fresh)
   assert int(restored.step) == 5
@@ -620,9 +614,7 @@ def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path, caplog):
   model, mesh, tx = ToyStereo(), state_lib.make_mesh(), None
   params = state_lib.abstract_params(model, c)
   tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
-  src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
-                                                  max_disparity=8.0), 10)
-  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1))
+  it = _toy_iterator()
   manager = ckpt_lib.make_manager(tmp_path / "run", c)
   scratch, _, source = loop.initial_state(c, model, tx, mesh, manager, it)
   assert source == "scratch"
@@ -702,9 +694,7 @@ def test_a_smaller_keep_on_resume_never_deletes_the_earlier_policys_checkpoints(
   c.checkpoint.async_save, c.checkpoint.keep = False, 0
   model, mesh = ToyStereo(), state_lib.make_mesh()
   tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
-  src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
-                                                  max_disparity=8.0), 10)
-  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1))
+  it = _toy_iterator()
   manager = ckpt_lib.make_manager(tmp_path, c)
   state, _, _ = loop.initial_state(c, model, tx, mesh, manager, it)
   for step in (1, 2, 3, 4):
@@ -1362,10 +1352,11 @@ def _toy_run(workdir, frozen=None, run_config=False):
   return c, model, tx, mesh
 
 
-def _toy_iterator():
+def _toy_iterator(num_clips: int = 10, seed: int = 0):
+  """A training stream of `num_clips` tiny synthetic clips (T=2, 16x16), batch 2."""
   src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
-                                                  max_disparity=8.0), 10)
-  return iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1))
+                                                  max_disparity=8.0), num_clips)
+  return iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=seed, num_threads=1))
 
 
 def _toy_restore(workdir, c, model, tx, mesh):
@@ -2832,9 +2823,7 @@ def test_a_keep_recorded_by_a_run_that_pruned_nothing_never_deletes_keep_all_che
   c.checkpoint.async_save, c.checkpoint.keep, c.checkpoint.every_steps = False, 0, 1
   model, mesh = ToyStereo(), state_lib.make_mesh()
   tx = optim.make_optimizer(c.optimizer, c.train.num_steps)
-  src = pipeline.synthetic_source(SyntheticConfig(frames=2, height=16, width=16,
-                                                  max_disparity=8.0), 10)
-  it = iter(pipeline.make_train_dataset([src], [1.0], batch_size=2, seed=0, num_threads=1))
+  it = _toy_iterator()
   folder = tmp_path / "checkpoints"
   steps = lambda: sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit())  # noqa: E731
 
