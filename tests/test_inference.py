@@ -229,7 +229,7 @@ def test_swapped_views_are_warned_about_once(monkeypatch):
   monkeypatch.setattr(inference, "check_variables", lambda *a: None)
   monkeypatch.setattr(inference, "_run_window", stand_in)
   video = np.zeros((35, 32, 32, 3), np.uint8)
-  for negative, warned in ((1.0, True), (0.0, False), (0.45, False), (0.55, True)):
+  for negative, warned in ((1.0, True), (0.0, False), (0.5, False), (0.55, True)):
     share["negative"] = negative
     with warnings.catch_warnings(record=True) as seen:
       warnings.simplefilter("always")
@@ -242,7 +242,8 @@ def test_swapped_views_are_warned_about_once(monkeypatch):
           f"frames 0..14: {negative:.0%} of the disparities are below -1 px before the official "
           "abs()")
       assert swapped[0].filename == __file__  # the caller's line
-  assert inference.negative_share(np.array([-2.0, -0.5, 0.0, 3.0])) == 0.25
+  assert inference.negative_share(np.array([-2.0, -1.0, -0.5, 0.0, 3.0])) == 0.2  # below -1
+  assert inference.negative_share(np.zeros((0, 4))) == 0.0
 
 
 def test_bfloat16_frames_are_read_as_float32(monkeypatch):
@@ -517,22 +518,27 @@ def test_padding_in_jax_pipelines():
 def test_padding_bad_input_is_named():
   with pytest.raises(ValueError, match=r"pads must be 4 integers .* got \(1, 2, 3\)"):
     inference.pad_frames(np.zeros((2, 4, 4, 3)), (1, 2, 3))
-  with pytest.raises(ValueError, match="pads must be 4 integers"):
-    inference.pad_frames(np.zeros((2, 4, 4, 3)), (1, 2, -3, 0))
+  for pads in ((1, 2, 3, 4, 5), (1, 2, -3, 0), (1, 2, 0.5, 0)):
+    with pytest.raises(ValueError, match="pads must be 4 integers"):
+      inference.pad_frames(np.zeros((2, 4, 4, 3)), pads)
   with pytest.raises(ValueError, match=r"frames must be \[\.\.\., H, W, C\], got shape \(4, 4\)"):
     inference.pad_to_multiple(np.zeros((4, 4)))
-  with pytest.raises(ValueError, match="multiple must be an integer >= 1, got 0"):
-    inference.pad_to_multiple(np.zeros((1, 4, 4, 3)), 0)
+  for multiple in (0, 32.0):
+    with pytest.raises(ValueError, match=f"multiple must be an integer >= 1, got {multiple}"):
+      inference.pad_to_multiple(np.zeros((1, 4, 4, 3)), multiple)
   # A [T, H, W] array (ground-truth disparities) was read as [H, W, C]: T and H padded.
-  with pytest.raises(ValueError, match=r"got shape \(2, 50, 70\), whose last axis of 70 is no "
-                                       r"channel axis: .* x\[\.\.\., None\]"):
-    inference.pad_to_multiple(np.zeros((2, 50, 70)))
+  for width in (70, 5):  # (5: the first width that is no channel axis)
+    with pytest.raises(ValueError, match=rf"got shape \(2, 50, {width}\), whose last axis of "
+                                         rf"{width} is no channel axis: .* x\[\.\.\., None\]"):
+      inference.pad_to_multiple(np.zeros((2, 50, width)))
   padded, pads = inference.pad_to_multiple(np.zeros((2, 50, 70))[..., None])
   assert padded.shape == (2, 64, 96, 1) and pads == (7, 7, 13, 13)
   with pytest.raises(ValueError, match=r"cannot remove pads \(4, 4, 0, 0\) from an array of "
                      r"shape \(2, 6, 8\): they add up to 8 x 0, more than its last two axes "
                      r"\(6, 8\)"):
     inference.unpad(np.zeros((2, 6, 8)), (4, 4, 0, 0))
+  with pytest.raises(ValueError, match=r"they add up to 0 x 9, more than"):
+    inference.unpad(np.zeros((2, 6, 8)), (0, 0, 4, 5))  # each fits, together they do not
   with pytest.raises(ValueError, match=r"shape \(8,\): expected \[\.\.\., Hp, Wp\]"):
     inference.unpad(np.zeros(8), (0, 0, 0, 0))
 
@@ -565,6 +571,11 @@ def test_bad_inputs():
         jax.random.PRNGKey(0), np.zeros((1, 2, 3, 8, 10)), np.zeros((1, 2, 3, 8, 10)), iters=2)
   with pytest.raises(ValueError, match="stride"):
     inference.window_plan(10, window=4, stride=5)
+  # (stride 0 would never move the windows on: window_plan would loop forever; a float
+  # window would fail later, slicing the video)
+  for window, stride in ((4, 0), (20.0, 10)):
+    with pytest.raises(ValueError, match=r"need integers 1 <= stride <= window"):
+      inference.check_window(window, stride)
   # The depth prior's temporal attention takes 32 frames: a longer window is named up front
   # (it failed in the window program's trace with "VDA processes at most 32 frames").
   assert inference.window_plan(40, window=32, stride=16)[0].length == 32
@@ -788,6 +799,20 @@ def test_memory_estimate_grows_with_size():
   assert bf16 < big
 
 
+def test_memory_estimate_by_its_formula():
+  """64 MiB, 1000 B per input pixel and 12 B per pixel and iteration (x0.7 in bfloat16), and
+  1.5x one block of the DINOv2 logits: both views' frames x 6 heads (vits) x tokens^2 x 4 B,
+  with 19 tokens for 32x128 frames (2 x 9 patches of 14 px and the class token)."""
+  pixels, logit_bytes = 3 * 32 * 128, 6 * 19 * 19 * 4  # 3 frames; one frame's logits
+  per_pixel = 1000 * pixels + 12 * 4 * pixels  # iters=4
+  for cfg, activations, block_frames in (
+      (sav_jax.SAVConfig(), per_pixel, 6),  # all 2 x 3 frames in one block
+      (sav_jax.SAVConfig(dtype="bfloat16"), 0.7 * per_pixel, 6),
+      (sav_jax.SAVConfig(frame_block_mb=2 * logit_bytes / 2**20), per_pixel, 2)):
+    want = int(64 * 2**20 + activations + 1.5 * block_frames * logit_bytes)
+    assert inference.estimate_memory_bytes(3, 32, 128, 4, cfg) == want
+
+
 def test_memory_estimate_follows_the_attention_blocks():
   """Unblocked, DINOv2's logits of the paper's window (40 frames x 6 x 4642^2) are ~20 GB;
   the default blocks bound them to about 1 GB."""
@@ -844,8 +869,6 @@ def test_per_frame_features_are_computed_once_per_frame(variables, golden, monke
   assert options["window"] == runtime.inference_compiler_options()
   # the same options where this jaxlib has only the newer emitters (jaxlib 0.11+)
   assert (options["window"] != options["frames"]) is XLA_OLDER_EMITTERS
-  with pytest.raises(ValueError, match="chunk"):
-    inference.FrameFeatureCache(chunk=0)
 
 
 def test_same_program_for_committed_and_numpy_variables():
@@ -958,6 +981,16 @@ def test_window_features_are_not_held_twice_while_a_window_runs(monkeypatch, dev
   else:  # two windows dispatched at once (the stand-ins run at dispatch), then forgotten
     assert held[1] == list(range(30)) and held[2] == list(range(20, 40))
   assert not caches[-1].frames
+
+
+def test_feature_chunks_are_aligned_to_the_video():
+  """Chunks start at multiples of `chunk` from frame 0, wherever a window starts, cut to the
+  window; a chunk runs unless all of its frames in the window are cached."""
+  todo = inference._feature_todo  # pylint: disable=protected-access
+  assert todo(set(), 10, 5, 20) == [(0, 5), (5, 15), (15, 20)]  # frames 5..9, 10..19, 20..24
+  assert todo(set(range(5, 22)), 10, 5, 20) == [(15, 20)]  # 22..24 of chunk 20..29 missing
+  with pytest.raises(ValueError, match="chunk must be a positive integer, got 0"):
+    inference.FrameFeatureCache(chunk=0)
 
 
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
