@@ -790,6 +790,24 @@ def test_memory_error_from_compiled_program(variables, golden, monkeypatch):
   assert inference.cache_size() == before  # nothing cached for a program that cannot run
 
 
+def test_memory_precheck_margin_and_message(monkeypatch):
+  """Before compiling, an estimate (which errs high) is refused only above 1.5x the free
+  memory; the message gives both in GB. Free memory that is unknown refuses nothing."""
+  need, free = {}, {"bytes": 2 * 2**30}
+  monkeypatch.setattr(inference, "estimate_memory_bytes", lambda *a: need["bytes"])
+  monkeypatch.setattr(inference, "available_memory_bytes", lambda device=None: free["bytes"])
+  precheck = lambda: inference._precheck(20, 64, 96, sav_jax.SAVConfig(), 20, True)  # pylint: disable=protected-access  # noqa: E731
+  need["bytes"] = 3 * 2**30  # 1.5x 2 GB
+  precheck()
+  need["bytes"] = 3.5 * 2**30
+  with pytest.raises(inference.InsufficientMemoryError,
+                     match=r"^a 20-frame window of 64x96 \(padded\) needs about 3\.5 GB "
+                     r"\(estimated\), but only 2\.0 GB is free on cpu:0; use fewer frames"):
+    precheck()
+  free["bytes"] = None
+  precheck()
+
+
 def test_memory_estimate_grows_with_size():
   small = inference.estimate_memory_bytes(20, 32, 32, 20)
   big = inference.estimate_memory_bytes(20, 736, 1280, 20)
