@@ -427,8 +427,10 @@ def test_run_window_cache_belongs_to_one_video(monkeypatch):
                                                 cache=cache, **kw)
   run(video, weights, start=0)
   run(video[10:].astype(np.uint8), dict(weights), start=10)  # the same arrays, same values
-  with pytest.raises(ValueError, match="holds features computed with other weights"):
-    run(video[10:], {"params": {"w": np.ones(3, np.float32)}}, start=10)
+  for other in ({"params": {"w": np.ones(3, np.float32)}},
+                {"params": {"w": weights["params"]["w"], "z": np.ones(3, np.float32)}}):  # + one
+    with pytest.raises(ValueError, match="holds features computed with other weights"):
+      run(video[10:], other, start=10)
   assert calls[-2:] == [0, 10]
 
 
@@ -1027,6 +1029,13 @@ def test_run_window_fills_a_chunk_that_an_earlier_window_cut_short(monkeypatch):
     assert out.shape == (15, 32, 32)  # 5x7 padded to 32x32
   assert sorted(fake.seen) == list(range(25))  # every frame's own features reached a window
   assert set(fake.computed) == set(range(25))
+  # The last window again, its first frame changed: refused (the cache, which forgot the
+  # frames before 10, still holds frame 10's features and what they were computed from).
+  other = video[10:25].copy()
+  other[0] += 1
+  with pytest.raises(ValueError, match="frame 10 differs from the frame whose features"):
+    inference.run_window({}, other, other, cfg=sav_jax.SAVConfig(), iters=2, check_memory=False,
+                         cache=cache, start=10)
 
 
 @pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
