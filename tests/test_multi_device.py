@@ -15,6 +15,7 @@ import os
 import pathlib
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -110,6 +111,31 @@ def test_another_processs_devices_are_refused(monkeypatch):
                      rf"\(jax.local_devices\(\)\), but {device} is process "
                      f"{device.process_index}'s"):
     inference.resolve_devices([device])
+
+
+def test_windows_at_once_on_cpu_devices_share_the_host_memory(monkeypatch):
+  """As many windows at once as there are CPU devices and windows: each takes the estimate
+  of one, together at most 1.5x the host's free memory (the margin of one window's check).
+  Other devices, and a single CPU device, are left to each device's own check."""
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  cfg = sav_jax.SAVConfig()
+  one = inference.estimate_memory_bytes(20, 32, 32, 2, cfg)
+  monkeypatch.setattr(inference, "available_memory_bytes", lambda device=None: 2 * one)
+  cpu, gpu = types.SimpleNamespace(platform="cpu"), types.SimpleNamespace(platform="gpu")
+
+  def check(devices, frames):
+    inference._check_shared_host_memory(  # pylint: disable=protected-access
+        devices, inference.window_plan(frames), (32, 32), cfg, 2)
+
+  check([cpu] * 3, 45)  # 3 windows at once: 1.5x the free memory
+  check([cpu] * 5, 25)  # 2 windows: 2 devices
+  check([cpu, gpu, gpu, gpu], 45)
+  with pytest.raises(inference.InsufficientMemoryError,
+                     match=r"^4 20-frame windows of 32x32 \(padded\) at once, one per CPU "
+                     r"device, need about"):
+    check([cpu] * 5, 45)  # 4 windows
+  monkeypatch.setattr(inference, "available_memory_bytes", lambda device=None: 1)
+  check([cpu], 45)
 
 
 def _golden_clip(fixtures_dir):
