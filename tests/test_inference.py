@@ -301,6 +301,8 @@ class _CountingPrograms:
 
   def window(self, variables, n, hp, wp, *, cfg, iters, check_memory=True):
     def run(v, feats):
+      first = int(feats["f"][0, 0, 0])
+      assert feats["f"][0, :, 0].tolist() == list(range(first, first + n))  # its frames, in order
       for i, length in np.asarray(feats["f"][0]):
         self.seen[int(i)].add(int(length))
       return np.zeros((n, hp, wp), np.float32)
@@ -325,6 +327,8 @@ def test_each_frame_features_computed_once_in_one_chunk(monkeypatch, window, str
   assert all(len(lengths) == 1 for lengths in fake.seen.values()) and len(fake.seen) == n
   chunk = inference.feature_chunk(window, stride)
   assert chunk == math.gcd(window, stride)
+  with pytest.raises(ValueError, match="need integers 1 <= stride <= window"):
+    inference.feature_chunk(window, 0)
   assert fake.chunk_lengths <= {chunk, n % chunk or chunk}
 
 
@@ -413,11 +417,14 @@ def test_run_window_cache_belongs_to_one_video(monkeypatch):
   with pytest.raises(ValueError, match="frame 12 differs from the frame whose features"):
     inference.run_window({}, video[10:], other[10:], cfg=sav_jax.SAVConfig(), iters=2,
                          cache=cache, start=10)
-  with pytest.raises(ValueError, match="holds features of 5x7 frames padded by"):
-    run(np.zeros((4, 9, 7, 3), np.uint8), start=20)
-  with pytest.raises(ValueError, match="use a new cache"):
-    inference.run_window({}, video, video, cfg=sav_jax.SAVConfig(dtype="bfloat16"), iters=2,
-                         cache=cache, start=20)
+  # another height, width or padding (to 16x16), another config
+  for frames, pads in ((np.zeros((4, 9, 7, 3), np.uint8), None),
+                       (np.zeros((4, 5, 9, 3), np.uint8), None), (video[10:], (0, 11, 0, 9))):
+    with pytest.raises(ValueError, match="holds features of 5x7 frames padded by"):
+      run(frames, start=20, pads=pads)
+  for cfg in (sav_jax.SAVConfig(dtype="bfloat16"), sav_jax.SAVConfig(vda_encoder="vitb")):
+    with pytest.raises(ValueError, match="use a new cache"):
+      inference.run_window({}, video, video, cfg=cfg, iters=2, cache=cache, start=20)
   assert calls == [0, 10, 10]
   # Other weights were served the first ones' features silently (two checkpoints compared on
   # one video); the same frames as uint8 instead of float32 were "frame 0 differs".
