@@ -134,12 +134,13 @@ class _LabelModel:
   """Stand-in for the compiled model: raw output value = 1000 * (start + 1) + local index."""
 
   def __init__(self):
-    self.calls = []
+    self.calls, self.pads = [], set()
 
   def __call__(self, variables, left, right, *, cfg, iters, pads=None, check_memory=True,
                cache=None, start=0, keep_from=None):
     start = int(left[0, 0, 0, 0])  # frames carry their global index
     self.calls.append((start, len(left)))
+    self.pads.add(tuple(pads))
     h, w = left.shape[1:3]
     top, bottom, lft, rgt = pads
     value = 1000.0 * (start + 1) + np.arange(len(left), dtype=np.float32)
@@ -161,6 +162,7 @@ def test_every_frame_returned(monkeypatch, n):
   video = _labelled_video(n)
   disp = inference.predict_video({}, video, video)
   assert disp.shape == (n, 5, 7)
+  assert fake.pads == {(13, 14, 12, 13)}  # 5x7 to 32x32: 27 rows, 25 columns split
   start, local = disp[:, 0, 0] // 1000 - 1, disp[:, 0, 0] % 1000
   np.testing.assert_array_equal(start + local, np.arange(n))  # frame t came from frame t
   if n == 7:
@@ -287,6 +289,7 @@ class _CountingPrograms:
 
   def __init__(self):
     self.computed = collections.Counter()
+    self.right_minus_left = set()
     self.seen = collections.defaultdict(set)
     self.chunk_lengths = set()
 
@@ -294,7 +297,9 @@ class _CountingPrograms:
     self.chunk_lengths.add(n)
 
     def run(v, left, right):
+      assert left.dtype == right.dtype == np.float32  # as the compiled program takes them
       self.computed.update(int(i) for i in left[:, 0, 0, 0])
+      self.right_minus_left.update((right - left)[:, 0, 0, 0].tolist())
       return {"f": np.stack([left[:, 0, 0, 0], np.full(n, n, np.float32)], -1)[None]}
 
     return run
@@ -305,7 +310,8 @@ class _CountingPrograms:
       assert feats["f"][0, :, 0].tolist() == list(range(first, first + n))  # its frames, in order
       for i, length in np.asarray(feats["f"][0]):
         self.seen[int(i)].add(int(length))
-      return np.zeros((n, hp, wp), np.float32)
+      return np.broadcast_to(np.arange(first, first + n, dtype=np.float32)[:, None, None],
+                             (n, hp, wp))  # each frame's index as its disparity
 
     return run
 
@@ -1003,6 +1009,7 @@ def test_window_features_are_not_held_twice_while_a_window_runs(monkeypatch, dev
   out = inference.predict_video({}, video, video, iters=2, check_memory=False,
                                 devices=devices)
   assert out.shape == (45, 5, 7) and fake.computed == collections.Counter(range(45))
+  np.testing.assert_array_equal(out, np.broadcast_to(np.arange(45.0)[:, None, None], out.shape))
   if devices is None:  # each window runs after the previous one's frames are forgotten
     assert held == [list(range(10, 20)), list(range(20, 30)), list(range(30, 40)), []]
   else:  # two windows dispatched at once (the stand-ins run at dispatch), then forgotten
@@ -1029,13 +1036,15 @@ def test_run_window_fills_a_chunk_that_an_earlier_window_cut_short(monkeypatch):
   monkeypatch.setattr(inference, "check_variables", lambda *a: None)
   monkeypatch.setattr(inference, "compiled_frame_features", fake.frames)
   monkeypatch.setattr(inference, "compiled_window", fake.window)
-  video, cache = _labelled_video(25), inference.FrameFeatureCache()
+  video, cache = _labelled_video(25).astype(np.uint8), inference.FrameFeatureCache()
+  right = video + 100
   for start, stop in ((0, 15), (10, 25)):
-    out = inference.run_window({}, video[start:stop], video[start:stop], cfg=sav_jax.SAVConfig(),
+    out = inference.run_window({}, video[start:stop], right[start:stop], cfg=sav_jax.SAVConfig(),
                                iters=2, check_memory=False, cache=cache, start=start)
     assert out.shape == (15, 32, 32)  # 5x7 padded to 32x32
   assert sorted(fake.seen) == list(range(25))  # every frame's own features reached a window
-  assert set(fake.computed) == set(range(25))
+  assert set(fake.computed) == set(range(25)) and fake.right_minus_left == {100}
+  assert sorted(cache.frames) == list(range(10, 25))  # frames before the last window forgotten
   # The last window again, its first frame changed: refused (the cache, which forgot the
   # frames before 10, still holds frame 10's features and what they were computed from).
   other = video[10:25].copy()
@@ -1066,7 +1075,9 @@ def test_a_list_of_uint8_frames_is_not_copied_whole(monkeypatch):
   np.testing.assert_array_equal(label // 1000 - 1 + label % 1000, np.arange(23))
   np.testing.assert_array_equal(out, inference.predict_video({}, video, video))
   # beside an array, and window by window from iter_predict_video
+  stacked.clear()
   got = dict(inference.iter_predict_video({}, frames, video, window=8, stride=4))
+  assert max(stacked) <= 8, stacked
   assert sorted(got) == [0, 6, 10, 14, 18]
   np.testing.assert_array_equal(np.concatenate([got[t] for t in sorted(got)]),
                                 inference.predict_video({}, video, video, window=8, stride=4))
