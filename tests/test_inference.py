@@ -568,6 +568,9 @@ def test_bad_inputs():
                       ((8, 8, 3), r"one frame\? a video of one frame is frame\[None\]")):
     with pytest.raises(ValueError, match=r"\[T, H, W, 3\] \(0\.\.255\), got shape .*" + hint):
       inference.predict_video({}, np.zeros(shape), np.zeros(shape))
+  for shape in ((0, 8, 8, 3), (2, 0, 8, 3), (2, 8, 0, 3)):  # no frames, no rows, no columns
+    with pytest.raises(ValueError, match=r"\[T, H, W, 3\] \(0\.\.255\), got shape \("):
+      inference.predict_video({}, np.zeros(shape), np.zeros(shape))
   with pytest.raises(ValueError, match=r"left: got a path \('left\.mp4'\), not frames; read them "
                      r"first: sav_jax\.tools\.video_io\.load_stereo"):
     inference.predict_video({}, "left.mp4", "right.mp4")
