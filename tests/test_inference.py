@@ -10,6 +10,7 @@ window and position it came from.
 import collections
 import math
 import os
+import pathlib
 import re
 import subprocess
 import sys
@@ -574,6 +575,8 @@ def test_bad_inputs():
   with pytest.raises(ValueError, match=r"left: got a path \('left\.mp4'\), not frames; read them "
                      r"first: sav_jax\.tools\.video_io\.load_stereo"):
     inference.predict_video({}, "left.mp4", "right.mp4")
+  with pytest.raises(ValueError, match=r"right: got a path \('right\.mp4'\), not frames"):
+    inference.predict_video({}, np.zeros((2, 8, 8, 3)), pathlib.Path("right.mp4"))
   with pytest.raises(ValueError, match=r"frames must be \[\.\.\., H, W, C\], channels last; got "
                      r"shape \(2, 3, 30, 50\) \(channels first"):
     inference.pad_to_multiple(np.zeros((2, 3, 30, 50)))  # it padded the channel axis
