@@ -641,6 +641,7 @@ def test_run_window_checks_its_inputs_before_compiling(variables):
            ((video, video), {"pads": (0, 0, -1, 1)}, "pads must be 4 integers"),
            # 40x32: a multiple of 8, not of 16 (the model's 1/16 stage)
            ((video, video), {"pads": (4, 4, 0, 0)}, "pads must be 4 integers"),
+           ((video, video), {"pads": (0, 0, 4, 4)}, "pads must be 4 integers"),
            ((video, video), {"start": -1}, "start must be an integer >= 0")]
   for args, kw, match in cases:
     with pytest.raises(ValueError, match=match):
