@@ -413,10 +413,12 @@ def test_export_refuses_variables_that_are_not_the_models(tmp_path, variables):
       **params["cnet"]["conv1"], "bias": np.full_like(params["cnet"]["conv1"]["bias"], np.nan)}}}}
   wrong = {"params": {**params, "corr_mlp": {**params["corr_mlp"], "fc1": {
       **params["corr_mlp"]["fc1"], "kernel": np.zeros((3, 3), np.float32)}}}}
+  extra = {"params": {**params, "fnet_extra": {"kernel": np.zeros(2, np.float32)}}}
   for bad, match in ((missing, r"4 missing, e\.g\. \['corr_mlp'\]"),
                      (nan, r"hold NaN or inf values, e\.g\. \['cnet'\]\['conv1'\]\['bias'\]"),
                      (wrong, r": 1 with other shapes, e\.g\. \['corr_mlp'\]\['fc1'\]\['kernel'\] "
                       r"\(3, 3\) \(expected \(324, 256\)\)$"),
+                     (extra, r": 1 unexpected, e\.g\. \['fnet_extra'\]\['kernel'\]$"),
                      (params, r"expected Flax variables \{'params': \.\.\.\}, found "
                       r"\['cnet', .*: the parameters alone\? pass \{'params': params\}$")):
     with pytest.raises(convert.CheckpointError, match=match):
