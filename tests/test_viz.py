@@ -400,6 +400,32 @@ def test_colorize_names_the_end_taken_from_the_data():
     viz.colorize(np.array([[3.0, 4.0, 5.0]]), vmax=2.0)
 
 
+def test_colorize_takes_its_range_from_the_valid_pixels_only():
+  # 100 px outside the mask sets no end: the range is 1..5, so 5 px is the brightest colour
+  # (not level round(4 / 99 * 255) = 10 of a 1..100 range)
+  lut = _lut()
+  d = np.array([[1.0, 5.0, 100.0]], np.float32)
+  rgb = viz.colorize(d, valid=np.array([[True, True, False]]))
+  assert [tuple(c) for c in rgb[0]] == [tuple(lut[0]), tuple(lut[255]), viz.INVALID_COLOR]
+  np.testing.assert_array_equal(viz.colorize(d, vmin=0.0, valid=d < 50)[0, 1], lut[255])
+
+
+@pytest.mark.parametrize("vmin, vmax", [(-math.inf, 1.0), (0.0, math.inf), (math.nan, 1.0),
+                                        (0.0, math.nan)])
+def test_colour_range_ends_must_be_finite(vmin, vmax):
+  # an infinite end gives 255 / inf = 0 levels per px: every pixel one colour
+  with pytest.raises(ValueError, match="colour range needs finite vmin < vmax"):
+    viz.colorize(np.array([[1.0, 2.0]]), vmin, vmax)
+  with pytest.raises(ValueError, match="colour range needs finite vmin < vmax"):
+    viz.colorbar(vmin, vmax)
+
+
+def test_as_real_keeps_the_sign_of_integers_beyond_float():
+  assert viz.as_real(10**400) == math.inf and viz.as_real(-10**400) == -math.inf
+  with pytest.raises(ValueError, match="cx must be a finite number, got -inf"):
+    viz.check_intrinsics(cx=-10**400)
+
+
 def test_colorize_checks_the_invalid_colour():
   disp = np.array([[0.0, 1.0]], np.float32)
   assert tuple(viz.colorize(disp, 0.5, 2.0, invalid_color=(1, 2, 3))[0, 0]) == (1, 2, 3)
@@ -609,8 +635,10 @@ def test_colorize_error_uses_kittis_bins_and_keeps_perfect_pixels():
   assert (both_zero == colours[0]).all()  # 0 / 0 in the relative term: perfect, not the worst
   video = viz.colorize_error(np.zeros((3, 2, 5)), np.ones((3, 2, 5)))  # [T, H, W]
   assert video.shape == (3, 2, 5, 3) and (video == colours[3]).all()  # 1 px: 1/3 of 3 px
-  with pytest.raises(ValueError, match=r"pred of shape \(2, 5\) and gt of shape \(2, 4\)"):
-    viz.colorize_error(np.zeros((2, 5)), np.zeros((2, 4)))
+  for p_shape, g_shape in (((2, 5), (2, 4)), ((1, 4), (4, 1))):  # (the second broadcasts)
+    with pytest.raises(ValueError, match=re.escape(f"pred of shape {p_shape} and gt of shape "
+                                                   f"{g_shape}")):
+      viz.colorize_error(np.zeros(p_shape), np.zeros(g_shape))
   for kw in ({"abs_thresh": 0}, {"rel_thresh": -1.0}, {"abs_thresh": "3"}):
     with pytest.raises(ValueError, match="abs_thresh must be a number > 0"):
       viz.colorize_error(pred, gt, **kw)
@@ -743,7 +771,8 @@ def test_colorize_maps_the_range_linearly_and_clips_outside_it():
   # a weight of exactly 0.5 is invalid (> 0.5 is valid), as in the metrics
   rgb = viz.colorize(np.ones((1, 2)), 0.0, 2.0, valid=np.array([[0.5, 0.51]]))
   assert tuple(rgb[0, 0]) == viz.INVALID_COLOR and tuple(rgb[0, 1]) == tuple(lut[128])
-  assert viz.colorize(np.zeros((0, 4), np.float32), 0.0, 1.0).shape == (0, 4, 3)
+  for shape in ((0, 4), (3, 0), (2, 0, 3)):  # empty maps, of no rows or no columns
+    assert viz.colorize(np.zeros(shape, np.float32), 0.0, 1.0).shape == (*shape, 3)
 
 
 def test_colorize_error_masks_and_thresholds():
@@ -953,6 +982,10 @@ def test_colorbar_unit_follows_the_last_label_only():
   differ = np.nonzero((with_unit != without).any(axis=(0, 2)))[0]
   assert len(differ) and differ.min() > 160  # right of the 10 tick (column 160): "12 px"
   assert differ.max() >= 195  # the label ends at the bar's right edge
+  # and is drawn whole: it starts its own width left of the edge (centred on the tick at
+  # column 200 it would run past the edge, cut)
+  width = cv2.getTextSize("12 px", cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0]
+  assert differ.min() <= 201 - width + 2, (differ.min(), width)
 
 
 def test_map_writers_and_readers_take_names_that_are_not_utf8(tmp_path):
