@@ -3,6 +3,7 @@
 import math
 import os
 import re
+import struct
 import threading
 import warnings
 
@@ -212,6 +213,9 @@ def test_missing_and_corrupt_disparity_files_name_the_file(tmp_path):
       ("latin.ply", good + b"comment caf\xe9\n" + props + b"end_header\n" + bytes(15), "ASCII"),
       ("nohdr.ply", good + props, "no end_header"),
       ("novert.ply", b"ply\nformat binary_little_endian 1.0\nend_header\n", "element vertex"),
+      ("magic.ply", b"plyx\n" + good[4:] + props + b"end_header\n" + bytes(15), "not a PLY file"),
+      ("faces.ply", good.replace(b"vertex", b"face") + props + b"end_header\n" + bytes(15),
+       "element vertex"),
       ("normals.ply", good + props + b"property float nx\nend_header\n" + bytes(19),
        "vertex properties"),
       ("short.ply", good + props + b"end_header\n" + bytes(14), "header says 1 vertices")):
@@ -230,6 +234,7 @@ def test_write_ply_refuses_bad_shapes_and_colours(tmp_path):
       (np.zeros((3, 2)), np.zeros((3, 2)), r"xyz must be \[N, 3\].*shape \(3, 2\)"),
       (np.array([["a", "b", "c"]]), np.zeros((1, 3)), "dtype <U1"),
       (np.zeros((2, 3)), np.zeros((3, 3)), r"colors of shape \(3, 3\) do not match xyz \(2, 3\)"),
+      (np.zeros((2, 3)), np.zeros((3, 2)), r"colors of shape \(3, 2\) do not match xyz \(2, 3\)"),
       (np.zeros((1, 3)), np.full((1, 3), 400.0), r"values 400\.\.400 outside 0\.\.255"),
       (np.zeros((1, 3)), np.full((1, 3), -1), r"values -1\.\.-1 outside 0\.\.255"),
       (np.array([[0, 0, 1], [np.nan, 0, 1], [1e39, 0, 1]]), np.zeros((3, 3)),
@@ -1024,6 +1029,24 @@ def test_read_ply_refuses_vertex_layouts_other_than_write_ply_s(tmp_path):
     (tmp_path / "o.ply").write_bytes(header.encode("ascii") + body)
     with pytest.raises(ValueError, match="PLY vertex properties .* differ from write_ply's"):
       viz.read_ply(tmp_path / "o.ply")
+
+
+def test_read_ply_reads_the_vertices_of_other_writers_headers(tmp_path):
+  # The PLY format as defined, not write_ply's bytes only: CRLF line ends, tokens separated by
+  # any whitespace, and a face element after the vertices (a mesh) whose properties are not
+  # the vertices' (x y z little-endian float32, then red green blue uint8: 15 bytes a vertex)
+  header = ("ply\r\nformat binary_little_endian 1.0\r\ncomment from a mesh tool\r\n"
+            "element vertex 2\r\nproperty  float x\r\nproperty float  y\r\n"
+            "property\tfloat z\r\nproperty uchar red\r\nproperty uchar green\r\n"
+            "property uchar blue\r\nelement face 1\r\n"
+            "property list uchar int vertex_indices\r\nend_header\r\n")
+  body = (struct.pack("<3f3B", 1.5, -2.0, 3.25, 10, 20, 30)
+          + struct.pack("<3f3B", 0.0, 1e-3, -7.0, 255, 0, 128) + struct.pack("<B3i", 3, 0, 1, 1))
+  (tmp_path / "mesh.ply").write_bytes(header.encode("ascii") + body)
+  xyz, rgb = viz.read_ply(tmp_path / "mesh.ply")
+  np.testing.assert_array_equal(xyz, np.array([[1.5, -2.0, 3.25], [0.0, 1e-3, -7.0]],
+                                              np.float32))
+  np.testing.assert_array_equal(rgb, [[10, 20, 30], [255, 0, 128]])
 
 
 def test_write_exr_names_a_one_channel_map_s_channel(tmp_path):
