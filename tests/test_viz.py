@@ -836,6 +836,9 @@ def test_colorbar_ticks_off_the_step_and_at_the_last_pixel():
   # ticks at both ends are kept all the same
   assert _tick_columns(viz.colorbar(0.07, 0.11, length=41)) == [0, 10, 20, 30, 40]
   assert _tick_columns(viz.colorbar(0.0, 0.3, length=61)) == [0, 20, 40, 60]
+  # `ticks` sets the step: 10 / 10 -> 1 px, 10 / 2 -> 5 px
+  assert _tick_columns(viz.colorbar(0.0, 10.0, length=101, ticks=10)) == list(range(0, 101, 10))
+  assert _tick_columns(viz.colorbar(0.0, 10.0, length=101, ticks=2)) == [0, 50, 100]
   # the smallest sizes accepted
   assert viz.colorbar(0.0, 1.0, length=32, thickness=1, ticks=1).shape == (1 + 18, 32, 3)
   for kw in ({"thickness": 0}, {"ticks": 0}, {"length": 31}):
@@ -991,6 +994,11 @@ def test_colorbar_unit_follows_the_last_label_only():
   # column 200 it would run past the edge, cut)
   width = cv2.getTextSize("12 px", cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0]
   assert differ.min() <= 201 - width + 2, (differ.min(), width)
+  # so is the first, "2" under column 0: it starts at the left edge (its ink reaches past
+  # half its width), not centred on the edge, half outside the bar
+  width = cv2.getTextSize("2", cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0]
+  ink = np.nonzero((without[-15:, :20] < 128).any(axis=(0, 2)))[0]  # (below the ticks)
+  assert ink.max() > width // 2, (ink, width)
 
 
 def test_map_writers_and_readers_take_names_that_are_not_utf8(tmp_path):
