@@ -945,9 +945,28 @@ def test_speed_excludes_compilation_and_curves_leave_frames_without_gt_out(tmp_p
     img = eval_plots._panel({"m": series}, "", "frame")  # pylint: disable=protected-access
     blank = eval_plots._panel({"m": np.full(n, np.nan)}, "", "frame")  # pylint: disable=protected-access
     assert np.count_nonzero(np.any(img != blank, axis=-1)) > 10, n
+    # in the method's colour (the y labels differ too), left of its legend (x >= 550): the
+    # point is drawn, and frames without a value draw nothing (no line along 0)
+    colour = eval_plots._COLOURS[0]  # pylint: disable=protected-access
+    drawn = np.nonzero(np.all(img[:, :500] == colour, axis=-1).any(axis=0))[0]
+    x = 70 + (760 - 70 - 20) * 5 / (n - 1)  # frame 5 (margins 70 and 20 px of 760)
+    assert drawn.size and np.all(np.abs(drawn - x) <= 4), (n, drawn, x)  # a point, no line
+    assert not np.all(blank[:, :500] == colour, axis=-1).any(), n
   # One frame: no pairs, no TEPE (an empty curve, not an error)
   epe1, tepe1 = eval_runner.per_frame_errors(pred[:1], clip["disparity"][:1], clip["valid"][:1])
   assert epe1.shape == (1,) and tepe1.shape == (0,)
+
+
+def test_curve_panels_y_axis_ends_at_the_step_above_the_largest_value():
+  # 7 px: steps of 2 (1.4 per tick of 5, rounded up to 2), the axis up to 8 px; the line
+  # at 7 / 8 of the plot's height (rows top .. top + height), not clipped at its top
+  img = eval_plots._panel({"m": np.array([7.0, 7.0])}, "", "frame")  # pylint: disable=protected-access
+  width, height = eval_plots._PANEL  # pylint: disable=protected-access
+  _, _, top, bottom = eval_plots._MARGIN  # pylint: disable=protected-access
+  row = top + (height - top - bottom) * (1 - 7 / 8)
+  colour = eval_plots._COLOURS[0]  # pylint: disable=protected-access
+  rows = np.nonzero(np.all(img[:, 100:500] == colour, axis=-1).any(axis=1))[0]
+  assert rows.size and np.all(np.abs(rows - row) <= 2), (rows, row)
 
 
 def test_south_kensington_has_no_metrics_but_predictions_and_strips(tmp_path, ckpt, variables,
@@ -1129,6 +1148,35 @@ def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt
   clip["valid"][:] = True  # with valid pixels: the ground truth's range (5 px everywhere)
   eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": pred}, frames=3, tile=32)
   assert ranges and all((lo, hi) == (5, 6) for lo, hi in ranges), ranges  # a constant: +1 px
+
+
+def test_strip_colour_range_is_the_valid_ground_truths_1st_to_99th_percentile(
+    tmp_path, monkeypatch):
+  """Each frame's ground truth is 1..101 px, stored as -d: the percentile p of such values is
+  1 + p, so the range is 2..100 px; with pixels above 51 px invalid, 1..51 px (each value three
+  times: the 1st and 99th percentiles fall between equal values). Invalid pixels are white in
+  the ground-truth row and black in the error row."""
+  ranges = []
+  real = sav_jax.viz.colorize
+
+  def recording(d, vmin=None, vmax=None, **kw):
+    ranges.append((vmin, vmax))
+    return real(d, vmin, vmax, **kw)
+
+  monkeypatch.setattr(sav_jax.viz, "colorize", recording)
+  t, h, w = 3, 1, 101
+  gt = np.broadcast_to(np.arange(1, w + 1, dtype=np.float32), (t, h, w))
+  for valid, want in ((np.ones((t, h, w), bool), (2, 100)), (gt <= 51, (1, 51))):
+    ranges.clear()
+    clip = {"left": np.zeros((t, h, w, 3), np.uint8), "disparity": -gt, "valid": valid}
+    path = eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": gt + 50}, frames=3,
+                                  tile=128)
+    assert ranges and all(r == want for r in ranges), (ranges, want)
+  img = cv2.imread(str(path))[..., ::-1]
+  label_w = img.shape[1] - t * w
+  ground_truth, error = img[24 + 1, label_w:], img[24 + 3, label_w:]  # rows of one pixel
+  assert tuple(ground_truth[w - 1]) == (255, 255, 255) and tuple(error[w - 1]) == (0, 0, 0)
+  assert tuple(ground_truth[0]) != (255, 255, 255) and tuple(error[0]) != (0, 0, 0)
 
 
 def test_strip_shows_each_methods_error_in_kittis_colours(tmp_path):
