@@ -687,6 +687,26 @@ def test_synthetic_set_takes_every_generator_field():
     eval_data.load_sequences(config, None)
 
 
+def test_synthetic_valid_rule_and_frame_bounds(monkeypatch):
+  """Dense GT is valid where |d| < 512 and d != 0 (the official rule); frames outside a
+  sequence or a head of it are IndexErrors, not NumPy's wrap-around from the end."""
+  d = np.array([0.0, 5.0, -5.0, 511.9, 512.0, -600.0], np.float32)
+  frames = np.arange(4, dtype=np.float32)[:, None, None] + d  # frame k: d + k
+  clip = {"left": np.zeros((4, 1, 6, 3), np.uint8), "right": np.zeros((4, 1, 6, 3), np.uint8),
+          "disparity": np.broadcast_to(d, (4, 1, 6)).copy(), "valid": np.ones((4, 1, 6), bool)}
+  monkeypatch.setattr(eval_data.synthetic, "generate_clip", lambda cfg, index: clip)
+  cfg = types.SimpleNamespace(frames=4, fx=1.0, baseline=1.0, width=6, height=1)
+  seq = eval_data.SyntheticSequence(cfg, 0)
+  assert seq[0]["valid"].tolist() == [[False, True, True, True, False, False]]
+  with pytest.raises(IndexError):
+    seq.clip(-1, 2)
+  clip["disparity"] = frames  # (rendered lazily: the frames tell apart)
+  head = eval_data._Head(eval_data.SyntheticSequence(cfg, 0), 2)  # pylint: disable=protected-access
+  assert head[-1]["disparity"][0, 1] == 5.0 + 1  # the head's last frame, 1
+  with pytest.raises(IndexError):
+    head[-3]  # pylint: disable=pointless-statement
+
+
 def test_synthetic_depth_to_disparity_scale_is_fx_times_baseline():
   """The synthetic set's scale for the depth metrics is fx * baseline (d = fx B / Z), not fx:
   the generator's own disparity and depth agree with it."""
