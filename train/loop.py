@@ -315,6 +315,7 @@ _CHECKS = (
     ("data.frames", lambda x: _is_int(x) and 1 <= x <= TEMPORAL_MAX_LEN,
      f"an integer in [1, {TEMPORAL_MAX_LEN}] (the depth prior's temporal attention takes at "
      f"most {TEMPORAL_MAX_LEN} frames)"),
+    ("data.root", lambda x: isinstance(x, str), "a folder"),
     ("data.mixing", lambda x: x in ("concat", "ratio"), "'concat' or 'ratio'"),
     ("data.num_threads", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
     ("data.prefetch", lambda x: _is_int(x) and x >= 0, "an integer >= 0"),
@@ -452,13 +453,15 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
   writable = workdir / "checkpoints" if (workdir / "checkpoints").exists() else existing
   if not os.access(writable, os.W_OK | os.X_OK):
     raise PermissionError(f"--workdir {workdir}: no permission to write in {writable}")
-  _refuse_workdir_in_data(config, workdir)
   evaluating = config.eval.every_steps > 0
   for field, ok, want in _CHECKS + (_EVAL_CHECKS if evaluating else ()):
     value = _value(config, field)
     if not ok(value):
       raise ValueError(f"config.{field}={value!r}: expected {want}")
   _check_blocks(config)
+  # (after the checks of the sources and roots it reads: a source that is no block, or a
+  # root that is no text, failed in it with an AttributeError or TypeError traceback)
+  _refuse_workdir_in_data(config, workdir)
   for field in ("train.batch_size", "eval.batch_size")[:2 if evaluating else 1]:
     if num_devices and _value(config, field) % num_devices:
       raise ValueError(f"config.{field}={_value(config, field)} is not divisible by the "

@@ -1763,6 +1763,58 @@ def test_config_values_a_run_cannot_use_are_named(tmp_path, field, value, match,
     loop.validate_config(synthetic.get_config(), ".")
 
 
+@pytest.mark.parametrize("field,accepted,refused", [
+    # (the values at each bound the expected text states, and those just beyond it; a float
+    # where an integer is expected, a bool where an integer is, and inf and NaN, are refused)
+    ("seed", [0, 2**32 - 1], [-1, 0.5]),
+    ("data.frames", [1, 32], [0, 2.0]),
+    ("data.num_threads", [0], [-1]),
+    ("data.prefetch", [0], [-1]),
+    ("data.worker_count", [0], [-1]),
+    ("data.skip_unreadable", [0, 3], [-1]),
+    ("data.synthetic.num_clips", [1], [0]),
+    ("data.crop", [(16, 32)], [(0, 32), (32, 0), (32, 16), (32.0, 64.0)]),
+    ("train.batch_size", [1], [0, 2.0]),
+    ("train.num_steps", [1], [0, True, 6.0]),
+    ("train.iters", [2], [True, 2.0]),
+    ("train.max_skipped_steps", [0], [-1]),
+    ("optimizer.lr", [1e-9], [0.0, float("inf"), float("nan")]),
+    ("optimizer.weight_decay", [0.0, 0], [float("inf")]),
+    ("optimizer.eps", [1e-12], [0.0]),
+    ("optimizer.b1", [0.0, 0.999], [1.0, -0.1]),
+    ("optimizer.b2", [0.0], [-0.1]),
+    ("optimizer.clip_norm", [0.0], [float("nan")]),
+    ("optimizer.pct_start", [0.5], [0.0, 1.0]),
+    ("optimizer.div_factor", [1e-3], [0.0]),
+    ("optimizer.final_div_factor", [1e-3], [0.0]),
+    ("optimizer.schedule_steps", [-1, 0], [None, 5.0]),
+    ("optimizer.frozen", ["depthanything"], [re.compile("depthanything")]),
+    ("loss.gamma", [1e-3], [float("nan")]),
+    ("checkpoint.every_steps", [0, -1], [None, 10.0]),
+    ("checkpoint.keep", [0], [-1]),
+    ("eval.batch_size", [1], [0]),
+    ("eval.num_clips", [1], [0]),
+    ("eval.root", [""], [None]),
+    ("data.root", ["", "data"], [None]),
+])
+def test_config_values_at_the_bounds_pass_and_those_beyond_are_named(tmp_path, field, accepted,
+                                                                       refused):
+  from train import loop  # pylint: disable=g-import-not-at-top
+  # (not type-safe: a config file may give any value, which ConfigDict's fields would refuse)
+  c = ml_collections.ConfigDict(synthetic.get_config().to_dict(), type_safe=False)
+  c.eval.batch_size = 1
+  *sections, name = field.split(".")
+  node = functools.reduce(lambda n, k: n[k], sections, c)
+  for value in accepted:
+    node[name] = value
+    loop.validate_config(c, tmp_path / "w")
+  for value in refused:
+    node[name] = value
+    with pytest.raises(ValueError, match=rf"^config\.{re.escape(field)}={re.escape(repr(value))}: "
+                       "expected "):
+      loop.validate_config(c, tmp_path / "w")
+
+
 def test_an_empty_workdir_is_refused_by_setup(tmp_path, monkeypatch):
   # setup made Path("") of it first, which is ".": the run trained in the current folder.
   from train import loop  # pylint: disable=g-import-not-at-top
@@ -1856,6 +1908,41 @@ def test_config_blocks_a_run_cannot_use_are_named(tmp_path, caplog):
   assert not (tmp_path / "w").exists()
 
 
+def test_checks_of_what_a_run_does_not_use_are_left_out(tmp_path, caplog):
+  """The generator's block, its seed against validation's and the validation split are
+  checked where a source or the validation generates clips; augmentation changes are said to
+  be without effect where no source is augmented only."""
+  from configs import sceneflow  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = synthetic.get_config()
+  c.eval.every_steps = 0  # no validation: its seed and split are not used
+  c.eval.synthetic_seed, c.eval.split = c.data.synthetic.seed, "valid"
+  loop.validate_config(c, tmp_path / "w")
+  c.data.synthetic.max_disparity = -4.0  # but the training source's generator is
+  with pytest.raises(ValueError, match=r"^config\.data\.synthetic\.max_disparity "):
+    loop.validate_config(c, tmp_path / "w")
+  c = synthetic.get_config()
+  c.data.sources = ml_collections.ConfigDict({"sf": dict(dataset="sceneflow", weight=1.0)})
+  c.eval.synthetic_seed = c.data.synthetic.seed  # no training clip is generated: no overlap
+  c.data.augment.eraser_prob = 1.0
+  with caplog.at_level(logging.WARNING):
+    loop.validate_config(c, tmp_path / "w")
+  assert "no training source is augmented" not in caplog.text
+  c.eval.every_steps, c.data.synthetic.max_disparity = 0, -4.0  # no clip is generated
+  loop.validate_config(c, tmp_path / "w")
+  c = synthetic.get_config()
+  c.data.sources.extra = "sceneflow"  # not a block: named (it was an AttributeError)
+  with pytest.raises(ValueError, match=r"^config\.data\.sources\.extra\.weight=None: "):
+    loop.validate_config(c, tmp_path / "w")
+  del c.data.sources["extra"]
+  c.data.sources.other = ml_collections.ConfigDict(dict(dataset="sceneflow", weight=1.0, root=3))
+  with pytest.raises(ValueError, match=r"^config\.data\.sources\.other\.root=3: "):  # (TypeError)
+    loop.validate_config(c, tmp_path / "w")
+  del c.data.sources["other"]
+  del c.data.synthetic["seed"]
+  assert loop.missing_fields(c, sceneflow.base_config()) == ["data.synthetic.seed"]
+
+
 def test_run_traces_under_the_configured_matmul_precision(monkeypatch):
   from train import loop  # pylint: disable=g-import-not-at-top
   seen = []
@@ -1905,6 +1992,11 @@ def test_a_workdir_that_is_a_file_is_refused(tmp_path):
     with pytest.raises(NotADirectoryError, match=f"{tmp_path / 'notes.txt'} exists and is not"):
       loop.validate_config(synthetic.get_config(), workdir)
   assert (tmp_path / "notes.txt").read_text() == "keep me"
+  (tmp_path / "run").mkdir()
+  (tmp_path / "run" / "checkpoints").write_text("keep me")  # where the run saves
+  with pytest.raises(NotADirectoryError, match=f"{tmp_path / 'run' / 'checkpoints'} exists and "
+                     "is not"):
+    loop.validate_config(synthetic.get_config(), tmp_path / "run")
 
 
 def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir(tmp_path):
@@ -2050,9 +2142,13 @@ def test_logged_means_leave_out_skipped_steps(caplog):
   nan = float("nan")
   steps = [(1.0, 2.0, 1.0, 0), (nan, nan, 0.0, 1), (3.0, 4.0, 1.0, 1),  # one skipped step
            (nan, nan, 0.0, 2), (nan, nan, 0.0, 3), (nan, nan, 0.0, 4)]  # only skipped steps
-  for step, (loss, epe, finite, skipped) in enumerate(steps, 1):
-    host(step, {"loss": loss, "epe": epe, "finite": finite, "lr": 0.1 * step,
-                "num_skipped": skipped})
+  with caplog.at_level(logging.WARNING):
+    for step, (loss, epe, finite, skipped) in enumerate(steps, 1):
+      host(step, {"loss": loss, "epe": epe, "finite": finite, "lr": 0.1 * step,
+                  "num_skipped": skipped})
+  # a warning where the counter grew, none where it stayed
+  assert re.findall(r"step (\d+): non-finite", caplog.text) == ["2", "4", "5", "6"]
+  caplog.clear()
   (s1, first), (s2, second) = writer.records
   assert (s1, s2) == (3, 6)
   assert first["loss"] == 2.0 and first["epe"] == 3.0  # the finite steps' means
@@ -2069,6 +2165,12 @@ def test_logged_means_leave_out_skipped_steps(caplog):
              "l2_grads": 2.0, "l2_updates": inf})
   assert ("step 7: non-finite update norm (finite loss and gradients: is the learning rate "
           "too large?), update skipped (5 so far)") in caplog.text
+  with caplog.at_level(logging.WARNING):  # the gradient too: not the learning rate's
+    loop._HostMetrics(c, writer, Bar(), 0)(  # pylint: disable=protected-access
+        1, {"loss": 1.0, "epe": 1.0, "finite": 0.0, "lr": 0.1, "num_skipped": 1,
+            "l2_grads": inf, "l2_updates": inf})
+  assert "step 1: non-finite gradient norm and update norm, update skipped (1 so far)" in (
+      caplog.text)
   # More than max_skipped_steps: a Diverged error naming the limit (a FloatingPointError
   # "6 skipped updates > train.max_skipped_steps" before, printed with its traceback)
   with pytest.raises(loop.Diverged, match=r"^step 8: 6 updates skipped for a non-finite loss "
@@ -2088,6 +2190,23 @@ def test_logged_means_leave_out_skipped_steps(caplog):
   record = writer.records[-1][1]
   assert record["epe"] == pytest.approx((2.0 + 2.5) / 1.5) and record["loss"] == 1.0
   assert record["measured_frames"] == pytest.approx(0.5)
+  # The next window's frames only; a skipped step's are not measured.
+  for step, (epe, share, skipped) in enumerate([(4.0, 1.0, 0), (nan, 1.0, 1), (2.0, 0.5, 1)], 4):
+    measured(step, {"loss": 1.0, "epe": epe, "finite": float(not np.isnan(epe)), "lr": 0.1,
+                    "num_skipped": skipped, "measured_frames": share})
+  assert writer.records[-1][0] == 6
+  assert writer.records[-1][1]["epe"] == pytest.approx((4.0 + 1.0) / 1.5)
+  # Records at the periods, at a stop (`last_step`) and at train.num_steps off the periods;
+  # without a "finite" metric, a NaN loss marks a skipped step.
+  c2 = synthetic.get_config()
+  c2.train.log_every, c2.train.num_steps = 4, 6
+  ends = loop._HostMetrics(c2, writer, Bar(), 0)  # pylint: disable=protected-access
+  del writer.records[:]
+  for step, loss in enumerate([1.0, nan, 3.0, 5.0, 7.0, 9.0], 1):
+    ends(step, {"loss": loss, "epe": 1.0, "lr": 0.1, "num_skipped": int(step > 1)},
+         last_step=step == 5)
+  assert [(s, r["loss"], r["window_steps"]) for s, r in writer.records] == [
+      (4, 3.0, 4.0), (5, 7.0, 1.0), (6, 9.0, 1.0)]
   caplog.clear()
   with caplog.at_level(logging.INFO):
     host(3, {"loss": 5.0, "epe": 1.5, "1px": 0.25, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
@@ -2100,7 +2219,12 @@ def test_logged_means_leave_out_skipped_steps(caplog):
     quiet(3, {"loss": 5.0, "epe": 1.5, "1px": 0.25, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
   assert re.search(r"step 3: loss 5, epe 1\.5, 1px 0\.25, lr 0\.3 \([\d.e+-]+ steps/s, "
                    r"\d+ (s|min|h \d\d min) to step 6\)", caplog.text), caplog.text
-  assert [loop._duration(t) for t in (40.4, 720, 3900)] == ["40 s", "12 min", "1 h 05 min"]  # pylint: disable=protected-access
+  caplog.clear()
+  with caplog.at_level(logging.INFO):  # the last step: no time left to say
+    quiet(6, {"loss": 5.0, "epe": 1.5, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
+  assert re.search(r"step 6: loss 5, epe 1\.5, lr 0\.3 \([\d.e+-]+ steps/s\)", caplog.text)
+  assert [loop._duration(t) for t in (40.4, 59.4, 59.6, 60, 720, 3900)] == [  # pylint: disable=protected-access
+      "40 s", "59 s", "1 min", "1 min", "12 min", "1 h 05 min"]
 
 
 def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_described(monkeypatch):
@@ -2283,6 +2407,34 @@ def test_the_first_ctrl_c_saves_the_step_and_stops_as_sigterm_does(tmp_path):
       assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
   finally:
     signal.signal(signal.SIGINT, handler)
+
+
+def test_which_notice_stops_the_run_after_its_step_and_which_at_once(caplog):
+  """`Preemption`'s handlers, called as the signals would call them: a Ctrl-C before the
+  first step, a second one, or one after a SIGTERM goes to the previous handler at once; the
+  others are the reason `Preemption(step)` returns, each warned about once."""
+  import signal  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+  # pylint: disable=protected-access
+  at_once = []
+  ctrl_c = loop.Preemption(None)  # (one process: no manager is asked)
+  ctrl_c._previous_int = lambda signum, frame: at_once.append("ctrl_c")
+  ctrl_c._on_interrupt(signal.SIGINT, None)  # in the first compile: at once
+  assert at_once == ["ctrl_c"] and ctrl_c(1) is None
+  with caplog.at_level(logging.WARNING):
+    ctrl_c._on_interrupt(signal.SIGINT, None)
+  assert at_once == ["ctrl_c"] and ctrl_c(2) == loop.CTRL_C
+  ctrl_c._on_interrupt(signal.SIGINT, None)  # the second
+  assert at_once == ["ctrl_c", "ctrl_c"]
+  term = loop.Preemption(None)
+  term._previous_int = lambda signum, frame: at_once.append("term")
+  with caplog.at_level(logging.WARNING):
+    term._on_signal(signal.SIGTERM, None)
+    term._on_signal(signal.SIGTERM, None)
+  assert term(1) == "SIGTERM" and at_once == ["ctrl_c", "ctrl_c"]
+  term._on_interrupt(signal.SIGINT, None)  # a Ctrl-C after a SIGTERM
+  assert at_once[-1] == "term" and term(2) == "SIGTERM"
+  assert caplog.text.count("saving a checkpoint after this step") == 2  # one each
 
 
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # (the drop)
@@ -2733,8 +2885,8 @@ def test_the_catch_up_validation_check_places_its_flag_under_the_transfer_guard(
 
   monkeypatch.setattr(multihost_utils, "broadcast_one_to_all", broadcast)
   c = synthetic.get_config()
-  c.eval.every_steps, c.train.num_steps = 5, 20
-  logged = types.SimpleNamespace(logged=lambda step, split: step == 5)
+  c.eval.every_steps, c.train.num_steps = 5, 23
+  logged = types.SimpleNamespace(logged=lambda step, split: (step, split) == (5, "val"))
   before = jax.config.jax_transfer_guard_host_to_device
   jax.config.update("jax_transfer_guard_host_to_device", "disallow")
   try:
@@ -2743,6 +2895,8 @@ def test_the_catch_up_validation_check_places_its_flag_under_the_transfer_guard(
     assert loop._validation_missing(c, logged, 10) is True  # pylint: disable=protected-access
     assert loop._validation_missing(c, logged, 5) is False  # pylint: disable=protected-access
     assert loop._validation_missing(c, logged, 7) is False  # pylint: disable=protected-access
+    assert loop._validation_missing(c, logged, 23) is True  # the last step  # pylint: disable=protected-access
+    assert loop._validation_missing(c, logged, 0) is False  # (at_start's)  # pylint: disable=protected-access
   finally:
     jax.config.update("jax_transfer_guard_host_to_device", before)
 
