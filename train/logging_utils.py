@@ -119,8 +119,10 @@ def _supersede(path: pathlib.Path, aside: pathlib.Path, start_step: int) -> None
      else later).append(line)
   if not later:
     return
+  # Each with its newline (a line cut by a kill had none: the records that the next resumed
+  # run moved aside were appended to it, one line that no longer parsed).
   with open(aside, "a", encoding="utf-8") as f:
-    f.writelines(later)
+    f.writelines(l if l.endswith("\n") else l + "\n" for l in later)
   write_text_atomic(path, "".join(keep))  # the log is never half-written
   log.info("moved %d log records after step %d to %s", len(later), start_step, aside)
 

@@ -1272,6 +1272,33 @@ def test_resumed_run_logs_each_step_once(tmp_path):
   assert _tensorboard_view(fresh / "tb") == {"val/epe": [(0, 2.0)]}
 
 
+def test_metric_records_are_strict_json_and_the_superseded_ones_accumulate(tmp_path):
+  """NaN and inf as strings (JSON has no such numbers); lines that are no record, or a record
+  cut before its newline (the next record would be written onto it), are moved aside too."""
+  from train.logging_utils import MetricWriter  # pylint: disable=g-import-not-at-top
+  first = MetricWriter(tmp_path)
+  first.write(1, {"loss": float("nan"), "epe": float("inf")})
+  first.write(2, {"loss": 1.0})
+  first.close()
+  with open(tmp_path / "metrics.jsonl", "a", encoding="utf-8") as f:
+    f.write('[1, 2]\n3\n{"step": 1, "split": "train"}')
+  for loss in (0.5, 0.25):  # two runs resumed from step 1, each after logging step 2
+    resumed = MetricWriter(tmp_path, start_step=1)
+    assert resumed.logged(1, "train") and not resumed.logged(2, "train")
+    assert not resumed.logged(1, "val")
+    resumed.write(2, {"loss": loss})
+    resumed.close()
+  strict = lambda line: json.loads(line, parse_constant=pytest.fail)  # pylint: disable=unnecessary-lambda-assignment
+  records = [strict(l) for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+  assert [(r["step"], r["loss"]) for r in records] == [(1, "nan"), (2, 0.25)]
+  assert records[0]["epe"] == "inf"
+  aside = (tmp_path / "metrics.superseded.jsonl").read_text().splitlines()
+  assert aside[1:4] == ["[1, 2]", "3", '{"step": 1, "split": "train"}'] and len(aside) == 5
+  assert [strict(aside[i])["loss"] for i in (0, 4)] == [1.0, 0.5]
+  assert not MetricWriter(tmp_path / "other", enabled=False).logged(0, "val")
+  assert not (tmp_path / "other").exists()
+
+
 def _tensorboard_view(folder) -> dict[str, list[tuple[int, float]]]:
   """The scalars TensorBoard shows for the event files in `folder`: read in the order of their
   names, a file's START session log at step s drops the earlier files' events at steps >= s
