@@ -542,6 +542,23 @@ def test_place_params_rejects_mismatches():
   host["head"]["kernel"] = np.zeros((1, 1), np.float32)
   with pytest.raises(ValueError, match="shape of head/kernel"):
     state_lib.place_params(host, abstract, state_lib.make_mesh())
+  # float16 weights are placed as the model's float32; a transposed kernel (the same size)
+  # and more than 20 problems are named, with how many
+  half = {"a": np.ones((2, 3), np.float16), "b": np.ones(4, np.float32)}
+  target = {"a": jax.ShapeDtypeStruct((2, 3), jnp.float32),
+            "b": jax.ShapeDtypeStruct((4,), jnp.float32)}
+  assert state_lib.place_params(half, target, state_lib.make_mesh())["a"].dtype == jnp.float32
+  with pytest.raises(ValueError, match=r"^w do not match the model \(1 problems\): shape of a: "
+                     r"\(3, 2\) != \(2, 3\)$"):
+    state_lib.check_params(dict(half, a=np.ones((3, 2))), target, "w")
+  many = {f"x{i:02d}": np.ones(1) for i in range(23)}
+  with pytest.raises(ValueError, match=r"\(25 problems\): missing a; missing b; unexpected x00; "
+                     r".*unexpected x17 \(and 5 more\)$") as e:
+    state_lib.check_params(many, target, "w")
+  assert "x18" not in str(e.value)
+  labels = {"a": optim.TRAINABLE, "b": optim.FROZEN}
+  assert state_lib.param_count(target, labels) == {"total": 10, optim.TRAINABLE: 6,
+                                                   optim.FROZEN: 4}
 
 
 def test_make_mesh_refuses_what_is_no_list_of_distinct_devices():
@@ -637,7 +654,7 @@ def test_resume_order_checkpoint_over_weights_over_scratch(tmp_path, caplog):
   c.init_from = str(tmp_path / "w3")
   with pytest.raises(ValueError, match=f"config.init_from={tmp_path / 'w3'}: its params cannot "
                      r"start a run \(2 problems\): key 'depthnet/depthanything/Dense_0/bias': "
-                     r"dtype int32; .*key 'head/kernel': 1 of \d+ values are NaN or inf"):
+                     r"dtype int32; .*key 'head/kernel': 1 of \d+ values are NaN or inf$"):
     loop.initial_weights(c, params)
   c.init_from = str(tmp_path / "w")
   ckpt_lib.save(manager, scratch.replace(step=jnp.asarray(7, jnp.int32)), it, 7, force=True,
