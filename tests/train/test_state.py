@@ -1983,6 +1983,10 @@ def test_checks_of_what_a_run_does_not_use_are_left_out(tmp_path, caplog):
   with pytest.raises(ValueError, match=r"^config\.data\.sources\.other\.root=3: "):  # (TypeError)
     loop.validate_config(c, tmp_path / "w")
   del c.data.sources["other"]
+  c.data.sources.other = ml_collections.ConfigDict(dict(dataset="synthetic", weight=True))
+  with pytest.raises(ValueError, match=r"^config\.data\.sources\.other\.weight=True: "):
+    loop.validate_config(c, tmp_path / "w")  # (a bool is no weight)
+  del c.data.sources["other"]
   del c.data.synthetic["seed"]
   assert loop.missing_fields(c, sceneflow.base_config()) == ["data.synthetic.seed"]
 
@@ -2878,6 +2882,14 @@ def test_a_batch_the_pipeline_cannot_make_is_one_error_naming_the_step():
     loop._next_batch(Failing(), 7, Manager(5))  # pylint: disable=protected-access
   with pytest.raises(loop.DataError, match=r"\(no checkpoint yet\)$"):
     loop._next_batch(Failing(), 1, Manager(None))  # pylint: disable=protected-access
+
+  class Broken:  # any error, e.g. a reader's KeyError for a field a record lacks
+    def __next__(self):
+      raise KeyError("disparity")
+
+  with pytest.raises(loop.DataError, match=r"^the training batch of step 2 could not be made: "
+                     r"KeyError: 'disparity' \(no checkpoint yet\)$"):
+    loop._next_batch(Broken(), 2, Manager(None))  # pylint: disable=protected-access
   assert loop._next_batch(iter([{"x": 1}]), 1, Manager(None)) == {"x": 1}  # pylint: disable=protected-access
 
   class Unreadable:  # a reader's error (its note): the option that trains through it is named
