@@ -1959,8 +1959,8 @@ def test_checks_of_what_a_run_does_not_use_are_left_out(tmp_path, caplog):
   from configs import sceneflow  # pylint: disable=g-import-not-at-top
   from train import loop  # pylint: disable=g-import-not-at-top
   c = synthetic.get_config()
-  c.eval.every_steps = 0  # no validation: its seed and split are not used
-  c.eval.synthetic_seed, c.eval.split = c.data.synthetic.seed, "valid"
+  c.eval.every_steps = 0  # no validation: its seed, split and fields are not used
+  c.eval.synthetic_seed, c.eval.split, c.eval.iters = c.data.synthetic.seed, "valid", 1
   loop.validate_config(c, tmp_path / "w")
   c.data.synthetic.max_disparity = -4.0  # but the training source's generator is
   with pytest.raises(ValueError, match=r"^config\.data\.synthetic\.max_disparity "):
@@ -1983,7 +1983,9 @@ def test_checks_of_what_a_run_does_not_use_are_left_out(tmp_path, caplog):
   with pytest.raises(ValueError, match=r"^config\.data\.sources\.other\.root=3: "):  # (TypeError)
     loop.validate_config(c, tmp_path / "w")
   del c.data.sources["other"]
-  c.data.sources.other = ml_collections.ConfigDict(dict(dataset="synthetic", weight=True))
+  c.data.sources.other = ml_collections.ConfigDict(dict(dataset="synthetic", weight=2))
+  loop.validate_config(c, tmp_path / "w")  # an integer weight
+  c.data.sources.other.weight = True
   with pytest.raises(ValueError, match=r"^config\.data\.sources\.other\.weight=True: "):
     loop.validate_config(c, tmp_path / "w")  # (a bool is no weight)
   del c.data.sources["other"]
@@ -2474,6 +2476,8 @@ def test_which_notice_stops_the_run_after_its_step_and_which_at_once(caplog):
   assert at_once == ["ctrl_c"] and ctrl_c(2) == loop.CTRL_C
   ctrl_c._on_interrupt(signal.SIGINT, None)  # the second
   assert at_once == ["ctrl_c", "ctrl_c"]
+  ctrl_c._on_signal(signal.SIGTERM, None)  # the scheduler's notice: its reason (status 143)
+  assert ctrl_c(3) == "SIGTERM"
   term = loop.Preemption(None)
   term._previous_int = lambda signum, frame: at_once.append("term")
   with caplog.at_level(logging.WARNING):
@@ -2483,6 +2487,17 @@ def test_which_notice_stops_the_run_after_its_step_and_which_at_once(caplog):
   term._on_interrupt(signal.SIGINT, None)  # a Ctrl-C after a SIGTERM
   assert at_once[-1] == "term" and term(2) == "SIGTERM"
   assert caplog.text.count("saving a checkpoint after this step") == 2  # one each
+  # The context installs both handlers, and puts the previous ones back.
+  term_before = signal.getsignal(signal.SIGTERM)
+  int_before = signal.signal(signal.SIGINT, signal.default_int_handler)  # (xdist ignores it)
+  try:
+    with loop.Preemption(None) as preemption:
+      assert signal.getsignal(signal.SIGTERM) == preemption._on_signal
+      assert signal.getsignal(signal.SIGINT) == preemption._on_interrupt
+    assert signal.getsignal(signal.SIGTERM) == term_before
+    assert signal.getsignal(signal.SIGINT) == signal.default_int_handler
+  finally:
+    signal.signal(signal.SIGINT, int_before)
 
 
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # (the drop)
