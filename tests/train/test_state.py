@@ -1722,6 +1722,7 @@ def test_only_a_steps_own_unfinished_save_is_removed_at_start(tmp_path):
 @pytest.mark.parametrize("field,value,match", [
     ("train.batch_size", 0, r"config\.train\.batch_size=0: expected an integer >= 1"),
     ("train.batch_size", 3, r"config\.train\.batch_size=3 is not divisible by the 2 devices"),
+    ("eval.batch_size", 3, r"config\.eval\.batch_size=3 is not divisible by the 2 devices"),
     ("train.num_steps", 0, r"config\.train\.num_steps=0"),
     ("train.iters", 1, r"config\.train\.iters=1: expected an integer >= 2"),
     ("data.crop", (32,), r"config\.data\.crop=\(32,\): expected \(height, width\)"),
@@ -1961,7 +1962,8 @@ def test_checks_of_what_a_run_does_not_use_are_left_out(tmp_path, caplog):
   c = synthetic.get_config()
   c.eval.every_steps = 0  # no validation: its seed, split and fields are not used
   c.eval.synthetic_seed, c.eval.split, c.eval.iters = c.data.synthetic.seed, "valid", 1
-  loop.validate_config(c, tmp_path / "w")
+  c.eval.batch_size = 3
+  loop.validate_config(c, tmp_path / "w", num_devices=2)
   c.data.synthetic.max_disparity = -4.0  # but the training source's generator is
   with pytest.raises(ValueError, match=r"^config\.data\.synthetic\.max_disparity "):
     loop.validate_config(c, tmp_path / "w")
