@@ -1304,6 +1304,7 @@ def test_metric_records_are_strict_json_and_the_superseded_ones_accumulate(tmp_p
     assert resumed.logged(1, "train") and not resumed.logged(2, "train")
     assert not resumed.logged(1, "val")
     resumed.write(2, {"loss": loss})
+    assert resumed.logged(2, "train")
     resumed.close()
   strict = lambda line: json.loads(line, parse_constant=pytest.fail)  # pylint: disable=unnecessary-lambda-assignment
   records = [strict(l) for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
