@@ -2293,9 +2293,10 @@ def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_describ
                                  (Terminal(), False, False)):
     bar = logging_utils.Progress(0, 10, enabled=enabled, stream=stream)
     assert bar.shown == shown
-    bar.update(1, loss=1.0)
+    bar.update(1, loss=1.0, epe=0.123456)
     bar.close()
     assert ("1/10" in stream.getvalue()) == shown
+    assert ("loss=1, epe=0.1235" in stream.getvalue()) == shown  # 4 significant digits
   monkeypatch.setitem(sys.modules, "ipykernel", types.ModuleType("ipykernel"))  # a notebook:
   assert logging_utils.Progress(0, 10, stream=io.StringIO()).shown  # no TTY, but tqdm draws
   c = synthetic.get_config()
