@@ -2297,6 +2297,11 @@ def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_describ
     bar.close()
     assert ("1/10" in stream.getvalue()) == shown
     assert ("loss=1, epe=0.1235" in stream.getvalue()) == shown  # 4 significant digits
+  resumed = Terminal()  # a run resumed at step 5: its bar goes on from there
+  bar = logging_utils.Progress(5, 10, stream=resumed)
+  bar.update(1)
+  bar.close()
+  assert "6/10" in resumed.getvalue()
   monkeypatch.setitem(sys.modules, "ipykernel", types.ModuleType("ipykernel"))  # a notebook:
   assert logging_utils.Progress(0, 10, stream=io.StringIO()).shown  # no TTY, but tqdm draws
   c = synthetic.get_config()
