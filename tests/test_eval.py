@@ -1146,10 +1146,9 @@ def test_sequence_names_that_differ_write_different_files():
   assert re.fullmatch(r"walk_sgbm-[0-9a-f]{8}", runner.safe_name("walk_sgbm"))
 
 
-def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt(
-    tmp_path, monkeypatch):
-  """Fully occluded frames: the ground truth's range was (0, 1) px, and a 10..50 px
-  prediction one saturated colour."""
+@pytest.fixture
+def colour_ranges(monkeypatch):
+  """The (vmin, vmax) of every `sav_jax.viz.colorize` call, in order."""
   ranges = []
   real = sav_jax.viz.colorize
 
@@ -1158,6 +1157,14 @@ def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt
     return real(d, vmin, vmax, **kw)
 
   monkeypatch.setattr(sav_jax.viz, "colorize", recording)
+  return ranges
+
+
+def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt(
+    tmp_path, colour_ranges):
+  """Fully occluded frames: the ground truth's range was (0, 1) px, and a 10..50 px
+  prediction one saturated colour."""
+  ranges = colour_ranges
   t, h, w = 3, 16, 24
   pred = np.broadcast_to(np.linspace(10, 50, w, dtype=np.float32), (t, h, w))
   clip = {"left": np.zeros((t, h, w, 3), np.uint8), "disparity": np.full((t, h, w), 5.0),
@@ -1171,19 +1178,12 @@ def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt
 
 
 def test_strip_colour_range_is_the_valid_ground_truths_1st_to_99th_percentile(
-    tmp_path, monkeypatch):
+    tmp_path, colour_ranges):
   """Each frame's ground truth is 1..101 px, stored as -d: the percentile p of such values is
   1 + p, so the range is 2..100 px; with pixels above 51 px invalid, 1..51 px (each value three
   times: the 1st and 99th percentiles fall between equal values). Invalid pixels are white in
   the ground-truth row and black in the error row."""
-  ranges = []
-  real = sav_jax.viz.colorize
-
-  def recording(d, vmin=None, vmax=None, **kw):
-    ranges.append((vmin, vmax))
-    return real(d, vmin, vmax, **kw)
-
-  monkeypatch.setattr(sav_jax.viz, "colorize", recording)
+  ranges = colour_ranges
   t, h, w = 3, 1, 101
   gt = np.broadcast_to(np.arange(1, w + 1, dtype=np.float32), (t, h, w))
   for valid, want in ((np.ones((t, h, w), bool), (2, 100)), (gt <= 51, (1, 51))):
