@@ -1172,6 +1172,13 @@ def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt
   eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": pred}, frames=3, tile=32)
   assert all(10 <= lo < 12 and 48 < hi <= 50 for lo, hi in ranges), ranges
   ranges.clear()
+  # the shown frames' prediction only: 2 columns of 5 frames show frames 0 and 4, and the
+  # 1000 px of frames 1..3 set no end
+  far = np.concatenate([pred[:1], np.full((3, h, w), 1000.0, np.float32), pred[:1]])
+  eval_plots.write_strip(tmp_path / "s.png", {k: np.concatenate([v, v[:2]]) for k, v in
+                                              clip.items()}, {"SAV": far}, frames=2, tile=32)
+  assert ranges and all(10 <= lo < 12 and 48 < hi <= 50 for lo, hi in ranges), ranges
+  ranges.clear()
   clip["valid"][:] = True  # with valid pixels: the ground truth's range (5 px everywhere)
   eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": pred}, frames=3, tile=32)
   assert ranges and all((lo, hi) == (5, 6) for lo, hi in ranges), ranges  # a constant: +1 px
