@@ -81,6 +81,12 @@ def test_memory_report_names_the_device_peak_after_compiling():
   assert "13.50 GB intermediates + 0.50 GB arguments + 0.07 GB outputs" in text
   cpu = memory_lines(dict(peak_rss_gb=0.8, device_peak_gb=None, xla_temp_gb=None))
   assert cpu == ["peak host RSS 0.80 GB"]
+  # benchmarks/train_step.py gives the batch: the peaks per sample beside them
+  per_sample = memory_lines(dict(peak_rss_gb=6.0, device_peak_gb=30.0,
+                                 device_peak_compile_gb=21.0), batch=4)
+  assert per_sample == ["peak host RSS 6.00 GB, 1.50 GB/sample",
+                        "device peak   30.00 GB, 7.50 GB/sample (after compiling, before the "
+                        "first call: 21.00 GB)"]
 
 
 def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
@@ -103,6 +109,9 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
   # a baseline from another machine is named (the official torch JSON says only "cpu")
   here = {"device": "cpu:cpu", "host": "vm", "vit_attention": "blocked"}
   assert bench.machine_note(here, {"device": "cpu", "host": "vm"}) == ""
+  assert bench.machine_note(here, {"device": "cpu:x86_64", "host": "vm"}) == ""
+  assert bench.machine_note({**here, "device": "gpu:NVIDIA H200"},
+                            {"device": "gpu", "host": "vm"}) == ""  # no GPU model recorded
   assert bench.machine_note({**here, "device": "gpu:NVIDIA H200"},
                             {"device": "gpu:NVIDIA H200", "host": "vm"}) == ""
   note = bench.machine_note(here, {"device": "gpu:NVIDIA H200", "host": "gpu-box",
@@ -302,10 +311,16 @@ def test_a_baseline_takes_any_positive_time_and_a_compile_of_0_s(tmp_path):
   path = tmp_path / "base.json"
   path.write_text(json.dumps(base))
   assert bench._read_baseline(path) == base  # pylint: disable=protected-access
-  for key, value in (("compile_s", -0.5), ("median_s", -0.5), ("peak_rss_gb", 0)):
+  # (json writes NaN and Infinity, and reads them back)
+  for key, value in (("compile_s", -0.5), ("median_s", -0.5), ("peak_rss_gb", 0),
+                     ("median_s", float("nan")), ("compile_s", float("inf")),
+                     ("peak_rss_gb", True)):
     path.write_text(json.dumps({**base, key: value}))
     with pytest.raises(UsageError, match=rf"expected positive numbers .*'{key}'"):
       bench._read_baseline(path)  # pylint: disable=protected-access
+  path.write_text(json.dumps({**base, "batch": True}))  # True == 1: ARGS's batch
+  with pytest.raises(UsageError, match=r"expected integers for the shape, got \{'batch': True\}"):
+    bench._read_baseline(path)  # pylint: disable=protected-access
 
 
 def test_compare_line_rounds_ratios_to_2_places_and_notes_one_cache_load():
@@ -337,6 +352,9 @@ def test_bench_takes_the_smallest_sizes(monkeypatch):
               "--repeats", "1", "--batch", "1"])
   assert calls == [(1, 16, 32, 2, 1, "float32", 1)]
   assert cli.main(["bench", "--iters", "1"]) == 2 and calls == [(1, 16, 32, 2, 1, "float32", 1)]
+  with pytest.raises(KeyboardInterrupt):  # the largest clip: TEMPORAL_MAX_LEN frames
+    cli.main(["bench", "--frames", "32"])
+  assert calls[-1][0] == 32
 
 
 def test_bench_report_json_and_compare_from_one_measurement(tmp_path, monkeypatch, capsys,
@@ -378,3 +396,37 @@ def test_bench_report_json_and_compare_from_one_measurement(tmp_path, monkeypatc
       f"wrote {rec}"], lines  # (where the record went: it said nothing)
   # the record says how many calls the median is of (ARGS: --repeats 1)
   assert json.loads(rec.read_text()) == {**fake, "matmul_precision": "default", "repeats": 1}
+
+
+def test_measure_reports_the_median_min_and_frames_per_second_of_the_timed_calls(monkeypatch):
+  """`measure` with a stand-in model and clock (nothing of the model compiled): compile_s is
+  the compile's time, median_s and min_s those of the `repeats` timed calls after the
+  warm-up, fps B * T frames per median call, and the device peaks after compiling and at
+  the end."""
+  import types  # pylint: disable=import-outside-toplevel
+  import sav_jax  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+
+  class Model:  # sav_jax.StereoAnyVideo's apply: the disparities of every frame
+    def __init__(self, cfg):
+      self.cfg = cfg
+
+    def apply(self, variables, left, right, iters, final_only):
+      del iters, final_only
+      return types.SimpleNamespace(disparities=(left - right)[..., 0] * variables["w"])
+
+  monkeypatch.setattr(sav_jax, "StereoAnyVideo", Model)
+  monkeypatch.setattr("sav_jax.model.init.init_variables", lambda cfg, seed: {"w": 1.0})
+  # perf_counter: the compile from 100 s to 103 s, then the timed calls of 0.5, 2 and 1 s
+  clock = iter([100.0, 103.0, 200.0, 200.5, 300.0, 302.0, 400.0, 401.0])
+  monkeypatch.setattr(bench, "time", types.SimpleNamespace(perf_counter=lambda: next(clock),
+                                                           strftime=bench.time.strftime))
+  peaks = iter([21.0, 29.9])  # after compiling, then at the end
+  monkeypatch.setattr(bench, "device_peak_gb", lambda device: next(peaks))
+  res = bench.measure(frames=3, height=16, width=32, iters=2, batch=2, repeats=3)
+  assert next(clock, None) is None  # a perf_counter call before and after each of the 3
+  assert res["compile_s"] == 3.0 and res["median_s"] == 1.0 and res["min_s"] == 0.5
+  assert res["fps"] == 6.0  # 2 clips of 3 frames per median second
+  assert res["device_peak_compile_gb"] == 21.0 and res["device_peak_gb"] == 29.9
+  assert (res["frames"], res["height"], res["width"], res["iters"], res["batch"]) == (
+      3, 16, 32, 2, 2)
