@@ -1340,6 +1340,46 @@ def test_report_shows_a_metric_that_any_method_has():
   assert "Notes:\n- seq_b!\n- seq_c!\n" in md, md
 
 
+def test_summary_totals_are_sums_over_the_sequences():
+  """build_summary adds up each method's prediction and compile seconds and the metrics'
+  seconds over the sequences; frames/s is all frames over all of a method's seconds."""
+  from eval.main import build_summary  # pylint: disable=import-outside-toplevel
+  results = [eval_runner.SequenceResult(
+      name=name, frames=frames, metrics={"sav": {"disp_epe_mean": 1.0}},
+      seconds={"sav": sav, "sgbm": sav / 4}, compile_seconds={"sav": compiled},
+      metrics_seconds=metrics_s)
+      for name, frames, sav, compiled, metrics_s in (("seq_a", 3, 1.0, 2.0, 0.5),
+                                                     ("seq_b", 5, 3.0, 0.5, 1.0))]
+  config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+  config.metrics.tcc = True  # (not RAFT: the Metrics seconds name no flows)
+  summary = build_summary(config, "w", results, ["sav", "sgbm"])
+  assert summary["frames"] == 8 and summary["metrics_seconds"] == 1.5
+  sav, sgbm = summary["methods"]["sav"], summary["methods"]["sgbm"]
+  assert (sav["seconds"], sav["compile_seconds"], sav["frames_per_second"]) == (4.0, 2.5, 2.0)
+  assert (sgbm["seconds"], sgbm["compile_seconds"], sgbm["frames_per_second"]) == (1.0, 0.0, 8.0)
+  assert sav["measured_frames"] == 8 and sgbm["measured_frames"] == 0  # sgbm: no metrics
+  md = eval_report.markdown(summary)
+  assert "(compilation: Stereo Any Video 2.5 s). Metrics: 1.5 s.\n" in md, md
+  _, rows = _table(md, "Method")
+  assert [row[-1] for row in rows] == ["2.00", "8.00"]
+
+
+def test_a_training_config_is_named_and_the_fields_it_lacks_counted():
+  """check_fields names the first 6 missing fields and counts the rest; a config with an
+  `optimizer` block (or `train`) is said to be a training one."""
+  import ml_collections  # pylint: disable=import-outside-toplevel
+  from configs.eval import common  # pylint: disable=import-outside-toplevel
+
+  def leaves(c):
+    return sum(leaves(v) if isinstance(v, ml_collections.ConfigDict) else 1 for v in c.values())
+
+  n = leaves(common.eval_config("x", sample_len=-1))  # (it has none of them)
+  with pytest.raises(ValueError, match=rf"t.py is not an evaluation config: it lacks "
+                                       rf"([\w.]+, ){{5}}[\w.]+ and {n - 6} more; it is a "
+                                       r"training config \(python -m train\)"):
+    eval_config.check_fields(ml_collections.ConfigDict({"optimizer": {"lr": 0.1}}), "t.py")
+
+
 def test_short_dynamic_replica_sequences_are_dropped_and_named(tmp_path):
   """Dynamic Replica sequences shorter than sample_len are skipped (as the official loader does)
   and named for the report; one of exactly sample_len frames is kept, as are the short
