@@ -131,6 +131,7 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
   # the spread the note quotes: the same code at 8.37 s (2026-11-30) and 14.65 s (2026-12-01)
   assert "(up to 1.75x seen on CPUs)" in bench.machine_note(here, {**here, "date": "2026-12-01"})
   assert bench.machine_note(here, dict(here)) == ""
+  assert bench.machine_note(here, {k: v for k, v in here.items() if k != "date"}) == ""
   assert bench.machine_note({**here, "gru_conv": "dft"}, {**here, "gru_conv": "direct"}) == (
       "warning: the baseline was measured with other settings (gru_conv dft here, direct "
       "there): the ratios compare those settings, not code")
@@ -144,7 +145,7 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
   baselines = {"eager": {**eager, "median_s": None}, "shape": {**eager, "iters": 8},
                "bad": {"median_s": 1}, "text": {**eager, "median_s": "x"},
                "zero": {**eager, "median_s": 0}, "no_shape": {**eager, "frames": None},
-               "bf16": {**eager, "dtype": "bfloat16"}, "all": {**eager, "final_only": False},
+               "bf16": {**eager, "dtype": "bfloat16"}, "batch": {**eager, "batch": 2}, "all": {**eager, "final_only": False},
                "str_frames": {**eager, "frames": "2"},  # was "frames: 2 here, 2 there"
                # benchmarks/train_step.py's JSON has the same keys, and more
                "train": {**eager, "samples_per_s": 0.5, "remat": True, "loss": 1.0}}
@@ -160,6 +161,7 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                         ("zero", "expected positive numbers"),
                         ("shape", "another shape or setting (iters: 2 here, 8 there)"),
                         ("bf16", "(dtype: float32 here, bfloat16 there)"),
+                        ("batch", "(batch: 1 here, 2 there)"),
                         ("all", "(final_only: True here, False there)"),
                         ("str_frames", "expected integers for the shape, got {'frames': '2'}"),
                         ("train", "a training step's JSON")):
