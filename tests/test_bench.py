@@ -145,7 +145,8 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
   baselines = {"eager": {**eager, "median_s": None}, "shape": {**eager, "iters": 8},
                "bad": {"median_s": 1}, "text": {**eager, "median_s": "x"},
                "zero": {**eager, "median_s": 0}, "no_shape": {**eager, "frames": None},
-               "bf16": {**eager, "dtype": "bfloat16"}, "batch": {**eager, "batch": 2}, "all": {**eager, "final_only": False},
+               "bf16": {**eager, "dtype": "bfloat16"}, "batch": {**eager, "batch": 2},
+               "all": {**eager, "final_only": False},
                "str_frames": {**eager, "frames": "2"},  # was "frames: 2 here, 2 there"
                # benchmarks/train_step.py's JSON has the same keys, and more
                "train": {**eager, "samples_per_s": 0.5, "remat": True, "loss": 1.0}}
