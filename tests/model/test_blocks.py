@@ -167,10 +167,14 @@ def test_auto_vit_attention_picks_cudnn_only_on_a_gpu_in_bfloat16(monkeypatch):
     fake = type("Device", (), {"client": type("Client", (), {"platform_version": version})()})()
     monkeypatch.setattr(jax, "devices", lambda *a, d=fake: [d])
     assert resolve_vit_attention("auto", jnp.bfloat16) == want, version
+  # a client or a compute capability this code cannot read: JAX's usual GPU, NVIDIA's
+  monkeypatch.setattr(jax, "devices", lambda *a: [type("Device", (), {})()])
+  assert resolve_vit_attention("auto", jnp.bfloat16) == "cudnn"
   # cuDNN's fused attention for arbitrary sequence lengths needs Ampere (8.0) or later (as
   # NVIDIA's Transformer Engine selects it): "auto" chose it on a T4 (7.5) or V100 (7.0) too.
   for capability, want in (("7.0", "blocked"), ("7.5", "blocked"), ("8.0", "cudnn"),
-                           ("8.6", "cudnn"), ("9.0", "cudnn"), ("10.0", "cudnn")):
+                           ("8.6", "cudnn"), ("9.0", "cudnn"), ("10.0", "cudnn"),
+                           ("sm_90", "cudnn")):
     fake = type("Device", (), {"client": type("Client", (), {"platform_version": "cuda 12080"})(),
                                "compute_capability": capability})()
     monkeypatch.setattr(jax, "devices", lambda *a, d=fake: [d])

@@ -241,9 +241,12 @@ def test_bad_config_raises():
     ({"hidden_dim": 0}, r"SAVConfig\.hidden_dim must be >= 1"),
     ({"frame_block_mb": "1"}, r"SAVConfig\.frame_block_mb='1' \(builtins\.str\); expected float"),
     ({"remat": 1}, r"SAVConfig\.remat=1 \(builtins\.int\); expected bool"),
+    ({"frame_block_mb": True}, r"SAVConfig\.frame_block_mb=True \(builtins\.bool\); expected float"),
     ({"dtype": None}, r"SAVConfig\.dtype=None \(builtins\.NoneType\); expected str"),
     ({"remat_policy": "bogus"}, r"remat_policy='bogus'; expected None or one of .*dots_saveable"),
-    ({"remat_policy": "save_only_these_names"}, r"remat_policy='save_only_these_names'"),
+    # a factory of policies (called with names), not a policy: refused even with remat=True
+    ({"remat": True, "remat_policy": "save_only_these_names"},
+     r"remat_policy='save_only_these_names'; expected None or one of"),
     ({"remat_policy": "dots_saveable"}, r"remat_policy='dots_saveable' has no effect with remat=False"),
     ({"hidden_dim": 64}, r"SAVConfig\.hidden_dim=64: the model supports only 128"),
     ({"context_dim": 160, "fnet_dim": 128}, r"context_dim=160: the model supports only 128"),
@@ -263,6 +266,8 @@ def test_config_accepts_ints_for_floats_and_named_remat_policies():
   cfg = sav_jax.SAVConfig(frame_block_mb=512, remat=True, remat_policy="dots_saveable")
   assert cfg.frame_block_mb == 512 and cfg.remat_policy == "dots_saveable"
   assert sav_jax.SAVConfig.from_dict(cfg.to_dict()) == cfg
+  # one group is a divisor of the 128 correlation channels too (the int fields' floor is 1)
+  assert sav_jax.SAVConfig(corr_groups=1).corr_groups == 1
   with pytest.raises(ValueError, match="SAVConfig mapping"):
     sav_jax.SAVConfig.from_dict(["hidden_dim"])
   # numpy scalars (e.g. from a config array) are taken as the Python values they stand for
@@ -277,6 +282,18 @@ def test_config_accepts_ints_for_floats_and_named_remat_policies():
   import ml_collections  # pylint: disable=import-outside-toplevel
   for mapping in (ml_collections.ConfigDict({"remat": True}), flax.core.FrozenDict(remat=True)):
     assert sav_jax.SAVConfig.from_dict(mapping) == sav_jax.SAVConfig(remat=True)
+
+
+def test_config_defaults_and_derived_settings():
+  """The documented defaults, and the depth prior's and compute dtype's settings derived
+  from the fields (Video Depth Anything's `model_configs`: vitl's DPT head has 256 features
+  and out_channels 256, 512, 1024, 1024)."""
+  cfg = sav_jax.SAVConfig()
+  assert (cfg.frame_block_mb, cfg.detach_flow, cfg.compute_dtype) == (1024.0, True, jnp.float32)
+  assert sav_jax.SAVConfig(dtype="bfloat16").compute_dtype == jnp.bfloat16
+  assert sav_jax.SAVConfig(dtype=np.dtype(np.float32)).dtype == "float32"  # a dtype object
+  assert sav_jax.SAVConfig(vda_encoder="vitl").vda == dict(
+      encoder="vitl", features=256, out_channels=(256, 512, 1024, 1024))
 
 
 def test_a_dict_for_the_config_is_named_everywhere():
