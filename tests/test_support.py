@@ -319,6 +319,44 @@ def test_frame_values_at_the_edges_of_what_passes():
     _checks.check_video_values(np.float32([[[[-100.0, 1000.0, 9]]]]))
 
 
+def test_float_frame_ranges_at_the_warning_bounds():
+  """The bounds of the value ranges float frames are warned about or refused for: -64 and
+  320 (a resize's overshoot of 0..255 frames) pass, a maximum of 1.5 is 0..1 images, values
+  below -1 with none above 3 are normalised frames."""
+  def looks(values):
+    video = np.float32(values).reshape(1, 1, -1, 1)
+    return _checks.float_frames_range(video, float(video.min()), float(video.max()))[0]
+
+  assert [looks(v) for v in ([-64.0, 9], [9, 320.0], [-63.5, 319.5], [0, 1.5], [0, 1.6])] == [
+      None, None, None, "0..1", None]
+  assert [looks(v) for v in ([-64.5, 9], [9, 320.5])] == ["negative", "16-bit"]
+  # 0.5% of the values above 1.5: more than the 0.1% (hot pixels) that 0..1 images may have
+  assert looks([200.0] * 5 + [0.5] * 995) is None
+  # normalised frames: below -1 with none above 3
+  with pytest.raises(ValueError, match="look normalised"):
+    _checks.check_video_values(np.float32([[[[-1.5, 3.0]]]]))
+  assert not _checks.check_video_values(np.float32([[[[-1.0, 3.0]]]]))  # a resize's overshoot
+
+
+def test_frame_values_without_warnings_say_whether_they_would_warn():
+  import warnings  # pylint: disable=import-outside-toplevel
+  unit = np.float32([[[[0.2, 0.9, 0.5]]]])
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    assert _checks.check_video_values(unit, warn=False)  # 0..1 frames: it would warn
+    assert not _checks.check_video_values(unit * 255, warn=False)
+    assert not _checks.check_video_values(np.int32([[[[0, 1]]]]), warn=False)  # floats only
+  with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
+    assert _checks.check_video_values(unit)
+
+
+def test_a_name_of_other_bytes_than_utf8_is_refused():
+  _checks.check_utf8_path("caf\u00e9/video.mp4")  # UTF-8 text: passes
+  with pytest.raises(ValueError, match=r"'caf\\udce9': the video's name is not UTF-8 text "
+                     r"\(bytes of another encoding at character 3"):
+    _checks.check_utf8_path("caf\udce9", "video")  # Latin-1's 0xe9 kept as a surrogate
+
+
 def test_the_value_sample_of_a_large_video_is_about_its_size():
   video = np.broadcast_to(np.float32(7), (10, 500, 600, 3))  # 9M values (a view: no memory)
   sample = _checks._sample(video)  # pylint: disable=protected-access
