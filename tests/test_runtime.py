@@ -194,8 +194,9 @@ def test_inference_options_only_on_cpu_and_never_over_the_users_flag(monkeypatch
       "xla_disable_hlo_passes": "algsimp,tree_reduction_rewriter"} if XLA_OLDER_EMITTERS else {})
   runtime.set_low_memory_compile(False)
   assert runtime.inference_compiler_options("cpu") == {}
-  with pytest.raises(TypeError, match="takes True or False, got 'no'"):
-    runtime.set_low_memory_compile("no")
+  for value in ("no", 1, None):  # an int is refused too, not taken for True
+    with pytest.raises(TypeError, match=f"takes True or False, got {value!r}"):
+      runtime.set_low_memory_compile(value)
   assert runtime.inference_compiler_options("cpu") == {}  # unchanged
 
 
