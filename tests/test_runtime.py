@@ -407,6 +407,23 @@ def test_cgroup_limits_at_their_edges(tmp_path):
   (v1 / "job" / "memory.usage_in_bytes").write_text(str(gib))
   (v1 / "job" / "memory.stat").write_text(f"total_inactive_file {2 * gib}\n")
   assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) == 4 * gib
+  # v1's memory.stat has this group's inactive_file beside the hierarchy's
+  # total_inactive_file: the latter, whichever line comes first
+  (v1 / "job" / "memory.stat").write_text(f"inactive_file {gib // 4}\n"
+                                          f"total_inactive_file {gib // 2}\n"
+                                          f"total_inactive_file_x {gib}\n")
+  assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) == 4 * gib - gib // 2
+  # 2**60 bytes and above are no limit; just below, a limit
+  for limit, want in ((1 << 60, None), ((1 << 60) - 4096, (1 << 60) - 4096 - gib // 2)):
+    (v1 / "job" / "memory.limit_in_bytes").write_text(str(limit))
+    assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) == want
+  # hybrid: the unified (v2) hierarchy under <root>/unified, the mount without
+  # cgroup.controllers; the limit of the process's group's parent counts too
+  proc.write_text("0::/user.slice/session\n")
+  v2 = tmp_path / "fs" / "unified"
+  _group(v2 / "user.slice", memory_max=str(3 * gib), memory_current=str(2 * gib))
+  _group(v2 / "user.slice" / "session", memory_max="max\n", memory_current=str(gib))
+  assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) == gib
   # a group path that is not ASCII: unknown, not an error
   proc.write_bytes("0::/caf\u00e9\n".encode())
   assert runtime.cgroup_free_bytes(str(proc), str(tmp_path / "fs")) is None
