@@ -177,23 +177,6 @@ def pytest_configure(config):
   jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
 
 
-# The files that take longest (CI's `--durations`, 2026-12-06), longest first: `make test`
-# hands whole files to its two workers in collection order (`--dist loadfile
-# --no-loadscope-reorder`), so these start first and the two workers end about together.
-# (xdist's own order, most tests first, left the few-test training files, ~15 CPU-minutes of
-# subprocesses, to the end of the run, on one worker while the other sat idle.)
-LONGEST_FILES = ("train/test_training_runs.py", "train/test_sharding.py", "model/test_model.py",
-                 "train/test_multihost.py", "test_multi_device.py", "train/test_state.py",
-                 "test_eval.py", "model/test_model_parity.py", "test_cli_infer.py",
-                 "test_bench.py", "test_inference.py")
-
-
-def pytest_collection_modifyitems(items):
-  """The tests of `LONGEST_FILES` first, in that order; the others after, as collected."""
-  rank = {(ROOT / "tests" / f).resolve(): i for i, f in enumerate(LONGEST_FILES)}
-  items.sort(key=lambda item: rank.get(pathlib.Path(str(item.path)).resolve(), len(rank)))
-
-
 @pytest.fixture
 def run_command(monkeypatch):
   """`run_command(main)`: a command's exit status, where its immediate exit after a Ctrl-C

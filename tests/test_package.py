@@ -276,18 +276,3 @@ def test_a_configs_package_of_the_current_folder_is_named_not_a_traceback(tmp_pa
   if sys.version_info >= (3, 11):
     assert run("-P", "-m", "eval", "--help").returncode == 0
   assert not (tmp_path / "w").exists()
-
-
-def test_the_longest_test_files_are_handed_out_first():
-  """`make test`'s workers take whole files in collection order: the conftest puts its list
-  of the longest files first (each of them must exist: a renamed one would lose its place),
-  the other files after in their own order, each file's tests in theirs."""
-  import types  # pylint: disable=import-outside-toplevel
-  from tests import conftest  # pylint: disable=import-outside-toplevel
-  assert [f for f in conftest.LONGEST_FILES if not (ROOT / "tests" / f).is_file()] == []
-  assert "--dist loadfile --no-loadscope-reorder" in (ROOT / "Makefile").read_text()
-  files = ["test_viz.py", "test_viz.py", conftest.LONGEST_FILES[1], "test_metrics.py",
-           conftest.LONGEST_FILES[0], conftest.LONGEST_FILES[1]]
-  items = [types.SimpleNamespace(path=ROOT / "tests" / f, k=k) for k, f in enumerate(files)]
-  conftest.pytest_collection_modifyitems(items)
-  assert [item.k for item in items] == [4, 2, 5, 0, 1, 3]
