@@ -258,6 +258,10 @@ def test_a_frame_missing_from_every_folder_is_warned(tmp_path, caplog):
   infinigen = [tmp_path / f"Image_0_0_{i:04d}_0.png" for i in (1, 2, 4, 5, 7)]
   base.warn_if_gaps("s", infinigen)
   assert not caplog.text
+  with caplog.at_level(logging.WARNING):  # three frames are enough to tell the usual step
+    base.warn_if_gaps("s", [tmp_path / f"{i:04d}.png" for i in (1, 2, 4)])
+  assert "1 gap(s), the first after 0002.png (next 0004.png; usually +1" in caplog.text
+  caplog.clear()
   with caplog.at_level(logging.WARNING):
     base.warn_if_gaps("s", infinigen, registry.infinigen._frame_number)  # pylint: disable=W0212
   assert "2 gap(s), the first after Image_0_0_0002_0.png (next Image_0_0_0004_0.png" in caplog.text
@@ -862,6 +866,27 @@ def test_gather_names_the_frame_of_another_size(tmp_path):
     seq.gather([1, 2, -1])
 
 
+def test_a_sequence_refuses_unpaired_file_lists_and_a_scale_that_is_not_positive():
+  """Every reader's sequence (and a reader of one's own) is built by StereoSequence: a missing
+  right list, lists of different lengths (frame i paired with another frame's file) and a
+  depth2disp scale of 0, below 0 or not finite (disparities of 0, negative or NaN) are refused."""
+  pair = {"left": ["l0.png", "l1.png"], "right": ["r0.png", "r1.png"]}
+  assert len(base.StereoSequence("s", pair, depth2disp_scale=80.0)) == 2
+  for files, message in (({"left": pair["left"]}, "images/s: no 'right' image list"),
+                         ({**pair, "right": ["r0.png"]}, "counts differ or are zero: "
+                                                         "{'left': 2, 'right': 1}"),
+                         ({**pair, "left_gt": ["d1.png"]}, "counts differ")):
+    with pytest.raises(ValueError, match=re.escape(message)):
+      base.StereoSequence("s", files)
+  for scale in (0.0, -80.0, np.nan, np.inf):
+    with pytest.raises(ValueError, match="images/s: depth2disp scale must be positive and "
+                                         "finite"):
+      base.StereoSequence("s", pair, depth2disp_scale=scale)
+  with pytest.raises(ValueError, match="d/s: depth2disp scale must be positive and finite, "
+                                       "got None"):  # depth without one has no disparity
+    base.DepthSequence("s", pair, dataset="d", depth2disp_scale=None, depth_reader=np.load)
+
+
 class _WeightedGT(base.StereoSequence):
   """A reader of your own whose valid mask is weights (e.g. a mask resized bilinearly)."""
 
@@ -890,6 +915,8 @@ class _OwnReader(base.StereoSequence):
     d = np.full((H, W), 3.0, np.float32)
     return {"bare": lambda: d, "list": lambda: (d.tolist(), np.ones((H, W), bool)),
             "mask": lambda: (d, np.ones((3, 3), bool)),
+            "width": lambda: (d[:, 1:], np.ones((H, W), bool)),
+            "bools": lambda: (d > 0, np.ones((H, W), bool)),
             "strings": lambda: (d.astype(str), np.ones((H, W), bool))}[self.kind]()
 
 
@@ -898,8 +925,12 @@ class _OwnReader(base.StereoSequence):
              r".*gt.npy; expected a pair \(disparity \[H, W\], valid \[H, W\]\)"),
     ("mask", r"_OwnReader._read_gt: the valid mask of .*gt.npy is \(3, 3\) bool; expected "
              r"\(\d+, \d+\) bool \(or weights\) as the image .*frame.png"),
+    ("width", rf"ground truth .*gt.npy is \({H}, {W - 1}\) but the image .*frame.png is "
+              rf"\({H}, {W}\)"),
     ("strings", r"_OwnReader._read_gt: the disparity of .*gt.npy is of dtype <U\d+; expected "
-                r"numbers")])
+                r"numbers"),
+    ("bools", r"_OwnReader._read_gt: the disparity of .*gt.npy is of dtype bool; expected "
+              r"numbers")])  # (a mask as the disparity: 1 px wherever it is set)
 def test_what_a_readers_read_gt_returns_is_checked_naming_the_reader_and_file(tmp_path, kind,
                                                                               message):
   # A bare array failed as "too many values to unpack", a mask of another size was carried
@@ -1173,6 +1204,8 @@ def test_clip_with_a_negative_start_is_out_of_range_not_wrapped(tmp_path):
                                          r"\(4 frames\)"):
       seq.clip(start, length, stride)
   assert list(seq.clip(3, 4, stride=-1)["left"][:, 0, 0, 0]) == [30, 20, 10, 0]
+  with pytest.raises(ValueError, match="clip needs length >= 1 and stride != 0, got 3, 0"):
+    seq.clip(1, 3, stride=0)  # (frame 1 three times, a still video)
 
 
 def _tartanair(root, rng, entries, n=3):
@@ -1469,9 +1502,9 @@ def test_folder_dataset_unpadded_npy_ground_truth_json_calibration_empty_split(t
     _png(seq / "right" / f"{i}.png", _rgb(rng))
     np.save(seq / "disparity" / f"{i}.npy", np.full((H, W), float(i), np.float32))
   (seq / "calib.json").write_text('{"fx": 400, "baseline": 0.25}')
-  for i in (1, 2):  # JPEG frames on both sides
-    for side in ("left", "right"):
-      path = tmp_path / "val" / "jpg" / side / f"{i}.jpg"
+  for i in (1, 2):  # JPEG frames on both sides, named as cameras and tools name them
+    for side, ext in (("left", ".jpeg"), ("right", ".JPG")):
+      path = tmp_path / "val" / "jpg" / side / f"{i}{ext}"
       path.parent.mkdir(parents=True, exist_ok=True)
       assert cv2.imwrite(str(path), _rgb(rng))
   s, jpg = registry.get_sequences("folder", tmp_path, "val")  # by name
