@@ -420,7 +420,7 @@ def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch, caplog)
   for seq in seqs:
     written = truth[seq.name]
     r = min(H, W) / 2 if written["fmt"] == "ndc_isotropic" else W / 2
-    assert seq.depth2disp_scale == pytest.approx(1.5 * r * 0.05)
+    assert seq.depth2disp_scale == pytest.approx(1.5 * r * 0.05) and not seq.sparse  # dense
     seq.with_right_disparity = True
     for i in range(len(seq)):
       f = seq[i]
@@ -540,9 +540,11 @@ def test_depth_npy_of_another_dtype_is_refused_naming_the_file(tmp_path, dtype):
 def test_infinigen_scale_values_clips_and_eval_cut(tmp_path, monkeypatch):
   truth = _infinigen(tmp_path, np.random.default_rng(6), "train",
                      [("scene031", 12), ("scene032", 4)])
+  (tmp_path / "InfinigenStereo/train/scene033.tar.gz").write_bytes(b"")  # not a scene (yet)
   seqs = registry.get_sequences("infinigen_sv", tmp_path / "InfinigenStereo", "train")
   assert [s.name for s in seqs] == ["scene031", "scene032"]
   seq = seqs[1]
+  assert not seq.sparse  # dense: the mask is recomputed after augmentation
   assert seq.depth2disp_scale == pytest.approx(400.0 * 0.2)  # K of the left camera
   f = seq[2]
   img, depth = truth["scene032"][0][2]
@@ -573,6 +575,8 @@ def test_infinigen_scale_values_clips_and_eval_cut(tmp_path, monkeypatch):
   sample = clips[0].sequence.gather(clips[0].indices)
   assert sample["disparity"].shape == (2, H, W)
   _infinigen(tmp_path, np.random.default_rng(8), "test", [("scene001", 3), ("scene002", 2)])
+  _infinigen(tmp_path, np.random.default_rng(8), "val", [("scene217", 1)])  # the script's val/
+  assert [s.name for s in registry.get_sequences("infinigen_sv", tmp_path, "val")] == ["scene217"]
   monkeypatch.setitem(registry.EVAL_FRAMES, "infinigen_sv", 3)
   assert [len(s) for s in registry.get_sequences("infinigen_sv", tmp_path, "test")] == [3, 2]
   frames = tmp_path / "InfinigenStereo/test/scene002/frames"
@@ -599,7 +603,7 @@ def _vkitti2(root, rng, names, n=2):
     seq = root / "vkitti2" / scene / variation
     for cam in (0, 1):
       for i in range(n):
-        img = np.full((H, W, 3), (30 * i + 20, 90, 160), np.uint8)
+        img = np.full((H, W, 3), (30 * i + 20, 90 + 60 * cam, 160), np.uint8)
         _png(seq / "frames/rgb" / f"Camera_{cam}" / f"rgb_{i:05d}.jpg", img)
         v = np.array([0, 65535, 100, 50, 200, 1000] * (H * W // 6), np.uint16).reshape(H, W)
         _png(seq / "frames/depth" / f"Camera_{cam}" / f"depth_{i:05d}.png", v)
@@ -614,8 +618,10 @@ def test_vkitti2_splits_depth_and_sky(tmp_path, caplog):
   assert [s.name for s in test] == list(registry.vkitti2.TEST)
   s = 725.0087 * 0.532725
   assert test[0].depth2disp_scale == pytest.approx(s)  # first data row only
+  assert not test[0].sparse  # dense: the mask is recomputed after augmentation
   f = test[0][1]
-  assert np.abs(f["left"].astype(int) - (50, 90, 160)).max() <= 3  # JPEG
+  assert np.abs(f["left"].astype(int) - (50, 90, 160)).max() <= 3  # JPEG, Camera_0
+  assert np.abs(f["right"].astype(int) - (50, 150, 160)).max() <= 3  # Camera_1
   row = f["disparity"][0, :6]
   np.testing.assert_allclose(row, [0, s / 655.35, s / 1.0, s / 0.5, s / 2.0, s / 10.0],
                              rtol=1e-6)
@@ -643,24 +649,47 @@ def test_vkitti2_splits_depth_and_sky(tmp_path, caplog):
     registry.get_sequences("vkitti2", tmp_path, "test")
 
 
+def test_vkitti2_splits_are_the_official_lists():
+  # docs/datasets.md 1.5, written out: train is all 50 pairs of the five scenes and ten
+  # variations (the test five included), test the five named ones.
+  from sav_jax.data import vkitti2  # pylint: disable=import-outside-toplevel
+  assert set(vkitti2.SCENES) == {"Scene01", "Scene02", "Scene06", "Scene18", "Scene20"}
+  assert set(vkitti2.VARIATIONS) == {
+      "15-deg-left", "15-deg-right", "30-deg-left", "30-deg-right", "clone", "fog", "morning",
+      "overcast", "rain", "sunset"}
+  assert set(vkitti2.TEST) == {"Scene01_15-deg-left", "Scene02_30-deg-right", "Scene06_fog",
+                               "Scene18_morning", "Scene20_rain"}
+
+
+# P_rect_02[0, 0] of each recording day's calib_cam_to_cam.txt (KITTI raw).
+_KITTI_FX = {"2011_09_26": 721.5377, "2011_09_28": 707.0493, "2011_09_29": 718.3351,
+             "2011_09_30": 707.0912, "2011_10_03": 718.856}
+
+
 def _kitti(root, rng, drives, n=2):
+  written = {}
   for drive in drives:
     date = drive[:10]
     calib = root / "kitti_depth/input" / date / "calib_cam_to_cam.txt"
     if not calib.exists():
       calib.parent.mkdir(parents=True, exist_ok=True)
+      fx = f"{_KITTI_FX[date]:e}"  # fy = fx (rectified)
       calib.write_text("calib_time: 09-Jan-2012 13:57:47\ncorner_dist: 9.95e-02\n"
                        "T_02: 5.956621e-02 2.900141e-04 2.577209e-03\n"
                        "T_03: -4.731050e-01 5.551470e-03 -5.250882e-03\n"
-                       "P_rect_02: 7.215377e+02 0 6.095593e+02 4.485728e+01 0 7.215377e+02 "
+                       f"P_rect_02: {fx} 0 6.095593e+02 4.485728e+01 0 {fx} "
                        "1.728540e+02 2.163791e-01 0 0 1 2.745884e-03\n")
     for cam in ("image_02", "image_03"):
       for i in range(n):
         name = f"{5 + i:010d}.png"
-        _png(root / "kitti_depth/input" / date / drive / cam / "data" / name, _rgb(rng))
+        img = _rgb(rng)
+        _png(root / "kitti_depth/input" / date / drive / cam / "data" / name, img)
         v = np.zeros((H, W), np.uint16)
         v[2, 3], v[4, 5], v[5, 6] = 256 * 20, 300, 70  # 20 m, 1.17 m, 0.27 m (d >= 512)
+        v[7, 2 * i + (cam == "image_03")] = 256 * 10  # 10 m: where, tells frame and camera
         _png(root / "kitti_depth/gt_depth" / drive / "proj_depth/groundtruth" / cam / name, v)
+        written.setdefault((drive, cam), []).append(img)
+  return written
 
 
 def test_kitti_splits_sparse_depth_and_scale(tmp_path):
@@ -676,11 +705,15 @@ def test_kitti_splits_sparse_depth_and_scale(tmp_path):
   s = 721.5377 * np.linalg.norm(np.array([5.956621e-02, 2.900141e-04, 2.577209e-03])
                                 - [-4.731050e-01, 5.551470e-03, -5.250882e-03])
   assert seq.sparse and seq.depth2disp_scale == pytest.approx(s)
+  # each drive takes its own day's calibration (input/<date>/calib_cam_to_cam.txt)
+  assert [d.depth2disp_scale for d in test] == pytest.approx(
+      [_KITTI_FX[d.name[:10]] * s / 721.5377 for d in test])
   f = seq[0]
   expect = np.zeros((H, W), np.float32)
   expect[2, 3], expect[4, 5], expect[5, 6] = s / 20.0, s / (300 / 256), s / (70 / 256)
+  expect[7, 0] = s / 10.0
   np.testing.assert_allclose(f["disparity"], expect, rtol=1e-6)
-  assert f["valid"].sum() == 2 and f["valid"][2, 3] and f["valid"][4, 5]
+  assert f["valid"].sum() == 3 and f["valid"][2, 3] and f["valid"][4, 5] and f["valid"][7, 0]
   (tmp_path / "kitti_depth/input/2011_09_26/2011_09_26_drive_0001_sync/image_03/data/"
    "0000000005.png").unlink()
   with pytest.raises(FileNotFoundError, match="image_03/data/0000000005.png"):
@@ -696,6 +729,43 @@ def test_kitti_splits_sparse_depth_and_scale(tmp_path):
   calib.write_text("P_rect_02: 1 2 3\n")
   with pytest.raises(ValueError, match=r"calib_cam_to_cam.txt lacks \['T_02', 'T_03'\]"):
     kitti_depth.depth2disp_scale(calib)
+
+
+def test_kitti_depth_test_and_val_drives_are_the_codd_lists():
+  # docs/datasets.md 1.6, written out: a drive off by one digit moved it between the splits.
+  from sav_jax.data.kitti_depth import TEST, VAL  # pylint: disable=import-outside-toplevel
+  assert set(TEST) == {f"{d}_sync" for d in (
+      "2011_09_26_drive_0002", "2011_09_26_drive_0005", "2011_09_26_drive_0013",
+      "2011_09_26_drive_0020", "2011_09_26_drive_0023", "2011_09_26_drive_0036",
+      "2011_09_26_drive_0079", "2011_09_26_drive_0095", "2011_09_26_drive_0113",
+      "2011_09_28_drive_0037", "2011_09_29_drive_0026", "2011_09_30_drive_0016",
+      "2011_10_03_drive_0047")} and len(TEST) == 13
+  assert VAL == ("2011_10_03_drive_0042_sync",)
+
+
+def test_kitti_images_are_the_gt_frames_of_their_camera(tmp_path):
+  """image_02 (left) and image_03 (right) frames are found by the GT file name: each frame's
+  images and GT are of one frame and one camera; a right GT frame that is not the left's is
+  refused (its image of that name exists too: the pair would be two frames)."""
+  drive = "2011_09_26_drive_0001_sync"
+  written = _kitti(tmp_path, np.random.default_rng(16), (drive,), n=2)
+  seq, = registry.get_sequences("kitti_depth", tmp_path, "train")
+  seq.with_right_disparity = True
+  for i in range(2):
+    f = seq[i]
+    np.testing.assert_array_equal(f["left"], written[(drive, "image_02")][i])
+    np.testing.assert_array_equal(f["right"], written[(drive, "image_03")][i])
+    for key, col in (("disparity", 2 * i), ("right_disparity", 2 * i + 1)):
+      assert f[key][7, col] == pytest.approx(seq.depth2disp_scale / 10.0)  # 10 m
+      assert np.count_nonzero(f[key][7]) == 1
+  gt = tmp_path / "kitti_depth/gt_depth" / drive / "proj_depth/groundtruth/image_03"
+  (gt / "0000000006.png").rename(gt / "0000000007.png")
+  images = tmp_path / "kitti_depth/input/2011_09_26" / drive / "image_03/data"
+  shutil.copy(images / "0000000006.png", images / "0000000007.png")
+  with pytest.raises(ValueError, match=r"KITTI 2011_09_26_drive_0001_sync: stem mismatch "
+                                       r"between .*image_02/0000000006\.png and .*image_03/"
+                                       r"0000000007\.png"):
+    registry.get_sequences("kitti_depth", tmp_path, "train")
 
 
 def test_kitti_archive_layout_stray_folders_and_drives_without_images(tmp_path, caplog):
@@ -714,7 +784,7 @@ def test_kitti_archive_layout_stray_folders_and_drives_without_images(tmp_path, 
   assert [s.name for s in test] == sorted(kitti_depth.TEST)
   assert "left out 1 folder(s)" in caplog.text and "notes" in caplog.text
   assert "__MACOSX" not in caplog.text
-  assert test[0][0]["valid"].sum() == 2
+  assert test[0][0]["valid"].sum() == 3
   assert [s.name for s in registry.get_sequences("kitti_depth", tmp_path, "train")] == train
   # A training drive whose raw images were not downloaded is skipped, as officially.
   shutil.rmtree(tmp_path / "kitti_depth/input/2011_09_26/2011_09_26_drive_0009_sync")
@@ -752,9 +822,10 @@ def test_spring_dsp5(tmp_path, layout):
   full = rng.uniform(1, 50, (2 * H, 2 * W)).astype(np.float32)
   full[0, 0] = full[2, 4] = np.nan
   full[4, 6], full[6, 8] = 0.0, 600.0  # infinitely far, and beyond the dense rule's 512
+  written = {}
+  _stereo(rng, dirs[0], dirs[1], ["frame_left_0001", "frame_left_0002"], written)
   for i in (1, 2):
-    _png(dirs[0] / f"frame_left_{i:04d}.png", _rgb(rng))
-    _png(dirs[1] / f"frame_right_{i:04d}.png", _rgb(rng))
+    (dirs[1] / f"frame_left_{i:04d}.png").rename(dirs[1] / f"frame_right_{i:04d}.png")
     dirs[2].mkdir(parents=True, exist_ok=True)
     with h5py.File(dirs[2] / f"disp1_left_{i:04d}.dsp5", "w") as f:
       f.create_dataset("disparity", data=full if i == 1 else full[::2, ::2])
@@ -763,6 +834,7 @@ def test_spring_dsp5(tmp_path, layout):
   (dirs[3] / "intrinsics.txt").write_text("1500.5 1497.25 960 540\n1501 1498 960 540\n")
   seq = registry.get_sequences("spring", tmp_path, "test")[0]
   assert seq.depth2disp_scale == pytest.approx(1500.5 * 0.065) and not seq.sparse
+  _check_images(seq.head(1), written)  # frame_left/ is the left view, frame_right/ the right
   f = seq[0]
   sub = full[::2, ::2]
   np.testing.assert_array_equal(f["valid"], np.isfinite(sub) & (sub > 0) & (sub < 512))
@@ -789,6 +861,11 @@ def test_spring_dsp5(tmp_path, layout):
   (root / ("train/0002" if layout == "sav" else "train_frame_left/0002")).mkdir(parents=True)
   with pytest.raises(ValueError, match=r"Spring data under .*Spring in two layouts"):
     registry.get_sequences("spring", tmp_path, "test")
+  shutil.rmtree(root / ("train" if layout == "sav" else "train_frame_left"))
+  (dirs[2] / "disp1_left_0002.dsp5").rename(dirs[2] / "disp1_left_0003.dsp5")
+  with pytest.raises(ValueError, match=r"Spring 0001: stem mismatch between .*frame_left_0002"
+                                       r"\.png and .*disp1_left_0003\.dsp5"):
+    registry.get_sequences("spring", tmp_path, "test")
 
 
 def test_south_kensington_images_only(tmp_path, monkeypatch):
@@ -814,6 +891,12 @@ def test_south_kensington_images_only(tmp_path, monkeypatch):
   np.testing.assert_array_equal(f["right"], written["right"][1])
   clip = seqs[0].clip(0, 2)
   assert clip["left"].shape == (2, H, W, 3) and clip["disparity"] is None
+  right = data / "indoor_1/images/right"
+  (right / "right000001.png").rename(right / "right000003.png")  # frame 1 is missing
+  with pytest.raises(ValueError, match=r"South Kensington indoor_1: stem mismatch between "
+                                       r".*left000001\.png and .*right000002\.png"):
+    registry.get_sequences("south_kensington", tmp_path, "test")
+  (right / "right000003.png").rename(right / "right000001.png")
   # A camera txt behind a dead link left its sequence out silently (as having no txt).
   (data / "outdoor_1/tracking_data.txt").symlink_to(tmp_path / "gone.txt")
   with pytest.raises(FileNotFoundError, match=r"outdoor_1/tracking_data\.txt: a symbolic link "
@@ -1237,6 +1320,7 @@ def test_tartanair_splits_depth_and_clips(tmp_path, caplog):
   assert [s.name for s in train] == ["abandonedfactory_Easy_P001", "amusement_Easy_P000"]
   seq = test[0]
   assert seq.depth2disp_scale == pytest.approx(80.0) and not seq.has_right_disparity
+  assert not seq.sparse  # dense
   for i in (0, 6):
     f = pickle.loads(pickle.dumps(seq))[i]
     left, right, depth = truth[seq.name][i]
