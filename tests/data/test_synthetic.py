@@ -490,8 +490,9 @@ def test_cast_hits_the_plane_at_the_solved_intersection():
         assert depth[i, j] == pytest.approx(z, rel=1e-5)
         assert tu[i, j] == pytest.approx(40.0 * s, abs=1e-3)
         assert tv[i, j] == pytest.approx(40.0 * r, abs=1e-3)
-  behind = layer._replace(center=center * np.array([1.0, 1.0, -1.0]))
-  assert not raycast.cast(behind, 0.0, rx, ry)[3].any()
+  for z in (-3.0, -0.1):  # far behind, and just behind: n.(C - O) < 0, depth about -0.02
+    behind = layer._replace(center=np.array([0.2, -0.1, z]))
+    assert not raycast.cast(behind, 0.0, rx, ry)[3].any()
 
 
 def test_background_drift_is_bounded_by_background_speed():
