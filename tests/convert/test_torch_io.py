@@ -433,6 +433,11 @@ def test_many_views_of_one_storage_are_refused_beyond_a_memory_budget(tmp_path, 
   with pytest.raises(CheckpointError, match=r"many\.pth: refused: its tensors would take .* "
                      r"more than 4x the data the file holds"):
     torch_io.load_state_dict(tmp_path / "many.pth")
+  # One tensor object under many names (tied weights) is one array, built and counted once.
+  one = b.tensor(st, 0, (100,), (1,))
+  b.write_zip(tmp_path / "one.pth", {f"w{i}": one for i in range(7)})
+  sd = torch_io.load_state_dict(tmp_path / "one.pth")
+  assert len(sd) == 7 and all(sd[f"w{i}"] is sd["w0"] for i in range(7))
 
 
 def test_zip_with_missing_storage_record(tmp_path, fake_torch):
@@ -1100,6 +1105,8 @@ def test_unwrap_forms():
   assert list(torch_io.unwrap_state_dict(wrapped)) == ["a.w", "b.module.w"]
   assert list(torch_io.unwrap_state_dict({"state_dict": sd, "epoch": 1})) == list(sd)
   assert list(torch_io.unwrap_state_dict({"state_dict": {"model": sd}})) == list(sd)
+  # A wrapper key naming something else (the model's name) is not the weights' wrapper.
+  assert list(torch_io.unwrap_state_dict({"model": "sav", "state_dict": sd})) == list(sd)
   # Only the leading module. goes (the official demo.py would remove both), and the leading
   # ones of a wrapped wrapper (the official loaders read those files too).
   assert list(torch_io.unwrap_state_dict(_tiny(["module.x.module.y"]))) == ["x.module.y"]
@@ -1646,6 +1653,15 @@ def test_inflation_bounds_at_their_limits(monkeypatch):
                                             r"bytes to 100000 together"):
     pickle_reader.check_inflation(_zip_bytes({**stored, **zeros}), "total")
   pickle_reader.check_inflation(_zip_bytes(stored), "stored")  # stored only: nothing inflates
+  # The total bound to the byte: FREE_TOTAL bytes beyond MAX_INFLATION x the compressed ones.
+  monkeypatch.setattr(pickle_reader, "FREE_INFLATION", 1 << 30)
+  zf = _zip_bytes(zeros)
+  free = 100000 - pickle_reader.MAX_INFLATION * sum(i.compress_size for i in zf.infolist())
+  monkeypatch.setattr(pickle_reader, "FREE_TOTAL", free)
+  pickle_reader.check_inflation(zf, "at")
+  monkeypatch.setattr(pickle_reader, "FREE_TOTAL", free - 1)
+  with pytest.raises(CheckpointError, match=r"over: its compressed zip records inflate"):
+    pickle_reader.check_inflation(zf, "over")
 
 
 def _declare_in_central_directory(raw: bytes, sizes) -> bytes:
@@ -1798,6 +1814,14 @@ def test_memory_budget_counts_output_bytes_and_view_roots(tmp_path, fake_torch, 
   path.write_bytes(_legacy_header() + _with_storage_id({"x": b.tensor(st, 0, (8,), (1,))}, pid)
                    + pickle.dumps([st.key], protocol=2) + struct.pack("<q", 10) + st.raw)
   np.testing.assert_array_equal(torch_io.load_state_dict(path)["x"], np.arange(2, 10))
+  # To the byte: 1-byte elements, 100 of storage allow 400; one element more is refused.
+  b = _Builder(fake_torch)
+  u8 = b.storage(np.zeros(100, np.uint8), "uint8")
+  full = {f"w{i}": b.tensor(u8, 0, (100,), (1,)) for i in range(4)}
+  assert len(torch_io.load_state_dict(b.write_zip(tmp_path / "u8.pth", full))) == 4
+  b.write_zip(tmp_path / "u8.pth", {**full, "x": b.tensor(u8, 0, (1,), (1,))})
+  with pytest.raises(CheckpointError, match=r"u8\.pth: refused: its tensors would take"):
+    torch_io.load_state_dict(tmp_path / "u8.pth")
 
 
 def test_empty_tensor_needs_no_storage_elements(tmp_path, fake_torch):
