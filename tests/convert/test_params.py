@@ -190,8 +190,8 @@ def test_report_counts_the_rest_by_the_modules_concerned():
   from sav_jax.convert.keys import KeyProblems  # pylint: disable=import-outside-toplevel
   problems = KeyProblems(limit=2)
   problems.add_absent([f"update_block.gru.conv{i}.weight" for i in range(5)], {})
-  with pytest.raises(ValueError) as e:
-    problems.raise_if_any("no match", keys_given=3)
+  with pytest.raises(ValueError) as e:  # an empty state dict: no note on its keys
+    problems.raise_if_any("no match", keys_given=0)
   assert str(e.value).splitlines() == [
       "no match: 5 problem(s):", "  missing key 'update_block.gru.conv0.weight'",
       "  missing key 'update_block.gru.conv1.weight'",
@@ -205,6 +205,9 @@ def test_report_counts_the_rest_by_the_modules_concerned():
   assert str(e.value).splitlines()[-1] == ("  ... and 4 more missing keys (by module: "
                                            "update_block.gru 3, depthnet.depthanything 1)")
   KeyProblems().raise_if_any("nothing to report", keys_given=0)  # no problems: no error
+  nested = KeyProblems("depthnet.").scoped("depthanything.")  # a scope adds to the prefix
+  nested.add_missing("head.bias")
+  assert nested.missing == ["missing key 'depthnet.depthanything.head.bias'"]
 
 
 def test_torch_names_and_flax_paths():
@@ -214,7 +217,9 @@ def test_torch_names_and_flax_paths():
       ("update_block.mask.2.weight", 2, ("update_block", "mask_2", "kernel")),
       ("fnet.norm1.weight", 1, ("fnet", "norm1", "scale")),
       ("blocks.11.norm1.bias", 1, ("blocks_11", "norm1", "bias")),
-      ("pretrained.cls_token", 3, ("pretrained", "cls_token"))):
+      ("pretrained.cls_token", 3, ("pretrained", "cls_token")),
+      ("0.weight", 2, ("0", "kernel")),  # an nn.Sequential's own state dict
+      ("head.conv_1x1.weight", 4, ("head", "conv_1x1", "kernel"))):  # "_1" is no list index
     assert keys.torch_to_path(key, ndim) == path, key
     assert keys.path_to_torch(path) == key, path
   # (O, I, kh, kw) -> (kh, kw, I, O): each element where numpy's indexing puts it.
@@ -222,10 +227,14 @@ def test_torch_names_and_flax_paths():
   k = keys.torch_to_flax_array(w)
   assert k.shape == (4, 5, 3, 2) and k[3, 1, 2, 0] == w[0, 2, 3, 1]
   np.testing.assert_array_equal(keys.flax_to_torch_array(k), w)
-  assert keys.flax_to_torch_array(k).flags.c_contiguous
+  assert keys.flax_to_torch_array(np.ascontiguousarray(k)).flags.c_contiguous
   lin = np.arange(6, dtype=np.float32).reshape(2, 3)
   assert keys.torch_to_flax_array(lin)[2, 1] == lin[1, 2]
-  np.testing.assert_array_equal(keys.torch_to_flax_array(lin[0], "scale"), lin[0])
+  c1 = np.arange(2 * 3 * 4, dtype=np.float32).reshape(2, 3, 4)  # Conv1d (O, I, k) -> (k, I, O)
+  assert keys.torch_to_flax_array(c1)[3, 1, 0] == c1[0, 1, 3]
+  np.testing.assert_array_equal(keys.flax_to_torch_array(keys.torch_to_flax_array(c1)), c1)
+  for leaf in ("scale", "kernel"):  # a 1-D tensor keeps its layout whatever its leaf
+    np.testing.assert_array_equal(keys.torch_to_flax_array(lin[0], leaf), lin[0])
 
 
 def test_float64_values_beyond_float32_are_refused_not_made_inf():
