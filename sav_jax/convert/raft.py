@@ -53,11 +53,13 @@ def raft_variables_from_state_dict(state_dict: Mapping[str, np.ndarray]) -> dict
       `downsample.1`, at once.
   """
   sd = dict(unwrap_state_dict(state_dict, "state_dict"))
-  for key in [k for k in sd if ".norm3." in k]:  # the twin of a lone norm3 (equal values)
-    sd.setdefault(key.replace(".norm3.", ".downsample.1."), sd[key])
   target = {(col, path): leaf for col, tree in abstract_raft_variables().items()
             for path, leaf in traverse_util.flatten_dict(tree).items()}
   by_torch = {_torch_name(col, path): (col, path) for col, path in target}
+  for key in [k for k in sd if ".norm3." in k]:  # the twin of a lone norm3 (equal values)
+    twin = key.replace(".norm3.", ".downsample.1.")
+    if twin in by_torch:  # (a norm3 of no model BatchNorm is unexpected, its twin no key)
+      sd.setdefault(twin, sd[key])
   problems = KeyProblems()
   flat: dict[str, dict] = {"params": {}, "batch_stats": {}}
   for key, value in sd.items():

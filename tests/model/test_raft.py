@@ -172,18 +172,23 @@ def test_state_dict_problems_are_listed(raft_state_dict):
   sd["cnet.norm1.running_var"] = np.full(64, np.nan, np.float32)
   sd["cnet.layer2.0.norm3.bias"] = sd["cnet.layer2.0.norm3.bias"] + 1
   sd["update_block.extra.weight"] = np.zeros((2, 2), np.float32)
+  # A norm3 of a block without a skip path: unexpected, and its twin, which the file does
+  # not hold, is not named (it was, as an unexpected key too).
+  sd["fnet.layer1.0.norm3.bias"] = np.zeros(64, np.float32)
   with pytest.raises(ValueError) as err:
     raft_variables_from_state_dict(sd)
   msg = str(err.value)
   assert msg.startswith("state dict does not match RAFT (the large model of raft-things.pth): "
-                        "5 problem(s)"), msg
+                        "6 problem(s)"), msg
   for part in ("missing key 'update_block.gru.convz1.weight'",
                "key 'fnet.conv1.weight': shape (64, 3, 5, 5) does not match RAFT (expects "
                "(64, 3, 7, 7))",
                "key 'cnet.norm1.running_var': 64 of 64 values are NaN or inf",
                "key 'cnet.layer2.0.norm3.bias' differs from 'cnet.layer2.0.downsample.1.bias'",
-               "unexpected key 'update_block.extra.weight'"):
+               "unexpected key 'update_block.extra.weight'",
+               "unexpected key 'fnet.layer1.0.norm3.bias'"):
     assert part in msg, (part, msg)
+  assert "fnet.layer1.0.downsample" not in msg, msg
   with pytest.raises(ValueError, match=r"none of the state dict's 2 keys is one of the model's"):
     raft_variables_from_state_dict({"encoder.weight": np.zeros((2, 2), np.float32),
-                                    "head.bias": np.zeros(2, np.float32)})
+                                    "head.layer1.0.norm3.bias": np.zeros(2, np.float32)})
