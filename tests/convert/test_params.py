@@ -310,6 +310,8 @@ def test_the_vitb_depth_prior_is_supported():
   sd = convert.vda_state_dict_from_params(vda)
   assert sd["pretrained.cls_token"].shape == (1, 1, 768)
   assert sd["head.projects.3.weight"].shape == (768, 768, 1, 1)
+  # the official head's unused regressor: Conv2d(features // 2 = 64, 32, 3)
+  assert sd["head.scratch.output_conv2.0.weight"].shape == (32, 64, 3, 3)
   assert convert.params.vda_encoder_of(sd, "") == "vitb"
   variables = init_with_vda(sd, cfg, seed=0)
   assert variables["params"]["depthnet"]["depthanything"]["pretrained"]["cls_token"].shape == (
@@ -383,6 +385,10 @@ def test_half_precision_checkpoints_convert(sav_state_dict):
   sd[key] = sd[key] + np.float32(1e-3)
   with pytest.raises(ValueError, match="is not the sinusoidal table"):
     convert.params_from_state_dict(sd)
+  # also when its low 8 bits are zero (bfloat16's are its low 16)
+  sd[key] = (sd[key].view(np.uint32) & np.uint32(0xFFFFFF00)).view(np.float32)
+  with pytest.raises(ValueError, match="is not the sinusoidal table"):
+    convert.params_from_state_dict(sd)
 
 
 def test_tensors_kept_for_export_are_checked_as_parameters_are(sav_state_dict):
@@ -396,9 +402,11 @@ def test_tensors_kept_for_export_are_checked_as_parameters_are(sav_state_dict):
       (qkv, np.zeros((768, 256), np.int64), f"key '{qkv}': dtype int64; expected a "
        "floating-point tensor"),
       (conv, np.full_like(sav_state_dict[conv], np.nan), f"key '{conv}': "
-       f"{sav_state_dict[conv].size} of {sav_state_dict[conv].size} values are NaN or inf")):
+       f"{sav_state_dict[conv].size} of {sav_state_dict[conv].size} values are NaN or inf"),
+      (qkv, None, f"missing key '{qkv}'"), (conv, None, f"missing key '{conv}'")):  # required
+    sd = {k: v for k, v in sav_state_dict.items() if k != key}
     with pytest.raises(ValueError) as e:
-      convert.params_from_state_dict({**sav_state_dict, key: bad})
+      convert.params_from_state_dict(sd if bad is None else {**sd, key: bad})
     assert problem in str(e.value) and "1 problem(s)" in str(e.value), str(e.value)
 
 
@@ -571,6 +579,7 @@ def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dic
   (tmp_path / "folder").mkdir()
   (tmp_path / "folder" / "a.txt").write_text("mine")
   for dst, message in ((src, "SRC and DST are the same path"),
+                       (tmp_path / "folder" / ".." / src.name, "SRC and DST are the same path"),
                        (tmp_path / "folder.npz", "is not a file; it is not replaced"),
                        (tmp_path / "notes.txt", "is not a `sav-jax convert` variables folder"),
                        (tmp_path / "folder", "is not a `sav-jax convert` variables folder"),
@@ -587,6 +596,15 @@ def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dic
   assert (tmp_path / "notes.txt").read_text() == "mine"
   assert (tmp_path / "folder" / "a.txt").read_text() == "mine"
   assert not (tmp_path / "sav.ckpt").exists() and not (tmp_path / "weights.npy").exists()
+  # A link to an empty folder is not an empty folder made for the checkpoint, and a dangling
+  # link is not nothing: each is replaced with --overwrite only.
+  (tmp_path / "empty_target").mkdir()
+  (tmp_path / "link").symlink_to(tmp_path / "empty_target")
+  (tmp_path / "dangling.npz").symlink_to(tmp_path / "nowhere.npz")
+  for dst in ("link", "dangling.npz"):
+    assert cli.main(["convert", str(src), str(tmp_path / dst)]) == 2
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+  assert not any((tmp_path / "empty_target").iterdir()) and (tmp_path / "dangling.npz").is_symlink()
   (tmp_path / "empty").mkdir()  # an empty folder made for the checkpoint: nothing to replace
   assert cli.main(["convert", str(src), str(tmp_path / "empty")]) == 0
   assert convert.is_variables_checkpoint(tmp_path / "empty")
