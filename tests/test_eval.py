@@ -1815,8 +1815,9 @@ def test_progress_records_are_appended_and_read_back(tmp_path):
 
 def test_only_the_runs_own_files_are_removed_or_written_over(tmp_path):
   """written_files.txt names what --overwrite deletes: a line that leads out of predictions/ or
-  plots/ (a hand edit), or names a link, deletes nothing; a file or a broken link of the user's
-  where a run would write is refused."""
+  plots/ (a hand edit), goes deeper than a file in them, or names a link, deletes nothing; a
+  file listed twice is deleted once; a file or a broken link of the user's where a run would
+  write is refused."""
   out = tmp_path / "out"
   (out / "predictions").mkdir(parents=True)
   (out / "plots").mkdir()
@@ -1824,10 +1825,12 @@ def test_only_the_runs_own_files_are_removed_or_written_over(tmp_path):
   (out / "mine.txt").write_text("mine")
   (out / "predictions" / "a.npy").write_bytes(b"run")
   (out / "plots" / "link.png").symlink_to(out / "mine.txt")
-  (out / eval_runner.WRITTEN_LIST).write_text(
+  (out / "predictions" / "keep.npy").write_bytes(b"mine")
+  (out / eval_runner.WRITTEN_LIST).write_text(  # (a resumed run lists a redone file again)
       "predictions/a.npy\n../victim.txt\nmine.txt\npredictions/../../victim.txt\n"
-      "plots/link.png\n")
+      "plots/link.png\npredictions/keep.npy/x\npredictions/a.npy\n")
   assert eval_runner.remove_written(out) == [out / "predictions" / "a.npy"]
+  assert (out / "predictions" / "keep.npy").read_bytes() == b"mine"
   assert not (out / "predictions" / "a.npy").exists()
   assert not (out / eval_runner.WRITTEN_LIST).exists()  # (it would name a user's file later)
   assert (tmp_path / "victim.txt").read_text() == "mine" and (out / "mine.txt").is_file()
@@ -1839,6 +1842,16 @@ def test_only_the_runs_own_files_are_removed_or_written_over(tmp_path):
   eval_runner.refuse_unlisted_outputs(out, [out / "predictions" / "c.npy"])  # its own: fine
   with pytest.raises(FileExistsError, match="b.npy exists, and no earlier evaluation wrote it"):
     eval_runner.refuse_unlisted_outputs(out, [out / "predictions" / "c.npy", dangling])
+
+
+@pytest.mark.parametrize("before", ["", "predictions/a.npy\nplots/a_str"])
+def test_a_written_list_left_empty_or_cut_by_a_kill_takes_the_next_path(tmp_path, before):
+  """A kill right after written_files.txt was created leaves it empty (no last byte to read),
+  one while a line was written leaves it cut: either way the next path is a line of its own."""
+  (tmp_path / eval_runner.WRITTEN_LIST).write_text(before)
+  eval_runner.record_written(tmp_path, [tmp_path / "plots" / "b.png"])
+  assert (tmp_path / eval_runner.WRITTEN_LIST).read_text().splitlines() == [
+      *before.splitlines(), "plots/b.png"]
 
 
 def test_a_resumed_run_may_differ_only_in_devices_and_max_sequences():
