@@ -943,6 +943,17 @@ def test_speed_excludes_compilation_and_curves_leave_frames_without_gt_out(tmp_p
       res.frames / res.seconds["sav"])
   assert "prediction time without compilation (compilation: Stereo Any Video 0.4 s)" in \
       eval_report.markdown(summary)
+  # The metrics' seconds are every method's (here 0.25 s each), not the last one's.
+  real_eval_sequence = eval_runner.metrics.eval_sequence
+
+  def timed_eval_sequence(*args, **kwargs):
+    clock[0] += 0.25
+    return real_eval_sequence(*args, **kwargs)
+
+  monkeypatch.setattr(eval_runner.metrics, "eval_sequence", timed_eval_sequence)
+  res = eval_runner.evaluate_sequence(seq, ["sav", "sgbm"], variables=None, model_cfg=None,
+                                      config=config)
+  assert res.metrics_seconds == pytest.approx(2 * 0.25)
   # A frame without any valid GT pixel has no EPE (the official rule would say 0), and the
   # pairs it is part of no TEPE; the curves leave a gap there.
   valid = clip["valid"].copy()
@@ -1589,7 +1600,7 @@ def test_reported_numbers_are_the_official_metrics_of_the_files(tmp_path, ckpt, 
                "--config.iters=3", "--config.window=4", "--config.stride=3",
                "--config.baseline.max_disparity=16", "--config.baseline.block_size=7",
                "--config.save_predictions=true", "--config.plots.strip_frames=2",
-               "--config.plots.tile_size=16", "--overwrite"]) == 0
+               "--config.plots.tile_size=24", "--overwrite"]) == 0
   printed = capsys.readouterr().out
   assert [(k["iters"], k["window"], k["stride"]) for k in calls] == [(3, 4, 3)] * 3
   summary = json.loads((out / "results.json").read_text())
@@ -1604,7 +1615,7 @@ def test_reported_numbers_are_the_official_metrics_of_the_files(tmp_path, ckpt, 
                                     preds[method])
     clip = {"left": left, "disparity": gt, "valid": valid}
     labelled = {eval_config.METHOD_NAMES[m]: p for m, p in preds.items()}
-    eval_plots.write_strip(tmp_path / "strip.png", clip, labelled, frames=2, tile=16)
+    eval_plots.write_strip(tmp_path / "strip.png", clip, labelled, frames=2, tile=24)
     np.testing.assert_array_equal(cv2.imread(str(out / "plots" / f"{name}_strip.png")),
                                   cv2.imread(str(tmp_path / "strip.png")))
     if gt is None:
