@@ -422,6 +422,7 @@ def test_the_step_trains_on_the_configured_loss_and_iterations():
   which differs from the loss with any one of them left at its default."""
   c = _config()
   c.train.iters, c.loss.gamma, c.loss.max_disparity, c.loss.per_sample = 4, 0.5, 5.0, False
+  c.optimizer.schedule, c.optimizer.lr = "constant", 0.1  # (an update that moves the norm)
   model, mesh, _, state, _, step = _setup(c)
   batch = _batch(np.random.default_rng(3), c)
   batch["valid"][0, :, :6] = False  # clips of other valid counts: pooled != per clip
@@ -435,8 +436,19 @@ def test_the_step_trains_on_the_configured_loss_and_iterations():
     others.append(loss_lib.sequence_loss(preds[4], batch["disparity"], batch["valid"],
                                          **dict(kwargs, **{field: default}))[0])
   assert all(abs(float(o) - want) > 1e-3 * want for o in others), (want, others)
-  _, m = step(state, _put(batch, mesh))
+  # the gradient norm is that of this loss's gradient in the trainable leaves (the head; the
+  # depth prior is frozen), the parameter norm that of the updated trainable leaves
+  head_grads = jax.grad(lambda head: loss_lib.sequence_loss(
+      model.apply({"params": dict(params["params"], head=head)}, batch["left"], batch["right"],
+                  iters=4).disparities, batch["disparity"], batch["valid"], **kwargs)[0])(
+                      params["params"]["head"])
+  new_state, m = step(state, _put(batch, mesh))
   np.testing.assert_allclose(float(m["loss"]), want, rtol=1e-5)
+  np.testing.assert_allclose(float(m["l2_grads"]), np.sqrt(sum(
+      np.sum(np.square(g)) for g in jax.tree.leaves(head_grads))), rtol=1e-4)
+  np.testing.assert_allclose(float(m["l2_params"]), np.sqrt(sum(
+      np.sum(np.square(p)) for p in jax.tree.leaves(jax.device_get(new_state.params["head"])))),
+                             rtol=1e-5)
 
 
 def test_an_update_that_overflows_is_skipped():
@@ -2721,20 +2733,26 @@ def test_microbatches_give_the_whole_batchs_step():
   assert not np.allclose(got[1][0].params["head"]["kernel"], before["head"]["kernel"])
   # Sparse ground truth: part 1 of 2 (clips 1 and 3) without a valid pixel, a frame of
   # clip 2 with a few only: the accuracy metrics are the whole batch's means over its
-  # measured frames, not the mean of the parts' (which halved them).
+  # measured frames, not the mean of the parts' (which halved them). Then a quarter of
+  # part 1's frames measured (clip 3's second): each part's means weigh by its measured
+  # share (1 and 1/4), not equally.
   batch["valid"][1::2] = False
   batch["valid"][2, 0] = False
   batch["valid"][2, 0, :2] = True
-  sparse = {}
-  for k in (1, 2):
-    c.train.microbatches = k
-    _, mesh, _, state, _, step = _setup(c)
-    sparse[k] = jax.device_get(step(state, _put(batch, mesh)))[1]
-  for key in ("loss", "epe", "1px", "3px", "5px", "measured_frames", "valid_fraction"):
-    np.testing.assert_allclose(sparse[2][key], sparse[1][key], rtol=1e-5, err_msg=key)
+  for part_1_measured in (False, True):
+    batch["valid"][3, 1] = part_1_measured
+    sparse = {}
+    for k in (1, 2):
+      c.train.microbatches = k
+      _, mesh, _, state, _, step = _setup(c)
+      sparse[k] = jax.device_get(step(state, _put(batch, mesh)))[1]
+    for key in ("loss", "epe", "1px", "3px", "5px", "measured_frames", "valid_fraction"):
+      np.testing.assert_allclose(sparse[2][key], sparse[1][key], rtol=1e-5,
+                                 err_msg=f"{key} (part 1 measured: {part_1_measured})")
   for k, per_sample, match in ((3, True, "microbatches=3 does not divide config.train.batch_size=4"),
                                (0, True, "microbatches=0: expected an integer >= 1"),
-                               (2, False, "needs config.loss.per_sample=True")):
+                               (2, False, "needs config.loss.per_sample=True"),
+                               (True, True, "microbatches=True: expected an integer >= 1")):
     c.train.microbatches, c.loss.per_sample = k, per_sample
     with pytest.raises(ValueError, match=match):
       step_lib.check_microbatches(c)
