@@ -1822,6 +1822,16 @@ def test_progress_records_are_appended_and_read_back(tmp_path):
   assert progress.read_text() == whole
   eval_runner.append_progress(tmp_path, settings, results[2])
   assert eval_runner.read_progress(tmp_path, settings) == {r.name: r for r in results}
+  # a setting that the interrupted run did not record (a field another version added) or
+  # that this run no longer has is a difference too
+  for config in ({"iters": 2, "window": 4}, {}):
+    with pytest.raises(ValueError, match=r"config\.(window: None then, 4|iters: 2 then, None) "
+                                         r"now\)"):
+      eval_runner.read_progress(tmp_path, dict(settings, config=config))
+  # a file of another version of the format (its records may mean other things): refused
+  progress.write_text(whole.replace('"sav_jax_eval_progress": 1,', '"sav_jax_eval_progress": 2,'))
+  with pytest.raises(ValueError, match="is not an evaluation progress file of this version"):
+    eval_runner.read_progress(tmp_path, settings)
 
 
 def test_only_the_runs_own_files_are_removed_or_written_over(tmp_path):
@@ -1966,12 +1976,17 @@ def _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch) -> list[str]:
     m.setattr(eval_runner, "append_progress", only_a)
     assert main(args) == 2
   capsys.readouterr()
+  # Its progress file is all it left (no plots or predictions): a run without --resume is
+  # refused all the same, not run over it.
+  assert [p.name for p in (tmp_path / "out").iterdir()] == [eval_runner.PROGRESS]
+  assert main(args) == 2
+  assert "pass --resume to continue that interrupted run" in capsys.readouterr().err
   return args
 
 
 def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, ckpt, capsys, monkeypatch):
-  """A sequence the interrupted run finished that has gained a frame since (same folder, same
-  settings) is not taken from the progress file: its numbers would be of other frames."""
+  """A sequence the interrupted run finished that has gained or lost a frame since (same folder,
+  same settings) is not taken from the progress file: its numbers would be of other frames."""
   written = _folder_dataset(tmp_path / "mine", np.random.default_rng(8))
   args = _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch)
   folder = tmp_path / "mine" / "test" / "a"
@@ -1982,6 +1997,13 @@ def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, ckpt, capsys, 
   assert main([*args, "--resume"]) == 2
   assert ("cannot resume: sequence a has 4 frames, the interrupted run evaluated 3; pass "
           "--overwrite to start again") in capsys.readouterr().err
+  for t in (3, 2):  # or lost one
+    for view in ("left", "right"):
+      (folder / view / f"{t:04d}.png").unlink()
+    (folder / "disparity" / f"{t:04d}.npy").unlink()
+  assert main([*args, "--resume"]) == 2
+  assert "cannot resume: sequence a has 2 frames, the interrupted run evaluated 3" in (
+      capsys.readouterr().err)
 
 
 def test_resume_refuses_a_sequence_whose_ground_truth_came_or_went(tmp_path, ckpt, capsys,
