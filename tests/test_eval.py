@@ -177,6 +177,19 @@ def test_overwrite_removes_only_the_earlier_runs_files(tmp_path, ckpt, capsys):
   assert not (out / "predictions").exists() and (out / "plots" / "notes.txt").is_file()
 
 
+def test_a_users_file_named_as_a_baselines_prediction_is_refused(tmp_path, ckpt, capsys):
+  """--overwrite replaces only files an evaluation wrote: a file of the user's where a
+  baseline's prediction would go is refused (before any prediction), as one where the model's
+  would, and kept."""
+  mine = tmp_path / "predictions" / "synthetic_001_sgbm.npy"
+  mine.parent.mkdir()
+  mine.write_bytes(b"mine")
+  assert main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL,
+               "--out", str(tmp_path), "--baseline", "sgbm", "--overwrite"]) == 2
+  assert f"{mine} exists, and no earlier evaluation wrote it" in capsys.readouterr().err
+  assert mine.read_bytes() == b"mine"
+
+
 def _snapshot(out):
   return {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*"))
           if p.is_file()}
@@ -403,12 +416,12 @@ def test_progress_files_and_listing_survive_kills_and_hand_edits(tmp_path, ckpt,
 
 def test_an_unreadable_sequence_after_finished_ones_says_resume_continues(tmp_path, ckpt,
                                                                           capsys, monkeypatch):
-  calls = []
+  calls, error = [], [OSError("synthetic_001/frame_0003.png: cannot decode the image file")]
 
   def fake_predict(variables, left, right, **kw):
     calls.append(1)
     if len(calls) == 2:
-      raise OSError("synthetic_001/frame_0003.png: cannot decode the image file")
+      raise error[0]
     return np.ones(left.shape[:3], np.float32)
 
   monkeypatch.setattr(eval_runner.inference, "predict_video", fake_predict)
@@ -429,6 +442,12 @@ def test_an_unreadable_sequence_after_finished_ones_says_resume_continues(tmp_pa
   assert capsys.readouterr().err == ("eval: error: synthetic_001/frame_0003.png: cannot decode "
                                      "the image file\n")
   assert (tmp_path / "a" / "results.json").is_file()
+  calls.clear()  # stopped (Ctrl-C) in its second sequence: put back before it stops, too
+  error[0] = KeyboardInterrupt()
+  with pytest.raises(KeyboardInterrupt):
+    main([*args, "--overwrite"])
+  assert (tmp_path / "a" / "results.json").is_file()
+  assert not (tmp_path / "a" / eval_runner.SET_ASIDE).exists()
 
 
 def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch):
@@ -2025,6 +2044,7 @@ def test_resume_refuses_a_sequence_whose_ground_truth_came_or_went(tmp_path, ckp
   assert main([*args, "--resume"]) == 2
   assert ("cannot resume: sequence a has no ground truth now, the interrupted run measured it; "
           "pass --overwrite to start again") in capsys.readouterr().err
+  assert main([*args, "--overwrite"]) == 0  # starts again: the records are not read
 
 
 def test_a_sequence_read_through_a_link_has_the_source_of_its_files(tmp_path):
