@@ -150,6 +150,21 @@ def test_refuses_to_overwrite_foreign_directory(tmp_path):
   assert (tmp_path / "data" / "config" / "mine.txt").read_text() == "keep me"
 
 
+def test_a_training_step_is_no_variables_checkpoint_and_is_not_replaced(tmp_path):
+  # A step folder of `python -m train` has the metadata file and a `config` item, but
+  # `state` for `variables`: overwriting it would delete the run's optimizer state.
+  step = tmp_path / "checkpoints" / "5"
+  for item in ("state", "config"):
+    (step / item).mkdir(parents=True)
+    (step / item / "mine.txt").write_text("keep me")
+  (step / "_CHECKPOINT_METADATA").write_text("{}")
+  assert not orbax_io.is_variables_checkpoint(step)
+  assert orbax_io.is_orbax_checkpoint(step) and orbax_io.is_orbax_checkpoint(tmp_path)
+  with pytest.raises(CheckpointError, match="refusing to overwrite"):
+    orbax_io.save_variables(step, {"params": {"w": jnp.ones(2)}}, {}, overwrite=True)
+  assert (step / "state" / "mine.txt").read_text() == "keep me"
+
+
 def test_not_a_checkpoint(tmp_path):
   with pytest.raises(CheckpointError, match="not found"):
     orbax_io.restore_variables(tmp_path / "missing")
@@ -198,19 +213,23 @@ def test_a_target_of_other_arrays_is_refused_also_without_shardings(tmp_path):
   # Orbax checks shapes only for targets with shardings: a jax.eval_shape target (or NumPy
   # arrays) of another model came back silently at the stored shapes, as NumPy arrays.
   import orbax.checkpoint as ocp  # pylint: disable=import-outside-toplevel
-  orbax_io.save_variables(tmp_path / "ckpt", {"params": {"w": jnp.ones(3)}}, {})
+  orbax_io.save_variables(tmp_path / "ckpt", {"params": {"w": jnp.ones(3)}}, {"v": 1})
   step = tmp_path / "run" / "checkpoints" / "5"  # a training run's checkpoint
-  with ocp.Checkpointer(ocp.CompositeCheckpointHandler(state=ocp.PyTreeCheckpointHandler())) as c:
+  with ocp.Checkpointer(ocp.CompositeCheckpointHandler(
+      state=ocp.PyTreeCheckpointHandler(), config=ocp.JsonCheckpointHandler())) as c:
     c.save(step, args=ocp.args.Composite(state=ocp.args.PyTreeSave(
-        {"params": {"w": np.ones(3, np.float32)}, "step": np.int32(5)})))
+        {"params": {"w": np.ones(3, np.float32)}, "step": np.int32(5)}),
+        config=ocp.args.JsonSave({"v": 1})))
   for where in (tmp_path / "ckpt", tmp_path / "run"):
-    for w in (jax.ShapeDtypeStruct((4,), jnp.float32), np.zeros(2, np.float32)):
+    for w in (jax.ShapeDtypeStruct((4,), jnp.float32), np.zeros(2, np.float32),
+              jax.ShapeDtypeStruct((3, 1), jnp.float32)):  # (also of another rank)
       with pytest.raises(CheckpointError, match=r"the target does not match the checkpoint: 1 "
-                         r"array\(s\) of other shapes, e.g. \['params'\]\['w'\] \([42],\) "
-                         r"\(stored \(3,\)\)"):
+                         r"array\(s\) of other shapes, e.g. \['params'\]\['w'\] "
+                         r"\((4,|2,|3, 1)\) \(stored \(3,\)\)"):
         orbax_io.restore_variables(where, target={"params": {"w": w}})
-    restored, _ = orbax_io.restore_variables(
-        where, target={"params": {"w": jax.ShapeDtypeStruct((3,), jnp.float32)}})
+    restored, config = orbax_io.restore_variables(  # in the target's dtype, with the config
+        where, target={"params": {"w": jax.ShapeDtypeStruct((3,), jnp.bfloat16)}})
+    assert restored["params"]["w"].dtype == jnp.bfloat16 and config == {"v": 1}
     np.testing.assert_array_equal(restored["params"]["w"], np.ones(3))
   with pytest.raises(CheckpointError, match=r"5: the target must be Flax variables "
                                             r"\{'params': \.\.\.\}, found \['w'\]"):
@@ -289,6 +308,8 @@ def test_a_failed_save_leaves_no_temporary_folder(tmp_path, monkeypatch, error):
   import orbax.checkpoint as ocp  # pylint: disable=import-outside-toplevel
   path = tmp_path / "ckpt"
   orbax_io.save_variables(path, {"params": {"w": jnp.zeros(2)}}, {"v": 1})
+  other = tmp_path / "fresh.orbax-checkpoint-tmp-1"  # another process's save under way: kept
+  other.mkdir()
 
   def fail(self, directory, *args, **kwargs):
     assert ".orbax-checkpoint-tmp" in str(directory)  # the write has begun
@@ -302,7 +323,7 @@ def test_a_failed_save_leaves_no_temporary_folder(tmp_path, monkeypatch, error):
                              r"checkpoint \(No space left on device\)")):
       orbax_io.save_variables(target, {"params": {"w": jnp.ones(2)}}, {"v": 2},
                               overwrite=overwrite)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt", other.name]
   monkeypatch.undo()
   restored, config = orbax_io.restore_variables(path)  # the old checkpoint is whole
   np.testing.assert_array_equal(restored["params"]["w"], np.zeros(2))
@@ -356,6 +377,7 @@ def test_declared_sizes_beyond_any_model_are_refused_before_reading(tmp_path, mo
   largest = jax.tree.leaves(init.abstract_variables(SAVConfig(vda_encoder="vitl")))
   sizes = [int(np.prod(x.shape)) * np.dtype(x.dtype).itemsize for x in largest]
   assert max(sizes) < orbax_io.MAX_LEAF_BYTES / 4 and sum(sizes) < orbax_io.MAX_TOTAL_BYTES / 2
+  assert 24000 * 24000 * 4 > orbax_io.MAX_LEAF_BYTES  # the case above is refused
   path = orbax_io.save_variables(tmp_path / "ckpt", {"params": {
       "w": np.zeros((40, 40), np.float32), "b": np.zeros((30,), np.float32)}}, _CONFIG)
   reads = []
@@ -372,18 +394,31 @@ def test_declared_sizes_beyond_any_model_are_refused_before_reading(tmp_path, mo
                                             r"model's weights"):
     orbax_io.restore_variables(path)
   assert not reads
-  monkeypatch.setattr(orbax_io, "MAX_TOTAL_BYTES", 2**20)
+  monkeypatch.setattr(orbax_io, "MAX_LEAF_BYTES", 40 * 40 * 4)  # bounds reached, not passed
+  monkeypatch.setattr(orbax_io, "MAX_TOTAL_BYTES", 40 * 40 * 4 + 30 * 4)
   orbax_io.restore_variables(path)
   assert len(reads) == 1
 
 
-def test_a_pipe_in_a_checkpoint_is_refused_not_waited_on(tmp_path):
-  """A named pipe in place of a data file made `sav-jax infer` wait forever, Ctrl-C held."""
-  path = orbax_io.save_variables(tmp_path / "ckpt", {"params": {
-      "w": np.random.default_rng(0).normal(size=3000).astype(np.float32)}}, _CONFIG)
-  [chunk, *_] = sorted(path.glob("variables/ocdbt.process_*/d/*"))
+@pytest.mark.parametrize("item", ["variables", "state"])
+def test_a_pipe_in_a_checkpoint_is_refused_not_waited_on(tmp_path, item):
+  """A named pipe in place of a data file made `sav-jax infer` wait forever, Ctrl-C held (in
+  a training checkpoint's `state` item: a link to a device)."""
+  import orbax.checkpoint as ocp  # pylint: disable=import-outside-toplevel
+  w = np.random.default_rng(0).normal(size=3000).astype(np.float32)
+  path = tmp_path / "checkpoints" / "5"
+  if item == "variables":
+    orbax_io.save_variables(path, {"params": {"w": w}}, _CONFIG)
+  else:
+    with ocp.Checkpointer(ocp.CompositeCheckpointHandler(state=ocp.PyTreeCheckpointHandler())
+                          ) as c:
+      c.save(path, args=ocp.args.Composite(state=ocp.args.PyTreeSave({"params": {"w": w}})))
+  [chunk, *_] = sorted(path.glob(f"{item}/ocdbt.process_*/d/*"))
   chunk.unlink()
-  os.mkfifo(chunk)
+  if item == "variables":
+    os.mkfifo(chunk)
+  else:
+    chunk.symlink_to(os.devnull)
   with pytest.raises(CheckpointError, match=rf"{chunk} is not a regular file \(a pipe, socket "
                                             r"or device\)"):
     orbax_io.restore_variables(path)
@@ -438,6 +473,37 @@ def test_out_of_memory_is_not_reported_as_a_corrupt_checkpoint(tmp_path):
   assert orbax_io.corrupt_checkpoint_error(tmp_path, error) is None
   error.__cause__ = None
   assert "corrupt or incomplete" in str(orbax_io.corrupt_checkpoint_error(tmp_path, error))
+
+
+def test_a_failed_read_is_found_among_the_causes_of_an_error(tmp_path):
+  # Tensorstore's own line (without its spec) names the damaged file, also as the context of
+  # the error orbax raised while handling it.
+  read = ValueError('OUT_OF_RANGE: Error reading "params.w/0" in OCDBT database at local file '
+                    '"d/1" [tensorstore_spec={"driver": "zarr"}]')
+  error = RuntimeError("restore failed")
+  error.__context__ = read
+  assert str(orbax_io.corrupt_checkpoint_error(tmp_path, error)) == (
+      f"{tmp_path}: the checkpoint is corrupt or incomplete (a file of it is truncated or "
+      'missing): OUT_OF_RANGE: Error reading "params.w/0" in OCDBT database at local file "d/1"')
+  assert orbax_io.corrupt_checkpoint_error(tmp_path, RuntimeError("other")) is None
+
+
+def test_only_errors_of_a_mismatch_are_reported_as_one(tmp_path, monkeypatch):
+  """A target that does not fit orbax's read (a ValueError, KeyError, TypeError or IndexError)
+  is `mismatch`'s error; any other error propagates as it is."""
+  monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # (a failure keeps its filter)
+
+  def restore(error):
+    def fail():
+      raise error
+    return fail
+
+  mismatch = lambda e: CheckpointError(f"mismatch: {e!r}")  # noqa: E731
+  with pytest.raises(CheckpointError, match=r"^mismatch: IndexError\('index 3'\)$"):
+    orbax_io.checked_restore(restore(IndexError("index 3")), tmp_path, mismatch)
+  for error in (RuntimeError, MemoryError):
+    with pytest.raises(error, match="^other$"):
+      orbax_io.checked_restore(restore(error("other")), tmp_path, mismatch)
 
 
 def test_a_folder_whose_name_is_not_utf8_is_named_not_a_tensorstore_traceback(tmp_path):
