@@ -73,6 +73,8 @@ def test_prediction_weights_official_decay():
   assert w[-1] == 1.0 and np.all(np.diff(w) > 0)
   np.testing.assert_allclose(w[0], 0.9 ** 15, rtol=1e-6)  # the decay is fixed per cycle
   assert np.asarray(loss_lib.prediction_weights(1)).tolist() == [1.0]
+  with pytest.raises(ValueError, match="need at least one prediction, got 0"):
+    loss_lib.prediction_weights(0)
 
 
 def test_frame_without_valid_pixels_contributes_zero_to_the_loss_and_not_to_the_metrics():
@@ -122,6 +124,16 @@ def test_valid_threshold_magnitude_cut_and_accuracy_bounds():
   for tau, below in ((1, 1), (3, 2), (5, 3)):  # errors 0 | 0, 1 | 0, 1, 3
     np.testing.assert_allclose(float(metrics[f"{tau}px"]), below / 4, rtol=1e-6, err_msg=tau)
   np.testing.assert_allclose(float(metrics["valid_fraction"]), 4 / 6, rtol=1e-6)
+
+
+def test_zero_and_negative_ground_truth_inside_the_cut_count():
+  # The official mask is `valid >= 0.5` and `|d| < 700` alone: a disparity of 0 (a point at
+  # infinity) or a negative one is scored like any other.
+  gt = np.array([[[[0.0, -3.0, 4.0]]]], np.float32)  # [1, 1, 1, 3]
+  preds = np.array([[[[[2.0, -3.5, 4.0]]]]], np.float32)  # errors 2, 0.5, 0
+  loss, metrics = loss_lib.sequence_loss(preds, gt, np.ones_like(gt))
+  np.testing.assert_allclose(float(loss), (2 + 0.5 + 0) / 3, rtol=1e-6)
+  np.testing.assert_allclose(float(metrics["valid_fraction"]), 1.0)
 
 
 def test_the_loss_cut_is_700_not_the_dense_valid_rules_512():
