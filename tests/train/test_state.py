@@ -92,7 +92,8 @@ def _put(batch, mesh):
 
 def test_one_cycle_matches_pytorch_formula():
   max_lr, total, pct = 1e-4, 80_100, 0.01
-  sched = optim.one_cycle_linear(max_lr, total, pct)
+  # the defaults: the official script's pct_start, PyTorch's div_factor and final_div_factor
+  sched = optim.one_cycle_linear(max_lr, total)
   init, final = max_lr / 25, max_lr / 25 / 1e4
   end1, end2 = pct * total - 1, total - 1  # PyTorch OneCycleLR phase ends
   for s in [0, 1, 400, 800, 801, 5000, 40_000, 79_999, 80_000]:
@@ -318,6 +319,11 @@ def test_extending_a_one_cycle_run_names_the_learning_rate_jump():
   c.optimizer.schedule_steps = 0
   assert optim.schedule_change_note(c.optimizer, 800, 800, saved) is None  # nothing changed
   assert optim.schedule_change_note(c.optimizer, 1000, 800, {}) is None  # older checkpoint
+  assert optim.schedule_change_note(c.optimizer, 1000, 800, {"optimizer.lr": 1e-3}) is None
+  # A saved schedule this version does not build: its rate is unknown, the note still comes.
+  cosine = {**saved, "optimizer.schedule": "cosine"}
+  assert "the rate at step 800 goes from nan to " in optim.schedule_change_note(
+      c.optimizer, 1000, 800, cosine)
   # Rates that agree to 3 digits get the digits that tell them apart ("9.62e-05 to 9.62e-05").
   assert (optim._distinct(9.6201e-05, 9.6249e-05), optim._distinct(9.6249e-05, 9.6201e-05),  # pylint: disable=protected-access
           optim._distinct(0.5, 0.25)) == ("9.62e-05", "9.625e-05", "0.5")  # pylint: disable=protected-access
