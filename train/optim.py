@@ -162,7 +162,7 @@ def schedule_summary(opt_cfg, num_steps: int) -> str:
   peak = int(round(opt_cfg.pct_start * total - 1.0))
   end = (f"down to {initial / opt_cfg.final_div_factor:.3g} at update {total - 1} of a "
          f"{total}-update cycle")
-  if num_steps < total - 1:
+  if num_steps < total:  # its last update, num_steps - 1, comes before the cycle's last
     with jax.transfer_guard("allow"):  # one scalar, at the start
       last = float(make_schedule(opt_cfg, num_steps)(num_steps - 1))
     # updates count from 0: the run's last one is num_steps - 1 (its log line shows this rate)

@@ -2333,6 +2333,12 @@ def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_describ
   c.optimizer.schedule_steps = 1000
   assert optim.schedule_summary(c.optimizer, 5000).endswith(
       "update 999 of a 1000-update cycle, then held (this run: 5000 updates)")
+  # A run one update short of the cycle ends at update 998, above the final rate:
+  # 4e-10 + (1e-4 - 4e-10) * (999 - 998) / (999 - 9) = 1.01e-07.
+  assert optim.schedule_summary(c.optimizer, 999).endswith(
+      "update 999 of a 1000-update cycle (this run's last update is 998, at 1.01e-07)")
+  assert optim.schedule_summary(c.optimizer, 1000).endswith(
+      "update 999 of a 1000-update cycle, then held (this run: 1000 updates)")
   c.optimizer.schedule = "constant"
   assert optim.schedule_summary(c.optimizer, 5000) == "constant 0.0001"
 
