@@ -121,6 +121,17 @@ def test_clipping_is_torchs_clip_grad_norm():
       assert float(coef) != 1.0
 
 
+def test_a_clip_norm_of_0_turns_clipping_off():
+  opt = synthetic.get_config().optimizer
+  opt.clip_norm, opt.schedule, opt.lr, opt.weight_decay, opt.eps = 0.0, "constant", 1e-3, 0.0, 1e-8
+  tx = optim.make_optimizer(opt, 10)
+  grads = jnp.asarray([3.0, -4.0])  # norm 5: clipping at any norm < 5 would scale it
+  updates, _ = tx.update(grads, tx.init(jnp.zeros(2)), jnp.zeros(2))
+  # Adam's first step: -lr * g / (|g| + eps) (the bias-corrected moments are g and g**2), to
+  # optax's float32 bias correction (~1e-5, as in test_optimizer_steps_match_torchs_...)
+  np.testing.assert_allclose(np.asarray(updates), [-1e-3, 1e-3], rtol=3e-5)
+
+
 def _torch_clip_adamw_one_cycle(params, grads, opt, total_steps):
   """The updates and the parameters after each step of the official update, in float64
   NumPy, transcribed from PyTorch's documented algorithms: `clip_grad_norm_(params,
@@ -343,6 +354,16 @@ def test_extending_a_one_cycle_run_names_the_learning_rate_jump():
   after = float(optim.make_schedule(c.optimizer, 1000)(790))
   assert note.endswith(f"the rate at step 800 (update 790: 10 skipped) goes from {before:.3g} "
                        f"to {after:.3g}"), note
+  # Each schedule field changed alone is named, with its saved value.
+  for field, value in (("schedule", "constant"), ("schedule_steps", 900), ("pct_start", 0.02),
+                       ("div_factor", 10.0), ("final_div_factor", 1e3)):
+    c = synthetic.get_config()
+    c.optimizer.schedule, c.optimizer.schedule_steps, c.optimizer.pct_start = "one_cycle", 0, 0.01
+    saved = {**ckpt_lib.run_fields(c), "train.num_steps": 1000}
+    c.optimizer[field] = value
+    note = optim.schedule_change_note(c.optimizer, 1000, 800, saved)
+    assert note.startswith(f"optimizer.{field} {saved['optimizer.' + field]!r} -> {value!r}: the "
+                           "learning-rate schedule changes"), (field, note)
 
 
 def _real_abstract_params():
@@ -364,6 +385,11 @@ def test_trainable_vector_gathers_and_scatters_the_trainable_leaves_only():
   assert back["depthanything"]["w"] is params["depthanything"]["w"]  # frozen: untouched
   with pytest.raises(ValueError, match="a vector of 9 values for 8 trainable parameters"):
     vector.scatter(params, jnp.zeros(9))
+  # the vector holds the common dtype; each leaf gets its own back
+  mixed = {"a": np.ones(2, np.float16), "b": np.ones(1, np.float32)}
+  vector = optim.TrainableVector(optim.param_labels(mixed, "depthanything"))
+  assert vector.gather(mixed).dtype == np.float32
+  assert vector.scatter(mixed, vector.gather(mixed))["a"].dtype == np.float16
 
 
 def test_a_frozen_pattern_that_misses_the_depth_prior_is_refused():
