@@ -2367,6 +2367,8 @@ def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_describ
       "update 999 of a 1000-update cycle, then held (this run: 1000 updates)")
   c.optimizer.schedule = "constant"
   assert optim.schedule_summary(c.optimizer, 5000) == "constant 0.0001"
+  c.optimizer.lr = 1.25e-4
+  assert optim.schedule_summary(c.optimizer, 5000) == "constant 0.000125"
 
 
 def _loop_parts(c, workdir, step_hook=None, evaluator=None):
@@ -2840,6 +2842,8 @@ def test_held_out_clips_are_spread_over_the_split_and_not_trained_on(monkeypatch
   monkeypatch.setattr(pipeline, "registry_source", source)
   assert [int(x["left"][0, 0, 0, 0]) for x in input_lib.eval_clips(c)] == [0, 5]
   assert calls[0]["consecutive"] is True
+  c.eval.num_clips = 3  # every 10 // 3 = 3rd window, the first 3 of them
+  assert [int(x["left"][0, 0, 0, 0]) for x in input_lib.eval_clips(c)] == [0, 3, 6]
 
 
 @pytest.mark.parametrize("during", ["setup", "run"])
