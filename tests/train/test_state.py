@@ -928,7 +928,19 @@ def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
   assert src[1]["disparity"][0, 0, 0] in (0, 2)  # another clip stands in
 
 
-def test_each_process_reads_its_share_of_the_batch():
+def test_the_augmentation_fields_reach_the_registry_sources(monkeypatch):
+  from train import input as input_lib  # pylint: disable=g-import-not-at-top
+  monkeypatch.setattr(pipeline, "registry_clips",
+                      lambda *a, **k: [(types.SimpleNamespace(name="s", gather=None), [0])])
+  c = _config()
+  c.data.augment.spatial_prob, c.data.augment.scale_range = 0.0, (-0.1, 0.1)
+  spec = ml_collections.ConfigDict(dict(dataset="sceneflow", weight=1.0))
+  _, augment, _ = input_lib._source(c, spec, "train", 0)  # pylint: disable=protected-access
+  aug = augment.augment_config()
+  assert (aug.crop_size, aug.spatial_prob, aug.scale_range) == ((16, 16), 0.0, (-0.1, 0.1))
+
+
+def test_each_process_reads_its_share_of_the_batch(monkeypatch):
   from train import input as input_lib  # pylint: disable=g-import-not-at-top
   c = _config()
   c.train.batch_size, c.data.synthetic.num_clips = 4, 8
@@ -938,6 +950,9 @@ def test_each_process_reads_its_share_of_the_batch():
   with pytest.raises(ValueError, match=r"config.train.batch_size=3 is not divisible by 2 "
                                        r"processes"):
     input_lib.train_dataset(c, process_index=0, process_count=2)
+  monkeypatch.setattr(jax, "process_count", lambda: 2)  # by default, the run's processes
+  with pytest.raises(ValueError, match=r"config.train.batch_size=3 is not divisible by 2 "):
+    input_lib.train_dataset(c)
 
 
 def test_the_processes_batches_interleave_the_single_process_batch():
