@@ -39,6 +39,8 @@ def test_validation_scores_the_absolute_prediction_as_the_official_evaluator():
   mesh = state_lib.make_mesh(jax.devices()[:1])
   ev = evaluation.Evaluator(config, _SignFlippingModel(), state_lib.replicated(mesh), mesh,
                             clips=clips)
+  # batches of eval.batch_size clips, the last one padded: (clips, real clips)
+  assert [(b["left"].shape[0], n) for b, n in ev.batches] == [(2, 2), (2, 1)]
   preds = ev.predictions({})
   assert len(preds) == 3 and all(p.shape == (3, 8, 16) for p in preds)
   result = ev({})
