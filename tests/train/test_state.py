@@ -354,7 +354,8 @@ def test_extending_a_one_cycle_run_names_the_learning_rate_jump():
   after = float(optim.make_schedule(c.optimizer, 1000)(790))
   assert note.endswith(f"the rate at step 800 (update 790: 10 skipped) goes from {before:.3g} "
                        f"to {after:.3g}"), note
-  # Each schedule field changed alone is named, with its saved value.
+  # Each schedule field changed alone is named, with its saved value (and no advice to keep
+  # the cycle: that is for a changed train.num_steps alone).
   for field, value in (("schedule", "constant"), ("schedule_steps", 900), ("pct_start", 0.02),
                        ("div_factor", 10.0), ("final_div_factor", 1e3)):
     c = synthetic.get_config()
@@ -364,6 +365,7 @@ def test_extending_a_one_cycle_run_names_the_learning_rate_jump():
     note = optim.schedule_change_note(c.optimizer, 1000, 800, saved)
     assert note.startswith(f"optimizer.{field} {saved['optimizer.' + field]!r} -> {value!r}: the "
                            "learning-rate schedule changes"), (field, note)
+    assert "to keep the earlier cycle" not in note, (field, note)
 
 
 def _real_abstract_params():
