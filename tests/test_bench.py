@@ -179,6 +179,7 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                          (["--json", str(tmp_path)], "is a folder"),
                          (["--json", str(tmp_path / "no" / "r.json")], "does not exist"),
                          (["--repeats", "0"], "--repeats must be >= 1"),
+                         (["--batch", "0"], "--batch must be >= 1"),
                          (["--frames", "33"], "--frames must be at most 32 (the depth prior"),
                          (["--overwrite"], "--overwrite replaces a --json file: name one"),
                          # a folder nothing can be created in (Linux's /proc; root included):
@@ -399,37 +400,85 @@ def test_bench_report_json_and_compare_from_one_measurement(tmp_path, monkeypatc
       f"wrote {rec}"], lines  # (where the record went: it said nothing)
   # the record says how many calls the median is of (ARGS: --repeats 1)
   assert json.loads(rec.read_text()) == {**fake, "matmul_precision": "default", "repeats": 1}
+  # A GPU is named by its model; no XLA options, no line for them; the cache folder and
+  # the matmul precision asked reach the measurement and the record.
+  fake.update(device="gpu:NVIDIA H200", compiler_options={})
+  assert cli.main([*ARGS, "--json", str(rec), "--overwrite", "--compile-cache",
+                   str(tmp_path / "xla"), "--matmul-precision", "highest"]) == 0
+  lines = capsys.readouterr().out.splitlines()
+  assert caches[-1] is not None and os.path.samefile(caches[-1], tmp_path / "xla")
+  assert lines[0] == "device        NVIDIA H200 (gpu)  (jax x)", lines
+  assert lines[2] == f"compile       3.00 s (stored in {caches[-1]})", lines
+  assert not any(l.startswith("XLA options") for l in lines), lines
+  assert json.loads(rec.read_text())["matmul_precision"] == "highest"
 
 
 def test_measure_reports_the_median_min_and_frames_per_second_of_the_timed_calls(monkeypatch):
-  """`measure` with a stand-in model and clock (nothing of the model compiled): compile_s is
-  the compile's time, median_s and min_s those of the `repeats` timed calls after the
-  warm-up, fps B * T frames per median call, and the device peaks after compiling and at
-  the end."""
+  """`measure` with a stand-in model, compiler and clock (nothing of the model compiled):
+  the model built and called as asked (dtype, clip shape, iters, every prediction),
+  compile_s the compile's time, median_s and min_s those of the `repeats` timed calls after
+  an untimed warm-up call, fps B * T frames per median call, the device peaks after
+  compiling and at the end, and "auto" settings as resolved."""
   import types  # pylint: disable=import-outside-toplevel
+  import jax  # pylint: disable=import-outside-toplevel
   import sav_jax  # pylint: disable=import-outside-toplevel
   from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  seen, events = {}, []  # events: the clock's readings ("t") and the forward's calls
 
   class Model:  # sav_jax.StereoAnyVideo's apply: the disparities of every frame
     def __init__(self, cfg):
-      self.cfg = cfg
+      seen["dtype"] = cfg.dtype
 
     def apply(self, variables, left, right, iters, final_only):
-      del iters, final_only
+      seen.update(shape=left.shape, iters=iters, final_only=final_only)
       return types.SimpleNamespace(disparities=(left - right)[..., 0] * variables["w"])
 
+  class Jit:  # jax.jit(f).lower(*args).compile(...): a call of f per call of the program
+    def __init__(self, f):
+      self.f = f
+
+    def lower(self, *args):
+      return types.SimpleNamespace(compile=lambda compiler_options: self.call)
+
+    def call(self, *args):
+      events.append("call")
+      return self.f(*args)
+
   monkeypatch.setattr(sav_jax, "StereoAnyVideo", Model)
+  monkeypatch.setattr(jax, "jit", Jit)
   monkeypatch.setattr("sav_jax.model.init.init_variables", lambda cfg, seed: {"w": 1.0})
   # perf_counter: the compile from 100 s to 103 s, then the timed calls of 0.5, 2 and 1 s
   clock = iter([100.0, 103.0, 200.0, 200.5, 300.0, 302.0, 400.0, 401.0])
-  monkeypatch.setattr(bench, "time", types.SimpleNamespace(perf_counter=lambda: next(clock),
-                                                           strftime=bench.time.strftime))
+  monkeypatch.setattr(bench, "time", types.SimpleNamespace(
+      perf_counter=lambda: events.append("t") or next(clock), strftime=bench.time.strftime))
   peaks = iter([21.0, 29.9])  # after compiling, then at the end
   monkeypatch.setattr(bench, "device_peak_gb", lambda device: next(peaks))
-  res = bench.measure(frames=3, height=16, width=32, iters=2, batch=2, repeats=3)
+  res = bench.measure(frames=3, height=16, width=32, iters=3, batch=2, dtype="bfloat16",
+                      repeats=3, final_only=False)
   assert next(clock, None) is None  # a perf_counter call before and after each of the 3
+  assert events == ["t", "t", "call"] + ["t", "call", "t"] * 3  # the warm-up is not timed
+  assert seen == dict(dtype="bfloat16", shape=(2, 3, 16, 32, 3), iters=3, final_only=False)
   assert res["compile_s"] == 3.0 and res["median_s"] == 1.0 and res["min_s"] == 0.5
   assert res["fps"] == 6.0  # 2 clips of 3 frames per median second
   assert res["device_peak_compile_gb"] == 21.0 and res["device_peak_gb"] == 29.9
   assert (res["frames"], res["height"], res["width"], res["iters"], res["batch"]) == (
-      3, 16, 32, 2, 2)
+      3, 16, 32, 3, 2)
+  # "auto" on the CPU in bfloat16: blocked ViT attention (cudnn needs a CUDA GPU), direct
+  # GRU convolutions (dft only in float32)
+  assert (res["dtype"], res["final_only"]) == ("bfloat16", False)
+  assert (res["vit_attention"], res["gru_conv"]) == ("blocked", "direct")
+
+
+def test_json_output_check_takes_a_bare_file_name_and_leaves_nothing_behind(tmp_path,
+                                                                           monkeypatch):
+  """A bare file name is one in the working folder (whose parent is that folder, not "");
+  the trial of creating something there removes what it created."""
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  monkeypatch.chdir(tmp_path)
+  assert bench.json_output_problem("r.json", False) is None
+  assert not any(tmp_path.iterdir())
+  (tmp_path / "r.json").write_text("{}")
+  assert bench.json_output_problem("r.json", False) == (
+      "--json r.json exists; pass --overwrite to replace it")
+  assert bench.json_output_problem("r.json", True) is None
+  assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
