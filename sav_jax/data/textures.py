@@ -60,7 +60,7 @@ def value_noise(
     `[S, S]` float32, zero mean, standard deviation about 1 (the node values have
     exactly 1), periodic with period S.
   """
-  cell = max(min(max_cell, size), min_cell)
+  cell = max(max_cell, min_cell)  # a power of two: min(max_cell, size) need not be one
   while size % cell and cell > min_cell:  # coarsest octave must tile the period
     cell //= 2
   if size % cell:

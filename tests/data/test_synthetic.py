@@ -669,6 +669,52 @@ def test_value_noise_is_normalised():
   for seed in range(3):
     noise = textures.value_noise(np.random.default_rng(seed), 128, 4)
     assert abs(noise.mean()) < 0.05 and 0.8 < noise.std() < 1.05, (noise.mean(), noise.std())
+  # a larger falloff is smoother: less of the variance in neighbour differences
+  rough = [np.var(np.diff(textures.value_noise(np.random.default_rng(0), 128, 4,
+                                               falloff=f), axis=1)) for f in (0.0, 1.0)]
+  assert rough[1] < 0.5 * rough[0], rough
+  with pytest.raises(ValueError, match="size 10 is not a multiple of min_cell 4"):
+    textures.value_noise(np.random.default_rng(0), 10, 4)
+
+
+@pytest.mark.parametrize("size", [12, 48, 128])
+def test_value_noise_of_a_multiple_of_min_cell_has_that_size_and_tiles(size):
+  """Sizes that are no power of two, and below max_cell (64), keep the octaves up to the
+  largest power-of-two cell dividing S (4 for 12, 16 for 48): 12 gave 16x16 noise, 48 gave
+  64x64 (and 10 no error). The wrap-around step is no larger than the steps inside."""
+  noise = textures.value_noise(np.random.default_rng(0), size, 4)
+  assert noise.shape == (size, size)
+  for a in (noise, noise.T):
+    assert np.abs(a[:, 0] - a[:, -1]).mean() < 2 * np.abs(np.diff(a, axis=1)).mean()
+
+
+def test_plane_waves_tile_with_an_integer_wave_vector():
+  """A period of S/4 along x (angle 0) is the wave vector (4, 0): the phase grows by
+  2 pi 4 / S a texel along x and not at all along y; along y (angle pi/2) the reverse."""
+  size = 64
+  for angle, (kx, ky) in ((0.0, (4, 0)), (np.pi / 2, (0, 4))):
+    px, py = textures._plane_wave(  # pylint: disable=protected-access
+        np.random.default_rng(0), size, size / 4, size / 4, angle)
+    assert px.shape == (1, size) and py.shape == (size, 1)
+    np.testing.assert_allclose(px[0] - px[0, 0], kx * 2 * np.pi / size * np.arange(size),
+                               atol=1e-5)
+    np.testing.assert_allclose(py[:, 0], ky * 2 * np.pi / size * np.arange(size), atol=1e-5)
+  # the "gradient" pattern is such a wave of one period across the tile: all of its power at
+  # wave vectors of components in {-1, 0, 1}
+  k = np.abs(np.fft.fftfreq(size) * size)
+  one = np.maximum(k[:, None], k[None, :]) == 1
+  for seed in range(3):
+    grad = textures._pattern(  # pylint: disable=protected-access
+        np.random.default_rng(seed), "gradient", size, 4)
+    power = np.abs(np.fft.fft2(grad)) ** 2
+    assert power[one].sum() > 0.999 * power.sum(), seed
+
+
+def test_soft_sign_is_the_cubic_smoothstep_of_the_clipped_gain():
+  # x (1.5 - 0.5 x^2) of clip(2 x, -1, 1): 0.5 -> 0.6875, saturating at +-1 from |x| = 0.5
+  x = np.array([-2.0, -0.5, -0.25, 0.0, 0.25, 0.5, 2.0], np.float32)
+  np.testing.assert_allclose(textures._soft_sign(x, 2.0),  # pylint: disable=protected-access
+                             [-1, -1, -0.6875, 0, 0.6875, 1, 1])
 
 
 def test_texture_contrast_scales_the_colour_amplitudes():
@@ -677,11 +723,14 @@ def test_texture_contrast_scales_the_colour_amplitudes():
   for kind in textures.TEXTURE_KINDS:
     full, half = (textures.make_texture(np.random.default_rng(1), 128, (kind,), contrast=c)
                   .astype(np.float64) for c in (1.0, 0.5))
+    bases = []
     for ch in range(3):
       unsaturated = (full[..., ch] > 0) & (full[..., ch] < 255)
       base = (2 * half[..., ch] - full[..., ch])[unsaturated]
       assert unsaturated.mean() > 0.9 and np.ptp(base) <= 3.0, (kind, ch, np.ptp(base))
+      bases.append(np.median(base))
     assert full.std((0, 1)).min() > 5, kind  # not a trivially flat texture
+    assert np.ptp(bases) > 3.0, (kind, bases)  # a base colour, not a grey
 
 
 @pytest.mark.parametrize("min_cell", [4, 8])
