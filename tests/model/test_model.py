@@ -392,6 +392,38 @@ def test_fresh_weights_outside_the_depth_prior_follow_the_official_initialisatio
   assert seen["norm"] >= 2 and seen["bias"] >= 40, seen
 
 
+def test_the_depth_priors_own_draws_leave_the_other_parameters_as_pytorchs_defaults(
+    monkeypatch):
+  """The depth prior's own initialisation draws from a stream of its own: every other
+  parameter keeps the value that PyTorch's defaults alone (no depth-prior rule) give it, for
+  seed 0 (the default, a valid seed) as for any; the parameters are drawn in the order of
+  their names. (A small tree of the model's names, the prior sorted between the others.)"""
+  conv = {"kernel": jax.ShapeDtypeStruct((3, 3, 3, 4), jnp.float32),
+          "bias": jax.ShapeDtypeStruct((4,), jnp.float32)}
+  qkv = {"kernel": jax.ShapeDtypeStruct((8, 24), jnp.float32),
+         "bias": jax.ShapeDtypeStruct((24,), jnp.float32)}
+  tree = {"cnet": {"conv1": conv}, "fnet": {"conv1": conv}, "update_block": {"gru": conv},
+          "depthnet": {"depthanything": {"pretrained": {"blocks_0": {"attn": {"qkv": qkv}}}}}}
+  monkeypatch.setattr(init_lib, "abstract_variables", lambda cfg: {"params": tree})
+  fresh = flax.traverse_util.flatten_dict(init_variables(seed=0)["params"])
+  # drawn in the order of the names, not of the tree's dicts
+  monkeypatch.setattr(init_lib, "abstract_variables",
+                      lambda cfg: {"params": dict(reversed(tree.items()))})
+  again = flax.traverse_util.flatten_dict(init_variables(seed=0)["params"])
+  assert all(np.array_equal(v, again[k]) for k, v in fresh.items())
+  monkeypatch.setattr(init_lib, "_init_depth_prior", lambda path, shape, rng: None)
+  plain = flax.traverse_util.flatten_dict(init_variables(seed=0)["params"])
+  assert fresh.keys() == plain.keys() and len(fresh) == 8
+  for k, v in fresh.items():
+    if k[0] != "depthnet":
+      np.testing.assert_array_equal(v, plain[k], err_msg="/".join(k))
+    else:  # the prior's rule did apply: zero bias, N(0, 0.02) kernel from its own stream
+      assert not np.array_equal(v, plain[k]) and (k[-1] == "kernel" or not v.any())
+  want = 0.02 * np.random.default_rng([0, 1]).standard_normal((8, 24))
+  np.testing.assert_allclose(fresh[("depthnet", "depthanything", "pretrained", "blocks_0",
+                                    "attn", "qkv", "kernel")], want, rtol=1e-6)
+
+
 def _grads_of_every_prediction(cfg, variables, clip):
   """d/d(variables, left) of a loss over every prediction (as training's, each prediction's
   error weighted differently), under jit, on the host."""
