@@ -1265,6 +1265,10 @@ def test_demo_outputs_with_a_stand_in_model(tmp_path, monkeypatch, capsys):
   n = 2  # the fewest frames the temporal metrics take
   plane = np.full((n, H, W), 2.5, np.float32)
   plane[:, :, W // 2:] = 4.0
+  plane[1] += 0.5  # each frame's PNG holds its own prediction
+  sgbm_calls, real_sgbm = [], demo.stereo_sgbm
+  monkeypatch.setattr(demo, "stereo_sgbm", lambda left, right, **kw: sgbm_calls.append(kw)
+                      or real_sgbm(left, right, **kw))
   calls = []
   monkeypatch.setattr(inference, "predict_video",
                       lambda *a, **kw: calls.append(kw) or plane.copy())
@@ -1282,7 +1286,9 @@ def test_demo_outputs_with_a_stand_in_model(tmp_path, monkeypatch, capsys):
     np.testing.assert_array_equal(clip[key], expected[key])
   gt, valid = clip["disparity"], clip["valid"]
   vmin, vmax = viz.disparity_range(gt, valid)
-  sgbm = demo.stereo_sgbm(clip["left"], clip["right"], max_disparity=min(64.0, W / 8) * 1.25)
+  # SGBM searches a quarter beyond the scene's largest disparity (W / 8, at most 64)
+  assert sgbm_calls == [{"max_disparity": min(64.0, W / 8) * 1.25}]
+  sgbm = real_sgbm(clip["left"], clip["right"], max_disparity=min(64.0, W / 8) * 1.25)
   panels = [clip["left"], viz.colorize(gt, vmin, vmax, valid=valid),
             viz.colorize(plane, vmin, vmax), viz.colorize(sgbm, vmin, vmax)]
   for name, parts in (("comparison.mp4", panels), ("side_by_side.mp4", panels[::2])):
@@ -1385,7 +1391,11 @@ def test_stereo_sgbm_finds_each_frames_shift(caplog, monkeypatch):
   left = rng.integers(0, 256, (2, 16, 32, 3), dtype=np.uint8)
   left = np.repeat(np.repeat(left, 2, axis=1), 2, axis=2)  # 32x64, 2x2 blocks
   right = np.stack([np.roll(left[0], -3, axis=1), np.roll(left[1], -18, axis=1)])
+  made, real_create = [], cv2.StereoSGBM_create
+  monkeypatch.setattr(cv2, "StereoSGBM_create", lambda **kw: made.append(kw) or real_create(**kw))
   disp = demo.stereo_sgbm(left, right, max_disparity=20)
+  # OpenCV's recommended smoothness penalties for 3 channels, block 5: 8 and 32 * 3 * 5^2
+  assert (made[0]["numDisparities"], made[0]["P1"], made[0]["P2"]) == (32, 600, 2400)
   assert disp.shape == (2, 32, 64) and disp.dtype == np.float32
   assert np.median(disp[0]) == 3.0 and np.median(disp[1]) == 18.0
   np.testing.assert_allclose(disp[0], 3.0, atol=0.3)  # (sub-pixel: 1/16 steps)
