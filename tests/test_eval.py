@@ -620,6 +620,22 @@ def test_config_files_that_cannot_be_used(tmp_path):
     eval_data.load_sequences(bare, tmp_path)
 
 
+def test_a_config_files_argument_and_a_colon_in_its_folders_name(tmp_path):
+  """`path.py:arg` calls get_config(arg) (big_vision's convention), and a ':' elsewhere (a
+  folder named after a time) is part of the path; get_config() must return a ConfigDict."""
+  folder = tmp_path / "run 10:30"
+  folder.mkdir()
+  variant = folder / "variant.py"
+  variant.write_text("from configs.eval.common import eval_config\n"
+                     "def get_config(name='sintel_final'):\n  return eval_config(name)\n")
+  assert eval_config.load_config(str(variant)).dataset == "sintel_final"
+  assert eval_config.load_config(f"{variant}:kitti_depth").dataset == "kitti_depth"
+  variant.write_text("def get_config():\n  return {'iters': 20}\n")
+  with pytest.raises(ValueError, match=r"variant.py: get_config\(\) returned dict, not a "
+                                       "ConfigDict"):
+    eval_config.load_config(str(variant))
+
+
 def test_a_config_that_is_not_an_evaluation_config_is_named(tmp_path, ckpt, capsys):
   # The training config of the same name (configs/synthetic.py) was a traceback from
   # ml_collections (AttributeError: 'iters'), exit status 1.
@@ -679,6 +695,8 @@ def test_override_values_are_parsed_as_written():
   with pytest.raises(ValueError, match=r"--config.save_predictions needs a value "
                                        r"\(--config.save_predictions=VALUE or"):
     eval_config.split_overrides(["--config.save_predictions", "--baseline", "sgbm"])
+  with pytest.raises(ValueError, match="--config.iters needs a value"):  # the last argument
+    eval_config.split_overrides(["--baseline", "sgbm", "--config.iters"])
   rest, ov = eval_config.split_overrides(["--config.iters", "-3", "--config.sample_len=0150"])
   assert ov == [("iters", "-3"), ("sample_len", "0150")]
   config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")), ov)
@@ -720,10 +738,35 @@ def test_synthetic_valid_rule_and_frame_bounds(monkeypatch):
   with pytest.raises(IndexError):
     seq.clip(-1, 2)
   clip["disparity"] = frames  # (rendered lazily: the frames tell apart)
+  strided = eval_data.SyntheticSequence(cfg, 0).clip(1, 2, stride=2)  # frames 1 and 3
+  assert strided["disparity"][:, 0, 1].tolist() == [5.0 + 1, 5.0 + 3]
+  with pytest.raises(IndexError):  # no frame at all
+    seq.clip(0, 0)
   head = eval_data._Head(eval_data.SyntheticSequence(cfg, 0), 2)  # pylint: disable=protected-access
   assert head[-1]["disparity"][0, 1] == 5.0 + 1  # the head's last frame, 1
-  with pytest.raises(IndexError):
-    head[-3]  # pylint: disable=pointless-statement
+  for i in (-3, 2):
+    with pytest.raises(IndexError):
+      head[i]  # pylint: disable=pointless-statement
+  for start, length, stride in ((1, 2, 1), (0, 2, 2)):  # frame 2, beyond the head's 0..1
+    with pytest.raises(IndexError):
+      head.clip(start, length, stride)
+
+
+def test_read_sequence_gives_float32_disparity_and_a_boolean_mask():
+  """A reader's float64 disparity (Sintel's is decoded in float64) and 0/1 mask are read as
+  float32 and bool, the dtypes of the official evaluator's tensors."""
+  class Seq:  # pylint: disable=too-few-public-methods
+    def __len__(self):
+      return 2
+
+    def clip(self, start, length):
+      assert (start, length) == (0, 2)
+      return {"left": np.zeros((2, 1, 3, 3), np.uint8), "right": np.zeros((2, 1, 3, 3), np.uint8),
+              "disparity": np.full((2, 1, 3), 1 / 3), "valid": np.ones((2, 1, 3), np.uint8)}
+
+  clip = eval_data.read_sequence(Seq())
+  assert clip["disparity"].dtype == np.float32 and clip["valid"].dtype == bool
+  assert clip["disparity"][0, 0, 0] == np.float32(1 / 3) and clip["valid"].all()
 
 
 def test_synthetic_depth_to_disparity_scale_is_fx_times_baseline():
@@ -783,6 +826,7 @@ def test_every_dataset_config_follows_the_official_protocol():
   frames with stride 10, 20 GRU iterations, RAFT's 20 iterations, float32."""
   names = sorted(p.stem for p in CONFIGS.glob("*.py") if p.stem not in ("__init__", "common"))
   assert names == sorted(OFFICIAL_SAMPLE_LEN)  # a new config gets its official value here
+  from configs.eval import common  # pylint: disable=import-outside-toplevel
   for name, sample_len in OFFICIAL_SAMPLE_LEN.items():
     c = eval_config.load_config(str(CONFIGS / f"{name}.py"))
     assert (c.dataset, c.split) == (name, "test"), name
@@ -792,6 +836,12 @@ def test_every_dataset_config_follows_the_official_protocol():
       assert c.sample_len <= 0, name
     assert (c.window, c.stride, c.iters, c.metrics.raft_iters) == (20, 10, 20, 20), name
     assert c.dtype == "float32" and c.max_sequences <= 0, name
+    # Without a sample_len: the official one for the test split, every frame of the others
+    assert max(common.eval_config(name).sample_len, 0) == sample_len, name
+    assert common.eval_config(name, split="valid").sample_len <= 0, name
+    # README: XLA's default precision; no predictions, TCC or RAFT unless asked for
+    assert c.matmul_precision == "default" and not c.save_predictions, name
+    assert not c.metrics.tcc and c.metrics.raft == "", name
 
 
 def _write_vkitti2(root, clip, name, fx=725.0087):
@@ -1007,16 +1057,21 @@ def test_speed_excludes_compilation_and_curves_leave_frames_without_gt_out(tmp_p
   assert epe1.shape == (1,) and tepe1.shape == (0,)
 
 
-def test_curve_panels_y_axis_ends_at_the_step_above_the_largest_value():
-  # 7 px: steps of 2 (1.4 per tick of 5, rounded up to 2), the axis up to 8 px; the line
-  # at 7 / 8 of the plot's height (rows top .. top + height), not clipped at its top
-  img = eval_plots._panel({"m": np.array([7.0, 7.0])}, "", "frame")  # pylint: disable=protected-access
+@pytest.mark.parametrize("value, axis_end", [(7.0, 8.0), (6.5, 8.0), (0.1 * 3, 0.1 * 3)])
+def test_curve_panels_y_axis_ends_at_the_step_above_the_largest_value(value, axis_end):
+  # 7 px (or 6.5): steps of 2 (1.4 per tick of 5, rounded up to 2), the axis up to 8 px;
+  # the line at 7 / 8 of the plot's height (rows top .. top + height), not clipped at its top.
+  # 0.1 * 3 (0.30000000000000004): steps of 0.1, and 3 of them end at the value itself (its
+  # rounding error above 3 steps is no fourth), the line at the top.
+  img = eval_plots._panel({"m": np.array([value, value])}, "", "frame")  # pylint: disable=protected-access
   width, height = eval_plots._PANEL  # pylint: disable=protected-access
-  _, _, top, bottom = eval_plots._MARGIN  # pylint: disable=protected-access
-  row = top + (height - top - bottom) * (1 - 7 / 8)
+  left, right, top, bottom = eval_plots._MARGIN  # pylint: disable=protected-access
+  row = top + (height - top - bottom) * (1 - value / axis_end)
   colour = eval_plots._COLOURS[0]  # pylint: disable=protected-access
   rows = np.nonzero(np.all(img[:, 100:500] == colour, axis=-1).any(axis=1))[0]
   assert rows.size and np.all(np.abs(rows - row) <= 2), (rows, row)
+  assert (img[top - 8:top + 6, :60] < 128).any()  # the axis end's tick label, left of the plot
+  assert (img[height - bottom + 3, [left, width - right]] == 0).all()  # frames 0 and 1's ticks
 
 
 def test_south_kensington_has_no_metrics_but_predictions_and_strips(tmp_path, ckpt, variables,
@@ -1202,6 +1257,11 @@ def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt
   eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": pred}, frames=3, tile=32)
   assert all(10 <= lo < 12 and 48 < hi <= 50 for lo, hi in ranges), ranges
   ranges.clear()
+  spiked = pred.copy()
+  spiked[:, 0, 0] = 1000.0  # one pixel of each frame, above the 99th percentile: no end
+  eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": spiked}, frames=3, tile=32)
+  assert ranges and all(10 <= lo < 12 and 48 < hi <= 50 for lo, hi in ranges), ranges
+  ranges.clear()
   # the shown frames' prediction only: 2 columns of 5 frames show frames 0 and 4, and the
   # 1000 px of frames 1..3 set no end
   far = np.concatenate([pred[:1], np.full((3, h, w), 1000.0, np.float32), pred[:1]])
@@ -1212,6 +1272,10 @@ def test_strip_colours_by_the_prediction_where_the_shown_frames_have_no_valid_gt
   clip["valid"][:] = True  # with valid pixels: the ground truth's range (5 px everywhere)
   eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": pred}, frames=3, tile=32)
   assert ranges and all((lo, hi) == (5, 6) for lo, hi in ranges), ranges  # a constant: +1 px
+  ranges.clear()
+  clip["disparity"][:] = 0.0  # valid, but no disparity > 0 to take a range from
+  eval_plots.write_strip(tmp_path / "s.png", clip, {"SAV": pred}, frames=3, tile=32)
+  assert ranges and all(10 <= lo < 12 and 48 < hi <= 50 for lo, hi in ranges), ranges
 
 
 def test_strip_colour_range_is_the_valid_ground_truths_1st_to_99th_percentile(
@@ -1266,6 +1330,12 @@ def test_the_report_names_skipped_sequences(tmp_path):
   eval_report.write_all(tmp_path, summary)
   assert json.loads((tmp_path / "results.json").read_text())["skipped_sequences"] == [
       "seq_a", "seq_c"]
+  # A name that is not UTF-8 (kept by Python as surrogates): results.md shows it escaped
+  summary["skipped_sequences"] = ["caf\udce9"]
+  out = tmp_path / "eval" / "dynamic_replica"  # (folders made as needed)
+  eval_report.write_all(out, summary)
+  assert "as the official evaluation does: caf\\udce9." in (out / "results.md").read_text()
+  assert json.loads((out / "results.json").read_text())["skipped_sequences"] == ["caf\udce9"]
 
 
 # results.md's column headings and the official metric keys they show.
@@ -1305,6 +1375,7 @@ def test_report_columns_show_the_metrics_they_name(tmp_path):
   aggregate = summary["methods"]["sav"]["aggregate"]
   assert summary["frames"] == 8 and aggregate["disp_TCC"] == pytest.approx(10 + 0.0625 + 0.15625)
   md = eval_report.markdown(summary)
+  assert "iters 20, window 20 / stride 10, float32; 2 sequences, 8 frames." in md, md
   head, rows = _table(md, "Method")
   assert head == ["Method", *REPORT_COLUMNS, "frames/s"] and len(rows) == 1
   assert rows[0][0] == "Stereo Any Video" and rows[0][-1] == "4.00"
@@ -1317,12 +1388,19 @@ def test_report_columns_show_the_metrics_they_name(tmp_path):
     for heading, cell in zip(head[3:], row[3:]):
       assert cell == f"{res.metrics['sav'][REPORT_COLUMNS[heading]]:.3f}", heading
   eval_report.write_csv(tmp_path / "results.csv", summary)
+  with open(tmp_path / "results.csv", encoding="utf-8") as fh:
+    assert next(csv.reader(fh)) == ["method", "sequence", "frames", *REPORT_COLUMNS.values(),
+                                    "disp_OPW_100", "disp_OPW_30", "disp_OPW_50", "disp_RTC_30"]
   rows = list(csv.DictReader(open(tmp_path / "results.csv", encoding="utf-8")))
   assert [(r["sequence"], r["frames"]) for r in rows] == [
       ("seq_a", "3"), ("seq_b", "5"), (eval_report.ALL, "8")]
   for k in keys:
     assert float(rows[-1][k]) == pytest.approx(aggregate[k], rel=1e-12), k
+    assert [float(r[k]) for r in rows[:2]] == [res.metrics["sav"][k] for res in results], k
   assert summary["methods"]["sav"]["measured_frames"] == 8 and "(8 with" not in md
+  del summary["methods"]["sav"]["measured_frames"]  # results.json of a run before the field
+  eval_report.write_csv(tmp_path / "results.csv", summary)
+  assert list(csv.DictReader(open(tmp_path / "results.csv", encoding="utf-8")))[-1]["frames"] == "8"
   # A sequence without ground truth (no metrics): predicted, not in the means, and the
   # aggregate rows say which frames they weigh.
   results.append(eval_runner.SequenceResult(name="seq_c", frames=4, seconds={"sav": 1.0}))
@@ -1363,6 +1441,9 @@ def test_report_shows_a_metric_that_any_method_has():
   results = [eval_runner.SequenceResult(name="seq_b", frames=4, seconds={"sav": 1.0})]
   md = eval_report.markdown(build_summary(config, "w", results, ["sav"]))
   assert "1 sequence, 4 frames." in md and "with ground truth" not in md, md
+  assert "No ground truth in this dataset: no metrics (predictions and plots only)." in md, md
+  assert _table(md, "Sequence") == (["Sequence", "Frames", "Method"],
+                                    [["seq_b", "4", "Stereo Any Video"]])  # a row, no values
   # The notes of every sequence are listed, in order.
   results = [eval_runner.SequenceResult(name=n, frames=2, seconds={"sav": 1.0}, notes=[n + "!"])
              for n in ("seq_b", "seq_c")]
@@ -1390,6 +1471,9 @@ def test_summary_totals_are_sums_over_the_sequences():
   assert sav["measured_frames"] == 8 and sgbm["measured_frames"] == 0  # sgbm: no metrics
   md = eval_report.markdown(summary)
   assert "(compilation: Stereo Any Video 2.5 s). Metrics: 1.5 s.\n" in md, md
+  config.metrics.raft = "raft-things.pth"
+  md = eval_report.markdown(build_summary(config, "w", results, ["sav", "sgbm"]))
+  assert "Metrics: 1.5 s (RAFT's flows included).\n" in md, md
   _, rows = _table(md, "Method")
   assert [row[-1] for row in rows] == ["2.00", "8.00"]
 
@@ -1408,6 +1492,14 @@ def test_a_training_config_is_named_and_the_fields_it_lacks_counted():
                                        rf"([\w.]+, ){{5}}[\w.]+ and {n - 6} more; it is a "
                                        r"training config \(python -m train\)"):
     eval_config.check_fields(ml_collections.ConfigDict({"optimizer": {"lr": 0.1}}), "t.py")
+  six = common.eval_config("x", sample_len=-1)  # without the blocks metrics (3) and plots (3)
+  del six.metrics, six.plots
+  with pytest.raises(ValueError) as e:
+    eval_config.check_fields(six, "e.py")
+  assert str(e.value) == (
+      "e.py is not an evaluation config: it lacks metrics.raft, metrics.raft_iters, "
+      "metrics.tcc, plots.enabled, plots.strip_frames, plots.tile_size; evaluation configs "
+      "build on configs/eval/common.py (e.g. configs/eval/sintel_final.py)")
 
 
 def test_short_dynamic_replica_sequences_are_dropped_and_named(tmp_path):
@@ -1425,6 +1517,10 @@ def test_short_dynamic_replica_sequences_are_dropped_and_named(tmp_path):
   kept, skipped = eval_data.load_sequences_and_skipped(config, tmp_path)
   assert [(s.name, len(s)) for s in kept] == [("long", 3), ("exact", 3)]
   assert skipped == ["short"]
+  config.sample_len = 5  # longer than all: the longest (4 frames) is named
+  with pytest.raises(ValueError, match=r"all 3 dynamic_replica/test sequences under .* are "
+                     r"shorter than config.sample_len=5 frames .* to at most 4 \(or 0"):
+    eval_data.load_sequences_and_skipped(config, tmp_path)
   _sintel(tmp_path, rng, seqs=(("alley_1", 3), ("cave_2", 2)))
   config = eval_config.load_config(str(CONFIGS / "sintel_final.py"))
   config.sample_len = 3
@@ -1466,6 +1562,7 @@ def test_the_report_names_the_folder_the_frames_came_from():
       "/d/sintel/training/final_left"
   assert read_from(["/mnt/a/s1", "/media/b/s2"]) == "/media/b/s2, /mnt/a/s1"  # only "/" shared
   assert read_from(["rel/s1", "/abs/s2"]) == "/abs/s2, rel/s1"  # commonpath raises on a mix
+  assert read_from(["/d/s4", "/c/s3", "/b/s2", "/a/s1"]) == "/a/s1, /b/s2, /c/s3, ... (1 more)"
 
 
 def test_sequences_whose_scores_are_not_measurements_are_noted(tmp_path, monkeypatch, caplog):
@@ -1803,7 +1900,7 @@ def test_override_values_of_each_type():
   as written; a nested field is named with its block."""
   config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
   for text, value in (("yes", True), ("No", False), ("ON", True), ("off", False), ("1", True),
-                      ("0", False), ("True", True), ("false", False)):
+                      ("0", False), ("True", True), ("false", False), (" on\n", True)):
     eval_config.apply_overrides(config, [("plots.enabled", text)])
     assert config.plots.enabled is value, text
   for bad in ("4.5", "4e0", "four"):
@@ -1814,6 +1911,12 @@ def test_override_values_of_each_type():
   assert config.synthetic.max_disparity == 7.0 and isinstance(config.synthetic.max_disparity,
                                                                float)
   assert config.metrics.raft == "1" and config.dtype == "bfloat16"
+  with config.unlocked():  # a tuple field of a config file of one's own: a Python literal
+    config.synthetic.textures = ("checker",)
+  eval_config.apply_overrides(config, [("synthetic.textures", "('checker', 'noise')")])
+  assert config.synthetic.textures == ("checker", "noise")
+  with pytest.raises(ValueError, match="--config.synthetic.textures: "):  # not a literal
+    eval_config.apply_overrides(config, [("synthetic.textures", "checker")])
   for name in ("plots", "metrics.raft.x", "iters.x", "synthetic"):  # a block, or below a leaf
     with pytest.raises(ValueError, match=f"--config.{name}: no such config field"):
       eval_config.apply_overrides(config, [(name, "1")])
@@ -1953,6 +2056,12 @@ def test_strip_rows_show_the_frames_and_the_absolute_ground_truth(tmp_path):
                                  {"SAV": gt}, frames=t, tile=12)
   img = cv2.imread(str(small))
   assert img.shape[0] == 24 + 4 * 8 and img.shape[1] == label_w + t * 12  # 24x16 -> 12x8
+  # The columns are frames spread evenly, rounded to the nearest: 4 of 11 frames are 0, 10/3,
+  # 20/3 and 10, frames 0, 3, 7 and 10 (each frame here grey 20 x its index)
+  ramp = np.repeat((np.arange(11) * 20).astype(np.uint8), h * w * 3).reshape(11, h, w, 3)
+  img = cv2.imread(str(eval_plots.write_strip(tmp_path / "ramp.png", {"left": ramp},
+                                              {"SAV": np.repeat(gt[:1], 11, 0)}, frames=4)))
+  assert img[24 + h // 2, img.shape[1] - 4 * w + w // 2::w, 0].tolist() == [0, 60, 140, 200]
 
 
 def test_default_output_folder_and_files(tmp_path, ckpt, monkeypatch):
