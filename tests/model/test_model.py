@@ -255,6 +255,7 @@ def test_bad_config_raises():
     ({"hiden_dim": 128}, r"unknown SAVConfig fields \['hiden_dim'\]; known: \['context_dim'"),
     ({"depth_dim": 16}, r"depth_dim \+ fnet_dim must equal context_dim \(16 \+ 96 != 128\)"),
     ({"frame_block_mb": float("inf")}, r"frame_block_mb must be a finite number > 0"),
+    ({"frame_block_mb": 0}, r"frame_block_mb must be a finite number > 0, got 0\.0"),
 ])
 def test_config_fields_of_the_wrong_type_or_value_are_named(fields, match):
   """A config read from a checkpoint's JSON fails here, not deep inside JAX at trace time."""
@@ -290,6 +291,15 @@ def test_config_defaults_and_derived_settings():
   and out_channels 256, 512, 1024, 1024)."""
   cfg = sav_jax.SAVConfig()
   assert (cfg.frame_block_mb, cfg.detach_flow, cfg.compute_dtype) == (1024.0, True, jnp.float32)
+  assert (cfg.vda_encoder, cfg.dtype, cfg.remat, cfg.remat_policy, cfg.vit_attention,
+          cfg.gru_conv) == ("vits", "float32", False, None, "auto", "auto")
+  # design.md: features [VDA 32 | fnet 96] = 128 channels, correlated in 4 groups; a 128-channel
+  # GRU; convex upsampling from 1/4 resolution
+  assert (cfg.depth_dim, cfg.fnet_dim, cfg.context_dim, cfg.corr_groups, cfg.hidden_dim,
+          cfg.upsample_rate) == (32, 96, 128, 4, 128, 4)
+  assert cfg.vda == dict(encoder="vits", features=64, out_channels=(48, 96, 192, 384))
+  assert sav_jax.SAVConfig(vda_encoder="vitb").vda == dict(
+      encoder="vitb", features=128, out_channels=(96, 192, 384, 768))
   assert sav_jax.SAVConfig(dtype="bfloat16").compute_dtype == jnp.bfloat16
   assert sav_jax.SAVConfig(dtype=np.dtype(np.float32)).dtype == "float32"  # a dtype object
   assert sav_jax.SAVConfig(vda_encoder="vitl").vda == dict(
