@@ -1567,6 +1567,102 @@ def test_command_logging_quiets_jax_and_absl_and_restores():
   absl.setLevel(before[0])
 
 
+@pytest.mark.parametrize("value", ["1", " 1\n", 1, "all", " ALL ", "0", 0])
+def test_devices_option_takes_a_number_or_all(value):
+  # (this process has one CPU device: 1, "all" and 0 are each that one)
+  from sav_jax.tools import resolve_devices_option  # pylint: disable=import-outside-toplevel
+  assert resolve_devices_option(value) == jax.local_devices()
+
+
+@pytest.mark.parametrize("value,name,takes_all,message", [
+    ("two", "--devices", True, "--devices: devices must be a number of local devices >= 1, or "
+                               "0 or 'all' for every one, got 'two'"),
+    (-1, "config.devices", False, "config.devices: devices must be a number of local devices "
+                                  ">= 1, or 0 for every one, got -1"),
+    (3, "config.devices", False, "config.devices: devices=3, but 1 local cpu device is available"),
+])
+def test_devices_option_refuses_other_values_naming_the_option(value, name, takes_all, message):
+  from sav_jax.tools import UsageError, resolve_devices_option  # pylint: disable=import-outside-toplevel
+  with pytest.raises(UsageError, match=f"^{re.escape(message)}$"):
+    resolve_devices_option(value, name, takes_all=takes_all)
+
+
+def test_matmul_precision_option_applies_the_precision_and_names_the_one_in_effect():
+  import argparse  # pylint: disable=import-outside-toplevel
+  from sav_jax import tools  # pylint: disable=import-outside-toplevel
+  p = argparse.ArgumentParser()
+  tools.add_matmul_precision_argument(p)
+  tools.add_devices_argument(p)
+  args = p.parse_args([])
+  assert args.matmul_precision is None and args.devices == "1"
+  context, name = tools.matmul_precision(args)  # not given: JAX's setting stays
+  with context:
+    assert jax.config.jax_default_matmul_precision is None
+  assert name == "default"
+  with jax.default_matmul_precision("high"):  # as JAX_DEFAULT_MATMUL_PRECISION=high sets it
+    assert tools.matmul_precision(args)[1] == "high"
+  context, name = tools.matmul_precision(p.parse_args(["--matmul-precision", "highest"]))
+  with context:
+    assert str(jax.config.jax_default_matmul_precision) == "highest"
+  assert name == "highest" and jax.config.jax_default_matmul_precision is None
+
+
+def test_output_folder_check_names_what_is_in_the_way(tmp_path, monkeypatch):
+  from sav_jax.tools import UsageError, check_output_dir  # pylint: disable=import-outside-toplevel
+  (tmp_path / "f").write_text("keep")
+  (tmp_path / "link").symlink_to(tmp_path / "moved")
+  assert check_output_dir(str(tmp_path / "new" / "out")) == tmp_path / "new" / "out"
+  assert check_output_dir(tmp_path) == tmp_path
+  f, link = tmp_path / "f", tmp_path / "link"
+  for out, flag, message in (
+      (f, "--out", f"--out {f} is a file, not a folder"),
+      (f / "out", "--out", f"--out {f / 'out'}: {f} is a file, not a folder"),
+      (f / "out", "DST d: folder", f"DST d: folder {f / 'out'}: {f} is a file, not a folder"),
+      (link / "out", "--out", f"--out {link / 'out'}: {link} is a symbolic link to a missing "
+                              f"folder ({tmp_path / 'moved'}), or a loop of links")):
+    with pytest.raises(UsageError, match=f"^{re.escape(message)}$"):
+      check_output_dir(out, *(flag,) * (flag != "--out"))
+  assert f.read_text() == "keep" and not (tmp_path / "moved").exists()
+  # a folder the user may not write in (os.access says yes to root: asked here)
+  monkeypatch.setattr(os, "access", lambda path, mode: mode != os.W_OK | os.X_OK)
+  message = f"--out {tmp_path / 'a'}: no permission to write in {tmp_path}"
+  with pytest.raises(UsageError, match=f"^{re.escape(message)}$"):
+    check_output_dir(tmp_path / "a")
+
+
+def test_command_logging_sets_the_level_and_removes_its_handler(monkeypatch):
+  from sav_jax.tools import command_logging  # pylint: disable=import-outside-toplevel
+  root, jax_log = logging.getLogger(), logging.getLogger("jax")
+  monkeypatch.setattr(root, "handlers", [])  # (basicConfig adds one only where there is none)
+  before = (root.level, jax_log.level)
+  root.setLevel(logging.ERROR)
+  jax_log.setLevel(logging.NOTSET)
+  try:
+    for verbose, level in ((False, logging.INFO), (True, logging.DEBUG)):
+      with command_logging(verbose):
+        assert root.level == level and len(root.handlers) == 1  # INFO to stderr
+        assert jax_log.level == (logging.NOTSET if verbose else logging.WARNING)
+      assert (root.handlers, root.level, jax_log.level) == ([], logging.ERROR, logging.NOTSET)
+  finally:
+    root.setLevel(before[0])
+    jax_log.setLevel(before[1])
+
+
+@pytest.mark.parametrize("errors,printed", [("strict", b"caf\\udce9\n"),
+                                            ("surrogateescape", b"caf\xe9\n")])
+def test_printed_names_that_are_not_utf8(monkeypatch, errors, printed):
+  # a UTF-8 locale's stdout shows the name's bytes as \udce9; a C locale's writes the bytes
+  import io  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import printable_names  # pylint: disable=import-outside-toplevel
+  stream = io.TextIOWrapper(io.BytesIO(), encoding="utf-8", errors=errors)
+  monkeypatch.setattr(sys, "stdout", stream)
+  with printable_names():
+    print("caf\udce9")
+  assert stream.errors == errors  # put back
+  stream.flush()
+  assert stream.buffer.getvalue() == printed
+
+
 def test_frame_folders_in_number_order_without_hidden_files(tmp_path):
   # `frame_2` before `frame_10` (unpadded numbering), and macOS `._*` copies left out
   frames = [np.full((H, W, 3), 20 * i, np.uint8) for i in range(4)]

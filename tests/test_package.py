@@ -143,6 +143,16 @@ def test_a_commands_warnings_are_one_line_each_on_stderr(capsys, bench_runs):
   assert warnings.showwarning is shown  # put back
 
 
+def test_a_warning_shown_on_a_given_file_is_written_there():
+  import io  # pylint: disable=import-outside-toplevel
+  import warnings  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import one_line_warnings  # pylint: disable=import-outside-toplevel
+  f = io.StringIO()
+  with one_line_warnings("eval"):
+    warnings.showwarning("frames 0..4 look swapped", UserWarning, "x.py", 1, file=f)
+  assert f.getvalue() == "eval: warning: frames 0..4 look swapped\n"
+
+
 def test_main_leaves_the_callers_settings_and_logging(tmp_path, bench_runs):
   import logging  # pylint: disable=import-outside-toplevel
   import jax  # pylint: disable=import-outside-toplevel
