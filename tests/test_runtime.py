@@ -117,6 +117,40 @@ def test_cache_off_means_off_even_when_the_environment_sets_one(tmp_path, restor
   assert not any(env_cache.iterdir())
 
 
+@pytest.mark.parametrize("default_on", [True, False])
+def test_compile_cache_options(tmp_path, restore_cache_config, default_on):
+  """`--compile-cache DIR` is used (created); without it the cache is on where the command has
+  it on by default (the folder JAX was given: the test session's), and off elsewhere;
+  `--no-compile-cache` exists only where it is on by default; the low-memory compile is on
+  unless `--no-low-memory-compile` (and where a command has no such option)."""
+  import argparse  # pylint: disable=import-outside-toplevel
+  from sav_jax import tools  # pylint: disable=import-outside-toplevel
+  session = jax.config.jax_compilation_cache_dir
+  assert session
+  p = argparse.ArgumentParser()
+  tools.add_compile_cache_arguments(p, default_on=default_on)
+  assert ("(default: off)" in " ".join(p.format_help().split())) != default_on
+  args = p.parse_args([])
+  assert args.compile_cache is None and args.low_memory_compile
+  runtime.set_low_memory_compile(False)
+  got = tools.setup_compile_cache(args, default_on=default_on)
+  assert str(got) == session if default_on else got is None
+  assert (jax.config.jax_compilation_cache_dir or None) == (session if default_on else None)
+  assert runtime._low_memory_compile  # pylint: disable=protected-access
+  args = p.parse_args(["--compile-cache", str(tmp_path / "xla"), "--no-low-memory-compile"])
+  assert tools.setup_compile_cache(args, default_on=default_on) == tmp_path / "xla"
+  assert jax.config.jax_compilation_cache_dir == str(tmp_path / "xla")
+  assert (tmp_path / "xla").is_dir() and not runtime._low_memory_compile  # pylint: disable=protected-access
+  runtime.set_low_memory_compile(False)
+  tools.setup_compile_cache(argparse.Namespace(compile_cache=None), default_on=default_on)
+  assert runtime._low_memory_compile  # pylint: disable=protected-access  # a command without the option
+  if default_on:
+    assert p.parse_args(["--no-compile-cache"]).no_compile_cache
+  else:
+    with pytest.raises(SystemExit):
+      p.parse_args(["--no-compile-cache"])
+
+
 def test_release_host_memory_works_on_glibc():
   junk = [bytearray(1 << 20) for _ in range(64)]  # 64 MB allocated and freed
   del junk
