@@ -2363,6 +2363,13 @@ def test_the_progress_bar_is_drawn_on_terminals_only_and_the_schedule_is_describ
   bar.update(1)
   bar.close()
   assert "6/10" in resumed.getvalue()
+  for index, shown in ((1, False), (0, True)):  # on standard error, by process 0 only
+    monkeypatch.setattr(sys, "stderr", Terminal())
+    monkeypatch.setattr(jax, "process_index", lambda i=index: i)
+    bar = logging_utils.Progress(0, 10)
+    bar.update(3)
+    bar.close()
+    assert ("3/10" in sys.stderr.getvalue()) == shown
   monkeypatch.setitem(sys.modules, "ipykernel", types.ModuleType("ipykernel"))  # a notebook:
   assert logging_utils.Progress(0, 10, stream=io.StringIO()).shown  # no TTY, but tqdm draws
   c = synthetic.get_config()
