@@ -1617,6 +1617,7 @@ def test_output_folder_check_names_what_is_in_the_way(tmp_path, monkeypatch):
   for out, flag, message in (
       (f, "--out", f"--out {f} is a file, not a folder"),
       (f / "out", "--out", f"--out {f / 'out'}: {f} is a file, not a folder"),
+      (f, "DST d: folder", f"DST d: folder {f} is a file, not a folder"),
       (f / "out", "DST d: folder", f"DST d: folder {f / 'out'}: {f} is a file, not a folder"),
       (link / "out", "--out", f"--out {link / 'out'}: {link} is a symbolic link to a missing "
                               f"folder ({tmp_path / 'moved'}), or a loop of links")):

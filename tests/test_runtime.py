@@ -142,8 +142,10 @@ def test_compile_cache_options(tmp_path, restore_cache_config, default_on):
   assert jax.config.jax_compilation_cache_dir == str(tmp_path / "xla")
   assert (tmp_path / "xla").is_dir() and not runtime._low_memory_compile  # pylint: disable=protected-access
   runtime.set_low_memory_compile(False)
-  tools.setup_compile_cache(argparse.Namespace(compile_cache=None), default_on=default_on)
-  assert runtime._low_memory_compile  # pylint: disable=protected-access  # a command without the option
+  args = argparse.Namespace(compile_cache=None)  # a command without these options
+  got = tools.setup_compile_cache(args, default_on=default_on)
+  assert got == (tmp_path / "xla" if default_on else None)  # (the folder now in use)
+  assert runtime._low_memory_compile  # pylint: disable=protected-access
   if default_on:
     assert p.parse_args(["--no-compile-cache"]).no_compile_cache
   else:
