@@ -2233,6 +2233,97 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
   assert "train: error: flag --config.train.batch_size=abc: invalid literal" in proc.stderr
 
 
+@pytest.mark.parametrize("argv, want", [
+    # the last of a repeated override wins, in either spelling
+    (["train", "--config.data.crop=(32, 32)", "--config.data.crop", "(48, 64)", "--workdir", "w"],
+     ["train", "--config.data.crop", "(48, 64)", "--workdir", "w"]),
+    (["--config.a=1", "--config.b=2", "--config.a=3"], ["--config.b=2", "--config.a=3"]),
+    (["--config.a", "-1", "--config.a", "2"], ["--config.a", "2"]),  # a negative value
+    # after `--` nothing is an override; a field without a value, or before a flag, is kept
+    (["--config.a=1", "--", "--config.a=2"], ["--config.a=1", "--", "--config.a=2"]),
+    (["--config.a", "--config.b=1", "--config.a"], ["--config.a", "--config.b=1", "--config.a"]),
+])
+def test_train_command_keeps_the_last_of_each_config_override(argv, want):
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+  assert train_main.last_overrides(argv) == want
+
+
+@pytest.mark.parametrize("value, want", [
+    ("1e5", "100000"), ("1.2e5", "120000"), ("1E+3", "1000"), ("-2e2", "-200"),
+    ("1.e3", "1000"), ("2.5e1", "25"), ("1e100", "1" + "0" * 100),
+    # not a whole number, or not a number in scientific notation: kept
+    ("1e-4", "1e-4"), ("1.25e1", "1.25e1"), ("1e1000", "1e1000"), ("1e3x", "1e3x"),
+    ("100", "100"), ("abc", "abc")])
+def test_train_command_reads_whole_numbers_in_scientific_notation(value, want):
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+  assert train_main.integral_numbers(["train", f"--config.train.num_steps={value}"]) == [
+      "train", f"--config.train.num_steps={want}"]
+  assert train_main.integral_numbers(["--config.train.num_steps", value, "--workdir", "1e3"]) == [
+      "--config.train.num_steps", want, "--workdir", "1e3"]
+  # only an override's own value: not an argument after `--config.a=1` or another flag
+  assert train_main.integral_numbers(["--config.a=1", value]) == ["--config.a=1", value]
+
+
+@pytest.mark.parametrize("argv, want", [
+    (["train", "--config", "a.py", "--config=b.py"], "a.py"),
+    (["train", "-config", "a.py"], "a.py"),
+    (["train", "--config=runs/a=1/c.py:x", "--config", "b.py"], "runs/a=1/c.py:x"),
+    (["train", "-config=c.py"], "c.py"),
+    (["train", "--config.train.iters=3", "--config"], "(--config)"), ([], "(--config)")])
+def test_train_command_names_the_config_file_in_its_messages(argv, want):
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+  assert train_main._config_arg(argv) == want  # pylint: disable=protected-access
+
+
+def test_train_command_finds_the_packages_config_files_from_any_folder(monkeypatch, tmp_path,
+                                                                       capsys):
+  import configs  # pylint: disable=g-import-not-at-top
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+  package = pathlib.Path(configs.__file__).parent
+  monkeypatch.chdir(tmp_path)  # a folder without configs/
+  (tmp_path / "mine.py").write_text("")
+  argv = ["train", "--config", "configs/synthetic.py", "-config=configs/eval/folder.py:x",
+          "-config", "mine.py", "--config=configs/nope.py", "--config.data.crop=(32, 64)",
+          "--config"]
+  assert train_main.located_config(argv) == [
+      "train", "--config", str(package / "synthetic.py"),
+      f"-config={package / 'eval' / 'folder.py'}:x", "-config", "mine.py",
+      "--config=configs/nope.py", "--config.data.crop=(32, 64)", "--config"]
+  # a `configs` of the folder's own, first on the module path: one line
+  monkeypatch.setitem(sys.modules, "configs", types.ModuleType("configs"))
+  with pytest.raises(SystemExit) as info:
+    train_main.located_config(["train", "--config", "configs/synthetic.py"])
+  assert info.value.code == 2
+  assert capsys.readouterr().err.startswith(
+      "train: error: `configs` is another package, not sav-jax's configs package: ")
+
+
+def test_train_command_reports_where_a_run_resumes_and_an_unloadable_config(
+    toy_run, tmp_path, monkeypatch, capsys):
+  from sav_jax.convert import orbax_io  # pylint: disable=g-import-not-at-top
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+
+  def resume_point(workdir):
+    monkeypatch.setattr(train_main, "_WORKDIR", types.SimpleNamespace(value=str(workdir)))
+    return train_main._resume_point()  # pylint: disable=protected-access
+
+  assert resume_point(toy_run[0]) == (f"the last checkpoint is {toy_run[0] / 'checkpoints' / '1'}"
+                                      ": the same command resumes from it")
+  anew = "no checkpoint was saved: the same command starts the run anew"
+  assert resume_point(tmp_path / "new") == anew
+
+  def unreadable(path):
+    raise PermissionError(13, "Permission denied", str(path))
+
+  monkeypatch.setattr(orbax_io, "find_training_checkpoint", unreadable)
+  assert resume_point(toy_run[0]) == anew
+  # ml_collections' report of a --config file it cannot load: its last line names the file
+  with pytest.raises(SystemExit) as info:
+    train_main._config_file_error(OSError("Could not load:\n\n  b.py: not found  \n"))  # pylint: disable=protected-access
+  assert info.value.code == 2
+  assert capsys.readouterr().err == "train: error: cannot load the --config file: b.py: not found\n"
+
+
 def test_logged_means_leave_out_skipped_steps(caplog):
   from train import loop  # pylint: disable=import-outside-toplevel
 
