@@ -2324,6 +2324,36 @@ def test_train_command_reports_where_a_run_resumes_and_an_unloadable_config(
   assert capsys.readouterr().err == "train: error: cannot load the --config file: b.py: not found\n"
 
 
+@pytest.mark.parametrize("coordinator, n, i, says", [
+    ("h:1", 1, 0, None), ("h:1", 3, 2, None),  # valid: joins the coordinator
+    ("h:1", 2, 2, "got --num_processes=2 --process_id=2"),
+    ("h:1", 0, 0, "got --num_processes=0 --process_id=0"),
+    ("h:1", 2, -1, "got --num_processes=2 --process_id=-1"),
+    ("h:1", None, 0, "got --num_processes=None --process_id=0"),
+    (None, None, 4, "need --coordinator_address"), (None, 2, None, "need --coordinator_address")])
+def test_train_command_checks_its_multi_process_flags(monkeypatch, capsys, coordinator, n, i,
+                                                      says):
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+
+  class Joined(Exception):
+    pass
+
+  def initialize(*args):
+    raise Joined(args)
+
+  monkeypatch.setattr(jax.distributed, "initialize", initialize)
+  monkeypatch.setattr(train_main, "load_config", lambda: None)
+  for name, value in (("_COORD", coordinator), ("_NUM_PROC", n), ("_PROC_ID", i),
+                      ("_DISTRIBUTED", "off")):
+    monkeypatch.setattr(train_main, name, types.SimpleNamespace(value=value))
+  with pytest.raises(SystemExit if says else Joined) as info:
+    train_main.main(["train"])
+  if says is None:
+    assert info.value.args == (("h:1", n, i),)
+  else:
+    assert info.value.code == 2 and says in capsys.readouterr().err
+
+
 def test_logged_means_leave_out_skipped_steps(caplog):
   from train import loop  # pylint: disable=import-outside-toplevel
 
