@@ -2282,12 +2282,12 @@ def test_train_command_finds_the_packages_config_files_from_any_folder(monkeypat
   package = pathlib.Path(configs.__file__).parent
   monkeypatch.chdir(tmp_path)  # a folder without configs/
   (tmp_path / "mine.py").write_text("")
-  argv = ["train", "--config", "configs/synthetic.py", "-config=configs/eval/folder.py:x",
-          "-config", "mine.py", "--config=configs/nope.py", "--config.data.crop=(32, 64)",
-          "--config"]
+  argv = ["train", "--config", "configs/synthetic.py", "-config", "configs/mixed.py",
+          "-config=configs/eval/folder.py:x", "--config", "mine.py", "--config=configs/nope.py",
+          "--config.data.crop=(32, 64)", "--config"]
   assert train_main.located_config(argv) == [
-      "train", "--config", str(package / "synthetic.py"),
-      f"-config={package / 'eval' / 'folder.py'}:x", "-config", "mine.py",
+      "train", "--config", str(package / "synthetic.py"), "-config", str(package / "mixed.py"),
+      f"-config={package / 'eval' / 'folder.py'}:x", "--config", "mine.py",
       "--config=configs/nope.py", "--config.data.crop=(32, 64)", "--config"]
   # a `configs` of the folder's own, first on the module path: one line
   monkeypatch.setitem(sys.modules, "configs", types.ModuleType("configs"))
