@@ -1551,20 +1551,29 @@ def test_fill_invalid_takes_the_smaller_nearest_valid_value_of_the_row():
   np.testing.assert_array_equal(demo.fill_invalid(disp[:, ::-1]), np.array(want)[:, ::-1])
 
 
-def test_command_logging_quiets_jax_and_absl_and_restores():
-  import logging  # pylint: disable=import-outside-toplevel
-
+@pytest.mark.parametrize("handlers", [0, 1])
+def test_command_logging_sets_the_levels_and_restores(monkeypatch, handlers):
+  """INFO (DEBUG with --verbose) on the root logger, a stderr handler added only where the
+  root has none (basicConfig's rule: a notebook's is kept), JAX's and absl's INFO lines quiet
+  unless --verbose; afterwards all as it was."""
   from sav_jax.tools import command_logging  # pylint: disable=import-outside-toplevel
-  absl, root = logging.getLogger("absl"), logging.getLogger()
-  before = (absl.level, root.level, list(root.handlers))
-  absl.setLevel(logging.NOTSET)
-  with command_logging(verbose=False):
-    assert absl.level == logging.WARNING and logging.getLogger("jax").level == logging.WARNING
-    assert root.getEffectiveLevel() <= logging.INFO
-  assert absl.level == logging.NOTSET and list(root.handlers) == before[2]
-  with command_logging(verbose=True):
-    assert absl.level == logging.NOTSET  # --verbose shows everything
-  absl.setLevel(before[0])
+  root, jax_log, absl = (logging.getLogger(n) for n in (None, "jax", "absl"))
+  mine = [logging.NullHandler()] * handlers
+  monkeypatch.setattr(root, "handlers", list(mine))
+  before = (root.level, jax_log.level, absl.level)
+  for logger, level in ((root, logging.ERROR), (jax_log, logging.NOTSET), (absl, logging.NOTSET)):
+    logger.setLevel(level)
+  try:
+    for verbose, level in ((False, logging.INFO), (True, logging.DEBUG)):
+      with command_logging(verbose):
+        assert root.level == level and len(root.handlers) == 1  # the user's, or one to stderr
+        quiet = logging.NOTSET if verbose else logging.WARNING  # --verbose shows everything
+        assert (jax_log.level, absl.level) == (quiet, quiet)
+      assert (root.handlers, root.level, jax_log.level, absl.level) == (
+          mine, logging.ERROR, logging.NOTSET, logging.NOTSET)
+  finally:
+    for logger, level in zip((root, jax_log, absl), before):
+      logger.setLevel(level)
 
 
 @pytest.mark.parametrize("value", ["1", " 1\n", 1, "all", " ALL ", "0", 0])
@@ -1629,24 +1638,6 @@ def test_output_folder_check_names_what_is_in_the_way(tmp_path, monkeypatch):
   message = f"--out {tmp_path / 'a'}: no permission to write in {tmp_path}"
   with pytest.raises(UsageError, match=f"^{re.escape(message)}$"):
     check_output_dir(tmp_path / "a")
-
-
-def test_command_logging_sets_the_level_and_removes_its_handler(monkeypatch):
-  from sav_jax.tools import command_logging  # pylint: disable=import-outside-toplevel
-  root, jax_log = logging.getLogger(), logging.getLogger("jax")
-  monkeypatch.setattr(root, "handlers", [])  # (basicConfig adds one only where there is none)
-  before = (root.level, jax_log.level)
-  root.setLevel(logging.ERROR)
-  jax_log.setLevel(logging.NOTSET)
-  try:
-    for verbose, level in ((False, logging.INFO), (True, logging.DEBUG)):
-      with command_logging(verbose):
-        assert root.level == level and len(root.handlers) == 1  # INFO to stderr
-        assert jax_log.level == (logging.NOTSET if verbose else logging.WARNING)
-      assert (root.handlers, root.level, jax_log.level) == ([], logging.ERROR, logging.NOTSET)
-  finally:
-    root.setLevel(before[0])
-    jax_log.setLevel(before[1])
 
 
 @pytest.mark.parametrize("errors,printed", [("strict", b"caf\\udce9\n"),
