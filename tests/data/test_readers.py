@@ -142,6 +142,39 @@ def test_a_dataset_folder_linked_to_nothing_is_named(tmp_path, dataset):
   assert "is not one either" not in str(e.value)
 
 
+@pytest.mark.parametrize("dataset,split,folder,message", [
+    ("sintel_final", "test", "sintel_stereo/training/final_left", "no Sintel sequences in"),
+    ("infinigen_sv", "test", "InfinigenStereo/test", "no Infinigen SV scenes in"),
+    ("vkitti2", "train", "vkitti2", "no VKITTI2 train sequences under"),
+    ("kitti_depth", "train", "kitti_depth/gt_depth", "no KITTI Depth train drives in"),
+    ("spring", "test", "Spring/train", "no Spring sequences under"),
+    ("south_kensington", "test", "SouthKensington/data",
+     "no South Kensington sequences with a camera txt under"),
+    ("tartanair", "train", "TartanAir/abandonedfactory/Easy", "no TartanAir train sequences"),
+])
+def test_a_split_without_sequences_is_an_error_not_an_empty_list(tmp_path, dataset, split,
+                                                                 folder, message):
+  """The dataset's folders there but empty (an archive not unpacked yet): an empty list would
+  be an evaluation or a training mix without that dataset, reported as if complete."""
+  (tmp_path / folder).mkdir(parents=True)
+  with pytest.raises(FileNotFoundError, match=message):
+    registry.get_sequences(dataset, tmp_path, split)
+
+
+@pytest.mark.parametrize("module", ["sintel", "infinigen", "vkitti2", "kitti_depth", "spring",
+                                    "south_kensington", "tartanair"])
+def test_a_reader_called_directly_refuses_an_unknown_split(tmp_path, module):
+  """`load_sequences` is public: a split it does not have ("valid", DR's name) is refused, not
+  read as another split (Sintel and VKITTI2 read their training sequences whatever it was)."""
+  reader = getattr(sav_jax.data, module)
+  with pytest.raises(ValueError, match=r"split must be one of \(.*\), got 'valid'"):
+    reader.load_sequences(tmp_path, "valid")
+  if module == "sintel":  # and a pass other than clean or final
+    with pytest.raises(ValueError, match=r"Sintel pass must be one of \('clean', 'final'\), "
+                                         "got 'albedo'"):
+      reader.load_sequences(tmp_path, "test", dstype="albedo")
+
+
 def test_a_renamed_dataset_folder_missing_a_file_is_not_called_the_wrong_root(tmp_path):
   """A dataset's folder under another name reads as that folder; a file missing in it was
   reported with "(ROOT holds no dynamic_replica_data/ folder and is not one either: pass the
