@@ -284,6 +284,15 @@ def test_a_frame_missing_from_every_folder_is_warned(tmp_path, caplog):
   # from the module's own logger (filterable by name; the root logger's "WARNING root:" before)
   assert {r.name for r in caplog.records if "evenly spaced" in r.getMessage()} == {
       "sav_jax.data.base"}
+  # Infinigen's reader, by the frame number inside its names (Image_0_0_0003_0.png).
+  caplog.clear()
+  _infinigen(tmp_path, np.random.default_rng(4), "test", [("scene001", 5)])
+  for path in (tmp_path / "InfinigenStereo/test/scene001/frames").rglob("*_0_0_0003_*"):
+    path.unlink()
+  with caplog.at_level(logging.WARNING):
+    assert len(registry.get_sequences("infinigen_sv", tmp_path, "test")[0]) == 4
+  assert ("Infinigen test/scene001: frame numbers are not evenly spaced: 1 gap(s), the first "
+          "after Image_0_0_0002_0.png (next Image_0_0_0004_0.png") in caplog.text
   # Evenly spaced numbers (every 10th frame kept) and names whose last number is no frame
   # number (Infinigen's camera index) are not; Infinigen's own frame number is read.
   caplog.clear()
@@ -628,6 +637,10 @@ def test_infinigen_scale_values_clips_and_eval_cut(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=f"camview_0_0_0001_1.npz: camview npz has K of shape "
                        rf"\({k.shape[0]},.*T of shape \({t.shape[0]},"):
       registry.get_sequences("infinigen_sv", tmp_path, "test")
+  np.savez(cam, K=np.eye(3), pose=np.eye(4))  # T under another name: a KeyError naming nothing
+  with pytest.raises(ValueError, match=r"camview_0_0_0001_1.npz: camview npz lacks K or T \(has "
+                     r"\['K', 'pose'\]\)"):
+    registry.get_sequences("infinigen_sv", tmp_path, "test")
 
 
 def _vkitti2(root, rng, names, n=2):
@@ -855,6 +868,7 @@ def test_spring_dsp5(tmp_path, layout):
   full = rng.uniform(1, 50, (2 * H, 2 * W)).astype(np.float32)
   full[0, 0] = full[2, 4] = np.nan
   full[4, 6], full[6, 8] = 0.0, 600.0  # infinitely far, and beyond the dense rule's 512
+  full[8, 10], full[10, 12] = np.inf, -np.inf  # not finite: invalid, d = 0 as for NaN
   written = {}
   _stereo(rng, dirs[0], dirs[1], ["frame_left_0001", "frame_left_0002"], written)
   for i in (1, 2):
@@ -871,7 +885,9 @@ def test_spring_dsp5(tmp_path, layout):
   f = seq[0]
   sub = full[::2, ::2]
   np.testing.assert_array_equal(f["valid"], np.isfinite(sub) & (sub > 0) & (sub < 512))
-  np.testing.assert_array_equal(f["disparity"], np.nan_to_num(sub, nan=0.0))
+  np.testing.assert_array_equal(f["disparity"], np.nan_to_num(sub, nan=0.0, posinf=0.0,
+                                                             neginf=0.0))
+  assert f["disparity"][4, 5] == 0 and f["disparity"][5, 6] == 0
   assert not f["valid"][0, 0] and not f["valid"][1, 2]
   assert not f["valid"][2, 3] and not f["valid"][3, 4] and f["valid"][1, 1]
   with pytest.raises(ValueError, match="disp1_left_0002.dsp5"):  # stored at image size
@@ -919,6 +935,17 @@ def test_south_kensington_images_only(tmp_path, monkeypatch):
   seqs = registry.get_sequences("south_kensington", tmp_path, "test")
   assert [(s.name, len(s)) for s in seqs] == [("indoor_1", 2)]
   assert seqs[0].depth2disp_scale == pytest.approx(910.5 * 0.12) and not seqs[0].has_gt
+  camera = data / "indoor_1/tracking_data.txt"
+  text = camera.read_text()
+  camera.write_text("Intrinsic: [[9.105e+02 0.000e+00 6.400e+02]\n"  # as numpy may print K
+                    " [0.000e+00 9.0525e+02 3.600e+02]\n [0.000e+00 0.000e+00 1.000e+00]]\n")
+  assert registry.get_sequences("south_kensington", tmp_path, "test")[0].depth2disp_scale == \
+      pytest.approx(910.5 * 0.12)
+  camera.write_text("Intrinsic: [[910.5 0. 640. 0.]\n [0. 905.25 360. 0.]\n [0. 0. 1. 0.]\n"
+                    " [0. 0. 0. 1.]]\n")  # 4x4: not a K
+  with pytest.raises(ValueError, match=rf"no 3x3 `Intrinsic: .*` entry in {camera}"):
+    registry.get_sequences("south_kensington", tmp_path, "test")
+  camera.write_text(text)
   f = seqs[0][1]
   assert f["disparity"] is None and f["valid"] is None
   np.testing.assert_array_equal(f["right"], written["right"][1])
@@ -1098,6 +1125,10 @@ def test_hidden_files_are_skipped_and_frame_numbers_sort_as_numbers(tmp_path):
   (data / "s1/tracking_data.txt").rename(data / "s1/camera.txt")  # after README.txt by name
   seq, = registry.get_sequences("south_kensington", tmp_path, "test")
   assert seq.depth2disp_scale == pytest.approx(500 * 0.12)
+  (data / "s1/zed.txt").write_text("Intrinsic: [[700. 0. 10.]\n [0. 700. 8.]\n [0. 0. 1.]]\n")
+  seq, = registry.get_sequences("south_kensington", tmp_path, "test")  # the first by name
+  assert seq.depth2disp_scale == pytest.approx(500 * 0.12)
+  (data / "s1/zed.txt").unlink()
   (data / "s1/README.txt").write_bytes("Enregistré à South Kensington\n".encode("latin-1"))
   seq, = registry.get_sequences("south_kensington", tmp_path, "test")  # not UTF-8: passed over
   assert seq.depth2disp_scale == pytest.approx(500 * 0.12)
@@ -1128,6 +1159,9 @@ def test_camera_data_errors_name_the_file(tmp_path):
   good = intrinsic.read_bytes()
   intrinsic.write_text("frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n0 0 0 725 620 187\n")
   with pytest.raises(ValueError, match=f"{intrinsic}: the focal length fx is 0"):
+    registry.get_sequences("vkitti2", tmp_path, "test")
+  intrinsic.write_text("frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n")  # the header only
+  with pytest.raises(ValueError, match=f"malformed VKITTI2 intrinsics .*: {intrinsic}"):
     registry.get_sequences("vkitti2", tmp_path, "test")
   intrinsic.write_bytes(good.decode().encode("utf-16"))
   with pytest.raises(ValueError, match=f"VKITTI2 intrinsics {intrinsic} is not UTF-8 text"):
@@ -1269,6 +1303,19 @@ def test_depth2disp_scale_takes_the_horizontal_focal_length(tmp_path):
   assert seq.clip_scale(1) == pytest.approx(400.0 * 0.2)  # a clip's own camera: K[0, 0] too
 
 
+def test_infinigen_baseline_is_the_distance_between_the_camera_centres(tmp_path):
+  """`K_left[0, 0] * ||t_left - t_right||` over all three axes (a rig in Blender world
+  coordinates need not be level or face along an axis), of a 4x4 or a 3x4 pose."""
+  from sav_jax.data import infinigen  # pylint: disable=import-outside-toplevel
+  for name, rows, shift in (("left", 4, (0.0, 0.0, 0.0)), ("right", 3, (0.12, -0.09, 0.08))):
+    pose = np.eye(4)[:rows]
+    pose[:, 3] = np.array([1.0, 2.0, 3.0, 1.0][:rows]) + np.array([*shift, 0.0][:rows])
+    np.savez(tmp_path / f"{name}.npz", K=np.diag([400.0, 300.0, 1.0]), T=pose)
+  # sqrt(0.12^2 + 0.09^2 + 0.08^2) = 0.17 m (0.15 m in x and y only, 0.12 m in x)
+  assert infinigen.depth2disp_scale(tmp_path / "left.npz", tmp_path / "right.npz") == \
+      pytest.approx(400.0 * 0.17)
+
+
 def test_official_evaluation_lengths_are_the_documented_ones():
   """`EVAL_FRAMES` (frames 0..L-1 of each test sequence) as docs/datasets.md gives the
   official `sample_len`: DR and Infinigen 150, VKITTI2, KITTI and South Kensington 300; Sintel
@@ -1342,7 +1389,8 @@ def _tartanair(root, rng, entries, n=3):
 
 def test_tartanair_splits_depth_and_clips(tmp_path, caplog):
   entries = [("amusement", "Easy", "P000"), ("abandonedfactory", "Hard", "P002"),
-             ("abandonedfactory", "Easy", "P002"), ("abandonedfactory", "Easy", "P001")]
+             ("abandonedfactory", "Easy", "P002"), ("abandonedfactory", "Easy", "P001"),
+             ("abandonedfactory", "Hard", "P000"), ("abandonedfactory", "Easy", "P000")]
   truth = _tartanair(tmp_path, np.random.default_rng(15), entries, n=7)
   test = registry.get_sequences("tartanair", tmp_path, "test")
   # the official order: scenes by name, Easy before Hard, parts by name
@@ -1350,7 +1398,8 @@ def test_tartanair_splits_depth_and_clips(tmp_path, caplog):
   assert "15 of the 17 test sequences are missing" in caplog.text and "amusement/Easy/P007" \
       in caplog.text
   train = registry.get_sequences("tartanair", tmp_path / "TartanAir", "train")
-  assert [s.name for s in train] == ["abandonedfactory_Easy_P001", "amusement_Easy_P000"]
+  assert [s.name for s in train] == ["abandonedfactory_Easy_P000", "abandonedfactory_Easy_P001",
+                                     "abandonedfactory_Hard_P000", "amusement_Easy_P000"]
   seq = test[0]
   assert seq.depth2disp_scale == pytest.approx(80.0) and not seq.has_right_disparity
   assert not seq.sparse  # dense
