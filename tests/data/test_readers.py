@@ -1279,6 +1279,10 @@ def test_training_clips_take_their_first_frames_camera(tmp_path):
   whole = seq.clip(0, 3)["disparity"]
   np.testing.assert_allclose(seq.gather([2, 1])["disparity"], whole[[2, 1]] * 2, rtol=1e-6)
   np.testing.assert_array_equal(seq.gather([1, 2])["disparity"], whole[[1, 2]])
+  pose[:3, 3] = [1.0 + 0.18, 2.0 + 0.24, 3.0]  # frame 1's baseline 0.3 m: a clip from frame 1
+  np.savez(cams / "camview_0_0_0002_1.npz", K=np.diag([401.0, 400.0, 1.0]), T=pose)
+  seq, = registry.get_sequences("infinigen_sv", tmp_path, "train")
+  assert seq.clip_scale(1) == pytest.approx(120.0) and seq.clip_scale(0) == pytest.approx(80.0)
 
 
 def test_depth2disp_scale_takes_the_horizontal_focal_length(tmp_path):
