@@ -825,10 +825,12 @@ def test_kitti_archive_layout_stray_folders_and_drives_without_images(tmp_path, 
     (gt / drive).rename(gt / ("train", "val")[i % 2] / drive)
   (gt / "__MACOSX/2011_09_26_drive_0001_sync").mkdir(parents=True)  # a macOS zip's copies
   (gt / "notes").mkdir()
+  (gt / "train/tmp").mkdir()  # inside the archive's folders too: not a drive
   with caplog.at_level(logging.WARNING):
     test = registry.get_sequences("kitti_depth", tmp_path, "test")
   assert [s.name for s in test] == sorted(kitti_depth.TEST)
-  assert "left out 1 folder(s)" in caplog.text and "notes" in caplog.text
+  assert "left out 2 folder(s)" in caplog.text and "notes" in caplog.text
+  assert "train/tmp" in caplog.text
   assert "__MACOSX" not in caplog.text
   assert test[0][0]["valid"].sum() == 3
   assert [s.name for s in registry.get_sequences("kitti_depth", tmp_path, "train")] == train
@@ -879,7 +881,10 @@ def test_spring_dsp5(tmp_path, layout):
   dirs[3].mkdir(parents=True)
   # fy differs from fx: the scale takes fx, the first column of the first row.
   (dirs[3] / "intrinsics.txt").write_text("1500.5 1497.25 960 540\n1501 1498 960 540\n")
-  seq = registry.get_sequences("spring", tmp_path, "test")[0]
+  for top in {d.parents[1] for d in dirs}:  # a second sequence, a copy of the first
+    shutil.copytree(top / "0001", top / "0002")
+  seq, second = registry.get_sequences("spring", tmp_path, "test")
+  assert (seq.name, second.name) == ("0001", "0002")
   assert seq.depth2disp_scale == pytest.approx(1500.5 * 0.065) and not seq.sparse
   _check_images(seq.head(1), written)  # frame_left/ is the left view, frame_right/ the right
   f = seq[0]
@@ -1160,6 +1165,9 @@ def test_camera_data_errors_name_the_file(tmp_path):
   intrinsic.write_text("frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n0 0 0 725 620 187\n")
   with pytest.raises(ValueError, match=f"{intrinsic}: the focal length fx is 0"):
     registry.get_sequences("vkitti2", tmp_path, "test")
+  intrinsic.write_text("frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n\n0 0 730 725 620 187\n")
+  assert registry.get_sequences("vkitti2", tmp_path, "test")[0].depth2disp_scale == \
+      pytest.approx(730 * 0.532725)  # a blank line is no row
   intrinsic.write_text("frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n")  # the header only
   with pytest.raises(ValueError, match=f"malformed VKITTI2 intrinsics .*: {intrinsic}"):
     registry.get_sequences("vkitti2", tmp_path, "test")
