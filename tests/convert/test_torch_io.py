@@ -275,12 +275,15 @@ def test_every_dtype_round_trips(tmp_path, fake_torch, fmt):
     np.testing.assert_array_equal(out[f"w.{k}"], v, err_msg=k)
 
 
-def test_unknown_byteorder_record_is_refused(tmp_path, fake_torch):
+@pytest.mark.parametrize("byteorder", ["LITTLE", ""])
+def test_unknown_byteorder_record_is_refused(tmp_path, fake_torch, byteorder):
   # Any record but "little" read the weights as big-endian: values silently byte-swapped.
+  # An empty record is no byte order either (the record is "little" or "big").
   b = _Builder(fake_torch)
   path = b.write_zip(tmp_path / "order.pth", {"w": b.array(np.ones(2, np.float32), "float32")},
-                     byteorder="LITTLE")
-  with pytest.raises(CheckpointError, match=r"order\.pth: unknown byteorder record 'LITTLE'"):
+                     byteorder=byteorder)
+  with pytest.raises(CheckpointError, match=rf"order\.pth: unknown byteorder record "
+                                            rf"{re.escape(repr(byteorder))}$"):
     torch_io.load_state_dict(path)
 
 
@@ -835,6 +838,9 @@ def test_errors_from_rebuild_helpers_name_the_file(tmp_path):
   path = _zip_with_pickle(tmp_path / "codec.pth", data)
   with pytest.raises(CheckpointError, match=r"codec\.pth: refused _codecs\.encode"):
     torch_io.load_checkpoint_object(path)
+  # Without an encoding, _codecs.encode encodes as UTF-8 (Python's default): 'é' is C3 A9.
+  data = b"\x80\x02c_codecs\nencode\nX\x02\x00\x00\x00\xc3\xa9\x85R."
+  assert torch_io.load_checkpoint_object(_zip_with_pickle(tmp_path / "u.pth", data)) == b"\xc3\xa9"
   # protocol-2 bytes objects (latin1), sets and complex numbers are fine.
   obj = {"b": b"\xff\x00", "s": {1, 2}, "f": frozenset([3]), "c": 1 + 2j, "t": (1, [2])}
   path = _zip_with_pickle(tmp_path / "plain.pth", pickle.dumps(obj, protocol=2))
@@ -1105,6 +1111,7 @@ def test_unwrap_forms():
   assert list(torch_io.unwrap_state_dict(wrapped)) == ["a.w", "b.module.w"]
   assert list(torch_io.unwrap_state_dict({"state_dict": sd, "epoch": 1})) == list(sd)
   assert list(torch_io.unwrap_state_dict({"state_dict": {"model": sd}})) == list(sd)
+  assert list(torch_io.unwrap_state_dict({"model": {"state_dict": {"model": sd}}})) == list(sd)
   # A wrapper key naming something else (the model's name) is not the weights' wrapper.
   assert list(torch_io.unwrap_state_dict({"model": "sav", "state_dict": sd})) == list(sd)
   # Only the leading module. goes (the official demo.py would remove both), and the leading
@@ -1237,10 +1244,12 @@ def test_safetensors_written_here_read_back_with_float8_widened(tmp_path):
   # safetensors' numpy reader cannot load F8 tensors: they are written as float32.
   import ml_dtypes  # pylint: disable=import-outside-toplevel
   sd = {"f8": np.array([1.5, -2], ml_dtypes.float8_e4m3fn),
+        "e5": np.array([1.5, -2], ml_dtypes.float8_e5m2),
         "bf": np.array([1.5, -2], ml_dtypes.bfloat16)}
   out = torch_io.load_state_dict(torch_io.save_state_dict(sd, tmp_path / "f8.safetensors"))
-  assert out["f8"].dtype == out["bf"].dtype == np.float32
+  assert out["f8"].dtype == out["e5"].dtype == out["bf"].dtype == np.float32
   np.testing.assert_array_equal(out["f8"], [1.5, -2])
+  np.testing.assert_array_equal(out["e5"], [1.5, -2])
 
 
 def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
@@ -1476,6 +1485,7 @@ def test_malformed_rebuild_arguments_are_refused_by_name(tmp_path, fake_torch):
       "bool_size": (v2(st, 0, (True, 2), (2, 1)),
                     r"tensor size must be a tuple of non-negative ints, got \(True, 2\)"),
       "dict_size": (v2(st, 0, {2: 1}, (1,)), r"tensor size must be a tuple of non-negative"),
+      "str_size": (v2(st, 0, "", ()), r"tensor size must be a tuple of non-negative ints, got ''"),
       "bool_offset": (v2(st, True, (2,), (1,)), r"bad tensor storage offset True"),
       "ranks": (v2(st, 0, (2, 3), (1,)), r"tensor size \(2, 3\) and stride \(1,\) differ in "
                                          r"length"),
@@ -1485,6 +1495,14 @@ def test_malformed_rebuild_arguments_are_refused_by_name(tmp_path, fake_torch):
       "from_type_fn": (_Tensor(from_type, (set, fake_torch._tensor.Tensor, ([1, 2],), {})),
                        r"_rebuild_from_type_v2 with unsupported function "
                        r"<safe (__builtin__|builtins)\.set>"),
+      "from_type_codecs": (_Tensor(from_type, (codecs.encode, fake_torch._tensor.Tensor,
+                                               ("a", "latin1"), {})),
+                           r"_rebuild_from_type_v2 with unsupported function "
+                           r"<safe _codecs\.encode>"),
+      "from_type_dtype": (_Tensor(from_type, (fake_torch.float32, fake_torch._tensor.Tensor, good,
+                                              {})),
+                          r"_rebuild_from_type_v2 with unsupported function "
+                          r"TorchDType\(float32\)"),
       "from_type_args": (_Tensor(from_type, (utils._rebuild_tensor_v2, fake_torch._tensor.Tensor,
                                              list(good), {})),
                          r"_rebuild_from_type_v2 needs an argument tuple"),
@@ -1522,8 +1540,8 @@ def test_legacy_storage_of_no_listed_record_is_named(tmp_path, fake_torch):
 
 def test_pickle_bounds_at_their_limits(tmp_path, monkeypatch):
   # "More than MAX_PICKLE_OPS opcodes" and "a memo slot beyond the opcodes read so far",
-  # exactly: PROTO, NONE, STOP is 3 opcodes; PROTO, EMPTY_DICT, LONG_BINPUT n is 3 opcodes
-  # when slot n is stored. The text PUT of protocol 0 is held to the same bound.
+  # exactly: PROTO, NONE, STOP is 3 opcodes; PROTO, EMPTY_DICT, BINPUT / LONG_BINPUT n is 3
+  # opcodes when slot n is stored. The text PUT of protocol 0 is held to the same bound.
   path = _zip_with_pickle(tmp_path / "ops.pth", _pickle_with_ops(b"N"))
   monkeypatch.setattr(pickle_reader, "MAX_PICKLE_OPS", 3)
   assert torch_io.load_checkpoint_object(path) is None
@@ -1531,15 +1549,16 @@ def test_pickle_bounds_at_their_limits(tmp_path, monkeypatch):
   with pytest.raises(CheckpointError, match=r"ops\.pth: a pickle of more than 2 opcodes"):
     torch_io.load_checkpoint_object(path)
   monkeypatch.undo()
-  for slot in (3, 4):
-    path = _zip_with_pickle(tmp_path / f"memo{slot}.pth",
-                            _pickle_with_ops(b"}r" + slot.to_bytes(4, "little")))
-    if slot == 3:
-      assert torch_io.load_checkpoint_object(path) == {}
-    else:
-      with pytest.raises(CheckpointError, match=r"memo4\.pth: the pickle stores into memo slot 4 "
-                                                r"after 3 opcodes"):
-        torch_io.load_checkpoint_object(path)
+  for put, width in ((b"q", 1), (b"r", 4)):  # BINPUT, LONG_BINPUT
+    for slot in (3, 4):
+      path = _zip_with_pickle(tmp_path / f"memo{slot}_{width}.pth",
+                              _pickle_with_ops(b"}" + put + slot.to_bytes(width, "little")))
+      if slot == 3:
+        assert torch_io.load_checkpoint_object(path) == {}
+      else:
+        with pytest.raises(CheckpointError, match=rf"memo4_{width}\.pth: the pickle stores into "
+                                                  r"memo slot 4 after 3 opcodes"):
+          torch_io.load_checkpoint_object(path)
   path = _zip_with_pickle(tmp_path / "text_put.pth", b"(dp4194304\n.")  # MARK DICT PUT STOP
   with pytest.raises(CheckpointError, match=r"text_put\.pth: the pickle stores into memo slot "
                                             r"4194304 after 3 opcodes"):
@@ -1664,6 +1683,21 @@ def test_inflation_bounds_at_their_limits(monkeypatch):
     pickle_reader.check_inflation(zf, "over")
 
 
+def test_inflation_takes_the_records_in_file_order(monkeypatch):
+  # A central directory may list the records in any order: a record's bytes run to the
+  # next record in the file, not to the next one listed (b listed first, a after it).
+  monkeypatch.setattr(pickle_reader, "FREE_INFLATION", 1000)
+  rng = np.random.default_rng(0)
+  buf = io.BytesIO()
+  with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+    zf.writestr("a", rng.bytes(5000))
+    zf.writestr("b", rng.bytes(5000))  # random bytes: ~5000 deflated
+    zf.filelist.reverse()  # the order the central directory is written in
+  with zipfile.ZipFile(io.BytesIO(buf.getvalue())) as zf:
+    assert [i.filename for i in zf.infolist()] == ["b", "a"]
+    pickle_reader.check_inflation(zf, "reordered")
+
+
 def _declare_in_central_directory(raw: bytes, sizes) -> bytes:
   """`raw` (a zip) with the central directory's compressed (+20) and uncompressed (+24)
   sizes of the records named in `sizes` ({name: (compressed or None, size or None)})
@@ -1730,6 +1764,8 @@ def test_legacy_storage_key_lists_and_headers(tmp_path, fake_torch):
       (["0", "9"], None, r"storage '9' listed but never used by a tensor"),
       (["v"], ("v", 1, 2), r"storage 'v' listed but never used by a tensor"),
       ([0], None, r"malformed storage key list"),
+      (("0",), None, r"malformed storage key list"),
+      (["0"], ("v", 1), r"malformed storage view \('v', 1\)"),
       (["0"], (7, 1, 2), r"malformed storage view \(7, 1, 2\)")):
     write(keys, view=view)
     with pytest.raises(CheckpointError, match=rf"keys\.pth: {message}"):
