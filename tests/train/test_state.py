@@ -2275,6 +2275,73 @@ def test_train_command_names_the_config_file_in_its_messages(argv, want):
   assert train_main._config_arg(argv) == want  # pylint: disable=protected-access
 
 
+@pytest.mark.parametrize("argv, status, says", [
+    # absl's help flags exit with status 1: the command's is 0, as for any help
+    (["--help"], 0, ""), (["--helpfull"], 0, ""),
+    # a flag error names the flag and where the flags are listed
+    (["--config", "configs/synthetic.py", "--workdir", "w", "--num_processes=x"], 2,
+     "train: error: flag --num_processes=x: "),
+    # a file argument after `:` (configs/eval/synthetic.py:x): the file named is the file
+    (["--config={tmp}/broken.py:x", "--workdir", "w"], 2,
+     "train: error: the config file {tmp}/broken.py does not parse: line 1: "),
+    # the config file's own KeyError, one without a key too: not "no such config field"
+    (["--config", "{tmp}/bare_key_error.py", "--workdir", "w"], 2,
+     "train: error: the config file {tmp}/bare_key_error.py cannot be used: loading it raised "
+     "KeyError: "),
+    # without an override, ml_collections leaves a missing file to the config's first use
+    (["--config", "{tmp}/nope.py", "--workdir", "w"], 2, "train: error: cannot load the "
+     "--config file: [Errno 2] No such file or directory: '{tmp}/nope.py'"),
+    # and a get_config() that returns no config or one whose keys() raises (with an override,
+    # met while parsing)
+    (["--config", "{tmp}/returns_5.py", "--workdir", "w"], 2, "train: error: the config file "
+     "{tmp}/returns_5.py cannot be used: its get_config() returned int, not a ConfigDict\n"),
+    (["--config", "{tmp}/bad_keys.py", "--workdir", "w"], 2, "train: error: the config file "
+     "{tmp}/bad_keys.py cannot be used: loading it raised RuntimeError: boom"),
+])
+def test_train_command_flag_errors_and_help_in_process(tmp_path, capsys, monkeypatch, argv,
+                                                       status, says):
+  """`parse_flags` and `load_config` as `python -m train` runs them (absl's app defines the
+  help flags)."""
+  from absl import app, flags  # pylint: disable=g-import-not-at-top
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+  (tmp_path / "broken.py").write_text("def get_config(:\n")
+  (tmp_path / "bare_key_error.py").write_text("def get_config():\n  raise KeyError\n")
+  (tmp_path / "returns_5.py").write_text("def get_config():\n  return 5\n")
+  (tmp_path / "bad_keys.py").write_text("class C:\n  def keys(self):\n    raise RuntimeError("
+                                      "'boom')\n\n\ndef get_config():\n  return C()\n")
+  app.define_help_flags()
+  monkeypatch.setattr(sys, "argv", ["train", *(a.format(tmp=tmp_path) for a in argv)])
+  try:
+    with pytest.raises(SystemExit) as info:
+      train_main.parse_flags(sys.argv)
+      train_main.load_config()
+  finally:
+    flags.FLAGS.unparse_flags()
+  err = capsys.readouterr().err
+  assert info.value.code == status, err
+  assert err.startswith(says.format(tmp=tmp_path)) and err.count("\n") == (status != 0), err
+  if argv[-1].startswith("--num_processes"):
+    assert err.endswith(" (--helpfull lists the flags)\n")
+
+
+def test_train_command_names_the_training_fields_a_config_lacks(tmp_path, capsys):
+  """`_not_a_training_config`: a config without one of `sceneflow.base_config()`'s fields is
+  named with it; a training config, or a file that cannot be loaded, is left to the caller."""
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+  (tmp_path / "no_train.py").write_text("from configs import sceneflow\n\n\ndef get_config():\n"
+                                       "  c = sceneflow.base_config()\n  del c['train']\n"
+                                       "  return c\n")
+  (tmp_path / "raises.py").write_text("def get_config():\n  return {}['x']\n")
+  for kept in (synthetic.__file__, str(tmp_path / "raises.py")):
+    assert train_main._not_a_training_config(["train", "--config", kept]) is None  # pylint: disable=protected-access
+  with pytest.raises(SystemExit) as info:
+    train_main._not_a_training_config(["train", "--config", str(tmp_path / "no_train.py")])  # pylint: disable=protected-access
+  assert info.value.code == 2
+  assert capsys.readouterr().err.startswith(
+      f"train: error: the config file {tmp_path / 'no_train.py'} lacks 1 of a training config's "
+      "fields (train): build its get_config() on configs.sceneflow.base_config()")
+
+
 def test_train_command_finds_the_packages_config_files_from_any_folder(monkeypatch, tmp_path,
                                                                        capsys):
   import configs  # pylint: disable=g-import-not-at-top
@@ -2318,10 +2385,13 @@ def test_train_command_reports_where_a_run_resumes_and_an_unloadable_config(
   monkeypatch.setattr(orbax_io, "find_training_checkpoint", unreadable)
   assert resume_point(toy_run[0]) == anew
   # ml_collections' report of a --config file it cannot load: its last line names the file
-  with pytest.raises(SystemExit) as info:
-    train_main._config_file_error(OSError("Could not load:\n\n  b.py: not found  \n"))  # pylint: disable=protected-access
-  assert info.value.code == 2
-  assert capsys.readouterr().err == "train: error: cannot load the --config file: b.py: not found\n"
+  for report in ("Could not load:\n\n  b.py: not found  \n",
+                 "Could not load:\n  b.py: not found\n  \n"):  # (a blank last line)
+    with pytest.raises(SystemExit) as info:
+      train_main._config_file_error(OSError(report))  # pylint: disable=protected-access
+    assert info.value.code == 2
+    assert capsys.readouterr().err == ("train: error: cannot load the --config file: b.py: not "
+                                       "found\n")
 
 
 @pytest.mark.parametrize("coordinator, n, i, says", [
@@ -2330,6 +2400,7 @@ def test_train_command_reports_where_a_run_resumes_and_an_unloadable_config(
     ("h:1", 0, 0, "got --num_processes=0 --process_id=0"),
     ("h:1", 2, -1, "got --num_processes=2 --process_id=-1"),
     ("h:1", None, 0, "got --num_processes=None --process_id=0"),
+    ("h:1", 2, None, "got --num_processes=2 --process_id=None"),
     (None, None, 4, "need --coordinator_address"), (None, 2, None, "need --coordinator_address")])
 def test_train_command_checks_its_multi_process_flags(monkeypatch, capsys, coordinator, n, i,
                                                       says):
@@ -2352,6 +2423,75 @@ def test_train_command_checks_its_multi_process_flags(monkeypatch, capsys, coord
     assert info.value.args == (("h:1", n, i),)
   else:
     assert info.value.code == 2 and says in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("error", [ValueError, RuntimeError])
+def test_train_command_says_distributed_auto_found_no_cluster(monkeypatch, capsys, error):
+  """JAX's `initialize()` without a cluster raises either (a traceback, status 1, before)."""
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+
+  def initialize():
+    raise error("no cluster")
+
+  monkeypatch.setattr(jax.distributed, "initialize", initialize)
+  monkeypatch.setattr(train_main, "load_config", lambda: None)
+  for name, value in (("_COORD", None), ("_NUM_PROC", None), ("_PROC_ID", None),
+                      ("_DISTRIBUTED", "auto")):
+    monkeypatch.setattr(train_main, name, types.SimpleNamespace(value=value))
+  with pytest.raises(SystemExit) as info:
+    train_main.main(["train"])
+  assert info.value.code == 2
+  assert capsys.readouterr().err.startswith("train: error: --distributed=auto found no cluster "
+                                            "to join (a TPU pod, a SLURM job, ...): no cluster; ")
+
+
+@pytest.mark.parametrize("where, error, status, says", [
+    # bad input found by the setup: status 2, one line (-v 1 for the traceback)
+    ("setup", lambda loop: ValueError("config.x: bad"), 2,
+     "config.x: bad (-v 1 for the traceback)"),
+    ("setup", lambda loop: PermissionError(13, "Permission denied", "w"), 2,
+     "[Errno 13] Permission denied: 'w' (-v 1 for the traceback)"),
+    # a batch the pipeline cannot make: one line, status 2 as bad input
+    ("run", lambda loop: loop.DataError("the training batch of step 7 could not be made: x"), 2,
+     "the training batch of step 7 could not be made: x"),
+    # too many skipped updates: status 1, one line naming where the same command resumes
+    ("run", lambda loop: loop.Diverged("step 8: 6 updates skipped"), 1, "step 8: 6 updates "
+     "skipped; no checkpoint was saved: the same command starts the run anew")])
+def test_train_command_ends_a_failed_run_with_one_line_and_its_status(
+    monkeypatch, capsys, tmp_path, where, error, status, says):
+  """README: bad input exits with status 2, a training batch that cannot be made too, a run
+  that diverged with status 1; each with one line on stderr, and the JAX settings of a
+  training run made first (host-to-device copies are errors, JAX's INFO lines quiet)."""
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+  from train import loop  # pylint: disable=g-import-not-at-top
+
+  def fail(*args, **kwargs):
+    raise error(loop)
+
+  monkeypatch.setattr(loop, "setup", fail if where == "setup" else lambda *a, **k: {})
+  monkeypatch.setattr(loop, "run", fail)
+  monkeypatch.setattr(train_main, "load_config", lambda: None)
+  for name, value in (("_COORD", None), ("_NUM_PROC", None), ("_PROC_ID", None),
+                      ("_DISTRIBUTED", "off"), ("_WORKDIR", str(tmp_path / "w"))):
+    monkeypatch.setattr(train_main, name, types.SimpleNamespace(value=value))
+  monkeypatch.setattr(train_main, "flags", types.SimpleNamespace(
+      FLAGS=types.SimpleNamespace(verbosity=0)))  # (absl's flags are not parsed here)
+  updates = []
+  monkeypatch.setattr(jax.config, "update", lambda *args: updates.append(args))
+  loggers = [logging.getLogger(name) for name in ("", "absl", "jax")]
+  levels = [logger.level for logger in loggers]
+  try:
+    with pytest.raises(SystemExit) as info:
+      train_main.main(["train"])
+    set_levels = [logger.level for logger in loggers]
+  finally:
+    for logger, level in zip(loggers, levels):
+      logger.setLevel(level)
+  assert info.value.code == status
+  assert capsys.readouterr().err == f"train: error: {says}\n"
+  assert updates == [("jax_transfer_guard_host_to_device", "disallow")]
+  if jax.config.jax_logging_level in (None, "", "NOTSET"):  # (no JAX_LOGGING_LEVEL given)
+    assert set_levels == [logging.INFO, logging.WARNING, logging.WARNING]
 
 
 def test_logged_means_leave_out_skipped_steps(caplog):
