@@ -1378,6 +1378,31 @@ def test_metric_records_are_strict_json_and_the_superseded_ones_accumulate(tmp_p
   assert not (tmp_path / "other").exists()
 
 
+def test_metric_records_take_the_steps_numpy_and_jax_scalars(tmp_path, caplog):
+  """The loop's values are NumPy and JAX scalars: JSON numbers in the record, the same at
+  `<split>/<name>` in TensorBoard; a NaN is said by the loop, not by tensorboardX too."""
+  from train.logging_utils import MetricWriter  # pylint: disable=g-import-not-at-top
+  workdir = tmp_path / "runs" / "a"  # (created with its parents)
+  writer = MetricWriter(workdir)
+  with caplog.at_level(logging.WARNING):
+    writer.write(np.int64(3), {"loss": np.float32(0.5), "epe": jnp.asarray(2.0)}, split="val")
+    writer.write(jnp.asarray(4), {"loss": np.float32("nan")}, split="val")
+  assert not [r for r in caplog.records if r.name.startswith("tensorboardX")]
+  # each record is on disk once written (a killed run keeps it), before the writer is closed
+  records = [json.loads(l) for l in (workdir / "metrics.jsonl").read_text().splitlines()]
+  assert [(r["step"], r["split"], r["loss"]) for r in records] == [(3, "val", 0.5),
+                                                                   (4, "val", "nan")]
+  assert records[0]["epe"] == 2.0
+  view = _tensorboard_view(workdir / "tb")
+  assert view["val/epe"] == [(3, 2.0)] and view["val/loss"][0] == (3, 0.5)
+  writer.close()
+  resumed = MetricWriter(workdir, start_step=4)  # the log says which split each step has
+  assert resumed.logged(3, "val") and resumed.logged(4, "val")
+  assert not resumed.logged(3, "train") and not resumed.logged(4, "train")
+  resumed.close()
+  assert not (workdir / "metrics.superseded.jsonl").exists()  # (nothing after step 4)
+
+
 def _tensorboard_view(folder) -> dict[str, list[tuple[int, float]]]:
   """The scalars TensorBoard shows for the event files in `folder`: read in the order of their
   names, a file's START session log at step s drops the earlier files' events at steps >= s
