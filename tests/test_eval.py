@@ -479,6 +479,7 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
     ("--config.metrics.raft_iters=0",  # also with RAFT off (it was accepted silently)
      "config.metrics.raft_iters must be a positive integer, got 0"),
     ("--checkpoint=", "--checkpoint is empty: name the weights"),
+    ("--checkpoint= ", "--checkpoint is empty: name the weights"),  # (spaces: no file named)
     ("--config.plots.strip_frames=0", "config.plots.strip_frames must be an integer >= 1"),
     ("--config.dtype=float64", "config.dtype must be one of ('float32', 'bfloat16'), got 'f"),
     ("--config.synthetic.num_sequences=0",
@@ -620,6 +621,20 @@ def test_config_files_that_cannot_be_used(tmp_path):
     eval_data.load_sequences(bare, tmp_path)
 
 
+@pytest.mark.parametrize("line, message", [
+    ("c.iters = None", "config.iters must be an integer >= 2, got None"),
+    ("c.max_sequences = None", "config.max_sequences must be an integer (<= 0: all), got None"),
+    ("c.plots.strip_frames = True", "config.plots.strip_frames must be an integer >= 1, got True")])
+def test_config_file_values_that_cannot_be_used_are_named(tmp_path, capsys, line, message):
+  """Values that a config file of one's own sets (an override is parsed as the field's type):
+  one line, status 2, before the weights are read."""
+  config = tmp_path / "mine.py"
+  config.write_text("from configs.eval import synthetic\n\n\ndef get_config():\n"
+                    f"  c = synthetic.get_config()\n  {line}\n  return c\n")
+  assert main(["--config", str(config), "--checkpoint", "x", "--out", str(tmp_path / "o")]) == 2
+  assert capsys.readouterr().err == f"eval: error: {message}\n"
+
+
 def test_a_config_files_argument_and_a_colon_in_its_folders_name(tmp_path):
   """`path.py:arg` calls get_config(arg) (big_vision's convention), and a ':' elsewhere (a
   folder named after a time) is part of the path; get_config() must return a ConfigDict."""
@@ -691,12 +706,21 @@ def test_help_lists_the_config_fields_with_their_defaults(capsys):
   assert "sample_len=" not in out and "dataset=" not in out  # the dataset's config sets them
 
 
-def test_override_values_are_parsed_as_written():
+def test_override_values_are_parsed_as_written(capsys):
   with pytest.raises(ValueError, match=r"--config.save_predictions needs a value "
                                        r"\(--config.save_predictions=VALUE or"):
     eval_config.split_overrides(["--config.save_predictions", "--baseline", "sgbm"])
   with pytest.raises(ValueError, match="--config.iters needs a value"):  # the last argument
     eval_config.split_overrides(["--baseline", "sgbm", "--config.iters"])
+  # the command: one line, status 2 (bad input)
+  assert main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", "x",
+               "--config.iters"]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("eval: error: --config.iters needs a value") and err.count("\n") == 1
+  with pytest.raises(SystemExit) as info:  # argparse's usage error: --config is required
+    main(["--checkpoint", "x"])
+  assert info.value.code == 2
+  assert "the following arguments are required: --config" in capsys.readouterr().err
   rest, ov = eval_config.split_overrides(["--config.iters", "-3", "--config.sample_len=0150"])
   assert ov == [("iters", "-3"), ("sample_len", "0150")]
   config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")), ov)
@@ -786,7 +810,8 @@ def test_sgbm_baseline_settings_are_checked_before_predicting(tmp_path, ckpt, ca
   for value, message in (("4", "block_size must be an odd integer >= 1, got 4"),
                          ("0", "block_size must be an odd integer >= 1, got 0")):
     rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), "--out",
-               str(tmp_path / "o"), "--baseline", "sgbm", f"--config.baseline.block_size={value}"])
+               str(tmp_path / "o"), "--baseline", "sgbm", f"--config.baseline.block_size={value}",
+               "--config.plots.strip_frames=1", "--config.plots.tile_size=16"])  # (the least)
     assert rc == 2 and f"config.baseline.{message}" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
   from sav_jax.tools.demo import stereo_sgbm  # pylint: disable=import-outside-toplevel
@@ -1183,7 +1208,10 @@ def test_bad_raft_settings_are_refused_before_predicting(tmp_path, ckpt, sav_sta
     (jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate "
                                 "9.1GiB.\nBufferAssignment OOM Debugging.\n"), 2,
      "eval: error: out of memory on the device: RESOURCE_EXHAUSTED: Out of memory while trying "
-     "to allocate 9.1GiB.; use fewer frames per window")])
+     "to allocate 9.1GiB.; use fewer frames per window"),
+    # a file that cannot be read or written: bad input, as the module docstring says
+    (PermissionError(13, "Permission denied", "out/results.md"), 2,
+     "eval: error: [Errno 13] Permission denied: 'out/results.md'")])
 def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, rc, message,
                                                    run_command):
   from eval import main as eval_main  # pylint: disable=import-outside-toplevel
@@ -1197,6 +1225,8 @@ def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, 
   assert run_command(lambda: eval_main.main()) == rc  # (its immediate exit after Ctrl-C as status)
   err = capsys.readouterr().err
   assert err.startswith(message) and err.count("\n") == 1, err
+  if "out of memory on the device" in message:  # (without --overwrite: what --resume does)
+    assert err.endswith("; the sequences it finished are recorded: --resume continues\n"), err
   if rc == 130:  # called from Python with arguments, the caller gets the interrupt
     with pytest.raises(KeyboardInterrupt):
       eval_main.main(argv)
