@@ -1242,6 +1242,11 @@ def test_sequence_names_that_differ_write_different_files():
            for p in runner.output_paths(pathlib.Path("out"), n, ["sav", "sgbm"], config).values()]
   assert len(set(paths)) == len(paths) == 4 * len(names)
   assert runner.safe_name("alley_1") == "alley_1"  # names that are safe keep their files
+  assert re.fullmatch(r"x-[0-9a-f]{8}", runner.safe_name("_x"))  # a leading "_" is a change
+  out = pathlib.Path("out")  # SAV's prediction has no suffix; no curves without GT
+  assert runner.output_paths(out, "walk", ["sav", "sgbm"], config, has_gt=False) == {
+      "sav": out / "predictions" / "walk.npy", "sgbm": out / "predictions" / "walk_sgbm.npy",
+      "strip": out / "plots" / "walk_strip.png"}
   # Stable across processes (a resumed or a later run finds the files an earlier one
   # wrote): not Python's hash(), which PYTHONHASHSEED salts per process.
   here = [runner.safe_name("alley 1"), runner.safe_name("été")]
@@ -1984,6 +1989,44 @@ def test_progress_records_are_appended_and_read_back(tmp_path):
   progress.write_text(whole.replace('"sav_jax_eval_progress": 1,', '"sav_jax_eval_progress": 2,'))
   with pytest.raises(ValueError, match="is not an evaluation progress file of this version"):
     eval_runner.read_progress(tmp_path, settings)
+
+
+def test_a_sequence_counts_its_frames_and_flow_metrics_need_no_tcc(tmp_path, monkeypatch):
+  """A sequence weighs its T frames in the frame-weighted aggregate, over the sequences with
+  the method's metrics only; a flow function alone (no `metrics.tcc`) gives the depth
+  metrics; a prediction is saved as float32, SAV's under the sequence's own name."""
+  config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")),
+                                       eval_config.split_overrides(SMALL)[1])
+  config.plots.enabled, config.metrics.tcc = False, False
+  seq = eval_data.load_sequences(config, None)[0]
+  # 2 px off at every valid pixel (the synthetic disparity is positive): EPE 2
+  monkeypatch.setattr(eval_runner, "predict",
+                      lambda method, clip, **_: clip["disparity"].astype(np.float64) + 2.0)
+  res = eval_runner.evaluate_sequence(seq, ["sav"], variables=None, model_cfg=None,
+                                      config=config, out=tmp_path, flow_fn=_stand_in_flow)
+  assert res.frames == T
+  assert res.metrics["sav"]["disp_epe_mean"] == pytest.approx(2.0, rel=1e-5)
+  for key in ("disp_TCC", "disp_TCM", "disp_OPW"):
+    assert key in res.metrics["sav"], key
+  saved = np.load(tmp_path / "predictions" / f"{seq.name}.npy")
+  assert saved.dtype == np.float32 and saved.shape == (T, H, W)
+  # (1 * 1 frame + 3 * 3 frames) / 4 frames; a sequence without ground truth is left out
+  results = [eval_runner.SequenceResult(name=n, frames=f, metrics=m)
+             for n, f, m in (("a", 1, {"sav": {"disp_epe_mean": 1.0}}),
+                             ("b", 3, {"sav": {"disp_epe_mean": 3.0}}), ("c", 5, {}))]
+  assert eval_runner.aggregate(results, "sav") == {"disp_epe_mean": pytest.approx(2.5)}
+  assert eval_runner.aggregate(results, "sgbm") == {}
+
+
+@pytest.mark.parametrize("field,value", [("frames", True), ("metrics_seconds", False)])
+def test_a_progress_record_with_a_boolean_for_a_number_is_refused(tmp_path, field, value):
+  # JSON's true and false are not the numbers 1 and 0: a hand-edited record, refused
+  record = {"name": "a", "frames": 4, "metrics": {}, "seconds": {}, "compile_seconds": {},
+            "metrics_seconds": 0.5, field: value}
+  (tmp_path / eval_runner.PROGRESS).write_text(
+      '{"sav_jax_eval_progress": 1, "x": 1}\n' + json.dumps(record) + "\n")
+  with pytest.raises(ValueError, match="line 2 is not a finished sequence's record"):
+    eval_runner.read_progress(tmp_path, {"x": 1})
 
 
 def test_only_the_runs_own_files_are_removed_or_written_over(tmp_path):
