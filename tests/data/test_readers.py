@@ -1814,3 +1814,37 @@ def test_tartanair_test_split_is_the_official_loaders_17_entries():
       ("office2", "Easy", "P004"), ("office2", "Hard", "P004"), ("oldtown", "Hard", "P006"),
       ("soulcity", "Easy", "P008"), ("soulcity", "Hard", "P008")}
   assert len(tartanair.TEST) == 17 and set(tartanair.TEST) == official
+
+
+def test_folder_disparity_suffixes_in_capitals_are_read(tmp_path):
+  # The format is the suffix's in any case, as the frames' (`.JPG`): `0.NPY` is an .npy file.
+  from sav_jax.data import stereo_folder  # pylint: disable=import-outside-toplevel
+  with open(tmp_path / "0.NPY", "wb") as f:
+    np.save(f, np.array([[0.0, 7.5]], np.float32))
+  disp, valid = stereo_folder.read_disparity(tmp_path / "0.NPY")
+  np.testing.assert_array_equal(disp, [[0.0, 7.5]])
+  np.testing.assert_array_equal(valid, [[False, True]])
+
+
+def test_folder_split_skips_stray_files_and_hidden_folders_and_checks_the_baseline(tmp_path):
+  # A README or a notebook's hidden folder next to the sequences is not a sequence; a
+  # calibration whose baseline is negative (the cameras swapped) gives no disparity scale.
+  _own_videos(tmp_path, np.random.default_rng(27))
+  (tmp_path / "test" / "README.txt").write_text("my videos")
+  (tmp_path / "test" / ".ipynb_checkpoints").mkdir()
+  seqs = registry.get_sequences("folder", tmp_path, "test")
+  assert [s.name for s in seqs] == ["lab", "night", "street"]
+  (tmp_path / "test" / "lab" / "calib.txt").write_text("fx 400\nbaseline -0.2\n")
+  with pytest.raises(ValueError, match=r"calib\.txt: the stereo baseline is -0\.2; it must be "
+                                       "positive"):
+    registry.get_sequences("folder", tmp_path, "test")
+
+
+@pytest.mark.parametrize("viewpoint,size", [({"focal_length": [True, 2.5]}, [480, 640]),
+                                            ({"focal_length": [2.0, 2.5]}, [480, True])])
+def test_dynamic_replica_boolean_in_a_numeric_field_is_refused(viewpoint, size):
+  # JSON's true is not the number 1: a malformed record, named by its field
+  from sav_jax.data import dynamic_replica  # pylint: disable=import-outside-toplevel
+  with pytest.raises(TypeError, match=r"field (viewpoint\.focal_length|image\.size) holds 'True', "
+                                      "not a number"):
+    dynamic_replica.focal_px(viewpoint, size)
