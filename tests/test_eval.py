@@ -1993,7 +1993,7 @@ def test_progress_records_are_appended_and_read_back(tmp_path):
 
 def test_a_sequence_counts_its_frames_and_flow_metrics_need_no_tcc(tmp_path, monkeypatch):
   """A sequence weighs its T frames in the frame-weighted aggregate, over the sequences with
-  the method's metrics only; a flow function alone (no `metrics.tcc`) gives the depth
+  the method's metrics (ground truth) only; a flow function alone (no `metrics.tcc`) gives the depth
   metrics; a prediction is saved as float32, SAV's under the sequence's own name."""
   config = eval_config.apply_overrides(eval_config.load_config(str(CONFIGS / "synthetic.py")),
                                        eval_config.split_overrides(SMALL)[1])
@@ -2010,6 +2010,13 @@ def test_a_sequence_counts_its_frames_and_flow_metrics_need_no_tcc(tmp_path, mon
     assert key in res.metrics["sav"], key
   saved = np.load(tmp_path / "predictions" / f"{seq.name}.npy")
   assert saved.dtype == np.float32 and saved.shape == (T, H, W)
+  # a sequence without ground truth: predicted, not scored
+  clip = dict(eval_data.read_sequence(seq), disparity=None, valid=None)
+  monkeypatch.setattr(eval_runner.eval_data, "read_sequence", lambda s: clip)
+  monkeypatch.setattr(eval_runner, "predict", lambda method, clip, **_: np.ones((T, H, W)))
+  res = eval_runner.evaluate_sequence(seq, ["sav"], variables=None, model_cfg=None,
+                                      config=config, flow_fn=_stand_in_flow)
+  assert res.frames == T and res.metrics == {} and res.curves == {}
   # (1 * 1 frame + 3 * 3 frames) / 4 frames; a sequence without ground truth is left out
   results = [eval_runner.SequenceResult(name=n, frames=f, metrics=m)
              for n, f, m in (("a", 1, {"sav": {"disp_epe_mean": 1.0}}),
