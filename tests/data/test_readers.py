@@ -271,28 +271,31 @@ def _sintel(root, rng, seqs=(("alley_1", 3), ("cave_2", 2))):
 
 
 def test_a_frame_missing_from_every_folder_is_warned(tmp_path, caplog):
-  _sintel(tmp_path, np.random.default_rng(4), seqs=(("alley_1", 5),))
-  with caplog.at_level(logging.WARNING):
-    assert len(registry.get_sequences("sintel_final", tmp_path, "test")[0]) == 5
-  assert "not evenly spaced" not in caplog.text
-  for path in (tmp_path / "sintel_stereo/training").rglob("frame_0003.*"):
-    path.unlink()
-  with caplog.at_level(logging.WARNING):
-    assert len(registry.get_sequences("sintel_final", tmp_path, "test")[0]) == 4
-  assert ("Sintel final/alley_1: frame numbers are not evenly spaced: 1 gap(s), the first after "
-          "frame_0002.png (next frame_0004.png; usually +1: a frame missing?)") in caplog.text
-  # from the module's own logger (filterable by name; the root logger's "WARNING root:" before)
-  assert {r.name for r in caplog.records if "evenly spaced" in r.getMessage()} == {
-      "sav_jax.data.base"}
-  # Infinigen's reader, by the frame number inside its names (Image_0_0_0003_0.png).
-  caplog.clear()
-  _infinigen(tmp_path, np.random.default_rng(4), "test", [("scene001", 5)])
-  for path in (tmp_path / "InfinigenStereo/test/scene001/frames").rglob("*_0_0_0003_*"):
-    path.unlink()
-  with caplog.at_level(logging.WARNING):
-    assert len(registry.get_sequences("infinigen_sv", tmp_path, "test")[0]) == 4
-  assert ("Infinigen test/scene001: frame numbers are not evenly spaced: 1 gap(s), the first "
-          "after Image_0_0_0002_0.png (next Image_0_0_0004_0.png") in caplog.text
+  rng = np.random.default_rng(4)
+  # Sintel's frame numbers, and Infinigen's inside its names (Image_0_0_0003_0.png)
+  for make, dataset, folder, frame_3, said in (
+      (lambda: _sintel(tmp_path, rng, seqs=(("alley_1", 5),)), "sintel_final",
+       "sintel_stereo/training", "frame_0003.*", "Sintel final/alley_1: frame numbers are not "
+       "evenly spaced: 1 gap(s), the first after frame_0002.png (next frame_0004.png; usually "
+       "+1: a frame missing?)"),
+      (lambda: _infinigen(tmp_path, rng, "test", [("scene001", 5)]), "infinigen_sv",
+       "InfinigenStereo/test/scene001/frames", "*_0_0_0003_*", "Infinigen test/scene001: frame "
+       "numbers are not evenly spaced: 1 gap(s), the first after Image_0_0_0002_0.png (next "
+       "Image_0_0_0004_0.png")):
+    caplog.clear()
+    make()
+    with caplog.at_level(logging.WARNING):
+      assert len(registry.get_sequences(dataset, tmp_path, "test")[0]) == 5
+    assert "not evenly spaced" not in caplog.text
+    for path in (tmp_path / folder).rglob(frame_3):
+      path.unlink()
+    with caplog.at_level(logging.WARNING):
+      assert len(registry.get_sequences(dataset, tmp_path, "test")[0]) == 4
+    assert said in caplog.text, dataset
+    # from the module's own logger (filterable by name; the root logger's "WARNING root:"
+    # before)
+    assert {r.name for r in caplog.records if "evenly spaced" in r.getMessage()} == {
+        "sav_jax.data.base"}
   # Evenly spaced numbers (every 10th frame kept) and names whose last number is no frame
   # number (Infinigen's camera index) are not; Infinigen's own frame number is read.
   caplog.clear()
