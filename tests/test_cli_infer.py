@@ -913,6 +913,9 @@ def _bad_case(name, root, clip, npz_ckpt):
   if name == "max_depth_negative":
     return left, right, npz_ckpt, ["--fx", "9", "--baseline", "1", "--max-depth", "-1"], \
         "--max-depth must be a finite positive number"
+  if name == "max_depth_infinite":  # (as good as no --max-depth: a mistake)
+    return left, right, npz_ckpt, ["--fx", "9", "--baseline", "1", "--max-depth", "inf"], \
+        "--max-depth must be a finite positive number, got inf"
   if name == "devices_word":
     return left, right, npz_ckpt, ["--devices", "two"], "devices must be a number of local devices"
   if name == "devices_too_many":  # this process has one CPU device; the cache folder not made
@@ -952,6 +955,7 @@ def _bad_case(name, root, clip, npz_ckpt):
     "kitti_fx_zero",
     "principal_point",
     "depth_format_without_calibration", "max_depth_without_calibration", "max_depth_negative",
+    "max_depth_infinite",
     "devices_word", "devices_too_many"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):
   left, right, ckpt, extra, message = _bad_case(name, tmp_path, clip, npz_ckpt)
@@ -2205,7 +2209,7 @@ def test_video_files_with_upper_case_suffixes_are_read(tmp_path):
 def test_infer_argument_parsers_by_hand():
   """--resize takes HxW (or H,W, any case of the x) of positive integers, nothing else;
   --format values are split at commas, lower-cased, de-duplicated in their order (png16 by
-  default); --iters >= 2 and 1 <= --stride <= --window."""
+  default); --iters >= 2 and 1 <= --stride <= --window <= 32."""
   import argparse  # pylint: disable=import-outside-toplevel
 
   from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
@@ -2225,7 +2229,8 @@ def test_infer_argument_parsers_by_hand():
       infer.parse_camera_pair(text)
   infer.check_model_args(2, 4, 4)
   infer.check_model_args(2, 4, 1)
-  for iters, window, stride in ((1, 4, 2), (2, 4, 5), (2, 4, 0)):
+  infer.check_model_args(2, 32, 10)  # --window: at most 32 (the temporal attention's length)
+  for iters, window, stride in ((1, 4, 2), (2, 4, 5), (2, 4, 0), (2, 33, 10)):
     with pytest.raises(UsageError):
       infer.check_model_args(iters, window, stride)
 
@@ -2244,6 +2249,24 @@ def test_output_paths_name_every_file_of_a_run():
       "out/disparity/a.pfm", "out/side_by_side.mp4", "out/summary.json"]
 
 
+def test_write_outputs_counts_by_hand_and_colours_the_video_between_percentiles(tmp_path):
+  """`write_outputs` on disparities given directly (no model): 3 frames of 2, 4, 6 px but
+  one pixel of 24 (the frame width: no pixel can match that far) and one of 1000 (above the
+  16-bit PNG's 65535 / 256): 2 disparities at least the width, 1 saturated in the PNG, and
+  the video's colours span the 1st to 99th percentile of the 1152 values, 2 to 6 px (the
+  outlier is not the top of the range)."""
+  import argparse  # pylint: disable=import-outside-toplevel
+  out = tmp_path / "out"
+  out.mkdir()
+  d = np.repeat(np.array([2.0, 4.0, 6.0], np.float32), 16 * 24).reshape(3, 16, 24)
+  d[2, 0, 0], d[2, 0, 1] = 24.0, 1000.0
+  args = argparse.Namespace(window=3, fps=10.0, max_depth=None, depth_format="npy")
+  written = infer.write_outputs(out, ["a", "b", "c"], np.zeros((3, 16, 24, 3), np.uint8),
+                                [(0, d)], ["png16"], None, args, [])
+  assert written == {"video_disparity_range": [2.0, 6.0], "png16_saturated_pixels": 1,
+                     "disparities_beyond_width": 2, "empty_point_clouds": 0}
+
+
 def test_check_overwrite_refuses_existing_outputs_and_what_is_not_a_file(tmp_path):
   """Existing output files are refused without --overwrite (the first 3 named, the rest
   counted) and taken with it; a folder where an output file goes, or a file where its folder
@@ -2259,6 +2282,8 @@ def test_check_overwrite_refuses_existing_outputs_and_what_is_not_a_file(tmp_pat
     infer.check_overwrite(paths, False, out)
   with pytest.raises(FileExistsError, match=r"output files exist \(.*0004\.npy\); pass"):
     infer.check_overwrite(paths[4:], False, out)
+  with pytest.raises(FileExistsError, match=r"0002\.npy and 1 more\); pass"):  # 4: one more
+    infer.check_overwrite(paths[:4], False, out)
   infer.check_overwrite(paths, True, out)
   paths[1].unlink()
   paths[1].mkdir()
@@ -2350,6 +2375,10 @@ def test_calibrated_outputs_pair_each_frame_with_its_disparity_colours_and_depth
     xyz, rgb = viz.read_ply(out / "pointclouds" / f"{name}.ply")
     assert len(xyz) == 16 * 24 and (rgb == levels[t]).all(), (t, np.unique(rgb))
     np.testing.assert_allclose(xyz[:, 2], 100 * 0.5 / (d + 3), rtol=1e-6)
+    # x = (u - cx) z / fx, y = (v - cy) z / fx about the frame's centre (cx 11.5, cy 7.5)
+    reach = 100 * 0.5 / (d + 3) / 100 * np.array([11.5, 7.5])
+    np.testing.assert_allclose([-xyz[:, 0].min(), xyz[:, 0].max(), -xyz[:, 1].min(),
+                                xyz[:, 1].max()], np.repeat(reach, 2), rtol=1e-5)
   summary = json.loads((out / "summary.json").read_text())
   assert summary["video_fps"] == 10.0 and summary["frames"] == 3
   assert sorted(p.name for p in (out / "depth").iterdir()) == ["0000.npy", "0001.npy", "0002.npy"]
@@ -2393,14 +2422,19 @@ def test_an_earlier_runs_list_never_deletes_through_links(tmp_path):
 def test_put_back_restores_the_set_aside_files_unless_the_run_is_known_complete(tmp_path):
   """Only a summary saying `"complete": true` lets `put_back` delete the set-aside files of
   the earlier run; one that does not say (`complete` missing or not a boolean) has them put
-  back, as for an unfinished run."""
+  back, as for an unfinished run, and the files it lists are kept (only a provisional
+  summary, `"complete": false`, is known to list an unfinished run's own files)."""
   for complete in ({}, {"complete": None}, {"complete": "yes"}):
     out = tmp_path / str(len(list(tmp_path.iterdir())))
     (out / infer.SET_ASIDE / "disparity").mkdir(parents=True)
     (out / infer.SET_ASIDE / "disparity" / "a.npy").write_bytes(b"earlier run")
-    (out / "summary.json").write_text(json.dumps({"tool": infer.SUMMARY_TOOL, **complete}))
+    (out / "disparity").mkdir()
+    (out / "disparity" / "b.npy").write_bytes(b"kept")
+    (out / "summary.json").write_text(json.dumps({"tool": infer.SUMMARY_TOOL, **complete,
+                                                  "outputs": ["disparity/b.npy"]}))
     assert infer.put_back(out) == 1, complete
     assert (out / "disparity" / "a.npy").read_bytes() == b"earlier run"
+    assert (out / "disparity" / "b.npy").read_bytes() == b"kept"
     assert not (out / infer.SET_ASIDE).exists()
 
 
