@@ -2473,7 +2473,7 @@ def test_overwrite_never_deletes_input_frames_an_earlier_summary_lists(tmp_path,
 
 def test_calibration_files_and_options_edge_cases(tmp_path, caplog):
   """A KITTI file whose right matrix is missing is no calibration (not a crash on P3); an
-  explicit fx beside a Middlebury cam0 is kept; --calib with --fx is refused; a principal
+  explicit fx beside a Middlebury cam0 is kept; a width of two numbers is refused; --calib with --fx is refused; a principal
   point far off the centre in x alone is warned about."""
   import argparse  # pylint: disable=import-outside-toplevel
 
@@ -2484,6 +2484,9 @@ def test_calibration_files_and_options_edge_cases(tmp_path, caplog):
     infer.read_calibration(calib)
   calib.write_text("fx 500\nbaseline 0.1\ncam0=[400 0 10; 0 400 8; 0 0 1]\ndoffs 0\n")
   assert infer.read_calibration(calib)["fx"] == 500
+  calib.write_text("fx 500\nbaseline 0.1\nwidth 24 16\n")  # the size is one number a line too
+  with pytest.raises(UsageError, match="line 3: width must be one number"):
+    infer.read_calibration(calib)
   args = argparse.Namespace(calib=calib, fx=500.0, fy=None, cx=None, cy=None, baseline=None,
                             doffs=None, calib_cameras=None)
   with pytest.raises(UsageError, match="give either --calib or --fx"):
