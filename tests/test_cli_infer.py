@@ -2473,8 +2473,8 @@ def test_overwrite_never_deletes_input_frames_an_earlier_summary_lists(tmp_path,
 
 def test_calibration_files_and_options_edge_cases(tmp_path, caplog):
   """A KITTI file whose right matrix is missing is no calibration (not a crash on P3); an
-  explicit fx beside a Middlebury cam0 is kept; a width of two numbers is refused; --calib with --fx is refused; a principal
-  point far off the centre in x alone is warned about."""
+  explicit fx beside a Middlebury cam0 is kept; a width of two numbers is refused; --calib
+  with --fx is refused; a principal point far off the centre in x alone is warned about."""
   import argparse  # pylint: disable=import-outside-toplevel
 
   from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
