@@ -205,6 +205,13 @@ def test_report_counts_the_rest_by_the_modules_concerned():
   assert str(e.value).splitlines()[-1] == ("  ... and 4 more missing keys (by module: "
                                            "update_block.gru 3, depthnet.depthanything 1)")
   KeyProblems().raise_if_any("nothing to report", keys_given=0)  # no problems: no error
+  problems = KeyProblems(limit=0)  # the modules with most keys first, not the first seen
+  for key in ("fnet.conv1.weight", "cnet.conv1.weight", "cnet.conv2.weight"):
+    problems.add_missing(key)
+  with pytest.raises(ValueError) as e:
+    problems.raise_if_any("no match", keys_given=0)
+  assert str(e.value).splitlines()[-1] == ("  ... and 3 more missing keys (by module: cnet 2, "
+                                           "fnet 1)")
   nested = KeyProblems("depthnet.").scoped("depthanything.")  # a scope adds to the prefix
   nested.add_missing("head.bias")
   assert nested.missing == ["missing key 'depthnet.depthanything.head.bias'"]
@@ -235,6 +242,28 @@ def test_torch_names_and_flax_paths():
   np.testing.assert_array_equal(keys.flax_to_torch_array(keys.torch_to_flax_array(c1)), c1)
   for leaf in ("scale", "kernel"):  # a 1-D tensor keeps its layout whatever its leaf
     np.testing.assert_array_equal(keys.torch_to_flax_array(lin[0], leaf), lin[0])
+  for x in (lin, c1, w):  # only a kernel is re-laid out: `pos_embed`, `cls_token` are not
+    np.testing.assert_array_equal(keys.torch_to_flax_array(x, "pos_embed"), x)
+    np.testing.assert_array_equal(keys.flax_to_torch_array(x, "pos_embed"), x)
+
+
+def test_shape_problems_give_torchs_layout():
+  # A Conv2d weight (O, I, kh, kw) for the Flax kernel (kh, kw, I, O) = (3, 3, 4, 2): the
+  # report shows the tensor as it is in the file and the shape torch would have, (2, 4, 3, 3).
+  from sav_jax.convert import keys  # pylint: disable=import-outside-toplevel
+  arr, problem = keys.converted("c.weight", np.zeros((2, 3, 1, 1), np.float32), "kernel",
+                                (3, 3, 4, 2))
+  assert arr is None and problem == ("key 'c.weight': shape (2, 3, 1, 1) does not match the "
+                                     "model (expects (2, 4, 3, 3))")
+
+
+@pytest.mark.parametrize("dtype", ["float16", "bfloat16", "float64"])
+def test_tensors_kept_for_export_are_float32_as_params_are(dtype):
+  from sav_jax.convert import keys  # pylint: disable=import-outside-toplevel
+  a = keys.unused_array(np.array([[0.5, -2.0]], jnp.dtype(dtype)))
+  assert a.dtype == np.float32
+  np.testing.assert_array_equal(a, [[0.5, -2.0]])
+  assert keys.unused_array(np.arange(3, dtype=np.int64)).dtype == np.int64  # refused later
 
 
 def test_float64_values_beyond_float32_are_refused_not_made_inf():
