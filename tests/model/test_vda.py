@@ -117,6 +117,17 @@ def test_sinusoidal_table_matches_buffers(vda_state_dict):
   np.testing.assert_allclose(got, vda_state_dict[PE_KEY][0], rtol=0, atol=1e-6)
 
 
+def test_sinusoidal_buffer_tolerance_is_wider_only_for_half_precision_values():
+  from sav_jax.convert.vda import PE_ATOL_HALF, _pe_atol  # pylint: disable=import-outside-toplevel
+  # 1 + 2**-7 and 2**-30 are bfloat16 values (2**-30 is 0 in float16), 1 + 2**-10 a float16
+  # one; 1 + 2**-15 is neither (float32 bit 8 set: low 8 bits zero, low 16 bits not).
+  for a, atol in ((np.float16([0.5]), PE_ATOL_HALF),
+                  (np.float32([1 + 2**-7, 2**-30]), PE_ATOL_HALF),
+                  (np.float32([1 + 2**-10]), PE_ATOL_HALF), (np.float32([1 + 2**-15]), PE_ATOL),
+                  (np.float64([1 + 2**-7]), PE_ATOL)):
+    assert _pe_atol(a) == atol, a
+
+
 def test_unused_keys_returned(converted, vda_state_dict):
   _, unused = converted
   assert sorted(unused) == sorted(VDA_UNUSED_KEYS)
