@@ -292,8 +292,7 @@ def test_a_frame_missing_from_every_folder_is_warned(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
       assert len(registry.get_sequences(dataset, tmp_path, "test")[0]) == 4
     assert said in caplog.text, dataset
-    # from the module's own logger (filterable by name; the root logger's "WARNING root:"
-    # before)
+    # from the module's own logger, filterable by name (it was the root logger's before)
     assert {r.name for r in caplog.records if "evenly spaced" in r.getMessage()} == {
         "sav_jax.data.base"}
   # Evenly spaced numbers (every 10th frame kept) and names whose last number is no frame
