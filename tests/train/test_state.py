@@ -2419,6 +2419,18 @@ def test_train_command_reports_where_a_run_resumes_and_an_unloadable_config(
                                        "found\n")
 
 
+def _train_main_with_flags(monkeypatch, coordinator=None, num_processes=None, process_id=None,
+                           distributed="off", **more):
+  """`train.__main__` with its config loading stubbed and its flags' values set as given
+  (`more`: other flags by their module names, `_WORKDIR=...`); absl does not parse them."""
+  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
+  monkeypatch.setattr(train_main, "load_config", lambda: None)
+  for name, value in (("_COORD", coordinator), ("_NUM_PROC", num_processes),
+                      ("_PROC_ID", process_id), ("_DISTRIBUTED", distributed), *more.items()):
+    monkeypatch.setattr(train_main, name, types.SimpleNamespace(value=value))
+  return train_main
+
+
 @pytest.mark.parametrize("coordinator, n, i, says", [
     ("h:1", 1, 0, None), ("h:1", 3, 2, None),  # valid: joins the coordinator
     ("h:1", 2, 2, "got --num_processes=2 --process_id=2"),
@@ -2429,8 +2441,6 @@ def test_train_command_reports_where_a_run_resumes_and_an_unloadable_config(
     (None, None, 4, "need --coordinator_address"), (None, 2, None, "need --coordinator_address")])
 def test_train_command_checks_its_multi_process_flags(monkeypatch, capsys, coordinator, n, i,
                                                       says):
-  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
-
   class Joined(Exception):
     pass
 
@@ -2438,10 +2448,7 @@ def test_train_command_checks_its_multi_process_flags(monkeypatch, capsys, coord
     raise Joined(args)
 
   monkeypatch.setattr(jax.distributed, "initialize", initialize)
-  monkeypatch.setattr(train_main, "load_config", lambda: None)
-  for name, value in (("_COORD", coordinator), ("_NUM_PROC", n), ("_PROC_ID", i),
-                      ("_DISTRIBUTED", "off")):
-    monkeypatch.setattr(train_main, name, types.SimpleNamespace(value=value))
+  train_main = _train_main_with_flags(monkeypatch, coordinator, n, i)
   with pytest.raises(SystemExit if says else Joined) as info:
     train_main.main(["train"])
   if says is None:
@@ -2453,16 +2460,11 @@ def test_train_command_checks_its_multi_process_flags(monkeypatch, capsys, coord
 @pytest.mark.parametrize("error", [ValueError, RuntimeError])
 def test_train_command_says_distributed_auto_found_no_cluster(monkeypatch, capsys, error):
   """JAX's `initialize()` without a cluster raises either (a traceback, status 1, before)."""
-  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
-
   def initialize():
     raise error("no cluster")
 
   monkeypatch.setattr(jax.distributed, "initialize", initialize)
-  monkeypatch.setattr(train_main, "load_config", lambda: None)
-  for name, value in (("_COORD", None), ("_NUM_PROC", None), ("_PROC_ID", None),
-                      ("_DISTRIBUTED", "auto")):
-    monkeypatch.setattr(train_main, name, types.SimpleNamespace(value=value))
+  train_main = _train_main_with_flags(monkeypatch, distributed="auto")
   with pytest.raises(SystemExit) as info:
     train_main.main(["train"])
   assert info.value.code == 2
@@ -2487,7 +2489,6 @@ def test_train_command_ends_a_failed_run_with_one_line_and_its_status(
   """README: bad input exits with status 2, a training batch that cannot be made too, a run
   that diverged with status 1; each with one line on stderr, and the JAX settings of a
   training run made first (host-to-device copies are errors, JAX's INFO lines quiet)."""
-  from train import __main__ as train_main  # pylint: disable=g-import-not-at-top
   from train import loop  # pylint: disable=g-import-not-at-top
 
   def fail(*args, **kwargs):
@@ -2495,10 +2496,7 @@ def test_train_command_ends_a_failed_run_with_one_line_and_its_status(
 
   monkeypatch.setattr(loop, "setup", fail if where == "setup" else lambda *a, **k: {})
   monkeypatch.setattr(loop, "run", fail)
-  monkeypatch.setattr(train_main, "load_config", lambda: None)
-  for name, value in (("_COORD", None), ("_NUM_PROC", None), ("_PROC_ID", None),
-                      ("_DISTRIBUTED", "off"), ("_WORKDIR", str(tmp_path / "w"))):
-    monkeypatch.setattr(train_main, name, types.SimpleNamespace(value=value))
+  train_main = _train_main_with_flags(monkeypatch, _WORKDIR=str(tmp_path / "w"))
   monkeypatch.setattr(train_main, "flags", types.SimpleNamespace(
       FLAGS=types.SimpleNamespace(verbosity=0)))  # (absl's flags are not parsed here)
   updates = []
