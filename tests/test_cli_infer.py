@@ -2342,6 +2342,28 @@ def test_check_not_inputs_keeps_every_output_off_the_inputs(tmp_path):
       infer.check_not_inputs([fine, path], (frames, video), args)
 
 
+def test_out_that_is_a_stereo_folder_sequence_is_refused(tmp_path, capsys):
+  """`--out SEQ` beside `SEQ/left` and `SEQ/right` (the `folder` dataset's layout) wrote the
+  predictions to `SEQ/disparity/`, which the dataset's reader takes for ground truth: eval
+  scored them against themselves (EPE 0). Refused before the weights are read, even with
+  --overwrite, and nothing is written."""
+  seq = tmp_path / "my_videos" / "test" / "walk"
+  frames = np.zeros((2, 8, 8, 3), np.uint8)
+  left, right = _write_frames(seq / "left", frames), _write_frames(seq / "right", frames)
+  ckpt = tmp_path / "w.npz"
+  ckpt.write_bytes(b"never read")
+  for extra in ((), ("--overwrite",)):
+    assert _infer(left, right, ckpt, seq, *extra) == 2
+    err = capsys.readouterr().err
+    assert f"--out {seq} holds left/ and right/ folders" in err, err
+    assert sorted(p.name for p in seq.iterdir()) == ["left", "right"]
+  # a sequence with left/ but no right/ is not one: the run goes on (to the checkpoint here)
+  other = tmp_path / "other"
+  _write_frames(other / "left", frames)
+  assert _infer(left, right, ckpt, other) == 2
+  assert "holds left/ and right/" not in capsys.readouterr().err
+
+
 def test_calibrated_outputs_pair_each_frame_with_its_disparity_colours_and_depth(
     tmp_path, npz_ckpt, monkeypatch):
   """A run with a stand-in model (no compile) whose disparity labels the frame (frame t, grey

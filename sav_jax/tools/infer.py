@@ -365,6 +365,18 @@ def check_not_inputs(paths: list[pathlib.Path], inputs, args=None) -> None:
                           "never written over or into, even with --overwrite)")
 
 
+def check_not_sequence_folder(out: pathlib.Path) -> None:
+  """Raises FileExistsError if `out` holds `left/` and `right/` folders: a sequence of the
+  `folder` dataset (`sav_jax/data/stereo_folder.py`), whose `disparity/` the readers take for
+  its ground truth, so the predictions written there were scored against themselves by
+  `python -m eval` (EPE 0) and trained on as labels. Holds with --overwrite too."""
+  if (out / "left").is_dir() and (out / "right").is_dir():
+    raise FileExistsError(f"--out {out} holds left/ and right/ folders, a stereo folder "
+                          "dataset's sequence, whose disparity/ is read as its ground truth: "
+                          "the predictions would be taken for it; choose an --out outside "
+                          "the dataset")
+
+
 def check_model_args(iters: int, window: int, stride: int) -> None:
   if iters < 2:
     raise UsageError(f"--iters must be an integer >= 2, got {iters}")
@@ -401,6 +413,7 @@ def run(args: argparse.Namespace) -> int:
     if not (np.isfinite(args.max_depth) and args.max_depth > 0):
       raise UsageError(f"--max-depth must be a finite positive number, got {args.max_depth}")
   out = check_output_dir(args.out)
+  check_not_sequence_folder(out)
   outputs = output_paths(out, names, formats, calib, args.depth_format)
   for path in outputs:  # before anything is written (OpenCV crashed on such names)
     viz.check_utf8_path(path, "output file (named after --out and the frame)")
