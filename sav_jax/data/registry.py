@@ -14,6 +14,7 @@ shorter than L are skipped. Other splits return whole sequences.
 from __future__ import annotations
 
 import functools
+import inspect
 import logging
 import os
 from pathlib import Path
@@ -171,6 +172,7 @@ def register_dataset(name: str, load_sequences, *, splits: tuple[str, ...],
   if not callable(load_sequences):
     raise ValueError(f"register_dataset: load_sequences must be a function, got "
                      f"{load_sequences!r}")
+  _check_loader_signature(name, load_sequences)
   if not (isinstance(splits, (tuple, list)) and splits
           and all(isinstance(s, str) for s in splits)):
     raise ValueError(f"register_dataset: splits must be a non-empty tuple of names, got "
@@ -191,6 +193,23 @@ def register_dataset(name: str, load_sequences, *, splits: tuple[str, ...],
   elif training == "sceneflow":
     _SCENEFLOW += (name,)
   DATASETS = tuple(_LOADERS)
+
+
+def _check_loader_signature(name: str, load_sequences) -> None:
+  """Raises ValueError unless `load_sequences(folder, split, dataset=name)` binds: a
+  `(root, split)` reader failed only when its data was first read, with a TypeError from
+  inside the registry."""
+  try:
+    signature = inspect.signature(load_sequences)
+  except (TypeError, ValueError):  # (a callable without one: not checked)
+    return
+  try:
+    signature.bind("folder", "split", dataset=name)
+  except TypeError as e:
+    raise ValueError(f"register_dataset: load_sequences must take (folder, split, "
+                     f"dataset=name), as sav_jax.data.stereo_folder.load_sequences does; "
+                     f"{getattr(load_sequences, '__name__', 'it')}{signature} does not "
+                     f"({e})") from None
 
 
 def _registered(load_sequences, folders: tuple[str, ...], name: str, root, split: str,

@@ -1633,6 +1633,15 @@ def test_a_reader_of_your_own_layout_is_registered(tmp_path, monkeypatch):
   for folders in (("OwnSet", 3), ("",), None):
     with pytest.raises(ValueError, match="folders must be a tuple of folder names"):
       registry.register_dataset("own2", _load_own, splits=("test",), folders=folders)
+  # a reader without the dataset keyword failed only when first read (a TypeError inside)
+  def two_args(root, split):
+    return _load_own(root, split, "own2")
+  with pytest.raises(ValueError, match=re.escape(
+      "load_sequences must take (folder, split, dataset=name), as sav_jax.data.stereo_folder."
+      "load_sequences does; two_args(root, split) does not")):
+    registry.register_dataset("own2", two_args, splits=("test",))
+  with pytest.raises(ValueError, match=re.escape("<lambda>(root) does not")):
+    registry.register_dataset("own2", lambda root: [], splits=("test",))
   assert "own2" not in registry.DATASETS
   registry.register_dataset("own3", _load_own, splits=("test",), folders=("OwnSet",),
                             training=None)  # evaluation only: training on it says why not
