@@ -805,8 +805,9 @@ def _eval_batch(pred, gt, mask, scale, video, flows, depth_flows, flow_fn,
     _check_depth_flows(depth_flows)
   unused = _unused_inputs(scale, video, flows, depth_flows, flow_fn, names)
   warp = scale is not None and video is not None and (flows is not None or flow_fn is not None)
+  if video is not None:  # its layout also where no metric uses it (flows or scale missing):
+    left = _as_left_video(video, names["video"])  # it was refused only once they were added
   if warp:  # checked before any flow is computed
-    left = _as_left_video(video, names["video"])
     _check_video_values(video, names["video"])
   res = {f"disp_{k}": v for k, v in eval_endpoint_error_sequence(x, y, m).items()}
   if scale is not None:

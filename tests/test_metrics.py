@@ -753,6 +753,9 @@ def test_channels_last_videos_and_flows_are_refused_with_the_moveaxis():
     M.eval_batch(pred, gt, valid, scale=100.0, left_video=last, video_flows=flows)
   with pytest.raises(ValueError, match=r"^left_video must be .*np\.moveaxis\(left_video, -1, 1\)"):
     M.eval_opw_sequence(last, pred, gt, valid, flows)
+  for unused in ({}, {"scale": 100.0}):  # no flows (nor scale): no metric uses it, refused too
+    with pytest.raises(ValueError, match=r"^video must be .*np\.moveaxis\(video, -1, 1\)$"):
+      M.eval_sequence(pred, gt, valid, video=last, **unused)
   with pytest.raises(ValueError, match=r"got shape \(3, 4, 32, 64\)$"):  # no channel axis: no hint
     M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=np.zeros((3, 4, 32, 64)))
   ok = M.eval_sequence(pred, gt, valid, flows, scale=100.0, video=np.moveaxis(last, -1, 1))
