@@ -821,8 +821,9 @@ def _refuse_iterator(video, name: str) -> None:
   if isinstance(video, (str, bytes, os.PathLike)):
     raise ValueError(
         f"{name}: got a path ({os.fspath(video)!r}), not frames; read them first: "
-        "sav_jax.tools.video_io.load_stereo(left, right) gives both views' frames of two "
-        "folders or video files (video_io.FrameSource(path) reads them lazily)")
+        "left, right, names = sav_jax.tools.video_io.load_stereo(left_path, right_path) reads "
+        "both views' frames of two folders or video files (and the left frames' names; "
+        "video_io.FrameSource(path) reads one lazily)")
   if not hasattr(video, "shape") and not isinstance(video, (list, tuple)) and (
       hasattr(video, "__next__") or not hasattr(video, "__getitem__")):
     raise ValueError(

@@ -573,7 +573,8 @@ def test_bad_inputs():
     with pytest.raises(ValueError, match=r"\[T, H, W, 3\] \(0\.\.255\), got shape \("):
       inference.predict_video({}, np.zeros(shape), np.zeros(shape))
   with pytest.raises(ValueError, match=r"left: got a path \('left\.mp4'\), not frames; read them "
-                     r"first: sav_jax\.tools\.video_io\.load_stereo"):
+                     r"first: left, right, names = sav_jax\.tools\.video_io\.load_stereo\("
+                     r"left_path, right_path\) reads"):  # (three values: `l, r = ` failed)
     inference.predict_video({}, "left.mp4", "right.mp4")
   with pytest.raises(ValueError, match=r"right: got a path \('right\.mp4'\), not frames"):
     inference.predict_video({}, np.zeros((2, 8, 8, 3)), pathlib.Path("right.mp4"))
