@@ -2282,6 +2282,21 @@ def test_check_overwrite_refuses_existing_outputs_and_what_is_not_a_file(tmp_pat
     infer.check_overwrite(paths, False, out)
   with pytest.raises(FileExistsError, match=r"output files exist \(.*0004\.npy\); pass"):
     infer.check_overwrite(paths[4:], False, out)
+  # files no earlier run's summary lists (a user's own, of the outputs' names) are named as such
+  with pytest.raises(FileExistsError, match=re.escape(
+      f"pass --overwrite to replace them; 5 of them ({paths[0]}, ...) no earlier sav-jax infer "
+      f"run in {out} lists as its output: files of your own? --overwrite deletes them too, "
+      "another --out keeps them")):
+    infer.check_overwrite(paths, False, out, infer.listed_outputs(out))
+  (out / "summary.json").write_text(json.dumps({  # an earlier run's: 0003 and 0004 are its
+      "tool": "sav-jax infer", "outputs": ["disparity/0003.npy", "disparity/0004.npy"]}))
+  with pytest.raises(FileExistsError, match=re.escape(f"; 3 of them ({paths[0]}, ...) no ")):
+    infer.check_overwrite([*paths, out / "summary.json"], False, out, infer.listed_outputs(out))
+  with pytest.raises(FileExistsError, match=r"0004\.npy, .*summary\.json\); pass --overwrite to "
+                                            r"replace them$"):
+    infer.check_overwrite([*paths[3:], out / "summary.json"], False, out,
+                          infer.listed_outputs(out))
+  (out / "summary.json").unlink()
   with pytest.raises(FileExistsError, match=r"0002\.npy and 1 more\); pass"):  # 4: one more
     infer.check_overwrite(paths[:4], False, out)
   infer.check_overwrite(paths, True, out)

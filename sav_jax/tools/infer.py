@@ -160,10 +160,13 @@ def output_paths(out: pathlib.Path, names: list[str], formats: list[str],
 
 
 def check_overwrite(paths: list[pathlib.Path], overwrite: bool,
-                    out: pathlib.Path | None = None) -> None:
+                    out: pathlib.Path | None = None,
+                    listed: set[pathlib.Path] | None = None) -> None:
   """Raises FileExistsError if any output exists and `overwrite` is off, or if an output
   (or a folder it goes in) is something other than a file (folder), or a symbolic link,
-  even with `overwrite`; so is a folder below `out` (`disparity/`, ...) that is a link."""
+  even with `overwrite`; so is a folder below `out` (`disparity/`, ...) that is a link.
+  `listed` (`listed_outputs`): the files an earlier run wrote; the error names the others,
+  which `--overwrite` would delete too."""
   checked = set()  # folders looked at already, with every folder above them
   existing = []
   for p in paths:
@@ -189,7 +192,13 @@ def check_overwrite(paths: list[pathlib.Path], overwrite: bool,
   if existing and not overwrite:
     shown = ", ".join(str(p) for p in existing[:3])
     more = f" and {len(existing) - 3} more" if len(existing) > 3 else ""
-    raise FileExistsError(f"output files exist ({shown}{more}); pass --overwrite to replace them")
+    unlisted = [p for p in existing if listed is not None and p.absolute() not in listed]
+    others = "" if not unlisted else (
+        f"; {len(unlisted)} of them ({unlisted[0]}{', ...' * (len(unlisted) > 1)}) no earlier "
+        f"sav-jax infer run in {out} lists as its output: files of your own? --overwrite "
+        "deletes them too, another --out keeps them")
+    raise FileExistsError(f"output files exist ({shown}{more}); pass --overwrite to replace "
+                          f"them{others}")
 
 
 # Marks the `summary.json` this command writes: `--overwrite` trusts no other one's list.
@@ -206,6 +215,21 @@ def _is_output_name(rel: str) -> bool:
   suffix = pathlib.PurePosixPath(parts[1]).suffix
   maps = set(video_io.DISPARITY_SUFFIXES)
   return suffix in {"disparity": maps, "depth": maps, "pointclouds": {".ply"}}.get(parts[0], ())
+
+
+def listed_outputs(out: pathlib.Path) -> set[pathlib.Path]:
+  """The absolute paths of the files `out/summary.json` lists, and its own, where `infer`
+  wrote it (none else): what an earlier run wrote, or began to write (its provisional
+  summary)."""
+  try:
+    summary = loads_json((out / "summary.json").read_text())
+  except (OSError, ValueError):  # none, or unreadable
+    return set()
+  if not (isinstance(summary, dict) and summary.get("tool") == SUMMARY_TOOL
+          and isinstance(summary.get("outputs"), list)):
+    return set()
+  return {(out / rel).absolute() for rel in summary["outputs"]
+          if isinstance(rel, str) and _is_output_name(rel)} | {(out / "summary.json").absolute()}
 
 
 def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[pathlib.Path]:
@@ -435,7 +459,7 @@ def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:
   if restored:
     print(f"put back {restored} files of an earlier run in {out} that an interrupted "
           "--overwrite run had set aside")
-  check_overwrite(outputs, args.overwrite, out)
+  check_overwrite(outputs, args.overwrite, out, listed_outputs(out))
   for folder in sorted({p.parent for p in outputs} - {out}):  # an earlier run's disparity/...
     if folder.is_dir():  # (not writable: found only once the model had run)
       check_output_dir(folder)
