@@ -217,19 +217,27 @@ def _is_output_name(rel: str) -> bool:
   return suffix in {"disparity": maps, "depth": maps, "pointclouds": {".ply"}}.get(parts[0], ())
 
 
+def _summary_outputs(out: pathlib.Path) -> list[pathlib.Path] | None:
+  """The absolute paths of the files `out/summary.json` lists, in its order, where `infer`
+  wrote it (None where not: another tool's `summary.json` may list anything), and of those
+  only the files this command writes."""
+  try:
+    summary = loads_json((out / "summary.json").read_text())
+  except (OSError, ValueError):  # none, or unreadable
+    return None
+  if not (isinstance(summary, dict) and summary.get("tool") == SUMMARY_TOOL
+          and isinstance(summary.get("outputs"), list)):
+    return None
+  return [(out / rel).absolute() for rel in summary["outputs"]
+          if isinstance(rel, str) and _is_output_name(rel)]
+
+
 def listed_outputs(out: pathlib.Path) -> set[pathlib.Path]:
   """The absolute paths of the files `out/summary.json` lists, and its own, where `infer`
   wrote it (none else): what an earlier run wrote, or began to write (its provisional
   summary)."""
-  try:
-    summary = loads_json((out / "summary.json").read_text())
-  except (OSError, ValueError):  # none, or unreadable
-    return set()
-  if not (isinstance(summary, dict) and summary.get("tool") == SUMMARY_TOOL
-          and isinstance(summary.get("outputs"), list)):
-    return set()
-  return {(out / rel).absolute() for rel in summary["outputs"]
-          if isinstance(rel, str) and _is_output_name(rel)} | {(out / "summary.json").absolute()}
+  listed = _summary_outputs(out)
+  return set() if listed is None else {*listed, (out / "summary.json").absolute()}
 
 
 def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[pathlib.Path]:
@@ -239,25 +247,10 @@ def earlier_outputs(out: pathlib.Path, outputs: list[pathlib.Path]) -> list[path
   (`set_aside`) and deletes them once its summary is written (`drop_set_aside`), so that
   the folder holds one run's outputs; files the summary does not list (a user's own,
   or those of a run that failed before its summary) are never deleted."""
-  try:
-    summary = loads_json((out / "summary.json").read_text())
-  except (OSError, ValueError):  # none, or unreadable
-    return []
-  # Only a summary this command wrote (another tool's `summary.json` may list anything), and
-  # of what it lists only the files this command writes.
-  if not (isinstance(summary, dict) and summary.get("tool") == SUMMARY_TOOL
-          and isinstance(summary.get("outputs"), list)):
-    return []
   keep = {p.absolute() for p in outputs}
-  stale = []
-  for rel in summary["outputs"]:
-    if not (isinstance(rel, str) and _is_output_name(rel)):
-      continue
-    path = (out / rel).absolute()
-    if (path not in keep and path.is_file() and not path.is_symlink()
-        and not path.parent.is_symlink()):  # never deleted through a linked subfolder
-      stale.append(path)
-  return stale
+  return [path for path in _summary_outputs(out) or ()
+          if path not in keep and path.is_file() and not path.is_symlink()
+          and not path.parent.is_symlink()]  # never deleted through a linked subfolder
 
 
 # Where `--overwrite` keeps the earlier run's files while this run writes (in --out; not
