@@ -624,7 +624,11 @@ def test_config_files_that_cannot_be_used(tmp_path):
 @pytest.mark.parametrize("line, message", [
     ("c.iters = None", "config.iters must be an integer >= 2, got None"),
     ("c.max_sequences = None", "config.max_sequences must be an integer (<= 0: all), got None"),
-    ("c.plots.strip_frames = True", "config.plots.strip_frames must be an integer >= 1, got True")])
+    ("c.plots.strip_frames = True", "config.plots.strip_frames must be an integer >= 1, got True"),
+    ("c.sample_len = None", "config.sample_len must be an integer (<= 0: all), got None"),
+    ("c.plots.tile_size = 15", "config.plots.tile_size must be an integer >= 16, got 15"),
+    ("c.metrics.raft_iters = True", "config.metrics.raft_iters must be a positive integer, got True"),
+    ("c.window = 0", "need integers 1 <= stride <= window, got window=0, stride=10")])
 def test_config_file_values_that_cannot_be_used_are_named(tmp_path, capsys, line, message):
   """Values that a config file of one's own sets (an override is parsed as the field's type):
   one line, status 2, before the weights are read."""
@@ -1202,16 +1206,25 @@ def test_bad_raft_settings_are_refused_before_predicting(tmp_path, ckpt, sav_sta
   assert not (tmp_path / "o").exists()
 
 
+_DEVICE_OOM = jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to "
+                                         "allocate 9.1GiB.\nBufferAssignment OOM Debugging.\n")
+
+
 @pytest.mark.parametrize("raised, rc, message", [
     (MemoryError("Unable to allocate 64.0 GiB"), 2, "eval: error: out of host memory: Unable"),
     (KeyboardInterrupt(), 130, "eval: interrupted"),
-    (jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate "
-                                "9.1GiB.\nBufferAssignment OOM Debugging.\n"), 2,
-     "eval: error: out of memory on the device: RESOURCE_EXHAUSTED: Out of memory while trying "
-     "to allocate 9.1GiB.; use fewer frames per window"),
+    (_DEVICE_OOM, 2, "eval: error: out of memory on the device: RESOURCE_EXHAUSTED: Out of memory "
+     "while trying to allocate 9.1GiB.; use fewer frames per window"),
     # a file that cannot be read or written: bad input, as the module docstring says
     (PermissionError(13, "Permission denied", "out/results.md"), 2,
-     "eval: error: [Errno 13] Permission denied: 'out/results.md'")])
+     "eval: error: [Errno 13] Permission denied: 'out/results.md'"),
+    # --overwrite: nothing to resume, the earlier results are back in place
+    (KeyboardInterrupt(), 130, "--overwrite: eval: interrupted; the earlier results in the "
+     "output folder were put back\n"),
+    (_DEVICE_OOM, 2, "--overwrite: eval: error: out of memory on the device: RESOURCE_EXHAUSTED: "
+     "Out of memory while trying to allocate 9.1GiB.; use fewer frames per window (--config."
+     "window, --config.stride), fewer --config.iters or --config.dtype=bfloat16; the earlier "
+     "results in the output folder are kept\n")])
 def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, rc, message,
                                                    run_command):
   from eval import main as eval_main  # pylint: disable=import-outside-toplevel
@@ -1221,11 +1234,13 @@ def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, 
 
   monkeypatch.setattr(eval_main, "run", run)
   argv = ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", "x"]
+  if message.startswith("--overwrite: "):
+    argv, message = [*argv, "--overwrite"], message[len("--overwrite: "):]
   monkeypatch.setattr("sys.argv", ["eval", *argv])
   assert run_command(lambda: eval_main.main()) == rc  # (its immediate exit after Ctrl-C as status)
   err = capsys.readouterr().err
   assert err.startswith(message) and err.count("\n") == 1, err
-  if "out of memory on the device" in message:  # (without --overwrite: what --resume does)
+  if "out of memory on the device" in message and "--overwrite" not in argv:  # what --resume does
     assert err.endswith("; the sequences it finished are recorded: --resume continues\n"), err
   if rc == 130:  # called from Python with arguments, the caller gets the interrupt
     with pytest.raises(KeyboardInterrupt):
@@ -1563,15 +1578,18 @@ def test_short_dynamic_replica_sequences_are_dropped_and_named(tmp_path):
   assert [(s.name, len(s)) for s in kept] == [("alley_1", 3), ("cave_2", 2)] and skipped == []
 
 
-def test_an_output_folder_inside_the_dataset_is_refused(tmp_path, ckpt, capsys):
+def test_an_output_folder_inside_the_dataset_is_refused(tmp_path, capsys, monkeypatch):
   left = tmp_path / "sintel_stereo" / "training" / "final_left"
   left.mkdir(parents=True)
   out = left / "evalout"
-  for root in (tmp_path, tmp_path / "sintel_stereo"):
-    assert main(["--config", str(CONFIGS / "sintel_final.py"), "--checkpoint", str(ckpt),
-                 "--data-root", str(root), "--out", str(out)]) == 2
+  monkeypatch.chdir(tmp_path)  # (and each path relative to it)
+  for root, where in ((tmp_path, out), (tmp_path / "sintel_stereo", out), (".", out),
+                      (tmp_path, out.relative_to(tmp_path))):
+    assert main(["--config", str(CONFIGS / "sintel_final.py"), "--checkpoint", "w",
+                 "--data-root", str(root), "--out", str(where)]) == 2
     err = capsys.readouterr().err
-    assert (f"--out {out} is inside the dataset's folder {tmp_path / 'sintel_stereo'}: keep "
+    folder = pathlib.Path(root) / "sintel_stereo" if root != tmp_path / "sintel_stereo" else root
+    assert (f"--out {where} is inside the dataset's folder {os.path.normpath(folder)}: keep "
             "outputs out of the dataset") in err, err
     assert not out.exists()
 
@@ -2346,3 +2364,283 @@ def test_folders_and_sequences_whose_names_are_not_utf8(tmp_path, sav_state_dict
   assert "b\\udce9" in md and "d\\udce9" in md
   assert "b\\udce9" in (out / "results.csv").read_text(encoding="utf-8")
   assert len(list((out / "plots").iterdir())) == 2
+
+
+# `python -m eval` without the model: its --resume and --overwrite handling, the refusals
+# and the reports of a run, in milliseconds (no weights read, nothing compiled).
+
+
+@pytest.fixture
+def no_model(monkeypatch):
+  """Any --checkpoint loads stand-in weights (`weights`, described as "stand-in PATH") and the
+  model's predictions are `_stand_in_prediction`'s; the names of the sequences a run evaluates
+  are appended to `evaluated`, and one named in `failing` cannot be read (an OSError)."""
+  from sav_jax.tools import infer  # pylint: disable=import-outside-toplevel
+  stand_in = types.SimpleNamespace(weights={"params": {"w": np.arange(3, dtype=np.float32)}},
+                                   evaluated=[], failing=set())
+  monkeypatch.setattr(infer, "load_checkpoint",
+                      lambda path, dtype=None: (stand_in.weights, None, f"stand-in {path}"))
+  monkeypatch.setattr(eval_runner.inference, "predict_video",
+                      lambda variables, left, right, **kw: _stand_in_prediction(left))
+  real = eval_runner.evaluate_sequence
+
+  def evaluate_sequence(seq, *args, **kwargs):
+    stand_in.evaluated.append(seq.name)
+    if seq.name in stand_in.failing:
+      raise OSError(f"{seq.name}: frame 2 cannot be read")
+    return real(seq, *args, **kwargs)
+
+  monkeypatch.setattr(eval_runner, "evaluate_sequence", evaluate_sequence)
+  return stand_in
+
+
+def _small_run(out, *extra):
+  """The arguments of a run of the two small synthetic sequences (SMALL) into `out`."""
+  return ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", "w", *SMALL,
+          "--out", str(out), *extra]
+
+
+def _interrupted(no_model, out, capsys):
+  """A run into `out` stopped at synthetic_001, which cannot be read: synthetic_000 recorded."""
+  no_model.failing.add("synthetic_001")
+  assert main(_small_run(out)) == 2
+  assert "the 1 sequence finished before it is recorded" in capsys.readouterr().err
+  no_model.failing.clear()
+  no_model.evaluated.clear()
+
+
+@pytest.mark.parametrize("files, refused, resumed", [
+    # what --out holds; why a plain run is refused and why --resume is ("": it runs)
+    (["notes.txt", "predictions/", "plots/"], "", ""),  # the user's file, empty folders
+    (["results.json"], "{out}/results.json exist; pass --overwrite to replace them\n",
+     "nothing to resume: {out} holds a finished evaluation (found results.json); pass "
+     "--overwrite to replace it\n"),
+    (["written_files.txt"], "{out}/written_files.txt exist; pass --overwrite",
+     "{out} has no progress.jsonl (found written_files.txt)"),
+    (["predictions/a.npy", "plots/a_strip.png"], "{out}/predictions, {out}/plots exist; pass "
+     "--overwrite", "{out} has no progress.jsonl (found predictions, plots)"),
+    (["progress.jsonl"], "{out}/progress.jsonl exist; pass --resume to continue that "
+     "interrupted run, or --overwrite to replace them\n",
+     "{out}/progress.jsonl is not an evaluation progress file")])
+def test_earlier_results_in_the_output_folder_are_named(tmp_path, no_model, capsys, files,
+                                                        refused, resumed):
+  """The files of an earlier evaluation in --out refuse a run without --overwrite, each named;
+  --resume continues only a run that left a progress file. The user's own files, and empty
+  predictions/ or plots/ folders, are no earlier results."""
+  for again, message in (([], refused), (["--resume"], resumed)):
+    out = tmp_path / ("resume" if again else "plain")
+    for name in files:
+      (out / name).parent.mkdir(parents=True, exist_ok=True)
+      (out / name).mkdir() if name.endswith("/") else (out / name).write_text("x\n")
+    rc = main(_small_run(out, *again))
+    err = capsys.readouterr().err
+    if message:
+      assert rc == 2 and message.format(out=out) in err, err
+      assert no_model.evaluated == []
+    else:
+      assert rc == 0 and (out / "results.json").is_file() and (out / "notes.txt").is_file()
+    no_model.evaluated.clear()
+
+
+def test_resume_evaluates_only_the_unfinished_sequences(tmp_path, no_model, capsys):
+  """--resume takes the interrupted run's finished sequences from its progress file (a record
+  whose frame count no longer fits the sequence is refused) and reports as a run without the
+  interruption would; its progress file is gone once the reports are written."""
+  out = tmp_path / "out"
+  _interrupted(no_model, out, capsys)
+  progress = (out / eval_runner.PROGRESS).read_text()
+  header, record = progress.splitlines()
+  edited = json.loads(record) | {"name": "synthetic_001", "frames": T - 1}
+  (out / eval_runner.PROGRESS).write_text(f"{header}\n{json.dumps(edited)}\n")
+  assert main(_small_run(out, "--resume")) == 2
+  assert ("cannot resume: sequence synthetic_001 has 4 frames, the interrupted run evaluated 3"
+          in capsys.readouterr().err)
+  (out / eval_runner.PROGRESS).write_text(progress)
+  assert main(_small_run(out, "--resume")) == 0 and no_model.evaluated == ["synthetic_001"]
+  printed = capsys.readouterr().out.splitlines()
+  assert printed[:2] == [
+      "synthetic/test: 2 sequences; weights: stand-in w",
+      "--resume: 1 sequence finished by the interrupted run is not evaluated again"]
+  assert printed[2].startswith("[1/2] synthetic_000 (4 frames)  Stereo Any Video: EPE ")
+  assert printed[2].endswith("  (from the interrupted run)")
+  assert printed[3].startswith("[2/2] synthetic_001 (4 frames)") and "interrupted" not in printed[3]
+  assert not (out / eval_runner.PROGRESS).exists()
+  assert main(_small_run(tmp_path / "whole")) == 0
+  resumed, whole = (json.loads((folder / "results.json").read_text())
+                    for folder in (out, tmp_path / "whole"))
+  assert [s["metrics"] for s in resumed["sequences"]] == [s["metrics"] for s in whole["sequences"]]
+  assert resumed["methods"]["sav"]["aggregate"] == whole["methods"]["sav"]["aggregate"]
+
+
+def test_overwrite_replaces_an_interrupted_run(tmp_path, no_model, capsys):
+  """--overwrite evaluates every sequence again (the progress file is not read), and leaves none
+  of the earlier run's files: its list, progress file and set-aside folder are gone. A run
+  killed with the files set aside gets them back at the next start."""
+  out = tmp_path / "out"
+  _interrupted(no_model, out, capsys)
+  assert main(_small_run(out, "--overwrite")) == 0
+  assert no_model.evaluated == ["synthetic_000", "synthetic_001"]
+  # synthetic_000's prediction, strip and curves
+  assert "--overwrite: removed the earlier run's 3 prediction and plot files" in (
+      capsys.readouterr().out)
+  assert not (out / eval_runner.PROGRESS).exists() and not (out / eval_runner.SET_ASIDE).exists()
+  assert len((out / eval_runner.WRITTEN_LIST).read_text().splitlines()) == 6
+  eval_runner.set_aside_written(out)  # killed once its files were set aside
+  assert main(_small_run(out)) == 2
+  assert ("restored 6 prediction and plot files that an interrupted --overwrite run had set "
+          f"aside in {out / eval_runner.SET_ASIDE}") in capsys.readouterr().out
+  assert (out / "results.json").is_file() and not (out / eval_runner.SET_ASIDE).exists()
+  import fcntl  # pylint: disable=import-outside-toplevel
+  (out / eval_runner.LOCK).write_text("otherhost 4242")
+  with open(out / eval_runner.LOCK, "rb") as held:  # another evaluation writing into it
+    fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    assert main(_small_run(out, "--overwrite")) == 2
+  assert f"another evaluation (otherhost 4242) is writing into {out}: wait for it" in (
+      capsys.readouterr().err)
+  assert no_model.evaluated == ["synthetic_000", "synthetic_001"]  # (the first run's)
+
+
+def test_a_users_file_where_the_run_writes_nothing_is_kept(tmp_path, no_model, capsys):
+  """A folder sequence without ground truth gets no curves: the user's file of that name is no
+  reason to refuse an --overwrite run, and stays; one where the run writes is refused."""
+  _folder_dataset(tmp_path / "mine", np.random.default_rng(3))  # c has no ground truth
+  plots = tmp_path / "out" / "plots"
+  plots.mkdir(parents=True)
+  for name in ("c_curves.png", "c_strip.png"):
+    (plots / name).write_bytes(b"mine")
+  args = ["--config", str(CONFIGS / "folder.py"), "--checkpoint", "w", "--data-root",
+          str(tmp_path / "mine"), "--out", str(tmp_path / "out"), "--config.iters=2",
+          "--overwrite"]
+  assert main(args) == 2
+  assert f"{plots / 'c_strip.png'} exists, and no earlier evaluation wrote it (" in (
+      capsys.readouterr().err)
+  (plots / "c_strip.png").unlink()
+  assert main(args) == 0 and (plots / "c_curves.png").read_bytes() == b"mine"
+  assert sorted(p.name for p in plots.iterdir()) == [
+      "a_curves.png", "a_strip.png", "b_curves.png", "b_strip.png", "c_curves.png",
+      "c_strip.png"]
+
+
+def test_resume_checks_where_the_finished_sequences_were_read(tmp_path, no_model, capsys,
+                                                              monkeypatch):
+  """A finished sequence read from another copy of the dataset is refused; a record of an
+  older version, without the folder, is taken as it is."""
+  _folder_dataset(tmp_path / "mine", np.random.default_rng(4))
+  args = _interrupted_after_a(tmp_path, "w", capsys, monkeypatch)
+  no_model.evaluated.clear()
+  shutil.copytree(tmp_path / "mine", tmp_path / "copy")
+  at = args.index("--data-root") + 1
+  assert main([*args[:at], str(tmp_path / "copy"), *args[at + 1:], "--resume"]) == 2
+  assert (f"cannot resume: sequence a is read from {(tmp_path / 'copy').resolve()}"
+          in capsys.readouterr().err)
+  progress = tmp_path / "out" / eval_runner.PROGRESS
+  header, record = progress.read_text().splitlines()
+  older = {k: v for k, v in json.loads(record).items() if k != "source"}
+  progress.write_text(f"{header}\n{json.dumps(older)}\n")
+  assert main([*args, "--resume"]) == 0 and no_model.evaluated == ["b", "c"]
+
+
+_UNREADABLE = "synthetic_000: frame 2 cannot be read\n"  # (`no_model`'s failing sequence)
+
+
+@pytest.mark.parametrize("changes, extra, message", [
+    # sequence -> its changes; the depth metrics asked for; the refusal (or the stand-in's
+    # error once the run has passed the checks: the first sequence cannot be read)
+    ({0: "no gt", 1: "no gt"}, ["--config.metrics.tcc=true"],
+     "config.metrics.tcc: synthetic has no ground truth (a qualitative run: predictions and "
+     "plots only), so there is nothing to measure: drop metrics.tcc\n"),
+    ({0: "unscaled", 1: "unscaled"}, ["--config.metrics.tcc=true", "--config.metrics.raft=r.pth"],
+     "config.metrics.tcc and config.metrics.raft need depth, but synthetic sequence synthetic_000 "
+     "has no depth-to-disparity scale (no camera data; 2 of the 2 sequences with ground truth): "
+     "drop metrics.tcc and metrics.raft\n"),
+    ({1: "short"}, ["--config.metrics.tcc=true"], "config.metrics.tcc: temporal consistency "
+     "needs sequences of 2 frames or more, but synthetic sequence synthetic_001 has 1 (1 of the "
+     "2 sequences with ground truth)\n"),
+    # a sequence without ground truth is not measured: it needs neither a scale nor 2 frames
+    ({1: "no gt, unscaled, short"}, ["--config.metrics.tcc=true"], _UNREADABLE),
+    ({0: "short", 1: "short"}, [], _UNREADABLE)])  # no temporal metric asked for
+def test_depth_metrics_need_measured_sequences_with_a_scale(tmp_path, no_model, capsys,
+                                                           monkeypatch, changes, extra,
+                                                           message):
+  load = eval_data.load_sequences_and_skipped
+
+  def changed(config, root):
+    seqs, skipped = load(config, root)
+    for i, change in changes.items():
+      if "short" in change:
+        seqs[i] = eval_data._Head(seqs[i], 1)  # pylint: disable=protected-access
+      seqs[i].has_gt = "no gt" not in change
+      if "unscaled" in change:
+        seqs[i].depth2disp_scale = None
+    return seqs, skipped
+
+  monkeypatch.setattr(eval_data, "load_sequences_and_skipped", changed)
+  no_model.failing.add("synthetic_000")
+  assert main(_small_run(tmp_path / "o", *extra)) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("eval: error: ") and err.endswith(message), err
+  assert no_model.evaluated == (["synthetic_000"] if message == _UNREADABLE else [])
+
+
+def test_summary_names_the_run_and_keeps_each_sequences_record():
+  """build_summary: the dataset, split, config, weights (their description and digest), the
+  skipped sequences, and each sequence's record as evaluated; a method that predicted nothing
+  timed and measured nothing has 0 frames/s and an empty aggregate, not another method's."""
+  from eval.main import build_summary  # pylint: disable=import-outside-toplevel
+  res = eval_runner.SequenceResult(
+      name="s", frames=3, metrics={"sav": {"disp_epe_mean": 2.0}}, seconds={"sav": 1.5},
+      compile_seconds={"sav": 4.0}, metrics_seconds=0.25, source="/d/test/s/left",
+      notes=["sequence s: a note"])
+  config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+  summary = build_summary(config, "orbax checkpoint w", [res], ["sav", "sgbm"], "d1", ["short"])
+  assert {k: summary[k] for k in ("dataset", "split", "weights", "weights_digest",
+                                  "skipped_sequences", "frames", "metrics_seconds")} == {
+      "dataset": "synthetic", "split": "test", "weights": "orbax checkpoint w",
+      "weights_digest": "d1", "skipped_sequences": ["short"], "frames": 3,
+      "metrics_seconds": 0.25}
+  assert summary["config"] == config.to_dict()
+  assert summary["sequences"] == [{
+      "name": "s", "frames": 3, "source": "/d/test/s/left", "metrics": res.metrics,
+      "seconds": {"sav": 1.5}, "compile_seconds": {"sav": 4.0}, "metrics_seconds": 0.25,
+      "notes": ["sequence s: a note"]}]
+  sav, sgbm = summary["methods"]["sav"], summary["methods"]["sgbm"]
+  assert (sav["aggregate"], sav["frames_per_second"]) == ({"disp_epe_mean": 2.0}, 2.0)
+  assert (sgbm["aggregate"], sgbm["measured_frames"], sgbm["frames_per_second"]) == ({}, 0, 0.0)
+
+
+def test_a_runs_reports_and_what_it_prints(tmp_path, no_model, capsys, monkeypatch):
+  """The reports name the weights' digest and the sequences the reader skipped; a baseline
+  named twice runs once per sequence; the run prints its head line, one line per sequence,
+  the report's aggregate (not its per-sequence table) and the files it wrote."""
+  from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
+  load, sgbm_runs = eval_data.load_sequences_and_skipped, []
+  monkeypatch.setattr(eval_data, "load_sequences_and_skipped",
+                      lambda config, root: (load(config, root)[0], ["too_short"]))
+  monkeypatch.setattr(demo, "stereo_sgbm", lambda left, right, **kw: sgbm_runs.append(1) or (
+      _stand_in_prediction(left) + 1))
+  out = tmp_path / "o"
+  assert main(_small_run(out, "--baseline", "sgbm", "--baseline", "sgbm")) == 0
+  summary = json.loads((out / "results.json").read_text())
+  assert summary["weights_digest"] == eval_runner.weights_digest(no_model.weights)
+  assert summary["skipped_sequences"] == ["too_short"] and list(summary["methods"]) == [
+      "sav", "sgbm"]
+  assert len(sgbm_runs) == 2
+  printed = capsys.readouterr().out
+  assert printed.startswith("synthetic/test: 2 sequences; weights: stand-in w\n[1/2] synthetic_000 ")
+  assert "## Aggregate" in printed and "## Per sequence" not in printed
+  assert printed.endswith(f"\nwrote {out / 'results.json'}, {out / 'results.csv'}, "
+                          f"{out / 'results.md'}\n")
+
+
+def test_resume_or_overwrite_and_an_out_folder_in_the_home_folder(tmp_path, no_model, capsys,
+                                                                  monkeypatch):
+  """--resume and --overwrite exclude each other; `--out=~/o` (no shell expands that `~`) is
+  the home folder's `o`, not a folder named `~` here."""
+  with pytest.raises(SystemExit):
+    main(_small_run(tmp_path / "o", "--resume", "--overwrite"))
+  assert "argument --overwrite: not allowed with argument --resume" in capsys.readouterr().err
+  monkeypatch.setenv("HOME", str(tmp_path / "home"))
+  monkeypatch.chdir(tmp_path)
+  assert main([*_small_run("x"), "--out=~/o"]) == 0
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["home"]
+  assert (tmp_path / "home" / "o" / "results.json").is_file()
