@@ -414,7 +414,7 @@ def test_progress_files_and_listing_survive_kills_and_hand_edits(tmp_path, ckpt,
                                               "plots/x.png"]
 
 
-def test_an_unreadable_sequence_after_finished_ones_says_resume_continues(tmp_path, ckpt,
+def test_an_unreadable_sequence_after_finished_ones_says_resume_continues(tmp_path, no_model,
                                                                           capsys, monkeypatch):
   calls, error = [], [OSError("synthetic_001/frame_0003.png: cannot decode the image file")]
 
@@ -425,8 +425,7 @@ def test_an_unreadable_sequence_after_finished_ones_says_resume_continues(tmp_pa
     return np.ones(left.shape[:3], np.float32)
 
   monkeypatch.setattr(eval_runner.inference, "predict_video", fake_predict)
-  args = ["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL,
-          "--out", str(tmp_path / "a")]
+  args = _small_run(tmp_path / "a")
   assert main(args) == 2
   err = capsys.readouterr().err
   assert err == ("eval: error: synthetic_001/frame_0003.png: cannot decode the image file; the "
@@ -627,7 +626,8 @@ def test_config_files_that_cannot_be_used(tmp_path):
     ("c.plots.strip_frames = True", "config.plots.strip_frames must be an integer >= 1, got True"),
     ("c.sample_len = None", "config.sample_len must be an integer (<= 0: all), got None"),
     ("c.plots.tile_size = 15", "config.plots.tile_size must be an integer >= 16, got 15"),
-    ("c.metrics.raft_iters = True", "config.metrics.raft_iters must be a positive integer, got True"),
+    ("c.metrics.raft_iters = True",
+     "config.metrics.raft_iters must be a positive integer, got True"),
     ("c.window = 0", "need integers 1 <= stride <= window, got window=0, stride=10")])
 def test_config_file_values_that_cannot_be_used_are_named(tmp_path, capsys, line, message):
   """Values that a config file of one's own sets (an override is parsed as the field's type):
@@ -1595,9 +1595,10 @@ def test_an_output_folder_inside_the_dataset_is_refused(tmp_path, capsys, monkey
 
 
 def test_no_data_root_where_its_default_folder_is_missing_says_to_pass_one(
-    tmp_path, monkeypatch, capsys):
+    tmp_path, monkeypatch, capsys, no_model):
   """Run from a folder without data/datasets/ (a wheel's user): the missing --data-root is
-  named, not only the default path ("dataset folder not found: data/datasets")."""
+  named, not only the default path ("dataset folder not found: data/datasets"). Where there
+  is one, it is read."""
   monkeypatch.chdir(tmp_path)
   for config, where in (("folder.py", "the folder that holds your videos' test/"),
                         ("sintel_final.py", "the datasets folder or the dataset's own")):
@@ -1606,6 +1607,10 @@ def test_no_data_root_where_its_default_folder_is_missing_says_to_pass_one(
         "eval: error: no --data-root given, and its default data/datasets/ is not a folder "
         f"here: pass --data-root DIR, {where}\n")
   assert list(tmp_path.iterdir()) == []
+  _folder_dataset(tmp_path / "data" / "datasets", np.random.default_rng(5))
+  assert main(["--config", str(CONFIGS / "folder.py"), "--checkpoint", "c", "--out", "o",
+               "--config.iters=2", "--config.plots.enabled=false"]) == 0
+  assert no_model.evaluated == ["a", "b", "c"]
 
 
 def test_the_report_names_the_folder_the_frames_came_from():
@@ -2182,12 +2187,10 @@ def test_default_output_folder_and_files(tmp_path, ckpt, monkeypatch):
   assert (tmp_path / "empty" / "results.json").is_file()
 
 
-def _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch) -> list[str]:
-  """Evaluates the folder dataset under `tmp_path / "mine"` with stand-in predictions (kept
-  for the rest of the test) into `tmp_path / "out"`, interrupted after sequence a (the next
+def _interrupted_after_a(tmp_path, capsys, monkeypatch) -> list[str]:
+  """Evaluates the folder dataset under `tmp_path / "mine"` with stand-in weights and
+  predictions (`no_model`) into `tmp_path / "out"`, interrupted after sequence a (the next
   one's progress write fails: "disk full"); returns the run's arguments, for a --resume."""
-  monkeypatch.setattr(eval_runner.inference, "predict_video",
-                      lambda variables, left, right, **kw: _stand_in_prediction(left))
   real_append = eval_runner.append_progress
 
   def only_a(out_, settings, res):
@@ -2195,7 +2198,7 @@ def _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch) -> list[str]:
       raise OSError(f"{res.name}: disk full")
     return real_append(out_, settings, res)
 
-  args = ["--config", str(CONFIGS / "folder.py"), "--checkpoint", str(ckpt), "--data-root",
+  args = ["--config", str(CONFIGS / "folder.py"), "--checkpoint", "w", "--data-root",
           str(tmp_path / "mine"), "--out", str(tmp_path / "out"), "--config.iters=2",
           "--config.plots.enabled=false"]
   with monkeypatch.context() as m:
@@ -2210,11 +2213,12 @@ def _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch) -> list[str]:
   return args
 
 
-def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, ckpt, capsys, monkeypatch):
+def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, no_model, capsys,
+                                                        monkeypatch):
   """A sequence the interrupted run finished that has gained or lost a frame since (same folder,
   same settings) is not taken from the progress file: its numbers would be of other frames."""
   written = _folder_dataset(tmp_path / "mine", np.random.default_rng(8))
-  args = _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch)
+  args = _interrupted_after_a(tmp_path, capsys, monkeypatch)
   folder = tmp_path / "mine" / "test" / "a"
   left, right, gt, _ = written["a"]
   for view, video in (("left", left), ("right", right)):
@@ -2232,7 +2236,7 @@ def test_resume_refuses_a_sequence_whose_frames_changed(tmp_path, ckpt, capsys, 
       capsys.readouterr().err)
 
 
-def test_resume_refuses_a_sequence_whose_ground_truth_came_or_went(tmp_path, ckpt, capsys,
+def test_resume_refuses_a_sequence_whose_ground_truth_came_or_went(tmp_path, no_model, capsys,
                                                                  monkeypatch):
   """A sequence the interrupted run finished without ground truth (a folder sequence without
   disparity/) that has it now, or the reverse, is not taken from the progress file: it was
@@ -2240,13 +2244,13 @@ def test_resume_refuses_a_sequence_whose_ground_truth_came_or_went(tmp_path, ckp
   _folder_dataset(tmp_path / "mine", np.random.default_rng(9))  # a, b with GT; c without
   gt_a = tmp_path / "mine" / "test" / "a" / "disparity"
   gt_a.rename(tmp_path / "gt_a")  # a has no ground truth in the interrupted run
-  args = _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch)
+  args = _interrupted_after_a(tmp_path, capsys, monkeypatch)
   (tmp_path / "gt_a").rename(gt_a)
   assert main([*args, "--resume"]) == 2
   assert ("cannot resume: sequence a has ground truth now, the interrupted run had none; pass "
           "--overwrite to start again") in capsys.readouterr().err
   shutil.rmtree(tmp_path / "out")
-  _interrupted_after_a(tmp_path, ckpt, capsys, monkeypatch)  # a measured, then its ground
+  _interrupted_after_a(tmp_path, capsys, monkeypatch)  # a measured, then its ground
   shutil.rmtree(gt_a)  # truth taken away
   assert main([*args, "--resume"]) == 2
   assert ("cannot resume: sequence a has no ground truth now, the interrupted run measured it; "
@@ -2456,6 +2460,8 @@ def test_resume_evaluates_only_the_unfinished_sequences(tmp_path, no_model, caps
   assert ("cannot resume: sequence synthetic_001 has 4 frames, the interrupted run evaluated 3"
           in capsys.readouterr().err)
   (out / eval_runner.PROGRESS).write_text(progress)
+  # (a lost file list: the finished sequence's files are not written again, so not refused)
+  (out / eval_runner.WRITTEN_LIST).unlink()
   assert main(_small_run(out, "--resume")) == 0 and no_model.evaluated == ["synthetic_001"]
   printed = capsys.readouterr().out.splitlines()
   assert printed[:2] == [
@@ -2472,10 +2478,11 @@ def test_resume_evaluates_only_the_unfinished_sequences(tmp_path, no_model, caps
   assert resumed["methods"]["sav"]["aggregate"] == whole["methods"]["sav"]["aggregate"]
 
 
-def test_overwrite_replaces_an_interrupted_run(tmp_path, no_model, capsys):
+def test_overwrite_replaces_an_interrupted_run(tmp_path, no_model, capsys, monkeypatch):
   """--overwrite evaluates every sequence again (the progress file is not read), and leaves none
   of the earlier run's files: its list, progress file and set-aside folder are gone. A run
-  killed with the files set aside gets them back at the next start."""
+  that fails or is stopped puts the earlier files back, a run killed with them set aside gets
+  them back at the next start, and a run while another one writes into --out is refused."""
   out = tmp_path / "out"
   _interrupted(no_model, out, capsys)
   assert main(_small_run(out, "--overwrite")) == 0
@@ -2485,19 +2492,32 @@ def test_overwrite_replaces_an_interrupted_run(tmp_path, no_model, capsys):
       capsys.readouterr().out)
   assert not (out / eval_runner.PROGRESS).exists() and not (out / eval_runner.SET_ASIDE).exists()
   assert len((out / eval_runner.WRITTEN_LIST).read_text().splitlines()) == 6
+  before = _snapshot(out)
+  no_model.failing.add("synthetic_001")  # a new run that fails in its second sequence ...
+  assert main(_small_run(out, "--overwrite")) == 2
+  no_model.failing.clear()
+  assert _snapshot(out) == before  # ... puts the earlier run's files back
+  with monkeypatch.context() as m:  # as does one stopped (Ctrl-C) in its first
+    m.setattr(eval_runner.inference, "predict_video",
+              lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+    with pytest.raises(KeyboardInterrupt):
+      main(_small_run(out, "--overwrite"))
+  assert _snapshot(out) == before
   eval_runner.set_aside_written(out)  # killed once its files were set aside
   assert main(_small_run(out)) == 2
   assert ("restored 6 prediction and plot files that an interrupted --overwrite run had set "
           f"aside in {out / eval_runner.SET_ASIDE}") in capsys.readouterr().out
-  assert (out / "results.json").is_file() and not (out / eval_runner.SET_ASIDE).exists()
+  assert _snapshot(out) == before
   import fcntl  # pylint: disable=import-outside-toplevel
   (out / eval_runner.LOCK).write_text("otherhost 4242")
+  no_model.evaluated.clear()
   with open(out / eval_runner.LOCK, "rb") as held:  # another evaluation writing into it
     fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
     assert main(_small_run(out, "--overwrite")) == 2
   assert f"another evaluation (otherhost 4242) is writing into {out}: wait for it" in (
       capsys.readouterr().err)
-  assert no_model.evaluated == ["synthetic_000", "synthetic_001"]  # (the first run's)
+  assert no_model.evaluated == []
+  assert _snapshot(out) == {**before, eval_runner.LOCK: b"otherhost 4242"}
 
 
 def test_a_users_file_where_the_run_writes_nothing_is_kept(tmp_path, no_model, capsys):
@@ -2526,7 +2546,7 @@ def test_resume_checks_where_the_finished_sequences_were_read(tmp_path, no_model
   """A finished sequence read from another copy of the dataset is refused; a record of an
   older version, without the folder, is taken as it is."""
   _folder_dataset(tmp_path / "mine", np.random.default_rng(4))
-  args = _interrupted_after_a(tmp_path, "w", capsys, monkeypatch)
+  args = _interrupted_after_a(tmp_path, capsys, monkeypatch)
   no_model.evaluated.clear()
   shutil.copytree(tmp_path / "mine", tmp_path / "copy")
   at = args.index("--data-root") + 1
@@ -2626,7 +2646,8 @@ def test_a_runs_reports_and_what_it_prints(tmp_path, no_model, capsys, monkeypat
       "sav", "sgbm"]
   assert len(sgbm_runs) == 2
   printed = capsys.readouterr().out
-  assert printed.startswith("synthetic/test: 2 sequences; weights: stand-in w\n[1/2] synthetic_000 ")
+  assert printed.startswith(
+      "synthetic/test: 2 sequences; weights: stand-in w\n[1/2] synthetic_000 ")
   assert "## Aggregate" in printed and "## Per sequence" not in printed
   assert printed.endswith(f"\nwrote {out / 'results.json'}, {out / 'results.csv'}, "
                           f"{out / 'results.md'}\n")
