@@ -2448,7 +2448,7 @@ def test_earlier_results_in_the_output_folder_are_named(tmp_path, no_model, caps
 
 def test_resume_evaluates_only_the_unfinished_sequences(tmp_path, no_model, capsys):
   """--resume takes the interrupted run's finished sequences from its progress file (a record
-  whose frame count no longer fits the sequence is refused) and reports as a run without the
+  whose frame count no longer fits the sequence, or another method, is refused) and reports as a run without the
   interruption would; its progress file is gone once the reports are written."""
   out = tmp_path / "out"
   _interrupted(no_model, out, capsys)
@@ -2460,6 +2460,8 @@ def test_resume_evaluates_only_the_unfinished_sequences(tmp_path, no_model, caps
   assert ("cannot resume: sequence synthetic_001 has 4 frames, the interrupted run evaluated 3"
           in capsys.readouterr().err)
   (out / eval_runner.PROGRESS).write_text(progress)
+  assert main(_small_run(out, "--resume", "--baseline", "sgbm")) == 2  # another method
+  assert "methods: ['sav'] then, ['sav', 'sgbm'] now" in capsys.readouterr().err
   # (a lost file list: the finished sequence's files are not written again, so not refused)
   (out / eval_runner.WRITTEN_LIST).unlink()
   assert main(_small_run(out, "--resume")) == 0 and no_model.evaluated == ["synthetic_001"]
