@@ -628,6 +628,7 @@ def test_config_files_that_cannot_be_used(tmp_path):
     ("c.plots.tile_size = 15", "config.plots.tile_size must be an integer >= 16, got 15"),
     ("c.metrics.raft_iters = True",
      "config.metrics.raft_iters must be a positive integer, got True"),
+    ("c.metrics.raft_iters = 0", "config.metrics.raft_iters must be a positive integer, got 0"),
     ("c.window = 0", "need integers 1 <= stride <= window, got window=0, stride=10")])
 def test_config_file_values_that_cannot_be_used_are_named(tmp_path, capsys, line, message):
   """Values that a config file of one's own sets (an override is parsed as the field's type):
@@ -1145,10 +1146,10 @@ def _stand_in_flow(img1, img2):
   return np.stack([0.02 * diff, np.full_like(diff, 0.5)])
 
 
-def test_raft_flow_metrics(tmp_path, ckpt, raft_state_dict, monkeypatch):
+def test_raft_flow_metrics(tmp_path, no_model, raft_state_dict, monkeypatch):
   """`--config.metrics.raft=FILE` reads the RAFT checkpoint and adds TCM, OPW and RTC, each
   as `metrics.eval_sequence` computes it with that flow function (a stand-in for RAFT's
-  flow here: these frames are below RAFT's smallest size)."""
+  flow here: these frames are below RAFT's smallest size) on the saved predictions."""
   from sav_jax.convert.raft import raft_variables_from_state_dict
   from sav_jax.model import raft
   path = sav_jax.convert.save_state_dict(raft_state_dict, tmp_path / "raft-things.safetensors")
@@ -1160,9 +1161,8 @@ def test_raft_flow_metrics(tmp_path, ckpt, raft_state_dict, monkeypatch):
 
   monkeypatch.setattr(raft, "raft_flow_fn", flow_fn_of)
   out = tmp_path / "o"
-  assert main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), *SMALL,
-               "--out", str(out), f"--config.metrics.raft={path}",
-               "--config.metrics.raft_iters=7"]) == 0
+  assert main(_small_run(out, f"--config.metrics.raft={path}",
+                         "--config.metrics.raft_iters=7")) == 0
   assert got["iters"] == 7
   jax.tree_util.tree_map(np.testing.assert_array_equal, got["variables"],
                          raft_variables_from_state_dict(raft_state_dict))
@@ -2575,6 +2575,9 @@ _UNREADABLE = "synthetic_000: frame 2 cannot be read\n"  # (`no_model`'s failing
      "config.metrics.tcc and config.metrics.raft need depth, but synthetic sequence synthetic_000 "
      "has no depth-to-disparity scale (no camera data; 2 of the 2 sequences with ground truth): "
      "drop metrics.tcc and metrics.raft\n"),
+    ({0: "unscaled", 1: "no gt"}, ["--config.metrics.tcc=true"], "config.metrics.tcc needs "
+     "depth, but synthetic sequence synthetic_000 has no depth-to-disparity scale (no camera "
+     "data; 1 of the 1 sequences with ground truth): drop metrics.tcc\n"),
     ({1: "short"}, ["--config.metrics.tcc=true"], "config.metrics.tcc: temporal consistency "
      "needs sequences of 2 frames or more, but synthetic sequence synthetic_001 has 1 (1 of the "
      "2 sequences with ground truth)\n"),
@@ -2626,7 +2629,8 @@ def test_summary_names_the_run_and_keeps_each_sequences_record():
       "seconds": {"sav": 1.5}, "compile_seconds": {"sav": 4.0}, "metrics_seconds": 0.25,
       "notes": ["sequence s: a note"]}]
   sav, sgbm = summary["methods"]["sav"], summary["methods"]["sgbm"]
-  assert (sav["aggregate"], sav["frames_per_second"]) == ({"disp_epe_mean": 2.0}, 2.0)
+  assert (sav["name"], sav["aggregate"], sav["frames_per_second"]) == (
+      "Stereo Any Video", {"disp_epe_mean": 2.0}, 2.0)
   assert (sgbm["aggregate"], sgbm["measured_frames"], sgbm["frames_per_second"]) == ({}, 0, 0.0)
 
 
