@@ -811,14 +811,14 @@ def test_synthetic_depth_to_disparity_scale_is_fx_times_baseline():
   np.testing.assert_allclose(clip["disparity"] * clip["depth"], seq.depth2disp_scale, rtol=1e-5)
 
 
-def test_sgbm_baseline_settings_are_checked_before_predicting(tmp_path, ckpt, capsys):
+def test_sgbm_baseline_settings_are_checked_before_predicting(tmp_path, no_model, capsys):
   for value, message in (("4", "block_size must be an odd integer >= 1, got 4"),
                          ("0", "block_size must be an odd integer >= 1, got 0")):
-    rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(ckpt), "--out",
+    rc = main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", "w", "--out",
                str(tmp_path / "o"), "--baseline", "sgbm", f"--config.baseline.block_size={value}",
                "--config.plots.strip_frames=1", "--config.plots.tile_size=16"])  # (the least)
     assert rc == 2 and f"config.baseline.{message}" in capsys.readouterr().err
-    assert not (tmp_path / "o").exists()
+    assert not (tmp_path / "o").exists() and no_model.evaluated == []
   from sav_jax.tools.demo import stereo_sgbm  # pylint: disable=import-outside-toplevel
   frames = np.zeros((1, 8, 40, 3), np.uint8)
   with pytest.raises(ValueError, match="max_disparity must be a finite number >= 1"):
