@@ -2448,8 +2448,9 @@ def test_earlier_results_in_the_output_folder_are_named(tmp_path, no_model, caps
 
 def test_resume_evaluates_only_the_unfinished_sequences(tmp_path, no_model, capsys):
   """--resume takes the interrupted run's finished sequences from its progress file (a record
-  whose frame count no longer fits the sequence, or another method, is refused) and reports as a run without the
-  interruption would; its progress file is gone once the reports are written."""
+  whose frame count no longer fits the sequence, or another method, is refused) and reports
+  as a run without the interruption would; its progress file is gone once the reports are
+  written."""
   out = tmp_path / "out"
   _interrupted(no_model, out, capsys)
   progress = (out / eval_runner.PROGRESS).read_text()
