@@ -2472,6 +2472,17 @@ def test_train_command_says_distributed_auto_found_no_cluster(monkeypatch, capsy
                                             "to join (a TPU pod, a SLURM job, ...): no cluster; ")
 
 
+# XLA's error (its buffer tables cut short) and train's one line about it, status 1.
+_DEVICE_OUT_OF_MEMORY = (
+    lambda loop: jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to "
+                                            "allocate 30.5GiB.\nBufferAssignment OOM Debugging."),
+    1, "out of memory on the device: RESOURCE_EXHAUSTED: Out of memory while trying to allocate "
+    "30.5GiB.; use --config.train.microbatches=K (the same batch as K parts), "
+    "--config.model.remat=true, --config.model.dtype=bfloat16, a smaller "
+    "--config.train.batch_size or --config.data.crop, or fewer --config.train.iters; no "
+    "checkpoint was saved: the same command starts the run anew")
+
+
 @pytest.mark.parametrize("where, error, status, says", [
     # bad input found by the setup: status 2, one line (-v 1 for the traceback)
     ("setup", lambda loop: ValueError("config.x: bad"), 2,
@@ -2483,12 +2494,16 @@ def test_train_command_says_distributed_auto_found_no_cluster(monkeypatch, capsy
      "the training batch of step 7 could not be made: x"),
     # too many skipped updates: status 1, one line naming where the same command resumes
     ("run", lambda loop: loop.Diverged("step 8: 6 updates skipped"), 1, "step 8: 6 updates "
-     "skipped; no checkpoint was saved: the same command starts the run anew")])
+     "skipped; no checkpoint was saved: the same command starts the run anew"),
+    # the device out of memory, placing the initial state or running a step: status 1
+    ("setup", *_DEVICE_OUT_OF_MEMORY), ("run", *_DEVICE_OUT_OF_MEMORY)])
+@pytest.mark.parametrize("verbosity", [0, 1])
 def test_train_command_ends_a_failed_run_with_one_line_and_its_status(
-    monkeypatch, capsys, tmp_path, where, error, status, says):
+    monkeypatch, capsys, tmp_path, where, error, status, says, verbosity):
   """README: bad input exits with status 2, a training batch that cannot be made too, a run
-  that diverged with status 1; each with one line on stderr, and the JAX settings of a
-  training run made first (host-to-device copies are errors, JAX's INFO lines quiet)."""
+  that diverged or ran out of device memory with status 1; each with one line on stderr
+  (with absl's `-v 1`: after the error's traceback), and the JAX settings of a training run
+  made first (host-to-device copies are errors, JAX's INFO lines quiet)."""
   from train import loop  # pylint: disable=g-import-not-at-top
 
   def fail(*args, **kwargs):
@@ -2498,7 +2513,7 @@ def test_train_command_ends_a_failed_run_with_one_line_and_its_status(
   monkeypatch.setattr(loop, "run", fail)
   train_main = _train_main_with_flags(monkeypatch, _WORKDIR=str(tmp_path / "w"))
   monkeypatch.setattr(train_main, "flags", types.SimpleNamespace(
-      FLAGS=types.SimpleNamespace(verbosity=0)))  # (absl's flags are not parsed here)
+      FLAGS=types.SimpleNamespace(verbosity=verbosity)))  # (absl's flags are not parsed here)
   updates = []
   monkeypatch.setattr(jax.config, "update", lambda *args: updates.append(args))
   loggers = [logging.getLogger(name) for name in ("", "absl", "jax")]
@@ -2511,7 +2526,15 @@ def test_train_command_ends_a_failed_run_with_one_line_and_its_status(
     for logger, level in zip(loggers, levels):
       logger.setLevel(level)
   assert info.value.code == status
-  assert capsys.readouterr().err == f"train: error: {says}\n"
+  err = capsys.readouterr().err
+  if verbosity:  # the traceback of the error raised, then its line (without the -v 1 hint)
+    traceback, line = err.rsplit("\n", 2)[:2]
+    assert traceback.startswith("Traceback (most recent call last):\n"), err
+    raised = error(loop)
+    assert f"{type(raised).__name__}: {str(raised).splitlines()[0]}" in traceback, err
+    assert line == f"train: error: {says.replace(' (-v 1 for the traceback)', '')}"
+  else:
+    assert err == f"train: error: {says}\n"
   assert updates == [("jax_transfer_guard_host_to_device", "disallow")]
   if jax.config.jax_logging_level in (None, "", "NOTSET"):  # (no JAX_LOGGING_LEVEL given)
     assert set_levels == [logging.INFO, logging.WARNING, logging.WARNING]
