@@ -3,6 +3,7 @@
 One compiled shape is shared by all runs: 3 frames of 32x48 (padded to 32x64), iters=2.
 """
 
+import errno
 import json
 import logging
 import os
@@ -2265,6 +2266,87 @@ def test_write_outputs_counts_by_hand_and_colours_the_video_between_percentiles(
                                 [(0, d)], ["png16"], None, args, [])
   assert written == {"video_disparity_range": [2.0, 6.0], "png16_saturated_pixels": 1,
                      "disparities_beyond_width": 2, "empty_point_clouds": 0}
+
+
+@pytest.mark.parametrize("sample, every, video_range", [(None, 3, [2.0, 50.0]),
+                                                       (400, 2, [2.0, 6.0])])
+def test_the_video_colour_range_samples_every_step_th_row_and_column_of_every_frame(
+    tmp_path, monkeypatch, sample, every, video_range):
+  """3 frames of 15 x 24 px (1080 values) whose pixels on every `every`-th row and column hold
+  2, 4 and 6 px and all others 50 px. Within RANGE_SAMPLE values every pixel counts: on every
+  3rd row and column 11% of them are small, so the 1st to 99th percentile is 2 to 50 px.
+  With at most 400 values the step is ceil(sqrt(1080 / 400)) = 2: rows 0, 2, ..., 14 and
+  columns 0, 2, ..., 22, exactly the 288 small values on every 2nd row and column, 2 to 6 px
+  (a step of 1 or 3 would take pixels of 50 px)."""
+  import argparse  # pylint: disable=import-outside-toplevel
+  if sample is not None:
+    monkeypatch.setattr(infer, "RANGE_SAMPLE", sample)
+  out = tmp_path / "out"
+  out.mkdir()
+  d = np.full((3, 15, 24), 50.0, np.float32)
+  d[:, ::every, ::every] = np.array([2.0, 4.0, 6.0], np.float32)[:, None, None]
+  args = argparse.Namespace(window=3, fps=10.0, max_depth=None, depth_format="npy")
+  written = infer.write_outputs(out, ["a", "b", "c"], np.zeros((3, 15, 24, 3), np.uint8),
+                                [(0, d)], ["npy"], None, args, [])
+  assert written["video_disparity_range"] == video_range
+
+
+@pytest.mark.parametrize("raised, says", [
+    (lambda path: OSError(errno.ENOSPC, "No space left on device"),
+     r"cannot write {path} \(3\.0 MB\): No space left on device; \d+\.\d MB free on its disk"),
+    # a message that names the file and the disk's free space itself: each said once
+    (lambda path: OSError(f"{path}: 2 of 3 frames written; 1.5 MB free on its disk"),
+     r"cannot write {path} \(3\.0 MB\): 2 of 3 frames written; 1\.5 MB free on its disk"),
+    (lambda path: KeyboardInterrupt(), None),
+    (lambda path: FileExistsError(errno.EEXIST, "File exists"), None)])
+def test_writing_removes_the_partial_file_of_a_write_that_failed(tmp_path, raised, says):
+  """`writing`: a write cut short (a full disk, Ctrl-C) leaves no partial file under the
+  output's name (a truncated .npy was left behind), unless `remove=False` (a file written
+  whole elsewhere first); a full disk becomes one OSError naming the file, the MB it needs
+  and the cause, Ctrl-C and a FileExistsError (not the disk's) pass through as they are."""
+  path = tmp_path / "0001.npy"
+  for remove in (True, False):
+    error = raised(path)
+    with pytest.raises(OSError if says else type(error)) as info:
+      with infer.writing(path, size=3 << 20, remove=remove):
+        path.write_bytes(b"\x93NUMPY truncated")
+        raise error
+    assert path.exists() is not remove, remove
+    if says:
+      assert re.fullmatch(says.format(path=re.escape(str(path))), str(info.value)), info.value
+      assert info.value.__cause__ is error
+    else:
+      assert info.value is error
+    path.unlink(missing_ok=True)
+
+
+def test_reserve_takes_the_files_blocks_or_sizes_it_where_the_system_cannot(tmp_path,
+                                                                            monkeypatch):
+  """`_reserve` allocates the disparities' temporary file (a full disk is found before any
+  map is written); a file system without posix_fallocate (ZFS: EINVAL, some FUSE:
+  EOPNOTSUPP, ENOSYS) or an OS without it (macOS) gets the file sized instead; any other
+  error, a full disk, is raised."""
+  size = 3 * 16 * 24 * 4
+
+  def reserved(fallocate=None):
+    if fallocate is not None:
+      monkeypatch.setattr(os, "posix_fallocate", fallocate)
+    with open(tmp_path / "held", "w+b") as f:
+      infer._reserve(f, size)  # pylint: disable=protected-access
+      return os.fstat(f.fileno())
+
+  assert reserved().st_size == size
+  for code in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOSYS, errno.ENOSPC):
+    def refuse(fd, offset, length, code=code):
+      raise OSError(code, os.strerror(code))
+
+    if code == errno.ENOSPC:
+      with pytest.raises(OSError, match="No space left on device"):
+        reserved(refuse)
+    else:
+      assert reserved(refuse).st_size == size, code
+  monkeypatch.delattr(os, "posix_fallocate")
+  assert reserved().st_size == size
 
 
 def test_check_overwrite_refuses_existing_outputs_and_what_is_not_a_file(tmp_path):
