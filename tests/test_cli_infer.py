@@ -864,6 +864,8 @@ def _bad_case(name, root, clip, npz_ckpt):
         f"first frame 0000.png is {H + 2}x{W} (height x width)"
   if name == "no_checkpoint":
     return left, right, root / "missing.pth", [], "checkpoint not found"
+  if name == "no_checkpoint_nor_frames":  # named before the frames are opened (and decoded)
+    return root / "gone", right, root / "missing.pth", [], "checkpoint not found"
   if name == "incompatible_checkpoint":
     np.savez(root / "bad.npz", **{"fnet.conv1.weight": np.zeros((3, 3), np.float32)})
     return left, right, root / "bad.npz", [], "bad.npz: incompatible checkpoint"
@@ -914,6 +916,9 @@ def _bad_case(name, root, clip, npz_ckpt):
   if name == "max_depth_negative":
     return left, right, npz_ckpt, ["--fx", "9", "--baseline", "1", "--max-depth", "-1"], \
         "--max-depth must be a finite positive number"
+  if name == "max_depth_zero":
+    return left, right, npz_ckpt, ["--fx", "9", "--baseline", "1", "--max-depth", "0"], \
+        "--max-depth must be a finite positive number, got 0.0"
   if name == "max_depth_infinite":  # (as good as no --max-depth: a mistake)
     return left, right, npz_ckpt, ["--fx", "9", "--baseline", "1", "--max-depth", "inf"], \
         "--max-depth must be a finite positive number, got inf"
@@ -946,6 +951,7 @@ def _bad_case(name, root, clip, npz_ckpt):
 
 @pytest.mark.parametrize("name", [
     "counts", "sizes", "empty", "scene_folder", "unreadable", "mixed_sizes", "no_checkpoint",
+    "no_checkpoint_nor_frames",
     "incompatible_checkpoint", "vda_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
     "long_window",
     "calibration", "calib_folder", "fy_zero", "fps", "out_is_file", "out_is_dangling_link",
@@ -956,7 +962,7 @@ def _bad_case(name, root, clip, npz_ckpt):
     "kitti_fx_zero",
     "principal_point",
     "depth_format_without_calibration", "max_depth_without_calibration", "max_depth_negative",
-    "max_depth_infinite",
+    "max_depth_zero", "max_depth_infinite",
     "devices_word", "devices_too_many"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):
   left, right, ckpt, extra, message = _bad_case(name, tmp_path, clip, npz_ckpt)
