@@ -1929,6 +1929,32 @@ def test_overwrite_into_a_relative_out_and_a_second_run_into_a_busy_out(
   assert not (tmp_path / "new2").exists()  # nor the folders made for the lock
 
 
+def test_an_overwrite_run_whose_summary_cannot_be_written_puts_the_earlier_run_back(
+    tmp_path, npz_ckpt, monkeypatch, capsys):
+  """A full disk as the final summary is written (the last file of a run): the error names
+  it, this run's files are deleted and the earlier run's files and summary are put back as
+  they were (not two runs' files mixed under a provisional summary)."""
+  frames = np.zeros((2, 16, 24, 3), np.uint8)
+  left, right = _write_frames(tmp_path / "l", frames), _write_frames(tmp_path / "r", frames)
+  monkeypatch.setattr(inference, "_run_window", _positive_model)
+  out = tmp_path / "out"
+  assert _infer(left, right, npz_ckpt, out, "--format", "npy") == 0
+  before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+  real_write = infer.write_text_atomic
+
+  def full_disk(path, text):
+    if '"complete": true' in text:  # the final summary, not the provisional one
+      raise OSError(errno.ENOSPC, "No space left on device")
+    return real_write(path, text)
+
+  monkeypatch.setattr(infer, "write_text_atomic", full_disk)
+  capsys.readouterr()
+  assert _infer(left, right, npz_ckpt, out, "--format", "pfm", "--overwrite") == 2
+  assert _error_line(capsys).startswith(f"sav-jax infer: error: cannot write "
+                                        f"{out / 'summary.json'}: No space left on device")
+  assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
 def _mjpg(path, frames, fps=24.0):
   writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps,
                            (frames[0].shape[1], frames[0].shape[0]))
@@ -2506,6 +2532,16 @@ def test_calibrated_outputs_pair_each_frame_with_its_disparity_colours_and_depth
                                 xyz[:, 1].max()], np.repeat(reach, 2), rtol=1e-5)
   summary = json.loads((out / "summary.json").read_text())
   assert summary["video_fps"] == 10.0 and summary["frames"] == 3
+  # the run as given (defaults: --window 20, --stride 10), the calibration's filled in
+  assert {k: summary[k] for k in ("height", "width", "model_size", "iters", "window", "stride",
+                                  "formats", "max_depth", "left", "right", "calibration")} == {
+      "height": 16, "width": 24, "model_size": [16, 24], "iters": ITERS, "window": 20,
+      "stride": 10, "formats": ["png16", "npy"], "max_depth": None, "left": str(left),
+      "right": str(right), "calibration": {"fx": 100.0, "fy": 100.0, "cx": 11.5, "cy": 7.5,
+                                           "baseline": 0.5, "doffs": 3.0}}
+  # its list for a later --overwrite: every file of the run
+  assert sorted(summary["outputs"]) == sorted(p.relative_to(out).as_posix()
+                                              for p in out.rglob("*") if p.is_file())
   assert sorted(p.name for p in (out / "depth").iterdir()) == ["0000.npy", "0001.npy", "0002.npy"]
   video = video_io.read_video_file(out / "side_by_side.mp4")
   assert video.shape == (3, 16, 48, 3)  # left | colourized disparity, dark to bright: 2, 4, 6 px
@@ -2542,14 +2578,22 @@ def test_an_earlier_runs_list_never_deletes_through_links(tmp_path):
   assert not (out / "disparity" / "a.npy").exists()  # the unfinished run's own file: deleted
   assert (user / "a.npy").read_bytes() == (user / "b.npy").read_bytes() == b"user data"
   assert (out / "disparity" / "b.npy").is_symlink() and (out / "depth").is_symlink()
+  (tmp_path / "empty").mkdir()  # a user's linked folder stays, even empty
+  (out / "pointclouds").symlink_to(tmp_path / "empty")
+  (out / infer.SET_ASIDE).mkdir()
+  assert infer.put_back(out) == 0
+  assert (out / "pointclouds").is_symlink() and (tmp_path / "empty").is_dir()
 
 
 def test_put_back_restores_the_set_aside_files_unless_the_run_is_known_complete(tmp_path):
   """Only a summary saying `"complete": true` lets `put_back` delete the set-aside files of
   the earlier run; one that does not say (`complete` missing or not a boolean) has them put
   back, as for an unfinished run, and the files it lists are kept (only a provisional
-  summary, `"complete": false`, is known to list an unfinished run's own files)."""
-  for complete in ({}, {"complete": None}, {"complete": "yes"}):
+  summary, `"complete": false`, is known to list an unfinished run's own files); so does
+  another tool's `summary.json`, whatever it says."""
+  for complete in ({}, {"complete": None}, {"complete": "yes"},
+                   {"tool": "python -m eval", "complete": True},
+                   {"tool": "python -m eval", "complete": False}):
     out = tmp_path / str(len(list(tmp_path.iterdir())))
     (out / infer.SET_ASIDE / "disparity").mkdir(parents=True)
     (out / infer.SET_ASIDE / "disparity" / "a.npy").write_bytes(b"earlier run")
