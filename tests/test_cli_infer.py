@@ -2626,7 +2626,9 @@ def test_overwrite_never_deletes_input_frames_an_earlier_summary_lists(tmp_path,
                                                                        monkeypatch, capsys):
   """An earlier run's summary may list files that are now this run's input (frames copied
   into `out/depth/` and given as --left): `--overwrite` refuses to set them aside for deletion
-  before anything runs, and the frames stay."""
+  before anything runs, and the frames stay; so are input frames where this run's own outputs
+  go (`out2/disparity/0000.png`), with no summary at all (a stand-in model: a run that went on
+  would replace them)."""
   frames = np.zeros((2, 16, 24, 3), np.uint8)
   out = tmp_path / "out"
   left = _write_frames(out / "depth", frames)
@@ -2638,6 +2640,12 @@ def test_overwrite_never_deletes_input_frames_an_earlier_summary_lists(tmp_path,
   assert _infer(left, right, npz_ckpt, out, "--overwrite") == 2
   assert "would replace a file of the input" in _error_line(capsys)
   assert sorted(p.name for p in left.iterdir()) == ["0000.png", "0001.png"]
+  left = _write_frames(tmp_path / "out2" / "disparity", frames)
+  before = {p.name: p.read_bytes() for p in left.iterdir()}
+  assert _infer(left, right, npz_ckpt, tmp_path / "out2", "--overwrite") == 2
+  assert "output " + str(left / "0000.png") + " would replace a file of the input" in (
+      _error_line(capsys))
+  assert {p.name: p.read_bytes() for p in left.iterdir()} == before
 
 
 def test_calibration_files_and_options_edge_cases(tmp_path, caplog):
@@ -2661,6 +2669,8 @@ def test_calibration_files_and_options_edge_cases(tmp_path, caplog):
   with pytest.raises(UsageError, match="give either --calib or --fx"):
     infer.calibration_from_args(args)
   with caplog.at_level(logging.WARNING, "sav_jax.tools.infer"):
+    infer.CalibrationSpec(100.0, 0.5, cx=69.5, cy=15.5).resolve(100, 32)  # x: 20%, as lenses
+    assert not caplog.text
     infer.CalibrationSpec(100.0, 0.5, cx=90.0, cy=15.5).resolve(100, 32)  # x: 40% off centre
   assert "principal point (cx 90, cy 15.5) is 40% of the frame from the centre" in caplog.text
 
