@@ -1793,7 +1793,6 @@ def test_a_full_disk_is_one_error_naming_the_file_and_leaves_no_partial_file(
   # A disk that filled up while the maps were written: numpy's "2048 requested and 992
   # written", naming no file, and a truncated .npy left behind; filling up under the memory
   # map of the disparities killed the process with "Bus error" and no message.
-  import errno  # pylint: disable=import-outside-toplevel
   frames = np.random.default_rng(0).integers(0, 255, (3, 16, 24, 3)).astype(np.uint8)
   left, right = _write_frames(tmp_path / "l", frames), _write_frames(tmp_path / "r", frames)
   monkeypatch.setattr(inference, "_run_window", _positive_model)
@@ -1815,8 +1814,12 @@ def test_a_full_disk_is_one_error_naming_the_file_and_leaves_no_partial_file(
   # no 0001 (truncated), and the failed run's other files and provisional summary deleted
   assert not [p for p in out.rglob("*") if p.is_file()], list(out.rglob("*"))
   monkeypatch.setattr(np, "save", real_save)
-  # No room for the disparities' temporary file: said before any map is written.
+  # No room for the disparities' temporary file (3 frames of 16 x 24 float32): said before
+  # any map is written.
+  reserved = []
+
   def no_room(fd, offset, size):
+    reserved.append(size)
     raise OSError(errno.ENOSPC, "No space left on device")
 
   monkeypatch.setattr(infer.os, "posix_fallocate", no_room)
@@ -1824,7 +1827,7 @@ def test_a_full_disk_is_one_error_naming_the_file_and_leaves_no_partial_file(
   err = _error_line(capsys)
   assert err.startswith(f"sav-jax infer: error: cannot write the disparities' temporary file in "
                         f"{tmp_path / 'out2'} (0.0 MB): No space left on device; "), err
-  assert not (tmp_path / "out2" / "disparity").exists()
+  assert not (tmp_path / "out2" / "disparity").exists() and reserved == [3 * 16 * 24 * 4]
   monkeypatch.undo()
   monkeypatch.setattr(inference, "_run_window", _positive_model)
   # The video: OpenCV's writer reports no error, and a file without its index ("moov atom
@@ -2285,9 +2288,9 @@ def test_output_paths_name_every_file_of_a_run():
 def test_write_outputs_counts_by_hand_and_colours_the_video_between_percentiles(tmp_path):
   """`write_outputs` on disparities given directly (no model): 3 frames of 2, 4, 6 px but
   one pixel of 24 (the frame width: no pixel can match that far) and one of 1000 (above the
-  16-bit PNG's 65535 / 256): 2 disparities at least the width, 1 saturated in the PNG, and
-  the video's colours span the 1st to 99th percentile of the 1152 values, 2 to 6 px (the
-  outlier is not the top of the range)."""
+  16-bit PNG's 65535 / 256): 2 disparities at least the width, 1 saturated in the PNG (not
+  in the npy written after it), and the video's colours span the 1st to 99th percentile of
+  the 1152 values, 2 to 6 px (the outlier is not the top of the range)."""
   import argparse  # pylint: disable=import-outside-toplevel
   out = tmp_path / "out"
   out.mkdir()
@@ -2295,7 +2298,7 @@ def test_write_outputs_counts_by_hand_and_colours_the_video_between_percentiles(
   d[2, 0, 0], d[2, 0, 1] = 24.0, 1000.0
   args = argparse.Namespace(window=3, fps=10.0, max_depth=None, depth_format="npy")
   written = infer.write_outputs(out, ["a", "b", "c"], np.zeros((3, 16, 24, 3), np.uint8),
-                                [(0, d)], ["png16"], None, args, [])
+                                [(0, d)], ["png16", "npy"], None, args, [])
   assert written == {"video_disparity_range": [2.0, 6.0], "png16_saturated_pixels": 1,
                      "disparities_beyond_width": 2, "empty_point_clouds": 0}
 
@@ -2379,6 +2382,33 @@ def test_reserve_takes_the_files_blocks_or_sizes_it_where_the_system_cannot(tmp_
       assert reserved(refuse).st_size == size, code
   monkeypatch.delattr(os, "posix_fallocate")
   assert reserved().st_size == size
+
+
+def test_write_outputs_closes_the_windows_generator_when_a_write_fails(tmp_path, monkeypatch):
+  """A write that fails closes the windows' generator before the error is raised (its
+  progress bar ends its line, not the error's, and its windows are freed), not when the
+  error is freed: here while it is still held."""
+  import argparse  # pylint: disable=import-outside-toplevel
+  monkeypatch.setenv("SAV_IO_THREADS", "1")  # (the error raised at the first frame's submit)
+  closed = []
+
+  def windows():
+    try:
+      for t0 in (0, 3):
+        yield t0, np.ones((3, 16, 24), np.float32)
+    finally:
+      closed.append(t0)
+
+  def full_disk(path, data, fmt):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+  monkeypatch.setattr(video_io, "write_map", full_disk)
+  (tmp_path / "out").mkdir()
+  args = argparse.Namespace(window=3, fps=10.0, max_depth=None, depth_format="npy")
+  with pytest.raises(OSError, match="No space left on device") as info:
+    infer.write_outputs(tmp_path / "out", list("abcdef"), np.zeros((6, 16, 24, 3), np.uint8),
+                        windows(), ["npy"], None, args, [])
+  assert closed == [0], info  # closed in the first window
 
 
 def test_check_overwrite_refuses_existing_outputs_and_what_is_not_a_file(tmp_path):
