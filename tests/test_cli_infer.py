@@ -886,6 +886,8 @@ def _bad_case(name, root, clip, npz_ckpt):
         "--window must be at most 32 (the depth prior's temporal attention length), got 40"
   if name == "calibration":
     return left, right, npz_ckpt, ["--fx", "100"], "--baseline"
+  if name == "doffs_alone":  # not taken for no calibration
+    return left, right, npz_ckpt, ["--doffs", "3"], "calibration needs --fx and --baseline"
   if name == "fy_zero":
     return left, right, npz_ckpt, ["--fx", "100", "--fy", "0", "--baseline", "0.1"], "fy must"
   if name == "fps":
@@ -954,7 +956,7 @@ def _bad_case(name, root, clip, npz_ckpt):
     "no_checkpoint_nor_frames",
     "incompatible_checkpoint", "vda_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
     "long_window",
-    "calibration", "calib_folder", "fy_zero", "fps", "out_is_file", "out_is_dangling_link",
+    "calibration", "doffs_alone", "calib_folder", "fy_zero", "fps", "out_is_file", "out_is_dangling_link",
     "output_is_folder",
     "output_folder_is_file",
     "calib_no_keys", "calib_null",
