@@ -1905,6 +1905,8 @@ def test_overwrite_into_a_relative_out_and_a_second_run_into_a_busy_out(
     tmp_path, npz_ckpt, monkeypatch, capsys):
   # A relative --out: the files set aside were named relative to it and absolute beside it
   # ("... is not in the subpath of 'o'"), every --overwrite that dropped a format failed.
+  # Without --overwrite the second run is refused and changes nothing (only a model test
+  # had that).
   # A second run into a folder a run is writing in took its set-aside files for a killed
   # run's and put them back under it: a lock refuses it.
   frames = np.zeros((2, 16, 24, 3), np.uint8)
@@ -1912,6 +1914,11 @@ def test_overwrite_into_a_relative_out_and_a_second_run_into_a_busy_out(
   monkeypatch.setattr(inference, "_run_window", _positive_model)
   monkeypatch.chdir(tmp_path)
   assert _infer(left, right, npz_ckpt, "o", "--format", "png16,npy") == 0
+  kept = {p: p.read_bytes() for p in (tmp_path / "o").rglob("*") if p.is_file()}
+  capsys.readouterr()
+  assert _infer(left, right, npz_ckpt, "o", "--format", "npy") == 2  # (no --overwrite)
+  assert _error_line(capsys).endswith("pass --overwrite to replace them")
+  assert {p: p.read_bytes() for p in (tmp_path / "o").rglob("*") if p.is_file()} == kept
   assert _infer(left, right, npz_ckpt, "o", "--format", "npy", "--overwrite") == 0
   assert sorted(p.name for p in (tmp_path / "o" / "disparity").iterdir()) == [
       "0000.npy", "0001.npy"]
