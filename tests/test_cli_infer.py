@@ -267,9 +267,12 @@ def test_demo_output_check_replaces_only_an_earlier_demos_files(tmp_path):
 def test_a_window_that_cannot_run_leaves_no_output_folders(tmp_path, folders, npz_ckpt,
                                                             capsys, monkeypatch):
   """The memory check of the first window runs as it compiles, after the outputs were
-  checked: nothing is created in OUT before that window is done."""
+  checked: nothing is created in OUT before that window is done (but the run's lock), and
+  the folders made for the lock are removed."""
+  seen = []
 
   def too_big(*args, **kwargs):
+    seen.extend(p.name for p in out.iterdir())
     raise inference.InsufficientMemoryError("this window needs 99 GB, 8 GB available")
     yield  # pylint: disable=unreachable
 
@@ -277,6 +280,7 @@ def test_a_window_that_cannot_run_leaves_no_output_folders(tmp_path, folders, np
   out = tmp_path / "new" / "out"
   assert _infer(*folders, npz_ckpt, out, "--fx", "40", "--baseline", "0.1") == 2
   assert "needs 99 GB" in capsys.readouterr().err
+  assert seen == [infer.LOCK]
   assert not (tmp_path / "new").exists()
 
 
