@@ -957,19 +957,14 @@ def _bad_case(name, root, clip, npz_ckpt):
 
 @pytest.mark.parametrize("name", [
     "counts", "sizes", "empty", "scene_folder", "unreadable", "mixed_sizes", "no_checkpoint",
-    "no_checkpoint_nor_frames",
-    "incompatible_checkpoint", "vda_checkpoint", "not_a_checkpoint_dir", "not_a_video", "odd_iters",
-    "long_window",
-    "calibration", "doffs_alone", "calib_folder", "fy_zero", "fps", "out_is_file", "out_is_dangling_link",
-    "output_is_folder",
-    "output_folder_is_file",
-    "calib_no_keys", "calib_null",
-    "calib_units", "calib_no_baseline", "middlebury_no_doffs", "middlebury_size", "json_size",
-    "kitti_fx_zero",
-    "principal_point",
-    "depth_format_without_calibration", "max_depth_without_calibration", "max_depth_negative",
-    "max_depth_zero", "max_depth_infinite",
-    "devices_word", "devices_too_many"])
+    "no_checkpoint_nor_frames", "incompatible_checkpoint", "vda_checkpoint",
+    "not_a_checkpoint_dir", "not_a_video", "odd_iters", "long_window", "calibration",
+    "doffs_alone", "calib_folder", "fy_zero", "fps", "out_is_file", "out_is_dangling_link",
+    "output_is_folder", "output_folder_is_file", "calib_no_keys", "calib_null", "calib_units",
+    "calib_no_baseline", "middlebury_no_doffs", "middlebury_size", "json_size", "kitti_fx_zero",
+    "principal_point", "depth_format_without_calibration", "max_depth_without_calibration",
+    "max_depth_negative", "max_depth_zero", "max_depth_infinite", "devices_word",
+    "devices_too_many"])
 def test_bad_inputs_exit_2_and_write_nothing(tmp_path, clip, npz_ckpt, capsys, name):
   left, right, ckpt, extra, message = _bad_case(name, tmp_path, clip, npz_ckpt)
   out = tmp_path / "out"
