@@ -95,9 +95,10 @@ def run(args: argparse.Namespace) -> int:
                        f"{'/'.join(convert.torch_io.WRITE_SUFFIXES)} DST to export it (or copy "
                        "the folder)")
     variables, config = convert.restore_variables(args.src)
-    note = convert.random_prior_note(config, args.src)
-    if note and to_file:  # an orbax output keeps the note in its config; a file has none
-      log.warning("%s (%s will not record it)", note, args.dst)
+    for notes in (convert.random_prior_note, convert.untrained_note):
+      note = notes(config, args.src)
+      if note and to_file:  # an orbax output keeps the note in its config; a file has none
+        log.warning("%s (%s will not record it)", note, args.dst)
     if convert.is_variables_checkpoint(args.src) or to_file:
       from sav_jax.tools.infer import config_from_dict  # pylint: disable=import-outside-toplevel
       path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite,

@@ -568,6 +568,12 @@ def test_cli_convert_vda_only(tmp_path, vda_state_dict, capsys, caplog):
   with caplog.at_level(logging.WARNING):  # a file cannot record it: said when it is written
     assert cli.main(["convert", "--vda", str(src), str(tmp_path / "init.safetensors")]) == 0
   assert "init.safetensors holds a freshly initialised stereo network (seed 0)" in caplog.text
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):  # exporting the orbax one to a file says so too
+    assert cli.main(["convert", str(tmp_path / "b"), str(tmp_path / "b.npz")]) == 0
+  assert (f"{tmp_path / 'b'}: only its depth prior is trained (the output of `sav-jax convert "
+          f"--vda`") in caplog.text and f"({tmp_path / 'b.npz'} will not record it)" in \
+      caplog.text, caplog.text
 
 
 def test_cli_convert_vda_initialises_the_model_of_the_files_prior_with_the_seed(
