@@ -156,8 +156,8 @@ def initial_state(config, model, tx, mesh, manager, data_iterator, abstract_para
                   "not what the interrupted run would have read (some clips come twice, some "
                   "not at all)", step, "; ".join(clips))
     if changed:  # allowed (e.g. to extend a run), but never unnoticed
-      log.warning("resuming with %d config fields changed since checkpoint %d: %s",
-                  len(changed), step, "; ".join(changed))
+      log.warning("resuming with %s changed since checkpoint %d: %s",
+                  plural(len(changed), "config field"), step, "; ".join(changed))
       with jax.transfer_guard("allow"):  # one scalar, to the host
         updates = step - int(jax.device_get(state.num_skipped))
       note = optim.schedule_change_note(config.optimizer, config.train.num_steps, step,

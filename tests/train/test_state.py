@@ -1196,6 +1196,19 @@ def test_a_resume_whose_training_clips_changed_is_warned_about(tmp_path, caplog)
     loop.initial_state(c, model, tx, mesh, manager, it, data_clips=more)
   assert (f"the training clips changed since checkpoint 3 ({name}: {clips[name]['clips']} -> "
           f"{clips[name]['clips'] + 10} clips): the restored position") in caplog.text
+  assert "config field" not in caplog.text  # (the config as saved)
+  for gammas, says in (([0.8], "1 config field changed since checkpoint 3: loss.gamma: 0.9 -> "
+                                "0.8\n"),
+                       ([0.8, 1e-4], "2 config fields changed since checkpoint 3: loss.gamma: "
+                                     "0.9 -> 0.8; optimizer.weight_decay: 1e-05 -> 0.0001\n")):
+    changed = c.copy_and_resolve_references()
+    changed.loss.gamma = gammas[0]
+    if len(gammas) > 1:
+      changed.optimizer.weight_decay = gammas[1]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+      loop.initial_state(changed, model, tx, mesh, manager, it, data_clips=clips)
+    assert f"resuming with {says}" in caplog.text + "\n", caplog.text
   other = {name: dict(clips[name], digest="1" * 16), "b": clips[name]}
   assert input_lib.changed_clips(clips, other) == [
       "b: added", f"{name}: other clips ({clips[name]['clips']})"]
