@@ -77,6 +77,8 @@ def parse_args(argv=None):
       p.error(f"--json {a.json} is a symbolic link; give the path of a regular file")
     if os.path.isdir(a.json):
       p.error(f"--json {a.json} is a folder; give a file name")
+    if a.json.endswith(("/", os.sep)):  # a folder's name: open() would fail after the run
+      p.error(f"--json {a.json} ends in a slash; give a file name")
     if os.path.exists(a.json) and not a.overwrite:
       p.error(f"--json {a.json} exists; pass --overwrite to replace it")
     parent = os.path.dirname(os.path.abspath(a.json))

@@ -482,3 +482,12 @@ def test_json_output_check_takes_a_bare_file_name_and_leaves_nothing_behind(tmp_
       "--json r.json exists; pass --overwrite to replace it")
   assert bench.json_output_problem("r.json", True) is None
   assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
+
+
+def test_json_output_check_refuses_a_path_ending_in_a_slash(tmp_path):
+  """`new/` names a folder: open() would fail only after the long run, losing its results."""
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  for name in ("new/", "r.json/"):
+    path = f"{tmp_path}/{name}"
+    assert bench.json_output_problem(path, True) == (
+        f"--json {path} ends in a slash; give a file name")

@@ -196,6 +196,7 @@ def test_official_torch_script_checks_its_arguments_and_times_parts_per_scale(tm
   for extra, message in ((["--iters", "1"], "--iters must be >= 2"),
                          (["--json", str(mine)], "exists; pass --overwrite"),
                          (["--json", str(tmp_path)], "is a folder"),
+                         (["--json", f"{tmp_path}/new/"], "ends in a slash"),
                          (["--json", str(tmp_path / "no" / "x.json")], "does not exist")):
     with pytest.raises(SystemExit):
       official_torch.parse_args(["--repo", str(repo), *extra])
@@ -319,6 +320,7 @@ def test_scripts_refuse_to_overwrite_a_results_json_before_running(tmp_path, mon
                             train_step.main())):
     for args, message in ((["--json", str(mine)], "exists; pass --overwrite"),
                           (["--json", str(tmp_path)], "is a folder"),
+                         (["--json", f"{tmp_path}/new/"], "ends in a slash"),
                           (["--json", str(tmp_path / "no" / "r.json")], "does not exist")):
       with pytest.raises(SystemExit) as e:
         run(args)

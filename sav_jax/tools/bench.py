@@ -57,6 +57,8 @@ def json_output_problem(path: str, overwrite: bool, flag: str = "--json") -> str
     return f"{flag} {path} is a symbolic link; give the path of a regular file"
   if os.path.isdir(path):
     return f"{flag} {path} is a folder; give a file name"
+  if path.endswith(("/", os.sep)):  # a folder's name: open() would fail after the run
+    return f"{flag} {path} ends in a slash; give a file name"
   if os.path.exists(path) and not overwrite:
     return f"{flag} {path} exists; pass --overwrite to replace it"
   parent = os.path.dirname(os.path.abspath(path))
