@@ -34,7 +34,8 @@ import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax import cli, inference  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.tools import infer as infer_tool  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.tools.bench import peak_rss_gb  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools.bench import (  # noqa: E402  pylint: disable=wrong-import-position
+    json_output_problem, peak_rss_gb)
 
 from infer_memory import prepare_data  # noqa: E402  # benchmarks/infer_memory.py
 
@@ -161,6 +162,10 @@ def main() -> None:
   p.add_argument("--keep", action="store_true", help="keep the outputs")
   p.add_argument("--json", type=pathlib.Path, default=None, help="append the result here")
   args = p.parse_args()
+  # checked before the run (appending to an existing file is this option's use)
+  problem = json_output_problem(str(args.json), True) if args.json is not None else None
+  if problem:
+    p.error(problem)
   prepare_data(p, args, write_data)
   name = "_run_window" if hasattr(inference, "_run_window") else "run_window"  # older code
   setattr(inference, name, stand_in)

@@ -468,6 +468,17 @@ def test_gru_conv_forms_agree():
   assert diff < 1e-5
 
 
+def test_infer_throughput_script_checks_its_json_path_before_the_run(tmp_path, monkeypatch,
+                                                                    capsys):
+  """A --json in a missing folder is named before anything runs, not a traceback after."""
+  import infer_throughput  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  monkeypatch.setattr(sys, "argv", ["infer_throughput.py", str(tmp_path / "d"), "--json",
+                                    str(tmp_path / "no" / "r.jsonl")])
+  with pytest.raises(SystemExit):
+    infer_throughput.main()
+  assert "does not exist" in capsys.readouterr().err and not (tmp_path / "d").exists()
+
+
 def test_infer_throughput_script_runs_infer_with_its_stand_in(tmp_path, monkeypatch, capsys):
   """benchmarks/infer_throughput.py's stand-in still fits `inference._run_window` and the
   command it times writes every frame."""
