@@ -31,8 +31,9 @@ import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 from configs import sceneflow  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax import runtime  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.tools.bench import (compile_cache_note, compile_cache_probe, device_peak_gb,  # noqa: E402  pylint: disable=wrong-import-position
-                                 json_output_problem, memory_lines, peak_rss_gb, xla_buffers_gb)
+from sav_jax.tools.bench import (  # noqa: E402  pylint: disable=wrong-import-position
+    clip_problem, compile_cache_note, compile_cache_probe, device_peak_gb, json_output_problem,
+    memory_lines, peak_rss_gb, xla_buffers_gb)
 from train import optim, state as state_lib, step as step_lib  # noqa: E402  pylint: disable=wrong-import-position
 from timing import add_clip_arguments  # noqa: E402  pylint: disable=wrong-import-position
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
@@ -132,8 +133,16 @@ def main():
   problem = json_output_problem(a.json, a.overwrite) if a.json else None
   if problem:  # before the long compile
     p.error(problem)
-  if a.repeats < 1:
-    p.error(f"--repeats must be >= 1, got {a.repeats}")
+  if a.overwrite and not a.json:
+    p.error("--overwrite replaces a --json file: name one with --json")
+  problem = clip_problem(a)
+  if problem is None:
+    try:
+      step_lib.check_microbatches(build_config(a))
+    except ValueError as e:
+      problem = f"--microbatches {a.microbatches}: {e}"
+  if problem:
+    p.error(problem)
   # JAX reads JAX_COMPILATION_CACHE_DIR itself: the probe must look in that folder too (a
   # load from it was reported as a compile, cache_hit false).
   cache = None

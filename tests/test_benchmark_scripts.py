@@ -320,12 +320,30 @@ def test_scripts_refuse_to_overwrite_a_results_json_before_running(tmp_path, mon
                             train_step.main())):
     for args, message in ((["--json", str(mine)], "exists; pass --overwrite"),
                           (["--json", str(tmp_path)], "is a folder"),
-                         (["--json", f"{tmp_path}/new/"], "ends in a slash"),
+                          (["--json", f"{tmp_path}/new/"], "ends in a slash"),
                           (["--json", str(tmp_path / "no" / "r.json")], "does not exist")):
       with pytest.raises(SystemExit) as e:
         run(args)
       assert e.value.code == 2 and message in capsys.readouterr().err
   assert mine.read_text() == "precious"
+
+
+def test_train_step_script_names_a_bad_clip_or_microbatches_before_running(monkeypatch,
+                                                                           capsys):
+  """Sizes the model refuses were a JAX traceback from the trace, naming no flag."""
+  import train_step  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  monkeypatch.setattr(train_step, "measure", lambda *a: pytest.fail("measured"))
+  for args, message in ((["--height", "17"], "--height/--width must be positive multiples"),
+                        (["--iters", "1"], "--iters must be >= 2"),
+                        (["--frames", "99"], "--frames must be at most 32"),
+                        (["--batch", "0"], "--batch must be >= 1"),
+                        (["--repeats", "0"], "--repeats must be >= 1"),
+                        (["--batch", "3", "--microbatches", "2"], "does not divide"),
+                        (["--overwrite"], "name one with --json")):
+    monkeypatch.setattr(sys, "argv", ["train_step.py", *args])
+    with pytest.raises(SystemExit) as e:
+      train_step.main()
+    assert e.value.code == 2 and message in capsys.readouterr().err
 
 
 def test_train_step_script_keeps_its_program_in_the_named_compilation_cache(

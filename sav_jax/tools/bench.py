@@ -307,24 +307,34 @@ def compare_line(res: dict, base: dict) -> str:
   return ", ".join(parts)
 
 
+def clip_problem(args: argparse.Namespace) -> str | None:
+  """What is wrong with the clip options `frames`, `height`, `width`, `iters`, `batch`,
+  `repeats` (bench and benchmarks/train_step.py; the model's trace failed naming no flag),
+  or None."""
+  if min(args.height, args.width) < 16 or args.height % 16 or args.width % 16 or args.width < 32:
+    return (f"--height/--width must be positive multiples of 16, the width at least 32 "
+            f"(got {args.height}x{args.width})")
+  if args.iters < 2:
+    return f"--iters must be >= 2 (got {args.iters})"
+  for name in ("frames", "batch", "repeats"):
+    if getattr(args, name) < 1:
+      return f"--{name} must be >= 1, got {getattr(args, name)}"
+  from sav_jax.config import TEMPORAL_MAX_LEN  # pylint: disable=import-outside-toplevel
+  if args.frames > TEMPORAL_MAX_LEN:
+    return (f"--frames must be at most {TEMPORAL_MAX_LEN} (the depth prior's temporal "
+            f"attention length; predict_video runs longer videos in windows), got "
+            f"{args.frames}")
+  return None
+
+
 def run(args: argparse.Namespace) -> int:
   from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
-  if min(args.height, args.width) < 16 or args.height % 16 or args.width % 16 or args.width < 32:
-    raise UsageError(f"--height/--width must be positive multiples of 16, the width at least 32 "
-                     f"(got {args.height}x{args.width})")
-  if args.iters < 2:
-    raise UsageError(f"--iters must be >= 2 (got {args.iters})")
+  problem = clip_problem(args)
+  if problem:
+    raise UsageError(problem)
   if args.vit_attention == "cudnn" and args.dtype != "bfloat16":
     raise UsageError("--vit-attention cudnn needs --dtype bfloat16 (cuDNN's fused attention "
                      "has no float32 kernels)")
-  for name in ("frames", "batch", "repeats"):
-    if getattr(args, name) < 1:
-      raise UsageError(f"--{name} must be >= 1, got {getattr(args, name)}")
-  from sav_jax.config import TEMPORAL_MAX_LEN  # pylint: disable=import-outside-toplevel
-  if args.frames > TEMPORAL_MAX_LEN:  # (the model's trace failed, naming no flag)
-    raise UsageError(f"--frames must be at most {TEMPORAL_MAX_LEN} (the depth prior's temporal "
-                     f"attention length; predict_video runs longer videos in windows), got "
-                     f"{args.frames}")
   if args.overwrite and not args.json:
     raise UsageError("--overwrite replaces a --json file: name one with --json")
   problem = json_output_problem(args.json, args.overwrite) if args.json else None
