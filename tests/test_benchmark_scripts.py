@@ -271,6 +271,18 @@ def test_infer_memory_script_runs_the_streaming_infer(tmp_path, monkeypatch, cap
   assert "holds 23 frames of (16, 24) from an earlier run, not 25" in capsys.readouterr().err
 
 
+def test_compile_times_script_names_a_bad_clip_before_compiling(monkeypatch, capsys):
+  import compile_times  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  monkeypatch.setattr(compile_times, "measure", lambda *a: pytest.fail("measured"))
+  for args, message in ((["--iters", "1"], "--iters must be >= 2"),
+                        (["--frames", "99"], "--frames must be at most 32"),
+                        (["--frames", "0"], "--frames must be >= 1"),
+                        (["--height", "30"], "multiples of 16")):
+    with pytest.raises(SystemExit):
+      compile_times.main(args)
+    assert message in capsys.readouterr().err
+
+
 def test_compile_times_script_compiles_what_predict_video_runs(capsys):
   """benchmarks/compile_times.py compiles predict_video's per-frame and window programs,
   leaves the cache and low-memory settings as they were, and refuses bad sizes."""
