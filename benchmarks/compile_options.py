@@ -29,7 +29,8 @@ import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax import runtime  # noqa: E402  pylint: disable=wrong-import-position
-from timing import add_clip_arguments, random_forward  # noqa: E402  pylint: disable=wrong-import-position
+from timing import (  # noqa: E402  pylint: disable=wrong-import-position
+    add_clip_arguments, check_clip_arguments, random_forward)
 
 _YNN = "xla_cpu_experimental_ynn_fusion_type"
 _DOTS_CONVS = ",".join("LIBRARY_FUSION_TYPE_" + t for t in
@@ -56,6 +57,7 @@ def main():
   p.add_argument("--sets", default=",".join(map(str, range(len(OPTION_SETS)))),
                  help="indices into OPTION_SETS to compare (default: all)")
   a = p.parse_args()
+  check_clip_arguments(p, a)
   names = list(OPTION_SETS)
   try:
     chosen = {names[int(i)]: OPTION_SETS[names[int(i)]] for i in a.sets.split(",")}

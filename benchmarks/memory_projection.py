@@ -29,7 +29,8 @@ import jax  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.config import resolve_gru_conv  # noqa: E402  pylint: disable=wrong-import-position
-from timing import add_clip_arguments, compile_for_shape  # noqa: E402  pylint: disable=wrong-import-position
+from timing import (  # noqa: E402  pylint: disable=wrong-import-position
+    add_clip_arguments, check_clip_arguments, compile_for_shape)
 
 
 def main():
@@ -42,6 +43,7 @@ def main():
                  help="SAVConfig.gru_conv (default auto: on a CPU in float32 the DFT products, "
                       "which a GPU does not use; direct projects a GPU's program)")
   a = p.parse_args()
+  check_clip_arguments(p, a)
 
   extra = {} if a.frame_block_mb is None else {"frame_block_mb": a.frame_block_mb}
   cfg = sav_jax.SAVConfig(dtype=a.dtype, gru_conv=a.gru_conv, **extra)

@@ -44,7 +44,8 @@ import jax  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.runtime import inference_compiler_options  # noqa: E402  pylint: disable=wrong-import-position
-from timing import add_clip_arguments, random_forward  # noqa: E402  pylint: disable=wrong-import-position
+from timing import (  # noqa: E402  pylint: disable=wrong-import-position
+    add_clip_arguments, check_clip_arguments, random_forward)
 
 _COMPUTATION = re.compile(r"^(?:ENTRY )?%?([\w.\-]+) .*\{\s*$")
 _INSTRUCTION = re.compile(r"^\s*(?:ROOT )?%?([\w.\-]+) = (.+?) ([\w\-]+)\((.*)$")
@@ -233,6 +234,7 @@ def main():
   p.add_argument("--depth", type=int, default=3, help="module path levels for --by module")
   p.add_argument("--top", type=int, default=20)
   a = p.parse_args()
+  check_clip_arguments(p, a)
 
   forward, variables, left, right = random_forward(sav_jax.SAVConfig(dtype=a.dtype), a.frames,
                                                    a.height, a.width, a.iters)

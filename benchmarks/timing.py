@@ -29,6 +29,15 @@ def add_clip_arguments(parser, frames=5, height=128, width=256, iters=8):
       parser.add_argument(f"--{name}", type=int, default=default)
 
 
+def check_clip_arguments(parser, args) -> None:
+  """`parser.error` naming a clip option the model refuses (`sav-jax bench`'s checks): the
+  model's trace failed on it with a traceback naming no flag."""
+  from sav_jax.tools.bench import clip_problem  # pylint: disable=import-outside-toplevel
+  problem = clip_problem(args)
+  if problem:
+    parser.error(problem)
+
+
 def random_forward(cfg, frames, height, width, iters):
   """`(forward, variables, left, right)`: the inference forward (`final_only`, not yet
   jitted) of a model with random weights, and a random stereo clip (right = left shifted)."""

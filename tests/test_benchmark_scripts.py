@@ -283,6 +283,16 @@ def test_compile_times_script_names_a_bad_clip_before_compiling(monkeypatch, cap
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("script", ["compile_options", "op_profile", "memory_projection"])
+def test_clip_scripts_name_a_clip_the_model_refuses_before_running(script, monkeypatch,
+                                                                   capsys):
+  module = __import__(script)
+  monkeypatch.setattr(sys, "argv", [f"{script}.py", "--iters", "1"])
+  with pytest.raises(SystemExit) as e:
+    module.main()
+  assert e.value.code == 2 and "--iters must be >= 2 (got 1)" in capsys.readouterr().err
+
+
 def test_compile_times_script_compiles_what_predict_video_runs(capsys):
   """benchmarks/compile_times.py compiles predict_video's per-frame and window programs,
   leaves the cache and low-memory settings as they were, and refuses bad sizes."""
