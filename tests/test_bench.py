@@ -390,7 +390,7 @@ def test_bench_report_json_and_compare_from_one_measurement(tmp_path, monkeypatc
       "input         B=1 T=2 32x64 iters=2 float32",
       "XLA options   opt=7",
       "compile       3.00 s",
-      "forward       median 0.500 s  (min 0.250 s, 1 runs)",
+      "forward       median 0.500 s  (min 0.250 s, 1 run)",
       "throughput    4.00 frames/s",
       "peak host RSS 1.50 GB",
       "warning: the baseline was measured elsewhere (host here here, there there): the ratios "

@@ -367,7 +367,7 @@ def run(args: argparse.Namespace) -> int:
     print("XLA options   " + ", ".join(f"{k}={v}" for k, v in res["compiler_options"].items()))
   print(f"compile       {res['compile_s']:.2f} s{compile_cache_note(cache, res['cache_hit'])}")
   print(f"forward       median {res['median_s']:.3f} s  (min {res['min_s']:.3f} s, "
-        f"{args.repeats} runs)")
+        f"{args.repeats} run{'' if args.repeats == 1 else 's'})")
   print(f"throughput    {res['fps']:.2f} frames/s")
   print("\n".join(memory_lines(res)))
   if base is not None:
