@@ -13,6 +13,7 @@ import sys
 import tempfile
 import time
 
+from sav_jax._checks import plural
 from sav_jax.config import GRU_CONV, VIT_ATTENTION
 from sav_jax.tools import (add_compile_cache_arguments, add_matmul_precision_argument,
                            matmul_precision, setup_compile_cache, user_path)
@@ -367,7 +368,7 @@ def run(args: argparse.Namespace) -> int:
     print("XLA options   " + ", ".join(f"{k}={v}" for k, v in res["compiler_options"].items()))
   print(f"compile       {res['compile_s']:.2f} s{compile_cache_note(cache, res['cache_hit'])}")
   print(f"forward       median {res['median_s']:.3f} s  (min {res['min_s']:.3f} s, "
-        f"{args.repeats} run{'' if args.repeats == 1 else 's'})")
+        f"{plural(args.repeats, 'run')})")
   print(f"throughput    {res['fps']:.2f} frames/s")
   print("\n".join(memory_lines(res)))
   if base is not None:
