@@ -20,7 +20,8 @@ import jax
 import sav_jax
 from sav_jax import inference, runtime
 from sav_jax.model.init import init_variables
-from sav_jax.tools.bench import clip_problem, peak_rss_gb
+from sav_jax.tools.bench import peak_rss_gb
+from timing import check_clip_arguments  # benchmarks/timing.py
 
 
 def measure(frames: int, height: int, width: int, iters: int, whole: bool = False) -> dict:
@@ -53,9 +54,7 @@ def main(argv=None):
   p.add_argument("--low-memory-compile", action=argparse.BooleanOptionalAction, default=True)
   p.add_argument("--json", action="store_true", help="print the result as JSON")
   args = p.parse_args(argv)
-  problem = clip_problem(args)  # (the model's trace failed on --iters 1 or --frames 99)
-  if problem:
-    p.error(problem)
+  check_clip_arguments(p, args)  # (the model's trace failed on --iters 1 or --frames 99)
   with runtime.preserved_settings():
     runtime.disable_compilation_cache()
     runtime.set_low_memory_compile(args.low_memory_compile)

@@ -32,10 +32,11 @@ from configs import sceneflow  # noqa: E402  pylint: disable=wrong-import-positi
 from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax import runtime  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.tools.bench import (  # noqa: E402  pylint: disable=wrong-import-position
-    clip_problem, compile_cache_note, compile_cache_probe, device_peak_gb, json_output_problem,
-    memory_lines, peak_rss_gb, xla_buffers_gb)
+    compile_cache_note, compile_cache_probe, device_peak_gb, json_output_problem, memory_lines,
+    peak_rss_gb, xla_buffers_gb)
 from train import optim, state as state_lib, step as step_lib  # noqa: E402  pylint: disable=wrong-import-position
-from timing import add_clip_arguments  # noqa: E402  pylint: disable=wrong-import-position
+from timing import (  # noqa: E402  pylint: disable=wrong-import-position
+    add_clip_arguments, check_clip_arguments)
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.config import resolve_gru_conv  # noqa: E402  pylint: disable=wrong-import-position
 
@@ -130,19 +131,14 @@ def main():
                       "peak is the step's own, without the autotuner's scratch (default: "
                       "JAX_COMPILATION_CACHE_DIR if set, else none)")
   a = p.parse_args()
-  problem = json_output_problem(a.json, a.overwrite) if a.json else None
+  problem = json_output_problem(a.json, a.overwrite)
   if problem:  # before the long compile
     p.error(problem)
-  if a.overwrite and not a.json:
-    p.error("--overwrite replaces a --json file: name one with --json")
-  problem = clip_problem(a)
-  if problem is None:
-    try:
-      step_lib.check_microbatches(build_config(a))
-    except ValueError as e:
-      problem = f"--microbatches {a.microbatches}: {e}"
-  if problem:
-    p.error(problem)
+  check_clip_arguments(p, a)
+  try:
+    step_lib.check_microbatches(build_config(a))
+  except ValueError as e:
+    p.error(f"--microbatches {a.microbatches}: {e}")
   # JAX reads JAX_COMPILATION_CACHE_DIR itself: the probe must look in that folder too (a
   # load from it was reported as a compile, cache_hit false).
   cache = None

@@ -50,10 +50,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   add_compile_cache_arguments(p, default_on=False)
 
 
-def json_output_problem(path: str, overwrite: bool, flag: str = "--json") -> str | None:
+def json_output_problem(path: str | None, overwrite: bool, flag: str = "--json") -> str | None:
   """What is wrong with writing a results JSON at `path` (checked before a long run), or
   None: a symbolic link, a folder, an existing file without `overwrite`, a missing parent
-  folder or one where nothing can be created."""
+  folder or one where nothing can be created; no `path` (none asked for) with `overwrite`."""
+  if not path:
+    return f"--overwrite replaces a {flag} file: name one with {flag}" if overwrite else None
   if os.path.islink(path):  # open() would write into the link's target, whatever it is
     return f"{flag} {path} is a symbolic link; give the path of a regular file"
   if os.path.isdir(path):
@@ -336,9 +338,7 @@ def run(args: argparse.Namespace) -> int:
   if args.vit_attention == "cudnn" and args.dtype != "bfloat16":
     raise UsageError("--vit-attention cudnn needs --dtype bfloat16 (cuDNN's fused attention "
                      "has no float32 kernels)")
-  if args.overwrite and not args.json:
-    raise UsageError("--overwrite replaces a --json file: name one with --json")
-  problem = json_output_problem(args.json, args.overwrite) if args.json else None
+  problem = json_output_problem(args.json, args.overwrite)
   if problem:  # checked before the long run
     raise UsageError(problem)
   base = _read_baseline(args.compare) if args.compare else None  # before the long run
