@@ -2293,22 +2293,28 @@ def test_output_paths_name_every_file_of_a_run():
       "out/disparity/a.pfm", "out/side_by_side.mp4", "out/summary.json"]
 
 
+def _outputs_written(out: pathlib.Path, d: np.ndarray, formats: list[str]) -> dict:
+  """`write_outputs`' summary fields for the disparities `d` [T, H, W] given directly (no
+  model, no calibration), with black frames of their size, into the new folder `out`."""
+  import argparse  # pylint: disable=import-outside-toplevel
+  out.mkdir()
+  args = argparse.Namespace(window=len(d), fps=10.0, max_depth=None, depth_format="npy")
+  names = [f"{i:04d}" for i in range(len(d))]
+  return infer.write_outputs(out, names, np.zeros((*d.shape, 3), np.uint8), [(0, d)], formats,
+                             None, args, [])
+
+
 def test_write_outputs_counts_by_hand_and_colours_the_video_between_percentiles(tmp_path):
   """`write_outputs` on disparities given directly (no model): 3 frames of 2, 4, 6 px but
   one pixel of 24 (the frame width: no pixel can match that far) and one of 1000 (above the
   16-bit PNG's 65535 / 256): 2 disparities at least the width, 1 saturated in the PNG (not
   in the npy written after it), and the video's colours span the 1st to 99th percentile of
   the 1152 values, 2 to 6 px (the outlier is not the top of the range)."""
-  import argparse  # pylint: disable=import-outside-toplevel
-  out = tmp_path / "out"
-  out.mkdir()
   d = np.repeat(np.array([2.0, 4.0, 6.0], np.float32), 16 * 24).reshape(3, 16, 24)
   d[2, 0, 0], d[2, 0, 1] = 24.0, 1000.0
-  args = argparse.Namespace(window=3, fps=10.0, max_depth=None, depth_format="npy")
-  written = infer.write_outputs(out, ["a", "b", "c"], np.zeros((3, 16, 24, 3), np.uint8),
-                                [(0, d)], ["png16", "npy"], None, args, [])
-  assert written == {"video_disparity_range": [2.0, 6.0], "png16_saturated_pixels": 1,
-                     "disparities_beyond_width": 2, "empty_point_clouds": 0}
+  assert _outputs_written(tmp_path / "out", d, ["png16", "npy"]) == {
+      "video_disparity_range": [2.0, 6.0], "png16_saturated_pixels": 1,
+      "disparities_beyond_width": 2, "empty_point_clouds": 0}
 
 
 @pytest.mark.parametrize("sample, every, video_range", [(None, 3, [2.0, 50.0]),
@@ -2321,17 +2327,11 @@ def test_the_video_colour_range_samples_every_step_th_row_and_column_of_every_fr
   With at most 400 values the step is ceil(sqrt(1080 / 400)) = 2: rows 0, 2, ..., 14 and
   columns 0, 2, ..., 22, exactly the 288 small values on every 2nd row and column, 2 to 6 px
   (a step of 1 or 3 would take pixels of 50 px)."""
-  import argparse  # pylint: disable=import-outside-toplevel
   if sample is not None:
     monkeypatch.setattr(infer, "RANGE_SAMPLE", sample)
-  out = tmp_path / "out"
-  out.mkdir()
   d = np.full((3, 15, 24), 50.0, np.float32)
   d[:, ::every, ::every] = np.array([2.0, 4.0, 6.0], np.float32)[:, None, None]
-  args = argparse.Namespace(window=3, fps=10.0, max_depth=None, depth_format="npy")
-  written = infer.write_outputs(out, ["a", "b", "c"], np.zeros((3, 15, 24, 3), np.uint8),
-                                [(0, d)], ["npy"], None, args, [])
-  assert written["video_disparity_range"] == video_range
+  assert _outputs_written(tmp_path / "out", d, ["npy"])["video_disparity_range"] == video_range
 
 
 @pytest.mark.parametrize("raised, says", [
