@@ -422,6 +422,11 @@ def test_unknown_stored_config_fields_are_named(caplog):
   assert not caplog.text
 
 
+def _contents(folder: pathlib.Path) -> dict:
+  """Every file under `folder` (by its path there) with its bytes."""
+  return {p.relative_to(folder): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
 def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsys):
   # 25 frames in sliding windows, the model replaced by a stand-in whose output labels
   # each frame with its index (disparity 12 (i + 1)): every file lands at the right name,
@@ -507,7 +512,7 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   assert not (out / infer.DONE).exists()
   # A --overwrite run that fails midway puts the earlier run's files back and deletes its
   # own (it left two runs' files mixed, the earlier summary replaced by its provisional one).
-  before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+  before = _contents(out)
 
   def failing_model(variables, lw, rw, *, start, **kwargs):
     if start > 0:
@@ -518,7 +523,7 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   assert _infer(left, tmp_path / "right.mp4", npz_ckpt, out, "--format", "npy", "--format",
                 "pfm", "--overwrite") == 2
   assert f"the earlier run's files in {out} were put back" in capsys.readouterr().err
-  after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+  after = _contents(out)
   assert after == before  # frames 0-14 of the failed run (npy and pfm) are gone
   # Into a new folder: a run that fails midway deletes what it wrote (it left its frames so
   # far and a provisional summary, and the next run was refused without --overwrite)
@@ -539,10 +544,10 @@ def test_long_videos_stream_through_infer(tmp_path, npz_ckpt, monkeypatch, capsy
   (out / "disparity" / "0003.npy").write_bytes(b"the killed run's")
   (out / "disparity" / "0000.pfm").write_bytes(b"the killed run's")
   assert infer.put_back(out) == 2
-  assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+  assert _contents(out) == before
   # A run killed after its complete summary, while deleting what it set aside: never undone
   # (the next run put the earlier files and summary back over the finished run's).
-  finished = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+  finished = _contents(out)
   infer.set_aside(out, [out / "disparity" / "0003.npy"])
   (out / "summary.json").write_text(json.dumps({"tool": "sav-jax infer", "complete": True,
                                                 "outputs": ["disparity/0003.npy"]}))
@@ -1913,11 +1918,11 @@ def test_overwrite_into_a_relative_out_and_a_second_run_into_a_busy_out(
   monkeypatch.setattr(inference, "_run_window", _positive_model)
   monkeypatch.chdir(tmp_path)
   assert _infer(left, right, npz_ckpt, "o", "--format", "png16,npy") == 0
-  kept = {p: p.read_bytes() for p in (tmp_path / "o").rglob("*") if p.is_file()}
+  kept = _contents(tmp_path / "o")
   capsys.readouterr()
   assert _infer(left, right, npz_ckpt, "o", "--format", "npy") == 2  # (no --overwrite)
   assert _error_line(capsys).endswith("pass --overwrite to replace them")
-  assert {p: p.read_bytes() for p in (tmp_path / "o").rglob("*") if p.is_file()} == kept
+  assert _contents(tmp_path / "o") == kept
   assert _infer(left, right, npz_ckpt, "o", "--format", "npy", "--overwrite") == 0
   assert sorted(p.name for p in (tmp_path / "o" / "disparity").iterdir()) == [
       "0000.npy", "0001.npy"]
@@ -1950,7 +1955,7 @@ def test_an_overwrite_run_whose_summary_cannot_be_written_puts_the_earlier_run_b
   monkeypatch.setattr(inference, "_run_window", _positive_model)
   out = tmp_path / "out"
   assert _infer(left, right, npz_ckpt, out, "--format", "npy") == 0
-  before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+  before = _contents(out)
   real_write = infer.write_text_atomic
 
   def full_disk(path, text):
@@ -1963,7 +1968,7 @@ def test_an_overwrite_run_whose_summary_cannot_be_written_puts_the_earlier_run_b
   assert _infer(left, right, npz_ckpt, out, "--format", "pfm", "--overwrite") == 2
   assert _error_line(capsys).startswith(f"sav-jax infer: error: cannot write "
                                         f"{out / 'summary.json'}: No space left on device")
-  assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+  assert _contents(out) == before
 
 
 def _mjpg(path, frames, fps=24.0):
