@@ -91,6 +91,13 @@ def load_sequences(root, split: str, dataset: str = "tartanair"):
   found = _sequence_dirs(root)
   test = set(TEST)
   chosen = [(key, d) for key, d in found if (key in test) == (split == "test")]
+  if not chosen and found:  # the layout is right: none of its sequences is of this split
+    raise FileNotFoundError(
+        f"no TartanAir {split} sequences under {root}: its {len(found)} sequence(s) ("
+        f"{some_of(['/'.join(k) for k, _ in found])}) are all "
+        + ("outside the official loader's 17 test sequences (e.g. "
+           f"{'/'.join(TEST[0])})" if split == "test" else
+           "official test sequences (the train split is every other one)"))
   if not chosen:
     raise FileNotFoundError(
         f"no TartanAir {split} sequences under {root} (expected "

@@ -1444,6 +1444,19 @@ def test_tartanair_splits_depth_and_clips(tmp_path, caplog):
     registry.get_sequences("tartanair", tmp_path, "val")
 
 
+def test_tartanair_only_sequences_of_the_other_split_are_named_not_a_bad_layout(tmp_path):
+  """A partial download in the right layout whose parts are all of the other split: the error
+  names them and the split rule (it said the layout was not the expected one)."""
+  _tartanair(tmp_path, np.random.default_rng(0), [("abandonedfactory", "Easy", "P000")], n=2)
+  with pytest.raises(FileNotFoundError, match=r"sequence\(s\) \(abandonedfactory/Easy/P000\) "
+                                              "are all outside the official loader's 17 test"):
+    registry.get_sequences("tartanair", tmp_path, "test")
+  shutil.rmtree(tmp_path / "TartanAir")
+  _tartanair(tmp_path, np.random.default_rng(0), [("gascola", "Easy", "P001")], n=2)
+  with pytest.raises(FileNotFoundError, match="are all official test sequences"):
+    registry.get_sequences("tartanair", tmp_path, "train")
+
+
 def test_links_to_missing_folders_are_named_not_left_out(tmp_path):
   """A TartanAir `<scene>/Hard` or a folder sequence's `disparity/` (or calibration file) that
   is a link to nothing: its sequences were left out, or the sequence read without ground truth
