@@ -177,6 +177,12 @@ def main():
     p.error(f"--crop must be positive, got {a.crop}")
   if a.root is None and a.frames > a.sequence_frames:
     p.error(f"--frames {a.frames} is more than --sequence-frames {a.sequence_frames}")
+  if a.root is not None:  # a wrong root, dataset or split: one line, not a traceback
+    try:
+      pipeline.registry_clips(a.dataset, a.root, a.frames,
+                              seed=training_config(a, a.root, a.dataset).seed)
+    except (FileNotFoundError, ValueError) as e:
+      p.error(str(e))
 
   with tempfile.TemporaryDirectory(prefix="sav_input_") as tmp:
     data = dict(root=a.root, dataset=a.dataset)

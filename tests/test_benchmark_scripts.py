@@ -500,6 +500,24 @@ def test_input_pipeline_script_writes_flyingthings_and_times_the_training_stream
   assert e.value.code == 2 and "more than --sequence-frames 10" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("args,message", [
+    (["--root", "{tmp}/missing"], "dataset root not found: "),
+    (["--dataset", "sceneflw"], "unknown dataset 'sceneflw'"),
+    (["--dataset", "sintel_final"], "sintel_final has no official training clips"),
+])
+def test_input_pipeline_script_names_a_wrong_root_or_dataset_in_one_line(
+    tmp_path, monkeypatch, capsys, args, message):
+  """`--root`/`--dataset` that give no training clips: an argparse error, not a traceback."""
+  import input_pipeline  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  args = [x.format(tmp=tmp_path) for x in args]
+  root = [] if "--root" in args else ["--root", str(tmp_path)]
+  monkeypatch.setattr(sys, "argv", ["input_pipeline.py", *root, *args])
+  with pytest.raises(SystemExit) as e:
+    input_pipeline.main()
+  err = capsys.readouterr().err
+  assert e.value.code == 2 and message in err and "Traceback" not in err
+
+
 def test_gru_conv_forms_agree():
   """benchmarks/gru_conv.py times both forms of the GRU; they compute the same update."""
   import gru_conv  # pylint: disable=import-outside-toplevel,import-error
