@@ -74,10 +74,29 @@ def read_disparity(path: Path) -> tuple[np.ndarray, np.ndarray]:
   disp = disp.astype(np.float32)
   valid = frame_io.dense_valid(disp)  # (False for NaN and inf too)
   _warn_if_out_of_range(path, disp, valid)
+  _warn_if_negative(path, disp, valid)
   return np.where(valid, disp, 0.0).astype(np.float32), valid
 
 
 _RANGE_WARNED: set[str] = set()
+_NEGATIVE_WARNED: set[str] = set()
+
+
+def _warn_if_negative(path: Path, disp: np.ndarray, valid: np.ndarray) -> None:
+  """Warns (once per folder) where a file holds negative disparities: the official rule
+  counts them as ground truth (the metrics take |d|), so a "no data" code such as -1 was
+  scored silently as a disparity of 1 px."""
+  folder = str(Path(path).parent)
+  negative = int(np.count_nonzero(valid & (disp < 0)))
+  if folder in _NEGATIVE_WARNED or not negative:
+    return
+  _NEGATIVE_WARNED.add(folder)
+  warnings.warn(f"{path}: {100 * negative / np.count_nonzero(valid):.0f}% of its valid "
+                f"disparities are negative (min {float(disp[valid].min()):g}), which the "
+                "official rule counts as ground truth (the metrics take |d|): mark pixels "
+                "without ground truth 0 or NaN, not with a negative code such as -1; "
+                "disparities are x_left - x_right, positive (this is said once per folder)",
+                stacklevel=2)
 
 
 def _warn_if_out_of_range(path: Path, disp: np.ndarray, valid: np.ndarray) -> None:

@@ -1763,6 +1763,31 @@ def test_folder_disparities_mostly_beyond_512_px_are_warned_once_per_folder(tmp_
     s.clip(0, 3)
 
 
+def test_folder_negative_disparities_are_warned_once_per_folder(tmp_path):
+  # A -1 "no data" code: the official rule keeps it as ground truth (|d| = 1 px in the
+  # metrics), so its pixels were scored without a word.
+  rng = np.random.default_rng(27)
+  seq = tmp_path / "test" / "cam"
+  (seq / "disparity").mkdir(parents=True)
+  for i in range(2):
+    _png(seq / "left" / f"{i}.png", _rgb(rng))
+    _png(seq / "right" / f"{i}.png", _rgb(rng))
+    disp = np.full((H, W), 5.0, np.float32)
+    disp[0, :W // 2] = -1.0 if i else 0.0  # frame 0: no negative value, no warning
+    np.save(seq / "disparity" / f"{i}.npy", disp)
+  (s,) = registry.get_sequences("folder", tmp_path, "test")
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    s[0]
+  with pytest.warns(UserWarning, match=r"1\.npy: \d+% of its valid disparities are negative "
+                                       r"\(min -1\).*not with a negative code such as -1"):
+    frame = s[1]
+  assert frame["valid"].all() and frame["disparity"][0, 0] == -1.0  # the numbers: unchanged
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")  # once per folder
+    s.clip(0, 2)
+
+
 def _load_own(root, split, dataset):
   from sav_jax.data import stereo_folder  # pylint: disable=import-outside-toplevel
   return stereo_folder.load_sequences(root, split, dataset)
