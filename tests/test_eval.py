@@ -1592,6 +1592,12 @@ def test_an_output_folder_inside_the_dataset_is_refused(tmp_path, capsys, monkey
     assert (f"--out {where} is inside the dataset's folder {os.path.normpath(folder)}: keep "
             "outputs out of the dataset") in err, err
     assert not out.exists()
+  # The folder dataset: a split folder it has not made yet is where its reader would look.
+  (tmp_path / "mine" / "test").mkdir(parents=True)
+  assert main(["--config", str(CONFIGS / "folder.py"), "--checkpoint", "w", "--data-root",
+               str(tmp_path / "mine"), "--out", str(tmp_path / "mine" / "val" / "o")]) == 2
+  assert "is inside the dataset's folder" in capsys.readouterr().err
+  assert not (tmp_path / "mine" / "val").exists()
 
 
 def test_no_data_root_where_its_default_folder_is_missing_says_to_pass_one(

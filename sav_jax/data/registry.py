@@ -220,11 +220,12 @@ def _registered(load_sequences, folders: tuple[str, ...], name: str, root, split
 
 def dataset_folders(dataset: str, root: str | Path) -> list[Path]:
   """The folders under `root` (the datasets folder, or the dataset's own) that hold
-  `dataset`'s files, as far as they exist."""
+  `dataset`'s files, as far as they exist (for "folder", an existing root's split folders,
+  those not made yet too: an output written into one would become a sequence of it)."""
   _check_name(dataset)
   base = Path(root).expanduser()
   if dataset == "folder":  # the root's split folders (the reader looks nowhere else)
-    return [base / s for s in stereo_folder.SPLITS if (base / s).is_dir()]
+    return [base / s for s in stereo_folder.SPLITS] if base.is_dir() else []
   if not _FOLDERS[dataset]:  # (the root is the dataset's folder)
     return [base] if base.is_dir() else []
   if base.name in _FOLDERS[dataset]:

@@ -1579,7 +1579,8 @@ def test_your_own_videos_in_the_folder_layout(tmp_path, caplog):
       if ref + 2 * k < len(seq):
         expect.append((seq.name, [ref, ref + k]))
   assert [(c.sequence.name, c.indices) for c in clips] == expect
-  assert registry.dataset_folders("folder", tmp_path / "mine") == [tmp_path / "mine" / "test"]
+  assert registry.dataset_folders("folder", tmp_path / "mine") == [  # val/ and train/ to be
+      tmp_path / "mine" / s for s in ("train", "val", "test")]      # made: where it would read
   (tmp_path / "mine/test/lab/calib.txt").write_text("fx 400\nbaseline 0.2\ndoffs 12\n")
   with caplog.at_level(logging.WARNING):  # depth = fx B / (d + doffs): no scale, no refusal
     lab = registry.get_sequences("folder", tmp_path / "mine", "test")[0]
