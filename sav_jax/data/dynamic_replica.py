@@ -166,7 +166,7 @@ def _sequences(split_dir: Path, split: str, dataset: str) -> list[DepthSequence]
       # Paired by position, as the official loader does; a record order that pairs
       # different frames would give wrong disparities silently.
       if "frame_number" in l and "frame_number" in r and l["frame_number"] != r["frame_number"]:
-        raise ValueError(f"{where}: the {i}-th left and right records are frames "
+        raise ValueError(f"{where}: left and right records number {i} are frames "
                          f"{l['frame_number']} and {r['frame_number']} (left and right "
                          "records must come in the same frame order)")
     files = {}

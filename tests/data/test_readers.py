@@ -512,8 +512,8 @@ def test_dynamic_replica_depth_scale_and_eval_cut(tmp_path, monkeypatch, caplog)
   records[1], records[3] = records[3], records[1]
   with gzip.open(index, "wt", encoding="utf8") as f:
     json.dump(records, f)
-  with pytest.raises(ValueError, match=r"Dynamic Replica train/s: the 0-th left and right "
-                     r"records are frames 0 and 1"):
+  with pytest.raises(ValueError, match=r"Dynamic Replica train/s: left and right records "
+                     r"number 0 are frames 0 and 1"):
     registry.get_sequences("dynamic_replica", tmp_path, "train")
   # a frame missing from the annotations (frame 2 of 0..4): its neighbours are read as
   # consecutive, which is said
