@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sav_jax._checks import is_int
 from sav_jax.model.layers import conv, instance_norm
 from sav_jax.model.update import BasicMotionEncoder, conv_gru
 from sav_jax.ops.pool import avg_pool, pad_replicate
@@ -251,6 +252,14 @@ def _padded_flow(variables, image1, image2, iters):
   return flow[:, top:top + h, left:left + w]
 
 
+def _check_iters(iters) -> int:
+  """`iters` as an int; a ValueError unless it is an integer >= 1 (0 or fewer ran no
+  update and gave a zero flow, which TCM/OPW/RTC would have scored without a word)."""
+  if not is_int(iters) or iters < 1:
+    raise ValueError(f"RAFT iters must be an integer >= 1, got {iters!r}")
+  return int(iters)
+
+
 def raft_flow(variables, image1, image2, iters: int = 20) -> jax.Array:
   """The evaluator's flow (`RAFTModel.forward_fullres`): pad to /8, RAFT, crop back.
 
@@ -262,6 +271,7 @@ def raft_flow(variables, image1, image2, iters: int = 20) -> jax.Array:
   Returns:
     `[B, H, W, 2]` (or `[H, W, 2]`) float32 flow (x, y) from image1 to image2.
   """
+  iters = _check_iters(iters)
   single = np.ndim(image1) == 3
   if single:
     image1, image2 = image1[None], image2[None]
@@ -281,6 +291,7 @@ def raft_flow_fn(variables, iters: int = 20):
   """`(img1 [3, H, W], img2 [3, H, W]) -> [2, H, W]` numpy flow: the `flow_fn` of
   `sav_jax.metrics.eval_batch` / `eval_sequence` (channels first, as the official
   evaluator's tensors)."""
+  iters = _check_iters(iters)
   variables = jax.device_put(variables)
 
   def flow_fn(img1: Any, img2: Any) -> np.ndarray:

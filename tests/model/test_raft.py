@@ -112,6 +112,15 @@ def test_bad_images_are_refused(variables):
     raft.raft_flow_fn(variables)(np.zeros((128, 128, 3)), np.zeros((128, 128, 3)))
 
 
+@pytest.mark.parametrize("iters", [0, -1, 2.5, True])
+def test_iterations_that_run_no_update_are_refused(variables, iters):
+  image = np.zeros((128, 128, 3), np.float32)  # refused before anything is traced
+  with pytest.raises(ValueError, match=r"RAFT iters must be an integer >= 1"):
+    raft.raft_flow(variables, image, image, iters)
+  with pytest.raises(ValueError, match=r"RAFT iters must be an integer >= 1"):
+    raft.raft_flow_fn(variables, iters)
+
+
 def test_checkpoint_is_recognised_and_read_from_a_file(tmp_path, raft_state_dict, variables,
                                                        sav_state_dict):
   assert convert.checkpoint_kind(raft_state_dict) == "raft"
