@@ -14,6 +14,7 @@ process, after ours.
 
 import argparse
 import importlib
+import importlib.util
 import pathlib
 import sys
 import time
@@ -59,6 +60,12 @@ def main():
   ap.add_argument("--fixtures", help="oracle fixtures folder with make_weights.py (default: "
                   "SAV_FIXTURES, else ../shared/fixtures)")
   args = ap.parse_args()
+  if args.official:  # checked before our run: a wrong path failed only after it, minutes later
+    if not (pathlib.Path(args.official) / "third_party" / "RAFT" / "core" / "raft.py").is_file():
+      ap.error(f"--official {args.official}: no third_party/RAFT/core/raft.py there; give a "
+               "checkout of github.com/TomTomTommi/stereoanyvideo")
+    if importlib.util.find_spec("torch") is None:
+      ap.error("--official needs torch (and scipy) installed in this environment")
   make_weights = make_weights_module(fixtures_folder(args.fixtures), "raft_flow")
   sd = make_weights.make_state_dict(str(MANIFEST), 0)
   variables = jax.device_put(raft_variables_from_state_dict(sd))
