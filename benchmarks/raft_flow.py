@@ -60,6 +60,8 @@ def main():
   ap.add_argument("--fixtures", help="oracle fixtures folder with make_weights.py (default: "
                   "SAV_FIXTURES, else ../shared/fixtures)")
   args = ap.parse_args()
+  if args.repeats < 1:  # (the median of no call failed after the first, compiling one)
+    ap.error(f"--repeats must be >= 1, got {args.repeats}")
   if args.official:  # checked before our run: a wrong path failed only after it, minutes later
     if not (pathlib.Path(args.official) / "third_party" / "RAFT" / "core" / "raft.py").is_file():
       ap.error(f"--official {args.official}: no third_party/RAFT/core/raft.py there; give a "

@@ -329,14 +329,17 @@ def test_raft_flow_script_times_the_evaluators_flow(monkeypatch, capsys):
   assert "sav-jax RAFT 130x129 iters=1 (cpu): first call " in out and "peak RSS" in out, out
 
 
-def test_raft_flow_script_names_a_bad_official_checkout_before_running(tmp_path, monkeypatch,
-                                                                       capsys):
+def test_raft_flow_script_names_bad_options_before_running(tmp_path, monkeypatch, capsys):
   import raft_flow  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
   monkeypatch.setattr(raft_flow, "make_weights_module", lambda *a: pytest.fail("ran"))
   monkeypatch.setattr(sys, "argv", ["raft_flow.py", "--official", str(tmp_path)])
   with pytest.raises(SystemExit) as e:
     raft_flow.main()
   assert e.value.code == 2 and "no third_party/RAFT/core/raft.py" in capsys.readouterr().err
+  monkeypatch.setattr(sys, "argv", ["raft_flow.py", "--repeats", "0"])
+  with pytest.raises(SystemExit) as e:
+    raft_flow.main()
+  assert e.value.code == 2 and "--repeats must be >= 1, got 0" in capsys.readouterr().err
 
 
 def test_scripts_refuse_to_overwrite_a_results_json_before_running(tmp_path, monkeypatch,
