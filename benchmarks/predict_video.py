@@ -19,7 +19,7 @@ import numpy as np
 import sav_jax
 from sav_jax import inference
 from sav_jax.model.init import init_variables
-from sav_jax.tools import resolve_devices_option
+from sav_jax.tools import UsageError, resolve_devices_option
 from timing import add_clip_arguments  # benchmarks/timing.py
 
 
@@ -43,8 +43,16 @@ def main():
   p.add_argument("--devices", default="1", help="also run on N local devices (a number or 'all')")
   p.add_argument("--skip-whole", action="store_true", help="leave out the whole-model path")
   a = p.parse_args()
+  if min(a.frames, a.height, a.width) < 1:  # (tracebacks after building the weights)
+    p.error(f"--frames, --height and --width must be >= 1, got {a.frames} frames of "
+            f"{a.height}x{a.width}")
+  if a.iters < 2:
+    p.error(f"--iters must be >= 2 (got {a.iters})")
   cfg = sav_jax.SAVConfig(dtype=a.dtype)
-  devices = resolve_devices_option(a.devices)
+  try:
+    devices = resolve_devices_option(a.devices)
+  except UsageError as e:
+    p.error(str(e))
   variables = jax.device_put(inference.model_variables(init_variables(cfg, seed=0)))
   rng = np.random.default_rng(0)
   left = rng.integers(0, 256, (a.frames, a.height, a.width, 3), dtype=np.uint8)

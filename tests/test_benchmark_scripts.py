@@ -342,6 +342,20 @@ def test_raft_flow_script_names_bad_options_before_running(tmp_path, monkeypatch
   assert e.value.code == 2 and "--repeats must be >= 1, got 0" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("args, message", [
+    (["--height", "-5"], "--frames, --height and --width must be >= 1, got 40 frames of -5x"),
+    (["--frames", "0"], "must be >= 1, got 0 frames"), (["--iters", "1"], "--iters must be >= 2"),
+    (["--devices", "two"], "--devices: devices must be a number")])
+def test_predict_video_script_names_bad_options_before_running(args, message, monkeypatch,
+                                                               capsys):
+  import predict_video  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  monkeypatch.setattr(predict_video, "init_variables", lambda *a, **k: pytest.fail("ran"))
+  monkeypatch.setattr(sys, "argv", ["predict_video.py", *args])
+  with pytest.raises(SystemExit) as e:
+    predict_video.main()
+  assert e.value.code == 2 and message in capsys.readouterr().err
+
+
 def test_scripts_refuse_to_overwrite_a_results_json_before_running(tmp_path, monkeypatch,
                                                                    capsys):
   import precision_check  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
