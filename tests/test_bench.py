@@ -491,3 +491,14 @@ def test_json_output_check_refuses_a_path_ending_in_a_slash(tmp_path):
     path = f"{tmp_path}/{name}"
     assert bench.json_output_problem(path, True) == (
         f"--json {path} ends in a slash; give a file name")
+
+
+def test_json_output_check_says_a_file_stands_where_its_folder_should(tmp_path):
+  """`mine.json/out.json` with `mine.json` a file: the parent is there, but not a folder."""
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  (tmp_path / "mine.json").write_text("{}")
+  path = str(tmp_path / "mine.json" / "out.json")
+  assert bench.json_output_problem(path, True) == (
+      f"--json {path}: {tmp_path / 'mine.json'} is a file, not a folder")
+  assert bench.json_output_problem(str(tmp_path / "no" / "r.json"), True) == (
+      f"--json {tmp_path / 'no' / 'r.json'}: {tmp_path / 'no'} does not exist")

@@ -66,7 +66,8 @@ def json_output_problem(path: str | None, overwrite: bool, flag: str = "--json")
     return f"{flag} {path} exists; pass --overwrite to replace it"
   parent = os.path.dirname(os.path.abspath(path))
   if not os.path.isdir(parent):
-    return f"{flag} {path}: folder {parent} does not exist"
+    what = "is a file, not a folder" if os.path.exists(parent) else "does not exist"
+    return f"{flag} {path}: {parent} {what}"
   try:  # os.access says yes to root everywhere: /proc, /sys and read-only mounts refuse later
     os.rmdir(tempfile.mkdtemp(prefix=".sav-jax-write-test-", dir=parent))
   except OSError as e:
