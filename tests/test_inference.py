@@ -149,6 +149,15 @@ class _LabelModel:
                                                    w + lft + rgt)).copy()
 
 
+class _Frames:  # frames by index only: iter() of it is a plain "iterator"
+
+  def __init__(self, frames):
+    self.frames = frames
+
+  def __getitem__(self, i):
+    return self.frames[i]
+
+
 def _labelled_video(n):
   return np.broadcast_to(np.arange(n, dtype=np.float32)[:, None, None, None], (n, 5, 7, 3))
 
@@ -459,6 +468,8 @@ def test_iterators_and_lists_beside_lazy_sources(monkeypatch):
     inference.predict_video({}, (f for f in video), video)
   with pytest.raises(ValueError, match="right: got a list_iterator"):
     inference.predict_video({}, video, iter(list(video)))
+  with pytest.raises(ValueError, match="right: got an iterator"):  # (iter of a __getitem__)
+    inference.predict_video({}, video, iter(_Frames(video)))
   lazy = _ShortSource(video, video.shape)  # "differ in shape: (12, 5, 7, 3) vs ()"
   for left, right in ((lazy, list(video)), (list(video), lazy)):
     out = inference.predict_video({}, left, right, window=8, stride=4)
