@@ -382,12 +382,14 @@ def check_keep(manager: ocp.CheckpointManager, config, saved: dict) -> None:
   fix = ("to keep them (0 keeps all)" if suggest == 0 else
          "(the largest keep they were saved with: each is then deleted only as its own keep "
          "deletes it), or 0 to keep them all")
+  # (moving them out helps unless the checkpoint this run resumes from is among them)
+  move = ("" if steps[-1] in doomed else
+          ", or move the ones you do not need out of that folder first")
   raise sav_jax.convert.CheckpointError(
       f"{manager.directory} holds {plural(len(steps), 'checkpoint')}; this run's "
       f"config.checkpoint.keep={keep} would delete {doomed} ({_policies_text(policies)}) "
-      f"{when}. Pass --config.checkpoint.keep={suggest} {fix}, or move the ones you do not "
-      "need out of that folder first (or, to lower the keep on purpose, "
-      "--config.checkpoint.prune_earlier=true lets this keep delete them)")
+      f"{when}. Pass --config.checkpoint.keep={suggest} {fix}{move} (or, to lower the keep "
+      "on purpose, --config.checkpoint.prune_earlier=true lets this keep delete them)")
 
 
 _UNREADABLE = "with a config whose keep cannot be read"

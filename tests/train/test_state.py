@@ -881,7 +881,8 @@ def test_check_keep_judges_each_checkpoint_by_the_keep_it_was_saved_with(tmp_pat
   runs[1] = {"checkpoint.keep": 0}
   with pytest.raises(sav_jax.convert.CheckpointError,
                      match=head + r"\(saved with config.checkpoint.keep=0\) at its first save. "
-                     r"Pass --config.checkpoint.keep=0 to keep them \(0 keeps all\)"):
+                     r"Pass --config.checkpoint.keep=0 to keep them \(0 keeps all\), or move the "
+                     r"ones you do not need out of that folder first \(or, to lower"):
     check()
   runs[1] = {"checkpoint.keep": 4}  # kept longer by its own run: suggest that keep
   with pytest.raises(sav_jax.convert.CheckpointError,
@@ -902,8 +903,9 @@ def test_check_keep_judges_each_checkpoint_by_the_keep_it_was_saved_with(tmp_pat
   with pytest.raises(sav_jax.convert.CheckpointError,
                      match=r"would delete \[1, 2, 3\] \(steps 1, 2 saved with "
                      r"config.checkpoint.keep=3, step 3 with config.checkpoint.keep=0\) by the "
-                     r"last of the 7 checkpoints it saves up to step 10"):
+                     r"last of the 7 checkpoints it saves up to step 10") as e:
     check()
+  assert "move the ones" not in str(e.value)  # (step 3, the one resumed from, among them)
 
 
 def test_skip_unreadable_reaches_the_registry_sources(monkeypatch):
