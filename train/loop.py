@@ -192,12 +192,16 @@ class _HostMetrics:
     self.skipped = skipped
     self.sums, self.n, self.n_finite, self.last, self.measured = {}, 0, 0, None, 0.0
     self.window_start = time.perf_counter()
+    self.first_done = None  # when the first step's metrics came: its time holds the compile
 
   def __call__(self, step: int, metrics, last_step: bool = False) -> None:
     """Takes `step`'s metrics; writes the window's means at the end of a logging period, at
     `train.num_steps`, and at `last_step` (a run that stops there with a checkpoint: its
     steps since the last record would never be logged, as the resumed run starts after it)."""
     last = self.last = jax.device_get(metrics)
+    first_window = self.first_done is None or self.first_done >= self.window_start
+    if self.first_done is None:
+      self.first_done = time.perf_counter()
     # A skipped step's loss, EPE and norms are NaN or inf: the window's means are over its
     # finite steps only (a window of skipped steps only logs NaN), its rate and the
     # counter over all of them.
@@ -243,13 +247,19 @@ class _HostMetrics:
         means["lr"] = float(last["lr"])  # the rate of its last step (a mean was never used)
       self.writer.write(step, means)
       if not self.progress.shown and jax.process_index() == 0:  # else the bar's
-        rate = self.n / max(time.perf_counter() - self.window_start, 1e-9)
+        # (the first record's rate leaves out the first step, whose time holds the compile)
+        start, n = (self.first_done, self.n - 1) if first_window else (self.window_start, self.n)
+        rate = n / max(time.perf_counter() - start, 1e-9)
         shown = ", ".join(f"{k} {means[k]:.4g}" for k in ("loss", "epe", "1px", "lr")
                           if k in means)
         left = max(int(self.config.train.num_steps) - step, 0)
-        log.info("step %d: %s (%.3g steps/s%s)", step, shown, rate,
-                 f", {_duration(left / rate)} to step {self.config.train.num_steps}"
-                 if left else "")
+        if n == 0:  # only the first step: no rate yet
+          took = _duration(self.first_done - self.window_start)
+          log.info("step %d: %s (the first step, with the compile: %s)", step, shown, took)
+        else:
+          log.info("step %d: %s (%.3g steps/s%s)", step, shown, rate,
+                   f", {_duration(left / rate)} to step {self.config.train.num_steps}"
+                   if left else "")
       self.sums, self.n, self.n_finite, self.measured = {}, 0, 0, 0.0
       self.window_start = time.perf_counter()
 

@@ -2555,7 +2555,7 @@ def test_train_command_ends_a_failed_run_with_one_line_and_its_status(
     assert set_levels == [logging.INFO, logging.WARNING, logging.WARNING]
 
 
-def test_logged_means_leave_out_skipped_steps(caplog):
+def test_logged_means_leave_out_skipped_steps(caplog, monkeypatch):
   from train import loop  # pylint: disable=import-outside-toplevel
 
   class Writer:
@@ -2648,17 +2648,28 @@ def test_logged_means_leave_out_skipped_steps(caplog):
     host(3, {"loss": 5.0, "epe": 1.5, "1px": 0.25, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
   assert "step 3:" not in caplog.text  # the bar shows it
   # Without the progress bar (off, or a log file), each record is a line of the log too,
-  # with the time left to the last step.
+  # with the time left to the last step; the first record's rate leaves out the first step,
+  # whose time holds the compile (100 s here, then 2 s a step).
   Bar.shown = False
+  clock = iter([0.0, 100.0, 104.0, 104.0, 106.0, 106.0, 0.0, 30.0, 30.0, 30.0])
+  monkeypatch.setattr(loop.time, "perf_counter", lambda: next(clock))
   quiet = loop._HostMetrics(c, writer, Bar(), 0)  # pylint: disable=protected-access
+  metrics = {"loss": 5.0, "epe": 1.5, "1px": 0.25, "finite": 1.0, "lr": 0.3, "num_skipped": 0}
   with caplog.at_level(logging.INFO):
-    quiet(3, {"loss": 5.0, "epe": 1.5, "1px": 0.25, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
-  assert re.search(r"step 3: loss 5, epe 1\.5, 1px 0\.25, lr 0\.3 \([\d.e+-]+ steps/s, "
-                   r"\d+ (s|min|h \d\d min) to step 6\)", caplog.text), caplog.text
+    for step in (1, 2, 3):
+      quiet(step, metrics)
+  assert "step 3: loss 5, epe 1.5, 1px 0.25, lr 0.3 (0.5 steps/s, 6 s to step 6)" in (
+      caplog.text), caplog.text
   caplog.clear()
   with caplog.at_level(logging.INFO):  # the last step: no time left to say
     quiet(6, {"loss": 5.0, "epe": 1.5, "finite": 1.0, "lr": 0.3, "num_skipped": 0})
-  assert re.search(r"step 6: loss 5, epe 1\.5, lr 0\.3 \([\d.e+-]+ steps/s\)", caplog.text)
+  assert "step 6: loss 5, epe 1.5, lr 0.3 (0.5 steps/s)" in caplog.text, caplog.text
+  c.train.log_every = 1  # a record of the first step alone: no rate to say yet
+  caplog.clear()
+  with caplog.at_level(logging.INFO):
+    loop._HostMetrics(c, writer, Bar(), 0)(1, metrics)  # pylint: disable=protected-access
+  assert "step 1: loss 5, epe 1.5, 1px 0.25, lr 0.3 (the first step, with the compile: 30 s)" in (
+      caplog.text), caplog.text
   assert [loop._duration(t) for t in (40.4, 59.4, 59.6, 60, 720, 3900)] == [  # pylint: disable=protected-access
       "40 s", "59 s", "1 min", "1 min", "12 min", "1 h 05 min"]
 
