@@ -8,6 +8,7 @@ Video state dict from a standalone Video Depth Anything one. `save_state_dict` w
 `.safetensors` / `.npz` (and `.pth` when torch happens to be installed) atomically.
 """
 
+import collections
 import logging
 import os
 import pathlib
@@ -118,6 +119,11 @@ def _load_npz(path):
                             f"this one starts with {magic!r})")
     with zipfile.ZipFile(path) as zf:  # before NumPy inflates a record
       check_inflation(zf, path)
+      names = [n[:-4] if n.endswith(".npy") else n for n in zf.namelist()]
+      twice = sorted(n for n, k in collections.Counter(names).items() if k > 1)
+    if twice:  # NumPy would silently take the last copy
+      raise CheckpointError(f"{path}: zip file with records of the same name ({twice[:3]}): "
+                            "which copy is the array?")
     with np.load(path, allow_pickle=False) as data:
       out = {}
       for member in data.files:

@@ -2028,3 +2028,16 @@ def test_torch_size_of_a_list_is_a_tuple(tmp_path, fake_torch):
   out = torch_io.load_checkpoint_object(b.write_zip(tmp_path / "s.pth",
                                                     {"s": _Tensor(fake_torch.Size, ([2, 3],))}))
   assert type(out["s"]) is tuple and out["s"] == (2, 3)
+
+
+def test_npz_with_two_records_of_one_name_is_refused(tmp_path):
+  # NumPy took the last copy silently (here all zeros instead of the weights).
+  path = tmp_path / "dup.npz"
+  with pytest.warns(UserWarning, match="Duplicate name"):
+    with zipfile.ZipFile(path, "w") as zf:
+      for value in (np.ones(3, np.float32), np.zeros(3, np.float32)):
+        buf = io.BytesIO()
+        np.save(buf, value)
+        zf.writestr("w.npy", buf.getvalue())
+  with pytest.raises(CheckpointError, match=r"dup\.npz: zip file with records of the same name"):
+    torch_io.load_state_dict(path)
