@@ -499,6 +499,15 @@ def load_zip(path, source, opaque_unknown=False):
     return _unpickle(pickled, source, load_storage, opaque_unknown)
 
 
+def check_unique_records(names, source, what: str) -> None:
+  """A CheckpointError (ending in `what`) where a zip's record `names` repeat one: which
+  copy would a reader take? (zipfile and NumPy: the last one; others: the first)"""
+  twice = sorted(n for n, k in collections.Counter(names).items() if k > 1)
+  if twice:
+    raise CheckpointError(f"{source}: zip file with records of the same name ({twice[:3]}): "
+                          f"{what}")
+
+
 def _zip_prefix(zf, source):
   """The record prefix (`archive/`, `<stem>/`, ...) of the zip's single `data.pkl`.
 
@@ -506,10 +515,7 @@ def _zip_prefix(zf, source):
   a TorchScript archive is told by its `<prefix>code/` folder or `constants.pkl`.
   """
   all_names = zf.namelist()
-  twice = sorted(n for n, k in collections.Counter(all_names).items() if k > 1)
-  if twice:  # which copy would a reader take? (zipfile: the last one; others: the first)
-    raise CheckpointError(f"{source}: zip file with records of the same name ({twice[:3]}): "
-                          "not a torch checkpoint")
+  check_unique_records(all_names, source, "not a torch checkpoint")
   names = [n for n in all_names if n == "data.pkl" or n.endswith("/data.pkl")]
   names = [n for n in names if n.count("/") <= 1]
   prefix = names[0][:-len("data.pkl")] if len(names) == 1 else None

@@ -8,7 +8,6 @@ Video state dict from a standalone Video Depth Anything one. `save_state_dict` w
 `.safetensors` / `.npz` (and `.pth` when torch happens to be installed) atomically.
 """
 
-import collections
 import logging
 import os
 import pathlib
@@ -20,6 +19,7 @@ import numpy as np
 
 from sav_jax._checks import plural, widened
 from sav_jax.convert.pickle_reader import LEGACY_MAGIC, CheckpointError, check_inflation
+from sav_jax.convert.pickle_reader import check_unique_records
 from sav_jax.convert.pickle_reader import load_legacy
 from sav_jax.convert.pickle_reader import load_zip
 from sav_jax.convert.pickle_reader import resolve_tensors
@@ -119,11 +119,9 @@ def _load_npz(path):
                             f"this one starts with {magic!r})")
     with zipfile.ZipFile(path) as zf:  # before NumPy inflates a record
       check_inflation(zf, path)
-      names = [n[:-4] if n.endswith(".npy") else n for n in zf.namelist()]
-      twice = sorted(n for n, k in collections.Counter(names).items() if k > 1)
-    if twice:  # NumPy would silently take the last copy
-      raise CheckpointError(f"{path}: zip file with records of the same name ({twice[:3]}): "
-                            "which copy is the array?")
+      # (NumPy names `a.npy` and `a` both `a`, and would silently take the last copy)
+      check_unique_records([n[:-4] if n.endswith(".npy") else n for n in zf.namelist()],
+                           path, "which copy is the array?")
     with np.load(path, allow_pickle=False) as data:
       out = {}
       for member in data.files:
