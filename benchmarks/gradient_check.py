@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -151,10 +152,25 @@ def official_outputs(a, argv, script: str) -> dict:
   `--torch-interpreter`, with `--torch-out` (a temporary file)."""
   if not a.torch_interpreter:
     raise SystemExit("--torch-interpreter is required (a Python with torch for the official side)")
+  if not (pathlib.Path(a.repo) / "models" / "core" / "stereoanyvideo.py").is_file():
+    raise SystemExit(f"--repo {a.repo}: no models/core/stereoanyvideo.py there; give a checkout "
+                     "of github.com/TomTomTommi/stereoanyvideo")
+  if not (pathlib.Path(a.fixtures) / "make_weights.py").is_file():
+    raise SystemExit(f"--fixtures {a.fixtures}: no make_weights.py there; give the oracle "
+                     "fixtures folder (or set SAV_FIXTURES)")
+  if shutil.which(a.torch_interpreter) is None:
+    raise SystemExit(f"--torch-interpreter {a.torch_interpreter}: no such program")
+  has_torch = "import importlib.util, sys; sys.exit(importlib.util.find_spec('torch') is None)"
+  if subprocess.run([a.torch_interpreter, "-c", has_torch], check=False).returncode:
+    raise SystemExit(f"--torch-interpreter {a.torch_interpreter}: torch is not installed there")
   with tempfile.TemporaryDirectory() as tmp:
     out = pathlib.Path(tmp) / "official.npz"
-    subprocess.run([a.torch_interpreter, script, *(argv if argv is not None else sys.argv[1:]),
-                    "--torch-out", str(out)], check=True)
+    try:
+      subprocess.run([a.torch_interpreter, script, *(argv if argv is not None else sys.argv[1:]),
+                      "--torch-out", str(out)], check=True)
+    except subprocess.CalledProcessError as e:
+      raise SystemExit(f"the official side ({a.torch_interpreter}) failed with exit status "
+                       f"{e.returncode}: its error is above") from None
     return dict(np.load(out))
 
 

@@ -29,6 +29,7 @@ import argparse
 import atexit
 import datetime
 import importlib
+import importlib.util
 import json
 import os
 import pathlib
@@ -200,6 +201,9 @@ def measure(a) -> dict:
 
 def main(argv=None) -> int:
   a = parse_args(argv)
+  if importlib.util.find_spec("torch") is None:
+    raise SystemExit(f"torch is not installed in this Python ({sys.executable}): run the script "
+                     "in an environment with torch (pip install torch==2.13.0 ...)")
   res = measure(a)
   print(f"official PyTorch {res['torch']}, {res['threads']} threads: B={a.batch} "
         f"T={a.frames} {a.height}x{a.width} iters={a.iters}")

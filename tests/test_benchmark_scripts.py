@@ -486,6 +486,40 @@ def test_parity_sweep_script_checks_its_cases_and_builds_shifted_views(tmp_path,
     parity_sweep.compare_row("a", (1,), "x", np.ones((1, 2)), np.ones((2, 2)))
 
 
+def test_official_side_scripts_name_a_missing_checkout_torch_or_failure_in_one_line(
+    tmp_path, monkeypatch):
+  """gradient_check.py / parity_sweep.py: a wrong --repo, --fixtures or --torch-interpreter,
+  an interpreter without torch and a failing official side end in one line, not a traceback;
+  official_torch.py without torch too."""
+  import argparse  # pylint: disable=import-outside-toplevel
+  import gradient_check  # pylint: disable=import-outside-toplevel,import-error
+  import official_torch  # pylint: disable=import-outside-toplevel,import-error
+  repo = tmp_path / "checkout"
+  (repo / "models" / "core").mkdir(parents=True)
+  (repo / "models" / "core" / "stereoanyvideo.py").write_text("")
+  fixtures = tmp_path / "fixtures"
+  fixtures.mkdir()
+  (fixtures / "make_weights.py").write_text("")
+  fake = tmp_path / "py"  # "has torch", then the official side fails
+  fake.write_text('#!/bin/sh\n[ "$1" = -c ] && exit 0\nexit 3\n')
+  fake.chmod(0o755)
+  no_torch = tmp_path / "py0"
+  no_torch.write_text("#!/bin/sh\nexit 1\n")
+  no_torch.chmod(0o755)
+  for repo_, fix, interp, message in (
+      (tmp_path, fixtures, fake, "no models/core/stereoanyvideo.py"),
+      (repo, tmp_path, fake, "no make_weights.py"),
+      (repo, fixtures, tmp_path / "none", "no such program"),
+      (repo, fixtures, no_torch, "torch is not installed there"),
+      (repo, fixtures, fake, "failed with exit status 3")):
+    a = argparse.Namespace(repo=str(repo_), fixtures=str(fix), torch_interpreter=str(interp))
+    with pytest.raises(SystemExit, match=message):
+      gradient_check.official_outputs(a, [], "script.py")
+  monkeypatch.setattr(official_torch.importlib.util, "find_spec", lambda name: None)
+  with pytest.raises(SystemExit, match="torch is not installed"):
+    official_torch.main(["--repo", str(repo)])
+
+
 def test_input_pipeline_script_writes_flyingthings_and_times_the_training_stream(
     tmp_path, monkeypatch, capsys):
   """`benchmarks/input_pipeline.py`: the set it writes is read back by the FlyingThings3D
