@@ -193,6 +193,10 @@ def main() -> None:
   if prof is not None:
     prof.disable()
   seconds, cpu_s = time.perf_counter() - start, cpu() - cpu0
+  if rc != 0:  # infer named the problem: nothing was measured, nothing goes to --json
+    if not args.keep:
+      shutil.rmtree(out, ignore_errors=True)
+    sys.exit(rc)
   summary = json.loads((out / "summary.json").read_text()) if rc == 0 else {}
   peak = peak_rss_gb()
   # infer's own per-frame work: the whole command less the weights' loading (a fixed cost)

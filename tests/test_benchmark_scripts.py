@@ -598,6 +598,25 @@ def test_infer_throughput_script_checks_its_json_path_before_the_run(tmp_path, m
   assert "does not exist" in capsys.readouterr().err and not (tmp_path / "d").exists()
 
 
+def test_infer_throughput_script_stops_with_infers_error_and_records_nothing(
+    tmp_path, monkeypatch, capsys):
+  """An infer that fails (here a bad --format) ends the script with its exit status and its
+  one-line error: no traceback, no row of made-up frames/s in --json."""
+  import infer_throughput  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import infer  # pylint: disable=import-outside-toplevel
+  monkeypatch.setattr(inference, "_run_window",
+                      inference._run_window)  # pylint: disable=protected-access
+  monkeypatch.setattr(infer, "load_checkpoint", infer.load_checkpoint)
+  monkeypatch.setattr(sys, "argv", ["infer_throughput.py", str(tmp_path / "d"), "--frames", "2",
+                                    "--height", "16", "--width", "24", "--format", "bogus",
+                                    "--json", str(tmp_path / "r.jsonl")])
+  with pytest.raises(SystemExit) as e:
+    infer_throughput.main()
+  assert e.value.code == 2 and "unknown --format" in capsys.readouterr().err
+  assert not (tmp_path / "r.jsonl").exists() and not list((tmp_path / "d").glob("out_*"))
+
+
 def test_infer_throughput_script_runs_infer_with_its_stand_in(tmp_path, monkeypatch, capsys):
   """benchmarks/infer_throughput.py's stand-in still fits `inference._run_window` and the
   command it times writes every frame."""
