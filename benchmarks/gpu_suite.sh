@@ -41,7 +41,8 @@
 # default list took ~19-20 minutes on 2026-11-30, so pick the steps. Each step has its own time limit; everything is logged to OUTDIR/suite.log and
 # the figures go to OUTDIR/*.json. A failure of the first step within 90 s (an import or API
 # error) stops the run, so that the rest of a short lease is not spent; the exit status is 1
-# when any step failed, 2 for an unknown step name (before anything runs). Rerunning a step
+# when any step failed or JAX finds no GPU (before any step runs), 2 for an unknown step name
+# (before anything runs). Rerunning a step
 # into the same OUTDIR replaces its JSON.
 set -u
 out=${1:?usage: bash benchmarks/gpu_suite.sh OUTDIR [STEP ...]}
@@ -128,6 +129,12 @@ run_step() {
   "$py" -c "import jax, flax, optax; print('jax', jax.__version__, 'flax', flax.__version__,
 'optax', optax.__version__, jax.devices())"
 } 2>&1 | tee -a "$log"
+# The steps are a GPU's figures: on a CPU (or with a jaxlib without CUDA) each would run out
+# its time limit compiling the paper's window, for half an hour in all.
+"$py" -c "import sys, jax; b = jax.default_backend(); b == 'gpu' or sys.exit(
+    f'no GPU: JAX in {sys.executable} runs on {b} (a jaxlib without CUDA?); no step run')" \
+  2>&1 | tee -a "$log"
+[ "${PIPESTATUS[0]}" = 0 ] || exit 1
 
 first=1
 status=0

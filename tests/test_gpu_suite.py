@@ -119,3 +119,19 @@ def test_gru_conv_step_times_both_forms_then_the_window_with_dft_products(tmp_pa
   assert calls[2].startswith("-m sav_jax.cli bench --frames 20 --height 720 --width 1280 "
                              "--iters 20 --dtype float32 --gru-conv dft")
   assert _json(calls[2]).endswith("gpu_t20_720x1280_it20_fp32_gru_dft.json")
+
+
+def test_without_a_gpu_the_suite_stops_in_one_line_before_any_step(tmp_path):
+  """JAX on a CPU (or a jaxlib without CUDA): each step would run out its limit compiling the
+  paper's window there; the suite says so and stops, exit 1."""
+  import sys  # pylint: disable=import-outside-toplevel
+  fake = tmp_path / "python"  # the real Python for the suite's checks, a recorder for steps
+  fake.write_text(f'#!/bin/bash\n[ "$1" = -c ] && exec "{sys.executable}" "$@"\n'
+                  'echo "$*" >> "$RECORD"\n')
+  fake.chmod(0o755)
+  env = dict(os.environ, PYTHON=str(fake), RECORD=str(tmp_path / "calls"), JAX_PLATFORMS="cpu")
+  proc = subprocess.run(["bash", str(SUITE), str(tmp_path / "out"), "bench_bf16"], env=env,
+                        capture_output=True, text=True, timeout=60, check=False)
+  assert proc.returncode == 1, proc.stdout + proc.stderr
+  assert "no GPU: JAX in" in proc.stdout and "runs on cpu" in proc.stdout
+  assert not (tmp_path / "calls").exists()
