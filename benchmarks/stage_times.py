@@ -31,7 +31,7 @@ from sav_jax.model import update as U
 from sav_jax.model.layers import CorrMLP
 from sav_jax.ops.correlation import WIDE_WINDOW, aapc
 
-from timing import timed  # benchmarks/timing.py
+from timing import check_clip_arguments, timed  # benchmarks/timing.py
 
 
 def main():
@@ -42,6 +42,7 @@ def main():
   p.add_argument("--iters", type=int, default=8, help="for the summed total")
   p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
   a = p.parse_args()
+  check_clip_arguments(p, a)
   cfg = sav_jax.SAVConfig(dtype=a.dtype)
   model = StereoAnyVideo(cfg)
   v = jax.device_put(init_variables(cfg))

@@ -283,7 +283,8 @@ def test_compile_times_script_names_a_bad_clip_before_compiling(monkeypatch, cap
     assert message in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("script", ["compile_options", "op_profile", "memory_projection"])
+@pytest.mark.parametrize("script", ["compile_options", "op_profile", "memory_projection",
+                                    "stage_times"])
 def test_clip_scripts_name_a_clip_the_model_refuses_before_running(script, monkeypatch,
                                                                    capsys):
   module = __import__(script)
