@@ -60,7 +60,7 @@ def test_bench_records_compares_and_reuses_the_compile_cache(tmp_path, capsys,
   assert "xla_cpu_use_fusion_emitters" not in rec["compiler_options"]
 
 
-def test_bench_rejects_bad_sizes(capsys):
+def test_bench_rejects_bad_sizes(capsys, monkeypatch):
   for height in ("30", "0", "-16"):
     assert cli.main(["bench", "--height", height]) == 2
     assert "--height/--width must be positive multiples of 16" in capsys.readouterr().err
@@ -68,6 +68,12 @@ def test_bench_rejects_bad_sizes(capsys):
   assert "the width at least 32 (got 128x16)" in capsys.readouterr().err
   assert cli.main(["bench", "--vit-attention", "cudnn"]) == 2
   assert "--vit-attention cudnn needs --dtype bfloat16" in capsys.readouterr().err
+  import jax  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  if jax.default_backend() != "gpu":  # said before the weights' init and the trace
+    monkeypatch.setattr(bench, "measure", lambda *a, **k: pytest.fail("measured"))
+    assert cli.main(["bench", "--vit-attention", "cudnn", "--dtype", "bfloat16"]) == 2
+    assert "--vit-attention cudnn needs a CUDA GPU" in capsys.readouterr().err
 
 
 def test_memory_report_names_the_device_peak_after_compiling():

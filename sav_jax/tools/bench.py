@@ -339,6 +339,11 @@ def run(args: argparse.Namespace) -> int:
   if args.vit_attention == "cudnn" and args.dtype != "bfloat16":
     raise UsageError("--vit-attention cudnn needs --dtype bfloat16 (cuDNN's fused attention "
                      "has no float32 kernels)")
+  if args.vit_attention == "cudnn":  # (the model's trace says so too, after the weights' init)
+    import jax  # pylint: disable=import-outside-toplevel
+    if jax.default_backend() != "gpu":
+      raise UsageError(f"--vit-attention cudnn needs a CUDA GPU; JAX's backend is "
+                       f"{jax.default_backend()!r} (use blocked, or the default auto)")
   problem = json_output_problem(args.json, args.overwrite)
   if problem:  # checked before the long run
     raise UsageError(problem)
