@@ -294,6 +294,19 @@ def test_clip_scripts_name_a_clip_the_model_refuses_before_running(script, monke
   assert e.value.code == 2 and "--iters must be >= 2 (got 1)" in capsys.readouterr().err
 
 
+def test_bf16_audit_names_a_gradient_clip_the_model_refuses_before_running(monkeypatch,
+                                                                          capsys):
+  """--gradients' clip is checked before the forward rows (minutes), not refused by the
+  model's trace after them."""
+  import bf16_audit  # pylint: disable=import-outside-toplevel,import-error
+  monkeypatch.setattr(bf16_audit, "make_weights_module", lambda *a: pytest.fail("ran"))
+  for args, message in ((["--height", "40"], "multiples of 16"),
+                        (["--frames", "0"], "--frames must be >= 1")):
+    with pytest.raises(SystemExit) as e:
+      bf16_audit.main(["--gradients", *args])
+    assert e.value.code == 2 and message in capsys.readouterr().err
+
+
 def test_compile_times_script_compiles_what_predict_video_runs(capsys):
   """benchmarks/compile_times.py compiles predict_video's per-frame and window programs,
   leaves the cache and low-memory settings as they were, and refuses bad sizes."""
