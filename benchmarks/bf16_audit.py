@@ -45,7 +45,8 @@ from sav_jax.model import update  # noqa: E402  pylint: disable=wrong-import-pos
 from sav_jax.model.depth import DepthExtractor  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.encoder import BasicEncoder  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.layers import CorrMLP, conv  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.tools.bench import clip_problem, json_output_problem  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools.bench import clip_problem  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools.bench import json_output_problem  # noqa: E402  pylint: disable=wrong-import-position
 import gradient_check  # noqa: E402  benchmarks/gradient_check.py
 from timing import fixtures_folder, make_weights_module  # noqa: E402  benchmarks/timing.py
 
