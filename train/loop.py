@@ -371,15 +371,21 @@ _EVAL_CHECKS = (
 _FREE_BLOCKS = ("data.sources",)
 
 
-def missing_fields(config, base, prefix: str = "") -> list[str]:
-  """The fields of `base` (`configs.sceneflow.base_config()`) that `config` lacks."""
+# Blocks whose unknown fields their own checks name (the augmentation's, the generator's).
+_CHECKED_BLOCKS = ("data.augment", "data.synthetic")
+
+
+def missing_fields(config, base, prefix: str = "", skip: tuple[str, ...] = ()) -> list[str]:
+  """The fields of `base` (`configs.sceneflow.base_config()`) that `config` lacks (with the
+  two swapped: the fields `config` has that the base lacks), not looking into `skip`."""
   missing = []
   for key, value in base.items():
     path = prefix + key
     if key not in config:
       missing.append(path)
-    elif isinstance(value, ml_collections.ConfigDict) and path not in _FREE_BLOCKS:
-      missing += missing_fields(config[key], value, path + ".")
+    elif (isinstance(value, ml_collections.ConfigDict) and path not in _FREE_BLOCKS + skip
+          and isinstance(config[key], ml_collections.ConfigDict)):
+      missing += missing_fields(config[key], value, path + ".", skip)
   return missing
 
 
@@ -390,6 +396,11 @@ def check_fields(config) -> None:
   missing = missing_fields(config, sceneflow.base_config())
   if missing:
     raise ValueError(f"the config {lacking_fields(config, missing)}")
+  unknown = missing_fields(sceneflow.base_config(), config, skip=_CHECKED_BLOCKS)
+  if unknown:  # (a misspelt field in a config file: nothing would read it)
+    raise ValueError(f"the config has no such field {', '.join(unknown[:8])}"
+                     f"{', ...' if len(unknown) > 8 else ''} (misspelt? it would not be read): "
+                     "the fields are those of configs.sceneflow.base_config()")
 
 
 def _given_workdir(workdir) -> pathlib.Path:

@@ -2052,6 +2052,11 @@ def test_config_blocks_a_run_cannot_use_are_named(tmp_path, caplog):
   with pytest.raises(ValueError, match=r"the config lacks 12 fields \(.*\); it is an evaluation "
                      r"config \(python -m eval\): build"):
     loop.check_fields(folder.get_config())
+  c = synthetic.get_config()
+  c.eval.roots, c.train.num_step = "my_videos", 3  # misspelt in a config file: never read
+  with pytest.raises(ValueError, match=r"the config has no such field eval\.roots, "
+                     r"train\.num_step \(misspelt"):
+    loop.check_fields(c)
   assert not (tmp_path / "w").exists()
 
 
