@@ -33,7 +33,8 @@ import numpy as np
 from sav_jax import viz
 from sav_jax.data import frame_io
 from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key,
-                               list_dirs, list_files, refuse_broken_links, require_dir)
+                               is_hidden, list_dirs, list_files, refuse_broken_links,
+                               require_dir, some_of)
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +152,12 @@ def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[S
     files = {"left": list_files(seq_dir / "left", *IMAGE_SUFFIXES),  # by number: 2 before 10
              "right": list_files(require_dir(seq_dir / "right", "right/ folder"),
                                  *IMAGE_SUFFIXES)}
+    for side in ("left", "right"):
+      if not files[side]:  # (a video file there was "frame counts differ: 'left' lacks frame 1")
+        other = sorted(p.name for p in (seq_dir / side).iterdir() if not is_hidden(p))
+        raise FileNotFoundError(f"{seq_dir / side}: no PNG or JPEG frames"
+                                + (f" (it has {some_of(other)}: video files are not read, "
+                                   "extract their frames)" if other else ""))
     sparse = False
     # a link to a missing disparity/ or calibration file: the sequence read without them
     refuse_broken_links([seq_dir / "disparity", *(seq_dir / n for n in CALIBRATION_FILES)])

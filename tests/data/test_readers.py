@@ -1888,6 +1888,13 @@ def test_folder_split_skips_stray_files_and_hidden_folders_and_checks_the_baseli
   with pytest.raises(ValueError, match=r"calib\.txt: the stereo baseline is -0\.2; it must be "
                                        "positive"):
     registry.get_sequences("folder", tmp_path, "test")
+  (tmp_path / "test" / "lab" / "calib.txt").unlink()
+  for path in (tmp_path / "test" / "lab" / "right").iterdir():
+    path.unlink()
+  (tmp_path / "test" / "lab" / "right" / "right.mp4").write_bytes(b"")  # a video, not frames
+  with pytest.raises(FileNotFoundError, match=r"lab.right: no PNG or JPEG frames \(it has "
+                                              r"right\.mp4: video files are not read"):
+    registry.get_sequences("folder", tmp_path, "test")
 
 
 @pytest.mark.parametrize("viewpoint,size", [({"focal_length": [True, 2.5]}, [480, 640]),
