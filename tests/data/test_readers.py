@@ -1876,6 +1876,21 @@ def test_folder_disparity_suffixes_in_capitals_are_read(tmp_path):
   np.testing.assert_array_equal(valid, [[False, True]])
 
 
+def test_folder_frames_named_by_decimal_timestamps_pair_by_the_whole_number(tmp_path):
+  # 1 fps timestamps end in .000000: matched by that last group, a right/ folder one frame
+  # ahead of left/ (its first frame dropped) was paired with it, frame by frame
+  rng = np.random.default_rng(28)
+  seq = tmp_path / "test" / "cam"
+  for t in range(4):
+    _png(seq / "left" / f"{1701234567 + t}.000000.png", _rgb(rng))
+    _png(seq / "right" / f"{1701234568 + t}.000000.png", _rgb(rng))
+  with pytest.raises(ValueError, match=r"stem mismatch between .*left.1701234567\.000000\.png "
+                                       r"and .*right.1701234568\.000000\.png"):
+    registry.get_sequences("folder", tmp_path, "test")
+  (seq / "right" / "1701234571.000000.png").rename(seq / "right" / "1701234567.000000.png")
+  assert len(registry.get_sequences("folder", tmp_path, "test")[0]) == 4
+
+
 def test_folder_split_skips_stray_files_and_hidden_folders_and_checks_the_baseline(tmp_path):
   # A README or a notebook's hidden folder next to the sequences is not a sequence; a
   # calibration whose baseline is negative (the cameras swapped) gives no disparity scale.
