@@ -371,8 +371,10 @@ _EVAL_CHECKS = (
 _FREE_BLOCKS = ("data.sources",)
 
 
-# Blocks whose unknown fields their own checks name (the augmentation's, the generator's).
-_CHECKED_BLOCKS = ("data.augment", "data.synthetic")
+# Blocks whose unknown fields their own checks name (the augmentation's, the generator's,
+# the model's: SAVConfig.from_dict, which takes the architecture fields the base leaves out,
+# `depth_dim`, `hidden_dim`, ...).
+_CHECKED_BLOCKS = ("data.augment", "data.synthetic", "model")
 
 
 def missing_fields(config, base, prefix: str = "", skip: tuple[str, ...] = ()) -> list[str]:

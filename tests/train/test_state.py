@@ -2057,6 +2057,9 @@ def test_config_blocks_a_run_cannot_use_are_named(tmp_path, caplog):
   with pytest.raises(ValueError, match=r"the config has no such field eval\.roots, "
                      r"train\.num_step \(misspelt"):
     loop.check_fields(c)
+  c = synthetic.get_config()
+  c.model.depth_dim = 16  # a SAVConfig field the base leaves out: the model's own check
+  loop.check_fields(c)
   assert not (tmp_path / "w").exists()
 
 
