@@ -604,6 +604,9 @@ def test_folders_numbered_alike_at_different_places_are_noted(tmp_path, caplog):
       # each camera dropped another frame: the same places, different numbers (was silent)
       "dropped_each": (["0000", "0001", "0002", "0004"], ["0000", "0001", "0003", "0004"], True),
       "counters": (["0000", "0001"], ["1000", "1001"], False),  # two cameras' own counters
+      # decimal timestamps, the right folder a frame ahead: each name's last digits are 000000
+      "timestamps": (["1701234567.000000", "1701234568.000000"],
+                     ["1701234568.000000", "1701234569.000000"], True),
   }
   for case, (left_names, right_names, noted) in cases.items():
     for side, names in (("l", left_names), ("r", right_names)):

@@ -387,6 +387,16 @@ def digits_key(path: Path) -> int | str:
   return int(groups[-1]) if groups else Path(path).stem
 
 
+def number_key(path: Path):
+  """The frame number that matches files across folders: `digits_key`, but a decimal
+  number whole (`1701234567.000000`: `digits_key` gives 0 for every such timestamp, so a
+  right/ folder one frame ahead of left/ was paired with it)."""
+  numbers = re.findall(r"\d+\.\d+|\d+", Path(path).stem)
+  if numbers and "." in numbers[-1]:
+    return decimal.Decimal(numbers[-1])
+  return digits_key(path)
+
+
 def check_matching(where: str, lists: Mapping[str, Sequence[Path]],
                    key: Callable[[Path], object] = lambda p: p.stem) -> None:
   """Raises ValueError unless all lists have the same length and frame keys.

@@ -24,9 +24,7 @@ evaluation takes whole sequences.
 
 from __future__ import annotations
 
-import decimal
 import logging
-import re
 import warnings
 from pathlib import Path
 
@@ -34,8 +32,8 @@ import numpy as np
 
 from sav_jax import viz
 from sav_jax.data import frame_io
-from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, digits_key,
-                               is_hidden, list_dirs, list_files, refuse_broken_links,
+from sav_jax.data.base import (StereoSequence, camera_scale, check_matching, is_hidden,
+                               list_dirs, list_files, number_key, refuse_broken_links,
                                require_dir, some_of)
 
 log = logging.getLogger(__name__)
@@ -171,23 +169,13 @@ def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[S
                          f"({', '.join(kinds)}); use one")
       files["left_gt"] = gt
       sparse = kinds == [".png"]
-    check_matching(where, files, frame_key)
+    check_matching(where, files, number_key)
     seqs.append(FolderSequence(seq_dir.name, files, dataset=dataset, sparse=sparse,
                                depth2disp_scale=_scale(seq_dir, files["left"])))
   if not seqs:
     raise FileNotFoundError(f"no sequences in {split_dir} (expected <sequence>/left, right "
                             "folders)")
   return seqs
-
-
-def frame_key(path: Path):
-  """The frame number that matches files across folders: the last number in the stem, a
-  decimal one whole (`1701234567.000000`: `digits_key` took 0 from every such timestamp, so
-  a right/ folder one frame ahead of left/ was paired with it)."""
-  numbers = re.findall(r"\d+\.\d+|\d+", Path(path).stem)
-  if numbers and "." in numbers[-1]:
-    return decimal.Decimal(numbers[-1])
-  return digits_key(path)
 
 
 def _root_hint(root: Path, split: str) -> str:

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from sav_jax import viz
-from sav_jax.data.base import digits_key
+from sav_jax.data.base import number_key
 
 log = logging.getLogger(__name__)
 
@@ -493,11 +493,11 @@ def _unpaired_frame(left_files, right_files) -> str:
   return ""
 
 
-def _frame_number(path) -> int | None:
-  """The last group of digits in a frame file's stem (`left_0012` -> 12: `digits_key`), or
-  None."""
-  number = digits_key(pathlib.Path(path))
-  return number if isinstance(number, int) else None
+def _frame_number(path):
+  """The last number in a frame file's stem (`left_0012` -> 12, a decimal timestamp
+  `1701234567.000000` whole: `number_key`), or None."""
+  number = number_key(pathlib.Path(path))
+  return None if isinstance(number, str) else number
 
 
 def _shifted_pairing(left_files, right_files, pairs: int | None = None) -> str | None:
