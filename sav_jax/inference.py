@@ -827,8 +827,9 @@ def _refuse_iterator(video, name: str) -> None:
   if not hasattr(video, "shape") and not isinstance(video, (list, tuple)) and (
       hasattr(video, "__next__") or not hasattr(video, "__getitem__")):
     kind = type(video).__name__
+    article = "an" if kind.startswith(tuple("aeiou")) else "a"
     raise ValueError(
-        f"{name}: got {'an' if kind[:1] in 'aeiou' else 'a'} {kind}, which has neither a shape nor frames by index: "
+        f"{name}: got {article} {kind}, which has neither a shape nor frames by index: "
         "pass an array [T, H, W, 3], a list of frames, or a lazy source with a shape and "
         "slicing (see iter_predict_video); an iterator or generator of frames can be "
         "collected with list(...) first")
