@@ -152,9 +152,11 @@ def official_outputs(a, argv, script: str) -> dict:
   `--torch-interpreter`, with `--torch-out` (a temporary file)."""
   if not a.torch_interpreter:
     raise SystemExit("--torch-interpreter is required (a Python with torch for the official side)")
-  if not (pathlib.Path(a.repo) / "models" / "core" / "stereoanyvideo.py").is_file():
-    raise SystemExit(f"--repo {a.repo}: no models/core/stereoanyvideo.py there; give a checkout "
-                     "of github.com/TomTomTommi/stereoanyvideo")
+  sys.path.insert(0, str(HERE))
+  from official_torch import repo_problem  # pylint: disable=import-outside-toplevel
+  problem = repo_problem(a.repo)
+  if problem:
+    raise SystemExit(problem)
   if not (pathlib.Path(a.fixtures) / "make_weights.py").is_file():
     raise SystemExit(f"--fixtures {a.fixtures}: no make_weights.py there; give the oracle "
                      "fixtures folder (or set SAV_FIXTURES)")

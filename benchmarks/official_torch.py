@@ -62,11 +62,10 @@ def parse_args(argv=None):
   p.add_argument("--json", help="write the results here (a new file, or --overwrite)")
   p.add_argument("--overwrite", action="store_true")
   a = p.parse_args(argv)
-  repo = pathlib.Path(a.repo).expanduser().resolve()
-  if not (repo / "models" / "core" / "stereoanyvideo.py").is_file():
-    p.error(f"--repo {a.repo}: no models/core/stereoanyvideo.py there; give a checkout of "
-            "github.com/TomTomTommi/stereoanyvideo")
-  a.repo = repo
+  problem = repo_problem(a.repo)
+  if problem:
+    p.error(problem)
+  a.repo = pathlib.Path(a.repo).expanduser().resolve()
   if a.iters < 2:
     p.error(f"--iters must be >= 2 (got {a.iters})")
   if a.repeats < 1:
@@ -86,6 +85,15 @@ def parse_args(argv=None):
     if not os.path.isdir(parent):
       p.error(f"--json {a.json}: folder {parent} does not exist")
   return a
+
+
+def repo_problem(repo) -> str | None:
+  """What is wrong with `repo` as the official checkout (`--repo`), or None (also
+  gradient_check.py's check, before its own side runs)."""
+  if not (pathlib.Path(repo).expanduser() / "models" / "core" / "stereoanyvideo.py").is_file():
+    return (f"--repo {repo}: no models/core/stereoanyvideo.py there; give a checkout of "
+            "github.com/TomTomTommi/stereoanyvideo")
+  return None
 
 
 def _stand_in(name: str, **attrs) -> None:
