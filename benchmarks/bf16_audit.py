@@ -45,10 +45,10 @@ from sav_jax.model import update  # noqa: E402  pylint: disable=wrong-import-pos
 from sav_jax.model.depth import DepthExtractor  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.encoder import BasicEncoder  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.model.layers import CorrMLP, conv  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.tools.bench import clip_problem  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.tools.bench import json_output_problem  # noqa: E402  pylint: disable=wrong-import-position
 import gradient_check  # noqa: E402  benchmarks/gradient_check.py
-from timing import fixtures_folder, make_weights_module  # noqa: E402  benchmarks/timing.py
+from timing import (  # noqa: E402  benchmarks/timing.py
+    check_clip_arguments, fixtures_folder, make_weights_module)
 
 # Modules whose compute dtype can be set alone; "carry" is the GRU state between steps.
 PARTS = ("depth", "fnet", "cnet", "encoder", "time", "space", "gru", "flow", "mask", "carry")
@@ -212,11 +212,8 @@ def main(argv=None) -> int:
   problem = json_output_problem(a.json, a.overwrite) if a.json else None
   if problem:  # before the long run
     p.error(problem)
-  if a.gradients:  # the gradients' clip: the model would refuse it after the forward rows
-    problem = clip_problem(argparse.Namespace(frames=a.frames, height=a.height, width=a.width,
-                                              iters=2))
-    if problem:
-      p.error(problem)
+  if a.gradients:  # the gradients' clip (iters=2): the model would refuse it after the forward rows
+    check_clip_arguments(p, a)
   fixtures = pathlib.Path(a.fixtures)
   state = make_weights_module(fixtures, "bf16_audit.py").make_state_dict(
       str(fixtures / "sav_manifest.json"), 0)

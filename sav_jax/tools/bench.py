@@ -313,12 +313,13 @@ def compare_line(res: dict, base: dict) -> str:
 
 def clip_problem(args: argparse.Namespace) -> str | None:
   """What is wrong with the clip options `frames`, `height`, `width`, `iters`, `batch`,
-  `repeats` (bench and benchmarks/: the model's trace failed naming no flag), or None; an
-  option `args` lacks counts as valid."""
+  `repeats` (bench and benchmarks/: the model's trace failed naming no flag), or None;
+  `iters`, `batch` or `repeats` that `args` lacks (a script without the option) count as
+  valid."""
   if min(args.height, args.width) < 16 or args.height % 16 or args.width % 16 or args.width < 32:
     return (f"--height/--width must be positive multiples of 16, the width at least 32 "
             f"(got {args.height}x{args.width})")
-  if args.iters < 2:
+  if getattr(args, "iters", 2) < 2:
     return f"--iters must be >= 2 (got {args.iters})"
   for name in ("frames", "batch", "repeats"):
     if getattr(args, name, 1) < 1:
