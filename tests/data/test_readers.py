@@ -1549,6 +1549,16 @@ def _own_videos(root, rng):
   return truth
 
 
+def _npy_sequence(seq, rng, disparities):
+  """A sequence of the folder layout at `seq`: random left and right PNG frames and `.npy`
+  ground truth, one frame per `{name: disparity}` item, in that order."""
+  (seq / "disparity").mkdir(parents=True)
+  for name, disp in disparities.items():
+    _png(seq / "left" / f"{name}.png", _rgb(rng))
+    _png(seq / "right" / f"{name}.png", _rgb(rng))
+    np.save(seq / "disparity" / f"{name}.npy", disp)
+
+
 def _mkdir(path):
   path.mkdir(parents=True, exist_ok=True)
   return path
@@ -1699,11 +1709,8 @@ def test_a_registered_datasets_eval_cut_is_of_its_test_split_only(tmp_path, monk
 def test_folder_dataset_unpadded_npy_ground_truth_json_calibration_empty_split(tmp_path):
   rng = np.random.default_rng(25)
   seq = tmp_path / "val" / "cam"
-  (seq / "disparity").mkdir(parents=True)
-  for i in range(1, 12):  # 1 .. 11 unpadded in every folder: matched in natural order
-    _png(seq / "left" / f"{i}.png", _rgb(rng))
-    _png(seq / "right" / f"{i}.png", _rgb(rng))
-    np.save(seq / "disparity" / f"{i}.npy", np.full((H, W), float(i), np.float32))
+  # 1 .. 11 unpadded in every folder: matched in natural order
+  _npy_sequence(seq, rng, {i: np.full((H, W), float(i), np.float32) for i in range(1, 12)})
   (seq / "calib.json").write_text('{"fx": 400, "baseline": 0.25}')
   for i in (1, 2):  # JPEG frames on both sides, named as cameras and tools name them
     for side, ext in (("left", ".jpeg"), ("right", ".JPG")):
@@ -1743,13 +1750,9 @@ def test_folder_disparities_mostly_beyond_512_px_are_warned_once_per_folder(tmp_
   # official valid rule without a word (a frame without any: a loss of 0, an EPE of 0).
   rng = np.random.default_rng(26)
   seq = tmp_path / "train" / "cam"
-  (seq / "disparity").mkdir(parents=True)
-  for i in range(3):
-    _png(seq / "left" / f"{i}.png", _rgb(rng))
-    _png(seq / "right" / f"{i}.png", _rgb(rng))
-    disp = np.full((H, W), 4.0 * 256, np.float32)
-    disp[0, :3] = (0.0, np.nan, 3.0)
-    np.save(seq / "disparity" / f"{i}.npy", disp if i else disp / 256)  # frame 0 in pixels
+  disp = np.full((H, W), 4.0 * 256, np.float32)
+  disp[0, :3] = (0.0, np.nan, 3.0)
+  _npy_sequence(seq, rng, {i: disp if i else disp / 256 for i in range(3)})  # frame 0 in pixels
   (s,) = registry.get_sequences("folder", tmp_path, "train")
   with warnings.catch_warnings():
     warnings.simplefilter("error")
@@ -1769,13 +1772,9 @@ def test_folder_negative_disparities_are_warned_once_per_folder(tmp_path):
   # metrics), so its pixels were scored without a word.
   rng = np.random.default_rng(27)
   seq = tmp_path / "test" / "cam"
-  (seq / "disparity").mkdir(parents=True)
-  for i in range(2):
-    _png(seq / "left" / f"{i}.png", _rgb(rng))
-    _png(seq / "right" / f"{i}.png", _rgb(rng))
-    disp = np.full((H, W), 5.0, np.float32)
-    disp[0, :W // 2] = -1.0 if i else 0.0  # frame 0: no negative value, no warning
-    np.save(seq / "disparity" / f"{i}.npy", disp)
+  disps = {i: np.full((H, W), 5.0, np.float32) for i in range(2)}
+  disps[0][0, :W // 2], disps[1][0, :W // 2] = 0.0, -1.0  # frame 0: no negative, no warning
+  _npy_sequence(seq, rng, disps)
   (s,) = registry.get_sequences("folder", tmp_path, "test")
   with warnings.catch_warnings():
     warnings.simplefilter("error")
