@@ -67,6 +67,16 @@ def test_multiply_adds_of_the_gpu_library_calls():
   assert op_profile.kind_of("cublas-gemm.1", ops["cublas-gemm.1"]) == "cuBLAS product"
 
 
+def _usage_error(main, argv, monkeypatch, capsys) -> str:
+  """The standard error of a script's `main()` run with `sys.argv = argv`, which must end in
+  a usage error (exit status 2)."""
+  monkeypatch.setattr(sys, "argv", argv)
+  with pytest.raises(SystemExit) as e:
+    main()
+  assert e.value.code == 2
+  return capsys.readouterr().err
+
+
 def _meta(kind, pid, name, tid=None):
   return {"ph": "M", "name": kind, "pid": pid, "tid": tid, "args": {"name": name}}
 
@@ -288,10 +298,8 @@ def test_compile_times_script_names_a_bad_clip_before_compiling(monkeypatch, cap
 def test_clip_scripts_name_a_clip_the_model_refuses_before_running(script, monkeypatch,
                                                                    capsys):
   module = __import__(script)
-  monkeypatch.setattr(sys, "argv", [f"{script}.py", "--iters", "1"])
-  with pytest.raises(SystemExit) as e:
-    module.main()
-  assert e.value.code == 2 and "--iters must be >= 2 (got 1)" in capsys.readouterr().err
+  err = _usage_error(module.main, [f"{script}.py", "--iters", "1"], monkeypatch, capsys)
+  assert "--iters must be >= 2 (got 1)" in err
 
 
 def test_bf16_audit_names_a_gradient_clip_the_model_refuses_before_running(monkeypatch,
@@ -346,14 +354,10 @@ def test_raft_flow_script_times_the_evaluators_flow(monkeypatch, capsys):
 def test_raft_flow_script_names_bad_options_before_running(tmp_path, monkeypatch, capsys):
   import raft_flow  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
   monkeypatch.setattr(raft_flow, "make_weights_module", lambda *a: pytest.fail("ran"))
-  monkeypatch.setattr(sys, "argv", ["raft_flow.py", "--official", str(tmp_path)])
-  with pytest.raises(SystemExit) as e:
-    raft_flow.main()
-  assert e.value.code == 2 and "no third_party/RAFT/core/raft.py" in capsys.readouterr().err
-  monkeypatch.setattr(sys, "argv", ["raft_flow.py", "--repeats", "0"])
-  with pytest.raises(SystemExit) as e:
-    raft_flow.main()
-  assert e.value.code == 2 and "--repeats must be >= 1, got 0" in capsys.readouterr().err
+  refused = lambda *args: _usage_error(raft_flow.main, ["raft_flow.py", *args],  # noqa: E731
+                                       monkeypatch, capsys)
+  assert "no third_party/RAFT/core/raft.py" in refused("--official", str(tmp_path))
+  assert "--repeats must be >= 1, got 0" in refused("--repeats", "0")
 
 
 @pytest.mark.parametrize("args, message", [
@@ -364,10 +368,8 @@ def test_predict_video_script_names_bad_options_before_running(args, message, mo
                                                                capsys):
   import predict_video  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
   monkeypatch.setattr(predict_video, "init_variables", lambda *a, **k: pytest.fail("ran"))
-  monkeypatch.setattr(sys, "argv", ["predict_video.py", *args])
-  with pytest.raises(SystemExit) as e:
-    predict_video.main()
-  assert e.value.code == 2 and message in capsys.readouterr().err
+  assert message in _usage_error(predict_video.main, ["predict_video.py", *args], monkeypatch,
+                                 capsys)
 
 
 def test_scripts_refuse_to_overwrite_a_results_json_before_running(tmp_path, monkeypatch,
@@ -403,10 +405,8 @@ def test_train_step_script_names_a_bad_clip_or_microbatches_before_running(monke
                         (["--repeats", "0"], "--repeats must be >= 1"),
                         (["--batch", "3", "--microbatches", "2"], "does not divide"),
                         (["--overwrite"], "name one with --json")):
-    monkeypatch.setattr(sys, "argv", ["train_step.py", *args])
-    with pytest.raises(SystemExit) as e:
-      train_step.main()
-    assert e.value.code == 2 and message in capsys.readouterr().err
+    assert message in _usage_error(train_step.main, ["train_step.py", *args], monkeypatch,
+                                   capsys)
 
 
 def test_train_step_script_keeps_its_program_in_the_named_compilation_cache(
@@ -569,10 +569,8 @@ def test_input_pipeline_script_writes_flyingthings_and_times_the_training_stream
   assert res["clips_per_s"] > 0 and res["read_s"] > 0 and res["augment_s"] > 0
   assert res["cores_per_accelerator"] == pytest.approx(3.0 * (res["read_s"] + res["augment_s"]))
   assert "clips/s over 1 batches after 1" in capsys.readouterr().out
-  monkeypatch.setattr(sys, "argv", ["input_pipeline.py", "--frames", "11"])
-  with pytest.raises(SystemExit) as e:
-    input_pipeline.main()
-  assert e.value.code == 2 and "more than --sequence-frames 10" in capsys.readouterr().err
+  assert "more than --sequence-frames 10" in _usage_error(
+      input_pipeline.main, ["input_pipeline.py", "--frames", "11"], monkeypatch, capsys)
 
 
 @pytest.mark.parametrize("args,message", [
@@ -586,11 +584,9 @@ def test_input_pipeline_script_names_a_wrong_root_or_dataset_in_one_line(
   import input_pipeline  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
   args = [x.format(tmp=tmp_path) for x in args]
   root = [] if "--root" in args else ["--root", str(tmp_path)]
-  monkeypatch.setattr(sys, "argv", ["input_pipeline.py", *root, *args])
-  with pytest.raises(SystemExit) as e:
-    input_pipeline.main()
-  err = capsys.readouterr().err
-  assert e.value.code == 2 and message in err and "Traceback" not in err
+  err = _usage_error(input_pipeline.main, ["input_pipeline.py", *root, *args], monkeypatch,
+                     capsys)
+  assert message in err and "Traceback" not in err
 
 
 def test_gru_conv_forms_agree():
@@ -622,12 +618,9 @@ def test_infer_throughput_script_stops_with_infers_error_and_records_nothing(
   monkeypatch.setattr(inference, "_run_window",
                       inference._run_window)  # pylint: disable=protected-access
   monkeypatch.setattr(infer, "load_checkpoint", infer.load_checkpoint)
-  monkeypatch.setattr(sys, "argv", ["infer_throughput.py", str(tmp_path / "d"), "--frames", "2",
-                                    "--height", "16", "--width", "24", "--format", "bogus",
-                                    "--json", str(tmp_path / "r.jsonl")])
-  with pytest.raises(SystemExit) as e:
-    infer_throughput.main()
-  assert e.value.code == 2 and "unknown --format" in capsys.readouterr().err
+  argv = ["infer_throughput.py", str(tmp_path / "d"), "--frames", "2", "--height", "16",
+          "--width", "24", "--format", "bogus", "--json", str(tmp_path / "r.jsonl")]
+  assert "unknown --format" in _usage_error(infer_throughput.main, argv, monkeypatch, capsys)
   assert not (tmp_path / "r.jsonl").exists() and not list((tmp_path / "d").glob("out_*"))
 
 
