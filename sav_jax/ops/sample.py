@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from sav_jax.ops.pool import accumulation_dtype, check_array
+from sav_jax.ops.resize import _cast_like
 
 
 def warp_x(features: jax.Array, disp: jax.Array) -> jax.Array:
@@ -24,7 +25,7 @@ def warp_x(features: jax.Array, disp: jax.Array) -> jax.Array:
   Returns:
     `[N, H, W, C]` in the dtype of `features`: `features[n, y, x - disp[n, y, x]]`,
     linearly interpolated, zero outside the image; computed in float32 (float64 for
-    float64 inputs).
+    float64 inputs), rounded to the nearest for integer features (as `resize`).
   """
   check_array("features", features, 4, "[N, H, W, C]")
   check_array("disp", disp, 3, "[N, H, W]")
@@ -45,4 +46,4 @@ def warp_x(features: jax.Array, disp: jax.Array) -> jax.Array:
     return jnp.where(inside, vals.astype(dt), 0.0)
 
   out = (1.0 - w1) * tap(x0) + w1 * tap(x1)
-  return out.astype(features.dtype)
+  return _cast_like(out, features.dtype)

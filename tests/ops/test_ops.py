@@ -118,6 +118,14 @@ def test_warp_integer_and_fractional_shifts_with_zero_padding():
   np.testing.assert_allclose(out[0, 1, :, 2], expect, atol=1e-6)
 
 
+def test_warp_of_integer_features_rounds_to_the_nearest():
+  """An integer image warped by half a pixel was truncated (a plain cast): 10.5 came out 10."""
+  f = jnp.asarray(np.array([10, 11, 20, 250], np.uint8)[None, None, :, None])
+  out = warp_x(f, jnp.full((1, 1, 4), 0.5))  # 0.5 * (f[x] + f[x - 1]), 0 left of the image
+  assert out.dtype == jnp.uint8
+  np.testing.assert_array_equal(np.asarray(out)[0, 0, :, 0], [5, 11, 16, 135])
+
+
 # ---------------------------------------------------------------- pooling
 def test_avg_pool_drops_remainder_like_torch():
   x = RNG.normal(size=(1, 9, 10, 2)).astype(np.float32)
