@@ -628,12 +628,13 @@ def video_flows_from_fn(left_video, flow_fn: FlowFn) -> np.ndarray:
 
   Raises:
     ValueError: `left_video` is not `[T, 3, H, W]` / `[T, 2, 3, H, W]` (channels last is
-      named, with its `np.moveaxis`), or `flow_fn` returned another shape than `[2, H, W]`
-      or NaN/inf; NaN/inf values in the left view of `left_video`.
+      named, with its `np.moveaxis`) or has one frame (T < 2), or `flow_fn` returned another
+      shape than `[2, H, W]` or NaN/inf; NaN/inf values in the left view of `left_video`.
 
   Warns (UserWarning): `left_video` does not look like RGB 0..255 (e.g. 0..1 floats).
   """
   v = _as_left_video(left_video, "left_video")
+  _need_two_frames(v)  # (one frame: numpy's "need at least one array to stack")
   _check_video_values(left_video, "left_video")
   return _video_flows(v, flow_fn)
 
@@ -651,6 +652,7 @@ def depth_flows_from_fn(pred_depth, gt_depth, mask, flow_fn: FlowFn, mask_thr: f
       returned another shape than `[2, H, W]` (a channels-last one is named) or NaN/inf.
   """
   x, y, m = _tcm_depths(pred_depth, gt_depth, mask, mask_thr)
+  _need_two_frames(x)
   fx, fy = [], []
   for i in range(x.shape[0] - 1):
     if not (m[i] * m[i + 1]).sum(dtype=np.float64) > 0:  # skipped by eval_tcm_sequence

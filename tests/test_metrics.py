@@ -508,6 +508,15 @@ def test_empty_sequences_and_bad_depth_flow_pairs_are_refused():
   assert "disp_TCM" in res
 
 
+def test_flows_of_a_one_frame_video_are_refused_by_name():
+  """One frame has no pair: numpy's "need at least one array to stack" came out instead."""
+  one, flow_fn = np.ones((1, 8, 8), np.float32), lambda a, b: np.zeros((2, 8, 8), np.float32)
+  with pytest.raises(ValueError, match=r"need T >= 2 frames, got shape \(1, 3, 8, 8\)"):
+    M.video_flows_from_fn(np.full((1, 3, 8, 8), 100, np.float32), flow_fn)
+  with pytest.raises(ValueError, match=r"need T >= 2 frames, got shape \(1, 8, 8\)"):
+    M.depth_flows_from_fn(one, one, one, flow_fn)
+
+
 # --- the flow_fn path against the official argument order and TCM normalisation ------------
 
 
