@@ -202,7 +202,8 @@ def _cast_like(y: jax.Array, dtype) -> jax.Array:
   """float32 (or float64) `y` in `dtype`: integers rounded to the nearest (halves up, as OpenCV's
   integer resizes do) and clipped to the type's range (a plain cast truncates: ~half of a
   uint8 image's values came out one lower)."""
+  dtype = jax.dtypes.canonicalize_dtype(dtype)  # NumPy's int64 is JAX's int32 without x64
   if jnp.issubdtype(dtype, jnp.integer):
-    info = jnp.iinfo(dtype)
-    return jnp.clip(jnp.floor(y + 0.5), info.min, info.max).astype(dtype)
+    info = jnp.iinfo(dtype)  # (float bounds: int ones beyond int32 overflowed JAX's argument)
+    return jnp.clip(jnp.floor(y + 0.5), float(info.min), float(info.max)).astype(dtype)
   return y.astype(dtype)

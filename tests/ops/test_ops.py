@@ -348,6 +348,16 @@ def test_integer_resize_clips_the_bicubic_overshoot():
   np.testing.assert_array_equal(got, np.clip(np.floor(want + 0.5), 0, 255))
 
 
+@pytest.mark.filterwarnings("ignore:Explicitly requested dtype")  # (JAX's, for int64)
+def test_integer_resize_of_numpy_int64_and_uint32_images():
+  """NumPy's default integers (int64) and uint32 failed with an OverflowError from JAX: the
+  clip's bounds (iinfo of the type) did not fit its int32 arguments."""
+  x = np.array([0, 100, 101, 200]).reshape(1, 4, 1)  # int64
+  for dtype in (np.int64, np.uint32):
+    got = np.asarray(resize(x.astype(dtype), (1, 7), align_corners=True))
+    np.testing.assert_array_equal(got.ravel(), [0, 50, 100, 101, 101, 151, 200])
+
+
 def _grid_sample_x(features, disp):
   """grid_sample (bilinear, zero padding, align_corners=True) at `(x - disp, y)`: two taps,
   each outside `[0, W - 1]` contributing zero."""
