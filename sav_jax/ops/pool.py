@@ -12,6 +12,9 @@ def accumulation_dtype(*dtypes) -> jnp.dtype:
   """The dtype the ops compute in for inputs of `dtypes`: float32 for integers, bfloat16,
   float16 and float32, float64 for float64 inputs (with `jax_enable_x64`; without it a NumPy
   float64 array is read as float32, as JAX reads it anyway)."""
+  # (each canonicalised first: jnp.result_type of NumPy's float64 / int64 without x64 warned
+  # "Explicitly requested dtype float64 ... is not available" at every op call)
+  dtypes = [jax.dtypes.canonicalize_dtype(d) for d in dtypes]
   return jax.dtypes.canonicalize_dtype(jnp.promote_types(jnp.float32, jnp.result_type(*dtypes)))
 
 

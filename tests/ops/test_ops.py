@@ -496,6 +496,18 @@ def test_float64_inputs_are_computed_in_float64_and_match_finite_differences():
                             jnp.zeros((1, 1, 1, 1, 27 * 4), jnp.bfloat16), 2).dtype == jnp.float32
 
 
+def test_numpy_float64_and_int64_inputs_give_no_jax_dtype_warning():
+  """Every op warned "Explicitly requested dtype float64 requested in dtype is not available"
+  for NumPy's default float64 / int64 arrays without x64: its own dtype computation asked."""
+  import warnings  # pylint: disable=import-outside-toplevel
+  f = RNG.normal(size=(1, 2, 5, 4))  # float64
+  with jax.enable_x64(False), warnings.catch_warnings():
+    warnings.simplefilter("error")
+    assert warp_x(f, np.zeros((1, 2, 5), np.int64)).dtype == jnp.float32
+    assert resize(f, (3, 3)).dtype == jnp.float32
+    assert convex_upsample_2d(f[..., :1], np.zeros((1, 2, 5, 9 * 4)), 2).dtype == jnp.float32
+
+
 def test_misshapen_op_arguments_are_named():
   """Misshapen arguments got deep errors ("indices and arr must have the same number of
   dimensions", "cannot reshape array") or, for right maps of another width and even windows,
