@@ -135,5 +135,10 @@ def aapc(
   Returns:
     `[N, H, W, groups * n * n]`, float32 (float64 for float64 inputs).
   """
+  check_array("fmap1", fmap1, 4, "[N, H, W, C]")
+  check_array("fmap2", fmap2, 4, "[N, H, W, C]")
+  if tuple(fmap1.shape) != tuple(fmap2.shape):  # (warp_x named disp and features instead)
+    raise ValueError(f"fmap1 and fmap2 differ in shape: {tuple(fmap1.shape)} vs "
+                     f"{tuple(fmap2.shape)}")
   warped = warp_x(fmap2, disp)
   return window_correlation(fmap1, warped, window, groups)

@@ -517,6 +517,8 @@ def test_misshapen_op_arguments_are_named():
       (lambda: warp_x(f, jnp.ones((1, 4, 8, 1))), r"disp must be \[N, H, W\].*\(1, 4, 8, 1\)"),
       (lambda: warp_x(f, jnp.ones((1, 4, 5))), r"disp \(1, 4, 5\) must be features' .*\(1, 4, 8\)"),
       (lambda: aapc(f, f, jnp.ones((1, 4, 8, 1)), SMALL_WINDOW), r"disp must be \[N, H, W\]"),
+      (lambda: aapc(f, jnp.ones((1, 4, 9, 8)), jnp.ones((1, 4, 8)), SMALL_WINDOW),
+       r"fmap1 and fmap2 differ in shape: \(1, 4, 8, 8\) vs \(1, 4, 9, 8\)"),
       (lambda: window_correlation(f, jnp.ones((1, 4, 9, 8)), SMALL_WINDOW),
        r"left and right .* differ in shape: \(1, 4, 8, 8\) vs \(1, 4, 9, 8\)"),
       (lambda: window_correlation(f, f, (2, 2)), r"window must be two odd sizes .*\(2, 2\)"),
