@@ -140,7 +140,7 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0,
     return looks is not None
   if looks == "0..1":
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}{spread}: the model "
-                  "expects 0..255 (multiply 0..1 images by 255; 0..255 frames of a very dark "
+                  f"expects 0..255 ({unit_range_advice(lo)}; 0..255 frames of a very dark "
                   "scene can be left as they are)", stacklevel=caller_stacklevel())
   elif looks == "negative":
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}, outside 0..255, which the "
@@ -149,6 +149,15 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0,
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}, outside 0..255, which the "
                   "model expects (divide 16-bit frames by 257)", stacklevel=caller_stacklevel())
   return looks is not None
+
+
+def unit_range_advice(lo: float) -> str:
+  """The way to 0..255 for float frames no brighter than ~1 whose minimum is `lo`: 0..1 ones
+  are multiplied by 255; for -1..1 ones (`2 x / 255 - 1`, as the model normalises frames
+  inside) that advice gave -255..255 frames."""
+  if lo < -0.5:  # (a 0..1 image's resize overshoot stays above -0.15)
+    return "(frames + 1) * 127.5 for -1..1 frames (2 * x / 255 - 1); multiply 0..1 images by 255"
+  return "multiply 0..1 images by 255"
 
 
 def _sample(video: np.ndarray, size: int = 200_000) -> np.ndarray:

@@ -66,7 +66,7 @@ from typing import Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from sav_jax._checks import (caller_stacklevel, float_frames_range, is_int, nonfinite_frames,
-                             widened)
+                             unit_range_advice, widened)
 
 _F32 = np.float32
 BAD_THRESHOLDS = (0.5, 1.0, 2.0, 3.0)
@@ -514,7 +514,7 @@ def _check_video_values(video, name: str) -> None:
   looks, spread = float_frames_range(v, lo, hi)
   if v.dtype.kind == "f" and looks == "0..1":
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}{spread}: OPW and RTC expect "
-                  "RGB 0..255 (multiply 0..1 images by 255); their photometric weight would "
+                  f"RGB 0..255 ({unit_range_advice(lo)}); their photometric weight would "
                   "keep nearly every pixel", stacklevel=caller_stacklevel())
   elif looks in ("negative", "16-bit"):  # well outside (a resize's overshoot is not)
     fix = ("negative values are no image's: put back a normalisation's mean and scale"

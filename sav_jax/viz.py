@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from sav_jax._checks import (OVERSHOOT_HIGH, OVERSHOOT_LOW, caller_stacklevel,  # (viz's API too)
-                             check_utf8_path, is_int, widened)
+                             check_utf8_path, is_int, unit_range_advice, widened)
 from sav_jax._files import free_space_note
 
 COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO, "turbo": cv2.COLORMAP_TURBO,
@@ -122,7 +122,7 @@ def as_uint8_image(image, what: str = "image", *, is_map: bool = False) -> np.nd
     raise ValueError(f"{what}: values {lo:g}..{hi:g} outside 0..255 ({advice})")
   if is_float and 0 < hi <= 1.0:
     advice = (f"{_COLORIZE_HINT}; a 0..1 grey image: multiply it by 255" if hint
-              else "multiply 0..1 images by 255")
+              else unit_range_advice(lo))
     warnings.warn(f"{what}: float values {lo:g}..{hi:g}: expected 0..255 ({advice})",
                   stacklevel=caller_stacklevel())
   if overshoot:

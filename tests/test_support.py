@@ -13,7 +13,7 @@ import threading
 import numpy as np
 import pytest
 
-from sav_jax import _checks, _files, _locks, _signals
+from sav_jax import _checks, _files, _locks, _signals, metrics, viz
 from tests.conftest import drop_ctrl_c_in_gc
 
 HOLDER = f"{socket.gethostname()} {os.getpid()}"
@@ -348,6 +348,16 @@ def test_frame_values_without_warnings_say_whether_they_would_warn():
     assert not _checks.check_video_values(np.int32([[[[0, 1]]]]), warn=False)  # floats only
   with pytest.warns(UserWarning, match="multiply 0..1 images by 255"):
     assert _checks.check_video_values(unit)
+
+
+def test_frames_in_minus_one_to_one_are_told_how_to_get_0_255():
+  """-1..1 frames (the model's own normalisation) were told to multiply by 255 (-255..255)."""
+  frames = np.float32([[[[-1.0, 0.2, 1.0]]]])
+  video_check = metrics._check_video_values  # pylint: disable=protected-access
+  for check in (lambda: _checks.check_video_values(frames, "left"),
+                lambda: video_check(frames, "video"), lambda: viz.as_uint8_image(frames)):
+    with pytest.warns(UserWarning, match=r"\(frames \+ 1\) \* 127\.5 for -1\.\.1 frames"):
+      check()
 
 
 def test_a_name_of_other_bytes_than_utf8_is_refused():
