@@ -273,6 +273,12 @@ def unpad(x, pads: tuple[int, int, int, int]):
            f"{tuple(x.shape[-2:])}: [..., Hp, Wp] expected")
     raise ValueError(f"cannot remove pads {pads} from an array of shape {tuple(x.shape)}: "
                      f"{why} (for frames [..., Hp, Wp, C], unpad x[..., c])")
+  if any(pads) and x.ndim >= 3 and x.shape[-1] <= 4 < x.shape[-2]:
+    # frames [..., Hp, Wp, C]: their W and C axes were cropped (720x1280 frames lost 16
+    # columns, not their 16 padded rows), silently where the pads fit
+    raise ValueError(f"cannot remove pads {pads} from an array of shape {tuple(x.shape)}: "
+                     f"[..., Hp, Wp] expected (disparities); for frames [..., Hp, Wp, C] "
+                     f"(a last axis of {x.shape[-1]}), unpad x[..., c]")
   return x[..., top:x.shape[-2] - bottom, left:x.shape[-1] - right]
 
 

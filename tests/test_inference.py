@@ -568,6 +568,12 @@ def test_padding_bad_input_is_named():
     inference.unpad(np.zeros((2, 6, 8)), (0, 0, 4, 5))  # each fits, together they do not
   with pytest.raises(ValueError, match=r"shape \(8,\): expected \[\.\.\., Hp, Wp\]"):
     inference.unpad(np.zeros(8), (0, 0, 0, 0))
+  # Padded frames of 720x1280 ([..., Hp, Wp, C]) lost 16 columns, not their 16 padded rows.
+  padded, pads = inference.pad_to_multiple(np.zeros((1, 720, 1280, 3), np.uint8))
+  with pytest.raises(ValueError, match=r"\(1, 736, 1280, 3\): \[\.\.\., Hp, Wp\] expected "
+                     r"\(disparities\); for frames .* unpad x\[\.\.\., c\]"):
+    inference.unpad(padded, pads)
+  assert inference.unpad(padded[..., 0], pads).shape == (1, 720, 1280)
 
 
 def test_bad_inputs():
