@@ -1788,6 +1788,43 @@ def test_folder_negative_disparities_are_warned_once_per_folder(tmp_path):
     s.clip(0, 2)
 
 
+def test_folder_negative_warning_counts_valid_pixels_only_and_names_the_folder_once(tmp_path):
+  # A -9999 "no data" code is beyond the official cut (not ground truth): no warning for it.
+  # One valid negative pixel is warned of, its share and minimum over the valid pixels; the
+  # next file of the folder with negatives is not warned of again.
+  rng = np.random.default_rng(29)
+  seq = tmp_path / "test" / "cam"
+  disps = {i: np.full((H, W), 5.0, np.float32) for i in range(3)}
+  disps[0][0, :2] = -9999.0
+  disps[1][:4] = np.nan  # 48 of the 96 pixels without ground truth
+  disps[1][4, :2], disps[1][5, 0] = -9999.0, -2.0  # 1 negative of the 46 valid pixels
+  disps[2][0, 0] = -3.0
+  _npy_sequence(seq, rng, disps)
+  (s,) = registry.get_sequences("folder", tmp_path, "test")
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    s[0]
+  with pytest.warns(UserWarning, match=r"1\.npy: 2% of its valid disparities are negative "
+                                       r"\(min -2\)"):
+    s[1]
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")  # once per folder, not once per file
+    s[2]
+
+
+def test_number_key_takes_the_last_number_whole():
+  # A camera's digit in the prefix is not the frame number; a stem without digits is its
+  # own key; nanosecond timestamps stay apart (a float would merge them).
+  assert base.number_key(pathlib.Path("cam1_1701234567.500000.png")) == (
+      base.number_key(pathlib.Path("cam0_1701234567.5.png")))
+  assert base.number_key(pathlib.Path("cam1_1701234567.000000.png")) != (
+      base.number_key(pathlib.Path("cam1_1701234568.000000.png")))
+  assert base.number_key(pathlib.Path("first.png")) == "first"
+  assert base.number_key(pathlib.Path("left_0012.png")) == 12
+  assert base.number_key(pathlib.Path("1701234567.123456789.png")) != (
+      base.number_key(pathlib.Path("1701234567.123456788.png")))
+
+
 def _load_own(root, split, dataset):
   from sav_jax.data import stereo_folder  # pylint: disable=import-outside-toplevel
   return stereo_folder.load_sequences(root, split, dataset)
