@@ -2041,3 +2041,12 @@ def test_npz_with_two_records_of_one_name_is_refused(tmp_path):
         zf.writestr("w.npy", buf.getvalue())
   with pytest.raises(CheckpointError, match=r"dup\.npz: zip file with records of the same name"):
     torch_io.load_state_dict(path)
+  # `w` and `w.npy` are both the array `w` to NumPy (it took the last record silently).
+  with zipfile.ZipFile(path, "w") as zf:
+    for name, value in (("w.npy", np.ones(3, np.float32)), ("w", np.zeros(3, np.float32))):
+      buf = io.BytesIO()
+      np.save(buf, value)
+      zf.writestr(name, buf.getvalue())
+  with pytest.raises(CheckpointError, match=r"dup\.npz: zip file with records of the same name "
+                                            r"\(\['w'\]\): which copy is the array\?"):
+    torch_io.load_state_dict(path)
