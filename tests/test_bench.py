@@ -76,6 +76,17 @@ def test_bench_rejects_bad_sizes(capsys, monkeypatch):
     assert "--vit-attention cudnn needs a CUDA GPU" in capsys.readouterr().err
 
 
+def test_clip_problem_takes_the_largest_clip_and_options_a_script_lacks():
+  # --frames 32 is the depth prior's temporal attention length: allowed, 33 is not; a
+  # script without --iters, --batch or --repeats (bf16_audit.py --gradients) has no problem.
+  import argparse  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools.bench import clip_problem  # pylint: disable=import-outside-toplevel
+  clip = dict(frames=32, height=16, width=32)
+  assert clip_problem(argparse.Namespace(**clip, iters=2, batch=1, repeats=1)) is None
+  assert clip_problem(argparse.Namespace(**clip)) is None
+  assert "--frames must be at most 32" in clip_problem(argparse.Namespace(**{**clip,
+                                                                            "frames": 33}))
+
 def test_memory_report_names_the_device_peak_after_compiling():
   """On GPU the device peak includes the compiler's autotuning scratch: the report gives
   the peak before the first call beside it, and XLA's buffer sizes when known."""
