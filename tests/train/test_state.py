@@ -2063,6 +2063,24 @@ def test_config_blocks_a_run_cannot_use_are_named(tmp_path, caplog):
   assert not (tmp_path / "w").exists()
 
 
+def test_check_fields_leaves_blocks_with_their_own_checks_to_them():
+  # The generator's fields the base leaves out (its clip shape: config.data's, refused by its
+  # own check naming config.data.crop) and a block replaced by a value (config.data.augment's
+  # check names it) are not "no such field" here, nor a TypeError from looking into None.
+  from train import loop  # pylint: disable=g-import-not-at-top
+  c = synthetic.get_config()
+  c.data.synthetic.height = 64
+  c.data.augment = None
+  loop.check_fields(c)
+  c = synthetic.get_config()  # eight unknown fields are all named: no "..."
+  for i in range(8):
+    c.train[f"x{i}"] = i
+  with pytest.raises(ValueError, match=r"no such field train\.x0, .*train\.x7 \(misspelt"):
+    loop.check_fields(c)
+  c.train.x8 = 8
+  with pytest.raises(ValueError, match=r"no such field train\.x0, .*train\.x7, \.\.\. \("):
+    loop.check_fields(c)
+
 def test_checks_of_what_a_run_does_not_use_are_left_out(tmp_path, caplog):
   """The generator's block, its seed against validation's and the validation split are
   checked where a source or the validation generates clips; augmentation changes are said to
