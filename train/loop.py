@@ -554,6 +554,9 @@ def _check_blocks(config) -> None:
     raise ValueError(str(e).replace("AugmentConfig.", "config.data.augment.")) from e
   except TypeError as e:  # a field AugmentConfig does not have
     raise ValueError(f"config.data.augment: {e}") from e
+  if "crop_size" in config.data.augment:  # (another crop failed at the first clip read)
+    raise ValueError(f"config.data.augment.crop_size={config.data.augment.crop_size}: the "
+                     f"crop is config.data.crop's ({tuple(config.data.crop)}); leave it out")
   if not datasets - {"synthetic"}:
     default = dataclasses.replace(type(applied)(), crop_size=applied.crop_size)
     changed = [f.name for f in dataclasses.fields(applied)

@@ -2033,6 +2033,13 @@ def test_config_blocks_a_run_cannot_use_are_named(tmp_path, caplog):
                      "at least 32"):
     loop.validate_config(c, tmp_path / "w")
   c = synthetic.get_config()
+  c.data.sources = ml_collections.ConfigDict(
+      {"mine": dict(dataset="folder", weight=1.0, root=str(tmp_path / "data"))})
+  c.data.augment.crop_size = (48, 96)  # AugmentConfig's: each clip was refused when read
+  with pytest.raises(ValueError, match=r"config\.data\.augment\.crop_size=\(48, 96\): the "
+                     r"crop is config\.data\.crop's \(\(32, 64\)\); leave it out"):
+    loop.validate_config(c, tmp_path / "w")
+  c = synthetic.get_config()
   c.data.synthetic.max_disparity = -4.0  # named by the config field, not the dataclass's
   with pytest.raises(ValueError, match=r"config\.data\.synthetic\.max_disparity "):
     loop.validate_config(c, tmp_path / "w")
