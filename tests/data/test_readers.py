@@ -1946,6 +1946,17 @@ def test_folder_split_skips_stray_files_and_hidden_folders_and_checks_the_baseli
   with pytest.raises(FileNotFoundError, match=r"lab.right: no PNG or JPEG frames \(it has "
                                               r"right\.mp4: video files are not read"):
     registry.get_sequences("folder", tmp_path, "test")
+  left = tmp_path / "test" / "lab" / "left"  # the left folder alike; hidden files unnamed
+  for path in left.iterdir():
+    path.unlink()
+  (left / "left.mov").write_bytes(b"")
+  (left / ".DS_Store").write_bytes(b"")
+  with pytest.raises(FileNotFoundError, match=r"lab.left: no PNG or JPEG frames \(it has "
+                                              r"left\.mov: video files are not read"):
+    registry.get_sequences("folder", tmp_path, "test")
+  (left / "left.mov").unlink()  # nothing but a hidden file: nothing to name
+  with pytest.raises(FileNotFoundError, match=r"lab.left: no PNG or JPEG frames$"):
+    registry.get_sequences("folder", tmp_path, "test")
 
 
 @pytest.mark.parametrize("viewpoint,size", [({"focal_length": [True, 2.5]}, [480, 640]),
