@@ -139,6 +139,11 @@ def main():
     step_lib.check_microbatches(build_config(a))
   except ValueError as e:
     p.error(f"--microbatches {a.microbatches}: {e}")
+  part, devices = a.batch // a.microbatches, jax.device_count()
+  if part % devices:  # (the batch is sharded over every device: JAX's IndivisibleError)
+    p.error(f"--batch {a.batch}" + (f" in --microbatches {a.microbatches} parts of {part}"
+                                    if a.microbatches > 1 else "")
+            + f" is not divisible by the {devices} devices the step runs on")
   # JAX reads JAX_COMPILATION_CACHE_DIR itself: the probe must look in that folder too (a
   # load from it was reported as a compile, cache_hit false).
   cache = None

@@ -407,6 +407,12 @@ def test_train_step_script_names_a_bad_clip_or_microbatches_before_running(monke
                         (["--overwrite"], "name one with --json")):
     assert message in _usage_error(train_step.main, ["train_step.py", *args], monkeypatch,
                                    capsys)
+  # A batch the devices cannot share was JAX's IndivisibleError traceback from device_put.
+  monkeypatch.setattr(jax, "device_count", lambda: 2)
+  for args, message in ((["--batch", "1"], "--batch 1 is not divisible by the 2 devices"),
+                        (["--batch", "2", "--microbatches", "2"], "parts of 1 is not divisible")):
+    assert message in _usage_error(train_step.main, ["train_step.py", *args], monkeypatch,
+                                   capsys)
 
 
 def test_train_step_script_keeps_its_program_in_the_named_compilation_cache(
