@@ -71,7 +71,10 @@ def main(argv: list[str] | None = None) -> int:
     text = str(e)
     if hasattr(e, "need") and args.command in _OUT_OF_MEMORY_HINTS:
       # inference's memory check: the remedies as this command's flags, not Python arguments
-      text = f"{e.need}; {_OUT_OF_MEMORY_HINTS[args.command]}"
+      hint = _OUT_OF_MEMORY_HINTS[args.command]
+      if args.command == "infer" and getattr(e, "devices", None):  # windows at once
+        hint = hint.replace("use ", f"use fewer --devices (here {e.devices}), ", 1)
+      text = f"{e.need}; {hint}"
     print(f"sav-jax {args.command}: error: {text}", file=sys.stderr)
     return 2
   except MemoryError as e:  # numpy's: sizes far beyond this machine's memory

@@ -109,10 +109,12 @@ class InsufficientMemoryError(MemoryError, ValueError):
 
   Attributes:
     need: the message without its remedies (a command names its own flags instead).
+    devices: where windows at once on this many CPU devices would not fit together (fewer
+      devices is a remedy), else None.
   """
 
-  def __init__(self, need: str, remedies: str | None = None):
-    self.need = need
+  def __init__(self, need: str, remedies: str | None = None, devices: int | None = None):
+    self.need, self.devices = need, devices
     super().__init__(need if remedies is None else f"{need}; use {remedies}")
 
 
@@ -1127,7 +1129,7 @@ def _check_shared_host_memory(devices, plan, padded, cfg, iters) -> None:
         f"about {needed / 2**30:.1f} GB (estimated), but only {free / 2**30:.1f} GB is free "
         "on the host, whose memory CPU devices share (fewer devices run fewer windows at once)",
         "fewer devices (devices), fewer frames per window (window/stride), smaller frames or "
-        "bfloat16 (dtype='bfloat16')")
+        "bfloat16 (dtype='bfloat16')", devices=len(cpus))
 
 
 def resolve_devices(devices=None) -> list:

@@ -790,6 +790,20 @@ def test_resize_runs_the_model_at_the_given_size(tmp_path, clip, npz_ckpt, varia
       "--dtype bfloat16 or a device with more memory\n")
 
 
+def test_windows_at_once_too_big_for_the_host_name_devices(tmp_path, monkeypatch, capsys):
+  """CPU devices' windows that do not fit the host together: the line named no --devices."""
+
+  def at_once(args):
+    raise inference.InsufficientMemoryError("8 20-frame windows ... at once", "fewer devices",
+                                            devices=8)
+
+  monkeypatch.setattr(infer, "run", at_once)
+  assert _infer(tmp_path / "l", tmp_path / "r", tmp_path / "c.npz", tmp_path / "o") == 2
+  assert capsys.readouterr().err.endswith(
+      "at once; use fewer --devices (here 8), fewer frames per window (--window, --stride), "
+      "--resize HxW, fewer --iters, --dtype bfloat16 or a device with more memory\n")
+
+
 def test_grayscale_16bit_converted_with_note(tmp_path, clip, npz_ckpt, caplog):
   grey = [(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257) for f in clip["left"]]
   left = _write_frames(tmp_path / "l", grey)
