@@ -222,6 +222,10 @@ def main(argv):
   config = load_config()
   import jax  # pylint: disable=g-import-not-at-top
   if _COORD.value is not None:
+    host, colon, port = _COORD.value.rpartition(":")
+    if not (colon and host and port.isdigit()):  # (JAX's IndexError traceback without a port)
+      _fail(f"--coordinator_address={_COORD.value!r}: expected host:port of process 0 (e.g. "
+            "host0:1234)")
     n, i = _NUM_PROC.value, _PROC_ID.value
     if n is None or i is None or not (n >= 1 and 0 <= i < n):
       _fail(f"--coordinator_address needs --num_processes >= 1 and 0 <= --process_id < "

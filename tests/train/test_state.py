@@ -2486,7 +2486,9 @@ def _train_main_with_flags(monkeypatch, coordinator=None, num_processes=None, pr
     ("h:1", 2, -1, "got --num_processes=2 --process_id=-1"),
     ("h:1", None, 0, "got --num_processes=None --process_id=0"),
     ("h:1", 2, None, "got --num_processes=2 --process_id=None"),
-    (None, None, 4, "need --coordinator_address"), (None, 2, None, "need --coordinator_address")])
+    (None, None, 4, "need --coordinator_address"), (None, 2, None, "need --coordinator_address"),
+    ("h", 2, 1, "--coordinator_address='h': expected host:port"),  # (JAX: an IndexError)
+    ("h:", 2, 1, "expected host:port"), (":1", 2, 1, "expected host:port")])
 def test_train_command_checks_its_multi_process_flags(monkeypatch, capsys, coordinator, n, i,
                                                       says):
   class Joined(Exception):
