@@ -81,7 +81,12 @@ def main(argv: list[str] | None = None) -> int:
           _signals.remembered_interrupts()):
       return run(args, overrides)
   except (ValueError, OSError, UsageError) as e:  # OSError: a file that cannot be read or written
-    print(f"eval: error: {e}", file=sys.stderr)
+    text = str(e)
+    if hasattr(e, "need"):  # inference's memory check: the remedies as config fields
+      fewer = "fewer --config.devices, " if getattr(e, "devices", None) else ""
+      text = (f"{e.need}; use {fewer}fewer frames per window (--config.window, "
+              "--config.stride), fewer --config.iters or --config.dtype=bfloat16")
+    print(f"eval: error: {text}", file=sys.stderr)
     return 2
   except MemoryError as e:  # numpy's: sizes far beyond this machine's memory
     print(f"eval: error: out of host memory: {e}", file=sys.stderr)

@@ -1215,6 +1215,13 @@ _DEVICE_OOM = jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory whil
     (KeyboardInterrupt(), 130, "eval: interrupted"),
     (_DEVICE_OOM, 2, "eval: error: out of memory on the device: RESOURCE_EXHAUSTED: Out of memory "
      "while trying to allocate 9.1GiB.; use fewer frames per window"),
+    # the memory check before compiling: config fields, not predict_video's arguments
+    (sav_jax.inference.InsufficientMemoryError("a window needs 9 GB", "fewer (window/stride)"),
+     2, "eval: error: a window needs 9 GB; use fewer frames per window (--config.window, "
+     "--config.stride), fewer --config.iters or --config.dtype=bfloat16\n"),
+    (sav_jax.inference.InsufficientMemoryError("8 windows at once need 9 GB", "fewer devices",
+                                               devices=8),
+     2, "eval: error: 8 windows at once need 9 GB; use fewer --config.devices, fewer frames"),
     # a file that cannot be read or written: bad input, as the module docstring says
     (PermissionError(13, "Permission denied", "out/results.md"), 2,
      "eval: error: [Errno 13] Permission denied: 'out/results.md'"),
