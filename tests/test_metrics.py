@@ -1080,3 +1080,80 @@ def test_tcc_weighs_depth_changes_by_the_fractional_mask():
   want = _ssim_by_hand(np.abs(zx[0] - zx[1]) * dm, np.abs(zy[0] - zy[1]) * dm)
   assert 0.1 < want < 0.99
   assert res["disp_TCC"] == pytest.approx(want, rel=1e-6)
+
+
+def test_depth_of_a_disparity_at_or_below_zero_is_the_scale_over_1e_10():
+  """Z = s / max(d, 1e-10): a disparity of 0, a negative one or one below 1e-10 takes the
+  clamp 1e-10 (depth s * 1e10, which OPW / RTC then weigh at a valid pixel)."""
+  z = M.disparity_to_depth(np.array([0.0, -2.0, 1e-12, 4.0], np.float32), 3.0)
+  np.testing.assert_allclose(z, [3e10, 3e10, 3e10, 0.75], rtol=1e-6)
+
+
+def test_opw_and_rtc_of_a_pair_with_one_valid_pixel_score_that_pixel():
+  """A pair whose V_t keeps one pixel is measured there (a pair with none adds 0): zero flow
+  and a black video (W_t = x_{t+1}, photometric weight 1), depth 10 then 10.05 at the only
+  valid pixel: OPW 0.05 (GT depth 10, in every band), RTC 1 (ratio 1.005 < 1.01)."""
+  t, h, w = 2, 5, 17
+  depth = np.full((t, h, w), 10.0, np.float32)
+  depth[1, 2, 3] = 10.05
+  mask = np.zeros((t, h, w), np.float32)
+  mask[:, 2, 3] = 1
+  video = np.zeros((t, 3, h, w), np.uint8)
+  flows = np.zeros((t - 1, 2, h, w), np.float32)
+  gt = np.full_like(depth, 10.0)
+  np.testing.assert_allclose(M.eval_opw_sequence(video, depth, gt, mask, flows), 0.05,
+                             rtol=1e-4)
+  assert M.eval_rtc_sequence(video, depth, gt, mask, flows) == (1.0, 1.0)
+
+
+def test_tcm_weighs_flows_by_the_fractional_mask_as_given():
+  """TCM's M_t is m_t m_{t+1} of the mask as given (0.6 * 0.6 = 0.36 here, below 0.5), not a
+  thresholded one: agreeing flows score 1, and differing ones the per-channel SSIM of the
+  flows times 0.36, written out by hand (SSIM's constants make the weight matter)."""
+  rng = np.random.default_rng(10)
+  fy = rng.normal(0, 0.5, (1, 2, 16, 16)).astype(np.float32)
+  fx = (fy + rng.normal(0, 0.3, fy.shape)).astype(np.float32)
+  mask = np.full((2, 16, 16), 0.6, np.float32)
+  assert M.eval_tcm_sequence(fy, fy, mask) == pytest.approx(1.0, rel=1e-12)
+  sel = np.float64(np.float32(0.6) * np.float32(0.6))
+  want = np.mean([max(_ssim_by_hand(fx[0, c] * sel, fy[0, c] * sel), 0) for c in (0, 1)])
+  assert 0.05 < want < 0.95
+  assert want != pytest.approx(np.mean([_ssim_by_hand(fx[0, c], fy[0, c]) for c in (0, 1)]),
+                               rel=1e-3)
+  assert M.eval_tcm_sequence(fx, fy, mask) == pytest.approx(want, rel=1e-5)
+
+
+def test_flows_below_minus_250_px_are_kept():
+  """'No flow component > 250' is signed, as the official rule: a flow of -300 or -251 px (a
+  large motion left or up) keeps its pixels in TCM's M_t and OPW's V_t; only components
+  above +250 drop them."""
+  rng = np.random.default_rng(11)
+  fy = rng.normal(0, 2, (1, 2, 16, 16)).astype(np.float32)
+  fx = fy.copy()
+  fy[0, 1, 4:8, 4:8] = -300.0  # kept: the disagreement with fx counts
+  want = np.mean([max(_ssim_by_hand(fx[0, c], fy[0, c]), 0) for c in (0, 1)])
+  assert want < 0.99
+  assert M.eval_tcm_sequence(fx, fy, np.ones((2, 16, 16), np.float32)) == pytest.approx(
+      want, rel=1e-6)
+  # OPW: a -251 px flow samples columns 0..5 of frame 1 from columns 251..256 of frame 0;
+  # depth 10 then 12 on a black video: OPW |12 - 10| = 2 there (0 if they were dropped).
+  # W = 257: grid_sample's round trip (a division by W - 1 = 256) is exact.
+  t, h, w = 2, 2, 257
+  depth = np.full((t, h, w), 10.0, np.float32)
+  depth[1] = 12.0
+  video = np.zeros((t, 3, h, w), np.uint8)
+  flows = np.zeros((t - 1, 2, h, w), np.float32)
+  flows[:, 0] = -251.0
+  opw = M.eval_opw_sequence(video, depth, depth, np.ones_like(depth), flows)
+  np.testing.assert_allclose(opw, 2.0, rtol=1e-5)
+
+
+def test_a_mask_threshold_of_zero_keeps_every_positive_weight():
+  """mask_thr is in [0, 1): 0 keeps every pixel of weight > 0, which then weighs the error
+  (sqrt(0.25 * 2^2) = 1); the default 0.5 drops weights of 0.25 (all errors 0)."""
+  gt = np.zeros((2, 4, 4), np.float32)
+  mask = np.full_like(gt, 0.25)
+  res = M.eval_endpoint_error_sequence(gt + 2, gt, mask, mask_thr=0)
+  assert res["epe_mean"] == pytest.approx(1.0)
+  assert res["epe_bad_0.5px"] == 100.0 and res["epe_bad_1px"] == 0.0
+  assert M.eval_endpoint_error_sequence(gt + 2, gt, mask)["epe_mean"] == 0.0
