@@ -1157,3 +1157,16 @@ def test_a_mask_threshold_of_zero_keeps_every_positive_weight():
   assert res["epe_mean"] == pytest.approx(1.0)
   assert res["epe_bad_0.5px"] == 100.0 and res["epe_bad_1px"] == 0.0
   assert M.eval_endpoint_error_sequence(gt + 2, gt, mask)["epe_mean"] == 0.0
+
+
+def test_infinite_ground_truth_under_a_weight_of_one_half_is_masked_out_not_refused():
+  """Valid is mask > 0.5: an inf GT under a weight of 0.5 or 0.3 is masked out (0, as NaN GT
+  is), so eval_batch takes it and scores as for a finite GT value there."""
+  rng = np.random.default_rng(12)
+  gt = rng.uniform(2, 8, (2, 4, 4)).astype(np.float32)
+  pred = gt + rng.normal(0, 1, gt.shape).astype(np.float32)
+  mask = np.ones_like(gt)
+  mask[1, 2, 2], mask[0, 1, 1] = 0.5, 0.3
+  inf_gt = gt.copy()
+  inf_gt[1, 2, 2], inf_gt[0, 1, 1] = np.inf, -np.inf
+  assert M.eval_batch(pred, inf_gt, mask) == M.eval_batch(pred, gt, mask)
