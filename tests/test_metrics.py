@@ -223,7 +223,7 @@ def test_crop_and_channel_axis():
   for crop in (11, 10):  # 10: 20 rows minus 2 x 10 leaves nothing
     with pytest.raises(ValueError, match="crop"):
       M.eval_endpoint_error_sequence(pred, gt, mask, crop=crop)
-  for crop in (-2, 1.5):
+  for crop in (-1, -2, 1.5):  # (-1: no crop at all, silently, if it were taken)
     with pytest.raises(ValueError, match="crop must be an integer >= 0"):
       M.eval_endpoint_error_sequence(pred, gt, mask, crop=crop)
   for thr in (float("nan"), 2.0, "0.5", True):

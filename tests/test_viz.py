@@ -1100,3 +1100,16 @@ def test_error_colours_and_bins_are_kittis_devkit_table():
   gt = np.full((1, 3), 100.0, np.float32)
   rgb = viz.colorize_error(gt + np.array([[20.0, 30.0, 60.0]], np.float32), gt, rel_thresh=None)
   assert [tuple(c) for c in rgb[0]] == [devkit[k][2:] for k in (7, 8, 9)]
+
+
+def test_a_baseline_of_zero_or_below_is_refused():
+  """Z = fx * baseline / d: a baseline <= 0 gives no positive depth anywhere (an empty point
+  cloud without a word), so it is refused by name, as fx and fy are."""
+  d = np.full((2, 3), 4.0, np.float32)
+  rgb = np.zeros((2, 3, 3), np.uint8)
+  for b in (0.0, -0.1):
+    with pytest.raises(ValueError, match=rf"^baseline must be a finite positive number, got {b}"):
+      viz.depth_from_disparity(d, fx=100.0, baseline=b)
+    with pytest.raises(ValueError, match=r"^disparity_to_points: baseline must be a finite "
+                                         rf"positive number, got {b}"):
+      viz.disparity_to_points(d, rgb, fx=100.0, fy=100.0, cx=1.0, cy=0.5, baseline=b)
