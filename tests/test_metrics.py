@@ -1170,3 +1170,21 @@ def test_infinite_ground_truth_under_a_weight_of_one_half_is_masked_out_not_refu
   inf_gt = gt.copy()
   inf_gt[1, 2, 2], inf_gt[0, 1, 1] = np.inf, -np.inf
   assert M.eval_batch(pred, inf_gt, mask) == M.eval_batch(pred, gt, mask)
+
+
+def test_opw_drops_pixels_where_any_flow_component_is_above_250():
+  """V_t's [no F_t component > 250] is strict and per component: a flow of (250, 0) px keeps
+  the pixels that sample inside the frame (columns 0..6 of 257; depth 10 then 12 on a black
+  video: OPW 2), a flow of (251, 0) drops them all (one component above 250 is enough), so
+  the pair adds 0. W = 257 keeps grid_sample's round trip exact."""
+  t, h, w = 2, 2, 257
+  depth = np.full((t, h, w), 10.0, np.float32)
+  depth[1] = 12.0
+  video = np.zeros((t, 3, h, w), np.uint8)
+  flows = np.zeros((t - 1, 2, h, w), np.float32)
+  mask = np.ones_like(depth)
+  flows[:, 0] = 250.0
+  np.testing.assert_allclose(M.eval_opw_sequence(video, depth, depth, mask, flows), 2.0,
+                             rtol=1e-5)
+  flows[:, 0] = 251.0
+  assert M.eval_opw_sequence(video, depth, depth, mask, flows) == (0.0, 0.0, 0.0, 0.0)
