@@ -1283,6 +1283,12 @@ def test_init_files_of_the_wrong_kind_name_the_file_and_the_field(tmp_path, vda_
   save_state_dict(broken, tmp_path / "broken.npz")
   with pytest.raises(CheckpointError, match=r"(?s)config.init_from=.*broken.npz: .*fnet.conv1.weight"):
     ckpt_lib.load_model_params(tmp_path / "broken.npz", sav_jax.SAVConfig())
+  del broken["fnet.conv1.bias"]  # train's one line: the count and the first, as infer's
+  save_state_dict(broken, tmp_path / "broken.npz", overwrite=True)
+  with pytest.raises(CheckpointError) as e:
+    ckpt_lib.load_model_params(tmp_path / "broken.npz", sav_jax.SAVConfig())
+  assert "\n" not in str(e.value) and "2 problem(s)" in str(e.value), str(e.value)
+  assert "(first: missing key 'fnet.conv1.bias')" in str(e.value), str(e.value)
   (tmp_path / "notes").write_text("not weights")  # a file that is no checkpoint: the field too
   with pytest.raises(CheckpointError, match=rf"^config.init_from: {tmp_path / 'notes'}: unknown "
                                             "checkpoint suffix"):
