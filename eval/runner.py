@@ -142,6 +142,7 @@ def raft_flow_fn(config):
     return None
   if not isinstance(path, str):
     raise ValueError(f"config.metrics.raft must be a file path, got {path!r}")
+  path = os.path.expanduser(path)  # (`~` the shell left after --config.metrics.raft=)
   if not pathlib.Path(path).is_file():
     raise ValueError(f"config.metrics.raft: {path} is not a file (the official RAFT checkpoint, "
                      "raft-things.pth)")

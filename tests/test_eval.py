@@ -1146,6 +1146,17 @@ def _stand_in_flow(img1, img2):
   return np.stack([0.02 * diff, np.full_like(diff, 0.5)])
 
 
+def test_raft_checkpoint_path_expands_the_home_folder(tmp_path, raft_state_dict, monkeypatch):
+  """`--config.metrics.raft=~/raft.npz`: the shell leaves `~` after `=`; it was not found."""
+  from sav_jax.model import raft
+  monkeypatch.setenv("HOME", str(tmp_path))
+  sav_jax.convert.save_state_dict(raft_state_dict, tmp_path / "raft-things.npz")
+  monkeypatch.setattr(raft, "raft_flow_fn", lambda variables, iters: _stand_in_flow)
+  config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
+  config.metrics.raft = "~/raft-things.npz"
+  assert eval_runner.raft_flow_fn(config) is not None
+
+
 def test_raft_flow_metrics(tmp_path, no_model, raft_state_dict, monkeypatch):
   """`--config.metrics.raft=FILE` reads the RAFT checkpoint and adds TCM, OPW and RTC, each
   as `metrics.eval_sequence` computes it with that flow function (a stand-in for RAFT's
