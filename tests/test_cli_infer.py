@@ -211,6 +211,25 @@ def test_demo_checks_its_checkpoint_before_building_the_clip(tmp_path, capsys, m
   assert "missing.npz" in capsys.readouterr().err
 
 
+def test_demo_refuses_a_video_beyond_host_memory_before_building_it(monkeypatch, capsys,
+                                                                     tmp_path):
+  """`--height 16000 --width 16000`: the generator filled the memory until the process was
+  killed; now one line, "out of host memory", status 2."""
+  import types  # pylint: disable=import-outside-toplevel
+
+  from sav_jax.data import synthetic as synthetic_data  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
+  monkeypatch.setattr(synthetic_data, "generate_clip", lambda *a, **k: 1 / 0)
+  monkeypatch.setattr(demo, "_weights", lambda args, dtype: (
+      None, types.SimpleNamespace(dtype="float32"), "stand-in weights"))
+  monkeypatch.setattr(inference, "available_memory_bytes", lambda device=None: 2**30)
+  assert cli.main(["demo", "--out", str(tmp_path / "d"), "--frames", "8", "--height", "2048",
+                   "--width", "2048", "--no-compile-cache"]) == 2
+  err = capsys.readouterr().err
+  assert "sav-jax demo: error: out of host memory: a synthetic video of 8 frames" in err, err
+  assert len(err.strip().splitlines()) == 1, err
+
+
 def test_a_symlink_among_an_earlier_demos_files_is_not_written_through(tmp_path):
   from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
   out = tmp_path / "demo"
