@@ -70,10 +70,14 @@ def main(argv: list[str] | None = None) -> int:
   try:
     rest, overrides = eval_config.split_overrides(argv)
     sav_jax_configs("eval")  # (the parser's help lists its fields)
+    args = build_parser().parse_args(rest)
   except ValueError as e:
     print(f"eval: error: {e}", file=sys.stderr)
     return 2
-  args = build_parser().parse_args(rest)
+  except KeyboardInterrupt:  # Ctrl-C while the arguments are read: one line, as below
+    if not command_line:
+      raise
+    _signals.exit_interrupted("eval: interrupted")
   try:
     # (printable_names: a sequence or folder name that is not UTF-8 is printed as \udce9, as
     # results.md and results.csv show it)

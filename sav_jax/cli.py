@@ -6,8 +6,12 @@ import argparse
 import importlib
 import sys
 
-from sav_jax import _signals
-from sav_jax.tools import UsageError, command_logging, one_line_warnings, printable_names
+try:
+  from sav_jax import _signals
+  from sav_jax.tools import UsageError, command_logging, one_line_warnings, printable_names
+except KeyboardInterrupt:  # Ctrl-C while the command loads: one line, not a traceback
+  print("sav-jax: interrupted", file=sys.stderr)
+  sys.exit(130)
 
 COMMANDS = {
     "demo": "sav_jax.tools.demo",
@@ -54,8 +58,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
   """Runs one command; called from Python, it leaves logging and JAX's settings as it found
   them (`sav_jax.runtime.preserved_settings`)."""
-  parser = build_parser()
-  args = parser.parse_args(argv)
+  try:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+  except KeyboardInterrupt:  # Ctrl-C while the sub-commands load: one line, as below
+    if argv is not None:
+      raise
+    _signals.exit_interrupted("sav-jax: interrupted")
   empty = [k for k in _PATH_ARGS if getattr(args, k, None) == ""]
   if empty:  # "" would mean the current folder (an unset shell variable, e.g. --out "$OUT")
     print(f"sav-jax {args.command}: error: --{empty[0].replace('_', '-')} is empty; give a path",

@@ -1801,6 +1801,19 @@ def test_memory_errors_and_interrupts_are_one_line(monkeypatch, capsys, raised, 
       cli.main(argv)
 
 
+def test_an_interrupt_while_the_sub_commands_load_is_one_line(monkeypatch, capsys, run_command):
+  # Ctrl-C in the first half second (the sub-commands' imports) gave a traceback
+  def build_parser():
+    raise KeyboardInterrupt
+
+  monkeypatch.setattr(cli, "build_parser", build_parser)
+  monkeypatch.setattr("sys.argv", ["sav-jax", "demo"])
+  assert run_command(lambda: cli.main()) == 130
+  assert capsys.readouterr().err == "sav-jax: interrupted\n"
+  with pytest.raises(KeyboardInterrupt):  # called from Python with arguments: the caller's
+    cli.main(["demo"])
+
+
 def test_other_runtime_errors_keep_their_traceback(monkeypatch):
   # Only running out of memory is the user's to fix by a smaller input: XLA's other errors are
   # bugs to report, with their traceback.

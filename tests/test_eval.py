@@ -1221,6 +1221,22 @@ _DEVICE_OOM = jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory whil
                                          "allocate 9.1GiB.\nBufferAssignment OOM Debugging.\n")
 
 
+def test_an_interrupt_while_the_arguments_are_read_is_one_line(monkeypatch, capsys,
+                                                               run_command):
+  # Ctrl-C in the first half second (the imports, the arguments) gave a traceback
+  from eval import main as eval_main  # pylint: disable=import-outside-toplevel
+
+  def build_parser():
+    raise KeyboardInterrupt
+
+  monkeypatch.setattr(eval_main, "build_parser", build_parser)
+  monkeypatch.setattr("sys.argv", ["eval", "--config", "x", "--checkpoint", "y"])
+  assert run_command(lambda: eval_main.main()) == 130
+  assert capsys.readouterr().err == "eval: interrupted\n"
+  with pytest.raises(KeyboardInterrupt):  # called from Python with arguments: the caller's
+    eval_main.main(["--config", "x", "--checkpoint", "y"])
+
+
 @pytest.mark.parametrize("raised, rc, message", [
     (MemoryError("Unable to allocate 64.0 GiB"), 2, "eval: error: out of host memory: Unable"),
     (KeyboardInterrupt(), 130, "eval: interrupted"),

@@ -17,8 +17,12 @@ import re
 import sys
 import traceback
 
-from absl import app, flags
-from ml_collections import config_flags
+try:
+  from absl import app, flags
+  from ml_collections import config_flags
+except KeyboardInterrupt:  # Ctrl-C while the program loads: one line, not a traceback
+  print("train: interrupted (Ctrl-C)", file=sys.stderr)
+  sys.exit(130)
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Training config file.",
                                           lock_config=True)
@@ -335,4 +339,10 @@ def _resume_point() -> str:
 
 
 if __name__ == "__main__":
-  app.run(main, flags_parser=parse_flags)
+  try:
+    app.run(main, flags_parser=parse_flags)
+  except KeyboardInterrupt:  # Ctrl-C while the flags and the config file are read: one line
+    if flags.FLAGS.is_parsed():
+      _interrupted()
+    from sav_jax._signals import exit_interrupted  # pylint: disable=g-import-not-at-top
+    exit_interrupted("train: interrupted (Ctrl-C)")

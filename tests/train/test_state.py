@@ -2312,6 +2312,19 @@ def test_train_command_reports_bad_input_in_one_line_before_creating_the_workdir
   assert "train: error: flag --config.train.batch_size=abc: invalid literal" in proc.stderr
 
 
+def test_train_command_interrupted_while_reading_its_flags_is_one_line(tmp_path):
+  # Ctrl-C in the first half second (the flags, the config file) gave a traceback
+  import subprocess  # pylint: disable=g-import-not-at-top
+  from tests.train.conftest import ROOT  # pylint: disable=g-import-not-at-top
+  code = ("import runpy\nfrom absl import app\n"
+          "def run(*args, **kwargs):\n  raise KeyboardInterrupt\n"
+          "app.run = run\nrunpy.run_module('train', run_name='__main__', alter_sys=True)\n")
+  proc = subprocess.run([sys.executable, "-c", code, "--config", "x", "--workdir", "w"],
+                        cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                        capture_output=True, text=True, timeout=120, check=False)
+  assert (proc.returncode, proc.stderr) == (130, "train: interrupted (Ctrl-C)\n"), proc.stderr
+
+
 @pytest.mark.parametrize("argv, want", [
     # the last of a repeated override wins, in either spelling
     (["train", "--config.data.crop=(32, 32)", "--config.data.crop", "(48, 64)", "--workdir", "w"],
