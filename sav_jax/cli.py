@@ -70,11 +70,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"sav-jax {args.command}: error: --{empty[0].replace('_', '-')} is empty; give a path",
           file=sys.stderr)
     return 2
-  from sav_jax import runtime  # pylint: disable=import-outside-toplevel  # jax: after --help
   try:
-    # (warnings met by the command, e.g. `inference.SwappedViewsWarning`, as one line each)
-    with (command_logging(args.verbose), runtime.preserved_settings(), printable_names(),
-          one_line_warnings(f"sav-jax {args.command}"), _signals.remembered_interrupts()):
+    # (warnings met by the command, e.g. `inference.SwappedViewsWarning`, as one line each;
+    # interrupts remembered before JAX is imported: a Ctrl-C its import's GC callback drops)
+    with (_signals.remembered_interrupts(), command_logging(args.verbose),
+          importlib.import_module("sav_jax.runtime").preserved_settings(), printable_names(),
+          one_line_warnings(f"sav-jax {args.command}")):
       return int(args._run(args) or 0)
   except (UsageError, ValueError, OSError) as e:  # OSError: a disk full, a folder not writable
     text = str(e)
@@ -91,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
           "frames or a smaller batch)", file=sys.stderr)
     return 2
   except Exception as e:  # pylint: disable=broad-except  # XLA's, compiling or running
+    from sav_jax import runtime  # pylint: disable=import-outside-toplevel  # jax: after --help
     oom = runtime.out_of_memory(e)
     if oom is None:
       raise

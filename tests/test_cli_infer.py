@@ -1814,6 +1814,30 @@ def test_an_interrupt_while_the_sub_commands_load_is_one_line(monkeypatch, capsy
     cli.main(["demo"])
 
 
+def test_a_ctrl_c_dropped_while_jax_loads_stops_the_command(monkeypatch, capsys, run_command):
+  # Ctrl-C ~1 s after `sav-jax infer` started landed in JAX's GC callback while JAX was being
+  # imported, before interrupts were remembered: dropped, the run went on and exited 0
+  import contextlib  # pylint: disable=import-outside-toplevel
+  import signal  # pylint: disable=import-outside-toplevel
+
+  from sav_jax import _signals  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+
+  @contextlib.contextmanager
+  def dropped_while_loading():
+    try:  # what Python does with a KeyboardInterrupt raised in a GC callback
+      signal.getsignal(signal.SIGINT)(signal.SIGINT, None)
+    except KeyboardInterrupt:
+      pass
+    yield
+
+  monkeypatch.setattr(runtime, "preserved_settings", dropped_while_loading)
+  monkeypatch.setattr(bench, "run", lambda args: _signals.raise_if_interrupted() or 0)
+  monkeypatch.setattr("sys.argv", ["sav-jax", "bench"])
+  assert run_command(lambda: cli.main()) == 130  # (raise_if_interrupted: a window's start)
+  assert capsys.readouterr().err == "sav-jax bench: interrupted\n"
+
+
 def test_other_runtime_errors_keep_their_traceback(monkeypatch):
   # Only running out of memory is the user's to fix by a smaller input: XLA's other errors are
   # bugs to report, with their traceback.
