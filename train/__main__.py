@@ -255,8 +255,10 @@ def main(argv):
   if jax.config.jax_logging_level in (None, "", "NOTSET"):
     logging.getLogger("jax").setLevel(logging.WARNING)
   from train import loop  # pylint: disable=g-import-not-at-top
+  from sav_jax import _signals  # pylint: disable=g-import-not-at-top
   try:
     parts = loop.setup(config, _WORKDIR.value)
+    _signals.raise_if_interrupted()  # one that Python dropped since the start (see below)
   # Bad input: config values, the workdir, weights or data the config names (CheckpointError
   # is a ValueError), all checked in `setup`. With absl's -v 1 (--verbosity=1) the traceback
   # is shown instead. Errors of the training itself keep their traceback.
@@ -340,7 +342,11 @@ def _resume_point() -> str:
 
 if __name__ == "__main__":
   try:
-    app.run(main, flags_parser=parse_flags)
+    from sav_jax import _signals  # pylint: disable=g-import-not-at-top
+    # (remembered from before JAX's import: a Ctrl-C its GC callback drops, ~1 s after the
+    # start, let the run go on to its last step and exit 0)
+    with _signals.remembered_interrupts():
+      app.run(main, flags_parser=parse_flags)
   except KeyboardInterrupt:  # Ctrl-C while the flags and the config file are read: one line
     if flags.FLAGS.is_parsed():
       _interrupted()

@@ -2325,6 +2325,27 @@ def test_train_command_interrupted_while_reading_its_flags_is_one_line(tmp_path)
   assert (proc.returncode, proc.stderr) == (130, "train: interrupted (Ctrl-C)\n"), proc.stderr
 
 
+def test_train_command_stops_on_a_ctrl_c_python_dropped_before_the_run(tmp_path):
+  # Ctrl-C ~1 s after the start landed in JAX's GC callback while JAX was being imported:
+  # dropped before the training loop remembered interrupts, the run went on and exited 0
+  import subprocess  # pylint: disable=g-import-not-at-top
+  from tests.train.conftest import ROOT  # pylint: disable=g-import-not-at-top
+  code = ("import runpy, signal\nfrom train import loop\n"
+          "def setup(config, workdir):\n"
+          "  try:  # what Python does with a KeyboardInterrupt raised in a GC callback\n"
+          "    signal.getsignal(signal.SIGINT)(signal.SIGINT, None)\n"
+          "  except KeyboardInterrupt:\n    pass\n"
+          "loop.setup = setup\nloop.run = lambda *args: print('RAN')\n"
+          "runpy.run_module('train', run_name='__main__', alter_sys=True)\n")
+  proc = subprocess.run([sys.executable, "-c", code, "--config",
+                         str(ROOT / "configs" / "synthetic.py"), "--workdir", "w"],
+                        cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                        capture_output=True, text=True, timeout=120, check=False)
+  assert proc.returncode == 130 and "RAN" not in proc.stdout, proc.stderr[-2000:]
+  assert proc.stderr.endswith("train: interrupted (Ctrl-C); no checkpoint was saved: the same "
+                              "command starts the run anew\n"), proc.stderr[-2000:]
+
+
 @pytest.mark.parametrize("argv, want", [
     # the last of a repeated override wins, in either spelling
     (["train", "--config.data.crop=(32, 32)", "--config.data.crop", "(48, 64)", "--workdir", "w"],
