@@ -2325,6 +2325,16 @@ def test_train_command_interrupted_while_reading_its_flags_is_one_line(tmp_path)
   assert (proc.returncode, proc.stderr) == (130, "train: interrupted (Ctrl-C)\n"), proc.stderr
 
 
+def test_a_workdir_that_is_a_link_to_a_missing_folder_is_named(tmp_path):
+  # the run failed with "[Errno 17] File exists: 'w'"
+  from train import loop  # pylint: disable=g-import-not-at-top
+  (tmp_path / "w").symlink_to(tmp_path / "gone" / "w")
+  for workdir in (tmp_path / "w", tmp_path / "w" / "run"):
+    with pytest.raises(ValueError, match=rf"^--workdir {workdir}: {tmp_path / 'w'} is a "
+                                         "symbolic link to a missing folder"):
+      loop.validate_config(synthetic.get_config(), workdir)
+
+
 def test_train_command_stops_on_a_ctrl_c_python_dropped_before_the_run(tmp_path):
   # Ctrl-C ~1 s after the start landed in JAX's GC callback while JAX was being imported:
   # dropped before the training loop remembered interrupts, the run went on and exited 0
