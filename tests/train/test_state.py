@@ -1241,12 +1241,13 @@ def test_vda_weights_load_into_the_real_model(tmp_path, vda_state_dict):
   # Converted for the run's depth prior: VDA-S weights are not a ViT-L prior.
   with pytest.raises(CheckpointError) as e:
     ckpt_lib.load_vda_params(tmp_path / "vda.npz", sav_jax.SAVConfig(vda_encoder="vitl"))
-  assert str(e.value).splitlines()[1] == (
-      "  the depth prior's weights are vits (DINOv2 width 384); the model is configured for vitl "
-      "(SAVConfig.vda_encoder)"), e.value
-  assert re.search(r"config\.vda_weights=.*vda\.npz: .*key 'pretrained\.cls_token': shape "
-                   r"\(1, 1, 384\) does not match Video Depth Anything \(expects \(1, 1, 1024\)\)",
-                   str(e.value).replace("\n", " ")), e.value
+  assert "\n" not in str(e.value) and str(e.value).endswith(  # one line: the first problem
+      "(first: the depth prior's weights are vits (DINOv2 width 384); the model is configured "
+      "for vitl (SAVConfig.vda_encoder))"), e.value
+  assert str(e.value).startswith(f"config.vda_weights={tmp_path / 'vda.npz'}: "), e.value
+  assert re.search(r"key 'pretrained\.cls_token': shape \(1, 1, 384\) does not match Video "
+                   r"Depth Anything \(expects \(1, 1, 1024\)\)",  # the whole report (-v 1)
+                   str(e.value.__cause__).replace("\n", " ")), e.value.__cause__
 
 
 def test_init_from_a_folder_of_another_depth_prior_names_both(monkeypatch):
