@@ -519,3 +519,27 @@ def test_json_output_check_says_a_file_stands_where_its_folder_should(tmp_path):
       f"--json {path}: {tmp_path / 'mine.json'} is a file, not a folder")
   assert bench.json_output_problem(str(tmp_path / "no" / "r.json"), True) == (
       f"--json {tmp_path / 'no' / 'r.json'}: {tmp_path / 'no'} does not exist")
+
+
+def test_bench_json_made_during_the_run_is_not_replaced_without_overwrite(tmp_path, monkeypatch,
+                                                                           capsys):
+  """The --json check runs before the long run; a file of that name made meanwhile (another
+  bench writing the same name) is kept without --overwrite, and the error names it."""
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  rec = tmp_path / "rec.json"
+  fake = {"device": "cpu:cpu", "jax": "x", "host": "h", "batch": 1, "frames": 2, "height": 32,
+          "width": 64, "iters": 2, "dtype": "float32", "final_only": True,
+          "vit_attention": "blocked", "gru_conv": "direct", "compiler_options": {},
+          "compile_s": 3.0, "cache_hit": False, "median_s": 0.5, "min_s": 0.25, "fps": 4.0,
+          "peak_rss_gb": 1.5}
+
+  def measure(*args, **kwargs):
+    rec.write_text("the other run's")
+    return dict(fake)
+
+  monkeypatch.setattr(bench, "measure", measure)
+  assert cli.main([*ARGS, "--json", str(rec)]) == 2
+  assert rec.read_text() == "the other run's"
+  assert f"--json {rec} was created during the run" in capsys.readouterr().err
+  assert cli.main([*ARGS, "--json", str(rec), "--overwrite"]) == 0
+  assert json.loads(rec.read_text())["median_s"] == 0.5

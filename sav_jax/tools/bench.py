@@ -384,7 +384,12 @@ def run(args: argparse.Namespace) -> int:
       print(note)
     print(f"vs {args.compare}: " + compare_line(res, base))
   if args.json:
-    with open(args.json, "w", encoding="utf-8") as f:
+    try:  # "x": a file of that name made during the run (checked before it) is kept
+      f = open(args.json, "w" if args.overwrite else "x", encoding="utf-8")
+    except FileExistsError as e:
+      raise UsageError(f"--json {args.json} was created during the run; not replaced (the "
+                       "results are above; pass --overwrite to replace it)") from e
+    with f:
       json.dump(res, f, indent=1)
     print(f"wrote {args.json}")
   return 0
