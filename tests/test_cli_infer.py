@@ -2831,3 +2831,13 @@ def test_max_depth_leaves_far_points_out_of_the_point_clouds(tmp_path, npz_ckpt,
     assert summary["empty_point_clouds"] == (2 if points == 0 else 0)
     assert summary["max_depth"] == float(max_depth)
   assert "2 of the 2 point clouds have no point" in capsys.readouterr().out
+
+
+def test_demo_refuses_a_negative_seed_by_its_flag_before_the_weights(tmp_path, capsys,
+                                                                     monkeypatch):
+  from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
+  monkeypatch.setattr(demo, "_weights", lambda *a: pytest.fail("weights built"))
+  assert cli.main(["demo", "--out", str(tmp_path / "d"), "--seed", "-1",
+                   "--no-compile-cache"]) == 2
+  assert "--seed must be >= 0, got -1" in capsys.readouterr().err
+  assert not (tmp_path / "d").exists()

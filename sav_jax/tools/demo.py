@@ -208,6 +208,8 @@ def run(args: argparse.Namespace) -> int:
   if args.frames < 2 or args.height < 16 or args.width < 32:  # TEPE needs two frames
     raise UsageError("need --frames >= 2 (the temporal metrics compare consecutive frames), "
                      "--height >= 16 and --width >= 32")
+  if args.seed < 0:  # (the synthetic scene's check names SyntheticConfig.seed, after the weights)
+    raise UsageError(f"--seed must be >= 0, got {args.seed}")
   out = check_output_dir(args.out)
   # (its videos: OpenCV's video writer cannot take other bytes, refused after the model ran)
   viz.check_utf8_path(out.absolute(), "--out folder")
