@@ -44,6 +44,7 @@ class SyntheticSequence:
 
   @functools.cached_property
   def _clip(self) -> dict:
+    synthetic.check_host_memory(self.cfg)  # (beyond the host: one line, not the kernel's kill)
     c = synthetic.generate_clip(self.cfg, self.index)
     d = c["disparity"]
     valid = c["valid"] & (np.abs(d) < _MAX_DISPARITY) & (d != 0)

@@ -753,6 +753,22 @@ def test_synthetic_set_takes_every_generator_field():
     eval_data.load_sequences(config, None)
 
 
+def test_a_synthetic_sequence_beyond_host_memory_is_refused_before_rendering(monkeypatch):
+  """`--config.synthetic.height=16000 --config.synthetic.width=16000`: the generator filled
+  the host's memory until the kernel killed the process; now a MemoryError ("out of host
+  memory", eval's one line) before anything is rendered, as `sav-jax demo`'s."""
+  monkeypatch.setattr(eval_data.synthetic, "generate_clip", lambda cfg, index: 1 / 0)
+  monkeypatch.setattr(inference, "available_memory_bytes", lambda device=None: 2**30)
+  cfg = synthetic.SyntheticConfig(frames=8, height=2048, width=2048)
+  with pytest.raises(MemoryError, match=r"synthetic video of 8 frames of 2048x2048 needs about "
+                     r"1\.8 GB, but only 1\.0 GB"):
+    eval_data.SyntheticSequence(cfg, 0)[0]  # pylint: disable=expression-not-assigned
+  monkeypatch.undo()
+  small = synthetic.SyntheticConfig(frames=2, height=32, width=64, num_objects=1,
+                                    max_disparity=8.0)
+  assert eval_data.SyntheticSequence(small, 0)[0]["left"].shape == (32, 64, 3)  # (it fits)
+
+
 def test_synthetic_valid_rule_and_frame_bounds(monkeypatch):
   """Dense GT is valid where |d| < 512 and d != 0 (the official rule); frames outside a
   sequence or a head of it are IndexErrors, not NumPy's wrap-around from the end."""

@@ -363,6 +363,27 @@ def _background_layers(rng: np.random.Generator, cfg: SyntheticConfig, cam: Came
   return layers, hi
 
 
+# Host bytes per pixel of a synthetic video's arrays in `sav-jax demo` and `python -m eval`
+# (the clip 17, predictions 8, the demo's comparison video 21) and per pixel of one frame (the
+# generator's temporaries): a rough bound for `check_host_memory`.
+_HOST_BYTES_PER_PIXEL, _HOST_BYTES_PER_FRAME_PIXEL = 48, 64
+
+
+def check_host_memory(cfg: SyntheticConfig) -> None:
+  """MemoryError ("out of host memory") for a synthetic video of `cfg` that cannot fit in the
+  host's available memory: the generator filled it until the kernel killed the process
+  (`--height 16000 --width 16000`), before the model's own memory check."""
+  from sav_jax import inference  # pylint: disable=import-outside-toplevel  # (imports jax)
+  import jax  # pylint: disable=import-outside-toplevel
+  needed = cfg.height * cfg.width * (cfg.frames * _HOST_BYTES_PER_PIXEL
+                                     + _HOST_BYTES_PER_FRAME_PIXEL)
+  free = inference.available_memory_bytes(jax.devices("cpu")[0])
+  if free is not None and needed > free:
+    raise MemoryError(f"a synthetic video of {cfg.frames} frames of {cfg.height}x{cfg.width} "
+                      f"needs about {needed / 2**30:.1f} GB, but only {free / 2**30:.1f} GB is "
+                      "available")
+
+
 def generate_clip(cfg: SyntheticConfig, index: int = 0) -> dict[str, np.ndarray]:
   """Renders clip `index` of the stream defined by `cfg` (a pure function of both).
 

@@ -183,23 +183,6 @@ def _metrics(pred, clip):
   return metrics.eval_sequence(pred, clip["disparity"], clip["valid"].astype(np.float32))
 
 
-# Host bytes per pixel of the demo's arrays (the clip 17, the two predictions 8, the
-# comparison video's frames 21) and per pixel of one frame (the generator's temporaries).
-_HOST_BYTES_PER_PIXEL, _HOST_BYTES_PER_FRAME_PIXEL = 48, 64
-
-
-def _check_host_memory(frames: int, height: int, width: int) -> None:
-  """MemoryError ("out of host memory") for a video that cannot fit: the generator filled the
-  host's memory until the kernel killed the process, before the model's own check."""
-  import jax  # pylint: disable=import-outside-toplevel
-  from sav_jax import inference  # pylint: disable=import-outside-toplevel
-  needed = height * width * (frames * _HOST_BYTES_PER_PIXEL + _HOST_BYTES_PER_FRAME_PIXEL)
-  free = inference.available_memory_bytes(jax.devices("cpu")[0])
-  if free is not None and needed > free:
-    raise MemoryError(f"a synthetic video of {frames} frames of {height}x{width} needs about "
-                      f"{needed / 2**30:.1f} GB, but only {free / 2**30:.1f} GB is available")
-
-
 def run(args: argparse.Namespace) -> int:
   from sav_jax import inference, viz  # pylint: disable=import-outside-toplevel
   from sav_jax.data import synthetic  # pylint: disable=import-outside-toplevel
@@ -216,9 +199,9 @@ def run(args: argparse.Namespace) -> int:
   stale = check_demo_output(out, args.frames, args.overwrite)
   setup_compile_cache(args)
   variables, cfg, described = _weights(args, args.dtype)  # a bad checkpoint fails first
-  _check_host_memory(args.frames, args.height, args.width)
   scfg = synthetic.SyntheticConfig(frames=args.frames, height=args.height, width=args.width,
                                    max_disparity=min(64.0, args.width / 8), seed=args.seed)
+  synthetic.check_host_memory(scfg)
   clip = synthetic.generate_clip(scfg, 0)
   print(f"weights: {described}")
   print(f"synthetic video: {args.frames} frames of {args.height}x{args.width} (seed {args.seed}), "
