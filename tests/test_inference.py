@@ -348,6 +348,22 @@ def test_each_frame_features_computed_once_in_one_chunk(monkeypatch, window, str
   assert fake.chunk_lengths <= {chunk, n % chunk or chunk}
 
 
+@pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
+@pytest.mark.parametrize("window,stride,n", [(20, 7, 45), (8, 3, 20)])
+def test_official_windows_compute_each_frame_features_once(monkeypatch, window, stride, n):
+  # The README: chunks of gcd(window, stride) frames, so no frame is computed twice even
+  # where the stride does not divide the window; forward_batch_test_official runs windows so.
+  fake = _CountingPrograms()
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "compiled_frame_features", fake.frames)
+  monkeypatch.setattr(inference, "compiled_window", fake.window)
+  video = _labelled_video(n)
+  inference.forward_batch_test_official({}, video, video, window=window, stride=stride, iters=2)
+  assert fake.computed == collections.Counter(range(n))
+  assert all(len(lengths) == 1 for lengths in fake.seen.values()) and len(fake.seen) == n
+
+
 class _ShortSource:
   """A lazy video source that declares more frames (or another size) than it gives."""
 
