@@ -590,6 +590,10 @@ def test_padding_bad_input_is_named():
                      r"\(disparities\); for frames .* unpad x\[\.\.\., c\]"):
     inference.unpad(padded, pads)
   assert inference.unpad(padded[..., 0], pads).shape == (1, 720, 1280)
+  # ... four channels too (RGBA frames, which pad_frames takes), where the pads fit its W, C
+  rgba = inference.pad_frames(np.zeros((1, 30, 6, 4), np.uint8), (1, 1, 1, 1))
+  with pytest.raises(ValueError, match=r"\(1, 32, 8, 4\): \[\.\.\., Hp, Wp\] expected"):
+    inference.unpad(rgba, (1, 1, 1, 1))
 
 
 def test_bad_inputs():
