@@ -660,3 +660,57 @@ def test_right_ground_truth_is_resized_and_cropped_as_the_left():
     out = augment_clip(clip, cfg, np.random.default_rng(seed))
     np.testing.assert_array_equal(out["right_disparity"], out["disparity"])
     np.testing.assert_array_equal(out["right_valid"], out["valid"])
+
+
+def _same_noise_clip(seed):
+  """Every frame and both views the same random image; disparity = its red channel."""
+  img = np.random.default_rng(seed).integers(1, 256, (H, W, 3), dtype=np.uint8)
+  left = np.broadcast_to(img, (T, H, W, 3)).copy()
+  return {"left": left, "right": left.copy(), "disparity": left[..., 0].astype(np.float32)}
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_one_crop_window_is_shared_by_every_frame(seed):
+  # Step 4: the crop (y0, x0) is drawn once and shared by all frames (no y-jitter here).
+  out = augment_clip(_same_noise_clip(seed), IDENTITY, np.random.default_rng(seed))
+  for k in ("left", "right", "disparity"):
+    for t in range(1, T):
+      np.testing.assert_array_equal(out[k][t], out[k][0], err_msg=f"{k} frame {t}")
+
+
+def test_dense_disparity_is_resized_bilinearly_as_the_images_and_times_sx():
+  # Step 3: images and dense disparity both get cv2's bilinear resize, disparity times sx;
+  # with s = 2 exactly (no stretch), a disparity equal to the red channel stays 2x it
+  # (up to the uint8 rounding of the image); nearest-neighbour would be far off on noise.
+  cfg = dataclasses.replace(IDENTITY, scale_range=(1.0, 1.0))
+  out = augment_clip(_same_noise_clip(0), cfg, np.random.default_rng(0))
+  assert out["left"].shape[1:3] == (H - 8, W - 8)
+  err = np.abs(out["disparity"] / 2 - out["left"][..., 0])
+  assert err.max() <= 1.0, err.max()
+
+
+def test_asymmetric_jitter_draws_for_every_frame_and_view_and_symmetric_shares_one():
+  # Step 1: with asymmetric_prob = 1 each of the 2T images gets its own parameters (two
+  # identical inputs come out different); otherwise one set for all (they stay identical).
+  clip = _same_noise_clip(1)
+  for asym in (0.0, 1.0):
+    cfg = dataclasses.replace(IDENTITY, photometric=True, asymmetric_prob=asym)
+    out = augment_clip(clip, cfg, np.random.default_rng(3))
+    images = np.concatenate([out["left"], out["right"]])
+    for i in range(2 * T):
+      for j in range(i):
+        assert np.array_equal(images[i], images[j]) == (asym == 0.0), (asym, i, j)
+
+
+def test_symmetric_contrast_blends_with_the_mean_grey_of_the_whole_clip():
+  # Step 1: symmetric jitter treats the 2T images as one stacked image, so the contrast
+  # mean is over the whole clip: a flat image is pulled towards the clip's grey (blending
+  # with its own mean would leave a flat image unchanged).
+  colours_l = [[250, 250, 250], [200, 200, 200], [150, 150, 150]]
+  colours_r = [[10, 10, 10], [60, 60, 60], [110, 110, 110]]  # clip mean grey 130
+  cfg = dataclasses.replace(IDENTITY, photometric=True, asymmetric_prob=0.0, contrast=(0.5, 0.5),
+                            brightness=(1, 1), saturation=(1, 1), hue=(0, 0))
+  out = augment_clip(_uniform_clip(colours_l, colours_r), cfg, np.random.default_rng(0))
+  got = np.concatenate([out["left"][:, 0, 0, 0], out["right"][:, 0, 0, 0]]).astype(int)
+  src = np.array([c[0] for c in colours_l + colours_r])
+  np.testing.assert_allclose(got, 130 + 0.5 * (src - 130), atol=1)
