@@ -326,21 +326,28 @@ class _CountingPrograms:
     return run
 
 
+def _features_computed_once(monkeypatch, n: int, run) -> "_CountingPrograms":
+  """`run(video)` on a labelled video of `n` frames with counting stand-ins for the compiled
+  programs; asserts every frame's features were computed once, in one chunk."""
+  fake = _CountingPrograms()
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "compiled_frame_features", fake.frames)
+  monkeypatch.setattr(inference, "compiled_window", fake.window)
+  run(_labelled_video(n))
+  assert fake.computed == collections.Counter(range(n))
+  assert all(len(lengths) == 1 for lengths in fake.seen.values()) and len(fake.seen) == n
+  return fake
+
+
 @pytest.mark.filterwarnings("ignore:.*float frames with values")
 @pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 @pytest.mark.parametrize("window,stride,n", [(20, 10, 45), (20, 7, 45), (8, 3, 20), (9, 6, 31)])
 def test_each_frame_features_computed_once_in_one_chunk(monkeypatch, window, stride, n):
   # A stride that does not divide the window used to cut chunks at window ends, so the next
   # window recomputed them (24 of 45 frames twice at 20/7) from chunks of other lengths.
-  fake = _CountingPrograms()
-  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
-  monkeypatch.setattr(inference, "compiled_frame_features", fake.frames)
-  monkeypatch.setattr(inference, "compiled_window", fake.window)
-  video = _labelled_video(n)
-  inference.predict_video({}, video, video, window=window, stride=stride, iters=2,
-                          check_memory=False)
-  assert fake.computed == collections.Counter(range(n))
-  assert all(len(lengths) == 1 for lengths in fake.seen.values()) and len(fake.seen) == n
+  fake = _features_computed_once(
+      monkeypatch, n, lambda video: inference.predict_video(
+          {}, video, video, window=window, stride=stride, iters=2, check_memory=False))
   chunk = inference.feature_chunk(window, stride)
   assert chunk == math.gcd(window, stride)
   with pytest.raises(ValueError, match="need integers 1 <= stride <= window"):
@@ -354,14 +361,8 @@ def test_each_frame_features_computed_once_in_one_chunk(monkeypatch, window, str
 def test_official_windows_compute_each_frame_features_once(monkeypatch, window, stride, n):
   # The README: chunks of gcd(window, stride) frames, so no frame is computed twice even
   # where the stride does not divide the window; forward_batch_test_official runs windows so.
-  fake = _CountingPrograms()
-  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
-  monkeypatch.setattr(inference, "compiled_frame_features", fake.frames)
-  monkeypatch.setattr(inference, "compiled_window", fake.window)
-  video = _labelled_video(n)
-  inference.forward_batch_test_official({}, video, video, window=window, stride=stride, iters=2)
-  assert fake.computed == collections.Counter(range(n))
-  assert all(len(lengths) == 1 for lengths in fake.seen.values()) and len(fake.seen) == n
+  _features_computed_once(monkeypatch, n, lambda video: inference.forward_batch_test_official(
+      {}, video, video, window=window, stride=stride, iters=2))
 
 
 class _ShortSource:
