@@ -673,7 +673,6 @@ def _convert(path, want: str, field: str, fn):
     raise sav_jax.convert.CheckpointError(f"config.{field}: {e}") from e
   try:
     return fn(sd)
-  except ValueError as e:  # one line, as `sav-jax infer` gives it: the count and the first
-    lines = [l.strip() for l in str(e).splitlines() if l.strip()]  # (-v 1: the whole list)
-    first = f" (first: {lines[1]})" if len(lines) > 1 else ""
-    raise sav_jax.convert.CheckpointError(f"config.{field}={path}: {lines[0]}{first}") from e
+  except ValueError as e:  # one line, as `sav-jax infer` gives it (-v 1: the whole list)
+    raise sav_jax.convert.CheckpointError(
+        f"config.{field}={path}: {sav_jax.convert.keys.one_line(e)}") from e

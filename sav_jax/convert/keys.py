@@ -211,6 +211,13 @@ class KeyProblems:
     raise ValueError("\n  ".join(lines))
 
 
+def one_line(error: Exception) -> str:
+  """`raise_if_any`'s report on one line, as the commands print it: its header (the number
+  of problems) and, in brackets, the first problem or note."""
+  lines = [l.strip() for l in str(error).splitlines() if l.strip()]
+  return lines[0] + (f" (first: {lines[1]})" if len(lines) > 1 else "")
+
+
 def _by_module(items: list[str]) -> list[tuple[str, int]]:
   """`[(module, count)]` of the keys quoted in `items`, most first, each module named by as
   many leading names as keep the groups as few as by the first name alone (`update_block.gru`

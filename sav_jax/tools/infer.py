@@ -982,9 +982,8 @@ def load_checkpoint(path, dtype: str | None = None):
       variables = convert.params_from_state_dict(sd, cfg)
     except ValueError as e:  # one line for the command line; the full list in the debug log
       log.debug("%s", e)
-      lines = [l.strip() for l in str(e).splitlines() if l.strip()]
-      first = f" (first: {lines[1]})" if len(lines) > 1 else ""
-      raise convert.CheckpointError(f"{path}: incompatible checkpoint: {lines[0]}{first}") from e
+      raise convert.CheckpointError(
+          f"{path}: incompatible checkpoint: {convert.keys.one_line(e)}") from e
     del sd
     described = f"state dict {path} (converted on the fly)"
   runtime.release_host_memory()  # the reader's and converter's temporaries
