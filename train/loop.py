@@ -456,13 +456,12 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
   workdir = _given_workdir(workdir)
   # (orbax's TensorStore takes no other bytes: the first checkpoint save failed, after training)
   check_utf8_path(workdir.absolute(), "--workdir folder")
-  existing = next(p for p in (workdir, *workdir.absolute().parents) if p.exists())
-  for path in (workdir, *workdir.absolute().parents):  # (mkdir failed: "File exists")
-    if path.exists():
+  for existing in (workdir, *workdir.absolute().parents):  # up to the first that exists
+    if existing.exists():
       break
-    if path.is_symlink():
-      raise ValueError(f"--workdir {workdir}: {path} is a symbolic link to a missing folder "
-                       f"({os.readlink(path)}), or a loop of links")
+    if existing.is_symlink():  # (mkdir failed: "File exists")
+      raise ValueError(f"--workdir {workdir}: {existing} is a symbolic link to a missing "
+                       f"folder ({os.readlink(existing)}), or a loop of links")
   for path in (existing, workdir / "checkpoints"):
     if path.exists() and not path.is_dir():
       raise NotADirectoryError(f"--workdir {workdir}: {path} exists and is not a directory")
