@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from sav_jax.config import FRAME_BLOCK_MB, resolve_vit_attention
-from sav_jax.model.layers import dense, frames_per_block, gelu, layer_norm
+from sav_jax.model.layers import dense, frames_per_block, gelu, layer_norm, param
 from sav_jax.ops.resize import resize
 
 # DINOv2 offsets the target grid by 0.1 before computing the pos-embed scale
@@ -204,7 +204,7 @@ class LayerScale(nn.Module):
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    gamma = self.param("gamma", nn.initializers.ones, (x.shape[-1],), jnp.float32)
+    gamma = param(self, "gamma", nn.initializers.ones, (x.shape[-1],))
     return x * gamma.astype(x.dtype)
 
 
@@ -290,9 +290,8 @@ class DinoVisionTransformer(nn.Module):
       raise ValueError(f"image {height}x{width} is not a multiple of the patch size {p}")
     grid = (height // p, width // p)
     num_pos = (self.img_size // p) ** 2 + 1
-    cls_token = self.param("cls_token", nn.initializers.zeros, (1, 1, self.embed_dim), jnp.float32)
-    pos_table = self.param("pos_embed", nn.initializers.normal(0.02), (1, num_pos, self.embed_dim),
-                           jnp.float32)
+    cls_token = param(self, "cls_token", nn.initializers.zeros, (1, 1, self.embed_dim))
+    pos_table = param(self, "pos_embed", nn.initializers.normal(0.02), (1, num_pos, self.embed_dim))
     tokens = PatchEmbed(self.embed_dim, p, dtype=self.dtype, name="patch_embed")(x)
     cls = jnp.broadcast_to(cls_token.astype(tokens.dtype), (n, 1, self.embed_dim))
     pos_embed = interpolate_pos_embed(pos_table, grid)

@@ -1,6 +1,7 @@
 """`conv2d`/`Conv2D`/`Conv3D`: the hand-written gradient equals XLA's, in and out of a scan;
 `dft_correlate_w` equals the direct convolution; bfloat16 biases get float32-summed gradients."""
 
+import flax
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -108,6 +109,45 @@ def test_conv2d_module_keeps_leading_axes_and_nn_conv_parameters():
     for t in range(3):
       np.testing.assert_allclose(got[b, t], ref.apply(variables, x[b, t]), rtol=0, atol=1e-5,
                                  err_msg=str((b, t)))
+
+
+
+def test_existing_parameters_are_checked_without_tracing_their_initialiser():
+  """`layers.param`: init makes the parameter with its initialiser; apply checks the shape
+  without calling it (Flax's check traced it on every call: a quarter of the model's
+  forward trace), with Flax's errors for a wrong shape and for a name used twice."""
+  calls = []
+
+  def counted(key, shape, dtype):
+    calls.append(shape)
+    return jnp.full(shape, 2.0, dtype)
+
+  class Layer(nn.Module):
+    twice: bool = False
+
+    @nn.compact
+    def __call__(self, x):
+      w = layers.param(self, "w", counted, (x.shape[-1], 3))
+      if self.twice:
+        w = w + layers.param(self, "w", counted, (x.shape[-1], 3))
+      return x @ w
+
+  x = jnp.ones((2, 4))
+  variables = Layer().init(jax.random.key(0), x)
+  assert calls == [(4, 3)] and variables["params"]["w"].shape == (4, 3)
+  np.testing.assert_array_equal(variables["params"]["w"], 2.0)
+  calls.clear()
+  y = jax.jit(Layer().apply)({"params": {"w": jnp.ones((4, 3))}}, x)
+  np.testing.assert_array_equal(y, 4.0)  # the given values, not the initialiser's
+  assert not calls
+  with pytest.raises(flax.errors.ScopeParamShapeError,
+                     match=r'parameter "w" in "/", the given initializer is expected to '
+                     r'generate shape \(5, 3\), but the existing parameter .* shape \(4, 3\)'):
+    Layer().apply(variables, jnp.ones((2, 5)))
+  with pytest.raises(ValueError, match='Duplicate use of scope name: "w"'):
+    Layer(twice=True).apply(variables, x)
+  with pytest.raises(ValueError, match='Duplicate use of scope name: "w"'):
+    Layer(twice=True).init(jax.random.key(0), x)
 
 
 def test_forward_mode_autodiff_with_the_canonical_gradient_switched_off():
