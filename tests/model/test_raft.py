@@ -17,6 +17,10 @@ from sav_jax.convert.torch_io import CheckpointError
 from sav_jax.model import raft
 from sav_jax.ops.upsample import convex_upsample_2d
 
+# Values against the oracle's, not XLA's optimised code (tests/conftest.py): 21 CPU-seconds
+# with `fast_compile`, 34 without (2026-12-07).
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 # Max abs difference allowed against the official float32 outputs (the values reach 6.6
 # for the features, 30 for the correlation, 43 px for the 20-iteration flow; measured
 # differences: 1.5e-5, 4.0e-5 and 3.2e-5).

@@ -20,6 +20,10 @@ from sav_jax.ops.resize import resize
 from sav_jax.ops.upsample import convex_upsample_3d
 from tests.parity import feature_close, nchw_to_nhwc, subtree
 
+# Values against the oracle's, not XLA's optimised code (tests/conftest.py): 24 CPU-seconds
+# with `fast_compile`, 33 without (2026-12-07).
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 
 @pytest.fixture(autouse=True)
 def _highest():

@@ -32,6 +32,10 @@ from train import checkpoint as ckpt_lib
 from train import loss as loss_lib
 from train import optim, state as state_lib, step as step_lib
 
+# Most programs here compile for a step or two: 231 CPU-seconds with `fast_compile`, 305
+# without (2026-12-07).
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 
 def _config():
   c = synthetic.get_config()
