@@ -41,7 +41,7 @@ SMALL = ["--config.iters=2", f"--config.synthetic.frames={T}", f"--config.synthe
 
 # No `fast_compile` here: the module's programs run dozens of times (every `main` call
 # predicts two sequences), and XLA's optimised code runs them ~2.5x faster; the module took
-# 220 CPU-seconds so against 267 with it (2026-12-07).
+# 220 CPU-seconds without it against 267 with it (2026-12-07).
 
 
 @pytest.fixture(scope="module")

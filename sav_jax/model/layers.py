@@ -101,7 +101,7 @@ class StridedConv(nn.Module):
   def __call__(self, x: jax.Array) -> jax.Array:
     *lead, h, w, c = x.shape
     kernel = param(self, "kernel", nn.initializers.lecun_normal(),
-                        (*self.kernel_size, c, self.features), jnp.float32)
+                   (*self.kernel_size, c, self.features))
     y = jax.lax.conv_general_dilated(
         x.astype(self.dtype).reshape(-1, h, w, c), kernel.astype(self.dtype),
         tuple(self.strides), [(p, p) for p in self.padding], dimension_numbers=_NHWC)
@@ -195,7 +195,7 @@ class Conv2D(nn.Module):
     if k_in < c:
       raise ValueError(f"{self.name}: input has {c} channels, kernel_in is {k_in}")
     kernel = param(self, "kernel", nn.initializers.lecun_normal(),
-                        (*self.kernel_size, k_in, self.features), jnp.float32)
+                   (*self.kernel_size, k_in, self.features))
     kernel = kernel[..., :c, :].astype(self.dtype)
     (ph, pw) = self.padding
     y = conv2d(x.astype(self.dtype).reshape(-1, h, w, c), kernel, ((ph, ph), (pw, pw)))
@@ -224,8 +224,8 @@ class Conv3D(nn.Module):
     b, t, h, w, c = x.shape
     kt, kh, kw = self.kernel_size
     pt, ph, pw = self.padding
-    kernel = param(self, "kernel", nn.initializers.lecun_normal(), (kt, kh, kw, c, self.features),
-                        jnp.float32).astype(self.dtype)
+    kernel = param(self, "kernel", nn.initializers.lecun_normal(),
+                   (kt, kh, kw, c, self.features)).astype(self.dtype)
     x = x.astype(self.dtype)
     if (kh, kw, ph, pw) == (1, 1, 0, 0):  # temporal kernel: a 2-D conv over (T, H*W)
       y = conv2d(x.reshape(b, t, h * w, c), kernel[:, 0], padding=[(pt, pt), (0, 0)])
@@ -294,8 +294,8 @@ class ConvParams(nn.Module):
   @nn.compact
   def __call__(self, in_features: int) -> tuple[jax.Array, jax.Array]:
     kernel = param(self, "kernel", nn.initializers.lecun_normal(),
-                        (*self.kernel_size, in_features, self.features), jnp.float32)
-    return kernel, param(self, "bias", nn.initializers.zeros, (self.features,), jnp.float32)
+                   (*self.kernel_size, in_features, self.features))
+    return kernel, param(self, "bias", nn.initializers.zeros, (self.features,))
 
 
 # The most row blocks `dft_correlate_w` splits into (they are unrolled in the program).
@@ -445,8 +445,7 @@ class Dense(nn.Module):
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    kernel = param(self, "kernel", nn.initializers.lecun_normal(), (x.shape[-1], self.features),
-                        jnp.float32)
+    kernel = param(self, "kernel", nn.initializers.lecun_normal(), (x.shape[-1], self.features))
     y = jax.lax.dot_general(x.astype(self.dtype), kernel.astype(self.dtype),
                             (((x.ndim - 1,), (0,)), ((), ())))
     return with_bias(self, y)

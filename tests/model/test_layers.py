@@ -111,7 +111,6 @@ def test_conv2d_module_keeps_leading_axes_and_nn_conv_parameters():
                                  err_msg=str((b, t)))
 
 
-
 def test_existing_parameters_are_checked_without_tracing_their_initialiser():
   """`layers.param`: init makes the parameter with its initialiser; apply checks the shape
   without calling it (Flax's check traced it on every call: a quarter of the model's
