@@ -249,7 +249,7 @@ def _in_sdist(paths: list[str]) -> set[str]:
 
 def test_the_sdist_holds_the_files_the_readme_and_tests_name():
   """An unpacked sdist passes tests/test_readme.py: the README's files (`.ci/run` was left
-  out) and the tests themselves are in it."""
+  out) and the tests themselves are in it, and `make install` runs there (its constraints)."""
   import re  # pylint: disable=import-outside-toplevel
   named = set(re.findall(r"(?<![\w/.-])((?:benchmarks|configs|sav_jax|train|eval|tests|\.ci)/"
                          r"[\w/.-]*\w)", (ROOT / "README.md").read_text(encoding="utf-8")))
@@ -257,7 +257,7 @@ def test_the_sdist_holds_the_files_the_readme_and_tests_name():
                    if p.is_file()}
                   | {p.relative_to(ROOT).as_posix() for p in (ROOT / "tests").rglob("*")
                      if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc"}
-                  | {"README.md", "LICENSE", "Makefile"})
+                  | {"README.md", "LICENSE", "Makefile", "constraints.txt"})
   assert len(wanted) > 40 and ".ci/run" in wanted, wanted  # the references are still found
   packed = _in_sdist(wanted)
   assert [p for p in wanted if p not in packed] == []
