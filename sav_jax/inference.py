@@ -85,6 +85,10 @@ WINDOW = 20
 STRIDE = 10
 _CACHE_SIZE = 16  # executables per device
 _COMPILED: "collections.OrderedDict[tuple, object]" = collections.OrderedDict()
+# The jitted functions behind them, by (kind, cfg, iters, frame size): JAX keeps a jitted
+# function's traces, so the executables of another device, placement or compiler options
+# reuse the model's trace (~3-4 s on a 2-core CPU) instead of tracing it again.
+_JITTED: "collections.OrderedDict[tuple, object]" = collections.OrderedDict()
 _compile_seconds = 0.0  # `compile_seconds()`
 _SKIP_COLLECTIONS = ("torch_unused",)
 # Fitted to XLA's memory analysis of the compiled forward pass (temporaries, output and
@@ -389,14 +393,28 @@ def _model(cfg):
   return StereoAnyVideo(cfg)
 
 
+def _jitted(key, make):
+  """`jax.jit(make())`, kept under `key` (the `_CACHE_SIZE` most recently used)."""
+  if key in _JITTED:
+    _JITTED.move_to_end(key)
+  else:
+    _JITTED[key] = jax.jit(make())
+    while len(_JITTED) > _CACHE_SIZE:
+      _JITTED.popitem(last=False)
+  return _JITTED[key]
+
+
 def _forward_fn(cfg: SAVConfig, iters: int):
-  model = _model(cfg)
+  def make():
+    model = _model(cfg)
 
-  def forward(variables, left, right):
-    out = model.apply(variables, left[None], right[None], iters=iters, final_only=True)
-    return out.disparities[0, 0]
+    def forward(variables, left, right):
+      out = model.apply(variables, left[None], right[None], iters=iters, final_only=True)
+      return out.disparities[0, 0]
 
-  return forward
+    return forward
+
+  return _jitted(("forward", cfg, iters), make)
 
 
 def model_variables(variables) -> dict:
@@ -470,7 +488,8 @@ def _compile(key, build, check_memory: bool):
   fn, args = build()
   args = jax.tree_util.tree_map(_abstract, args)
   try:
-    compiled = jax.jit(fn).lower(*args).compile(compiler_options=dict(key[4]))
+    jitted = fn if hasattr(fn, "lower") else jax.jit(fn)  # (`_jitted`'s keep their traces)
+    compiled = jitted.lower(*args).compile(compiler_options=dict(key[4]))
   finally:
     _compile_seconds += time.perf_counter() - start
   runtime.release_host_memory()  # the compiler's working memory, kept by the allocator
@@ -550,12 +569,15 @@ def compiled_forward(variables, frames: int, height: int, width: int, *, cfg: SA
 
 
 def _frames_fn(cfg: SAVConfig):
-  model = _model(cfg)
+  def make():
+    model = _model(cfg)
 
-  def frame_features(variables, left, right):
-    return model.apply(variables, left[None], right[None], method=type(model).frame_features)
+    def frame_features(variables, left, right):
+      return model.apply(variables, left[None], right[None], method=type(model).frame_features)
 
-  return frame_features
+    return frame_features
+
+  return _jitted(("frames", cfg), make)
 
 
 def compiled_frame_features(variables, frames: int, height: int, width: int, *,
@@ -573,17 +595,20 @@ def compiled_window(variables, frames: int, height: int, width: int, *, cfg: SAV
   cfg, shape = resolve_config(cfg), (frames, height, width)
   key = _cache_key("window", variables, cfg, iters, shape)
 
-  def build():  # only on a cache miss: tracing the per-frame part for its shapes costs
+  def make():
     model = _model(cfg)
-    spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
-    feats = jax.eval_shape(_frames_fn(cfg), variables, spec, spec)
 
     def window(variables, feats):
       out = model.apply(variables, feats, (height, width), iters, True,
                         method=type(model).from_frame_features)
       return out.disparities[0, 0]
 
-    return window, (variables, feats)
+    return window
+
+  def build():  # only on a cache miss: tracing the per-frame part for its shapes costs
+    spec = jax.ShapeDtypeStruct((frames, height, width, 3), jnp.float32)
+    feats = jax.eval_shape(_frames_fn(cfg), variables, spec, spec)
+    return _jitted(("window", cfg, iters, height, width), make), (variables, feats)
 
   return _compile(key, build, check_memory)
 
@@ -792,8 +817,9 @@ def check_variables(variables, cfg: SAVConfig | None = None, source: str = "vari
 
 
 def clear_cache() -> None:
-  """Forgets every compiled executable."""
+  """Forgets every compiled executable (and the model's traces behind them)."""
   _COMPILED.clear()
+  _JITTED.clear()
 
 
 def compile_seconds() -> float:
