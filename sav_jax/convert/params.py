@@ -70,7 +70,8 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
   """
   cfg = as_config(cfg)
   sd = unwrap_state_dict(state_dict, "state_dict")
-  target = traverse_util.flatten_dict(abstract_variables(cfg)["params"])
+  abstract = abstract_variables(cfg)["params"]
+  target = traverse_util.flatten_dict(abstract)
   problems = KeyProblems()
   flat: dict[tuple[str, ...], np.ndarray] = {}
   width = target[("update_block", "time_attn", "temporal_attn", "proj", "kernel")].shape[0]
@@ -78,7 +79,8 @@ def params_from_state_dict(state_dict: Mapping[str, np.ndarray], cfg: SAVConfig 
                            {SAV_UNUSED_KEYS[0]: (3 * width, width)}, "Stereo Any Video")
   vda_sd = {k[len(VDA_PREFIX):]: v for k, v in sd.items() if k.startswith(VDA_PREFIX)}
   vda_params, vda_unused = convert_vda_state_dict(vda_sd, VideoDepthAnything(**cfg.vda),
-                                                  problems.scoped(VDA_PREFIX))
+                                                  problems.scoped(VDA_PREFIX),
+                                                  abstract["depthnet"]["depthanything"])
   flat.update({("depthnet", "depthanything", *p): v
                for p, v in traverse_util.flatten_dict(vda_params).items()})
   unused.update({VDA_PREFIX + k: v for k, v in vda_unused.items()})

@@ -163,12 +163,16 @@ def vda_params_from_state_dict(sd: dict[str, np.ndarray],
 
 
 def convert_vda_state_dict(sd: dict[str, np.ndarray], model: VideoDepthAnything,
-                           problems: KeyProblems) -> tuple[dict, dict[str, np.ndarray]]:
+                           problems: KeyProblems, abstract: dict | None = None
+                           ) -> tuple[dict, dict[str, np.ndarray]]:
   """`vda_params_from_state_dict`, collecting its problems in `problems` (whose `prefix`
-  names the keys as the caller's file does) instead of raising."""
-  target = flatten_dict(_abstract_params(model))
+  names the keys as the caller's file does) instead of raising. `abstract`: `model`'s
+  parameter shapes where the caller has them (the depth prior's subtree of the whole
+  model's `abstract_variables`: no trace of the prior of its own, ~1.8 s), else traced."""
+  abstract = _abstract_params(model) if abstract is None else abstract
+  target = flatten_dict(abstract)
   by_torch = {path_to_torch(path): path for path in target}
-  unused_shapes = vda_unused_shapes(model)
+  unused_shapes = _unused_shapes(abstract["pretrained"]["cls_token"].shape[-1], model.features)
   pe = vda_pe_buffers(model)
   flat, unused = {}, {}
   for key, value in sd.items():

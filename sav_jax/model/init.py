@@ -113,8 +113,9 @@ def freeze_depth_prior(tx, params, frozen_pattern: str = DEPTH_PRIOR_PATTERN):
 def abstract_variables(cfg: SAVConfig):
   """Shapes of the model's variables (nothing allocated).
 
-  Traced once per architecture (~3 s on the 2-core CPU): configs that differ only in
-  `COMPUTE_FIELDS` (a bfloat16 or rematerialised model of the same weights) share it.
+  Traced once per architecture (`StereoAnyVideo.create_parameters`; ~3 s on the 2-core
+  CPU): configs that differ only in `COMPUTE_FIELDS` (a bfloat16 or rematerialised model of
+  the same weights) share it.
   Each call returns dicts of its own (the leaves are shared), so a caller may edit the tree.
   """
   cfg, defaults = as_config(cfg), SAVConfig()
@@ -134,7 +135,9 @@ def _abstract_variables(cfg: SAVConfig):
   from sav_jax.model.stereo_any_video import StereoAnyVideo  # pylint: disable=import-outside-toplevel
   model = StereoAnyVideo(cfg)
   dummy = jax.ShapeDtypeStruct((1, 2, 64, 64, 3), jnp.float32)
-  return jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=2), dummy, dummy)
+  return jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r,
+                                                method=StereoAnyVideo.create_parameters),
+                        dummy, dummy)
 
 
 def _is_norm(path: tuple[str, ...]) -> bool:

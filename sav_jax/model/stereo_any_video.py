@@ -388,6 +388,18 @@ class StereoAnyVideo(nn.Module):
     self._sow_flows_in(fmap1, flows_in)
     return ups, flow
 
+  def create_parameters(self, left: jax.Array, right: jax.Array) -> None:
+    """Calls every submodule once: with `init` (`method=StereoAnyVideo.create_parameters`)
+    it creates the very parameters of `init` with `__call__`, in half the trace (no cascade
+    of scans, each of whose steps `init` traces twice): `sav_jax.model.init`'s
+    `abstract_variables` uses it. `left`/`right`: `[B, T, H, W, 3]` frames as for
+    `__call__`."""
+    self._check_bound("create_parameters")
+    fmap1, fmap2, context = self.features(left, right)
+    net, inp = jnp.tanh(context).astype(self.cfg.compute_dtype), nn.relu(context)
+    flow = jnp.zeros((*fmap1.shape[:-1], 1), jnp.float32)
+    self.step(net, flow, inp, fmap1, fmap2, WIDE_WINDOW, with_up=True)
+
   def _sow_flows_in(self, fmap1, flows_in):
     """The flow entering every iteration, for inspection (no-op unless mutable)."""
     self.sow("intermediates", f"flow_in_{fmap1.shape[2]}x{fmap1.shape[3]}", flows_in)

@@ -684,3 +684,13 @@ def test_cli_convert_with_paths_that_are_not_utf8(tmp_path, sav_state_dict, caps
   assert err.count("\n") == 1 and ("caf\\udce9/ckpt': the orbax checkpoint folder DST's name is "
                                    "not UTF-8 text") in err, err
   assert sorted(p.name for p in odd.iterdir()) == ["sav.npz", "sav.safetensors"]
+
+
+def test_a_whole_state_dict_converts_without_a_trace_of_the_depth_prior_alone(
+    sav_state_dict, variables, monkeypatch):
+  """The whole model's shapes (`abstract_variables`, traced once) hold the depth prior's: a
+  conversion does not trace the prior on its own as well (~1.8 s on the 2-core CPU)."""
+  from sav_jax.convert import vda  # pylint: disable=import-outside-toplevel
+  monkeypatch.setattr(vda, "_abstract_params", lambda model: pytest.fail("traced the prior"))
+  got = convert.params_from_state_dict(sav_state_dict)
+  jax.tree_util.tree_map(np.testing.assert_array_equal, got["params"], variables["params"])
