@@ -41,7 +41,7 @@ import orbax.checkpoint as ocp
 import sav_jax
 from sav_jax._checks import is_int, loads_json, plural
 from sav_jax.convert import orbax_io
-from sav_jax.model.init import MACHINE_FIELDS
+from sav_jax.model.init import MACHINE_FIELDS, abstract_variables
 from sav_jax.model.vda import VideoDepthAnything
 from train import optim
 from train.state import TrainState
@@ -650,9 +650,12 @@ def load_vda_params(path, cfg: sav_jax.SAVConfig | None = None) -> dict:
         f"config.vda_weights={path} is a folder: it takes a Video Depth Anything weights file "
         "(.pth/.safetensors/.npz); a whole model's folder (a `sav-jax convert` output, a "
         "training run) goes in config.init_from")
-  model = VideoDepthAnything(**(cfg or sav_jax.SAVConfig()).vda)
+  cfg = cfg or sav_jax.SAVConfig()
+  model = VideoDepthAnything(**cfg.vda)
+  abstract = abstract_variables(cfg)["params"]["depthnet"]["depthanything"]  # (the run's)
   params, unused = _convert(path, "vda", "vda_weights",
-                            lambda sd: sav_jax.convert.vda_params_from_state_dict(sd, model))
+                            lambda sd: sav_jax.convert.vda_params_from_state_dict(sd, model,
+                                                                                  abstract))
   log.info("frozen depth prior from %s (%d unused keys)", path, len(unused))
   return jax.tree.map(np.asarray, params)
 

@@ -137,7 +137,8 @@ def _check_pe(sd: dict[str, np.ndarray], expected: dict[str, np.ndarray],
 
 
 def vda_params_from_state_dict(sd: dict[str, np.ndarray],
-                               model: VideoDepthAnything | None = None
+                               model: VideoDepthAnything | None = None,
+                               abstract: dict | None = None
                                ) -> tuple[dict, dict[str, np.ndarray]]:
   """Converts a flat VDA state dict (public `video_depth_anything_vits.pth` layout).
 
@@ -150,6 +151,10 @@ def vda_params_from_state_dict(sd: dict[str, np.ndarray],
     sd: `{torch_key: array}` without prefix (strip `depthnet.depthanything.` first); the
       wrappers of `unwrap_state_dict` and torch or JAX tensors are accepted.
     model: the target configuration (default: ViT-S, features 64).
+    abstract: `model`'s parameter shapes, where the caller has them: the depth prior's
+      subtree of the whole model's (`sav_jax.model.init.abstract_variables(cfg)["params"]
+      ["depthnet"]["depthanything"]`, traced once per process); else traced here (~1.8 s
+      on a 2-core CPU).
 
   Returns:
     `(params, unused)`: the `params` collection of `VideoDepthAnything` (float32
@@ -157,7 +162,7 @@ def vda_params_from_state_dict(sd: dict[str, np.ndarray],
   """
   sd = unwrap_state_dict(sd, "state_dict")
   problems = KeyProblems()
-  params, unused = convert_vda_state_dict(sd, model or VideoDepthAnything(), problems)
+  params, unused = convert_vda_state_dict(sd, model or VideoDepthAnything(), problems, abstract)
   problems.raise_if_any("state dict does not match Video Depth Anything", len(sd))
   return params, unused
 
@@ -166,9 +171,7 @@ def convert_vda_state_dict(sd: dict[str, np.ndarray], model: VideoDepthAnything,
                            problems: KeyProblems, abstract: dict | None = None
                            ) -> tuple[dict, dict[str, np.ndarray]]:
   """`vda_params_from_state_dict`, collecting its problems in `problems` (whose `prefix`
-  names the keys as the caller's file does) instead of raising. `abstract`: `model`'s
-  parameter shapes where the caller has them (the depth prior's subtree of the whole
-  model's `abstract_variables`: no trace of the prior of its own, ~1.8 s), else traced."""
+  names the keys as the caller's file does) instead of raising."""
   abstract = _abstract_params(model) if abstract is None else abstract
   target = flatten_dict(abstract)
   by_torch = {path_to_torch(path): path for path in target}

@@ -147,11 +147,13 @@ def run(args: argparse.Namespace) -> int:
 def init_with_vda(vda_sd, cfg, seed: int) -> dict:
   """The whole model initialised as the official one, with the depth prior from `vda_sd`."""
   from sav_jax import convert  # pylint: disable=import-outside-toplevel
-  from sav_jax.model.init import init_variables  # pylint: disable=import-outside-toplevel
+  from sav_jax.model import init  # pylint: disable=import-outside-toplevel
   from sav_jax.model.vda import VideoDepthAnything  # pylint: disable=import-outside-toplevel
 
-  params = init_variables(cfg, seed)["params"]
-  vda, unused = convert.vda_params_from_state_dict(vda_sd, VideoDepthAnything(**cfg.vda))
+  params = init.init_variables(cfg, seed)["params"]
+  vda, unused = convert.vda_params_from_state_dict(
+      vda_sd, VideoDepthAnything(**cfg.vda),
+      init.abstract_variables(cfg)["params"]["depthnet"]["depthanything"])
   params["depthnet"]["depthanything"] = vda
   prefix = convert.params.VDA_PREFIX
   return {"params": params, convert.params.UNUSED_COLLECTION: {prefix + k: v for k, v in unused.items()}}

@@ -689,8 +689,16 @@ def test_cli_convert_with_paths_that_are_not_utf8(tmp_path, sav_state_dict, caps
 def test_a_whole_state_dict_converts_without_a_trace_of_the_depth_prior_alone(
     sav_state_dict, variables, monkeypatch):
   """The whole model's shapes (`abstract_variables`, traced once) hold the depth prior's: a
-  conversion does not trace the prior on its own as well (~1.8 s on the 2-core CPU)."""
+  conversion does not trace the prior on its own as well (~1.8 s on the 2-core CPU), nor
+  does `sav-jax convert --vda`'s model around a depth prior's file."""
   from sav_jax.convert import vda  # pylint: disable=import-outside-toplevel
+  from sav_jax.tools.convert import init_with_vda  # pylint: disable=import-outside-toplevel
   monkeypatch.setattr(vda, "_abstract_params", lambda model: pytest.fail("traced the prior"))
   got = convert.params_from_state_dict(sav_state_dict)
   jax.tree_util.tree_map(np.testing.assert_array_equal, got["params"], variables["params"])
+  prefix = convert.params.VDA_PREFIX
+  whole = init_with_vda({k[len(prefix):]: v for k, v in sav_state_dict.items()
+                         if k.startswith(prefix)}, sav_jax.SAVConfig(), seed=0)
+  jax.tree_util.tree_map(np.testing.assert_array_equal,
+                         whole["params"]["depthnet"]["depthanything"],
+                         variables["params"]["depthnet"]["depthanything"])
