@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import inspect
 import math
 from typing import Any, Sequence
 
@@ -394,6 +395,20 @@ def frames_per_block(n: int, frame_bytes: float, budget_mb: float) -> int:
   return max(f for f in range(1, n + 1) if n % f == 0 and (f == 1 or f * frame_bytes <= budget))
 
 
+# Flax's scan traces its body twice, the first time to check that the broadcast variables
+# (the parameters) do not depend on the loop, unless told not to (an option of Flax's since
+# 0.7: `check_constancy_invariants`).
+_SCAN_CHECK_OPTION = "check_constancy_invariants" in inspect.signature(nn.scan).parameters
+
+
+def scan_traced_once(module: nn.Module) -> dict:
+  """`nn.scan` keyword arguments that trace its body once outside `init` (where the
+  parameters exist already: the check has nothing to find), e.g. a window program's
+  refinement steps (its trace a third shorter); `init`, which creates the parameters in the
+  first trace, keeps both."""
+  return {"check_constancy_invariants": module.is_initializing()} if _SCAN_CHECK_OPTION else {}
+
+
 def in_frame_blocks(module: nn.Module, fn, x: jax.Array, frame_bytes: float,
                     budget_mb: float) -> jax.Array:
   """`fn(module, x)` for a per-frame computation, run over blocks of frames.
@@ -416,7 +431,7 @@ def in_frame_blocks(module: nn.Module, fn, x: jax.Array, frame_bytes: float,
   if frames == n:
     return fn(module, x)
   scan = nn.scan(lambda mdl, _, xb: (None, fn(mdl, xb)), variable_broadcast="params",
-                 split_rngs={"params": False}, length=n // frames)
+                 split_rngs={"params": False}, length=n // frames, **scan_traced_once(module))
   _, out = scan(module, None, x.reshape(n // frames, frames, *x.shape[1:]))
   return out.reshape(n, *out.shape[2:])
 

@@ -15,7 +15,7 @@ from sav_jax._checks import check_video_values, is_int
 from sav_jax.config import SAVConfig, as_config
 from sav_jax.model.depth import DepthExtractor
 from sav_jax.model.encoder import BasicEncoder
-from sav_jax.model.layers import CorrMLP, in_frame_blocks, normalize
+from sav_jax.model.layers import CorrMLP, in_frame_blocks, normalize, scan_traced_once
 from sav_jax.model.update import SequenceUpdateBlock3D
 from sav_jax.ops.correlation import SMALL_WINDOW, WIDE_WINDOW, aapc
 from sav_jax.ops.pool import avg_pool
@@ -378,7 +378,8 @@ class StereoAnyVideo(nn.Module):
       return (net, new_flow, i + 1), (flow if up is None else (up, flow))
 
     scan = nn.scan(remat(one), variable_broadcast="params", split_rngs={"params": False},
-                   in_axes=(nn.broadcast, nn.broadcast, nn.broadcast), length=num_iters)
+                   in_axes=(nn.broadcast, nn.broadcast, nn.broadcast), length=num_iters,
+                   **scan_traced_once(self))
     (net, flow, _), outs = scan(self, (net, flow, jnp.zeros((), jnp.int32)), inp, fmap1, fmap2)
     if all_ups:
       ups, flows_in = outs

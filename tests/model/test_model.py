@@ -522,6 +522,23 @@ def _primitive_counts(jaxpr, counts=None) -> dict:
   return counts
 
 
+def test_each_refinement_step_is_traced_once_outside_init(model, monkeypatch):
+  """Flax's scan traced its body twice (first to check that the parameters do not depend on
+  the loop): every scale's step is now traced once in `apply` (a third less trace of a
+  window's program); `init`, which creates the parameters in that first trace, keeps it."""
+  from sav_jax.model.layers import CorrMLP  # pylint: disable=import-outside-toplevel
+  params = abstract_variables(model.cfg)  # (its own trace calls every module once)
+  calls, real = [], CorrMLP.__call__
+  monkeypatch.setattr(CorrMLP, "__call__", lambda self, x: calls.append(1) or real(self, x))
+  clip = jax.ShapeDtypeStruct(SHAPE, jnp.float32)
+  jax.eval_shape(lambda v, l, r: model.apply(v, l, r, iters=2), params, clip, clip)
+  assert len(calls) == 3  # one step per scale (1/16, 1/8, 1/4)
+  calls.clear()
+  init = jax.eval_shape(lambda l, r: model.init(jax.random.PRNGKey(0), l, r, iters=2), clip,
+                        clip)
+  assert len(calls) == 6 and "corr_mlp" in init["params"]
+
+
 def test_inference_runs_every_update_inside_the_refinement_loops(model, variables, clip):
   """final_only: each scale's iterations are one scan over single steps (the window's
   correlation chosen by lax.cond) and nothing of the update block is unrolled beside it
