@@ -652,3 +652,32 @@ def test_infer_throughput_script_runs_infer_with_its_stand_in(tmp_path, monkeypa
   assert len(list((out / "pointclouds").glob("*.ply"))) == 23
   (row,) = [json.loads(line) for line in (tmp_path / "r.jsonl").read_text().splitlines()]
   assert row["frames"] == 23 and row["frames_per_second"] > 0 and "stages_s" in row
+
+
+def test_startup_times_script_takes_medians_of_fresh_processes(monkeypatch, capsys):
+  """benchmarks/startup_times.py: each run a fresh `python -c` process measuring the import,
+  the shapes' trace and two traces; the figures are medians; a failed process is named with
+  its error, not a traceback of the parent."""
+  import subprocess  # pylint: disable=import-outside-toplevel
+  import types  # pylint: disable=import-outside-toplevel
+  import startup_times  # pylint: disable=import-outside-toplevel,import-error
+  runs = iter([1.0, 3.0, 2.0])
+
+  def fake_run(cmd, **kwargs):
+    assert cmd[:2] == [sys.executable, "-c"] and "abstract_variables" in cmd[2]
+    v = next(runs)
+    return types.SimpleNamespace(returncode=0, stderr="", stdout=json.dumps(
+        {"import_jax": v, "shapes": 2 * v, "forward_trace": 3 * v, "grad_trace": 4 * v,
+         "ml_dtypes": "0.6.0", "jax": "x", "flax": "y"}) + "\n")
+
+  monkeypatch.setattr(subprocess, "run", fake_run)
+  assert startup_times.main(["--runs", "3", "--json"]) == 0
+  res = json.loads(capsys.readouterr().out)
+  assert (res["import_jax"], res["shapes"], res["grad_trace"], res["runs"]) == (2.0, 4.0, 8.0, 3)
+  monkeypatch.setattr(subprocess, "run", lambda cmd, **k: types.SimpleNamespace(
+      returncode=1, stdout="", stderr="Traceback ...\nImportError: no jax"))
+  with pytest.raises(SystemExit, match="the measuring process failed:\nTraceback (?s:.*)no jax"):
+    startup_times.main([])
+  with pytest.raises(SystemExit):
+    startup_times.main(["--runs", "0"])
+  assert "--runs must be >= 1, got 0" in capsys.readouterr().err
