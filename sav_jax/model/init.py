@@ -113,9 +113,9 @@ def freeze_depth_prior(tx, params, frozen_pattern: str = DEPTH_PRIOR_PATTERN):
 def abstract_variables(cfg: SAVConfig):
   """Shapes of the model's variables (nothing allocated).
 
-  Traced once per architecture (`StereoAnyVideo.create_parameters`; ~3 s on the 2-core
-  CPU): configs that differ only in `COMPUTE_FIELDS` (a bfloat16 or rematerialised model of
-  the same weights) share it.
+  Traced once per architecture (`StereoAnyVideo.create_parameters`; ~4 s as a process's
+  first trace on the 2-core CPU): configs that differ only in `COMPUTE_FIELDS` (a bfloat16
+  or rematerialised model of the same weights) share it.
   Each call returns dicts of its own (the leaves are shared), so a caller may edit the tree.
   """
   cfg, defaults = as_config(cfg), SAVConfig()

@@ -396,8 +396,8 @@ def frames_per_block(n: int, frame_bytes: float, budget_mb: float) -> int:
 
 
 # Flax's scan traces its body twice, the first time to check that the broadcast variables
-# (the parameters) do not depend on the loop, unless told not to (an option of Flax's since
-# 0.7: `check_constancy_invariants`).
+# (the parameters) do not depend on the loop, unless told not to (`nn.scan`'s
+# `check_constancy_invariants`; a Flax without the option traces twice).
 _SCAN_CHECK_OPTION = "check_constancy_invariants" in inspect.signature(nn.scan).parameters
 
 

@@ -391,8 +391,8 @@ class StereoAnyVideo(nn.Module):
 
   def create_parameters(self, left: jax.Array, right: jax.Array) -> None:
     """Calls every submodule once: with `init` (`method=StereoAnyVideo.create_parameters`)
-    it creates the very parameters of `init` with `__call__`, in half the trace (no cascade
-    of scans, each of whose steps `init` traces twice): `sav_jax.model.init`'s
+    it creates the very parameters of `init` with `__call__`, in about 2/3 of the time (no
+    cascade of scans, each of whose steps `init` traces twice): `sav_jax.model.init`'s
     `abstract_variables` uses it. `left`/`right`: `[B, T, H, W, 3]` frames as for
     `__call__`."""
     self._check_bound("create_parameters")
