@@ -651,11 +651,13 @@ def load_vda_params(path, cfg: sav_jax.SAVConfig | None = None) -> dict:
         "(.pth/.safetensors/.npz); a whole model's folder (a `sav-jax convert` output, a "
         "training run) goes in config.init_from")
   cfg = cfg or sav_jax.SAVConfig()
-  model = VideoDepthAnything(**cfg.vda)
-  abstract = abstract_variables(cfg)["params"]["depthnet"]["depthanything"]  # (the run's)
-  params, unused = _convert(path, "vda", "vda_weights",
-                            lambda sd: sav_jax.convert.vda_params_from_state_dict(sd, model,
-                                                                                  abstract))
+
+  def convert(sd):  # the prior's shapes from the run's model's (traced already)
+    return sav_jax.convert.vda_params_from_state_dict(
+        sd, VideoDepthAnything(**cfg.vda),
+        abstract_variables(cfg)["params"]["depthnet"]["depthanything"])
+
+  params, unused = _convert(path, "vda", "vda_weights", convert)
   log.info("frozen depth prior from %s (%d unused keys)", path, len(unused))
   return jax.tree.map(np.asarray, params)
 

@@ -83,10 +83,10 @@ def _abstract_params_cached(encoder: str, features: int, out_channels: tuple) ->
 
 
 def vda_unused_shapes(model: VideoDepthAnything | None = None) -> dict[str, tuple[int, ...]]:
-  """Shapes of the `VDA_UNUSED_KEYS` entries for a model configuration."""
+  """Shapes of the `VDA_UNUSED_KEYS` entries for a model configuration (its DINOv2 width
+  from `DINO_VARIANTS`: no trace)."""
   model = model or VideoDepthAnything()
-  return _unused_shapes(_abstract_params(model)["pretrained"]["cls_token"].shape[-1],
-                        model.features)
+  return _unused_shapes(DINO_VARIANTS[model.encoder]["embed_dim"], model.features)
 
 
 def _unused_shapes(embed: int, f: int) -> dict[str, tuple[int, ...]]:
@@ -175,7 +175,7 @@ def convert_vda_state_dict(sd: dict[str, np.ndarray], model: VideoDepthAnything,
   abstract = _abstract_params(model) if abstract is None else abstract
   target = flatten_dict(abstract)
   by_torch = {path_to_torch(path): path for path in target}
-  unused_shapes = _unused_shapes(abstract["pretrained"]["cls_token"].shape[-1], model.features)
+  unused_shapes = vda_unused_shapes(model)
   pe = vda_pe_buffers(model)
   flat, unused = {}, {}
   for key, value in sd.items():
