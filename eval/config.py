@@ -17,6 +17,8 @@ import pathlib
 
 import ml_collections
 
+from sav_jax._checks import scientific_integer
+
 # The methods a run evaluates: the model, and the baselines `--baseline` adds.
 METHOD_NAMES = {"sav": "Stereo Any Video", "sgbm": "StereoSGBM"}
 BASELINES = ("sgbm",)
@@ -130,6 +132,9 @@ def _parse(value: str, current, name: str):
     try:
       return type(current)(value)  # int: decimal (010 is 10, as on the training's side)
     except ValueError:
+      whole = scientific_integer(value) if isinstance(current, int) else None
+      if whole is not None:  # 1e3 is 1000, as on the training's side (int() refuses it)
+        return whole
       raise ValueError(f"--config.{name}: expected {type(current).__name__}, "
                        f"got {value!r}") from None
   if isinstance(current, str):

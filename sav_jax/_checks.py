@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import decimal
 import json
 import numbers
 import os
+import re
 import sys
 import warnings
 
@@ -47,6 +49,19 @@ def loads_json(text: str):
 def is_int(x) -> bool:
   """A Python or numpy integer, not a bool (which would pass as 0 or 1)."""
   return isinstance(x, numbers.Integral) and not isinstance(x, bool)
+
+
+_SCIENTIFIC = re.compile(r"[+-]?\d+(\.\d*)?[eE]\+?\d{1,3}")
+
+
+def scientific_integer(text: str) -> int | None:
+  """The integer a whole number in scientific notation spells (`"1e3"` -> 1000, `"1.2e5"`),
+  else None (a negative exponent, a fraction such as `"1.25e1"`, any other text): what the
+  commands' integer config overrides accept beside plain digits."""
+  if not _SCIENTIFIC.fullmatch(text.strip()):
+    return None
+  number = decimal.Decimal(text.strip())
+  return int(number) if number == number.to_integral_value() else None
 
 
 def sav_jax_configs(command: str):

@@ -1277,7 +1277,9 @@ def test_demo_random_weights(tmp_path, monkeypatch, capsys):
   assert sorted(p.name for p in (out / "disparity").glob("*.png")) == [
       f"frame_{t:06d}.png" for t in range(T + 1)] + ["mine.png"]
   assert (out / "disparity" / f"frame_{T:06d}.png").read_bytes() == b"old"
-  results = json.loads((out / "metrics.json").read_text())["metrics"]
+  written = json.loads((out / "metrics.json").read_text())
+  assert written["dtype"] == "float32" and written["iters"] == ITERS  # what the row measured
+  results = written["metrics"]
   assert set(results) == {"Stereo Any Video", "StereoSGBM"}
   assert results["StereoSGBM"]["disp_epe_mean"] < 2.0  # SGBM works on the synthetic scene
   from sav_jax import metrics  # pylint: disable=import-outside-toplevel

@@ -2021,16 +2021,19 @@ def test_per_frame_curves_are_the_official_rule_per_frame(monkeypatch):
 
 def test_override_values_of_each_type():
   """Booleans take true/false, 1/0, yes/no, on/off (any case); an integer field refuses a
-  fraction instead of cutting it; a float field takes an integer; a string field keeps the text
+  fraction instead of cutting it, and takes a whole number in scientific notation; a float field takes an integer; a string field keeps the text
   as written; a nested field is named with its block."""
   config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
   for text, value in (("yes", True), ("No", False), ("ON", True), ("off", False), ("1", True),
                       ("0", False), ("True", True), ("false", False), (" on\n", True)):
     eval_config.apply_overrides(config, [("plots.enabled", text)])
     assert config.plots.enabled is value, text
-  for bad in ("4.5", "4e0", "four"):
+  for bad in ("4.5", "1.25e1", "1e-1", "four"):
     with pytest.raises(ValueError, match=f"--config.iters: expected int, got '{bad}'"):
       eval_config.apply_overrides(config, [("iters", bad)])
+  for text, value in (("4e0", 4), ("2E1", 20), ("1.2e2", 120)):  # whole: as training reads them
+    eval_config.apply_overrides(config, [("iters", text)])
+    assert config.iters == value and type(config.iters) is int, text
   eval_config.apply_overrides(config, [("synthetic.max_disparity", "7"), ("metrics.raft", "1"),
                                        ("dtype", "bfloat16")])
   assert config.synthetic.max_disparity == 7.0 and isinstance(config.synthetic.max_disparity,

@@ -10,7 +10,6 @@ stderr; `-v 1` shows its traceback. On SIGTERM (a scheduler's preemption notice)
 saves a checkpoint of the step it is on and exits with status 143; the same command resumes.
 """
 
-import decimal
 import logging
 import pathlib
 import re
@@ -71,14 +70,12 @@ def last_overrides(argv: list[str]) -> list[str]:
           for a in args]
 
 
-_SCIENTIFIC_INTEGER = re.compile(r"[+-]?\d+(\.\d*)?[eE]\+?\d{1,3}")
-
-
 def integral_numbers(argv: list[str]) -> list[str]:
   """`argv` with override values written as whole numbers in scientific notation (`1e3`,
   `1.2e5`) spelt as integers: ml_collections parses integer fields with `int()`, which
   refused `--config.train.num_steps=1e5` ("invalid literal"); float fields read the
   integer as well. Negative exponents (`1e-4`) and fractions stay as they are."""
+  from sav_jax._checks import scientific_integer  # pylint: disable=g-import-not-at-top
   out, field = [], False
   for arg in argv:
     value = None
@@ -87,11 +84,10 @@ def integral_numbers(argv: list[str]) -> list[str]:
     elif field:  # the value after `--config.a.b`
       key, value = None, arg
     field = arg.startswith("--config.") and "=" not in arg
-    if value is not None and _SCIENTIFIC_INTEGER.fullmatch(value.strip()):
-      number = decimal.Decimal(value.strip())
-      if number == number.to_integral_value():
-        value = str(int(number))
-        arg = value if key is None else f"{key}={value}"
+    whole = None if value is None else scientific_integer(value)
+    if whole is not None:
+      value = str(whole)
+      arg = value if key is None else f"{key}={value}"
     out.append(arg)
   return out
 

@@ -228,7 +228,8 @@ def run(args: argparse.Namespace) -> int:
     video_io.write_map(_frame_path(out, t), pred[t], "png16")
   summary = {"weights": described, "synthetic": {"frames": args.frames, "height": args.height,
                                                  "width": args.width, "seed": args.seed},
-             "iters": args.iters, "metrics": results, "seconds": times}
+             "iters": args.iters, "dtype": str(cfg.dtype), "metrics": results,
+             "seconds": times}
   (out / "metrics.json").write_text(json.dumps(summary, indent=1))
   print(f"outputs in {out}: comparison.mp4 (left | ground truth | SAV | SGBM), "
         "side_by_side.mp4, disparity/*.png, metrics.json")
