@@ -195,10 +195,20 @@ def _root_hint(root: Path, split: str) -> str:
 def _scale(seq_dir: Path, left: list[Path]) -> float | None:
   """fx * baseline from the sequence's calibration file, or None without one; a file for
   another image size than the `left` frames' is refused, as `sav-jax infer --calib` refuses
-  it (its width/height, or a principal point outside the frames)."""
-  path = next((seq_dir / n for n in CALIBRATION_FILES if (seq_dir / n).is_file()), None)
-  if path is None:
-    return None
+  it (its width/height, or a principal point outside the frames). Both `calib.txt` and
+  `calib.json` may be there only when they give the same scale."""
+  scales = {path: _file_scale(path, left) for path in (seq_dir / n for n in CALIBRATION_FILES)
+            if path.is_file()}
+  if len(set(scales.values())) > 1:  # (one was read silently, the other left unread)
+    given = ", ".join("none (doffs)" if v is None else f"{v:g}" for v in scales.values())
+    raise ValueError(f"{seq_dir}: {' and '.join(p.name for p in scales)} give different "
+                     f"depth-to-disparity scales (fx * baseline: {given}); keep one "
+                     "calibration file")
+  return next(iter(scales.values()), None)
+
+
+def _file_scale(path: Path, left: list[Path]) -> float | None:
+  """`_scale` of one calibration file."""
   from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
   from sav_jax.tools.infer import (CalibrationSpec,  # pylint: disable=import-outside-toplevel
                                    read_calibration)

@@ -1743,6 +1743,14 @@ def test_folder_dataset_unpadded_npy_ground_truth_json_calibration_empty_split(t
   (seq / "calib.json").write_text(f'{{"fx": 400, "baseline": 0.25, "width": {W}, "height": {H},'
                                   f' "cx": 5.5, "cy": 3.5}}')
   assert registry.get_sequences("folder", tmp_path, "val")[0].depth2disp_scale == 100.0
+  # Both files: the same scale reads; different ones were calib.txt's, calib.json unread
+  (seq / "calib.txt").write_text("fx 400\nbaseline 0.25\n")
+  assert registry.get_sequences("folder", tmp_path, "val")[0].depth2disp_scale == 100.0
+  (seq / "calib.txt").write_text("fx 400\nbaseline 250\n")  # millimetres
+  with pytest.raises(ValueError, match=r"cam: calib\.txt and calib\.json give different "
+                                       r"depth-to-disparity scales \(fx \* baseline: 100000, "
+                                       r"100\); keep one calibration file"):
+    registry.get_sequences("folder", tmp_path, "val")
 
 
 def test_folder_disparities_mostly_beyond_512_px_are_warned_once_per_folder(tmp_path):
