@@ -22,7 +22,7 @@ demo: $(STAMP)
 	$(BIN)/sav-jax demo
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile tests
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder tests
 
 bench: $(STAMP)
 	$(BIN)/sav-jax bench --frames 5 --height 128 --width 256 --iters 8

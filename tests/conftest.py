@@ -169,6 +169,24 @@ def restore_low_memory_compile():
     yield
 
 
+# The test files that take longest (CPU-seconds of their tests, 2026-12-07: the training
+# subprocesses first, which run beside the other worker's tests while their own tests wait):
+# first in the collection, which `make test` runs in this order (`--no-loadscope-reorder`).
+# xdist's own order, the files with the most tests first, left them to the end of the run,
+# where the subprocess jobs started last and ran on with one test worker idle.
+LONGEST_FILES = (
+    "train/test_training_runs.py", "train/test_sharding.py", "train/test_multihost.py",
+    "test_multi_device.py", "model/test_model.py", "train/test_state.py", "test_cli_infer.py",
+    "test_eval.py", "model/test_model_parity.py", "test_inference.py")
+
+
+def pytest_collection_modifyitems(config, items):
+  """The tests of `LONGEST_FILES` first, in that order; the others after them, as collected."""
+  del config
+  rank = {ROOT / "tests" / name: i for i, name in enumerate(LONGEST_FILES)}
+  items.sort(key=lambda item: rank.get(item.path, len(rank)))  # (stable: files stay whole)
+
+
 def pytest_configure(config):
   """Share XLA compilations between test processes of one run (and later runs)."""
   import jax  # pylint: disable=import-outside-toplevel

@@ -255,6 +255,19 @@ def test_plural_and_integers():
   assert _checks.plural(3, "process", "processes") == "3 processes"
   assert _checks.is_int(3) and _checks.is_int(np.int64(3)) and _checks.is_int(np.uint8(0))
   assert not any(_checks.is_int(x) for x in (True, np.bool_(True), 3.0, "3", None))
+  assert [_checks.scientific_integer(t) for t in ("1e3", "+2E2", " 1.25e2 ", "1.e1")] == [
+      1000, 200, 125, 10]
+  assert not any(_checks.scientific_integer(t) is not None
+                 for t in ("1.25e1", "1e-3", "12", "1e", "e3", "1e1234", "-1e3x", "nan"))
+
+
+def test_the_suites_longest_files_exist_and_are_collected_first(request):
+  from tests import conftest  # pylint: disable=import-outside-toplevel
+  longest = [conftest.ROOT / "tests" / name for name in conftest.LONGEST_FILES]
+  assert all(path.is_file() for path in longest), longest  # (a renamed file would drop out)
+  files = list(dict.fromkeys(item.path for item in request.session.items))  # in run order
+  collected = [path for path in longest if path in files]
+  assert files[:len(collected)] == collected
 
 
 def test_widened_keeps_every_value_of_ml_dtypes_arrays():
