@@ -122,8 +122,10 @@ def _as_mask(name: str, a) -> np.ndarray:
   m = _as_seq(name, a)
   if m.size and not (np.isfinite(m).all() and m.min() >= 0 and m.max() <= 1):
     finite = m[np.isfinite(m)]
-    lo, hi = (finite.min(), finite.max()) if finite.size else (np.nan, np.nan)
-    raise ValueError(f"{name} must hold values in [0, 1] (a validity mask), got {lo:g}..{hi:g}"
+    lo, hi = (finite.min(), finite.max()) if finite.size else (_F32(np.nan), _F32(np.nan))
+    # `:g` keeps 6 digits: 1.0000001 would read "got 0..1"; float32's shortest repr where so
+    lo_s, hi_s = (f"{v:g}" if _F32(f"{v:g}") == v else str(v) for v in (lo, hi))
+    raise ValueError(f"{name} must hold values in [0, 1] (a validity mask), got {lo_s}..{hi_s}"
                      f"{' with NaN/inf' if finite.size < m.size else ''}"
                      f"{'; a 0/255 image? divide it by 255' if hi == 255 else ''}")
   return m

@@ -470,7 +470,8 @@ def test_masks_outside_zero_one_are_refused():
   pred = gt = np.ones((2, 4, 4), np.float32)
   for mask, match in ((np.full((2, 4, 4), 255, np.uint8), r"255\.\.255; a 0/255 image\? divide"),
                       (np.full((2, 4, 4), np.nan), "with NaN/inf"),
-                      (np.full((2, 4, 4), -1.0), r"\[0, 1\]")):
+                      (np.full((2, 4, 4), -1.0), r"\[0, 1\]"),
+                      (np.full((2, 4, 4), 1.0000001, np.float32), r"got 1\.0000001\.\.1\.0000001")):
     with pytest.raises(ValueError, match=match):
       M.eval_endpoint_error_sequence(pred, gt, mask)
     with pytest.raises(ValueError, match="valid must hold values"):
