@@ -83,7 +83,11 @@ class NotMeasuredWarning(UserWarning):
 
 def _as_seq(name: str, a) -> np.ndarray:
   """`[T, H, W]` float32 view of `a` (`[T, 1, H, W]` is squeezed)."""
-  a = np.asarray(a, dtype=_F32)
+  try:  # (numpy's own message names no argument: a list of frames of two sizes, text)
+    a = np.asarray(a, dtype=_F32)
+  except (TypeError, ValueError) as e:
+    raise ValueError(f"{name} must be a [T, H, W] array of numbers (frames of one size): {e}"
+                     ) from None
   if a.ndim == 4 and a.shape[1] == 1:
     a = a[:, 0]
   if a.ndim != 3:

@@ -479,6 +479,15 @@ def test_masks_outside_zero_one_are_refused():
   assert M.eval_endpoint_error_sequence(pred, gt, np.full((2, 4, 4), 0.7))  # fractional: fine
 
 
+def test_unconvertible_inputs_are_named():
+  g = np.ones((2, 4, 4), np.float32)
+  ragged = [np.ones((4, 4)), np.ones((4, 5))]  # a list of frames of two sizes
+  with pytest.raises(ValueError, match=r"^valid must be a \[T, H, W\] array of numbers"):
+    M.eval_sequence(g, g, ragged)
+  with pytest.raises(ValueError, match=r"^pred must be a \[T, H, W\] array of numbers"):
+    M.eval_endpoint_error_sequence(ragged, g, g)
+
+
 @pytest.mark.parametrize("scale", [0.0, -100.0, float("nan"), float("inf"), "100", True,
                                    np.array([100.0])])
 def test_bad_scales_are_refused(scale):
