@@ -92,7 +92,8 @@ def _warn_if_negative(path: Path, disp: np.ndarray, valid: np.ndarray) -> None:
   if folder in _NEGATIVE_WARNED or not negative:
     return
   _NEGATIVE_WARNED.add(folder)
-  warnings.warn(f"{path}: {100 * negative / np.count_nonzero(valid):.0f}% of its valid "
+  share = 100 * negative / np.count_nonzero(valid)  # (a few pixels: 0.3%, not "0%")
+  warnings.warn(f"{path}: {f'{share:.0f}' if share >= 1 else f'{share:.1g}'}% of its valid "
                 f"disparities are negative (min {float(disp[valid].min()):g}), which the "
                 "official rule counts as ground truth (the metrics take |d|): mark pixels "
                 "without ground truth 0 or NaN, not with a negative code such as -1; "

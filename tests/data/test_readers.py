@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 import sav_jax.data
-from sav_jax.data import base, frame_io, kitti_depth, registry
+from sav_jax.data import base, frame_io, kitti_depth, registry, stereo_folder
 
 H, W = 8, 12
 
@@ -1818,6 +1818,10 @@ def test_folder_negative_warning_counts_valid_pixels_only_and_names_the_folder_o
   with warnings.catch_warnings():
     warnings.simplefilter("error")  # once per folder, not once per file
     s[2]
+  disp = np.full((20, 20), 5.0, np.float32)
+  disp[0, 0] = -2.0  # 1 of 400 valid pixels: 0.25%, which was written "0%"
+  with pytest.warns(UserWarning, match=r"x\.npy: 0\.2% of its valid disparities are negative"):
+    stereo_folder._warn_if_negative(tmp_path / "few" / "x.npy", disp, np.isfinite(disp))
 
 
 def test_number_key_takes_the_last_number_whole():
