@@ -109,6 +109,8 @@ def as_uint8_image(image, what: str = "image", *, is_map: bool = False) -> np.nd
     raise ValueError(f"{what}: NaN or inf values; expected 0..255{hint}")
   lo, hi = float(a.min()), float(a.max())
   overshoot = is_float and not is_map and OVERSHOOT_LOW <= lo and hi <= OVERSHOOT_HIGH
+  if overshoot and lo < -1.0 and hi <= 3.0:  # normalised, as predict_video refuses such frames
+    overshoot = False  # (clipped to 0..255, they came out black without a word)
   if (lo < 0 or hi > 255) and not overshoot:
     if hint:
       advice = _COLORIZE_HINT

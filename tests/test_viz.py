@@ -741,6 +741,10 @@ def test_float_images_may_overshoot_as_predict_video_frames_may():
     viz.as_uint8_image(np.array([-120.0, 100.0]))
   with pytest.raises(ValueError, match=r"-1\.\.3 outside 0\.\.255 \(.*normalised"):
     viz.as_uint8_image(np.array([-1, 3], np.int16))
+  # a normalised float frame (mean and scale taken off) is within the overshoot allowance,
+  # but predict_video refuses it: clipped, it came out black without a word
+  with pytest.raises(ValueError, match=r"-2\.1\.\.2\.6 outside 0\.\.255 \(.*normalised"):
+    viz.as_uint8_image(np.array([-2.1, 0.3, 2.6], np.float32))
   # an integer map beyond 0..255 may be a 16-bit grey image or a stored disparity (a KITTI
   # PNG's 256 d): both pieces of advice, not ">> 8" alone
   with pytest.raises(ValueError, match=r"\(16-bit images: >> 8; a disparity or depth map\? "
