@@ -510,6 +510,9 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
     # written, an iterator's frames consumed, naming the temporary file)
     raise IsADirectoryError(f"{path} is a folder; name the video file to write (e.g. "
                             f"{path / ('video' + path.suffix)})")
+  if getattr(frames, "ndim", None) == 3 and frames.shape[-1] == 3:  # its rows taken for frames
+    raise ValueError(f"{path}: frames must be [T, H, W, 3], got one image of shape "
+                     f"{tuple(frames.shape)} (a video of one frame is image[None])")
   streamed = not isinstance(frames, (np.ndarray, list, tuple))
   warned: list[int] = []  # the 0..1 warning is given once per video, not once per frame
   if not streamed:  # all checked before the file is created

@@ -298,6 +298,9 @@ def test_side_by_side_and_video(tmp_path):
   ok, frame = cap.read()
   assert ok and frame.shape == (20, 8190, 3)
   assert frame[5, :4000].max() < 40 and frame[5, 4200:8000].min() > 215  # the content, scaled
+  # one image [H, W, 3]: its rows were taken for frames ("frame 0 has shape (14, 3)")
+  with pytest.raises(ValueError, match=r"one image of shape \(9, 14, 3\) \(a video of one "):
+    viz.write_video(tmp_path / "one.mp4", frames[0])
 
 
 def test_a_failed_video_leaves_the_file_it_would_replace(tmp_path):
