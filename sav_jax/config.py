@@ -233,12 +233,22 @@ def _checked_value(name: str, value, annotation: str):
   is_bool = isinstance(value, (bool, np.bool_))
   if not isinstance(value, kinds[annotation]) or (is_bool and annotation in ("int", "float")):
     kind = type(value)
+    named = _policy_name(value) if name == "remat_policy" else None
+    hint = f" (the name {named}, not the policy)" if named else ""
     raise ValueError(f"SAVConfig.{name}={value!r} ({kind.__module__}.{kind.__qualname__}); "
-                     f"expected {annotation}")
+                     f"expected {annotation}{hint}")
   value = {"int": int, "float": float, "bool": bool}.get(annotation, str)(value)
   if annotation == "int" and value < 1:
     raise ValueError(f"SAVConfig.{name} must be >= 1, got {value!r}")
   return value
+
+
+def _policy_name(policy) -> str | None:
+  """The names in `jax.checkpoint_policies` of `policy` (a policy given for its name), e.g.
+  "'checkpoint_dots' or 'dots_saveable'" (aliases), or None."""
+  import jax  # pylint: disable=import-outside-toplevel
+  names = [repr(n) for n in remat_policies() if getattr(jax.checkpoint_policies, n) is policy]
+  return " or ".join(names) or None
 
 
 def remat_policies() -> list[str]:

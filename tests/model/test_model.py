@@ -244,6 +244,9 @@ def test_bad_config_raises():
     ({"frame_block_mb": True}, r"SAVConfig\.frame_block_mb=True \(builtins\.bool\); expected float"),
     ({"dtype": None}, r"SAVConfig\.dtype=None \(builtins\.NoneType\); expected str"),
     ({"remat_policy": "bogus"}, r"remat_policy='bogus'; expected None or one of .*dots_saveable"),
+    # the policy itself (as jax.checkpoint takes it): its name is what the field holds
+    ({"remat": True, "remat_policy": jax.checkpoint_policies.dots_saveable},
+     r"remat_policy=.*; expected Optional\[str\] \(the name .*'dots_saveable', not the policy\)"),
     # a factory of policies (called with names), not a policy: refused even with remat=True
     ({"remat": True, "remat_policy": "save_only_these_names"},
      r"remat_policy='save_only_these_names'; expected None or one of"),
