@@ -2021,8 +2021,9 @@ def test_per_frame_curves_are_the_official_rule_per_frame(monkeypatch):
 
 def test_override_values_of_each_type():
   """Booleans take true/false, 1/0, yes/no, on/off (any case); an integer field refuses a
-  fraction instead of cutting it, and takes a whole number in scientific notation; a float field takes an integer; a string field keeps the text
-  as written; a nested field is named with its block."""
+  fraction instead of cutting it, and takes a whole number in scientific notation; a float
+  field takes an integer; a string field keeps the text as written; a nested field is named
+  with its block."""
   config = eval_config.load_config(str(CONFIGS / "synthetic.py"))
   for text, value in (("yes", True), ("No", False), ("ON", True), ("off", False), ("1", True),
                       ("0", False), ("True", True), ("false", False), (" on\n", True)):
