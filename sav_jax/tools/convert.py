@@ -101,8 +101,11 @@ def run(args: argparse.Namespace) -> int:
         log.warning("%s (%s will not record it)", note, args.dst)
     if convert.is_variables_checkpoint(args.src) or to_file:
       from sav_jax.tools.infer import config_from_dict  # pylint: disable=import-outside-toplevel
-      path = convert.export_state_dict(variables, args.dst, overwrite=args.overwrite,
-                                       cfg=config_from_dict(config, args.src))
+      try:  # the checks name the parameters; say which checkpoint they are of
+        sd = convert.state_dict_from_params(variables, config_from_dict(config, args.src))
+      except convert.CheckpointError as e:
+        raise convert.CheckpointError(f"{args.src}: {e}") from e
+      path = convert.save_state_dict(sd, args.dst, overwrite=args.overwrite)
       print(f"exported {args.src} -> {path} (official Stereo Any Video key names)")
     else:  # a training checkpoint -> a compact variables directory (no optimizer state)
       step = convert.find_training_checkpoint(args.src)

@@ -493,6 +493,18 @@ def test_export_of_another_architecture_uses_its_stored_config(tmp_path, capsys)
     np.testing.assert_array_equal(back[k], sd[k], err_msg=k)
 
 
+def test_export_of_unusable_parameters_names_the_checkpoint(tmp_path, variables, capsys):
+  params = jax.tree_util.tree_map(np.asarray, variables["params"])
+  bias = np.full_like(params["cnet"]["conv1"]["bias"], np.nan)
+  nan = {"params": {**params, "cnet": {**params["cnet"], "conv1": {
+      **params["cnet"]["conv1"], "bias": bias}}}}
+  convert.save_variables(tmp_path / "diverged", nan, {"model": sav_jax.SAVConfig().to_dict()})
+  assert cli.main(["convert", str(tmp_path / "diverged"), str(tmp_path / "out.npz")]) == 2
+  err = capsys.readouterr().err
+  assert f"{tmp_path / 'diverged'}: state_dict_from_params: 1 parameter(s) hold NaN" in err
+  assert not (tmp_path / "out.npz").exists()
+
+
 def test_unused_parameters_are_kept_outside_params(variables):
   unused = variables[UNUSED_COLLECTION]
   assert "update_block.time_attn.temporal_attn.qkv.weight" in unused
