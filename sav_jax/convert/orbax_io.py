@@ -557,6 +557,8 @@ def _target_from_metadata(reader, directory, item, key=None):
     raise CheckpointError(f"{directory}: the checkpoint is corrupt or incomplete (a file of it "
                           f"is truncated or missing): it has no {listing.relative_to(directory)} "
                           "(the list of its arrays)")
+  previous = sys.unraisablehook  # as `checked_restore`: failed reads report at any later time
+  quiet_failed_reads()
   try:
     if item is None:
       tree = reader.metadata(directory).tree
@@ -566,8 +568,10 @@ def _target_from_metadata(reader, directory, item, key=None):
   except (KeyError, AttributeError, TypeError, ValueError) as e:
     corrupt = corrupt_checkpoint_error(directory, e)
     if corrupt is not None:
-      raise corrupt from e
+      raise corrupt from e  # the filter stays
+    sys.unraisablehook = previous
     raise CheckpointError(f"{directory}: unreadable checkpoint metadata ({e})") from e
+  sys.unraisablehook = previous
   # This process's first device (`jax.devices()[0]` is process 0's on several hosts).
   sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
 
