@@ -11,6 +11,7 @@ checkpoint under the final name.
 written by `python -m train`): only `state["params"]` is read, not the optimizer state.
 """
 
+import contextlib
 import gc
 import json
 import logging
@@ -309,15 +310,13 @@ def checked_restore(restore, directory, mismatch, corrupt_hint: str = ""):
       failed read (the checkpoint does not fit the target); raised from the error.
     corrupt_hint: appended to the corrupt-checkpoint message (`corrupt_checkpoint_error`).
 
-  The `quiet_failed_reads` filter is in place during the call and kept only if it fails;
-  other exceptions propagate unchanged.
+  The `quiet_failed_reads` filter is in place during the call and kept only if it fails
+  (`_quiet_reads_kept_on_failure`); other exceptions propagate unchanged.
   """
-  previous = sys.unraisablehook
-  quiet_failed_reads()
   try:
     # A Ctrl-C is held until the restore is done: met inside it, orbax reported the reads it
     # cancelled as a corrupt checkpoint, or its reader threads lost the interrupt.
-    with _signals.interrupt_after():
+    with _quiet_reads_kept_on_failure(), _signals.interrupt_after():
       restored = restore()
   except Exception as e:  # pylint: disable=broad-except  # orbax: a bare Exception if unreadable
     memory = next((x for x in _causes(e) if isinstance(x, MemoryError)), None)
@@ -329,7 +328,6 @@ def checked_restore(restore, directory, mismatch, corrupt_hint: str = ""):
         raise
       raise mismatch(e) from e
   else:
-    sys.unraisablehook = previous  # a good checkpoint leaves no global hook behind
     return restored
   # Finalise the restore's other pending reads now, under the filter installed above: outside
   # the except block, which holds them.
@@ -385,6 +383,17 @@ def corrupt_checkpoint_error(directory, error: BaseException) -> CheckpointError
     log.debug("%s: %s", directory, "".join(traceback.format_exception(error)))
   return CheckpointError(f"{directory}: the checkpoint is corrupt or incomplete (a file of it "
                          f"is truncated or missing): {detail[:300]}")
+
+
+@contextlib.contextmanager
+def _quiet_reads_kept_on_failure():
+  """`quiet_failed_reads` for the block: removed when it succeeds (a good checkpoint leaves no
+  global hook behind), kept when it raises (the reads a failure leaves pending report at any
+  later time)."""
+  previous = sys.unraisablehook
+  quiet_failed_reads()
+  yield
+  sys.unraisablehook = previous
 
 
 def quiet_failed_reads() -> None:
@@ -557,21 +566,18 @@ def _target_from_metadata(reader, directory, item, key=None):
     raise CheckpointError(f"{directory}: the checkpoint is corrupt or incomplete (a file of it "
                           f"is truncated or missing): it has no {listing.relative_to(directory)} "
                           "(the list of its arrays)")
-  previous = sys.unraisablehook  # as `checked_restore`: failed reads report at any later time
-  quiet_failed_reads()
   try:
-    if item is None:
-      tree = reader.metadata(directory).tree
-    else:
-      tree = reader.metadata(directory).item_metadata[item].tree
-    tree = tree if key is None else tree[key]
+    with _quiet_reads_kept_on_failure():  # (its reads fail as a restore's do)
+      if item is None:
+        tree = reader.metadata(directory).tree
+      else:
+        tree = reader.metadata(directory).item_metadata[item].tree
+      tree = tree if key is None else tree[key]
   except (KeyError, AttributeError, TypeError, ValueError) as e:
     corrupt = corrupt_checkpoint_error(directory, e)
     if corrupt is not None:
-      raise corrupt from e  # the filter stays
-    sys.unraisablehook = previous
+      raise corrupt from e
     raise CheckpointError(f"{directory}: unreadable checkpoint metadata ({e})") from e
-  sys.unraisablehook = previous
   # This process's first device (`jax.devices()[0]` is process 0's on several hosts).
   sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
 

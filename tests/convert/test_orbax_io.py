@@ -1,8 +1,8 @@
 """Tests for sav_jax.convert.orbax_io: orbax save/restore of Flax variables and a config."""
 
 import os
-import sys
 import shutil
+import sys
 
 import jax
 import jax.numpy as jnp
