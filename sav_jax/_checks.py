@@ -147,7 +147,7 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0,
                         normalised + ")"))
   if kind != "f":
     return False
-  if lo < -1.0 and hi <= 3.0:
+  if looks_normalised(lo, hi):
     raise ValueError(f"{name}: float frames with values {lo:g}..{hi:g} look normalised ("
                      f"{normalised}, e.g. (frames * std + mean) * 255)")
   looks, spread = float_frames_range(video, lo, hi)
@@ -164,6 +164,12 @@ def check_video_values(video: np.ndarray, name: str = "video", first: int = 0,
     warnings.warn(f"{name}: float frames with values {lo:g}..{hi:g}, outside 0..255, which the "
                   "model expects (divide 16-bit frames by 257)", stacklevel=caller_stacklevel())
   return looks is not None
+
+
+def looks_normalised(lo: float, hi: float) -> bool:
+  """Whether float frames of values `lo..hi` look normalised (a mean and scale taken off):
+  values below -1 and none above 3."""
+  return lo < -1.0 and hi <= 3.0
 
 
 def unit_range_advice(lo: float) -> str:

@@ -33,7 +33,8 @@ import cv2
 import numpy as np
 
 from sav_jax._checks import (OVERSHOOT_HIGH, OVERSHOOT_LOW, caller_stacklevel,  # (viz's API too)
-                             check_utf8_path, is_int, unit_range_advice, widened)
+                             check_utf8_path, is_int, looks_normalised, unit_range_advice,
+                             widened)
 from sav_jax._files import free_space_note
 
 COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO, "turbo": cv2.COLORMAP_TURBO,
@@ -108,9 +109,9 @@ def as_uint8_image(image, what: str = "image", *, is_map: bool = False) -> np.nd
   if is_float and not np.isfinite(a).all():
     raise ValueError(f"{what}: NaN or inf values; expected 0..255{hint}")
   lo, hi = float(a.min()), float(a.max())
-  overshoot = is_float and not is_map and OVERSHOOT_LOW <= lo and hi <= OVERSHOOT_HIGH
-  if overshoot and lo < -1.0 and hi <= 3.0:  # normalised, as predict_video refuses such frames
-    overshoot = False  # (clipped to 0..255, they came out black without a word)
+  # (not normalised frames, which predict_video refuses: clipped, they came out black)
+  overshoot = (is_float and not is_map and OVERSHOOT_LOW <= lo and hi <= OVERSHOOT_HIGH
+               and not looks_normalised(lo, hi))
   if (lo < 0 or hi > 255) and not overshoot:
     if hint:
       advice = _COLORIZE_HINT
