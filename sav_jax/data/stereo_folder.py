@@ -170,6 +170,8 @@ def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[S
                          f"({', '.join(kinds)}); use one")
       files["left_gt"] = gt
       sparse = kinds == [".png"]
+    for paths in files.values():
+      _refuse_repeated_frames(paths)
     check_matching(where, files, number_key)
     seqs.append(FolderSequence(seq_dir.name, files, dataset=dataset, sparse=sparse,
                                depth2disp_scale=_scale(seq_dir, files["left"])))
@@ -177,6 +179,22 @@ def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[S
     raise FileNotFoundError(f"no sequences in {split_dir} (expected <sequence>/left, right "
                             "folders)")
   return seqs
+
+
+def _refuse_repeated_frames(paths: list[Path]) -> None:
+  """Raises ValueError naming two files of one folder with the same frame number (`0001.png`
+  beside `0001.jpg`, or `1.png`): each frame was read twice, as two consecutive frames,
+  without a word. A number shared by every file (`clip_v2.png`) is no frame number: passed."""
+  keys = [number_key(p) for p in paths]
+  if len(set(keys)) == 1 and len({p.stem for p in paths}) == len(paths):
+    return
+  seen = {}
+  for path, key in zip(paths, keys):
+    if key in seen:
+      raise ValueError(f"{path.parent}: {seen[key].name} and {path.name} are both frame "
+                       f"{key} (frames are matched by the last number in their names); keep "
+                       "one file per frame")
+    seen[key] = path
 
 
 def _root_hint(root: Path, split: str) -> str:

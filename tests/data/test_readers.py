@@ -1939,6 +1939,28 @@ def test_folder_frames_named_by_decimal_timestamps_pair_by_the_whole_number(tmp_
   assert len(registry.get_sequences("folder", tmp_path, "test")[0]) == 4
 
 
+def test_folder_frames_saved_twice_under_one_number_are_refused(tmp_path):
+  # PNG and JPEG copies of each frame (or 0001.png beside 1.png) in left/ and right/: every
+  # frame was read twice, as two consecutive frames, without a word
+  rng = np.random.default_rng(29)
+  seq = tmp_path / "test" / "cam"
+  for t in range(3):
+    for side in ("left", "right"):
+      img = _rgb(rng)
+      _png(seq / side / f"{side}_{t:04d}.png", img)
+      _png(seq / side / f"{side}_{t:04d}.jpg", img)
+  with pytest.raises(ValueError, match=r"cam.left: left_0000\.jpg and left_0000\.png are both "
+                                       "frame 0"):
+    registry.get_sequences("folder", tmp_path, "test")
+  for path in seq.rglob("*.jpg"):
+    path.unlink()
+  assert len(registry.get_sequences("folder", tmp_path, "test")[0]) == 3
+  for side in ("left", "right"):  # one number shared by every name is no frame number
+    for t in range(3):
+      (seq / side / f"{side}_{t:04d}.png").rename(seq / side / f"{'abc'[t]}_v2.png")
+  assert len(registry.get_sequences("folder", tmp_path, "test")[0]) == 3
+
+
 def test_folder_split_skips_stray_files_and_hidden_folders_and_checks_the_baseline(tmp_path):
   # A README or a notebook's hidden folder next to the sequences is not a sequence; a
   # calibration whose baseline is negative (the cameras swapped) gives no disparity scale.
