@@ -386,6 +386,9 @@ class Augment:
 
   def __call__(self, clip, rng: np.random.Generator) -> dict[str, np.ndarray]:
     from sav_jax.data import augment  # pylint: disable=g-import-not-at-top
+    if not clip.get("sparse", False):  # clips not loaded by `_LoadClip` (synthetic_source,
+      clip = dict(clip)                # clip dicts): their masks were recomputed as all valid
+      honour_dense_masks(clip)
     try:
       out = as_example(augment.augment_clip(clip, self.augment_config(), rng))
     except ValueError as e:  # which clip of which dataset (of a mixture)

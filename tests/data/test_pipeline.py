@@ -450,6 +450,25 @@ def test_a_dense_readers_invalid_pixels_stay_out_of_training():
   assert (sparse["disparity"][:, 8] == -1).all()  # a sparse mask is carried: left as read
 
 
+def test_masks_of_clip_dicts_and_synthetic_clips_stay_out_of_training():
+  # Clips not read by a sequence (a clip dict given to clips_source, synthetic_source's
+  # occluded pixels): the dense augmentation recomputed their masks as all valid.
+  clip = {"left": np.zeros((2, 16, 16, 3), np.uint8), "right": np.zeros((2, 16, 16, 3), np.uint8),
+          "disparity": np.full((2, 16, 16), 3.0, np.float32), "valid": np.ones((2, 16, 16), bool)}
+  clip["disparity"][:, :, :8], clip["valid"][:, :, :8] = 7.0, False  # no ground truth: a fill
+  identity = (("spatial_prob", 0.0), ("photometric", False), ("eraser_prob", 0.0),
+              ("yjitter", False))
+  for seed in range(3):
+    out = pipeline.Augment((8, 12), identity)(pipeline.clips_source([clip])[0],
+                                              np.random.default_rng(seed))
+    assert (out["disparity"][out["valid"]] == 3).all() and (~out["valid"]).any()
+  assert (clip["disparity"][:, :, :8] == 7).all()  # the caller's arrays are left as they are
+  synthetic = pipeline.synthetic_source(CFG, 1)[0]
+  assert not synthetic["valid"].all()
+  out = pipeline.Augment((16, 16), identity)(synthetic, np.random.default_rng(0))
+  np.testing.assert_array_equal(out["valid"], synthetic["valid"])
+
+
 def test_stand_ins_are_other_clips_drawn_per_index():
   drawn = pipeline._SkippingClips([None] * 3, 5)  # pylint: disable=protected-access
   for i in range(3):  # never the unreadable clip itself (a wasted try)
