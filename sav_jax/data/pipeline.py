@@ -86,6 +86,10 @@ def as_example(clip: Mapping[str, Any]) -> dict[str, np.ndarray]:
   if disp.shape != left.shape[:3] or valid.shape != left.shape[:3]:
     raise ValueError(f"disparity {disp.shape} / valid {valid.shape} do not match the "
                      f"images {left.shape[:3]}")
+  for name, view in (("left", left), ("right", right)):
+    if view.dtype.kind == "f" and not np.isfinite(view).all():  # (NaN became 0, inf 255)
+      raise ValueError(f"{name} frames hold NaN or infinite values: the pipeline expects "
+                       "8-bit RGB, 0..255")
   if left.dtype.kind == "f" and left.size and 0 < float(left.max()) <= 1.0:
     warnings.warn(f"float frames with values up to {float(left.max()):g}: the pipeline expects "
                   "0..255 (multiply 0..1 images by 255)", stacklevel=caller_stacklevel())

@@ -375,6 +375,11 @@ def test_as_example_conversions():
   small = pipeline.as_example({**clip, "left": np.full_like(left, 7, np.int64),
                                "right": np.full_like(left, 255, np.uint16)})
   assert small["left"].dtype == np.uint8 and small["right"].max() == 255  # in range: fine
+  for bad in (np.nan, np.inf):  # (NaN was cast to 0 and inf clipped to 255, silently)
+    odd = left.copy()
+    odd[0, 0, 1, 2] = bad
+    with pytest.raises(ValueError, match="right frames hold NaN or infinite values"):
+      pipeline.as_example({**clip, "right": odd})
 
 
 class _SparseSequence(_FakeSequence):
