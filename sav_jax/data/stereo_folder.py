@@ -164,6 +164,11 @@ def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[S
     refuse_broken_links([seq_dir / "disparity", *(seq_dir / n for n in CALIBRATION_FILES)])
     if (seq_dir / "disparity").is_dir():
       gt = list_files(seq_dir / "disparity", *DISPARITY_SUFFIXES)
+      if not gt:  # (was "frame counts differ: 'left_gt' lacks frame 0", the folder unnamed)
+        other = sorted(p.name for p in (seq_dir / "disparity").iterdir() if not is_hidden(p))
+        raise FileNotFoundError(f"{seq_dir / 'disparity'}: no disparity files (expected "
+                                f"{', '.join(DISPARITY_SUFFIXES)}"
+                                + (f"; it has {some_of(other)})" if other else ")"))
       kinds = sorted({p.suffix.lower() for p in gt})
       if len(kinds) > 1:
         raise ValueError(f"{seq_dir / 'disparity'}: disparity files of several formats "

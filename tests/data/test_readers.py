@@ -1961,6 +1961,17 @@ def test_folder_frames_saved_twice_under_one_number_are_refused(tmp_path):
   assert len(registry.get_sequences("folder", tmp_path, "test")[0]) == 3
 
 
+def test_folder_disparity_folder_without_disparity_files_is_named(tmp_path):
+  # ground truth in another format (float TIFF): "frame counts differ: 'left_gt' lacks
+  # frame 0", neither the folder nor what is in it named
+  seq = tmp_path / "test" / "cam"
+  _npy_sequence(seq, np.random.default_rng(30), {"0": np.ones((H, W), np.float32)})
+  (seq / "disparity" / "0.npy").rename(seq / "disparity" / "0.tif")
+  with pytest.raises(FileNotFoundError, match=r"cam.disparity: no disparity files \(expected "
+                                              r"\.png, \.pfm, \.npy, \.exr; it has 0\.tif\)"):
+    registry.get_sequences("folder", tmp_path, "test")
+
+
 def test_folder_split_skips_stray_files_and_hidden_folders_and_checks_the_baseline(tmp_path):
   # A README or a notebook's hidden folder next to the sequences is not a sequence; a
   # calibration whose baseline is negative (the cameras swapped) gives no disparity scale.
