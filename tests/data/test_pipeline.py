@@ -468,6 +468,9 @@ def test_masks_of_clip_dicts_and_synthetic_clips_stay_out_of_training():
                                               np.random.default_rng(seed))
     assert (out["disparity"][out["valid"]] == 3).all() and (~out["valid"]).any()
   assert (clip["disparity"][:, :, :8] == 7).all()  # the caller's arrays are left as they are
+  weights = {**clip, "valid": np.where(clip["valid"], np.float32(0.9), np.float32(0.3))}
+  out = pipeline.Augment((8, 12), identity)(weights, np.random.default_rng(0))
+  assert (out["disparity"][out["valid"]] == 3).all()  # a weight of 0.3 is no ground truth
   synthetic = pipeline.synthetic_source(CFG, 1)[0]
   assert not synthetic["valid"].all()
   out = pipeline.Augment((16, 16), identity)(synthetic, np.random.default_rng(0))
