@@ -480,6 +480,29 @@ MP4V_MAX_SIDE = 8190
 VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".avi", ".mkv")
 
 
+def _opencv_fps_fits(fps: float) -> bool:
+  """Whether OpenCV's FFmpeg writer can open an MPEG-4 video at `fps`: it takes the first
+  power-of-ten denominator that puts the rate within 0.001 of `fps`, and MPEG-4's time base
+  (that fraction's reduced numerator) must be at most 65535."""
+  base, rate = 1, int(fps + 0.5)
+  while abs(rate / base - fps) > 0.001:
+    base *= 10
+    rate = int(fps * base + 0.5)
+  return rate // math.gcd(rate, base) <= 65535
+
+
+def mp4v_fps(fps: float) -> float:
+  """`fps` (a rate `is_fps` takes) as the nearest rate OpenCV's MPEG-4 writer opens: `fps`
+  itself where it can; else rounded to 2, 1 or 0 decimals (119.8765 -> 119.88: the writer
+  refused 1000/119877 as a time base, after a whole `sav-jax infer` run)."""
+  fps = float(fps)
+  for decimals in (None, 2, 1, 0):
+    rate = fps if decimals is None else max(round(fps, decimals), 10.0 ** -decimals)
+    if _opencv_fps_fits(rate):
+      return rate
+  return float(round(fps))
+
+
 def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
   """Writes RGB frames as an MPEG-4 (mp4v) video with OpenCV (replacing a file at `path`
   once the video is complete: until then it is written under a temporary name beside it).
@@ -495,7 +518,8 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
       file is created), or an iterator of them (written as they come, so a long video need
       not be in memory; a bad frame stops the writing, removes the partial file and leaves
       a file at `path` as it was).
-    fps: frame rate.
+    fps: frame rate (0.01 to 65535; one MPEG-4 cannot time exactly is rounded to the
+      nearest it can, `mp4v_fps`: 119.8765 -> 119.88).
 
   Returns:
     The path written.
@@ -540,7 +564,7 @@ def write_video(path, frames, fps: float = 10.0) -> pathlib.Path:
                         f"video has at most {MP4V_MAX_SIDE} pixels a side)",
                         stacklevel=caller_stacklevel())
         he, we = h + h % 2, w + w % 2
-        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
+        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), mp4v_fps(fps),
                                  (we, he))
         if not writer.isOpened():
           writer = None

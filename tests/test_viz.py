@@ -902,6 +902,16 @@ def test_write_video_keeps_colours_order_rate_and_pads_with_the_edge(tmp_path):
     viz.write_video(tmp_path / "none.mp4", np.zeros((1, 4, 0, 3), np.uint8))
 
 
+def test_write_video_takes_rates_mpeg4_cannot_time_exactly(tmp_path):
+  # 119.8765 frames/s (a variable-rate video's average, or --fps): OpenCV's writer refused the
+  # time base 1000/119877 (above MPEG-4's 65535), after a whole sav-jax infer run
+  for fps, written in ((119.8765, 119.88), (65.6789, 65.68), (29.876543, 29.877)):
+    viz.write_video(tmp_path / "v.mp4", np.zeros((2, 4, 4, 3), np.uint8), fps=fps)
+    back, got = _read_video(tmp_path / "v.mp4")
+    assert len(back) == 2 and got == pytest.approx(written, abs=1e-6), (fps, got)
+  assert viz.mp4v_fps(25.0) == 25.0 and viz.mp4v_fps(65534.5) == 65534.0
+
+
 def test_write_video_scales_tall_frames_to_fit(tmp_path):
   # 8200x1: scaled by 8190 / 8200 to 8190 rows and (at least) 1 column, padded to 2
   tall = np.zeros((1, 8200, 1, 3), np.uint8)
