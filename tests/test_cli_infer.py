@@ -2132,6 +2132,20 @@ def test_a_demo_out_folder_whose_name_is_not_utf8_is_refused_before_the_run(tmp_
   assert not out.exists()
 
 
+def test_demo_refuses_an_out_folder_that_is_a_dataset_sequence(tmp_path, capsys, monkeypatch):
+  """A folder with left/ and right/ (a `folder` dataset's sequence): the demo's
+  disparity/frame_*.png there were read as the sequence's ground truth, as infer's were."""
+  from sav_jax.tools import demo  # pylint: disable=import-outside-toplevel
+  monkeypatch.setattr(demo, "_weights", lambda args, dtype: 1 / 0)  # (not reached)
+  seq = tmp_path / "seq"
+  (seq / "left").mkdir(parents=True)
+  (seq / "right").mkdir()
+  assert cli.main(["demo", "--out", str(seq), "--frames", "2", "--height", "16", "--width", "32",
+                   "--iters", "2", "--no-compile-cache"]) == 2
+  assert "holds left/ and right/ folders" in capsys.readouterr().err
+  assert sorted(p.name for p in seq.iterdir()) == ["left", "right"]
+
+
 def test_the_held_disparities_are_not_mapped_into_memory(tmp_path, npz_ckpt, monkeypatch):
   """The disparities that wait for the side-by-side video sat in a memory map of their
   temporary file: every frame written stayed in the process's resident memory (1000 frames

@@ -194,6 +194,8 @@ def run(args: argparse.Namespace) -> int:
   if args.seed < 0:  # (the synthetic scene's check names SyntheticConfig.seed, after the weights)
     raise UsageError(f"--seed must be >= 0, got {args.seed}")
   out = check_output_dir(args.out)
+  # (its disparity/frame_*.png there were read as the sequence's ground truth, as infer's)
+  infer.check_not_sequence_folder(out)
   # (its videos: OpenCV's video writer cannot take other bytes, refused after the model ran)
   viz.check_utf8_path(out.absolute(), "--out folder")
   stale = check_demo_output(out, args.frames, args.overwrite)
