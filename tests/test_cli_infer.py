@@ -2746,7 +2746,8 @@ def test_the_output_video_plays_at_the_left_videos_rate(tmp_path, npz_ckpt, monk
   left = _mjpg(tmp_path / "left.avi", frames, fps=12.5)
   right = _mjpg(tmp_path / "right.avi", frames, fps=12.5)
   monkeypatch.setattr(inference, "_run_window", _positive_model)
-  for out, extra, fps in (("a", (), 12.5), ("b", ("--fps", "7"), 7.0)):
+  for out, extra, fps in (("a", (), 12.5), ("b", ("--fps", "7"), 7.0),
+                          ("c", ("--fps", "119.8765"), 119.88)):  # the rate MPEG-4 can time
     assert _infer(left, right, npz_ckpt, tmp_path / out, *extra) == 0
     assert json.loads((tmp_path / out / "summary.json").read_text())["video_fps"] == fps
     assert video_io.video_fps(tmp_path / out / "side_by_side.mp4") == fps

@@ -503,7 +503,8 @@ def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:
   summary = {"tool": SUMMARY_TOOL, "frames": t, "height": h, "width": w,
              "model_size": list(resize or (h, w)), "iters": args.iters,
              "dtype": cfg.dtype, "matmul_precision": precision_name,
-             "window": args.window, "stride": args.stride, "video_fps": args.fps,
+             "window": args.window, "stride": args.stride,
+             "video_fps": viz.mp4v_fps(args.fps),  # (the rate written: 119.8765 -> 119.88)
              "weights": described,
              "devices": [str(d) for d in devices],
              "left": str(args.left), "right": str(args.right), "formats": formats,
