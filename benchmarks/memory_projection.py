@@ -46,7 +46,10 @@ def main():
   check_clip_arguments(p, a)
 
   extra = {} if a.frame_block_mb is None else {"frame_block_mb": a.frame_block_mb}
-  cfg = sav_jax.SAVConfig(dtype=a.dtype, gru_conv=a.gru_conv, **extra)
+  try:
+    cfg = sav_jax.SAVConfig(dtype=a.dtype, gru_conv=a.gru_conv, **extra)
+  except ValueError as e:  # (a --frame-block-mb of 0, negative or nan: a traceback)
+    p.error(f"--frame-block-mb {a.frame_block_mb:g}: {e}")
   compiled, compile_s = compile_for_shape(cfg, a.frames, a.height, a.width, a.iters)
   m = compiled.memory_analysis()
   gb = lambda n: n / 2**30  # noqa: E731

@@ -302,6 +302,14 @@ def test_clip_scripts_name_a_clip_the_model_refuses_before_running(script, monke
   assert "--iters must be >= 2 (got 1)" in err
 
 
+def test_memory_projection_names_a_bad_frame_block_budget_in_one_line(monkeypatch, capsys):
+  import memory_projection  # pylint: disable=import-outside-toplevel,import-error
+  for value in ("0", "-5", "nan"):
+    err = _usage_error(memory_projection.main, ["memory_projection.py", "--frame-block-mb",
+                                                value], monkeypatch, capsys)
+    assert "--frame-block-mb" in err and "must be a finite number > 0" in err, err
+
+
 def test_bf16_audit_names_a_gradient_clip_the_model_refuses_before_running(monkeypatch,
                                                                           capsys):
   """--gradients' clip is checked before the forward rows (minutes), not refused by the
