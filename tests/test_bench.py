@@ -152,6 +152,11 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
   assert bench.machine_note({**here, "gru_conv": "dft"}, {**here, "gru_conv": "direct"}) == (
       "warning: the baseline was measured with other settings (gru_conv dft here, direct "
       "there): the ratios compare those settings, not code")
+  # another setting on another day: the warning and the day's note, one line each
+  note = bench.machine_note({**here, "gru_conv": "dft"},
+                            {**here, "gru_conv": "direct", "date": "2026-12-01"})
+  assert note.splitlines()[0].endswith("the ratios compare those settings, not code"), note
+  assert note.splitlines()[1].startswith("note: the baseline was measured on 2026-12-01"), note
   assert isinstance(bench.cpu_model(), str) and bench.cpu_model()
   # A compile of 0 s gives no ratio (it gave x10000000000000.00); equal values are the same.
   assert bench.compare_line({"median_s": 2.0, "compile_s": 4.0, "peak_rss_gb": 1.0},

@@ -277,14 +277,16 @@ def machine_note(res: dict, base: dict) -> str:
   if differ:
     return ("warning: the baseline was measured elsewhere (" + "; ".join(differ + settings)
             + "): the ratios compare machines, not code")
+  lines = []
   if settings:  # e.g. --no-low-memory-compile: compile time and memory move with it
-    return ("warning: the baseline was measured with other settings (" + "; ".join(settings)
-            + "): the ratios compare those settings, not code")
-  if base.get("date") and base["date"] != res.get("date"):
-    return (f"note: the baseline was measured on {base['date']}: machines of one kind differ "
-            "between sessions (up to 1.75x seen on CPUs), so remeasure it here for a ratio of "
-            "code alone")
-  return ""
+    lines.append("warning: the baseline was measured with other settings ("
+                 + "; ".join(settings) + "): the ratios compare those settings, not code")
+  if base.get("date") and base["date"] != res.get("date"):  # (also with other settings:
+    # a --gru-conv direct run of another day compares the days too)
+    lines.append(f"note: the baseline was measured on {base['date']}: machines of one kind "
+                 "differ between sessions (up to 1.75x seen on CPUs), so remeasure it here for "
+                 "a ratio of code alone")
+  return "\n".join(lines)
 
 
 def compare_line(res: dict, base: dict) -> str:
