@@ -93,7 +93,12 @@ def main(argv=None) -> int:
     print(f"{r['dtype']:<10}{r['precision']:<10}{r['vit_attention']:<10}{r['gru_conv']:<9}"
           f"{r['mean_px']:>12.2e}{r['max_px']:>12.2e}")
   if a.json:
-    with open(a.json, "w", encoding="utf-8") as f:
+    try:  # "x": a file of that name made during the run (checked before it) is kept
+      f = open(a.json, "w" if a.overwrite else "x", encoding="utf-8")
+    except FileExistsError:
+      p.error(f"--json {a.json} was created during the run; not replaced (the results are "
+              "above; pass --overwrite to replace it)")
+    with f:
       json.dump(dict(device=f"{device.platform}:{device.device_kind}", jax=jax.__version__,
                      rows=rows), f, indent=1)
   return 0

@@ -167,7 +167,12 @@ def main():
         f"{res['samples_per_s']:.3f} samples/s")
   print("\n".join(memory_lines(res, batch=res["batch"])))
   if a.json:
-    with open(a.json, "w", encoding="utf-8") as f:
+    try:  # "x": a file of that name made during the run (checked before it) is kept
+      f = open(a.json, "w" if a.overwrite else "x", encoding="utf-8")
+    except FileExistsError:
+      p.error(f"--json {a.json} was created during the run; not replaced (the results are "
+              "above; pass --overwrite to replace it)")
+    with f:
       json.dump(res, f, indent=1)
 
 

@@ -401,6 +401,31 @@ def test_scripts_refuse_to_overwrite_a_results_json_before_running(tmp_path, mon
   assert mine.read_text() == "precious"
 
 
+def test_scripts_keep_a_results_json_made_during_the_run_without_overwrite(tmp_path,
+                                                                         monkeypatch, capsys):
+  """A file of the --json name made during the run (another run writing the same name) is
+  kept without --overwrite, as `sav-jax bench` keeps it; it was silently replaced."""
+  import precision_check  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  import train_step  # noqa: E402  pylint: disable=import-outside-toplevel,import-error
+  rec = tmp_path / "rec.json"
+  res = dict(device="cpu:cpu", devices=1, jax="x", batch=1, frames=2, height=32, width=64,
+             iters=2, dtype="float32", remat=True, compile_s=1.0, trace_s=0.1, lower_s=0.1,
+             xla_compile_s=0.8, median_s=0.5, min_s=0.5, samples_per_s=2.0, peak_rss_gb=1.0)
+
+  def measure(*args, result):
+    rec.write_text("the other run's")
+    return dict(result) if isinstance(result, dict) else list(result)
+
+  monkeypatch.setattr(train_step, "measure", lambda *a: measure(*a, result=res))
+  monkeypatch.setattr(precision_check, "measure", lambda *a: measure(*a, result=[]))
+  for main, argv in ((train_step.main, ["train_step.py", "--json", str(rec)]),
+                     (precision_check.main, ["precision_check.py", "--json", str(rec)])):
+    rec.unlink(missing_ok=True)
+    err = _usage_error(main, argv, monkeypatch, capsys)
+    assert "was created during the run; not replaced" in err and rec.read_text() == (
+        "the other run's")
+
+
 def test_train_step_script_names_a_bad_clip_or_microbatches_before_running(monkeypatch,
                                                                            capsys):
   """Sizes the model refuses were a JAX traceback from the trace, naming no flag."""
