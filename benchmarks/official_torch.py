@@ -68,6 +68,9 @@ def parse_args(argv=None):
   a.repo = pathlib.Path(a.repo).expanduser().resolve()
   if a.iters < 2:
     p.error(f"--iters must be >= 2 (got {a.iters})")
+  for name in ("frames", "height", "width", "batch", "threads"):  # (torch's traceback after
+    if getattr(a, name) is not None and getattr(a, name) < 1:     # building the model)
+      p.error(f"--{name} must be >= 1 (got {getattr(a, name)})")
   if a.repeats < 1:
     p.error(f"--repeats must be >= 1 (got {a.repeats})")
   # checked before the long run, as `sav-jax bench` does (its json_output_problem is not
@@ -225,7 +228,12 @@ def main(argv=None) -> int:
     for key, v in parts["parts"].items():
       print(f"  {key:34s} {v['s']:7.3f} s  ({v['calls']} calls, {v['s'] / v['calls']:.4f} s each)")
   if a.json:
-    with open(a.json, "w", encoding="utf-8") as f:
+    try:  # "x": a file of that name made during the run (checked before it) is kept
+      f = open(a.json, "w" if a.overwrite else "x", encoding="utf-8")
+    except FileExistsError:
+      raise SystemExit(f"official_torch.py: --json {a.json} was created during the run; not "
+                       "replaced (the results are above; pass --overwrite to replace it)")
+    with f:
       json.dump(res, f, indent=1)
   return 0
 

@@ -207,12 +207,31 @@ def test_official_torch_script_checks_its_arguments_and_times_parts_per_scale(tm
                          (["--json", str(mine)], "exists; pass --overwrite"),
                          (["--json", str(tmp_path)], "is a folder"),
                          (["--json", f"{tmp_path}/new/"], "ends in a slash"),
-                         (["--json", str(tmp_path / "no" / "x.json")], "does not exist")):
+                         (["--json", str(tmp_path / "no" / "x.json")], "does not exist"),
+                         (["--frames", "0"], "--frames must be >= 1 (got 0)"),
+                         (["--height", "-32"], "--height must be >= 1 (got -32)"),
+                         (["--batch", "0"], "--batch must be >= 1"),
+                         (["--threads", "0"], "--threads must be >= 1")):
     with pytest.raises(SystemExit):
       official_torch.parse_args(["--repo", str(repo), *extra])
     assert message in capsys.readouterr().err
   assert mine.read_text() == "precious"
   assert official_torch.parse_args(["--repo", str(repo)]).repo == repo.resolve()
+  # a --json file made during the run is kept without --overwrite (it was replaced)
+  rec = tmp_path / "rec.json"
+
+  def measure(_a):
+    rec.write_text("the other run's")
+    return dict(torch="x", threads=2, first_call_s=1.0, median_s=1.0, min_s=1.0,
+                peak_rss_gb=1.0, parts_s=None)
+
+  with pytest.MonkeyPatch.context() as mp:
+    mp.setattr(official_torch, "measure", measure)
+    mp.setattr(official_torch.importlib.util, "find_spec", lambda name: object())
+    with pytest.raises(SystemExit) as e:
+      official_torch.main(["--repo", str(repo), "--json", str(rec)])
+  assert "was created during the run; not replaced" in str(e.value)
+  assert rec.read_text() == "the other run's"
 
   official_torch._stand_in("json", loads=None)  # pylint: disable=protected-access
   assert sys.modules["json"].loads is not None  # a module that imports is left alone
