@@ -75,6 +75,8 @@ def parse_args(argv=None):
     p.error(f"--repeats must be >= 1 (got {a.repeats})")
   # checked before the long run, as `sav-jax bench` does (its json_output_problem is not
   # imported: it would import JAX into the process whose memory is measured)
+  if a.overwrite and not a.json:  # (the results would not be written)
+    p.error("--overwrite replaces a --json file: name one with --json")
   if a.json:
     if os.path.islink(a.json):
       p.error(f"--json {a.json} is a symbolic link; give the path of a regular file")

@@ -80,7 +80,7 @@ def main(argv=None) -> int:
   p.add_argument("--json", help="write the rows to this JSON file (a new file, or --overwrite)")
   p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
   a = p.parse_args(argv)
-  problem = json_output_problem(a.json, a.overwrite) if a.json else None
+  problem = json_output_problem(a.json, a.overwrite)  # (--overwrite alone: no --json named)
   if problem:  # before the long run
     p.error(problem)
   rows = measure(pathlib.Path(a.fixtures))

@@ -211,7 +211,8 @@ def test_official_torch_script_checks_its_arguments_and_times_parts_per_scale(tm
                          (["--frames", "0"], "--frames must be >= 1 (got 0)"),
                          (["--height", "-32"], "--height must be >= 1 (got -32)"),
                          (["--batch", "0"], "--batch must be >= 1"),
-                         (["--threads", "0"], "--threads must be >= 1")):
+                         (["--threads", "0"], "--threads must be >= 1"),
+                         (["--overwrite"], "name one with --json")):
     with pytest.raises(SystemExit):
       official_torch.parse_args(["--repo", str(repo), *extra])
     assert message in capsys.readouterr().err
@@ -413,7 +414,8 @@ def test_scripts_refuse_to_overwrite_a_results_json_before_running(tmp_path, mon
     for args, message in ((["--json", str(mine)], "exists; pass --overwrite"),
                           (["--json", str(tmp_path)], "is a folder"),
                           (["--json", f"{tmp_path}/new/"], "ends in a slash"),
-                          (["--json", str(tmp_path / "no" / "r.json")], "does not exist")):
+                          (["--json", str(tmp_path / "no" / "r.json")], "does not exist"),
+                          (["--overwrite"], "name one with --json")):
       with pytest.raises(SystemExit) as e:
         run(args)
       assert e.value.code == 2 and message in capsys.readouterr().err
