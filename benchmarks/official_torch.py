@@ -101,6 +101,20 @@ def repo_problem(repo) -> str | None:
   return None
 
 
+def cpu_model() -> str:
+  """The host CPU's model name, as `sav-jax bench` records it (`cpu`): this project's VMs all
+  call themselves `vm`, so `--compare` tells another machine by this (sav_jax's own function
+  is not imported here: the environment with torch may not have sav_jax)."""
+  try:
+    with open("/proc/cpuinfo", encoding="utf-8") as f:
+      for line in f:
+        if line.lower().startswith("model name"):
+          return line.partition(":")[2].strip()
+  except OSError:
+    pass
+  return platform.processor() or "unknown"
+
+
 def _stand_in(name: str, **attrs) -> None:
   """Registers an empty module `name` (and its parents) unless the real one imports."""
   try:
@@ -207,7 +221,7 @@ def measure(a) -> dict:
       "fps": a.batch * a.frames / median,
       "peak_rss_gb": rss / (1024 ** 3 if sys.platform == "darwin" else 1024 ** 2),
       "device": "cpu", "threads": torch.get_num_threads(), "torch": torch.__version__,
-      "host": platform.node(), "date": datetime.date.today().isoformat(),
+      "host": platform.node(), "cpu": cpu_model(), "date": datetime.date.today().isoformat(),
       "parts_s": parts,
   }
 

@@ -275,6 +275,28 @@ def test_official_torch_script_checks_its_arguments_and_times_parts_per_scale(tm
   assert all(not p.pre and not p.post for p in parts.values())  # hooks removed
 
 
+def test_official_torch_json_records_the_cpu_model_that_bench_compares(tmp_path,
+                                                                       monkeypatch):
+  """The VMs all call themselves `vm`: without the CPU model, `sav-jax bench --compare` said
+  nothing of an official baseline measured on another machine the same day."""
+  import types  # pylint: disable=import-outside-toplevel
+  import official_torch  # pylint: disable=import-outside-toplevel,import-error
+  from sav_jax.tools import bench  # pylint: disable=import-outside-toplevel
+  fake = types.SimpleNamespace(
+      from_numpy=lambda x: x, roll=lambda x, shift, dims: np.roll(x, shift, axis=dims),
+      inference_mode=lambda: __import__("contextlib").nullcontext(),
+      get_num_threads=lambda: 2, set_num_threads=lambda n: None, __version__="fake")
+  monkeypatch.setitem(sys.modules, "torch", fake)
+  monkeypatch.setattr(official_torch, "build_official_model",
+                      lambda repo: lambda left, right, iters, test_mode: left[:, :, :1])
+  a = types.SimpleNamespace(threads=None, repo=tmp_path, batch=1, frames=2, height=16,
+                            width=32, iters=2, repeats=1, by_module=False)
+  res = official_torch.measure(a)
+  assert res["cpu"] == bench.cpu_model()
+  here = {"device": "cpu:cpu", "host": res["host"], "cpu": "another CPU"}
+  assert "cpu another CPU here" in bench.machine_note(here, res)
+
+
 def test_infer_memory_script_runs_the_streaming_infer(tmp_path, monkeypatch, capsys):
   """benchmarks/infer_memory.py's stand-in still fits `inference._run_window`: the command
   it measures writes every frame's disparity."""
