@@ -478,6 +478,10 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
                      f"{len(sources)} sources")
   if not (is_int(seed) and 0 <= seed < 2**32):
     raise ValueError(f"seed must be an integer in [0, 2**32), got {seed!r}")
+  for name, value, least in (("batch_size", batch_size, 1), ("num_threads", num_threads, 0),
+                             ("prefetch", prefetch, 0), ("worker_count", worker_count, 0)):
+    if not (is_int(value) and value >= least):  # (worker_count=-1 read as 0 without a word)
+      raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
   props = mixture_weights([len(s) for s in sources], weights, mode)
   pi = jax.process_index() if process_index is None else process_index
   pc = jax.process_count() if process_count is None else process_count
@@ -602,7 +606,7 @@ def fixed_clips(ds: grain.MapDataset, num_clips: int,
                 transform: Callable[[Mapping[str, Any]], dict] = as_example
                 ) -> list[dict[str, np.ndarray]]:
   """The first `num_clips` clips of `ds` on the host (a held-out validation set)."""
-  if not (isinstance(num_clips, int) and num_clips >= 1):
+  if not (is_int(num_clips) and num_clips >= 1):  # (numpy integers too)
     raise ValueError(f"num_clips must be an integer >= 1, got {num_clips!r}")
   if len(ds) < num_clips:
     raise ValueError(f"validation set has {len(ds)} clips, {num_clips} requested")
@@ -618,7 +622,7 @@ def eval_batches(clips: Sequence[Mapping[str, np.ndarray]], batch_size: int
   Returns:
     `[(batch, num_real_clips)]` with `batch` arrays `[batch_size, ...]`.
   """
-  if not (isinstance(batch_size, int) and batch_size >= 1):
+  if not (is_int(batch_size) and batch_size >= 1):  # (numpy integers too)
     raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
   if not clips:
     raise ValueError("no clips to batch")

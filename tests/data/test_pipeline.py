@@ -86,6 +86,17 @@ def test_seeds_up_to_two_to_the_32_with_several_augmented_sources():
       pipeline.make_train_dataset([_tagged(1, 4)], [1.0], batch_size=2, seed=seed)
 
 
+def test_counts_are_integers_in_range():
+  # (worker_count=-1 acted as 0; a float count failed in grain with a TypeError)
+  for bad in ({"batch_size": 0}, {"batch_size": 2.0}, {"worker_count": -1},
+              {"num_threads": 1.5}, {"prefetch": -1}):
+    name, value = next(iter(bad.items()))
+    with pytest.raises(ValueError, match=rf"{name} must be an integer >= [01], got {value}"):
+      pipeline.make_train_dataset([_tagged(1, 4)], [1.0], seed=0, **{"batch_size": 2, **bad})
+  assert len(pipeline.fixed_clips(_tagged(1, 4), np.int64(2))) == 2  # numpy integers count
+  assert pipeline.eval_batches(pipeline.fixed_clips(_tagged(1, 4), 3), np.int32(2))[1][1] == 1
+
+
 def test_processes_split_one_global_stream():
   # Each process takes every third element of the one stream a single process would read:
   # together they read each epoch once, in the single-process order.
