@@ -290,6 +290,8 @@ def require_dir(path: Path, what: str = "directory") -> Path:
   """Returns `path`; raises FileNotFoundError naming it when it is not a directory (and,
   where the folder is there one level deeper, the extra folder an archive unpacked into)."""
   if not Path(path).is_dir():
+    if Path(path).exists():  # (a file: "not found" sent the user looking for a missing one)
+      raise NotADirectoryError(f"{what} {path} is a file, not a folder")
     refuse_broken_links_to(path)
     raise FileNotFoundError(f"{what} not found: {path}{_nested_hint(Path(path))}")
   return Path(path)

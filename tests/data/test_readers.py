@@ -110,6 +110,9 @@ def test_sceneflow_train_test_values_and_clips(tmp_path):
   (tmp_path / "a_file").write_text("")
   with pytest.raises(NotADirectoryError, match="dataset root .*a_file is a file, not a folder"):
     registry.get_sequences("sceneflow", tmp_path / "a_file", "train")
+  # the folder dataset's root too (was "dataset folder not found", the file being there)
+  with pytest.raises(NotADirectoryError, match="dataset folder .*a_file is a file, not a"):
+    registry.get_sequences("folder", tmp_path / "a_file", "test")
 
 
 @pytest.mark.parametrize("dataset", [d for d in registry.DATASETS if d != "folder"])
