@@ -117,6 +117,23 @@ def test_cache_off_means_off_even_when_the_environment_sets_one(tmp_path, restor
   assert not any(env_cache.iterdir())
 
 
+def test_a_default_folder_that_cannot_be_made_means_no_cache(tmp_path, monkeypatch,
+                                                             restore_cache_config, caplog):
+  # (a read-only home in a container): the command runs without the cache, as training does;
+  # a folder the user names is still refused
+  import argparse  # pylint: disable=import-outside-toplevel
+  from sav_jax import tools  # pylint: disable=import-outside-toplevel
+  (tmp_path / "notes.txt").write_text("keep me")
+  monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "notes.txt"))
+  jax.config.update("jax_compilation_cache_dir", None)
+  with caplog.at_level("WARNING"):
+    assert tools.setup_compile_cache(argparse.Namespace(compile_cache=None)) is None
+  assert "no compilation cache: cannot create the compilation cache folder" in caplog.text
+  assert (tmp_path / "notes.txt").read_text() == "keep me"
+  with pytest.raises(ValueError, match="cannot create"):
+    tools.setup_compile_cache(argparse.Namespace(compile_cache=str(tmp_path / "notes.txt/x")))
+
+
 @pytest.mark.parametrize("default_on", [True, False])
 def test_compile_cache_options(tmp_path, restore_cache_config, default_on):
   """`--compile-cache DIR` is used (created); without it the cache is on where the command has

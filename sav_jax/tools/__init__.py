@@ -97,7 +97,7 @@ def setup_compile_cache(args, default_on: bool = True):
   `sav-jax bench` without `--compile-cache`, which measures compiling).
 
   Returns:
-    The cache folder, or None.
+    The cache folder, or None (also when the default folder cannot be created: a warning).
   """
   from sav_jax import runtime  # pylint: disable=import-outside-toplevel
   runtime.set_low_memory_compile(getattr(args, "low_memory_compile",
@@ -105,7 +105,12 @@ def setup_compile_cache(args, default_on: bool = True):
   if args.compile_cache:
     return runtime.enable_compilation_cache(args.compile_cache)
   if default_on and not getattr(args, "no_compile_cache", False):
-    return runtime.enable_compilation_cache()
+    try:
+      return runtime.enable_compilation_cache()
+    except ValueError as e:  # the default folder (a read-only home): no cache, as training
+      logging.getLogger(__name__).warning("no compilation cache: %s (--compile-cache DIR "
+                                          "names another folder)", e)
+      return None
   runtime.disable_compilation_cache()
   return None
 
