@@ -121,7 +121,7 @@ def parse_flags(argv):
   traceback); `--help` exits with status 0."""
   argv = located_config(integral_numbers(last_overrides(argv)))
   try:
-    return flags.FLAGS(argv)
+    rest = flags.FLAGS(argv)
   except SystemExit as e:  # absl's --help/--helpfull print the flags and exit with status 1
     if e.code == 1 and _HELP_FLAGS & set(argv[1:]):
       sys.exit(0)
@@ -157,6 +157,20 @@ def parse_flags(argv):
           f"are those of the --config file's get_config(){sources}")
   except Exception as e:  # pylint: disable=broad-except  # the config file's own code raised
     _config_code_error(argv, e)
+  if len(rest) > 1:  # (main would drop them: `--config.model.remat false` left remat on)
+    _unexpected_arguments(argv, rest[1:])
+  return rest
+
+
+def _unexpected_arguments(argv, extra) -> None:
+  """Exits naming arguments that are no flag's: absl reads a true/false field given as
+  `--config.a.b false` as `--config.a.b` (true) and leaves `false` over."""
+  hint = ""
+  k = next((k for k in range(1, len(argv)) if argv[k] == extra[0]), None)
+  if k is not None and argv[k - 1].startswith("--config.") and "=" not in argv[k - 1]:
+    hint = (f"; a true/false field takes its value after '=': {argv[k - 1]}={extra[0]} "
+            f"({argv[k - 1]} alone means true)")
+  _fail(f"unexpected argument {extra[0]!r}{hint}")
 
 
 def _not_a_training_config(argv) -> None:

@@ -2428,6 +2428,11 @@ def test_train_command_names_the_config_file_in_its_messages(argv, want):
      "{tmp}/returns_5.py cannot be used: its get_config() returned int, not a ConfigDict\n"),
     (["--config", "{tmp}/bad_keys.py", "--workdir", "w"], 2, "train: error: the config file "
      "{tmp}/bad_keys.py cannot be used: loading it raised RuntimeError: boom"),
+    # a true/false field's value after a space: absl read the field alone (true) and left the
+    # value to main, which dropped it
+    (["--config", "configs/synthetic.py", "--workdir", "w", "--config.random_depth_prior",
+      "false"], 2, "train: error: unexpected argument 'false'; a true/false field takes its "
+     "value after '=': --config.random_depth_prior=false"),
 ])
 def test_train_command_flag_errors_and_help_in_process(tmp_path, capsys, monkeypatch, argv,
                                                        status, says):
