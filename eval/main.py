@@ -120,6 +120,10 @@ DEFAULT_DATA_ROOT = "data/datasets"
 
 def run(args, overrides) -> int:
   """Loads config, data and weights, evaluates every sequence, writes the reports."""
+  for flag in ("out", "data_root", "compile_cache"):  # "" would be the default or "." (an
+    value = getattr(args, flag)                       # unset shell variable: --out "$OUT")
+    if value is not None and not value.strip():
+      raise UsageError(f"--{flag.replace('_', '-')} is empty; give a path")
   config = eval_config.load_config(args.config)
   eval_config.check_fields(config, args.config)
   config = eval_config.apply_overrides(config, overrides)

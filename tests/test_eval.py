@@ -490,6 +490,9 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
      "config.metrics.raft_iters must be a positive integer, got 0"),
     ("--checkpoint=", "--checkpoint is empty: name the weights"),
     ("--checkpoint= ", "--checkpoint is empty: name the weights"),  # (spaces: no file named)
+    # (an unset $OUT: the default folder, whose results --overwrite replaced; "." for the data)
+    ("--out=", "--out is empty; give a path"), ("--data-root=", "--data-root is empty"),
+    ("--compile-cache=", "--compile-cache is empty"),
     ("--config.plots.strip_frames=0", "config.plots.strip_frames must be an integer >= 1"),
     ("--config.dtype=float64", "config.dtype must be one of ('float32', 'bfloat16'), got 'f"),
     ("--config.synthetic.num_sequences=0",
