@@ -42,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
   p = argparse.ArgumentParser(
       prog="python -m eval", description="Evaluate Stereo Any Video with the official protocol; "
       "override config fields with --config.<field>=<value>.",
-      epilog=eval_config.fields_help())
+      epilog=eval_config.fields_help(), allow_abbrev=False)  # (--over was --overwrite)
   p.add_argument("--config", required=True, type=user_path,
                  help="config file, e.g. configs/eval/sintel_final.py (optionally path.py:arg)")
   p.add_argument("--checkpoint", required=True, type=user_path,

@@ -37,7 +37,8 @@ _OUT_OF_MEMORY_HINTS = {
 
 def build_parser() -> argparse.ArgumentParser:
   parser = argparse.ArgumentParser(
-      prog="sav-jax", description="Stereo Any Video in JAX: temporally consistent video stereo.")
+      prog="sav-jax", description="Stereo Any Video in JAX: temporally consistent video stereo.",
+      allow_abbrev=False)
   parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
   from sav_jax import __version__  # pylint: disable=import-outside-toplevel
   parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -49,7 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
       if e.name != module_name:
         raise
       continue
-    p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+    # (allow_abbrev: --over was taken for --overwrite, --check for --checkpoint, silently)
+    p = sub.add_parser(name, help=module.HELP, description=module.HELP, allow_abbrev=False)
     module.add_arguments(p)
     p.set_defaults(_run=module.run)
   return parser

@@ -507,6 +507,15 @@ def test_bad_overrides(tmp_path, ckpt, capsys, override, message):
   assert not (tmp_path / "o").exists()
 
 
+def test_abbreviated_options_are_refused(tmp_path, capsys):
+  # argparse took --over for --overwrite (replacing results), silently
+  with pytest.raises(SystemExit) as e:
+    main(["--config", str(CONFIGS / "synthetic.py"), "--checkpoint", str(tmp_path / "c"),
+          "--out", str(tmp_path / "o"), "--over"])
+  assert e.value.code == 2 and "unrecognized arguments: --over" in capsys.readouterr().err
+  assert not (tmp_path / "o").exists()
+
+
 def test_tcc_without_camera_data_is_refused_before_predicting(tmp_path, ckpt, capsys,
                                                                monkeypatch):
   load = eval_data.load_sequences_and_skipped

@@ -97,6 +97,17 @@ def test_an_empty_compile_cache_is_refused(tmp_path, capsys, monkeypatch, bench_
   assert not any(tmp_path.iterdir())
 
 
+def test_abbreviated_options_are_refused(capsys, bench_runs):
+  # argparse took an unambiguous prefix for the option (--over for --overwrite), silently
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  bench_runs(lambda args: pytest.fail("the command ran"))
+  for argv, bad in ((["bench", "--over"], "--over"), (["--verb", "bench"], "--verb")):
+    with pytest.raises(SystemExit) as e:
+      cli.main(argv)
+    assert e.value.code == 2, argv
+    assert f"unrecognized arguments: {bad}" in capsys.readouterr().err, argv
+
+
 def test_path_options_expand_the_home_folder(tmp_path, monkeypatch):
   """The shell leaves `~` after `--out=` as it is: every option naming a file or folder, of
   every command and of `python -m eval`, expands it (no folder named `~` made here)."""
