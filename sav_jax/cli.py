@@ -53,6 +53,10 @@ def build_parser() -> argparse.ArgumentParser:
     # (allow_abbrev: --over was taken for --overwrite, --check for --checkpoint, silently)
     p = sub.add_parser(name, help=module.HELP, description=module.HELP, allow_abbrev=False)
     module.add_arguments(p)
+    # also after the command (`sav-jax infer ... -v` was refused); SUPPRESS keeps the
+    # top-level value where the command's is not given
+    p.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                   help="log debug messages")
     p.set_defaults(_run=module.run)
   return parser
 

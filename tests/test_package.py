@@ -108,6 +108,15 @@ def test_abbreviated_options_are_refused(capsys, bench_runs):
     assert f"unrecognized arguments: {bad}" in capsys.readouterr().err, argv
 
 
+def test_verbose_before_or_after_the_command(bench_runs):
+  from sav_jax import cli  # pylint: disable=import-outside-toplevel
+  seen = []
+  bench_runs(lambda args: seen.append(args.verbose))
+  for argv in (["bench"], ["-v", "bench"], ["bench", "-v"], ["bench", "--verbose"]):
+    assert cli.main(argv) == 0, argv
+  assert seen == [False, True, True, True]  # (after the command: refused, status 2)
+
+
 def test_path_options_expand_the_home_folder(tmp_path, monkeypatch):
   """The shell leaves `~` after `--out=` as it is: every option naming a file or folder, of
   every command and of `python -m eval`, expands it (no folder named `~` made here)."""
