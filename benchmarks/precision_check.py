@@ -15,7 +15,6 @@ bfloat16; this script measures, it asserts nothing.
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import sys
 
@@ -28,7 +27,8 @@ import numpy as np  # noqa: E402  pylint: disable=wrong-import-position
 
 import sav_jax  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.config import resolve_gru_conv  # noqa: E402  pylint: disable=wrong-import-position
-from sav_jax.tools.bench import json_output_problem  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools import UsageError  # noqa: E402  pylint: disable=wrong-import-position
+from sav_jax.tools.bench import json_output_problem, write_json_result  # noqa: E402  pylint: disable=wrong-import-position
 from timing import fixtures_folder, make_weights_module  # noqa: E402  benchmarks/timing.py
 
 MODES = (("float32", "highest", "blocked"), ("float32", "default", "blocked"),
@@ -93,14 +93,11 @@ def main(argv=None) -> int:
     print(f"{r['dtype']:<10}{r['precision']:<10}{r['vit_attention']:<10}{r['gru_conv']:<9}"
           f"{r['mean_px']:>12.2e}{r['max_px']:>12.2e}")
   if a.json:
-    try:  # "x": a file of that name made during the run (checked before it) is kept
-      f = open(a.json, "w" if a.overwrite else "x", encoding="utf-8")
-    except FileExistsError:
-      p.error(f"--json {a.json} was created during the run; not replaced (the results are "
-              "above; pass --overwrite to replace it)")
-    with f:
-      json.dump(dict(device=f"{device.platform}:{device.device_kind}", jax=jax.__version__,
-                     rows=rows), f, indent=1)
+    try:
+      write_json_result(a.json, dict(device=f"{device.platform}:{device.device_kind}",
+                                     jax=jax.__version__, rows=rows), a.overwrite)
+    except UsageError as e:  # (a file of that name made during the run: kept)
+      p.error(str(e))
   return 0
 
 

@@ -15,7 +15,6 @@ peak on GPU), also divided by the batch.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import pathlib
 import statistics
@@ -33,7 +32,8 @@ from sav_jax.model.init import init_variables  # noqa: E402  pylint: disable=wro
 from sav_jax import runtime  # noqa: E402  pylint: disable=wrong-import-position
 from sav_jax.tools.bench import (  # noqa: E402  pylint: disable=wrong-import-position
     compile_cache_note, compile_cache_probe, device_peak_gb, json_output_problem, memory_lines,
-    peak_rss_gb, xla_buffers_gb)
+    peak_rss_gb, write_json_result, xla_buffers_gb)
+from sav_jax.tools import UsageError  # noqa: E402  pylint: disable=wrong-import-position
 from train import optim, state as state_lib, step as step_lib  # noqa: E402  pylint: disable=wrong-import-position
 from timing import (  # noqa: E402  pylint: disable=wrong-import-position
     add_clip_arguments, check_clip_arguments)
@@ -167,13 +167,10 @@ def main():
         f"{res['samples_per_s']:.3f} samples/s")
   print("\n".join(memory_lines(res, batch=res["batch"])))
   if a.json:
-    try:  # "x": a file of that name made during the run (checked before it) is kept
-      f = open(a.json, "w" if a.overwrite else "x", encoding="utf-8")
-    except FileExistsError:
-      p.error(f"--json {a.json} was created during the run; not replaced (the results are "
-              "above; pass --overwrite to replace it)")
-    with f:
-      json.dump(res, f, indent=1)
+    try:
+      write_json_result(a.json, res, a.overwrite)
+    except UsageError as e:  # (a file of that name made during the run: kept)
+      p.error(str(e))
 
 
 if __name__ == "__main__":

@@ -15,8 +15,9 @@ import time
 
 from sav_jax._checks import plural
 from sav_jax.config import GRU_CONV, VIT_ATTENTION
-from sav_jax.tools import (add_compile_cache_arguments, add_matmul_precision_argument,
-                           matmul_precision, setup_compile_cache, user_path)
+from sav_jax.tools import (UsageError, add_compile_cache_arguments,
+                           add_matmul_precision_argument, matmul_precision,
+                           setup_compile_cache, user_path)
 
 HELP = "benchmark the compiled forward pass (compile time, median time, fps, peak memory)"
 
@@ -48,6 +49,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                     "the official PyTorch forward): print the ratios against it")
   add_matmul_precision_argument(p)
   add_compile_cache_arguments(p, default_on=False)
+
+
+def write_json_result(path, data, overwrite: bool) -> None:
+  """Writes `data` to `path` as JSON after a run (`json_output_problem` checked it before):
+  a new file, or with `overwrite` a replaced one. Raises UsageError where a file of that name
+  was created during the run (two runs given one name): kept, not replaced."""
+  try:
+    f = open(path, "w" if overwrite else "x", encoding="utf-8")
+  except FileExistsError as e:
+    raise UsageError(f"--json {path} was created during the run; not replaced (the results "
+                     "are above; pass --overwrite to replace it)") from e
+  with f:
+    json.dump(data, f, indent=1)
 
 
 def json_output_problem(path: str | None, overwrite: bool, flag: str = "--json") -> str | None:
@@ -220,7 +234,6 @@ _TRAIN_STEP_KEYS = ("samples_per_s", "remat", "loss")
 
 
 def _read_baseline(path) -> dict:
-  from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
   try:
     with open(path, encoding="utf-8") as f:
       base = json.load(f)
@@ -335,7 +348,6 @@ def clip_problem(args: argparse.Namespace) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-  from sav_jax.tools import UsageError  # pylint: disable=import-outside-toplevel
   problem = clip_problem(args)
   if problem:
     raise UsageError(problem)
@@ -386,12 +398,6 @@ def run(args: argparse.Namespace) -> int:
       print(note)
     print(f"vs {args.compare}: " + compare_line(res, base))
   if args.json:
-    try:  # "x": a file of that name made during the run (checked before it) is kept
-      f = open(args.json, "w" if args.overwrite else "x", encoding="utf-8")
-    except FileExistsError as e:
-      raise UsageError(f"--json {args.json} was created during the run; not replaced (the "
-                       "results are above; pass --overwrite to replace it)") from e
-    with f:
-      json.dump(res, f, indent=1)
+    write_json_result(args.json, res, args.overwrite)
     print(f"wrote {args.json}")
   return 0
