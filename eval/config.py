@@ -130,13 +130,16 @@ def _parse(value: str, current, name: str):
     raise ValueError(f"--config.{name}: expected true/false, got {value!r}")
   if isinstance(current, (int, float)):
     try:
-      return type(current)(value)  # int: decimal (010 is 10, as on the training's side)
+      number = type(current)(value)  # int: decimal (010 is 10, as on the training's side)
     except ValueError:
-      whole = scientific_integer(value) if isinstance(current, int) else None
-      if whole is not None:  # 1e3 is 1000, as on the training's side (int() refuses it)
-        return whole
-      raise ValueError(f"--config.{name}: expected {type(current).__name__}, "
-                       f"got {value!r}") from None
+      # 1e3 is 1000, as on the training's side (int() refuses it)
+      number = scientific_integer(value) if isinstance(current, int) else None
+      if number is None:
+        raise ValueError(f"--config.{name}: expected {type(current).__name__}, "
+                         f"got {value!r}") from None
+    if isinstance(current, int) and abs(number) >= 2**63:  # (1e400: an OverflowError later)
+      raise ValueError(f"--config.{name}: {value} is out of range (at most 2**63 - 1)")
+    return number
   if isinstance(current, str):
     return value
   try:

@@ -494,6 +494,7 @@ def test_matmul_precision_of_the_predictions(tmp_path, ckpt, capsys, monkeypatch
     ("--out=", "--out is empty; give a path"), ("--data-root=", "--data-root is empty"),
     ("--compile-cache=", "--compile-cache is empty"),
     ("--config.plots.strip_frames=0", "config.plots.strip_frames must be an integer >= 1"),
+    ("--config.iters=1e400", "--config.iters: 1e400 is out of range"),  # (an OverflowError)
     ("--config.dtype=float64", "config.dtype must be one of ('float32', 'bfloat16'), got 'f"),
     ("--config.synthetic.num_sequences=0",
      "config.synthetic.num_sequences must be an integer >= 1, got 0"),
