@@ -285,7 +285,8 @@ def _every(step: int, period: int) -> bool:
 
 
 def _is_int(x) -> bool:
-  return isinstance(x, int) and not isinstance(x, bool)
+  """A Python int (not a bool) that fits 64 bits (1e400 ended in an OverflowError)."""
+  return isinstance(x, int) and not isinstance(x, bool) and -2**63 <= x < 2**63
 
 
 def _is_iters(x) -> bool:
@@ -485,7 +486,10 @@ def validate_config(config, workdir, num_devices: int | None = None) -> None:
   for field, ok, want in _CHECKS + (_EVAL_CHECKS if evaluating else ()):
     value = _value(config, field)
     if not ok(value):
-      raise ValueError(f"config.{field}={value!r}: expected {want}")
+      shown = repr(value)
+      if isinstance(value, int) and len(shown) > 20:  # (1e400: 401 digits)
+        shown = f"{shown[:4]}... ({len(shown.lstrip('-'))} digits)"
+      raise ValueError(f"config.{field}={shown}: expected {want}")
   _check_blocks(config)
   # (after the checks of the sources and roots it reads: a source that is no block, or a
   # root that is no text, failed in it with an AttributeError or TypeError traceback)

@@ -1840,6 +1840,8 @@ def test_only_a_steps_own_unfinished_save_is_removed_at_start(tmp_path):
     ("train.batch_size", 3, r"config\.train\.batch_size=3 is not divisible by the 2 devices"),
     ("eval.batch_size", 3, r"config\.eval\.batch_size=3 is not divisible by the 2 devices"),
     ("train.num_steps", 0, r"config\.train\.num_steps=0"),
+    ("train.num_steps", 10**400,  # (--config.train.num_steps=1e400: an OverflowError)
+     r"config\.train\.num_steps=1000\.\.\. \(401 digits\): expected an integer >= 1"),
     ("train.iters", 1, r"config\.train\.iters=1: expected an integer >= 2"),
     ("data.crop", (32,), r"config\.data\.crop=\(32,\): expected \(height, width\)"),
     ("data.crop", (32, 40), r"config\.data\.crop=\(32, 40\).*multiples of 16"),
