@@ -34,8 +34,9 @@ from sav_jax.config import DTYPES
 # imported once the arguments and the config are checked, so `--help` and a bad config or
 # override are answered at once.
 from sav_jax.tools import (UsageError, add_compile_cache_arguments, check_output_dir,
-                           command_logging, one_line_warnings, printable_names,
-                           resolve_devices_option, setup_compile_cache, user_path)
+                           command_logging, empty_path_problem, one_line_warnings,
+                           printable_names, resolve_devices_option, setup_compile_cache,
+                           user_path)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -120,10 +121,9 @@ DEFAULT_DATA_ROOT = "data/datasets"
 
 def run(args, overrides) -> int:
   """Loads config, data and weights, evaluates every sequence, writes the reports."""
-  for flag in ("out", "data_root", "compile_cache"):  # "" would be the default or "." (an
-    value = getattr(args, flag)                       # unset shell variable: --out "$OUT")
-    if value is not None and not value.strip():
-      raise UsageError(f"--{flag.replace('_', '-')} is empty; give a path")
+  empty = empty_path_problem(args, ("out", "data_root", "compile_cache"))
+  if empty:  # (the default folder, or "." for the data)
+    raise UsageError(empty)
   config = eval_config.load_config(args.config)
   eval_config.check_fields(config, args.config)
   config = eval_config.apply_overrides(config, overrides)

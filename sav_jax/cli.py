@@ -8,7 +8,8 @@ import sys
 
 try:
   from sav_jax import _signals
-  from sav_jax.tools import UsageError, command_logging, one_line_warnings, printable_names
+  from sav_jax.tools import (UsageError, command_logging, empty_path_problem,
+                             one_line_warnings, printable_names)
 except KeyboardInterrupt:  # Ctrl-C while the command loads: one line, not a traceback
   print("sav-jax: interrupted", file=sys.stderr)
   sys.exit(130)
@@ -71,10 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv is not None:
       raise
     _signals.exit_interrupted("sav-jax: interrupted")
-  empty = [k for k in _PATH_ARGS if getattr(args, k, None) == ""]
-  if empty:  # "" would mean the current folder (an unset shell variable, e.g. --out "$OUT")
-    print(f"sav-jax {args.command}: error: --{empty[0].replace('_', '-')} is empty; give a path",
-          file=sys.stderr)
+  empty = empty_path_problem(args, _PATH_ARGS)
+  if empty:
+    print(f"sav-jax {args.command}: error: {empty}", file=sys.stderr)
     return 2
   try:
     # (warnings met by the command, e.g. `inference.SwappedViewsWarning`, as one line each;

@@ -147,7 +147,8 @@ def test_empty_paths_are_refused(tmp_path, capsys, monkeypatch):
                      (["infer", "--left", "l", "--right", "r", "--checkpoint", "", "--out", "o"],
                       "--checkpoint"),
                      (["convert", "a.npz", ""], "--dst"),
-                     (["bench", "--json", ""], "--json")):
+                     (["bench", "--json", ""], "--json"),
+                     (["bench", "--json", "  "], "--json")):  # spaces too, as eval refuses
     assert cli.main(argv) == 2
     assert f"error: {flag} is empty; give a path" in capsys.readouterr().err
   assert not any(tmp_path.iterdir())

@@ -26,6 +26,17 @@ class UsageError(Exception):
   """Bad input from the user: reported without a traceback, exit status 2."""
 
 
+def empty_path_problem(args, names) -> str | None:
+  """The error for the first path option of `names` (argparse dests) given empty or as spaces
+  (an unset shell variable, `--out "$OUT"`: "" would be the current folder or the default
+  one), or None."""
+  for name in names:
+    value = getattr(args, name, None)
+    if isinstance(value, str) and not value.strip():
+      return f"--{name.replace('_', '-')} is empty; give a path"
+  return None
+
+
 def resolve_devices_option(value, name: str = "--devices", takes_all: bool = True) -> list:
   """The devices of a `--devices` value (`inference.resolve_devices`): a number n >= 1 of
   local devices, or 0 or "all" for every one. Bad values raise UsageError naming `name`.
