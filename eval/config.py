@@ -17,7 +17,7 @@ import pathlib
 
 import ml_collections
 
-from sav_jax._checks import scientific_integer
+from sav_jax._checks import scientific_integer, within_int64
 
 # The methods a run evaluates: the model, and the baselines `--baseline` adds.
 METHOD_NAMES = {"sav": "Stereo Any Video", "sgbm": "StereoSGBM"}
@@ -137,7 +137,7 @@ def _parse(value: str, current, name: str):
       if number is None:
         raise ValueError(f"--config.{name}: expected {type(current).__name__}, "
                          f"got {value!r}") from None
-    if isinstance(current, int) and abs(number) >= 2**63:  # (1e400: an OverflowError later)
+    if isinstance(current, int) and not within_int64(number):
       raise ValueError(f"--config.{name}: {value} is out of range (at most 2**63 - 1)")
     return number
   if isinstance(current, str):

@@ -51,6 +51,12 @@ def is_int(x) -> bool:
   return isinstance(x, numbers.Integral) and not isinstance(x, bool)
 
 
+def within_int64(n: int) -> bool:
+  """Whether the integer `n` lies within +-(2**63 - 1): the config values the commands take
+  (`1e400` passed the integer checks and ended in an OverflowError where it met a float)."""
+  return abs(n) < 2**63
+
+
 _SCIENTIFIC = re.compile(r"[+-]?\d+(\.\d*)?[eE]\+?\d{1,3}")
 
 

@@ -32,7 +32,7 @@ import numpy as np
 
 import sav_jax
 from sav_jax import _signals, runtime
-from sav_jax._checks import check_utf8_path, plural
+from sav_jax._checks import check_utf8_path, plural, within_int64
 from sav_jax._locks import FolderBusyError, FolderLock
 from sav_jax.convert import keys as keys_lib, params as convert_params
 from sav_jax.data import pipeline
@@ -285,8 +285,8 @@ def _every(step: int, period: int) -> bool:
 
 
 def _is_int(x) -> bool:
-  """A Python int (not a bool) that fits 64 bits (1e400 ended in an OverflowError)."""
-  return isinstance(x, int) and not isinstance(x, bool) and -2**63 <= x < 2**63
+  """A Python int (not a bool) within 64 bits (`within_int64`)."""
+  return isinstance(x, int) and not isinstance(x, bool) and within_int64(x)
 
 
 def _is_iters(x) -> bool:
