@@ -455,9 +455,8 @@ def augment_clip(clip: dict, cfg: AugmentConfig, rng: np.random.Generator,
         raise ValueError(f"{dkey} is {out[dkey].shape}, images are {left.shape[:3]}")
       if sparse and out.get(vkey) is None:
         raise ValueError(f"sparse clips need `{vkey}` with `{dkey}`")
-      if sparse:  # bool, or weights: > 0.5 is valid, as in the metrics (0.3 was True)
-        valid = np.asarray(out[vkey])
-        out[vkey] = valid if valid.dtype == bool else valid > 0.5
+      if sparse:  # bool, or weights (`frame_io.valid_mask`: 0.3 was True)
+        out[vkey] = frame_io.valid_mask(out[vkey])
         if out[vkey].shape != left.shape[:3]:
           raise ValueError(f"{vkey} is {out[vkey].shape}, images are {left.shape[:3]}")
       else:

@@ -136,9 +136,8 @@ class StereoSequence:
       raise ValueError(f"{reader}: the valid mask of {path} is {valid.shape} {valid.dtype}; "
                        f"expected {size} bool (or weights) as the image "
                        f"{self.files[side][i]}")
-    if valid.dtype != bool:  # weights: above 0.5, as the metrics and the augmentation count
-      valid = valid > 0.5    # them (a cast to bool took any weight above 0, 0.3 too)
-    return np.ascontiguousarray(disp, np.float32), np.ascontiguousarray(valid)
+    return (np.ascontiguousarray(disp, np.float32),
+            np.ascontiguousarray(frame_io.valid_mask(valid)))
 
   def _read_gt(self, i: int, side: str) -> tuple[np.ndarray, np.ndarray]:
     """(disparity, valid) of frame i for `side` ("left"/"right"); subclasses decode. `valid`

@@ -41,6 +41,13 @@ def dense_valid(disp: np.ndarray, max_disparity: float = MAX_DISPARITY) -> np.nd
   return (disp != 0) & (np.abs(disp) < max_disparity)
 
 
+def valid_mask(valid) -> np.ndarray:
+  """A ground-truth mask as bool: bool as it is; weights count above 0.5, the official
+  metrics' rule (a cast to bool took any weight above 0, 0.3 too)."""
+  valid = np.asarray(valid)
+  return valid if valid.dtype == bool else valid > 0.5
+
+
 def require_file(path: PathLike, what: str = "file") -> Path:
   """Returns `path` as a Path; raises FileNotFoundError naming it when missing."""
   path = Path(path)

@@ -149,8 +149,7 @@ def honour_dense_masks(clip: dict) -> None:
   for dkey, vkey in (("disparity", "valid"), ("right_disparity", "right_valid")):
     if clip.get(dkey) is None or clip.get(vkey) is None:
       continue
-    disp, valid = np.asarray(clip[dkey]), np.asarray(clip[vkey])
-    valid = valid if valid.dtype == bool else valid > 0.5  # weights (0.3 was valid)
+    disp, valid = np.asarray(clip[dkey]), frame_io.valid_mask(clip[vkey])  # (0.3 was valid)
     hidden = ~valid & frame_io.dense_valid(disp)
     if hidden.any():
       clip[dkey] = np.where(hidden, np.float32(0), disp).astype(disp.dtype)
