@@ -168,7 +168,7 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                "bad": {"median_s": 1}, "text": {**eager, "median_s": "x"},
                "zero": {**eager, "median_s": 0}, "no_shape": {**eager, "frames": None},
                "bf16": {**eager, "dtype": "bfloat16"}, "batch": {**eager, "batch": 2},
-               "all": {**eager, "final_only": False},
+               "all": {**eager, "final_only": False}, "odd": {**eager, "final_only": "x"},
                "str_frames": {**eager, "frames": "2"},  # was "frames: 2 here, 2 there"
                # benchmarks/train_step.py's JSON has the same keys, and more
                "train": {**eager, "samples_per_s": 0.5, "remat": True, "loss": 1.0}}
@@ -182,10 +182,12 @@ def test_compare_wording_and_bad_baseline_before_running(tmp_path, capsys):
                         ("text", "expected positive numbers"),
                         ("eager", "expected positive numbers"),
                         ("zero", "expected positive numbers"),
-                        ("shape", "another shape or setting (iters: 2 here, 8 there)"),
-                        ("bf16", "(dtype: float32 here, bfloat16 there)"),
-                        ("batch", "(batch: 1 here, 2 there)"),
-                        ("all", "(final_only: True here, False there)"),
+                        ("shape", "another shape or setting (--iters: 2 here, 8 there)"),
+                        ("bf16", "(--dtype: float32 here, bfloat16 there)"),
+                        ("batch", "(--batch: 1 here, 2 there)"),
+                        ("all", "(the final prediction here, every prediction "
+                                "(--all-predictions) there)"),
+                        ("odd", "(the final prediction here, final_only 'x' there)"),
                         ("str_frames", "expected integers for the shape, got {'frames': '2'}"),
                         ("train", "a training step's JSON")):
     path = tmp_path / f"{name}.json"

@@ -269,6 +269,15 @@ def baseline_differences(args: argparse.Namespace, base: dict) -> dict:
   return {k: (v, base[k]) for k, v in mine.items() if k in base and base[k] != v}
 
 
+def _difference(key: str, values: tuple) -> str:
+  """One `baseline_differences` entry in the options' words: `(--iters: 2 here, 8 there)`."""
+  if key == "final_only":  # (the JSON's key; the option is --all-predictions)
+    said = {True: "the final prediction", False: "every prediction (--all-predictions)"}
+    here, there = (said.get(v, f"final_only {v!r}") for v in values)  # (a hand-edited JSON)
+    return f"({here} here, {there} there)"
+  return f"(--{key}: {values[0]} here, {values[1]} there)"
+
+
 def machine_note(res: dict, base: dict) -> str:
   """A warning when the baseline was measured on another device (platform, or GPU model),
   another host or with another ViT attention: a ratio needs both on the same machine in the
@@ -367,8 +376,7 @@ def run(args: argparse.Namespace) -> int:
     differ = baseline_differences(args, base)
     if differ:
       raise UsageError(f"--compare {args.compare} was measured at another shape or setting "
-                       + ", ".join(f"({k}: {mine} here, {theirs} there)"
-                                   for k, (mine, theirs) in differ.items()))
+                       + ", ".join(map(_difference, differ, differ.values())))
   cache = setup_compile_cache(args, default_on=False)
   precision, precision_name = matmul_precision(args)
   with precision:
