@@ -418,15 +418,35 @@ def colorbar(vmin: float, vmax: float, *, cmap: str = "inferno", length: int = 3
   step = nice_step(vmax - vmin, ticks)
   first = math.ceil(vmin / step - 1e-9) * step
   marks = [first + k * step for k in range(int((vmax - first) / step + 1e-9) + 1)]
-  font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.35
-  for k, v in enumerate(marks):
-    x = int(round((v - vmin) / (vmax - vmin) * (length - 1)))
-    labels[:3, x] = 0  # the tick
-    text = f"{v:.6g}" + (f" {unit}" if unit and k == len(marks) - 1 else "")
-    (tw, _), _ = cv2.getTextSize(text, font, scale, 1)
-    left = min(max(0, x - tw // 2), length - tw)
-    cv2.putText(labels, text, (left, 14), font, scale, (0, 0, 0), 1, cv2.LINE_AA)
+  columns = [int(round((v - vmin) / (vmax - vmin) * (length - 1))) for v in marks]
+  labels[:3, columns] = 0  # the ticks
+  for left, text in _tick_labels(marks, columns, length, unit):
+    cv2.putText(labels, text, (left, 14), _FONT, _FONT_SCALE, (0, 0, 0), 1, cv2.LINE_AA)
   return np.concatenate([band, labels], axis=0)
+
+
+_FONT, _FONT_SCALE = cv2.FONT_HERSHEY_SIMPLEX, 0.35
+
+
+def _tick_labels(marks, columns, length, unit) -> list[tuple[int, str]]:
+  """`(left column, text)` of the tick labels that `colorbar` draws: each centred under its
+  tick (kept inside the bar), the unit after the last one. Where labels would run into each
+  other (a narrow bar, long numbers), some are left out, so that a pixel stays between the
+  text boxes of those drawn (OpenCV's, which hold a pixel or two of margin: touching boxes
+  read "0" and "1" as "01"): the last one always (it carries the unit), the others from the
+  left."""
+  placed = []
+  for k, (v, x) in enumerate(zip(marks, columns)):
+    text = f"{v:.6g}" + (f" {unit}" if unit and k == len(marks) - 1 else "")
+    (width, _), _ = cv2.getTextSize(text, _FONT, _FONT_SCALE, 1)
+    placed.append((min(max(0, x - width // 2), length - width), width, text))
+  last = placed[-1]
+  kept, right = [], -1
+  for left, width, text in placed[:-1]:
+    if left > right and left + width < last[0]:
+      kept.append((left, text))
+      right = left + width
+  return kept + [(last[0], last[2])]
 
 
 def side_by_side(*images) -> np.ndarray:

@@ -853,6 +853,26 @@ def test_colorbar_ticks_off_the_step_and_at_the_last_pixel():
       viz.colorbar(0.0, 1.0, **kw)
 
 
+def test_colorbar_leaves_out_labels_that_would_run_into_each_other():
+  # 0..1000 on 64 px: six ticks 200 apart (12-13 px) under labels "200" of 19 px: they ran
+  # into one smear. The ticks stay; the labels drawn do not overlap, the last has its unit.
+  bar = viz.colorbar(0.0, 1000.0, length=64)
+  assert _tick_columns(bar) == [0, 13, 25, 38, 50, 63]
+  kept = viz._tick_labels([0, 200, 400, 600, 800, 1000], [0, 13, 25, 38, 50, 63], 64, "px")
+  assert [t for _, t in kept] == ["0", "1000 px"], kept
+  ink = np.flatnonzero((bar[-18 + 4:] < 128).any(axis=(0, 2)))
+  assert ink.min() <= 2 and ink.max() >= 60 and not ink[(ink > 8) & (ink < 64 - 38)].size
+  # a wide bar keeps every label (as before): 2..12 on 320 px
+  wide = viz._tick_labels([2, 4, 6, 8, 10, 12], [0, 64, 128, 191, 255, 319], 320, "px")
+  assert [t for _, t in wide] == ["2", "4", "6", "8", "10", "12 px"]
+  # ten ticks 10 px apart: "8" and "9" ran into "10 px"; each label box clear of the next
+  placed = viz._tick_labels(list(range(11)), list(range(0, 101, 10)), 101, "px")
+  texts = [t for _, t in placed]
+  assert texts[-1] == "10 px" and "9" not in texts and texts[:6] == list("023456")  # "01"
+  ends = [left + cv2.getTextSize(t, cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0] for left, t in placed]
+  assert all(end < nxt for end, (nxt, _) in zip(ends, placed[1:])), placed
+
+
 def test_side_by_side_repeats_grey_maps_of_any_width():
   rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 1, 3, 3)  # [T=2, H=1, W=3, 3]
   for width in (1, 2, 4):  # (2 and 4 are channel counts only with 3 or more axes)
