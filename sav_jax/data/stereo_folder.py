@@ -156,9 +156,11 @@ def load_sequences(root, split: str = "test", dataset: str = "folder") -> list[S
     for side in ("left", "right"):
       if not files[side]:  # (a video file there was "frame counts differ: 'left' lacks frame 1")
         other = sorted(p.name for p in (seq_dir / side).iterdir() if not is_hidden(p))
+        videos = any(Path(n).suffix.lower() in viz.VIDEO_SUFFIXES for n in other)
+        hint = ("video files are not read, extract their frames" if videos else
+                f"frames are read from {', '.join(IMAGE_SUFFIXES)} files")
         raise FileNotFoundError(f"{seq_dir / side}: no PNG or JPEG frames"
-                                + (f" (it has {some_of(other)}: video files are not read, "
-                                   "extract their frames)" if other else ""))
+                                + (f" (it has {some_of(other)}: {hint})" if other else ""))
     sparse = False
     # a link to a missing disparity/ or calibration file: the sequence read without them
     refuse_broken_links([seq_dir / "disparity", *(seq_dir / n for n in CALIBRATION_FILES)])

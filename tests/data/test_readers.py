@@ -2002,7 +2002,13 @@ def test_folder_split_skips_stray_files_and_hidden_folders_and_checks_the_baseli
   with pytest.raises(FileNotFoundError, match=r"lab.left: no PNG or JPEG frames \(it has "
                                               r"left\.mov: video files are not read"):
     registry.get_sequences("folder", tmp_path, "test")
-  (left / "left.mov").unlink()  # nothing but a hidden file: nothing to name
+  (left / "left.mov").unlink()  # TIFF frames: not videos (the hint spoke of videos)
+  (left / "0000.tif").write_bytes(b"")
+  with pytest.raises(FileNotFoundError, match=r"lab.left: no PNG or JPEG frames \(it has "
+                                              r"0000\.tif: frames are read from \.png, \.jpg, "
+                                              r"\.jpeg files\)"):
+    registry.get_sequences("folder", tmp_path, "test")
+  (left / "0000.tif").unlink()  # nothing but a hidden file: nothing to name
   with pytest.raises(FileNotFoundError, match=r"lab.left: no PNG or JPEG frames$"):
     registry.get_sequences("folder", tmp_path, "test")
 
