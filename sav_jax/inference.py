@@ -838,6 +838,8 @@ def _as_video(video, name: str) -> np.ndarray:
   """`video` as one array; a list of frames must hold frames of one shape (ValueError
   naming `name` and the first frame whose shape differs otherwise)."""
   _refuse_iterator(video, name)
+  if _is_lazy_video(video):  # read whole (np.asarray made a 0-d array of one object of it)
+    video = video[0:int(_video_shape(video, name)[0])]
   if isinstance(video, (list, tuple)):
     frames = [np.asarray(f) for f in video]
     for i, frame in enumerate(frames):

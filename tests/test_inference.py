@@ -494,6 +494,19 @@ def test_iterators_and_lists_beside_lazy_sources(monkeypatch):
     np.testing.assert_array_equal(label // 1000 - 1 + label % 1000, np.arange(12))
 
 
+@pytest.mark.filterwarnings("ignore:.*float frames with values")
+@pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
+def test_forward_batch_test_official_takes_lazy_sources(monkeypatch):
+  """Its docstring takes frames as predict_video does; a lazy source with a shape and slicing
+  (no len) failed with "got shape ()", though its shape is (23, 5, 7, 3)."""
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window", _LabelModel())
+  video = _labelled_video(23)
+  lazy = _ShortSource(video, video.shape)
+  np.testing.assert_array_equal(inference.forward_batch_test_official({}, lazy, lazy),
+                                inference.forward_batch_test_official({}, video, video))
+
+
 @pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 def test_predict_video_fills_one_output_array(monkeypatch):
   """The windows' pieces went to a list, then np.concatenate: the output held twice."""
