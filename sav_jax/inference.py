@@ -1081,6 +1081,12 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
       return lw, rw
     want = (win.length, *shape[1:])
     for name, source, got in (("left", left, lw), ("right", right, rw)):
+      if isinstance(got, (list, tuple)):  # (np.shape of frames of two sizes: NumPy's error)
+        odd = next((k for k, f in enumerate(got) if np.shape(f) != want[1:]), None)
+        if odd is not None:
+          raise ValueError(f"{name}: frame {win.start + odd} has shape "
+                           f"{np.shape(got[odd])}, not {want[1:]} as the video's frames; all "
+                           "frames need one size [H, W, 3]")
       if tuple(np.shape(got)) != want:
         raise ValueError(
             f"{name} video source {type(source).__name__} declares shape "

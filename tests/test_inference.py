@@ -507,6 +507,21 @@ def test_forward_batch_test_official_takes_lazy_sources(monkeypatch):
                                 inference.forward_batch_test_official({}, video, video))
 
 
+def test_a_frame_of_another_size_in_a_window_of_a_list_is_named(monkeypatch):
+  """A list beside a lazy source (or a source whose slices are lists) is read window by
+  window; a frame of another size in it failed with NumPy's "inhomogeneous shape"."""
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window", _LabelModel())
+  video = np.zeros((25, 5, 7, 3), np.uint8)
+  frames = list(video)
+  frames[15] = np.zeros((5, 8, 3), np.uint8)
+  for left, right in ((frames, _ShortSource(video, video.shape)),
+                      (_ShortSource(frames, video.shape), video)):
+    with pytest.raises(ValueError, match=r"^left: frame 15 has shape \(5, 8, 3\), not "
+                       r"\(5, 7, 3\)"):
+      inference.predict_video({}, left, right)
+
+
 @pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 def test_predict_video_fills_one_output_array(monkeypatch):
   """The windows' pieces went to a list, then np.concatenate: the output held twice."""
