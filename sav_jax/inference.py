@@ -662,7 +662,8 @@ class FrameFeatureCache:
         raise ValueError(
             f"frame {i} differs from the frame whose features this FrameFeatureCache holds: "
             "a cache serves one video (use a new cache for another video, or after changing "
-            "frames)")
+            f"frames; start={start} must be the index of the window's first frame in the "
+            "video)")
 
   def check_use(self, shape: tuple, pads: tuple, cfg: SAVConfig, start: int,
                 variables=None) -> None:

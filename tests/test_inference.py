@@ -522,6 +522,23 @@ def test_a_frame_of_another_size_in_a_window_of_a_list_is_named(monkeypatch):
       inference.predict_video({}, left, right)
 
 
+@pytest.mark.filterwarnings("ignore:.*float frames with values")
+def test_a_window_run_without_its_start_is_told_to_give_it(monkeypatch):
+  """The second window run by hand without `start` (default 0) was told only that frame 0
+  differs and to use a new cache for another video."""
+  monkeypatch.setattr(inference, "check_variables", lambda *a: None)
+  monkeypatch.setattr(inference, "_run_window", lambda v, left, right, **kw: np.zeros(
+      (len(left), 16, 16), np.float32))
+  video, cache = _labelled_video(20), inference.FrameFeatureCache()
+  run = lambda v, **kw: inference.run_window({}, v, v, cfg=sav_jax.SAVConfig(), iters=2,
+                                             cache=cache, **kw)
+  run(video[:10])
+  with pytest.raises(ValueError, match=r"frame 0 differs .* start=0 must be the index of the "
+                     "window's first frame in the video"):
+    run(video[10:])
+  run(video[10:], start=10)
+
+
 @pytest.mark.filterwarnings("ignore::sav_jax.inference.SwappedViewsWarning")  # labels < 0
 def test_predict_video_fills_one_output_array(monkeypatch):
   """The windows' pieces went to a list, then np.concatenate: the output held twice."""
