@@ -1191,7 +1191,7 @@ def resolve_devices(devices=None) -> list:
                        f"{devices!r}")
     return list(local)
   if isinstance(devices, jax.Device):
-    return [devices]
+    devices = [devices]  # (checked as a list: another process's device is refused too)
   if _is_int(devices):
     if devices == 0:
       return list(local)

@@ -116,6 +116,8 @@ def test_another_processs_devices_are_refused(monkeypatch):
                      rf"\(jax.local_devices\(\)\), but {device} is process "
                      f"{device.process_index}'s"):
     inference.resolve_devices([device])
+  with pytest.raises(ValueError, match="devices must be this process's own devices"):
+    inference.resolve_devices(device)  # one device, not in a list: it was taken as it was
 
 
 def test_windows_at_once_on_cpu_devices_share_the_host_memory(monkeypatch):
