@@ -1642,6 +1642,8 @@ def test_devices_option_takes_a_number_or_all(value):
 @pytest.mark.parametrize("value,name,takes_all,message", [
     ("two", "--devices", True, "--devices: devices must be a number of local devices >= 1, or "
                                "0 or 'all' for every one, got 'two'"),
+    ("\u00b2", "--devices", True, "--devices: devices must be a number of local devices >= 1, "
+                                   "or 0 or 'all' for every one, got '\u00b2'"),
     (-1, "config.devices", False, "config.devices: devices must be a number of local devices "
                                   ">= 1, or 0 for every one, got -1"),
     (3, "config.devices", False, "config.devices: devices=3, but 1 local cpu device is available"),

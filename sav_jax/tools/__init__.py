@@ -44,7 +44,7 @@ def resolve_devices_option(value, name: str = "--devices", takes_all: bool = Tru
   the message then offers 0 alone)."""
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
   text = str(value).strip().lower()
-  if text != "all" and not text.isdigit():
+  if text != "all" and not text.isdecimal():  # (isdigit: "²", which int() refuses)
     every = "0 or 'all'" if takes_all else "0"
     raise UsageError(f"{name}: devices must be a number of local devices >= 1, or {every} "
                      f"for every one, got {value!r}")
