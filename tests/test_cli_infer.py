@@ -689,6 +689,16 @@ def test_frame_sources_check_every_frame_when_opened(tmp_path, clip, caplog):
   whole = video_io.read_video_file(tmp_path / "v.mp4")
   np.testing.assert_array_equal(np.concatenate([video[1:3], video[0:1], video[2:]]),
                                 whole[[1, 2, 0, 2]])  # backwards restarts the decoder
+  # max_frames=-1 dropped the last frame (a slice's end); keep=None failed at the first read
+  for kwargs, message in (({"max_frames": -1}, "max_frames must be an integer >= 1 or None"),
+                          ({"max_frames": 2.0}, "got 2.0"), ({"keep": None}, "keep must be an "
+                                                             "integer >= 0, got None"),
+                          ({"keep": "3"}, "got '3'"), ({"keep": -1}, "got -1")):
+    with pytest.raises(ValueError, match=f"^FrameSource: .*{message}"):
+      video_io.FrameSource(tmp_path / "v.mp4", **kwargs)
+  with pytest.raises(ValueError, match="read_video_file: max_frames must be an integer >= 1"):
+    video_io.read_video_file(tmp_path / "v.mp4", max_frames=0)
+  assert len(video_io.FrameSource(left, max_frames=np.int64(2), keep=0)) == 2
   (left / "0002.png").write_bytes(b"not a png")  # the last frame: found before any work
   with pytest.raises(ValueError, match="unreadable frame: .*0002.png"):
     video_io.open_stereo(left, right)
