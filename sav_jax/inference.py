@@ -1072,7 +1072,7 @@ def _iter_plan(variables, left, right, plan, *, cfg, iters, check_memory, chunk,
   pads = pad_amounts(*shape[1:3])
   variables = model_variables(variables)
   placed = ([jax.device_put(_on_one_device(variables))] if devices is None else
-            [jax.device_put(variables, d) for d in devices])
+            [jax.device_put(variables, d) for d in devices[:len(plan)]])  # (those it uses)
   total = sum(w.keep_stop - w.keep_start for w in plan)
 
   def frames(win):

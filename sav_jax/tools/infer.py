@@ -465,6 +465,8 @@ def _run_locked(args, out, outputs, left, right, names, formats, calib) -> int:
 
   from sav_jax import inference  # pylint: disable=import-outside-toplevel
   devices = resolve_devices_option(args.devices)
+  # (fewer windows than devices: the others get no copy of the weights and no work)
+  devices = devices[:len(inference.window_plan(t, args.window, args.stride))]
   setup_compile_cache(args)  # (after the devices are checked: it may create the folder)
   for source in (left, right):  # the reach of the windows' and the outputs' reads
     source.keep = args.window + (len(devices) - 1) * args.stride + 1
