@@ -417,7 +417,9 @@ def colorbar(vmin: float, vmax: float, *, cmap: str = "inferno", length: int = 3
   labels = np.full((18, length, 3), 255, np.uint8)
   step = nice_step(vmax - vmin, ticks)
   first = math.ceil(vmin / step - 1e-9) * step
-  marks = [first + k * step for k in range(int((vmax - first) / step + 1e-9) + 1)]
+  # (floor: with no step inside the range, int() made one mark beyond its end, an IndexError)
+  marks = [first + k * step for k in range(math.floor((vmax - first) / step + 1e-9) + 1)]
+  marks = marks or [vmin, vmax]  # (no 1/2/5 x 10^k value inside: 1..4 with ticks=1)
   columns = [int(round((v - vmin) / (vmax - vmin) * (length - 1))) for v in marks]
   labels[:3, columns] = 0  # the ticks
   for left, text in _tick_labels(marks, columns, length, unit):

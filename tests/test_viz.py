@@ -846,6 +846,10 @@ def test_colorbar_ticks_off_the_step_and_at_the_last_pixel():
   # `ticks` sets the step: 10 / 10 -> 1 px, 10 / 2 -> 5 px
   assert _tick_columns(viz.colorbar(0.0, 10.0, length=101, ticks=10)) == list(range(0, 101, 10))
   assert _tick_columns(viz.colorbar(0.0, 10.0, length=101, ticks=2)) == [0, 50, 100]
+  # no step inside the range (1..4 with one interval: a step of 5): the ends are labelled
+  # (it raised IndexError, a mark at 5 beyond the bar); one inside: that one alone
+  assert _tick_columns(viz.colorbar(1.0, 4.0, length=61, ticks=1)) == [0, 60]
+  assert _tick_columns(viz.colorbar(3.0, 4.9, length=39, ticks=1)) == [round(1 / 1.9 * 38)]
   # the smallest sizes accepted
   assert viz.colorbar(0.0, 1.0, length=32, thickness=1, ticks=1).shape == (1 + 18, 32, 3)
   for kw in ({"thickness": 0}, {"ticks": 0}, {"length": 31}):
