@@ -58,6 +58,10 @@ def check_destination(src: str, dst: str, to_file: bool, overwrite: bool) -> Non
     check_utf8_path(os.path.abspath(dst), "orbax checkpoint folder DST")
   if not os.path.lexists(dst):
     return
+  if os.path.islink(dst) and not os.path.exists(dst):  # (was "exists", then "not a file")
+    raise UsageError(f"{dst} is a symbolic link to a missing path ({os.readlink(dst)}); it "
+                     "is not written through, even with --overwrite: remove the link or give "
+                     "another DST")
   if not to_file and os.path.isdir(dst) and not os.path.islink(dst) and not os.listdir(dst):
     return  # an empty folder made for it: nothing to replace
   if not overwrite:

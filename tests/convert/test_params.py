@@ -643,15 +643,20 @@ def test_cli_convert_file_to_file_and_destination_checks(tmp_path, sav_state_dic
   assert (tmp_path / "notes.txt").read_text() == "mine"
   assert (tmp_path / "folder" / "a.txt").read_text() == "mine"
   assert not (tmp_path / "sav.ckpt").exists() and not (tmp_path / "weights.npy").exists()
-  # A link to an empty folder is not an empty folder made for the checkpoint, and a dangling
-  # link is not nothing: each is replaced with --overwrite only.
+  # A link to an empty folder is not an empty folder made for the checkpoint: replaced with
+  # --overwrite only. A dangling link is not nothing, and not written through: named as what it
+  # is (it was "exists; pass --overwrite", then with it "exists and is not a file").
   (tmp_path / "empty_target").mkdir()
   (tmp_path / "link").symlink_to(tmp_path / "empty_target")
   (tmp_path / "dangling.npz").symlink_to(tmp_path / "nowhere.npz")
-  for dst in ("link", "dangling.npz"):
-    assert cli.main(["convert", str(src), str(tmp_path / dst)]) == 2
-    assert "exists; pass --overwrite" in capsys.readouterr().err
+  assert cli.main(["convert", str(src), str(tmp_path / "link")]) == 2
+  assert "exists; pass --overwrite" in capsys.readouterr().err
+  for dst, overwrite in (("dangling.npz", []), ("dangling.npz", ["--overwrite"])):
+    assert cli.main(["convert", str(src), str(tmp_path / dst), *overwrite]) == 2
+    assert (f"dangling.npz is a symbolic link to a missing path ({tmp_path / 'nowhere.npz'})"
+            in capsys.readouterr().err)
   assert not any((tmp_path / "empty_target").iterdir()) and (tmp_path / "dangling.npz").is_symlink()
+  assert not (tmp_path / "nowhere.npz").exists()
   (tmp_path / "empty").mkdir()  # an empty folder made for the checkpoint: nothing to replace
   assert cli.main(["convert", str(src), str(tmp_path / "empty")]) == 0
   assert convert.is_variables_checkpoint(tmp_path / "empty")
