@@ -2807,6 +2807,13 @@ def test_calibration_files_and_options_edge_cases(tmp_path, caplog):
     infer.read_calibration(calib)
   calib.write_text("fx 500\nbaseline 0.1\ncam0=[400 0 10; 0 400 8; 0 0 1]\ndoffs 0\n")
   assert infer.read_calibration(calib)["fx"] == 500
+  # a key given twice: the last value was taken silently; the same value twice is one
+  calib.write_text("fx 500\nbaseline 0.1\nfx: 450  # the old value\nbaseline 0.1\n")
+  with pytest.raises(UsageError, match=r"calib\.txt, lines 1 and 3: fx is given twice, with "
+                                       "different values; keep one"):
+    infer.read_calibration(calib)
+  calib.write_text("fx 500\nbaseline 0.1\nbaseline = 0.1\n")
+  assert infer.read_calibration(calib) == {"fx": 500, "baseline": 0.1}
   calib.write_text("fx 500\nbaseline 0.1\nwidth 24 16\n")  # the size is one number a line too
   with pytest.raises(UsageError, match="line 3: width must be one number"):
     infer.read_calibration(calib)

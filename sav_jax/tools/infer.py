@@ -886,7 +886,7 @@ def read_calibration(path, cameras: tuple[int, int] | None = None) -> dict[str, 
       except (ValueError, OverflowError) as e:  # an integer beyond float's range
         raise UsageError(f"{path}: {k} must be a number, got {str(data[k])[:40]!r}") from e
     return out
-  entries = {}
+  entries, lines = {}, {}
   for number, line in enumerate(text.splitlines(), 1):
     line = line.split("#", 1)[0].strip()  # comments
     if not line:
@@ -896,10 +896,15 @@ def read_calibration(path, cameras: tuple[int, int] | None = None) -> dict[str, 
       raise UsageError(f"{path}, line {number}: expected 'key value' (or 'key: value', "
                        f"'key = value'), got {line!r}")
     key, rest = match.groups()
+    earlier = entries.get(key)
     try:  # numbers, or a matrix written as [a b c; d e f; g h i] (Middlebury)
       entries[key] = [float(v) for v in re.sub(r"[,;\[\]]", " ", rest).split()]
     except ValueError:
       entries[key] = None  # text values (KITTI's calib_time, ...)
+    if earlier is not None and entries[key] is not None and entries[key] != earlier:
+      raise UsageError(f"{path}, lines {lines[key]} and {number}: {key} is given twice, with "
+                       "different values; keep one")
+    lines.setdefault(key, number)
     if key in _CALIB_KEYS + _SIZE_KEYS and (entries[key] is None or len(entries[key]) != 1):
       raise UsageError(f"{path}, line {number}: {key} must be one number (pixels, or metres "
                        f"for the baseline), got {rest!r}")
