@@ -51,6 +51,16 @@ def is_int(x) -> bool:
   return isinstance(x, numbers.Integral) and not isinstance(x, bool)
 
 
+def require_int(value, name: str, least: int, *, where: str = "",
+                none_ok: bool = False) -> None:
+  """ValueError unless `value` is an integer (`is_int`) >= `least`, or None where `none_ok`:
+  `[where: ]name must be an integer >= least[ or None], got value`."""
+  if (none_ok and value is None) or (is_int(value) and value >= least):
+    return
+  raise ValueError(f"{where + ': ' if where else ''}{name} must be an integer >= {least}"
+                   f"{' or None' if none_ok else ''}, got {value!r}")
+
+
 def within_int64(n: int) -> bool:
   """Whether the integer `n` lies within +-(2**63 - 1): the config values the commands take
   (`1e400` passed the integer checks and ended in an OverflowError where it met a float)."""

@@ -71,6 +71,7 @@ import numpy as np
 from sav_jax import _signals, runtime
 from sav_jax._checks import caller_stacklevel, check_video_values  # noqa: F401  (public)
 from sav_jax._checks import is_int as _is_int
+from sav_jax._checks import require_int
 from sav_jax.config import (DTYPES, TEMPORAL_MAX_LEN, SAVConfig, as_config,
                             resolve_vit_attention)
 from sav_jax.model.dinov2 import DINO_VARIANTS, attention_blocks
@@ -426,8 +427,7 @@ def _check_shape(frames, height, width) -> tuple[int, int, int]:
   """`(frames, height, width)` as Python ints; a ValueError naming the first that is not a
   positive integer (0 frames failed deep in the model, a float height inside JAX)."""
   for name, value in (("frames", frames), ("height", height), ("width", width)):
-    if not (_is_int(value) and value >= 1):
-      raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    require_int(value, name, 1)
   return int(frames), int(height), int(width)
 
 

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from sav_jax._checks import (OVERSHOOT_HIGH, OVERSHOOT_LOW, caller_stacklevel,  # (viz's API too)
-                             check_utf8_path, is_int, looks_normalised, unit_range_advice,
+                             check_utf8_path, looks_normalised, require_int, unit_range_advice,
                              widened)
 from sav_jax._files import free_space_note
 
@@ -410,8 +410,7 @@ def colorbar(vmin: float, vmax: float, *, cmap: str = "inferno", length: int = 3
   vmin, vmax = _check_range(vmin, vmax)
   for name, value, least in (("length", length, 32), ("thickness", thickness, 1),
                              ("ticks", ticks, 1)):
-    if not is_int(value) or value < least:
-      raise ValueError(f"colorbar: {name} must be an integer >= {least}, got {value!r}")
+    require_int(value, name, least, where="colorbar")
   values = vmin + (vmax - vmin) * np.arange(length, dtype=np.float64) / (length - 1)
   band = np.repeat(_mapped(values[None].astype(np.float32), vmin, vmax, cmap), thickness, 0)
   labels = np.full((18, length, 3), 255, np.uint8)

@@ -51,7 +51,7 @@ import grain
 import jax
 import numpy as np
 
-from sav_jax._checks import caller_stacklevel, is_int, plural
+from sav_jax._checks import caller_stacklevel, is_int, plural, require_int
 from sav_jax.data import frame_io
 from sav_jax.data.base import some_of
 from sav_jax.data.synthetic import SyntheticConfig, SyntheticStereoVideo
@@ -479,8 +479,7 @@ def make_train_dataset(sources: Sequence[grain.MapDataset], weights: Sequence[fl
     raise ValueError(f"seed must be an integer in [0, 2**32), got {seed!r}")
   for name, value, least in (("batch_size", batch_size, 1), ("num_threads", num_threads, 0),
                              ("prefetch", prefetch, 0), ("worker_count", worker_count, 0)):
-    if not (is_int(value) and value >= least):  # (worker_count=-1 read as 0 without a word)
-      raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+    require_int(value, name, least)  # (worker_count=-1 read as 0 without a word)
   props = mixture_weights([len(s) for s in sources], weights, mode)
   pi = jax.process_index() if process_index is None else process_index
   pc = jax.process_count() if process_count is None else process_count

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from sav_jax import viz
-from sav_jax._checks import is_int
+from sav_jax._checks import require_int
 from sav_jax.data.base import number_key
 
 log = logging.getLogger(__name__)
@@ -132,18 +132,10 @@ def read_video_file(path, max_frames: int | None = None) -> np.ndarray:
     ValueError: not a video file name, unreadable, no frames, or frames that differ in
       size (named, with both sizes).
   """
-  _check_count("read_video_file", "max_frames", max_frames, 1)
+  require_int(max_frames, "max_frames", 1, where="read_video_file", none_ok=True)
   path = pathlib.Path(path)
   _check_video_path(path)
   return np.stack(list(_checked_frames(path, None, max_frames, set())))
-
-
-def _check_count(where: str, name: str, value, least: int, none_ok: bool = True) -> None:
-  """ValueError unless `value` is an integer >= `least` (or None where `none_ok`): a
-  `max_frames` of -1 dropped the last frame, a `keep` of None failed at the first read."""
-  if not ((none_ok and value is None) or (is_int(value) and value >= least)):
-    raise ValueError(f"{where}: {name} must be an integer >= {least}"
-                     f"{' or None' if none_ok else ''}, got {value!r}")
 
 
 def _size(shape) -> str:
@@ -241,8 +233,9 @@ class FrameSource:
 
   def __init__(self, path, max_frames: int | None = None, notes: set[str] | None = None,
                keep: int = 64):
-    _check_count("FrameSource", "max_frames", max_frames, 1)
-    _check_count("FrameSource", "keep", keep, 0, none_ok=False)
+    # (max_frames=-1 dropped the last frame, a keep of None failed at the first read)
+    require_int(max_frames, "max_frames", 1, where="FrameSource", none_ok=True)
+    require_int(keep, "keep", 0, where="FrameSource")
     self.path = pathlib.Path(path)
     self.keep = keep
     self.notes = set() if notes is None else notes
