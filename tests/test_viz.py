@@ -873,7 +873,7 @@ def test_colorbar_leaves_out_labels_that_would_run_into_each_other():
   placed = viz._tick_labels(list(range(11)), list(range(0, 101, 10)), 101, "px")
   texts = [t for _, t in placed]
   assert texts[-1] == "10 px" and "9" not in texts and texts[:6] == list("023456")  # "01"
-  ends = [left + cv2.getTextSize(t, cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0] for left, t in placed]
+  ends = [left + cv2.getTextSize(t, viz._FONT, viz._FONT_SCALE, 1)[0][0] for left, t in placed]
   assert all(end < nxt for end, (nxt, _) in zip(ends, placed[1:])), placed
 
 
